@@ -1,0 +1,20 @@
+"""rths_hil — hardware-in-the-loop bridge for real-time hybrid simulation (RTHS).
+
+The core package: the frequency-domain evaluation index (FEI) and its moving windows
+(:mod:`rths_hil.fei`), tracking metrics (:mod:`rths_hil.metrics`), the numerical substructure
+(:mod:`rths_hil.structure`, :mod:`rths_hil.groundmotion`), compensation, Kalman delay/gain
+estimation (:mod:`rths_hil.estimation`), the real-time loop, safety rules
+(:mod:`rths_hil.safety`), crash-safe records, studies, the discrepancy workflow and the
+``rths-hil`` command line (:mod:`rths_hil.cli`).
+
+Data flows one way through a step::
+
+    ground motion -> structure -> compensator -> driver <-> twin/hardware
+        -> evaluators (FEI, Kalman) -> safety -> recorder
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+__all__ = ["__version__"]

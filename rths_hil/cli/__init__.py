@@ -1,0 +1,79 @@
+"""The ``rths-hil`` command line.
+
+Each sub-command lives in its own module of this package and exposes
+``register(subparsers) -> None`` that adds its parser and sets ``func`` (a callable taking the
+parsed namespace and returning an exit code). Exit codes: 0 success, 2 bad input
+(:class:`~rths_hil.errors.InputError`, argparse errors), 3 safety trip, 130 operator stop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from .. import __version__
+from ..errors import InputError
+
+#: Sub-command modules, in the order they appear in ``rths-hil --help``.
+COMMANDS: tuple[str, ...] = (
+    "run",
+    "evaluate",
+    "simulate",
+    "study",
+    "twin",
+    "export",
+    "tune",
+    "diagnose",
+)
+
+
+class _Parser(argparse.ArgumentParser):
+    """ArgumentParser whose errors are one line and exit code 2."""
+
+    def error(self, message: str) -> None:  # pragma: no cover - exercised via CLI tests
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the top-level parser with every available sub-command."""
+    parser = _Parser(prog="rths-hil", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"rths-hil {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"{__name__}.{name}":
+                continue  # sub-command not built yet
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``rths-hil`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.WARNING - 10 * min(args.verbose, 2),
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"rths-hil {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"rths-hil {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,104 @@
+"""Parsing of quantities with units as given on the command line and in configs.
+
+All values are returned in SI units (s, m, m/s², Hz) or as plain fractions. Errors raise
+:class:`rths_hil.errors.InputError` with a message naming the offending text.
+"""
+
+from __future__ import annotations
+
+import re
+
+from .errors import InputError
+
+G = 9.80665
+"""Standard gravity in m/s²."""
+
+_NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6, "min": 60.0}
+_LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "um": 1e-6}
+
+
+def _split(text: str, what: str) -> tuple[float, str]:
+    m = re.fullmatch(rf"\s*({_NUM})\s*([A-Za-zµ%/²]*)\s*", str(text))
+    if not m:
+        raise InputError(f"cannot read {what} {text!r}: expected a number with an optional unit")
+    return float(m.group(1)), m.group(2)
+
+
+def parse_time(text: str | float, what: str = "time", default_unit: str = "s") -> float:
+    """Parse a duration such as ``5ms``, ``0.005``, ``3s`` into seconds."""
+    if isinstance(text, int | float):
+        return float(text) * _TIME_UNITS[default_unit]
+    value, unit = _split(text, what)
+    unit = unit or default_unit
+    if unit not in _TIME_UNITS:
+        raise InputError(f"cannot read {what} {text!r}: unknown unit {unit!r} (use s or ms)")
+    return value * _TIME_UNITS[unit]
+
+
+def parse_length(text: str | float, what: str = "length") -> float:
+    """Parse a length such as ``10mm`` or ``0.01`` (metres) into metres."""
+    if isinstance(text, int | float):
+        return float(text)
+    value, unit = _split(text, what)
+    unit = unit or "m"
+    if unit not in _LENGTH_UNITS:
+        raise InputError(f"cannot read {what} {text!r}: unknown unit {unit!r} (use m or mm)")
+    return value * _LENGTH_UNITS[unit]
+
+
+def parse_accel(text: str | float, what: str = "acceleration") -> float:
+    """Parse an acceleration: ``0.322`` (m/s²) or ``0.0528g`` (multiples of g) into m/s²."""
+    if isinstance(text, int | float):
+        return float(text)
+    value, unit = _split(text, what)
+    if unit in ("", "m/s2", "m/s²"):
+        return value
+    if unit == "g":
+        return value * G
+    raise InputError(f"cannot read {what} {text!r}: use m/s² (plain number) or a 'g' suffix")
+
+
+def parse_fraction(text: str | float, what: str = "fraction") -> float:
+    """Parse ``1%`` or ``0.01`` into a fraction (0.01)."""
+    if isinstance(text, int | float):
+        return float(text)
+    value, unit = _split(text, what)
+    if unit == "%":
+        return value / 100.0
+    if unit == "":
+        return value
+    raise InputError(f"cannot read {what} {text!r}: use a fraction (0.01) or a percentage (1%)")
+
+
+def parse_window(text: str | float, fn: float | None = None) -> float:
+    """Parse a window length: ``3s``, ``3000ms`` or ``3T`` (3 natural periods, needs ``fn``)."""
+    if isinstance(text, int | float):
+        return float(text)
+    value, unit = _split(text, "window")
+    if unit == "T":
+        if fn is None or fn <= 0:
+            raise InputError(f"window {text!r} is in natural periods: give --fn (Hz, > 0)")
+        return value / fn
+    return parse_time(text, "window")
+
+
+def parse_range(text: str, what: str = "range") -> list[float]:
+    """Parse ``start:stop:step`` (stop exclusive, like numpy.arange) or ``a,b,c`` into a list."""
+    s = str(text).strip()
+    try:
+        if ":" in s:
+            parts = [float(p) for p in s.split(":")]
+            if len(parts) != 3 or parts[2] <= 0:
+                raise ValueError
+            start, stop, step = parts
+            n = int(round((stop - start) / step))
+            vals = [round(start + i * step, 12) for i in range(max(n, 0))]
+            if not vals:
+                raise ValueError
+            return vals
+        return [float(p) for p in s.split(",") if p.strip()]
+    except ValueError:
+        raise InputError(
+            f"cannot read {what} {text!r}: use start:stop:step or a,b,c"
+        ) from None
