@@ -1,0 +1,710 @@
+"""Run configuration: a TOML schema with types, units, ranges and defaults.
+
+A configuration file names the structure and the ground motion, the loop rate and mode, the
+driver and its connection, the twin model (when not on hardware), the compensation, the limits
+and e-stop rules, the evaluator windows and the output directory. Every key is declared in
+:data:`SCHEMA` with its type, unit, allowed range and default; the defaults together are the
+**embedded default configuration**, the seed's NEES project 711 setup (Section 5): SDOF moment
+resisting frame of 503.4 t, fn = 0.77 Hz, 2 % damping, Bouc-Wen restoring force (Eq. 4.1–4.2),
+the bundled El Centro 1940 record scaled to PGA 0.322 m/s² (the seed's scaling), 1024 Hz,
+CAN driver on python-can's virtual bus to an in-process twin with a 20 ms servo lag plus 5 ms
+transport delay, inverse compensation on, online FEI on.
+
+Values with units
+    A float key accepts a plain number in its SI unit (``fs = 1024``, ``delay_tol = 0.015``) or
+    a string with a unit (``"15ms"``, ``"50mm"``, ``"0.0328g"``, ``"2%"``); see
+    :mod:`rths_hil.units`. The FEI window also accepts natural periods (``"3T"``, using
+    ``structure.fn``).
+Overrides
+    ``--set section.key=value`` (repeatable) overrides any key. The value is read with TOML
+    syntax (``--set loop.fs=2048``, ``--set compensation.enabled=false``,
+    ``--set 'driver.connection={interface="virtual"}'``); text that is not valid TOML is taken as
+    a string (``--set driver.name=modbus``, ``--set safety.fei_delay_tol=10ms``).
+Errors
+    Unknown keys, wrong types, units or ranges raise :class:`~rths_hil.errors.InputError`
+    naming the file (or the ``--set`` argument) and the key path, e.g.
+    ``run.toml: loop.fs: must be ≤ 100000 Hz, got 1e+06``.
+
+``docs/config.md`` is generated from :data:`SCHEMA` by :func:`schema_markdown`.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import math
+import re
+import tomllib
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .errors import InputError
+from .units import parse_accel, parse_fraction, parse_length, parse_time, parse_window
+
+__all__ = [
+    "SCHEMA",
+    "Config",
+    "Key",
+    "default_config",
+    "load_config",
+    "parse_override",
+    "schema_markdown",
+    "to_toml",
+]
+
+
+@dataclass(frozen=True)
+class Key:
+    """One configuration key.
+
+    Attributes
+    ----------
+    kind : str
+        ``float`` (a quantity in ``unit``), ``int``, ``bool``, ``str``, ``choice``, ``window``
+        (seconds or natural periods) or ``table`` (free-form, checked by its consumer).
+    default : Any
+        Default value (already in SI units).
+    unit : str
+        SI unit of the value (``s``, ``m``, ``Hz``, ``N``, ``kg``, ``N/m``, ``m/s``, ``m/s²``,
+        ``1/s``, ``-``, ``steps``, ``windows``).
+    doc : str
+        One-line description.
+    lo, hi : float or None
+        Allowed range; ``lo_open``/``hi_open`` make the bound exclusive.
+    choices : tuple of str
+        Allowed values of a ``choice`` key.
+    """
+
+    kind: str
+    default: Any
+    unit: str = "-"
+    doc: str = ""
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple[str, ...] = ()
+
+
+#: The schema: section → key → :class:`Key`. The defaults form the embedded NEES-711 setup.
+SCHEMA: dict[str, dict[str, Key]] = {
+    "structure": {
+        "mass": Key(
+            "float", 503.4e3, "kg", "mass of the SDOF moment resisting frame", 0, None, True
+        ),
+        "fn": Key(
+            "float", 0.77, "Hz", "elastic natural frequency (sets k = m·(2π·fn)²)", 0, None, True
+        ),
+        "damping": Key(
+            "float", 0.02, "-", "inherent viscous damping ratio (c = 2ζ√(k·m))", 0, 1, False, True
+        ),
+        "bouc_wen": Key(
+            "bool", True, "-", "Bouc-Wen restoring force (seed Eq. 4.1–4.2) instead of linear k·x"
+        ),
+        "x_y": Key("float", 0.010, "m", "Bouc-Wen yield displacement x_y", 0, None, True),
+        "eta": Key("float", 0.0, "-", "Bouc-Wen post- to pre-yield stiffness ratio η", 0, 1),
+        "beta": Key("float", 0.55, "-", "Bouc-Wen shape parameter β", None, None),
+        "gamma": Key("float", 0.45, "-", "Bouc-Wen shape parameter γ", None, None),
+        "q": Key("float", 2.0, "-", "Bouc-Wen sharpness exponent q", 0, None, True),
+        "k_specimen": Key(
+            "float",
+            1.19e6,
+            "N/m",
+            "estimated specimen stiffness, used in the CR integration parameter",
+            0,
+            None,
+        ),
+    },
+    "ground_motion": {
+        "record": Key(
+            "str",
+            "default",
+            "-",
+            "record file (PEER .AT2 or CSV; relative to the config file) or the "
+            "name of a bundled record; 'default' = El Centro 1940 (RSN 6, ELC180)",
+        ),
+        "pga": Key(
+            "float",
+            0.322,
+            "m/s²",
+            "scale the record to this peak ground acceleration (0 = unscaled)",
+            0,
+            None,
+        ),
+        "tail": Key(
+            "float", 0.0, "s", "seconds of zero acceleration appended (free vibration)", 0, None
+        ),
+    },
+    "loop": {
+        "fs": Key("float", 1024.0, "Hz", "loop (integration) rate", 1, 100_000),
+        "mode": Key(
+            "choice",
+            "paced",
+            "-",
+            "paced: wall clock, one step per period; lockstep: virtual time, as fast "
+            "as the actuator answers",
+            choices=("paced", "lockstep"),
+        ),
+        "duration": Key(
+            "float", 30.0, "s", "simulated time to run (0 = the whole record plus tail)", 0, None
+        ),
+        "spin": Key(
+            "float",
+            3e-4,
+            "s",
+            "paced: sleep until this long before the deadline, then busy-wait",
+            0,
+            0.01,
+        ),
+        "overrun_threshold": Key(
+            "float",
+            0.5,
+            "-",
+            "paced: a step is an overrun when its command leaves later "
+            "than this fraction of a period after its deadline",
+            0,
+            None,
+            True,
+        ),
+        "feedback_timeout": Key(
+            "float",
+            0.0,
+            "s",
+            "wait for a reply at most this long (0 = auto: 0.6 period when paced, 1 s in lockstep)",
+            0,
+            10,
+        ),
+        "heartbeat": Key("float", 0.1, "s", "driver heartbeat interval (0 = never)", 0, None),
+        "console": Key("float", 0.5, "s", "live console line interval (0 = off)", 0, None),
+    },
+    "driver": {
+        "name": Key(
+            "str",
+            "can",
+            "-",
+            "driver name in the registry (can, modbus, serial, or a lab's entry point)",
+        ),
+        "connection": Key(
+            "table",
+            {},
+            "-",
+            "driver connection settings (e.g. interface/channel for CAN, "
+            "host/port for Modbus, url for serial); with a twin they go to the "
+            "twin, which hands the driver its endpoint",
+        ),
+    },
+    "twin": {
+        "enabled": Key(
+            "bool",
+            True,
+            "-",
+            "run an in-process virtual twin (false: real controller at the connection)",
+        ),
+        "model": Key(
+            "str", "", "-", "twin model file (TOML, [actuator] ...); empty: the tables below"
+        ),
+        "actuator": Key(
+            "table",
+            {"model": "first_order", "time_constant": 0.020, "delay": 0.005, "gain": 1.0},
+            "-",
+            "actuator model as in a model file's [actuator] table",
+        ),
+        "specimen": Key(
+            "table",
+            {},
+            "-",
+            "specimen model as in a model file's [specimen] table (empty: the model file default)",
+        ),
+        "faults": Key(
+            "str",
+            "",
+            "-",
+            "fault plan for tests and dry runs, e.g. 'stuck_from=3000' (sim_backends.faults)",
+        ),
+    },
+    "compensation": {
+        "enabled": Key("bool", True, "-", "inverse compensation x_c = α·x_t − (α−1)·x_t,prev"),
+        "alpha": Key(
+            "float", 26.6, "-", "α in steps (1 + delay/Δt; 26.6 ≈ 25 ms at 1024 Hz)", 1, None
+        ),
+        "amplitude": Key("float", 1.0, "-", "amplitude factor on the command", 0, None, True),
+        "adaptive": Key("bool", False, "-", "adapt α online from the online FEI delay"),
+        "time_constant": Key(
+            "float", 6.0, "s", "adaptive: time constant of the α update", 0, None, True
+        ),
+        "rate": Key("float", 5.0, "1/s", "adaptive: maximum |dα/dt|", 0, None, True),
+        "alpha_min": Key("float", 1.0, "-", "adaptive: lower bound of α", 1, None),
+        "alpha_max": Key("float", 100.0, "-", "adaptive: upper bound of α", 1, None),
+    },
+    "fei": {
+        "enabled": Key("bool", True, "-", "online FEI (streaming every sample)"),
+        "pair": Key(
+            "choice",
+            "target",
+            "-",
+            "evaluated pair: measured vs target (seed) or measured vs command",
+            choices=("target", "command"),
+        ),
+        "window": Key(
+            "window",
+            "3T",
+            "s",
+            "window length t_w in s, or in natural periods ('3T' = 3/fn)",
+            0,
+            None,
+            True,
+        ),
+        "exact_hop": Key(
+            "int", 256, "steps", "exact FEI cross-check every this many samples (0 = off)", 0, None
+        ),
+    },
+    "kalman": {
+        "enabled": Key("bool", True, "-", "Kalman gain/delay estimator beside the FEI"),
+        "pair": Key(
+            "choice",
+            "command",
+            "-",
+            "input of the estimator: command (the actuator's own delay) or target",
+            choices=("target", "command"),
+        ),
+        "every": Key("int", 1, "steps", "run the estimator every this many steps", 1, None),
+        "options": Key("table", {}, "-", "estimator keyword arguments (rths_hil.estimation)"),
+    },
+    "safety": {
+        "displacement_limit": Key(
+            "float", 0.050, "m", "|target|, |command|, |measured| limit (0 = off)", 0, None
+        ),
+        "velocity_limit": Key(
+            "float",
+            0.5,
+            "m/s",
+            "|structure velocity| and |measured velocity| limit (0 = off)",
+            0,
+            None,
+        ),
+        "force_limit": Key("float", 100e3, "N", "|measured force| limit (0 = off)", 0, None),
+        "fei_amplitude_tol": Key(
+            "float", 0.2, "-", "FEI rule: tolerance on |A − 1| (0 = off)", 0, None
+        ),
+        "fei_delay_tol": Key("float", 0.015, "s", "FEI rule: tolerance on |d| (0 = off)", 0, None),
+        "fei_consecutive": Key(
+            "int",
+            256,
+            "windows",
+            "FEI rule: consecutive valid windows out of tolerance that trip",
+            1,
+            None,
+        ),
+        "kf_gain_min": Key("float", 0.5, "-", "Kalman rule: lowest gain estimate", None, None),
+        "kf_gain_max": Key("float", 1.5, "-", "Kalman rule: highest gain estimate", None, None),
+        "kf_delay_max": Key(
+            "float", 0.1, "s", "Kalman rule: |delay estimate| limit (0 = off)", 0, None
+        ),
+        "watchdog_missed": Key("int", 3, "steps", "consecutive missed replies that trip", 1, None),
+        "max_sequence_gaps": Key("int", 0, "-", "sequence gaps tolerated before a trip", 0, None),
+        "max_overruns": Key("int", 10, "steps", "consecutive paced overruns that trip", 1, None),
+        "stuck_steps": Key(
+            "int",
+            50,
+            "steps",
+            "identical measured values while the command moves that trip (0 = off)",
+            0,
+            None,
+        ),
+        "stuck_motion": Key(
+            "float", 1e-4, "m", "stuck rule: command travel needed over those steps", 0, None, True
+        ),
+        "warmup": Key(
+            "float", 0.0, "s", "FEI and Kalman rules start after this loop time", 0, None
+        ),
+    },
+    "output": {
+        "dir": Key(
+            "str",
+            "runs/{timestamp}",
+            "-",
+            "run directory ({timestamp} is replaced by the start time)",
+        ),
+        "flush_interval": Key("float", 0.05, "s", "record flush interval (≤ 0.1 s)", 0, 0.1, True),
+        "plot": Key("bool", True, "-", "write report.png at the end"),
+    },
+}
+
+_QUANTITY_UNITS = {"kg", "N", "N/m", "m/s", "1/s", "Hz"}
+_NUM_RE = re.compile(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(\S*)\s*")
+_PREFIX = {"": 1.0, "k": 1e3, "M": 1e6}
+
+
+def _describe(v: Any) -> str:
+    if isinstance(v, str):
+        return repr(v)
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, dict):
+        return "a table"
+    if isinstance(v, list):
+        return "an array"
+    return repr(v)
+
+
+def _quantity(value: Any, unit: str, path: str) -> float:
+    """Read a float in ``unit`` from a number or a string with a unit."""
+    if isinstance(value, bool) or not isinstance(value, int | float | str):
+        raise InputError(f"{path}: expected a number in {unit}, got {_describe(value)}")
+    if isinstance(value, int | float):
+        return float(value)
+    try:
+        if unit == "s":
+            return parse_time(value, path)
+        if unit == "m":
+            return parse_length(value, path)
+        if unit == "m/s²":
+            return parse_accel(value, path)
+        if unit == "-":
+            return parse_fraction(value, path)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    m = _NUM_RE.fullmatch(value)
+    if m:
+        num, u = float(m.group(1)), m.group(2)
+        if u in ("", unit):
+            return num
+        for p, f in _PREFIX.items():
+            if p and u == p + unit:
+                return num * f
+    raise InputError(f"{path}: cannot read {value!r} as a quantity in {unit}")
+
+
+def _check_range(key: Key, v: float, path: str) -> None:
+    if not math.isfinite(v):
+        raise InputError(f"{path}: must be a finite number, got {v!r}")
+    unit = "" if key.unit in ("-", "steps", "windows") else f" {key.unit}"
+    if key.lo is not None and (v < key.lo or (key.lo_open and v == key.lo)):
+        op = ">" if key.lo_open else "≥"
+        raise InputError(f"{path}: must be {op} {key.lo:g}{unit}, got {v:g}")
+    if key.hi is not None and (v > key.hi or (key.hi_open and v == key.hi)):
+        op = "<" if key.hi_open else "≤"
+        raise InputError(f"{path}: must be {op} {key.hi:g}{unit}, got {v:g}")
+
+
+def _coerce(key: Key, value: Any, path: str) -> Any:
+    kind = key.kind
+    if kind == "float":
+        v = _quantity(value, key.unit, path)
+        _check_range(key, v, path)
+        return v
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"{path}: expected an integer, got {_describe(value)}")
+        _check_range(key, value, path)
+        return int(value)
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise InputError(f"{path}: expected true or false, got {_describe(value)}")
+        return value
+    if kind == "str":
+        if not isinstance(value, str):
+            raise InputError(f"{path}: expected a string, got {_describe(value)}")
+        return value
+    if kind == "choice":
+        if not isinstance(value, str) or value not in key.choices:
+            raise InputError(
+                f"{path}: must be one of {', '.join(key.choices)}, got {_describe(value)}"
+            )
+        return value
+    if kind == "window":
+        if isinstance(value, str) and value.strip().endswith("T"):
+            try:
+                parse_window(value, 1.0)  # syntax check; resolved with structure.fn later
+            except InputError as exc:
+                raise InputError(f"{path}: {exc}") from None
+            return value.strip()
+        v = _quantity(value, "s", path)
+        _check_range(key, v, path)
+        return v
+    if kind == "table":
+        if not isinstance(value, dict):
+            raise InputError(f"{path}: expected a table, got {_describe(value)}")
+        return copy.deepcopy(value)
+    raise AssertionError(kind)  # pragma: no cover
+
+
+def _unknown(path: str, name: str, known: Iterable[str]) -> InputError:
+    known = list(known)
+    close = difflib.get_close_matches(name, known, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return InputError(f"{path}: unknown key{hint}; known keys: {', '.join(known)}")
+
+
+class Config(dict):
+    """A resolved configuration: ``cfg["loop"]["fs"]``, all values in SI units.
+
+    Attributes
+    ----------
+    source : str
+        Where it came from (a file path or ``<embedded default>``).
+    base_dir : Path
+        Directory relative paths in the configuration are resolved against.
+    """
+
+    source: str = "<embedded default>"
+    base_dir: Path = Path(".")
+
+    def get_path(self, dotted: str) -> Any:
+        """Value of ``section.key`` (or deeper into a table)."""
+        node: Any = self
+        for part in dotted.split("."):
+            node = node[part]
+        return node
+
+    @property
+    def window_s(self) -> float:
+        """The FEI window in seconds (natural periods resolved with ``structure.fn``)."""
+        w = self["fei"]["window"]
+        return parse_window(w, self["structure"]["fn"]) if isinstance(w, str) else float(w)
+
+    def resolve_path(self, text: str) -> Path:
+        """A path from the configuration, relative to the config file's directory."""
+        p = Path(text).expanduser()
+        return p if p.is_absolute() else self.base_dir / p
+
+    def as_dict(self) -> dict:
+        """A plain nested dict (JSON-ready)."""
+        return copy.deepcopy(dict(self))
+
+
+def default_config() -> Config:
+    """The embedded default configuration (the seed's NEES-711 setup, see module docstring)."""
+    cfg = Config(
+        {
+            s: {k: copy.deepcopy(key.default) for k, key in keys.items()}
+            for s, keys in SCHEMA.items()
+        }
+    )
+    return cfg
+
+
+def _merge(cfg: Config, data: Mapping[str, Any], where: str) -> None:
+    for section, table in data.items():
+        if section not in SCHEMA:
+            raise InputError(f"{where}: {_unknown(section, section, SCHEMA)}")
+        if not isinstance(table, dict):
+            raise InputError(
+                f"{where}: {section}: expected a table [{section}], got {_describe(table)}"
+            )
+        keys = SCHEMA[section]
+        for name, value in table.items():
+            path = f"{section}.{name}"
+            if name not in keys:
+                raise InputError(f"{where}: {_unknown(path, name, keys)}")
+            try:
+                cfg[section][name] = _coerce(keys[name], value, path)
+            except InputError as exc:
+                raise InputError(f"{where}: {exc}") from None
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """Split ``section.key=value`` into the key path and the value (TOML, else a string).
+
+    Raises
+    ------
+    InputError
+        No ``=`` or an empty key.
+    """
+    name, sep, raw = text.partition("=")
+    name = name.strip()
+    if not sep or not name:
+        raise InputError(f"--set {text}: expected section.key=value")
+    parts = name.split(".")
+    if any(not p for p in parts) or len(parts) < 2:
+        raise InputError(f"--set {text}: expected section.key=value")
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return parts, value
+
+
+def _apply_override(cfg: Config, text: str) -> None:
+    parts, value = parse_override(text)
+    where = f"--set {text}"
+    section, name = parts[0], parts[1]
+    if section not in SCHEMA:
+        raise InputError(f"{where}: {_unknown(section, section, SCHEMA)}")
+    keys = SCHEMA[section]
+    if name not in keys:
+        raise InputError(f"{where}: {_unknown(section + '.' + name, name, keys)}")
+    key = keys[name]
+    if len(parts) > 2:
+        if key.kind != "table":
+            raise InputError(f"{where}: {section}.{name} is not a table")
+        node = cfg[section][name]
+        for p in parts[2:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise InputError(f"{where}: {'.'.join(parts[:-1])} is not a table")
+        node[parts[-1]] = value
+        return
+    try:
+        cfg[section][name] = _coerce(key, value, f"{section}.{name}")
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
+
+
+def _cross_check(cfg: Config, note: str = "") -> None:
+    where = cfg.source + note
+    s, lp, c, sf = cfg["structure"], cfg["loop"], cfg["compensation"], cfg["safety"]
+    if s["fn"] >= lp["fs"] / 2:
+        raise InputError(
+            f"{where}: structure.fn: {s['fn']:g} Hz is not below the Nyquist "
+            f"frequency of loop.fs ({lp['fs'] / 2:g} Hz)"
+        )
+    if s["bouc_wen"] and not (s["beta"] + s["gamma"] > 0):
+        raise InputError(f"{where}: structure.beta + structure.gamma must be > 0")
+    if c["alpha_min"] > c["alpha_max"]:
+        raise InputError(
+            f"{where}: compensation.alpha_min ({c['alpha_min']:g}) exceeds "
+            f"compensation.alpha_max ({c['alpha_max']:g})"
+        )
+    if sf["kf_gain_min"] >= sf["kf_gain_max"]:
+        raise InputError(f"{where}: safety.kf_gain_min must be below safety.kf_gain_max")
+    w = cfg["fei"]["window"]
+    try:
+        ws = cfg.window_s
+    except InputError as exc:
+        raise InputError(f"{where}: fei.window: {exc}") from None
+    if not ws * lp["fs"] >= 8:
+        raise InputError(f"{where}: fei.window: {w!r} is fewer than 8 samples at {lp['fs']:g} Hz")
+    if c["adaptive"] and not cfg["fei"]["enabled"]:
+        raise InputError(f"{where}: compensation.adaptive needs fei.enabled = true")
+
+
+def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
+    """Read a configuration file over the defaults, then apply ``--set`` overrides.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        TOML file. ``None`` gives the embedded default.
+    overrides : iterable of str
+        ``section.key=value`` items, applied in order.
+
+    Returns
+    -------
+    Config
+
+    Raises
+    ------
+    InputError
+        Unreadable file, TOML syntax error, unknown key, wrong type, unit or range — naming
+        the file (or ``--set`` item) and the key path.
+    """
+    cfg = default_config()
+    if path is not None:
+        p = Path(path)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise InputError(f"{path}: cannot read config ({exc.strerror})") from None
+        except UnicodeDecodeError:
+            raise InputError(f"{path}: not a UTF-8 text file") from None
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise InputError(f"{path}: TOML syntax error: {exc}") from None
+        cfg.source = str(path)
+        cfg.base_dir = p.resolve().parent
+        _merge(cfg, data, str(path))
+    else:
+        cfg.base_dir = Path.cwd()
+    overrides = list(overrides)
+    for item in overrides:
+        _apply_override(cfg, item)
+    _cross_check(cfg, " (with --set overrides)" if overrides else "")
+    return cfg
+
+
+# --------------------------------------------------------------------------------------------
+# rendering
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(type(v))
+
+
+def to_toml(cfg: Mapping[str, Mapping[str, Any]], comments: bool = True) -> str:
+    """Render a configuration as TOML (with each key's unit and description as comments)."""
+    lines: list[str] = []
+    for section, keys in SCHEMA.items():
+        lines.append(f"[{section}]")
+        for name, key in keys.items():
+            value = cfg.get(section, {}).get(name, key.default)
+            line = f"{name} = {_toml_value(value)}"
+            if comments:
+                unit = "" if key.unit == "-" else f"[{key.unit}] "
+                line = f"{line:<44} # {unit}{key.doc}"
+            lines.append(line)
+        lines.append("")
+    return "\n".join(lines)
+
+
+def schema_markdown() -> str:
+    """The configuration reference (``docs/config.md``) generated from :data:`SCHEMA`."""
+    out = [
+        "# Configuration reference",
+        "",
+        "<!-- generated by rths_hil.config.schema_markdown(); do not edit by hand -->",
+        "",
+        "`rths-hil run [CONFIG.toml] [--set section.key=value]...` reads a TOML file over the",
+        "embedded defaults (the seed's NEES project 711 setup), then applies the `--set`",
+        "overrides in order. Every key is optional. Floats take a plain number in the SI unit",
+        'shown, or a string with a unit (`"15ms"`, `"50mm"`, `"0.0328g"`, `"2%"`).',
+        "A `--set` value is read as TOML (`--set loop.fs=2048`, `--set fei.enabled=false`,",
+        "`--set 'driver.connection={port=1502}'`); text that is not TOML is taken as a string",
+        "(`--set driver.name=modbus`, `--set safety.fei_delay_tol=10ms`). Keys inside a table",
+        "key can be set one by one (`--set twin.actuator.delay=0.01`).",
+        "",
+        "Errors (unknown key, wrong type, unit or range) are one line naming the file or the",
+        "`--set` item and the key path; `rths-hil run` then exits with code 2.",
+        "`rths-hil run --show-config` prints the resolved configuration as TOML.",
+        "",
+    ]
+    for section, keys in SCHEMA.items():
+        out += [
+            f"## [{section}]",
+            "",
+            "| key | type | unit | range | default | description |",
+            "|---|---|---|---|---|---|",
+        ]
+        for name, key in keys.items():
+            if key.kind == "choice":
+                rng = " / ".join(key.choices)
+            elif key.lo is not None or key.hi is not None:
+                lo = "" if key.lo is None else f"{'(' if key.lo_open else '['}{key.lo:g}"
+                hi = "" if key.hi is None else f"{key.hi:g}{')' if key.hi_open else ']'}"
+                rng = f"{lo or '(−∞'}, {hi or '∞)'}"
+            else:
+                rng = ""
+            kind = {"window": 'float or "nT"', "table": "table"}.get(key.kind, key.kind)
+            out.append(
+                f"| `{name}` | {kind} | {key.unit} | {rng} | "
+                f"`{_toml_value(key.default)}` | {key.doc} |"
+            )
+        out.append("")
+    return "\n".join(out)

@@ -1,0 +1,454 @@
+"""Crash-safe run records: a growing NumPy ``.npy`` file, an event log and metadata.
+
+A run directory holds
+
+``record.npy``
+    One row per loop step, a structured dtype with named columns (:data:`COLUMNS`, SI units).
+    Rows are packed into a small in-memory chunk and written with one ``write`` system call
+    every ``flush_rows`` steps (≤ 0.1 s of loop time); after each data write the file's
+    fixed-size ``.npy`` header is rewritten in place (``pwrite`` at offset 0) with the new row
+    count. The header therefore never claims a row that is not on disk: after ``kill -9`` (the
+    data is in the OS page cache) ``np.load`` reads every flushed row; bytes of a data write
+    that the kill interrupted lie beyond the counted rows and are ignored by ``np.load``.
+    ``pandas.DataFrame(np.load("record.npy"))`` gives a table with the column names.
+``events.jsonl``
+    One JSON object per line, appended and flushed immediately: ``start``, ``trip``,
+    ``operator_stop``, ``end`` and notices, each with loop ``time`` (s), ``step`` and the wall
+    clock ``wall_time`` (ISO 8601, UTC).
+``meta.json``
+    Written (atomically) before the first step: the resolved configuration, package versions,
+    start time, sampling rate, the column table (name, dtype, unit, description) and a
+    description of the format.
+
+:func:`read_run` reads a (possibly crashed) run directory back, and :func:`export_run` writes
+``record.csv`` (the record CSV of :mod:`rths_hil.records`, ``time`` first, same column names)
+and, when ``h5py`` is importable, ``record.h5``. See ``docs/records.md``.
+"""
+
+from __future__ import annotations
+
+import ast
+import datetime as _dt
+import json
+import logging
+import math
+import os
+import platform
+import struct
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = [
+    "COLUMNS",
+    "EVENTS_FILE",
+    "META_FILE",
+    "RECORD_FILE",
+    "Recorder",
+    "RunData",
+    "export_run",
+    "package_versions",
+    "read_run",
+    "record_dtype",
+]
+
+log = logging.getLogger(__name__)
+
+RECORD_FILE = "record.npy"
+EVENTS_FILE = "events.jsonl"
+META_FILE = "meta.json"
+
+#: The record's columns: (name, numpy dtype, unit, description), in file order.
+COLUMNS: tuple[tuple[str, str, str, str], ...] = (
+    ("time", "<f8", "s", "loop time of the step (k·Δt)"),
+    ("step", "<i8", "-", "step index k"),
+    ("ground_accel", "<f8", "m/s²", "ground acceleration applied at this step"),
+    ("target", "<f8", "m", "target (calculated) displacement from the structure stepper"),
+    ("command", "<f8", "m", "command sent to the actuator (after compensation)"),
+    ("measured", "<f8", "m", "measured actuator displacement (held when no reply)"),
+    ("force", "<f8", "N", "measured restoring force of the experimental substructure"),
+    ("velocity", "<f8", "m/s", "velocity of the structure (integrator state)"),
+    ("restoring_force", "<f8", "N", "numerical substructure restoring force (Bouc-Wen)"),
+    ("alpha", "<f8", "-", "inverse-compensation α used for this step's command"),
+    ("fei_amplitude", "<f8", "-", "online FEI amplitude A (streaming, window ending here)"),
+    ("fei_delay", "<f8", "s", "online FEI equivalent delay d (streaming)"),
+    ("fei_f_eq", "<f8", "Hz", "online FEI equivalent frequency (streaming)"),
+    ("fei_valid", "|b1", "-", "the streaming window ending here is valid"),
+    ("fei_exact_amplitude", "<f8", "-", "exact online FEI A, latest completed window (held)"),
+    ("fei_exact_delay", "<f8", "s", "exact online FEI d, latest completed window (held)"),
+    ("fei_exact_valid", "|b1", "-", "the latest exact window is valid"),
+    ("kf_gain", "<f8", "-", "Kalman estimate of the actuator gain"),
+    ("kf_delay", "<f8", "s", "Kalman estimate of the actuator delay"),
+    ("lateness", "<f8", "s", "paced mode: send time minus deadline (0 in lockstep)"),
+    ("feedback_ok", "|b1", "-", "a reply with the right sequence number arrived in time"),
+    ("seq", "<i8", "-", "sequence number sent with the command"),
+)
+
+_STRUCT_CODES = {"<f8": "d", "<i8": "q", "|b1": "?"}
+_MAGIC = b"\x93NUMPY\x01\x00"
+_HEADER_ALIGN = 64
+
+
+def record_dtype(columns: Sequence[tuple[str, str, str, str]] = COLUMNS) -> np.dtype:
+    """The structured dtype of ``record.npy`` (packed, little-endian)."""
+    return np.dtype([(name, code) for name, code, _, _ in columns])
+
+
+def _header_bytes(descr, rows: int, total_len: int | None = None) -> bytes:
+    """A ``.npy`` v1.0 header for ``rows`` rows padded to ``total_len`` bytes (or aligned)."""
+    text = repr({"descr": descr, "fortran_order": False, "shape": (int(rows),)})
+    body = text.encode("latin1")
+    if total_len is None:
+        # room for the largest row count we could ever write, then 64-byte alignment
+        probe = repr({"descr": descr, "fortran_order": False, "shape": (10**18,)})
+        need = len(_MAGIC) + 2 + len(probe.encode("latin1")) + 1
+        total_len = -(-need // _HEADER_ALIGN) * _HEADER_ALIGN
+    hlen = total_len - len(_MAGIC) - 2
+    pad = hlen - len(body) - 1
+    if pad < 0 or hlen > 65535:
+        raise ValueError("record header does not fit")
+    return _MAGIC + struct.pack("<H", hlen) + body + b" " * pad + b"\n"
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of Python, the platform and the packages a run depends on."""
+    out = {"python": sys.version.split()[0], "platform": platform.platform()}
+    for name in (
+        "rths_hil",
+        "numpy",
+        "scipy",
+        "python-can",
+        "cantools",
+        "pymodbus",
+        "pyserial",
+        "filterpy",
+        "cobs",
+        "matplotlib",
+    ):
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = "not installed"
+    return out
+
+
+def _now_iso() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="microseconds")
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    return repr(obj)
+
+
+def _clean(obj):
+    """Replace non-finite floats (not valid JSON) by their repr, recursively."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else repr(obj)
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_clean(v) for v in obj]
+    return obj
+
+
+def _write_json_atomic(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(_clean(data), fh, indent=2, default=_json_default, allow_nan=False)
+        fh.write("\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+class Recorder:
+    """Write a run directory while the loop runs (see the module docstring for the format).
+
+    Parameters
+    ----------
+    run_dir : str or Path
+        Directory to create (parents too). Existing record files in it are an error.
+    fs : float
+        Loop rate in Hz (stored in the metadata; sets the default flush size).
+    config : dict, optional
+        The resolved configuration, stored in ``meta.json``.
+    flush_interval : float
+        Loop time between data flushes in s (0 < interval ≤ 0.1).
+    extra_meta : dict, optional
+        More metadata keys.
+
+    Notes
+    -----
+    :meth:`append` takes one value per column of :data:`COLUMNS`, positionally, in order; it packs
+    them with :meth:`struct.Struct.pack_into` into a preallocated chunk (about 0.5 µs) and writes
+    the chunk when it is full. Use it as a context manager or call :meth:`close`.
+    """
+
+    def __init__(
+        self,
+        run_dir: str | Path,
+        fs: float,
+        config: dict | None = None,
+        flush_interval: float = 0.05,
+        extra_meta: dict | None = None,
+    ) -> None:
+        if not (0 < flush_interval <= 0.1):
+            raise InputError(f"recorder flush interval must be in (0, 0.1] s, got {flush_interval}")
+        if not (fs > 0 and math.isfinite(fs)):
+            raise InputError(f"recorder: sampling rate must be > 0 Hz, got {fs}")
+        self.run_dir = Path(run_dir)
+        try:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(
+                f"cannot create run directory {self.run_dir}: {exc.strerror}"
+            ) from None
+        self.path = self.run_dir / RECORD_FILE
+        if self.path.exists():
+            raise InputError(f"{self.path} already exists: choose a new output directory")
+        self.fs = float(fs)
+        self.dtype = record_dtype()
+        self._descr = np.lib.format.dtype_to_descr(self.dtype)
+        self._header_len = len(_header_bytes(self._descr, 0))
+        self.flush_rows = max(1, math.floor(flush_interval * fs))
+        fmt = "<" + "".join(_STRUCT_CODES[c] for _, c, _, _ in COLUMNS)
+        self._struct = struct.Struct(fmt)
+        assert self._struct.size == self.dtype.itemsize
+        self._rowsize = self._struct.size
+        self._chunk = bytearray(self._rowsize * self.flush_rows)
+        self._chunk_end = len(self._chunk)
+        self._pack = self._struct.pack_into
+        self._off = 0
+        self.rows = 0  # rows on disk and counted in the header
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        os.write(self._fd, _header_bytes(self._descr, 0, self._header_len))
+        self._events = open(self.run_dir / EVENTS_FILE, "a", encoding="utf-8")
+        self.start_time = _now_iso()
+        meta = {
+            "format": "rths_hil run directory v1 (see docs/records.md)",
+            "start_time": self.start_time,
+            "fs": self.fs,
+            "dt": 1.0 / self.fs,
+            "record": RECORD_FILE,
+            "events": EVENTS_FILE,
+            "flush_interval": self.flush_rows / self.fs,
+            "columns": [
+                {"name": n, "dtype": c, "unit": u, "description": d} for n, c, u, d in COLUMNS
+            ],
+            "versions": package_versions(),
+            "config": config or {},
+        }
+        if extra_meta:
+            meta.update(extra_meta)
+        self.meta = meta
+        _write_json_atomic(self.run_dir / META_FILE, meta)
+        self.closed = False
+        # bound method the loop calls once per step
+        self.append = self._append
+
+    # -- step path -------------------------------------------------------------------------
+    def _append(self, *values) -> None:
+        """Append one row (one value per column of :data:`COLUMNS`, in order)."""
+        off = self._off
+        self._pack(self._chunk, off, *values)
+        off += self._rowsize
+        self._off = off
+        if off == self._chunk_end:
+            self.flush()
+
+    # -- slow path ---------------------------------------------------------------------------
+    def flush(self) -> None:
+        """Write the buffered rows, then rewrite the header with the new row count."""
+        n = self._off
+        if n == 0 or self.closed:
+            return
+        view = memoryview(self._chunk)[:n]
+        written = 0
+        while written < n:
+            written += os.write(self._fd, view[written:])
+        self.rows += n // self._rowsize
+        self._off = 0
+        os.pwrite(self._fd, _header_bytes(self._descr, self.rows, self._header_len), 0)
+
+    def event(self, kind: str, time: float = math.nan, step: int = -1, **fields) -> dict:
+        """Append an event line to ``events.jsonl`` and flush it to the OS immediately."""
+        ev = {"kind": kind, "time": time, "step": step, "wall_time": _now_iso(), **fields}
+        self._events.write(json.dumps(_clean(ev), default=_json_default, allow_nan=False) + "\n")
+        self._events.flush()
+        return ev
+
+    def update_meta(self, **fields) -> None:
+        """Add keys to ``meta.json`` (rewritten atomically)."""
+        self.meta.update(fields)
+        _write_json_atomic(self.run_dir / META_FILE, self.meta)
+
+    def close(self) -> None:
+        """Flush the last rows and close the files (idempotent)."""
+        if self.closed:
+            return
+        try:
+            self.flush()
+            os.fsync(self._fd)
+        finally:
+            self.closed = True
+            os.close(self._fd)
+            self._events.flush()
+            self._events.close()
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@dataclass
+class RunData:
+    """A run directory read back.
+
+    Attributes
+    ----------
+    record : ndarray
+        Structured array, one row per flushed step (``record["target"]`` …).
+    events : list of dict
+        The event log, in order.
+    meta : dict
+        ``meta.json``.
+    path : Path
+        The run directory.
+    """
+
+    record: np.ndarray
+    events: list[dict]
+    meta: dict
+    path: Path
+
+    @property
+    def fs(self) -> float:
+        """Loop rate in Hz."""
+        return float(self.meta.get("fs", 1.0 / float(np.diff(self.record["time"][:2])[0])))
+
+    def column(self, name: str) -> np.ndarray:
+        """One column as a float array."""
+        return np.asarray(self.record[name], dtype=float)
+
+
+def read_run(run_dir: str | Path) -> RunData:
+    """Read a run directory written by :class:`Recorder` (also after a crash).
+
+    Raises
+    ------
+    InputError
+        Not a run directory, or an unreadable record.
+    """
+    d = Path(run_dir)
+    rec_path = d / RECORD_FILE
+    if not rec_path.is_file():
+        raise InputError(f"{d}: not a run directory (no {RECORD_FILE})")
+    try:
+        record = np.load(rec_path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise InputError(f"{rec_path}: unreadable record ({exc})") from None
+    if record.dtype.names is None or "time" not in record.dtype.names:
+        raise InputError(f"{rec_path}: not an rths_hil record (no named columns)")
+    meta: dict = {}
+    mp = d / META_FILE
+    if mp.is_file():
+        try:
+            meta = json.loads(mp.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise InputError(f"{mp}: unreadable metadata ({exc})") from None
+    events: list[dict] = []
+    ep = d / EVENTS_FILE
+    if ep.is_file():
+        lines = ep.read_text(encoding="utf-8", errors="replace").splitlines()
+        for i, line in enumerate(lines):
+            if not line.strip():
+                continue
+            try:
+                events.append(json.loads(line))
+            except json.JSONDecodeError:
+                if i == len(lines) - 1:
+                    log.warning("%s: ignoring a truncated last event line", ep)
+                else:
+                    raise InputError(f"{ep}:{i + 1}: malformed event line") from None
+    return RunData(record=record, events=events, meta=meta, path=d)
+
+
+def export_run(
+    run_dir: str | Path,
+    csv: bool = True,
+    hdf5: bool = False,
+    out_dir: str | Path | None = None,
+) -> list[Path]:
+    """Export a run's record to ``record.csv`` and/or ``record.h5``.
+
+    The CSV is a record CSV (:func:`rths_hil.records.write_record`): header line with the column
+    names of :data:`COLUMNS`, ``time`` first, SI units, booleans as 0/1, NaN as ``nan``
+    (estimates of invalid windows). The HDF5 file has one dataset per column under ``/record``
+    (attributes ``unit`` and ``description``), the metadata as the JSON attribute ``meta`` and the
+    events as the JSON attribute ``events`` of the root group.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+
+    Raises
+    ------
+    InputError
+        Not a run directory; HDF5 asked for but ``h5py`` is not installed.
+    """
+    from .records import write_record
+
+    run = read_run(run_dir)
+    dest = Path(out_dir) if out_dir is not None else run.path
+    dest.mkdir(parents=True, exist_ok=True)
+    names = list(run.record.dtype.names)
+    written: list[Path] = []
+    if csv:
+        p = dest / "record.csv"
+        cols = {n: np.asarray(run.record[n], dtype=float) for n in names}
+        write_record(p, cols, fmt="%.10g")
+        written.append(p)
+    if hdf5:
+        try:
+            import h5py
+        except ImportError:
+            raise InputError("HDF5 export needs h5py (pip install h5py)") from None
+        p = dest / "record.h5"
+        units = {c["name"]: c for c in run.meta.get("columns", [])}
+        with h5py.File(p, "w") as h5:
+            grp = h5.create_group("record")
+            for n in names:
+                ds = grp.create_dataset(n, data=np.asarray(run.record[n]))
+                info = units.get(n, {})
+                ds.attrs["unit"] = info.get("unit", "")
+                ds.attrs["description"] = info.get("description", "")
+            h5.attrs["meta"] = json.dumps(run.meta)
+            h5.attrs["events"] = json.dumps(run.events)
+        written.append(p)
+    return written
+
+
+def header_row_count(path: str | Path) -> int:
+    """The row count the ``.npy`` header of ``path`` currently claims (for tests and tools)."""
+    with open(path, "rb") as fh:
+        magic = fh.read(8)
+        if magic[:6] != _MAGIC[:6]:
+            raise InputError(f"{path}: not a .npy file")
+        (hlen,) = struct.unpack("<H", fh.read(2))
+        header = ast.literal_eval(fh.read(hlen).decode("latin1"))
+    return int(header["shape"][0])

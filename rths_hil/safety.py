@@ -1,0 +1,628 @@
+"""Safety rules and the monitor that trips the e-stop.
+
+Every rule is a small object with a cheap per-sample ``check`` (a few float comparisons, no
+allocation on the pass path) that returns ``None`` while all is well and a :class:`Trip` when
+it fires. A :class:`SafetyMonitor` owns the configured rules and is called by the real-time loop
+at fixed points of each step; it returns the *first* trip (time, step, rule, reason, values) and
+then stays tripped.
+
+Rules (names as they appear in events and on the console):
+
+``nan``
+    A non-finite value (NaN or ±inf) in the target, command, measured displacement or force, or
+    in a valid online estimate. Always on.
+``displacement`` / ``velocity`` / ``force``
+    ``|value| > limit``. Displacement is checked on the command *before it is sent* and on the
+    target and measured displacement; velocity on the structure's velocity and on the measured
+    velocity (backward difference); force on the measured specimen force.
+``fei``
+    :class:`FEIRule` (issue 2): ``consecutive`` valid online FEI windows with
+    ``|A − 1| > amplitude_tol`` or ``|d| > delay_tol`` (seed Eq. 2.2, 2.5). Invalid windows
+    neither trip nor reset the count.
+``kalman``
+    Kalman gain outside ``[gain_min, gain_max]`` or ``|delay| > delay_max``.
+``watchdog``
+    ``missed`` consecutive steps without a matching feedback reply.
+``sequence``
+    More than ``max_gaps`` replies whose echoed sequence number is not the one sent.
+``overrun``
+    ``consecutive`` consecutive paced steps later than the overrun threshold.
+``stuck``
+    The measured displacement identical for ``steps`` consecutive replies while the command
+    moved by more than ``motion`` (m) over the same steps (a frozen sensor or a stalled
+    actuator).
+``operator``
+    Not a rule: the operator stop (Ctrl-C) uses the same path (see :mod:`rths_hil.loop`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = [
+    "FEIRule",
+    "KalmanRule",
+    "LimitRule",
+    "OverrunRule",
+    "SafetyMonitor",
+    "SequenceRule",
+    "StuckRule",
+    "Trip",
+    "WatchdogRule",
+]
+
+_isfinite = math.isfinite
+
+
+@dataclass(frozen=True)
+class Trip:
+    """A fired safety rule.
+
+    Attributes
+    ----------
+    rule : str
+        Rule name (``displacement``, ``fei``, ``watchdog`` …).
+    reason : str
+        One line naming the quantity, its value and the limit.
+    time : float
+        Loop time of the step that tripped, in s (NaN when not known to the rule).
+    step : int
+        Loop step index (-1 when not known to the rule).
+    values : dict
+        The quantities involved (name → value), for the event record.
+    """
+
+    rule: str
+    reason: str
+    time: float = math.nan
+    step: int = -1
+    values: dict[str, float] = field(default_factory=dict)
+
+    def at(self, time: float, step: int) -> Trip:
+        """This trip stamped with the loop time and step."""
+        return Trip(self.rule, self.reason, float(time), int(step), self.values)
+
+    def as_event(self) -> dict:
+        """JSON-ready event fields."""
+        return {
+            "kind": "trip",
+            "rule": self.rule,
+            "reason": self.reason,
+            "time": self.time,
+            "step": self.step,
+            "values": {k: _jsonable(v) for k, v in self.values.items()},
+        }
+
+
+def _jsonable(v):
+    if isinstance(v, float | np.floating):
+        v = float(v)
+        return v if math.isfinite(v) else repr(v)
+    if isinstance(v, np.integer):
+        return int(v)
+    return v
+
+
+def _positive(name: str, value: float, allow_zero: bool = False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
+        raise InputError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {value!r}")
+    return v
+
+
+def _count(name: str, value: int, minimum: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
+        raise InputError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+class LimitRule:
+    """``|value| > limit`` on one quantity (displacement, velocity, force).
+
+    Parameters
+    ----------
+    rule : str
+        Rule name used in the trip (``displacement``, ``velocity``, ``force``).
+    limit : float
+        Limit in SI units (> 0).
+    unit : str
+        Unit shown in the reason.
+    """
+
+    __slots__ = ("limit", "rule", "unit")
+
+    def __init__(self, rule: str, limit: float, unit: str) -> None:
+        self.rule = rule
+        self.limit = _positive(f"{rule} limit", limit)
+        self.unit = unit
+
+    def check(self, quantity: str, value: float) -> Trip | None:
+        """Trip when ``|value| > limit``; ``quantity`` names what was measured."""
+        if -self.limit <= value <= self.limit:
+            return None
+        return Trip(
+            self.rule,
+            f"{quantity} {value:.6g} {self.unit} exceeds the limit ±{self.limit:.6g} {self.unit}",
+            values={quantity: value, "limit": self.limit},
+        )
+
+
+class FEIRule:
+    """E-stop on the online FEI: ``consecutive`` valid windows out of tolerance (issue 2).
+
+    A valid window is out of tolerance when ``|A − 1| > amplitude_tol`` or
+    ``|d| > delay_tol`` (A and d per seed Eq. 2.2 and 2.5). ``consecutive`` such windows in a row
+    trip the rule; a valid window within tolerance resets the count; an invalid window (too
+    little target energy, NaN values) neither trips nor resets it.
+
+    Parameters
+    ----------
+    amplitude_tol : float
+        Tolerance on ``|A − 1|`` (fraction, > 0); ``math.inf`` disables the amplitude check.
+    delay_tol : float
+        Tolerance on ``|d|`` in s (> 0); ``math.inf`` disables the delay check.
+    consecutive : int
+        Number of consecutive out-of-tolerance valid windows that trip (≥ 1).
+    """
+
+    __slots__ = ("amplitude_tol", "consecutive", "count", "delay_tol", "rule", "tripped")
+
+    def __init__(self, amplitude_tol: float, delay_tol: float, consecutive: int = 1) -> None:
+        self.rule = "fei"
+        self.amplitude_tol = _positive("FEI amplitude tolerance", amplitude_tol)
+        self.delay_tol = _positive("FEI delay tolerance", delay_tol)
+        self.consecutive = _count("FEI consecutive windows", consecutive)
+        self.count = 0
+        self.tripped: Trip | None = None
+
+    def reset(self) -> None:
+        """Clear the count and a previous trip."""
+        self.count = 0
+        self.tripped = None
+
+    def check(self, amplitude: float, delay: float, valid: bool) -> Trip | None:
+        """Feed one window's estimate; return the trip on the ``consecutive``-th bad window."""
+        if self.tripped is not None:
+            return self.tripped
+        if not valid or amplitude != amplitude or delay != delay:
+            return None
+        a_err = abs(amplitude - 1.0)
+        d_abs = abs(delay)
+        if a_err <= self.amplitude_tol and d_abs <= self.delay_tol:
+            self.count = 0
+            return None
+        self.count += 1
+        if self.count < self.consecutive:
+            return None
+        parts = []
+        if d_abs > self.delay_tol:
+            parts.append(f"delay d = {delay * 1e3:.3f} ms outside ±{self.delay_tol * 1e3:.3f} ms")
+        if a_err > self.amplitude_tol:
+            parts.append(f"amplitude A = {amplitude:.4f} outside 1 ± {self.amplitude_tol:.4g}")
+        self.tripped = Trip(
+            self.rule,
+            "FEI " + " and ".join(parts) + f" for {self.count} consecutive valid windows",
+            values={
+                "amplitude": float(amplitude),
+                "delay": float(delay),
+                "amplitude_tol": self.amplitude_tol,
+                "delay_tol": self.delay_tol,
+                "consecutive": self.count,
+            },
+        )
+        return self.tripped
+
+    def update(self, amplitude, delay, valid) -> Trip | None:
+        """Feed the estimates of several windows (arrays, or scalars); return the first trip.
+
+        This is the form that takes an :class:`rths_hil.fei.OnlineFEI` ``update`` result
+        (``result.amplitude, result.delay, result.valid``) directly.
+        """
+        a = np.atleast_1d(np.asarray(amplitude, dtype=float))
+        d = np.atleast_1d(np.asarray(delay, dtype=float))
+        v = np.atleast_1d(np.asarray(valid, dtype=bool))
+        if not (a.shape == d.shape == v.shape) or a.ndim != 1:
+            raise ValueError("amplitude, delay and valid must have the same length")
+        check = self.check
+        for ai, di, vi in zip(a.tolist(), d.tolist(), v.tolist(), strict=True):
+            trip = check(ai, di, vi)
+            if trip is not None:
+                return trip
+        return None
+
+
+class KalmanRule:
+    """Bounds on the Kalman estimator's gain and delay estimates (:mod:`rths_hil.estimation`).
+
+    Parameters
+    ----------
+    gain_min, gain_max : float
+        Allowed gain range.
+    delay_max : float
+        Allowed ``|delay|`` in s.
+    """
+
+    __slots__ = ("delay_max", "gain_max", "gain_min", "rule")
+
+    def __init__(self, gain_min: float, gain_max: float, delay_max: float) -> None:
+        self.rule = "kalman"
+        if not (math.isfinite(gain_min) and math.isfinite(gain_max) and gain_min < gain_max):
+            raise InputError(
+                f"Kalman gain range must be finite with min < max, got [{gain_min}, {gain_max}]"
+            )
+        self.gain_min = float(gain_min)
+        self.gain_max = float(gain_max)
+        self.delay_max = _positive("Kalman delay limit", delay_max)
+
+    def check(self, gain: float, delay: float) -> Trip | None:
+        """Trip when the gain leaves its range or the delay exceeds its limit."""
+        if self.gain_min <= gain <= self.gain_max and -self.delay_max <= delay <= self.delay_max:
+            return None
+        if not (self.gain_min <= gain <= self.gain_max):
+            reason = (
+                f"Kalman gain estimate {gain:.4f} outside "
+                f"[{self.gain_min:.4g}, {self.gain_max:.4g}]"
+            )
+        else:
+            reason = (
+                f"Kalman delay estimate {delay * 1e3:.3f} ms exceeds ±{self.delay_max * 1e3:.3f} ms"
+            )
+        return Trip(
+            self.rule,
+            reason,
+            values={
+                "kf_gain": gain,
+                "kf_delay": delay,
+                "gain_min": self.gain_min,
+                "gain_max": self.gain_max,
+                "delay_max": self.delay_max,
+            },
+        )
+
+
+class WatchdogRule:
+    """Feedback watchdog: ``missed`` consecutive steps without a matching reply trip it."""
+
+    __slots__ = ("count", "missed", "rule")
+
+    def __init__(self, missed: int) -> None:
+        self.rule = "watchdog"
+        self.missed = _count("watchdog missed replies", missed)
+        self.count = 0
+
+    def check(self, ok: bool) -> Trip | None:
+        """Feed whether this step got its reply."""
+        if ok:
+            self.count = 0
+            return None
+        self.count += 1
+        if self.count < self.missed:
+            return None
+        return Trip(
+            self.rule,
+            f"no feedback for {self.count} consecutive steps (limit {self.missed})",
+            values={"missed": self.count, "limit": self.missed},
+        )
+
+
+class SequenceRule:
+    """Sequence gaps: more than ``max_gaps`` replies with an unexpected sequence number trip."""
+
+    __slots__ = ("count", "max_gaps", "rule")
+
+    def __init__(self, max_gaps: int) -> None:
+        self.rule = "sequence"
+        self.max_gaps = _count("maximum sequence gaps", max_gaps, minimum=0)
+        self.count = 0
+
+    def check(self, expected: int, received: int) -> Trip | None:
+        """Feed the sequence number sent and the one echoed."""
+        if expected == received:
+            return None
+        self.count += 1
+        if self.count <= self.max_gaps:
+            return None
+        return Trip(
+            self.rule,
+            f"reply sequence {received} where {expected} was expected "
+            f"({self.count} gaps, limit {self.max_gaps})",
+            values={
+                "expected": expected,
+                "received": received,
+                "gaps": self.count,
+                "limit": self.max_gaps,
+            },
+        )
+
+
+class OverrunRule:
+    """``consecutive`` consecutive overruns (paced steps later than the threshold) trip."""
+
+    __slots__ = ("consecutive", "count", "rule")
+
+    def __init__(self, consecutive: int) -> None:
+        self.rule = "overrun"
+        self.consecutive = _count("consecutive overruns", consecutive)
+        self.count = 0
+
+    def check(self, overrun: bool, lateness: float) -> Trip | None:
+        """Feed whether this step overran and its lateness (s)."""
+        if not overrun:
+            self.count = 0
+            return None
+        self.count += 1
+        if self.count < self.consecutive:
+            return None
+        return Trip(
+            self.rule,
+            f"{self.count} consecutive overruns (limit {self.consecutive}), "
+            f"last step {lateness * 1e3:.3f} ms late",
+            values={"overruns": self.count, "lateness": lateness, "limit": self.consecutive},
+        )
+
+
+class StuckRule:
+    """A frozen measurement: identical for ``steps`` replies while the command moved.
+
+    Parameters
+    ----------
+    steps : int
+        Number of consecutive identical measured values (≥ 2).
+    motion : float
+        The command must have travelled more than this (m, sum of |Δcommand|) over those steps.
+    """
+
+    __slots__ = ("count", "last", "motion", "moved", "prev_cmd", "rule", "steps")
+
+    def __init__(self, steps: int, motion: float) -> None:
+        self.rule = "stuck"
+        self.steps = _count("stuck-sensor steps", steps, minimum=2)
+        self.motion = _positive("stuck-sensor motion", motion)
+        self.count = 0
+        self.moved = 0.0
+        self.last = math.nan
+        self.prev_cmd = math.nan
+
+    def check(self, command: float, measured: float) -> Trip | None:
+        """Feed this step's command and measured displacement (m)."""
+        dc = command - self.prev_cmd
+        self.prev_cmd = command
+        if measured == self.last:
+            self.count += 1
+            if dc == dc:
+                self.moved += abs(dc)
+        else:
+            self.last = measured
+            self.count = 1
+            self.moved = 0.0
+            return None
+        if self.count < self.steps or self.moved <= self.motion:
+            return None
+        return Trip(
+            self.rule,
+            f"measured displacement stuck at {measured:.6g} m for {self.count} steps while the "
+            f"command moved {self.moved:.6g} m (limit {self.motion:.6g} m)",
+            values={
+                "measured": measured,
+                "steps": self.count,
+                "command_motion": self.moved,
+                "motion_limit": self.motion,
+            },
+        )
+
+
+class SafetyMonitor:
+    """All configured rules, checked at fixed points of each loop step.
+
+    Parameters
+    ----------
+    dt : float
+        Loop step (s), for the measured velocity.
+    displacement_limit, velocity_limit, force_limit : float or None
+        Limits in m, m/s, N; ``None`` disables the rule.
+    fei : FEIRule or None
+    kalman : KalmanRule or None
+    watchdog : WatchdogRule or None
+    sequence : SequenceRule or None
+    overrun : OverrunRule or None
+    stuck : StuckRule or None
+
+    Notes
+    -----
+    Call order in a step (see :mod:`rths_hil.loop`): :meth:`check_command` before the command is
+    sent, :meth:`check_feedback` when the reply (or its absence) is known, :meth:`check_fei` and
+    :meth:`check_kalman` with the estimates, :meth:`check_overrun` in paced mode. Each returns
+    the first :class:`Trip` (stamped with time and step) or ``None``; after a trip the monitor
+    keeps returning it.
+    """
+
+    def __init__(
+        self,
+        dt: float,
+        displacement_limit: float | None = None,
+        velocity_limit: float | None = None,
+        force_limit: float | None = None,
+        fei: FEIRule | None = None,
+        kalman: KalmanRule | None = None,
+        watchdog: WatchdogRule | None = None,
+        sequence: SequenceRule | None = None,
+        overrun: OverrunRule | None = None,
+        stuck: StuckRule | None = None,
+    ) -> None:
+        self.dt = _positive("time step", dt)
+        inf = math.inf
+        self._disp = (
+            LimitRule("displacement", displacement_limit, "m") if displacement_limit else None
+        )
+        self._vel = LimitRule("velocity", velocity_limit, "m/s") if velocity_limit else None
+        self._force = LimitRule("force", force_limit, "N") if force_limit else None
+        self.disp_limit = self._disp.limit if self._disp else inf
+        self.vel_limit = self._vel.limit if self._vel else inf
+        self.force_limit = self._force.limit if self._force else inf
+        self.fei = fei
+        self.kalman = kalman
+        self.watchdog = watchdog
+        self.sequence = sequence
+        self.overrun = overrun
+        self.stuck = stuck
+        self.tripped: Trip | None = None
+        self._prev_meas = math.nan
+
+    @property
+    def rules(self) -> list[str]:
+        """Names of the active rules."""
+        names = ["nan"]
+        for r in (
+            self._disp,
+            self._vel,
+            self._force,
+            self.fei,
+            self.kalman,
+            self.watchdog,
+            self.sequence,
+            self.overrun,
+            self.stuck,
+        ):
+            if r is not None:
+                names.append(r.rule)
+        return names
+
+    def _fire(self, trip: Trip, t: float, k: int) -> Trip:
+        self.tripped = trip.at(t, k)
+        return self.tripped
+
+    def _nan(self, t: float, k: int, names: Sequence[str], values: Sequence[float]) -> Trip:
+        bad = [(n, v) for n, v in zip(names, values, strict=True) if not _isfinite(v)]
+        reason = ", ".join(f"{n} = {v!r}" for n, v in bad)
+        return self._fire(Trip("nan", f"non-finite value: {reason}", values=dict(bad)), t, k)
+
+    def check_command(
+        self, t: float, k: int, target: float, velocity: float, command: float
+    ) -> Trip | None:
+        """Before sending: the target, the structure's velocity and the command."""
+        if self.tripped is not None:
+            return self.tripped
+        if not _isfinite(target + velocity + command):
+            return self._nan(t, k, ("target", "velocity", "command"), (target, velocity, command))
+        lim = self.disp_limit
+        if not (-lim <= command <= lim and -lim <= target <= lim):
+            q, v = ("command", command) if not (-lim <= command <= lim) else ("target", target)
+            return self._fire(self._disp.check(q, v), t, k)
+        lim = self.vel_limit
+        if not (-lim <= velocity <= lim):
+            return self._fire(self._vel.check("velocity", velocity), t, k)
+        return None
+
+    def check_feedback(
+        self,
+        t: float,
+        k: int,
+        ok: bool,
+        expected_seq: int,
+        received_seq: int,
+        command: float,
+        measured: float,
+        force: float,
+    ) -> Trip | None:
+        """After the reply: watchdog, sequence, NaN, limits, stuck sensor.
+
+        ``ok`` is False when no matching reply came within the timeout; then ``measured`` and
+        ``force`` are the held previous values and only the watchdog is fed.
+        """
+        if self.tripped is not None:
+            return self.tripped
+        wd = self.watchdog
+        if wd is not None:
+            trip = wd.check(ok)
+            if trip is not None:
+                return self._fire(trip, t, k)
+        if not ok:
+            return None
+        seq = self.sequence
+        if seq is not None and expected_seq != received_seq:
+            trip = seq.check(expected_seq, received_seq)
+            if trip is not None:
+                return self._fire(trip, t, k)
+        if not _isfinite(measured + force):
+            return self._nan(t, k, ("measured", "force"), (measured, force))
+        lim = self.disp_limit
+        if not (-lim <= measured <= lim):
+            return self._fire(self._disp.check("measured displacement", measured), t, k)
+        lim = self.force_limit
+        if not (-lim <= force <= lim):
+            return self._fire(self._force.check("measured force", force), t, k)
+        prev = self._prev_meas
+        self._prev_meas = measured
+        lim = self.vel_limit
+        if lim != math.inf and prev == prev:
+            v = (measured - prev) / self.dt
+            if not (-lim <= v <= lim):
+                return self._fire(self._vel.check("measured velocity", v), t, k)
+        st = self.stuck
+        if st is not None:
+            trip = st.check(command, measured)
+            if trip is not None:
+                return self._fire(trip, t, k)
+        return None
+
+    def check_fei(
+        self, t: float, k: int, amplitude: float, delay: float, valid: bool
+    ) -> Trip | None:
+        """One online FEI window estimate (invalid windows are ignored)."""
+        if self.tripped is not None:
+            return self.tripped
+        if valid and not _isfinite(amplitude + delay):
+            return self._nan(t, k, ("fei_amplitude", "fei_delay"), (amplitude, delay))
+        rule = self.fei
+        if rule is not None:
+            trip = rule.check(amplitude, delay, valid)
+            if trip is not None:
+                return self._fire(trip, t, k)
+        return None
+
+    def check_kalman(self, t: float, k: int, gain: float, delay: float) -> Trip | None:
+        """The Kalman estimator's gain and delay."""
+        if self.tripped is not None:
+            return self.tripped
+        if not _isfinite(gain + delay):
+            return self._nan(t, k, ("kf_gain", "kf_delay"), (gain, delay))
+        rule = self.kalman
+        if rule is not None:
+            trip = rule.check(gain, delay)
+            if trip is not None:
+                return self._fire(trip, t, k)
+        return None
+
+    def check_overrun(self, t: float, k: int, overrun: bool, lateness: float) -> Trip | None:
+        """A paced step's overrun flag and lateness (s)."""
+        if self.tripped is not None:
+            return self.tripped
+        rule = self.overrun
+        if rule is not None:
+            trip = rule.check(overrun, lateness)
+            if trip is not None:
+                return self._fire(trip, t, k)
+        return None
+
+    def margin(self, peak_displacement: float, peak_velocity: float, peak_force: float):
+        """The nearest limit: ``(name, fraction of the limit still unused)`` (for the console)."""
+        best = ("none", math.inf)
+        for name, peak, lim in (
+            ("displacement", peak_displacement, self.disp_limit),
+            ("velocity", peak_velocity, self.vel_limit),
+            ("force", peak_force, self.force_limit),
+        ):
+            if lim != math.inf:
+                m = 1.0 - abs(peak) / lim
+                if m < best[1]:
+                    best = (name, m)
+        return best
