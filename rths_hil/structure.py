@@ -317,11 +317,15 @@ class CRStepper(_SDOFStepper):
     actuator, measure the specimen force there, then call :meth:`step` with the ground
     acceleration of step n+1 and that force; it returns ``x[n+2]``, the next target::
 
-        st = CRStepper(mass, zeta, k, dt, bouc_wen=BoucWenParams(k_a=k))
+        st = CRStepper(mass, zeta, k, dt, bouc_wen=BoucWenParams(k_a=k), ag0=ground_accel[0])
         x_target = st.x_next                  # x[1], known from the initial state
         for ag in ground_accel[1:]:           # a_g[1], a_g[2], ...
             f_meas = plant.step(x_target)[1]  # impose x[n+1], measure the specimen force there
             x_target = st.step(ag, extra_force=f_meas)   # commit step n+1, return x[n+2]
+
+    ``v`` is the backward-difference velocity ``(x[n] − x[n−1])/Δt`` (a property of CR with
+    α1 = α2); the initial velocity ``v0`` is therefore the mean velocity of the step before t = 0.
+    Start from rest with the record's first sample ``ag0`` to reproduce :func:`simulate_sdof`.
 
     ``extra_force`` is the force the specimen exerts on the structure (same sign convention as
     the restoring force: positive for positive displacement of a spring). Give ``k_specimen``,
