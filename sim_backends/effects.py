@@ -1,0 +1,667 @@
+"""The effects catalogue: physical imperfections a twin adds on top of any actuator model.
+
+Each effect maps the displacement coming out of the previous stage (the actuator model or the
+previous effect) to a modified displacement, one sample at a time (:meth:`Effect.step`) or over a
+whole history (:meth:`Effect.simulate`, vectorised, equal to the step path to round-off). The
+same catalogue serves the twin (:mod:`sim_backends.plant`) and the discrepancy-diagnosis
+workflow, which fits the parameters of these effects to records; :data:`EFFECT_RANGES` gives
+the realistic parameter ranges both draw from. Names, in SI units (``x`` input, ``y`` output,
+``t = k·dt`` the time since reset, ``k = 0`` at the first sample):
+
+=====================  =======================================================================
+``offset``             ``y = x + offset`` — zero error of the displacement transducer/set point.
+``drift``              ``y = x + rate·t`` — thermal drift of the LVDT conditioning, slow leak.
+``backlash``           play of total ``width`` in the load train (clevis pins, swivels):
+                       ``y[k] = clip(y[k-1], x[k] - width/2, x[k] + width/2)``, ``y[-1] = 0``.
+``velocity_limit``     servo-valve flow saturation, ``|ẏ| ≤ limit``:
+                       ``y[k] = y[k-1] + clip(x[k] - y[k-1], -limit·dt, limit·dt)``.
+``stroke_limit``       end stops / displacement interlock:
+                       ``y = clip(x, center - limit, center + limit)``.
+``servo_lag``          first-order lag ``1/(T s + 1)`` (first-order hold), ``T = time_constant``.
+``time_varying_delay`` ``y(t) = x(t - τ(t))``, ``τ(t) = delay + amplitude·sin(2π t/period)``,
+                       fractional (Lagrange, as :mod:`sim_backends.delay`).
+``force_feedback``     control-structure interaction through the oil-column compliance:
+                       ``k_h (x - y) = k_s y + c_s ẏ`` → ``y = x·k_h/(k_h + k_s)`` lagged by
+                       ``T = c_s/(k_h + k_s)``.
+=====================  =======================================================================
+
+Backlash is vectorised exactly with a parallel prefix scan of clamp compositions (a composition
+of clamps is a clamp), so even that path-dependent effect runs in ``log2(N)`` numpy passes.
+The velocity limit has no such closed form and runs a tight scalar loop.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy.signal import lfilter
+
+from rths_hil.errors import InputError
+
+from .delay import ORDER, lagrange_taps
+from .models import FirstOrderServo, _first_order_coeffs
+
+__all__ = [
+    "EFFECTS",
+    "EFFECT_RANGES",
+    "Backlash",
+    "Drift",
+    "Effect",
+    "EffectChain",
+    "ForceFeedback",
+    "Offset",
+    "Param",
+    "ParamRange",
+    "ServoLag",
+    "StrokeLimit",
+    "TimeVaryingDelay",
+    "VelocityLimit",
+    "draw_effect_params",
+    "make_effect",
+]
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter of an effect: name, SI unit, meaning, default (None = required), bounds."""
+
+    name: str
+    unit: str
+    doc: str
+    default: float | None = None
+    minimum: float | None = None
+    maximum: float | None = None
+    exclusive_minimum: bool = False
+
+
+@dataclass(frozen=True)
+class ParamRange:
+    """Realistic range of a parameter's magnitude, for random draws and fitting bounds.
+
+    ``low``/``high`` bound the magnitude; ``signed`` means either sign is realistic;
+    ``log`` means draw log-uniformly (ranges spanning a decade or more).
+    """
+
+    low: float
+    high: float
+    signed: bool = False
+    log: bool = False
+    note: str = ""
+
+
+class Effect(ABC):
+    """Base of every catalogue effect: construct with ``dt`` and parameters, then step/simulate."""
+
+    kind: ClassVar[str]
+    PARAMS: ClassVar[tuple[Param, ...]]
+
+    def __init__(self, dt: float, **params: float) -> None:
+        if not math.isfinite(float(dt)) or float(dt) <= 0:
+            raise InputError(f"dt: must be > 0 s, got {dt!r}")
+        self.dt = float(dt)
+        self.params = validate_params(self.kind, params)
+        self._setup()
+        self.reset()
+
+    def _setup(self) -> None:
+        """Derive coefficients from :attr:`params` (called once by ``__init__``)."""
+        return None
+
+    @classmethod
+    def check(cls, params: dict[str, float], where: str) -> None:
+        """Cross-parameter checks after each parameter passed its own bounds (none by default)."""
+        return None
+
+    @abstractmethod
+    def reset(self) -> None:
+        """Return to rest (time zero, zero state)."""
+
+    @abstractmethod
+    def step(self, x: float) -> float:
+        """Transform one displacement sample (m)."""
+
+    @abstractmethod
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        """Transform a whole displacement history from rest (vectorised, equal to stepping)."""
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.params.items())
+        return f"{type(self).__name__}({args})"
+
+
+def validate_params(kind: str, params: Mapping[str, Any], where: str = "") -> dict[str, float]:
+    """Check ``params`` against effect ``kind``'s :attr:`Effect.PARAMS`; fill defaults.
+
+    ``where`` prefixes error messages (e.g. ``"twin.toml: actuator.effects[1]."``).
+    """
+    if kind not in EFFECTS:
+        raise InputError(f"{where}kind: unknown effect {kind!r} (known: {', '.join(EFFECTS)})")
+    specs = {p.name: p for p in EFFECTS[kind].PARAMS}
+    for key in params:
+        if key not in specs:
+            raise InputError(
+                f"{where}{key}: unknown parameter of effect {kind!r} (known: {', '.join(specs)})"
+            )
+    out: dict[str, float] = {}
+    for name, spec in specs.items():
+        if name in params:
+            raw = params[name]
+            if isinstance(raw, bool) or not isinstance(raw, int | float | np.floating | np.integer):
+                raise InputError(f"{where}{name}: must be a number in {spec.unit}, got {raw!r}")
+            value = float(raw)
+        elif spec.default is not None:
+            value = float(spec.default)
+        else:
+            raise InputError(
+                f"{where}{name}: required by effect {kind!r} ({spec.doc}, {spec.unit})"
+            )
+        if not math.isfinite(value):
+            raise InputError(f"{where}{name}: must be finite, got {value!r}")
+        if spec.minimum is not None and (
+            value < spec.minimum or (spec.exclusive_minimum and value == spec.minimum)
+        ):
+            op = ">" if spec.exclusive_minimum else "≥"
+            raise InputError(
+                f"{where}{name}: must be {op} {spec.minimum} {spec.unit}, got {value!r}"
+            )
+        if spec.maximum is not None and value > spec.maximum:
+            raise InputError(f"{where}{name}: must be ≤ {spec.maximum} {spec.unit}, got {value!r}")
+        out[name] = value
+    EFFECTS[kind].check(out, where)
+    return out
+
+
+class _Stateless(Effect):
+    """Helper base for effects with no memory beyond the sample counter."""
+
+    def reset(self) -> None:
+        self._k = 0
+
+
+class Offset(_Stateless):
+    """Constant displacement error: ``y = x + offset``.
+
+    Physical origin: the transducer zero or the controller set point differs from the
+    numerical model's zero (specimen installed at a slightly different position, LVDT re-zeroed
+    under load). Realistic magnitude 0.1-2 mm.
+    """
+
+    kind = "offset"
+    PARAMS = (Param("offset", "m", "constant displacement error"),)
+
+    def _setup(self) -> None:
+        self._offset = self.params["offset"]
+
+    def step(self, x: float) -> float:
+        return x + self._offset
+
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(x, dtype=float) + self._offset
+
+
+class Drift(_Stateless):
+    """Linear drift from reset: ``y[k] = x[k] + rate·k·dt``.
+
+    Physical origin: warm-up of the LVDT conditioning electronics and oil temperature, or a
+    slow leak past a worn piston seal under static load. Realistic 0.5-5 mm/min
+    (8.3e-6 - 8.3e-5 m/s) over a test of a few minutes.
+    """
+
+    kind = "drift"
+    PARAMS = (Param("rate", "m/s", "drift velocity"),)
+
+    def _setup(self) -> None:
+        self._step = self.params["rate"] * self.dt
+
+    def step(self, x: float) -> float:
+        y = x + self._step * self._k
+        self._k += 1
+        return y
+
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        self._k = len(x)
+        return x + self._step * np.arange(len(x), dtype=float)
+
+
+class StrokeLimit(_Stateless):
+    """Saturation at the end stops: ``y = clip(x, center - limit, center + limit)``.
+
+    Physical origin: the actuator's mechanical stroke, or a displacement interlock set in the
+    controller. Realistic ``limit`` 5-150 mm (a ±50 to ±250 mm actuator, interlocks set at a
+    fraction of it); the effect only shows when the response reaches it.
+    """
+
+    kind = "stroke_limit"
+    PARAMS = (
+        Param(
+            "limit",
+            "m",
+            "half stroke (distance from center to either stop)",
+            minimum=0.0,
+            exclusive_minimum=True,
+        ),
+        Param("center", "m", "mid-stroke position", default=0.0),
+    )
+
+    def _setup(self) -> None:
+        self._lo = self.params["center"] - self.params["limit"]
+        self._hi = self.params["center"] + self.params["limit"]
+
+    def step(self, x: float) -> float:
+        return min(max(x, self._lo), self._hi)
+
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        return np.clip(np.asarray(x, dtype=float), self._lo, self._hi)
+
+
+class Backlash(Effect):
+    """Play (dead band) of total ``width`` between actuator and specimen.
+
+    ``y[k] = clip(y[k-1], x[k] - width/2, x[k] + width/2)`` with ``y[-1] = 0``: the output
+    follows the input only once the input has crossed the gap, the play operator of hysteresis
+    modelling. Physical origin: clearance in clevis pins, swivels and bolted connections.
+    Realistic 0.05-0.5 mm.
+
+    :meth:`simulate` is an exact parallel prefix scan: each step is the clamp
+    ``y ↦ clip(y, lo_k, hi_k)`` and ``clip(·, lo2, hi2) ∘ clip(·, lo1, hi1)`` is the clamp with
+    bounds ``clip(lo1, lo2, hi2)``, ``clip(hi1, lo2, hi2)``; Hillis–Steele doubling composes all
+    prefixes in ``ceil(log2 N)`` vectorised passes using only min/max, so it equals stepping
+    bit for bit.
+    """
+
+    kind = "backlash"
+    PARAMS = (Param("width", "m", "total play", minimum=0.0),)
+
+    def _setup(self) -> None:
+        self._half = 0.5 * self.params["width"]
+
+    def reset(self) -> None:
+        self._y = 0.0
+
+    def step(self, x: float) -> float:
+        lo = x - self._half
+        hi = x + self._half
+        y = self._y
+        if y < lo:
+            y = lo
+        elif y > hi:
+            y = hi
+        self._y = y
+        return y
+
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        self.reset()
+        x = np.asarray(x, dtype=float)
+        if len(x) == 0:
+            return x.copy()
+        lo = x - self._half
+        hi = x + self._half
+        n = len(x)
+        shift = 1
+        while shift < n:
+            # compose step i (outer) after the prefix ending at i - shift (inner)
+            lo_in = lo[:-shift]
+            hi_in = hi[:-shift]
+            lo_out = lo[shift:]
+            hi_out = hi[shift:]
+            new_lo = np.minimum(np.maximum(lo_in, lo_out), hi_out)
+            new_hi = np.minimum(np.maximum(hi_in, lo_out), hi_out)
+            lo[shift:] = new_lo
+            hi[shift:] = new_hi
+            shift *= 2
+        y = np.minimum(np.maximum(self._y, lo), hi)
+        self._y = float(y[-1])
+        return y
+
+
+class VelocityLimit(Effect):
+    """Rate limit ``|ẏ| ≤ limit``: ``y[k] = y[k-1] + clip(x[k] - y[k-1], ±limit·dt)``.
+
+    Physical origin: the servo-valve's rated flow ``Q`` caps the piston speed at ``Q/A``
+    (e.g. 57 l/min on a 50 cm² piston: 0.19 m/s). Realistic 0.02-0.2 m/s for RTHS actuators.
+    The recursion has no closed form, so :meth:`simulate` is a tight scalar loop over a Python
+    list (the same arithmetic as :meth:`step`).
+    """
+
+    kind = "velocity_limit"
+    PARAMS = (Param("limit", "m/s", "maximum speed", minimum=0.0, exclusive_minimum=True),)
+
+    def _setup(self) -> None:
+        self._dmax = self.params["limit"] * self.dt
+
+    def reset(self) -> None:
+        self._y = 0.0
+
+    def step(self, x: float) -> float:
+        d = x - self._y
+        dmax = self._dmax
+        if d > dmax:
+            d = dmax
+        elif d < -dmax:
+            d = -dmax
+        self._y += d
+        return self._y
+
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        self.reset()
+        xs = np.asarray(x, dtype=float).tolist()
+        out = [0.0] * len(xs)
+        y = 0.0
+        dmax = self._dmax
+        ndmax = -dmax
+        for i, v in enumerate(xs):
+            d = v - y
+            if d > dmax:
+                d = dmax
+            elif d < ndmax:
+                d = ndmax
+            y += d
+            out[i] = y
+        self._y = y
+        return np.array(out)
+
+
+class ServoLag(Effect):
+    """First-order servo lag ``1/(T s + 1)`` on top of the model, ``T = time_constant``.
+
+    Physical origin: finite bandwidth of the position loop (``T = A/(kp·kq)``); acts as an
+    extra delay ≈ ``T`` with amplitude ``1/sqrt(1 + (ωT)²)``. Realistic 2-20 ms. Same
+    discretisation as :class:`~sim_backends.models.FirstOrderServo` (first-order hold), step and
+    :func:`scipy.signal.lfilter` paths identical to the last bit.
+    """
+
+    kind = "servo_lag"
+    PARAMS = (
+        Param("time_constant", "s", "lag time constant", minimum=0.0, exclusive_minimum=True),
+    )
+
+    def _setup(self) -> None:
+        self._servo = FirstOrderServo(self.params["time_constant"], self.dt)
+
+    def reset(self) -> None:
+        self._servo.reset()
+
+    def step(self, x: float) -> float:
+        return self._servo.step(x)
+
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        return self._servo.simulate(x)
+
+
+class TimeVaryingDelay(Effect):
+    """Fractional delay that varies in time: ``y(t) = x(t - τ(t))``.
+
+    ``τ(t) = delay + amplitude·sin(2π t / period)``. Physical origin: the actuator's equivalent
+    delay changes with oil temperature, amplitude and velocity of the motion (valve opening) and
+    specimen stiffness during a test; 10-20 % variation of a 10-30 ms delay is typical.
+    Realistic ``delay`` 5-30 ms, ``amplitude`` 0.5-5 ms (must not exceed ``delay``),
+    ``period`` 2-60 s. The interpolation is the 4-tap Lagrange FIR of
+    :func:`sim_backends.delay.lagrange_taps` evaluated per sample (vectorised gather in
+    :meth:`simulate`), from rest (zeros before the first sample).
+    """
+
+    kind = "time_varying_delay"
+    PARAMS = (
+        Param("delay", "s", "mean delay", minimum=0.0),
+        Param("amplitude", "s", "amplitude of the sinusoidal variation", default=0.0, minimum=0.0),
+        Param(
+            "period",
+            "s",
+            "period of the variation",
+            default=10.0,
+            minimum=0.0,
+            exclusive_minimum=True,
+        ),
+    )
+
+    @classmethod
+    def check(cls, params: dict[str, float], where: str) -> None:
+        if params["amplitude"] > params["delay"]:
+            raise InputError(
+                f"{where}amplitude: must not exceed delay ({params['delay']} s) or the delay "
+                f"would become negative, got {params['amplitude']}"
+            )
+
+    def _setup(self) -> None:
+        p = self.params
+        self._w = 2.0 * math.pi * self.dt / p["period"]
+        self._d0 = p["delay"] / self.dt
+        self._d1 = p["amplitude"] / self.dt
+        n0_max, _ = lagrange_taps(self._d0 + self._d1 + 1.0)
+        self._size = n0_max + ORDER + 2
+
+    def reset(self) -> None:
+        self._buf = [0.0] * self._size
+        self._pos = 0
+        self._k = 0
+
+    def _delays(self, k: np.ndarray) -> np.ndarray:
+        return self._d0 + self._d1 * np.sin(self._w * k)
+
+    def step(self, x: float) -> float:
+        buf = self._buf
+        size = self._size
+        buf[self._pos] = x
+        newest = self._pos
+        self._pos = (newest + 1) % size
+        d = self._d0 + self._d1 * math.sin(self._w * self._k)
+        self._k += 1
+        n0, taps = _taps_scalar(d)
+        base = newest - n0
+        return (
+            taps[0] * buf[base % size]
+            + taps[1] * buf[(base - 1) % size]
+            + taps[2] * buf[(base - 2) % size]
+            + taps[3] * buf[(base - 3) % size]
+        )
+
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        self.reset()
+        x = np.asarray(x, dtype=float)
+        n = len(x)
+        k = np.arange(n, dtype=float)
+        d = self._d0 + self._d1 * np.sin(self._w * k)
+        n0, taps = _taps_vector(d)
+        padded = np.concatenate([np.zeros(self._size), x])
+        idx = np.arange(n) + self._size - n0
+        out = (
+            taps[0] * padded[idx]
+            + taps[1] * padded[idx - 1]
+            + taps[2] * padded[idx - 2]
+            + taps[3] * padded[idx - 3]
+        )
+        # leave the streaming state as if stepped
+        self._k = n
+        tail = x[-self._size :].tolist()
+        for v in tail:
+            self._buf[self._pos] = v
+            self._pos = (self._pos + 1) % self._size
+        return out
+
+
+def _taps_scalar(d: float) -> tuple[int, tuple[float, float, float, float]]:
+    """Lagrange taps as in :func:`sim_backends.delay.lagrange_taps`, scalar and allocation-light."""
+    n0 = max(math.floor(d) - 1, 0)
+    f = d - n0
+    f1, f2, f3 = f - 1.0, f - 2.0, f - 3.0
+    return n0, (
+        -f1 * f2 * f3 / 6.0,
+        f * f2 * f3 / 2.0,
+        -f * f1 * f3 / 2.0,
+        f * f1 * f2 / 6.0,
+    )
+
+
+def _taps_vector(d: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """Vectorised :func:`_taps_scalar` (same arithmetic, same order)."""
+    n0 = np.maximum(np.floor(d) - 1.0, 0.0)
+    f = d - n0
+    f1, f2, f3 = f - 1.0, f - 2.0, f - 3.0
+    taps = (
+        -f1 * f2 * f3 / 6.0,
+        f * f2 * f3 / 2.0,
+        -f * f1 * f3 / 2.0,
+        f * f1 * f2 / 6.0,
+    )
+    return n0.astype(np.intp), taps
+
+
+class ForceFeedback(Effect):
+    """Control-structure interaction: the specimen force compresses the oil column.
+
+    With the hydraulic (oil-column) stiffness ``k_h = 4βA²/V`` in series with the specimen
+    ``k_s, c_s``, the rod displacement ``y`` for a commanded ``x`` satisfies
+    ``k_h (x - y) = k_s y + c_s ẏ``: a static loss ``y/x = k_h/(k_h + k_s)`` and, with a
+    damper specimen, a lag of ``T = c_s/(k_h + k_s)`` (first-order hold; pure gain if
+    ``c_s = 0``). Physical origin: a stiff specimen loads the actuator, the outer displacement
+    loop sees the error only through its finite gain (Dyke et al. 1995's natural velocity
+    feedback). Realistic ``actuator_stiffness`` 2e7-2e8 N/m (β ≈ 0.7-1.4 GPa with air,
+    A = 30-100 cm², V = 1-5 l), ``specimen_stiffness`` 1e5-5e6 N/m, ``specimen_damping``
+    0-2e5 N·s/m (dampers). In a model file, omitted specimen parameters come from
+    ``[specimen]``.
+    """
+
+    kind = "force_feedback"
+    PARAMS = (
+        Param(
+            "actuator_stiffness",
+            "N/m",
+            "oil-column stiffness k_h",
+            minimum=0.0,
+            exclusive_minimum=True,
+        ),
+        Param("specimen_stiffness", "N/m", "specimen stiffness k_s", minimum=0.0),
+        Param("specimen_damping", "N·s/m", "specimen damping c_s", default=0.0, minimum=0.0),
+    )
+
+    def _setup(self) -> None:
+        p = self.params
+        total = p["actuator_stiffness"] + p["specimen_stiffness"]
+        self.static_gain = p["actuator_stiffness"] / total
+        self.time_constant = p["specimen_damping"] / total
+        if self.time_constant > 0:
+            b, a = _first_order_coeffs(self.static_gain, self.time_constant, self.dt)
+        else:
+            b, a = np.array([self.static_gain, 0.0]), np.array([1.0, 0.0])
+        self.b, self.a = b, a
+        self._b0, self._b1, self._a1 = float(b[0]), float(b[1]), float(a[1])
+
+    def reset(self) -> None:
+        self._z = 0.0
+
+    def step(self, x: float) -> float:
+        y = self._b0 * x + self._z
+        self._z = self._b1 * x - self._a1 * y
+        return y
+
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        self.reset()
+        return lfilter(self.b, self.a, np.asarray(x, dtype=float))
+
+
+class EffectChain:
+    """Effects applied in order; an empty chain is the identity."""
+
+    def __init__(self, effects: Sequence[Effect] = ()) -> None:
+        self.effects = list(effects)
+
+    def __len__(self) -> int:
+        return len(self.effects)
+
+    def reset(self) -> None:
+        for e in self.effects:
+            e.reset()
+
+    def step(self, x: float) -> float:
+        for e in self.effects:
+            x = e.step(x)
+        return x
+
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        y = np.asarray(x, dtype=float)
+        for e in self.effects:
+            y = e.simulate(y)
+        return y
+
+
+#: The catalogue, by the names the model file and the diagnosis workflow use.
+EFFECTS: dict[str, type[Effect]] = {
+    cls.kind: cls
+    for cls in (
+        Offset,
+        Drift,
+        Backlash,
+        VelocityLimit,
+        StrokeLimit,
+        ServoLag,
+        TimeVaryingDelay,
+        ForceFeedback,
+    )
+}
+
+_MM = 1e-3
+#: Realistic ranges of each effect's parameters (SI), shared by the twin's documentation, the
+#: random hidden effects of the diagnosis workflow and its fitting bounds. See docs/models.md
+#: for the justification of each range.
+EFFECT_RANGES: dict[str, dict[str, ParamRange]] = {
+    "offset": {
+        "offset": ParamRange(
+            0.1 * _MM, 2 * _MM, signed=True, log=True, note="transducer zero / set-point error"
+        )
+    },
+    "drift": {
+        "rate": ParamRange(0.5 * _MM / 60, 5 * _MM / 60, signed=True, log=True, note="0.5-5 mm/min")
+    },
+    "backlash": {
+        "width": ParamRange(0.05 * _MM, 0.5 * _MM, log=True, note="clearance of pins and swivels")
+    },
+    "velocity_limit": {
+        "limit": ParamRange(0.02, 0.2, log=True, note="rated valve flow / piston area")
+    },
+    "stroke_limit": {
+        "limit": ParamRange(5 * _MM, 150 * _MM, log=True, note="end stop or interlock"),
+        "center": ParamRange(0.0, 2 * _MM, signed=True, note="mid-stroke error"),
+    },
+    "servo_lag": {
+        "time_constant": ParamRange(2e-3, 20e-3, log=True, note="position-loop bandwidth 8-80 Hz")
+    },
+    "time_varying_delay": {
+        "delay": ParamRange(5e-3, 30e-3, note="mean equivalent delay"),
+        "amplitude": ParamRange(0.5e-3, 5e-3, note="≤ delay by construction of the ranges"),
+        "period": ParamRange(2.0, 60.0, log=True, note="slow variation over a test"),
+    },
+    "force_feedback": {
+        "actuator_stiffness": ParamRange(2e7, 2e8, log=True, note="oil column 4βA²/V"),
+        "specimen_stiffness": ParamRange(1e5, 5e6, log=True, note="specimen"),
+        "specimen_damping": ParamRange(0.0, 2e5, note="0 for elastic specimens, dampers up"),
+    },
+}
+
+
+def make_effect(kind: str, dt: float, **params: float) -> Effect:
+    """Build the catalogue effect ``kind`` with ``params`` (SI units) at step ``dt``."""
+    if kind not in EFFECTS:
+        raise InputError(f"kind: unknown effect {kind!r} (known: {', '.join(EFFECTS)})")
+    return EFFECTS[kind](dt, **params)
+
+
+def draw_effect_params(kind: str, rng: np.random.Generator) -> dict[str, float]:
+    """Draw realistic random parameters for effect ``kind`` from :data:`EFFECT_RANGES`."""
+    if kind not in EFFECT_RANGES:
+        raise InputError(f"kind: unknown effect {kind!r} (known: {', '.join(EFFECTS)})")
+    out = {}
+    for name, r in EFFECT_RANGES[kind].items():
+        if r.log and r.low > 0:
+            value = float(np.exp(rng.uniform(np.log(r.low), np.log(r.high))))
+        else:
+            value = float(rng.uniform(r.low, r.high))
+        if r.signed and rng.random() < 0.5:
+            value = -value
+        out[name] = value
+    return out
