@@ -433,7 +433,7 @@ def _coerce(key: Key, value: Any, path: str) -> Any:
 
 def _unknown(path: str, name: str, known: Iterable[str]) -> InputError:
     known = list(known)
-    close = difflib.get_close_matches(name, known, n=1)
+    close = difflib.get_close_matches(name, known, n=1, cutoff=0.5)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
     return InputError(f"{path}: unknown key{hint}; known keys: {', '.join(known)}")
 
