@@ -1,0 +1,85 @@
+"""Driver registry: find a driver class by name and build it from connection settings.
+
+The built-in drivers (``can``, ``modbus``, ``serial``) and any third-party driver are found
+through the ``rths_hil.drivers`` entry-point group, so a lab can ship its own driver package::
+
+    [project.entry-points."rths_hil.drivers"]
+    mylab = "mylab_driver:MyLabDriver"
+
+The class must subclass :class:`drivers.base.Driver` and take its connection settings as
+keyword arguments.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from importlib.metadata import entry_points
+from typing import Any
+
+from rths_hil.errors import InputError
+
+from .base import Driver
+
+ENTRY_POINT_GROUP = "rths_hil.drivers"
+
+#: Built-in drivers, used when the package metadata is not installed (e.g. a source checkout).
+BUILTIN: dict[str, str] = {
+    "can": "drivers.can:CANDriver",
+    "modbus": "drivers.modbus:ModbusDriver",
+    "serial": "drivers.serial:SerialDriver",
+}
+
+
+def _load(target: str) -> type[Driver]:
+    module, _, attr = target.partition(":")
+    obj = getattr(importlib.import_module(module), attr)
+    if not (inspect.isclass(obj) and issubclass(obj, Driver)):
+        raise InputError(f"driver entry point {target!r} is not a drivers.base.Driver subclass")
+    return obj
+
+
+def available() -> dict[str, str]:
+    """Map every known driver name to its ``module:Class`` target."""
+    found = dict(BUILTIN)
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        found[ep.name] = ep.value
+    return found
+
+
+def driver_class(name: str) -> type[Driver]:
+    """Return the driver class registered under ``name``.
+
+    Raises
+    ------
+    InputError
+        If no driver has that name.
+    """
+    targets = available()
+    if name not in targets:
+        raise InputError(f"unknown driver {name!r}; available: {', '.join(sorted(targets))}")
+    return _load(targets[name])
+
+
+def create_driver(name: str, **connection: Any) -> Driver:
+    """Build (not open) the driver ``name`` with its connection settings.
+
+    Raises
+    ------
+    InputError
+        Unknown driver name, or a connection key the driver does not take.
+    """
+    cls = driver_class(name)
+    params = inspect.signature(cls.__init__).parameters
+    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        accepted = [n for n, p in params.items() if n != "self" and p.kind is p.KEYWORD_ONLY]
+        accepted += [
+            n for n, p in params.items() if n != "self" and p.kind is p.POSITIONAL_OR_KEYWORD
+        ]
+        unknown = sorted(set(connection) - set(accepted))
+        if unknown:
+            raise InputError(
+                f"driver {name!r}: unknown connection setting(s) {', '.join(unknown)}; "
+                f"accepted: {', '.join(sorted(accepted))}"
+            )
+    return cls(**connection)

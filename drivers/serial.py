@@ -1,0 +1,229 @@
+"""Serial driver: binary frames with a sequence number and a CRC, COBS-framed, over pyserial.
+
+Frame (before framing), all little-endian; the last two bytes are the CRC-16/CCITT-FALSE
+(poly 0x1021, init 0xFFFF, ``binascii.crc_hqx(body, 0xFFFF)``) of everything before them:
+
+=========  ====  ===================================================  =====
+type       id    body after the type byte                             bytes
+=========  ====  ===================================================  =====
+command    0x01  seq u32, control u8 (bit 0 enable), displacement f64  16
+estop      0x02  key u8 = 0xA5                                         4
+heartbeat  0x03  counter u8                                            4
+feedback   0x81  seq u32, status u8, displacement f64, force f64       24
+=========  ====  ===================================================  =====
+
+Each frame is COBS-encoded (``cobs.cobs``, Cheshire & Baker 1999) and terminated by one 0x00
+byte, so a receiver resynchronises at the next zero after any line error. Displacements are
+in metres and forces in newtons as IEEE-754 doubles; NaN marks an invalid measurement.
+
+Any pyserial URL works: a device (``/dev/ttyUSB0``, a pseudo-terminal ``/dev/pts/N``),
+``socket://host:port`` or ``loop://``. On POSIX ports the driver waits with ``select`` on the
+file descriptor (no polling sleeps); other URL handlers use pyserial's own timeouts.
+"""
+
+from __future__ import annotations
+
+import binascii
+import math
+import os
+import select
+import struct
+import time
+from typing import Any, ClassVar
+
+import serial
+from cobs import cobs
+
+from rths_hil.errors import InputError
+
+from .base import Driver, Feedback, check_command
+
+__all__ = [
+    "ESTOP_KEY",
+    "SerialDriver",
+    "decode_frame",
+    "encode_frame",
+]
+
+T_COMMAND, T_ESTOP, T_HEARTBEAT, T_FEEDBACK = 0x01, 0x02, 0x03, 0x81
+ESTOP_KEY = 0xA5
+COMMAND = struct.Struct("<BIBd")
+ESTOP = struct.Struct("<BB")
+HEARTBEAT = struct.Struct("<BB")
+FEEDBACK = struct.Struct("<BIBdd")
+_CRC = struct.Struct("<H")
+_crc = binascii.crc_hqx
+_cobs_encode = cobs.encode
+_cobs_decode = cobs.decode
+
+if os.name == "posix":
+    from serial.serialposix import Serial as _PosixSerial
+else:  # pragma: no cover - Windows
+    _PosixSerial = None
+
+
+def encode_frame(body: bytes) -> bytes:
+    """Append the CRC to ``body``, COBS-encode it and add the 0x00 delimiter."""
+    return _cobs_encode(body + _CRC.pack(_crc(body, 0xFFFF))) + b"\x00"
+
+
+def decode_frame(encoded: bytes) -> tuple[bytes | None, str | None]:
+    """Undo :func:`encode_frame` for one frame without its delimiter.
+
+    Returns ``(body, None)`` or ``(None, reason)`` with reason ``bad_cobs``, ``bad_length`` or
+    ``bad_crc``.
+    """
+    try:
+        raw = _cobs_decode(encoded)
+    except cobs.DecodeError:
+        return None, "bad_cobs"
+    if len(raw) < 3:
+        return None, "bad_length"
+    body = raw[:-2]
+    if _CRC.unpack_from(raw, len(raw) - 2)[0] != _crc(body, 0xFFFF):
+        return None, "bad_crc"
+    return body, None
+
+
+class SerialDriver(Driver):
+    """Lockstep actuator driver over a serial line (see the module docstring).
+
+    Parameters
+    ----------
+    url : str
+        pyserial port or URL (``/dev/ttyUSB0``, ``/dev/pts/3``, ``socket://127.0.0.1:5000``,
+        ``loop://``).
+    baudrate : int
+        Line speed (ignored by pseudo-terminals and sockets).
+    """
+
+    name: ClassVar[str] = "serial"
+
+    def __init__(self, url: str, baudrate: int = 921600) -> None:
+        super().__init__()
+        self.url = str(url)
+        self.baudrate = int(baudrate)
+        self._ser: Any = None
+        self._fd: int | None = None
+        self._buf = b""
+        self._hb = 0
+
+    def open(self) -> None:
+        if self._ser is not None:
+            return
+        try:
+            ser = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise InputError(f"serial driver: cannot open {self.url!r}: {exc}") from None
+        self._ser = ser
+        self._fd = ser.fd if _PosixSerial is not None and isinstance(ser, _PosixSerial) else None
+        self._buf = b""
+
+    def close(self) -> None:
+        ser, self._ser = self._ser, None
+        self._fd = None
+        if ser is not None:
+            try:
+                ser.close()
+            except (serial.SerialException, OSError):  # pragma: no cover
+                pass
+
+    def _write(self, frame: bytes) -> None:
+        if self._ser is None:
+            try:
+                self.open()  # reconnect after a lost line (sockets; a gone pty stays gone)
+            except InputError:
+                self.stats.send_errors += 1
+                return
+        ser = self._ser
+        try:
+            if self._fd is not None:
+                os.write(self._fd, frame)
+            else:
+                ser.write(frame)
+        except (serial.SerialException, OSError):
+            self.stats.send_errors += 1
+
+    def send(self, seq: int, displacement: float, enable: bool = True) -> None:
+        check_command(seq, displacement, lsb=None)
+        if seq > 0xFFFFFFFF:
+            raise InputError(f"serial driver: sequence number {seq} exceeds 32 bits")
+        self._last_sent = seq
+        self.stats.sent += 1
+        self._write(encode_frame(COMMAND.pack(T_COMMAND, seq, 1 if enable else 0, displacement)))
+
+    def estop(self) -> None:
+        self.stats.estops += 1
+        self._write(encode_frame(ESTOP.pack(T_ESTOP, ESTOP_KEY)))
+
+    def heartbeat(self) -> None:
+        self._hb = (self._hb + 1) & 0xFF
+        self._write(encode_frame(HEARTBEAT.pack(T_HEARTBEAT, self._hb)))
+
+    def _read(self, timeout: float) -> bytes | None:
+        """Bytes available within ``timeout`` (b"" on timeout, None when the line is gone)."""
+        fd = self._fd
+        try:
+            if fd is not None:
+                if not select.select((fd,), (), (), timeout)[0]:
+                    return b""
+                data = os.read(fd, 4096)
+                return data if data else None
+            ser = self._ser
+            ser.timeout = timeout
+            data = ser.read(1)
+            if data:
+                n = ser.in_waiting
+                if n:
+                    data += ser.read(n)
+            return data
+        except (serial.SerialException, OSError):
+            return None
+
+    def receive(self, timeout: float) -> Feedback | None:
+        stats = self.stats
+        if self._ser is None:
+            stats.timeouts += 1
+            return None
+        deadline = time.perf_counter() + timeout
+        while True:
+            while b"\x00" in self._buf:
+                fb = self._drain()
+                if fb is not None:
+                    return fb
+            remaining = deadline - time.perf_counter()
+            data = self._read(max(remaining, 0.0))
+            if data is None:
+                stats.disconnects += 1
+                stats.timeouts += 1
+                self.close()
+                return None
+            if data:
+                self._buf += data
+            elif remaining <= 0:
+                stats.timeouts += 1
+                return None
+
+    def _drain(self) -> Feedback | None:
+        """Handle the first complete frame in the buffer."""
+        stats = self.stats
+        frame, _, self._buf = self._buf.partition(b"\x00")
+        if not frame:
+            return None
+        body, reason = decode_frame(frame)
+        if body is None:
+            stats.count_malformed(reason or "bad_frame")
+            return None
+        if body[0] != T_FEEDBACK:
+            stats.count_malformed("unknown_id")
+            return None
+        if len(body) != FEEDBACK.size:
+            stats.count_malformed("bad_length")
+            return None
+        _, seq, status, disp, force = FEEDBACK.unpack(body)
+        if not self._classify(seq):
+            return None
+        stats.received += 1
+        if math.isnan(disp) or math.isnan(force):
+            stats.invalid_values += 1
+        return Feedback(seq, disp, force, status)

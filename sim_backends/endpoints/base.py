@@ -1,0 +1,313 @@
+"""Protocol-independent part of a twin: the controller state machine and the endpoint thread.
+
+:class:`TwinController` is what every endpoint drives. Its rules (the lockstep contract the
+real-time loop relies on):
+
+* Each command with a new sequence number ``k`` advances the plant exactly one step
+  (``plant.step(command) -> (disp, force)``) when the controller is enabled, and the feedback
+  echoes ``k``. A repeated ``k`` (a retransmitted or duplicated command) does not step the plant
+  again: the same feedback is sent again. An older ``k`` is ignored.
+* ``enable=False`` holds the last position without stepping (status without ``ENABLED``).
+* An e-stop latches: the plant is no longer stepped, the feedback repeats the last measured
+  displacement and force with status ``ESTOP_ACTIVE`` for every command, until a command with
+  ``enable=False`` acknowledges it; a later ``enable=True`` command re-enables.
+* An optional heartbeat watchdog trips the e-stop (status ``WATCHDOG``) when no heartbeat came
+  for ``heartbeat_timeout`` seconds after the first one.
+
+:class:`TwinEndpoint` runs the protocol side in a daemon thread and applies the frame faults of a
+:class:`~sim_backends.faults.Faults` plan.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from abc import ABC, abstractmethod
+from dataclasses import asdict, dataclass
+from types import TracebackType
+from typing import Any
+
+from drivers.base import Status
+
+from ..base import Plant
+from ..faults import Faults
+
+log = logging.getLogger(__name__)
+
+__all__ = ["TwinController", "TwinEndpoint", "TwinStats"]
+
+
+@dataclass(slots=True)
+class TwinStats:
+    """Counters of a twin endpoint (what the controller saw)."""
+
+    commands: int = 0
+    steps: int = 0
+    replies: int = 0
+    repeats: int = 0
+    stale: int = 0
+    seq_gaps: int = 0
+    estops: int = 0
+    heartbeats: int = 0
+    malformed: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        """All counters as a dict."""
+        return asdict(self)
+
+
+class TwinController:
+    """The controller state machine around a plant (see the module docstring).
+
+    Parameters
+    ----------
+    plant : Plant
+        Anything with ``dt``, ``reset()`` and ``step(cmd) -> (disp, force)``.
+    faults : Faults, optional
+        Measurement and command faults to apply.
+    seq_bits : int or None
+        Width of the wire sequence number (16 on CAN and Modbus, ``None`` for full integers);
+        wire values are extended to a running count.
+    heartbeat_timeout : float or None
+        Watchdog period (s); ``None`` disables the watchdog.
+    """
+
+    def __init__(
+        self,
+        plant: Plant,
+        faults: Faults | None = None,
+        seq_bits: int | None = None,
+        heartbeat_timeout: float | None = None,
+    ) -> None:
+        self.plant = plant
+        self.faults = faults or Faults()
+        self.stats = TwinStats()
+        self._mask = (1 << seq_bits) - 1 if seq_bits else 0
+        self.heartbeat_timeout = heartbeat_timeout
+        self.lock = threading.Lock()
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to rest: plant reset, e-stop cleared, no step taken yet."""
+        self.plant.reset()
+        self.last_seq = -1
+        self.enabled = False
+        self.estop_latched = False
+        self.watchdog_tripped = False
+        self.displacement = 0.0
+        self.force = 0.0
+        self.last_reply: tuple[int, float, float, int] | None = None
+        self._last_heartbeat: float | None = None
+
+    def _extend(self, raw: int) -> int:
+        if not self._mask:
+            return raw
+        mask = self._mask
+        half = (mask + 1) >> 1
+        ref = max(self.last_seq, 0)
+        return ref + (((raw - ref) + half) & mask) - half
+
+    def estop(self) -> None:
+        """Latch the e-stop: hold position from now on."""
+        with self.lock:
+            self.stats.estops += 1
+            self.estop_latched = True
+            self.enabled = False
+
+    def heartbeat(self) -> None:
+        """Record a heartbeat (arms the watchdog)."""
+        self.stats.heartbeats += 1
+        self._last_heartbeat = time.monotonic()
+
+    def check_watchdog(self) -> None:
+        """Trip the e-stop when the heartbeat is overdue."""
+        if self.heartbeat_timeout is None or self._last_heartbeat is None:
+            return
+        if time.monotonic() - self._last_heartbeat > self.heartbeat_timeout:
+            if not self.estop_latched:
+                log.warning("twin: heartbeat watchdog expired, e-stop latched")
+                self.estop()
+            self.watchdog_tripped = True
+
+    def status(self) -> int:
+        """Current :class:`~drivers.base.Status` flags (without per-sample flags)."""
+        s = 0
+        if self.enabled:
+            s |= Status.ENABLED
+        if self.estop_latched:
+            s |= Status.ESTOP_ACTIVE
+        if self.watchdog_tripped:
+            s |= Status.WATCHDOG
+        if self.faults.runaway_from is not None and self.last_seq >= self.faults.runaway_from:
+            s |= Status.FAULT
+        return int(s)
+
+    def command(
+        self, raw_seq: int, displacement: float, enable: bool
+    ) -> tuple[int, float, float, int] | None:
+        """Handle one command frame; return the feedback (seq, disp, force, status) or None.
+
+        ``None`` means nothing is sent back (command lost, or older than the last one).
+        """
+        with self.lock:
+            self.stats.commands += 1
+            seq = self._extend(raw_seq)
+            if self.faults.command_lost(seq):
+                return None
+            if seq == self.last_seq and self.last_reply is not None:
+                self.stats.repeats += 1
+                return self.last_reply
+            if seq < self.last_seq:
+                self.stats.stale += 1
+                return None
+            extra = 0
+            if self.last_seq >= 0 and seq > self.last_seq + 1:
+                self.stats.seq_gaps += seq - self.last_seq - 1
+                extra |= Status.SEQ_GAP
+            self.last_seq = seq
+            if self.estop_latched:
+                if not enable:
+                    self.estop_latched = False  # acknowledged; next enable=True re-enables
+                    self.watchdog_tripped = False
+                self.enabled = False
+            else:
+                self.enabled = bool(enable)
+            if self.enabled and math.isfinite(displacement):
+                d, f = self.plant.step(displacement)
+                self.stats.steps += 1
+                d, f, invalid = self.faults.measure(seq, float(d), float(f), self.plant.dt)
+                self.displacement, self.force = d, f
+                if invalid:
+                    extra |= Status.SENSOR_INVALID
+            elif self.enabled:
+                self.enabled = False  # a non-finite command disables (holds position)
+            reply = (seq, self.displacement, self.force, self.status() | int(extra))
+            self.last_reply = reply
+            return reply
+
+
+class TwinEndpoint(ABC):
+    """A protocol endpoint serving a :class:`TwinController` from a daemon thread.
+
+    Subclasses implement :meth:`_setup` (open the transport, fill :attr:`connection` and
+    :attr:`where`), :meth:`_serve_once` (wait ≤ ``poll`` s for input and handle it),
+    :meth:`_teardown`, :meth:`_write` (send one encoded frame) and :meth:`_corrupt`.
+    """
+
+    name: str = ""
+    poll = 0.05
+
+    def __init__(self, controller: TwinController) -> None:
+        self.controller = controller
+        self.faults = controller.faults
+        self.connection: dict[str, Any] = {}
+        self.where = ""
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._gone = False
+        self.error: BaseException | None = None
+
+    @property
+    def stats(self) -> TwinStats:
+        """The controller's counters."""
+        return self.controller.stats
+
+    @property
+    def plant(self) -> Plant:
+        """The plant being driven."""
+        return self.controller.plant
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    def start(self) -> TwinEndpoint:
+        """Open the transport and start serving; returns self."""
+        if self._thread is not None:
+            return self
+        self._setup()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name=f"twin-{self.name}", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop serving and close the transport."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        self._teardown()
+
+    def __enter__(self) -> TwinEndpoint:
+        return self.start()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+    def wait(self) -> None:
+        """Block until :meth:`stop` is called from elsewhere (used by ``twin serve``)."""
+        while not self._stop.wait(0.2):
+            pass
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                self._serve_once(self.poll)
+                self.controller.check_watchdog()
+        except BaseException as exc:  # pragma: no cover - surfaced through .error
+            log.exception("twin %s endpoint stopped on an error", self.name)
+            self.error = exc
+
+    # -- feedback emission with frame faults ----------------------------------------------------
+    def _go_away(self) -> None:
+        """Disconnect fault: close the transport side the driver talks to."""
+        self._gone = True
+
+    def emit(self, reply: tuple[int, float, float, int] | None) -> None:
+        """Send the feedback of one command, applying the frame and link faults."""
+        if reply is None or self._gone:
+            return
+        seq = reply[0]
+        faults = self.faults
+        if faults.disconnected(seq):
+            self._go_away()
+            return
+        frames = self._encode(*reply)
+        copies, pause, corrupt = faults.reply_plan(seq)
+        if pause:
+            time.sleep(pause)
+        if corrupt:
+            frames = [self._corrupt(f) for f in frames]
+        for _ in range(copies):
+            for frame in frames:
+                self._write(frame)
+        self.controller.stats.replies += copies
+
+    @abstractmethod
+    def _encode(self, seq: int, displacement: float, force: float, status: int) -> list[Any]:
+        """Encode one feedback into the frame(s) to send."""
+
+    @abstractmethod
+    def _corrupt(self, frame: Any) -> Any:
+        """Return ``frame`` damaged in a way the driver's checks must detect."""
+
+    @abstractmethod
+    def _write(self, frame: Any) -> None:
+        """Send one frame."""
+
+    @abstractmethod
+    def _setup(self) -> None:
+        """Open the transport."""
+
+    @abstractmethod
+    def _serve_once(self, timeout: float) -> None:
+        """Wait up to ``timeout`` for input and handle it."""
+
+    @abstractmethod
+    def _teardown(self) -> None:
+        """Close the transport."""

@@ -1,0 +1,176 @@
+"""Serial twin endpoint: the far end of a pseudo-terminal (or a TCP socket) speaking the
+COBS/CRC frame format of :mod:`drivers.serial`.
+
+``transport="pty"`` (default) opens a pseudo-terminal pair with :func:`os.openpty`; the twin
+keeps the master side and the driver opens the slave path (``connection = {"url":
+"/dev/pts/N"}``). ``transport="tcp"`` listens on ``host:port`` for one client at a time
+(``connection = {"url": "socket://127.0.0.1:PORT"}``). The ``disconnect`` fault closes the
+master side (the driver then reads end-of-file/EIO) or the client socket.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import socket
+import tty
+from typing import Any
+
+from drivers.serial import (
+    COMMAND,
+    ESTOP_KEY,
+    FEEDBACK,
+    T_COMMAND,
+    T_ESTOP,
+    T_FEEDBACK,
+    T_HEARTBEAT,
+    decode_frame,
+)
+from drivers.serial import encode_frame as _encode_frame
+from rths_hil.errors import InputError
+
+from ..faults import Faults
+from .base import TwinController, TwinEndpoint
+
+__all__ = ["SerialTwin"]
+
+
+class SerialTwin(TwinEndpoint):
+    """Serial twin on a pseudo-terminal (``transport="pty"``) or a TCP socket (``"tcp"``)."""
+
+    name = "serial"
+
+    def __init__(
+        self,
+        controller: TwinController,
+        transport: str = "pty",
+        host: str = "127.0.0.1",
+        port: int = 0,
+    ) -> None:
+        super().__init__(controller)
+        if transport not in ("pty", "tcp"):
+            raise InputError(f"serial twin: transport must be 'pty' or 'tcp', got {transport!r}")
+        self.transport = transport
+        self.host, self.port = host, int(port)
+        self._fd: int | None = None  # pty master, or the connected client's socket fd
+        self._slave: int | None = None
+        self._listener: socket.socket | None = None
+        self._client: socket.socket | None = None
+        self._buf = b""
+
+    def _setup(self) -> None:
+        if self.transport == "pty":
+            master, slave = os.openpty()
+            tty.setraw(slave)
+            self._fd, self._slave = master, slave
+            path = os.ttyname(slave)
+            self.connection = {"url": path}
+            self.where = path
+        else:
+            try:
+                lst = socket.create_server((self.host, self.port))
+            except OSError as exc:
+                raise InputError(
+                    f"serial twin: cannot listen on {self.host}:{self.port}: {exc}"
+                ) from None
+            self._listener = lst
+            host, port = lst.getsockname()[:2]
+            self.connection = {"url": f"socket://{host}:{port}"}
+            self.where = f"socket://{host}:{port}"
+
+    def _teardown(self) -> None:
+        for fd in (self._fd if self.transport == "pty" else None, self._slave):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self._fd = self._slave = None
+        for s in (self._client, self._listener):
+            if s is not None:
+                s.close()
+        self._client = self._listener = None
+
+    def _go_away(self) -> None:
+        super()._go_away()
+        if self.transport == "pty":
+            if self._fd is not None:
+                os.close(self._fd)
+                self._fd = None
+            if self._slave is not None:
+                os.close(self._slave)
+                self._slave = None
+        elif self._client is not None:
+            self._client.close()
+            self._client = None
+            self._fd = None
+
+    def _serve_once(self, timeout: float) -> None:
+        if self.transport == "tcp" and self._client is None:
+            if self._gone or self._listener is None:
+                self._stop.wait(timeout)
+                return
+            if not select.select((self._listener,), (), (), timeout)[0]:
+                return
+            client, _ = self._listener.accept()
+            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self._client, self._fd, self._buf = client, client.fileno(), b""
+            return
+        fd = self._fd
+        if fd is None:
+            self._stop.wait(timeout)
+            return
+        if not select.select((fd,), (), (), timeout)[0]:
+            return
+        try:
+            data = os.read(fd, 4096)
+        except OSError:
+            data = b""
+        if not data:
+            if self._client is not None:  # client hung up; wait for the next one
+                self._client.close()
+                self._client, self._fd = None, None
+            return
+        self._buf += data
+        while b"\x00" in self._buf:
+            frame, _, self._buf = self._buf.partition(b"\x00")
+            if frame:
+                self._handle(frame)
+
+    def _handle(self, frame: bytes) -> None:
+        ctl = self.controller
+        body, _reason = decode_frame(frame)
+        if body is None:
+            ctl.stats.malformed += 1
+            return
+        kind = body[0]
+        if kind == T_COMMAND and len(body) == COMMAND.size:
+            _, seq, control, disp = COMMAND.unpack(body)
+            self.emit(ctl.command(seq, disp, bool(control & 1)))
+        elif kind == T_ESTOP and len(body) == 2 and body[1] == ESTOP_KEY:
+            ctl.estop()
+        elif kind == T_HEARTBEAT and len(body) == 2:
+            ctl.heartbeat()
+        else:
+            ctl.stats.malformed += 1
+
+    def _encode(self, seq: int, displacement: float, force: float, status: int) -> list[Any]:
+        return [_encode_frame(FEEDBACK.pack(T_FEEDBACK, seq, status & 0xFF, displacement, force))]
+
+    def _corrupt(self, frame: bytes) -> bytes:
+        # Flip a bit inside the CRC-protected body, keeping the COBS structure intact.
+        body, _ = decode_frame(frame[:-1])
+        assert body is not None
+        from drivers.serial import _CRC, _cobs_encode, _crc
+
+        raw = body + _CRC.pack(_crc(body, 0xFFFF))
+        return _cobs_encode(Faults.flip_bit(raw, 8, 0)) + b"\x00"
+
+    def _write(self, frame: bytes) -> None:
+        fd = self._fd
+        if fd is None:
+            return
+        try:
+            os.write(fd, frame)
+        except OSError:  # pragma: no cover - peer gone
+            pass
