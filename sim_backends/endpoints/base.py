@@ -102,11 +102,11 @@ class TwinController:
         self._last_heartbeat: float | None = None
 
     def _extend(self, raw: int) -> int:
-        if not self._mask:
-            return raw
+        if not self._mask or self.last_seq < 0:
+            return raw  # the first command sets the count
         mask = self._mask
         half = (mask + 1) >> 1
-        ref = max(self.last_seq, 0)
+        ref = self.last_seq
         return ref + (((raw - ref) + half) & mask) - half
 
     def estop(self) -> None:
