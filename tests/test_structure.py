@@ -316,3 +316,12 @@ def test_bad_simulate_arguments():
         simulate_sdof(ag, 100, 1.0, 0.02, method="rk4")
     with pytest.raises(InputError, match="x_y"):
         BoucWenParams(x_y=0)
+
+
+def test_numpy_scalar_inputs_keep_python_float_state():
+    st = CRStepper(1.0, 0.02, fn=1.0, dt=0.01, ag0=np.float64(0.1))
+    st.step(np.float64(0.2), extra_force=np.float64(0.0))
+    assert type(st.x_next) is float and type(st.a) is float
+    nm = NewmarkStepper(1.0, 0.02, fn=1.0, dt=0.01, bouc_wen=BoucWenParams(k_a=(2 * np.pi) ** 2))
+    nm.step(np.float64(0.2))
+    assert type(nm.x) is float

@@ -1,0 +1,269 @@
+"""``rths-hil study``: the seed's computational study (Section 4).
+
+* ``study window-size``: smallest moving window meeting a delay-error criterion for each record
+  and natural frequency (seed Fig. 4.2); writes ``window_size.csv`` and ``window_size.png``.
+* ``study accuracy``: maximum amplitude and delay errors of the moving-window FEI for linear and
+  Bouc-Wen structures (seed Table 4.1, Fig. 4.6); writes ``accuracy.csv`` and ``accuracy.png``.
+
+Both run their cases on a process pool (``--workers``, default 2) with a progress bar on stderr.
+The procedure and the criterion are described in ``docs/simulation.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+from pathlib import Path
+
+from ..errors import InputError
+from ..units import parse_accel, parse_fraction, parse_range, parse_time
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``study window-size`` and ``study accuracy``."""
+    parser = sub.add_parser("study", help="the seed's window-size and accuracy studies (Section 4)")
+    st = parser.add_subparsers(dest="study_command", metavar="STUDY")
+
+    def common(p: argparse.ArgumentParser, gain: str, delay: str) -> None:
+        p.add_argument("--zeta", default="0.02", help="damping ratio (default 0.02)")
+        p.add_argument("--gain", default=gain, help=f"actuator gain k_p (default {gain})")
+        p.add_argument("--delay", default=delay, help=f"actuator delay (default {delay})")
+        p.add_argument("--pga", default=None, help="scale records to this PGA (m/s² or 0.3g)")
+        p.add_argument("--fs", default="1024", help="simulation rate in Hz (default 1024)")
+        p.add_argument(
+            "--min-level",
+            default="0.1",
+            help="count windows whose target level is ≥ this fraction of the record's largest "
+            "(default 0.1; 0 counts every valid window)",
+        )
+        p.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
+        p.add_argument("--no-progress", action="store_true", help="no progress bar")
+        p.add_argument("--out", required=True, help="output directory (created if missing)")
+
+    ws = st.add_parser(
+        "window-size",
+        help="window size needed per natural frequency (seed Fig. 4.2)",
+        description="Seed Fig. 4.2: t_w from 1·Tn upwards by 0.1·Tn until the criterion holds.",
+    )
+    ws.add_argument(
+        "--record",
+        action="append",
+        default=None,
+        help="ground motion file or bundled name; repeat for several (default: all bundled)",
+    )
+    ws.add_argument("--fn", default="0.2:5.1:0.1", help="frequencies start:stop:step or a,b,c (Hz)")
+    ws.add_argument("--criterion", default="1%", help="tolerance on |d − τ|/τ (default 1%%)")
+    ws.add_argument(
+        "--statistic",
+        default="p95",
+        help="statistic of the window errors: max or pNN percentile (default p95)",
+    )
+    ws.add_argument("--bouc-wen", action="store_true", help="Bouc-Wen structure (seed Eq. 4.1-4.2)")
+    ws.add_argument("--max-periods", default="10", help="largest window tried, in Tn (default 10)")
+    common(ws, "1", "1ms")
+    ws.set_defaults(func=run_window_size)
+
+    acc = st.add_parser(
+        "accuracy",
+        help="max FEI errors, linear and Bouc-Wen (seed Table 4.1, Fig. 4.6)",
+        description="Seed Table 4.1 / Fig. 4.6 for linear and Bouc-Wen SDOF structures.",
+    )
+    acc.add_argument(
+        "--record", default=None, help="ground motion file or bundled name (default El Centro)"
+    )
+    acc.add_argument("--fn", default="0.5,0.7,1.0", help="frequencies a,b,c (Hz)")
+    acc.add_argument("--window", default="3T", help="window: 3T (periods) or seconds (3s)")
+    acc.add_argument("--hop", type=int, default=1, help="samples between windows (default 1)")
+    common(acc, "1.1", "5ms")
+    acc.set_defaults(func=run_accuracy)
+    parser.set_defaults(func=lambda args: _no_study(parser))
+
+
+def _no_study(parser: argparse.ArgumentParser) -> int:
+    parser.print_help()
+    return 2
+
+
+def _positive(text: str, what: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise InputError(f"{what}: not a number: {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise InputError(f"{what} must be > 0, got {text!r}")
+    return v
+
+
+def _fns(text: str) -> list[float]:
+    fns = parse_range(text, "--fn")
+    if not fns:
+        raise InputError(f"--fn {text!r}: no frequencies")
+    for f in fns:
+        if not (math.isfinite(f) and f > 0):
+            raise InputError(f"--fn: natural frequencies must be > 0 Hz, got {f:g}")
+    return fns
+
+
+def _common(args: argparse.Namespace) -> dict:
+    zeta = parse_fraction(args.zeta, "--zeta")
+    if not 0 <= zeta < 1:
+        raise InputError(f"--zeta must lie in [0, 1), got {args.zeta}")
+    delay = parse_time(args.delay, "--delay")
+    if not (math.isfinite(delay) and delay > 0):
+        raise InputError(f"--delay must be > 0 (errors are relative to it), got {args.delay}")
+    min_level = parse_fraction(args.min_level, "--min-level")
+    if not 0 <= min_level < 1:
+        raise InputError(f"--min-level must lie in [0, 1), got {args.min_level}")
+    if args.workers < 1:
+        raise InputError(f"--workers must be ≥ 1, got {args.workers}")
+    return {
+        "zeta": zeta,
+        "gain": _positive(args.gain, "--gain"),
+        "delay": delay,
+        "min_level": min_level,
+        "fs": _positive(args.fs, "--fs"),
+        "pga": None if args.pga is None else parse_accel(args.pga, "--pga"),
+    }
+
+
+def _records(specs: list[str] | None, fs: float, pga: float | None):
+    from ..groundmotion import bundled_records, default_record, load, resolve
+
+    if specs is None:
+        gms = [load(p) for p in bundled_records()]
+    elif specs == ["default"]:
+        gms = [default_record()]
+    else:
+        gms = [resolve(s) for s in specs]
+    out = []
+    for gm in gms:
+        gm = gm.resampled(fs)
+        out.append(gm.scaled(pga) if pga is not None else gm)
+    return out
+
+
+def _outdir(text: str) -> Path:
+    out = Path(text)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out: cannot create directory {text!r} ({exc.strerror})") from None
+    return out
+
+
+def run_window_size(args: argparse.Namespace) -> int:
+    """``study window-size``."""
+    from .. import study
+
+    c = _common(args)
+    fns = _fns(args.fn)
+    crit = study.WindowCriterion(
+        tolerance=parse_fraction(args.criterion, "--criterion"),
+        statistic=args.statistic,
+        min_level=c["min_level"],
+    )
+    max_periods = _positive(args.max_periods, "--max-periods")
+    if max_periods < 1:
+        raise InputError(f"--max-periods must be ≥ 1, got {args.max_periods}")
+    for f in fns:
+        if f >= c["fs"] / 2:
+            raise InputError(f"--fn {f:g} Hz is not below the Nyquist frequency")
+    gms = _records(args.record, c["fs"], c["pga"])
+    for gm in gms:
+        if 1.0 / min(fns) > 0.5 * gm.duration:
+            raise InputError(
+                f"record {gm.name!r} ({gm.duration:g} s) is shorter than two periods of "
+                f"{min(fns):g} Hz: the window search cannot start"
+            )
+    out = _outdir(args.out)
+    ex = study.make_executor(args.workers)
+    try:
+        rows = study.window_size_study(
+            gms,
+            fns,
+            executor=ex,
+            progress=not args.no_progress,
+            zeta=c["zeta"],
+            gain=c["gain"],
+            delay=c["delay"],
+            criterion=crit,
+            bouc_wen=True if args.bouc_wen else None,
+            max_periods=max_periods,
+        )
+    finally:
+        ex.shutdown(wait=True, cancel_futures=True)
+    study.write_window_size_csv(out / "window_size.csv", rows)
+    study.plot_window_size(out / "window_size.png", rows)
+    print(f"{'record':<34}{'fn (Hz)':>8}{'t_w (s)':>9}{'t_w/Tn':>8}{'err %':>8}")
+    for r in rows:
+        print(
+            f"{r.record[:33]:<34}{r.fn_hz:>8.3g}{r.window_s:>9.3g}{r.window_periods:>8.3g}"
+            f"{r.delay_error_pct:>8.3f}"
+        )
+    failed = sum(math.isnan(r.window_s) for r in rows)
+    print(
+        f"wrote {out / 'window_size.csv'} and {out / 'window_size.png'} "
+        f"({len(rows)} cases, {failed} without a passing window up to {max_periods:g}·Tn)"
+    )
+    return 0
+
+
+_WINDOW_T = re.compile(r"^\s*([0-9.eE+-]+)\s*T\s*$")
+
+
+def run_accuracy(args: argparse.Namespace) -> int:
+    """``study accuracy``."""
+    from .. import study
+
+    c = _common(args)
+    fns = _fns(args.fn)
+    m = _WINDOW_T.match(args.window)
+    if m:
+        periods = _positive(m.group(1), "--window")
+        window_s = None
+    else:
+        periods = None
+        window_s = parse_time(args.window, "--window")
+        if not (math.isfinite(window_s) and window_s > 0):
+            raise InputError(f"--window must be > 0, got {args.window}")
+    if args.hop < 1:
+        raise InputError(f"--hop must be ≥ 1, got {args.hop}")
+    for f in fns:
+        if f >= c["fs"] / 2:
+            raise InputError(f"--fn {f:g} Hz is not below the Nyquist frequency")
+    gm = _records(["default"] if args.record is None else [args.record], c["fs"], c["pga"])[0]
+    out = _outdir(args.out)
+    ex = study.make_executor(args.workers)
+    try:
+        rows = study.accuracy_study(
+            gm,
+            fns,
+            window_periods=periods,
+            window_s=window_s,
+            executor=ex,
+            progress=not args.no_progress,
+            zeta=c["zeta"],
+            gain=c["gain"],
+            delay=c["delay"],
+            hop=args.hop,
+            min_level=c["min_level"],
+        )
+    finally:
+        ex.shutdown(wait=True, cancel_futures=True)
+    study.write_accuracy_csv(out / "accuracy.csv", rows)
+    study.plot_accuracy(out / "accuracy.png", rows, c["gain"], c["delay"])
+    print(
+        f"record {gm.name}, PGA {gm.pga:.4g} m/s², gain {c['gain']:g}, "
+        f"delay {c['delay'] * 1e3:g} ms"
+    )
+    print(
+        f"{'fn (Hz)':>8}{'structure':>10}{'t_w (s)':>9}{'A err %':>9}{'d err %':>9}{'peak mm':>9}"
+    )
+    for r in rows:
+        print(
+            f"{r.fn_hz:>8.3g}{r.structure:>10}{r.window_s:>9.3g}{r.max_err_amplitude_pct:>9.3f}"
+            f"{r.max_err_delay_pct:>9.3f}{1e3 * r.peak_displacement_m:>9.2f}"
+        )
+    print(f"wrote {out / 'accuracy.csv'} and {out / 'accuracy.png'}")
+    return 0
