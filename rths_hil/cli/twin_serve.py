@@ -1,0 +1,130 @@
+"""``rths-hil twin serve``: run a virtual servo-hydraulic twin as its own process.
+
+For a lab's dry run: the twin speaks the chosen driver's real protocol on a real transport and
+prints, on one line, where it listens and the driver connection settings (JSON) that reach it.
+Ctrl-C (SIGINT) or SIGTERM stops it cleanly with exit code 0.
+
+Examples::
+
+    rths-hil twin serve --driver modbus --port 1502
+    rths-hil twin serve --driver modbus --transport rtu          # prints the /dev/pts path
+    rths-hil twin serve --driver serial                          # pseudo-terminal
+    rths-hil twin serve --driver serial --transport tcp --port 5000
+    rths-hil twin serve --driver can --interface socketcan --channel vcan0 --model twin.toml
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+from typing import Any
+
+from ..errors import InputError
+from ..units import parse_time
+
+DEFAULT_DT = 1.0 / 1024.0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``serve`` to the ``twin`` sub-command group."""
+    p = sub.add_parser(
+        "serve",
+        help="run a virtual actuator twin behind a CAN, Modbus or serial endpoint",
+        description=__doc__.splitlines()[0] if __doc__ else None,
+    )
+    p.add_argument("--driver", required=True, choices=("can", "modbus", "serial"))
+    p.add_argument("--model", help="twin model file (TOML); default: 20 ms delay, gain 1, spring")
+    p.add_argument("--dt", default=None, help="twin step, e.g. 1ms (default 1/1024 s)")
+    p.add_argument("--transport", help="modbus: tcp (default) or rtu; serial: pty (default) or tcp")
+    p.add_argument("--host", default="127.0.0.1", help="TCP bind address (default 127.0.0.1)")
+    p.add_argument(
+        "--port", type=int, default=None, help="TCP port (default 0: any free port, printed)"
+    )
+    p.add_argument("--device", help="modbus rtu: serial device to serve (default: a new pty)")
+    p.add_argument("--device-id", type=int, default=1, help="modbus unit id (default 1)")
+    p.add_argument("--interface", default="socketcan", help="CAN: python-can interface")
+    p.add_argument("--channel", default="vcan0", help="CAN: channel (default vcan0)")
+    p.add_argument("--bitrate", type=int, default=None, help="CAN: bit rate (bit/s)")
+    p.add_argument("--faults", default=None, help='fault plan, e.g. "drop=5,9; p_corrupt=0.01"')
+    p.add_argument("--heartbeat-timeout", default=None, help="trip the e-stop when heartbeats stop")
+    p.set_defaults(func=run)
+
+
+def _connection(args: argparse.Namespace) -> dict[str, Any]:
+    if args.driver == "can":
+        if args.interface == "virtual":
+            raise InputError(
+                "--interface virtual: python-can's virtual bus only reaches buses inside the same "
+                "process; use --interface socketcan --channel vcan0 (or the lab's interface), or "
+                "start the twin in-process with sim_backends.twin.start_twin"
+            )
+        conn: dict[str, Any] = {"interface": args.interface, "channel": args.channel}
+        if args.bitrate is not None:
+            conn["bitrate"] = args.bitrate
+        return conn
+    transport = args.transport or ("tcp" if args.driver == "modbus" else "pty")
+    allowed = ("tcp", "rtu") if args.driver == "modbus" else ("pty", "tcp")
+    if transport not in allowed:
+        raise InputError(
+            f"--transport {transport}: use {' or '.join(allowed)} with --driver {args.driver}"
+        )
+    conn = {"transport": transport}
+    if transport == "tcp":
+        conn |= {"host": args.host, "port": 0 if args.port is None else args.port}
+    if args.driver == "modbus":
+        conn["device_id"] = args.device_id
+        if transport == "rtu" and args.device:
+            conn["device"] = args.device
+    return conn
+
+
+def run(args: argparse.Namespace) -> int:
+    """Serve until SIGINT/SIGTERM; return 0."""
+    from sim_backends.faults import Faults
+    from sim_backends.twin import default_plant, start_twin
+
+    dt = DEFAULT_DT if args.dt is None else parse_time(args.dt, "--dt")
+    if not dt > 0:
+        raise InputError(f"--dt {args.dt}: the step must be > 0")
+    if args.model:
+        from sim_backends.modelfile import load_plant
+
+        plant = load_plant(args.model, dt)
+    else:
+        plant = default_plant(dt=dt)
+    faults = Faults.parse(args.faults) if args.faults else None
+    hb = (
+        None
+        if args.heartbeat_timeout is None
+        else parse_time(args.heartbeat_timeout, "--heartbeat-timeout")
+    )
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        twin = start_twin(
+            args.driver, plant, faults=faults, heartbeat_timeout=hb, **_connection(args)
+        )
+        try:
+            print(
+                f"rths-hil twin serve: {args.driver} twin listening on {twin.where} "
+                f"connection {json.dumps(twin.connection)}",
+                flush=True,
+            )
+            while not stop.wait(0.2):
+                if twin.error is not None:
+                    raise InputError(f"twin endpoint stopped: {twin.error}")
+        finally:
+            twin.stop()
+        s = twin.stats
+        print(
+            f"rths-hil twin serve: stopped after {s.steps} steps "
+            f"({s.commands} commands, {s.estops} e-stops, {s.malformed} malformed)",
+            file=sys.stderr,
+        )
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0
