@@ -158,6 +158,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
             0,
             0.01,
         ),
+        "priority": Key(
+            "int",
+            0,
+            "-",
+            "paced: SCHED_FIFO real-time priority of the loop and its threads (0 = leave the "
+            "scheduler alone; needs root or CAP_SYS_NICE, else a warning)",
+            0,
+            99,
+        ),
         "overrun_threshold": Key(
             "float",
             0.5,
@@ -216,6 +225,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
             {},
             "-",
             "specimen model as in a model file's [specimen] table (empty: the model file default)",
+        ),
+        "sensor": Key(
+            "table",
+            {"displacement_noise": 2e-6, "force_noise": 5.0, "seed": 0},
+            "-",
+            "sensor noise and quantisation as in a model file's [sensor] table",
         ),
         "faults": Key(
             "str",
@@ -304,6 +319,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "watchdog_missed": Key("int", 3, "steps", "consecutive missed replies that trip", 1, None),
         "max_sequence_gaps": Key("int", 0, "-", "sequence gaps tolerated before a trip", 0, None),
+        "controller_status": Key(
+            "bool", True, "-", "trip on the controller's alarm bits (e-stop, fault, watchdog)"
+        ),
         "max_overruns": Key("int", 10, "steps", "consecutive paced overruns that trip", 1, None),
         "stuck_steps": Key(
             "int",

@@ -24,7 +24,11 @@ Rules (names as they appear in events and on the console):
 ``watchdog``
     ``missed`` consecutive steps without a matching feedback reply.
 ``sequence``
-    More than ``max_gaps`` replies whose echoed sequence number is not the one sent.
+    More than ``max_gaps`` sequence gaps: a reply whose echoed sequence number is not the one
+    sent, or a reply flagged ``SEQ_GAP`` by the controller (a command went missing).
+``controller``
+    The reply's status word carries an alarm of the controller itself: ``ESTOP_ACTIVE``,
+    ``FAULT`` or ``WATCHDOG`` (:class:`drivers.base.Status`).
 ``overrun``
     ``consecutive`` consecutive paced steps later than the overrun threshold.
 ``stuck``
@@ -43,9 +47,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drivers.base import Status
+
 from .errors import InputError
 
 __all__ = [
+    "ControllerRule",
     "FEIRule",
     "KalmanRule",
     "LimitRule",
@@ -58,6 +65,8 @@ __all__ = [
 ]
 
 _isfinite = math.isfinite
+_ALARM_BITS = int(Status.ESTOP_ACTIVE | Status.FAULT | Status.WATCHDOG)
+_SEQ_GAP = int(Status.SEQ_GAP)
 
 
 @dataclass(frozen=True)
@@ -315,7 +324,11 @@ class WatchdogRule:
 
 
 class SequenceRule:
-    """Sequence gaps: more than ``max_gaps`` replies with an unexpected sequence number trip."""
+    """Sequence gaps: more than ``max_gaps`` gaps trip.
+
+    A gap is a reply whose echoed sequence number is not the one sent, or a reply whose status
+    carries the controller's ``SEQ_GAP`` flag (the controller saw a command go missing).
+    """
 
     __slots__ = ("count", "max_gaps", "rule")
 
@@ -324,23 +337,56 @@ class SequenceRule:
         self.max_gaps = _count("maximum sequence gaps", max_gaps, minimum=0)
         self.count = 0
 
-    def check(self, expected: int, received: int) -> Trip | None:
-        """Feed the sequence number sent and the one echoed."""
-        if expected == received:
+    def check(self, expected: int, received: int, controller_gap: bool = False) -> Trip | None:
+        """Feed the sequence number sent, the one echoed and the controller's gap flag."""
+        if expected == received and not controller_gap:
             return None
         self.count += 1
         if self.count <= self.max_gaps:
             return None
+        if expected != received:
+            what = f"reply sequence {received} where {expected} was expected"
+        else:
+            what = f"the controller reports a missing command before step {expected}"
         return Trip(
             self.rule,
-            f"reply sequence {received} where {expected} was expected "
-            f"({self.count} gaps, limit {self.max_gaps})",
+            f"{what} ({self.count} gaps, limit {self.max_gaps})",
             values={
                 "expected": expected,
                 "received": received,
                 "gaps": self.count,
                 "limit": self.max_gaps,
             },
+        )
+
+
+class ControllerRule:
+    """The controller's own alarms in the feedback status: e-stop latched, fault, watchdog.
+
+    Parameters
+    ----------
+    mask : int
+        Status bits that trip (default ``ESTOP_ACTIVE | FAULT | WATCHDOG`` of
+        :class:`drivers.base.Status`).
+    """
+
+    __slots__ = ("mask", "rule")
+
+    def __init__(self, mask: int | None = None) -> None:
+        self.rule = "controller"
+        self.mask = int(_ALARM_BITS if mask is None else mask)
+
+    def check(self, status: int) -> Trip | None:
+        """Feed the status word of a reply."""
+        bad = status & self.mask
+        if not bad:
+            return None
+        names = [b.name for b in Status if b & bad]
+        return Trip(
+            self.rule,
+            f"controller status reports {', '.join(n for n in names if n)} "
+            f"(status 0x{status:02x})",
+            values={"status": int(status)},
         )
 
 
@@ -457,6 +503,7 @@ class SafetyMonitor:
         sequence: SequenceRule | None = None,
         overrun: OverrunRule | None = None,
         stuck: StuckRule | None = None,
+        controller: ControllerRule | None = None,
     ) -> None:
         self.dt = _positive("time step", dt)
         inf = math.inf
@@ -474,6 +521,7 @@ class SafetyMonitor:
         self.sequence = sequence
         self.overrun = overrun
         self.stuck = stuck
+        self.controller = controller
         self.tripped: Trip | None = None
         self._prev_meas = math.nan
 
@@ -491,6 +539,7 @@ class SafetyMonitor:
             self.sequence,
             self.overrun,
             self.stuck,
+            self.controller,
         ):
             if r is not None:
                 names.append(r.rule)
@@ -529,14 +578,16 @@ class SafetyMonitor:
         ok: bool,
         expected_seq: int,
         received_seq: int,
+        status: int,
         command: float,
         measured: float,
         force: float,
     ) -> Trip | None:
-        """After the reply: watchdog, sequence, NaN, limits, stuck sensor.
+        """After the reply: watchdog, sequence, controller status, NaN, limits, stuck sensor.
 
         ``ok`` is False when no matching reply came within the timeout; then ``measured`` and
-        ``force`` are the held previous values and only the watchdog is fed.
+        ``force`` are the held previous values and only the watchdog is fed. ``status`` is the
+        reply's :class:`drivers.base.Status` word.
         """
         if self.tripped is not None:
             return self.tripped
@@ -548,10 +599,13 @@ class SafetyMonitor:
         if not ok:
             return None
         seq = self.sequence
-        if seq is not None and expected_seq != received_seq:
-            trip = seq.check(expected_seq, received_seq)
+        if seq is not None and (expected_seq != received_seq or status & _SEQ_GAP):
+            trip = seq.check(expected_seq, received_seq, bool(status & _SEQ_GAP))
             if trip is not None:
                 return self._fire(trip, t, k)
+        ctl = self.controller
+        if ctl is not None and status & ctl.mask:
+            return self._fire(ctl.check(status), t, k)
         if not _isfinite(measured + force):
             return self._nan(t, k, ("measured", "force"), (measured, force))
         lim = self.disp_limit

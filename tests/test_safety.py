@@ -7,8 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from drivers.base import Status
 from rths_hil.errors import InputError
 from rths_hil.safety import (
+    ControllerRule,
     FEIRule,
     KalmanRule,
     OverrunRule,
@@ -125,7 +127,7 @@ def test_command_checked_before_send_and_monitor_latches_first_trip():
     assert trip.rule == "displacement" and trip.step == 512 and trip.time == 0.5
     assert "command" in trip.reason and "0.0501" in trip.reason and "0.05" in trip.reason
     # later problems do not replace the first trip
-    again = m.check_feedback(0.6, 600, True, 600, 600, 0.0, math.nan, 0.0)
+    again = m.check_feedback(0.6, 600, True, 600, 600, 1, 0.0, math.nan, 0.0)
     assert again is trip
 
 
@@ -135,9 +137,9 @@ def test_velocity_limit_on_structure_and_on_measured_backward_difference():
     assert m.check_command(0, 1, 0.0, -0.51, 0.0).rule == "velocity"
     m = _monitor()
     dt = 1 / 1024
-    assert m.check_feedback(0, 0, True, 0, 0, 0.0, 0.0, 0.0) is None
-    assert m.check_feedback(dt, 1, True, 1, 1, 0.0, 0.45 * dt, 0.0) is None
-    trip = m.check_feedback(2 * dt, 2, True, 2, 2, 0.0, 0.45 * dt + 0.55 * dt, 0.0)
+    assert m.check_feedback(0, 0, True, 0, 0, 1, 0.0, 0.0, 0.0) is None
+    assert m.check_feedback(dt, 1, True, 1, 1, 1, 0.0, 0.45 * dt, 0.0) is None
+    trip = m.check_feedback(2 * dt, 2, True, 2, 2, 1, 0.0, 0.45 * dt + 0.55 * dt, 0.0)
     assert trip.rule == "velocity" and trip.values["measured velocity"] == pytest.approx(0.55)
 
 
@@ -152,7 +154,7 @@ def test_velocity_limit_on_structure_and_on_measured_backward_difference():
 )
 def test_feedback_limits_and_nan(measured, force, rule, word):
     m = _monitor()
-    trip = m.check_feedback(1.0, 1024, True, 1024, 1024, 0.0, measured, force)
+    trip = m.check_feedback(1.0, 1024, True, 1024, 1024, 1, 0.0, measured, force)
     assert trip.rule == rule and word in trip.reason and trip.step == 1024
 
 
@@ -165,8 +167,8 @@ def test_watchdog_trips_on_kth_consecutive_miss_only():
     m = _monitor(watchdog=WatchdogRule(3))
     feed = [True, False, False, True, False, False]
     for k, ok in enumerate(feed):
-        assert m.check_feedback(k, k, ok, k, k if ok else -1, 0.0, 0.0, 0.0) is None
-    trip = m.check_feedback(6, 6, False, 6, -1, 0.0, 0.0, 0.0)
+        assert m.check_feedback(k, k, ok, k, k if ok else -1, 1, 0.0, 0.0, 0.0) is None
+    trip = m.check_feedback(6, 6, False, 6, -1, 0, 0.0, 0.0, 0.0)
     assert trip.rule == "watchdog" and trip.values["missed"] == 3
 
 
@@ -176,6 +178,23 @@ def test_sequence_rule_counts_gaps():
     assert r.check(6, 4) is None  # first gap tolerated
     trip = r.check(7, 9)
     assert trip.rule == "sequence" and "9" in trip.reason and "7" in trip.reason
+
+
+def test_sequence_rule_counts_the_controller_gap_flag():
+    m = _monitor(sequence=SequenceRule(0))
+    assert m.check_feedback(0, 5, True, 5, 5, int(Status.ENABLED), 0.0, 0.0, 0.0) is None
+    status = int(Status.ENABLED | Status.SEQ_GAP)
+    trip = m.check_feedback(0, 6, True, 6, 6, status, 0.0, 0.0, 0.0)
+    assert trip.rule == "sequence" and "missing command" in trip.reason
+
+
+@pytest.mark.parametrize("bit", [Status.ESTOP_ACTIVE, Status.FAULT, Status.WATCHDOG])
+def test_controller_alarm_bits_trip(bit):
+    m = _monitor(controller=ControllerRule())
+    assert m.check_feedback(0, 1, True, 1, 1, int(Status.ENABLED), 0.0, 0.0, 0.0) is None
+    assert m.check_feedback(0, 2, True, 2, 2, int(Status.SENSOR_INVALID), 0.0, 0.0, 0.0) is None
+    trip = m.check_feedback(0, 3, True, 3, 3, int(Status.ENABLED | bit), 0.0, 0.0, 0.0)
+    assert trip.rule == "controller" and bit.name in trip.reason
 
 
 def test_overrun_rule_consecutive():

@@ -1,0 +1,34 @@
+"""``rths-hil export RUN_DIR [--csv] [--hdf5] [--out DIR]``: convert a run's record.
+
+Writes ``record.csv`` (the record CSV format read by ``rths-hil evaluate``; columns named as in
+the run's ``record.npy``) and/or ``record.h5``. ``--csv`` is the default. Works on runs that
+crashed or tripped: every flushed row is exported.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``export`` to the top-level parser."""
+    p = sub.add_parser(
+        "export",
+        help="export a run directory's record to CSV / HDF5",
+        description=__doc__.splitlines()[0],
+    )
+    p.add_argument("run_dir", metavar="RUN_DIR", help="run directory written by rths-hil run")
+    p.add_argument("--csv", action="store_true", help="write record.csv (default)")
+    p.add_argument("--hdf5", action="store_true", help="write record.h5 (needs h5py)")
+    p.add_argument("--out", metavar="DIR", help="output directory (default: RUN_DIR)")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    """Export; print the files written."""
+    from ..recorder import export_run
+
+    csv = args.csv or not args.hdf5
+    for path in export_run(args.run_dir, csv=csv, hdf5=args.hdf5, out_dir=args.out):
+        print(path)
+    return 0
