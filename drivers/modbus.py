@@ -110,6 +110,8 @@ class ModbusDriver(Driver):
         RTU line settings (8 data bits).
     connect_timeout : float
         TCP connect timeout (s).
+    estop_timeout : float
+        RTU: how long :meth:`estop` waits for the coil write echo (s).
     """
 
     name: ClassVar[str] = "modbus"
@@ -125,6 +127,7 @@ class ModbusDriver(Driver):
         parity: str = "E",
         stopbits: int = 1,
         connect_timeout: float = 1.0,
+        estop_timeout: float = 0.1,
     ) -> None:
         super().__init__()
         if transport not in ("tcp", "rtu"):
@@ -139,11 +142,16 @@ class ModbusDriver(Driver):
         self.device_id = int(device_id)
         self.baudrate, self.parity, self.stopbits = int(baudrate), str(parity), int(stopbits)
         self.connect_timeout = float(connect_timeout)
+        self.estop_timeout = float(estop_timeout)
+        self._coil_ack = False
+        self._stash: Feedback | None = None
         self._sock: socket.socket | None = None
         self._ser: Any = None
         self._fd: int | None = None
         self._buf = b""
         self._rtu = transport == "rtu"
+        # MBAP length, unit id, function code and byte count of a good FC 23 response
+        self._resp_head = struct.pack(">HHBBB", 0, _TCP_RESP.size - 6, self.device_id, FC_RW, 14)
 
     # -- transport ------------------------------------------------------------------------------
     def open(self) -> None:
@@ -224,6 +232,13 @@ class ModbusDriver(Driver):
         self._write(frame)
 
     def estop(self) -> None:
+        """Write coil 0 ON (FC 5).
+
+        Over TCP the request is sent at once and its echo is skipped by :meth:`receive`. Over RTU
+        (half-duplex: one request at a time on the line) the driver waits up to
+        ``estop_timeout`` for the echo before returning; a feedback that arrives meanwhile is
+        kept for the next :meth:`receive`.
+        """
         self.stats.estops += 1
         pdu = struct.pack(">BHH", FC_WRITE_COIL, COIL_ESTOP, 0xFF00)
         if self._rtu:
@@ -232,10 +247,25 @@ class ModbusDriver(Driver):
         else:
             frame = struct.pack(">HHHB", 0xFFFF, 0, len(pdu) + 1, self.device_id) + pdu
         self._write(frame)
+        if self._rtu:
+            self._coil_ack = False
+            deadline = time.perf_counter() + self.estop_timeout
+            timeouts = self.stats.timeouts
+            while not self._coil_ack:
+                remaining = deadline - time.perf_counter()
+                if remaining <= 0:
+                    break
+                fb = self.receive(remaining)
+                if fb is not None:
+                    self._stash = fb
+            self.stats.timeouts = timeouts  # waiting for the echo is not a feedback timeout
 
     # -- feedback -------------------------------------------------------------------------------
     def receive(self, timeout: float) -> Feedback | None:
         stats = self.stats
+        if self._stash is not None:
+            fb, self._stash = self._stash, None
+            return fb
         deadline = time.perf_counter() + timeout
         parse = self._parse_rtu if self._rtu else self._parse_tcp
         while True:
@@ -285,6 +315,17 @@ class ModbusDriver(Driver):
         """Handle the first complete ADU; return (feedback or None, keep parsing)."""
         buf = self._buf
         stats = self.stats
+        if len(buf) == _TCP_RESP.size and buf[2:9] == self._resp_head:
+            # fast path: exactly one well-formed FC 23 response for the last command
+            tid, _, _, _, _, _, seq16, status, rd, rf, crc = _TCP_RESP.unpack(buf)
+            last = self._last_sent
+            if (
+                tid == seq16 == (last & 0xFFFF)
+                and last != self._last_delivered
+                and crc == _crc_hqx(buf[9:21], 0xFFFF)
+            ):
+                self._buf = b""
+                return self._deliver(seq16, status, rd, rf), False
         if len(buf) < 8:
             return None, False
         pid = (buf[2] << 8) | buf[3]
@@ -346,6 +387,7 @@ class ModbusDriver(Driver):
                 return None, True
             return self._deliver(seq16, status, rd, rf), True
         if fc == FC_WRITE_COIL:
+            self._coil_ack = True
             return None, True
         stats.count_malformed("modbus_exception" if fc & 0x80 else "unknown_function")
         return None, True

@@ -212,7 +212,22 @@ class ModbusTwin(TwinEndpoint):
     def _process(self, conn: _Conn) -> None:
         framer = self.framer
         while conn.buf and conn in self._conns:
-            used, dev_id, tid, pdu_bytes = framer.decode(conn.buf)
+            data = conn.buf
+            if self.transport == "rtu":
+                # pymodbus's RTU framer consumes the whole buffer; cut one frame by its size so
+                # that back-to-back requests (e-stop then command) are both served.
+                if len(data) < framer.MIN_SIZE:
+                    return
+                pdu_class = framer.decoder.lookupPduClass(data)
+                if pdu_class is None:
+                    self.controller.stats.malformed += 1
+                    conn.buf = data[1:]  # hunt for the next frame start
+                    continue
+                size = pdu_class.calculateRtuFrameSize(data)
+                if not size or len(data) < size:
+                    return
+                data = data[:size]
+            used, dev_id, tid, pdu_bytes = framer.decode(data)
             if not used:
                 if len(conn.buf) > 2 * framer.MAX_SIZE:
                     self.controller.stats.malformed += 1
