@@ -163,17 +163,20 @@ class DelayGainEstimator:
         self._count = 0
         q = [gain_rate**2 * self.dt, delay_rate**2 * self.dt, offset_rate**2 * self.dt]
         p0 = [gain_std0**2, delay_std0**2, offset_std0**2]
-        self._q = q[: self.n]
+        if not self.estimate_offset:
+            q[2] = p0[2] = 0.0
+        self._q = q
+        self._h2 = 1.0 if self.estimate_offset else 0.0
         self.R = float(measurement_noise) ** 2
         x0 = [float(gain0), float(delay0), 0.0][: self.n]
         self.kf = ExtendedKalmanFilter(dim_x=self.n, dim_z=1)
         self.kf.x = np.array(x0, dtype=float).reshape(self.n, 1)
         self.kf.P = np.diag(p0[: self.n]).astype(float)
-        self.kf.Q = np.diag(self._q)
+        self.kf.Q = np.diag(q[: self.n])
         self.kf.R = np.array([[self.R]])
         self.kf.F = np.eye(self.n)
-        self._x = list(x0)
-        self._p = [[p0[i] if i == j else 0.0 for j in range(self.n)] for i in range(self.n)]
+        self._x = [float(gain0), float(delay0), 0.0]
+        self._p = [p0[0], 0.0, 0.0, 0.0, p0[1], 0.0, 0.0, 0.0, p0[2]]
         self.innovation = 0.0
         self._h = (0.0, 0.0)
 
@@ -183,14 +186,14 @@ class DelayGainEstimator:
         """State estimate ``[g, τ(, b)]``."""
         if self.backend == "filterpy":
             return self.kf.x[:, 0].copy()
-        return np.array(self._x)
+        return np.array(self._x[: self.n])
 
     @property
     def P(self) -> np.ndarray:
         """State covariance."""
         if self.backend == "filterpy":
             return self.kf.P.copy()
-        return np.array(self._p)
+        return np.array(self._p).reshape(3, 3)[: self.n, : self.n].copy()
 
     @property
     def gain(self) -> float:
@@ -233,8 +236,10 @@ class DelayGainEstimator:
             self.kf.predict()
             return
         p = self._p
-        for i, qi in enumerate(self._q):
-            p[i][i] += qi
+        q = self._q
+        p[0] += q[0]
+        p[4] += q[1]
+        p[8] += q[2]
 
     def _interp(self, tau: float) -> tuple[float, float] | None:
         """Input at ``t_k − M·dt − τ`` and its derivative with respect to ``τ``."""
@@ -268,39 +273,43 @@ class DelayGainEstimator:
         if self.backend == "filterpy":
             return self._correct_filterpy(z)
         x = self._x
-        g, tau = x[0], x[1]
+        g = x[0]
+        tau = x[1]
         got = self._interp(tau)
         if got is None:
             return False
         v, dv = got
-        if self.estimate_offset:
-            hvec = (v, g * dv, 1.0)
-            pred = g * v + x[2]
-        else:
-            hvec = (v, g * dv)
-            pred = g * v
+        # 3-state EKF update unrolled on floats; without the offset state h2 = 0 and the third
+        # row/column of P stay zero, which is exactly the 2-state filter
+        h0 = v
+        h1 = g * dv
+        h2 = self._h2
         p = self._p
-        n = self.n
-        pht = [sum(p[i][j] * hvec[j] for j in range(n)) for i in range(n)]
-        s = sum(hvec[i] * pht[i] for i in range(n)) + self.R
-        r = z - pred
+        p00, p01, p02, p10, p11, p12, p20, p21, p22 = p
+        a0 = p00 * h0 + p01 * h1 + p02 * h2
+        a1 = p10 * h0 + p11 * h1 + p12 * h2
+        a2 = p20 * h0 + p21 * h1 + p22 * h2
+        s = h0 * a0 + h1 * a1 + h2 * a2 + self.R
+        r = z - (g * v + x[2])
         self.innovation = r
-        for i in range(n):
-            ki = pht[i] / s
-            x[i] += ki * r
-            pi = p[i]
-            for j in range(n):
-                pi[j] -= ki * pht[j]
-        self._clamp_fast()
-        return True
-
-    def _clamp_fast(self) -> None:
+        k0 = a0 / s
+        k1 = a1 / s
+        k2 = a2 / s
+        x[0] = g + k0 * r
+        tau = tau + k1 * r
         lo, hi = self.delay_range
-        x = self._x
-        if x[1] < lo:
-            x[1] = lo
-        elif x[1] > hi:
-            x[1] = hi
+        x[1] = lo if tau < lo else hi if tau > hi else tau
+        x[2] += k2 * r
+        p[0] = p00 - k0 * a0
+        p[1] = p01 - k0 * a1
+        p[2] = p02 - k0 * a2
+        p[3] = p10 - k1 * a0
+        p[4] = p11 - k1 * a1
+        p[5] = p12 - k1 * a2
+        p[6] = p20 - k2 * a0
+        p[7] = p21 - k2 * a1
+        p[8] = p22 - k2 * a2
+        return True
 
     def _correct_filterpy(self, z: float) -> bool:
         kf = self.kf

@@ -260,6 +260,9 @@ class StrokeLimit(_Stateless):
         return np.clip(np.asarray(x, dtype=float), self._lo, self._hi)
 
 
+_SCAN_BLOCK = 64
+
+
 class Backlash(Effect):
     """Play (dead band) of total ``width`` between actuator and specimen.
 
@@ -270,9 +273,10 @@ class Backlash(Effect):
 
     :meth:`simulate` is an exact parallel prefix scan: each step is the clamp
     ``y ↦ clip(y, lo_k, hi_k)`` and ``clip(·, lo2, hi2) ∘ clip(·, lo1, hi1)`` is the clamp with
-    bounds ``clip(lo1, lo2, hi2)``, ``clip(hi1, lo2, hi2)``; Hillis–Steele doubling composes all
-    prefixes in ``ceil(log2 N)`` vectorised passes using only min/max, so it equals stepping
-    bit for bit.
+    bounds ``clip(lo1, lo2, hi2)``, ``clip(hi1, lo2, hi2)``. Hillis–Steele doubling composes the
+    prefixes inside blocks of 64 samples (6 vectorised passes over the whole record), a scalar
+    loop carries the output across the ``N/64`` blocks, and one clamp per sample gives the
+    output. Only min/max are used, so it equals stepping bit for bit.
     """
 
     kind = "backlash"
@@ -298,26 +302,35 @@ class Backlash(Effect):
     def simulate(self, x: np.ndarray) -> np.ndarray:
         self.reset()
         x = np.asarray(x, dtype=float)
-        if len(x) == 0:
-            return x.copy()
-        lo = x - self._half
-        hi = x + self._half
         n = len(x)
+        if n == 0:
+            return x.copy()
+        # blocks of _SCAN_BLOCK samples: scan within every block at once (log2 B passes on a
+        # 2-D array), then carry the output across blocks with one short scalar loop
+        nb = -(-n // _SCAN_BLOCK)
+        lo = np.full(nb * _SCAN_BLOCK, -np.inf)
+        hi = np.full(nb * _SCAN_BLOCK, np.inf)  # padding: the identity clamp
+        np.subtract(x, self._half, out=lo[:n])
+        np.add(x, self._half, out=hi[:n])
+        lo2 = lo.reshape(nb, _SCAN_BLOCK)
+        hi2 = hi.reshape(nb, _SCAN_BLOCK)
         shift = 1
-        while shift < n:
-            # compose step i (outer) after the prefix ending at i - shift (inner)
-            lo_in = lo[:-shift]
-            hi_in = hi[:-shift]
-            lo_out = lo[shift:]
-            hi_out = hi[shift:]
-            new_lo = np.minimum(np.maximum(lo_in, lo_out), hi_out)
-            new_hi = np.minimum(np.maximum(hi_in, lo_out), hi_out)
-            lo[shift:] = new_lo
-            hi[shift:] = new_hi
+        while shift < _SCAN_BLOCK:
+            # compose step j (outer) after the prefix ending at j - shift (inner)
+            lo_out = lo2[:, shift:]
+            hi_out = hi2[:, shift:]
+            new_lo = np.minimum(np.maximum(lo2[:, :-shift], lo_out), hi_out)
+            new_hi = np.minimum(np.maximum(hi2[:, :-shift], lo_out), hi_out)
+            lo_out[...] = new_lo
+            hi_out[...] = new_hi
             shift *= 2
-        y = np.minimum(np.maximum(self._y, lo), hi)
-        self._y = float(y[-1])
-        return y
+        starts = np.empty((nb, 1))
+        y = self._y
+        for b, (blo, bhi) in enumerate(zip(lo2[:, -1].tolist(), hi2[:, -1].tolist(), strict=True)):
+            starts[b, 0] = y
+            y = min(max(y, blo), bhi)
+        self._y = y
+        return np.minimum(np.maximum(starts, lo2), hi2).ravel()[:n]
 
 
 class VelocityLimit(Effect):
@@ -325,8 +338,11 @@ class VelocityLimit(Effect):
 
     Physical origin: the servo-valve's rated flow ``Q`` caps the piston speed at ``Q/A``
     (e.g. 57 l/min on a 50 cm² piston: 0.19 m/s). Realistic 0.02-0.2 m/s for RTHS actuators.
-    The recursion has no closed form, so :meth:`simulate` is a tight scalar loop over a Python
-    list (the same arithmetic as :meth:`step`).
+
+    The recursion has no closed form. :meth:`simulate` finds vectorised where the output simply
+    tracks the input (``y[k-1] = x[k-1]`` and ``|x[k] - x[k-1]| ≤ limit·dt`` gives
+    ``y[k] = x[k]``) and runs a tight scalar loop only from each violation until the output has
+    caught up again; with the same comparisons as :meth:`step`, the two agree bit for bit.
     """
 
     kind = "velocity_limit"
@@ -342,29 +358,50 @@ class VelocityLimit(Effect):
         d = x - self._y
         dmax = self._dmax
         if d > dmax:
-            d = dmax
+            self._y += dmax
         elif d < -dmax:
-            d = -dmax
-        self._y += d
+            self._y -= dmax
+        else:
+            self._y = x
         return self._y
 
     def simulate(self, x: np.ndarray) -> np.ndarray:
         self.reset()
-        xs = np.asarray(x, dtype=float).tolist()
-        out = [0.0] * len(xs)
-        y = 0.0
+        x = np.asarray(x, dtype=float)
+        n = len(x)
+        out = x.copy()
+        if n == 0:
+            return out
         dmax = self._dmax
-        ndmax = -dmax
-        for i, v in enumerate(xs):
-            d = v - y
-            if d > dmax:
-                d = dmax
-            elif d < ndmax:
-                d = ndmax
-            y += d
-            out[i] = y
-        self._y = y
-        return np.array(out)
+        d = np.empty(n)
+        d[0] = x[0]  # from rest: y[-1] = x[-1] = 0
+        np.subtract(x[1:], x[:-1], out=d[1:])
+        viol = np.flatnonzero((d > dmax) | (d < -dmax))
+        if len(viol) == 0:
+            self._y = float(x[-1])
+            return out
+        xs = x.tolist()
+        vi = 0
+        while vi < len(viol):
+            j = int(viol[vi])
+            y = xs[j - 1] if j > 0 else 0.0  # tracking before j: y[j-1] = x[j-1]
+            seg = []
+            i = j
+            while i < n:
+                v = xs[i]
+                dv = v - y
+                if dv > dmax:
+                    y += dmax
+                elif dv < -dmax:
+                    y -= dmax
+                else:
+                    break  # caught up: y[i] = x[i], tracking again
+                seg.append(y)
+                i += 1
+            out[j : j + len(seg)] = seg
+            vi = int(np.searchsorted(viol, i + 1))
+        self._y = float(out[-1])
+        return out
 
 
 class ServoLag(Effect):
@@ -490,12 +527,9 @@ def _taps_scalar(d: float) -> tuple[int, tuple[float, float, float, float]]:
     n0 = max(math.floor(d) - 1, 0)
     f = d - n0
     f1, f2, f3 = f - 1.0, f - 2.0, f - 3.0
-    return n0, (
-        -f1 * f2 * f3 / 6.0,
-        f * f2 * f3 / 2.0,
-        -f * f1 * f3 / 2.0,
-        f * f1 * f2 / 6.0,
-    )
+    f12 = f1 * f2
+    f03 = f * f3
+    return n0, (-f12 * f3 / 6.0, f03 * f2 / 2.0, -f03 * f1 / 2.0, f * f12 / 6.0)
 
 
 def _taps_vector(d: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
@@ -503,12 +537,9 @@ def _taps_vector(d: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
     n0 = np.maximum(np.floor(d) - 1.0, 0.0)
     f = d - n0
     f1, f2, f3 = f - 1.0, f - 2.0, f - 3.0
-    taps = (
-        -f1 * f2 * f3 / 6.0,
-        f * f2 * f3 / 2.0,
-        -f * f1 * f3 / 2.0,
-        f * f1 * f2 / 6.0,
-    )
+    f12 = f1 * f2
+    f03 = f * f3
+    taps = (-f12 * f3 / 6.0, f03 * f2 / 2.0, -f03 * f1 / 2.0, f * f12 / 6.0)
     return n0.astype(np.intp), taps
 
 

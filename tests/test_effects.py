@@ -94,15 +94,17 @@ def _play_reference(x: np.ndarray, width: float) -> np.ndarray:
     return y
 
 
-def test_backlash_against_play_reference_and_triangle_wave():
+@pytest.mark.parametrize("n", [1, 2, 63, 64, 65, 1000, 50000])
+def test_backlash_against_play_reference(n):
     width = 3e-4
-    x = _record(50000, seed=4)
-    np.testing.assert_allclose(
-        make_effect("backlash", DT, width=width).simulate(x),
-        _play_reference(x, width),
-        rtol=0,
-        atol=1e-18,
-    )
+    x = _record(max(n, 64), seed=4)[:n] * 0.2  # small motions: the play matters
+    eff = make_effect("backlash", DT, width=width)
+    np.testing.assert_array_equal(eff.simulate(x), _play_reference(x, width))
+    assert eff._y == _play_reference(x, width)[-1]  # state carried for further steps
+
+
+def test_backlash_triangle_wave():
+    width = 3e-4
     # triangle wave of amplitude A ≫ width: after the first turn the output lags by width/2
     n = 4096
     k = np.arange(n)
@@ -137,6 +139,17 @@ def test_velocity_limit():
     assert np.max(np.abs(v)) == pytest.approx(lim, rel=1e-9)  # the limit is hit
     # slewing: during a rate-limited stretch the output moves at exactly ±limit
     assert np.mean(np.isclose(np.abs(v), lim, rtol=1e-9)) > 0.3
+    # against the textbook recursion y += clip(x − y, ±limit·dt), on a record that hits the
+    # limit only now and then
+    x = _record(30000, seed=6)
+    y = make_effect("velocity_limit", DT, limit=0.25).simulate(x)
+    ref = np.empty_like(x)
+    prev = 0.0
+    for i, xi in enumerate(x):
+        prev = prev + np.clip(xi - prev, -0.25 * DT, 0.25 * DT)
+        ref[i] = prev
+    assert 0.05 < np.mean(y != x) < 0.5
+    np.testing.assert_allclose(y, ref, rtol=0, atol=1e-17)
 
 
 def test_stroke_limit():
