@@ -223,14 +223,15 @@ def test_timeout_returns_none_and_counts(rig_factory) -> None:
     assert rig.driver.stats.timeouts == 1
 
 
-def run(rig: Rig, n: int, timeout: float = TIMEOUT, cmd: np.ndarray | None = None):
-    cmd = commands(n) if cmd is None else cmd
-    return [rig.step(k, float(cmd[k]), timeout=timeout) for k in range(n)]
+def run(rig: Rig, n: int, short: set[int] | range = frozenset(), timeout: float = TIMEOUT):
+    """Run ``n`` steps; the steps in ``short`` (expected to time out) wait only 0.1 s."""
+    cmd = commands(n)
+    return [rig.step(k, float(cmd[k]), timeout=0.1 if k in short else timeout) for k in range(n)]
 
 
 def test_fault_drop_feedback(rig_factory) -> None:
     rig = rig_factory(Faults(drop={5, 6}))
-    fbs = run(rig, 12, timeout=0.1)
+    fbs = run(rig, 12, short={5, 6})
     assert fbs[5] is None and fbs[6] is None
     assert [f.seq for f in fbs if f is not None] == [0, 1, 2, 3, 4, 7, 8, 9, 10, 11]
     s = rig.driver.stats
@@ -240,7 +241,7 @@ def test_fault_drop_feedback(rig_factory) -> None:
 
 def test_fault_drop_command(rig_factory) -> None:
     rig = rig_factory(Faults(drop_command={5}))
-    fbs = run(rig, 8, timeout=0.1)
+    fbs = run(rig, 8, short={5})
     assert fbs[5] is None
     assert fbs[6].status & Status.SEQ_GAP  # the controller saw the hole
     assert not fbs[7].status & Status.SEQ_GAP
@@ -251,7 +252,7 @@ def test_fault_drop_command(rig_factory) -> None:
 def test_fault_delay_gives_timeout_then_late_frame(rig_factory) -> None:
     # the answer to step 5 comes 0.15 s late: after step 5's timeout (0.1 s), before step 6's
     rig = rig_factory(Faults(delay={5: 0.15}))
-    fbs = run(rig, 8, timeout=0.1)
+    fbs = run(rig, 8, short={5})
     assert fbs[5] is None
     assert [f.seq for f in fbs if f is not None] == [0, 1, 2, 3, 4, 6, 7]
     s = rig.driver.stats
@@ -260,7 +261,7 @@ def test_fault_delay_gives_timeout_then_late_frame(rig_factory) -> None:
 
 def test_fault_corrupt_is_detected(rig_factory, transport: Transport) -> None:
     rig = rig_factory(Faults(corrupt={4}))
-    fbs = run(rig, 8, timeout=0.1)
+    fbs = run(rig, 8, short={4})
     assert fbs[4] is None
     assert all(f is not None for i, f in enumerate(fbs) if i != 4)
     s = rig.driver.stats
@@ -313,7 +314,7 @@ def test_fault_nan_feedback_is_delivered_not_raised(rig_factory) -> None:
 
 def test_fault_disconnect(rig_factory, transport: Transport) -> None:
     rig = rig_factory(Faults(disconnect_from=5))
-    fbs = run(rig, 8, timeout=0.1)
+    fbs = run(rig, 8, short=range(5, 8))
     assert all(f is not None for f in fbs[:5])
     assert fbs[5:] == [None, None, None]
     s = rig.driver.stats
