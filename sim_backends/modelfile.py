@@ -174,13 +174,16 @@ def _unknown(table: Mapping[str, Any], known: Any, where: str) -> None:
             raise InputError(f"{where}{key}: unknown key (known: {', '.join(known)})")
 
 
-def load_model(source: str | Path | Mapping[str, Any]) -> ModelSpec:
+def load_model(source: str | Path | Mapping[str, Any], name: str | None = None) -> ModelSpec:
     """Read and validate a model file (path) or an already-parsed dict.
 
     Parameters
     ----------
     source : str, Path or mapping
-        A TOML file, or its content as a dict (e.g. from a larger configuration).
+        A TOML file, or its content as a dict (e.g. a table of a larger configuration).
+    name : str, optional
+        Prefix of error messages (default: the file name; none for a dict, so that a caller
+        can prefix its own key path, e.g. ``run.toml: twin.actuator.delay: …``).
 
     Returns
     -------
@@ -193,9 +196,9 @@ def load_model(source: str | Path | Mapping[str, Any]) -> ModelSpec:
         out-of-range value — the message names the file and the key path.
     """
     if isinstance(source, Mapping):
-        data, name = source, "model"
+        data = source
     else:
-        name = str(source)
+        name = str(source) if name is None else name
         try:
             text = Path(source).read_text(encoding="utf-8")
         except OSError as exc:
@@ -206,7 +209,7 @@ def load_model(source: str | Path | Mapping[str, Any]) -> ModelSpec:
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise InputError(f"{name}: invalid TOML: {exc}") from None
-    p = f"{name}: "
+    p = f"{name}: " if name else ""
     _unknown(data, ("actuator", "specimen", "sensor"), p)
     if "actuator" not in data:
         raise InputError(f"{p}actuator: missing table [actuator]")
@@ -301,7 +304,7 @@ def load_model(source: str | Path | Mapping[str, Any]) -> ModelSpec:
         sensor = Sensor(**kwargs)
 
     actuator = ActuatorSpec(delay, gain, model, params, effects)
-    return ModelSpec(actuator, specimen, sensor, name)
+    return ModelSpec(actuator, specimen, sensor, name or "model")
 
 
 def load_plant(source: str | Path | Mapping[str, Any] | ModelSpec, dt: float) -> TwinPlant:

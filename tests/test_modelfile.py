@@ -228,8 +228,10 @@ def test_bad_files_raise_one_clear_error(tmp_path, text, message):
 def test_missing_file_and_dict_source(tmp_path):
     with pytest.raises(InputError, match=r"nope\.toml: cannot read model file"):
         load_model(tmp_path / "nope.toml")
-    with pytest.raises(InputError, match=r"^model: actuator\.effects\[0\]\.kind: unknown effect"):
+    with pytest.raises(InputError, match=r"^actuator\.effects\[0\]\.kind: unknown effect"):
         load_model({"actuator": {"effects": [{"kind": "foo"}]}})
+    with pytest.raises(InputError, match=r"^cfg: actuator\.dealy: unknown key"):
+        load_model({"actuator": {"dealy": 0.01}}, name="cfg")
 
 
 def test_cli_error_is_one_line(tmp_path, capsys):
