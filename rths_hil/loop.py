@@ -759,6 +759,8 @@ class RTHSLoop:
         gc.disable()
         t_start = perf()
         t0 = t_start + (_LEAD_IN if paced else 0.0)
+        # wall-clock time of deadline 0: row k was sent at wall_t0 + k·Δt + lateness[k]
+        rec.event("clock", 0.0, 0, wall_t0=time.time() + (t0 - perf()))
         if console > 0:
             next_console = t_start + console
             last_console_k, last_console_t = 0, t_start
