@@ -75,7 +75,7 @@ from typing import Any
 import numpy as np
 
 from drivers.base import Driver, Status
-from drivers.registry import create_driver
+from drivers.registry import create_driver, driver_class
 
 from . import groundmotion
 from .compensation import AdaptiveAlpha, InverseCompensator
@@ -428,6 +428,18 @@ class RTHSLoop:
             )
         except InputError as exc:
             raise InputError(f"{cfg.source}: structure: {exc}") from None
+
+        # the driver must exist (and have a twin when one is asked for)
+        name = cfg["driver"]["name"]
+        try:
+            driver_class(name)
+        except InputError as exc:
+            raise InputError(f"{cfg.source}: driver.name: {exc}") from None
+        if cfg["twin"]["enabled"] and name not in ("can", "modbus", "serial"):
+            raise InputError(
+                f"{cfg.source}: twin.enabled: there is no twin for driver {name!r} (twins exist "
+                "for can, modbus, serial); set twin.enabled = false to use the real controller"
+            )
 
         # the twin's plant
         tw = cfg["twin"]

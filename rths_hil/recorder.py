@@ -392,6 +392,7 @@ def export_run(
     csv: bool = True,
     hdf5: bool = False,
     out_dir: str | Path | None = None,
+    columns: Sequence[str] | None = None,
 ) -> list[Path]:
     """Export a run's record to ``record.csv`` and/or ``record.h5``.
 
@@ -399,7 +400,9 @@ def export_run(
     names of :data:`COLUMNS`, ``time`` first, SI units, booleans as 0/1, NaN as ``nan``
     (estimates of invalid windows). The HDF5 file has one dataset per column under ``/record``
     (attributes ``unit`` and ``description``), the metadata as the JSON attribute ``meta`` and the
-    events as the JSON attribute ``events`` of the root group.
+    events as the JSON attribute ``events`` of the root group. ``columns`` restricts the export
+    to those columns (``time`` is always first), e.g. ``("target", "command", "measured",
+    "force")`` for a record without the NaN of invalid FEI windows.
 
     Returns
     -------
@@ -417,6 +420,13 @@ def export_run(
     dest = Path(out_dir) if out_dir is not None else run.path
     dest.mkdir(parents=True, exist_ok=True)
     names = list(run.record.dtype.names)
+    if columns is not None:
+        unknown = [c for c in columns if c not in names]
+        if unknown:
+            raise InputError(
+                f"{run.path}: no column(s) {', '.join(unknown)} (columns: {', '.join(names)})"
+            )
+        names = ["time", *[c for c in columns if c != "time"]]
     written: list[Path] = []
     if csv:
         p = dest / "record.csv"

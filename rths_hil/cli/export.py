@@ -1,4 +1,4 @@
-"""``rths-hil export RUN_DIR [--csv] [--hdf5] [--out DIR]``: convert a run's record.
+"""``rths-hil export RUN_DIR [--csv] [--hdf5] [--out DIR] [--columns A,B]``: convert a record.
 
 Writes ``record.csv`` (the record CSV format read by ``rths-hil evaluate``; columns named as in
 the run's ``record.npy``) and/or ``record.h5``. ``--csv`` is the default. Works on runs that
@@ -21,6 +21,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--csv", action="store_true", help="write record.csv (default)")
     p.add_argument("--hdf5", action="store_true", help="write record.h5 (needs h5py)")
     p.add_argument("--out", metavar="DIR", help="output directory (default: RUN_DIR)")
+    p.add_argument(
+        "--columns",
+        metavar="A,B,...",
+        help="export only these columns (time is always first), e.g. target,command,measured",
+    )
     p.set_defaults(func=main)
 
 
@@ -29,6 +34,7 @@ def main(args: argparse.Namespace) -> int:
     from ..recorder import export_run
 
     csv = args.csv or not args.hdf5
-    for path in export_run(args.run_dir, csv=csv, hdf5=args.hdf5, out_dir=args.out):
+    cols = [c.strip() for c in args.columns.split(",") if c.strip()] if args.columns else None
+    for path in export_run(args.run_dir, csv=csv, hdf5=args.hdf5, out_dir=args.out, columns=cols):
         print(path)
     return 0

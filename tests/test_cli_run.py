@@ -1,0 +1,115 @@
+"""``rths-hil run`` and ``rths-hil export``: exit codes, one-line errors, files written."""
+
+from __future__ import annotations
+
+import tomllib
+
+import numpy as np
+import pytest
+
+from rths_hil.cli import main
+from rths_hil.config import load_config
+from rths_hil.recorder import read_run
+
+QUICK = ["--lockstep", "--set", "loop.console=0"]
+
+
+def _one_line(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (["--set", "loop.fs=abc"], ["--set loop.fs=abc", "loop.fs"]),
+        (["--set", "loop.fss=1"], ["loop.fss", "unknown key"]),
+        (["--set", "driver.name=nope"], ["driver", "unknown driver 'nope'"]),
+        (["--set", "twin.actuator.model=warp"], ["twin.", "warp"]),
+        (["--set", "ground_motion.record=missing.at2"], ["ground_motion.record", "missing.at2"]),
+        (["--duration", "-1"], ["--duration"]),
+        (["--duration", "5 parsecs"], ["--duration"]),
+        (["--lockstep", "--paced"], ["exclude"]),
+    ],
+)
+def test_bad_input_exits_2_with_one_line(tmp_path, capsys, args, needles):
+    code = main(["run", *args, "--out", str(tmp_path / "r"), "-q"])
+    assert code == 2
+    line = _one_line(capsys.readouterr().err)
+    assert line.startswith("rths-hil run: error:")
+    for needle in needles:
+        assert needle in line
+    assert not (tmp_path / "r" / "record.npy").exists()
+
+
+def test_config_file_error_names_file_and_key(tmp_path, capsys):
+    p = tmp_path / "bad.toml"
+    p.write_text("[safety]\nfei_delay_tol = true\n")
+    assert main(["run", str(p), "-q"]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert str(p) in line and "safety.fei_delay_tol" in line
+
+
+def test_show_config_prints_loadable_toml(tmp_path, capsys):
+    assert main(["run", "--show-config", "--set", "loop.fs=2048"]) == 0
+    text = capsys.readouterr().out
+    assert tomllib.loads(text)["loop"]["fs"] == 2048.0
+    p = tmp_path / "shown.toml"
+    p.write_text(text)
+    assert load_config(p).as_dict() == load_config(None, ["loop.fs=2048"]).as_dict()
+
+
+def test_lockstep_run_writes_the_run_directory_and_summary(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", *QUICK, "--duration", "5", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    for name in ("record.npy", "events.jsonl", "meta.json", "summary.json", "report.png"):
+        assert (out / name).is_file(), name
+    assert "FEI measured vs target" in captured.out and "J1 =" in captured.out
+    assert "e-stop: none" in captured.out
+    assert len(read_run(out).record) == 5 * 1024
+
+
+def test_safety_trip_exits_3_with_one_clear_line(tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(
+        ["run", *QUICK, "--duration", "4", "--out", str(out), "-q", "--set", "twin.faults=nan=1200"]
+    )
+    assert code == 3
+    line = _one_line(capsys.readouterr().err)
+    assert line.startswith("rths-hil run: e-stop: nan:") and "step 1200" in line
+    assert str(out) in line
+    assert len(read_run(out).record) == 1201
+
+
+def test_export_csv_columns_and_errors(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", *QUICK, "--duration", "2", "--out", str(out), "-q"]) == 0
+    assert main(["export", str(out), "--csv"]) == 0
+    header = (out / "record.csv").read_text().splitlines()[0].split(",")
+    required = [
+        "time",
+        "ground_accel",
+        "target",
+        "command",
+        "measured",
+        "force",
+        "fei_amplitude",
+        "fei_delay",
+        "fei_valid",
+        "kf_gain",
+        "kf_delay",
+        "lateness",
+    ]
+    assert all(c in header for c in required) and header[0] == "time"
+    data = np.genfromtxt(out / "record.csv", delimiter=",", names=True)
+    rec = read_run(out).record
+    np.testing.assert_allclose(data["measured"], rec["measured"], rtol=1e-9, atol=1e-15)
+    sub = tmp_path / "sub"
+    assert main(["export", str(out), "--columns", "target,measured", "--out", str(sub)]) == 0
+    assert (sub / "record.csv").read_text().splitlines()[0] == "time,target,measured"
+    capsys.readouterr()
+    assert main(["export", str(tmp_path)]) == 2
+    assert "not a run directory" in _one_line(capsys.readouterr().err)
+    assert main(["export", str(out), "--columns", "nope"]) == 2

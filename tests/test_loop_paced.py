@@ -1,0 +1,133 @@
+"""Paced (wall-clock) runs: pacing, kill -9 crash safety, SIGINT operator stop."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rths_hil.config import load_config
+from rths_hil.loop import RTHSLoop
+from rths_hil.recorder import header_row_count, read_run
+
+FS = 1024.0
+# a loaded CI machine must not stop these runs for reasons they do not test
+TOLERANT = [
+    "--set", "safety.max_overruns=1000000",
+    "--set", "safety.watchdog_missed=1000000",
+    "--set", "safety.fei_delay_tol=0",
+    "--set", "safety.fei_amplitude_tol=0",
+    "--set", "kalman.enabled=false",
+    "--set", "output.plot=false",
+]  # fmt: skip
+
+
+def _wall_t0(run) -> float:
+    return next(e["wall_t0"] for e in run.events if e["kind"] == "clock")
+
+
+def _start(out: Path, *extra: str) -> subprocess.Popen:
+    cmd = [
+        sys.executable,
+        "-m",
+        "rths_hil",
+        "run",
+        "--paced",
+        "--duration",
+        "20",
+        "--out",
+        str(out),
+        "-q",
+        *TOLERANT,
+        *extra,
+    ]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_rows(path: Path, proc: subprocess.Popen, timeout: float = 30.0) -> None:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        assert proc.poll() is None, proc.communicate()
+        if path.exists() and header_row_count(path) > 0:
+            return
+        time.sleep(0.02)
+    raise AssertionError("the run never flushed a row")
+
+
+def test_paced_run_keeps_the_wall_clock(tmp_path):
+    cfg = load_config(
+        None, ["loop.duration=1.5", "loop.console=0", "output.plot=false", *TOLERANT[1::2]]
+    )
+    loop = RTHSLoop(cfg, tmp_path / "run", mode="paced")
+    res = loop.run()
+    assert res.status == "completed" and res.steps == round(1.5 * FS)
+    # never early, and never faster than real time
+    run = read_run(tmp_path / "run")
+    lat = run.record["lateness"]
+    assert (lat >= 0).all() and lat.max() > 0
+    assert res.wall_time >= (res.steps - 1) / FS
+    stats = res.lateness_stats()
+    assert set(stats) == {"p50", "p99", "p99.9", "max", "overruns"}
+    assert stats["overruns"] == int((lat > 0.5 / FS).sum())
+    np.testing.assert_allclose(res.lateness, lat)
+    assert _wall_t0(run) > 0
+    assert run.record["feedback_ok"].mean() > 0.9
+
+
+def test_kill_9_leaves_the_record_complete_up_to_the_kill(tmp_path):
+    out = tmp_path / "run"
+    proc = _start(out)
+    _wait_rows(out / "record.npy", proc)
+    time.sleep(2.0)
+    t_kill = time.time()
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(10)
+    run = read_run(out)
+    rec = run.record
+    n = len(rec)
+    assert n > 2 * FS * 0.9
+    np.testing.assert_array_equal(rec["step"], np.arange(n))
+    # the last flushed row was sent at most 0.25 s before the kill
+    t_last = _wall_t0(run) + rec["time"][-1] + rec["lateness"][-1]
+    assert t_kill - t_last <= 0.25, t_kill - t_last
+    assert np.isfinite(rec["target"]).all() and rec["feedback_ok"].any()
+    assert json.loads((out / "meta.json").read_text())["mode"] == "paced"
+    assert [e["kind"] for e in run.events][:2] == ["start", "clock"]
+
+
+def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
+    out = tmp_path / "run"
+    proc = _start(out)
+    _wait_rows(out / "record.npy", proc)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 130, stderr
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "operator stop" in lines[0] and str(out) in lines[0]
+    run = read_run(out)
+    kinds = [e["kind"] for e in run.events]
+    assert "operator_stop" in kinds and kinds[-1] == "end"
+    end = run.events[-1]
+    assert end["status"] == "operator_stop" and end["step"] == len(run.record)
+    estop = next(e for e in run.events if e["kind"] == "estop")
+    assert estop["confirmed"] is True
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "operator_stop" and summary["trip"]["rule"] == "operator"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM])
+def test_sigterm_takes_the_operator_stop_path(tmp_path, sig):
+    out = tmp_path / "run"
+    proc = _start(out)
+    _wait_rows(out / "record.npy", proc)
+    proc.send_signal(sig)
+    proc.communicate(timeout=30)
+    assert proc.returncode == 130
+    assert read_run(out).events[-1]["status"] == "operator_stop"
