@@ -39,7 +39,9 @@ def lagrange_taps(delay_samples: float) -> tuple[int, np.ndarray]:
         FIR taps ``h[j]`` applied to ``x[k - n0 - j]``.
     """
     if not np.isfinite(delay_samples) or delay_samples < 0:
-        raise ValueError(f"delay must be a finite non-negative number of samples, got {delay_samples}")
+        raise ValueError(
+            f"delay must be a finite non-negative number of samples, got {delay_samples}"
+        )
     n0 = max(int(np.floor(delay_samples)) - 1, 0)
     frac = delay_samples - n0
     taps = np.ones(ORDER + 1)
