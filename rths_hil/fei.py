@@ -667,6 +667,30 @@ class OnlineFEI:
         """Number of samples pushed so far."""
         return self._t
 
+    def push(self, target: float, measured: float) -> tuple[float, float, float, bool] | None:
+        """Push one sample pair (the real-time loop's fast path, no allocation when streaming).
+
+        Returns
+        -------
+        (amplitude, delay, f_eq, valid) of the window this sample completed, or None.
+        Same numbers as :meth:`update` with one-sample blocks.
+        """
+        if self._stream is not None:
+            self._t += 1
+            if not self._stream.push(float(target), float(measured)):
+                return None
+            a, _, f_eq, d, valid, _ = self._stream.last.tolist()
+            return a, d, f_eq, valid > 0.5
+        res = self.update(np.array([target], dtype=float), np.array([measured], dtype=float))
+        if len(res) == 0:
+            return None
+        return (
+            float(res.amplitude[-1]),
+            float(res.delay[-1]),
+            float(res.f_eq[-1]),
+            bool(res.valid[-1]),
+        )
+
     def update(self, target_block: np.ndarray, measured_block: np.ndarray) -> MovingFEIResult:
         """Push a block of target/measured samples; return the windows it completed."""
         x = np.ascontiguousarray(target_block, dtype=float).reshape(-1)
@@ -688,20 +712,110 @@ class OnlineFEI:
         return self._update_exact(x, y)
 
     def _update_exact(self, x: np.ndarray, y: np.ndarray) -> MovingFEIResult:
-        start = self._t - self._hx.size  # absolute index of ext[0]
-        ext_x = np.concatenate([self._hx, x]) if self._hx.size else x
-        ext_y = np.concatenate([self._hy, y]) if self._hy.size else y
+        first = self._t
         self._t += x.size
         last = self._t - 1
-        keep = self.N - 1
-        self._hx = ext_x[-keep:].copy() if ext_x.size > keep else ext_x.copy()
-        self._hy = ext_y[-keep:].copy() if ext_y.size > keep else ext_y.copy()
         if self._next_end > last:
+            self._remember(x, y)
             return MovingFEIResult.empty()
         ends = np.arange(self._next_end, last + 1, self.hop)
         self._next_end = int(ends[-1]) + self.hop
-        E, F, S = _direct_sums(ext_x, ext_y, ends - start, self.N)
+        if ends.size == 1 and ends[0] == last:
+            # Fast path (one window ending at the newest sample, e.g. one sample per call):
+            # ring buffer, no concatenation.
+            self._remember(x, y)
+            return self._finish_one(int(ends[0]), *self._one_window(*self._window()))
+        else:
+            hx, hy = self._history()
+            start = first - hx.size  # absolute index of ext[0]
+            ext_x = np.concatenate([hx, x])
+            ext_y = np.concatenate([hy, y])
+            self._remember(x, y)
+            E, F, S = _direct_sums(ext_x, ext_y, ends - start, self.N)
         amp, phase, f_eq, delay, valid, level, self._peak = _finish(
             E, F, S, self.fs, self.M, self._wsq, self.abs_floor, self.rel_floor, self._peak
         )
         return MovingFEIResult(ends / self.fs, amp, phase, f_eq, delay, valid, level)
+
+    def _finish_one(self, end: int, E: float, F: float, S: complex) -> MovingFEIResult:
+        """Scalar twin of :func:`_finish` for one window (same arithmetic, no array setup)."""
+        level = math.sqrt(max(2.0 * E / (self.M * self._wsq), 0.0))
+        self._peak = max(self._peak, level)
+        amp = phase = f_eq = delay = math.nan
+        valid = False
+        if E > 0:
+            fei = S / E
+            f_eq = (self.fs / self.M) * F / E
+            valid = (
+                level > self.abs_floor
+                and level >= self.rel_floor * self._peak
+                and math.isfinite(f_eq)
+                and f_eq > 0
+                and math.isfinite(abs(fei))
+            )
+            if valid:
+                amp = abs(fei)
+                phase = math.atan2(fei.imag, fei.real)
+                delay = -phase / (2.0 * math.pi * f_eq)
+            else:
+                f_eq = math.nan
+        return MovingFEIResult(
+            np.array([end / self.fs]),
+            np.array([amp]),
+            np.array([phase]),
+            np.array([f_eq]),
+            np.array([delay]),
+            np.array([valid]),
+            np.array([level]),
+        )
+
+    # Ring buffer of the last N samples, stored twice so that any window is one contiguous view.
+    def _remember(self, x: np.ndarray, y: np.ndarray) -> None:
+        N = self.N
+        if not hasattr(self, "_rx"):
+            self._rx = np.zeros(2 * N)
+            self._ry = np.zeros(2 * N)
+            self._pos = 0  # number of samples stored so far (mod N gives the next slot)
+            self._k = np.arange(1, self.M // 2, dtype=float)
+            self._bx = np.empty(N)
+            self._by = np.empty(N)
+        if x.size >= N:
+            self._pos += x.size - N
+            x, y = x[-N:], y[-N:]
+        for arr, ring in ((x, self._rx), (y, self._ry)):
+            p = self._pos % N
+            n = arr.size
+            first = min(n, N - p)
+            ring[p : p + first] = arr[:first]
+            ring[p + N : p + N + first] = arr[:first]
+            if n > first:
+                ring[: n - first] = arr[first:]
+                ring[N : N + n - first] = arr[first:]
+        self._pos += x.size
+
+    def _history(self) -> tuple[np.ndarray, np.ndarray]:
+        """The last min(N − 1, samples seen) samples before the current block."""
+        if not hasattr(self, "_rx"):
+            return np.empty(0), np.empty(0)
+        N = self.N
+        n = min(N - 1, self._pos)
+        p = self._pos % N
+        return self._rx[p + N - n : p + N].copy(), self._ry[p + N - n : p + N].copy()
+
+    def _window(self) -> tuple[np.ndarray, np.ndarray]:
+        """The window ending at the newest stored sample, as views."""
+        N = self.N
+        p = self._pos % N
+        return self._rx[p : p + N], self._ry[p : p + N]
+
+    def _one_window(self, xw: np.ndarray, yw: np.ndarray) -> tuple[float, float, complex]:
+        bx, by, w = self._bx, self._by, self._w
+        np.subtract(xw, xw.mean(), out=bx)
+        np.multiply(bx, w, out=bx)
+        np.subtract(yw, yw.mean(), out=by)
+        np.multiply(by, w, out=by)
+        p = self.M // 2
+        X = sfft.rfft(bx, n=self.M)[1:p]
+        Y = sfft.rfft(by, n=self.M)[1:p]
+        P = X.real * X.real + X.imag * X.imag
+        return float(P.sum()), float(P @ self._k), complex(np.vdot(X, Y))

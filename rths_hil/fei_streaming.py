@@ -40,6 +40,9 @@ from scipy.special import ellipj, ellipk
 
 #: Target worst-case phase-difference error of the Hilbert pair (degrees).
 MAX_PHASE_ERROR_DEG = 0.01
+#: Upper band edge of the Hilbert pair (Hz): displacement responses of structures carry no
+#: energy that matters above it. Raised to 40·f_lo for very short windows.
+F_HI_MAX = 50.0
 
 
 @lru_cache(maxsize=64)
@@ -106,123 +109,195 @@ _T = 0  # samples seen
 _NEXT_END = 1  # sample index of the next window end to report
 _HOP = 2
 _FRESH_START = 3  # sample index at which the fresh sums started
-_NIST = 4
+_I1, _I2 = 4, 5  # t mod P and 2t mod P (phasor table indices of the newest sample)
+_O1, _O2 = 6, 7  # the same for the sample leaving the window (t − N)
+_SLOT = 8  # t mod N (ring slot)
+_NIST = 9
 
 
-@numba.njit(cache=True, nogil=True, fastmath=False)
-def _allpass_chain(v: float, a: np.ndarray, s: np.ndarray) -> float:
-    """Run one sample through first-order all-pass sections; s[j] holds (x_prev, y_prev)."""
-    for j in range(a.shape[0]):
-        xp = s[j, 0]
-        yp = s[j, 1]
-        out = a[j] * (v - yp) + xp
-        s[j, 0] = v
-        s[j, 1] = out
-        v = out
-    return v
+@numba.njit(cache=True, nogil=True, inline="always")
+def _wrap(i: int, P: int) -> int:
+    if i >= P:
+        return i - P
+    if i < 0:
+        return i + P
+    return i
 
 
-@numba.njit(cache=True, nogil=True, fastmath=False)
-def _stream_kernel(
-    xs, ys, st, ist, a_i, a_q, sxi, sxq, syi, syq, ring, ph, acc, fresh, out, out_t
-):  # pragma: no cover - compiled
-    """Process a block; write completed windows to ``out`` (A, φ, f_eq, d, valid, level)."""
+@numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract", "arcp", "reassoc"})
+def _sample(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t, nout):  # pragma: no cover
+    """Advance the estimator by one sample pair; return the new number of output rows."""
     N = ring.shape[0]
     P = ph.shape[0]  # N − 1
+    t = ist[_T]
+    if t == 0:  # start the DC blockers at the first value: no step transient
+        st[_DCX_IN] = x
+        st[_DCY_IN] = y
     r = st[_DC_R]
-    fs = st[_FS]
-    wsq = st[_WSQ]
+    xo = x - st[_DCX_IN] + r * st[_DCX_OUT]
+    st[_DCX_IN] = x
+    st[_DCX_OUT] = xo
+    yo = y - st[_DCY_IN] + r * st[_DCY_OUT]
+    st[_DCY_IN] = y
+    st[_DCY_OUT] = yo
+    # Four all-pass chains side by side: (x, I), (x, Q), (y, I), (y, Q).
+    v0 = xo
+    v1 = xo
+    v2 = yo
+    v3 = yo
+    for j in range(coef.shape[0]):
+        ai = coef[j, 0]
+        aq = coef[j, 1]
+        o0 = ai * (v0 - cst[j, 0, 1]) + cst[j, 0, 0]
+        o1 = aq * (v1 - cst[j, 1, 1]) + cst[j, 1, 0]
+        o2 = ai * (v2 - cst[j, 2, 1]) + cst[j, 2, 0]
+        o3 = aq * (v3 - cst[j, 3, 1]) + cst[j, 3, 0]
+        cst[j, 0, 0] = v0
+        cst[j, 1, 0] = v1
+        cst[j, 2, 0] = v2
+        cst[j, 3, 0] = v3
+        cst[j, 0, 1] = o0
+        cst[j, 1, 1] = o1
+        cst[j, 2, 1] = o2
+        cst[j, 3, 1] = o3
+        v0 = o0
+        v1 = o1
+        v2 = o2
+        v3 = o3
+    zx = complex(v0, v1)
+    zy = complex(v2, v3)
+    zp = complex(st[_ZPREV_RE], st[_ZPREV_IM])
+    st[_ZPREV_RE] = v0
+    st[_ZPREV_IM] = v1
+    q1 = zy * zx.conjugate()
+    q2 = v0 * v0 + v1 * v1
+    q3 = (zp.conjugate() * zx).imag
+    slot = ist[_SLOT]
+    ist[_SLOT] = slot + 1 if slot + 1 < N else 0
+    o1c = ring[slot, 0]
+    o2 = ring[slot, 1].real
+    o3 = ring[slot, 2].real
+    ring[slot, 0] = q1
+    ring[slot, 1] = q2
+    ring[slot, 2] = q3
+    i1 = ist[_I1]
+    i2 = ist[_I2]
+    p0 = 1.0 + 0j
+    p1 = ph[i1]
+    p2 = ph[i2]
+    pm1 = p1.conjugate()
+    pm2 = p2.conjugate()
+    # Sliding sums acc[0, m + 2, j] = Σ q_j e^{j m Ω t}; acc[1] are the fresh sums.
+    acc[0, 0, 0] += q1 * pm2
+    acc[0, 1, 0] += q1 * pm1
+    acc[0, 2, 0] += q1
+    acc[0, 3, 0] += q1 * p1
+    acc[0, 4, 0] += q1 * p2
+    acc[0, 2, 1] += q2 * p0
+    acc[0, 3, 1] += q2 * p1
+    acc[0, 4, 1] += q2 * p2
+    acc[0, 2, 2] += q3 * p0
+    acc[0, 3, 2] += q3 * p1
+    acc[0, 4, 2] += q3 * p2
+    acc[1, 0, 0] += q1 * pm2
+    acc[1, 1, 0] += q1 * pm1
+    acc[1, 2, 0] += q1
+    acc[1, 3, 0] += q1 * p1
+    acc[1, 4, 0] += q1 * p2
+    acc[1, 2, 1] += q2 * p0
+    acc[1, 3, 1] += q2 * p1
+    acc[1, 4, 1] += q2 * p2
+    acc[1, 2, 2] += q3 * p0
+    acc[1, 3, 2] += q3 * p1
+    acc[1, 4, 2] += q3 * p2
+    if t >= N:
+        r1 = ph[ist[_O1]]
+        r2 = ph[ist[_O2]]
+        rm1 = r1.conjugate()
+        rm2 = r2.conjugate()
+        acc[0, 0, 0] -= o1c * rm2
+        acc[0, 1, 0] -= o1c * rm1
+        acc[0, 2, 0] -= o1c
+        acc[0, 3, 0] -= o1c * r1
+        acc[0, 4, 0] -= o1c * r2
+        acc[0, 2, 1] -= o2
+        acc[0, 3, 1] -= o2 * r1
+        acc[0, 4, 1] -= o2 * r2
+        acc[0, 2, 2] -= o3
+        acc[0, 3, 2] -= o3 * r1
+        acc[0, 4, 2] -= o3 * r2
+    ist[_O1] = _wrap(ist[_O1] + 1, P)
+    ist[_O2] = _wrap(ist[_O2] + 2, P)
+    ist[_I1] = _wrap(i1 + 1, P)
+    ist[_I2] = _wrap(i2 + 2, P)
+    ist[_T] = t + 1
+    # Resynchronise: the fresh sums hold exactly the current window after N additions.
+    if t + 1 - ist[_FRESH_START] == N:
+        for i in range(5):
+            for j in range(3):
+                acc[0, i, j] = acc[1, i, j]
+                acc[1, i, j] = 0j
+        ist[_FRESH_START] = t + 1
+    if t != ist[_NEXT_END]:
+        return nout
+    ist[_NEXT_END] = t + ist[_HOP]
+    # Σ_n w_n² q = 3/8 Σq − ½ Σ q cos(Ωn) + ⅛ Σ q cos(2Ωn), n = t' − s0, s0 = t − N + 1:
+    # e^{jmΩn} = e^{jmΩt'} e^{−jmΩ s0}, and e^{−jΩ s0} = e^{jΩ(N−1−t)} = conj(phasor of t).
+    c1 = pm1
+    c2 = pm2
+    S = (
+        0.375 * acc[0, 2, 0]
+        - 0.25 * (c1 * acc[0, 3, 0] + p1 * acc[0, 1, 0])
+        + 0.0625 * (c2 * acc[0, 4, 0] + p2 * acc[0, 0, 0])
+    )
+    E = (
+        0.375 * acc[0, 2, 1].real
+        - 0.5 * (c1 * acc[0, 3, 1]).real
+        + 0.125 * (c2 * acc[0, 4, 1]).real
+    )
+    F = (
+        0.375 * acc[0, 2, 2].real
+        - 0.5 * (c1 * acc[0, 3, 2]).real
+        + 0.125 * (c2 * acc[0, 4, 2]).real
+    )
+    level = math.sqrt(max(E, 0.0) / (2.0 * st[_WSQ]))
+    if level > st[_PEAK]:
+        st[_PEAK] = level
+    f_eq = st[_FS] * F / (2.0 * math.pi * E) if E > 0 else math.nan
+    valid = level > st[_ABS] and level >= st[_REL] * st[_PEAK] and f_eq > 0 and math.isfinite(f_eq)
+    if valid:
+        fei = S / E
+        amp = abs(fei)
+        phase = math.atan2(fei.imag, fei.real)
+        delay = -phase / (2.0 * math.pi * f_eq)
+    else:
+        amp = math.nan
+        phase = math.nan
+        f_eq = math.nan
+        delay = math.nan
+    out[nout, 0] = amp
+    out[nout, 1] = phase
+    out[nout, 2] = f_eq
+    out[nout, 3] = delay
+    out[nout, 4] = 1.0 if valid else 0.0
+    out[nout, 5] = level
+    out_t[nout] = t
+    return nout + 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _stream_block(xs, ys, st, ist, coef, cst, ring, ph, acc, out, out_t):  # pragma: no cover
+    """Process a block; completed windows go to ``out`` (A, φ, f_eq, d, valid, level)."""
     nout = 0
     for k in range(xs.shape[0]):
-        t = ist[_T]
-        if t == 0:  # start the DC blockers at the first value: no step transient
-            st[_DCX_IN] = xs[k]
-            st[_DCY_IN] = ys[k]
-        # DC blockers.
-        xo = xs[k] - st[_DCX_IN] + r * st[_DCX_OUT]
-        st[_DCX_IN] = xs[k]
-        st[_DCX_OUT] = xo
-        yo = ys[k] - st[_DCY_IN] + r * st[_DCY_OUT]
-        st[_DCY_IN] = ys[k]
-        st[_DCY_OUT] = yo
-        # Analytic signals.
-        zx = complex(_allpass_chain(xo, a_i, sxi), _allpass_chain(xo, a_q, sxq))
-        zy = complex(_allpass_chain(yo, a_i, syi), _allpass_chain(yo, a_q, syq))
-        zp = complex(st[_ZPREV_RE], st[_ZPREV_IM])
-        st[_ZPREV_RE] = zx.real
-        st[_ZPREV_IM] = zx.imag
-        q1 = zy * zx.conjugate()
-        q2 = zx.real * zx.real + zx.imag * zx.imag
-        q3 = (zp.conjugate() * zx).imag
-        slot = t % N
-        o1 = ring[slot, 0]
-        o2 = ring[slot, 1].real
-        o3 = ring[slot, 2].real
-        ring[slot, 0] = q1
-        ring[slot, 1] = q2
-        ring[slot, 2] = q3
-        told = t - N
-        # Sliding sums acc[m + 2, j]: Σ q_j e^{j m Ω t} for m = −2 … 2 (q1) and m = 0 … 2.
-        for m in range(-2, 3):
-            pn = ph[(m * t) % P]
-            po = ph[(m * told) % P] if told >= 0 else 0j
-            acc[m + 2, 0] += q1 * pn - o1 * po
-            fresh[m + 2, 0] += q1 * pn
-            if m >= 0:
-                acc[m + 2, 1] += q2 * pn - o2 * po
-                acc[m + 2, 2] += q3 * pn - o3 * po
-                fresh[m + 2, 1] += q2 * pn
-                fresh[m + 2, 2] += q3 * pn
-        ist[_T] = t + 1
-        # Resynchronise: the fresh sums hold exactly the current window after N additions.
-        if t + 1 - ist[_FRESH_START] == N:
-            for i in range(5):
-                for j in range(3):
-                    acc[i, j] = fresh[i, j]
-                    fresh[i, j] = 0j
-            ist[_FRESH_START] = t + 1
-        if t == ist[_NEXT_END]:
-            ist[_NEXT_END] = t + ist[_HOP]
-            s0 = t - N + 1
-            # Σ w² q = 3/8 Σq − ½ Re-part(cos) + ⅛ (cos 2): cos(mΩn) with n = t' − s0.
-            c1 = ph[(-s0) % P]
-            c2 = ph[(-2 * s0) % P]
-            S = (
-                0.375 * acc[2, 0]
-                - 0.25 * (c1 * acc[3, 0] + c1.conjugate() * acc[1, 0])
-                + 0.0625 * (c2 * acc[4, 0] + c2.conjugate() * acc[0, 0])
-            )
-            E = 0.375 * acc[2, 1].real - 0.5 * (c1 * acc[3, 1]).real + 0.125 * (c2 * acc[4, 1]).real
-            F = 0.375 * acc[2, 2].real - 0.5 * (c1 * acc[3, 2]).real + 0.125 * (c2 * acc[4, 2]).real
-            level = math.sqrt(max(E, 0.0) / (2.0 * wsq))
-            if level > st[_PEAK]:
-                st[_PEAK] = level
-            f_eq = fs * F / (2.0 * math.pi * E) if E > 0 else math.nan
-            valid = (
-                level > st[_ABS]
-                and level >= st[_REL] * st[_PEAK]
-                and f_eq > 0
-                and math.isfinite(f_eq)
-            )
-            if valid:
-                fei = S / E
-                amp = abs(fei)
-                phase = math.atan2(fei.imag, fei.real)
-                delay = -phase / (2.0 * math.pi * f_eq)
-            else:
-                amp = math.nan
-                phase = math.nan
-                f_eq = math.nan
-                delay = math.nan
-            out[nout, 0] = amp
-            out[nout, 1] = phase
-            out[nout, 2] = f_eq
-            out[nout, 3] = delay
-            out[nout, 4] = 1.0 if valid else 0.0
-            out[nout, 5] = level
-            out_t[nout] = t
-            nout += 1
+        nout = _sample(xs[k], ys[k], st, ist, coef, cst, ring, ph, acc, out, out_t, nout)
     return nout
+
+
+@numba.njit(cache=True, nogil=True)
+def _stream_one(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t):  # pragma: no cover
+    """Process one sample pair; return 1 when a window completed (row 0 of ``out``)."""
+    return _sample(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t, 0)
 
 
 class StreamingFEI:
@@ -246,12 +321,10 @@ class StreamingFEI:
         self.hop = int(hop)
         window_s = N / fs
         f_lo = min(0.25 / window_s, 0.01 * fs)
-        f_hi = 0.45 * fs
+        f_hi = min(0.45 * fs, max(F_HI_MAX, 40.0 * f_lo))
         self.a_i, self.a_q, self.phase_error_deg = hilbert_pair(f_lo, f_hi, self.fs)
+        self.band = (f_lo, f_hi)
         self.dc_corner = 0.1 / window_s
-        self._init_state(abs_floor, rel_floor)
-
-    def _init_state(self, abs_floor: float, rel_floor: float) -> None:
         N = self.N
         self.st = np.zeros(_NST)
         self.st[_DC_R] = math.exp(-2 * math.pi * self.dc_corner / self.fs)
@@ -263,17 +336,18 @@ class StreamingFEI:
         self.ist = np.zeros(_NIST, dtype=np.int64)
         self.ist[_NEXT_END] = N - 1
         self.ist[_HOP] = self.hop
-        ni, nq = self.a_i.size, self.a_q.size
-        self.sxi = np.zeros((ni, 2))
-        self.sxq = np.zeros((nq, 2))
-        self.syi = np.zeros((ni, 2))
-        self.syq = np.zeros((nq, 2))
+        P = N - 1
+        self.ist[_O1] = (-N) % P
+        self.ist[_O2] = (-2 * N) % P
+        self.coef = np.ascontiguousarray(np.column_stack([self.a_i, self.a_q]))
+        self.cst = np.zeros((self.coef.shape[0], 4, 2))
         self.ring = np.zeros((N, 3), dtype=complex)
-        self.ph = np.exp(1j * 2 * np.pi * np.arange(N - 1) / (N - 1))
-        self.acc = np.zeros((5, 3), dtype=complex)
-        self.fresh = np.zeros((5, 3), dtype=complex)
+        self.ph = np.exp(1j * 2 * np.pi * np.arange(P) / P)
+        self.acc = np.zeros((2, 5, 3), dtype=complex)
         self._out = np.empty((1, 6))
         self._out_t = np.empty(1, dtype=np.int64)
+        self._one = np.empty((1, 6))
+        self._one_t = np.empty(1, dtype=np.int64)
 
     def process(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Push blocks; return (rows of A, φ, f_eq, d, valid, level; window-end indices)."""
@@ -281,22 +355,40 @@ class StreamingFEI:
         if self._out.shape[0] < nmax:
             self._out = np.empty((nmax, 6))
             self._out_t = np.empty(nmax, dtype=np.int64)
-        n = _stream_kernel(
+        n = _stream_block(
             x,
             y,
             self.st,
             self.ist,
-            self.a_i,
-            self.a_q,
-            self.sxi,
-            self.sxq,
-            self.syi,
-            self.syq,
+            self.coef,
+            self.cst,
             self.ring,
             self.ph,
             self.acc,
-            self.fresh,
             self._out,
             self._out_t,
         )
         return self._out[:n], self._out_t[:n]
+
+    def push(self, x: float, y: float) -> bool:
+        """Push one sample pair; True when a window completed (its row: :attr:`last`)."""
+        return bool(
+            _stream_one(
+                x,
+                y,
+                self.st,
+                self.ist,
+                self.coef,
+                self.cst,
+                self.ring,
+                self.ph,
+                self.acc,
+                self._one,
+                self._one_t,
+            )
+        )
+
+    @property
+    def last(self) -> np.ndarray:
+        """Row (A, φ, f_eq, d, valid, level) of the window completed by the last :meth:`push`."""
+        return self._one[0]
