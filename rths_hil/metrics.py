@@ -32,7 +32,7 @@ def j1_delay(target: np.ndarray, measured: np.ndarray, fs: float, max_lag_s: flo
     """J1: delay of measured behind target by cross-correlation (Silva et al. 2020, J1).
 
     The lag ``τ`` maximising ``R(τ) = Σ_t x(t) y(t + τ)`` over ``|τ| ≤ max_lag_s`` (after mean
-    removal), refined to a fraction of a sample by a parabola through the peak and its two
+    removal, each lag normalised by its overlap length), refined to a fraction of a sample by a parabola through the peak and its two
     neighbours. Positive when measured lags target.
 
     Parameters
@@ -56,9 +56,11 @@ def j1_delay(target: np.ndarray, measured: np.ndarray, fs: float, max_lag_s: flo
     y = y - y.mean()
     r = correlate(y, x, mode="full", method="fft")
     lags = correlation_lags(y.size, x.size, mode="full")
-    max_lag = min(int(np.ceil(max_lag_s * fs)), x.size - 1)
+    max_lag = min(int(np.floor(max_lag_s * fs + 1e-9)), x.size - 1)
     sel = np.abs(lags) <= max_lag
-    r, lags = r[sel], lags[sel]
+    # Unbiased estimate (divide by the overlap): the biased one leans towards zero lag, which
+    # moves the peak of the broad correlation of low-frequency structural responses.
+    r, lags = r[sel] / (x.size - np.abs(lags[sel])), lags[sel]
     i = int(np.argmax(r))
     frac = 0.0
     if 0 < i < r.size - 1:
