@@ -181,7 +181,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             0.0,
             "s",
-            "wait for a reply at most this long (0 = auto: 0.6 period when paced, 1 s in lockstep)",
+            "wait for a reply at most this long (0 = auto: 0.8 period when paced, 1 s in lockstep)",
             0,
             10,
         ),
@@ -317,12 +317,19 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "kf_delay_max": Key(
             "float", 0.1, "s", "Kalman rule: |delay estimate| limit (0 = off)", 0, None
         ),
-        "watchdog_missed": Key("int", 3, "steps", "consecutive missed replies that trip", 1, None),
+        "watchdog_missed": Key(
+            "int",
+            20,
+            "steps",
+            "consecutive missed replies that trip (20 ≈ 20 ms at 1024 Hz)",
+            1,
+            None,
+        ),
         "max_sequence_gaps": Key("int", 0, "-", "sequence gaps tolerated before a trip", 0, None),
         "controller_status": Key(
             "bool", True, "-", "trip on the controller's alarm bits (e-stop, fault, watchdog)"
         ),
-        "max_overruns": Key("int", 10, "steps", "consecutive paced overruns that trip", 1, None),
+        "max_overruns": Key("int", 100, "steps", "consecutive paced overruns that trip", 1, None),
         "stuck_steps": Key(
             "int",
             50,

@@ -527,7 +527,7 @@ class RTHSLoop:
         )
 
         # timing
-        self.timeout = lp["feedback_timeout"] or (0.6 * self.dt if self.mode == "paced" else 1.0)
+        self.timeout = lp["feedback_timeout"] or (0.8 * self.dt if self.mode == "paced" else 1.0)
         self.spin = lp["spin"]
         self.overrun_threshold = lp["overrun_threshold"] * self.dt
         self.heartbeat_steps = round(lp["heartbeat"] * self.fs) if lp["heartbeat"] > 0 else 0
@@ -784,9 +784,10 @@ class RTHSLoop:
                     trip = Trip("operator", f"operator stop ({self._stop_signal})").at(k * dt, k)
                     rec.event("operator_stop", k * dt, k, signal=self._stop_signal)
                     break
+                tk = k * dt
                 # ---- wait for the deadline, then send at once -------------------------------
                 if paced:
-                    deadline = t0 + k * dt
+                    deadline = t0 + tk
                     rem = deadline - perf() - spin
                     if rem > 0:
                         sleep(rem)
@@ -804,11 +805,11 @@ class RTHSLoop:
                     ok = True
                     meas = fb.displacement
                     force = fb.force
-                    trip = check_feedback(k * dt, k, True, k, fb.seq, fb.status, c, meas, force)
+                    trip = check_feedback(tk, k, True, k, fb.seq, fb.status, c, meas, force)
                 else:
                     ok = False
                     missed += 1
-                    trip = check_feedback(k * dt, k, False, k, -1, 0, c, meas, force)
+                    trip = check_feedback(tk, k, False, k, -1, 0, c, meas, force)
                 if hb_steps and k % hb_steps == 0:
                     heartbeat()
                 # ---- structure: commit step k with the measured force, next target -------------
@@ -821,7 +822,7 @@ class RTHSLoop:
                     v = st.v
                     alpha = comp.alpha
                     c_next = comp_step(x_next)
-                    trip = check_command(k * dt, k, x_next, v, c_next)
+                    trip = check_command(tk, k, x_next, v, c_next)
                 else:
                     x_next = x_t
                     c_next = c
@@ -832,7 +833,7 @@ class RTHSLoop:
                         if adapt is not None:
                             adapt(d_fei, v_fei)
                         if trip is None and k >= warm:
-                            trip = check_fei(k * dt, k, a_fei, d_fei, v_fei)
+                            trip = check_fei(tk, k, a_fei, d_fei, v_fei)
                     if exact_push is not None:
                         exact_push(x_t if fei_target else c, meas)
                         a_ex, d_ex, _, v_ex = exact.latest
@@ -849,16 +850,16 @@ class RTHSLoop:
                             kal_correct()
                             kf_g, kf_d = kal.gain, kal.delay
                     if kal_new and trip is None and k >= warm:
-                        trip = check_kalman(k * dt, k, kf_g, kf_d)
+                        trip = check_kalman(tk, k, kf_g, kf_d)
                 if paced:
                     over = lat > thr
                     if over:
                         overruns += 1
                     if trip is None:
-                        trip = check_overrun(k * dt, k, over, lat)
+                        trip = check_overrun(tk, k, over, lat)
                 # ---- record ----------------------------------------------------------------
                 append(
-                    k * dt,
+                    tk,
                     k,
                     ag[k],
                     x_t,
@@ -901,7 +902,7 @@ class RTHSLoop:
                         recent = np.asarray(lat_list[last_console_k:k])
                         self.live(
                             {
-                                "t": k * dt,
+                                "t": tk,
                                 "k": k,
                                 "n": n,
                                 "rate": rate,

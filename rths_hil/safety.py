@@ -14,7 +14,8 @@ Rules (names as they appear in events and on the console):
 ``displacement`` / ``velocity`` / ``force``
     ``|value| > limit``. Displacement is checked on the command *before it is sent* and on the
     target and measured displacement; velocity on the structure's velocity and on the measured
-    velocity (backward difference); force on the measured specimen force.
+    velocity (backward difference over the steps since the previous reply); force on the
+    measured specimen force.
 ``fei``
     :class:`FEIRule` (issue 2): ``consecutive`` valid online FEI windows with
     ``|A − 1| > amplitude_tol`` or ``|d| > delay_tol`` (seed Eq. 2.2, 2.5). Invalid windows
@@ -384,8 +385,7 @@ class ControllerRule:
         names = [b.name for b in Status if b & bad]
         return Trip(
             self.rule,
-            f"controller status reports {', '.join(n for n in names if n)} "
-            f"(status 0x{status:02x})",
+            f"controller status reports {', '.join(n for n in names if n)} (status 0x{status:02x})",
             values={"status": int(status)},
         )
 
@@ -524,6 +524,7 @@ class SafetyMonitor:
         self.controller = controller
         self.tripped: Trip | None = None
         self._prev_meas = math.nan
+        self._prev_k = -1
 
     @property
     def rules(self) -> list[str]:
@@ -615,10 +616,14 @@ class SafetyMonitor:
         if not (-lim <= force <= lim):
             return self._fire(self._force.check("measured force", force), t, k)
         prev = self._prev_meas
+        prev_k = self._prev_k
         self._prev_meas = measured
+        self._prev_k = k
         lim = self.vel_limit
-        if lim != math.inf and prev == prev:
-            v = (measured - prev) / self.dt
+        if lim != math.inf and prev == prev and k > prev_k:
+            # backward difference over the steps since the previous reply (missed replies
+            # hold the measurement; its change is spread over the whole gap)
+            v = (measured - prev) / ((k - prev_k) * self.dt)
             if not (-lim <= v <= lim):
                 return self._fire(self._vel.check("measured velocity", v), t, k)
         st = self.stuck

@@ -131,6 +131,18 @@ def test_command_checked_before_send_and_monitor_latches_first_trip():
     assert again is trip
 
 
+def test_measured_velocity_spans_missed_replies():
+    m = _monitor()
+    dt = 1 / 1024
+    assert m.check_feedback(0, 10, True, 10, 10, 1, 0.0, 0.0, 0.0) is None
+    for k in (11, 12, 13):  # three missed replies: the measurement is held
+        assert m.check_feedback(k * dt, k, False, k, -1, 0, 0.0, 0.0, 0.0) is None
+    # 1.6 mm in 4 steps is 0.41 m/s (not 1.6 m/s over one step)
+    assert m.check_feedback(14 * dt, 14, True, 14, 14, 1, 0.0, 0.0016, 0.0) is None
+    trip = m.check_feedback(15 * dt, 15, True, 15, 15, 1, 0.0, 0.0016 + 0.6 * dt, 0.0)
+    assert trip.rule == "velocity" and trip.values["measured velocity"] == pytest.approx(0.6)
+
+
 def test_velocity_limit_on_structure_and_on_measured_backward_difference():
     m = _monitor()
     assert m.check_command(0, 0, 0.0, -0.49, 0.0) is None
