@@ -239,6 +239,54 @@ def lockstep(duration: float) -> None:
         print(f"| {name} | {best:.0f} | {1e6 / best:.1f} |")
 
 
+def steal_ticks() -> int:
+    """Hypervisor steal time so far (USER_HZ ticks, all CPUs) from /proc/stat."""
+    try:
+        with open("/proc/stat") as fh:
+            return int(fh.readline().split()[8])
+    except (OSError, IndexError, ValueError):
+        return 0
+
+
+def floor(duration: float, priority: int, fs: float = 1024.0, spin: float = 3e-4) -> None:
+    """The machine's own timing floor: the paced wait (sleep, then spin) with no work at all."""
+    print(
+        f"\n## 0. Machine floor: an empty paced loop at {fs:g} Hz for {duration:g} s "
+        f"(sleep until {spin * 1e3:g} ms before each deadline, then spin)"
+    )
+    old = None
+    if priority:
+        with contextlib.suppress(OSError, AttributeError):
+            old = os.sched_getscheduler(0), os.sched_getparam(0)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    sys.setswitchinterval(1e-4)
+    perf = time.perf_counter
+    dt = 1 / fs
+    n = int(duration * fs)
+    lat = np.empty(n)
+    st0 = steal_ticks()
+    t0 = perf() + 0.1
+    for k in range(n):
+        d = t0 + k * dt
+        r = d - perf() - spin
+        if r > 0:
+            time.sleep(r)
+        now = perf()
+        while now < d:
+            now = perf()
+        lat[k] = now - d
+    sys.setswitchinterval(0.005)
+    if old is not None:
+        os.sched_setscheduler(0, old[0], old[1])
+    p50, p99, p999 = np.percentile(lat, [50, 99, 99.9]) * 1e6
+    late = int((lat > 0.5 * dt).sum())
+    print(
+        f"p50 {p50:.0f} µs, p99 {p99:.0f} µs, p99.9 {p999:.0f} µs, max {lat.max() * 1e6:.0f} µs, "
+        f"steps later than half a period: {late} ({100 * late / n:.3f} %), hypervisor steal "
+        f"{(steal_ticks() - st0) / os.sysconf('SC_CLK_TCK'):.2f} CPU-s"
+    )
+
+
 def paced(duration: float, priority: int) -> None:
     print(f"\n## 4. Paced runs ({duration:g} s each, SCHED_FIFO priority {priority or 'off'})")
     print(
@@ -264,13 +312,15 @@ def paced(duration: float, priority: int) -> None:
             if fs > 2048:
                 over += [f"compensation.alpha={1 + 0.025 * fs}", "fei.exact_hop=1024"]
             cfg = load_config(None, over)
+            st0 = steal_ticks()
             r = RTHSLoop(cfg, Path(d) / "r").run()
+            steal = (steal_ticks() - st0) / os.sysconf("SC_CLK_TCK")
             s = r.lateness_stats()
             print(
                 f"| {name} | {fs:g} | {r.steps} | {s['p50'] * 1e6:.0f} | {s['p99'] * 1e6:.0f} "
                 f"| {s['p99.9'] * 1e6:.0f} | {s['max'] * 1e6:.0f} | {s['overruns']} | "
                 f"{100 * s['overruns'] / max(r.steps, 1):.3f} | {r.missed_replies} | "
-                f"{r.status} |",
+                f"{r.status} | {steal:.2f} |",
                 flush=True,
             )
 
@@ -286,6 +336,8 @@ def main() -> None:
         f"# bench_loop — {time.strftime('%Y-%m-%d %H:%M')}, python {sys.version.split()[0]}, "
         f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}"
     )
+    if not args.skip_paced:
+        floor(min(args.duration, 20.0), args.priority)
     breakdown()
     round_trips()
     lockstep(args.lockstep_duration)
