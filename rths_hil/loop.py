@@ -141,47 +141,25 @@ def build_ground_motion(cfg: Config) -> groundmotion.GroundMotion:
 
 
 class _StreamingFEI:
-    """Per-sample streaming FEI (OnlineFEI ``method="streaming"``, hop 1) without allocation.
+    """Per-sample streaming FEI (OnlineFEI ``method="streaming"``, hop 1).
 
-    :meth:`OnlineFEI.update` builds a result object of seven arrays per call (≈ 26 µs for one
-    sample); the loop needs one window per sample, so when the object exposes its O(1) kernel
-    (``OnlineFEI._stream.process``) this adapter calls it with preallocated one-sample arrays
-    (≈ 7 µs). Otherwise it falls back to the public :meth:`OnlineFEI.update`. Both give the
-    same numbers (block-size invariance of the streaming evaluator).
+    Uses :meth:`OnlineFEI.push`, the evaluator's one-sample fast path (no result arrays per
+    call; :meth:`OnlineFEI.update` with a one-sample block allocates a result of seven arrays,
+    ≈ 26 µs). :attr:`latest` holds the newest window's (amplitude, delay, f_eq, valid).
     """
 
     def __init__(self, fs: float, window_s: float) -> None:
         self.online = OnlineFEI(fs, window_s, hop=1, method="streaming")
         self.N = self.online.N
-        stream = getattr(self.online, "_stream", None)
-        self._process = getattr(stream, "process", None)
-        self._x = np.zeros(1)
-        self._y = np.zeros(1)
-        # amplitude, delay, f_eq, valid of the latest window
+        self._push = self.online.push
         self.latest = (math.nan, math.nan, math.nan, False)
 
     def push(self, target: float, measured: float) -> bool:
         """Push one sample pair; True when a window completed (see :attr:`latest`)."""
-        x = self._x
-        y = self._y
-        x[0] = target
-        y[0] = measured
-        if self._process is not None:
-            rows, _ = self._process(x, y)
-            if rows.shape[0] == 0:
-                return False
-            a, _, f_eq, d, valid, _ = rows[-1].tolist()
-            self.latest = (a, d, f_eq, valid > 0.5)
-            return True
-        res = self.online.update(x, y)
-        if len(res) == 0:
+        res = self._push(target, measured)
+        if res is None:
             return False
-        self.latest = (
-            float(res.amplitude[-1]),
-            float(res.delay[-1]),
-            float(res.f_eq[-1]),
-            bool(res.valid[-1]),
-        )
+        self.latest = res
         return True
 
 
