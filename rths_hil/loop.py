@@ -656,7 +656,7 @@ class RTHSLoop:
         # One status poll: a new command with enable=True is ignored by a latched controller
         # (it holds position) and answered with ESTOP_ACTIVE. enable=False would acknowledge
         # (clear) the latch, so it is not used here.
-        seq = result.steps + 1
+        seq = result.steps  # the next sequence number: no gap for the controller
         try:
             driver.send(seq, self._last_command, True)
             fb = driver.receive(0.2)

@@ -67,6 +67,7 @@ def _check_trip_bookkeeping(loop, res, run, rule, estop_confirmed=True):
     if estop_confirmed:
         assert loop.twin.stats.estops == 1  # the twin received it ...
         assert res.estop_confirmed is True  # ... and reported the latch
+        assert loop.twin.stats.seq_gaps == 0  # the status poll continued the sequence
     return trip
 
 
