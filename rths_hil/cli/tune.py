@@ -1,0 +1,281 @@
+"""``rths-hil tune``: tune the inverse compensation (α, amplitude factor) from trial tests.
+
+``rths-hil tune [CONFIG.toml] [--set key=value]... [--tolerance-delay 1ms]
+[--tolerance-amplitude 1%] [--max-iterations 6] [--sweep 10:50:5] [--trial-duration 15s]
+[--alpha-only] [--out DIR] [--confirm-hardware] [--hardware-scale 25%]``
+
+Runs short trial tests of the configured RTHS (lockstep against the configured twin; paced
+against real hardware, only after the operator's explicit confirmation and at a reduced
+amplitude), evaluates the FEI of each (seed Eq. 2.1–2.5) and updates ``α ← α + d/Δt`` and the
+amplitude factor ``a ← a/A`` until ``|d|`` and ``|A − 1|`` are within tolerance, or says why it
+stopped (see :mod:`rths_hil.tuning`). ``--sweep START:STOP:STEP`` (stop exclusive) runs the α
+grid instead and recommends the zero crossing of d(α).
+
+Writes to ``--out`` (default ``runs/tune-<timestamp>``): one run directory per trial,
+``tuning.csv``/``sweep.csv`` (the table), ``tuning.png``/``sweep.png`` (d and A against
+iteration or α), ``tuned.toml`` (the configuration with the recommended α and factor) and
+``summary.json``. Exit codes: 0 converged (sweep: zero crossing found), 1 stopped without
+converging (the reason is printed), 2 bad input or no confirmation for hardware, 3 a trial was
+stopped by a safety rule, 130 operator stop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+from ..errors import InputError
+from ..units import parse_fraction, parse_range, parse_time
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``tune`` to the top-level parser."""
+    p = sub.add_parser(
+        "tune",
+        help="tune inverse compensation (α, amplitude factor) from trial tests or an α sweep",
+        description=__doc__.splitlines()[0],
+    )
+    p.add_argument("config", nargs="?", help="TOML configuration (default: embedded NEES-711)")
+    p.add_argument(
+        "--set",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        help="override a configuration key, e.g. --set compensation.alpha=15 (repeatable)",
+    )
+    p.add_argument(
+        "--tolerance-delay", default="1ms", metavar="T", help="tolerance on |d| (default 1ms)"
+    )
+    p.add_argument(
+        "--tolerance-amplitude",
+        default="1%",
+        metavar="F",
+        help="tolerance on |A - 1| (default 1%%)",
+    )
+    p.add_argument(
+        "--max-iterations", type=int, default=6, metavar="N", help="most trials (default 6)"
+    )
+    p.add_argument(
+        "--sweep",
+        metavar="START:STOP:STEP",
+        help="run an α grid instead (stop exclusive, or a,b,c) and recommend the zero crossing",
+    )
+    p.add_argument(
+        "--trial-duration",
+        default="15s",
+        metavar="S",
+        help="seconds of the record per trial (default 15s; 0 = loop.duration)",
+    )
+    p.add_argument(
+        "--alpha-only", action="store_true", help="tune α only (keep the amplitude factor)"
+    )
+    p.add_argument("--out", metavar="DIR", help="output directory (default runs/tune-<time>)")
+    p.add_argument(
+        "--paced",
+        action="store_true",
+        help="run twin trials in real time (default lockstep; hardware trials are always paced)",
+    )
+    p.add_argument(
+        "--confirm-hardware",
+        action="store_true",
+        help="confirm that trials may drive the real actuator (twin.enabled = false)",
+    )
+    p.add_argument(
+        "--hardware-scale",
+        default="25%",
+        metavar="F",
+        help="ground-motion scale of hardware trials, fraction of the configured PGA "
+        "(default 25%%)",
+    )
+    p.add_argument("--no-plot", action="store_true", help="do not write the PNG")
+    p.add_argument("-q", "--quiet", action="store_true", help="print only the result line")
+    p.set_defaults(func=main)
+
+
+def _confirm(n_trials: int, pga: float, scale: float, cfg, flag: bool) -> None:
+    """Refuse hardware trials unless the operator confirmed (flag or typed 'yes')."""
+    what = (
+        f"{n_trials} trial test(s) on the REAL actuator through driver "
+        f"{cfg['driver']['name']!r} at {100 * scale:g} % of the configured ground motion "
+        f"(PGA {pga:.4g} m/s²)"
+    )
+    if flag:
+        print(f"rths-hil tune: confirmed: {what}", file=sys.stderr)
+        return
+    if sys.stdin is not None and sys.stdin.isatty():
+        print(f"rths-hil tune: about to run {what}.", file=sys.stderr)
+        try:
+            answer = input("Type 'yes' to start: ")
+        except EOFError:
+            answer = ""
+        if answer.strip().lower() == "yes":
+            return
+        raise InputError("hardware trials not confirmed by the operator; nothing was run")
+    raise InputError(
+        "the configuration drives real hardware (twin.enabled = false): refusing to run "
+        "trials without the operator's confirmation; pass --confirm-hardware (or run "
+        "interactively and answer the prompt)"
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the tuning (or the sweep); return the exit code."""
+    from ..config import load_config
+    from ..loop import new_run_dir
+    from ..tuning import (
+        LoopTrials,
+        format_table,
+        plot_sweep,
+        plot_tuning,
+        sweep,
+        tune,
+        write_table_csv,
+        write_tuned_config,
+    )
+
+    cfg = load_config(args.config, args.set)
+    tol_d = parse_time(args.tolerance_delay, "--tolerance-delay")
+    tol_a = parse_fraction(args.tolerance_amplitude, "--tolerance-amplitude")
+    if not (math.isfinite(tol_d) and tol_d > 0):
+        raise InputError(f"--tolerance-delay must be > 0, got {args.tolerance_delay!r}")
+    if not (math.isfinite(tol_a) and tol_a > 0):
+        raise InputError(f"--tolerance-amplitude must be > 0, got {args.tolerance_amplitude!r}")
+    if args.max_iterations < 1:
+        raise InputError(f"--max-iterations must be ≥ 1, got {args.max_iterations}")
+    duration = parse_time(args.trial_duration, "--trial-duration")
+    if not (math.isfinite(duration) and duration >= 0):
+        raise InputError(f"--trial-duration must be ≥ 0 s, got {args.trial_duration!r}")
+    grid = parse_range(args.sweep, "--sweep") if args.sweep else None
+    if grid is not None and any(not (math.isfinite(a) and a >= 1) for a in grid):
+        raise InputError(f"--sweep: every α must be ≥ 1, got {args.sweep!r}")
+    hardware = not cfg["twin"]["enabled"]
+    scale = 1.0
+    if hardware:
+        scale = parse_fraction(args.hardware_scale, "--hardware-scale")
+        if not (math.isfinite(scale) and 0 < scale <= 1):
+            raise InputError(f"--hardware-scale must be in (0, 1], got {args.hardware_scale!r}")
+    c = cfg["compensation"]
+    lo, hi = c["alpha_min"], c["alpha_max"]
+    if grid is None and not (lo <= c["alpha"] <= hi):
+        raise InputError(
+            f"compensation.alpha = {c['alpha']:g} is outside [alpha_min, alpha_max] = "
+            f"[{lo:g}, {hi:g}]"
+        )
+    out = Path(args.out) if args.out else new_run_dir("runs/tune-{timestamp}")
+    mode = "paced" if (hardware or args.paced) else "lockstep"
+    quiet = args.quiet
+
+    def on_trial(t) -> None:
+        if quiet:
+            return
+        row = format_table([t]).splitlines()[-1]
+        print(row, flush=True)
+
+    runner = LoopTrials(
+        cfg,
+        out,
+        duration=duration,
+        scale=scale,
+        mode=mode,
+        prefix="sweep" if grid is not None else "trial",
+        on_trial=on_trial,
+    )
+    if hardware:
+        _confirm(
+            len(grid) if grid else args.max_iterations,
+            runner.pga,
+            scale,
+            cfg,
+            args.confirm_hardware,
+        )
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create output directory {out}: {exc.strerror}") from None
+    trial_s = runner.duration if runner.duration > 0 else math.nan
+    if not quiet:
+        target = "hardware" if hardware else "twin"
+        what = f"sweep of {len(grid)} α" if grid else f"up to {args.max_iterations} trials"
+        print(
+            f"rths-hil tune: {what}, {trial_s:g} s each, {mode} on the {target}, "
+            f"PGA {runner.pga:.4g} m/s², Δt = {runner.dt * 1e3:.4f} ms; output in {out}",
+            file=sys.stderr,
+        )
+        print(format_table([]), flush=True)
+
+    summary: dict = {
+        "config": cfg.source,
+        "overrides": list(args.set),
+        "hardware": hardware,
+        "mode": mode,
+        "trial_duration": runner.duration,
+        "pga": runner.pga,
+        "dt": runner.dt,
+        "tolerance_delay": tol_d,
+        "tolerance_amplitude": tol_a,
+    }
+    if grid is not None:
+        res = sweep(runner, grid, factor=c["amplitude"], stop_on_trip=hardware)
+        write_table_csv(res.trials, out / "sweep.csv")
+        summary["sweep"] = res.as_dict()
+        if res.found:
+            write_tuned_config(
+                cfg, out / "tuned.toml", res.alpha, res.factor, note=f"sweep: {res.reason}"
+            )
+        if not args.no_plot:
+            plot_sweep(res, out / "sweep.png", tol_d, tol_a)
+        (out / "summary.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+        if res.found:
+            print(
+                f"recommended α = {res.alpha:.2f} (zero crossing of d(α)), amplitude factor "
+                f"{res.factor:.4f}; {res.reason}; tuned config {out / 'tuned.toml'}"
+            )
+        else:
+            print(f"rths-hil tune: no recommendation: {res.reason}", file=sys.stderr)
+        stopped = [t for t in res.trials if t.status == "operator_stop"]
+        if stopped:
+            return 130
+        return 0 if res.found else 1
+
+    res = tune(
+        runner,
+        alpha0=c["alpha"],
+        dt=runner.dt,
+        factor0=c["amplitude"],
+        tol_delay=tol_d,
+        tol_amplitude=tol_a,
+        max_iterations=args.max_iterations,
+        tune_amplitude=not args.alpha_only,
+        alpha_bounds=(lo, hi),
+    )
+    write_table_csv(res.trials, out / "tuning.csv")
+    summary["tuning"] = res.as_dict()
+    if res.best:
+        write_tuned_config(
+            cfg,
+            out / "tuned.toml",
+            res.alpha,
+            res.factor,
+            note=f"{res.stop}: {res.reason}\nbest verified trial: {res.best}",
+        )
+    if not args.no_plot and res.trials:
+        plot_tuning(res, out / "tuning.png")
+    (out / "summary.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+    if not quiet:
+        print(f"rths-hil tune: {res.reason}", file=sys.stderr)
+    if res.best:
+        print(
+            f"{'tuned' if res.converged else 'best so far'}: α = {res.alpha:.3f}, amplitude "
+            f"factor {res.factor:.4f} (trial {res.best} of {res.iterations}); "
+            f"config {out / 'tuned.toml'}"
+        )
+    else:
+        print(f"rths-hil tune: no usable trial: {res.reason}", file=sys.stderr)
+    if res.stop == "trip":
+        return 3
+    if res.stop == "operator_stop":
+        return 130
+    return 0 if res.converged else 1
