@@ -661,6 +661,8 @@ class OnlineFEI:
             from .fei_streaming import StreamingFEI
 
             self._stream = StreamingFEI(self.fs, self.N, self.hop, abs_floor, rel_floor)
+            self._spush = self._stream.push
+            self._srow = self._stream.last
 
     @property
     def samples_seen(self) -> int:
@@ -677,9 +679,9 @@ class OnlineFEI:
         """
         if self._stream is not None:
             self._t += 1
-            if not self._stream.push(float(target), float(measured)):
+            if not self._spush(float(target), float(measured)):
                 return None
-            a, _, f_eq, d, valid, _ = self._stream.last.tolist()
+            a, _, f_eq, d, valid, _ = self._srow.tolist()
             return a, d, f_eq, valid > 0.5
         res = self.update(np.array([target], dtype=float), np.array([measured], dtype=float))
         if len(res) == 0:

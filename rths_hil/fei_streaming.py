@@ -103,7 +103,11 @@ _PEAK = 7  # running peak level
 _ABS, _REL = 8, 9
 _FS = 10
 _WSQ = 11  # Σ w_n²
-_NST = 12
+_M = 12  # FFT length of the exact FEI
+_W1 = 13  # Σ w_n
+_WP = 14  # Σ (−1)^n w_n
+_X0, _Y0 = 15, 16  # first samples (subtracted from the raw signals against round-off)
+_NST = 17
 # Integer state (int64 array ``ist``):
 _T = 0  # samples seen
 _NEXT_END = 1  # sample index of the next window end to report
@@ -124,6 +128,15 @@ def _wrap(i: int, P: int) -> int:
     return i
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _hann_sums(acc, j, c1, c2):
+    """(Σ w_n² q, Σ w_n q) over the window from the sliding sums of column ``j``."""
+    a0 = acc[0, 2, j].real
+    a1 = (c1 * acc[0, 3, j]).real
+    a2 = (c2 * acc[0, 4, j]).real
+    return 0.375 * a0 - 0.5 * a1 + 0.125 * a2, 0.5 * a0 - 0.5 * a1
+
+
 @numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract", "arcp", "reassoc"})
 def _sample(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t, nout):  # pragma: no cover
     """Advance the estimator by one sample pair; return the new number of output rows."""
@@ -133,6 +146,8 @@ def _sample(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t, nout):  # pragm
     if t == 0:  # start the DC blockers at the first value: no step transient
         st[_DCX_IN] = x
         st[_DCY_IN] = y
+        st[_X0] = x
+        st[_Y0] = y
     r = st[_DC_R]
     xo = x - st[_DCX_IN] + r * st[_DCX_OUT]
     st[_DCX_IN] = x
@@ -180,6 +195,21 @@ def _sample(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t, nout):  # pragm
     ring[slot, 0] = q1
     ring[slot, 1] = q2
     ring[slot, 2] = q3
+    # Raw (mean-free per window, exactly as the exact FEI) quantities for Re S and E.
+    xr = x - st[_X0]
+    yr = y - st[_Y0]
+    sgn = 1.0 if (t & 1) == 0 else -1.0
+    raw_new = (yr * xr, xr * xr, xr, yr, sgn * xr, sgn * yr)
+    raw_old = (
+        ring[slot, 3].real,
+        ring[slot, 4].real,
+        ring[slot, 5].real,
+        ring[slot, 6].real,
+        ring[slot, 7].real,
+        ring[slot, 8].real,
+    )
+    for j in range(6):
+        ring[slot, 3 + j] = raw_new[j]
     i1 = ist[_I1]
     i2 = ist[_I2]
     p0 = 1.0 + 0j
@@ -210,6 +240,14 @@ def _sample(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t, nout):  # pragm
     acc[1, 2, 2] += q3 * p0
     acc[1, 3, 2] += q3 * p1
     acc[1, 4, 2] += q3 * p2
+    for j in range(6):
+        q = raw_new[j]
+        acc[0, 2, 3 + j] += q
+        acc[0, 3, 3 + j] += q * p1
+        acc[0, 4, 3 + j] += q * p2
+        acc[1, 2, 3 + j] += q
+        acc[1, 3, 3 + j] += q * p1
+        acc[1, 4, 3 + j] += q * p2
     if t >= N:
         r1 = ph[ist[_O1]]
         r2 = ph[ist[_O2]]
@@ -226,6 +264,11 @@ def _sample(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t, nout):  # pragm
         acc[0, 2, 2] -= o3
         acc[0, 3, 2] -= o3 * r1
         acc[0, 4, 2] -= o3 * r2
+        for j in range(6):
+            q = raw_old[j]
+            acc[0, 2, 3 + j] -= q
+            acc[0, 3, 3 + j] -= q * r1
+            acc[0, 4, 3 + j] -= q * r2
     ist[_O1] = _wrap(ist[_O1] + 1, P)
     ist[_O2] = _wrap(ist[_O2] + 2, P)
     ist[_I1] = _wrap(i1 + 1, P)
@@ -234,7 +277,7 @@ def _sample(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t, nout):  # pragm
     # Resynchronise: the fresh sums hold exactly the current window after N additions.
     if t + 1 - ist[_FRESH_START] == N:
         for i in range(5):
-            for j in range(3):
+            for j in range(acc.shape[2]):
                 acc[0, i, j] = acc[1, i, j]
                 acc[1, i, j] = 0j
         ist[_FRESH_START] = t + 1
@@ -260,15 +303,45 @@ def _sample(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t, nout):  # pragm
         - 0.5 * (c1 * acc[0, 3, 2]).real
         + 0.125 * (c2 * acc[0, 4, 2]).real
     )
-    level = math.sqrt(max(E, 0.0) / (2.0 * st[_WSQ]))
+    # Exact Re S and E of the windowed, mean-free signals (Parseval, one-sided bins 1 … p−1):
+    # Σ_k Y conj(X) over all M bins = M Σ ŷ x̂; remove DC (k = 0) and Nyquist (k = p), halve.
+    n_win = float(N)
+    mu_x = acc[0, 2, 5].real / n_win
+    mu_y = acc[0, 2, 6].real / n_win
+    yx2, _ = _hann_sums(acc, 3, c1, c2)
+    xx2, _ = _hann_sums(acc, 4, c1, c2)
+    x2, x1 = _hann_sums(acc, 5, c1, c2)
+    y2, y1 = _hann_sums(acc, 6, c1, c2)
+    _, sx1 = _hann_sums(acc, 7, c1, c2)
+    _, sy1 = _hann_sums(acc, 8, c1, c2)
+    w2 = st[_WSQ]
+    sxy = yx2 - mu_x * y2 - mu_y * x2 + mu_x * mu_y * w2
+    sxx = xx2 - 2.0 * mu_x * x2 + mu_x * mu_x * w2
+    x_dc = x1 - mu_x * st[_W1]
+    y_dc = y1 - mu_y * st[_W1]
+    s0_sign = 1.0 if ((t - N + 1) & 1) == 0 else -1.0
+    x_ny = s0_sign * sx1 - mu_x * st[_WP]
+    y_ny = s0_sign * sy1 - mu_y * st[_WP]
+    Mf = st[_M]
+    re_s = 0.5 * (Mf * sxy - y_dc * x_dc - y_ny * x_ny)
+    e_ex = 0.5 * (Mf * sxx - x_dc * x_dc - x_ny * x_ny)
+    level = math.sqrt(max(2.0 * e_ex / (Mf * w2), 0.0))
     if level > st[_PEAK]:
         st[_PEAK] = level
     f_eq = st[_FS] * F / (2.0 * math.pi * E) if E > 0 else math.nan
-    valid = level > st[_ABS] and level >= st[_REL] * st[_PEAK] and f_eq > 0 and math.isfinite(f_eq)
+    valid = (
+        level > st[_ABS]
+        and level >= st[_REL] * st[_PEAK]
+        and f_eq > 0
+        and math.isfinite(f_eq)
+        and e_ex > 0
+    )
     if valid:
-        fei = S / E
-        amp = abs(fei)
-        phase = math.atan2(fei.imag, fei.real)
+        # Amplitude: real part exact, quadrature part from the analytic signals (ratio to
+        # their E). Phase: wholly from the analytic signals (both parts in the same window).
+        ratio = S / E
+        amp = math.hypot(re_s / e_ex, ratio.imag)
+        phase = math.atan2(ratio.imag, ratio.real)
         delay = -phase / (2.0 * math.pi * f_eq)
     else:
         amp = math.nan
@@ -333,6 +406,10 @@ class StreamingFEI:
         self.st[_FS] = self.fs
         w = np.hanning(N)
         self.st[_WSQ] = float(w @ w)
+        self.st[_W1] = float(w.sum())
+        self.st[_WP] = float(w @ ((-1.0) ** np.arange(N)))
+        M = 1 << (N - 1).bit_length()
+        self.st[_M] = float(M)
         self.ist = np.zeros(_NIST, dtype=np.int64)
         self.ist[_NEXT_END] = N - 1
         self.ist[_HOP] = self.hop
@@ -341,13 +418,24 @@ class StreamingFEI:
         self.ist[_O2] = (-2 * N) % P
         self.coef = np.ascontiguousarray(np.column_stack([self.a_i, self.a_q]))
         self.cst = np.zeros((self.coef.shape[0], 4, 2))
-        self.ring = np.zeros((N, 3), dtype=complex)
+        self.ring = np.zeros((N, 9), dtype=complex)
         self.ph = np.exp(1j * 2 * np.pi * np.arange(P) / P)
-        self.acc = np.zeros((2, 5, 3), dtype=complex)
+        self.acc = np.zeros((2, 5, 9), dtype=complex)
         self._out = np.empty((1, 6))
         self._out_t = np.empty(1, dtype=np.int64)
         self._one = np.empty((1, 6))
         self._one_t = np.empty(1, dtype=np.int64)
+        self._args = (
+            self.st,
+            self.ist,
+            self.coef,
+            self.cst,
+            self.ring,
+            self.ph,
+            self.acc,
+            self._one,
+            self._one_t,
+        )
 
     def process(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Push blocks; return (rows of A, φ, f_eq, d, valid, level; window-end indices)."""
@@ -372,21 +460,7 @@ class StreamingFEI:
 
     def push(self, x: float, y: float) -> bool:
         """Push one sample pair; True when a window completed (its row: :attr:`last`)."""
-        return bool(
-            _stream_one(
-                x,
-                y,
-                self.st,
-                self.ist,
-                self.coef,
-                self.cst,
-                self.ring,
-                self.ph,
-                self.acc,
-                self._one,
-                self._one_t,
-            )
-        )
+        return _stream_one(x, y, *self._args) > 0
 
     @property
     def last(self) -> np.ndarray:

@@ -92,13 +92,11 @@ def parse_range(text: str, what: str = "range") -> list[float]:
             if len(parts) != 3 or parts[2] <= 0:
                 raise ValueError
             start, stop, step = parts
-            n = int(round((stop - start) / step))
+            n = round((stop - start) / step)
             vals = [round(start + i * step, 12) for i in range(max(n, 0))]
             if not vals:
                 raise ValueError
             return vals
         return [float(p) for p in s.split(",") if p.strip()]
     except ValueError:
-        raise InputError(
-            f"cannot read {what} {text!r}: use start:stop:step or a,b,c"
-        ) from None
+        raise InputError(f"cannot read {what} {text!r}: use start:stop:step or a,b,c") from None
