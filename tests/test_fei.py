@@ -241,9 +241,8 @@ def test_streaming_agrees_with_exact_on_sdof_responses():
         shares_d.append(np.mean(err_d < 0.5e-3))
         worst_a = max(worst_a, err_a.max())
         worst_d = max(worst_d, err_d.max())
-    assert min(shares_a) > 0.97
-    assert min(shares_d) > 0.99
-    assert worst_a < 0.03
+    assert worst_a < 0.01  # the 1 % holds on every valid window
+    assert min(shares_d) > 0.99  # 0.5 ms holds on ≥ 99 % of them (docs/fei.md)
     assert worst_d < 1e-3
 
 
