@@ -113,3 +113,58 @@ def test_export_csv_columns_and_errors(tmp_path, capsys):
     assert main(["export", str(tmp_path)]) == 2
     assert "not a run directory" in _one_line(capsys.readouterr().err)
     assert main(["export", str(out), "--columns", "nope"]) == 2
+
+
+def test_live_line_content_and_terminal_behaviour():
+    import io
+
+    from rths_hil.report import LiveLine, format_live
+
+    status = {
+        "t": 12.5,
+        "k": 12800,
+        "n": 30720,
+        "rate": 1024.0,
+        "p99_lateness": 8.2e-5,
+        "overruns": 3,
+        "amplitude": 1.0031,
+        "delay": 0.00042,
+        "valid": True,
+        "peak_displacement": 0.01127,
+        "margin": ("displacement", 0.7746),
+        "alpha": 26.6,
+        "mode": "paced",
+    }
+    line = format_live(status)
+    for part in (
+        "12.50 s",
+        "1024 steps/s",
+        "p99 late 0.082 ms",
+        "overruns 3",
+        "A 1.0031",
+        "d +0.42 ms",
+        "peak 11.27 mm",
+        "margin displacement 77 %",
+        "α 26.60",
+    ):
+        assert part in line, part
+    assert "\n" not in line
+    invalid = format_live(dict(status, amplitude=float("nan"), delay=float("nan")))
+    assert "A — d — ms" in invalid
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty = Tty()
+    live = LiveLine(tty)
+    live(status)
+    live(dict(status, t=13.0))
+    live.finish()
+    out = tty.getvalue()
+    assert out.count("\r") == 2 and out.endswith("\n") and out.count("\n") == 1
+    log = io.StringIO()
+    live = LiveLine(log, every=10)
+    for _ in range(25):
+        live(status)
+    assert log.getvalue().count("\n") == 3  # statuses 0, 10, 20
