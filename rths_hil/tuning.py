@@ -18,8 +18,8 @@ Offline tuning (:func:`tune`)
     ``a ← a/A · |C(α, f_eq)|/|C(α_new, f_eq)|`` (``a/A`` when α stays). The α update assumes
     the slope ``∂d/∂α = −Δt``; the true slope is ``−Δt/(1 + (ω_eq·(α − 1)·Δt)²)`` to first
     order (the compensator's phase lead is ``atan(ω(α − 1)Δt)``, see
-    :func:`compensator_response`), 2–4 % flatter at 0.77 Hz and α ≈ 30, so each iteration
-    removes 96–98 % of the residual delay. It stops when
+    :func:`compensator_response`), a few % flatter at 0.77 Hz and α ≈ 30, so each iteration
+    removes about 98 % of the residual delay. It stops when
     ``|d| ≤ tol_delay`` and ``|A − 1| ≤ tol_amplitude`` (*converged*), or when it stops
     improving, with the reason: the normalised error ``e = max(|d|/tol_delay, |A − 1|/tol_amp)``
     of a trial is not below :data:`IMPROVEMENT` × the best so far (*stalled*; *diverging* when it
@@ -840,6 +840,9 @@ def plot_tuning(result: TuneResult, path: str | Path, title: str = "") -> Path:
     ax2 = ax.twinx()
     ax2.plot(it, [t.factor for t in tr], "s--", color="C1", label="amplitude factor")
     ax2.set_ylabel("amplitude factor", color="C1")
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = ax2.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, loc="best")
     ax.grid(True, alpha=0.3)
     ax = axes[1]
     ax.axhspan(
