@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from rths_hil.cli import main as cli
+from rths_hil.config import load_config
 from rths_hil.tuning import compensator_response, residual_delay
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -126,3 +127,11 @@ def test_tune_from_alpha_15_converges_to_the_zero_crossing_in_three_iterations(t
     assert s["converged"] and len(s["trials"]) <= 3
     assert s["trials"][0]["alpha"] == 15
     assert s["alpha"] == pytest.approx(result.alpha, abs=1.5)
+    # the tuned configuration loads from the output directory (record path rewritten)
+    tuned = load_config(out / "tuned.toml")
+    assert tuned["compensation"]["alpha"] == pytest.approx(s["alpha"])
+    assert tuned.resolve_path(tuned["ground_motion"]["record"]).samefile(
+        EXAMPLE / "northridge_1994_MUL009.csv"
+    )
+    # a second run into the same directory is refused before anything runs
+    assert cli(["tune", str(EXAMPLE / "nees711.toml"), "-q", "--out", str(out)]) == 2

@@ -165,6 +165,8 @@ def main(args: argparse.Namespace) -> int:
             f"[{lo:g}, {hi:g}]"
         )
     out = Path(args.out) if args.out else new_run_dir("runs/tune-{timestamp}")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"--out {out}: exists and is not an empty directory; choose a new one")
     mode = "paced" if (hardware or args.paced) else "lockstep"
     quiet = args.quiet
 
