@@ -32,7 +32,7 @@ def j1_delay(target: np.ndarray, measured: np.ndarray, fs: float, max_lag_s: flo
     """J1: delay of measured behind target by cross-correlation (Silva et al. 2020, J1).
 
     The lag ``τ`` maximising ``R(τ) = Σ_t x(t) y(t + τ)`` over ``|τ| ≤ max_lag_s`` (after mean
-    removal, each lag normalised by its overlap length), refined to a fraction of a sample by a
+    removal, each lag normalised by the energies of the overlapping segments), refined to a fraction of a sample by a
     parabola through the peak and its two neighbours. Positive when measured lags target.
 
     Parameters
@@ -58,9 +58,18 @@ def j1_delay(target: np.ndarray, measured: np.ndarray, fs: float, max_lag_s: flo
     lags = correlation_lags(y.size, x.size, mode="full")
     max_lag = min(int(np.floor(max_lag_s * fs + 1e-9)), x.size - 1)
     sel = np.abs(lags) <= max_lag
-    # Unbiased estimate (divide by the overlap): the biased one leans towards zero lag, which
-    # moves the peak of the broad correlation of low-frequency structural responses.
-    r, lags = r[sel] / (x.size - np.abs(lags[sel])), lags[sel]
+    r, lags = r[sel], lags[sel]
+    # Normalise each lag by the energies of the two overlapping segments (the correlation
+    # coefficient of the overlap): a plain or length-normalised sum leans towards the lag that
+    # keeps the strongest part of a transient record in the overlap.
+    cx = np.concatenate([[0.0], np.cumsum(x * x)])
+    cy = np.concatenate([[0.0], np.cumsum(y * y)])
+    n = x.size
+    ex = np.where(lags >= 0, cx[n - np.maximum(lags, 0)], cx[n] - cx[np.maximum(-lags, 0)])
+    ey = np.where(lags >= 0, cy[n] - cy[np.maximum(lags, 0)], cy[n - np.maximum(-lags, 0)])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = r / np.sqrt(ex * ey)
+    r = np.nan_to_num(r, nan=-np.inf)
     i = int(np.argmax(r))
     frac = 0.0
     if 0 < i < r.size - 1:

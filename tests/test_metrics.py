@@ -66,3 +66,15 @@ def test_bad_pairs():
         metrics.j2_nrms(np.zeros(5), np.zeros(6))
     with pytest.raises(InputError, match="max_lag_s"):
         metrics.j1_delay(np.ones(5), np.ones(5), FS, max_lag_s=0)
+
+
+@pytest.mark.parametrize("delay", [0.0061, 0.02])
+def test_j1_on_a_short_building_up_transient(delay):
+    """6 s of a growing SDOF response: the strongest part sits at the end of the record."""
+    from rths_hil.groundmotion import default_record
+    from rths_hil.structure import simulate_sdof
+
+    ag = default_record().resampled(FS).accel[: int(6 * FS)]
+    x = simulate_sdof(ag, FS, 0.77, 0.02)
+    y = fractional_delay(x, delay, FS)
+    assert metrics.j1_delay(x, y, FS) == pytest.approx(delay, abs=1e-4)
