@@ -32,8 +32,9 @@ def j1_delay(target: np.ndarray, measured: np.ndarray, fs: float, max_lag_s: flo
     """J1: delay of measured behind target by cross-correlation (Silva et al. 2020, J1).
 
     The lag ``τ`` maximising ``R(τ) = Σ_t x(t) y(t + τ)`` over ``|τ| ≤ max_lag_s`` (after mean
-    removal, each lag normalised by the energies of the overlapping segments), refined to a fraction of a sample by a
-    parabola through the peak and its two neighbours. Positive when measured lags target.
+    removal, each lag normalised by the energies of the overlapping segments), refined to a
+    fraction of a sample by a parabola through the peak and its two neighbours. Positive when
+    measured lags target.
 
     Parameters
     ----------

@@ -77,4 +77,4 @@ def test_j1_on_a_short_building_up_transient(delay):
     ag = default_record().resampled(FS).accel[: int(6 * FS)]
     x = simulate_sdof(ag, FS, 0.77, 0.02)
     y = fractional_delay(x, delay, FS)
-    assert metrics.j1_delay(x, y, FS) == pytest.approx(delay, abs=1e-4)
+    assert metrics.j1_delay(x, y, FS) == pytest.approx(delay, abs=2e-4)
