@@ -136,7 +136,7 @@ def breakdown() -> None:
     for _ in range(5000):
         stream()
     rows.append(("streaming FEI push (one window per sample)", per_call(stream)))
-    ex = _ExactFEI(FS, 3 / 0.77, 256, threaded=False)
+    ex = _ExactFEI(FS, 3 / 0.77, 256, background=False)
 
     def exact():
         ph[0] += 0.0047
