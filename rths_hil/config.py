@@ -154,16 +154,17 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             3e-4,
             "s",
-            "paced: sleep until this long before the deadline, then busy-wait",
+            "paced: sleep until this long before the deadline, then busy-wait (at most 0.4 "
+            "period is used)",
             0,
             0.01,
         ),
         "priority": Key(
             "int",
-            0,
+            10,
             "-",
             "paced: SCHED_FIFO real-time priority of the loop and its threads (0 = leave the "
-            "scheduler alone; needs root or CAP_SYS_NICE, else a warning)",
+            "scheduler alone); needs root or CAP_SYS_NICE, else the run goes on without it",
             0,
             99,
         ),

@@ -80,7 +80,7 @@ from drivers.registry import create_driver, driver_class
 
 from . import groundmotion
 from .compensation import AdaptiveAlpha, InverseCompensator
-from .config import Config, load_config
+from .config import SCHEMA, Config, load_config
 from .errors import InputError
 from .fei import OnlineFEI
 from .recorder import Recorder
@@ -585,7 +585,9 @@ class RTHSLoop:
 
         # timing
         self.timeout = lp["feedback_timeout"] or (0.8 * self.dt if self.mode == "paced" else 1.0)
-        self.spin = lp["spin"]
+        # never spin through a whole period: a SCHED_FIFO thread that never sleeps is stopped by
+        # Linux's RT throttling (95 % of a CPU) for 50 ms every second
+        self.spin = min(lp["spin"], 0.4 * self.dt)
         self.overrun_threshold = lp["overrun_threshold"] * self.dt
         self.heartbeat_steps = round(lp["heartbeat"] * self.fs) if lp["heartbeat"] > 0 else 0
         self.console_interval = lp["console"]
@@ -626,7 +628,10 @@ class RTHSLoop:
             old = os.sched_getscheduler(0), os.sched_getparam(0)
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         except (AttributeError, PermissionError, OSError) as exc:
-            log.warning("cannot set SCHED_FIFO priority %d (%s); running without", priority, exc)
+            explicit = priority != SCHEMA["loop"]["priority"].default
+            (log.warning if explicit else log.info)(
+                "cannot set SCHED_FIFO priority %d (%s); running without", priority, exc
+            )
             return
         stack.callback(os.sched_setscheduler, 0, old[0], old[1])
 
