@@ -329,7 +329,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=60.0, help="paced run length (s)")
     ap.add_argument("--lockstep-duration", type=float, default=20.0)
-    ap.add_argument("--priority", type=int, default=0, help="SCHED_FIFO priority for paced")
+    ap.add_argument(
+        "--priority", type=int, default=10, help="SCHED_FIFO priority for paced (0 = off)"
+    )
     ap.add_argument("--skip-paced", action="store_true")
     args = ap.parse_args()
     print(
