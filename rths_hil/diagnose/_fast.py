@@ -1,0 +1,132 @@
+"""Fast simulation of the catalogue effects the fitting evaluates most often.
+
+The diagnosis simulates candidate effects hundreds of times per record, so:
+
+* ``velocity_limit`` — :class:`sim_backends.effects.VelocityLimit` has no closed form and its
+  vectorised path loops in Python over every stretch where the limit is active (most of the
+  record for the small limits a fit tries); here the same recursion is compiled with numba,
+  with the same comparisons in the same order as its ``step``: equal bit for bit.
+* ``backlash`` — the catalogue's exact prefix scan costs a dozen numpy passes; the plain
+  recursion ``y[k] = clip(y[k-1], x[k] − w/2, x[k] + w/2)`` compiled is one, with the same
+  min/max: equal bit for bit.
+* ``servo_lag`` and ``force_feedback`` — the catalogue discretises ``K/(T s + 1)`` with a
+  first-order hold through :func:`scipy.signal.cont2discrete` (a matrix exponential per
+  construction); its closed form is, with ``p = exp(−dt/T)`` and ``c = (T/dt)(1 − p)``,
+  ``H(z) = K (b0 + b1 z⁻¹)/(1 − p z⁻¹)``, ``b0 = 1 − c``, ``b1 = c − p`` (from
+  ``H(z) = (z − 1)²/(z dt) · Z{G(s)/s²}``), equal to the catalogue's to round-off.
+
+* the transport delay — :func:`sim_backends.delay.fractional_delay` runs its FIR (``n0`` zeros
+  and 4 Lagrange taps) through :func:`scipy.signal.lfilter`; here the shift is a slice and the 4
+  taps are 4 vector operations (equal to round-off).
+
+Every other effect goes through the catalogue itself.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from scipy.signal import lfilter
+
+from sim_backends.delay import lagrange_taps
+from sim_backends.effects import make_effect, validate_params
+from sim_backends.modelfile import EffectSpec
+
+__all__ = [
+    "backlash",
+    "first_order",
+    "fractional_delay",
+    "simulate_chain",
+    "simulate_effect",
+    "velocity_limit",
+]
+
+
+@numba.njit(cache=True, nogil=True)
+def _velocity_limit(x: np.ndarray, dmax: float) -> np.ndarray:  # pragma: no cover - compiled
+    out = np.empty_like(x)
+    y = 0.0
+    for k in range(x.shape[0]):
+        d = x[k] - y
+        if d > dmax:
+            y += dmax
+        elif d < -dmax:
+            y -= dmax
+        else:
+            y = x[k]
+        out[k] = y
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _backlash(x: np.ndarray, half: float) -> np.ndarray:  # pragma: no cover - compiled
+    out = np.empty_like(x)
+    y = 0.0
+    for k in range(x.shape[0]):
+        lo = x[k] - half
+        hi = x[k] + half
+        if y < lo:
+            y = lo
+        elif y > hi:
+            y = hi
+        out[k] = y
+    return out
+
+
+def backlash(x: np.ndarray, width: float, dt: float) -> np.ndarray:
+    """``backlash`` from rest (``y[-1] = 0``)."""
+    make_effect("backlash", dt, width=width)  # the catalogue's parameter checks
+    return _backlash(np.ascontiguousarray(x, dtype=float), 0.5 * float(width))
+
+
+def velocity_limit(x: np.ndarray, limit: float, dt: float) -> np.ndarray:
+    """``velocity_limit`` from rest: ``y[k] = y[k-1] + clip(x[k] - y[k-1], ±limit·dt)``."""
+    make_effect("velocity_limit", dt, limit=limit)  # the catalogue's parameter checks
+    return _velocity_limit(np.ascontiguousarray(x, dtype=float), float(limit * dt))
+
+
+def fractional_delay(x: np.ndarray, delay_s: float, fs: float) -> np.ndarray:
+    """``x`` delayed by ``delay_s`` (Lagrange, as :func:`sim_backends.delay.fractional_delay`)."""
+    x = np.asarray(x, dtype=float)
+    n = x.shape[0]
+    n0, taps = lagrange_taps(delay_s * fs)
+    out = np.zeros(n)
+    for j, h in enumerate(taps.tolist()):
+        s = n0 + j
+        if s < n and h != 0.0:
+            out[s:] += h * x[: n - s]
+    return out
+
+
+def first_order(x: np.ndarray, gain: float, time_constant: float, dt: float) -> np.ndarray:
+    """``gain/(T s + 1)`` with a first-order hold, from rest (closed-form coefficients)."""
+    if time_constant <= 0:
+        return gain * np.asarray(x, dtype=float)
+    p = math.exp(-dt / time_constant)
+    c = (time_constant / dt) * -math.expm1(-dt / time_constant)
+    return lfilter([gain * (1.0 - c), gain * (c - p)], [1.0, -p], np.asarray(x, dtype=float))
+
+
+def simulate_effect(kind: str, params: dict[str, float], x: np.ndarray, dt: float) -> np.ndarray:
+    """Output of catalogue effect ``kind`` with ``params`` for input ``x``, from rest."""
+    if kind == "velocity_limit":
+        return velocity_limit(x, params["limit"], dt)
+    if kind == "backlash":
+        return backlash(x, params["width"], dt)
+    if kind == "servo_lag":
+        validate_params(kind, params)
+        return first_order(x, 1.0, params["time_constant"], dt)
+    if kind == "force_feedback":
+        p = validate_params(kind, params)
+        total = p["actuator_stiffness"] + p["specimen_stiffness"]
+        return first_order(x, p["actuator_stiffness"] / total, p["specimen_damping"] / total, dt)
+    return make_effect(kind, dt, **params).simulate(x)
+
+
+def simulate_chain(effects: list[EffectSpec], x: np.ndarray, dt: float) -> np.ndarray:
+    """Effects applied in order."""
+    for e in effects:
+        x = simulate_effect(e.kind, e.params, x, dt)
+    return x

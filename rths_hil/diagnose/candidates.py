@@ -1,0 +1,723 @@
+"""Candidate explanations of a discrepancy: each catalogue effect, a delay and a gain re-fit.
+
+Every candidate is the current model with one change, fitted to the record by least squares
+(the sum of squared residuals ``RSS = Σ (measured − predicted)²``). A new catalogue effect is
+inserted at its place in the physical chain :data:`EFFECT_ORDER` (actuator dynamics, valve
+flow limit, stops, play of the load train, then the transducer's zero and drift);
+``delay`` and ``gain`` re-fit the actuator's own parameters.
+
+Fitting (bounded, :mod:`scipy.optimize`; the search spans well beyond
+:data:`sim_backends.effects.EFFECT_RANGES`, which a real actuator may exceed):
+
+====================== =========================================================================
+``offset``, ``drift``  linear in the parameter: the least-squares solution (closed form).
+``delay``              cross-correlation start (:func:`rths_hil.metrics.j1_delay`), then bounded
+                       Brent (:func:`scipy.optimize.minimize_scalar`) within ±3 ms.
+``gain``               closed form without effects, else bounded Brent within ±20 %.
+``backlash``,          one parameter, not smooth (clamps): a log-spaced grid, then bounded Brent
+``velocity_limit``,    between the grid neighbours of the best point.
+``servo_lag``,
+``force_feedback``
+``stroke_limit``       the two stops act on disjoint samples, so the RSS separates into one term
+                       per stop: a grid + Brent per side; a stop the data never reach is not
+                       counted as a parameter.
+``time_varying_delay`` ``τ(t) = D + a·sin(2πt/P)``: for each period of a log grid the residual of
+                       the best constant delay is regressed (linearised, ``r ≈ −δτ(t)·ẏ``) on
+                       ``ẏ`` and ``sin(2πt/P)·ẏ``; the best period starts
+                       :func:`scipy.optimize.least_squares` on the exact model.
+====================== =========================================================================
+
+:func:`polish` re-fits jointly the parameters of several effects (and the actuator's delay and
+gain) with :func:`scipy.optimize.least_squares` on the exact model.
+
+When the base model was fitted to the record (no model file), its delay and gain are nuisance
+parameters: every candidate's RSS is then taken after their linearised least-squares correction
+(``Data.project``), and the candidates that add a low-frequency delay or gain (``servo_lag``,
+``force_feedback``) give it back to the actuator while they are fitted.
+
+``force_feedback`` needs the specimen's stiffness and damping: they are regressed from the
+record's force column (``F = k_s·y + c_s·ẏ + F0`` on the measured displacement and force
+low-passed at 20 Hz, zero phase; ``ẏ`` the backward difference, as in the twin's specimen) or,
+without a force column, taken from the model's ``[specimen]``; with neither, the candidate is
+skipped (from displacement alone it is a gain plus a lag).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize, signal
+
+from sim_backends.effects import EFFECTS, make_effect
+from sim_backends.modelfile import EffectSpec, ModelSpec
+from sim_backends.models import make_model
+
+from ..errors import InputError
+from ..metrics import j1_delay
+from ._fast import fractional_delay, simulate_chain, simulate_effect
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "CANDIDATES",
+    "EFFECT_ORDER",
+    "REFITS",
+    "Candidate",
+    "Data",
+    "Fit",
+    "Model",
+    "fit_candidate",
+    "polish",
+    "simulate_model",
+]
+
+#: Re-fits of the actuator's own parameters, tried before the catalogue effects.
+REFITS: tuple[str, ...] = ("delay", "gain")
+#: Every candidate, in the order of preference when two explain the record equally well
+#: (a re-fit of an existing parameter first, then the simpler effects).
+CANDIDATES: tuple[str, ...] = (
+    *REFITS,
+    "offset",
+    "drift",
+    "servo_lag",
+    "force_feedback",
+    "backlash",
+    "velocity_limit",
+    "stroke_limit",
+    "time_varying_delay",
+)
+assert set(CANDIDATES) - set(REFITS) == set(EFFECTS)
+#: Physical order of the effects in a chain, from the actuator to the transducer: the delay and
+#: the dynamics of the actuator, the valve's flow limit, the piston's stops, the play of the load
+#: train, then the transducer's zero and drift. A new effect is inserted at its place.
+EFFECT_ORDER: dict[str, int] = {
+    k: i
+    for i, k in enumerate(
+        (
+            "time_varying_delay",
+            "servo_lag",
+            "force_feedback",
+            "velocity_limit",
+            "stroke_limit",
+            "backlash",
+            "offset",
+            "drift",
+        )
+    )
+}
+
+_MIN_SPECIMEN_STIFFNESS = 1.0  # N/m: below this the force column does not describe a specimen
+
+
+@dataclass
+class Data:
+    """The record the diagnosis works on (SI units, time from 0 at the first sample)."""
+
+    command: np.ndarray
+    measured: np.ndarray
+    fs: float
+    force: np.ndarray | None = None
+    project: bool = False
+
+    def __post_init__(self) -> None:
+        self.n = len(self.command)
+        self.dt = 1.0 / self.fs
+        self.t = np.arange(self.n) * self.dt
+
+
+def _effects(effects: list[EffectSpec], x: np.ndarray, dt: float) -> np.ndarray:
+    return simulate_chain(effects, x, dt)
+
+
+def _head(spec: ModelSpec, command: np.ndarray, dt: float) -> np.ndarray:
+    """The model's dynamics in front of the transport delay and gain (the command itself for
+    ``delay_gain``)."""
+    a = spec.actuator
+    if a.model == "delay_gain":
+        return np.asarray(command, dtype=float)
+    return make_model(a.model, dt, delay=0.0, gain=1.0, **a.params).simulate(command)
+
+
+def simulate_model(spec: ModelSpec, command: np.ndarray, fs: float) -> np.ndarray:
+    """Noiseless displacement of ``spec`` for ``command`` (actuator model then effects)."""
+    return Model(spec, Data(np.asarray(command, dtype=float), np.zeros(len(command)), fs)).pred
+
+
+class Model:
+    """The current model with its simulated pieces cached (head, actuator output, prediction)."""
+
+    def __init__(self, spec: ModelSpec, data: Data) -> None:
+        self.spec = spec
+        self.data = data
+        self.head = _head(spec, data.command, data.dt)
+        a = spec.actuator
+        self.act = a.gain * fractional_delay(self.head, a.delay, data.fs)
+        self.pred = _effects(a.effects, self.act, data.dt)
+
+    @property
+    def kinds(self) -> list[str]:
+        """Kinds of the effects already in the model."""
+        return [e.kind for e in self.spec.actuator.effects]
+
+    def index_for(self, kind: str) -> int:
+        """Where a new effect of ``kind`` goes in the chain: before the first effect that comes
+        later in :data:`EFFECT_ORDER` (the physical order), else at the end."""
+        rank = EFFECT_ORDER[kind]
+        for i, e in enumerate(self.spec.actuator.effects):
+            if EFFECT_ORDER.get(e.kind, len(EFFECT_ORDER)) > rank:
+                return i
+        return len(self.spec.actuator.effects)
+
+    def slot(self, kind: str) -> tuple[int, np.ndarray, list[EffectSpec]]:
+        """(index, input of the new effect, effects after it) for a new effect of ``kind``."""
+        i = self.index_for(kind)
+        effects = self.spec.actuator.effects
+        if i == len(effects):
+            return i, self.pred, []
+        return i, _effects(effects[:i], self.act, self.data.dt), list(effects[i:])
+
+    def with_changes(
+        self,
+        delay: float | None = None,
+        gain: float | None = None,
+        effect: EffectSpec | None = None,
+        index: int | None = None,
+    ) -> ModelSpec:
+        """A copy of the spec with a new delay/gain and/or one more effect at ``index``
+        (default: its place in :data:`EFFECT_ORDER`)."""
+        spec = copy.deepcopy(self.spec)
+        a = spec.actuator
+        if delay is not None:
+            a.delay = float(delay)
+        if gain is not None:
+            a.gain = float(gain)
+        if effect is not None:
+            a.effects.insert(self.index_for(effect.kind) if index is None else index, effect)
+        return spec
+
+
+@dataclass
+class Fit:
+    """One fitted candidate.
+
+    Attributes
+    ----------
+    name : str
+        Candidate name (catalogue kind, ``delay`` or ``gain``).
+    params : dict
+        Fitted parameters (SI), as written to the model file.
+    k : int
+        Number of free parameters the fit used (for the BIC).
+    rss : float
+        Sum of squared residuals (m²).
+    pred : ndarray
+        Prediction of the candidate model (m).
+    spec : ModelSpec
+        The candidate model.
+    note : str
+        Anything worth reporting about the fit.
+    """
+
+    name: str
+    params: dict[str, float]
+    k: int
+    rss: float
+    pred: np.ndarray = field(repr=False)
+    spec: ModelSpec = field(repr=False)
+    note: str = ""
+
+
+@dataclass
+class Candidate:
+    """A candidate that was not fitted (and why)."""
+
+    name: str
+    reason: str
+
+
+def _rss(data: Data, pred: np.ndarray) -> float:
+    """Sum of squared residuals; with ``data.project``, after the least-squares correction of
+    the actuator's delay and gain, linearised: ``r ≈ ε·p − δ·ṗ`` (a base fitted to the record
+    has them as nuisance parameters, re-fitted exactly by :func:`polish` once a candidate is
+    named)."""
+    r = data.measured - pred
+    rr = float(r @ r)
+    if not data.project:
+        return rr
+    pd = np.gradient(pred)
+    a11, a12, a22 = float(pred @ pred), float(pred @ pd), float(pd @ pd)
+    b1, b2 = float(pred @ r), float(pd @ r)
+    det = a11 * a22 - a12 * a12
+    if det <= 0:
+        return rr
+    return max(rr - (a22 * b1 * b1 - 2 * a12 * b1 * b2 + a11 * b2 * b2) / det, 0.0)
+
+
+def _scalar_fit(
+    rss_of: Callable[[float], float],
+    lo: float,
+    hi: float,
+    n_grid: int = 14,
+    log_scale: bool = True,
+) -> tuple[float, float]:
+    """Minimise a 1-D RSS: grid over [lo, hi], then bounded Brent around the best grid point."""
+    if log_scale:
+        grid = np.geomspace(lo, hi, n_grid)
+        to_x: Callable[[float], float] = math.exp
+        to_u: Callable[[float], float] = math.log
+    else:
+        grid = np.linspace(lo, hi, n_grid)
+        to_x = to_u = float
+    vals = [rss_of(float(g)) for g in grid]
+    i = int(np.argmin(vals))
+    a = float(grid[max(i - 1, 0)])
+    b = float(grid[min(i + 1, n_grid - 1)])
+    best_x, best_v = float(grid[i]), float(vals[i])
+    if b > a:
+        res = optimize.minimize_scalar(
+            lambda u: rss_of(to_x(u)),
+            bounds=(to_u(a), to_u(b)),
+            method="bounded",
+            options={"xatol": 1e-4 if log_scale else 1e-4 * (b - a)},
+        )
+        if res.fun < best_v:
+            best_x, best_v = to_x(float(res.x)), float(res.fun)
+    return best_x, best_v
+
+
+def specimen_from_record(data: Data, spec: ModelSpec) -> tuple[float, float, str] | None:
+    """Specimen stiffness and damping for ``force_feedback``: from the force column, else the
+    model's ``[specimen]``; ``None`` when neither is available."""
+    if data.force is not None and np.ptp(data.force) > 0:
+        sos = signal.butter(4, min(20.0, 0.4 * data.fs), fs=data.fs, output="sos")
+        y = signal.sosfiltfilt(sos, data.measured)
+        f = signal.sosfiltfilt(sos, data.force)
+        # backward difference, as the twin's Kelvin-Voigt specimen (sim_backends.specimen)
+        v = np.concatenate([[0.0], np.diff(y)]) / data.dt
+        a = np.column_stack([y, v, np.ones(data.n)])
+        (k_s, c_s, _), *_ = np.linalg.lstsq(a, f, rcond=None)
+        if k_s > _MIN_SPECIMEN_STIFFNESS:
+            return float(k_s), float(max(c_s, 0.0)), "record force column"
+    if spec.specimen is not None:
+        return spec.specimen.stiffness, spec.specimen.damping, "model [specimen]"
+    return None
+
+
+# -- candidates -------------------------------------------------------------------------------
+
+
+def _fit_additive(m: Model, d: Data, kind: str, name: str, shape: np.ndarray) -> Fit:
+    """``offset`` (shape 1) or ``drift`` (shape t): linear, closed form at the end of the chain
+    (bounded Brent when effects follow it or the delay and gain are projected out)."""
+    i, x, suffix = m.slot(kind)
+
+    def pred_of(v: float) -> np.ndarray:
+        return _effects(suffix, x + v * shape, d.dt)
+
+    v = float((d.measured - m.pred) @ shape / (shape @ shape))
+    if suffix or d.project:
+        span = max(
+            abs(v), float(np.std(d.measured - m.pred)) / max(np.sqrt(np.mean(shape**2)), 1e-30)
+        )
+        v, _ = _scalar_fit(
+            lambda u: _rss(d, pred_of(u)), v - 2 * span, v + 2 * span, n_grid=9, log_scale=False
+        )
+    pred = pred_of(v)
+    spec = m.with_changes(effect=EffectSpec(kind, {name: v}), index=i)
+    return Fit(kind, {name: v}, 1, _rss(d, pred), pred, spec)
+
+
+def _fit_offset(m: Model, d: Data, ctx: dict) -> Fit:
+    return _fit_additive(m, d, "offset", "offset", np.ones(d.n))
+
+
+def _fit_drift(m: Model, d: Data, ctx: dict) -> Fit:
+    return _fit_additive(m, d, "drift", "rate", d.t)
+
+
+def _fit_delay(m: Model, d: Data, ctx: dict) -> Fit:
+    a = m.spec.actuator
+    effects = a.effects
+
+    def pred_of(tau: float) -> np.ndarray:
+        return _effects(effects, a.gain * fractional_delay(m.head, tau, d.fs), d.dt)
+
+    shift = j1_delay(m.pred, d.measured, d.fs, max_lag_s=0.2)
+    centre = max(a.delay + shift, 0.0)
+    lo, hi = max(centre - 3e-3, 0.0), centre + 3e-3
+    tau, _ = _scalar_fit(lambda v: _rss(d, pred_of(v)), lo, hi, n_grid=7, log_scale=False)
+    pred = pred_of(tau)
+    ctx["delay"] = tau
+    return Fit("delay", {"delay": tau}, 1, _rss(d, pred), pred, m.with_changes(delay=tau))
+
+
+def _fit_gain(m: Model, d: Data, ctx: dict) -> Fit:
+    a = m.spec.actuator
+    base = m.act / a.gain if a.gain != 0 else fractional_delay(m.head, a.delay, d.fs)
+    # linearised start: the gain that best scales the current prediction's motion
+    p = m.pred - m.pred.mean()
+    y = d.measured - d.measured.mean()
+    g0 = a.gain * float(p @ y / (p @ p)) if p @ p > 0 else a.gain
+
+    def pred_of(g: float) -> np.ndarray:
+        return _effects(a.effects, g * base, d.dt)
+
+    if not a.effects:
+        g = float(base @ d.measured / (base @ base))  # linear: closed form
+    else:
+        g, _ = _scalar_fit(
+            lambda v: _rss(d, pred_of(v)), 0.8 * g0, 1.2 * g0, n_grid=7, log_scale=False
+        )
+    pred = pred_of(g)
+    return Fit("gain", {"gain": g}, 1, _rss(d, pred), pred, m.with_changes(gain=g))
+
+
+def _fit_one_param_effect(
+    m: Model,
+    d: Data,
+    kind: str,
+    name: str,
+    lo: float,
+    hi: float,
+    fixed: dict | None = None,
+    neutral: Callable[[float], tuple[float, float]] | None = None,
+) -> Fit:
+    """Fit the one free parameter ``name`` of a new ``kind`` effect (grid + bounded Brent).
+
+    ``neutral(v) -> (delay, gain factor)`` is the low-frequency delay and gain the effect adds;
+    when the actuator's delay and gain are nuisance parameters (``d.project``), the actuator
+    gives them back (its delay shortened, its gain divided), so that the candidate is compared
+    at the delay and gain that suit it rather than at those the base absorbed.
+    """
+    fixed = fixed or {}
+    i, x, suffix = m.slot(kind)
+    a = m.spec.actuator
+    compensate = neutral is not None and d.project
+    prefix = a.effects[:i]
+
+    def actuator_for(v: float) -> tuple[float, float]:
+        shift, factor = neutral(v)  # type: ignore[misc]
+        return max(a.delay - shift, 0.0), a.gain / factor
+
+    def pred_of(v: float) -> np.ndarray:
+        xin = x
+        if compensate:
+            tau, g = actuator_for(v)
+            xin = _effects(prefix, g * fractional_delay(m.head, tau, d.fs), d.dt)
+        return _effects(suffix, simulate_effect(kind, {name: v, **fixed}, xin, d.dt), d.dt)
+
+    v, _ = _scalar_fit(lambda v: _rss(d, pred_of(v)), lo, hi)
+    pred = pred_of(v)
+    params = {name: v, **fixed}
+    if compensate:
+        tau, g = actuator_for(v)
+        spec = m.with_changes(delay=tau, gain=g, effect=EffectSpec(kind, params), index=i)
+    else:
+        spec = m.with_changes(effect=EffectSpec(kind, params), index=i)
+    return Fit(kind, params, 1, _rss(d, pred), pred, spec)
+
+
+def _fit_backlash(m: Model, d: Data, ctx: dict) -> Fit:
+    return _fit_one_param_effect(m, d, "backlash", "width", 1e-6, 5e-3)
+
+
+def _fit_velocity_limit(m: Model, d: Data, ctx: dict) -> Fit:
+    _, x, _ = m.slot("velocity_limit")
+    vmax = float(np.max(np.abs(np.diff(x)))) * d.fs
+    fit = _fit_one_param_effect(m, d, "velocity_limit", "limit", vmax / 50.0, vmax * 1.01)
+    if fit.params["limit"] >= vmax:
+        fit.note = "limit above the model's peak speed: inactive"
+    return fit
+
+
+def _fit_servo_lag(m: Model, d: Data, ctx: dict) -> Fit:
+    return _fit_one_param_effect(
+        m, d, "servo_lag", "time_constant", 1e-4, 0.1, neutral=lambda v: (v, 1.0)
+    )
+
+
+def _fit_force_feedback(m: Model, d: Data, ctx: dict) -> Fit | Candidate:
+    spec = ctx.get("specimen")
+    if spec is None:
+        return Candidate(
+            "force_feedback", "needs a force column or a [specimen] in the model (specimen k, c)"
+        )
+    k_s, c_s, source = spec
+    fit = _fit_one_param_effect(
+        m,
+        d,
+        "force_feedback",
+        "actuator_stiffness",
+        max(k_s, 1e3) * 1.0,
+        max(k_s, 1e3) * 1e5,
+        fixed={"specimen_stiffness": k_s, "specimen_damping": c_s},
+        neutral=lambda k_h: (c_s / (k_h + k_s), k_h / (k_h + k_s)),
+    )
+    fit.note = f"specimen k = {k_s:.4g} N/m, c = {c_s:.4g} N·s/m from the {source}"
+    return fit
+
+
+def _fit_stroke_limit(m: Model, d: Data, ctx: dict) -> Fit:
+    i, p, suffix = m.slot("stroke_limit")
+    pmax, pmin = float(np.max(p)), float(np.min(p))
+    span = pmax - pmin
+    mid = float(np.median(p))
+
+    def side(top: bool) -> tuple[float, bool]:
+        if top:
+            lo, hi = mid + 0.05 * span, pmax + 1e-3 * span
+
+            def rss_of(v: float) -> float:
+                return _rss(d, _effects(suffix, np.minimum(p, v), d.dt))
+
+            edge = pmax
+        else:
+            lo, hi = -mid + 0.05 * span, -pmin + 1e-3 * span
+
+            def rss_of(v: float) -> float:
+                return _rss(d, _effects(suffix, np.maximum(p, -v), d.dt))
+
+            edge = -pmin
+        v, _ = _scalar_fit(rss_of, lo, hi, n_grid=16, log_scale=False)
+        return v, v < edge
+
+    hi_stop, hi_active = side(True)
+    neg_lo, lo_active = side(False)
+    lo_stop = -neg_lo
+    if hi_active and not lo_active:
+        lo_stop = -hi_stop if -hi_stop <= pmin else pmin - 1e-3 * span
+    elif lo_active and not hi_active:
+        hi_stop = -lo_stop if -lo_stop >= pmax else pmax + 1e-3 * span
+    elif not hi_active and not lo_active:
+        hi_stop, lo_stop = pmax + 1e-3 * span, pmin - 1e-3 * span
+    params = {"limit": 0.5 * (hi_stop - lo_stop), "center": 0.5 * (hi_stop + lo_stop)}
+    pred = _effects(suffix, np.clip(p, lo_stop, hi_stop), d.dt)
+    k = max(int(hi_active) + int(lo_active), 1)
+    fit = Fit(
+        "stroke_limit",
+        params,
+        k,
+        _rss(d, pred),
+        pred,
+        m.with_changes(effect=EffectSpec("stroke_limit", params), index=i),
+    )
+    if k == 1 and (hi_active or lo_active):
+        fit.note = f"only the {'upper' if hi_active else 'lower'} stop is reached"
+    elif not (hi_active or lo_active):
+        fit.note = "no stop reached: inactive"
+    return fit
+
+
+#: Periods (s) searched for the time-varying delay before the exact refinement.
+_TVD_PERIODS = np.geomspace(1.0, 200.0, 64)
+
+
+def _fit_time_varying_delay(m: Model, d: Data, ctx: dict) -> Fit:
+    a = m.spec.actuator
+    base = a.gain * m.head  # the actuator output without its transport delay
+    t = d.t
+    tau = ctx.get("delay", a.delay)  # best constant delay (from the delay candidate)
+    q = _effects(a.effects, a.gain * fractional_delay(m.head, tau, d.fs), d.dt)
+    qd = np.gradient(q, d.dt)
+    r = d.measured - q
+    w = qd * qd
+    s_all = np.sin(2 * np.pi * np.outer(1.0 / _TVD_PERIODS, t))  # (P, N)
+    a11 = float(w.sum())
+    a12 = s_all @ w
+    a22 = (s_all * s_all) @ w
+    b1 = -float(qd @ r)
+    b2 = -(s_all @ (qd * r))
+    det = a11 * a22 - a12 * a12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dd = (a22 * b1 - a12 * b2) / det
+        aa = (a11 * b2 - a12 * b1) / det
+        gain_ls = dd * b1 + aa * b2  # RSS reduction of the linearised fit
+    gain_ls = np.where((aa > 0) & np.isfinite(gain_ls), gain_ls, -np.inf)
+    i = int(np.argmax(gain_ls))
+    d0 = max(tau + (float(dd[i]) if np.isfinite(gain_ls[i]) else 0.0), 0.0)
+    a0 = float(aa[i]) if np.isfinite(gain_ls[i]) else 0.0
+    a0 = min(max(a0, 0.0), 0.95 * d0) if d0 > 0 else 0.0
+    p0 = float(_TVD_PERIODS[i])
+
+    def pred_of(theta: np.ndarray) -> np.ndarray:
+        dm, rho, lp = theta
+        e = make_effect(
+            "time_varying_delay",
+            d.dt,
+            delay=dm,
+            amplitude=rho * dm,
+            period=math.exp(lp),
+        )
+        return _effects(a.effects, e.simulate(base), d.dt)
+
+    scale = float(np.sqrt(np.mean(d.measured**2))) or 1.0
+    theta0 = np.array([max(d0, 1e-4), a0 / max(d0, 1e-4), math.log(p0)])
+    lower = np.array([0.0, 0.0, math.log(0.5)])
+    upper = np.array([0.5, 1.0, math.log(1000.0)])
+    res = optimize.least_squares(
+        lambda th: (d.measured - pred_of(th)) / scale,
+        np.clip(theta0, lower, upper),
+        bounds=(lower, upper),
+        x_scale=np.array([1e-3, 0.1, 0.1]),
+        diff_step=1e-4,
+        max_nfev=60,
+    )
+    dm, rho, lp = (float(v) for v in res.x)
+    amp, period = rho * dm, math.exp(lp)
+    pred = pred_of(res.x)
+    # split the mean delay between the actuator (what exceeds the effect's need) and the effect
+    eff_delay = min(dm, max(amp, dm - a.delay))
+    params = {"delay": eff_delay, "amplitude": amp, "period": period}
+    spec = m.with_changes(
+        delay=dm - eff_delay, effect=EffectSpec("time_varying_delay", params), index=0
+    )
+    return Fit(
+        "time_varying_delay",
+        params,
+        3,
+        _rss(d, pred),
+        pred,
+        spec,
+        note=f"total mean delay {1e3 * dm:.3f} ms (actuator {1e3 * (dm - eff_delay):.3f} ms)",
+    )
+
+
+_FITTERS: dict[str, Callable[[Model, Data, dict], Fit | Candidate]] = {
+    "delay": _fit_delay,
+    "gain": _fit_gain,
+    "offset": _fit_offset,
+    "drift": _fit_drift,
+    "servo_lag": _fit_servo_lag,
+    "force_feedback": _fit_force_feedback,
+    "backlash": _fit_backlash,
+    "velocity_limit": _fit_velocity_limit,
+    "stroke_limit": _fit_stroke_limit,
+    "time_varying_delay": _fit_time_varying_delay,
+}
+
+
+def fit_candidate(name: str, model: Model, data: Data, ctx: dict) -> Fit | Candidate:
+    """Fit candidate ``name`` on top of ``model``; ``ctx`` carries shared intermediate results
+    (the specimen for ``force_feedback``, the best constant delay for ``time_varying_delay``)."""
+    if name not in REFITS and name in model.kinds:
+        return Candidate(name, "already in the model")
+    if name in REFITS and data.project:
+        return Candidate(name, "re-fitted with every candidate (base fitted to the record)")
+    return _FITTERS[name](model, data, ctx)
+
+
+#: Parameters re-fitted jointly by :func:`polish`, per effect kind (the others stay fixed: the
+#: force-feedback specimen comes from the force column).
+_POLISH_PARAMS: dict[str, tuple[str, ...]] = {
+    "offset": ("offset",),
+    "drift": ("rate",),
+    "backlash": ("width",),
+    "velocity_limit": ("limit",),
+    "stroke_limit": ("limit", "center"),
+    "servo_lag": ("time_constant",),
+    "time_varying_delay": ("delay", "amplitude", "period"),
+    "force_feedback": ("actuator_stiffness",),
+}
+_LOG_PARAMS = {"width", "limit", "time_constant", "period", "actuator_stiffness"}
+
+
+def polish(
+    spec: ModelSpec,
+    data: Data,
+    effects: list[int],
+    actuator: bool,
+    max_nfev: int = 30,
+) -> tuple[ModelSpec, np.ndarray, float]:
+    """Re-fit jointly the parameters of ``spec``'s effects at indices ``effects`` and, when
+    ``actuator``, its delay and gain: :func:`scipy.optimize.least_squares` (trust-region
+    reflective, bounded, finite-difference Jacobian) on the residual vector, parameters scaled
+    (logarithm of the positive scale parameters, the others about their start value).
+
+    Used once an effect is named: its parameters were fitted with the others fixed, and a base
+    fitted to the record (delay + gain) absorbed part of the then-unmodelled effect.
+
+    Returns
+    -------
+    (spec, prediction, rss)
+        The polished model, never worse than the input (the input itself when polishing does
+        not lower the RSS); ``rss`` is the exact (not projected) sum of squares.
+    """
+    exact = Data(data.command, data.measured, data.fs, data.force)
+    work = copy.deepcopy(spec)
+    a = work.actuator
+    slots: list[tuple[str, int | None, str, float, bool]] = []  # (where, index, name, v0, log)
+    if actuator and "time_varying_delay" not in [e.kind for e in a.effects]:
+        slots.append(("actuator", None, "delay", a.delay, False))
+    if actuator:
+        slots.append(("actuator", None, "gain", a.gain, False))
+    for i in effects:
+        e = a.effects[i]
+        for name in _POLISH_PARAMS[e.kind]:
+            v = float(e.params[name])
+            slots.append(("effect", i, name, v, name in _LOG_PARAMS and v > 0))
+    pred_in = Model(spec, exact).pred
+    rss_in = _rss(exact, pred_in)
+    if not slots or rss_in == 0:
+        return spec, pred_in, rss_in
+    scales = []
+    for _, _, name, v, lg in slots:
+        if lg:
+            scales.append(1.0)
+        elif name == "delay":
+            scales.append(1e-3)
+        elif name == "gain":
+            scales.append(1e-2)
+        elif name == "center":
+            scales.append(1e-3)
+        else:
+            scales.append(max(abs(v), 1e-9))
+    lower = np.array([-math.log(10.0) if sl[4] else -10.0 for sl in slots])
+    upper = np.array([math.log(10.0) if sl[4] else 10.0 for sl in slots])
+    for j, sl in enumerate(slots):  # the delay may move by up to 50 ms (not below 0)
+        if sl[0] == "actuator" and sl[2] == "delay":
+            lower[j], upper[j] = -min(sl[3], 0.05) / scales[j], 0.05 / scales[j]
+
+    def apply(u: np.ndarray) -> ModelSpec:
+        for (where, i, name, v0, lg), ui, sc in zip(slots, u, scales, strict=True):
+            v = v0 * math.exp(ui) if lg else v0 + ui * sc
+            if where == "actuator":
+                setattr(a, name, max(v, 0.0) if name == "delay" else v)
+            else:
+                a.effects[i].params[name] = v  # type: ignore[index]
+        for e in a.effects:  # keep the effects valid (continuously: clamp, don't reject)
+            p = e.params
+            if e.kind == "time_varying_delay":
+                p["amplitude"] = min(max(p["amplitude"], 0.0), max(p["delay"], 0.0))
+                p["delay"] = max(p["delay"], 0.0)
+            elif e.kind == "backlash":
+                p["width"] = max(p["width"], 0.0)
+        return work
+
+    norm = math.sqrt(rss_in)
+
+    def residual(u: np.ndarray) -> np.ndarray:
+        try:
+            return (data.measured - Model(apply(u), exact).pred) / norm
+        except InputError:  # a parameter outside its effect's bounds
+            return np.full(data.n, 1e3 / math.sqrt(data.n))
+
+    res = optimize.least_squares(
+        residual,
+        np.zeros(len(slots)),
+        bounds=(lower, upper),
+        method="trf",
+        diff_step=1e-4,
+        x_scale=1.0,
+        max_nfev=max_nfev,
+    )
+    out = copy.deepcopy(apply(res.x))
+    pred = Model(out, exact).pred
+    rss = _rss(exact, pred)
+    if not rss < rss_in:
+        return spec, pred_in, rss_in
+    return out, pred, rss
