@@ -89,3 +89,13 @@ def test_bad_record_exit_2(tmp_path, capsys):
 def test_evaluate_against_command(record, capsys):
     assert main(["evaluate", str(record), "--pair", "command", "--hop", "64"]) == 0
     assert "measured vs command" in capsys.readouterr().out
+
+
+def test_columns_it_does_not_use_may_hold_nan(tmp_path, capsys):
+    """An exported run has FEI columns that are NaN until the first valid window."""
+    t = np.arange(4096) / FS
+    x = 0.01 * np.sin(2 * np.pi * t)
+    p = tmp_path / "run.csv"
+    write_record(p, {"time": t, "target": x, "measured": x, "fei_delay": np.full(t.size, np.nan)})
+    assert main(["evaluate", str(p), "--window", "2s", "--hop", "64"]) == 0
+    assert "A = 1.0000" in capsys.readouterr().out

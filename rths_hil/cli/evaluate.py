@@ -80,7 +80,9 @@ def run(args: argparse.Namespace) -> int:
     if window_s <= 0:
         raise InputError(f"--window must be positive, got {window_text!r}")
     ref_col = args.pair
-    rec = read_record(args.record, required=("time", ref_col, "measured"), min_samples=8)
+    rec = read_record(
+        args.record, required=("time", ref_col, "measured"), optional=(), min_samples=8
+    )
     fs = rec.fs
     n_win = round(window_s * fs / args.decimate)
     if n_win > len(rec) // args.decimate:
