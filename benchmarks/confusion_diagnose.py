@@ -32,12 +32,24 @@ from collections import Counter, defaultdict
 import numpy as np
 
 from rths_hil.diagnose import CANDIDATES, diagnose
+from rths_hil.diagnose.candidates import EFFECT_ORDER
 from rths_hil.diagnose.synthetic import make_case
 from rths_hil.errors import InputError
 from rths_hil.metrics import j2_nrms
 from sim_backends.effects import EFFECTS
 
 KINDS = list(EFFECTS)
+#: The parameter that sizes each effect.
+MAIN = {
+    "offset": "offset",
+    "drift": "rate",
+    "backlash": "width",
+    "velocity_limit": "limit",
+    "stroke_limit": "limit",
+    "servo_lag": "time_constant",
+    "time_varying_delay": "amplitude",
+    "force_feedback": "actuator_stiffness",
+}
 
 
 def _unreached_case(kind: str, seed: int, duration: float):
@@ -52,6 +64,7 @@ def _unreached_case(kind: str, seed: int, duration: float):
 def run_case(job: tuple) -> dict:
     """Generate one case, diagnose it, score it."""
     set_name, kinds, seed, duration, with_model = job
+    kinds = tuple(sorted(kinds, key=lambda k: EFFECT_ORDER[k]))  # the twin's order
     if set_name == "unreached":
         case = _unreached_case(kinds[0], seed, duration)
     else:
@@ -79,16 +92,23 @@ def run_case(job: tuple) -> dict:
         }
     runtime = time.perf_counter() - t0
     named = dx.names
+    # a limit the drive never reaches leaves no trace: the right answer is then without it
+    expected = [k for k in kinds if case.info["effect_rms"][k] > 0]
     truth_before = j2_nrms(case.truth, dx.base_pred) if case.hidden else 0.0
     truth_after = j2_nrms(case.truth, dx.pred) if case.hidden else 0.0
     rms = case.info["effect_rms"]
+    rel = None
+    if len(kinds) == 1 and named == list(kinds):
+        h = case.hidden[0].params[MAIN[kinds[0]]]
+        rel = abs(dx.steps[0].params[MAIN[kinds[0]]] - h) / abs(h)
     return {
         "set": set_name,
         "seed": seed,
         "true": "+".join(kinds) if kinds else "none",
         "named": "+".join(named) if named else "none",
         "first": named[0] if named else "none",
-        "exact": sorted(named) == sorted(kinds),
+        "expected": "+".join(expected) if expected else "none",
+        "exact": sorted(named) == sorted(expected),
         "gap_before": dx.before.j2,
         "gap_after": dx.after.j2,
         "halved": dx.after.j2 <= 0.5 * dx.before.j2,
@@ -97,6 +117,7 @@ def run_case(job: tuple) -> dict:
         "truth_halved": (truth_after <= 0.5 * truth_before) if case.hidden else True,
         "alternatives": ";".join(",".join(s.alternatives) for s in dx.steps),
         "delta_bic": ";".join(f"{s.delta_bic:.4g}" for s in dx.steps),
+        "param_rel_err": rel,
         "snr": min((rms[k] for k in kinds), default=0.0) / case.info["noise"],
         "noise_um": 1e6 * case.info["noise"],
         "fn": case.info["fn"],
@@ -157,13 +178,14 @@ def confusion_table(rows: list[dict], title: str) -> str:
     head = (
         "| true \\ named | "
         + " | ".join(used)
-        + " | n | exact | +extra | J2 halved | truth J2 halved |"
+        + " | n | unreached | exact | +extra | J2 halved | truth J2 halved |"
     )
-    sep = "|---" * (len(used) + 6) + "|"
+    sep = "|---" * (len(used) + 7) + "|"
     lines = [f"**{title}**", "", head, sep]
     for t in trues:
         rs = [r for r in rows if r["true"] == t]
         exact = sum(r["exact"] for r in rs)
+        unreached = sum(r.get("expected", r["true"]) != r["true"] for r in rs)
         extra = sum(
             len(r["named"].split("+")) > len(t.split("+")) and r["named"] != "none" for r in rs
         )
@@ -173,8 +195,34 @@ def confusion_table(rows: list[dict], title: str) -> str:
         lines.append(
             f"| {t} | "
             + " | ".join(cells)
-            + f" | {len(rs)} | {exact} | {extra} | {halved} | {th} |"
+            + f" | {len(rs)} | {unreached} | {exact} | {extra} | {halved} | {th} |"
         )
+    return "\n".join(lines)
+
+
+def pairs_table(rows: list[dict], title: str) -> str:
+    """Markdown list of (hidden pair → named set) with counts."""
+    counts = Counter((r["true"], r["named"], r["exact"]) for r in rows)
+    lines = [f"**{title}**", "", "| hidden (twin order) | named | n | exact |", "|---|---|---|---|"]
+    for (t, nm, ok), c in sorted(counts.items()):
+        lines.append(f"| {t} | {nm} | {c} | {'yes' if ok else 'no'} |")
+    exact = sum(r["exact"] for r in rows)
+    halved = sum(r.get("truth_halved", False) for r in rows)
+    lines += ["", f"{exact} of {len(rows)} exact; truth J2 halved in {halved} of {len(rows)}."]
+    return "\n".join(lines)
+
+
+def accuracy_table(rows: list[dict]) -> str:
+    """Median and worst relative error of each effect's main parameter (correct cases)."""
+    errs: dict[str, list[float]] = defaultdict(list)
+    for r in rows:
+        if r.get("param_rel_err") is not None and r["exact"]:
+            errs[r["true"]].append(r["param_rel_err"])
+    lines = ["| effect | parameter | median rel. error | worst |", "|---|---|---|---|"]
+    for k in KINDS:
+        if errs[k]:
+            e = np.array(errs[k])
+            lines.append(f"| {k} | {MAIN[k]} | {np.median(e):.2%} | {e.max():.2%} |")
     return "\n".join(lines)
 
 
@@ -224,7 +272,6 @@ def main(argv: list[str] | None = None) -> int:
             w.writerows(rows)
     for set_name, title in (
         ("single", f"one hidden effect, model file given ({args.duration:g} s records)"),
-        ("pairs", "two hidden effects (first named effect; exact = both and only both)"),
         ("nomodel", "one hidden effect, no model file (delay + gain fitted to the record)"),
         ("short", f"short records ({args.short_duration:g} s)"),
         ("unreached", "limits drawn without scaling the drive to reach them"),
@@ -233,6 +280,15 @@ def main(argv: list[str] | None = None) -> int:
         if rs:
             print(confusion_table(rs, title))
             print()
+    rs = [r for r in rows if r["set"] == "pairs"]
+    if rs:
+        print(pairs_table(rs, "two hidden effects, model file given"))
+        print()
+    rs = [r for r in rows if r["set"] == "single"]
+    if rs:
+        print("**parameter accuracy (single, correctly named)**\n")
+        print(accuracy_table(rs))
+        print()
     rt = np.array([r["runtime_s"] for r in rows if r["named"] != "refused"])
     print(
         f"{len(rows)} cases in {wall:.0f} s wall; diagnose runtime median {np.median(rt):.2f} s, "

@@ -22,10 +22,11 @@ power (≥ 1 % of its peak PSD) and γ² ≥ 0.5, a frequency deviates when ``|l
 the phase difference exceeds 3 standard errors ``√((1 − γ²)/(2 n_d γ²))`` (Bendat & Piersol,
 *Random Data*, 4th ed., Table 9.6; ``n_d`` averaged segments) and 0.5 % / 0.005 rad.
 
-**Regime.** Share of the residual's energy (R², one regressor, no intercept unless said)
-explained by: a constant (``mean``), a straight line in time (``time``), the predicted
-displacement (``amplitude``), its velocity (``velocity``), its direction ``sign(v)``
-(``direction``: play, friction), the measured force (``force``); plus the residual RMS by
+**Regime.** Share of the residual's energy (R² of one regressor, no intercept) explained by:
+a constant (``mean``: an offset), time since the start (``time``: a drift; 3/4 for a constant,
+so a constant still reads ``mean``), the predicted displacement (``amplitude``: a gain), its
+velocity (``velocity``: a delay or lag), its direction ``sign(v)`` (``direction``: play,
+friction), the measured force (``force``: compliance under load); plus the residual RMS by
 quintile of |displacement| and |velocity|, near direction reversals (±50 ms) and elsewhere.
 """
 
@@ -111,13 +112,6 @@ def _r2(x: np.ndarray, r: np.ndarray, rr: float) -> float:
     return float((x @ r) ** 2 / (xx * rr))
 
 
-def _r2_line(t: np.ndarray, r: np.ndarray, rr: float) -> float:
-    a = np.column_stack([np.ones_like(t), t])
-    coef, *_ = np.linalg.lstsq(a, r, rcond=None)
-    res = r - a @ coef
-    return float(1.0 - (res @ res) / rr) if rr > 0 else 0.0
-
-
 def _binned_rms(key: np.ndarray, r: np.ndarray, nbins: int = 5) -> dict[str, list[float]]:
     edges = np.quantile(key, np.linspace(0, 1, nbins + 1))
     idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, nbins - 1)
@@ -135,7 +129,7 @@ def _regime(
     direction = np.sign(v)
     r2 = {
         "mean": _r2(np.ones_like(r), r, rr),
-        "time": _r2_line(t, r, rr),
+        "time": _r2(t, r, rr),
         "amplitude": _r2(pred - pred.mean(), r, rr),
         "velocity": _r2(v, r, rr),
         "direction": _r2(direction, r, rr),
