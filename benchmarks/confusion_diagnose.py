@@ -138,8 +138,9 @@ def jobs_for(args: argparse.Namespace) -> list[tuple]:
     def seed() -> int:
         return int(rng.integers(2**31))
 
+    kinds = args.kinds.split(",") if args.kinds else ["none", *KINDS]
     if "single" in sets:
-        for kind in ["none", *KINDS]:
+        for kind in kinds:
             for _ in range(args.per):
                 out.append(
                     ("single", () if kind == "none" else (kind,), seed(), args.duration, True)
@@ -230,6 +231,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sets", default="single,pairs,nomodel,short,unreached")
     p.add_argument("--per", type=int, default=8, help="cases per effect kind (single)")
+    p.add_argument("--kinds", help="comma-separated kinds for the single set (default: all)")
     p.add_argument("--pairs", type=int, default=16)
     p.add_argument("--per-nomodel", type=int, default=3)
     p.add_argument("--per-short", type=int, default=6)

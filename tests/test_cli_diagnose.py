@@ -141,6 +141,7 @@ def test_cli_record_too_short_to_decide(tmp_path, capsys):
     [
         (["--max-effects", "-1"], "--max-effects"),
         (["--threshold", "ten"], "--threshold"),
+        (["--threshold", "-5"], "--threshold"),
         (["--candidates", "offset,friction"], "friction"),
     ],
 )

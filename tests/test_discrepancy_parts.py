@@ -124,7 +124,9 @@ def test_force_regime_for_a_force_proportional_residual():
     assert loc.regime["r2"]["force"] > 0.9
 
 
-@pytest.mark.parametrize("kind", ["velocity_limit", "backlash", "servo_lag", "force_feedback"])
+@pytest.mark.parametrize(
+    "kind", ["velocity_limit", "backlash", "servo_lag", "force_feedback", "time_varying_delay"]
+)
 def test_fast_effect_paths_equal_the_catalogue(kind):
     rng = np.random.default_rng(7)
     x = _drive(int(10 * FS))

@@ -12,6 +12,7 @@ and repeats (:func:`rths_hil.diagnose.diagnose`, ``docs/diagnose.md``). ``DIR`` 
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from sim_backends.modelfile import load_model
@@ -73,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
         threshold = float(args.threshold)
     except ValueError:
         raise InputError(f"--threshold: not a number: {args.threshold!r}") from None
+    if not (math.isfinite(threshold) and threshold >= 0):
+        raise InputError(f"--threshold: must be a finite number ≥ 0, got {args.threshold!r}")
     candidates = CANDIDATES
     if args.candidates:
         candidates = tuple(c.strip() for c in args.candidates.split(",") if c.strip())

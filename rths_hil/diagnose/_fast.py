@@ -15,6 +15,10 @@ The diagnosis simulates candidate effects hundreds of times per record, so:
   ``H(z) = K (b0 + b1 z⁻¹)/(1 − p z⁻¹)``, ``b0 = 1 − c``, ``b1 = c − p`` (from
   ``H(z) = (z − 1)²/(z dt) · Z{G(s)/s²}``), equal to the catalogue's to round-off.
 
+* ``time_varying_delay`` — the catalogue gathers 4 Lagrange taps per sample with numpy
+  (a dozen temporary arrays); compiled, the same formula (``τ[k] = D + a·sin(2πk dt/P)`` in
+  samples, ``n0 = max(⌊τ⌋ − 1, 0)``, taps of :func:`sim_backends.delay.lagrange_taps`) is one
+  pass, equal to round-off.
 * the transport delay — :func:`sim_backends.delay.fractional_delay` runs its FIR (``n0`` zeros
   and 4 Lagrange taps) through :func:`scipy.signal.lfilter`; here the shift is a slice and the 4
   taps are 4 vector operations (equal to round-off).
@@ -40,6 +44,7 @@ __all__ = [
     "fractional_delay",
     "simulate_chain",
     "simulate_effect",
+    "time_varying_delay",
     "velocity_limit",
 ]
 
@@ -73,6 +78,42 @@ def _backlash(x: np.ndarray, half: float) -> np.ndarray:  # pragma: no cover - c
             y = hi
         out[k] = y
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _tvd(x: np.ndarray, d0: float, d1: float, w: float) -> np.ndarray:  # pragma: no cover
+    n = x.shape[0]
+    out = np.zeros(n)
+    for k in range(n):
+        d = d0 + d1 * math.sin(w * k)
+        n0 = max(math.floor(d) - 1.0, 0.0)
+        f = d - n0
+        f1 = f - 1.0
+        f2 = f - 2.0
+        f3 = f - 3.0
+        f12 = f1 * f2
+        f03 = f * f3
+        taps = (-f12 * f3 / 6.0, f03 * f2 / 2.0, -f03 * f1 / 2.0, f * f12 / 6.0)
+        i = k - int(n0)
+        acc = 0.0
+        for j in range(4):
+            if i - j >= 0:
+                acc += taps[j] * x[i - j]
+        out[k] = acc
+    return out
+
+
+def time_varying_delay(
+    x: np.ndarray, delay: float, amplitude: float, period: float, dt: float
+) -> np.ndarray:
+    """``time_varying_delay`` from rest: ``y(t) = x(t − τ(t))``, ``τ = D + a·sin(2πt/P)``."""
+    make_effect("time_varying_delay", dt, delay=delay, amplitude=amplitude, period=period)
+    return _tvd(
+        np.ascontiguousarray(x, dtype=float),
+        delay / dt,
+        amplitude / dt,
+        2.0 * math.pi * dt / period,
+    )
 
 
 def backlash(x: np.ndarray, width: float, dt: float) -> np.ndarray:
@@ -115,6 +156,9 @@ def simulate_effect(kind: str, params: dict[str, float], x: np.ndarray, dt: floa
         return velocity_limit(x, params["limit"], dt)
     if kind == "backlash":
         return backlash(x, params["width"], dt)
+    if kind == "time_varying_delay":
+        p = validate_params(kind, params)
+        return time_varying_delay(x, p["delay"], p["amplitude"], p["period"], dt)
     if kind == "servo_lag":
         validate_params(kind, params)
         return first_order(x, 1.0, params["time_constant"], dt)

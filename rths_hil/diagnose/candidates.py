@@ -53,7 +53,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, signal
 
-from sim_backends.effects import EFFECTS, make_effect
+from sim_backends.effects import EFFECTS
 from sim_backends.modelfile import EffectSpec, ModelSpec
 from sim_backends.models import make_model
 
@@ -546,14 +546,8 @@ def _fit_time_varying_delay(m: Model, d: Data, ctx: dict) -> Fit:
 
     def pred_of(theta: np.ndarray) -> np.ndarray:
         dm, rho, lp = theta
-        e = make_effect(
-            "time_varying_delay",
-            d.dt,
-            delay=dm,
-            amplitude=rho * dm,
-            period=math.exp(lp),
-        )
-        return _effects(a.effects, e.simulate(base), d.dt)
+        params = {"delay": dm, "amplitude": rho * dm, "period": math.exp(lp)}
+        return _effects(a.effects, simulate_effect("time_varying_delay", params, base, d.dt), d.dt)
 
     scale = float(np.sqrt(np.mean(d.measured**2))) or 1.0
     theta0 = np.array([max(d0, 1e-4), a0 / max(d0, 1e-4), math.log(p0)])

@@ -295,7 +295,7 @@ def localise(
         v = moving.valid
         out_a = v & (np.abs(moving.amplitude - 1) > band_a)
         out_d = v & (np.abs(moving.delay) > band_d)
-        w0 = moving.t_end - (window_s - 1 / fs)
+        w0 = np.maximum(moving.t_end - (round(window_s * fs) - 1) / fs, 0.0)
         when["fei"] = {
             "window_s": window_s,
             "amplitude_outside_s": _intervals(w0, moving.t_end, out_a),
