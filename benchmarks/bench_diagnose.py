@@ -14,13 +14,14 @@ samples, SDOF response to a bundled ground motion, twin with hidden effects and 
 
 Usage::
 
-    python benchmarks/bench_diagnose.py [--naive-maxfev 60] [--skip-naive]
+    python benchmarks/bench_diagnose.py [--naive-maxfev 60] [--skip-naive] [--png FILE]
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import shutil
 import sys
 import tempfile
 import time
@@ -131,6 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--naive-maxfev", type=int, default=60)
     p.add_argument("--skip-naive", action="store_true")
     p.add_argument("--seed", type=int, default=11)
+    p.add_argument("--png", help="also write the figure of the two-effect case here")
     args = p.parse_args(argv)
     print(f"record: {DURATION:g} s at {FS:g} Hz ({int(DURATION * FS)} samples)")
     rows = []
@@ -153,8 +155,10 @@ def main(argv: list[str] | None = None) -> int:
         t_dx = time.perf_counter() - t0
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
-            write_outputs(dx, tmp, record="bench.csv")
+            paths = write_outputs(dx, tmp, record="bench.csv")
             t_out = time.perf_counter() - t0
+            if args.png and len(kinds) == 2 and with_model:
+                shutil.copy(paths["plot"], args.png)
         label = f"{'+'.join(kinds) or 'none'} ({'model file' if with_model else 'no model'})"
         rows.append((label, dx.answer, t_dx, t_out))
         print(

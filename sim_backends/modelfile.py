@@ -323,7 +323,7 @@ def _toml_value(value: Any) -> str:
             return "nan"
         if math.isinf(value):
             return "inf" if value > 0 else "-inf"
-        text = repr(value)
+        text = repr(float(value))  # np.float64 is a float whose repr is "np.float64(…)"
         return text if any(c in text for c in ".en") else text + ".0"
     if isinstance(value, str):
         return json.dumps(value)

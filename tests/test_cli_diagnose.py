@@ -79,7 +79,9 @@ def test_cli_without_model_on_a_clean_record_answers_none(tmp_path, capsys):
     assert report["effects"] == []
     assert report["answer"] == "none"
     assert report["gap_after"] == report["gap_before"]
-    assert (out / "base_model.toml").exists()  # the delay + gain fitted to the record
+    base = load_model(out / "base_model.toml")  # the delay + gain fitted to the record
+    assert base.actuator.effects == []
+    assert load_model(out / "model.toml").actuator.delay == base.actuator.delay
     assert not (out / "diagnose.png").exists()
     assert "answer: none" in capsys.readouterr().out
 

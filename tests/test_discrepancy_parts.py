@@ -18,7 +18,7 @@ from rths_hil.diagnose.candidates import Data, Model, _rss, polish
 from rths_hil.diagnose.synthetic import make_case
 from sim_backends.delay import fractional_delay
 from sim_backends.effects import EFFECTS, draw_effect_params, make_effect
-from sim_backends.modelfile import ActuatorSpec, EffectSpec, ModelSpec
+from sim_backends.modelfile import ActuatorSpec, EffectSpec, ModelSpec, dump_model, load_model
 
 FS = 1024.0
 
@@ -214,3 +214,21 @@ def test_generated_records_hide_the_drawn_effect():
     for kind in EFFECTS:
         c = make_case([kind], 12, duration=6.0)
         assert c.info["effect_rms"][kind] > 0, kind
+
+
+def test_model_file_round_trip_with_numpy_floats(tmp_path):
+    """Fitted parameters are often numpy scalars; the model file must still be valid TOML
+    (fix in sim_backends.modelfile: ``repr(np.float64(x))`` is ``np.float64(x)`` in numpy 2)."""
+    spec = ModelSpec(
+        ActuatorSpec(
+            delay=np.float64(0.0123),
+            gain=np.float64(0.97),
+            effects=[EffectSpec("offset", {"offset": np.float64(1.9e-3)})],
+        )
+    )
+    path = tmp_path / "m.toml"
+    dump_model(spec, path)
+    back = load_model(path)
+    assert back.actuator.delay == 0.0123
+    assert back.actuator.gain == 0.97
+    assert back.actuator.effects[0].params["offset"] == 1.9e-3

@@ -678,7 +678,7 @@ def polish(
 
     def apply(u: np.ndarray) -> ModelSpec:
         for (where, i, name, v0, lg), ui, sc in zip(slots, u, scales, strict=True):
-            v = v0 * math.exp(ui) if lg else v0 + ui * sc
+            v = float(v0 * math.exp(ui) if lg else v0 + ui * sc)
             if where == "actuator":
                 setattr(a, name, max(v, 0.0) if name == "delay" else v)
             else:

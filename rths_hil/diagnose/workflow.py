@@ -366,12 +366,12 @@ def _step_params(name: str, spec: ModelSpec) -> dict[str, float]:
     """Parameters of step ``name`` as they stand in ``spec``."""
     a = spec.actuator
     if name == "delay":
-        return {"delay": a.delay}
+        return {"delay": float(a.delay)}
     if name == "gain":
-        return {"gain": a.gain}
+        return {"gain": float(a.gain)}
     for e in a.effects:
         if e.kind == name:
-            return dict(e.params)
+            return {k: float(v) for k, v in e.params.items()}
     return {}
 
 
