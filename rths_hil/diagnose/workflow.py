@@ -5,7 +5,7 @@ Loop (``rths-hil diagnose``, :func:`diagnose`):
 1. simulate the current model with the record's command (noiseless); the residual is
    ``measured − predicted``;
 2. localise it (:func:`rths_hil.diagnose.localise.localise`: when, at which frequencies, in
-   which regime);
+   which regime; reported for the final model built up step by step);
 3. fit every candidate (:mod:`rths_hil.diagnose.candidates`) and score it by the Bayesian
    information criterion of Schwarz (1978) for Gaussian residuals with unknown variance,
    ``BIC = N·ln(RSS/N) + k·ln N``; a candidate is *significant* when it lowers the BIC of the
@@ -16,7 +16,12 @@ Loop (``rths-hil diagnose``, :func:`diagnose`):
    (a re-fit of the actuator's delay or gain before a new effect; simpler effects first);
 4. add it to the model and repeat until no candidate is significant (the answer is then
    ``none`` if nothing was added) or ``max_effects`` have been added;
-5. the gap before and after each step: J2 (NRMS, %) and J3 (peak, %) of the prediction against
+5. safeguards for several effects (:class:`_Search`): once effects are named, the three best
+   candidates of a screening are verified by a joint re-fit with them; with two or more named,
+   the selection is rerun from the next best first choices and the path of lowest total BIC
+   kept; then each named effect is re-examined with the others in the model (replaced by a
+   better candidate, dropped when no longer significant);
+6. the gap before and after each step: J2 (NRMS, %) and J3 (peak, %) of the prediction against
    the measurement (:mod:`rths_hil.metrics`, normalised by the measurement), and the FEI
    A and d of measured against predicted (seed Eq. 2.1-2.5).
 
