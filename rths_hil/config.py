@@ -212,6 +212,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "-",
             "run an in-process virtual twin (false: real controller at the connection)",
         ),
+        "inline": Key(
+            "bool",
+            True,
+            "-",
+            "serve a twin on python-can's in-process virtual bus from the loop thread "
+            "(same frames and controller, no thread hand-off); false: in its own thread",
+        ),
         "model": Key(
             "str", "", "-", "twin model file (TOML, [actuator] ...); empty: the tables below"
         ),

@@ -75,6 +75,7 @@ def start_twin(
     *,
     faults: Faults | None = None,
     heartbeat_timeout: float | None = None,
+    threaded: bool = True,
     **connection: Any,
 ) -> TwinEndpoint:
     """Start the twin endpoint matching ``driver_name`` around ``plant``; return it running.
@@ -89,6 +90,9 @@ def start_twin(
         Fault plan (:mod:`sim_backends.faults`).
     heartbeat_timeout : float, optional
         Heartbeat watchdog period (s); off by default.
+    threaded : bool
+        Serve in a thread (default). ``False``: the caller serves with ``endpoint.pump()``
+        (CAN on the ``virtual`` interface only; the lockstep loop's fast path).
     **connection
         Endpoint settings. ``can``: ``interface`` (``virtual``), ``channel`` (a fresh unique
         name by default), ``bitrate``, ``dbc``, ``bus_options``. ``modbus``: ``transport``
@@ -128,4 +132,4 @@ def start_twin(
             raise InputError(f"no twin for driver {driver_name!r}; use can, modbus or serial")
     except TypeError as exc:
         raise InputError(f"twin {driver_name!r}: bad endpoint setting: {exc}") from None
-    return endpoint.start()
+    return endpoint.start(threaded)

@@ -30,6 +30,7 @@ from types import TracebackType
 from typing import Any
 
 from drivers.base import Status
+from rths_hil.errors import InputError
 
 from ..base import Plant
 from ..faults import Faults
@@ -208,6 +209,7 @@ class TwinEndpoint(ABC):
         self._thread: threading.Thread | None = None
         self._gone = False
         self.error: BaseException | None = None
+        self.inline = False
 
     @property
     def stats(self) -> TwinStats:
@@ -220,9 +222,26 @@ class TwinEndpoint(ABC):
         return self.controller.plant
 
     # -- lifecycle ------------------------------------------------------------------------------
-    def start(self) -> TwinEndpoint:
-        """Open the transport and start serving; returns self."""
+    #: Whether :meth:`pump` can serve the transport from the caller's thread (synchronous,
+    #: in-process transports only).
+    supports_inline = False
+
+    def start(self, threaded: bool = True) -> TwinEndpoint:
+        """Open the transport and start serving; returns self.
+
+        With ``threaded=False`` (transports with :attr:`supports_inline`) no thread is started:
+        the caller serves pending frames with :meth:`pump`. The real-time loop uses this over
+        python-can's in-process virtual bus (``twin.inline``), where the thread hand-off and
+        GIL contention twice per step would otherwise dominate; the frames, codecs and
+        controller are the same.
+        """
         if self._thread is not None:
+            return self
+        self.inline = not threaded  # stays set after stop(): how the endpoint was served
+        if not threaded:
+            if not self.supports_inline:
+                raise InputError(f"twin {self.name}: this transport cannot be served inline")
+            self._setup()
             return self
         self._setup()
         self._stop.clear()
@@ -237,6 +256,10 @@ class TwinEndpoint(ABC):
             self._thread.join(timeout=5.0)
             self._thread = None
         self._teardown()
+
+    def pump(self) -> int:
+        """Serve every frame already waiting (inline mode); return how many were handled."""
+        raise InputError(f"twin {self.name}: this transport cannot be served inline")
 
     def __enter__(self) -> TwinEndpoint:
         return self.start()

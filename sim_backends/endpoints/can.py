@@ -70,12 +70,34 @@ class CANTwin(TwinEndpoint):
         if bus is not None:
             bus.shutdown()
 
+    @property
+    def supports_inline(self) -> bool:  # type: ignore[override]
+        """Only python-can's in-process ``virtual`` bus delivers frames synchronously."""
+        return self.interface == "virtual"
+
+    def pump(self) -> int:
+        """Serve every frame already on the bus (inline mode); return how many."""
+        bus = self._bus
+        n = 0
+        while bus is not None:
+            msg = bus.recv(0.0)
+            if msg is None:
+                break
+            if not self._gone:
+                self._handle(msg)
+            n += 1
+        self.controller.check_watchdog()
+        return n
+
     def _serve_once(self, timeout: float) -> None:
         bus = self._bus
         assert bus is not None
         msg = bus.recv(timeout)
         if msg is None or self._gone:
             return
+        self._handle(msg)
+
+    def _handle(self, msg: can.Message) -> None:
         c = self.codecs
         fid = msg.arbitration_id
         ctl = self.controller
