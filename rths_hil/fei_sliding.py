@@ -251,3 +251,176 @@ class SlidingSums:
             if self.t % self.resync == 0 and self.t >= self.N:
                 self._resync()
         return self._out[:done], self._ends[:done]
+
+
+# ---------------------------------------------------------------------------------------------
+# Low band: the same sliding DFTs for the first K0 bins only, with an O(1), spike-free
+# resynchronisation (the streaming evaluator's exact low band, :mod:`rths_hil.fei_streaming`).
+#
+# Two sets of states run side by side: the *active* set slides (adds the new sample, removes
+# the one leaving the window); the *fresh* set started from zero at the first sample of the
+# current resync period and only adds. After N samples the fresh set holds exactly the current
+# window, without any removal round-off; the sets are swapped and the fresh one restarts.
+# ---------------------------------------------------------------------------------------------
+
+
+@numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
+def lowband_step(lb, lbc, lbring, lbs, ph, t, N, xn, yn):  # pragma: no cover - numba
+    """Advance the low-band states by the sample pair (xn, yn) at absolute index t.
+
+    ``lb`` (4 × 6 × K0): active re/im, fresh re/im of the six modulated sliding DFTs;
+    ``lbc`` (7 × K0): e^{jθ_k} (re, im), e^{−jθ_k N} (re, im), W_k (re, im), k;
+    ``lbring`` (2 × N): the last N raw samples; ``lbs`` (4): active Σx, Σy, fresh Σx, Σy;
+    ``ph``: e^{j2πm/(N−1)}, m = 0 … N−2.
+    """
+    P = N - 1
+    slot = t % N
+    xo = lbring[0, slot]
+    yo = lbring[1, slot]
+    lbring[0, slot] = xn
+    lbring[1, slot] = yn
+    lbs[0] += xn - xo
+    lbs[1] += yn - yo
+    lbs[2] += xn
+    lbs[3] += yn
+    qn = ph[t % P]
+    qo = ph[(t - N) % P]
+    qnr, qni, qor, qoi = qn.real, qn.imag, qo.real, qo.imag
+    K = lb.shape[2]
+    for k in range(K):
+        c1r = lbc[0, k]
+        c1i = lbc[1, k]
+        c2r = lbc[2, k]
+        c2i = lbc[3, k]
+        for s in range(6):
+            if s < 3:
+                vn, vo = xn, xo
+                g = s
+            else:
+                vn, vo = yn, yo
+                g = s - 3
+            if g == 0:
+                nr, ni, o_r, o_i = vn, 0.0, vo, 0.0
+            elif g == 1:
+                nr, ni, o_r, o_i = vn * qnr, vn * qni, vo * qor, vo * qoi
+            else:
+                nr, ni, o_r, o_i = vn * qnr, -vn * qni, vo * qor, -vo * qoi
+            ar = nr * c2r - ni * c2i
+            ai = nr * c2i + ni * c2r
+            tr = lb[0, s, k] - o_r + ar
+            ti = lb[1, s, k] - o_i + ai
+            lb[0, s, k] = c1r * tr - c1i * ti
+            lb[1, s, k] = c1r * ti + c1i * tr
+            fr = lb[2, s, k] + ar
+            fi = lb[3, s, k] + ai
+            lb[2, s, k] = c1r * fr - c1i * fi
+            lb[3, s, k] = c1r * fi + c1i * fr
+    if (t + 1) % N == 0:
+        for s in range(6):
+            for k in range(K):
+                lb[0, s, k] = lb[2, s, k]
+                lb[1, s, k] = lb[3, s, k]
+                lb[2, s, k] = 0.0
+                lb[3, s, k] = 0.0
+        lbs[0] = lbs[2]
+        lbs[1] = lbs[3]
+        lbs[2] = 0.0
+        lbs[3] = 0.0
+
+
+@numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
+def lowband_sums(lb, lbc, lbs, ph, t, N):  # pragma: no cover - numba
+    """E, F, Re S, Im S over bins 1 … K0 of the window ending at sample t (exact)."""
+    P = N - 1
+    q = ph[(t - N + 1) % P]
+    pr, pi = q.real, q.imag
+    mx = lbs[0] / N
+    my = lbs[1] / N
+    E = 0.0
+    F = 0.0
+    Sr = 0.0
+    Si = 0.0
+    for k in range(lb.shape[2]):
+        Wr = lbc[4, k]
+        Wi = lbc[5, k]
+        xr = (
+            0.5 * lb[0, 0, k]
+            - 0.25 * (pr * lb[0, 1, k] + pi * lb[1, 1, k])
+            - 0.25 * (pr * lb[0, 2, k] - pi * lb[1, 2, k])
+            - mx * Wr
+        )
+        xi = (
+            0.5 * lb[1, 0, k]
+            - 0.25 * (pr * lb[1, 1, k] - pi * lb[0, 1, k])
+            - 0.25 * (pr * lb[1, 2, k] + pi * lb[0, 2, k])
+            - mx * Wi
+        )
+        yr = (
+            0.5 * lb[0, 3, k]
+            - 0.25 * (pr * lb[0, 4, k] + pi * lb[1, 4, k])
+            - 0.25 * (pr * lb[0, 5, k] - pi * lb[1, 5, k])
+            - my * Wr
+        )
+        yi = (
+            0.5 * lb[1, 3, k]
+            - 0.25 * (pr * lb[1, 4, k] - pi * lb[0, 4, k])
+            - 0.25 * (pr * lb[1, 5, k] + pi * lb[0, 5, k])
+            - my * Wi
+        )
+        Pk = xr * xr + xi * xi
+        E += Pk
+        F += lbc[6, k] * Pk
+        Sr += xr * yr + xi * yi
+        Si += xr * yi - xi * yr
+    return E, F, Sr, Si
+
+
+def lowband_arrays(N: int, K0: int) -> tuple[np.ndarray, ...]:
+    """Fresh state and constant arrays (lb, lbc, lbring, lbs, ph) for K0 low bins."""
+    M = 1 << (int(N) - 1).bit_length()
+    k = np.arange(1, K0 + 1)
+    theta = 2 * np.pi * k / M
+    W = sfft.rfft(np.hanning(N), n=M)[1 : K0 + 1]
+    c2 = np.exp(-1j * ((k * N) % M) * 2 * np.pi / M)
+    lbc = np.ascontiguousarray(
+        np.vstack([np.cos(theta), np.sin(theta), c2.real, c2.imag, W.real, W.imag, k])
+    )
+    P = N - 1
+    ph = np.exp(1j * 2 * np.pi * np.arange(P) / P)
+    return np.zeros((4, 6, K0)), lbc, np.zeros((2, N)), np.zeros(4), ph
+
+
+@numba.njit(cache=True, nogil=True)
+def _lowband_block(xs, ys, t0, hop, N, lb, lbc, lbring, lbs, ph, out):  # pragma: no cover
+    n = 0
+    for j in range(xs.shape[0]):
+        t = t0 + j
+        lowband_step(lb, lbc, lbring, lbs, ph, t, N, xs[j], ys[j])
+        if t >= N - 1 and (t - N + 1) % hop == 0:
+            E, F, Sr, Si = lowband_sums(lb, lbc, lbs, ph, t, N)
+            out[n, 0] = E
+            out[n, 1] = F
+            out[n, 2] = Sr
+            out[n, 3] = Si
+            out[n, 4] = t
+            n += 1
+    return n
+
+
+class LowBandSums:
+    """Exact ``E, F, S`` restricted to bins 1 … K0 of every window, O(K0) per sample.
+
+    The building block of the streaming evaluator's exact low band; standalone for tests.
+    """
+
+    def __init__(self, N: int, K0: int, hop: int = 1) -> None:
+        self.N, self.K0, self.hop = int(N), int(K0), int(hop)
+        self.state = lowband_arrays(self.N, self.K0)
+        self.t = 0
+
+    def process(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Rows (E, F, Re S, Im S, end index) of the windows completed by the block."""
+        out = np.empty((x.shape[0] // self.hop + 1, 5))
+        n = _lowband_block(x, y, self.t, self.hop, self.N, *self.state, out)
+        self.t += x.shape[0]
+        return out[:n]

@@ -113,3 +113,34 @@ def test_large_hops_keep_the_fft_path():
     assert F.OnlineFEI(256.0, 1.0, hop=F.SLIDING_MAX_HOP + 1)._slide is None
     assert F.OnlineFEI(256.0, 1.0, hop=F.SLIDING_MAX_HOP)._slide is not None
     assert F.OnlineFEI(256.0, 1.0, method="streaming")._slide is None
+
+
+def brute_lowband(x, y, end, N, K0):
+    M = F.fft_length(N)
+    w = np.hanning(N)
+    xs = x[end - N + 1 : end + 1]
+    ys = y[end - N + 1 : end + 1]
+    k = np.arange(1, K0 + 1)
+    basis = np.exp(-2j * np.pi * np.outer(k, np.arange(N)) / M)
+    X = basis @ (w * (xs - xs.mean()))
+    Y = basis @ (w * (ys - ys.mean()))
+    P = np.abs(X) ** 2
+    return float(P.sum()), float(P @ k), complex(np.sum(Y * np.conj(X)))
+
+
+@pytest.mark.parametrize("N, K0", [(100, 7), (128, 10), (300, 20)])
+def test_lowband_sums_match_direct_dft_over_many_resyncs(N, K0):
+    from rths_hil.fei_sliding import LowBandSums
+
+    L = 15 * N + 11
+    x, y = random_walk_pair(L, K0)
+    lb = LowBandSums(N, K0, hop=3)
+    rows = np.concatenate([lb.process(x[i : i + 97], y[i : i + 97]) for i in range(0, L, 97)])
+    np.testing.assert_array_equal(rows[:, 4], np.arange(N - 1, L, 3))
+    worst = 0.0
+    for r in rows[::4]:
+        E, Fk, S = brute_lowband(x, y, int(r[4]), N, K0)
+        worst = max(
+            worst, abs(r[0] - E) / E, abs(r[1] - Fk) / Fk, abs(complex(r[2], r[3]) - S) / abs(S)
+        )
+    assert worst < 1e-10
