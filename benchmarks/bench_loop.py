@@ -2,6 +2,8 @@
 
 Prints, measured in one run on this machine:
 
+0. the machine's floor: an empty paced loop (:func:`rths_hil.loop.paced_floor`, the loop's
+   own wait code with no work) with and without SCHED_FIFO, and the hypervisor steal;
 1. the step-path breakdown: cost per call of each piece the loop calls once per step, in
    isolation (median over repeated batches), and the whole loop without a transport (an
    in-process direct driver) — what the loop itself costs;
@@ -9,10 +11,18 @@ Prints, measured in one run on this machine:
 3. lockstep steps/s through the full chain over each driver (goal ≥ 10 000 over CAN virtual);
 4. paced runs at 1024 Hz through each driver and at 4096 Hz over CAN virtual: lateness
    p50/p99/p99.9/max and the overrun count (goals: ≤ 0.01 % of steps for CAN and serial,
-   ≤ 0.1 % for Modbus TCP at 1024 Hz, ≤ 0.1 % at 4096 Hz over CAN).
+   ≤ 0.1 % for Modbus TCP at 1024 Hz, ≤ 0.1 % at 4096 Hz over CAN), each run between two
+   empty-loop floors at the same rate and scheduling, with the steal during each, and the
+   overruns attributed (:func:`rths_hil.loop.attribute_overruns`) to the machine (the wait
+   returned late although the loop was ready) or to the loop's work, each with its catch-up;
+5. (``--profile DRIVER@FS`` only) the per-phase cost of one paced run: every per-step call
+   timed, p50/p99/p99.9/max.
 
-Usage: ``python benchmarks/bench_loop.py [--duration 60] [--priority 0] [--skip-paced]``.
-Paced runs take their duration in wall time each (4 × 60 s by default).
+Usage: ``python benchmarks/bench_loop.py [--duration 60] [--floor 15] [--priority 10]
+[--paced-only] [--cases can@1024,can@4096] [--lock /work/notes/bench.lock]`` or
+``python benchmarks/bench_loop.py --profile can@4096 --duration 20``. Paced runs take their
+duration in wall time each, plus two floors; ``--lock`` takes the shared bench lock around each
+measurement (one paced case with its floors at a time) instead of around the whole script.
 """
 
 from __future__ import annotations
@@ -34,7 +44,14 @@ from drivers.registry import create_driver
 from rths_hil.compensation import InverseCompensator
 from rths_hil.config import load_config
 from rths_hil.estimation import DelayGainEstimator
-from rths_hil.loop import RTHSLoop, _ExactFEI, _StreamingFEI
+from rths_hil.loop import (
+    RTHSLoop,
+    _ExactFEI,
+    _StreamingFEI,
+    attribute_overruns,
+    count_causes,
+    paced_floor,
+)
 from rths_hil.recorder import COLUMNS, Recorder
 from rths_hil.safety import SafetyMonitor, StuckRule, WatchdogRule
 from rths_hil.structure import BoucWenParams, CRStepper
@@ -248,103 +265,279 @@ def steal_ticks() -> int:
         return 0
 
 
-def floor(duration: float, priority: int, fs: float = 1024.0, spin: float = 3e-4) -> None:
+def steal_s(t0: int) -> float:
+    """CPU-seconds of steal since ``t0`` (ticks of :func:`steal_ticks`)."""
+    return (steal_ticks() - t0) / os.sysconf("SC_CLK_TCK")
+
+
+@contextlib.contextmanager
+def bench_lock(path: str | None):
+    """Hold ``flock(path)`` (the shared bench lock) for one measurement, if a path is given."""
+    if not path:
+        yield
+        return
+    import fcntl
+
+    with open(path, "a") as fh:
+        t = time.monotonic()
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        waited = time.monotonic() - t
+        if waited > 1:
+            print(f"(waited {waited:.0f} s for {path})", flush=True)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def pct(x: int, n: int) -> str:
+    return f"{100 * x / max(n, 1):.3f}"
+
+
+def floor_case(fs: float, duration: float, priority: int) -> dict:
+    """One empty paced loop (:func:`rths_hil.loop.paced_floor`): overrun share and steal."""
+    st0 = steal_ticks()
+    lat, ready = paced_floor(fs, duration, spin=3e-4, priority=priority)
+    steal = steal_s(st0)
+    over = int((lat > 0.5 / fs).sum())
+    causes = count_causes(attribute_overruns(lat, ready, 0.5 / fs))
+    return {
+        "n": lat.size,
+        "over": over,
+        "steal": steal,
+        "p999": float(np.percentile(lat, 99.9)),
+        "max": float(lat.max()),
+        "causes": causes,
+    }
+
+
+def floor(duration: float, priority: int, fs: float = 1024.0) -> None:
     """The machine's own timing floor: the paced wait (sleep, then spin) with no work at all."""
     print(
         f"\n## 0. Machine floor: an empty paced loop at {fs:g} Hz for {duration:g} s "
-        f"(sleep until {spin * 1e3:g} ms before each deadline, then spin)"
+        "(sleep until 0.3 ms before each deadline, then spin; same code as the loop's wait)"
     )
-    old = None
-    if priority:
-        with contextlib.suppress(OSError, AttributeError):
-            old = os.sched_getscheduler(0), os.sched_getparam(0)
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    sys.setswitchinterval(1e-4)
-    perf = time.perf_counter
-    dt = 1 / fs
-    n = int(duration * fs)
-    lat = np.empty(n)
-    st0 = steal_ticks()
-    t0 = perf() + 0.1
-    for k in range(n):
-        d = t0 + k * dt
-        r = d - perf() - spin
-        if r > 0:
-            time.sleep(r)
-        now = perf()
-        while now < d:
-            now = perf()
-        lat[k] = now - d
-    sys.setswitchinterval(0.005)
-    if old is not None:
-        os.sched_setscheduler(0, old[0], old[1])
-    p50, p99, p999 = np.percentile(lat, [50, 99, 99.9]) * 1e6
-    late = int((lat > 0.5 * dt).sum())
-    print(
-        f"p50 {p50:.0f} µs, p99 {p99:.0f} µs, p99.9 {p999:.0f} µs, max {lat.max() * 1e6:.0f} µs, "
-        f"steps later than half a period: {late} ({100 * late / n:.3f} %), hypervisor steal "
-        f"{(steal_ticks() - st0) / os.sysconf('SC_CLK_TCK'):.2f} CPU-s"
-    )
+    print("| scheduling | p99.9 (µs) | max (µs) | steps > ½ period late | steal (CPU-s) |")
+    print("|---|---|---|---|---|")
+    for prio in sorted({priority, 0}, reverse=True):
+        f = floor_case(fs, duration, prio)
+        print(
+            f"| {'SCHED_FIFO ' + str(prio) if prio else 'default (CFS)'} | {f['p999'] * 1e6:.0f} "
+            f"| {f['max'] * 1e6:.0f} | {f['over']} ({pct(f['over'], f['n'])} %) "
+            f"| {f['steal']:.2f} |",
+            flush=True,
+        )
 
 
-def paced(duration: float, priority: int) -> None:
-    print(f"\n## 4. Paced runs ({duration:g} s each, SCHED_FIFO priority {priority or 'off'})")
+def paced_config(name: str, fs: float, duration: float, priority: int, extra=()):
+    over = [
+        f"driver.name={name}",
+        f"loop.fs={fs}",
+        "loop.mode=paced",
+        "loop.console=0",
+        f"loop.duration={duration}",
+        "output.plot=false",
+        f"loop.priority={priority}",
+        "ground_motion.tail=60",
+        "safety.max_overruns=1000000",
+        "safety.watchdog_missed=1000000",
+        *extra,
+    ]
+    if fs > 2048:
+        over += [f"compensation.alpha={1 + 0.025 * fs}", "fei.exact_hop=1024"]
+    return load_config(None, over)
+
+
+def paced(
+    duration: float,
+    priority: int,
+    floor_s: float,
+    lock: str | None,
+    cases: list[tuple[str, float]],
+) -> None:
     print(
-        "| driver | fs (Hz) | steps | p50 (µs) | p99 (µs) | p99.9 (µs) | max (µs) | overruns "
-        "| overrun % | missed replies | status |"
+        f"\n## 4. Paced runs ({duration:g} s each, SCHED_FIFO priority {priority or 'off'}), "
+        f"each between two {floor_s:g} s empty-loop floors (same rate and scheduling)"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    cases = [(n, 1024.0) for n in DRIVERS] + [("can", 4096.0)]
+    print(
+        "Overrun = command left > ½ period after its deadline. Cause (rths_hil.loop."
+        "attribute_overruns): machine = the wait returned late although the loop was ready in "
+        "time (an empty loop suffers the same); work = the previous step's work ran past the "
+        "threshold (includes stalls that hit during the work); +b = catch-up steps after one."
+    )
+    print(
+        "| driver | fs (Hz) | steps | p50 / p99 / p99.9 / max (µs) | overruns | overrun % "
+        "| floor before % | floor after % | machine (+b) | work (+b) | missed replies "
+        "| steal run / floors (CPU-s) | load |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, fs in cases:
-        with tempfile.TemporaryDirectory() as d:
-            over = [
-                f"driver.name={name}",
-                f"loop.fs={fs}",
-                "loop.mode=paced",
-                "loop.console=0",
-                f"loop.duration={duration}",
-                "output.plot=false",
-                f"loop.priority={priority}",
-                "ground_motion.tail=60",
-                "safety.max_overruns=1000000",
-                "safety.watchdog_missed=1000000",
-            ]
-            if fs > 2048:
-                over += [f"compensation.alpha={1 + 0.025 * fs}", "fei.exact_hop=1024"]
-            cfg = load_config(None, over)
+        with bench_lock(lock), tempfile.TemporaryDirectory() as d:
+            cfg = paced_config(name, fs, duration, priority)
+            f0 = floor_case(fs, floor_s, priority)
             st0 = steal_ticks()
             r = RTHSLoop(cfg, Path(d) / "r").run()
-            steal = (steal_ticks() - st0) / os.sysconf("SC_CLK_TCK")
-            s = r.lateness_stats()
-            print(
-                f"| {name} | {fs:g} | {r.steps} | {s['p50'] * 1e6:.0f} | {s['p99'] * 1e6:.0f} "
-                f"| {s['p99.9'] * 1e6:.0f} | {s['max'] * 1e6:.0f} | {s['overruns']} | "
-                f"{100 * s['overruns'] / max(r.steps, 1):.3f} | {r.missed_replies} | "
-                f"{r.status} | {steal:.2f} |",
-                flush=True,
-            )
+            steal = steal_s(st0)
+            f1 = floor_case(fs, floor_s, priority)
+            load = os.getloadavg()[0]
+        s = r.lateness_stats()
+        c = r.overrun_causes()
+        print(
+            f"| {name} | {fs:g} | {r.steps} | {s['p50'] * 1e6:.0f} / {s['p99'] * 1e6:.0f} / "
+            f"{s['p99.9'] * 1e6:.0f} / {s['max'] * 1e6:.0f} | {s['overruns']} | "
+            f"{pct(s['overruns'], r.steps)} | {pct(f0['over'], f0['n'])} | "
+            f"{pct(f1['over'], f1['n'])} | {c['machine']} (+{c['machine_backlog']}) | "
+            f"{c['work']} (+{c['work_backlog']}) | {r.missed_replies} | "
+            f"{steal:.2f} / {f0['steal']:.2f}, {f1['steal']:.2f} | {load:.1f} |",
+            flush=True,
+        )
+
+
+# ---- per-phase profile of one paced run -------------------------------------------------------
+
+
+class _Phases:
+    """Per-call durations of the step path's pieces (a wrapper around each bound method)."""
+
+    def __init__(self) -> None:
+        self.d: dict[str, list[float]] = {}
+
+    def wrap(self, name: str, fn):
+        buf = self.d.setdefault(name, [])
+        perf = time.perf_counter
+        add = buf.append
+
+        def timed(*a):
+            t = perf()
+            r = fn(*a)
+            add(perf() - t)
+            return r
+
+        return timed
+
+
+class _Proxy:
+    """Forwards attribute reads to ``obj``; the methods in ``timed`` are wrapped."""
+
+    def __init__(self, obj, ph: _Phases, timed: dict[str, str]) -> None:
+        self.__dict__["_obj"] = obj
+        for meth, label in timed.items():
+            self.__dict__[meth] = ph.wrap(label, getattr(obj, meth))
+
+    def __getattr__(self, name):
+        return getattr(self._obj, name)
+
+    def __setattr__(self, name, value):
+        setattr(self._obj, name, value)
+
+
+class ProfiledLoop(RTHSLoop):
+    """RTHSLoop with every per-step call timed (≈ 0.3 µs overhead per call)."""
+
+    def __init__(self, *a, **kw) -> None:
+        super().__init__(*a, **kw)
+        self.ph = ph = _Phases()
+        self.structure = _Proxy(self.structure, ph, {"step": "structure (CR step)"})
+        self.compensator = _Proxy(self.compensator, ph, {"step": "compensation"})
+        checks = ("check_feedback", "check_command", "check_fei", "check_kalman", "check_overrun")
+        self.monitor = _Proxy(self.monitor, ph, dict.fromkeys(checks, "safety"))
+        if self.stream_fei is not None:
+            self.stream_fei = _Proxy(self.stream_fei, ph, {"push": "streaming FEI push"})
+        if self.kalman is not None:
+            methods = ("update", "push", "predict", "correct")
+            self.kalman = _Proxy(self.kalman, ph, dict.fromkeys(methods, "Kalman"))
+
+    def _loop(self, driver, rec, exact):
+        w = self.ph.wrap
+        driver.send = w("driver send", driver.send)
+        driver.receive = w("driver receive", driver.receive)
+        if self.twin is not None and getattr(self.twin, "inline", False):
+            self.twin.pump = w("inline twin pump", self.twin.pump)
+        rec.append = w("recorder append (+ flush)", rec.append)
+        if exact is not None:
+            exact.push = w("exact FEI push (+ hand-off)", exact.push)
+        return super()._loop(driver, rec, exact)
+
+
+def profile(name: str, fs: float, duration: float, priority: int, lock: str | None) -> None:
+    print(
+        f"\n## 5. Per-phase profile: one paced run, {name} at {fs:g} Hz, {duration:g} s "
+        "(every per-step call wrapped with timestamps; µs per call)"
+    )
+    with bench_lock(lock), tempfile.TemporaryDirectory() as d:
+        loop = ProfiledLoop(paced_config(name, fs, duration, priority), Path(d) / "r")
+        st0 = steal_ticks()
+        r = loop.run()
+        steal = steal_s(st0)
+    print(
+        f"steps {r.steps}, overruns {r.overruns} ({pct(r.overruns, r.steps)} %), causes "
+        f"{r.overrun_causes()}, steal {steal:.2f} CPU-s"
+    )
+    print("| phase | calls/step | p50 | p99 | p99.9 | max | calls > 100 µs |")
+    print("|---|---|---|---|---|---|---|")
+    for ph, v in loop.ph.d.items():
+        if not v:
+            continue
+        a = np.asarray(v) * 1e6
+        p50, p99, p999 = np.percentile(a, [50, 99, 99.9])
+        print(
+            f"| {ph} | {a.size / r.steps:.3f} | {p50:.1f} | {p99:.1f} | {p999:.1f} | "
+            f"{a.max():.0f} | {int((a > 100).sum())} |"
+        )
+    # the whole work of a step: from its send to the moment the loop was ready for the next
+    lat, ready, dt = r.lateness, r.ready, 1 / fs
+    work = (ready[1:] + dt - lat[:-1]) * 1e6
+    p50, p99, p999 = np.percentile(work, [50, 99, 99.9])
+    print(
+        f"| **whole step work (send → ready)** | 1 | {p50:.1f} | {p99:.1f} | {p999:.1f} | "
+        f"{work.max():.0f} | {int((work > 100).sum())} |"
+    )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=60.0, help="paced run length (s)")
+    ap.add_argument("--floor", type=float, default=15.0, help="empty-loop floor length (s)")
     ap.add_argument("--lockstep-duration", type=float, default=20.0)
     ap.add_argument(
         "--priority", type=int, default=10, help="SCHED_FIFO priority for paced (0 = off)"
     )
     ap.add_argument("--skip-paced", action="store_true")
+    ap.add_argument("--paced-only", action="store_true", help="only the paced runs (section 4)")
+    ap.add_argument(
+        "--cases",
+        default="can@1024,modbus@1024,serial@1024,can@4096",
+        help="paced cases, driver@fs, comma separated",
+    )
+    ap.add_argument(
+        "--profile", metavar="DRIVER@FS", help="only a per-phase profile of one paced run"
+    )
+    ap.add_argument(
+        "--lock",
+        metavar="PATH",
+        help="flock PATH around each timed measurement (each floor + run + floor separately)",
+    )
     args = ap.parse_args()
     print(
         f"# bench_loop — {time.strftime('%Y-%m-%d %H:%M')}, python {sys.version.split()[0]}, "
         f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}"
     )
+    if args.profile:
+        name, fs = args.profile.split("@")
+        profile(name, float(fs), args.duration, args.priority, args.lock)
+        return
+    cases = [(c.split("@")[0], float(c.split("@")[1])) for c in args.cases.split(",")]
+    if not args.paced_only:
+        if not args.skip_paced:
+            with bench_lock(args.lock):
+                floor(min(args.floor, 20.0), args.priority)
+        with bench_lock(args.lock):
+            breakdown()
+            round_trips()
+        with bench_lock(args.lock):
+            lockstep(args.lockstep_duration)
     if not args.skip_paced:
-        floor(min(args.duration, 20.0), args.priority)
-    breakdown()
-    round_trips()
-    lockstep(args.lockstep_duration)
-    if not args.skip_paced:
-        paced(args.duration, args.priority)
+        paced(args.duration, args.priority, args.floor, args.lock, cases)
     print(f"\nload average at the end: {os.getloadavg()[0]:.2f}")
 
 

@@ -154,6 +154,11 @@ def test_record_columns_events_and_meta(tmp_path):
     kinds = [e["kind"] for e in run.events]
     assert kinds[0] == "start" and kinds[-1] == "end" and "trip" not in kinds
     assert run.events[-1]["status"] == "completed"
+    # lockstep has no deadlines: no overrun of any cause
+    assert run.events[-1]["overrun_causes"] == dict.fromkeys(
+        ("machine", "machine_backlog", "work", "work_backlog"), 0
+    )
+    assert res.ready.size == 0
     assert run.meta["config"]["structure"]["mass"] == 503400.0
     assert run.meta["versions"]["numpy"] == np.__version__
     assert run.meta["mode"] == "lockstep"

@@ -76,6 +76,14 @@ def test_paced_run_keeps_the_wall_clock(tmp_path):
     assert set(stats) == {"p50", "p99", "p99.9", "max", "overruns"}
     assert stats["overruns"] == int((lat > 0.5 / FS).sum())
     np.testing.assert_allclose(res.lateness, lat)
+    # when the loop was ready for each step: never after the send, and mostly before the deadline
+    assert res.ready.shape == lat.shape
+    assert (lat >= res.ready - 1e-9).all()
+    assert (res.ready < 0).mean() > 0.5
+    causes = res.overrun_causes()
+    assert sum(causes.values()) == stats["overruns"]
+    end = run.events[-1]
+    assert end["kind"] == "end" and end["overrun_causes"] == causes
     assert _wall_t0(run) > 0
     assert run.record["feedback_ok"].mean() > 0.9
 

@@ -1,0 +1,132 @@
+"""Paced-overrun attribution (machine vs the loop's own work) and the empty-loop floor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rths_hil.loop import (
+    CAUSES,
+    MACHINE,
+    MACHINE_BACKLOG,
+    ON_TIME,
+    WORK,
+    WORK_BACKLOG,
+    attribute_overruns,
+    count_causes,
+    paced_floor,
+)
+
+DT = 1.0 / 4096.0
+THR = 0.5 * DT
+
+
+def _simulate(work, wait_stall, spin_late=0.0):
+    """An independent event model of the paced loop: deadlines k·Δt, never skipped.
+
+    Step k becomes ready when the previous step's work is done (``send[k-1] + work[k-1]``);
+    the wait ends at ``max(ready, deadline) + wait_stall[k]`` (a stall of the machine during
+    the wait) and the command leaves then. Returns (lateness, ready) as the loop records them
+    and the ground truth: the cause of each overrun chain's first step.
+    """
+    n = len(work)
+    send = np.empty(n)
+    ready = np.empty(n)
+    t_ready = -1.0  # the first step is ready long before its deadline
+    for k in range(n):
+        deadline = k * DT
+        ready[k] = t_ready - deadline
+        send[k] = max(t_ready, deadline) + wait_stall[k] + spin_late
+        t_ready = send[k] + work[k]
+    lateness = send - np.arange(n) * DT
+    return lateness, ready
+
+
+def _truth(lateness, work, wait_stall):
+    """Causes from what the model was told: a chain starts at a step whose predecessor's work
+    ran past this step's threshold (work), otherwise at a stall in its wait (machine); the rest
+    of the chain is backlog."""
+    over = lateness > THR
+    out = np.zeros(len(over), dtype=np.int8)
+    for k in np.flatnonzero(over):
+        if k > 0 and over[k - 1]:
+            out[k] = MACHINE_BACKLOG if out[k - 1] in (MACHINE, MACHINE_BACKLOG) else WORK_BACKLOG
+        elif k > 0 and lateness[k - 1] + work[k - 1] > DT + THR:
+            out[k] = WORK
+        else:
+            assert wait_stall[k] > 0
+            out[k] = MACHINE
+    return out
+
+
+def test_a_stall_in_the_wait_is_the_machine_and_its_catch_up_is_backlog():
+    n = 60
+    work = np.full(n, 0.6 * DT)  # catch-up gains 0.4 Δt per step
+    stall = np.zeros(n)
+    stall[10] = 3.0 * DT
+    lat, ready = _simulate(work, stall)
+    cause = attribute_overruns(lat, ready, THR)
+    assert cause[10] == MACHINE
+    # behind by 3 Δt, gaining 0.4 Δt a step: late by more than ½ Δt while 3 - 0.4 j > 0.5
+    backlog = [j for j in range(1, 20) if 3.0 - 0.4 * j > 0.5]
+    assert cause[11 : 11 + len(backlog)].tolist() == [MACHINE_BACKLOG] * len(backlog)
+    assert (cause[:10] == ON_TIME).all() and (cause[11 + len(backlog) :] == ON_TIME).all()
+    assert count_causes(cause) == {
+        "machine": 1,
+        "machine_backlog": len(backlog),
+        "work": 0,
+        "work_backlog": 0,
+    }
+
+
+def test_long_work_is_the_loops_own_overrun():
+    n = 40
+    work = np.full(n, 0.3 * DT)
+    work[5] = 2.0 * DT  # step 6 is ready 1.0 Δt (+ step 5's lateness 0) after its deadline
+    lat, ready = _simulate(work, np.zeros(n))
+    cause = attribute_overruns(lat, ready, THR)
+    assert cause[5] == ON_TIME and cause[6] == WORK
+    # behind by 1 Δt at step 6, gaining 0.7 Δt a step: step 7 is 0.3 Δt late (not an overrun)
+    assert cause[7] == ON_TIME
+    assert count_causes(cause)["work"] == 1 and (cause > 0).sum() == 1
+
+
+def test_boundary_lateness_equal_to_the_threshold_is_not_an_overrun():
+    lat = np.array([0.0, THR, np.nextafter(THR, 1.0)])
+    ready = np.array([-DT, -DT, -DT])
+    assert attribute_overruns(lat, ready, THR).tolist() == [ON_TIME, ON_TIME, MACHINE]
+
+
+def test_random_runs_match_the_event_model():
+    rng = np.random.default_rng(7)
+    n = 20_000
+    work = rng.uniform(0.3, 0.7, n) * DT
+    long = rng.random(n) < 0.002
+    work[long] = rng.uniform(1.0, 8.0, long.sum()) * DT
+    stall = np.where(rng.random(n) < 0.002, rng.uniform(0.6, 20.0, n) * DT, 0.0)
+    lat, ready = _simulate(work, stall)
+    cause = attribute_overruns(lat, ready, THR)
+    truth = _truth(lat, work, stall)
+    np.testing.assert_array_equal(cause, truth)
+    counts = count_causes(cause)
+    assert sum(counts.values()) == int((lat > THR).sum())
+    assert counts["machine"] > 10 and counts["work"] > 10  # both kinds happened
+    assert counts["machine_backlog"] > 0 and counts["work_backlog"] > 0
+    assert set(counts) == set(CAUSES[1:])
+
+
+def test_bad_shapes_are_refused():
+    with pytest.raises(ValueError, match="same length"):
+        attribute_overruns(np.zeros(3), np.zeros(2), THR)
+
+
+def test_the_empty_loop_floor_keeps_the_grid():
+    fs = 1024.0
+    lat, ready = paced_floor(fs, 0.3, spin=2e-4)
+    assert lat.shape == ready.shape == (round(0.3 * fs),)
+    assert (lat >= 0).all()  # never early
+    assert (lat >= ready - 1e-9).all()  # the send is never before the loop was ready
+    # nothing to do between steps: the steps not caught up after a stall wait for their deadline
+    assert (ready < 0).mean() > 0.25
+    cause = attribute_overruns(lat, ready, 0.5 / fs)
+    assert sum(count_causes(cause).values()) == int((lat > 0.5 / fs).sum())
