@@ -257,21 +257,29 @@ class SlidingSums:
 # Low band: the same sliding DFTs for the first K0 bins only, with an O(1), spike-free
 # resynchronisation (the streaming evaluator's exact low band, :mod:`rths_hil.fei_streaming`).
 #
-# Two sets of states run side by side: the *active* set slides (adds the new sample, removes
-# the one leaving the window); the *fresh* set started from zero at the first sample of the
-# current resync period and only adds. After N samples the fresh set holds exactly the current
-# window, without any removal round-off; the sets are swapped and the fresh one restarts.
+# Two sets of states: the *active* set slides (adds the new sample, removes the one leaving
+# the window); once every RESYNC_WINDOWS window periods a *fresh* set starts from zero at the
+# period's first sample and only adds. After N samples it holds exactly the current window,
+# without any removal round-off, and replaces the active set.
 # ---------------------------------------------------------------------------------------------
 
 
+#: Window periods between resynchronisations of the low-band states.
+RESYNC_WINDOWS = 1
+
+
 @numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
-def lowband_step(lb, lbc, lbring, lbs, ph, t, N, xn, yn):  # pragma: no cover - numba
+def lowband_step(lb, lbc, lbring, lbs, ph, io, t, N, xn, yn):  # pragma: no cover - numba
     """Advance the low-band states by the sample pair (xn, yn) at absolute index t.
 
-    ``lb`` (4 × 6 × K0): active re/im, fresh re/im of the six modulated sliding DFTs;
+    ``lb`` (4 × 6 × K0): active re/im and fresh re/im of the six modulated sliding DFTs
+    (rows 0–2 target g = 0, +1, −1; rows 3–5 measured);
     ``lbc`` (7 × K0): e^{jθ_k} (re, im), e^{−jθ_k N} (re, im), W_k (re, im), k;
     ``lbring`` (2 × N): the last N raw samples; ``lbs`` (4): active Σx, Σy, fresh Σx, Σy;
-    ``ph``: e^{j2πm/(N−1)}, m = 0 … N−2.
+    ``ph``: e^{j2πm/(N−1)}, m = 0 … N−2; ``io``: unused scratch.
+
+    The fresh set runs during one window period in every ``RESYNC_WINDOWS`` (then the states
+    are resynchronised), so the average cost is ``1 + 1/RESYNC_WINDOWS`` times one set.
     """
     P = N - 1
     slot = t % N
@@ -281,51 +289,67 @@ def lowband_step(lb, lbc, lbring, lbs, ph, t, N, xn, yn):  # pragma: no cover - 
     lbring[1, slot] = yn
     lbs[0] += xn - xo
     lbs[1] += yn - yo
-    lbs[2] += xn
-    lbs[3] += yn
     qn = ph[t % P]
     qo = ph[(t - N) % P]
-    qnr, qni, qor, qoi = qn.real, qn.imag, qo.real, qo.imag
+    # new and old values of the six modulated inputs u_g = v e^{jgΩt}
+    axr, axi = xn * qn.real, xn * qn.imag
+    bxr, bxi = xo * qo.real, xo * qo.imag
+    ayr, ayi = yn * qn.real, yn * qn.imag
+    byr, byi = yo * qo.real, yo * qo.imag
     K = lb.shape[2]
-    for k in range(K):
-        c1r = lbc[0, k]
-        c1i = lbc[1, k]
-        c2r = lbc[2, k]
-        c2i = lbc[3, k]
-        for s in range(6):
-            if s < 3:
-                vn, vo = xn, xo
-                g = s
-            else:
-                vn, vo = yn, yo
-                g = s - 3
-            if g == 0:
-                nr, ni, o_r, o_i = vn, 0.0, vo, 0.0
-            elif g == 1:
-                nr, ni, o_r, o_i = vn * qnr, vn * qni, vo * qor, vo * qoi
-            else:
-                nr, ni, o_r, o_i = vn * qnr, -vn * qni, vo * qor, -vo * qoi
-            ar = nr * c2r - ni * c2i
-            ai = nr * c2i + ni * c2r
-            tr = lb[0, s, k] - o_r + ar
-            ti = lb[1, s, k] - o_i + ai
-            lb[0, s, k] = c1r * tr - c1i * ti
-            lb[1, s, k] = c1r * ti + c1i * tr
-            fr = lb[2, s, k] + ar
-            fi = lb[3, s, k] + ai
-            lb[2, s, k] = c1r * fr - c1i * fi
-            lb[3, s, k] = c1r * fi + c1i * fr
-    if (t + 1) % N == 0:
-        for s in range(6):
+    c1r = lbc[0]
+    c1i = lbc[1]
+    c2r = lbc[2]
+    c2i = lbc[3]
+    period = t // N
+    fresh = period % RESYNC_WINDOWS == RESYNC_WINDOWS - 1
+    for s in range(6):
+        if s == 0:
+            nr, ni, o_r, o_i = xn, 0.0, xo, 0.0
+        elif s == 1:
+            nr, ni, o_r, o_i = axr, axi, bxr, bxi
+        elif s == 2:
+            nr, ni, o_r, o_i = axr, -axi, bxr, -bxi
+        elif s == 3:
+            nr, ni, o_r, o_i = yn, 0.0, yo, 0.0
+        elif s == 4:
+            nr, ni, o_r, o_i = ayr, ayi, byr, byi
+        else:
+            nr, ni, o_r, o_i = ayr, -ayi, byr, -byi
+        dr = lb[0, s]
+        di = lb[1, s]
+        for k in range(K):
+            a_r = nr * c2r[k] - ni * c2i[k]
+            a_i = nr * c2i[k] + ni * c2r[k]
+            tr = dr[k] - o_r + a_r
+            ti = di[k] - o_i + a_i
+            dr[k] = c1r[k] * tr - c1i[k] * ti
+            di[k] = c1r[k] * ti + c1i[k] * tr
+        if fresh:
+            fr_ = lb[2, s]
+            fi_ = lb[3, s]
             for k in range(K):
-                lb[0, s, k] = lb[2, s, k]
-                lb[1, s, k] = lb[3, s, k]
-                lb[2, s, k] = 0.0
-                lb[3, s, k] = 0.0
-        lbs[0] = lbs[2]
-        lbs[1] = lbs[3]
-        lbs[2] = 0.0
-        lbs[3] = 0.0
+                a_r = nr * c2r[k] - ni * c2i[k]
+                a_i = nr * c2i[k] + ni * c2r[k]
+                fr = fr_[k] + a_r
+                fi = fi_[k] + a_i
+                fr_[k] = c1r[k] * fr - c1i[k] * fi
+                fi_[k] = c1r[k] * fi + c1i[k] * fr
+    if fresh:
+        lbs[2] += xn
+        lbs[3] += yn
+        if (t + 1) % N == 0:
+            # the fresh set now holds exactly the current window: swap it in
+            for s in range(6):
+                for k in range(K):
+                    lb[0, s, k] = lb[2, s, k]
+                    lb[1, s, k] = lb[3, s, k]
+                    lb[2, s, k] = 0.0
+                    lb[3, s, k] = 0.0
+            lbs[0] = lbs[2]
+            lbs[1] = lbs[3]
+            lbs[2] = 0.0
+            lbs[3] = 0.0
 
 
 @numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
@@ -343,6 +367,7 @@ def lowband_sums(lb, lbc, lbs, ph, t, N):  # pragma: no cover - numba
     for k in range(lb.shape[2]):
         Wr = lbc[4, k]
         Wi = lbc[5, k]
+        # X = ½D0 − ¼ conj(ϕ) D+ − ¼ ϕ D− − μ W  (ϕ = e^{jΩs}, s the window start)
         xr = (
             0.5 * lb[0, 0, k]
             - 0.25 * (pr * lb[0, 1, k] + pi * lb[1, 1, k])
@@ -376,7 +401,7 @@ def lowband_sums(lb, lbc, lbs, ph, t, N):  # pragma: no cover - numba
 
 
 def lowband_arrays(N: int, K0: int) -> tuple[np.ndarray, ...]:
-    """Fresh state and constant arrays (lb, lbc, lbring, lbs, ph) for K0 low bins."""
+    """Fresh state and constant arrays (lb, lbc, lbring, lbs, ph, io) for K0 low bins."""
     M = 1 << (int(N) - 1).bit_length()
     k = np.arange(1, K0 + 1)
     theta = 2 * np.pi * k / M
@@ -387,15 +412,15 @@ def lowband_arrays(N: int, K0: int) -> tuple[np.ndarray, ...]:
     )
     P = N - 1
     ph = np.exp(1j * 2 * np.pi * np.arange(P) / P)
-    return np.zeros((4, 6, K0)), lbc, np.zeros((2, N)), np.zeros(4), ph
+    return np.zeros((4, 6, K0)), lbc, np.zeros((2, N)), np.zeros(4), ph, np.zeros((4, 8))
 
 
 @numba.njit(cache=True, nogil=True)
-def _lowband_block(xs, ys, t0, hop, N, lb, lbc, lbring, lbs, ph, out):  # pragma: no cover
+def _lowband_block(xs, ys, t0, hop, N, lb, lbc, lbring, lbs, ph, io, out):  # pragma: no cover
     n = 0
     for j in range(xs.shape[0]):
         t = t0 + j
-        lowband_step(lb, lbc, lbring, lbs, ph, t, N, xs[j], ys[j])
+        lowband_step(lb, lbc, lbring, lbs, ph, io, t, N, xs[j], ys[j])
         if t >= N - 1 and (t - N + 1) % hop == 0:
             E, F, Sr, Si = lowband_sums(lb, lbc, lbs, ph, t, N)
             out[n, 0] = E
