@@ -45,6 +45,7 @@ from rths_hil.compensation import InverseCompensator
 from rths_hil.config import load_config
 from rths_hil.estimation import DelayGainEstimator
 from rths_hil.loop import (
+    WORK,
     RTHSLoop,
     _ExactFEI,
     _StreamingFEI,
@@ -492,6 +493,26 @@ def profile(name: str, fs: float, duration: float, priority: int, lock: str | No
         f"| **whole step work (send → ready)** | 1 | {p50:.1f} | {p99:.1f} | {p999:.1f} | "
         f"{work.max():.0f} | {int((work > 100).sum())} |"
     )
+    # which piece of the previous step was slow when a step was late because of the work
+    cause = attribute_overruns(lat, ready, r.overrun_threshold)
+    origins = np.flatnonzero(cause == WORK)
+    origins = origins[origins > 0]
+    if origins.size:
+        once = {ph: np.asarray(v) for ph, v in loop.ph.d.items() if len(v) == r.steps}
+        print(
+            f"\nwork-late steps: {origins.size}; previous step's work p50 "
+            f"{np.median(work[origins - 1]):.0f} µs; the previous step's slowest piece:"
+        )
+        names = list(once)
+        slow = np.stack([once[ph][origins - 1] for ph in names]) * 1e6
+        top = np.argmax(slow - np.stack([np.median(once[ph]) * 1e6 for ph in names])[:, None], 0)
+        for i, ph in enumerate(names):
+            hit = top == i
+            if hit.any():
+                print(
+                    f"- {ph}: {int(hit.sum())} ({100 * hit.mean():.0f} %), its median there "
+                    f"{np.median(slow[i, hit]):.0f} µs"
+                )
 
 
 def main() -> None:

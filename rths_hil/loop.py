@@ -56,6 +56,7 @@ stop, SIGINT or SIGTERM).
 
 from __future__ import annotations
 
+import array
 import contextlib
 import datetime as _dt
 import gc
@@ -466,6 +467,16 @@ def paced_floor(
         if old_sched is not None:
             os.sched_setscheduler(0, old_sched[0], old_sched[1])
     return np.array(lat_list), np.array(ready_list)
+
+
+def _p99(x: np.ndarray) -> float:
+    """``np.percentile(x, 99)`` (linear interpolation) by a partial sort: ≈ 10× cheaper."""
+    n = x.size
+    pos = 0.99 * (n - 1)
+    lo = int(pos)
+    hi = min(lo + 1, n - 1)
+    part = np.partition(x, (lo, hi))
+    return float(part[lo] + (part[hi] - part[lo]) * (pos - lo))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1001,8 +1012,12 @@ class RTHSLoop:
         sleep = time.sleep
         nan = math.nan
 
-        lat_list = [0.0] * n
-        ready_list = [0.0] * n if paced else lat_list
+        # lateness in a C double array: the console's p99 reads it as an ndarray without a copy
+        # of the list (converting 2 k Python floats and np.percentile cost ≈ 240 µs per console
+        # line on this VM, a whole 4096 Hz period; this way ≈ 15 µs)
+        lat_list = array.array("d", bytes(8 * n))
+        lat_view = np.frombuffer(lat_list, dtype=float)
+        ready_list = [0.0] * n if paced else None
         console = self.console_interval if self.live is not None else 0.0
         next_console = math.inf
 
@@ -1038,6 +1053,7 @@ class RTHSLoop:
             next_console = t_start + console
             last_console_k, last_console_t = 0, t_start
         lat = 0.0
+        was_over = False
         try:
             while k < n and trip is None:
                 if self._stop_signal is not None:
@@ -1121,8 +1137,10 @@ class RTHSLoop:
                     over = lat > thr
                     if over:
                         overruns += 1
-                    if trip is None:
+                    # the rule counts consecutive overruns: nothing to tell it while none
+                    if (over or was_over) and trip is None:
                         trip = check_overrun(tk, k, over, lat)
+                    was_over = over
                 # ---- record ----------------------------------------------------------------
                 append(
                     tk,
@@ -1165,16 +1183,14 @@ class RTHSLoop:
                     now = perf()
                     if now >= next_console:
                         rate = (k - last_console_k) / (now - last_console_t)
-                        recent = np.asarray(lat_list[last_console_k:k])
+                        recent = lat_view[last_console_k:k]
                         self.live(
                             {
                                 "t": tk,
                                 "k": k,
                                 "n": n,
                                 "rate": rate,
-                                "p99_lateness": float(np.percentile(recent, 99))
-                                if paced and recent.size
-                                else 0.0,
+                                "p99_lateness": _p99(recent) if paced and recent.size else 0.0,
                                 "overruns": overruns,
                                 "amplitude": a_fei,
                                 "delay": d_fei,
@@ -1205,7 +1221,8 @@ class RTHSLoop:
             status = "trip"
             self._last_command = c if k == 0 else self._last_command
             rec.event("trip", **{k2: v2 for k2, v2 in trip.as_event().items() if k2 != "kind"})
-        lateness = np.array(lat_list[:k], dtype=float)
+        lateness = lat_view[:k].copy()
+        del lat_view  # release the buffer export
         ready = np.array(ready_list[:k], dtype=float) if paced else np.zeros(0)
         return RunResult(
             status=status,

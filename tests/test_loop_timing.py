@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
+from rths_hil.config import load_config
 from rths_hil.loop import (
     CAUSES,
     MACHINE,
@@ -12,10 +15,12 @@ from rths_hil.loop import (
     ON_TIME,
     WORK,
     WORK_BACKLOG,
+    RTHSLoop,
     attribute_overruns,
     count_causes,
     paced_floor,
 )
+from rths_hil.recorder import read_run
 
 DT = 1.0 / 4096.0
 THR = 0.5 * DT
@@ -130,3 +135,64 @@ def test_the_empty_loop_floor_keeps_the_grid():
     assert (ready < 0).mean() > 0.25
     cause = attribute_overruns(lat, ready, 0.5 / fs)
     assert sum(count_causes(cause).values()) == int((lat > 0.5 / fs).sum())
+
+
+class _SlowPlant:
+    """The default twin plant, taking ``slow`` seconds per step from step ``after`` on."""
+
+    def __init__(self, after: int, slow: float) -> None:
+        from sim_backends.twin import default_plant
+
+        self.inner = default_plant()
+        self.dt = self.inner.dt
+        self.after, self.slow, self.k = after, slow, 0
+
+    def reset(self) -> None:
+        self.inner.reset()
+        self.k = 0
+
+    def step(self, command: float):
+        self.k += 1
+        if self.k > self.after:
+            t = time.perf_counter() + self.slow
+            while time.perf_counter() < t:
+                pass
+        return self.inner.step(command)
+
+
+def test_consecutive_overruns_trip_where_the_record_says(tmp_path):
+    fs = 1024.0
+    cfg = load_config(
+        None,
+        [
+            "loop.duration=2",
+            "loop.console=0",
+            "output.plot=false",
+            "safety.max_overruns=20",
+            "safety.watchdog_missed=1000000",
+            "kalman.enabled=false",
+        ],
+    )
+    res = RTHSLoop(cfg, tmp_path / "r", plant=_SlowPlant(200, 2.0 / fs), mode="paced").run()
+    assert res.status == "trip" and res.trip.rule == "overrun"
+    over = read_run(tmp_path / "r").record["lateness"] > 0.5 / fs
+    # the first step that closes a run of 20 consecutive overruns in the record
+    first = next(k for k in range(19, over.size) if over[k - 19 : k + 1].all())
+    assert res.steps == first + 1 and res.trip.step == first
+    causes = res.overrun_causes()
+    assert sum(causes.values()) == res.overruns == int(over.sum())
+    # step 200's work took 2 periods: step 201 is late because of the work (unless a stall of
+    # the machine had already made step 200 late), and the rest of the run is its backlog
+    cause = attribute_overruns(res.lateness, res.ready, res.overrun_threshold)
+    if first > 201 and not over[200]:  # (a long stall of the machine may trip it earlier)
+        assert cause[201] == WORK
+        assert (cause[202 : first + 1] == WORK_BACKLOG).all()
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 100, 511, 2048])
+def test_console_p99_is_numpys_percentile(n):
+    from rths_hil.loop import _p99
+
+    x = np.random.default_rng(n).exponential(1e-5, n)
+    assert _p99(x) == pytest.approx(np.percentile(x, 99), rel=1e-12, abs=0)
+    assert (x == np.random.default_rng(n).exponential(1e-5, n)).all()  # not sorted in place
