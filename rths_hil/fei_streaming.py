@@ -27,6 +27,15 @@ against the signal (Bedrosian's theorem),
 Both signals pass through identical filters, so their relative phase is untouched; the common
 group delay of the all-pass chains shifts the window's effective position slightly into the past
 (documented in ``docs/fei.md``).
+
+Implementation (for speed; the arithmetic of each quantity is fixed by the source order, no
+re-association): a block is processed in two passes. The first runs the DC blockers, the
+all-pass chains and the sliding sums sample by sample and, at each window end, reduces the sums
+to six numbers (S, E, F and the exact Re S and E); the second turns those into A, f_eq, validity
+and level for all windows of the block at once (independent iterations, so divisions and square
+roots overlap). The phase ``atan2`` of a block is taken by numpy (vectorised); a single pushed
+sample takes it from libm (the two agree to an ulp). All state lives in one float and one integer
+array, so a pushed sample costs one short call.
 """
 
 from __future__ import annotations
@@ -36,6 +45,10 @@ from functools import lru_cache
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 from scipy.special import ellipj, ellipk
 
 #: Target worst-case phase-difference error of the Hilbert pair (degrees).
@@ -95,7 +108,19 @@ def _phase(a: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.unwrap(np.angle(h))
 
 
-# State layout (float64 array ``st``):
+# Integer state (int64 array ``ib``):
+_T = 0  # samples seen
+_NEXT_END = 1  # sample index of the next window end to report
+_HOP = 2
+_FRESH_START = 3  # sample index at which the fresh sums started
+_I1, _I2 = 4, 5  # t mod P and 2t mod P (phasor table indices of the newest sample)
+_O1, _O2 = 6, 7  # the same for the sample leaving the window (t − N)
+_SLOT = 8  # t mod N (ring slot)
+_N = 9  # window length
+_NSEC = 10  # first-order sections per chain
+_OFF_COEF, _OFF_CST, _OFF_RING, _OFF_PH, _OFF_ACC, _OFF_ONE, _OFF_WORK = 11, 12, 13, 14, 15, 16, 17
+_NIB = 18
+# Float state (float64 array ``fb``), scalars first:
 _DC_R = 0  # DC blocker pole
 _DCX_IN, _DCX_OUT, _DCY_IN, _DCY_OUT = 1, 2, 3, 4
 _ZPREV_RE, _ZPREV_IM = 5, 6  # previous analytic target sample
@@ -108,257 +133,434 @@ _W1 = 13  # Σ w_n
 _WP = 14  # Σ (−1)^n w_n
 _X0, _Y0 = 15, 16  # first samples (subtracted from the raw signals against round-off)
 _NST = 17
-# Integer state (int64 array ``ist``):
-_T = 0  # samples seen
-_NEXT_END = 1  # sample index of the next window end to report
-_HOP = 2
-_FRESH_START = 3  # sample index at which the fresh sums started
-_I1, _I2 = 4, 5  # t mod P and 2t mod P (phasor table indices of the newest sample)
-_O1, _O2 = 6, 7  # the same for the sample leaving the window (t − N)
-_SLOT = 8  # t mod N (ring slot)
-_NIST = 9
+# then: section coefficients (nsec, 4) and states (nsec, 2, 4) of the four chains (x I, x Q,
+# y I, y Q); the ring (N, _NRING) of per-sample quantities; the phasor table (P, 2); the
+# sliding sums (2, _NACC) (running, fresh); the row of the last pushed window (6) and its work
+# column (_NWORK).
+#
+# Sliding sums: each quantity q has Σ q (one real) and Σ q e^{jΩt}, Σ q e^{j2Ωt} (two complex).
+# The eight real quantities (_Q2 … _SY) are stored component-major, (5, 8): component c
+# (Σq, Re/Im m = 1, Re/Im m = 2) of quantity i at 8c + i, so that one component of all eight
+# is one 8-wide vector; running sums at 0, fresh sums at 40. The complex q₁ = z_o conj(z_I) has
+# m = −2 … 2 (ten reals, re/im): running at 80, fresh at 90.
+_Q2, _Q3 = 0, 1  # |z_I|², Im(conj(z_I[n−1]) z_I[n])
+_YX, _XX, _XR, _YR = 2, 3, 4, 5  # raw (mean-free by first sample) ŷx̂, x̂², x̂, ŷ
+_SX, _SY = 6, 7  # (−1)^t x̂, (−1)^t ŷ (m = 0, 1 used)
+_NREAL = 8
+_Q1 = 80  # q₁: re/im for m = −2, −1, 0, 1, 2 (fresh: + 10)
+_NACC = 100
+_NRING = 10  # ring slot: the eight real quantities, then q₁ (re, im)
+# Per-window work rows (pass 1 → pass 2): Re S, Im S, E, F (analytic), exact Re S, exact E.
+_NWORK = 6
+
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy", "fastmath": {"contract"}}
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(inline="always", **_JIT)
 def _wrap(i: int, P: int) -> int:
     if i >= P:
         return i - P
-    if i < 0:
-        return i + P
     return i
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _hann_sums(acc, j, c1, c2):
-    """(Σ w_n² q, Σ w_n q) over the window from the sliding sums of column ``j``."""
-    a0 = acc[0, 2, j].real
-    a1 = (c1 * acc[0, 3, j]).real
-    a2 = (c2 * acc[0, 4, j]).real
-    return 0.375 * a0 - 0.5 * a1 + 0.125 * a2, 0.5 * a0 - 0.5 * a1
+@intrinsic
+def _real_sums(typingctx, fb, a0, ring, q, p, r, resync):  # pragma: no cover
+    """Sliding sums of the eight real quantities (one 8-wide vector per component) and their
+    Hann-weighted window sums.
+
+    ``q``: the new sample's quantities (8-tuple); ``p``, ``r``: (Re, Im) of the phasors e^{jΩt},
+    e^{j2Ωt} of the new sample and of the one leaving the window (4-tuples). The old quantities
+    are read from ``fb[ring:ring + 8]`` and replaced by ``q``. For each component c with phasor
+    factor p_c (1 for Σq): running ``s = (s + q_i p_c) − o_i r_c`` (the product o_i r_c fused),
+    fresh ``f += q_i p_c``; with ``resync`` the running sums become the fresh ones and the
+    fresh ones restart at 0. Returns Σ w² q for quantities 0 … 5, Σ w q for 4 … 7 and Σ q for
+    4, 5 over the window ending at the new sample:
+    Σ w² q = ⅜ Σq − ½ Re(c₁ Σ q e^{jΩt}) + ⅛ Re(c₂ Σ q e^{j2Ωt}), Σ w q = ½ Σq − ½ Re(c₁ …).
+    """
+    ret = types.UniTuple(types.float64, 12)
+    sig = ret(fb, a0, ring, q, p, r, resync)
+
+    def codegen(context, builder, signature, args):
+        fbv, a0o, ro, qt, pt, rt, rs = args
+        base = context.make_array(signature.args[0])(context, builder, fbv).data
+        dbl = ir.DoubleType()
+        vty = ir.VectorType(dbl, 8)
+        i32 = ir.IntType(32)
+        i64 = ir.IntType(64)
+
+        def vptr(off):
+            return builder.bitcast(builder.gep(base, [off]), vty.as_pointer())
+
+        def splat(x):
+            if isinstance(x, float):
+                return ir.Constant(vty, [x] * 8)
+            v = builder.insert_element(ir.Constant(vty, ir.Undefined), x, ir.Constant(i32, 0))
+            mask = ir.Constant(ir.VectorType(i32, 8), [0] * 8)
+            return builder.shuffle_vector(v, ir.Constant(vty, ir.Undefined), mask)
+
+        qv = ir.Constant(vty, ir.Undefined)
+        for i in range(8):
+            qv = builder.insert_element(qv, builder.extract_value(qt, i), ir.Constant(i32, i))
+        rp = vptr(ro)
+        ov = builder.load(rp, align=8)
+        builder.store(qv, rp, align=8)
+        fma = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(vty, [vty, vty, vty]), "llvm.fma.v8f64"
+        )
+        neg_ov = builder.fneg(ov)
+        zero = ir.Constant(vty, [0.0] * 8)
+        A = []
+        for c in range(5):
+            if c == 0:
+                u = qv
+            else:
+                u = builder.fmul(qv, splat(builder.extract_value(pt, c - 1)))
+            p0 = vptr(builder.add(a0o, ir.Constant(i64, 8 * c)))
+            run = builder.fadd(builder.load(p0, align=8), u)
+            if c == 0:
+                run = builder.fsub(run, ov)
+            else:
+                run = builder.call(fma, [neg_ov, splat(builder.extract_value(rt, c - 1)), run])
+            p1 = vptr(builder.add(a0o, ir.Constant(i64, 40 + 8 * c)))
+            fresh = builder.fadd(builder.load(p1, align=8), u)
+            run = builder.select(rs, fresh, run)
+            builder.store(run, p0, align=8)
+            builder.store(builder.select(rs, zero, fresh), p1, align=8)
+            A.append(run)
+        # Window sums with the conjugate phasors c₁ = conj(p₁), c₂ = conj(p₂) (as _hann2/1).
+        c1r = splat(builder.extract_value(pt, 0))
+        c1i = splat(builder.fneg(builder.extract_value(pt, 1)))
+        c2r = splat(builder.extract_value(pt, 2))
+        c2i = splat(builder.fneg(builder.extract_value(pt, 3)))
+        re1 = builder.fsub(builder.fmul(c1r, A[1]), builder.fmul(c1i, A[2]))
+        re2 = builder.fsub(builder.fmul(c2r, A[3]), builder.fmul(c2i, A[4]))
+        h2 = builder.fadd(
+            builder.fsub(builder.fmul(splat(0.375), A[0]), builder.fmul(splat(0.5), re1)),
+            builder.fmul(splat(0.125), re2),
+        )
+        h1 = builder.fsub(builder.fmul(splat(0.5), A[0]), builder.fmul(splat(0.5), re1))
+        vals = [builder.extract_element(h2, ir.Constant(i32, i)) for i in range(6)]
+        vals += [builder.extract_element(h1, ir.Constant(i32, i)) for i in range(4, 8)]
+        vals += [builder.extract_element(A[0], ir.Constant(i32, i)) for i in (4, 5)]
+        return cgutils.pack_array(builder, vals)
+
+    return sig, codegen
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract", "arcp", "reassoc"})
-def _sample(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t, nout):  # pragma: no cover
-    """Advance the estimator by one sample pair; return the new number of output rows."""
-    N = ring.shape[0]
-    P = ph.shape[0]  # N − 1
-    t = ist[_T]
-    if t == 0:  # start the DC blockers at the first value: no step transient
-        st[_DCX_IN] = x
-        st[_DCY_IN] = y
-        st[_X0] = x
-        st[_Y0] = y
-    r = st[_DC_R]
-    xo = x - st[_DCX_IN] + r * st[_DCX_OUT]
-    st[_DCX_IN] = x
-    st[_DCX_OUT] = xo
-    yo = y - st[_DCY_IN] + r * st[_DCY_OUT]
-    st[_DCY_IN] = y
-    st[_DCY_OUT] = yo
-    # Four all-pass chains side by side: (x, I), (x, Q), (y, I), (y, Q).
-    v0 = xo
-    v1 = xo
-    v2 = yo
-    v3 = yo
-    for j in range(coef.shape[0]):
-        ai = coef[j, 0]
-        aq = coef[j, 1]
-        o0 = ai * (v0 - cst[j, 0, 1]) + cst[j, 0, 0]
-        o1 = aq * (v1 - cst[j, 1, 1]) + cst[j, 1, 0]
-        o2 = ai * (v2 - cst[j, 2, 1]) + cst[j, 2, 0]
-        o3 = aq * (v3 - cst[j, 3, 1]) + cst[j, 3, 0]
-        cst[j, 0, 0] = v0
-        cst[j, 1, 0] = v1
-        cst[j, 2, 0] = v2
-        cst[j, 3, 0] = v3
-        cst[j, 0, 1] = o0
-        cst[j, 1, 1] = o1
-        cst[j, 2, 1] = o2
-        cst[j, 3, 1] = o3
-        v0 = o0
-        v1 = o1
-        v2 = o2
-        v3 = o3
-    zx = complex(v0, v1)
-    zy = complex(v2, v3)
-    zp = complex(st[_ZPREV_RE], st[_ZPREV_IM])
-    st[_ZPREV_RE] = v0
-    st[_ZPREV_IM] = v1
-    q1 = zy * zx.conjugate()
-    q2 = v0 * v0 + v1 * v1
-    q3 = (zp.conjugate() * zx).imag
-    slot = ist[_SLOT]
-    ist[_SLOT] = slot + 1 if slot + 1 < N else 0
-    o1c = ring[slot, 0]
-    o2 = ring[slot, 1].real
-    o3 = ring[slot, 2].real
-    ring[slot, 0] = q1
-    ring[slot, 1] = q2
-    ring[slot, 2] = q3
-    # Raw (mean-free per window, exactly as the exact FEI) quantities for Re S and E.
-    xr = x - st[_X0]
-    yr = y - st[_Y0]
-    sgn = 1.0 if (t & 1) == 0 else -1.0
-    raw_new = (yr * xr, xr * xr, xr, yr, sgn * xr, sgn * yr)
-    raw_old = (
-        ring[slot, 3].real,
-        ring[slot, 4].real,
-        ring[slot, 5].real,
-        ring[slot, 6].real,
-        ring[slot, 7].real,
-        ring[slot, 8].real,
-    )
-    for j in range(6):
-        ring[slot, 3 + j] = raw_new[j]
-    i1 = ist[_I1]
-    i2 = ist[_I2]
-    p0 = 1.0 + 0j
-    p1 = ph[i1]
-    p2 = ph[i2]
-    pm1 = p1.conjugate()
-    pm2 = p2.conjugate()
-    # Sliding sums acc[0, m + 2, j] = Σ q_j e^{j m Ω t}; acc[1] are the fresh sums.
-    for b in range(2):  # the running sums and the fresh ones
-        acc[b, 0, 0] += q1 * pm2
-        acc[b, 1, 0] += q1 * pm1
-        acc[b, 2, 0] += q1
-        acc[b, 3, 0] += q1 * p1
-        acc[b, 4, 0] += q1 * p2
-        acc[b, 2, 1] += q2 * p0
-        acc[b, 3, 1] += q2 * p1
-        acc[b, 4, 1] += q2 * p2
-        acc[b, 2, 2] += q3 * p0
-        acc[b, 3, 2] += q3 * p1
-        acc[b, 4, 2] += q3 * p2
-    for j in range(6):
-        q = raw_new[j]
-        for b in range(2):
-            acc[b, 2, 3 + j] += q
-            acc[b, 3, 3 + j] += q * p1
-            acc[b, 4, 3 + j] += q * p2
-    if t >= N:
-        r1 = ph[ist[_O1]]
-        r2 = ph[ist[_O2]]
-        rm1 = r1.conjugate()
-        rm2 = r2.conjugate()
-        acc[0, 0, 0] -= o1c * rm2
-        acc[0, 1, 0] -= o1c * rm1
-        acc[0, 2, 0] -= o1c
-        acc[0, 3, 0] -= o1c * r1
-        acc[0, 4, 0] -= o1c * r2
-        acc[0, 2, 1] -= o2
-        acc[0, 3, 1] -= o2 * r1
-        acc[0, 4, 1] -= o2 * r2
-        acc[0, 2, 2] -= o3
-        acc[0, 3, 2] -= o3 * r1
-        acc[0, 4, 2] -= o3 * r2
-        for j in range(6):
-            q = raw_old[j]
-            acc[0, 2, 3 + j] -= q
-            acc[0, 3, 3 + j] -= q * r1
-            acc[0, 4, 3 + j] -= q * r2
-    ist[_O1] = _wrap(ist[_O1] + 1, P)
-    ist[_O2] = _wrap(ist[_O2] + 2, P)
-    ist[_I1] = _wrap(i1 + 1, P)
-    ist[_I2] = _wrap(i2 + 2, P)
-    ist[_T] = t + 1
-    # Resynchronise: the fresh sums hold exactly the current window after N additions.
-    if t + 1 - ist[_FRESH_START] == N:
-        for i in range(5):
-            for j in range(acc.shape[2]):
-                acc[0, i, j] = acc[1, i, j]
-                acc[1, i, j] = 0j
-        ist[_FRESH_START] = t + 1
-    if t != ist[_NEXT_END]:
-        return nout
-    ist[_NEXT_END] = t + ist[_HOP]
+@numba.njit(inline="always", **_JIT)
+def _cplx_sum(a0, a1, b, qr, qi, pr, pi, orr, oi, rr, ri):  # pragma: no cover
+    """Add q·p to both sets of sums at offset ``b``; remove o·r (complex products)."""
+    ur = qr * pr - qi * pi
+    ui = qr * pi + qi * pr
+    a0[b] = a0[b] + ur - (orr * rr - oi * ri)
+    a0[b + 1] = a0[b + 1] + ui - (orr * ri + oi * rr)
+    a1[b] += ur
+    a1[b + 1] += ui
+
+
+@numba.njit(inline="always", **_JIT)
+def _window_sums(t, N, a, h, p1r, p1i, p2r, p2i, w2, sum_w, alt_w, Mf):  # pragma: no cover
+    """(Re S, Im S, E, F, exact Re S, exact E) of the window ending at sample ``t``.
+
+    ``a``: the sums (q₁ at _Q1); ``h``: the window sums of the real quantities from
+    :func:`_real_sums`.
+    """
     # Σ_n w_n² q = 3/8 Σq − ½ Σ q cos(Ωn) + ⅛ Σ q cos(2Ωn), n = t' − s0, s0 = t − N + 1:
     # e^{jmΩn} = e^{jmΩt'} e^{−jmΩ s0}, and e^{−jΩ s0} = e^{jΩ(N−1−t)} = conj(phasor of t).
-    c1 = pm1
-    c2 = pm2
-    S = (
-        0.375 * acc[0, 2, 0]
-        - 0.25 * (c1 * acc[0, 3, 0] + p1 * acc[0, 1, 0])
-        + 0.0625 * (c2 * acc[0, 4, 0] + p2 * acc[0, 0, 0])
+    c1r = p1r
+    c1i = -p1i
+    c2r = p2r
+    c2i = -p2i
+    b = 0
+    s_re = (
+        0.375 * a[b + 4]
+        - 0.25 * ((c1r * a[b + 6] - c1i * a[b + 7]) + (p1r * a[b + 2] - p1i * a[b + 3]))
+        + 0.0625 * ((c2r * a[b + 8] - c2i * a[b + 9]) + (p2r * a[b] - p2i * a[b + 1]))
     )
-    E = (
-        0.375 * acc[0, 2, 1].real
-        - 0.5 * (c1 * acc[0, 3, 1]).real
-        + 0.125 * (c2 * acc[0, 4, 1]).real
+    s_im = (
+        0.375 * a[b + 5]
+        - 0.25 * ((c1r * a[b + 7] + c1i * a[b + 6]) + (p1r * a[b + 3] + p1i * a[b + 2]))
+        + 0.0625 * ((c2r * a[b + 9] + c2i * a[b + 8]) + (p2r * a[b + 1] + p2i * a[b]))
     )
-    F = (
-        0.375 * acc[0, 2, 2].real
-        - 0.5 * (c1 * acc[0, 3, 2]).real
-        + 0.125 * (c2 * acc[0, 4, 2]).real
-    )
+    E = h[_Q2]
+    F = h[_Q3]
     # Exact Re S and E of the windowed, mean-free signals (Parseval, one-sided bins 1 … p−1):
     # Σ_k Y conj(X) over all M bins = M Σ ŷ x̂; remove DC (k = 0) and Nyquist (k = p), halve.
     n_win = float(N)
-    mu_x = acc[0, 2, 5].real / n_win
-    mu_y = acc[0, 2, 6].real / n_win
-    yx2, _ = _hann_sums(acc, 3, c1, c2)
-    xx2, _ = _hann_sums(acc, 4, c1, c2)
-    x2, x1 = _hann_sums(acc, 5, c1, c2)
-    y2, y1 = _hann_sums(acc, 6, c1, c2)
-    _, sx1 = _hann_sums(acc, 7, c1, c2)
-    _, sy1 = _hann_sums(acc, 8, c1, c2)
-    w2 = st[_WSQ]
+    mu_x = h[10] / n_win
+    mu_y = h[11] / n_win
+    yx2 = h[_YX]
+    xx2 = h[_XX]
+    x2 = h[_XR]
+    y2 = h[_YR]
+    x1 = h[6]
+    y1 = h[7]
+    sx1 = h[8]
+    sy1 = h[9]
     sxy = yx2 - mu_x * y2 - mu_y * x2 + mu_x * mu_y * w2
     sxx = xx2 - 2.0 * mu_x * x2 + mu_x * mu_x * w2
-    x_dc = x1 - mu_x * st[_W1]
-    y_dc = y1 - mu_y * st[_W1]
+    x_dc = x1 - mu_x * sum_w
+    y_dc = y1 - mu_y * sum_w
     s0_sign = 1.0 if ((t - N + 1) & 1) == 0 else -1.0
-    x_ny = s0_sign * sx1 - mu_x * st[_WP]
-    y_ny = s0_sign * sy1 - mu_y * st[_WP]
-    Mf = st[_M]
+    x_ny = s0_sign * sx1 - mu_x * alt_w
+    y_ny = s0_sign * sy1 - mu_y * alt_w
     re_s = 0.5 * (Mf * sxy - y_dc * x_dc - y_ny * x_ny)
     e_ex = 0.5 * (Mf * sxx - x_dc * x_dc - x_ny * x_ny)
-    level = math.sqrt(max(2.0 * e_ex / (Mf * w2), 0.0))
-    if level > st[_PEAK]:
-        st[_PEAK] = level
-    f_eq = st[_FS] * F / (2.0 * math.pi * E) if E > 0 else math.nan
-    valid = (
-        level > st[_ABS]
-        and level >= st[_REL] * st[_PEAK]
-        and f_eq > 0
-        and math.isfinite(f_eq)
-        and e_ex > 0
-    )
-    if valid:
-        # Amplitude: real part exact, quadrature part from the analytic signals (ratio to
-        # their E). Phase: wholly from the analytic signals (both parts in the same window).
-        ratio = S / E
-        amp = math.hypot(re_s / e_ex, ratio.imag)
-        phase = math.atan2(ratio.imag, ratio.real)
-        delay = -phase / (2.0 * math.pi * f_eq)
-    else:
-        amp = math.nan
-        phase = math.nan
-        f_eq = math.nan
-        delay = math.nan
-    out[nout, 0] = amp
-    out[nout, 1] = phase
-    out[nout, 2] = f_eq
-    out[nout, 3] = delay
-    out[nout, 4] = 1.0 if valid else 0.0
-    out[nout, 5] = level
-    out_t[nout] = t
-    return nout + 1
+    return s_re, s_im, E, F, re_s, e_ex
 
 
-@numba.njit(cache=True, nogil=True)
-def _stream_block(xs, ys, st, ist, coef, cst, ring, ph, acc, out, out_t):  # pragma: no cover
-    """Process a block; completed windows go to ``out`` (A, φ, f_eq, d, valid, level)."""
+@numba.njit(**_JIT)
+def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
+    """DC blockers, all-pass chains and sliding sums for a block (one sample after another).
+
+    For each completed window: its end index into ``out_t`` and its six sums into the columns of
+    ``work``. Returns the number of completed windows.
+    """
+    N = ib[_N]
+    ns = ib[_NSEC]
+    P = N - 1
+    coef = fb[ib[_OFF_COEF] : ib[_OFF_COEF] + 4 * ns].reshape((ns, 4))
+    cst = fb[ib[_OFF_CST] : ib[_OFF_CST] + 8 * ns].reshape((ns, 2, 4))
+    ring = fb[ib[_OFF_RING] : ib[_OFF_RING] + _NRING * N].reshape((N, _NRING))
+    ph = fb[ib[_OFF_PH] : ib[_OFF_PH] + 2 * P].reshape((P, 2))
+    off_acc = ib[_OFF_ACC]
+    off_ring = ib[_OFF_RING]
+    acc = fb[off_acc : off_acc + _NACC]
+    a0 = acc[_Q1 : _Q1 + 10]  # q₁: running sums
+    a1 = acc[_Q1 + 10 : _Q1 + 20]  # q₁: fresh sums
+    n = xs.shape[0]
+    t = ib[_T]
+    if n > 0 and t == 0:  # start the DC blockers at the first value: no step transient
+        fb[_DCX_IN] = xs[0]
+        fb[_DCY_IN] = ys[0]
+        fb[_X0] = xs[0]
+        fb[_Y0] = ys[0]
+    next_end = ib[_NEXT_END]
+    hop = ib[_HOP]
+    fresh = ib[_FRESH_START]
+    i1 = ib[_I1]
+    i2 = ib[_I2]
+    o1i = ib[_O1]
+    o2i = ib[_O2]
+    slot = ib[_SLOT]
+    r = fb[_DC_R]
+    xin = fb[_DCX_IN]
+    xout = fb[_DCX_OUT]
+    yin = fb[_DCY_IN]
+    yout = fb[_DCY_OUT]
+    zpr = fb[_ZPREV_RE]
+    zpi = fb[_ZPREV_IM]
+    x0 = fb[_X0]
+    y0 = fb[_Y0]
+    w2 = fb[_WSQ]
+    sum_w = fb[_W1]
+    alt_w = fb[_WP]
+    Mf = fb[_M]
     nout = 0
-    for k in range(xs.shape[0]):
-        nout = _sample(xs[k], ys[k], st, ist, coef, cst, ring, ph, acc, out, out_t, nout)
+    for k in range(n):
+        x = xs[k]
+        y = ys[k]
+        xo = x - xin + r * xout
+        xin = x
+        xout = xo
+        yo = y - yin + r * yout
+        yin = y
+        yout = yo
+        # Four all-pass chains side by side: (x, I), (x, Q), (y, I), (y, Q).
+        v0 = xo
+        v1 = xo
+        v2 = yo
+        v3 = yo
+        for j in range(ns):
+            o0 = coef[j, 0] * (v0 - cst[j, 1, 0]) + cst[j, 0, 0]
+            o1 = coef[j, 1] * (v1 - cst[j, 1, 1]) + cst[j, 0, 1]
+            o2 = coef[j, 2] * (v2 - cst[j, 1, 2]) + cst[j, 0, 2]
+            o3 = coef[j, 3] * (v3 - cst[j, 1, 3]) + cst[j, 0, 3]
+            cst[j, 0, 0] = v0
+            cst[j, 0, 1] = v1
+            cst[j, 0, 2] = v2
+            cst[j, 0, 3] = v3
+            cst[j, 1, 0] = o0
+            cst[j, 1, 1] = o1
+            cst[j, 1, 2] = o2
+            cst[j, 1, 3] = o3
+            v0 = o0
+            v1 = o1
+            v2 = o2
+            v3 = o3
+        # q₁ = z_y conj(z_x), q₂ = |z_x|², q₃ = Im(conj(z_x[t−1]) z_x[t])
+        q1r = v2 * v0 + v3 * v1
+        q1i = v3 * v0 - v2 * v1
+        q2 = v0 * v0 + v1 * v1
+        q3 = zpr * v1 - zpi * v0
+        zpr = v0
+        zpi = v1
+        # Raw (mean-free per window, exactly as the exact FEI) quantities for Re S and E.
+        xr = x - x0
+        yr = y - y0
+        sgn = 1.0 if (t & 1) == 0 else -1.0
+        q_yx = yr * xr
+        q_xx = xr * xr
+        q_sx = sgn * xr
+        q_sy = sgn * yr
+        # The sample leaving the window (zeros in the ring before the first N samples).
+        row = ring[slot]
+        row_off = off_ring + _NRING * slot
+        o_q1r = row[8]
+        o_q1i = row[9]
+        row[8] = q1r
+        row[9] = q1i
+        slot += 1
+        if slot == N:
+            slot = 0
+        p1r = ph[i1, 0]
+        p1i = ph[i1, 1]
+        p2r = ph[i2, 0]
+        p2i = ph[i2, 1]
+        r1r = ph[o1i, 0]
+        r1i = ph[o1i, 1]
+        r2r = ph[o2i, 0]
+        r2i = ph[o2i, 1]
+        # Sliding sums Σ q e^{jmΩt'} over the window, and the fresh sums.
+        resync = t + 1 - fresh == N
+        h = _real_sums(
+            fb,
+            off_acc,
+            row_off,
+            (q2, q3, q_yx, q_xx, xr, yr, q_sx, q_sy),
+            (p1r, p1i, p2r, p2i),
+            (r1r, r1i, r2r, r2i),
+            resync,
+        )
+        _cplx_sum(a0, a1, 0, q1r, q1i, p2r, -p2i, o_q1r, o_q1i, r2r, -r2i)
+        _cplx_sum(a0, a1, 2, q1r, q1i, p1r, -p1i, o_q1r, o_q1i, r1r, -r1i)
+        a0[4] = a0[4] + q1r - o_q1r
+        a0[5] = a0[5] + q1i - o_q1i
+        a1[4] += q1r
+        a1[5] += q1i
+        _cplx_sum(a0, a1, 6, q1r, q1i, p1r, p1i, o_q1r, o_q1i, r1r, r1i)
+        _cplx_sum(a0, a1, 8, q1r, q1i, p2r, p2i, o_q1r, o_q1i, r2r, r2i)
+        # Resynchronise: the fresh sums hold exactly the current window after N additions.
+        if resync:
+            for i in range(10):
+                a0[i] = a1[i]
+                a1[i] = 0.0
+            fresh = t + 1
+        if t == next_end:
+            next_end += hop
+            s_re, s_im, E, F, re_s, e_ex = _window_sums(
+                t, N, a0, h, p1r, p1i, p2r, p2i, w2, sum_w, alt_w, Mf
+            )
+            work[0, nout] = s_re
+            work[1, nout] = s_im
+            work[2, nout] = E
+            work[3, nout] = F
+            work[4, nout] = re_s
+            work[5, nout] = e_ex
+            out_t[nout] = t
+            nout += 1
+        o1i = _wrap(o1i + 1, P)
+        o2i = _wrap(o2i + 2, P)
+        i1 = _wrap(i1 + 1, P)
+        i2 = _wrap(i2 + 2, P)
+        t += 1
+    ib[_T] = t
+    ib[_NEXT_END] = next_end
+    ib[_FRESH_START] = fresh
+    ib[_I1] = i1
+    ib[_I2] = i2
+    ib[_O1] = o1i
+    ib[_O2] = o2i
+    ib[_SLOT] = slot
+    fb[_DCX_IN] = xin
+    fb[_DCX_OUT] = xout
+    fb[_DCY_IN] = yin
+    fb[_DCY_OUT] = yout
+    fb[_ZPREV_RE] = zpr
+    fb[_ZPREV_IM] = zpi
     return nout
 
 
-@numba.njit(cache=True, nogil=True)
-def _stream_one(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t):  # pragma: no cover
-    """Process one sample pair; return 1 when a window completed (row 0 of ``out``)."""
-    return _sample(x, y, st, ist, coef, cst, ring, ph, acc, out, out_t, 0)
+@numba.njit(**_JIT)
+def _pass2(fb, work, out, n, angles):  # pragma: no cover
+    """Estimates of ``n`` windows from their sums in ``work`` → columns of ``out``.
+
+    Rows of ``out``: A, φ, f_eq, d, valid, level. With ``angles`` false, rows 1 and 3 receive
+    Re S/E and Im S/E instead of φ and d (the caller takes a vectorised atan2).
+    """
+    Mw2 = fb[_M] * fb[_WSQ]
+    fs = fb[_FS]
+    two_pi = 2.0 * math.pi
+    # Independent per window (no branches: the divisions and roots of many windows overlap).
+    for i in range(n):
+        E = work[2, i]
+        e_ex = work[5, i]
+        r_re = work[0, i] / E
+        r_im = work[1, i] / E
+        a_re = work[4, i] / e_ex
+        out[0, i] = math.sqrt(a_re * a_re + r_im * r_im)
+        out[1, i] = r_re
+        out[2, i] = fs * work[3, i] / (two_pi * E)
+        out[3, i] = r_im
+        out[5, i] = math.sqrt(max(2.0 * e_ex / Mw2, 0.0))
+    # Running peak and validity (sequential, cheap).
+    peak = fb[_PEAK]
+    abs_floor = fb[_ABS]
+    rel_floor = fb[_REL]
+    for i in range(n):
+        level = out[5, i]
+        if level > peak:
+            peak = level
+        f_eq = out[2, i]
+        valid = (
+            level > abs_floor
+            and level >= rel_floor * peak
+            and work[2, i] > 0
+            and f_eq > 0
+            and math.isfinite(f_eq)
+            and work[5, i] > 0
+        )
+        if valid:
+            # Amplitude: real part exact, quadrature part from the analytic signals (ratio to
+            # their E). Phase: wholly from the analytic signals (both parts in the same window).
+            out[4, i] = 1.0
+            amp = out[0, i]
+            if not 1e-150 < amp < 1e150:  # |·| by hypot where the squares could over/underflow
+                amp = math.hypot(work[4, i] / work[5, i], out[3, i])
+                out[0, i] = amp
+            if angles:
+                phase = math.atan2(out[3, i], out[1, i])
+                out[1, i] = phase
+                out[3, i] = -phase / (two_pi * f_eq)
+        else:
+            out[0, i] = math.nan
+            out[1, i] = math.nan
+            out[2, i] = math.nan
+            out[3, i] = math.nan
+            out[4, i] = 0.0
+    fb[_PEAK] = peak
+
+
+@numba.njit(**_JIT)
+def _stream_block(xs, ys, fb, ib, work, out, out_t):  # pragma: no cover
+    """Process a block; completed windows → columns of ``out`` (φ, d: see :func:`_pass2`)."""
+    n = _pass1(xs, ys, fb, ib, work, out_t)
+    _pass2(fb, work, out, n, False)
+    return n
+
+
+@numba.njit(**_JIT)
+def _stream_one(x, y, fb, ib):  # pragma: no cover
+    """Process one sample pair; return 1 when a window completed (its row: ``fb`` at _OFF_ONE)."""
+    w = ib[_OFF_WORK]
+    o = ib[_OFF_ONE]
+    xy = fb[w + _NWORK : w + _NWORK + 2]
+    xy[0] = x
+    xy[1] = y
+    work = fb[w : w + _NWORK].reshape((_NWORK, 1))
+    n = _pass1(xy[0:1], xy[1:2], fb, ib, work, ib[_NIB : _NIB + 1])
+    _pass2(fb, work, fb[o : o + 6].reshape((6, 1)), n, True)
+    return n
 
 
 class StreamingFEI:
@@ -387,70 +589,77 @@ class StreamingFEI:
         self.band = (f_lo, f_hi)
         self.dc_corner = 0.1 / window_s
         N = self.N
-        self.st = np.zeros(_NST)
-        self.st[_DC_R] = math.exp(-2 * math.pi * self.dc_corner / self.fs)
-        self.st[_ABS] = abs_floor
-        self.st[_REL] = rel_floor
-        self.st[_FS] = self.fs
-        w = np.hanning(N)
-        self.st[_WSQ] = float(w @ w)
-        self.st[_W1] = float(w.sum())
-        self.st[_WP] = float(w @ ((-1.0) ** np.arange(N)))
-        M = 1 << (N - 1).bit_length()
-        self.st[_M] = float(M)
-        self.ist = np.zeros(_NIST, dtype=np.int64)
-        self.ist[_NEXT_END] = N - 1
-        self.ist[_HOP] = self.hop
         P = N - 1
-        self.ist[_O1] = (-N) % P
-        self.ist[_O2] = (-2 * N) % P
-        self.coef = np.ascontiguousarray(np.column_stack([self.a_i, self.a_q]))
-        self.cst = np.zeros((self.coef.shape[0], 4, 2))
-        self.ring = np.zeros((N, 9), dtype=complex)
-        self.ph = np.exp(1j * 2 * np.pi * np.arange(P) / P)
-        self.acc = np.zeros((2, 5, 9), dtype=complex)
-        self._out = np.empty((1, 6))
+        ns = self.a_i.size
+        sizes = {
+            "st": _NST,
+            "coef": 4 * ns,
+            "cst": 8 * ns,
+            "ring": _NRING * N,
+            "ph": 2 * P,
+            "acc": _NACC,
+            "one": 6,
+            "work": _NWORK + 2,
+        }
+        off = np.cumsum([0, *sizes.values()])
+        self._fb = fb = np.zeros(int(off[-1]))
+        self._ib = ib = np.zeros(_NIB + 1, dtype=np.int64)  # + scratch slot for a window end
+        views = {name: fb[off[i] : off[i + 1]] for i, name in enumerate(sizes)}
+        for slot, name in (
+            (_OFF_COEF, "coef"),
+            (_OFF_CST, "cst"),
+            (_OFF_RING, "ring"),
+            (_OFF_PH, "ph"),
+            (_OFF_ACC, "acc"),
+            (_OFF_ONE, "one"),
+            (_OFF_WORK, "work"),
+        ):
+            ib[slot] = off[list(sizes).index(name)]
+        ib[_N] = N
+        ib[_NSEC] = ns
+        ib[_NEXT_END] = N - 1
+        ib[_HOP] = self.hop
+        ib[_O1] = (-N) % P
+        ib[_O2] = (-2 * N) % P
+        st = views["st"]
+        st[_DC_R] = math.exp(-2 * math.pi * self.dc_corner / self.fs)
+        st[_ABS] = abs_floor
+        st[_REL] = rel_floor
+        st[_FS] = self.fs
+        w = np.hanning(N)
+        st[_WSQ] = float(w @ w)
+        st[_W1] = float(w.sum())
+        st[_WP] = float(w @ ((-1.0) ** np.arange(N)))
+        st[_M] = float(1 << (N - 1).bit_length())
+        views["coef"][:] = np.column_stack([self.a_i, self.a_q, self.a_i, self.a_q]).ravel()
+        phasor = np.exp(1j * 2 * np.pi * np.arange(P) / P)
+        views["ph"][:] = np.column_stack([phasor.real, phasor.imag]).ravel()
+        self._one = views["one"]
+        self._work = np.empty((_NWORK, 1))
+        self._out = np.empty((6, 1))
         self._out_t = np.empty(1, dtype=np.int64)
-        self._one = np.empty((1, 6))
-        self._one_t = np.empty(1, dtype=np.int64)
-        self._args = (
-            self.st,
-            self.ist,
-            self.coef,
-            self.cst,
-            self.ring,
-            self.ph,
-            self.acc,
-            self._one,
-            self._one_t,
-        )
 
     def process(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Push blocks; return (rows of A, φ, f_eq, d, valid, level; window-end indices)."""
+        """Push blocks; return (rows of A, φ, f_eq, d, valid, level; window-end indices).
+
+        The rows are a view (each column contiguous) that the next call overwrites.
+        """
         nmax = x.shape[0] // self.hop + 1
-        if self._out.shape[0] < nmax:
-            self._out = np.empty((nmax, 6))
+        if self._out.shape[1] < nmax:
+            self._work = np.empty((_NWORK, nmax))
+            self._out = np.empty((6, nmax))
             self._out_t = np.empty(nmax, dtype=np.int64)
-        n = _stream_block(
-            x,
-            y,
-            self.st,
-            self.ist,
-            self.coef,
-            self.cst,
-            self.ring,
-            self.ph,
-            self.acc,
-            self._out,
-            self._out_t,
-        )
-        return self._out[:n], self._out_t[:n]
+        n = _stream_block(x, y, self._fb, self._ib, self._work, self._out, self._out_t)
+        out = self._out[:, :n]
+        np.arctan2(out[3], out[1], out=out[1])  # φ (the kernel left Re, Im of S/E)
+        np.divide(out[1], out[2] * (-2.0 * math.pi), out=out[3])  # d = −φ/(2π f_eq)
+        return out.T, self._out_t[:n]
 
     def push(self, x: float, y: float) -> bool:
         """Push one sample pair; True when a window completed (its row: :attr:`last`)."""
-        return _stream_one(x, y, *self._args) > 0
+        return _stream_one(x, y, self._fb, self._ib) > 0
 
     @property
     def last(self) -> np.ndarray:
         """Row (A, φ, f_eq, d, valid, level) of the window completed by the last :meth:`push`."""
-        return self._one[0]
+        return self._one
