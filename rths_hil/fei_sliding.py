@@ -269,40 +269,24 @@ RESYNC_WINDOWS = 1
 
 
 @numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
-def lowband_step(lb, lbc, lbring, lbs, ph, io, t, N, xn, yn):  # pragma: no cover - numba
-    """Advance the low-band states by the sample pair (xn, yn) at absolute index t.
+def lowband_update(lb, lbc, xn, yn, xo, yo, qnr, qni, qor, qoi, fresh, swap):  # pragma: no cover
+    """Advance the six modulated sliding DFTs of the low band by one sample pair.
 
-    ``lb`` (4 × 6 × K0): active re/im and fresh re/im of the six modulated sliding DFTs
-    (rows 0–2 target g = 0, +1, −1; rows 3–5 measured);
-    ``lbc`` (7 × K0): e^{jθ_k} (re, im), e^{−jθ_k N} (re, im), W_k (re, im), k;
-    ``lbring`` (2 × N): the last N raw samples; ``lbs`` (4): active Σx, Σy, fresh Σx, Σy;
-    ``ph``: e^{j2πm/(N−1)}, m = 0 … N−2; ``io``: unused scratch.
-
-    The fresh set runs during one window period in every ``RESYNC_WINDOWS`` (then the states
-    are resynchronised), so the average cost is ``1 + 1/RESYNC_WINDOWS`` times one set.
+    ``lb`` (4 × 6 × K0): active re/im and fresh re/im (rows 0–2 target g = 0, +1, −1;
+    rows 3–5 measured); ``lbc`` (7 × K0): e^{jθ_k} (re, im), e^{−jθ_k N} (re, im), W_k (re, im),
+    k. ``xn, yn``: the new samples, ``xo, yo``: the ones leaving the window (0 before the first
+    N); ``qn = e^{jΩt}``, ``qo = e^{jΩ(t−N)}``. With ``fresh`` the fresh set is advanced too
+    (adds only); with ``swap`` (the last sample of a fresh period) it replaces the active set.
     """
-    P = N - 1
-    slot = t % N
-    xo = lbring[0, slot]
-    yo = lbring[1, slot]
-    lbring[0, slot] = xn
-    lbring[1, slot] = yn
-    lbs[0] += xn - xo
-    lbs[1] += yn - yo
-    qn = ph[t % P]
-    qo = ph[(t - N) % P]
-    # new and old values of the six modulated inputs u_g = v e^{jgΩt}
-    axr, axi = xn * qn.real, xn * qn.imag
-    bxr, bxi = xo * qo.real, xo * qo.imag
-    ayr, ayi = yn * qn.real, yn * qn.imag
-    byr, byi = yo * qo.real, yo * qo.imag
+    axr, axi = xn * qnr, xn * qni
+    bxr, bxi = xo * qor, xo * qoi
+    ayr, ayi = yn * qnr, yn * qni
+    byr, byi = yo * qor, yo * qoi
     K = lb.shape[2]
     c1r = lbc[0]
     c1i = lbc[1]
     c2r = lbc[2]
     c2i = lbc[3]
-    period = t // N
-    fresh = period % RESYNC_WINDOWS == RESYNC_WINDOWS - 1
     for s in range(6):
         if s == 0:
             nr, ni, o_r, o_i = xn, 0.0, xo, 0.0
@@ -335,31 +319,21 @@ def lowband_step(lb, lbc, lbring, lbs, ph, io, t, N, xn, yn):  # pragma: no cove
                 fi = fi_[k] + a_i
                 fr_[k] = c1r[k] * fr - c1i[k] * fi
                 fi_[k] = c1r[k] * fi + c1i[k] * fr
-    if fresh:
-        lbs[2] += xn
-        lbs[3] += yn
-        if (t + 1) % N == 0:
-            # the fresh set now holds exactly the current window: swap it in
-            for s in range(6):
-                for k in range(K):
-                    lb[0, s, k] = lb[2, s, k]
-                    lb[1, s, k] = lb[3, s, k]
-                    lb[2, s, k] = 0.0
-                    lb[3, s, k] = 0.0
-            lbs[0] = lbs[2]
-            lbs[1] = lbs[3]
-            lbs[2] = 0.0
-            lbs[3] = 0.0
+    if swap:
+        for s in range(6):
+            for k in range(K):
+                lb[0, s, k] = lb[2, s, k]
+                lb[1, s, k] = lb[3, s, k]
+                lb[2, s, k] = 0.0
+                lb[3, s, k] = 0.0
 
 
 @numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
-def lowband_sums(lb, lbc, lbs, ph, t, N):  # pragma: no cover - numba
-    """E, F, Re S, Im S over bins 1 … K0 of the window ending at sample t (exact)."""
-    P = N - 1
-    q = ph[(t - N + 1) % P]
-    pr, pi = q.real, q.imag
-    mx = lbs[0] / N
-    my = lbs[1] / N
+def lowband_window(lb, lbc, mx, my, pr, pi):  # pragma: no cover - numba
+    """E, F, Re S, Im S over bins 1 … K0 of the window starting at s (exact).
+
+    ``mx, my``: the window means; ``pr + j·pi = e^{jΩs}``.
+    """
     E = 0.0
     F = 0.0
     Sr = 0.0
@@ -367,7 +341,7 @@ def lowband_sums(lb, lbc, lbs, ph, t, N):  # pragma: no cover - numba
     for k in range(lb.shape[2]):
         Wr = lbc[4, k]
         Wi = lbc[5, k]
-        # X = ½D0 − ¼ conj(ϕ) D+ − ¼ ϕ D− − μ W  (ϕ = e^{jΩs}, s the window start)
+        # X = ½D0 − ¼ conj(ϕ) D+ − ¼ ϕ D− − μ W  (ϕ = e^{jΩs})
         xr = (
             0.5 * lb[0, 0, k]
             - 0.25 * (pr * lb[0, 1, k] + pi * lb[1, 1, k])
@@ -398,6 +372,43 @@ def lowband_sums(lb, lbc, lbs, ph, t, N):  # pragma: no cover - numba
         Sr += xr * yr + xi * yi
         Si += xr * yi - xi * yr
     return E, F, Sr, Si
+
+
+@numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
+def lowband_step(lb, lbc, lbring, lbs, ph, io, t, N, xn, yn):  # pragma: no cover - numba
+    """Standalone step: ring of raw samples, window sums and phasors, then :func:`lowband_update`.
+
+    ``lbring`` (2 × N): the last N raw samples; ``lbs`` (4): running Σx, Σy, fresh Σx, Σy;
+    ``ph``: e^{j2πm/(N−1)}, m = 0 … N−2; ``io``: unused scratch.
+    """
+    P = N - 1
+    slot = t % N
+    xo = lbring[0, slot]
+    yo = lbring[1, slot]
+    lbring[0, slot] = xn
+    lbring[1, slot] = yn
+    lbs[0] += xn - xo
+    lbs[1] += yn - yo
+    qn = ph[t % P]
+    qo = ph[(t - N) % P]
+    fresh = (t // N) % RESYNC_WINDOWS == RESYNC_WINDOWS - 1
+    swap = fresh and (t + 1) % N == 0
+    lowband_update(lb, lbc, xn, yn, xo, yo, qn.real, qn.imag, qo.real, qo.imag, fresh, swap)
+    if fresh:
+        lbs[2] += xn
+        lbs[3] += yn
+        if swap:
+            lbs[0] = lbs[2]
+            lbs[1] = lbs[3]
+            lbs[2] = 0.0
+            lbs[3] = 0.0
+
+
+@numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
+def lowband_sums(lb, lbc, lbs, ph, t, N):  # pragma: no cover - numba
+    """E, F, Re S, Im S over bins 1 … K0 of the window ending at sample t (exact)."""
+    q = ph[(t - N + 1) % (N - 1)]
+    return lowband_window(lb, lbc, lbs[0] / N, lbs[1] / N, q.real, q.imag)
 
 
 def lowband_arrays(N: int, K0: int) -> tuple[np.ndarray, ...]:
