@@ -32,7 +32,11 @@ Modes
 ``paced``
     Wall clock. The first deadline is 0.1 s after the start, deadline ``k`` is
     ``t0 + k·Δt`` (an absolute grid: no drift). The loop sleeps until ``spin`` before the
-    deadline, then busy-waits, then sends; ``lateness[k] = t_send − deadline`` is recorded.
+    deadline (at least 0.1 Δt when 0.2 Δt remain: a SCHED_FIFO thread that never sleeps is
+    stopped ≈ 50 ms a second by the kernel's RT bandwidth limit), then busy-waits, then sends;
+    ``lateness[k] = t_send − deadline`` is recorded, and ``ready[k]`` (when the previous step's
+    work was done, minus the deadline) attributes each overrun to the machine or to the work
+    (:func:`attribute_overruns`, measured against :func:`paced_floor`).
     **Overrun policy**: a step whose command leaves more than ``overrun_threshold·Δt`` after its
     deadline is an overrun. Steps are never skipped and the grid is never shifted (skipping
     would change the integration step; shifting would make the test slower than real time):
