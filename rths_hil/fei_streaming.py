@@ -49,10 +49,19 @@ from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
+from scipy.signal import butter
 from scipy.special import ellipj, ellipk
+
+from .fei_sliding import lowband_arrays, lowband_update, lowband_window
 
 #: Target worst-case phase-difference error of the Hilbert pair (degrees).
 MAX_PHASE_ERROR_DEG = 0.01
+#: Width of the exact low band in cycles per window: bins below ``EXACT_BAND / t_w`` are
+#: evaluated exactly by sliding DFTs (:mod:`rths_hil.fei_sliding`); only the rest of the
+#: quadrature part comes from the analytic signals. Where the window's spectrum sits near DC
+#: (windows of 2–3 natural periods) the analytic signal of the windowed signal differs from the
+#: windowed analytic signal (Bedrosian), and that low band decides the delay; docs/fei.md.
+EXACT_BAND = 14.0
 #: Upper band edge of the Hilbert pair (Hz): displacement responses of structures carry no
 #: energy that matters above it. Raised to 40·f_lo for very short windows.
 F_HI_MAX = 50.0
@@ -119,7 +128,8 @@ _SLOT = 8  # t mod N (ring slot)
 _N = 9  # window length
 _NSEC = 10  # first-order sections per chain
 _OFF_COEF, _OFF_CST, _OFF_RING, _OFF_PH, _OFF_ACC, _OFF_ONE, _OFF_WORK = 11, 12, 13, 14, 15, 16, 17
-_NIB = 18
+_K0, _OFF_LB, _OFF_LBC = 18, 19, 20  # exact low band: bins 1 … K0, states, constants
+_NIB = 21
 # Float state (float64 array ``fb``), scalars first:
 _DC_R = 0  # DC blocker pole
 _DCX_IN, _DCX_OUT, _DCY_IN, _DCY_OUT = 1, 2, 3, 4
@@ -132,7 +142,9 @@ _M = 12  # FFT length of the exact FEI
 _W1 = 13  # Σ w_n
 _WP = 14  # Σ (−1)^n w_n
 _X0, _Y0 = 15, 16  # first samples (subtracted from the raw signals against round-off)
-_NST = 17
+_HP = 17  # high-pass before the Hilbert pair: 2 biquads (b0 b1 b2 a1 a2) × 2, then states
+_HPS = _HP + 10  # transposed direct-form II states: section j, signal s → _HPS + 4 j + 2 s
+_NST = _HPS + 8
 # then: section coefficients (nsec, 4) and states (nsec, 2, 4) of the four chains (x I, x Q,
 # y I, y Q); the ring (N, _NRING) of per-sample quantities; the phasor table (P, 2); the
 # sliding sums (2, _NACC) (running, fresh); the row of the last pushed window (6) and its work
@@ -150,8 +162,9 @@ _NREAL = 8
 _Q1 = 80  # q₁: re/im for m = −2, −1, 0, 1, 2 (fresh: + 10)
 _NACC = 100
 _NRING = 10  # ring slot: the eight real quantities, then q₁ (re, im)
-# Per-window work rows (pass 1 → pass 2): Re S, Im S, E, F (analytic), exact Re S, exact E.
-_NWORK = 6
+# Per-window work rows (pass 1 → pass 2): Re S, Im S, E, F (analytic), exact Re S, exact E,
+# and the exact low band's E, F, Re S, Im S (bins 1 … K0).
+_NWORK = 10
 
 _JIT = {"cache": True, "nogil": True, "error_model": "numpy", "fastmath": {"contract"}}
 
@@ -328,6 +341,9 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
     acc = fb[off_acc : off_acc + _NACC]
     a0 = acc[_Q1 : _Q1 + 10]  # q₁: running sums
     a1 = acc[_Q1 + 10 : _Q1 + 20]  # q₁: fresh sums
+    K0 = ib[_K0]
+    lb = fb[ib[_OFF_LB] : ib[_OFF_LB] + 24 * K0].reshape((4, 6, K0))
+    lbc = fb[ib[_OFF_LBC] : ib[_OFF_LBC] + 7 * K0].reshape((7, K0))
     n = xs.shape[0]
     t = ib[_T]
     if n > 0 and t == 0:  # start the DC blockers at the first value: no step transient
@@ -366,6 +382,19 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
         yo = y - yin + r * yout
         yin = y
         yout = yo
+        if K0 > 0:
+            # Butterworth high-pass (order 4): the analytic part only carries the high band
+            for j in range(2):
+                c = _HP + 5 * j
+                z = _HPS + 4 * j
+                u = xo
+                xo = fb[c] * u + fb[z]
+                fb[z] = fb[c + 1] * u - fb[c + 3] * xo + fb[z + 1]
+                fb[z + 1] = fb[c + 2] * u - fb[c + 4] * xo
+                u = yo
+                yo = fb[c] * u + fb[z + 2]
+                fb[z + 2] = fb[c + 1] * u - fb[c + 3] * yo + fb[z + 3]
+                fb[z + 3] = fb[c + 2] * u - fb[c + 4] * yo
         # Four all-pass chains side by side: (x, I), (x, Q), (y, I), (y, Q).
         v0 = xo
         v1 = xo
@@ -406,6 +435,8 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
         # The sample leaving the window (zeros in the ring before the first N samples).
         row = ring[slot]
         row_off = off_ring + _NRING * slot
+        o_xr = row[4]
+        o_yr = row[5]
         o_q1r = row[8]
         o_q1i = row[9]
         row[8] = q1r
@@ -440,6 +471,8 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
         a1[5] += q1i
         _cplx_sum(a0, a1, 6, q1r, q1i, p1r, p1i, o_q1r, o_q1i, r1r, r1i)
         _cplx_sum(a0, a1, 8, q1r, q1i, p2r, p2i, o_q1r, o_q1i, r2r, r2i)
+        if K0 > 0:  # exact low band (sliding DFTs of the raw samples, same resync points)
+            lowband_update(lb, lbc, xr, yr, o_xr, o_yr, p1r, p1i, r1r, r1i, True, resync)
         # Resynchronise: the fresh sums hold exactly the current window after N additions.
         if resync:
             for i in range(10):
@@ -457,6 +490,15 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
             work[3, nout] = F
             work[4, nout] = re_s
             work[5, nout] = e_ex
+            if K0 > 0:
+                # e^{jΩ s0} = e^{jΩ t} (Ω(N − 1) = 2π)
+                el, fl, srl, sil = lowband_window(lb, lbc, h[10] / N, h[11] / N, p1r, p1i)
+            else:
+                el = fl = srl = sil = 0.0
+            work[6, nout] = el
+            work[7, nout] = fl
+            work[8, nout] = srl
+            work[9, nout] = sil
             out_t[nout] = t
             nout += 1
         o1i = _wrap(o1i + 1, P)
@@ -490,18 +532,22 @@ def _pass2(fb, work, out, n, angles):  # pragma: no cover
     """
     Mw2 = fb[_M] * fb[_WSQ]
     fs = fb[_FS]
+    bin_hz = fs / fb[_M]
     two_pi = 2.0 * math.pi
     # Independent per window (no branches: the divisions and roots of many windows overlap).
+    # S = exact Re S + j(exact low-band Im S + E_high · Im(S_a/E_a)), E exact,
+    # F = exact low-band F + E_high · (F_a/E_a), E_high = E − E_low.
     for i in range(n):
         E = work[2, i]
         e_ex = work[5, i]
-        r_re = work[0, i] / E
-        r_im = work[1, i] / E
+        e_hi = max(e_ex - work[6, i], 0.0)
+        im_s = work[9, i] + e_hi * (work[1, i] / E)
         a_re = work[4, i] / e_ex
-        out[0, i] = math.sqrt(a_re * a_re + r_im * r_im)
-        out[1, i] = r_re
-        out[2, i] = fs * work[3, i] / (two_pi * E)
-        out[3, i] = r_im
+        a_im = im_s / e_ex
+        out[0, i] = math.sqrt(a_re * a_re + a_im * a_im)
+        out[1, i] = a_re
+        out[2, i] = (bin_hz * work[7, i] + e_hi * fs * work[3, i] / (two_pi * E)) / e_ex
+        out[3, i] = a_im
         out[5, i] = math.sqrt(max(2.0 * e_ex / Mw2, 0.0))
     # Running peak and validity (sequential, cheap).
     peak = fb[_PEAK]
@@ -521,12 +567,10 @@ def _pass2(fb, work, out, n, angles):  # pragma: no cover
             and work[5, i] > 0
         )
         if valid:
-            # Amplitude: real part exact, quadrature part from the analytic signals (ratio to
-            # their E). Phase: wholly from the analytic signals (both parts in the same window).
             out[4, i] = 1.0
             amp = out[0, i]
             if not 1e-150 < amp < 1e150:  # |·| by hypot where the squares could over/underflow
-                amp = math.hypot(work[4, i] / work[5, i], out[3, i])
+                amp = math.hypot(out[1, i], out[3, i])
                 out[0, i] = amp
             if angles:
                 phase = math.atan2(out[3, i], out[1, i])
@@ -578,12 +622,26 @@ class StreamingFEI:
         Validity floors as in :mod:`rths_hil.fei`.
     """
 
-    def __init__(self, fs: float, N: int, hop: int, abs_floor: float, rel_floor: float) -> None:
+    def __init__(
+        self,
+        fs: float,
+        N: int,
+        hop: int,
+        abs_floor: float,
+        rel_floor: float,
+        exact_band: float = EXACT_BAND,
+    ) -> None:
         self.fs = float(fs)
         self.N = int(N)
         self.hop = int(hop)
+        M = 1 << (self.N - 1).bit_length()
+        if not (math.isfinite(exact_band) and exact_band >= 0):
+            raise ValueError(f"exact_band must be ≥ 0, got {exact_band!r}")
+        #: bins 1 … K0 (below ``exact_band`` cycles per window) are evaluated exactly
+        self.K0 = min(M // 2 - 1, math.ceil(exact_band * M / self.N)) if exact_band > 0 else 0
         window_s = N / fs
-        f_lo = min(0.25 / window_s, 0.01 * fs)
+        # With an exact low band the analytic signals only need the band above it.
+        f_lo = min(max(0.25, 0.5 * exact_band) / window_s, 0.01 * fs)
         f_hi = min(0.45 * fs, max(F_HI_MAX, 40.0 * f_lo))
         self.a_i, self.a_q, self.phase_error_deg = hilbert_pair(f_lo, f_hi, self.fs)
         self.band = (f_lo, f_hi)
@@ -600,6 +658,8 @@ class StreamingFEI:
             "acc": _NACC,
             "one": 6,
             "work": _NWORK + 2,
+            "lb": 24 * self.K0,
+            "lbc": 7 * self.K0,
         }
         off = np.cumsum([0, *sizes.values()])
         self._fb = fb = np.zeros(int(off[-1]))
@@ -613,16 +673,26 @@ class StreamingFEI:
             (_OFF_ACC, "acc"),
             (_OFF_ONE, "one"),
             (_OFF_WORK, "work"),
+            (_OFF_LB, "lb"),
+            (_OFF_LBC, "lbc"),
         ):
             ib[slot] = off[list(sizes).index(name)]
         ib[_N] = N
         ib[_NSEC] = ns
+        ib[_K0] = self.K0
+        if self.K0:
+            views["lbc"][:] = lowband_arrays(N, self.K0)[1].ravel()
         ib[_NEXT_END] = N - 1
         ib[_HOP] = self.hop
         ib[_O1] = (-N) % P
         ib[_O2] = (-2 * N) % P
         st = views["st"]
         st[_DC_R] = math.exp(-2 * math.pi * self.dc_corner / self.fs)
+        #: corner of the high-pass before the Hilbert pair (Hz), 0.8 × the exact band's edge
+        self.hp_corner = min(0.8 * exact_band / window_s, 0.2 * self.fs) if self.K0 else 0.0
+        if self.K0:
+            sos = butter(4, self.hp_corner, "highpass", fs=self.fs, output="sos")
+            st[_HP : _HP + 10] = np.column_stack([sos[:, :3], sos[:, 4:]]).ravel()
         st[_ABS] = abs_floor
         st[_REL] = rel_floor
         st[_FS] = self.fs
