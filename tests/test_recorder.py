@@ -16,7 +16,9 @@ import pytest
 from rths_hil.errors import InputError
 from rths_hil.recorder import (
     COLUMNS,
+    FLUSH_BYTES,
     Recorder,
+    _header_bytes,
     export_run,
     header_row_count,
     read_run,
@@ -50,17 +52,41 @@ def _expected(n: int) -> np.ndarray:
 
 def test_rows_are_on_disk_after_each_flush_and_header_counts_them(tmp_path):
     rec = Recorder(tmp_path / "run", fs=1024.0, flush_interval=0.05)
-    assert rec.flush_rows == 51  # floor(0.05 s · 1024 Hz)
-    for k in range(130):
+    # floor(0.05 s · 1024 Hz) = 51 rows, but at most FLUSH_BYTES of 155-byte rows: 26
+    assert record_dtype().itemsize == 155 and FLUSH_BYTES == 4096
+    assert rec.flush_rows == 26
+    for k in range(60):
         rec.append(*_row(k))
     # two full chunks written; the rest is still in memory
-    assert rec.rows == 102 and header_row_count(rec.path) == 102
+    assert rec.rows == 52 and header_row_count(rec.path) == 52
     data = np.load(rec.path)  # read while the recorder is open
-    np.testing.assert_array_equal(data, _expected(102))
+    np.testing.assert_array_equal(data, _expected(52))
     rec.close()
     data = np.load(rec.path)
     assert data.dtype.names == tuple(NAMES)
-    np.testing.assert_array_equal(data, _expected(130))
+    np.testing.assert_array_equal(data, _expected(60))
+    # a slow loop: the interval, not the size, sets the flush
+    with Recorder(tmp_path / "slow", fs=100.0, flush_interval=0.05) as slow:
+        assert slow.flush_rows == 5
+
+
+def test_patched_header_equals_a_freshly_built_one(tmp_path):
+    """Only the row count is rewritten; the header must be byte for byte the full rebuild."""
+    rec = Recorder(tmp_path / "run", fs=1000.0, flush_interval=0.001)
+    assert rec.flush_rows == 1
+    hlen = rec._header_len
+    for k in range(1, 1005):  # through 1 → 2, 2 → 3 and 3 → 4 digits
+        rec.append(*_row(k - 1, 1000.0))
+        if k in (1, 9, 10, 11, 99, 100, 101, 999, 1000, 1004):
+            with open(rec.path, "rb") as fh:
+                raw = fh.read(hlen)
+                assert raw == _header_bytes(rec._descr, k, hlen)
+                fh.seek(0)
+                np.lib.format.read_magic(fh)
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
+            assert shape == (k,) and not fortran and dtype == record_dtype()
+    rec.close()
+    np.testing.assert_array_equal(np.load(rec.path)["step"], _expected(1004)["step"])
 
 
 def test_pandas_reads_the_record_with_column_names(tmp_path):
