@@ -34,6 +34,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 import scipy.fft as sfft
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 # Row indices of the state arrays Dr/Di (6 × K): target g = 0, +1, −1, measured g = 0, +1, −1.
 _NSTATE = 6
@@ -254,134 +258,237 @@ class SlidingSums:
 
 
 # ---------------------------------------------------------------------------------------------
-# Low band: the same sliding DFTs for the first K0 bins only, with an O(1), spike-free
+# Low band: sliding DFTs for the first K0 bins only, with an O(1), spike-free
 # resynchronisation (the streaming evaluator's exact low band, :mod:`rths_hil.fei_streaming`).
 #
-# Two sets of states: the *active* set slides (adds the new sample, removes the one leaving
-# the window); once every RESYNC_WINDOWS window periods a *fresh* set starts from zero at the
-# period's first sample and only adds. After N samples it holds exactly the current window,
-# without any removal round-off, and replaces the active set.
+# The three Hann terms are taken as three frequencies of the *raw* signal rather than as
+# modulated signals at one frequency: e^{±jΩi} e^{−jθ_k i} = e^{−j(θ_k ∓ Ω) i}, so with
+# D(θ; s) = Σ_i x[s+i] e^{−jθi} (a sliding DFT of the real samples at the frequency θ),
+#
+#     X_k = ½ D(θ_k) − ¼ D(θ_k − Ω) − ¼ D(θ_k + Ω) − μ W_k,
+#     D(θ; s+1) = e^{jθ} (D(θ; s) − x[s] + x[s+N] e^{−jθN})      (Jacobsen & Lyons 2003, Eq. 1).
+#
+# Inputs are real (half the multiplications of the modulated form) and the window needs no
+# phasor. Two sets of states: the *active* set slides (adds the new sample, removes the one
+# leaving the window); once every RESYNC_WINDOWS window periods a *fresh* set starts from zero
+# at the period's first sample and only adds. After N samples it holds exactly the current
+# window, without any removal round-off, and replaces the active set.
+#
+# Layout (for 8-wide vectors): K0 is padded to K0p, a multiple of 8 (padding bins have zero
+# constants, so their states stay 0 and add nothing). ``lb`` (4 × 6 × K0p): planes active re,
+# active im, fresh re, fresh im; rows target θ_k, θ_k − Ω, θ_k + Ω, then measured the same.
+# ``lbc`` (15 × K0p): for the frequency sets g = 0, 1, 2 (θ_k, θ_k − Ω, θ_k + Ω) the rows
+# e^{jθ} (re, im), e^{−jθN} (re, im) at 4g … 4g + 3; then W_k (re, im) and k.
 # ---------------------------------------------------------------------------------------------
 
 
 #: Window periods between resynchronisations of the low-band states.
 RESYNC_WINDOWS = 1
+#: Rows of the low-band constant array ``lbc``.
+LB_CONST_ROWS = 15
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
-def lowband_update(lb, lbc, xn, yn, xo, yo, qnr, qni, qor, qoi, fresh, swap):  # pragma: no cover
-    """Advance the six modulated sliding DFTs of the low band by one sample pair.
+def lowband_padded(K0: int) -> int:
+    """Number of stored low-band bins: K0 rounded up to a multiple of 8 (vector width)."""
+    return -(-int(K0) // 8) * 8
 
-    ``lb`` (4 × 6 × K0): active re/im and fresh re/im (rows 0–2 target g = 0, +1, −1;
-    rows 3–5 measured); ``lbc`` (7 × K0): e^{jθ_k} (re, im), e^{−jθ_k N} (re, im), W_k (re, im),
-    k. ``xn, yn``: the new samples, ``xo, yo``: the ones leaving the window (0 before the first
-    N); ``qn = e^{jΩt}``, ``qo = e^{jΩ(t−N)}``. With ``fresh`` the fresh set is advanced too
-    (adds only); with ``swap`` (the last sample of a fresh period) it replaces the active set.
+
+def _c_array(a, ndim):
+    """True for a C-contiguous float64 array type of ``ndim`` dimensions (kernel arguments)."""
+    return (
+        isinstance(a, types.Array)
+        and a.ndim == ndim
+        and a.layout == "C"
+        and a.dtype == types.float64
+    )
+
+
+def _vec_tools(context, builder):  # pragma: no cover - code generation
+    """LLVM helpers for the low-band kernels: vector type, splat, fma, loads/stores."""
+    dbl = ir.DoubleType()
+    vty = ir.VectorType(dbl, 8)
+    i32 = ir.IntType(32)
+    fma = cgutils.get_or_insert_function(
+        builder.module, ir.FunctionType(vty, [vty, vty, vty]), "llvm.fma.v8f64"
+    )
+
+    def splat(x):
+        if isinstance(x, float):
+            return ir.Constant(vty, [x] * 8)
+        v = builder.insert_element(ir.Constant(vty, ir.Undefined), x, ir.Constant(i32, 0))
+        mask = ir.Constant(ir.VectorType(i32, 8), [0] * 8)
+        return builder.shuffle_vector(v, ir.Constant(vty, ir.Undefined), mask)
+
+    def vptr(base, off):
+        return builder.bitcast(builder.gep(base, [off]), vty.as_pointer())
+
+    def load(base, off):
+        return builder.load(vptr(base, off), align=8)
+
+    def store(v, base, off):
+        builder.store(v, vptr(base, off), align=8)
+
+    def fmadd(a, b, c):
+        return builder.call(fma, [a, b, c])
+
+    return vty, splat, load, store, fmadd
+
+
+@intrinsic
+def _lowband_update_vec(typingctx, lb, lbc, xn, yn, xo, yo, fresh, swap):  # pragma: no cover
+    """Vector kernel of :func:`lowband_update` (8 bins per vector, loop over K0p/8 chunks)."""
+    if not (_c_array(lb, 3) and _c_array(lbc, 2)):
+        return None
+    sig = types.none(lb, lbc, xn, yn, xo, yo, fresh, swap)
+
+    def codegen(context, builder, signature, args):
+        lbv, lbcv, xnv, ynv, xov, yov, frv, swv = args
+        arr = context.make_array(signature.args[0])(context, builder, lbv)
+        cst = context.make_array(signature.args[1])(context, builder, lbcv)
+        base = arr.data
+        cbase = cst.data
+        K = cgutils.unpack_tuple(builder, arr.shape)[2]
+        i64 = K.type
+        vty, splat, load, store, fmadd = _vec_tools(context, builder)
+        nch = builder.udiv(K, ir.Constant(i64, 8))
+        zero = ir.Constant(vty, [0.0] * 8)
+        new = (splat(xnv), splat(ynv))
+        old = (splat(xov), splat(yov))
+
+        def off(row, c8):  # element offset of (row, 8-chunk) in a (rows × K) array
+            return builder.add(builder.mul(ir.Constant(i64, row), K), c8)
+
+        with cgutils.for_range(builder, nch) as loop:
+            c8 = builder.mul(loop.index, ir.Constant(i64, 8))
+            for g in range(3):
+                c1r = load(cbase, off(4 * g, c8))
+                c1i = load(cbase, off(4 * g + 1, c8))
+                c2r = load(cbase, off(4 * g + 2, c8))
+                c2i = load(cbase, off(4 * g + 3, c8))
+                for sgl in range(2):
+                    s = 3 * sgl + g
+                    o_dr, o_di = off(s, c8), off(6 + s, c8)
+                    o_fr, o_fi = off(12 + s, c8), off(18 + s, c8)
+                    n = new[sgl]
+                    # active: D ← c1 · (D − o + n c2)
+                    tr = fmadd(n, c2r, builder.fsub(load(base, o_dr), old[sgl]))
+                    ti = fmadd(n, c2i, load(base, o_di))
+                    dr = fmadd(c1r, tr, builder.fneg(builder.fmul(c1i, ti)))
+                    di = fmadd(c1r, ti, builder.fmul(c1i, tr))
+                    # fresh: F ← c1 · (F + n c2)
+                    f_r = load(base, o_fr)
+                    f_i = load(base, o_fi)
+                    ur = fmadd(n, c2r, f_r)
+                    ui = fmadd(n, c2i, f_i)
+                    fr = fmadd(c1r, ur, builder.fneg(builder.fmul(c1i, ui)))
+                    fi = fmadd(c1r, ui, builder.fmul(c1i, ur))
+                    fr = builder.select(frv, fr, f_r)
+                    fi = builder.select(frv, fi, f_i)
+                    store(builder.select(swv, fr, dr), base, o_dr)
+                    store(builder.select(swv, fi, di), base, o_di)
+                    store(builder.select(swv, zero, fr), base, o_fr)
+                    store(builder.select(swv, zero, fi), base, o_fi)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+def _hsum(builder, v):  # pragma: no cover - code generation
+    """Sum of the 8 lanes of v (pairwise tree)."""
+    i32 = ir.IntType(32)
+    width = 8
+    while width > 1:
+        width //= 2
+        lo = builder.shuffle_vector(
+            v, v, ir.Constant(ir.VectorType(i32, width), list(range(width)))
+        )
+        hi = builder.shuffle_vector(
+            v, v, ir.Constant(ir.VectorType(i32, width), list(range(width, 2 * width)))
+        )
+        v = builder.fadd(lo, hi)
+    return builder.extract_element(v, ir.Constant(i32, 0))
+
+
+@intrinsic
+def _lowband_window_vec(typingctx, lb, lbc, mx, my):  # pragma: no cover
+    """Vector kernel of :func:`lowband_window`: (E, F, Re S, Im S)."""
+    if not (_c_array(lb, 3) and _c_array(lbc, 2)):
+        return None
+    sig = types.UniTuple(types.float64, 4)(lb, lbc, mx, my)
+
+    def codegen(context, builder, signature, args):
+        lbv, lbcv, mxv, myv = args
+        arr = context.make_array(signature.args[0])(context, builder, lbv)
+        cst = context.make_array(signature.args[1])(context, builder, lbcv)
+        base = arr.data
+        cbase = cst.data
+        K = cgutils.unpack_tuple(builder, arr.shape)[2]
+        i64 = K.type
+        vty, splat, load, _store, fmadd = _vec_tools(context, builder)
+        nch = builder.udiv(K, ir.Constant(i64, 8))
+        zero = ir.Constant(vty, [0.0] * 8)
+        accs = [cgutils.alloca_once_value(builder, zero) for _ in range(4)]
+        nmx = splat(builder.fneg(mxv))
+        nmy = splat(builder.fneg(myv))
+        half = splat(0.5)
+        mq = splat(-0.25)
+
+        def off(row, c8):
+            return builder.add(builder.mul(ir.Constant(i64, row), K), c8)
+
+        with cgutils.for_range(builder, nch) as loop:
+            c8 = builder.mul(loop.index, ir.Constant(i64, 8))
+            wr = load(cbase, off(12, c8))
+            wi = load(cbase, off(13, c8))
+            kk = load(cbase, off(14, c8))
+
+            def spec(plane, s0, w, nm):  # ½ D(θ) − ¼ D(θ − Ω) − ¼ D(θ + Ω) − μ W
+                r = 6 * plane + s0
+                v = builder.fmul(half, load(base, off(r, c8)))
+                v = fmadd(mq, load(base, off(r + 1, c8)), v)
+                v = fmadd(mq, load(base, off(r + 2, c8)), v)
+                return fmadd(nm, w, v)
+
+            xr = spec(0, 0, wr, nmx)
+            xi = spec(1, 0, wi, nmx)
+            yr = spec(0, 3, wr, nmy)
+            yi = spec(1, 3, wi, nmy)
+            p = fmadd(xi, xi, builder.fmul(xr, xr))
+            e, f, sr, si = (builder.load(a) for a in accs)
+            builder.store(builder.fadd(e, p), accs[0])
+            builder.store(fmadd(kk, p, f), accs[1])
+            builder.store(fmadd(xi, yi, fmadd(xr, yr, sr)), accs[2])
+            builder.store(fmadd(builder.fneg(xi), yr, fmadd(xr, yi, si)), accs[3])
+        vals = [_hsum(builder, builder.load(a)) for a in accs]
+        return cgutils.pack_array(builder, vals)
+
+    return sig, codegen
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def lowband_update(lb, lbc, xn, yn, xo, yo, fresh, swap):  # pragma: no cover - numba
+    """Advance the six sliding DFTs of the low band by one sample pair.
+
+    ``lb`` (4 × 6 × K0p), ``lbc`` (15 × K0p): see the layout above. ``xn, yn``: the new
+    samples, ``xo, yo``: the ones leaving the window (0 before the first N). With ``fresh`` the
+    fresh set is advanced too (adds only); with ``swap`` (the last sample of a fresh period) it
+    replaces the active set.
     """
-    axr, axi = xn * qnr, xn * qni
-    bxr, bxi = xo * qor, xo * qoi
-    ayr, ayi = yn * qnr, yn * qni
-    byr, byi = yo * qor, yo * qoi
-    K = lb.shape[2]
-    c1r = lbc[0]
-    c1i = lbc[1]
-    c2r = lbc[2]
-    c2i = lbc[3]
-    for s in range(6):
-        if s == 0:
-            nr, ni, o_r, o_i = xn, 0.0, xo, 0.0
-        elif s == 1:
-            nr, ni, o_r, o_i = axr, axi, bxr, bxi
-        elif s == 2:
-            nr, ni, o_r, o_i = axr, -axi, bxr, -bxi
-        elif s == 3:
-            nr, ni, o_r, o_i = yn, 0.0, yo, 0.0
-        elif s == 4:
-            nr, ni, o_r, o_i = ayr, ayi, byr, byi
-        else:
-            nr, ni, o_r, o_i = ayr, -ayi, byr, -byi
-        dr = lb[0, s]
-        di = lb[1, s]
-        for k in range(K):
-            a_r = nr * c2r[k] - ni * c2i[k]
-            a_i = nr * c2i[k] + ni * c2r[k]
-            tr = dr[k] - o_r + a_r
-            ti = di[k] - o_i + a_i
-            dr[k] = c1r[k] * tr - c1i[k] * ti
-            di[k] = c1r[k] * ti + c1i[k] * tr
-        if fresh:
-            fr_ = lb[2, s]
-            fi_ = lb[3, s]
-            for k in range(K):
-                a_r = nr * c2r[k] - ni * c2i[k]
-                a_i = nr * c2i[k] + ni * c2r[k]
-                fr = fr_[k] + a_r
-                fi = fi_[k] + a_i
-                fr_[k] = c1r[k] * fr - c1i[k] * fi
-                fi_[k] = c1r[k] * fi + c1i[k] * fr
-    if swap:
-        for s in range(6):
-            for k in range(K):
-                lb[0, s, k] = lb[2, s, k]
-                lb[1, s, k] = lb[3, s, k]
-                lb[2, s, k] = 0.0
-                lb[3, s, k] = 0.0
+    _lowband_update_vec(lb, lbc, xn, yn, xo, yo, fresh, swap)
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
-def lowband_window(lb, lbc, mx, my, pr, pi):  # pragma: no cover - numba
-    """E, F, Re S, Im S over bins 1 … K0 of the window starting at s (exact).
+@numba.njit(cache=True, nogil=True, inline="always")
+def lowband_window(lb, lbc, mx, my):  # pragma: no cover - numba
+    """E, F, Re S, Im S over bins 1 … K0 of the current window (exact); ``mx, my``: means."""
+    return _lowband_window_vec(lb, lbc, mx, my)
 
-    ``mx, my``: the window means; ``pr + j·pi = e^{jΩs}``.
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def lowband_step(lb, lbc, lbring, lbs, t, N, xn, yn):  # pragma: no cover - numba
+    """Standalone step: ring of raw samples and window sums, then :func:`lowband_update`.
+
+    ``lbring`` (2 × N): the last N raw samples; ``lbs`` (4): running Σx, Σy, fresh Σx, Σy.
     """
-    E = 0.0
-    F = 0.0
-    Sr = 0.0
-    Si = 0.0
-    for k in range(lb.shape[2]):
-        Wr = lbc[4, k]
-        Wi = lbc[5, k]
-        # X = ½D0 − ¼ conj(ϕ) D+ − ¼ ϕ D− − μ W  (ϕ = e^{jΩs})
-        xr = (
-            0.5 * lb[0, 0, k]
-            - 0.25 * (pr * lb[0, 1, k] + pi * lb[1, 1, k])
-            - 0.25 * (pr * lb[0, 2, k] - pi * lb[1, 2, k])
-            - mx * Wr
-        )
-        xi = (
-            0.5 * lb[1, 0, k]
-            - 0.25 * (pr * lb[1, 1, k] - pi * lb[0, 1, k])
-            - 0.25 * (pr * lb[1, 2, k] + pi * lb[0, 2, k])
-            - mx * Wi
-        )
-        yr = (
-            0.5 * lb[0, 3, k]
-            - 0.25 * (pr * lb[0, 4, k] + pi * lb[1, 4, k])
-            - 0.25 * (pr * lb[0, 5, k] - pi * lb[1, 5, k])
-            - my * Wr
-        )
-        yi = (
-            0.5 * lb[1, 3, k]
-            - 0.25 * (pr * lb[1, 4, k] - pi * lb[0, 4, k])
-            - 0.25 * (pr * lb[1, 5, k] + pi * lb[0, 5, k])
-            - my * Wi
-        )
-        Pk = xr * xr + xi * xi
-        E += Pk
-        F += lbc[6, k] * Pk
-        Sr += xr * yr + xi * yi
-        Si += xr * yi - xi * yr
-    return E, F, Sr, Si
-
-
-@numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
-def lowband_step(lb, lbc, lbring, lbs, ph, io, t, N, xn, yn):  # pragma: no cover - numba
-    """Standalone step: ring of raw samples, window sums and phasors, then :func:`lowband_update`.
-
-    ``lbring`` (2 × N): the last N raw samples; ``lbs`` (4): running Σx, Σy, fresh Σx, Σy;
-    ``ph``: e^{j2πm/(N−1)}, m = 0 … N−2; ``io``: unused scratch.
-    """
-    P = N - 1
     slot = t % N
     xo = lbring[0, slot]
     yo = lbring[1, slot]
@@ -389,11 +496,9 @@ def lowband_step(lb, lbc, lbring, lbs, ph, io, t, N, xn, yn):  # pragma: no cove
     lbring[1, slot] = yn
     lbs[0] += xn - xo
     lbs[1] += yn - yo
-    qn = ph[t % P]
-    qo = ph[(t - N) % P]
     fresh = (t // N) % RESYNC_WINDOWS == RESYNC_WINDOWS - 1
     swap = fresh and (t + 1) % N == 0
-    lowband_update(lb, lbc, xn, yn, xo, yo, qn.real, qn.imag, qo.real, qo.imag, fresh, swap)
+    lowband_update(lb, lbc, xn, yn, xo, yo, fresh, swap)
     if fresh:
         lbs[2] += xn
         lbs[3] += yn
@@ -404,36 +509,47 @@ def lowband_step(lb, lbc, lbring, lbs, ph, io, t, N, xn, yn):  # pragma: no cove
             lbs[3] = 0.0
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
-def lowband_sums(lb, lbc, lbs, ph, t, N):  # pragma: no cover - numba
-    """E, F, Re S, Im S over bins 1 … K0 of the window ending at sample t (exact)."""
-    q = ph[(t - N + 1) % (N - 1)]
-    return lowband_window(lb, lbc, lbs[0] / N, lbs[1] / N, q.real, q.imag)
+@numba.njit(cache=True, nogil=True, inline="always")
+def lowband_sums(lb, lbc, lbs, N):  # pragma: no cover - numba
+    """E, F, Re S, Im S over bins 1 … K0 of the window ending at the last sample (exact)."""
+    return lowband_window(lb, lbc, lbs[0] / N, lbs[1] / N)
+
+
+def lowband_constants(N: int, K0: int) -> np.ndarray:
+    """The constant array ``lbc`` (15 × K0p) of K0 low bins of an N-sample window."""
+    N = int(N)
+    M = 1 << (N - 1).bit_length()
+    K0p = lowband_padded(K0)
+    k = np.arange(1, K0 + 1)
+    theta = 2 * np.pi * k / M
+    theta_n = 2 * np.pi * ((k * N) % M) / M  # θ_k N mod 2π
+    omega = 2 * np.pi / (N - 1)  # Ω N ≡ Ω (mod 2π)
+    lbc = np.zeros((LB_CONST_ROWS, K0p))
+    for g, sign in enumerate((0.0, -1.0, 1.0)):  # θ_k, θ_k − Ω, θ_k + Ω
+        c1 = np.exp(1j * (theta + sign * omega))
+        c2 = np.exp(-1j * (theta_n + sign * omega))
+        lbc[4 * g : 4 * g + 4, :K0] = c1.real, c1.imag, c2.real, c2.imag
+    W = sfft.rfft(np.hanning(N), n=M)[1 : K0 + 1]
+    lbc[12, :K0] = W.real
+    lbc[13, :K0] = W.imag
+    lbc[14, :K0] = k
+    return lbc
 
 
 def lowband_arrays(N: int, K0: int) -> tuple[np.ndarray, ...]:
-    """Fresh state and constant arrays (lb, lbc, lbring, lbs, ph, io) for K0 low bins."""
-    M = 1 << (int(N) - 1).bit_length()
-    k = np.arange(1, K0 + 1)
-    theta = 2 * np.pi * k / M
-    W = sfft.rfft(np.hanning(N), n=M)[1 : K0 + 1]
-    c2 = np.exp(-1j * ((k * N) % M) * 2 * np.pi / M)
-    lbc = np.ascontiguousarray(
-        np.vstack([np.cos(theta), np.sin(theta), c2.real, c2.imag, W.real, W.imag, k])
-    )
-    P = N - 1
-    ph = np.exp(1j * 2 * np.pi * np.arange(P) / P)
-    return np.zeros((4, 6, K0)), lbc, np.zeros((2, N)), np.zeros(4), ph, np.zeros((4, 8))
+    """Fresh state and constant arrays (lb, lbc, lbring, lbs) for K0 low bins."""
+    lb = np.zeros((4, 6, lowband_padded(K0)))
+    return lb, lowband_constants(N, K0), np.zeros((2, int(N))), np.zeros(4)
 
 
 @numba.njit(cache=True, nogil=True)
-def _lowband_block(xs, ys, t0, hop, N, lb, lbc, lbring, lbs, ph, io, out):  # pragma: no cover
+def _lowband_block(xs, ys, t0, hop, N, lb, lbc, lbring, lbs, out):  # pragma: no cover
     n = 0
     for j in range(xs.shape[0]):
         t = t0 + j
-        lowband_step(lb, lbc, lbring, lbs, ph, io, t, N, xs[j], ys[j])
+        lowband_step(lb, lbc, lbring, lbs, t, N, xs[j], ys[j])
         if t >= N - 1 and (t - N + 1) % hop == 0:
-            E, F, Sr, Si = lowband_sums(lb, lbc, lbs, ph, t, N)
+            E, F, Sr, Si = lowband_sums(lb, lbc, lbs, N)
             out[n, 0] = E
             out[n, 1] = F
             out[n, 2] = Sr

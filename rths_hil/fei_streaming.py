@@ -52,7 +52,13 @@ from numba.extending import intrinsic
 from scipy.signal import butter
 from scipy.special import ellipj, ellipk
 
-from .fei_sliding import lowband_arrays, lowband_update, lowband_window
+from .fei_sliding import (
+    LB_CONST_ROWS,
+    lowband_constants,
+    lowband_padded,
+    lowband_update,
+    lowband_window,
+)
 
 #: Target worst-case phase-difference error of the Hilbert pair (degrees).
 MAX_PHASE_ERROR_DEG = 0.01
@@ -128,7 +134,7 @@ _SLOT = 8  # t mod N (ring slot)
 _N = 9  # window length
 _NSEC = 10  # first-order sections per chain
 _OFF_COEF, _OFF_CST, _OFF_RING, _OFF_PH, _OFF_ACC, _OFF_ONE, _OFF_WORK = 11, 12, 13, 14, 15, 16, 17
-_K0, _OFF_LB, _OFF_LBC = 18, 19, 20  # exact low band: bins 1 … K0, states, constants
+_K0, _OFF_LB, _OFF_LBC = 18, 19, 20  # exact low band: K0p (K0 padded to 8), states, constants
 _NIB = 21
 # Float state (float64 array ``fb``), scalars first:
 _DC_R = 0  # DC blocker pole
@@ -341,9 +347,9 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
     acc = fb[off_acc : off_acc + _NACC]
     a0 = acc[_Q1 : _Q1 + 10]  # q₁: running sums
     a1 = acc[_Q1 + 10 : _Q1 + 20]  # q₁: fresh sums
-    K0 = ib[_K0]
+    K0 = ib[_K0]  # padded to a multiple of 8 (fei_sliding's vector layout)
     lb = fb[ib[_OFF_LB] : ib[_OFF_LB] + 24 * K0].reshape((4, 6, K0))
-    lbc = fb[ib[_OFF_LBC] : ib[_OFF_LBC] + 7 * K0].reshape((7, K0))
+    lbc = fb[ib[_OFF_LBC] : ib[_OFF_LBC] + LB_CONST_ROWS * K0].reshape((LB_CONST_ROWS, K0))
     n = xs.shape[0]
     t = ib[_T]
     if n > 0 and t == 0:  # start the DC blockers at the first value: no step transient
@@ -472,7 +478,7 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
         _cplx_sum(a0, a1, 6, q1r, q1i, p1r, p1i, o_q1r, o_q1i, r1r, r1i)
         _cplx_sum(a0, a1, 8, q1r, q1i, p2r, p2i, o_q1r, o_q1i, r2r, r2i)
         if K0 > 0:  # exact low band (sliding DFTs of the raw samples, same resync points)
-            lowband_update(lb, lbc, xr, yr, o_xr, o_yr, p1r, p1i, r1r, r1i, True, resync)
+            lowband_update(lb, lbc, xr, yr, o_xr, o_yr, True, resync)
         # Resynchronise: the fresh sums hold exactly the current window after N additions.
         if resync:
             for i in range(10):
@@ -491,8 +497,7 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
             work[4, nout] = re_s
             work[5, nout] = e_ex
             if K0 > 0:
-                # e^{jΩ s0} = e^{jΩ t} (Ω(N − 1) = 2π)
-                el, fl, srl, sil = lowband_window(lb, lbc, h[10] / N, h[11] / N, p1r, p1i)
+                el, fl, srl, sil = lowband_window(lb, lbc, h[10] / N, h[11] / N)
             else:
                 el = fl = srl = sil = 0.0
             work[6, nout] = el
@@ -658,8 +663,8 @@ class StreamingFEI:
             "acc": _NACC,
             "one": 6,
             "work": _NWORK + 2,
-            "lb": 24 * self.K0,
-            "lbc": 7 * self.K0,
+            "lb": 24 * lowband_padded(self.K0),
+            "lbc": LB_CONST_ROWS * lowband_padded(self.K0),
         }
         off = np.cumsum([0, *sizes.values()])
         self._fb = fb = np.zeros(int(off[-1]))
@@ -679,9 +684,9 @@ class StreamingFEI:
             ib[slot] = off[list(sizes).index(name)]
         ib[_N] = N
         ib[_NSEC] = ns
-        ib[_K0] = self.K0
+        ib[_K0] = lowband_padded(self.K0)
         if self.K0:
-            views["lbc"][:] = lowband_arrays(N, self.K0)[1].ravel()
+            views["lbc"][:] = lowband_constants(N, self.K0).ravel()
         ib[_NEXT_END] = N - 1
         ib[_HOP] = self.hop
         ib[_O1] = (-N) % P
