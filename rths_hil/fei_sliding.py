@@ -274,17 +274,21 @@ class SlidingSums:
 # at the period's first sample and only adds. After N samples it holds exactly the current
 # window, without any removal round-off, and replaces the active set.
 #
-# Layout (for 8-wide vectors): K0 is padded to K0p, a multiple of 8 (padding bins have zero
-# constants, so their states stay 0 and add nothing). ``lb`` (4 × 6 × K0p): planes active re,
-# active im, fresh re, fresh im; rows target θ_k, θ_k − Ω, θ_k + Ω, then measured the same.
-# ``lbc`` (15 × K0p): for the frequency sets g = 0, 1, 2 (θ_k, θ_k − Ω, θ_k + Ω) the rows
-# e^{jθ} (re, im), e^{−jθN} (re, im) at 4g … 4g + 3; then W_k (re, im) and k.
+# Layout (8-wide vectors, chunk-major so that one chunk's vectors sit at fixed offsets from one
+# pointer): K0 is padded to K0p, a multiple of 8 (padding bins have zero constants, so their
+# states stay 0 and add nothing); bins 8c … 8c + 7 form chunk c. ``lb`` (K0p/8 × 24 × 8): per
+# chunk the rows 6·plane + state, planes active re, active im, fresh re, fresh im, states target
+# θ_k, θ_k − Ω, θ_k + Ω, then measured the same. ``lbc`` (K0p/8 × 15 × 8): per chunk, for the
+# frequency sets g = 0, 1, 2 (θ_k, θ_k − Ω, θ_k + Ω) the rows e^{jθ} (re, im), e^{−jθN}
+# (re, im) at 4g … 4g + 3; then W_k (re, im) and k. Kept 64-byte aligned by the streaming
+# evaluator (unaligned arrays work, slower).
 # ---------------------------------------------------------------------------------------------
 
 
 #: Window periods between resynchronisations of the low-band states.
 RESYNC_WINDOWS = 1
-#: Rows of the low-band constant array ``lbc``.
+#: Rows per chunk of the low-band state and constant arrays ``lb`` and ``lbc``.
+LB_STATE_ROWS = 24
 LB_CONST_ROWS = 15
 
 
@@ -334,10 +338,16 @@ def _vec_tools(context, builder):  # pragma: no cover - code generation
     return vty, splat, load, store, fmadd
 
 
+def _chunk_ptr(builder, arr, index, rows):  # pragma: no cover - code generation
+    """Pointer to chunk ``index`` (``rows`` × 8 doubles) of a chunk-major array."""
+    i64 = index.type
+    return builder.gep(arr.data, [builder.mul(index, ir.Constant(i64, 8 * rows))])
+
+
 @intrinsic
 def _lowband_update_vec(typingctx, lb, lbc, xn, yn, xo, yo, fresh, swap):  # pragma: no cover
-    """Vector kernel of :func:`lowband_update` (8 bins per vector, loop over K0p/8 chunks)."""
-    if not (_c_array(lb, 3) and _c_array(lbc, 2)):
+    """Vector kernel of :func:`lowband_update` (8 bins per vector, loop over the chunks)."""
+    if not (_c_array(lb, 3) and _c_array(lbc, 3)):
         return None
     sig = types.none(lb, lbc, xn, yn, xo, yo, fresh, swap)
 
@@ -345,49 +355,51 @@ def _lowband_update_vec(typingctx, lb, lbc, xn, yn, xo, yo, fresh, swap):  # pra
         lbv, lbcv, xnv, ynv, xov, yov, frv, swv = args
         arr = context.make_array(signature.args[0])(context, builder, lbv)
         cst = context.make_array(signature.args[1])(context, builder, lbcv)
-        base = arr.data
-        cbase = cst.data
-        K = cgutils.unpack_tuple(builder, arr.shape)[2]
-        i64 = K.type
+        nch = cgutils.unpack_tuple(builder, arr.shape)[0]
+        i64 = nch.type
         vty, splat, load, store, fmadd = _vec_tools(context, builder)
-        nch = builder.udiv(K, ir.Constant(i64, 8))
         zero = ir.Constant(vty, [0.0] * 8)
         new = (splat(xnv), splat(ynv))
         old = (splat(xov), splat(yov))
 
-        def off(row, c8):  # element offset of (row, 8-chunk) in a (rows × K) array
-            return builder.add(builder.mul(ir.Constant(i64, row), K), c8)
+        def at(row):
+            return ir.Constant(i64, 8 * row)
 
-        with cgutils.for_range(builder, nch) as loop:
-            c8 = builder.mul(loop.index, ir.Constant(i64, 8))
-            for g in range(3):
-                c1r = load(cbase, off(4 * g, c8))
-                c1i = load(cbase, off(4 * g + 1, c8))
-                c2r = load(cbase, off(4 * g + 2, c8))
-                c2i = load(cbase, off(4 * g + 3, c8))
-                for sgl in range(2):
-                    s = 3 * sgl + g
-                    o_dr, o_di = off(s, c8), off(6 + s, c8)
-                    o_fr, o_fi = off(12 + s, c8), off(18 + s, c8)
-                    n = new[sgl]
-                    # active: D ← c1 · (D − o + n c2)
-                    tr = fmadd(n, c2r, builder.fsub(load(base, o_dr), old[sgl]))
-                    ti = fmadd(n, c2i, load(base, o_di))
-                    dr = fmadd(c1r, tr, builder.fneg(builder.fmul(c1i, ti)))
-                    di = fmadd(c1r, ti, builder.fmul(c1i, tr))
-                    # fresh: F ← c1 · (F + n c2)
-                    f_r = load(base, o_fr)
-                    f_i = load(base, o_fi)
-                    ur = fmadd(n, c2r, f_r)
-                    ui = fmadd(n, c2i, f_i)
-                    fr = fmadd(c1r, ur, builder.fneg(builder.fmul(c1i, ui)))
-                    fi = fmadd(c1r, ui, builder.fmul(c1i, ur))
-                    fr = builder.select(frv, fr, f_r)
-                    fi = builder.select(frv, fi, f_i)
-                    store(builder.select(swv, fr, dr), base, o_dr)
-                    store(builder.select(swv, fi, di), base, o_di)
-                    store(builder.select(swv, zero, fr), base, o_fr)
-                    store(builder.select(swv, zero, fi), base, o_fi)
+        def advance(with_fresh):
+            with cgutils.for_range(builder, nch) as loop:
+                base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
+                cbase = _chunk_ptr(builder, cst, loop.index, LB_CONST_ROWS)
+                for g in range(3):
+                    c1r = load(cbase, at(4 * g))
+                    c1i = load(cbase, at(4 * g + 1))
+                    c2r = load(cbase, at(4 * g + 2))
+                    c2i = load(cbase, at(4 * g + 3))
+                    for sgl in range(2):
+                        s = 3 * sgl + g
+                        n = new[sgl]
+                        # active: D ← c1 · (D − o + n c2)
+                        tr = fmadd(n, c2r, builder.fsub(load(base, at(s)), old[sgl]))
+                        ti = fmadd(n, c2i, load(base, at(6 + s)))
+                        store(fmadd(c1r, tr, builder.fneg(builder.fmul(c1i, ti))), base, at(s))
+                        store(fmadd(c1r, ti, builder.fmul(c1i, tr)), base, at(6 + s))
+                        if with_fresh:  # fresh: F ← c1 · (F + n c2)
+                            ur = fmadd(n, c2r, load(base, at(12 + s)))
+                            ui = fmadd(n, c2i, load(base, at(18 + s)))
+                            fr = fmadd(c1r, ur, builder.fneg(builder.fmul(c1i, ui)))
+                            store(fr, base, at(12 + s))
+                            store(fmadd(c1r, ui, builder.fmul(c1i, ur)), base, at(18 + s))
+
+        with builder.if_else(frv, likely=True) as (then, otherwise):
+            with then:
+                advance(True)
+            with otherwise:
+                advance(False)
+        with builder.if_then(swv, likely=False):  # the fresh set becomes the active set
+            with cgutils.for_range(builder, nch) as loop:
+                base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
+                for r in range(12):
+                    store(load(base, at(12 + r)), base, at(r))
+                    store(zero, base, at(12 + r))
         return context.get_dummy_value()
 
     return sig, codegen
@@ -412,7 +424,7 @@ def _hsum(builder, v):  # pragma: no cover - code generation
 @intrinsic
 def _lowband_window_vec(typingctx, lb, lbc, mx, my):  # pragma: no cover
     """Vector kernel of :func:`lowband_window`: (E, F, Re S, Im S)."""
-    if not (_c_array(lb, 3) and _c_array(lbc, 2)):
+    if not (_c_array(lb, 3) and _c_array(lbc, 3)):
         return None
     sig = types.UniTuple(types.float64, 4)(lb, lbc, mx, my)
 
@@ -420,12 +432,9 @@ def _lowband_window_vec(typingctx, lb, lbc, mx, my):  # pragma: no cover
         lbv, lbcv, mxv, myv = args
         arr = context.make_array(signature.args[0])(context, builder, lbv)
         cst = context.make_array(signature.args[1])(context, builder, lbcv)
-        base = arr.data
-        cbase = cst.data
-        K = cgutils.unpack_tuple(builder, arr.shape)[2]
-        i64 = K.type
+        nch = cgutils.unpack_tuple(builder, arr.shape)[0]
+        i64 = nch.type
         vty, splat, load, _store, fmadd = _vec_tools(context, builder)
-        nch = builder.udiv(K, ir.Constant(i64, 8))
         zero = ir.Constant(vty, [0.0] * 8)
         accs = [cgutils.alloca_once_value(builder, zero) for _ in range(4)]
         nmx = splat(builder.fneg(mxv))
@@ -433,20 +442,21 @@ def _lowband_window_vec(typingctx, lb, lbc, mx, my):  # pragma: no cover
         half = splat(0.5)
         mq = splat(-0.25)
 
-        def off(row, c8):
-            return builder.add(builder.mul(ir.Constant(i64, row), K), c8)
+        def at(row):
+            return ir.Constant(i64, 8 * row)
 
         with cgutils.for_range(builder, nch) as loop:
-            c8 = builder.mul(loop.index, ir.Constant(i64, 8))
-            wr = load(cbase, off(12, c8))
-            wi = load(cbase, off(13, c8))
-            kk = load(cbase, off(14, c8))
+            base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
+            cbase = _chunk_ptr(builder, cst, loop.index, LB_CONST_ROWS)
+            wr = load(cbase, at(12))
+            wi = load(cbase, at(13))
+            kk = load(cbase, at(14))
 
             def spec(plane, s0, w, nm):  # ½ D(θ) − ¼ D(θ − Ω) − ¼ D(θ + Ω) − μ W
                 r = 6 * plane + s0
-                v = builder.fmul(half, load(base, off(r, c8)))
-                v = fmadd(mq, load(base, off(r + 1, c8)), v)
-                v = fmadd(mq, load(base, off(r + 2, c8)), v)
+                v = builder.fmul(half, load(base, at(r)))
+                v = fmadd(mq, load(base, at(r + 1)), v)
+                v = fmadd(mq, load(base, at(r + 2)), v)
                 return fmadd(nm, w, v)
 
             xr = spec(0, 0, wr, nmx)
@@ -469,7 +479,7 @@ def _lowband_window_vec(typingctx, lb, lbc, mx, my):  # pragma: no cover
 def lowband_update(lb, lbc, xn, yn, xo, yo, fresh, swap):  # pragma: no cover - numba
     """Advance the six sliding DFTs of the low band by one sample pair.
 
-    ``lb`` (4 × 6 × K0p), ``lbc`` (15 × K0p): see the layout above. ``xn, yn``: the new
+    ``lb`` (K0p/8 × 24 × 8), ``lbc`` (K0p/8 × 15 × 8): see the layout above. ``xn, yn``: the new
     samples, ``xo, yo``: the ones leaving the window (0 before the first N). With ``fresh`` the
     fresh set is advanced too (adds only); with ``swap`` (the last sample of a fresh period) it
     replaces the active set.
@@ -516,7 +526,7 @@ def lowband_sums(lb, lbc, lbs, N):  # pragma: no cover - numba
 
 
 def lowband_constants(N: int, K0: int) -> np.ndarray:
-    """The constant array ``lbc`` (15 × K0p) of K0 low bins of an N-sample window."""
+    """The constant array ``lbc`` (K0p/8 × 15 × 8) of K0 low bins of an N-sample window."""
     N = int(N)
     M = 1 << (N - 1).bit_length()
     K0p = lowband_padded(K0)
@@ -533,12 +543,12 @@ def lowband_constants(N: int, K0: int) -> np.ndarray:
     lbc[12, :K0] = W.real
     lbc[13, :K0] = W.imag
     lbc[14, :K0] = k
-    return lbc
+    return np.ascontiguousarray(lbc.reshape(LB_CONST_ROWS, K0p // 8, 8).transpose(1, 0, 2))
 
 
 def lowband_arrays(N: int, K0: int) -> tuple[np.ndarray, ...]:
     """Fresh state and constant arrays (lb, lbc, lbring, lbs) for K0 low bins."""
-    lb = np.zeros((4, 6, lowband_padded(K0)))
+    lb = np.zeros((lowband_padded(K0) // 8, LB_STATE_ROWS, 8))
     return lb, lowband_constants(N, K0), np.zeros((2, int(N))), np.zeros(4)
 
 

@@ -54,6 +54,7 @@ from scipy.special import ellipj, ellipk
 
 from .fei_sliding import (
     LB_CONST_ROWS,
+    LB_STATE_ROWS,
     lowband_constants,
     lowband_padded,
     lowband_update,
@@ -347,9 +348,9 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
     acc = fb[off_acc : off_acc + _NACC]
     a0 = acc[_Q1 : _Q1 + 10]  # q₁: running sums
     a1 = acc[_Q1 + 10 : _Q1 + 20]  # q₁: fresh sums
-    K0 = ib[_K0]  # padded to a multiple of 8 (fei_sliding's vector layout)
-    lb = fb[ib[_OFF_LB] : ib[_OFF_LB] + 24 * K0].reshape((4, 6, K0))
-    lbc = fb[ib[_OFF_LBC] : ib[_OFF_LBC] + LB_CONST_ROWS * K0].reshape((LB_CONST_ROWS, K0))
+    K0 = ib[_K0]  # padded to a multiple of 8: K0 // 8 chunks of 8 bins (fei_sliding's layout)
+    lb = fb[ib[_OFF_LB] : ib[_OFF_LB] + LB_STATE_ROWS * K0].reshape((K0 // 8, LB_STATE_ROWS, 8))
+    lbc = fb[ib[_OFF_LBC] : ib[_OFF_LBC] + LB_CONST_ROWS * K0].reshape((K0 // 8, LB_CONST_ROWS, 8))
     n = xs.shape[0]
     t = ib[_T]
     if n > 0 and t == 0:  # start the DC blockers at the first value: no step transient
@@ -663,11 +664,17 @@ class StreamingFEI:
             "acc": _NACC,
             "one": 6,
             "work": _NWORK + 2,
-            "lb": 24 * lowband_padded(self.K0),
+            "lbpad": 7,  # places "lb" on a 64-byte boundary (8-wide vectors)
+            "lb": LB_STATE_ROWS * lowband_padded(self.K0),
             "lbc": LB_CONST_ROWS * lowband_padded(self.K0),
         }
         off = np.cumsum([0, *sizes.values()])
-        self._fb = fb = np.zeros(int(off[-1]))
+        buf = np.zeros(int(off[-1]))
+        i_lb = list(sizes).index("lb")
+        pad_start = int(off[i_lb]) - 7
+        shift = (-(buf.ctypes.data // 8 + pad_start)) % 8 if buf.ctypes.data % 8 == 0 else 0
+        off[i_lb:] += shift - 7  # the pad shrinks to `shift` doubles
+        self._fb = fb = buf[: int(off[-1])]
         self._ib = ib = np.zeros(_NIB + 1, dtype=np.int64)  # + scratch slot for a window end
         views = {name: fb[off[i] : off[i + 1]] for i, name in enumerate(sizes)}
         for slot, name in (
