@@ -270,26 +270,26 @@ class SlidingSums:
 #
 # Inputs are real (half the multiplications of the modulated form) and the window needs no
 # phasor. Two sets of states: the *active* set slides (adds the new sample, removes the one
-# leaving the window); once every RESYNC_WINDOWS window periods a *fresh* set starts from zero
-# at the period's first sample and only adds. After N samples it holds exactly the current
-# window, without any removal round-off, and replaces the active set.
+# leaving the window); in every period of N samples a *fresh* set starts from zero at the
+# period's first sample and only adds. After N samples it holds exactly the current window,
+# without any removal round-off, and replaces the active set. The fresh set is only read then,
+# so it adds _GROUP samples at a time, F ← c1^G F + Σ_j x_j c1^{G−j} c2 (one rotation per
+# group instead of one per sample).
 #
 # Layout (8-wide vectors, chunk-major so that one chunk's vectors sit at fixed offsets from one
 # pointer): K0 is padded to K0p, a multiple of 8 (padding bins have zero constants, so their
 # states stay 0 and add nothing); bins 8c … 8c + 7 form chunk c. ``lb`` (K0p/8 × 24 × 8): per
 # chunk the rows 6·plane + state, planes active re, active im, fresh re, fresh im, states target
-# θ_k, θ_k − Ω, θ_k + Ω, then measured the same. ``lbc`` (K0p/8 × 15 × 8): per chunk, for the
-# frequency sets g = 0, 1, 2 (θ_k, θ_k − Ω, θ_k + Ω) the rows e^{jθ} (re, im), e^{−jθN}
-# (re, im) at 4g … 4g + 3; then W_k (re, im) and k. Kept 64-byte aligned by the streaming
-# evaluator (unaligned arrays work, slower).
+# θ_k, θ_k − Ω, θ_k + Ω, then measured the same. ``lbc`` (K0p/8 × 45 × 8): per chunk, for the
+# frequency sets g = 0, 1, 2 (θ_k, θ_k − Ω, θ_k + Ω) 14 rows from 14g: e^{jθ} = c1, e^{−jθN} =
+# c2, c1^G, then c1^{G−j} c2 for j = 0 … G−1 (each re, im); then W_k (re, im) and k.
+# Kept 64-byte aligned by the streaming evaluator (unaligned arrays work, slower).
 # ---------------------------------------------------------------------------------------------
 
 
-#: Window periods between resynchronisations of the low-band states.
-RESYNC_WINDOWS = 1
 #: Rows per chunk of the low-band state and constant arrays ``lb`` and ``lbc``.
 LB_STATE_ROWS = 24
-LB_CONST_ROWS = 15
+LB_CONST_ROWS = 45
 
 
 def lowband_padded(K0: int) -> int:
@@ -344,62 +344,146 @@ def _chunk_ptr(builder, arr, index, rows):  # pragma: no cover - code generation
     return builder.gep(arr.data, [builder.mul(index, ir.Constant(i64, 8 * rows))])
 
 
-@intrinsic
-def _lowband_update_vec(typingctx, lb, lbc, xn, yn, xo, yo, fresh, swap):  # pragma: no cover
-    """Vector kernel of :func:`lowband_update` (8 bins per vector, loop over the chunks)."""
-    if not (_c_array(lb, 3) and _c_array(lbc, 3)):
-        return None
-    sig = types.none(lb, lbc, xn, yn, xo, yo, fresh, swap)
+_GROUP = 4  # samples per update of the fresh set
+_G_ROWS = 6 + 2 * _GROUP  # constant rows per frequency set
+_W_ROW = 3 * _G_ROWS  # W re, W im, k
 
-    def codegen(context, builder, signature, args):
-        lbv, lbcv, xnv, ynv, xov, yov, frv, swv = args
+
+def _emit_active(builder, tools, arr, cst, nch, new, old):  # pragma: no cover - codegen
+    """Active set, one sample: D ← c1 · (D − o + n c2) (``new``, ``old``: splats per signal)."""
+    _vty, _splat, load, store, fmadd = tools
+    at = _row_offset(nch)
+    with cgutils.for_range(builder, nch) as loop:
+        base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
+        cbase = _chunk_ptr(builder, cst, loop.index, LB_CONST_ROWS)
+        for g in range(3):
+            c = _G_ROWS * g
+            c1r, c1i, c2r, c2i = (load(cbase, at(c + i)) for i in range(4))
+            for sgl in range(2):
+                s = 3 * sgl + g
+                n = new[sgl]
+                tr = fmadd(n, c2r, builder.fsub(load(base, at(s)), old[sgl]))
+                ti = fmadd(n, c2i, load(base, at(6 + s)))
+                store(fmadd(c1r, tr, builder.fneg(builder.fmul(c1i, ti))), base, at(s))
+                store(fmadd(c1r, ti, builder.fmul(c1i, tr)), base, at(6 + s))
+
+
+def _emit_fresh(builder, tools, arr, cst, nch, ns):  # pragma: no cover - code generation
+    """Fresh set: add 1 or _GROUP samples (``ns``: per signal, splats oldest first).
+
+    One sample: F ← c1 · (F + n c2); _GROUP samples at once:
+    F ← c1^G F + Σ_j n_j c1^{G−j} c2 (the same recursion unrolled, one rotation per group).
+    """
+    _vty, _splat, load, store, fmadd = tools
+    at = _row_offset(nch)
+    cnt = len(ns[0])
+    with cgutils.for_range(builder, nch) as loop:
+        base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
+        cbase = _chunk_ptr(builder, cst, loop.index, LB_CONST_ROWS)
+        for g in range(3):
+            c = _G_ROWS * g
+            if cnt == 1:
+                c1r, c1i, c2r, c2i = (load(cbase, at(c + i)) for i in range(4))
+                for sgl in range(2):
+                    s = 3 * sgl + g
+                    n = ns[sgl][0]
+                    ur = fmadd(n, c2r, load(base, at(12 + s)))
+                    ui = fmadd(n, c2i, load(base, at(18 + s)))
+                    store(fmadd(c1r, ur, builder.fneg(builder.fmul(c1i, ui))), base, at(12 + s))
+                    store(fmadd(c1r, ui, builder.fmul(c1i, ur)), base, at(18 + s))
+                continue
+            cgr, cgi = load(cbase, at(c + 4)), load(cbase, at(c + 5))
+            kr = [load(cbase, at(c + 6 + 2 * j)) for j in range(cnt)]
+            ki = [load(cbase, at(c + 7 + 2 * j)) for j in range(cnt)]
+            for sgl in range(2):
+                s = 3 * sgl + g
+                f_r = load(base, at(12 + s))
+                f_i = load(base, at(18 + s))
+                vr = fmadd(cgr, f_r, builder.fneg(builder.fmul(cgi, f_i)))
+                vi = fmadd(cgr, f_i, builder.fmul(cgi, f_r))
+                for j in range(cnt):
+                    vr = fmadd(ns[sgl][j], kr[j], vr)
+                    vi = fmadd(ns[sgl][j], ki[j], vi)
+                store(vr, base, at(12 + s))
+                store(vi, base, at(18 + s))
+
+
+def _emit_swap(builder, tools, arr, nch):  # pragma: no cover - code generation
+    """The fresh set becomes the active set and restarts from zero."""
+    vty, _splat, load, store, _fmadd = tools
+    at = _row_offset(nch)
+    zero = ir.Constant(vty, [0.0] * 8)
+    with cgutils.for_range(builder, nch) as loop:
+        base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
+        for r in range(12):
+            store(load(base, at(12 + r)), base, at(r))
+            store(zero, base, at(12 + r))
+
+
+def _row_offset(nch):  # pragma: no cover - code generation
+    def at(row):
+        return ir.Constant(nch.type, 8 * row)
+
+    return at
+
+
+@intrinsic
+def _lowband_update_vec(
+    typingctx, lb, lbc, ring, cx, cy, st, N, m, xn, yn, xo, yo
+):  # pragma: no cover
+    """Vector kernel of :func:`lowband_update` (one call, all control flow inside)."""
+    if not (_c_array(lb, 3) and _c_array(lbc, 3) and _c_array(ring, 2)):
+        return None
+    ints = (cx, cy, st, N, m)
+    if not all(isinstance(v, types.Integer) for v in ints):
+        return None
+    sig = types.none(lb, lbc, ring, cx, cy, st, N, m, xn, yn, xo, yo)
+
+    def codegen(context, builder, signature, args):  # pragma: no cover - code generation
+        lbv, lbcv, ringv = args[:3]
+        cxv, cyv, stv, nv, mv = (
+            context.cast(builder, v, ty, types.intp)
+            for v, ty in zip(args[3:8], signature.args[3:8], strict=True)
+        )
+        xnv, ynv, xov, yov = args[8:]
         arr = context.make_array(signature.args[0])(context, builder, lbv)
         cst = context.make_array(signature.args[1])(context, builder, lbcv)
+        rg = context.make_array(signature.args[2])(context, builder, ringv)
+        ncol = cgutils.unpack_tuple(builder, rg.shape)[1]
         nch = cgutils.unpack_tuple(builder, arr.shape)[0]
         i64 = nch.type
-        vty, splat, load, store, fmadd = _vec_tools(context, builder)
-        zero = ir.Constant(vty, [0.0] * 8)
+        tools = _vec_tools(context, builder)
+        splat = tools[1]
         new = (splat(xnv), splat(ynv))
-        old = (splat(xov), splat(yov))
+        _emit_active(builder, tools, arr, cst, nch, new, (splat(xov), splat(yov)))
 
-        def at(row):
-            return ir.Constant(i64, 8 * row)
+        def past(j):  # splats of ring samples j rows before st (modulo N), target and measured
+            i = builder.sub(stv, ir.Constant(i64, j))
+            i = builder.select(
+                builder.icmp_signed("<", i, ir.Constant(i64, 0)), builder.add(i, nv), i
+            )
+            row = builder.mul(i, ncol)
+            return [
+                splat(builder.load(builder.gep(rg.data, [builder.add(row, col)])))
+                for col in (cxv, cyv)
+            ]
 
-        def advance(with_fresh):
-            with cgutils.for_range(builder, nch) as loop:
-                base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
-                cbase = _chunk_ptr(builder, cst, loop.index, LB_CONST_ROWS)
-                for g in range(3):
-                    c1r = load(cbase, at(4 * g))
-                    c1i = load(cbase, at(4 * g + 1))
-                    c2r = load(cbase, at(4 * g + 2))
-                    c2i = load(cbase, at(4 * g + 3))
-                    for sgl in range(2):
-                        s = 3 * sgl + g
-                        n = new[sgl]
-                        # active: D ← c1 · (D − o + n c2)
-                        tr = fmadd(n, c2r, builder.fsub(load(base, at(s)), old[sgl]))
-                        ti = fmadd(n, c2i, load(base, at(6 + s)))
-                        store(fmadd(c1r, tr, builder.fneg(builder.fmul(c1i, ti))), base, at(s))
-                        store(fmadd(c1r, ti, builder.fmul(c1i, tr)), base, at(6 + s))
-                        if with_fresh:  # fresh: F ← c1 · (F + n c2)
-                            ur = fmadd(n, c2r, load(base, at(12 + s)))
-                            ui = fmadd(n, c2i, load(base, at(18 + s)))
-                            fr = fmadd(c1r, ur, builder.fneg(builder.fmul(c1i, ui)))
-                            store(fr, base, at(12 + s))
-                            store(fmadd(c1r, ui, builder.fmul(c1i, ur)), base, at(18 + s))
-
-        with builder.if_else(frv, likely=True) as (then, otherwise):
-            with then:
-                advance(True)
-            with otherwise:
-                advance(False)
-        with builder.if_then(swv, likely=False):  # the fresh set becomes the active set
-            with cgutils.for_range(builder, nch) as loop:
-                base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
-                for r in range(12):
-                    store(load(base, at(12 + r)), base, at(r))
-                    store(zero, base, at(12 + r))
+        grp = ir.Constant(i64, _GROUP)
+        zero = ir.Constant(i64, 0)
+        in_group = builder.icmp_signed("==", builder.srem(mv, grp), zero)
+        with builder.if_then(in_group, likely=False):
+            older = [past(j) for j in range(_GROUP - 1, 0, -1)]
+            ns = [[o[sgl] for o in older] + [new[sgl]] for sgl in range(2)]
+            _emit_fresh(builder, tools, arr, cst, nch, ns)
+        with builder.if_then(builder.icmp_signed("==", mv, nv), likely=False):
+            r = builder.srem(nv, grp)  # samples after the last full group: t − r + 1 … t
+            for j in range(_GROUP - 2, 0, -1):
+                with builder.if_then(builder.icmp_signed(">", r, ir.Constant(i64, j))):
+                    xj, yj = past(j)
+                    _emit_fresh(builder, tools, arr, cst, nch, [[xj], [yj]])
+            with builder.if_then(builder.icmp_signed(">", r, zero)):
+                _emit_fresh(builder, tools, arr, cst, nch, [[new[0]], [new[1]]])
+            _emit_swap(builder, tools, arr, nch)
         return context.get_dummy_value()
 
     return sig, codegen
@@ -448,9 +532,9 @@ def _lowband_window_vec(typingctx, lb, lbc, mx, my):  # pragma: no cover
         with cgutils.for_range(builder, nch) as loop:
             base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
             cbase = _chunk_ptr(builder, cst, loop.index, LB_CONST_ROWS)
-            wr = load(cbase, at(12))
-            wi = load(cbase, at(13))
-            kk = load(cbase, at(14))
+            wr = load(cbase, at(_W_ROW))
+            wi = load(cbase, at(_W_ROW + 1))
+            kk = load(cbase, at(_W_ROW + 2))
 
             def spec(plane, s0, w, nm):  # ½ D(θ) − ¼ D(θ − Ω) − ¼ D(θ + Ω) − μ W
                 r = 6 * plane + s0
@@ -476,15 +560,18 @@ def _lowband_window_vec(typingctx, lb, lbc, mx, my):  # pragma: no cover
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def lowband_update(lb, lbc, xn, yn, xo, yo, fresh, swap):  # pragma: no cover - numba
+def lowband_update(lb, lbc, ring, cx, cy, st, N, m, xn, yn, xo, yo):  # pragma: no cover - numba
     """Advance the six sliding DFTs of the low band by one sample pair.
 
-    ``lb`` (K0p/8 × 24 × 8), ``lbc`` (K0p/8 × 15 × 8): see the layout above. ``xn, yn``: the new
-    samples, ``xo, yo``: the ones leaving the window (0 before the first N). With ``fresh`` the
-    fresh set is advanced too (adds only); with ``swap`` (the last sample of a fresh period) it
-    replaces the active set.
+    ``lb`` (K0p/8 × 24 × 8), ``lbc`` (K0p/8 × 45 × 8): see the layout above. ``xn, yn``: the new
+    samples, ``xo, yo``: the ones leaving the window (0 before the first N). ``m`` (1 … N): the
+    new sample's place in the current fresh period; ``ring[·, cx]``, ``ring[·, cy]``: the
+    caller's ring of the last N samples (row ``st`` holds the new one, rows modulo N), from
+    which the fresh set takes the samples of a group. The fresh set is advanced every
+    _GROUP samples (and by the remaining samples at the period's end, ``m = N``), where it
+    then replaces the active set.
     """
-    _lowband_update_vec(lb, lbc, xn, yn, xo, yo, fresh, swap)
+    _lowband_update_vec(lb, lbc, ring, cx, cy, st, N, m, xn, yn, xo, yo)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -497,26 +584,24 @@ def lowband_window(lb, lbc, mx, my):  # pragma: no cover - numba
 def lowband_step(lb, lbc, lbring, lbs, t, N, xn, yn):  # pragma: no cover - numba
     """Standalone step: ring of raw samples and window sums, then :func:`lowband_update`.
 
-    ``lbring`` (2 × N): the last N raw samples; ``lbs`` (4): running Σx, Σy, fresh Σx, Σy.
+    ``lbring`` (N × 2): the last N raw samples; ``lbs`` (4): running Σx, Σy, fresh Σx, Σy.
+    The fresh periods are the stretches ``[qN, (q+1)N)``.
     """
     slot = t % N
-    xo = lbring[0, slot]
-    yo = lbring[1, slot]
-    lbring[0, slot] = xn
-    lbring[1, slot] = yn
+    xo = lbring[slot, 0]
+    yo = lbring[slot, 1]
+    lbring[slot, 0] = xn
+    lbring[slot, 1] = yn
     lbs[0] += xn - xo
     lbs[1] += yn - yo
-    fresh = (t // N) % RESYNC_WINDOWS == RESYNC_WINDOWS - 1
-    swap = fresh and (t + 1) % N == 0
-    lowband_update(lb, lbc, xn, yn, xo, yo, fresh, swap)
-    if fresh:
-        lbs[2] += xn
-        lbs[3] += yn
-        if swap:
-            lbs[0] = lbs[2]
-            lbs[1] = lbs[3]
-            lbs[2] = 0.0
-            lbs[3] = 0.0
+    lowband_update(lb, lbc, lbring, 0, 1, slot, N, slot + 1, xn, yn, xo, yo)
+    lbs[2] += xn
+    lbs[3] += yn
+    if slot == N - 1:
+        lbs[0] = lbs[2]
+        lbs[1] = lbs[3]
+        lbs[2] = 0.0
+        lbs[3] = 0.0
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -526,7 +611,7 @@ def lowband_sums(lb, lbc, lbs, N):  # pragma: no cover - numba
 
 
 def lowband_constants(N: int, K0: int) -> np.ndarray:
-    """The constant array ``lbc`` (K0p/8 × 15 × 8) of K0 low bins of an N-sample window."""
+    """The constant array ``lbc`` (K0p/8 × 45 × 8) of K0 low bins of an N-sample window."""
     N = int(N)
     M = 1 << (N - 1).bit_length()
     K0p = lowband_padded(K0)
@@ -536,20 +621,25 @@ def lowband_constants(N: int, K0: int) -> np.ndarray:
     omega = 2 * np.pi / (N - 1)  # Ω N ≡ Ω (mod 2π)
     lbc = np.zeros((LB_CONST_ROWS, K0p))
     for g, sign in enumerate((0.0, -1.0, 1.0)):  # θ_k, θ_k − Ω, θ_k + Ω
-        c1 = np.exp(1j * (theta + sign * omega))
-        c2 = np.exp(-1j * (theta_n + sign * omega))
-        lbc[4 * g : 4 * g + 4, :K0] = c1.real, c1.imag, c2.real, c2.imag
+        th = theta + sign * omega
+        thn = theta_n + sign * omega  # θN mod 2π (up to a multiple of 2π)
+        rows = [np.exp(1j * th), np.exp(-1j * thn), np.exp(1j * _GROUP * th)]
+        rows += [np.exp(1j * ((_GROUP - j) * th - thn)) for j in range(_GROUP)]  # c1^{G−j} c2
+        c = _G_ROWS * g
+        for i, v in enumerate(rows):
+            lbc[c + 2 * i, :K0] = v.real
+            lbc[c + 2 * i + 1, :K0] = v.imag
     W = sfft.rfft(np.hanning(N), n=M)[1 : K0 + 1]
-    lbc[12, :K0] = W.real
-    lbc[13, :K0] = W.imag
-    lbc[14, :K0] = k
+    lbc[_W_ROW, :K0] = W.real
+    lbc[_W_ROW + 1, :K0] = W.imag
+    lbc[_W_ROW + 2, :K0] = k
     return np.ascontiguousarray(lbc.reshape(LB_CONST_ROWS, K0p // 8, 8).transpose(1, 0, 2))
 
 
 def lowband_arrays(N: int, K0: int) -> tuple[np.ndarray, ...]:
     """Fresh state and constant arrays (lb, lbc, lbring, lbs) for K0 low bins."""
     lb = np.zeros((lowband_padded(K0) // 8, LB_STATE_ROWS, 8))
-    return lb, lowband_constants(N, K0), np.zeros((2, int(N))), np.zeros(4)
+    return lb, lowband_constants(N, K0), np.zeros((int(N), 2)), np.zeros(4)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -479,7 +479,8 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
         _cplx_sum(a0, a1, 6, q1r, q1i, p1r, p1i, o_q1r, o_q1i, r1r, r1i)
         _cplx_sum(a0, a1, 8, q1r, q1i, p2r, p2i, o_q1r, o_q1i, r2r, r2i)
         if K0 > 0:  # exact low band (sliding DFTs of the raw samples, same resync points)
-            lowband_update(lb, lbc, xr, yr, o_xr, o_yr, True, resync)
+            st = slot - 1 if slot > 0 else N - 1  # ring row of this sample
+            lowband_update(lb, lbc, ring, 4, 5, st, N, t + 1 - fresh, xr, yr, o_xr, o_yr)
         # Resynchronise: the fresh sums hold exactly the current window after N additions.
         if resync:
             for i in range(10):
