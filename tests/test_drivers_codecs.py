@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import binascii
+import copy
 import math
 import os
 import random
@@ -29,13 +30,17 @@ from pymodbus.pdu.register_message import (
 )
 
 from drivers.base import Driver, Status, extend_seq
-from drivers.can import CANDriver
-from drivers.can.codec import DBC_PATH, load
+from drivers.can import CANDriver, virtual_rx_queue
+from drivers.can.codec import DBC_PATH, Frame, load
 from drivers.modbus import ModbusDriver
 from drivers.registry import available, create_driver, driver_class
 from drivers.serial import SerialDriver
 from rths_hil.errors import InputError
+from sim_backends.delay import DelayGain
+from sim_backends.endpoints.base import TwinController
+from sim_backends.endpoints.can import CANTwin
 from sim_backends.faults import Faults
+from sim_backends.twin import SpringPlant
 
 DB = cantools.database.load_file(str(DBC_PATH))
 
@@ -143,6 +148,91 @@ def test_can_malformed_frames_are_counted() -> None:
         )
         assert drv.receive(0.1) is None
         assert drv.stats.duplicates == 1 and drv.stats.received == 1
+
+
+def test_can_frame_deepcopy_equals_python_cans_own() -> None:
+    """Frame's cheap copy carries every slot of can.Message, as python-can's deepcopy does."""
+    slots = [a for a in can.Message.__slots__ if a != "__weakref__"]
+    cases = [
+        dict(arbitration_id=0x100, data=bytearray(range(8)), is_extended_id=False),
+        dict(arbitration_id=0x1ABCDE, data=b"\x01\x02", is_extended_id=True, channel="ch"),
+        dict(arbitration_id=0x7FF, is_remote_frame=True, dlc=3, is_extended_id=False),
+        dict(arbitration_id=0x10, is_error_frame=True, timestamp=12.5, is_rx=False),
+        dict(
+            arbitration_id=0x123,
+            data=bytes(range(64)),
+            is_fd=True,
+            bitrate_switch=True,
+            error_state_indicator=True,
+            channel=1,
+        ),
+    ]
+    for kw in cases:
+        frame = Frame(**kw)
+        reference = copy.deepcopy(can.Message(**kw))  # python-can's __deepcopy__
+        dup = copy.deepcopy(frame)
+        assert type(dup) is can.Message
+        for name in slots:
+            assert getattr(dup, name) == getattr(reference, name), name
+            assert type(getattr(dup, name)) is type(getattr(reference, name)), name
+        assert dup.data is not frame.data
+        frame.data[:1] = b"\xff" if frame.data else b""
+        assert dup.data == reference.data  # the copy does not follow the reused frame
+
+
+def test_can_driver_reads_a_filtered_virtual_bus_through_recv() -> None:
+    channel = "filtered-can"
+    with can.Bus(interface="virtual", channel=channel) as plain:
+        assert virtual_rx_queue(plain) is plain.queue
+    assert virtual_rx_queue(None) is None
+    filters = [{"can_id": 0x180, "can_mask": 0x7FF, "extended": False}]
+    with (
+        CANDriver(channel=channel, bus_options={"can_filters": filters}) as drv,
+        can.Bus(interface="virtual", channel=channel) as peer,
+    ):
+        assert drv._rxq is None  # python-can applies the filter in recv()
+        drv.send(0, 0.0)
+        peer.send(can.Message(arbitration_id=0x123, data=bytes(8), is_extended_id=False))
+        good = DB.encode_message(
+            "Feedback", {"Seq": 0, "Status": 1, "Displacement": -0.002, "Force": -7.5}
+        )
+        peer.send(can.Message(arbitration_id=0x180, data=good, is_extended_id=False))
+        fb = drv.receive(1.0)
+        assert fb is not None and (fb.displacement, fb.force) == (pytest.approx(-0.002), -7.5)
+        assert drv.stats.malformed_reasons == {}  # 0x123 never reached the driver
+
+
+def test_can_twin_feedback_bytes_equal_cantools() -> None:
+    """The twin's compiled feedback encoder against cantools, clamping and INVALID included."""
+    twin = CANTwin(TwinController(SpringPlant(DelayGain(0.0, 1.0, 1e-3))), channel="unused")
+    msg = DB.get_message_by_name("Feedback")
+    d_lo, d_hi = -(2**23), 2**23 - 1
+    rng = random.Random(4)
+    values = [rng.uniform(-1.0, 1.0) for _ in range(300)] + [0.8388607, -0.8388608, 5.0, -5.0]
+    forces = [rng.uniform(-5e6, 5e6) for _ in range(300)] + [4194303.5, -4194304.0, 1e9, -1e9]
+    values += [math.nan, math.inf, 0.1]
+    forces += [1.0, -1.0, -math.inf]
+    for k, (d, f) in enumerate(zip(values, forces, strict=True)):
+        status = rng.randrange(0, 64)
+        frames = twin._encode(k, d, f, status)
+        assert len(frames) == 1 and frames[0].arbitration_id == msg.frame_id
+
+        def raw(x, scale):
+            if not math.isfinite(x):
+                return "INVALID"
+            # the controller never sends the reserved INVALID value for a real measurement
+            return max(d_lo + 1, min(d_hi, round(x / scale)))
+
+        expected = msg.encode(
+            {
+                "Seq": k % 256,
+                "Status": status,
+                "Displacement": raw(d, 1e-7),
+                "Force": raw(f, 0.5),
+            },
+            scaling=False,
+        )
+        assert bytes(frames[0].data) == expected, (k, d, f)
 
 
 def test_can_bad_dbc_and_bad_interface() -> None:

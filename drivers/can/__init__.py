@@ -16,19 +16,35 @@ The bus is opened through python-can from configuration: ``interface`` (default
 from __future__ import annotations
 
 import math
+import queue
 import time
 from typing import Any, ClassVar
 
 import can
+from can.interfaces.virtual import VirtualBus
 
 from rths_hil.errors import InputError
 
-from ..base import Driver, Feedback, check_command, extend_seq
-from .codec import ActuatorCodecs, load
+from ..base import Driver, Feedback, check_command
+from .codec import ActuatorCodecs, Frame, load
 
-__all__ = ["CANDriver"]
+__all__ = ["CANDriver", "virtual_rx_queue"]
 
 _BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
+
+
+def virtual_rx_queue(bus: can.BusABC | None) -> queue.Queue | None:
+    """The receive queue of a python-can virtual bus without filters, else ``None``.
+
+    ``VirtualBus.recv`` is ``BusABC.recv`` around a ``queue.Queue.get`` of this queue plus a
+    filter check (none set) and a debug log line; reading the queue directly returns the same
+    message objects, in the same order, ≈ 3 µs sooner per frame. Any other bus (SocketCAN,
+    hardware, a virtual bus with filters or a subclass) is read through ``recv``.
+    """
+    if type(bus) is not VirtualBus or bus.filters is not None:
+        return None
+    q = getattr(bus, "queue", None)
+    return q if isinstance(q, queue.Queue) else None
 
 
 class CANDriver(Driver):
@@ -85,10 +101,35 @@ class CANDriver(Driver):
         self._f_f_scale, self._f_f_offset = fb.scales[3], fb.offsets[3]
         self._f_d_invalid, self._f_f_invalid = fb.invalid[2], fb.invalid[3]
         self._f_id, self._f_len = fb.frame_id, fb.length
-        self._cmd_msg = can.Message(
-            arbitration_id=cmd.frame_id, is_extended_id=False, dlc=cmd.length
+        # the same constants as one tuple: _handle reads it once per frame
+        self._f_layout = (
+            self._f_seq_shift,
+            self._f_seq_mask,
+            self._f_st_shift,
+            self._f_st_mask,
+            self._f_d_shift,
+            self._f_d_mask,
+            self._f_d_sign,
+            self._f_f_shift,
+            self._f_f_mask,
+            self._f_f_sign,
+            self._f_d_scale,
+            self._f_d_offset,
+            self._f_f_scale,
+            self._f_f_offset,
+            self._f_d_invalid,
+            self._f_f_invalid,
         )
+        # one command frame, reused: its payload is rewritten in place by send()
+        self._cmd_msg = Frame(
+            arbitration_id=cmd.frame_id,
+            is_extended_id=False,
+            dlc=cmd.length,
+            data=bytearray(cmd.length),
+        )
+        self._cmd_data = self._cmd_msg.data
         self._bus: can.BusABC | None = None
+        self._rxq: queue.Queue | None = None
         self._hb = 0
 
     def open(self) -> None:
@@ -104,9 +145,11 @@ class CANDriver(Driver):
                 f"CAN driver: cannot open interface {self.interface!r} channel "
                 f"{self.channel!r}: {exc}"
             ) from None
+        self._rxq = virtual_rx_queue(self._bus)
 
     def close(self) -> None:
         bus, self._bus = self._bus, None
+        self._rxq = None
         if bus is not None:
             try:
                 bus.shutdown()
@@ -134,23 +177,22 @@ class CANDriver(Driver):
             | ((raw & self._c_d_mask) << self._c_d_shift)
             | ((1 if enable else 0) << self._c_ctl_shift)
         )
-        msg = self._cmd_msg
-        msg.data = bytearray(value.to_bytes(self._c_len, "little"))
+        self._cmd_data[:] = value.to_bytes(self._c_len, "little")
         self._last_sent = seq
         self.stats.sent += 1
-        self._send_frame(msg)
+        self._send_frame(self._cmd_msg)
 
     def estop(self) -> None:
         c = self.codecs.estop
         self.stats.estops += 1
         data = c.pack(self.codecs.estop_key)
-        self._send_frame(can.Message(arbitration_id=c.frame_id, data=data, is_extended_id=False))
+        self._send_frame(Frame(arbitration_id=c.frame_id, data=data, is_extended_id=False))
 
     def heartbeat(self) -> None:
         c = self.codecs.heartbeat
         self._hb = (self._hb + 1) & 0xFF
         self._send_frame(
-            can.Message(arbitration_id=c.frame_id, data=c.pack(self._hb), is_extended_id=False)
+            Frame(arbitration_id=c.frame_id, data=c.pack(self._hb), is_extended_id=False)
         )
 
     def receive(self, timeout: float) -> Feedback | None:
@@ -161,12 +203,19 @@ class CANDriver(Driver):
             return None
         deadline = time.perf_counter() + timeout
         remaining = timeout
+        q = self._rxq
         while True:
-            try:
-                msg = bus.recv(remaining)
-            except (can.CanError, OSError):
-                stats.disconnects += 1
-                msg = None
+            if q is not None:  # virtual bus: its queue directly (see virtual_rx_queue)
+                try:
+                    msg = q.get(True, remaining)
+                except queue.Empty:
+                    msg = None
+            else:
+                try:
+                    msg = bus.recv(remaining)
+                except (can.CanError, OSError):
+                    stats.disconnects += 1
+                    msg = None
             if msg is None:
                 stats.timeouts += 1
                 return None
@@ -190,22 +239,22 @@ class CANDriver(Driver):
         if len(data) != self._f_len:
             stats.count_malformed("bad_length")
             return None
+        (s_sh, s_m, st_sh, st_m, d_sh, d_m, d_sign, f_sh, f_m, f_sign, d_sc, d_off, f_sc, f_off,
+         d_bad, f_bad) = self._f_layout  # fmt: skip
         v = int.from_bytes(data, "little")
-        seq = extend_seq(
-            (v >> self._f_seq_shift) & self._f_seq_mask, self._last_sent, self._f_seq_bits
-        )
+        last = self._last_sent  # extend_seq, inline: the echo at or just below the last sent
+        seq = last - ((last - ((v >> s_sh) & s_m)) & s_m)
         if not self._classify(seq):
             return None
-        status = (v >> self._f_st_shift) & self._f_st_mask
-        rd = (v >> self._f_d_shift) & self._f_d_mask
-        if rd & self._f_d_sign:
-            rd -= self._f_d_sign << 1
-        rf = (v >> self._f_f_shift) & self._f_f_mask
-        if rf & self._f_f_sign:
-            rf -= self._f_f_sign << 1
+        rd = (v >> d_sh) & d_m
+        if rd & d_sign:
+            rd -= d_sign << 1
+        rf = (v >> f_sh) & f_m
+        if rf & f_sign:
+            rf -= f_sign << 1
         stats.received += 1
-        if rd == self._f_d_invalid or rf == self._f_f_invalid:
+        if rd == d_bad or rf == f_bad:
             stats.invalid_values += 1
-        disp = math.nan if rd == self._f_d_invalid else rd * self._f_d_scale + self._f_d_offset
-        force = math.nan if rf == self._f_f_invalid else rf * self._f_f_scale + self._f_f_offset
-        return Feedback(seq, disp, force, status)
+        disp = math.nan if rd == d_bad else rd * d_sc + d_off
+        force = math.nan if rf == f_bad else rf * f_sc + f_off
+        return Feedback(seq, disp, force, (v >> st_sh) & st_m)

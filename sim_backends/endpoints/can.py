@@ -5,16 +5,22 @@ echoing the low byte of ``Seq``, latches on ``EStop`` (key 0xA5) and records ``H
 frames. Malformed frames (wrong length, unknown ID, error frames) are counted and ignored.
 The ``corrupt`` fault sends the feedback truncated by one byte (what a broken gateway or a
 DLC error looks like to software; the bus CRC-15 discards bit errors before software sees them).
+
+Per frame the endpoint decodes the command and encodes the feedback with shifts and masks
+compiled once from the DBC (the same layout as :class:`drivers.can.codec.MessageCodec`, whose
+tests check it against cantools) and sends one reused :class:`drivers.can.codec.Frame` whose
+payload is rewritten in place. Served inline on python-can's virtual bus, :meth:`CANTwin.pump`
+reads the bus's receive queue directly (:func:`drivers.can.virtual_rx_queue`).
 """
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import can
 
-from drivers.can.codec import load
+from drivers.can import virtual_rx_queue
+from drivers.can.codec import Frame, load
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
@@ -40,10 +46,59 @@ class CANTwin(TwinEndpoint):
         self.interface, self.channel, self.bitrate = str(interface), str(channel), bitrate
         self.dbc = dbc
         self.bus_options = dict(bus_options or {})
-        self.codecs = load(dbc)
-        fb = self.codecs.feedback
+        self.codecs = c = load(dbc)
+        fb, cmd = c.feedback, c.command
         self._d_range, self._f_range = fb.raw_range(2), fb.raw_range(3)
+        # Command (Seq, Displacement, Control) decoding, compiled: one tuple read per frame.
+        sign = 1 << (cmd.lengths[1] - 1) if cmd.signed[1] else 0
+        self._cmd_layout = (
+            cmd.frame_id,
+            cmd.length,
+            cmd.starts[0],
+            (1 << cmd.lengths[0]) - 1,
+            cmd.starts[1],
+            (1 << cmd.lengths[1]) - 1,
+            sign,
+            sign << 1,
+            cmd.starts[2],
+            (1 << cmd.lengths[2]) - 1,
+            cmd.scales[1],
+            cmd.offsets[1],
+        )
+        # Feedback (Seq, Status, Displacement, Force) encoding, compiled.
+        d_inv, f_inv = fb.invalid[2], fb.invalid[3]
+        self._fb_layout = (
+            fb.starts[0],
+            (1 << fb.lengths[0]) - 1,
+            fb.starts[1],
+            (1 << fb.lengths[1]) - 1,
+            fb.starts[2],
+            (1 << fb.lengths[2]) - 1,
+            fb.starts[3],
+            (1 << fb.lengths[3]) - 1,
+            fb.scales[2],
+            fb.offsets[2],
+            self._d_range[0] + (1 if d_inv == self._d_range[0] else 0),
+            self._d_range[1],
+            self._d_range[0] if d_inv is None else d_inv,
+            fb.scales[3],
+            fb.offsets[3],
+            self._f_range[0] + (1 if f_inv == self._f_range[0] else 0),
+            self._f_range[1],
+            self._f_range[0] if f_inv is None else f_inv,
+            fb.length,
+        )
+        # the feedback frame, reused: _encode rewrites its payload in place
+        self._fb_frame = Frame(
+            arbitration_id=fb.frame_id,
+            is_extended_id=False,
+            dlc=fb.length,
+            data=bytearray(fb.length),
+        )
+        self._fb_data = self._fb_frame.data
+        self._fb_frames = [self._fb_frame]
         self._bus: can.BusABC | None = None
+        self._rxq = None
 
     def _setup(self) -> None:
         kwargs = dict(self.bus_options)
@@ -64,9 +119,11 @@ class CANTwin(TwinEndpoint):
         if self.bus_options:
             self.connection["bus_options"] = dict(self.bus_options)
         self.where = f"CAN interface {self.interface} channel {self.channel}"
+        self._rxq = virtual_rx_queue(self._bus)
 
     def _teardown(self) -> None:
         bus, self._bus = self._bus, None
+        self._rxq = None
         if bus is not None:
             bus.shutdown()
 
@@ -79,13 +136,21 @@ class CANTwin(TwinEndpoint):
         """Serve every frame already on the bus (inline mode); return how many."""
         bus = self._bus
         n = 0
-        while bus is not None:
-            msg = bus.recv(0.0)
-            if msg is None:
-                break
-            if not self._gone:
-                self._handle(msg)
-            n += 1
+        q = self._rxq
+        if q is not None:  # python-can's virtual bus: its receive queue, no filters
+            while q.qsize():
+                msg = q.get_nowait()
+                if not self._gone:
+                    self._handle(msg)
+                n += 1
+        else:
+            while bus is not None:
+                msg = bus.recv(0.0)
+                if msg is None:
+                    break
+                if not self._gone:
+                    self._handle(msg)
+                n += 1
         self.controller.check_watchdog()
         return n
 
@@ -98,19 +163,29 @@ class CANTwin(TwinEndpoint):
         self._handle(msg)
 
     def _handle(self, msg: can.Message) -> None:
-        c = self.codecs
-        fid = msg.arbitration_id
         ctl = self.controller
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             ctl.stats.malformed += 1
-        elif fid == c.command.frame_id:
-            if len(msg.data) != c.command.length:
+            return
+        fid = msg.arbitration_id
+        (cid, clen, s_sh, s_m, d_sh, d_m, d_sign, d_wrap, c_sh, c_m, scale, offset) = (
+            self._cmd_layout
+        )
+        if fid == cid:
+            data = msg.data
+            if len(data) != clen:
                 ctl.stats.malformed += 1
                 return
-            raw_seq, raw_d, control = c.command.unpack(msg.data)
-            disp = raw_d * c.command.scales[1] + c.command.offsets[1]
-            self.emit(ctl.command(raw_seq, disp, bool(control & 1)))
-        elif fid == c.estop.frame_id:
+            v = int.from_bytes(data, "little")
+            raw_d = (v >> d_sh) & d_m
+            if raw_d & d_sign:
+                raw_d -= d_wrap
+            self.emit(
+                ctl.command((v >> s_sh) & s_m, raw_d * scale + offset, bool((v >> c_sh) & c_m & 1))
+            )
+            return
+        c = self.codecs
+        if fid == c.estop.frame_id:
             if len(msg.data) == 1 and msg.data[0] == c.estop_key:
                 ctl.estop()
             else:
@@ -120,27 +195,33 @@ class CANTwin(TwinEndpoint):
         else:
             ctl.stats.malformed += 1
 
-    @staticmethod
-    def _raw(
-        value: float, scale: float, offset: float, rng: tuple[int, int], invalid: int | None
-    ) -> int:
-        if not math.isfinite(value):
-            return rng[0] if invalid is None else invalid
-        lo = rng[0] + (1 if invalid == rng[0] else 0)
-        return max(lo, min(rng[1], round((value - offset) / scale)))
-
     def _encode(self, seq: int, displacement: float, force: float, status: int) -> list[Any]:
-        fb = self.codecs.feedback
-        data = fb.pack(
-            seq,
-            status,
-            self._raw(displacement, fb.scales[2], fb.offsets[2], self._d_range, fb.invalid[2]),
-            self._raw(force, fb.scales[3], fb.offsets[3], self._f_range, fb.invalid[3]),
-        )
-        return [can.Message(arbitration_id=fb.frame_id, data=data, is_extended_id=False)]
+        """The feedback frame (the reused one, payload rewritten; same bytes as
+        ``feedback.pack(seq, status, _raw(displacement …), _raw(force …))``)."""
+        (s_sh, s_m, st_sh, st_m, d_sh, d_m, f_sh, f_m) = self._fb_layout[:8]
+        (d_scale, d_off, d_lo, d_hi, d_bad, f_scale, f_off, f_lo, f_hi, f_bad, n) = self._fb_layout[
+            8:
+        ]
+        if displacement - displacement == 0.0:  # finite
+            rd = round((displacement - d_off) / d_scale)
+            rd = d_lo if rd < d_lo else (d_hi if rd > d_hi else rd)
+        else:
+            rd = d_bad
+        if force - force == 0.0:
+            rf = round((force - f_off) / f_scale)
+            rf = f_lo if rf < f_lo else (f_hi if rf > f_hi else rf)
+        else:
+            rf = f_bad
+        self._fb_data[:] = (
+            ((seq & s_m) << s_sh)
+            | ((status & st_m) << st_sh)
+            | ((rd & d_m) << d_sh)
+            | ((rf & f_m) << f_sh)
+        ).to_bytes(n, "little")
+        return self._fb_frames
 
     def _corrupt(self, frame: can.Message) -> can.Message:
-        return can.Message(
+        return Frame(
             arbitration_id=frame.arbitration_id, data=frame.data[:-1], is_extended_id=False
         )
 
