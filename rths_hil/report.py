@@ -101,7 +101,11 @@ def summarize(run_dir: str | Path, write: bool = True) -> dict[str, Any]:
         ``status``, ``steps``, ``duration``, ``trip`` (rule, reason, time, step or None),
         ``fei_target`` / ``fei_command`` (whole-record A, d, f_eq of measured vs target/command),
         ``metrics`` (J1 in s, J2 and J3 in %, TI), ``online`` (mean, min, max of the valid
-        streaming A and d), ``lateness`` (p50, p99, p99.9, max in s; overruns), ``estop``.
+        streaming A and d), ``lateness`` (p50, p99, p99.9, max in s; overruns), ``estop``,
+        and from the ``end`` event when it has them ``overrun_causes`` (paced overruns by
+        cause: ``machine``, ``machine_backlog``, ``work``, ``work_backlog``), ``wall_time``,
+        ``steps_per_second``, ``missed_replies``, ``driver_stats``, ``twin_stats``,
+        ``final_alpha``.
     """
     from .fei import fei
 
@@ -193,6 +197,7 @@ def summarize(run_dir: str | Path, write: bool = True) -> dict[str, Any]:
         "wall_time",
         "steps_per_second",
         "missed_replies",
+        "overrun_causes",
         "driver_stats",
         "twin_stats",
         "final_alpha",
@@ -293,6 +298,13 @@ def format_summary(s: dict[str, Any]) -> str:
             f"p99.9 {lat['p99.9'] * 1e6:.0f} µs, max {lat['max'] * 1e6:.0f} µs, "
             f"overruns {lat.get('overruns')}"
         )
+        c = s.get("overrun_causes")
+        if c:
+            lines.append(
+                f"  overruns by cause: machine {c.get('machine')} "
+                f"(+{c.get('machine_backlog')} catch-up), work {c.get('work')} "
+                f"(+{c.get('work_backlog')} catch-up)"
+            )
     if s.get("steps_per_second"):
         lines.append(
             f"  {s['steps_per_second']:.0f} steps/s, missed replies {s.get('missed_replies', 0)}"
