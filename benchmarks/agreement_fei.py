@@ -26,6 +26,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fs", type=float, default=1024.0)
     ap.add_argument("--exact-band", type=float, default=None)
+    ap.add_argument("--delays", default="5,15,30", help="delays in ms, comma-separated")
+    ap.add_argument("--default-floors-only", action="store_true")
     args = ap.parse_args()
     fs = args.fs
     kw = {} if args.exact_band is None else {"exact_band": args.exact_band}
@@ -37,17 +39,17 @@ def main() -> None:
         for fn in (0.5, 1.0, 2.0):
             x = simulate_sdof(ag, fs, fn, 0.02)
             for gain in (0.9, 1.1):
-                for delay in (0.005, 0.015, 0.030):
+                for delay in [float(d) / 1e3 for d in args.delays.split(",")]:
                     y = gain * fractional_delay(x, delay, fs)
                     for mult in (2, 3, 5, 8):
                         window = mult / fn
                         if window * fs > 0.5 * x.size:
                             continue
                         peak = np.max(F.moving_fei(x, y, fs, window, hop=256).level)
-                        for name, floors in (
-                            ("default", {}),
-                            ("10 %", {"abs_floor": 0.1 * peak, "rel_floor": 0.1}),
-                        ):
+                        settings = [("default", {})]
+                        if not args.default_floors_only:
+                            settings.append(("10 %", {"abs_floor": 0.1 * peak, "rel_floor": 0.1}))
+                        for name, floors in settings:
                             ex = F.moving_fei(x, y, fs, window, **floors)
                             st = F.OnlineFEI(fs, window, method="streaming", **floors, **kw)
                             sr = st.update(x, y)

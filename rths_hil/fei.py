@@ -620,7 +620,7 @@ class OnlineFEI:
         Validity floors (see :mod:`rths_hil.fei`).
     exact_band : float, optional
         ``streaming`` only: bins below ``exact_band / window_s`` Hz are evaluated exactly by
-        sliding DFTs (default :data:`rths_hil.fei_streaming.EXACT_BAND` = 14 cycles per
+        sliding DFTs (default :data:`rths_hil.fei_streaming.EXACT_BAND` = 20 cycles per
         window; ``0`` takes the whole quadrature part from the analytic signals: faster, and
         several ms off the exact delay at 15–30 ms with windows of 2–3 natural periods).
 

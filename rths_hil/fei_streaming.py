@@ -68,7 +68,7 @@ MAX_PHASE_ERROR_DEG = 0.01
 #: quadrature part comes from the analytic signals. Where the window's spectrum sits near DC
 #: (windows of 2–3 natural periods) the analytic signal of the windowed signal differs from the
 #: windowed analytic signal (Bedrosian), and that low band decides the delay; docs/fei.md.
-EXACT_BAND = 14.0
+EXACT_BAND = 20.0
 #: Upper band edge of the Hilbert pair (Hz): displacement responses of structures carry no
 #: energy that matters above it. Raised to 40·f_lo for very short windows.
 F_HI_MAX = 50.0

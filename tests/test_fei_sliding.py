@@ -128,7 +128,7 @@ def brute_lowband(x, y, end, N, K0):
     return float(P.sum()), float(P @ k), complex(np.sum(Y * np.conj(X)))
 
 
-@pytest.mark.parametrize("N, K0", [(100, 7), (128, 10), (300, 20)])
+@pytest.mark.parametrize("N, K0", [(100, 7), (101, 7), (128, 10), (203, 13), (300, 20)])
 def test_lowband_sums_match_direct_dft_over_many_resyncs(N, K0):
     from rths_hil.fei_sliding import LowBandSums
 
