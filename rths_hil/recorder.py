@@ -5,10 +5,9 @@ A run directory holds
 ``record.npy``
     One row per loop step, a structured dtype with named columns (:data:`COLUMNS`, SI units).
     Rows are packed into a small in-memory chunk and written with one ``write`` system call
-    every ``flush_rows`` steps (at most ``flush_interval`` ≤ 0.1 s of loop time and at most
-    :data:`FLUSH_BYTES` of data, so that no single step pays for a large write); after each
-    data write the row count in the file's fixed-size ``.npy`` header is patched in place
-    (``pwrite`` of the digits only; the header template is built once). The header therefore
+    every ``flush_rows`` steps (≤ 0.1 s of loop time); after each data write the row count in
+    the file's fixed-size ``.npy`` header is patched in place (``pwrite`` of the digits only;
+    the header is built once). The header therefore
     never claims a row that is not on disk: after ``kill -9`` (the
     data is in the OS page cache) ``np.load`` reads every flushed row; bytes of a data write
     that the kill interrupted lie beyond the counted rows and are ignored by ``np.load``.
@@ -50,7 +49,6 @@ from .errors import InputError
 __all__ = [
     "COLUMNS",
     "EVENTS_FILE",
-    "FLUSH_BYTES",
     "META_FILE",
     "RECORD_FILE",
     "Recorder",
@@ -96,9 +94,6 @@ COLUMNS: tuple[tuple[str, str, str, str], ...] = (
 _STRUCT_CODES = {"<f8": "d", "<i8": "q", "|b1": "?"}
 _MAGIC = b"\x93NUMPY\x01\x00"
 _HEADER_ALIGN = 64
-#: Largest data write of one flush (bytes): a 4096 Hz loop would otherwise write 31 kB every
-#: 0.05 s (≈ 17 µs on ext4 here, in one step), a 4 KiB piece costs ≈ 4 µs.
-FLUSH_BYTES = 4096
 
 
 def record_dtype(columns: Sequence[tuple[str, str, str, str]] = COLUMNS) -> np.dtype:
@@ -191,8 +186,7 @@ class Recorder:
     config : dict, optional
         The resolved configuration, stored in ``meta.json``.
     flush_interval : float
-        Longest loop time between data flushes in s (0 < interval ≤ 0.1); a flush also
-        happens whenever :data:`FLUSH_BYTES` of rows are buffered (26 rows, 25 ms at 1024 Hz).
+        Loop time between data flushes in s (0 < interval ≤ 0.1).
     extra_meta : dict, optional
         More metadata keys.
 
@@ -238,7 +232,7 @@ class Recorder:
         self._struct = struct.Struct(fmt)
         assert self._struct.size == self.dtype.itemsize
         self._rowsize = self._struct.size
-        self.flush_rows = max(1, min(math.floor(flush_interval * fs), FLUSH_BYTES // self._rowsize))
+        self.flush_rows = max(1, math.floor(flush_interval * fs))
         self._chunk = bytearray(self._rowsize * self.flush_rows)
         self._chunk_end = len(self._chunk)
         self._pack = self._struct.pack_into
