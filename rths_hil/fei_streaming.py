@@ -645,10 +645,14 @@ class StreamingFEI:
         if not (math.isfinite(exact_band) and exact_band >= 0):
             raise ValueError(f"exact_band must be ≥ 0, got {exact_band!r}")
         #: bins 1 … K0 (below ``exact_band`` cycles per window) are evaluated exactly
-        self.K0 = min(M // 2 - 1, math.ceil(exact_band * M / self.N)) if exact_band > 0 else 0
+        # rounded up to whole 8-wide vector chunks: the padding lanes are computed anyway
+        k0 = 8 * math.ceil(math.ceil(exact_band * M / self.N) / 8)
+        self.K0 = min(M // 2 - 1, k0) if exact_band > 0 else 0
+        #: the exact band actually used (cycles per window)
+        self.exact_band = self.K0 * self.N / M
         window_s = N / fs
         # With an exact low band the analytic signals only need the band above it.
-        f_lo = min(max(0.25, 0.5 * exact_band) / window_s, 0.01 * fs)
+        f_lo = min(max(0.25, 0.5 * self.exact_band) / window_s, 0.01 * fs)
         f_hi = min(0.45 * fs, max(F_HI_MAX, 40.0 * f_lo))
         self.a_i, self.a_q, self.phase_error_deg = hilbert_pair(f_lo, f_hi, self.fs)
         self.band = (f_lo, f_hi)
@@ -702,7 +706,7 @@ class StreamingFEI:
         st = views["st"]
         st[_DC_R] = math.exp(-2 * math.pi * self.dc_corner / self.fs)
         #: corner of the high-pass before the Hilbert pair (Hz), 0.8 × the exact band's edge
-        self.hp_corner = min(0.8 * exact_band / window_s, 0.2 * self.fs) if self.K0 else 0.0
+        self.hp_corner = min(0.8 * self.exact_band / window_s, 0.2 * self.fs) if self.K0 else 0.0
         if self.K0:
             sos = butter(4, self.hp_corner, "highpass", fs=self.fs, output="sos")
             st[_HP : _HP + 10] = np.column_stack([sos[:, :3], sos[:, 4:]]).ravel()
