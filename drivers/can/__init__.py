@@ -89,44 +89,29 @@ class CANDriver(Driver):
         self._c_scale, self._c_offset = cmd.scales[1], cmd.offsets[1]
         self._c_lo, self._c_hi = cmd.raw_range(1)
         self._c_len = cmd.length
-        # Feedback: Seq, Status, Displacement, Force.
-        self._f_seq_bits = fb.lengths[0]
-        self._f_seq_shift, self._f_seq_mask = fb.starts[0], (1 << fb.lengths[0]) - 1
-        self._f_st_shift, self._f_st_mask = fb.starts[1], (1 << fb.lengths[1]) - 1
-        self._f_d_shift, self._f_d_mask = fb.starts[2], (1 << fb.lengths[2]) - 1
-        self._f_d_sign = 1 << (fb.lengths[2] - 1) if fb.signed[2] else 0
-        self._f_f_shift, self._f_f_mask = fb.starts[3], (1 << fb.lengths[3]) - 1
-        self._f_f_sign = 1 << (fb.lengths[3] - 1) if fb.signed[3] else 0
-        self._f_d_scale, self._f_d_offset = fb.scales[2], fb.offsets[2]
-        self._f_f_scale, self._f_f_offset = fb.scales[3], fb.offsets[3]
-        self._f_d_invalid, self._f_f_invalid = fb.invalid[2], fb.invalid[3]
         self._f_id, self._f_len = fb.frame_id, fb.length
-        # the same constants as one tuple: _handle reads it once per frame
+        # Feedback: Seq, Status, Displacement, Force — bit positions, masks, sign bits, scales
+        # and INVALID values as one tuple: _handle unpacks it once per frame.
         self._f_layout = (
-            self._f_seq_shift,
-            self._f_seq_mask,
-            self._f_st_shift,
-            self._f_st_mask,
-            self._f_d_shift,
-            self._f_d_mask,
-            self._f_d_sign,
-            self._f_f_shift,
-            self._f_f_mask,
-            self._f_f_sign,
-            self._f_d_scale,
-            self._f_d_offset,
-            self._f_f_scale,
-            self._f_f_offset,
-            self._f_d_invalid,
-            self._f_f_invalid,
+            fb.starts[0],
+            (1 << fb.lengths[0]) - 1,
+            fb.starts[1],
+            (1 << fb.lengths[1]) - 1,
+            fb.starts[2],
+            (1 << fb.lengths[2]) - 1,
+            1 << (fb.lengths[2] - 1) if fb.signed[2] else 0,
+            fb.starts[3],
+            (1 << fb.lengths[3]) - 1,
+            1 << (fb.lengths[3] - 1) if fb.signed[3] else 0,
+            fb.scales[2],
+            fb.offsets[2],
+            fb.scales[3],
+            fb.offsets[3],
+            fb.invalid[2],
+            fb.invalid[3],
         )
         # one command frame, reused: its payload is rewritten in place by send()
-        self._cmd_msg = Frame(
-            arbitration_id=cmd.frame_id,
-            is_extended_id=False,
-            dlc=cmd.length,
-            data=bytearray(cmd.length),
-        )
+        self._cmd_msg = Frame.blank(cmd.frame_id, cmd.length)
         self._cmd_data = self._cmd_msg.data
         self._bus: can.BusABC | None = None
         self._rxq: queue.Queue | None = None

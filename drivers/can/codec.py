@@ -49,6 +49,13 @@ class Frame(can.Message):
 
     __slots__ = ()
 
+    @classmethod
+    def blank(cls, frame_id: int, length: int) -> Frame:
+        """A standard-ID data frame of ``length`` zero bytes, to be rewritten in place."""
+        return cls(
+            arbitration_id=frame_id, is_extended_id=False, dlc=length, data=bytearray(length)
+        )
+
     def __deepcopy__(self, memo: dict | None) -> can.Message:
         m = _new_message(can.Message)
         m.timestamp = self.timestamp

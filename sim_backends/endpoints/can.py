@@ -89,12 +89,7 @@ class CANTwin(TwinEndpoint):
             fb.length,
         )
         # the feedback frame, reused: _encode rewrites its payload in place
-        self._fb_frame = Frame(
-            arbitration_id=fb.frame_id,
-            is_extended_id=False,
-            dlc=fb.length,
-            data=bytearray(fb.length),
-        )
+        self._fb_frame = Frame.blank(fb.frame_id, fb.length)
         self._fb_data = self._fb_frame.data
         self._fb_frames = [self._fb_frame]
         self._bus: can.BusABC | None = None
