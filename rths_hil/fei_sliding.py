@@ -58,6 +58,24 @@ def _advance(Dr, Di, c1r, c1i, c2r, c2i, nr, ni, orr, oi):  # pragma: no cover -
             di[k] = c1r[k] * ti + c1i[k] * tr
 
 
+@numba.njit(cache=True, nogil=True, inline="always", fastmath={"contract", "reassoc"})
+def _hann_bin(Dr, Di, r, k, pr, pi, mu, wr, wi):  # pragma: no cover - numba
+    """X_k = ½D0 − ¼ conj(ϕ) D+ − ¼ ϕ D− − μ W_k from state rows r, r+1, r+2 (ϕ = pr + j·pi)."""
+    re = (
+        0.5 * Dr[r, k]
+        - 0.25 * (pr * Dr[r + 1, k] + pi * Di[r + 1, k])
+        - 0.25 * (pr * Dr[r + 2, k] - pi * Di[r + 2, k])
+        - mu * wr
+    )
+    im = (
+        0.5 * Di[r, k]
+        - 0.25 * (pr * Di[r + 1, k] - pi * Dr[r + 1, k])
+        - 0.25 * (pr * Di[r + 2, k] + pi * Dr[r + 2, k])
+        - mu * wi
+    )
+    return re, im
+
+
 @numba.njit(cache=True, nogil=True, fastmath={"contract", "reassoc"})
 def _sums(Dr, Di, Wr, Wi, kk, mx, my, pr, pi):  # pragma: no cover - numba
     """E, F, Re S, Im S of the window whose states are D (ϕ = pr + j·pi = e^{jΩs})."""
@@ -67,31 +85,8 @@ def _sums(Dr, Di, Wr, Wi, kk, mx, my, pr, pi):  # pragma: no cover - numba
     Sr = 0.0
     Si = 0.0
     for k in range(K):
-        # X = ½D0 − ¼ conj(ϕ) D+ − ¼ ϕ D− − μ W
-        xr = (
-            0.5 * Dr[0, k]
-            - 0.25 * (pr * Dr[1, k] + pi * Di[1, k])
-            - 0.25 * (pr * Dr[2, k] - pi * Di[2, k])
-            - mx * Wr[k]
-        )
-        xi = (
-            0.5 * Di[0, k]
-            - 0.25 * (pr * Di[1, k] - pi * Dr[1, k])
-            - 0.25 * (pr * Di[2, k] + pi * Dr[2, k])
-            - mx * Wi[k]
-        )
-        yr = (
-            0.5 * Dr[3, k]
-            - 0.25 * (pr * Dr[4, k] + pi * Di[4, k])
-            - 0.25 * (pr * Dr[5, k] - pi * Di[5, k])
-            - my * Wr[k]
-        )
-        yi = (
-            0.5 * Di[3, k]
-            - 0.25 * (pr * Di[4, k] - pi * Dr[4, k])
-            - 0.25 * (pr * Di[5, k] + pi * Dr[5, k])
-            - my * Wi[k]
-        )
+        xr, xi = _hann_bin(Dr, Di, 0, k, pr, pi, mx, Wr[k], Wi[k])  # target: rows 0–2
+        yr, yi = _hann_bin(Dr, Di, 3, k, pr, pi, my, Wr[k], Wi[k])  # measured: rows 3–5
         P = xr * xr + xi * xi
         E += P
         F += kk[k] * P
