@@ -265,26 +265,30 @@ class SlidingSums:
 #
 # Inputs are real (half the multiplications of the modulated form) and the window needs no
 # phasor. Two sets of states: the *active* set slides (adds the new sample, removes the one
-# leaving the window); in every period of N samples a *fresh* set starts from zero at the
-# period's first sample and only adds. After N samples it holds exactly the current window,
-# without any removal round-off, and replaces the active set. The fresh set is only read then,
-# so it adds _GROUP samples at a time, F ← c1^G F + Σ_j x_j c1^{G−j} c2 (one rotation per
-# group instead of one per sample).
+# leaving the window). Against round-off the states are resynchronised once every
+# LB_RESYNC_WINDOWS windows: during the last N samples of each such period a *fresh* set starts
+# from zero and only adds; after those N samples it holds exactly the current window, without
+# any removal round-off, and replaces the active set (no O(N) step, no spikes). The period is
+# fixed by the stream position, so results do not depend on how the stream is cut into blocks.
 #
-# Layout (8-wide vectors, chunk-major so that one chunk's vectors sit at fixed offsets from one
-# pointer): K0 is padded to K0p, a multiple of 8 (padding bins have zero constants, so their
-# states stay 0 and add nothing); bins 8c … 8c + 7 form chunk c. ``lb`` (K0p/8 × 24 × 8): per
-# chunk the rows 6·plane + state, planes active re, active im, fresh re, fresh im, states target
-# θ_k, θ_k − Ω, θ_k + Ω, then measured the same. ``lbc`` (K0p/8 × 45 × 8): per chunk, for the
-# frequency sets g = 0, 1, 2 (θ_k, θ_k − Ω, θ_k + Ω) 14 rows from 14g: e^{jθ} = c1, e^{−jθN} =
-# c2, c1^G, then c1^{G−j} c2 for j = 0 … G−1 (each re, im); then W_k (re, im) and k.
-# Kept 64-byte aligned by the streaming evaluator (unaligned arrays work, slower).
+# Kernel: a block is processed chunk by chunk (8 bins), all of its samples per chunk, with the
+# chunk's states and constants held in vector registers; the window sums of each completed
+# window are accumulated per chunk into 8-lane partials and reduced once at the end.
+#
+# Layout (8-wide vectors, chunk-major): K0 is padded to K0p, a multiple of 8 (padding bins have
+# zero constants, so their states stay 0 and add nothing); bins 8c … 8c + 7 form chunk c. ``lb``
+# (K0p/8 × 24 × 8): per chunk the rows 6·plane + state, planes active re, active im, fresh re,
+# fresh im, states target θ_k, θ_k − Ω, θ_k + Ω, then measured the same. ``lbc``
+# (K0p/8 × 15 × 8): per chunk, for the frequency sets g = 0, 1, 2 (θ_k, θ_k − Ω, θ_k + Ω) four
+# rows from 4g: e^{jθ} = c1, e^{−jθN} = c2 (re, im each); then W_k (re, im) and k.
 # ---------------------------------------------------------------------------------------------
 
 
 #: Rows per chunk of the low-band state and constant arrays ``lb`` and ``lbc``.
 LB_STATE_ROWS = 24
-LB_CONST_ROWS = 45
+LB_CONST_ROWS = 15
+#: Windows per resynchronisation period of the low band (see the comment above).
+LB_RESYNC_WINDOWS = 16
 
 
 def lowband_padded(K0: int) -> int:
@@ -339,149 +343,8 @@ def _chunk_ptr(builder, arr, index, rows):  # pragma: no cover - code generation
     return builder.gep(arr.data, [builder.mul(index, ir.Constant(i64, 8 * rows))])
 
 
-_GROUP = 4  # samples per update of the fresh set
-_G_ROWS = 6 + 2 * _GROUP  # constant rows per frequency set
-_W_ROW = 3 * _G_ROWS  # W re, W im, k
-
-
-def _emit_active(builder, tools, arr, cst, nch, new, old):  # pragma: no cover - codegen
-    """Active set, one sample: D ← c1 · (D − o + n c2) (``new``, ``old``: splats per signal)."""
-    _vty, _splat, load, store, fmadd = tools
-    at = _row_offset(nch)
-    with cgutils.for_range(builder, nch) as loop:
-        base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
-        cbase = _chunk_ptr(builder, cst, loop.index, LB_CONST_ROWS)
-        for g in range(3):
-            c = _G_ROWS * g
-            c1r, c1i, c2r, c2i = (load(cbase, at(c + i)) for i in range(4))
-            for sgl in range(2):
-                s = 3 * sgl + g
-                n = new[sgl]
-                tr = fmadd(n, c2r, builder.fsub(load(base, at(s)), old[sgl]))
-                ti = fmadd(n, c2i, load(base, at(6 + s)))
-                store(fmadd(c1r, tr, builder.fneg(builder.fmul(c1i, ti))), base, at(s))
-                store(fmadd(c1r, ti, builder.fmul(c1i, tr)), base, at(6 + s))
-
-
-def _emit_fresh(builder, tools, arr, cst, nch, ns):  # pragma: no cover - code generation
-    """Fresh set: add 1 or _GROUP samples (``ns``: per signal, splats oldest first).
-
-    One sample: F ← c1 · (F + n c2); _GROUP samples at once:
-    F ← c1^G F + Σ_j n_j c1^{G−j} c2 (the same recursion unrolled, one rotation per group).
-    """
-    _vty, _splat, load, store, fmadd = tools
-    at = _row_offset(nch)
-    cnt = len(ns[0])
-    with cgutils.for_range(builder, nch) as loop:
-        base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
-        cbase = _chunk_ptr(builder, cst, loop.index, LB_CONST_ROWS)
-        for g in range(3):
-            c = _G_ROWS * g
-            if cnt == 1:
-                c1r, c1i, c2r, c2i = (load(cbase, at(c + i)) for i in range(4))
-                for sgl in range(2):
-                    s = 3 * sgl + g
-                    n = ns[sgl][0]
-                    ur = fmadd(n, c2r, load(base, at(12 + s)))
-                    ui = fmadd(n, c2i, load(base, at(18 + s)))
-                    store(fmadd(c1r, ur, builder.fneg(builder.fmul(c1i, ui))), base, at(12 + s))
-                    store(fmadd(c1r, ui, builder.fmul(c1i, ur)), base, at(18 + s))
-                continue
-            cgr, cgi = load(cbase, at(c + 4)), load(cbase, at(c + 5))
-            kr = [load(cbase, at(c + 6 + 2 * j)) for j in range(cnt)]
-            ki = [load(cbase, at(c + 7 + 2 * j)) for j in range(cnt)]
-            for sgl in range(2):
-                s = 3 * sgl + g
-                f_r = load(base, at(12 + s))
-                f_i = load(base, at(18 + s))
-                vr = fmadd(cgr, f_r, builder.fneg(builder.fmul(cgi, f_i)))
-                vi = fmadd(cgr, f_i, builder.fmul(cgi, f_r))
-                for j in range(cnt):
-                    vr = fmadd(ns[sgl][j], kr[j], vr)
-                    vi = fmadd(ns[sgl][j], ki[j], vi)
-                store(vr, base, at(12 + s))
-                store(vi, base, at(18 + s))
-
-
-def _emit_swap(builder, tools, arr, nch):  # pragma: no cover - code generation
-    """The fresh set becomes the active set and restarts from zero."""
-    vty, _splat, load, store, _fmadd = tools
-    at = _row_offset(nch)
-    zero = ir.Constant(vty, [0.0] * 8)
-    with cgutils.for_range(builder, nch) as loop:
-        base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
-        for r in range(12):
-            store(load(base, at(12 + r)), base, at(r))
-            store(zero, base, at(12 + r))
-
-
-def _row_offset(nch):  # pragma: no cover - code generation
-    def at(row):
-        return ir.Constant(nch.type, 8 * row)
-
-    return at
-
-
-@intrinsic
-def _lowband_update_vec(
-    typingctx, lb, lbc, ring, cx, cy, st, N, m, xn, yn, xo, yo
-):  # pragma: no cover
-    """Vector kernel of :func:`lowband_update` (one call, all control flow inside)."""
-    if not (_c_array(lb, 3) and _c_array(lbc, 3) and _c_array(ring, 2)):
-        return None
-    ints = (cx, cy, st, N, m)
-    if not all(isinstance(v, types.Integer) for v in ints):
-        return None
-    sig = types.none(lb, lbc, ring, cx, cy, st, N, m, xn, yn, xo, yo)
-
-    def codegen(context, builder, signature, args):  # pragma: no cover - code generation
-        lbv, lbcv, ringv = args[:3]
-        cxv, cyv, stv, nv, mv = (
-            context.cast(builder, v, ty, types.intp)
-            for v, ty in zip(args[3:8], signature.args[3:8], strict=True)
-        )
-        xnv, ynv, xov, yov = args[8:]
-        arr = context.make_array(signature.args[0])(context, builder, lbv)
-        cst = context.make_array(signature.args[1])(context, builder, lbcv)
-        rg = context.make_array(signature.args[2])(context, builder, ringv)
-        ncol = cgutils.unpack_tuple(builder, rg.shape)[1]
-        nch = cgutils.unpack_tuple(builder, arr.shape)[0]
-        i64 = nch.type
-        tools = _vec_tools(context, builder)
-        splat = tools[1]
-        new = (splat(xnv), splat(ynv))
-        _emit_active(builder, tools, arr, cst, nch, new, (splat(xov), splat(yov)))
-
-        def past(j):  # splats of ring samples j rows before st (modulo N), target and measured
-            i = builder.sub(stv, ir.Constant(i64, j))
-            i = builder.select(
-                builder.icmp_signed("<", i, ir.Constant(i64, 0)), builder.add(i, nv), i
-            )
-            row = builder.mul(i, ncol)
-            return [
-                splat(builder.load(builder.gep(rg.data, [builder.add(row, col)])))
-                for col in (cxv, cyv)
-            ]
-
-        grp = ir.Constant(i64, _GROUP)
-        zero = ir.Constant(i64, 0)
-        in_group = builder.icmp_signed("==", builder.srem(mv, grp), zero)
-        with builder.if_then(in_group, likely=False):
-            older = [past(j) for j in range(_GROUP - 1, 0, -1)]
-            ns = [[o[sgl] for o in older] + [new[sgl]] for sgl in range(2)]
-            _emit_fresh(builder, tools, arr, cst, nch, ns)
-        with builder.if_then(builder.icmp_signed("==", mv, nv), likely=False):
-            r = builder.srem(nv, grp)  # samples after the last full group: t − r + 1 … t
-            for j in range(_GROUP - 2, 0, -1):
-                with builder.if_then(builder.icmp_signed(">", r, ir.Constant(i64, j))):
-                    xj, yj = past(j)
-                    _emit_fresh(builder, tools, arr, cst, nch, [[xj], [yj]])
-            with builder.if_then(builder.icmp_signed(">", r, zero)):
-                _emit_fresh(builder, tools, arr, cst, nch, [[new[0]], [new[1]]])
-            _emit_swap(builder, tools, arr, nch)
-        return context.get_dummy_value()
-
-    return sig, codegen
+_W_ROW = 12  # W re, W im, k
+_NACC = 4  # window sums accumulated per chunk: E, F, Re S, Im S
 
 
 def _hsum(builder, v):  # pragma: no cover - code generation
@@ -501,112 +364,192 @@ def _hsum(builder, v):  # pragma: no cover - code generation
 
 
 @intrinsic
-def _lowband_window_vec(typingctx, lb, lbc, mx, my):  # pragma: no cover
-    """Vector kernel of :func:`lowband_window`: (E, F, Re S, Im S)."""
-    if not (_c_array(lb, 3) and _c_array(lbc, 3)):
-        return None
-    sig = types.UniTuple(types.float64, 4)(lb, lbc, mx, my)
+def _lowband_piece_vec(
+    typingctx, lb, lbc, src, p, n, fresh, ends, nw, work, wcol, accs
+):  # pragma: no cover
+    """Vector kernel of :func:`lowband_block` for a stretch of samples with one fresh mode.
 
-    def codegen(context, builder, signature, args):
-        lbv, lbcv, mxv, myv = args
-        arr = context.make_array(signature.args[0])(context, builder, lbv)
-        cst = context.make_array(signature.args[1])(context, builder, lbcv)
+    Samples ``p … p+n−1`` of ``src`` (rows; columns 4, 5: new target and measured samples,
+    6, 7: the ones leaving the window). ``fresh``: the fresh set adds these samples too.
+    ``ends[:nw]``: ascending sample indices (relative to ``p``) at which a window completes;
+    window ``j`` reads its means from ``work[10, wcol+j]``, ``work[11, wcol+j]`` and receives
+    E, F, Re S, Im S in ``work[6 … 9, wcol+j]``. ``accs`` (≥ nw × 4 × 8): scratch partials.
+    """
+    if not (_c_array(lb, 3) and _c_array(lbc, 3) and _c_array(src, 2)):
+        return None
+    if not (_c_array(work, 2) and _c_array(accs, 3)):
+        return None
+    if not (isinstance(ends, types.Array) and ends.layout == "C" and ends.dtype == types.int64):
+        return None
+    if not all(isinstance(v, types.Integer) for v in (p, n, nw, wcol)):
+        return None
+    sig = types.none(lb, lbc, src, p, n, fresh, ends, nw, work, wcol, accs)
+
+    def codegen(context, builder, signature, args):  # pragma: no cover - code generation
+        lbv, lbcv, srcv, _p, _n, freshv, endsv, _nw, workv, _wc, accsv = args
+        sa = signature.args
+        pv, nv, nwv, wcv = (context.cast(builder, args[i], sa[i], types.intp) for i in (3, 4, 7, 9))
+        freshv = context.cast(builder, freshv, sa[5], types.boolean)
+        arr = context.make_array(sa[0])(context, builder, lbv)
+        cst = context.make_array(sa[1])(context, builder, lbcv)
+        sr = context.make_array(sa[2])(context, builder, srcv)
+        en = context.make_array(sa[6])(context, builder, endsv)
+        wk = context.make_array(sa[8])(context, builder, workv)
+        ac = context.make_array(sa[10])(context, builder, accsv)
+        ncol = cgutils.unpack_tuple(builder, sr.shape)[1]
+        wstride = cgutils.unpack_tuple(builder, wk.shape)[1]
         nch = cgutils.unpack_tuple(builder, arr.shape)[0]
         i64 = nch.type
-        vty, splat, load, _store, fmadd = _vec_tools(context, builder)
+        vty, splat, load, store, fmadd = _vec_tools(context, builder)
         zero = ir.Constant(vty, [0.0] * 8)
-        accs = [cgutils.alloca_once_value(builder, zero) for _ in range(4)]
-        nmx = splat(builder.fneg(mxv))
-        nmy = splat(builder.fneg(myv))
-        half = splat(0.5)
-        mq = splat(-0.25)
+        c64 = lambda v: ir.Constant(i64, v)  # noqa: E731
 
         def at(row):
-            return ir.Constant(i64, 8 * row)
+            return c64(8 * row)
 
+        def scalar(ptr, idx):
+            return builder.load(builder.gep(ptr, [idx]))
+
+        def acc_ptr(w, j):
+            return builder.add(builder.mul(w, c64(8 * _NACC)), c64(8 * j))
+
+        with cgutils.for_range(builder, nwv) as wl:  # zero the partials
+            for j in range(_NACC):
+                store(zero, ac.data, acc_ptr(wl.index, j))
+        half = splat(0.5)
+        mq = splat(-0.25)
         with cgutils.for_range(builder, nch) as loop:
             base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
             cbase = _chunk_ptr(builder, cst, loop.index, LB_CONST_ROWS)
-            wr = load(cbase, at(_W_ROW))
-            wi = load(cbase, at(_W_ROW + 1))
-            kk = load(cbase, at(_W_ROW + 2))
+            consts = [[load(cbase, at(4 * g + i)) for i in range(4)] for g in range(3)]
+            wr, wi, kk = (load(cbase, at(_W_ROW + i)) for i in range(3))
+            act = [cgutils.alloca_once_value(builder, load(base, at(r))) for r in range(12)]
+            frs = [cgutils.alloca_once_value(builder, load(base, at(12 + r))) for r in range(12)]
+            wpos = cgutils.alloca_once_value(builder, c64(0))
+            first = builder.select(
+                builder.icmp_signed(">", nwv, c64(0)), scalar(en.data, c64(0)), c64(-1)
+            )
+            nxt = cgutils.alloca_once_value(builder, first)
 
-            def spec(plane, s0, w, nm):  # ½ D(θ) − ¼ D(θ − Ω) − ¼ D(θ + Ω) − μ W
-                r = 6 * plane + s0
-                v = builder.fmul(half, load(base, at(r)))
-                v = fmadd(mq, load(base, at(r + 1)), v)
-                v = fmadd(mq, load(base, at(r + 2)), v)
-                return fmadd(nm, w, v)
+            def run(with_fresh):
+                with cgutils.for_range(builder, nv) as sl:
+                    row = builder.mul(builder.add(pv, sl.index), ncol)
+                    vals = [scalar(sr.data, builder.add(row, c64(c))) for c in (4, 5, 6, 7)]
+                    new = (splat(vals[0]), splat(vals[1]))
+                    old = (splat(vals[2]), splat(vals[3]))
+                    for g in range(3):
+                        c1r, c1i, c2r, c2i = consts[g]
+                        for sgl in range(2):
+                            s = 3 * sgl + g
+                            # active: D ← c1 · (D − o + n c2)
+                            tr = fmadd(new[sgl], c2r, builder.fsub(builder.load(act[s]), old[sgl]))
+                            ti = fmadd(new[sgl], c2i, builder.load(act[6 + s]))
+                            builder.store(
+                                fmadd(c1r, tr, builder.fneg(builder.fmul(c1i, ti))), act[s]
+                            )
+                            builder.store(fmadd(c1r, ti, builder.fmul(c1i, tr)), act[6 + s])
+                            if with_fresh:  # fresh: F ← c1 · (F + n c2)
+                                ur = fmadd(new[sgl], c2r, builder.load(frs[s]))
+                                ui = fmadd(new[sgl], c2i, builder.load(frs[6 + s]))
+                                builder.store(
+                                    fmadd(c1r, ur, builder.fneg(builder.fmul(c1i, ui))), frs[s]
+                                )
+                                builder.store(fmadd(c1r, ui, builder.fmul(c1i, ur)), frs[6 + s])
+                    is_end = builder.icmp_signed("==", sl.index, builder.load(nxt))
+                    with builder.if_then(is_end):
+                        w = builder.load(wpos)
+                        col = builder.add(wcv, w)
+                        mx = scalar(wk.data, builder.add(builder.mul(c64(10), wstride), col))
+                        my = scalar(wk.data, builder.add(builder.mul(c64(11), wstride), col))
 
-            xr = spec(0, 0, wr, nmx)
-            xi = spec(1, 0, wi, nmx)
-            yr = spec(0, 3, wr, nmy)
-            yi = spec(1, 3, wi, nmy)
-            p = fmadd(xi, xi, builder.fmul(xr, xr))
-            e, f, sr, si = (builder.load(a) for a in accs)
-            builder.store(builder.fadd(e, p), accs[0])
-            builder.store(fmadd(kk, p, f), accs[1])
-            builder.store(fmadd(xi, yi, fmadd(xr, yr, sr)), accs[2])
-            builder.store(fmadd(builder.fneg(xi), yr, fmadd(xr, yi, si)), accs[3])
-        vals = [_hsum(builder, builder.load(a)) for a in accs]
-        return cgutils.pack_array(builder, vals)
+                        def spec(s0, plane, w_, nm):  # ½ D(θ) − ¼ D(θ − Ω) − ¼ D(θ + Ω) − μ W
+                            r = 6 * plane + s0
+                            v = builder.fmul(half, builder.load(act[r]))
+                            v = fmadd(mq, builder.load(act[r + 1]), v)
+                            v = fmadd(mq, builder.load(act[r + 2]), v)
+                            return fmadd(nm, w_, v)
+
+                        nmx = splat(builder.fneg(mx))
+                        nmy = splat(builder.fneg(my))
+                        xr = spec(0, 0, wr, nmx)
+                        xi = spec(0, 1, wi, nmx)
+                        yr = spec(3, 0, wr, nmy)
+                        yi = spec(3, 1, wi, nmy)
+                        pw = fmadd(xi, xi, builder.fmul(xr, xr))
+                        e, f, s_r, s_i = (load(ac.data, acc_ptr(w, j)) for j in range(_NACC))
+                        store(builder.fadd(e, pw), ac.data, acc_ptr(w, 0))
+                        store(fmadd(kk, pw, f), ac.data, acc_ptr(w, 1))
+                        store(fmadd(xi, yi, fmadd(xr, yr, s_r)), ac.data, acc_ptr(w, 2))
+                        store(
+                            fmadd(builder.fneg(xi), yr, fmadd(xr, yi, s_i)), ac.data, acc_ptr(w, 3)
+                        )
+                        w1 = builder.add(w, c64(1))
+                        builder.store(w1, wpos)
+                        last = builder.icmp_signed(">=", w1, nwv)
+                        idx = builder.select(last, c64(0), w1)
+                        builder.store(builder.select(last, c64(-1), scalar(en.data, idx)), nxt)
+
+            with builder.if_else(freshv) as (then, otherwise):
+                with then:
+                    run(True)
+                with otherwise:
+                    run(False)
+            for r in range(12):
+                store(builder.load(act[r]), base, at(r))
+                store(builder.load(frs[r]), base, at(12 + r))
+        with cgutils.for_range(builder, nwv) as wl:  # reduce the partials → work rows 6 … 9
+            col = builder.add(wcv, wl.index)
+            for j in range(_NACC):
+                v = _hsum(builder, load(ac.data, acc_ptr(wl.index, j)))
+                idx = builder.add(builder.mul(c64(6 + j), wstride), col)
+                builder.store(v, builder.gep(wk.data, [idx]))
+        return context.get_dummy_value()
 
     return sig, codegen
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def lowband_update(lb, lbc, ring, cx, cy, st, N, m, xn, yn, xo, yo):  # pragma: no cover - numba
-    """Advance the six sliding DFTs of the low band by one sample pair.
+@numba.njit(cache=True, nogil=True)
+def lowband_swap(lb):  # pragma: no cover - numba
+    """Resynchronise: the fresh set becomes the active set and restarts from zero."""
+    for c in range(lb.shape[0]):
+        for r in range(12):
+            for j in range(8):
+                lb[c, r, j] = lb[c, 12 + r, j]
+                lb[c, 12 + r, j] = 0.0
 
-    ``lb`` (K0p/8 × 24 × 8), ``lbc`` (K0p/8 × 45 × 8): see the layout above. ``xn, yn``: the new
-    samples, ``xo, yo``: the ones leaving the window (0 before the first N). ``m`` (1 … N): the
-    new sample's place in the current fresh period; ``ring[·, cx]``, ``ring[·, cy]``: the
-    caller's ring of the last N samples (row ``st`` holds the new one, rows modulo N), from
-    which the fresh set takes the samples of a group. The fresh set is advanced every
-    _GROUP samples (and by the remaining samples at the period's end, ``m = N``), where it
-    then replaces the active set.
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def lowband_block(lb, lbc, src, n, t0, N, ends_t, w0, w1, work, iscr, accs):  # pragma: no cover
+    """Advance the low band over ``n`` samples and evaluate the windows completing in them.
+
+    ``src[k, 4 … 7]`` (k < n): new target and measured samples of stream index ``t0 + k`` and
+    the ones leaving the window (0 before the first N). Windows ``w0 … w1−1`` end at the stream
+    indices ``ends_t[w]`` (ascending, inside the block); each reads its means from ``work[10, w]``,
+    ``work[11, w]`` and receives E, F, Re S, Im S over bins 1 … K0 in ``work[6 … 9, w]``.
+    ``iscr`` (int64, ≥ n) and ``accs`` (≥ n × 4 × 8) are scratch. The block is split where the
+    fresh set starts and where it replaces the active set (stream positions; see above).
     """
-    _lowband_update_vec(lb, lbc, ring, cx, cy, st, N, m, xn, yn, xo, yo)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def lowband_window(lb, lbc, mx, my):  # pragma: no cover - numba
-    """E, F, Re S, Im S over bins 1 … K0 of the current window (exact); ``mx, my``: means."""
-    return _lowband_window_vec(lb, lbc, mx, my)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def lowband_step(lb, lbc, lbring, lbs, t, N, xn, yn):  # pragma: no cover - numba
-    """Standalone step: ring of raw samples and window sums, then :func:`lowband_update`.
-
-    ``lbring`` (N × 2): the last N raw samples; ``lbs`` (4): running Σx, Σy, fresh Σx, Σy.
-    The fresh periods are the stretches ``[qN, (q+1)N)``.
-    """
-    slot = t % N
-    xo = lbring[slot, 0]
-    yo = lbring[slot, 1]
-    lbring[slot, 0] = xn
-    lbring[slot, 1] = yn
-    lbs[0] += xn - xo
-    lbs[1] += yn - yo
-    lowband_update(lb, lbc, lbring, 0, 1, slot, N, slot + 1, xn, yn, xo, yo)
-    lbs[2] += xn
-    lbs[3] += yn
-    if slot == N - 1:
-        lbs[0] = lbs[2]
-        lbs[1] = lbs[3]
-        lbs[2] = 0.0
-        lbs[3] = 0.0
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def lowband_sums(lb, lbc, lbs, N):  # pragma: no cover - numba
-    """E, F, Re S, Im S over bins 1 … K0 of the window ending at the last sample (exact)."""
-    return lowband_window(lb, lbc, lbs[0] / N, lbs[1] / N)
+    period = LB_RESYNC_WINDOWS * N
+    fstart = period - N
+    p = 0
+    w = w0
+    while p < n:
+        ph = (t0 + p) % period
+        fresh = ph >= fstart
+        q = min(n, p + (period - ph if fresh else fstart - ph))
+        nw = 0
+        while w < w1 and ends_t[w] - t0 < q:
+            iscr[nw] = ends_t[w] - t0 - p
+            nw += 1
+            w += 1
+        _lowband_piece_vec(lb, lbc, src, p, q - p, fresh, iscr, nw, work, w - nw, accs)
+        if fresh and (t0 + q) % period == 0:
+            lowband_swap(lb)
+        p = q
 
 
 def lowband_constants(N: int, K0: int) -> np.ndarray:
-    """The constant array ``lbc`` (K0p/8 × 45 × 8) of K0 low bins of an N-sample window."""
+    """The constant array ``lbc`` (K0p/8 × 15 × 8) of K0 low bins of an N-sample window."""
     N = int(N)
     M = 1 << (N - 1).bit_length()
     K0p = lowband_padded(K0)
@@ -618,12 +561,9 @@ def lowband_constants(N: int, K0: int) -> np.ndarray:
     for g, sign in enumerate((0.0, -1.0, 1.0)):  # θ_k, θ_k − Ω, θ_k + Ω
         th = theta + sign * omega
         thn = theta_n + sign * omega  # θN mod 2π (up to a multiple of 2π)
-        rows = [np.exp(1j * th), np.exp(-1j * thn), np.exp(1j * _GROUP * th)]
-        rows += [np.exp(1j * ((_GROUP - j) * th - thn)) for j in range(_GROUP)]  # c1^{G−j} c2
-        c = _G_ROWS * g
-        for i, v in enumerate(rows):
-            lbc[c + 2 * i, :K0] = v.real
-            lbc[c + 2 * i + 1, :K0] = v.imag
+        for i, v in enumerate((np.exp(1j * th), np.exp(-1j * thn))):
+            lbc[4 * g + 2 * i, :K0] = v.real
+            lbc[4 * g + 2 * i + 1, :K0] = v.imag
     W = sfft.rfft(np.hanning(N), n=M)[1 : K0 + 1]
     lbc[_W_ROW, :K0] = W.real
     lbc[_W_ROW + 1, :K0] = W.imag
@@ -631,27 +571,52 @@ def lowband_constants(N: int, K0: int) -> np.ndarray:
     return np.ascontiguousarray(lbc.reshape(LB_CONST_ROWS, K0p // 8, 8).transpose(1, 0, 2))
 
 
-def lowband_arrays(N: int, K0: int) -> tuple[np.ndarray, ...]:
-    """Fresh state and constant arrays (lb, lbc, lbring, lbs) for K0 low bins."""
-    lb = np.zeros((lowband_padded(K0) // 8, LB_STATE_ROWS, 8))
-    return lb, lowband_constants(N, K0), np.zeros((int(N), 2)), np.zeros(4)
+#: Samples per sub-block of the block kernels (scratch rows; keeps the scratch in L1/L2).
+LB_SUB = 128
+
+
+def lowband_scratch() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scratch arrays (src, iscr, accs) for :func:`lowband_block` with blocks of ≤ LB_SUB."""
+    return np.zeros((LB_SUB, 8)), np.zeros(LB_SUB, dtype=np.int64), np.zeros((LB_SUB, _NACC, 8))
 
 
 @numba.njit(cache=True, nogil=True)
-def _lowband_block(xs, ys, t0, hop, N, lb, lbc, lbring, lbs, out):  # pragma: no cover
-    n = 0
-    for j in range(xs.shape[0]):
-        t = t0 + j
-        lowband_step(lb, lbc, lbring, lbs, t, N, xs[j], ys[j])
-        if t >= N - 1 and (t - N + 1) % hop == 0:
-            E, F, Sr, Si = lowband_sums(lb, lbc, lbs, N)
-            out[n, 0] = E
-            out[n, 1] = F
-            out[n, 2] = Sr
-            out[n, 3] = Si
-            out[n, 4] = t
-            n += 1
-    return n
+def _lowband_run(xs, ys, t0, hop, N, lb, lbc, ring, sums, src, iscr, accs, work, ends):
+    """Standalone driver: ring of raw samples and window sums (means), then the kernel."""
+    n_all = xs.shape[0]
+    nout = 0
+    for b0 in range(0, n_all, LB_SUB):
+        b1 = min(n_all, b0 + LB_SUB)
+        w0 = nout
+        for k in range(b1 - b0):
+            t = t0 + b0 + k
+            slot = t % N
+            xn = xs[b0 + k]
+            yn = ys[b0 + k]
+            xo = ring[slot, 0]
+            yo = ring[slot, 1]
+            ring[slot, 0] = xn
+            ring[slot, 1] = yn
+            src[k, 4] = xn
+            src[k, 5] = yn
+            src[k, 6] = xo
+            src[k, 7] = yo
+            sums[0] += xn - xo
+            sums[1] += yn - yo
+            sums[2] += xn
+            sums[3] += yn
+            if slot == N - 1:  # plain sums of the window restart every N samples
+                sums[0] = sums[2]
+                sums[1] = sums[3]
+                sums[2] = 0.0
+                sums[3] = 0.0
+            if t >= N - 1 and (t - N + 1) % hop == 0:
+                work[10, nout] = sums[0] / N
+                work[11, nout] = sums[1] / N
+                ends[nout] = t
+                nout += 1
+        lowband_block(lb, lbc, src, b1 - b0, t0 + b0, N, ends, w0, nout, work, iscr, accs)
+    return nout
 
 
 class LowBandSums:
@@ -662,12 +627,33 @@ class LowBandSums:
 
     def __init__(self, N: int, K0: int, hop: int = 1) -> None:
         self.N, self.K0, self.hop = int(N), int(K0), int(hop)
-        self.state = lowband_arrays(self.N, self.K0)
+        self.lb = np.zeros((lowband_padded(K0) // 8, LB_STATE_ROWS, 8))
+        self.lbc = lowband_constants(self.N, self.K0)
+        self.ring = np.zeros((self.N, 2))
+        self.sums = np.zeros(4)
+        self.scratch = lowband_scratch()
         self.t = 0
 
     def process(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Rows (E, F, Re S, Im S, end index) of the windows completed by the block."""
-        out = np.empty((x.shape[0] // self.hop + 1, 5))
-        n = _lowband_block(x, y, self.t, self.hop, self.N, *self.state, out)
+        x = np.ascontiguousarray(x, dtype=float)
+        y = np.ascontiguousarray(y, dtype=float)
+        nmax = x.shape[0] // self.hop + 1
+        work = np.zeros((12, nmax))
+        ends = np.zeros(nmax, dtype=np.int64)
+        n = _lowband_run(
+            x,
+            y,
+            self.t,
+            self.hop,
+            self.N,
+            self.lb,
+            self.lbc,
+            self.ring,
+            self.sums,
+            *self.scratch,
+            work,
+            ends,
+        )
         self.t += x.shape[0]
-        return out[:n]
+        return np.column_stack([work[6:10, :n].T, ends[:n]])

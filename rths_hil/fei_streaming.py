@@ -28,14 +28,18 @@ Both signals pass through identical filters, so their relative phase is untouche
 group delay of the all-pass chains shifts the window's effective position slightly into the past
 (documented in ``docs/fei.md``).
 
-Implementation (for speed; the arithmetic of each quantity is fixed by the source order, no
-re-association): a block is processed in two passes. The first runs the DC blockers, the
-all-pass chains and the sliding sums sample by sample and, at each window end, reduces the sums
-to six numbers (S, E, F and the exact Re S and E); the second turns those into A, f_eq, validity
-and level for all windows of the block at once (independent iterations, so divisions and square
-roots overlap). The phase ``atan2`` of a block is taken by numpy (vectorised); a single pushed
-sample takes it from libm (the two agree to an ulp). All state lives in one float and one integer
-array, so a pushed sample costs one short call.
+Implementation (for speed; the arithmetic of each quantity is fixed by the source order and
+the stream position, no re-association, so results do not depend on how the stream is cut into
+blocks): a block is processed in sub-blocks of ``LB_SUB`` samples. Per sub-block, the recursive
+filters (DC blockers, high-pass, all-pass chains) run first with their states in vector
+registers (:func:`_filter_block`, generated per section count); then the sliding sums run
+sample by sample and, at each window end, reduce to the window's sums (S, E, F, the exact Re S
+and E, the means); then the exact low band runs over the sub-block bin chunk by bin chunk
+(:func:`rths_hil.fei_sliding.lowband_block`). A second pass turns the sums into A, f_eq,
+validity and level for all windows of the block at once (independent iterations, so divisions
+and square roots overlap). The phase ``atan2`` of a block is taken by numpy (vectorised); a
+single pushed sample takes it from libm (the two agree to an ulp). All state lives in one float
+and one integer array, so a pushed sample costs one short call.
 """
 
 from __future__ import annotations
@@ -55,10 +59,11 @@ from scipy.special import ellipj, ellipk
 from .fei_sliding import (
     LB_CONST_ROWS,
     LB_STATE_ROWS,
+    LB_SUB,
+    lowband_block,
     lowband_constants,
     lowband_padded,
-    lowband_update,
-    lowband_window,
+    lowband_scratch,
 )
 
 #: Target worst-case phase-difference error of the Hilbert pair (degrees).
@@ -170,8 +175,9 @@ _Q1 = 80  # q₁: re/im for m = −2, −1, 0, 1, 2 (fresh: + 10)
 _NACC = 100
 _NRING = 10  # ring slot: the eight real quantities, then q₁ (re, im)
 # Per-window work rows (pass 1 → pass 2): Re S, Im S, E, F (analytic), exact Re S, exact E,
-# and the exact low band's E, F, Re S, Im S (bins 1 … K0).
-_NWORK = 10
+# the exact low band's E, F, Re S, Im S (bins 1 … K0), and the window means of the raw
+# target and measured samples (read by the low band).
+_NWORK = 12
 
 _JIT = {"cache": True, "nogil": True, "error_model": "numpy", "fastmath": {"contract"}}
 
@@ -267,6 +273,157 @@ def _real_sums(typingctx, fb, a0, ring, q, p, r, resync):  # pragma: no cover
     return sig, codegen
 
 
+#: Most first-order sections per all-pass chain the filter kernel is generated for.
+NS_MAX = 24
+
+
+@intrinsic
+def _filter_block(typingctx, fb, coef, cst, xs, ys, b0, n, sv):  # pragma: no cover
+    """DC blockers, high-pass and the four all-pass chains for samples ``b0 … b0+n−1``.
+
+    Writes the chain outputs (x I, x Q, y I, y Q) of sample ``b0 + k`` to ``sv[k, 0:4]``. The
+    scalar states live in ``fb`` (offsets _DC_R … _HPS + 7), the chains' coefficients in ``coef``
+    (ns × 4) and states in ``cst`` (ns × 2 × 4). The code is generated for each section count
+    (1 … NS_MAX, a switch) so that all states stay in registers across the samples: the target
+    and measured signals share 2-wide vectors, the four chains one 4-wide vector.
+    """
+    for a, nd in ((fb, 1), (coef, 2), (cst, 3), (sv, 2)):
+        if not (isinstance(a, types.Array) and a.ndim == nd and a.layout == "C"):
+            return None
+    if not all(isinstance(a, types.Array) and a.ndim == 1 for a in (xs, ys)):
+        return None
+    sig = types.none(fb, coef, cst, xs, ys, b0, n, sv)
+
+    def codegen(context, builder, signature, args):
+        fbv, coefv, cstv, xsv, ysv, _b0, _n, svv = args
+        sa = signature.args
+        b0v = context.cast(builder, args[5], sa[5], types.intp)
+        nv = context.cast(builder, args[6], sa[6], types.intp)
+        F = context.make_array(sa[0])(context, builder, fbv)
+        C = context.make_array(sa[1])(context, builder, coefv)
+        S = context.make_array(sa[2])(context, builder, cstv)
+        X = context.make_array(sa[3])(context, builder, xsv)
+        Y = context.make_array(sa[4])(context, builder, ysv)
+        V = context.make_array(sa[7])(context, builder, svv)
+        i64 = nv.type
+        i32 = ir.IntType(32)
+        dbl = ir.DoubleType()
+        v2, v4 = ir.VectorType(dbl, 2), ir.VectorType(dbl, 4)
+        fma2 = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(v2, [v2, v2, v2]), "llvm.fma.v2f64"
+        )
+        fma4 = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(v4, [v4, v4, v4]), "llvm.fma.v4f64"
+        )
+        ns = cgutils.unpack_tuple(builder, C.shape)[0]
+        vcol = cgutils.unpack_tuple(builder, V.shape)[1]
+
+        def c64(v):
+            return ir.Constant(i64, v)
+
+        def fptr(i):
+            return builder.gep(F.data, [c64(i)])
+
+        def pair(i, j):  # <fb[i], fb[j]>
+            v = builder.insert_element(
+                ir.Constant(v2, ir.Undefined), builder.load(fptr(i)), ir.Constant(i32, 0)
+            )
+            return builder.insert_element(v, builder.load(fptr(j)), ir.Constant(i32, 1))
+
+        def store_pair(v, i, j):
+            builder.store(builder.extract_element(v, ir.Constant(i32, 0)), fptr(i))
+            builder.store(builder.extract_element(v, ir.Constant(i32, 1)), fptr(j))
+
+        def splat2(i):
+            return pair(i, i)
+
+        def v4ptr(base, off):
+            return builder.bitcast(builder.gep(base, [off]), v4.as_pointer())
+
+        r = splat2(_DC_R)
+        dc_in = cgutils.alloca_once_value(builder, pair(_DCX_IN, _DCY_IN))
+        dc_out = cgutils.alloca_once_value(builder, pair(_DCX_OUT, _DCY_OUT))
+        hp = [[splat2(_HP + 5 * j + i) for i in range(5)] for j in range(2)]
+        z1 = [
+            cgutils.alloca_once_value(builder, pair(_HPS + 4 * j, _HPS + 4 * j + 2)) for j in (0, 1)
+        ]
+        z2 = [
+            cgutils.alloca_once_value(builder, pair(_HPS + 4 * j + 1, _HPS + 4 * j + 3))
+            for j in (0, 1)
+        ]
+        done = builder.append_basic_block("filters.done")
+        default = builder.append_basic_block("filters.default")
+        sw = builder.switch(ns, default)
+        with builder.goto_block(default):
+            builder.branch(done)
+        for m in range(1, NS_MAX + 1):
+            blk = builder.append_basic_block(f"filters.ns{m}")
+            sw.add_case(ir.Constant(ns.type, m), blk)
+            with builder.goto_block(blk):
+                a = [builder.load(v4ptr(C.data, c64(4 * j)), align=8) for j in range(m)]
+                vp = [
+                    cgutils.alloca_once_value(
+                        builder, builder.load(v4ptr(S.data, c64(8 * j)), align=8)
+                    )
+                    for j in range(m)
+                ]
+                op = [
+                    cgutils.alloca_once_value(
+                        builder, builder.load(v4ptr(S.data, c64(8 * j + 4)), align=8)
+                    )
+                    for j in range(m)
+                ]
+                with cgutils.for_range(builder, nv) as loop:
+                    k = builder.add(b0v, loop.index)
+                    xk = builder.load(cgutils.get_item_pointer(context, builder, sa[3], X, [k]))
+                    yk = builder.load(cgutils.get_item_pointer(context, builder, sa[4], Y, [k]))
+                    xy = builder.insert_element(
+                        ir.Constant(v2, ir.Undefined), xk, ir.Constant(i32, 0)
+                    )
+                    xy = builder.insert_element(xy, yk, ir.Constant(i32, 1))
+                    # DC blocker: o = x − x_prev + r o_prev
+                    o = builder.call(
+                        fma2, [r, builder.load(dc_out), builder.fsub(xy, builder.load(dc_in))]
+                    )
+                    builder.store(xy, dc_in)
+                    builder.store(o, dc_out)
+                    u = o
+                    for j in range(2):  # Butterworth high-pass, transposed direct form II
+                        b_0, b_1, b_2, a_1, a_2 = hp[j]
+                        h = builder.call(fma2, [b_0, u, builder.load(z1[j])])
+                        t1 = builder.fsub(builder.fmul(b_1, u), builder.fmul(a_1, h))
+                        builder.store(builder.fadd(t1, builder.load(z2[j])), z1[j])
+                        builder.store(
+                            builder.fsub(builder.fmul(b_2, u), builder.fmul(a_2, h)), z2[j]
+                        )
+                        u = h
+                    mask = ir.Constant(ir.VectorType(i32, 4), [0, 0, 1, 1])
+                    v = builder.shuffle_vector(u, ir.Constant(v2, ir.Undefined), mask)
+                    for j in range(m):  # o = a (v − o_prev) + v_prev
+                        oj = builder.call(
+                            fma4,
+                            [a[j], builder.fsub(v, builder.load(op[j])), builder.load(vp[j])],
+                        )
+                        builder.store(v, vp[j])
+                        builder.store(oj, op[j])
+                        v = oj
+                    row = builder.mul(loop.index, vcol)
+                    builder.store(v, v4ptr(V.data, row), align=8)
+                for j in range(m):
+                    builder.store(builder.load(vp[j]), v4ptr(S.data, c64(8 * j)), align=8)
+                    builder.store(builder.load(op[j]), v4ptr(S.data, c64(8 * j + 4)), align=8)
+                builder.branch(done)
+        builder.position_at_end(done)
+        store_pair(builder.load(dc_in), _DCX_IN, _DCY_IN)
+        store_pair(builder.load(dc_out), _DCX_OUT, _DCY_OUT)
+        for j in range(2):
+            store_pair(builder.load(z1[j]), _HPS + 4 * j, _HPS + 4 * j + 2)
+            store_pair(builder.load(z2[j]), _HPS + 4 * j + 1, _HPS + 4 * j + 3)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
 @numba.njit(inline="always", **_JIT)
 def _cplx_sum(a0, a1, b, qr, qi, pr, pi, orr, oi, rr, ri):  # pragma: no cover
     """Add q·p to both sets of sums at offset ``b``; remove o·r (complex products)."""
@@ -330,11 +487,14 @@ def _window_sums(t, N, a, h, p1r, p1i, p2r, p2i, w2, sum_w, alt_w, Mf):  # pragm
 
 
 @numba.njit(**_JIT)
-def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
-    """DC blockers, all-pass chains and sliding sums for a block (one sample after another).
+def _pass1(xs, ys, fb, ib, work, out_t, sv, iscr, accs):  # pragma: no cover
+    """Filters, sliding sums and the exact low band for a block, in sub-blocks of LB_SUB.
 
-    For each completed window: its end index into ``out_t`` and its six sums into the columns of
-    ``work``. Returns the number of completed windows.
+    Per sub-block: :func:`_filter_block` (the recursive filters, states in registers), then the
+    sliding sums sample by sample (each completed window: its end index into ``out_t``, its sums
+    and means into the columns of ``work``), then the low band over the sub-block
+    (:func:`rths_hil.fei_sliding.lowband_block`). ``sv``, ``iscr``, ``accs``: scratch
+    (:func:`rths_hil.fei_sliding.lowband_scratch`). Returns the number of completed windows.
     """
     N = ib[_N]
     ns = ib[_NSEC]
@@ -366,11 +526,6 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
     o1i = ib[_O1]
     o2i = ib[_O2]
     slot = ib[_SLOT]
-    r = fb[_DC_R]
-    xin = fb[_DCX_IN]
-    xout = fb[_DCX_OUT]
-    yin = fb[_DCY_IN]
-    yout = fb[_DCY_OUT]
     zpr = fb[_ZPREV_RE]
     zpi = fb[_ZPREV_IM]
     x0 = fb[_X0]
@@ -380,139 +535,107 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
     alt_w = fb[_WP]
     Mf = fb[_M]
     nout = 0
-    for k in range(n):
-        x = xs[k]
-        y = ys[k]
-        xo = x - xin + r * xout
-        xin = x
-        xout = xo
-        yo = y - yin + r * yout
-        yin = y
-        yout = yo
-        if K0 > 0:
-            # Butterworth high-pass (order 4): the analytic part only carries the high band
-            for j in range(2):
-                c = _HP + 5 * j
-                z = _HPS + 4 * j
-                u = xo
-                xo = fb[c] * u + fb[z]
-                fb[z] = fb[c + 1] * u - fb[c + 3] * xo + fb[z + 1]
-                fb[z + 1] = fb[c + 2] * u - fb[c + 4] * xo
-                u = yo
-                yo = fb[c] * u + fb[z + 2]
-                fb[z + 2] = fb[c + 1] * u - fb[c + 3] * yo + fb[z + 3]
-                fb[z + 3] = fb[c + 2] * u - fb[c + 4] * yo
-        # Four all-pass chains side by side: (x, I), (x, Q), (y, I), (y, Q).
-        v0 = xo
-        v1 = xo
-        v2 = yo
-        v3 = yo
-        for j in range(ns):
-            o0 = coef[j, 0] * (v0 - cst[j, 1, 0]) + cst[j, 0, 0]
-            o1 = coef[j, 1] * (v1 - cst[j, 1, 1]) + cst[j, 0, 1]
-            o2 = coef[j, 2] * (v2 - cst[j, 1, 2]) + cst[j, 0, 2]
-            o3 = coef[j, 3] * (v3 - cst[j, 1, 3]) + cst[j, 0, 3]
-            cst[j, 0, 0] = v0
-            cst[j, 0, 1] = v1
-            cst[j, 0, 2] = v2
-            cst[j, 0, 3] = v3
-            cst[j, 1, 0] = o0
-            cst[j, 1, 1] = o1
-            cst[j, 1, 2] = o2
-            cst[j, 1, 3] = o3
-            v0 = o0
-            v1 = o1
-            v2 = o2
-            v3 = o3
-        # q₁ = z_y conj(z_x), q₂ = |z_x|², q₃ = Im(conj(z_x[t−1]) z_x[t])
-        q1r = v2 * v0 + v3 * v1
-        q1i = v3 * v0 - v2 * v1
-        q2 = v0 * v0 + v1 * v1
-        q3 = zpr * v1 - zpi * v0
-        zpr = v0
-        zpi = v1
-        # Raw (mean-free per window, exactly as the exact FEI) quantities for Re S and E.
-        xr = x - x0
-        yr = y - y0
-        sgn = 1.0 if (t & 1) == 0 else -1.0
-        q_yx = yr * xr
-        q_xx = xr * xr
-        q_sx = sgn * xr
-        q_sy = sgn * yr
-        # The sample leaving the window (zeros in the ring before the first N samples).
-        row = ring[slot]
-        row_off = off_ring + _NRING * slot
-        o_xr = row[4]
-        o_yr = row[5]
-        o_q1r = row[8]
-        o_q1i = row[9]
-        row[8] = q1r
-        row[9] = q1i
-        slot += 1
-        if slot == N:
-            slot = 0
-        p1r = ph[i1, 0]
-        p1i = ph[i1, 1]
-        p2r = ph[i2, 0]
-        p2i = ph[i2, 1]
-        r1r = ph[o1i, 0]
-        r1i = ph[o1i, 1]
-        r2r = ph[o2i, 0]
-        r2i = ph[o2i, 1]
-        # Sliding sums Σ q e^{jmΩt'} over the window, and the fresh sums.
-        resync = t + 1 - fresh == N
-        h = _real_sums(
-            fb,
-            off_acc,
-            row_off,
-            (q2, q3, q_yx, q_xx, xr, yr, q_sx, q_sy),
-            (p1r, p1i, p2r, p2i),
-            (r1r, r1i, r2r, r2i),
-            resync,
-        )
-        _cplx_sum(a0, a1, 0, q1r, q1i, p2r, -p2i, o_q1r, o_q1i, r2r, -r2i)
-        _cplx_sum(a0, a1, 2, q1r, q1i, p1r, -p1i, o_q1r, o_q1i, r1r, -r1i)
-        a0[4] = a0[4] + q1r - o_q1r
-        a0[5] = a0[5] + q1i - o_q1i
-        a1[4] += q1r
-        a1[5] += q1i
-        _cplx_sum(a0, a1, 6, q1r, q1i, p1r, p1i, o_q1r, o_q1i, r1r, r1i)
-        _cplx_sum(a0, a1, 8, q1r, q1i, p2r, p2i, o_q1r, o_q1i, r2r, r2i)
-        if K0 > 0:  # exact low band (sliding DFTs of the raw samples, same resync points)
-            st = slot - 1 if slot > 0 else N - 1  # ring row of this sample
-            lowband_update(lb, lbc, ring, 4, 5, st, N, t + 1 - fresh, xr, yr, o_xr, o_yr)
-        # Resynchronise: the fresh sums hold exactly the current window after N additions.
-        if resync:
-            for i in range(10):
-                a0[i] = a1[i]
-                a1[i] = 0.0
-            fresh = t + 1
-        if t == next_end:
-            next_end += hop
-            s_re, s_im, E, F, re_s, e_ex = _window_sums(
-                t, N, a0, h, p1r, p1i, p2r, p2i, w2, sum_w, alt_w, Mf
+    for b0 in range(0, n, LB_SUB):
+        m = min(n - b0, LB_SUB)
+        _filter_block(fb, coef, cst, xs, ys, b0, m, sv)
+        t_sub = t
+        w_sub = nout
+        for k in range(m):
+            x = xs[b0 + k]
+            y = ys[b0 + k]
+            # Four all-pass chain outputs: (x, I), (x, Q), (y, I), (y, Q).
+            v0 = sv[k, 0]
+            v1 = sv[k, 1]
+            v2 = sv[k, 2]
+            v3 = sv[k, 3]
+            # q₁ = z_y conj(z_x), q₂ = |z_x|², q₃ = Im(conj(z_x[t−1]) z_x[t])
+            q1r = v2 * v0 + v3 * v1
+            q1i = v3 * v0 - v2 * v1
+            q2 = v0 * v0 + v1 * v1
+            q3 = zpr * v1 - zpi * v0
+            zpr = v0
+            zpi = v1
+            # Raw (mean-free per window, exactly as the exact FEI) quantities for Re S and E.
+            xr = x - x0
+            yr = y - y0
+            sgn = 1.0 if (t & 1) == 0 else -1.0
+            q_yx = yr * xr
+            q_xx = xr * xr
+            q_sx = sgn * xr
+            q_sy = sgn * yr
+            # The sample leaving the window (zeros in the ring before the first N samples).
+            row = ring[slot]
+            row_off = off_ring + _NRING * slot
+            o_q1r = row[8]
+            o_q1i = row[9]
+            row[8] = q1r
+            row[9] = q1i
+            sv[k, 4] = xr  # for the low band: new and leaving samples
+            sv[k, 5] = yr
+            sv[k, 6] = row[4]
+            sv[k, 7] = row[5]
+            slot += 1
+            if slot == N:
+                slot = 0
+            p1r = ph[i1, 0]
+            p1i = ph[i1, 1]
+            p2r = ph[i2, 0]
+            p2i = ph[i2, 1]
+            r1r = ph[o1i, 0]
+            r1i = ph[o1i, 1]
+            r2r = ph[o2i, 0]
+            r2i = ph[o2i, 1]
+            # Sliding sums Σ q e^{jmΩt'} over the window, and the fresh sums.
+            resync = t + 1 - fresh == N
+            h = _real_sums(
+                fb,
+                off_acc,
+                row_off,
+                (q2, q3, q_yx, q_xx, xr, yr, q_sx, q_sy),
+                (p1r, p1i, p2r, p2i),
+                (r1r, r1i, r2r, r2i),
+                resync,
             )
-            work[0, nout] = s_re
-            work[1, nout] = s_im
-            work[2, nout] = E
-            work[3, nout] = F
-            work[4, nout] = re_s
-            work[5, nout] = e_ex
-            if K0 > 0:
-                el, fl, srl, sil = lowband_window(lb, lbc, h[10] / N, h[11] / N)
-            else:
-                el = fl = srl = sil = 0.0
-            work[6, nout] = el
-            work[7, nout] = fl
-            work[8, nout] = srl
-            work[9, nout] = sil
-            out_t[nout] = t
-            nout += 1
-        o1i = _wrap(o1i + 1, P)
-        o2i = _wrap(o2i + 2, P)
-        i1 = _wrap(i1 + 1, P)
-        i2 = _wrap(i2 + 2, P)
-        t += 1
+            _cplx_sum(a0, a1, 0, q1r, q1i, p2r, -p2i, o_q1r, o_q1i, r2r, -r2i)
+            _cplx_sum(a0, a1, 2, q1r, q1i, p1r, -p1i, o_q1r, o_q1i, r1r, -r1i)
+            a0[4] = a0[4] + q1r - o_q1r
+            a0[5] = a0[5] + q1i - o_q1i
+            a1[4] += q1r
+            a1[5] += q1i
+            _cplx_sum(a0, a1, 6, q1r, q1i, p1r, p1i, o_q1r, o_q1i, r1r, r1i)
+            _cplx_sum(a0, a1, 8, q1r, q1i, p2r, p2i, o_q1r, o_q1i, r2r, r2i)
+            # Resynchronise: the fresh sums hold exactly the current window after N additions.
+            if resync:
+                for i in range(10):
+                    a0[i] = a1[i]
+                    a1[i] = 0.0
+                fresh = t + 1
+            if t == next_end:
+                next_end += hop
+                s_re, s_im, E, F, re_s, e_ex = _window_sums(
+                    t, N, a0, h, p1r, p1i, p2r, p2i, w2, sum_w, alt_w, Mf
+                )
+                work[0, nout] = s_re
+                work[1, nout] = s_im
+                work[2, nout] = E
+                work[3, nout] = F
+                work[4, nout] = re_s
+                work[5, nout] = e_ex
+                work[6, nout] = 0.0  # the low band's E, F, Re S, Im S (below, when K0 > 0)
+                work[7, nout] = 0.0
+                work[8, nout] = 0.0
+                work[9, nout] = 0.0
+                work[10, nout] = h[10] / N  # window means of the raw samples
+                work[11, nout] = h[11] / N
+                out_t[nout] = t
+                nout += 1
+            o1i = _wrap(o1i + 1, P)
+            o2i = _wrap(o2i + 2, P)
+            i1 = _wrap(i1 + 1, P)
+            i2 = _wrap(i2 + 2, P)
+            t += 1
+        if K0 > 0:  # exact low band (sliding DFTs of the raw samples) over the sub-block
+            lowband_block(lb, lbc, sv, m, t_sub, N, out_t, w_sub, nout, work, iscr, accs)
     ib[_T] = t
     ib[_NEXT_END] = next_end
     ib[_FRESH_START] = fresh
@@ -521,10 +644,6 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
     ib[_O1] = o1i
     ib[_O2] = o2i
     ib[_SLOT] = slot
-    fb[_DCX_IN] = xin
-    fb[_DCX_OUT] = xout
-    fb[_DCY_IN] = yin
-    fb[_DCY_OUT] = yout
     fb[_ZPREV_RE] = zpr
     fb[_ZPREV_IM] = zpi
     return nout
@@ -593,15 +712,15 @@ def _pass2(fb, work, out, n, angles):  # pragma: no cover
 
 
 @numba.njit(**_JIT)
-def _stream_block(xs, ys, fb, ib, work, out, out_t):  # pragma: no cover
+def _stream_block(xs, ys, fb, ib, work, out, out_t, sv, iscr, accs):  # pragma: no cover
     """Process a block; completed windows → columns of ``out`` (φ, d: see :func:`_pass2`)."""
-    n = _pass1(xs, ys, fb, ib, work, out_t)
+    n = _pass1(xs, ys, fb, ib, work, out_t, sv, iscr, accs)
     _pass2(fb, work, out, n, False)
     return n
 
 
 @numba.njit(**_JIT)
-def _stream_one(x, y, fb, ib):  # pragma: no cover
+def _stream_one(x, y, fb, ib, sv, iscr, accs):  # pragma: no cover
     """Process one sample pair; return 1 when a window completed (its row: ``fb`` at _OFF_ONE)."""
     w = ib[_OFF_WORK]
     o = ib[_OFF_ONE]
@@ -609,7 +728,7 @@ def _stream_one(x, y, fb, ib):  # pragma: no cover
     xy[0] = x
     xy[1] = y
     work = fb[w : w + _NWORK].reshape((_NWORK, 1))
-    n = _pass1(xy[0:1], xy[1:2], fb, ib, work, ib[_NIB : _NIB + 1])
+    n = _pass1(xy[0:1], xy[1:2], fb, ib, work, ib[_NIB : _NIB + 1], sv, iscr, accs)
     _pass2(fb, work, fb[o : o + 6].reshape((6, 1)), n, True)
     return n
 
@@ -655,6 +774,9 @@ class StreamingFEI:
         f_lo = min(max(0.25, 0.5 * self.exact_band) / window_s, 0.01 * fs)
         f_hi = min(0.45 * fs, max(F_HI_MAX, 40.0 * f_lo))
         self.a_i, self.a_q, self.phase_error_deg = hilbert_pair(f_lo, f_hi, self.fs)
+        if self.a_i.size > NS_MAX:
+            raise ValueError(f"Hilbert pair needs {self.a_i.size} sections (kernel: {NS_MAX})")
+        self._scratch = lowband_scratch()
         self.band = (f_lo, f_hi)
         self.dc_corner = 0.1 / window_s
         N = self.N
@@ -710,6 +832,8 @@ class StreamingFEI:
         if self.K0:
             sos = butter(4, self.hp_corner, "highpass", fs=self.fs, output="sos")
             st[_HP : _HP + 10] = np.column_stack([sos[:, :3], sos[:, 4:]]).ravel()
+        else:  # no exact band: the two sections pass the signal unchanged
+            st[_HP : _HP + 10] = [1.0, 0.0, 0.0, 0.0, 0.0] * 2
         st[_ABS] = abs_floor
         st[_REL] = rel_floor
         st[_FS] = self.fs
@@ -736,7 +860,11 @@ class StreamingFEI:
             self._work = np.empty((_NWORK, nmax))
             self._out = np.empty((6, nmax))
             self._out_t = np.empty(nmax, dtype=np.int64)
-        n = _stream_block(x, y, self._fb, self._ib, self._work, self._out, self._out_t)
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        y = np.ascontiguousarray(y, dtype=np.float64)
+        n = _stream_block(
+            x, y, self._fb, self._ib, self._work, self._out, self._out_t, *self._scratch
+        )
         out = self._out[:, :n]
         np.arctan2(out[3], out[1], out=out[1])  # φ (the kernel left Re, Im of S/E)
         np.divide(out[1], out[2] * (-2.0 * math.pi), out=out[3])  # d = −φ/(2π f_eq)
@@ -744,7 +872,7 @@ class StreamingFEI:
 
     def push(self, x: float, y: float) -> bool:
         """Push one sample pair; True when a window completed (its row: :attr:`last`)."""
-        return _stream_one(x, y, self._fb, self._ib) > 0
+        return _stream_one(x, y, self._fb, self._ib, *self._scratch) > 0
 
     @property
     def last(self) -> np.ndarray:

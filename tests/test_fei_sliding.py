@@ -130,15 +130,29 @@ def brute_lowband(x, y, end, N, K0):
 
 @pytest.mark.parametrize("N, K0", [(100, 7), (101, 7), (128, 10), (203, 13), (300, 20)])
 def test_lowband_sums_match_direct_dft_over_many_resyncs(N, K0):
-    from rths_hil.fei_sliding import LowBandSums
+    from rths_hil.fei_sliding import LB_RESYNC_WINDOWS, LowBandSums
 
-    L = 15 * N + 11
+    period = LB_RESYNC_WINDOWS * N
+    L = 3 * period + 11  # three resynchronisations
     x, y = random_walk_pair(L, K0)
     lb = LowBandSums(N, K0, hop=3)
     rows = np.concatenate([lb.process(x[i : i + 97], y[i : i + 97]) for i in range(0, L, 97)])
     np.testing.assert_array_equal(rows[:, 4], np.arange(N - 1, L, 3))
+    # the same stream in other cuts (one sample, odd blocks, all at once): identical rows
+    for cuts in ([1] * 500 + [L], [7, 1000, 333, L], [L]):
+        other = LowBandSums(N, K0, hop=3)
+        parts, pos = [], 0
+        for c in cuts:
+            parts.append(other.process(x[pos : pos + c], y[pos : pos + c]))
+            pos += c
+        np.testing.assert_array_equal(np.concatenate(parts), rows)
+    # every 8th window, and the windows around each resynchronisation
+    ends = rows[:, 4].astype(int)
+    near = np.zeros(len(rows), bool)
+    for k in range(1, 4):
+        near |= np.abs(ends - k * period) < 12
     worst = 0.0
-    for r in rows[::4]:
+    for r in rows[(np.arange(len(rows)) % 8 == 0) | near]:
         E, Fk, S = brute_lowband(x, y, int(r[4]), N, K0)
         worst = max(
             worst, abs(r[0] - E) / E, abs(r[1] - Fk) / Fk, abs(complex(r[2], r[3]) - S) / abs(S)
