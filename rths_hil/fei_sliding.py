@@ -416,8 +416,7 @@ def _lowband_piece_vec(
         with cgutils.for_range(builder, nwv) as wl:  # zero the partials
             for j in range(_NACC):
                 store(zero, ac.data, acc_ptr(wl.index, j))
-        half = splat(0.5)
-        mq = splat(-0.25)
+        mhalf = splat(-0.5)
         with cgutils.for_range(builder, nch) as loop:
             base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
             cbase = _chunk_ptr(builder, cst, loop.index, LB_CONST_ROWS)
@@ -431,7 +430,33 @@ def _lowband_piece_vec(
             )
             nxt = cgutils.alloca_once_value(builder, first)
 
-            def run(with_fresh):
+            def window(w):  # accumulate this chunk's bins of window w into its partials
+                col = builder.add(wcv, w)
+                mx = scalar(wk.data, builder.add(builder.mul(c64(10), wstride), col))
+                my = scalar(wk.data, builder.add(builder.mul(c64(11), wstride), col))
+
+                # 2 X_k = D(θ) − ½ (D(θ − Ω) + D(θ + Ω)) − 2 μ W (the factor 2 is undone once
+                # per window: the sums are quadratic, × ¼ after the reduction)
+                def spec(s0, plane, w_, nm):
+                    r = 6 * plane + s0
+                    pair = builder.fadd(builder.load(act[r + 1]), builder.load(act[r + 2]))
+                    return fmadd(nm, w_, fmadd(mhalf, pair, builder.load(act[r])))
+
+                nmx = splat(builder.fmul(mx, ir.Constant(mx.type, -2.0)))
+                nmy = splat(builder.fmul(my, ir.Constant(my.type, -2.0)))
+                xr = spec(0, 0, wr, nmx)
+                xi = spec(0, 1, wi, nmx)
+                yr = spec(3, 0, wr, nmy)
+                yi = spec(3, 1, wi, nmy)
+                pw = fmadd(xi, xi, builder.fmul(xr, xr))
+                e, f, s_r, s_i = (load(ac.data, acc_ptr(w, j)) for j in range(_NACC))
+                store(builder.fadd(e, pw), ac.data, acc_ptr(w, 0))
+                store(fmadd(kk, pw, f), ac.data, acc_ptr(w, 1))
+                store(fmadd(xi, yi, fmadd(xr, yr, s_r)), ac.data, acc_ptr(w, 2))
+                store(fmadd(builder.fneg(xi), yr, fmadd(xr, yi, s_i)), ac.data, acc_ptr(w, 3))
+
+            def run(with_fresh, dense):
+                """Sample loop; ``dense``: every sample completes a window (hop 1)."""
                 with cgutils.for_range(builder, nv) as sl:
                     row = builder.mul(builder.add(pv, sl.index), ncol)
                     vals = [scalar(sr.data, builder.add(row, c64(c))) for c in (4, 5, 6, 7)]
@@ -455,52 +480,37 @@ def _lowband_piece_vec(
                                     fmadd(c1r, ur, builder.fneg(builder.fmul(c1i, ui))), frs[s]
                                 )
                                 builder.store(fmadd(c1r, ui, builder.fmul(c1i, ur)), frs[6 + s])
-                    is_end = builder.icmp_signed("==", sl.index, builder.load(nxt))
-                    with builder.if_then(is_end):
-                        w = builder.load(wpos)
-                        col = builder.add(wcv, w)
-                        mx = scalar(wk.data, builder.add(builder.mul(c64(10), wstride), col))
-                        my = scalar(wk.data, builder.add(builder.mul(c64(11), wstride), col))
+                    if dense:
+                        window(sl.index)
+                    else:
+                        is_end = builder.icmp_signed("==", sl.index, builder.load(nxt))
+                        with builder.if_then(is_end):
+                            w = builder.load(wpos)
+                            window(w)
+                            w1 = builder.add(w, c64(1))
+                            builder.store(w1, wpos)
+                            last = builder.icmp_signed(">=", w1, nwv)
+                            idx = builder.select(last, c64(0), w1)
+                            builder.store(builder.select(last, c64(-1), scalar(en.data, idx)), nxt)
 
-                        def spec(s0, plane, w_, nm):  # ½ D(θ) − ¼ D(θ − Ω) − ¼ D(θ + Ω) − μ W
-                            r = 6 * plane + s0
-                            v = builder.fmul(half, builder.load(act[r]))
-                            v = fmadd(mq, builder.load(act[r + 1]), v)
-                            v = fmadd(mq, builder.load(act[r + 2]), v)
-                            return fmadd(nm, w_, v)
-
-                        nmx = splat(builder.fneg(mx))
-                        nmy = splat(builder.fneg(my))
-                        xr = spec(0, 0, wr, nmx)
-                        xi = spec(0, 1, wi, nmx)
-                        yr = spec(3, 0, wr, nmy)
-                        yi = spec(3, 1, wi, nmy)
-                        pw = fmadd(xi, xi, builder.fmul(xr, xr))
-                        e, f, s_r, s_i = (load(ac.data, acc_ptr(w, j)) for j in range(_NACC))
-                        store(builder.fadd(e, pw), ac.data, acc_ptr(w, 0))
-                        store(fmadd(kk, pw, f), ac.data, acc_ptr(w, 1))
-                        store(fmadd(xi, yi, fmadd(xr, yr, s_r)), ac.data, acc_ptr(w, 2))
-                        store(
-                            fmadd(builder.fneg(xi), yr, fmadd(xr, yi, s_i)), ac.data, acc_ptr(w, 3)
-                        )
-                        w1 = builder.add(w, c64(1))
-                        builder.store(w1, wpos)
-                        last = builder.icmp_signed(">=", w1, nwv)
-                        idx = builder.select(last, c64(0), w1)
-                        builder.store(builder.select(last, c64(-1), scalar(en.data, idx)), nxt)
-
+            dense = builder.icmp_signed("==", nwv, nv)  # ends are then 0 … n−1
             with builder.if_else(freshv) as (then, otherwise):
                 with then:
-                    run(True)
+                    run(True, False)
                 with otherwise:
-                    run(False)
+                    with builder.if_else(dense) as (d_then, d_else):
+                        with d_then:
+                            run(False, True)
+                        with d_else:
+                            run(False, False)
             for r in range(12):
                 store(builder.load(act[r]), base, at(r))
                 store(builder.load(frs[r]), base, at(12 + r))
+        quarter = ir.Constant(ir.DoubleType(), 0.25)
         with cgutils.for_range(builder, nwv) as wl:  # reduce the partials → work rows 6 … 9
             col = builder.add(wcv, wl.index)
             for j in range(_NACC):
-                v = _hsum(builder, load(ac.data, acc_ptr(wl.index, j)))
+                v = builder.fmul(_hsum(builder, load(ac.data, acc_ptr(wl.index, j))), quarter)
                 idx = builder.add(builder.mul(c64(6 + j), wstride), col)
                 builder.store(v, builder.gep(wk.data, [idx]))
         return context.get_dummy_value()

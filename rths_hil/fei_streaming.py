@@ -437,7 +437,7 @@ def _cplx_sum(a0, a1, b, qr, qi, pr, pi, orr, oi, rr, ri):  # pragma: no cover
 
 @numba.njit(inline="always", **_JIT)
 def _window_sums(t, N, a, h, p1r, p1i, p2r, p2i, w2, sum_w, alt_w, Mf):  # pragma: no cover
-    """(Re S, Im S, E, F, exact Re S, exact E) of the window ending at sample ``t``.
+    """(Re S, Im S, E, F, exact Re S, exact E, means) of the window ending at sample ``t``.
 
     ``a``: the sums (q₁ at _Q1); ``h``: the window sums of the real quantities from
     :func:`_real_sums`.
@@ -463,9 +463,9 @@ def _window_sums(t, N, a, h, p1r, p1i, p2r, p2i, w2, sum_w, alt_w, Mf):  # pragm
     F = h[_Q3]
     # Exact Re S and E of the windowed, mean-free signals (Parseval, one-sided bins 1 … p−1):
     # Σ_k Y conj(X) over all M bins = M Σ ŷ x̂; remove DC (k = 0) and Nyquist (k = p), halve.
-    n_win = float(N)
-    mu_x = h[10] / n_win
-    mu_y = h[11] / n_win
+    inv_n = 1.0 / N  # (a constant: the compiler hoists it out of the sample loop)
+    mu_x = h[10] * inv_n
+    mu_y = h[11] * inv_n
     yx2 = h[_YX]
     xx2 = h[_XX]
     x2 = h[_XR]
@@ -483,7 +483,7 @@ def _window_sums(t, N, a, h, p1r, p1i, p2r, p2i, w2, sum_w, alt_w, Mf):  # pragm
     y_ny = s0_sign * sy1 - mu_y * alt_w
     re_s = 0.5 * (Mf * sxy - y_dc * x_dc - y_ny * x_ny)
     e_ex = 0.5 * (Mf * sxx - x_dc * x_dc - x_ny * x_ny)
-    return s_re, s_im, E, F, re_s, e_ex
+    return s_re, s_im, E, F, re_s, e_ex, mu_x, mu_y
 
 
 @numba.njit(**_JIT)
@@ -612,7 +612,7 @@ def _pass1(xs, ys, fb, ib, work, out_t, sv, iscr, accs):  # pragma: no cover
                 fresh = t + 1
             if t == next_end:
                 next_end += hop
-                s_re, s_im, E, F, re_s, e_ex = _window_sums(
+                s_re, s_im, E, F, re_s, e_ex, mu_x, mu_y = _window_sums(
                     t, N, a0, h, p1r, p1i, p2r, p2i, w2, sum_w, alt_w, Mf
                 )
                 work[0, nout] = s_re
@@ -625,8 +625,8 @@ def _pass1(xs, ys, fb, ib, work, out_t, sv, iscr, accs):  # pragma: no cover
                 work[7, nout] = 0.0
                 work[8, nout] = 0.0
                 work[9, nout] = 0.0
-                work[10, nout] = h[10] / N  # window means of the raw samples
-                work[11, nout] = h[11] / N
+                work[10, nout] = mu_x  # window means of the raw samples
+                work[11, nout] = mu_y
                 out_t[nout] = t
                 nout += 1
             o1i = _wrap(o1i + 1, P)
@@ -663,18 +663,21 @@ def _pass2(fb, work, out, n, angles):  # pragma: no cover
     # Independent per window (no branches: the divisions and roots of many windows overlap).
     # S = exact Re S + j(exact low-band Im S + E_high · Im(S_a/E_a)), E exact,
     # F = exact low-band F + E_high · (F_a/E_a), E_high = E − E_low.
+    f_hz = fs / two_pi
+    inv_mw2 = 2.0 / Mw2
     for i in range(n):
-        E = work[2, i]
+        inv_e = 1.0 / work[2, i]  # analytic E
         e_ex = work[5, i]
+        inv_ex = 1.0 / e_ex
         e_hi = max(e_ex - work[6, i], 0.0)
-        im_s = work[9, i] + e_hi * (work[1, i] / E)
-        a_re = work[4, i] / e_ex
-        a_im = im_s / e_ex
+        im_s = work[9, i] + e_hi * (work[1, i] * inv_e)
+        a_re = work[4, i] * inv_ex
+        a_im = im_s * inv_ex
         out[0, i] = math.sqrt(a_re * a_re + a_im * a_im)
         out[1, i] = a_re
-        out[2, i] = (bin_hz * work[7, i] + e_hi * fs * work[3, i] / (two_pi * E)) / e_ex
+        out[2, i] = (bin_hz * work[7, i] + e_hi * f_hz * work[3, i] * inv_e) * inv_ex
         out[3, i] = a_im
-        out[5, i] = math.sqrt(max(2.0 * e_ex / Mw2, 0.0))
+        out[5, i] = math.sqrt(max(e_ex * inv_mw2, 0.0))
     # Running peak and validity (sequential, cheap).
     peak = fb[_PEAK]
     abs_floor = fb[_ABS]
