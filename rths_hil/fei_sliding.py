@@ -363,6 +363,31 @@ def _hsum(builder, v):  # pragma: no cover - code generation
     return builder.extract_element(v, ir.Constant(i32, 0))
 
 
+def _transpose_sum8(builder, vs):  # pragma: no cover - code generation
+    """Lane sums of eight 8-lane vectors as one vector (lane i: the sum of vs[i])."""
+    i32 = ir.IntType(32)
+
+    def shuf(a, b, idx):
+        return builder.shuffle_vector(a, b, ir.Constant(ir.VectorType(i32, 8), idx))
+
+    def level(a, b, lo, hi):
+        return builder.fadd(shuf(a, b, lo), shuf(a, b, hi))
+
+    # lanes i + 4: [a0..3 | b0..3]
+    s = [
+        level(vs[i], vs[i + 1], [0, 1, 2, 3, 8, 9, 10, 11], [4, 5, 6, 7, 12, 13, 14, 15])
+        for i in (0, 2, 4, 6)
+    ]
+    # lanes + 2: [a0,1 | c0,1 | b0,1 | d0,1]
+    t = [
+        level(s[i], s[i + 1], [0, 1, 8, 9, 4, 5, 12, 13], [2, 3, 10, 11, 6, 7, 14, 15])
+        for i in (0, 2)
+    ]
+    # lanes + 1: [0, 4, 2, 6, 1, 5, 3, 7] → reorder
+    u = level(t[0], t[1], [0, 8, 2, 10, 4, 12, 6, 14], [1, 9, 3, 11, 5, 13, 7, 15])
+    return shuf(u, u, [0, 4, 2, 6, 1, 5, 3, 7])
+
+
 @intrinsic
 def _lowband_piece_vec(
     typingctx, lb, lbc, src, p, n, fresh, ends, nw, work, wcol, accs
@@ -506,11 +531,23 @@ def _lowband_piece_vec(
             for r in range(12):
                 store(builder.load(act[r]), base, at(r))
                 store(builder.load(frs[r]), base, at(12 + r))
+        # Reduce the partials → work rows 6 … 9 (× ¼): eight windows at a time by a transposing
+        # tree (the same pairwise order as _hsum, lanes i + 4, then + 2, then + 1), the rest
+        # one by one.
         quarter = ir.Constant(ir.DoubleType(), 0.25)
-        with cgutils.for_range(builder, nwv) as wl:  # reduce the partials → work rows 6 … 9
-            col = builder.add(wcv, wl.index)
+        n8 = builder.sdiv(nwv, c64(8))
+        with cgutils.for_range(builder, n8) as gl:
+            w0 = builder.mul(gl.index, c64(8))
             for j in range(_NACC):
-                v = builder.fmul(_hsum(builder, load(ac.data, acc_ptr(wl.index, j))), quarter)
+                vs = [load(ac.data, acc_ptr(builder.add(w0, c64(i)), j)) for i in range(8)]
+                v = _transpose_sum8(builder, vs)
+                idx = builder.add(builder.mul(c64(6 + j), wstride), builder.add(wcv, w0))
+                store(builder.fmul(v, splat(0.25)), wk.data, idx)
+        with cgutils.for_range(builder, builder.sub(nwv, builder.mul(n8, c64(8)))) as wl:
+            w = builder.add(builder.mul(n8, c64(8)), wl.index)
+            col = builder.add(wcv, w)
+            for j in range(_NACC):
+                v = builder.fmul(_hsum(builder, load(ac.data, acc_ptr(w, j))), quarter)
                 idx = builder.add(builder.mul(c64(6 + j), wstride), col)
                 builder.store(v, builder.gep(wk.data, [idx]))
         return context.get_dummy_value()
