@@ -63,7 +63,6 @@ from .fei_sliding import (
     lowband_block,
     lowband_constants,
     lowband_padded,
-    lowband_scratch,
 )
 
 #: Target worst-case phase-difference error of the Hilbert pair (degrees).
@@ -141,7 +140,8 @@ _N = 9  # window length
 _NSEC = 10  # first-order sections per chain
 _OFF_COEF, _OFF_CST, _OFF_RING, _OFF_PH, _OFF_ACC, _OFF_ONE, _OFF_WORK = 11, 12, 13, 14, 15, 16, 17
 _K0, _OFF_LB, _OFF_LBC = 18, 19, 20  # exact low band: K0p (K0 padded to 8), states, constants
-_NIB = 21
+_OFF_SV, _OFF_ACCS = 21, 22  # sub-block scratch: per-sample values, low-band window partials
+_NIB = 23  # then: one window end (a pushed sample's), LB_SUB window indices (low-band scratch)
 # Float state (float64 array ``fb``), scalars first:
 _DC_R = 0  # DC blocker pole
 _DCX_IN, _DCX_OUT, _DCY_IN, _DCY_OUT = 1, 2, 3, 4
@@ -487,14 +487,15 @@ def _window_sums(t, N, a, h, p1r, p1i, p2r, p2i, w2, sum_w, alt_w, Mf):  # pragm
 
 
 @numba.njit(**_JIT)
-def _pass1(xs, ys, fb, ib, work, out_t, sv, iscr, accs):  # pragma: no cover
+def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
     """Filters, sliding sums and the exact low band for a block, in sub-blocks of LB_SUB.
 
     Per sub-block: :func:`_filter_block` (the recursive filters, states in registers), then the
     sliding sums sample by sample (each completed window: its end index into ``out_t``, its sums
     and means into the columns of ``work``), then the low band over the sub-block
-    (:func:`rths_hil.fei_sliding.lowband_block`). ``sv``, ``iscr``, ``accs``: scratch
-    (:func:`rths_hil.fei_sliding.lowband_scratch`). Returns the number of completed windows.
+    (:func:`rths_hil.fei_sliding.lowband_block`); its scratch lives in ``fb`` and ``ib`` (no
+    extra arguments: each array argument costs a pushed sample ~0.2 µs). Returns the number of
+    completed windows.
     """
     N = ib[_N]
     ns = ib[_NSEC]
@@ -511,6 +512,9 @@ def _pass1(xs, ys, fb, ib, work, out_t, sv, iscr, accs):  # pragma: no cover
     K0 = ib[_K0]  # padded to a multiple of 8: K0 // 8 chunks of 8 bins (fei_sliding's layout)
     lb = fb[ib[_OFF_LB] : ib[_OFF_LB] + LB_STATE_ROWS * K0].reshape((K0 // 8, LB_STATE_ROWS, 8))
     lbc = fb[ib[_OFF_LBC] : ib[_OFF_LBC] + LB_CONST_ROWS * K0].reshape((K0 // 8, LB_CONST_ROWS, 8))
+    sv = fb[ib[_OFF_SV] : ib[_OFF_SV] + 8 * LB_SUB].reshape((LB_SUB, 8))
+    accs = fb[ib[_OFF_ACCS] : ib[_OFF_ACCS] + 32 * LB_SUB].reshape((LB_SUB, 4, 8))
+    iscr = ib[_NIB + 1 : _NIB + 1 + LB_SUB]
     n = xs.shape[0]
     t = ib[_T]
     if n > 0 and t == 0:  # start the DC blockers at the first value: no step transient
@@ -715,15 +719,15 @@ def _pass2(fb, work, out, n, angles):  # pragma: no cover
 
 
 @numba.njit(**_JIT)
-def _stream_block(xs, ys, fb, ib, work, out, out_t, sv, iscr, accs):  # pragma: no cover
+def _stream_block(xs, ys, fb, ib, work, out, out_t):  # pragma: no cover
     """Process a block; completed windows → columns of ``out`` (φ, d: see :func:`_pass2`)."""
-    n = _pass1(xs, ys, fb, ib, work, out_t, sv, iscr, accs)
+    n = _pass1(xs, ys, fb, ib, work, out_t)
     _pass2(fb, work, out, n, False)
     return n
 
 
 @numba.njit(**_JIT)
-def _stream_one(x, y, fb, ib, sv, iscr, accs):  # pragma: no cover
+def _stream_one(x, y, fb, ib):  # pragma: no cover
     """Process one sample pair; return 1 when a window completed (its row: ``fb`` at _OFF_ONE)."""
     w = ib[_OFF_WORK]
     o = ib[_OFF_ONE]
@@ -731,7 +735,7 @@ def _stream_one(x, y, fb, ib, sv, iscr, accs):  # pragma: no cover
     xy[0] = x
     xy[1] = y
     work = fb[w : w + _NWORK].reshape((_NWORK, 1))
-    n = _pass1(xy[0:1], xy[1:2], fb, ib, work, ib[_NIB : _NIB + 1], sv, iscr, accs)
+    n = _pass1(xy[0:1], xy[1:2], fb, ib, work, ib[_NIB : _NIB + 1])
     _pass2(fb, work, fb[o : o + 6].reshape((6, 1)), n, True)
     return n
 
@@ -779,7 +783,6 @@ class StreamingFEI:
         self.a_i, self.a_q, self.phase_error_deg = hilbert_pair(f_lo, f_hi, self.fs)
         if self.a_i.size > NS_MAX:
             raise ValueError(f"Hilbert pair needs {self.a_i.size} sections (kernel: {NS_MAX})")
-        self._scratch = lowband_scratch()
         self.band = (f_lo, f_hi)
         self.dc_corner = 0.1 / window_s
         N = self.N
@@ -797,6 +800,8 @@ class StreamingFEI:
             "lbpad": 7,  # places "lb" on a 64-byte boundary (8-wide vectors)
             "lb": LB_STATE_ROWS * lowband_padded(self.K0),
             "lbc": LB_CONST_ROWS * lowband_padded(self.K0),
+            "sv": 8 * LB_SUB,
+            "accs": 32 * LB_SUB,
         }
         off = np.cumsum([0, *sizes.values()])
         buf = np.zeros(int(off[-1]))
@@ -805,7 +810,7 @@ class StreamingFEI:
         shift = (-(buf.ctypes.data // 8 + pad_start)) % 8 if buf.ctypes.data % 8 == 0 else 0
         off[i_lb:] += shift - 7  # the pad shrinks to `shift` doubles
         self._fb = fb = buf[: int(off[-1])]
-        self._ib = ib = np.zeros(_NIB + 1, dtype=np.int64)  # + scratch slot for a window end
+        self._ib = ib = np.zeros(_NIB + 1 + LB_SUB, dtype=np.int64)
         views = {name: fb[off[i] : off[i + 1]] for i, name in enumerate(sizes)}
         for slot, name in (
             (_OFF_COEF, "coef"),
@@ -817,6 +822,8 @@ class StreamingFEI:
             (_OFF_WORK, "work"),
             (_OFF_LB, "lb"),
             (_OFF_LBC, "lbc"),
+            (_OFF_SV, "sv"),
+            (_OFF_ACCS, "accs"),
         ):
             ib[slot] = off[list(sizes).index(name)]
         ib[_N] = N
@@ -865,9 +872,7 @@ class StreamingFEI:
             self._out_t = np.empty(nmax, dtype=np.int64)
         x = np.ascontiguousarray(x, dtype=np.float64)
         y = np.ascontiguousarray(y, dtype=np.float64)
-        n = _stream_block(
-            x, y, self._fb, self._ib, self._work, self._out, self._out_t, *self._scratch
-        )
+        n = _stream_block(x, y, self._fb, self._ib, self._work, self._out, self._out_t)
         out = self._out[:, :n]
         np.arctan2(out[3], out[1], out=out[1])  # φ (the kernel left Re, Im of S/E)
         np.divide(out[1], out[2] * (-2.0 * math.pi), out=out[3])  # d = −φ/(2π f_eq)
@@ -875,7 +880,7 @@ class StreamingFEI:
 
     def push(self, x: float, y: float) -> bool:
         """Push one sample pair; True when a window completed (its row: :attr:`last`)."""
-        return _stream_one(x, y, self._fb, self._ib, *self._scratch) > 0
+        return _stream_one(x, y, self._fb, self._ib) > 0
 
     @property
     def last(self) -> np.ndarray:
