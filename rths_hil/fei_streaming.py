@@ -20,9 +20,9 @@ against the signal (Bedrosian's theorem),
 * Hann²-weighted sliding sums: ``w_n² = 3/8 − ½ cos Ωn + ⅛ cos 2Ωn`` (``Ω = 2π/(N−1)``), so each
   weighted sum is a combination of rectangular sliding sums of ``q[t] e^{jmΩt}`` (m = 0, ±1, ±2),
   updated by one addition and one subtraction per sample, with phasors from an exact table of
-  period ``N − 1``. Against round-off drift the sums are resynchronised every ``N`` samples by
-  swapping in a second set of sums that was built by additions only over exactly the current
-  window (no O(N) step, no spikes).
+  period ``N − 1``. Against round-off drift the sums are resynchronised once every
+  ``LB_RESYNC_WINDOWS`` windows (at stream positions) by swapping in a second set of sums that
+  was built by additions only over exactly the current window (no O(N) step, no spikes).
 
 Both signals pass through identical filters, so their relative phase is untouched; the common
 group delay of the all-pass chains shifts the window's effective position slightly into the past
@@ -58,6 +58,7 @@ from scipy.special import ellipj, ellipk
 
 from .fei_sliding import (
     LB_CONST_ROWS,
+    LB_RESYNC_WINDOWS,
     LB_STATE_ROWS,
     LB_SUB,
     lowband_block,
@@ -132,7 +133,7 @@ def _phase(a: np.ndarray, w: np.ndarray) -> np.ndarray:
 _T = 0  # samples seen
 _NEXT_END = 1  # sample index of the next window end to report
 _HOP = 2
-_FRESH_START = 3  # sample index at which the fresh sums started
+_RPOS = 3  # position of the newest sample in the resync period (t mod LB_RESYNC_WINDOWS·N)
 _I1, _I2 = 4, 5  # t mod P and 2t mod P (phasor table indices of the newest sample)
 _O1, _O2 = 6, 7  # the same for the sample leaving the window (t − N)
 _SLOT = 8  # t mod N (ring slot)
@@ -190,7 +191,7 @@ def _wrap(i: int, P: int) -> int:
 
 
 @intrinsic
-def _real_sums(typingctx, fb, a0, ring, q, p, r, resync):  # pragma: no cover
+def _real_sums(typingctx, fb, a0, ring, q, p, r, fresh_on, resync):  # pragma: no cover
     """Sliding sums of the eight real quantities (one 8-wide vector per component) and their
     Hann-weighted window sums.
 
@@ -198,16 +199,17 @@ def _real_sums(typingctx, fb, a0, ring, q, p, r, resync):  # pragma: no cover
     e^{j2Ωt} of the new sample and of the one leaving the window (4-tuples). The old quantities
     are read from ``fb[ring:ring + 8]`` and replaced by ``q``. For each component c with phasor
     factor p_c (1 for Σq): running ``s = (s + q_i p_c) − o_i r_c`` (the product o_i r_c fused),
-    fresh ``f += q_i p_c``; with ``resync`` the running sums become the fresh ones and the
-    fresh ones restart at 0. Returns Σ w² q for quantities 0 … 5, Σ w q for 4 … 7 and Σ q for
-    4, 5 over the window ending at the new sample:
+    with ``fresh_on`` (the last window of a resync period) fresh ``f += q_i p_c``, and with
+    ``resync`` (its last sample) the running sums become the fresh ones, which restart at 0.
+    Returns Σ w² q for quantities 0 … 5, Σ w q for 4 … 7 and Σ q for 4, 5 over the window
+    ending at the new sample:
     Σ w² q = ⅜ Σq − ½ Re(c₁ Σ q e^{jΩt}) + ⅛ Re(c₂ Σ q e^{j2Ωt}), Σ w q = ½ Σq − ½ Re(c₁ …).
     """
     ret = types.UniTuple(types.float64, 12)
-    sig = ret(fb, a0, ring, q, p, r, resync)
+    sig = ret(fb, a0, ring, q, p, r, fresh_on, resync)
 
     def codegen(context, builder, signature, args):
-        fbv, a0o, ro, qt, pt, rt, rs = args
+        fbv, a0o, ro, qt, pt, rt, fr, rs = args
         base = context.make_array(signature.args[0])(context, builder, fbv).data
         dbl = ir.DoubleType()
         vty = ir.VectorType(dbl, 8)
@@ -235,7 +237,7 @@ def _real_sums(typingctx, fb, a0, ring, q, p, r, resync):  # pragma: no cover
         )
         neg_ov = builder.fneg(ov)
         zero = ir.Constant(vty, [0.0] * 8)
-        A = []
+        slots, us = [], []
         for c in range(5):
             if c == 0:
                 u = qv
@@ -247,12 +249,19 @@ def _real_sums(typingctx, fb, a0, ring, q, p, r, resync):  # pragma: no cover
                 run = builder.fsub(run, ov)
             else:
                 run = builder.call(fma, [neg_ov, splat(builder.extract_value(rt, c - 1)), run])
-            p1 = vptr(builder.add(a0o, ir.Constant(i64, 40 + 8 * c)))
-            fresh = builder.fadd(builder.load(p1, align=8), u)
-            run = builder.select(rs, fresh, run)
             builder.store(run, p0, align=8)
-            builder.store(builder.select(rs, zero, fresh), p1, align=8)
-            A.append(run)
+            slots.append(cgutils.alloca_once_value(builder, run))
+            us.append(u)
+        with builder.if_then(fr, likely=False):  # the last window of a resync period
+            for c in range(5):
+                p0 = vptr(builder.add(a0o, ir.Constant(i64, 8 * c)))
+                p1 = vptr(builder.add(a0o, ir.Constant(i64, 40 + 8 * c)))
+                fresh = builder.fadd(builder.load(p1, align=8), us[c])
+                run = builder.select(rs, fresh, builder.load(slots[c]))
+                builder.store(run, p0, align=8)
+                builder.store(run, slots[c])
+                builder.store(builder.select(rs, zero, fresh), p1, align=8)
+        A = [builder.load(sl) for sl in slots]
         # Window sums with the conjugate phasors c₁ = conj(p₁), c₂ = conj(p₂) (as _hann2/1).
         c1r = splat(builder.extract_value(pt, 0))
         c1i = splat(builder.fneg(builder.extract_value(pt, 1)))
@@ -425,14 +434,16 @@ def _filter_block(typingctx, fb, coef, cst, xs, ys, b0, n, sv):  # pragma: no co
 
 
 @numba.njit(inline="always", **_JIT)
-def _cplx_sum(a0, a1, b, qr, qi, pr, pi, orr, oi, rr, ri):  # pragma: no cover
-    """Add q·p to both sets of sums at offset ``b``; remove o·r (complex products)."""
+def _cplx_sum(a0, a1, b, qr, qi, pr, pi, orr, oi, rr, ri, fr):  # pragma: no cover
+    """Add q·p to the running sums at offset ``b`` and remove o·r (complex products); with
+    ``fr`` add q·p to the fresh sums too."""
     ur = qr * pr - qi * pi
     ui = qr * pi + qi * pr
     a0[b] = a0[b] + ur - (orr * rr - oi * ri)
     a0[b + 1] = a0[b + 1] + ui - (orr * ri + oi * rr)
-    a1[b] += ur
-    a1[b + 1] += ui
+    if fr:
+        a1[b] += ur
+        a1[b + 1] += ui
 
 
 @numba.njit(inline="always", **_JIT)
@@ -524,7 +535,9 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
         fb[_Y0] = ys[0]
     next_end = ib[_NEXT_END]
     hop = ib[_HOP]
-    fresh = ib[_FRESH_START]
+    rpos = ib[_RPOS]  # t mod the resync period
+    period = LB_RESYNC_WINDOWS * N
+    fresh_from = period - N
     i1 = ib[_I1]
     i2 = ib[_I2]
     o1i = ib[_O1]
@@ -590,7 +603,8 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
             r2r = ph[o2i, 0]
             r2i = ph[o2i, 1]
             # Sliding sums Σ q e^{jmΩt'} over the window, and the fresh sums.
-            resync = t + 1 - fresh == N
+            fr = rpos >= fresh_from
+            resync = rpos == period - 1
             h = _real_sums(
                 fb,
                 off_acc,
@@ -598,22 +612,23 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
                 (q2, q3, q_yx, q_xx, xr, yr, q_sx, q_sy),
                 (p1r, p1i, p2r, p2i),
                 (r1r, r1i, r2r, r2i),
+                fr,
                 resync,
             )
-            _cplx_sum(a0, a1, 0, q1r, q1i, p2r, -p2i, o_q1r, o_q1i, r2r, -r2i)
-            _cplx_sum(a0, a1, 2, q1r, q1i, p1r, -p1i, o_q1r, o_q1i, r1r, -r1i)
+            _cplx_sum(a0, a1, 0, q1r, q1i, p2r, -p2i, o_q1r, o_q1i, r2r, -r2i, fr)
+            _cplx_sum(a0, a1, 2, q1r, q1i, p1r, -p1i, o_q1r, o_q1i, r1r, -r1i, fr)
             a0[4] = a0[4] + q1r - o_q1r
             a0[5] = a0[5] + q1i - o_q1i
-            a1[4] += q1r
-            a1[5] += q1i
-            _cplx_sum(a0, a1, 6, q1r, q1i, p1r, p1i, o_q1r, o_q1i, r1r, r1i)
-            _cplx_sum(a0, a1, 8, q1r, q1i, p2r, p2i, o_q1r, o_q1i, r2r, r2i)
+            if fr:
+                a1[4] += q1r
+                a1[5] += q1i
+            _cplx_sum(a0, a1, 6, q1r, q1i, p1r, p1i, o_q1r, o_q1i, r1r, r1i, fr)
+            _cplx_sum(a0, a1, 8, q1r, q1i, p2r, p2i, o_q1r, o_q1i, r2r, r2i, fr)
             # Resynchronise: the fresh sums hold exactly the current window after N additions.
             if resync:
                 for i in range(10):
                     a0[i] = a1[i]
                     a1[i] = 0.0
-                fresh = t + 1
             if t == next_end:
                 next_end += hop
                 s_re, s_im, E, F, re_s, e_ex, mu_x, mu_y = _window_sums(
@@ -638,11 +653,14 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
             i1 = _wrap(i1 + 1, P)
             i2 = _wrap(i2 + 2, P)
             t += 1
+            rpos += 1
+            if rpos == period:
+                rpos = 0
         if K0 > 0:  # exact low band (sliding DFTs of the raw samples) over the sub-block
             lowband_block(lb, lbc, sv, m, t_sub, N, out_t, w_sub, nout, work, iscr, accs)
     ib[_T] = t
     ib[_NEXT_END] = next_end
-    ib[_FRESH_START] = fresh
+    ib[_RPOS] = rpos
     ib[_I1] = i1
     ib[_I2] = i2
     ib[_O1] = o1i
