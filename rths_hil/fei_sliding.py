@@ -425,8 +425,7 @@ def _lowband_piece_vec(
         wstride = cgutils.unpack_tuple(builder, wk.shape)[1]
         nch = cgutils.unpack_tuple(builder, arr.shape)[0]
         i64 = nch.type
-        vty, splat, load, store, fmadd = _vec_tools(context, builder)
-        zero = ir.Constant(vty, [0.0] * 8)
+        _vty, splat, load, store, fmadd = _vec_tools(context, builder)
         c64 = lambda v: ir.Constant(i64, v)  # noqa: E731
 
         def at(row):
@@ -438,22 +437,21 @@ def _lowband_piece_vec(
         def acc_ptr(w, j):
             return builder.add(builder.mul(w, c64(8 * _NACC)), c64(8 * j))
 
-        with cgutils.for_range(builder, nwv) as wl:  # zero the partials
-            for j in range(_NACC):
-                store(zero, ac.data, acc_ptr(wl.index, j))
         mhalf = splat(-0.5)
-        with cgutils.for_range(builder, nch) as loop:
-            base = _chunk_ptr(builder, arr, loop.index, LB_STATE_ROWS)
-            cbase = _chunk_ptr(builder, cst, loop.index, LB_CONST_ROWS)
+
+        def chunk(index, first):  # one chunk of 8 bins over all samples of the stretch
+            # (the first chunk writes the window partials, the others add to them)
+            base = _chunk_ptr(builder, arr, index, LB_STATE_ROWS)
+            cbase = _chunk_ptr(builder, cst, index, LB_CONST_ROWS)
             consts = [[load(cbase, at(4 * g + i)) for i in range(4)] for g in range(3)]
             wr, wi, kk = (load(cbase, at(_W_ROW + i)) for i in range(3))
             act = [cgutils.alloca_once_value(builder, load(base, at(r))) for r in range(12)]
             frs = [cgutils.alloca_once_value(builder, load(base, at(12 + r))) for r in range(12)]
             wpos = cgutils.alloca_once_value(builder, c64(0))
-            first = builder.select(
+            first_end = builder.select(
                 builder.icmp_signed(">", nwv, c64(0)), scalar(en.data, c64(0)), c64(-1)
             )
-            nxt = cgutils.alloca_once_value(builder, first)
+            nxt = cgutils.alloca_once_value(builder, first_end)
 
             def window(w):  # accumulate this chunk's bins of window w into its partials
                 col = builder.add(wcv, w)
@@ -474,6 +472,12 @@ def _lowband_piece_vec(
                 yr = spec(3, 0, wr, nmy)
                 yi = spec(3, 1, wi, nmy)
                 pw = fmadd(xi, xi, builder.fmul(xr, xr))
+                if first:  # the same roundings as adding to zero partials
+                    store(pw, ac.data, acc_ptr(w, 0))
+                    store(builder.fmul(kk, pw), ac.data, acc_ptr(w, 1))
+                    store(fmadd(xi, yi, builder.fmul(xr, yr)), ac.data, acc_ptr(w, 2))
+                    store(fmadd(builder.fneg(xi), yr, builder.fmul(xr, yi)), ac.data, acc_ptr(w, 3))
+                    return
                 e, f, s_r, s_i = (load(ac.data, acc_ptr(w, j)) for j in range(_NACC))
                 store(builder.fadd(e, pw), ac.data, acc_ptr(w, 0))
                 store(fmadd(kk, pw, f), ac.data, acc_ptr(w, 1))
@@ -531,6 +535,11 @@ def _lowband_piece_vec(
             for r in range(12):
                 store(builder.load(act[r]), base, at(r))
                 store(builder.load(frs[r]), base, at(12 + r))
+
+        with builder.if_then(builder.icmp_signed(">", nch, c64(0))):
+            chunk(c64(0), True)
+            with cgutils.for_range(builder, builder.sub(nch, c64(1))) as loop:
+                chunk(builder.add(loop.index, c64(1)), False)
         # Reduce the partials → work rows 6 … 9 (× ¼): eight windows at a time by a transposing
         # tree (the same pairwise order as _hsum, lanes i + 4, then + 2, then + 1), the rest
         # one by one.
