@@ -101,7 +101,7 @@ def main() -> None:
             for s in range(0, bx.size, 4096):
                 o.update(bx[s : s + 4096], by[s : s + 4096])
 
-        block_rate = big_x.size / best(run_blocks, 2) / 1e6
+        block_rate = big_x.size / best(run_blocks, 5) / 1e6
         print(
             f"{N:>5} | {naive * 1e6:>12.1f} | {batch * 1e6:>12.2f} {naive / batch:>7.1f} | "
             f"{online_t * 1e6:>13.1f} {naive / online_t:>7.2f} | {push_t * 1e6:>11.2f} | "
