@@ -540,8 +540,11 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
     fresh_from = period - N
     i1 = ib[_I1]
     i2 = ib[_I2]
+    # phasors e^{jΩt'}, e^{j2Ωt'} of the sample leaving the window (t' = t − N ≡ t − 1 mod P)
     o1i = ib[_O1]
     o2i = ib[_O2]
+    q1r_prev, q1i_prev = ph[o1i, 0], ph[o1i, 1]
+    q2r_prev, q2i_prev = ph[o2i, 0], ph[o2i, 1]
     slot = ib[_SLOT]
     zpr = fb[_ZPREV_RE]
     zpi = fb[_ZPREV_IM]
@@ -598,10 +601,9 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
             p1i = ph[i1, 1]
             p2r = ph[i2, 0]
             p2i = ph[i2, 1]
-            r1r = ph[o1i, 0]
-            r1i = ph[o1i, 1]
-            r2r = ph[o2i, 0]
-            r2i = ph[o2i, 1]
+            # the leaving sample's phasors are the previous sample's: Ω(N − 1) = 2π
+            r1r, r1i, r2r, r2i = q1r_prev, q1i_prev, q2r_prev, q2i_prev
+            q1r_prev, q1i_prev, q2r_prev, q2i_prev = p1r, p1i, p2r, p2i
             # Sliding sums Σ q e^{jmΩt'} over the window, and the fresh sums.
             fr = rpos >= fresh_from
             resync = rpos == period - 1
@@ -648,8 +650,6 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
                 work[11, nout] = mu_y
                 out_t[nout] = t
                 nout += 1
-            o1i = _wrap(o1i + 1, P)
-            o2i = _wrap(o2i + 2, P)
             i1 = _wrap(i1 + 1, P)
             i2 = _wrap(i2 + 2, P)
             t += 1
@@ -663,8 +663,8 @@ def _pass1(xs, ys, fb, ib, work, out_t):  # pragma: no cover
     ib[_RPOS] = rpos
     ib[_I1] = i1
     ib[_I2] = i2
-    ib[_O1] = o1i
-    ib[_O2] = o2i
+    ib[_O1] = _wrap(i1 + P - 1, P)
+    ib[_O2] = _wrap(i2 + P - 2, P)
     ib[_SLOT] = slot
     fb[_ZPREV_RE] = zpr
     fb[_ZPREV_IM] = zpi
