@@ -61,6 +61,7 @@ from .fei_sliding import (
     LB_RESYNC_WINDOWS,
     LB_STATE_ROWS,
     LB_SUB,
+    _vec_tools,
     lowband_block,
     lowband_constants,
     lowband_padded,
@@ -211,20 +212,12 @@ def _real_sums(typingctx, fb, a0, ring, q, p, r, fresh_on, resync):  # pragma: n
     def codegen(context, builder, signature, args):
         fbv, a0o, ro, qt, pt, rt, fr, rs = args
         base = context.make_array(signature.args[0])(context, builder, fbv).data
-        dbl = ir.DoubleType()
-        vty = ir.VectorType(dbl, 8)
+        vty, splat, _load, _store, fmadd = _vec_tools(context, builder)
         i32 = ir.IntType(32)
         i64 = ir.IntType(64)
 
         def vptr(off):
             return builder.bitcast(builder.gep(base, [off]), vty.as_pointer())
-
-        def splat(x):
-            if isinstance(x, float):
-                return ir.Constant(vty, [x] * 8)
-            v = builder.insert_element(ir.Constant(vty, ir.Undefined), x, ir.Constant(i32, 0))
-            mask = ir.Constant(ir.VectorType(i32, 8), [0] * 8)
-            return builder.shuffle_vector(v, ir.Constant(vty, ir.Undefined), mask)
 
         qv = ir.Constant(vty, ir.Undefined)
         for i in range(8):
@@ -232,9 +225,6 @@ def _real_sums(typingctx, fb, a0, ring, q, p, r, fresh_on, resync):  # pragma: n
         rp = vptr(ro)
         ov = builder.load(rp, align=8)
         builder.store(qv, rp, align=8)
-        fma = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(vty, [vty, vty, vty]), "llvm.fma.v8f64"
-        )
         neg_ov = builder.fneg(ov)
         zero = ir.Constant(vty, [0.0] * 8)
         slots, us = [], []
@@ -248,7 +238,7 @@ def _real_sums(typingctx, fb, a0, ring, q, p, r, fresh_on, resync):  # pragma: n
             if c == 0:
                 run = builder.fsub(run, ov)
             else:
-                run = builder.call(fma, [neg_ov, splat(builder.extract_value(rt, c - 1)), run])
+                run = fmadd(neg_ov, splat(builder.extract_value(rt, c - 1)), run)
             builder.store(run, p0, align=8)
             slots.append(cgutils.alloca_once_value(builder, run))
             us.append(u)

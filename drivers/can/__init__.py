@@ -84,7 +84,7 @@ class CANDriver(Driver):
         # Command: Seq, Displacement, Control — shifts and masks precompiled from the DBC.
         self._c_seq_bits = cmd.lengths[0]
         self._c_seq_mask = (1 << cmd.lengths[0]) - 1
-        self._c_d_shift, self._c_d_mask = cmd.starts[1], (1 << cmd.lengths[1]) - 1
+        self._c_d_shift, self._c_d_mask = cmd.field(1)
         self._c_ctl_shift = cmd.starts[2]
         self._c_scale, self._c_offset = cmd.scales[1], cmd.offsets[1]
         self._c_lo, self._c_hi = cmd.raw_range(1)
@@ -93,16 +93,12 @@ class CANDriver(Driver):
         # Feedback: Seq, Status, Displacement, Force — bit positions, masks, sign bits, scales
         # and INVALID values as one tuple: _handle unpacks it once per frame.
         self._f_layout = (
-            fb.starts[0],
-            (1 << fb.lengths[0]) - 1,
-            fb.starts[1],
-            (1 << fb.lengths[1]) - 1,
-            fb.starts[2],
-            (1 << fb.lengths[2]) - 1,
-            1 << (fb.lengths[2] - 1) if fb.signed[2] else 0,
-            fb.starts[3],
-            (1 << fb.lengths[3]) - 1,
-            1 << (fb.lengths[3] - 1) if fb.signed[3] else 0,
+            *fb.field(0),
+            *fb.field(1),
+            *fb.field(2),
+            fb.sign_bit(2),
+            *fb.field(3),
+            fb.sign_bit(3),
             fb.scales[2],
             fb.offsets[2],
             fb.scales[3],

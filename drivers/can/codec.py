@@ -150,6 +150,14 @@ class MessageCodec:
             out.append(r)
         return out
 
+    def field(self, index: int) -> tuple[int, int]:
+        """Bit position and mask (``(1 << length) − 1``) of signal ``index``."""
+        return self.starts[index], (1 << self.lengths[index]) - 1
+
+    def sign_bit(self, index: int) -> int:
+        """The sign bit of signal ``index`` as a value (0 for an unsigned signal)."""
+        return 1 << (self.lengths[index] - 1) if self.signed[index] else 0
+
     def raw_range(self, index: int) -> tuple[int, int]:
         """Smallest and largest raw value of signal ``index``."""
         n = self.lengths[index]

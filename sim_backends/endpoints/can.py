@@ -50,32 +50,25 @@ class CANTwin(TwinEndpoint):
         fb, cmd = c.feedback, c.command
         self._d_range, self._f_range = fb.raw_range(2), fb.raw_range(3)
         # Command (Seq, Displacement, Control) decoding, compiled: one tuple read per frame.
-        sign = 1 << (cmd.lengths[1] - 1) if cmd.signed[1] else 0
+        sign = cmd.sign_bit(1)
         self._cmd_layout = (
             cmd.frame_id,
             cmd.length,
-            cmd.starts[0],
-            (1 << cmd.lengths[0]) - 1,
-            cmd.starts[1],
-            (1 << cmd.lengths[1]) - 1,
+            *cmd.field(0),
+            *cmd.field(1),
             sign,
             sign << 1,
-            cmd.starts[2],
-            (1 << cmd.lengths[2]) - 1,
+            *cmd.field(2),
             cmd.scales[1],
             cmd.offsets[1],
         )
         # Feedback (Seq, Status, Displacement, Force) encoding, compiled.
         d_inv, f_inv = fb.invalid[2], fb.invalid[3]
         self._fb_layout = (
-            fb.starts[0],
-            (1 << fb.lengths[0]) - 1,
-            fb.starts[1],
-            (1 << fb.lengths[1]) - 1,
-            fb.starts[2],
-            (1 << fb.lengths[2]) - 1,
-            fb.starts[3],
-            (1 << fb.lengths[3]) - 1,
+            *fb.field(0),
+            *fb.field(1),
+            *fb.field(2),
+            *fb.field(3),
             fb.scales[2],
             fb.offsets[2],
             self._d_range[0] + (1 if d_inv == self._d_range[0] else 0),
