@@ -3,6 +3,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+SYSDEPS := $(VENV)/.system-deps
 
 .PHONY: run test lint format bench clean
 
@@ -15,7 +16,12 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(BIN)/rths-hil run $(ARGS)
 
-test: $(STAMP)
+# System packages some tests need (OpenSeesPy's BLAS/LAPACK, headless Chromium).
+$(SYSDEPS): scripts/system-deps.sh | $(STAMP)
+	bash scripts/system-deps.sh
+	@touch $(SYSDEPS)
+
+test: $(STAMP) $(SYSDEPS)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
