@@ -1,13 +1,15 @@
 """``rths-hil run``: run a real-time hybrid simulation through a driver (and its twin).
 
-``rths-hil run [CONFIG.toml] [--lockstep] [--duration S] [--out DIR] [--set key=value]...``
+``rths-hil run [CONFIG.toml] [--lockstep] [--duration S] [--out DIR] [--set key=value]...
+[--watch]``
 
 Without a configuration it runs the embedded default (the seed's NEES-711 setup over the CAN
 driver on python-can's virtual bus to an in-process twin, paced at 1024 Hz for 30 s). Prints a
 live status line, then the summary; writes the run directory (record, events, metadata,
 ``summary.json``, ``report.png``). Exit codes: 0 completed, 2 bad input, 3 safety trip (e-stop
 sent; one line on stderr names the rule), 130 operator stop (Ctrl-C or SIGTERM; same flush
-path).
+path). ``--watch`` also starts ``rths-hil watch`` on the run directory (the live view in the
+browser, a separate process that reads the record) and prints its URL.
 """
 
 from __future__ import annotations
@@ -52,6 +54,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-plot", action="store_true", help="do not write report.png")
     p.add_argument("-q", "--quiet", action="store_true", help="no live line, no summary")
+    p.add_argument(
+        "--watch",
+        action="store_true",
+        help="also start `rths-hil watch` on the run (live view in the browser; prints the URL)",
+    )
+    p.add_argument(
+        "--watch-port", type=int, default=8050, metavar="PORT", help="port of --watch (8050)"
+    )
     p.set_defaults(func=main)
 
 
@@ -59,7 +69,7 @@ def main(args: argparse.Namespace) -> int:
     """Run the test; return the exit code."""
     from ..errors import InputError
     from ..loop import RTHSLoop, new_run_dir
-    from ..report import LiveLine, format_summary, plot_report, summarize
+    from ..report import LiveLine
 
     cfg = load_config(args.config, args.set)
     if args.show_config:
@@ -76,6 +86,17 @@ def main(args: argparse.Namespace) -> int:
     run_dir = Path(args.out) if args.out else new_run_dir(cfg["output"]["dir"])
     live = None if args.quiet or cfg["loop"]["console"] <= 0 else LiveLine(sys.stderr)
     loop = RTHSLoop(cfg, run_dir, live=live, mode=mode, duration=duration)
+    watcher = _start_watcher(run_dir, args.watch_port) if args.watch else None
+    try:
+        return _run(args, cfg, loop, run_dir, live)
+    finally:
+        if watcher is not None:
+            _stop_watcher(watcher, run_dir)
+
+
+def _run(args, cfg, loop, run_dir: Path, live) -> int:
+    from ..report import format_summary, plot_report, summarize
+
     if not args.quiet:
         print(
             f"rths-hil run: {loop.mode} {loop.n_steps / loop.fs:.1f} s at {loop.fs:g} Hz, driver "
@@ -106,3 +127,59 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return result.exit_code
+
+
+def _start_watcher(run_dir: Path, port: int):
+    """Start ``rths-hil watch RUN_DIR`` beside the run; wait until it listens (≤ 15 s).
+
+    The watcher is its own process in its own session (Ctrl-C in this terminal stops the run,
+    not the view); it prints its URL itself. If it cannot start (port in use), it says why and
+    the run goes on without it.
+    """
+    import os
+    import socket
+    import subprocess
+    import time
+
+    cmd = [
+        sys.executable,
+        "-m",
+        "rths_hil",
+        "watch",
+        str(run_dir),
+        "--port",
+        str(port),
+        "--quiet",
+        "--parent",
+        str(os.getpid()),
+    ]
+    proc = subprocess.Popen(
+        cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, start_new_session=True
+    )
+    t_end = time.monotonic() + 15.0
+    while time.monotonic() < t_end and proc.poll() is None:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return proc
+        except OSError:
+            time.sleep(0.1)
+    if proc.poll() is None:
+        print("rths-hil run: the live view is slow to start; going on", file=sys.stderr)
+        return proc
+    print("rths-hil run: no live view (rths-hil watch could not start)", file=sys.stderr)
+    return None
+
+
+def _stop_watcher(proc, run_dir: Path) -> None:
+    """Let open pages show the final state, then end the watcher."""
+    import subprocess
+    import time
+
+    time.sleep(0.6)  # three refreshes of the page
+    proc.terminate()
+    try:
+        proc.wait(5)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+    print(f"rths-hil run: live view closed; replay with: rths-hil watch {run_dir}", file=sys.stderr)

@@ -110,7 +110,10 @@ def main(args: argparse.Namespace) -> int:
         run_dir, host=args.host, port=args.port, allow_stop=not args.no_stop, notify=say
     )
     server.start()
-    print(f"rths-hil watch: {server.url} follows {run_dir} (Ctrl-C to stop)", file=sys.stderr)
+    if args.parent is not None:  # started by `rths-hil run --watch`
+        print(f"rths-hil run: live view at {server.url}", file=sys.stderr)
+    else:
+        print(f"rths-hil watch: {server.url} follows {run_dir} (Ctrl-C to stop)", file=sys.stderr)
     if args.host not in LOCAL_HOSTS:
         print(
             f"rths-hil watch: warning: listening on {args.host}: anyone who can reach this "

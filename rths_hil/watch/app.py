@@ -57,7 +57,7 @@ log = logging.getLogger(__name__)
 
 REFRESH_S = 0.2  # s between two refreshes of a page (5 Hz)
 WINDOW_S = 10.0  # s of record in the detailed plots
-WINDOW_POINTS = 1000  # about this many points per line in the detailed plots
+WINDOW_POINTS = 600  # about this many points per line in the detailed plots
 OVERVIEW_POINTS = 2000  # about this many points per line in the whole-test plot
 CONFIRM_S = 10.0  # s the stop confirmation stays open
 
@@ -177,10 +177,124 @@ def _num(x, default: float = 0.0) -> float:
 # the document
 
 
+def _consecutive(flag: np.ndarray, carry: int) -> np.ndarray:
+    """Length of the run of True ending at each sample (``carry``: the run before the first)."""
+    n = flag.size
+    pos = np.arange(1, n + 1)
+    last_false = np.maximum.accumulate(np.where(flag, 0, pos))
+    count = pos - last_false
+    return np.where(last_false == 0, count + carry, count)
+
+
+class _Limits:
+    """Share of each safety limit in use for one channel, updated incrementally.
+
+    For each limit of ``[safety]`` (the loop's rules, :mod:`rths_hil.safety`): ``now`` is the
+    share over the latest refresh period (the latest value for the FEI and Kalman estimates,
+    the current run for consecutive counts), ``peak`` the largest share so far. 1 = the limit.
+    """
+
+    def __init__(self, ch: str, safety: dict, cfg: dict, paced: bool) -> None:
+        self.ch = ch
+        self.safety = safety
+        self.cfg = cfg
+        self.paced = paced
+        fs = _num(cfg.get("loop", {}).get("fs"), 1.0) if cfg else 1.0
+        self.thr = _num((cfg.get("loop", {}) or {}).get("overrun_threshold"), 0.5) / fs
+        self.reset()
+
+    def reset(self) -> None:
+        self.upto = 0
+        self.peak: dict[str, float] = {}
+        self.last: dict[str, float] = {}
+        self.carry: dict[str, int] = {}
+
+    def _shares(self, rec, names, a: int, b: int) -> dict[str, np.ndarray]:
+        """Share of each limit at each row of ``[a, b)``."""
+        sf, ch = self.safety, self.ch
+        out: dict[str, np.ndarray] = {}
+
+        def col(base: str) -> np.ndarray | None:
+            name = channel_column(names, base, ch)
+            return None if name is None else np.asarray(rec[name][a:b], dtype=float)
+
+        for label, bases, key in (
+            ("displacement", ("target", "command", "measured"), "displacement_limit"),
+            ("velocity", ("velocity",), "velocity_limit"),
+            ("force", ("force",), "force_limit"),
+        ):
+            lim = _num(sf.get(key))
+            cols = [c for c in (col(x) for x in bases) if c is not None]
+            if lim > 0 and cols:
+                out[label] = np.max(np.abs(np.vstack(cols)), axis=0) / lim
+        for label, base, key, ref in (
+            ("FEI |A−1|", "fei_amplitude", "fei_amplitude_tol", 1.0),
+            ("FEI |d|", "fei_delay", "fei_delay_tol", 0.0),
+        ):
+            tol, x = _num(sf.get(key)), col(base)
+            if tol > 0 and x is not None:
+                out[label] = np.abs(x - ref) / tol
+        g = col("kf_gain")
+        if (self.cfg.get("kalman", {}) or {}).get("enabled", True) and g is not None:
+            gmin, gmax = _num(sf.get("kf_gain_min"), 0.5), _num(sf.get("kf_gain_max"), 1.5)
+            ref = 1.0 if gmin < 1.0 < gmax else 0.5 * (gmin + gmax)
+            up, down = max(gmax - ref, 1e-12), max(ref - gmin, 1e-12)
+            out["Kalman gain"] = np.where(g >= ref, (g - ref) / up, (ref - g) / down)
+            dmax, d = _num(sf.get("kf_delay_max")), col("kf_delay")
+            if dmax > 0 and d is not None:
+                out["Kalman delay"] = np.abs(d) / dmax
+        ok = channel_column(names, "feedback_ok", ch)
+        wd = _num(sf.get("watchdog_missed"))
+        if ok is not None and wd > 0:
+            miss = ~np.asarray(rec[ok][a:b], dtype=bool)
+            run = _consecutive(miss, self.carry.get("missed replies", 0))
+            out["missed replies"] = run / wd
+        mo = _num(sf.get("max_overruns"))
+        if self.paced and mo > 0 and "lateness" in names:
+            over = np.asarray(rec["lateness"][a:b], dtype=float) > self.thr
+            run = _consecutive(over, self.carry.get("overruns", 0))
+            out["overruns"] = run / mo
+        return out
+
+    def update(self, rec, names, k_end: int, now_rows: int) -> dict:
+        """Shares up to row ``k_end`` as the bar chart's columns."""
+        if k_end < self.upto:
+            self.reset()
+        a = self.upto
+        if k_end > a:
+            for label, x in self._shares(rec, names, a, k_end).items():
+                fin = x[np.isfinite(x)]
+                if fin.size:
+                    self.peak[label] = max(self.peak.get(label, 0.0), float(fin.max()))
+                    self.last[label] = float(fin[-1])
+                if label in ("missed replies", "overruns"):
+                    scale = _num(
+                        self.safety.get("watchdog_missed" if label[0] == "m" else "max_overruns"), 1
+                    )
+                    self.carry[label] = round(float(x[-1]) * scale)
+            self.upto = k_end
+        recent = self._shares(rec, names, max(0, k_end - now_rows), k_end)
+        labels, now_v, peak_v = [], [], []
+        for label in self.peak:
+            x = recent.get(label, np.zeros(0))
+            x = x[np.isfinite(x)]
+            if label in ("displacement", "velocity", "force"):
+                now = float(x.max()) if x.size else 0.0
+            else:
+                now = self.last.get(label, 0.0)
+            labels.append(label)
+            now_v.append(min(now, 1.1))
+            peak_v.append(min(self.peak[label], 1.1))
+        colors = ["#16a34a" if u < 0.7 else "#f59e0b" if u < 0.9 else "#dc2626" for u in now_v]
+        return {"limit": labels, "used": now_v, "peak": peak_v, "color": colors}
+
+
 class _ChannelView:
     """The plots of one actuator channel."""
 
-    def __init__(self, ch: str, label: str, safety: dict, x_range, overview_range) -> None:
+    def __init__(
+        self, ch: str, label: str, safety: dict, cfg: dict, paced: bool, x_range, overview_range
+    ) -> None:
         self.ch = ch
         w = 560
         tools = "pan,wheel_zoom,box_zoom,reset,save"
@@ -322,6 +436,7 @@ class _ChannelView:
         pb.scatter("peak", "limit", marker="diamond", size=10, color="#111827", source=self.bars)
         pb.add_layout(Span(location=1.0, dimension="height", line_color="#b91c1c", line_width=2))
         self.margin = pb
+        self.limits = _Limits(ch, safety, cfg, paced)
         self.layout = column(self.title, row(p, q), row(pa, pd), row(pf, pb))
 
 
@@ -368,7 +483,8 @@ class _Page:
             name="slider",
             disabled=True,
         )
-        self.slider.on_change("value_throttled", self._slid)
+        self._setting = False  # True while the page itself moves the slider
+        self.slider.on_change("value", self._slid)
         self.play = Toggle(label="▶ replay", name="play", width=100, disabled=True)
         self.play.on_change("active", self._play)
         self.live_btn = Button(label="follow the end", name="follow", width=120)
@@ -458,14 +574,24 @@ class _Page:
         self.ctx.say(f"operator stop: SIGINT sent to the run (process {pid})")
 
     def _slid(self, attr, old, new) -> None:
+        if self._setting:
+            return
         self.follow = False
+        self.replay_playing = self.replay_playing and self.play.active
         self.refresh()
+
+    def _set_slider(self, value: float) -> None:
+        self._setting = True
+        try:
+            self.slider.value = value
+        finally:
+            self._setting = False
 
     def _play(self, attr, old, new) -> None:
         self.replay_playing = bool(new)
         self.follow = False
         if new and self.slider.value >= self.slider.end - 1e-9:
-            self.slider.value = min(self.slider.start + WINDOW_S, self.slider.end)
+            self._set_slider(min(self.slider.start + WINDOW_S, self.slider.end))
 
     def _follow(self) -> None:
         self.follow = True
@@ -480,6 +606,8 @@ class _Page:
                 ch,
                 ch or str(self.ctx.follower.meta.get("driver", "actuator")),
                 safety,
+                self.ctx.follower.meta.get("config", {}) or {},
+                self.ctx.follower.meta.get("mode") == "paced",
                 self.x_range,
                 self.overview_range,
             )
@@ -508,19 +636,23 @@ class _Page:
         t_last = float(rec["time"][-1])
         t_first = float(rec["time"][0])
         # replay slider
-        self.slider.start = min(t_first + WINDOW_S, t_last)
-        self.slider.end = max(t_last, self.slider.start + 1.0 / fs)
-        self.slider.step = max(1.0 / fs, 0.01)
-        self.slider.disabled = False
+        self._setting = True
+        try:
+            self.slider.start = t_first
+            self.slider.end = max(t_last, t_first + 1.0 / fs)
+            self.slider.step = max(1.0 / fs, 0.01)
+            self.slider.disabled = False
+        finally:
+            self._setting = False
         self.play.disabled = not st.finished
         if self.replay_playing:
             v = self.slider.value + REFRESH_S
             if v >= t_last:
                 v = t_last
                 self.play.active = False
-            self.slider.value = v
+            self._set_slider(v)
         if self.follow:
-            self.slider.value = t_last
+            self._set_slider(t_last)
         t_end = t_last if self.follow else min(self.slider.value, t_last)
         k_end = min(f.rows, round((t_end - t_first) * fs) + 1)
         k0 = max(0, k_end - round(WINDOW_S * fs))
@@ -583,101 +715,9 @@ class _Page:
                     "l": t[s] - half if s.size else [],
                     "r": t[np.minimum(e, t.size) - 1] + half if e.size else [],
                 }
-            v.bars.data = self._bars(rec, names, ch, safety, cfg, k0, k_end, fs, thr)
+            v.bars.data = v.limits.update(rec, names, k_end, max(1, round(REFRESH_S * fs)))
         self._events(f.events)
         self.info_div.text = self._info(st, t_end, t_last, n_ovr)
-
-    def _bars(self, rec, names, ch, safety, cfg, k0, k_end, fs, thr) -> dict:
-        """Share of each limit in use: now (last refresh period) and peak (whole record)."""
-        now0 = max(k0, k_end - max(1, int(REFRESH_S * fs)))
-        rows = []
-
-        def used(name: str, now: float, peak: float) -> None:
-            rows.append((name, now, peak))
-
-        def peak_abs(cols: list[str], lim: float) -> tuple[float, float]:
-            vals_now, vals_all = [0.0], [0.0]
-            for c in cols:
-                col = channel_column(names, c, ch)
-                if col is None:
-                    continue
-                x = np.abs(np.asarray(rec[col][:k_end], dtype=float))
-                x = x[np.isfinite(x)] if not np.isfinite(x).all() else x
-                if x.size:
-                    vals_all.append(float(x.max()))
-                y = np.abs(np.asarray(rec[col][now0:k_end], dtype=float))
-                y = y[np.isfinite(y)]
-                if y.size:
-                    vals_now.append(float(y.max()))
-            return max(vals_now) / lim, max(vals_all) / lim
-
-        for label, cols, key in (
-            ("displacement", ["target", "command", "measured"], "displacement_limit"),
-            ("velocity", ["velocity"], "velocity_limit"),
-            ("force", ["force"], "force_limit"),
-        ):
-            lim = _num(safety.get(key))
-            if lim > 0:
-                used(label, *peak_abs(cols, lim))
-        a_tol, d_tol = _num(safety.get("fei_amplitude_tol")), _num(safety.get("fei_delay_tol"))
-        for label, base, tol, ref in (
-            ("FEI |A−1|", "fei_amplitude", a_tol, 1.0),
-            ("FEI |d|", "fei_delay", d_tol, 0.0),
-        ):
-            col = channel_column(names, base, ch)
-            if tol > 0 and col is not None:
-                x = np.abs(np.asarray(rec[col][:k_end], dtype=float) - ref) / tol
-                fin = x[np.isfinite(x)]
-                now = x[now0:k_end]
-                now = now[np.isfinite(now)]
-                used(
-                    label,
-                    float(now[-1]) if now.size else 0.0,
-                    float(fin.max()) if fin.size else 0.0,
-                )
-        kc = cfg.get("kalman", {}) or {}
-        gcol = channel_column(names, "kf_gain", ch)
-        if kc.get("enabled", True) and gcol is not None:
-            gmin, gmax = _num(safety.get("kf_gain_min"), 0.5), _num(safety.get("kf_gain_max"), 1.5)
-            ref = 1.0 if gmin < 1.0 < gmax else 0.5 * (gmin + gmax)
-            g = np.asarray(rec[gcol][:k_end], dtype=float)
-            share = np.where(
-                g >= ref, (g - ref) / max(gmax - ref, 1e-12), (ref - g) / max(ref - gmin, 1e-12)
-            )
-            fin = share[np.isfinite(share)]
-            used(
-                "Kalman gain",
-                float(fin[-1]) if fin.size else 0.0,
-                float(fin.max()) if fin.size else 0.0,
-            )
-            dmax = _num(safety.get("kf_delay_max"))
-            dcol = channel_column(names, "kf_delay", ch)
-            if dmax > 0 and dcol is not None:
-                x = np.abs(np.asarray(rec[dcol][:k_end], dtype=float)) / dmax
-                fin = x[np.isfinite(x)]
-                used(
-                    "Kalman delay",
-                    float(fin[-1]) if fin.size else 0.0,
-                    float(fin.max()) if fin.size else 0.0,
-                )
-        okcol = channel_column(names, "feedback_ok", ch)
-        wd = _num(safety.get("watchdog_missed"), 0)
-        if okcol is not None and wd > 0:
-            miss = ~np.asarray(rec[okcol][:k_end], dtype=bool)
-            s, e = _runs(miss)
-            longest = float((e - s).max()) if s.size else 0.0
-            used("missed replies", _tail_run(miss) / wd, longest / wd)
-        mo = _num(safety.get("max_overruns"), 0)
-        if mo > 0 and self.ctx.follower.meta.get("mode") == "paced":
-            over = np.asarray(rec["lateness"][:k_end], dtype=float) > thr
-            s, e = _runs(over)
-            longest = float((e - s).max()) if s.size else 0.0
-            used("overruns", _tail_run(over) / mo, longest / mo)
-        lim_names = [r[0] for r in rows]
-        now_v = [min(r[1], 1.1) for r in rows]
-        peak_v = [min(r[2], 1.1) for r in rows]
-        colors = ["#16a34a" if u < 0.7 else "#f59e0b" if u < 0.9 else "#dc2626" for u in now_v]
-        return {"limit": lim_names, "used": now_v, "peak": peak_v, "color": colors}
 
     def _events(self, events: list[dict]) -> None:
         if len(events) == self.n_events:

@@ -189,8 +189,10 @@ class Browser:
 
     # -- page ------------------------------------------------------------------------------------
     def goto(self, url: str) -> None:
-        """Open ``url``."""
-        self.call("Page.navigate", url=url)
+        """Open ``url`` (ConnectionError when the page cannot be loaded)."""
+        res = self.call("Page.navigate", url=url)
+        if res.get("errorText"):
+            raise ConnectionError(f"{url}: {res['errorText']}")
 
     def wait_for(self, expression: str, timeout: float = 30.0, poll: float = 0.1):
         """Wait until ``expression`` is truthy in the page; return its value."""

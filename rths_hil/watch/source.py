@@ -221,6 +221,7 @@ class RunFollower:
         self._dtype: np.dtype | None = None
         self._last_writer_check = -1e9
         self._grown_at = -1e9
+        self._seen_header = False
         self.stale_after = 2.0
         self.state = RunState("missing", "")
 
@@ -269,21 +270,24 @@ class RunFollower:
         if m is None:
             raise ValueError("no row count in the .npy header")
         rows = int(m.group(1))
-        if rows == self.rows and self.record is not None:
+        if rows == self.rows and self._seen_header:
             return
-        if rows == 0:
-            self.rows = 0
-            return
+        self._seen_header = True
         # when the record last grew, on the monotonic clock (from the file's age on disk)
         try:
             age = max(0.0, time.time() - os.stat(self.record_path).st_mtime)
         except OSError:
             age = 0.0
         self._grown_at = time.monotonic() - age
-        self.record = np.memmap(
-            self.record_path, dtype=self._dtype, mode="r", offset=self._header_len, shape=(rows,)
-        )
         self.rows = rows
+        if rows:
+            self.record = np.memmap(
+                self.record_path,
+                dtype=self._dtype,
+                mode="r",
+                offset=self._header_len,
+                shape=(rows,),
+            )
 
     def _parse_header(self, head: bytes) -> None:
         if len(head) < 10 or head[:6] != b"\x93NUMPY":
