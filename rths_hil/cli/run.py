@@ -141,6 +141,10 @@ def _start_watcher(run_dir: Path, port: int):
     import subprocess
     import time
 
+    if port == 0:  # any free port: choose it here, to know where to wait for the watcher
+        from ..watch.server import _free_port
+
+        port = _free_port("127.0.0.1")
     cmd = [
         sys.executable,
         "-m",

@@ -36,6 +36,7 @@ from bokeh.models import (
     BoxAnnotation,
     Button,
     ColumnDataSource,
+    CustomJS,
     DataRange1d,
     DataTable,
     Div,
@@ -45,6 +46,7 @@ from bokeh.models import (
     Slider,
     Span,
     TableColumn,
+    TextInput,
     Toggle,
 )
 from bokeh.plotting import figure
@@ -454,8 +456,10 @@ class _Page:
         self.confirm_until = 0.0
         self.replay_playing = False
 
-        self.state_div = Div(text="", name="state", width=1140)
-        self.info_div = Div(text="", name="info", width=1140)
+        # fixed sizes: a text change then needs no new page layout in the browser
+        self.state_div = Div(text="", name="state", width=1140, height=46)
+        self.info_div = Div(text="", name="info", width=1140, height=40)
+        self._slider_at = 0.0
         self.stop_btn = Button(
             label="Operator stop…", button_type="danger", name="stop", visible=False, width=160
         )
@@ -520,7 +524,19 @@ class _Page:
             height=200,
             index_position=None,
         )
-        self.channel_box = column()
+        self.channel_box = column(Div(text=""))
+        # flow control: each refresh ends with a new ``tick``; the browser echoes it into
+        # ``ack`` once it has applied that refresh. A refresh is sent only when the previous one
+        # was acknowledged, so a slow browser gets fewer refreshes instead of a growing backlog.
+        self.seq = 0
+        self.acked = 0
+        self.sent_at = 0.0
+        self.tick = Div(text="0", visible=False, name="tick")
+        self.ack = TextInput(value="0", visible=False, name="ack")
+        self.tick.js_on_change(
+            "text", CustomJS(args={"ack": self.ack}, code="ack.value = cb_obj.text")
+        )
+        self.ack.on_change("value", self._acked)
         controls = row(
             self.stop_btn, self.confirm_div, self.confirm_btn, self.cancel_btn, name="controls"
         )
@@ -533,6 +549,7 @@ class _Page:
             self.channel_box,
             Div(text="<h2 style='margin:8px 0 0 0'>Run</h2>"),
             row(self.lat_plot, self.ev_table),
+            row(self.tick, self.ack),
         )
         doc.add_root(self.root)
         doc.title = "rths-hil watch"
@@ -598,6 +615,12 @@ class _Page:
         self.play.active = False
         self.refresh()
 
+    def _acked(self, attr, old, new) -> None:
+        try:
+            self.acked = int(new)
+        except ValueError:
+            pass
+
     # -- refresh -------------------------------------------------------------------------------
     def _build_channels(self, chans: list[str], safety: dict) -> None:
         self.channels = chans
@@ -617,6 +640,18 @@ class _Page:
 
     def refresh(self) -> None:
         """Read the follower's latest state and redraw (called every :data:`REFRESH_S`)."""
+        now = time.monotonic()
+        if self.acked < self.seq and now - self.sent_at < 2.0:
+            return  # the browser has not applied the previous refresh yet
+        try:
+            self._refresh()
+        finally:
+            # last: the browser applies the changes in order, so the tick comes after the data
+            self.seq += 1
+            self.sent_at = now
+            self.tick.text = str(self.seq)
+
+    def _refresh(self) -> None:
         st = self.ctx.state()
         f = self.ctx.follower
         self._banner(st)
@@ -636,14 +671,18 @@ class _Page:
         t_last = float(rec["time"][-1])
         t_first = float(rec["time"][0])
         # replay slider
-        self._setting = True
-        try:
-            self.slider.start = t_first
-            self.slider.end = max(t_last, t_first + 1.0 / fs)
-            self.slider.step = max(1.0 / fs, 0.01)
-            self.slider.disabled = False
-        finally:
-            self._setting = False
+        # the slider follows a live run once a second (each move re-renders the widget)
+        now = time.monotonic()
+        if not st.live or now - self._slider_at >= 1.0:
+            self._slider_at = now
+            self._setting = True
+            try:
+                self.slider.start = t_first
+                self.slider.end = max(t_last, t_first + 1.0 / fs)
+                self.slider.step = max(1.0 / fs, 0.01)
+                self.slider.disabled = False
+            finally:
+                self._setting = False
         self.play.disabled = not st.finished
         if self.replay_playing:
             v = self.slider.value + REFRESH_S
@@ -651,7 +690,7 @@ class _Page:
                 v = t_last
                 self.play.active = False
             self._set_slider(v)
-        if self.follow:
+        if self.follow and self._slider_at == now:
             self._set_slider(t_last)
         t_end = t_last if self.follow else min(self.slider.value, t_last)
         k_end = min(f.rows, round((t_end - t_first) * fs) + 1)

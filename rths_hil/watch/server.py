@@ -89,11 +89,14 @@ class WatchServer:
             self.port = _free_port(self.host)
         kw: dict = {}
         if self.token is not None:
+            wildcard = self.host in ("0.0.0.0", "::", "")
+            if wildcard:  # the page may be opened by any of the machine's names or addresses
+                logging.getLogger("bokeh.server.util").setLevel(logging.ERROR)
             kw.update(
                 sign_sessions=True,
                 secret_key=secrets.token_bytes(32),
                 generate_session_ids=True,
-                allow_websocket_origin=["*"],
+                allow_websocket_origin=["*"] if wildcard else [f"{self.host}:{self.port}"],
             )
         else:
             kw.update(

@@ -371,8 +371,9 @@ class RunFollower:
         elif self.writer is not None or now - self._grown_at < self.stale_after:
             # a record that still grows is live even when its writer is not visible here
             phase = "running" if self.rows else "starting"
+            mode, fs = self.meta.get("mode", "?"), self.meta.get("fs", 0)
             msg = (
-                f"running: t = {t:.2f} s, {self.rows} steps"
+                f"test in progress ({mode} at {fs:g} Hz)"
                 if self.rows
                 else "run starting: waiting for the first rows"
             )
