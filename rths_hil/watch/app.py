@@ -46,7 +46,6 @@ from bokeh.models import (
     Slider,
     Span,
     TableColumn,
-    TextInput,
     Toggle,
 )
 from bokeh.plotting import figure
@@ -460,6 +459,9 @@ class _Page:
         self.state_div = Div(text="", name="state", width=1140, height=46)
         self.info_div = Div(text="", name="info", width=1140, height=40)
         self._slider_at = 0.0
+        self._slow_at = 0.0
+        self._last_key = None
+        self._n_ovr = 0
         self.stop_btn = Button(
             label="Operator stop…", button_type="danger", name="stop", visible=False, width=160
         )
@@ -531,12 +533,13 @@ class _Page:
         self.seq = 0
         self.acked = 0
         self.sent_at = 0.0
-        self.tick = Div(text="0", visible=False, name="tick")
-        self.ack = TextInput(value="0", visible=False, name="ack")
+        # (plain models, not widgets: changing them costs the browser no new page layout)
+        self.tick = Range1d(0, 1, name="tick")
+        self.ack = Range1d(0, 1, name="ack")
         self.tick.js_on_change(
-            "text", CustomJS(args={"ack": self.ack}, code="ack.value = cb_obj.text")
+            "start", CustomJS(args={"ack": self.ack}, code="ack.start = cb_obj.start")
         )
-        self.ack.on_change("value", self._acked)
+        self.ack.on_change("start", self._acked)
         controls = row(
             self.stop_btn, self.confirm_div, self.confirm_btn, self.cancel_btn, name="controls"
         )
@@ -549,9 +552,10 @@ class _Page:
             self.channel_box,
             Div(text="<h2 style='margin:8px 0 0 0'>Run</h2>"),
             row(self.lat_plot, self.ev_table),
-            row(self.tick, self.ack),
         )
         doc.add_root(self.root)
+        doc.add_root(self.tick)
+        doc.add_root(self.ack)
         doc.title = "rths-hil watch"
         self.refresh()
         doc.add_periodic_callback(self.refresh, int(REFRESH_S * 1000))
@@ -618,7 +622,7 @@ class _Page:
     def _acked(self, attr, old, new) -> None:
         try:
             self.acked = int(new)
-        except ValueError:
+        except (TypeError, ValueError):
             pass
 
     # -- refresh -------------------------------------------------------------------------------
@@ -649,7 +653,7 @@ class _Page:
             # last: the browser applies the changes in order, so the tick comes after the data
             self.seq += 1
             self.sent_at = now
-            self.tick.text = str(self.seq)
+            self.tick.start = self.seq
 
     def _refresh(self) -> None:
         st = self.ctx.state()
@@ -671,9 +675,9 @@ class _Page:
         t_last = float(rec["time"][-1])
         t_first = float(rec["time"][0])
         # replay slider
-        # the slider follows a live run once a second (each move re-renders the widget)
+        # the slider follows a live run every 5 s (a change of a widget re-lays out the page)
         now = time.monotonic()
-        if not st.live or now - self._slider_at >= 1.0:
+        if not st.live or now - self._slider_at >= 5.0:
             self._slider_at = now
             self._setting = True
             try:
@@ -694,6 +698,14 @@ class _Page:
             self._set_slider(t_last)
         t_end = t_last if self.follow else min(self.slider.value, t_last)
         k_end = min(f.rows, round((t_end - t_first) * fs) + 1)
+        key = (k_end, f.rows, st.phase, len(f.events), self.follow)
+        if key == self._last_key:
+            return  # nothing new: the browser redraws nothing
+        self._last_key = key
+        # the whole-test plot, the limit bars and the counts change slowly: once a second
+        slow = not st.live or now - self._slow_at >= 1.0
+        if slow:
+            self._slow_at = now
         k0 = max(0, k_end - round(WINDOW_S * fs))
         m = _stride(k_end - k0, WINDOW_POINTS)
         first = k0 + (-k0) % m  # stride aligned to the step index
@@ -711,12 +723,9 @@ class _Page:
         self.lat_src.data = {"t": t, "lat": lat[: t.size]}
         thr = _num((cfg.get("loop", {}) or {}).get("overrun_threshold"), 0.5) / fs
         self.thr_span.location = thr * 1e3
-        n_ovr = (
-            int((np.asarray(rec["lateness"], dtype=float) > thr).sum())
-            if f.meta.get("mode") == "paced"
-            else 0
-        )
-        # overview
+        if slow and f.meta.get("mode") == "paced":
+            self._n_ovr = int((np.asarray(rec["lateness"][:k_end], dtype=float) > thr).sum())
+        # whole test (overview)
         mo = _stride(max(f.rows, int(f.meta.get("planned_steps") or 0)), OVERVIEW_POINTS)
         oidx = slice(0, k_end if not st.finished else f.rows, mo)
         t_o = np.asarray(rec["time"][oidx], dtype=float)
@@ -738,25 +747,28 @@ class _Page:
                 "kf_d": _col(rec, names, "kf_delay", ch, idx) * 1e3,
             }
             v.win.data = data
-            v.ovw.data = {
-                "t": t_o,
-                "target": _col(rec, names, "target", ch, oidx),
-                "measured": _col(rec, names, "measured", ch, oidx),
-            }
-            v.window_box.left = t_end - WINDOW_S
-            v.window_box.right = t_end
+            if slow:
+                v.ovw.data = {
+                    "t": t_o,
+                    "target": _col(rec, names, "target", ch, oidx),
+                    "measured": _col(rec, names, "measured", ch, oidx),
+                }
+                v.window_box.left = t_end - WINDOW_S
+                v.window_box.right = t_end
+                v.bars.data = v.limits.update(rec, names, k_end, max(1, round(REFRESH_S * fs)))
             valid_name = channel_column(names, "fei_valid", ch)
             if valid_name is not None:
                 inv = ~np.asarray(rec[valid_name][idx], dtype=bool)
                 s, e = _runs(inv)
                 half = 0.5 * m / fs
-                v.invalid.data = {
-                    "l": t[s] - half if s.size else [],
-                    "r": t[np.minimum(e, t.size) - 1] + half if e.size else [],
-                }
-            v.bars.data = v.limits.update(rec, names, k_end, max(1, round(REFRESH_S * fs)))
+                left = t[s] - half if s.size else np.zeros(0)
+                right = t[np.minimum(e, t.size) - 1] + half if e.size else np.zeros(0)
+                old = v.invalid.data
+                if len(old["l"]) != left.size or not np.array_equal(old["l"], left):
+                    v.invalid.data = {"l": left, "r": right}
         self._events(f.events)
-        self.info_div.text = self._info(st, t_end, t_last, n_ovr)
+        if slow:
+            self.info_div.text = self._info(st, t_end, t_last, self._n_ovr)
 
     def _events(self, events: list[dict]) -> None:
         if len(events) == self.n_events:
