@@ -456,7 +456,7 @@ class _Page:
         self.replay_playing = False
 
         # fixed sizes: a text change then needs no new page layout in the browser
-        self.state_div = Div(text="", name="state", width=1140, height=46)
+        self.state_div = Div(text="", name="state", width=1140, height=70)
         self.info_div = Div(text="", name="info", width=1140, height=40)
         self._slider_at = 0.0
         self._slow_at = 0.0
@@ -792,8 +792,8 @@ class _Page:
         color, word = _BANNER.get(st.phase, ("#6b7280", st.phase.upper()))
         msg = html.escape(st.message)
         self.state_div.text = (
-            f"<div style='background:{color};color:white;padding:10px 14px;border-radius:6px;"
-            f"font:600 18px sans-serif'>{word} — {msg}</div>"
+            f"<div style='background:{color};color:white;padding:8px 14px;border-radius:6px;"
+            f"font:600 17px sans-serif;max-height:46px;overflow:hidden'>{word} — {msg}</div>"
         )
 
     def _info(self, st: RunState, t_end: float, t_last: float, n_ovr: int) -> str:
