@@ -1,23 +1,24 @@
 """Benchmark of ``rths-hil watch``: what watching costs the loop, and how live the page is.
 
-One paced run of the default test (NEES-711 over the CAN twin, 1024 Hz) in this process. A
-``rths-hil watch`` server follows its run directory from the start, and a headless Chromium
-(the Debian ``chromium``) opens the page during every other segment of ``--segment`` seconds
-of loop time and leaves it (``about:blank``) during the others, so the same run has steps with
-and without a watcher attached. Driving the browser is a separate process (this script with
-``--driver``), so nothing but the loop runs in the loop's process.
+Paced runs of the default test (NEES-711 over the CAN twin, 1024 Hz) in this process,
+alternately without and with a watcher attached — ``--pairs`` of each, in the same invocation of
+this script. For a watched run, ``rths-hil watch RUN_DIR`` is started before the run and a
+headless Chromium (the Debian ``chromium``) has its page open (waiting for the run) when the
+run's clock starts; between runs the browser shows ``about:blank``. Driving the browser is a
+separate process (this script with ``--driver``), so nothing but the loop runs in the loop's
+process.
 
 Measured:
 
 * the loop's own work per step, from its send to the moment it was ready for the next step
-  (``dt + ready[k+1] − lateness[k]``, as ``bench_loop.py``), p50 / p99 / p99.9, in the
-  segments with and without the page (the first second of each segment left out: opening and
-  closing the page); goal: p99 with the page within 2 % of p99 without;
+  (``dt + ready[k+1] − lateness[k]``, as ``bench_loop.py``), p50 / p99 / p99.9 over the runs
+  without and with the watcher (the first second of each run left out); goal: p99 with the
+  watcher within 2 % of p99 without;
 * the page's refresh rate (refreshes the browser applied per second) and its lag behind the
   record: wall-clock time when the browser holds the row of loop time t minus the time that
   row was sent (``wall_t0 + t + lateness``, from the record); goals ≥ 5 Hz and ≤ 0.5 s.
 
-Usage: ``python benchmarks/bench_watch.py [--duration 60] [--segment 10]``.
+Usage: ``python benchmarks/bench_watch.py [--duration 20] [--pairs 2]``.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import select
 import subprocess
 import sys
 import tempfile
@@ -35,54 +37,55 @@ import numpy as np
 
 from rths_hil.config import load_config
 from rths_hil.loop import RTHSLoop
+from rths_hil.recorder import read_run
 
 GOALS = (
-    "- the loop's own work per step, p99, with the page open within 2 % of p99 without it "
-    "(same run)\n- page refresh ≥ 5 Hz, lag behind the record ≤ 0.5 s"
+    "- the loop's own work per step, p99, with a watcher and its page within 2 % of p99 "
+    "without\n- page refresh ≥ 5 Hz, lag behind the record ≤ 0.5 s"
 )
 
 
-def _wall_t0(run_dir: Path, timeout: float = 60.0) -> float:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        try:
-            for line in (run_dir / "events.jsonl").read_text().splitlines():
-                e = json.loads(line)
-                if e.get("kind") == "clock":
-                    return float(e["wall_t0"])
-        except (OSError, ValueError):
-            pass
-        time.sleep(0.02)
-    raise TimeoutError("the run never started")
+def _wall_t0(run_dir: Path) -> float:
+    for line in (run_dir / "events.jsonl").read_text().splitlines():
+        e = json.loads(line)
+        if e.get("kind") == "clock":
+            return float(e["wall_t0"])
+    raise ValueError("no clock event")
 
 
-def driver(run_dir: Path, url: str, duration: float, segment: float, out: Path) -> None:
-    """Open and leave the page by segments of loop time; sample refresh and lag (own process)."""
+def driver() -> None:
+    """Browser process: ``open URL`` → page loaded → ``ready``, samples until ``blank``."""
     from rths_hil.watch.browser import Browser
 
-    samples: list[tuple[float, float, int]] = []  # (wall time, page's last t, tick)
+    def say(text: str) -> None:
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+
     with Browser(width=1200, height=1500) as b:
-        w0 = _wall_t0(run_dir)
-        n_seg = int(duration // segment)
-        for i in range(n_seg):
-            start = w0 + i * segment
-            while time.time() < start:
-                time.sleep(0.01)
-            if i % 2 == 1:  # odd segments: the page is open
-                b.goto(url)
-                while time.time() < start + segment - 0.05:
-                    try:
-                        t_col = b.column("window", "t")
-                        tick = b.model("tick", "start")
-                    except RuntimeError:  # the page is still loading
-                        t_col = tick = None
-                    vals = (t_col[-1], tick) if t_col and tick is not None else None
-                    if vals and vals[0] is not None:
-                        samples.append((time.time(), float(vals[0]), int(vals[1])))
-                    time.sleep(0.1)
-            else:
-                b.goto("about:blank")
-    out.write_text(json.dumps(samples))
+        say("started")
+        for line in sys.stdin:
+            cmd, _, arg = line.strip().partition(" ")
+            if cmd != "open":
+                break
+            b.goto(arg)
+            b.wait_for(
+                "!!(window.Bokeh && Bokeh.documents.length && "
+                "Bokeh.documents[0].get_model_by_name('state'))",
+                timeout=120,
+            )
+            say("ready")
+            samples: list[tuple[float, float, float]] = []  # (wall time, page's last t, tick)
+            while not select.select([sys.stdin], [], [], 0.1)[0]:
+                try:
+                    t_col = b.column("window", "t")
+                    tick = b.model("tick", "start")
+                except RuntimeError:
+                    continue
+                if t_col and tick is not None:
+                    samples.append((time.time(), float(t_col[-1]), float(tick)))
+            sys.stdin.readline()  # "blank"
+            b.goto("about:blank")
+            say(json.dumps(samples))
 
 
 def _stats(x: np.ndarray) -> tuple[float, float, float]:
@@ -90,111 +93,124 @@ def _stats(x: np.ndarray) -> tuple[float, float, float]:
     return float(p50), float(p99), float(p999)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--duration", type=float, default=60.0, help="loop time of the run (s)")
-    ap.add_argument("--segment", type=float, default=10.0, help="segment length (s)")
-    ap.add_argument("--driver", nargs=4, metavar=("RUN", "URL", "DURATION", "SEGMENT"))
-    ap.add_argument("--samples", help=argparse.SUPPRESS)
-    args = ap.parse_args()
-    if args.driver:
-        run, url, dur, seg = args.driver
-        driver(Path(run), url, float(dur), float(seg), Path(args.samples))
-        return
-
-    tmp = Path(tempfile.mkdtemp(prefix="bench-watch-"))
-    run_dir = tmp / "run"
-    cfg = load_config(
-        None,
-        [
-            f"loop.duration={args.duration}",
-            "loop.console=0",
-            "output.plot=false",
-            # the benchmark measures time; a slow minute of the VM must not stop the run
-            "safety.max_overruns=1000000",
-            "safety.watchdog_missed=1000000",
-        ],
-    )
+def _watched(cfg, run_dir: Path, drv: subprocess.Popen):
+    """One run with ``rths-hil watch`` and the page open; returns (result, samples)."""
     watch = subprocess.Popen(
         [sys.executable, "-m", "rths_hil", "watch", str(run_dir), "--port", "0", "--quiet"],
         stderr=subprocess.PIPE,
         stdout=subprocess.DEVNULL,
         text=True,
     )
-    line = watch.stderr.readline()
-    m = re.search(r"(http://\S+)", line)
-    if not m:
-        raise SystemExit(f"rths-hil watch did not start: {line}")
-    url = m.group(1)
-    samples_path = tmp / "samples.json"
-    drv = subprocess.Popen(
-        [
-            sys.executable,
-            __file__,
-            "--driver",
-            str(run_dir),
-            url,
-            str(args.duration),
-            str(args.segment),
-            "--samples",
-            str(samples_path),
-        ]
-    )
     try:
-        loop = RTHSLoop(cfg, run_dir, mode="paced")
-        res = loop.run()
-        drv.wait(120)
+        line = watch.stderr.readline()
+        m = re.search(r"(http://\S+)", line)
+        if not m:
+            raise SystemExit(f"rths-hil watch did not start: {line}")
+        drv.stdin.write(f"open {m.group(1)}\n")
+        drv.stdin.flush()
+        if drv.stdout.readline().strip() != "ready":
+            raise SystemExit("the browser did not open the page")
+        res = RTHSLoop(cfg, run_dir, mode="paced").run()
+        time.sleep(0.5)
+        drv.stdin.write("blank\n")
+        drv.stdin.flush()
+        samples = json.loads(drv.stdout.readline())
     finally:
-        for p in (drv, watch):
-            if p.poll() is None:
-                p.terminate()
-                p.wait(10)
+        watch.terminate()
+        watch.wait(10)
+    return res, samples
 
-    dt = 1.0 / loop.fs
-    lat, ready = res.lateness, res.ready
-    work = (ready[1:] + dt - lat[:-1]) * 1e6  # µs, work of step k = 0 … n-2
-    t = np.arange(work.size) * dt
-    seg = (t // args.segment).astype(int)
-    settled = (t - seg * args.segment) >= 1.0
-    on = (seg % 2 == 1) & settled
-    off = (seg % 2 == 0) & settled & (seg > 0)  # the first segment also has the warm-up
-    w_on, w_off = _stats(work[on]), _stats(work[off])
-    l_on, l_off = _stats(lat[:-1][on] * 1e6), _stats(lat[:-1][off] * 1e6)
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=20.0, help="loop time of each run (s)")
+    ap.add_argument("--pairs", type=int, default=2, help="runs without and with the watcher")
+    ap.add_argument("--driver", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.driver:
+        driver()
+        return
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench-watch-"))
+    cfg = load_config(
+        None,
+        [
+            f"loop.duration={args.duration}",
+            "loop.console=0",
+            "output.plot=false",
+            # the benchmark measures time; a slow minute of the VM must not stop a run
+            "safety.max_overruns=1000000",
+            "safety.watchdog_missed=1000000",
+        ],
+    )
+    drv = subprocess.Popen(
+        [sys.executable, __file__, "--driver"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    work: dict[bool, list[np.ndarray]] = {False: [], True: []}
+    late: dict[bool, list[np.ndarray]] = {False: [], True: []}
+    lags: list[float] = []
+    rates: list[float] = []
+    runs = []
+    try:
+        if drv.stdout.readline().strip() != "started":
+            raise SystemExit("the browser did not start")
+        for i in range(2 * args.pairs):
+            watched = i % 2 == 1
+            run_dir = tmp / f"run{i}"
+            if watched:
+                res, samples = _watched(cfg, run_dir, drv)
+            else:
+                res, samples = RTHSLoop(cfg, run_dir, mode="paced").run(), []
+            runs.append(res)
+            dt = 1.0 / res.fs
+            w = (res.ready[1:] + dt - res.lateness[:-1]) * 1e6  # µs, work of step k
+            keep = np.arange(w.size) * dt >= 1.0
+            work[watched].append(w[keep])
+            late[watched].append(res.lateness[:-1][keep] * 1e6)
+            if samples:
+                rec = read_run(run_dir).record
+                w0 = _wall_t0(run_dir)
+                s = [x for x in samples if x[1] >= 1.0]  # once the run is under way
+                for wall, t_page, _ in s:
+                    k = min(round(t_page * res.fs), len(rec) - 1)
+                    lags.append(wall - (w0 + t_page + float(rec["lateness"][k])))
+                if len(s) > 2 and s[-1][0] > s[0][0]:
+                    rates.append((s[-1][2] - s[0][2]) / (s[-1][0] - s[0][0]))
+    finally:
+        if drv.poll() is None:
+            drv.stdin.close()
+            drv.terminate()
+            drv.wait(10)
+
+    w_off, w_on = _stats(np.concatenate(work[False])), _stats(np.concatenate(work[True]))
+    l_off, l_on = _stats(np.concatenate(late[False])), _stats(np.concatenate(late[True]))
     diff = 100.0 * (w_on[1] / w_off[1] - 1.0)
-
-    # the page: refreshes applied per second and lag behind the record
-    from rths_hil.recorder import read_run
-
-    samples = json.loads(samples_path.read_text()) if samples_path.exists() else []
-    rec = read_run(run_dir).record
-    w0 = _wall_t0(run_dir)
-    lags, rates = [], []
-    by_seg: dict[int, list] = {}
-    for wall, t_page, tick in samples:
-        k = min(round(t_page * loop.fs), len(rec) - 1)
-        lags.append(wall - (w0 + t_page + float(rec["lateness"][k])))
-        by_seg.setdefault(int((wall - w0) // args.segment), []).append((wall, tick))
-    for pts in by_seg.values():
-        pts = [p for p in pts if p[0] - pts[0][0] >= 1.0]  # after the page has loaded
-        if len(pts) > 2 and pts[-1][0] > pts[0][0]:
-            rates.append((pts[-1][1] - pts[0][1]) / (pts[-1][0] - pts[0][0]))
     lags_a = np.array(lags) if lags else np.array([np.nan])
 
     from _results import markdown_table, write_results
 
+    n_off = sum(x.size for x in work[False])
+    n_on = sum(x.size for x in work[True])
     table = markdown_table(
-        ["steps", "n", "work p50 µs", "work p99 µs", "work p99.9 µs", "lateness p99 µs"],
+        ["runs", "steps", "work p50 µs", "work p99 µs", "work p99.9 µs", "lateness p99 µs"],
         [
-            ["without the page", int(off.sum()), *(f"{v:.1f}" for v in w_off), f"{l_off[1]:.1f}"],
-            ["with the page", int(on.sum()), *(f"{v:.1f}" for v in w_on), f"{l_on[1]:.1f}"],
+            ["without a watcher", n_off, *(f"{v:.1f}" for v in w_off), f"{l_off[1]:.1f}"],
+            ["with the page open", n_on, *(f"{v:.1f}" for v in w_on), f"{l_on[1]:.1f}"],
         ],
     )
     table += (
-        f"\n\nWork p99 with the page vs without: **{diff:+.2f} %** (goal ≤ 2 %).\n\n"
+        f"\n\nWork p99 with the watcher vs without: **{diff:+.2f} %** (goal ≤ 2 %).\n\n"
         + markdown_table(
             ["page", "value", "goal"],
             [
-                ["refresh rate (applied by the browser)", f"{np.mean(rates):.1f} Hz", "≥ 5 Hz"],
+                [
+                    "refresh rate (applied by the browser)",
+                    f"{np.mean(rates):.1f} Hz" if rates else "–",
+                    "≥ 5 Hz",
+                ],
                 [
                     "lag behind the record, p50 / p95 / max",
                     f"{np.nanmedian(lags_a):.2f} / {np.nanpercentile(lags_a, 95):.2f} / "
@@ -205,13 +221,11 @@ def main() -> None:
         )
     )
     notes = (
-        f"One paced run of {args.duration:g} s at {loop.fs:g} Hz ({res.steps} steps, "
-        f"{res.overruns} overruns, status {res.status}); segments of {args.segment:g} s "
-        "alternate without and with the page open in headless Chromium (the watcher's server "
-        "runs throughout); the first second of each segment and the whole first segment are "
-        "left out. Lag samples: the page's newest row polled 10 times a second over the "
-        "DevTools protocol during the segments with the page. Both processes of the view "
-        "(server, browser) share the machine's cores with the loop."
+        f"{2 * args.pairs} paced runs of {args.duration:g} s at {runs[0].fs:g} Hz, alternately "
+        "without and with `rths-hil watch` and its page open in headless Chromium on the same "
+        f"machine (overruns per run: {', '.join(str(r.overruns) for r in runs)}); the first "
+        "second of each run is left out. Lag samples: the page's newest row, polled 10 times "
+        "a second over the DevTools protocol (the polling is itself a load on the browser)."
     )
     path = write_results("bench_watch", table, goals=GOALS, notes=notes)
     print(table)

@@ -151,3 +151,15 @@ def test_latest_picks_the_newest_run(tmp_path, monkeypatch):
     (tmp_path / "not-a-run").mkdir()
     assert latest_run(tmp_path) == tmp_path / "b"
     assert len(read_run(latest_run(tmp_path)).record) == 128
+
+
+def test_channel_limits_come_from_its_actuators_entry():
+    from rths_hil.watch.app import channel_config
+
+    cfg = {
+        "safety": {"displacement_limit": 0.05, "force_limit": 1e5},
+        "actuators": [{"name": "left", "safety": {"displacement_limit": 0.02}}, {"name": "right"}],
+    }
+    assert channel_config(cfg, "left")["safety"] == {"displacement_limit": 0.02, "force_limit": 1e5}
+    assert channel_config(cfg, "right")["safety"] == cfg["safety"]
+    assert channel_config(cfg, "")["safety"] == cfg["safety"]

@@ -69,7 +69,7 @@ def main(args: argparse.Namespace) -> int:
     """Run the test; return the exit code."""
     from ..errors import InputError
     from ..loop import RTHSLoop, new_run_dir
-    from ..report import LiveLine
+    from ..report import LiveLine, format_summary, plot_report, summarize
 
     cfg = load_config(args.config, args.set)
     if args.show_config:
@@ -87,16 +87,6 @@ def main(args: argparse.Namespace) -> int:
     live = None if args.quiet or cfg["loop"]["console"] <= 0 else LiveLine(sys.stderr)
     loop = RTHSLoop(cfg, run_dir, live=live, mode=mode, duration=duration)
     watcher = _start_watcher(run_dir, args.watch_port) if args.watch else None
-    try:
-        return _run(args, cfg, loop, run_dir, live)
-    finally:
-        if watcher is not None:
-            _stop_watcher(watcher, run_dir)
-
-
-def _run(args, cfg, loop, run_dir: Path, live) -> int:
-    from ..report import format_summary, plot_report, summarize
-
     if not args.quiet:
         print(
             f"rths-hil run: {loop.mode} {loop.n_steps / loop.fs:.1f} s at {loop.fs:g} Hz, driver "
@@ -108,6 +98,8 @@ def _run(args, cfg, loop, run_dir: Path, live) -> int:
     finally:
         if live is not None:
             live.finish()
+        if watcher is not None:
+            _stop_watcher(watcher, run_dir)
     summary = summarize(run_dir)
     if cfg["output"]["plot"] and not args.no_plot and result.steps > 1:
         plot_report(run_dir)

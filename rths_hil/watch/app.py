@@ -178,6 +178,17 @@ def _num(x, default: float = 0.0) -> float:
 # the document
 
 
+def channel_config(cfg: dict, ch: str) -> dict:
+    """The configuration one channel ran with: its ``[[actuators]]`` entry over the top level."""
+    out = dict(cfg)
+    for entry in cfg.get("actuators") or []:
+        if isinstance(entry, dict) and entry.get("name") == ch and ch:
+            for section, table in entry.items():
+                if isinstance(table, dict):
+                    out[section] = {**(cfg.get(section) or {}), **table}
+    return out
+
+
 def _consecutive(flag: np.ndarray, carry: int) -> np.ndarray:
     """Length of the run of True ending at each sample (``carry``: the run before the first)."""
     n = flag.size
@@ -628,18 +639,21 @@ class _Page:
     # -- refresh -------------------------------------------------------------------------------
     def _build_channels(self, chans: list[str], safety: dict) -> None:
         self.channels = chans
-        self.views = [
-            _ChannelView(
-                ch,
-                ch or str(self.ctx.follower.meta.get("driver", "actuator")),
-                safety,
-                self.ctx.follower.meta.get("config", {}) or {},
-                self.ctx.follower.meta.get("mode") == "paced",
-                self.x_range,
-                self.overview_range,
+        meta = self.ctx.follower.meta
+        self.views = []
+        for ch in chans:
+            cfg = channel_config(meta.get("config", {}) or {}, ch)
+            self.views.append(
+                _ChannelView(
+                    ch,
+                    ch or str(meta.get("driver", "actuator")),
+                    cfg.get("safety", {}) or {},
+                    cfg,
+                    meta.get("mode") == "paced",
+                    self.x_range,
+                    self.overview_range,
+                )
             )
-            for ch in chans
-        ]
         self.channel_box.children = [v.layout for v in self.views]
 
     def refresh(self) -> None:
