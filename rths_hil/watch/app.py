@@ -732,9 +732,10 @@ class _Page:
         else:
             self.x_range.follow = "end"
         # run-wide: lateness (max over each stride block, so no overrun is hidden)
-        lat_full = np.asarray(rec["lateness"][k0:k_end], dtype=float)
-        lat = _block_max(lat_full[first - k0 :], m) * 1e3
-        self.lat_src.data = {"t": t, "lat": lat[: t.size]}
+        if slow:  # once a second: the overruns are also counted in the info line and the bars
+            lat_full = np.asarray(rec["lateness"][k0:k_end], dtype=float)
+            lat = _block_max(lat_full[first - k0 :], m) * 1e3
+            self.lat_src.data = {"t": t, "lat": lat[: t.size]}
         thr = _num((cfg.get("loop", {}) or {}).get("overrun_threshold"), 0.5) / fs
         self.thr_span.location = thr * 1e3
         if slow and f.meta.get("mode") == "paced":
