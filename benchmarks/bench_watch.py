@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import select
 import subprocess
@@ -53,6 +54,27 @@ def _wall_t0(run_dir: Path) -> float:
     raise ValueError("no clock event")
 
 
+def tree_cpu(pid: int) -> float:
+    """CPU time (s, user + system) of process ``pid`` and all its descendants (Linux)."""
+    stats: dict[int, tuple[int, float]] = {}  # pid -> (parent, cpu seconds)
+    tick = os.sysconf("SC_CLK_TCK")
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        stats[int(d)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) / tick)
+    total, todo = 0.0, [pid]
+    while todo:
+        p = todo.pop()
+        total += stats.get(p, (0, 0.0))[1]
+        todo += [c for c, (parent, _) in stats.items() if parent == p]
+    return total
+
+
 def driver() -> None:
     """Browser process: ``open URL`` → page loaded → ``ready``, samples until ``blank``."""
     from rths_hil.watch.browser import Browser
@@ -73,6 +95,7 @@ def driver() -> None:
                 "Bokeh.documents[0].get_model_by_name('state'))",
                 timeout=120,
             )
+            cpu0 = tree_cpu(b.proc.pid)
             say("ready")
             samples: list[tuple[float, float, float]] = []  # (wall time, page's last t, tick)
             while not select.select([sys.stdin], [], [], 0.1)[0]:
@@ -84,8 +107,9 @@ def driver() -> None:
                 if t_col and tick is not None:
                     samples.append((time.time(), float(t_col[-1]), float(tick)))
             sys.stdin.readline()  # "blank"
+            cpu = tree_cpu(b.proc.pid) - cpu0
             b.goto("about:blank")
-            say(json.dumps(samples))
+            say(json.dumps({"samples": samples, "cpu": cpu}))
 
 
 def _stats(x: np.ndarray) -> tuple[float, float, float]:
@@ -110,15 +134,16 @@ def _watched(cfg, run_dir: Path, drv: subprocess.Popen):
         drv.stdin.flush()
         if drv.stdout.readline().strip() != "ready":
             raise SystemExit("the browser did not open the page")
+        cpu0 = tree_cpu(watch.pid)
         res = RTHSLoop(cfg, run_dir, mode="paced").run()
-        time.sleep(0.5)
+        server_cpu = tree_cpu(watch.pid) - cpu0
         drv.stdin.write("blank\n")
         drv.stdin.flush()
-        samples = json.loads(drv.stdout.readline())
+        out = json.loads(drv.stdout.readline())
     finally:
         watch.terminate()
         watch.wait(10)
-    return res, samples
+    return res, out["samples"], out["cpu"], server_cpu
 
 
 def main() -> None:
@@ -153,6 +178,7 @@ def main() -> None:
     late: dict[bool, list[np.ndarray]] = {False: [], True: []}
     lags: list[float] = []
     rates: list[float] = []
+    cpu: list[tuple[float, float, float, float]] = []  # browser s, server s, refreshes, wall s
     runs = []
     try:
         if drv.stdout.readline().strip() != "started":
@@ -161,7 +187,10 @@ def main() -> None:
             watched = i % 2 == 1
             run_dir = tmp / f"run{i}"
             if watched:
-                res, samples = _watched(cfg, run_dir, drv)
+                res, samples, b_cpu, s_cpu = _watched(cfg, run_dir, drv)
+                if samples:
+                    n_ref = samples[-1][2] - samples[0][2]
+                    cpu.append((b_cpu, s_cpu, n_ref, res.wall_time))
             else:
                 res, samples = RTHSLoop(cfg, run_dir, mode="paced").run(), []
             runs.append(res)
@@ -192,6 +221,11 @@ def main() -> None:
 
     from _results import markdown_table, write_results
 
+    b_tot = sum(c[0] for c in cpu)
+    s_tot = sum(c[1] for c in cpu)
+    n_tot = sum(c[2] for c in cpu)
+    wall_tot = max(sum(c[3] for c in cpu), 1e-9)
+
     n_off = sum(x.size for x in work[False])
     n_on = sum(x.size for x in work[True])
     table = markdown_table(
@@ -212,6 +246,16 @@ def main() -> None:
                     "≥ 5 Hz",
                 ],
                 [
+                    "CPU per refresh: browser / watcher server",
+                    f"{1e3 * b_tot / max(n_tot, 1):.0f} / {1e3 * s_tot / max(n_tot, 1):.0f} ms",
+                    "",
+                ],
+                [
+                    "CPU while watching: browser / watcher server (share of one core)",
+                    f"{100 * b_tot / wall_tot:.0f} % / {100 * s_tot / wall_tot:.0f} %",
+                    "",
+                ],
+                [
                     "lag behind the record, p50 / p95 / max",
                     f"{np.nanmedian(lags_a):.2f} / {np.nanpercentile(lags_a, 95):.2f} / "
                     f"{np.nanmax(lags_a):.2f} s",
@@ -225,7 +269,10 @@ def main() -> None:
         "without and with `rths-hil watch` and its page open in headless Chromium on the same "
         f"machine (overruns per run: {', '.join(str(r.overruns) for r in runs)}); the first "
         "second of each run is left out. Lag samples: the page's newest row, polled 10 times "
-        "a second over the DevTools protocol (the polling is itself a load on the browser)."
+        "a second over the DevTools protocol (the polling is itself a load on the browser). "
+        "CPU: user + system time of the browser's processes and of the watcher's server "
+        "process while the watched runs ran, divided by the refreshes the browser applied: "
+        "what a refresh costs whatever else the machine is doing."
     )
     path = write_results("bench_watch", table, goals=GOALS, notes=notes)
     print(table)

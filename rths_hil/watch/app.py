@@ -57,6 +57,8 @@ __all__ = ["REFRESH_S", "WINDOW_POINTS", "WINDOW_S", "WatchContext", "build_docu
 log = logging.getLogger(__name__)
 
 REFRESH_S = 0.2  # s between two refreshes of a page (5 Hz)
+TICK_S = 0.05  # s between two checks whether a refresh is due
+IN_FLIGHT = 2  # refreshes sent and not yet applied by the browser, at most
 WINDOW_S = 10.0  # s of record in the detailed plots
 WINDOW_POINTS = 600  # about this many points per line in the detailed plots
 OVERVIEW_POINTS = 2000  # about this many points per line in the whole-test plot
@@ -507,7 +509,9 @@ class _Page:
         self.live_btn = Button(label="follow the end", name="follow", width=120)
         self.live_btn.on_click(self._follow)
 
-        self.x_range = DataRange1d(follow="end", follow_interval=WINDOW_S, range_padding=0)
+        # set by each refresh (an automatic range, recomputed from every plot sharing it at each
+        # data change, cost the browser far more than the plots themselves)
+        self.x_range = Range1d(0.0, WINDOW_S)
         self.overview_range = Range1d(0.0, 1.0)
 
         self.lat_src = ColumnDataSource(data={"t": [], "lat": []}, name="lateness")
@@ -539,8 +543,8 @@ class _Page:
         )
         self.channel_box = column(Div(text=""))
         # flow control: each refresh ends with a new ``tick``; the browser echoes it into
-        # ``ack`` once it has applied that refresh. A refresh is sent only when the previous one
-        # was acknowledged, so a slow browser gets fewer refreshes instead of a growing backlog.
+        # ``ack`` once it has applied that refresh. At most IN_FLIGHT refreshes are sent and not
+        # yet applied, so a slow browser gets fewer refreshes instead of a growing backlog.
         self.seq = 0
         self.acked = 0
         self.sent_at = 0.0
@@ -569,7 +573,7 @@ class _Page:
         doc.add_root(self.ack)
         doc.title = "rths-hil watch"
         self.refresh()
-        doc.add_periodic_callback(self.refresh, int(REFRESH_S * 1000))
+        doc.add_periodic_callback(self.refresh, int(TICK_S * 1000))
 
     # -- controls ------------------------------------------------------------------------------
     def _ask(self) -> None:
@@ -659,8 +663,10 @@ class _Page:
     def refresh(self) -> None:
         """Read the follower's latest state and redraw (called every :data:`REFRESH_S`)."""
         now = time.monotonic()
-        if self.acked < self.seq and now - self.sent_at < 2.0:
-            return  # the browser has not applied the previous refresh yet
+        if now - self.sent_at < REFRESH_S - 0.5 * TICK_S:
+            return
+        if self.seq - self.acked > IN_FLIGHT - 1 and now - self.sent_at < 2.0:
+            return  # the browser has not applied the refreshes already sent
         try:
             self._refresh()
         finally:
@@ -725,12 +731,8 @@ class _Page:
         first = k0 + (-k0) % m  # stride aligned to the step index
         idx = slice(first, k_end, m)
         t = np.asarray(rec["time"][idx], dtype=float)
-        if not self.follow:
-            self.x_range.follow = None
-            self.x_range.start = t_end - WINDOW_S
-            self.x_range.end = t_end
-        else:
-            self.x_range.follow = "end"
+        self.x_range.start = max(t_end - WINDOW_S, t_first)
+        self.x_range.end = self.x_range.start + WINDOW_S
         # run-wide: lateness (max over each stride block, so no overrun is hidden)
         if slow:  # once a second: the overruns are also counted in the info line and the bars
             lat_full = np.asarray(rec["lateness"][k0:k_end], dtype=float)

@@ -357,8 +357,11 @@ class RunFollower:
             self.state = RunState("unreadable", f"{self.record_path}: unreadable record ({exc})")
             return self.state
         self._read_meta()  # written before the record; reread if it was missing a moment ago
-        self._find_writer(now)
         end = next((e for e in reversed(self.events) if e.get("kind") == "end"), None)
+        if end is None:
+            self._find_writer(now)
+        else:
+            self.writer = None  # the run has ended: nobody to look for
         trip = next((e for e in reversed(self.events) if e.get("kind") == "trip"), None)
         t_last = float(self.record["time"][-1]) if self.record is not None and self.rows else None
         t = float("nan") if t_last is None else t_last
