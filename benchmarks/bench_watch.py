@@ -156,6 +156,7 @@ def main() -> None:
         driver()
         return
 
+    load0 = os.getloadavg()[0]
     tmp = Path(tempfile.mkdtemp(prefix="bench-watch-"))
     cfg = load_config(
         None,
@@ -272,7 +273,9 @@ def main() -> None:
         "a second over the DevTools protocol (the polling is itself a load on the browser). "
         "CPU: user + system time of the browser's processes and of the watcher's server "
         "process while the watched runs ran, divided by the refreshes the browser applied: "
-        "what a refresh costs whatever else the machine is doing."
+        "what a refresh costs whatever else the machine is doing. Load average of the "
+        f"machine (1 min, {os.cpu_count()} cores): {load0:.1f} before, "
+        f"{os.getloadavg()[0]:.1f} after."
     )
     path = write_results("bench_watch", table, goals=GOALS, notes=notes)
     print(table)
