@@ -45,11 +45,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 import scipy.linalg
 
 from .errors import InputError
-from .structure import BoucWen, BoucWenParams
+from .structure import BoucWenParams
 
 log = logging.getLogger(__name__)
 
@@ -571,6 +572,121 @@ def _read_csv_matrix_any(path: str | Path) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # the CR integrator in matrix form
 # --------------------------------------------------------------------------------------------
+#: Columns of the Bouc-Wen parameter table the kernel reads, one row per element.
+_BW_XY, _BW_A, _BW_B, _BW_BETA, _BW_GAMMA, _BW_Q = range(6)
+
+
+def _bouc_wen_table(params: tuple[BoucWenParams, ...]) -> np.ndarray:
+    """Rows [x_y, η·k_a, (1 − η)·k_a·x_y, β, γ, q] (the FEI paper's Eq. 4.1 coefficients)."""
+    return np.array(
+        [
+            [p.x_y, p.eta * p.k_a, (1.0 - p.eta) * p.k_a * p.x_y, p.beta, p.gamma, p.q]
+            for p in params
+        ],
+        dtype=float,
+    ).reshape(-1, 6)
+
+
+@numba.njit(cache=True, nogil=True)
+def _bw_dzdx(z, pos, bp, bm, q, xy):  # pragma: no cover - numba
+    # dz/dx = (1 − (β + γ·sgn(Δx·z))·|z|^q) / x_y   (Wen 1976; the FEI paper's Eq. 4.2)
+    s = bp if (z > 0.0) == pos else bm
+    zq = z * z if q == 2.0 else abs(z) ** q
+    return (1.0 - s * zq) / xy
+
+
+@numba.njit(cache=True, nogil=True)
+def _bw_update(bw, ex, ez, d, r_el):  # pragma: no cover - numba
+    """Move each Bouc-Wen element from ``ex`` to ``d``: z by RK4 in x, as structure.BoucWen.
+
+    Sub-steps of at most x_y/20; r = η·k_a·d + (1 − η)·k_a·x_y·z (the FEI paper's Eq. 4.1).
+    """
+    for e in range(d.size):
+        xy = bw[e, 0]
+        q = bw[e, 5]
+        dx = d[e] - ex[e]
+        z = ez[e]
+        if dx != 0.0:
+            nsub = 1 + int(abs(dx) * 20.0 / xy)
+            h = dx / nsub
+            bp = bw[e, 3] + bw[e, 4]  # loading:   sgn(Δx·z) > 0
+            bm = bw[e, 3] - bw[e, 4]  # unloading: sgn(Δx·z) < 0
+            pos = dx > 0.0
+            for _ in range(nsub):
+                k1 = _bw_dzdx(z, pos, bp, bm, q, xy)
+                k2 = _bw_dzdx(z + 0.5 * h * k1, pos, bp, bm, q, xy)
+                k3 = _bw_dzdx(z + 0.5 * h * k2, pos, bp, bm, q, xy)
+                k4 = _bw_dzdx(z + h * k3, pos, bp, bm, q, xy)
+                z += h * (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
+        ez[e] = z
+        ex[e] = d[e]
+        r_el[e] = bw[e, 1] * d[e] + bw[e, 2] * z
+
+
+#: Rows of the constant matrix stack the kernel reads: M⁻¹, C, K, Δt·α1, Δt²·α2.
+_MINV, _C, _K, _ADT, _ADT2 = range(5)
+
+
+@numba.njit(cache=True, nogil=True)
+def _cr_step(x, v, ag, f, mats, iota, dt, D, bw, est):  # pragma: no cover - numba
+    """One CR step in matrix form (Chen & Ricles 2008), plain loops on small arrays.
+
+    ``x`` = u[n+1] and ``v`` = v[n+1] were announced by the previous step. Returns one new
+    (4, n) array with the rows R(u[n+1]), a[n+1], u[n+2], v[n+2]; ``mats`` stacks M⁻¹, C, K,
+    Δt·α1 and Δt²·α2; ``est`` holds the committed Bouc-Wen deformations and z (rows 0, 1) and
+    receives the element forces (row 2). One returned array: numba boxes a tuple of arrays
+    several times slower.
+    """
+    n = x.size
+    out = np.empty((4, n))
+    r = out[0]
+    a = out[1]
+    ne = bw.shape[0]
+    if ne == 0:
+        # R = K·u
+        for i in range(n):
+            s = 0.0
+            for j in range(n):
+                s += mats[2, i, j] * x[j]
+            r[i] = s
+    else:
+        # element deformations d = D·u, Bouc-Wen forces r(d), R = Dᵀ·r(d)
+        d = np.empty(ne)
+        for e in range(ne):
+            s = 0.0
+            for j in range(n):
+                s += D[e, j] * x[j]
+            d[e] = s
+        _bw_update(bw, est[0], est[1], d, est[2])
+        for i in range(n):
+            s = 0.0
+            for e in range(ne):
+                s += D[e, i] * est[2, e]
+            r[i] = s
+    # a = −ι·a_g − M⁻¹·(C·v + R + f_e)   (M·a = −M·ι·a_g − C·v − R − f_e)
+    sv = np.empty(n)
+    for i in range(n):
+        s = r[i] + f[i]
+        for j in range(n):
+            s += mats[1, i, j] * v[j]
+        sv[i] = s
+    for i in range(n):
+        s = 0.0
+        for j in range(n):
+            s += mats[0, i, j] * sv[j]
+        a[i] = -iota[i] * ag - s
+    # u[n+2] = u[n+1] + Δt·v[n+1] + Δt²·α2·a[n+1] ;  v[n+2] = v[n+1] + Δt·α1·a[n+1]
+    for i in range(n):
+        s1 = 0.0
+        s2 = 0.0
+        for j in range(n):
+            s1 += mats[3, i, j] * a[j]
+            s2 += mats[4, i, j] * a[j]
+        out[2, i] = x[i] + dt * v[i] + s2
+        out[3, i] = v[i] + s1
+    return out
+
+
 class MDOFCRStepper:
     """Explicit CR integrator (Chen & Ricles 2008) for an MDOF model, one call per step.
 
@@ -674,12 +790,18 @@ class MDOFCRStepper:
         self._K = model.K.copy()
         self._iota = model.influence.copy()
         if model.bouc_wen is not None and model.drift is not None:
-            self._D = model.drift.copy()
-            self._DT = self._D.T.copy()
-            self._bw: list[BoucWen] | None = [BoucWen(p) for p in model.bouc_wen]
+            self._D = np.ascontiguousarray(model.drift, dtype=float)
+            self._bw = _bouc_wen_table(model.bouc_wen)
         else:
-            self._D = self._DT = None
-            self._bw = None
+            self._D = np.zeros((0, n))
+            self._bw = np.zeros((0, 6))
+        ne = self._bw.shape[0]
+        # committed element deformations d, Bouc-Wen variables z, element forces r
+        self._est = np.zeros((3, ne))
+        self._zero = np.zeros(n)
+        self._mats = np.ascontiguousarray(
+            np.stack([self._minv, self._C, self._K, self._adt, self._adt2])
+        )
         self.reset(x0, v0, ag0, extra_force0)
 
     # ----------------------------------------------------------------------------------------
@@ -693,19 +815,20 @@ class MDOFCRStepper:
         """Time of the committed step (s)."""
         return self.n * self.dt
 
+    @property
+    def element_forces(self) -> np.ndarray | None:
+        """Bouc-Wen element (storey) forces r(d[n]) (N), ``None`` for a linear model."""
+        return self._est[2].copy() if self._est.shape[1] else None
+
+    @property
+    def element_deformations(self) -> np.ndarray | None:
+        """Bouc-Wen element deformations d[n] = D·u[n] (m; storey drifts), ``None`` if linear."""
+        return self._est[0].copy() if self._est.shape[1] else None
+
     def _vec(self, a: Any, what: str) -> np.ndarray:
         if a is None:
             return np.zeros(self.model.n)
         return _as_vector(a, self.model.n, what)
-
-    def _restoring(self, x: np.ndarray) -> np.ndarray:
-        bw = self._bw
-        if bw is None:
-            return self._K @ x  # R = K·u
-        d = (self._D @ x).tolist()  # element deformations d = D·u
-        r = np.array([e.update(di) for e, di in zip(bw, d, strict=True)])
-        self.element_forces = r
-        return self._DT @ r  # R = Dᵀ·r(d)
 
     def reset(
         self, x0: Any = None, v0: Any = None, ag0: float = 0.0, extra_force0: Any = None
@@ -714,12 +837,13 @@ class MDOFCRStepper:
         x = self._vec(x0, "x0")
         v = self._vec(v0, "v0")
         f = self._vec(extra_force0, "extra_force0")
-        self.element_forces = None
-        if self._bw is not None and self._D is not None:
-            for e, di in zip(self._bw, (self._D @ x).tolist(), strict=True):
-                e.reset(di, 0.0)
-            r = self._DT @ np.array([e.force for e in self._bw])
-            self.element_forces = np.array([e.force for e in self._bw])
+        if self._bw.shape[0]:
+            # element deformations d = D·u, z = 0: r = η·k_a·d ; R = Dᵀ·r
+            d = self._D @ x
+            self._est[0] = d
+            self._est[1] = 0.0
+            self._est[2] = self._bw[:, _BW_A] * d
+            r = self._D.T @ self._est[2]
         else:
             r = self._K @ x
         self.x, self.v = x, v
@@ -740,7 +864,7 @@ class MDOFCRStepper:
             Ground acceleration at step n+1 (m/s²).
         extra_force : ndarray, shape (n,), optional
             External force vector at step n+1 (N) — ``Tᵀ·f`` of the specimen forces measured
-            at :attr:`x_next`. Not copied; not checked (the hot path): pass n finite floats.
+            at :attr:`x_next` (n floats; not checked on this hot path). ``None``: no force.
 
         Returns
         -------
@@ -749,22 +873,22 @@ class MDOFCRStepper:
         """
         x = self.x_next
         v = self._v_next
-        r = self._restoring(x)
-        # M·a = −M·ι·a_g − C·v − R(u) − f_e
-        s = self._C @ v + r
-        if extra_force is not None:
-            s = s + extra_force
-            self.extra_force = extra_force
+        if extra_force is None:
+            f = self._zero
+        elif type(extra_force) is np.ndarray and extra_force.dtype == np.float64:
+            f = extra_force
         else:
-            self.extra_force = np.zeros_like(x)
-        a = -self._iota * ag - self._minv @ s
-        self.x, self.v, self.a = x, v, a
-        self.restoring_force = r
+            f = np.ascontiguousarray(extra_force, dtype=float)
+        out = _cr_step(
+            x, v, float(ag), f, self._mats, self._iota, self.dt, self._D, self._bw, self._est
+        )
+        self.x, self.v, self.a = x, v, out[1]
+        self.restoring_force = out[0]
+        self.extra_force = f
         self.n += 1
-        # u[n+2] = u[n+1] + Δt·v[n+1] + Δt²·α2·a[n+1] ; v[n+2] = v[n+1] + Δt·α1·a[n+1]
-        xn = x + self.dt * v + self._adt2 @ a
+        xn = out[2]
         self.x_next = xn
-        self._v_next = v + self._adt @ a
+        self._v_next = out[3]
         return xn
 
 
