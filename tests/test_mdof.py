@@ -232,6 +232,10 @@ def test_files_npz_and_csv(tmp_path, el_centro):
     u = simulate_mdof(model, ag, FS)
     for other in (m2, m3):
         np.testing.assert_allclose(simulate_mdof(other, ag, FS), u, rtol=1e-12, atol=1e-15)
+    # an influence vector as a CSV column
+    (tmp_path / "iota.csv").write_text("# influence\n1\n1\n0.5\n")
+    m5 = load_csv(tmp_path / "M.csv", tmp_path / "K.csv", influence=tmp_path / "iota.csv")
+    np.testing.assert_array_equal(m5.influence, [1.0, 1.0, 0.5])
     # damping from the file's modes
     np.savez(tmp_path / "mk.npz", m=model.M, k=model.K)
     m4 = load_npz(tmp_path / "mk.npz", modal_damping=0.04)
