@@ -41,13 +41,14 @@ def _nrms(x: np.ndarray, ref: np.ndarray) -> float:
 def _modal_reference(model, ag: np.ndarray, fs: float) -> np.ndarray:
     """u(t) = Σ φ_i·q_i(t), q̈_i + 2ζ_i·ω_i·q̇_i + ω_i²·q_i = −Γ_i·a_g(t) (Chopra Eq. 13.1.5).
 
-    Modes from numpy's eigen-solver on M^(-1/2)·K·M^(-1/2) (not the model's own modes()),
+    Modes from numpy's eigen-solver on L⁻¹·K·L⁻ᵀ, M = L·Lᵀ (not the model's own modes()),
     each modal SDOF solved exactly for linearly interpolated a_g by scipy.signal.lsim.
     """
     M, K, C = model.M, model.K, model.C
-    mh = np.diag(1.0 / np.sqrt(np.diag(M)))  # M is diagonal for a shear building
-    lam, psi = np.linalg.eigh(mh @ K @ mh)
-    phi = mh @ psi  # mass-normalised: φᵀ·M·φ = I
+    L = np.linalg.cholesky(M)  # M = L·Lᵀ ; K·φ = ω²·M·φ  ⇔  (L⁻¹·K·L⁻ᵀ)·ψ = ω²·ψ, φ = L⁻ᵀ·ψ
+    Li = np.linalg.inv(L)
+    lam, psi = np.linalg.eigh(Li @ K @ Li.T)
+    phi = Li.T @ psi  # mass-normalised: φᵀ·M·φ = I
     omega = np.sqrt(lam)
     zeta = np.diag(phi.T @ C @ phi) / (2 * omega)
     # classical damping: Φᵀ·C·Φ is diagonal
@@ -90,6 +91,24 @@ def test_linear_3dof_chichi_rayleigh_given():
     u = simulate_mdof(model, ag, FS)
     ref = _modal_reference(model, ag, FS)
     for dof in range(3):
+        assert _nrms(u[:, dof], ref[:, dof]) < 1e-3, dof
+
+
+def test_matrices_consistent_mass_modal_damping_matches_modal_superposition(el_centro):
+    """A 4-DOF model with a non-diagonal M, a damping ratio per mode and ι ≠ 1 (a DOF that
+    the ground motion does not load directly) against modal superposition."""
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(4, 4))
+    M = np.diag([3e4, 2e4, 2e4, 1e4]) + 2e3 * (A @ A.T) / 4
+    k = np.array([4e7, 3e7, 3e7, 2e7])
+    D = np.eye(4) - np.eye(4, k=-1)
+    K = D.T @ np.diag(k) @ D
+    model = from_matrices(M, K, modal_damping=[0.02, 0.04, 0.06, 0.08], influence=[1, 1, 1, 0])
+    assert np.max(model.frequencies) < 20.0
+    ag = el_centro[: int(30 * FS)]
+    u = simulate_mdof(model, ag, FS)
+    ref = _modal_reference(model, ag, FS)
+    for dof in range(4):
         assert _nrms(u[:, dof], ref[:, dof]) < 1e-3, dof
 
 
