@@ -482,12 +482,18 @@ def load_npz(path: str | Path, **damping: Any) -> MDOFModel:
     """
     p = Path(path)
     try:
-        with np.load(p, allow_pickle=False) as data:
-            arrays = {k: np.array(data[k]) for k in data.files}
+        data = np.load(p, allow_pickle=False)
     except FileNotFoundError:
         raise InputError(f"{p}: no such file") from None
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{p}: not a readable .npz file ({exc})") from None
+    except (OSError, ValueError, EOFError):
+        raise InputError(f"{p}: not a NumPy .npz archive of arrays") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise InputError(f"{p}: a single array (.npy), expected an .npz archive with M and K")
+    try:
+        with data:
+            arrays = {k: np.array(data[k]) for k in data.files}
+    except (OSError, ValueError, EOFError):
+        raise InputError(f"{p}: an array in the archive cannot be read") from None
     by_lower = {k.lower(): k for k in arrays}
     found: dict[str, np.ndarray] = {}
     for key in _NPZ_KEYS:

@@ -327,6 +327,14 @@ def test_bad_matrices_give_one_line_errors(tmp_path):
     with pytest.raises(InputError) as e:
         load_npz(tmp_path / "missing.npz")
     _one_line_error(e, "missing.npz", "no such file")
+    np.save(tmp_path / "single.npy", M)
+    with pytest.raises(InputError) as e:
+        load_npz(tmp_path / "single.npy")
+    _one_line_error(e, "single.npy", ".npz")
+    (tmp_path / "text.npz").write_text("M = [[1]]\n")
+    with pytest.raises(InputError) as e:
+        load_npz(tmp_path / "text.npz")
+    _one_line_error(e, "text.npz", "not a NumPy .npz archive")
 
     (tmp_path / "M.csv").write_text("1e4, 0\n0, 1e4\n")
     (tmp_path / "K.csv").write_text("4e7, -2e7\n-2e7, nan\n")
