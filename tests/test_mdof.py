@@ -206,6 +206,38 @@ def test_bouc_wen_storeys_match_solve_ivp():
         assert _nrms(u[:, dof], ref[:, dof]) < 2e-3, dof
 
 
+def _amplification(st: MDOFCRStepper) -> np.ndarray:
+    """The linear map (u[n], v[n]) → (u[n+1], v[n+1]) of one step, column by column."""
+    n = st.n_dof
+    cols = []
+    for i in range(2 * n):
+        s0 = np.zeros(2 * n)
+        s0[i] = 1.0
+        st.reset(x0=s0[:n], v0=s0[n:])
+        st.step(0.0, None)
+        cols.append(np.concatenate([st.x, st.v]))
+    return np.array(cols).T
+
+
+@pytest.mark.parametrize("dt", [1 / 1024, 1 / 50, 0.5])
+def test_unconditionally_stable_no_numerical_damping(dt):
+    """Spectral radius of the CR step: exactly 1 undamped (no numerical damping), < 1 damped,
+    at steps up to ω_max·Δt ≈ 1000 (Chen & Ricles 2008: unconditionally stable if linear)."""
+    masses = [1.0e3] * 10
+    stiff = np.linspace(4e8, 1e8, 10)
+    undamped = shear_building(masses, stiff)
+    w_max = undamped.modes()[0][-1]
+    rho = np.abs(np.linalg.eigvals(_amplification(MDOFCRStepper(undamped, dt))))
+    assert np.max(np.abs(rho - 1.0)) < 1e-9, (w_max * dt, rho)
+    damped = MDOFCRStepper(shear_building(masses, stiff, zeta=0.05), dt)
+    assert np.max(np.abs(np.linalg.eigvals(_amplification(damped)))) < 1.0 - 1e-6
+    # with a stiff specimen in α as well
+    st = MDOFCRStepper(undamped, dt, transforms=np.eye(10)[:2], k_specimen=[1e9, 1e9])
+    assert np.max(np.abs(np.linalg.eigvals(_amplification(st)))) <= 1.0 + 1e-9
+    if dt == 0.5:
+        assert w_max * dt > 500
+
+
 def test_explicit_interface_and_reset(el_centro):
     model = shear_building(MASSES, STIFFNESSES, zeta=0.05)
     st = MDOFCRStepper(model, 1 / FS, ag0=el_centro[0])
