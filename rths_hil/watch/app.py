@@ -38,14 +38,12 @@ from bokeh.models import (
     ColumnDataSource,
     CustomJS,
     DataRange1d,
-    DataTable,
     Div,
     FactorRange,
     Legend,
     Range1d,
     Slider,
     Span,
-    TableColumn,
     Toggle,
 )
 from bokeh.plotting import figure
@@ -530,17 +528,9 @@ class _Page:
         lp.add_layout(self.thr_span)
         self.lat_plot = lp
         self.ev_src = ColumnDataSource(data={"time": [], "kind": [], "detail": []}, name="events")
-        self.ev_table = DataTable(
-            source=self.ev_src,
-            columns=[
-                TableColumn(field="time", title="t (s)", width=70),
-                TableColumn(field="kind", title="event", width=110),
-                TableColumn(field="detail", title="detail", width=380),
-            ],
-            width=560,
-            height=200,
-            index_position=None,
-        )
+        # the event list as an HTML table in a text box: a DataTable (SlickGrid) re-measured
+        # itself at every redraw of the page and cost the browser more than all the plots
+        self.ev_table = Div(text="", width=560, height=200, styles={"overflow-y": "auto"})
         self.channel_box = column(Div(text=""))
         # flow control: each refresh ends with a new ``tick``; the browser echoes it into
         # ``ack`` once it has applied that refresh. At most IN_FLIGHT refreshes are sent and not
@@ -569,6 +559,7 @@ class _Page:
             row(self.lat_plot, self.ev_table),
         )
         doc.add_root(self.root)
+        doc.add_root(self.ev_src)  # the events as data (for tools reading the page)
         doc.add_root(self.tick)
         doc.add_root(self.ack)
         doc.title = "rths-hil watch"
@@ -784,8 +775,11 @@ class _Page:
                 if len(old["l"]) != left.size or not np.array_equal(old["l"], left):
                     v.invalid.data = {"l": left, "r": right}
         self._events(f.events)
+        self.info_div.text = self._info(st, t_end)  # sent only when it changed
         if slow:
-            self.info_div.text = self._info(st, t_end, t_last, self._n_ovr)
+            self.lat_plot.title.text = self._progress(st, t_last, self._n_ovr)
+        for v in self.views:  # inside the plot that is redrawn anyway: no page re-layout
+            v.disp.title.text = f"displacement: last 10 s (t = {t_end:.1f} s)"
 
     def _events(self, events: list[dict]) -> None:
         if len(events) == self.n_events:
@@ -804,6 +798,17 @@ class _Page:
                 keys = [k for k in e if k not in skip and k != "values"]
             details.append("; ".join(f"{k}={e[k]}" for k in keys if k in e and k not in skip)[:300])
         self.ev_src.data = {"time": times, "kind": kinds, "detail": details}
+        rows = "".join(
+            f"<tr><td style='text-align:right;padding-right:8px'>{t}</td><td>{html.escape(k)}"
+            f"</td><td style='color:#4b5563'>{html.escape(d)}</td></tr>"
+            for t, k, d in zip(times, kinds, details, strict=True)
+        )
+        self.ev_table.text = (
+            "<table style='font:13px sans-serif;border-collapse:collapse;width:100%'>"
+            "<tr style='text-align:left'><th>t (s)</th><th>event</th><th>detail</th></tr>"
+            + rows
+            + "</table>"
+        )
 
     def _banner(self, st: RunState) -> None:
         color, word = _BANNER.get(st.phase, ("#6b7280", st.phase.upper()))
@@ -813,7 +818,8 @@ class _Page:
             f"font:600 17px sans-serif;max-height:46px;overflow:hidden'>{word} — {msg}</div>"
         )
 
-    def _info(self, st: RunState, t_end: float, t_last: float, n_ovr: int) -> str:
+    def _info(self, st: RunState, t_end: float) -> str:
+        """The line under the banner: what changes rarely (a text box re-lays out the page)."""
         f = self.ctx.follower
         meta = f.meta
         dur = f.planned_duration()
@@ -821,20 +827,26 @@ class _Page:
             html.escape(str(f.run_dir)),
             f"{meta.get('mode', '?')} at {_num(meta.get('fs')):g} Hz",
             f"driver {html.escape(str(meta.get('driver', '?')))}",
-            f"t = {t_last:.2f} s" + (f" of {dur:.1f} s" if dur else ""),
-            f"{f.rows} steps",
         ]
-        if meta.get("mode") == "paced":
+        if dur:
+            parts.append(f"planned {dur:.1f} s")
+        if st.writer is not None:
+            parts.append(f"process {st.writer}")
+        if not self.follow:
+            parts.append(f"<b>replay: window ends at {t_end:.2f} s</b>")
+        return "<div style='font:14px sans-serif;color:#374151'>" + " · ".join(parts) + "</div>"
+
+    def _progress(self, st: RunState, t_last: float, n_ovr: int) -> str:
+        """Loop time, steps, overruns and lag: the title of the lateness plot (once a second)."""
+        f = self.ctx.follower
+        parts = [f"t = {t_last:.2f} s", f"{f.rows} steps"]
+        if f.meta.get("mode") == "paced":
             parts.append(f"{n_ovr} overruns")
         w0 = f.wall_t0()
         if st.live and w0 is not None:
             lag = time.time() - (w0 + t_last + _num(f.record["lateness"][-1]))
             parts.append(f"page {lag:.2f} s behind the loop")
-        if not self.follow:
-            parts.append(f"<b>replay: window ends at {t_end:.2f} s</b>")
-        if st.writer is not None:
-            parts.append(f"process {st.writer}")
-        return "<div style='font:14px sans-serif;color:#374151'>" + " · ".join(parts) + "</div>"
+        return "lateness of the send (ms): " + ", ".join(parts)
 
 
 def _forbidden(doc: Document) -> None:
