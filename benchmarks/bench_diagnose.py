@@ -118,11 +118,11 @@ def _with(spec, **actuator):
 def shipped_screening(case) -> tuple[float, dict[str, float]]:
     d = Data(case.command, case.measured, FS, case.force)
     m = Model(case.base, d)
-    ctx = {"specimen": specimen_from_record(d, case.base)}
+    d.specimen = specimen_from_record(d, case.base)
     t0 = time.perf_counter()
     out = {}
     for name in CANDIDATES:
-        f = fit_candidate(name, m, d, ctx)
+        f = fit_candidate(name, m, d)
         out[name] = getattr(f, "rss", float("nan"))
     return time.perf_counter() - t0, out
 

@@ -565,7 +565,7 @@ def calibrate(
     measured : array_like
         Measured displacement (m).
     servo_lag : bool
-        Also fit a first-order servo lag (model ``first_order``). Delay and lag are only
+        Also fit a first-order servo lag (model ``servo_lag``). Delay and lag are only
         separable with excitation well above ``1/(2π·T)``; with narrow-band seismic response
         their sum is what the record determines.
     fit_offset : bool
@@ -579,7 +579,7 @@ def calibrate(
     Returns
     -------
     ModelSpec
-        Actuator ``delay``/``gain`` (+ ``first_order`` ``time_constant``), optional ``offset``
+        Actuator ``delay``/``gain`` (+ ``servo_lag`` ``time_constant``), optional ``offset``
         effect, ``[sensor]`` with the residual's standard deviation as displacement noise and
         the detected quantisation step. No ``[specimen]`` (a displacement record says nothing
         about it).
@@ -636,7 +636,7 @@ def calibrate(
     actuator = ActuatorSpec(
         delay=delay,
         gain=gain,
-        model="first_order" if servo_lag else "delay_gain",
+        model="servo_lag" if servo_lag else "delay_gain",
         params={"time_constant": time_constant} if servo_lag else {},
         effects=effects,
     )

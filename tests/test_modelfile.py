@@ -75,7 +75,7 @@ def test_full_file_loads_with_units_and_defaults(tmp_path):
     a = spec.actuator
     assert a.delay == pytest.approx(0.012)
     assert a.gain == 0.98
-    assert a.model == "first_order"
+    assert a.model == "servo_lag"  # the old name "first_order" reads as servo_lag
     assert a.params == {"time_constant": 0.008}
     assert [e.kind for e in a.effects] == ["backlash", "time_varying_delay", "force_feedback"]
     assert a.effects[0].params == {"width": pytest.approx(2e-4)}

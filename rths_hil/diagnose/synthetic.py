@@ -31,11 +31,9 @@ import numpy as np
 from rths_hil.errors import InputError
 from rths_hil.groundmotion import bundled_path, load
 from rths_hil.structure import simulate_sdof
-from sim_backends.effects import EFFECT_RANGES, EFFECTS, draw_effect_params
+from sim_backends.effects import EFFECT_ORDER, EFFECT_RANGES, EFFECTS, draw_effect_params
 from sim_backends.modelfile import ActuatorSpec, EffectSpec, ModelSpec, SpecimenSpec
 from sim_backends.plant import Sensor
-
-from .candidates import EFFECT_ORDER
 
 __all__ = ["GROUND_MOTIONS", "SyntheticCase", "make_case"]
 
@@ -127,7 +125,7 @@ def make_case(
     ----------
     effects : sequence of str
         Hidden effect kinds, possibly empty (a record with no hidden effect); the twin applies
-        them in the physical order :data:`rths_hil.diagnose.candidates.EFFECT_ORDER`.
+        them in the physical order :data:`sim_backends.effects.EFFECT_ORDER`.
     rng : Generator or int
         Random generator (or seed) for every draw.
     duration : float
