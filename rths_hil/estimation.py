@@ -1,8 +1,8 @@
 """Online Kalman estimation of an actuator's gain and delay, and twin calibration from a record.
 
-The seed's actuator model (Fig. 4.1) is ``measured(t) = A·target(t − d)``. The FEI (seed
-Eq. 2.1–2.5) measures ``A`` and ``d`` in the frequency domain over a window; this module tracks
-the same two numbers in the time domain, sample by sample, as a second opinion in the loop.
+The FEI paper's actuator model (Fig. 4.1) is ``measured(t) = A·target(t − d)``. The FEI (the FEI
+paper's Eq. 2.1–2.5) measures ``A`` and ``d`` in the frequency domain over a window; this module
+tracks the same two numbers in the time domain, sample by sample, as a second opinion in the loop.
 
 Formulation (:class:`DelayGainEstimator`)
 -----------------------------------------
@@ -18,7 +18,7 @@ extended Kalman filter (filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter
 linearises it with the Jacobian ``H = [u(t−τ), g·∂u(t−τ)/∂τ, 1]``, the derivative taken
 analytically on the Lagrange polynomial. ``M`` is a small look-ahead (the measurement is held
 ``M`` samples) so that negative delays — a measured signal leading its target after
-over-compensation, seed Section 5 — can be tracked too; estimates are then ``M·dt`` old.
+over-compensation, the FEI paper's Section 5 — can be tracked too; estimates are then ``M·dt`` old.
 
 Why not the linear regression: ``y ≈ g·u − g·τ·u̇`` (:class:`LinearDelayGainKF`) is linear in
 ``θ = [g, −gτ]`` but is the first term of a Taylor series. On a sinusoid of angular frequency

@@ -2,7 +2,7 @@
 
 Three families, all :class:`~sim_backends.base.ActuatorModel` subclasses stepped at ``dt``:
 
-* :class:`DelayGain` — the seed's block model (Fig. 4.1): a fractional transport delay followed
+* :class:`DelayGain` — the FEI paper's block model (Fig. 4.1): a fractional transport delay followed
   by a gain (re-exported from :mod:`sim_backends.delay`).
 * :class:`FirstOrderServo` — a first-order servo lag ``1 / (T s + 1)``; its low-frequency
   equivalent delay is ``T`` and its amplitude at frequency ``f`` is ``1/sqrt(1 + (2π f T)²)``.
@@ -13,7 +13,7 @@ Three families, all :class:`~sim_backends.base.ActuatorModel` subclasses stepped
   specimen's mass, damping and stiffness as parameters.
 
 :class:`Series` chains models (the model file's ``model`` dynamics followed by the ``delay`` and
-``gain`` of the seed's Fig. 4.1). Continuous models are discretised with
+``gain`` of the FEI paper's Fig. 4.1). Continuous models are discretised with
 :func:`scipy.signal.cont2discrete` using a first-order (triangle) hold: exact for a command that
 is linear between samples, with no frequency warping and no half-sample delay (a zero-order hold
 would add ``dt/2`` of delay, Tustin would warp the benchmark's 67 Hz mode). The per-sample

@@ -23,7 +23,7 @@ Loop (``rths-hil diagnose``, :func:`diagnose`):
    better candidate, dropped when no longer significant);
 6. the gap before and after each step: J2 (NRMS, %) and J3 (peak, %) of the prediction against
    the measurement (:mod:`rths_hil.metrics`, normalised by the measurement), and the FEI
-   A and d of measured against predicted (seed Eq. 2.1-2.5).
+   A and d of measured against predicted (the FEI paper's Eq. 2.1-2.5).
 
 The BIC assumes independent residuals: white sensor noise once the model is right. A residual
 that stays coloured (model error the catalogue cannot express) makes the criterion liberal;
@@ -80,7 +80,8 @@ DEFAULT_THRESHOLD = 10.0
 DEFAULT_TIE_MARGIN = 2.0
 #: Shortest record the workflow decides on (s) …
 MIN_DURATION_S = 5.0
-#: … and the fewest cycles of the command's equivalent frequency (seed Eq. 2.4) it must hold.
+#: … and the fewest cycles of the command's equivalent frequency (the FEI paper's Eq. 2.4) it must
+#: hold.
 MIN_CYCLES = 5.0
 _MIN_SAMPLES = 256
 
@@ -96,8 +97,8 @@ class Gap:
     j3 : float
         Peak error, % of the measurement's peak (J3).
     fei_amplitude, fei_delay : float
-        FEI A and d (s) of measured against predicted (seed Eq. 2.1-2.5): 1 and 0 when they
-        agree.
+        FEI A and d (s) of measured against predicted (the FEI paper's Eq. 2.1-2.5): 1 and 0 when
+        they agree.
     rms : float
         RMS of the residual (m).
     """
