@@ -104,8 +104,6 @@ class Param:
     polish : bool
         Re-fitted by the diagnosis' joint re-fit (:func:`rths_hil.diagnose.candidates.polish`);
         ``False`` for parameters that come from elsewhere (the specimen of ``force_feedback``).
-    log_scale : bool
-        Positive scale parameter: the joint re-fit moves its logarithm.
     step : float or None
         Scale of the joint re-fit's steps for a parameter that is not on a log scale (SI);
         ``None``: the magnitude of its start value.
@@ -120,8 +118,14 @@ class Param:
     exclusive_minimum: bool = False
     typical: ParamRange | None = None
     polish: bool = True
-    log_scale: bool = False
     step: float | None = None
+
+    @property
+    def log_scale(self) -> bool:
+        """A positive scale parameter spanning decades (its realistic range is drawn
+        log-uniformly and has one sign): the joint re-fit moves its logarithm."""
+        t = self.typical
+        return t is not None and t.log and not t.signed
 
 
 @dataclass(frozen=True)
@@ -152,6 +156,11 @@ class Fitting:
     low: float = 0.0
     high: float = 0.0
     needs_specimen: bool = False
+
+
+def _positive(name: str, unit: str, doc: str, typical: ParamRange, **kw: float) -> Param:
+    """A parameter that must be > 0."""
+    return Param(name, unit, doc, minimum=0.0, exclusive_minimum=True, typical=typical, **kw)
 
 
 class Effect(ABC):
@@ -384,14 +393,11 @@ class StrokeLimit(_Stateless):
 
     kind = "stroke_limit"
     PARAMS = (
-        Param(
+        _positive(
             "limit",
             "m",
             "half stroke (distance from center to either stop)",
-            minimum=0.0,
-            exclusive_minimum=True,
-            typical=ParamRange(5 * _MM, 150 * _MM, log=True, note="end stop or interlock"),
-            log_scale=True,
+            ParamRange(5 * _MM, 150 * _MM, log=True, note="end stop or interlock"),
         ),
         Param(
             "center",
@@ -446,7 +452,6 @@ class Backlash(Effect):
             typical=ParamRange(
                 0.05 * _MM, 0.5 * _MM, log=True, note="clearance of pins and swivels"
             ),
-            log_scale=True,
         ),
     )
     CHAIN = 50
@@ -522,14 +527,11 @@ class VelocityLimit(Effect):
 
     kind = "velocity_limit"
     PARAMS = (
-        Param(
+        _positive(
             "limit",
             "m/s",
             "maximum speed",
-            minimum=0.0,
-            exclusive_minimum=True,
-            typical=ParamRange(0.02, 0.2, log=True, note="rated valve flow / piston area"),
-            log_scale=True,
+            ParamRange(0.02, 0.2, log=True, note="rated valve flow / piston area"),
         ),
     )
     CHAIN = 30
@@ -621,14 +623,11 @@ class ServoLag(Effect):
 
     kind = "servo_lag"
     PARAMS = (
-        Param(
+        _positive(
             "time_constant",
             "s",
             "lag time constant",
-            minimum=0.0,
-            exclusive_minimum=True,
-            typical=ParamRange(2e-3, 20e-3, log=True, note="position-loop bandwidth 8-80 Hz"),
-            log_scale=True,
+            ParamRange(2e-3, 20e-3, log=True, note="position-loop bandwidth 8-80 Hz"),
         ),
     )
     CHAIN = 10
@@ -683,15 +682,12 @@ class TimeVaryingDelay(Effect):
             minimum=0.0,
             typical=ParamRange(0.5e-3, 5e-3, note="≤ delay by construction of the ranges"),
         ),
-        Param(
+        _positive(
             "period",
             "s",
             "period of the variation",
+            ParamRange(2.0, 60.0, log=True, note="slow variation over a test"),
             default=10.0,
-            minimum=0.0,
-            exclusive_minimum=True,
-            typical=ParamRange(2.0, 60.0, log=True, note="slow variation over a test"),
-            log_scale=True,
         ),
     )
     CHAIN = 0
@@ -806,14 +802,11 @@ class ForceFeedback(Effect):
 
     kind = "force_feedback"
     PARAMS = (
-        Param(
+        _positive(
             "actuator_stiffness",
             "N/m",
             "oil-column stiffness k_h",
-            minimum=0.0,
-            exclusive_minimum=True,
-            typical=ParamRange(2e7, 2e8, log=True, note="oil column 4βA²/V"),
-            log_scale=True,
+            ParamRange(2e7, 2e8, log=True, note="oil column 4βA²/V"),
         ),
         Param(
             "specimen_stiffness",
