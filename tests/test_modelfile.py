@@ -117,7 +117,7 @@ def test_toml_floats_survive_exactly():
 def test_plant_equals_manual_composition(tmp_path):
     plant = load_plant(_write(tmp_path, FULL), DT)
     manual = TwinPlant(
-        make_model("first_order", DT, delay=0.012, gain=0.98, time_constant=0.008),
+        make_model("servo_lag", DT, delay=0.012, gain=0.98, time_constant=0.008),
         [
             make_effect("backlash", DT, width=2e-4),
             make_effect("time_varying_delay", DT, delay=0.01, amplitude=0.002, period=7.5),
@@ -178,9 +178,9 @@ BAD = [
         "[actuator]\nmodel = 'hexapod'\n",
         "twin.toml: actuator.model: unknown actuator model 'hexapod'",
     ),
-    ("[actuator]\nmodel = 'first_order'\n", "twin.toml: actuator.time_constant: required by model"),
+    ("[actuator]\nmodel = 'servo_lag'\n", "twin.toml: actuator.time_constant: required by model"),
     (
-        "[actuator]\nmodel = 'first_order'\ntime_constant = -1.0\n",
+        "[actuator]\nmodel = 'servo_lag'\ntime_constant = -1.0\n",
         "twin.toml: actuator.time_constant: must be > 0",
     ),
     ("[actuator]\ndelay = -0.001\n", "twin.toml: actuator.delay: must be ≥ 0 s"),
