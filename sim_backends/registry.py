@@ -91,9 +91,16 @@ class ModelEntry:
 
 
 def _benchmark_params() -> dict[str, tuple[float | None, str]]:
-    from .models import BENCHMARK_NOMINAL
+    """``BenchmarkServo.PARAMS`` with their defaults (Table 2, or the constructor's own)."""
+    import inspect
 
-    return {k: (v, "") for k, v in BENCHMARK_NOMINAL.items()}
+    from .models import BENCHMARK_NOMINAL, BenchmarkServo
+
+    own = inspect.signature(BenchmarkServo.__init__).parameters
+    return {
+        k: (BENCHMARK_NOMINAL[k] if k in BENCHMARK_NOMINAL else own[k].default, "")
+        for k in BenchmarkServo.PARAMS
+    }
 
 
 #: Actuator models by the name a model file's ``actuator.model`` uses.
