@@ -24,9 +24,7 @@ from ..units import parse_accel, parse_fraction, parse_range, parse_time
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``study window-size`` and ``study accuracy``."""
-    parser = sub.add_parser(
-        "study", help="the FEI paper's window-size and accuracy studies (Sec. 4)"
-    )
+    parser = sub.add_parser("study", help="the FEI paper's window-size and accuracy studies")
     st = parser.add_subparsers(dest="study_command", metavar="STUDY")
 
     def common(p: argparse.ArgumentParser, gain: str, delay: str) -> None:
@@ -65,9 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="p95",
         help="statistic of the window errors: max or pNN percentile (default p95)",
     )
-    ws.add_argument(
-        "--bouc-wen", action="store_true", help="Bouc-Wen structure (FEI paper, Eq. 4.1-4.2)"
-    )
+    ws.add_argument("--bouc-wen", action="store_true", help="Bouc-Wen structure (Eq. 4.1-4.2)")
     ws.add_argument("--max-periods", default="10", help="largest window tried, in Tn (default 10)")
     common(ws, "1", "1ms")
     ws.set_defaults(func=run_window_size)
