@@ -19,13 +19,17 @@ docs/models.md, "Adding a twin model or an effect", and docs/protocols.md, "Addi
 from __future__ import annotations
 
 import importlib
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rths_hil.errors import InputError
 
 from .effects import EFFECTS
+
+if TYPE_CHECKING:
+    from .plant import TwinPlant
 
 __all__ = ["EFFECTS", "MODELS", "TWINS", "ModelEntry", "TwinEntry", "build_plant", "twin_class"]
 
@@ -164,7 +168,9 @@ def model_class(name: str) -> type | None:
     return _load(entry.target) if entry.target else None
 
 
-def build_plant(twin: Mapping[str, Any] | str, dt: float, base_dir: str | None = None) -> Any:
+def build_plant(
+    twin: Mapping[str, Any] | str | os.PathLike[str], dt: float, base_dir: str | None = None
+) -> TwinPlant:
     """Build a twin's plant from a configuration's ``[twin]`` section (or a model file).
 
     Parameters
@@ -190,8 +196,6 @@ def build_plant(twin: Mapping[str, Any] | str, dt: float, base_dir: str | None =
         Unknown model or effect, a bad parameter, or an unreadable model file; the message
         names the key.
     """
-    import os
-
     from .modelfile import load_plant
 
     if isinstance(twin, str | os.PathLike):
