@@ -228,6 +228,19 @@ def accuracy_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _without_csv(argv: list[str]) -> list[str]:
+    """The arguments without ``--csv FILE`` (a local path: not part of the reproduction)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--csv":
+            skip = True
+        elif not a.startswith("--csv="):
+            out.append(a)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sets", default="single,pairs,nomodel,short,unreached")
@@ -320,7 +333,9 @@ def main(argv: list[str] | None = None) -> int:
         "confusion_diagnose",
         "\n".join(report),
         title="Confusion matrix of the discrepancy diagnosis",
-        command="python benchmarks/confusion_diagnose.py " + " ".join(argv or sys.argv[1:]),
+        command=" ".join(
+            ["python benchmarks/confusion_diagnose.py", *_without_csv(argv or sys.argv[1:])]
+        ),
         notes="Cases are seeded (`--seed`): the tables are reproducible; runtimes depend on the "
         "machine and its load.",
     )
