@@ -799,8 +799,9 @@ class _Page:
             details.append("; ".join(f"{k}={e[k]}" for k in keys if k in e and k not in skip)[:300])
         self.ev_src.data = {"time": times, "kind": kinds, "detail": details}
         rows = "".join(
-            f"<tr><td style='text-align:right;padding-right:8px'>{t}</td><td>{html.escape(k)}"
-            f"</td><td style='color:#4b5563'>{html.escape(d)}</td></tr>"
+            f"<tr><td style='text-align:right;padding:1px 10px 1px 0'>{t}</td>"
+            f"<td style='padding-right:10px'>{html.escape(k)}</td>"
+            f"<td style='color:#4b5563'>{html.escape(d)}</td></tr>"
             for t, k, d in zip(times, kinds, details, strict=True)
         )
         self.ev_table.text = (
@@ -845,8 +846,8 @@ class _Page:
         w0 = f.wall_t0()
         if st.live and w0 is not None:
             lag = time.time() - (w0 + t_last + _num(f.record["lateness"][-1]))
-            parts.append(f"page {lag:.2f} s behind the loop")
-        return "lateness of the send (ms): " + ", ".join(parts)
+            parts.append(f"{lag:.2f} s behind")
+        return "lateness, ms · " + " · ".join(parts)
 
 
 def _forbidden(doc: Document) -> None:
