@@ -88,7 +88,7 @@ from .compensation import AdaptiveAlpha, InverseCompensator
 from .config import SCHEMA, Config, load_config
 from .errors import InputError
 from .fei import OnlineFEI
-from .recorder import Recorder
+from .recorder import Recorder, RecordWriteError
 from .safety import (
     ControllerRule,
     FEIRule,
@@ -133,7 +133,7 @@ def new_run_dir(pattern: str, base: Path | None = None) -> Path:
     if base is not None and not p.is_absolute():
         p = base / p
     out, i = p, 1
-    while (out / "record.npy").exists():
+    while any((out / f).exists() for f in ("record.npy", "events.jsonl", "meta.json")):
         out = p.with_name(f"{p.name}-{i}")
         i += 1
     return out
@@ -766,7 +766,14 @@ class RTHSLoop:
                 if kc["enabled"]
                 else None
             ),
-            watchdog=WatchdogRule(sf["watchdog_missed"]),
+            watchdog=WatchdogRule(
+                sf["watchdog_missed"],
+                # paced: wall-clock time since the last good reply; lockstep: the generous
+                # wall-clock bound of the wait for each reply (virtual time, deterministic)
+                (sf["watchdog_timeout"] or sf["watchdog_missed"] * self.dt)
+                if self.mode == "paced"
+                else lp["lockstep_timeout"],
+            ),
             sequence=SequenceRule(sf["max_sequence_gaps"]),
             overrun=OverrunRule(sf["max_overruns"]) if self.mode == "paced" else None,
             stuck=StuckRule(sf["stuck_steps"], sf["stuck_motion"]) if sf["stuck_steps"] else None,
@@ -774,7 +781,10 @@ class RTHSLoop:
         )
 
         # timing
-        self.timeout = lp["feedback_timeout"] or (0.8 * self.dt if self.mode == "paced" else 1.0)
+        if self.mode == "paced":
+            self.timeout = lp["feedback_timeout"] or 0.8 * self.dt
+        else:  # lockstep waits for every reply, up to the wall-clock bound that trips
+            self.timeout = lp["lockstep_timeout"]
         # never spin through a whole period: a SCHED_FIFO thread that never sleeps is stopped by
         # Linux's RT throttling (95 % of a CPU) for 50 ms every second
         self.spin = min(lp["spin"], 0.4 * self.dt)
@@ -804,7 +814,12 @@ class RTHSLoop:
             )
             try:
                 self.twin = start_twin(
-                    name, self.plant, faults=self.faults, threaded=not inline, **conn
+                    name,
+                    self.plant,
+                    faults=self.faults,
+                    threaded=not inline,
+                    heartbeat_timeout=cfg["twin"]["watchdog"] or None,
+                    **conn,
                 )
             except InputError as exc:
                 raise InputError(f"{cfg.source}: driver.connection: {exc}") from None
@@ -892,7 +907,20 @@ class RTHSLoop:
                 steps=self.n_steps,
                 rules=self.monitor.rules,
             )
+            # a new run on the controller: restart its sequence count, acknowledge a latch
+            armed = driver.arm(max(self.timeout, 0.5), self._receiver(driver))
+            rec.event(
+                "arm", 0.0, 0, replied=armed is not None,
+                status=None if armed is None else int(armed.status),
+            )  # fmt: skip
             result = self._loop(driver, rec, exact)
+            if result.status == "completed":
+                try:  # the last rows: a write failure here is still a safety event
+                    rec.flush()
+                except RecordWriteError as exc:
+                    result.status = "trip"
+                    result.trip = Trip("record", str(exc)).at(result.steps * self.dt, result.steps)
+                    rec.event("trip", **dict(list(result.trip.as_event().items())[1:]))
             if result.status != "completed":
                 result.estop_confirmed = self._estop(driver, rec, result)
             ls = result.lateness_stats()
@@ -904,7 +932,7 @@ class RTHSLoop:
                 result.steps * self.dt,
                 result.steps,
                 status=result.status,
-                wall_time=result.wall_time,
+                wall_duration=result.wall_time,
                 steps_per_second=result.steps_per_second,
                 lateness=ls,
                 overrun_causes=result.overrun_causes(),
@@ -949,7 +977,8 @@ class RTHSLoop:
     def _estop(self, driver: Driver, rec: Recorder, result: RunResult) -> bool | None:
         """Send the e-stop, then poll once to see the controller report it latched."""
         driver.estop()
-        rec.flush()
+        with contextlib.suppress(RecordWriteError):  # already a trip; keep what was flushed
+            rec.flush()
         # One status poll: a new command with enable=True is ignored by a latched controller
         # (it holds position) and answered with ESTOP_ACTIVE. enable=False would acknowledge
         # (clear) the latch, so it is not used here.
@@ -1208,6 +1237,11 @@ class RTHSLoop:
                         last_console_k, last_console_t = k, now
                         next_console = now + console
             wall = perf() - t_start
+        except RecordWriteError as exc:  # disk full or gone: a safety event, not a crash
+            wall = perf() - t_start
+            trip = Trip("record", str(exc), values={"rows_on_disk": rec.rows}).at(k * dt, k)
+            self._last_command = c
+            k += 1  # step k was sent and answered; only its row is lost
         except BaseException:
             with contextlib.suppress(Exception):
                 driver.estop()
