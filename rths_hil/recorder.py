@@ -413,8 +413,11 @@ class RunData:
         return np.asarray(self.record[name], dtype=float)
 
 
-def read_run(run_dir: str | Path) -> RunData:
+def read_run(run_dir: str | Path, mmap: bool = False) -> RunData:
     """Read a run directory written by :class:`Recorder` (also after a crash).
+
+    With ``mmap=True`` the record is memory-mapped read-only (``np.load(mmap_mode="r")``):
+    nothing is read until a column is used, so a long record costs no memory up front.
 
     Raises
     ------
@@ -426,7 +429,7 @@ def read_run(run_dir: str | Path) -> RunData:
     if not rec_path.is_file():
         raise InputError(f"{d}: not a run directory (no {RECORD_FILE})")
     try:
-        record = np.load(rec_path, allow_pickle=False)
+        record = np.load(rec_path, allow_pickle=False, mmap_mode="r" if mmap else None)
     except (ValueError, OSError, EOFError) as exc:
         raise InputError(f"{rec_path}: unreadable record ({exc})") from None
     if record.dtype.names is None or "time" not in record.dtype.names:
