@@ -1006,7 +1006,7 @@ class RTHSLoop:
         dt = self.dt
         fs = self.fs
         paced = self.mode == "paced"
-        ag = self.ag.tolist()
+        ag = array.array("d", self.ag)  # floats on indexing, 8 B each (a list: 32 B each)
         st = self.structure
         comp = self.compensator
         mon = self.monitor

@@ -87,6 +87,8 @@ def main(args: argparse.Namespace) -> int:
     finally:
         if live is not None:
             live.finish()
+    del loop  # the run's arrays (ground motion, lateness) are not needed for the summary
+    result.lateness = result.ready = None
     try:
         summary = summarize(run_dir)
         if cfg["output"]["plot"] and not args.no_plot and result.steps > 1:
