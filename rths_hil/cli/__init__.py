@@ -34,6 +34,9 @@ class _Parser(argparse.ArgumentParser):
     """ArgumentParser whose errors are one line and exit code 2."""
 
     def error(self, message: str) -> None:  # pragma: no cover - exercised via CLI tests
+        if message.endswith("expected one argument"):
+            # "--window -3s": argparse takes a value starting with "-" for an option
+            message += " (a value starting with '-' is written as --option=-value)"
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
