@@ -128,6 +128,8 @@ _MIN_SLEEP = 0.1
 
 def new_run_dir(pattern: str, base: Path | None = None) -> Path:
     """Expand ``{timestamp}`` in ``pattern``; add a suffix if the directory already has a run."""
+    if not str(pattern).strip():
+        raise InputError("output.dir is empty: give a run directory such as 'runs/{timestamp}'")
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     p = Path(pattern.replace("{timestamp}", stamp)).expanduser()
     if base is not None and not p.is_absolute():
@@ -723,6 +725,16 @@ class RTHSLoop:
         self.window_s = cfg.window_s
         self.fei_pair = fe["pair"]
         self.stream_fei = _StreamingFEI(self.fs, self.window_s) if fe["enabled"] else None
+        if self.stream_fei is not None and self.stream_fei.N > min(n, gm.npts):
+            longer = "record" if gm.npts < n else "run"
+            what = (
+                f"FEI window fei.window = {self.window_s:g} s is longer than the {longer} "
+                f"({min(n, gm.npts) / self.fs:g} s): no FEI window completes and the FEI rule "
+                "never arms"
+            )
+            if self.stream_fei.N > gm.npts:  # longer than the whole record: can never work
+                raise InputError(f"{cfg.source}: {what}")
+            log.warning("%s", what)  # a short run asked for explicitly
         self.exact_hop = fe["exact_hop"] if fe["enabled"] else 0
         kc = cfg["kalman"]
         self.kalman = None
