@@ -253,8 +253,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             0.5,
             "s",
-            "controller-side watchdog: no command or heartbeat for this long while enabled → "
-            "the twin holds and latches its e-stop (0 = off)",
+            "paced: the in-process twin's controller-side watchdog: no command or heartbeat for "
+            "this long while enabled → it holds and latches its e-stop (0 = off; off in lockstep)",
             0,
             None,
         ),

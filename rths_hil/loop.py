@@ -830,7 +830,10 @@ class RTHSLoop:
                     self.plant,
                     faults=self.faults,
                     threaded=not inline,
-                    heartbeat_timeout=cfg["twin"]["watchdog"] or None,
+                    # lockstep is virtual time: a stalled bridge is not a dead one
+                    heartbeat_timeout=(cfg["twin"]["watchdog"] or None)
+                    if self.mode == "paced"
+                    else None,
                     **conn,
                 )
             except InputError as exc:
@@ -1060,7 +1063,7 @@ class RTHSLoop:
         # lateness in a C double array: the console's p99 reads it as an ndarray without a copy
         # of the list (converting 2 k Python floats and np.percentile cost ≈ 240 µs per console
         # line on this VM, a whole 4096 Hz period; this way ≈ 15 µs)
-        lat_list = array.array("d", bytes(8 * n))
+        lat_list = array.array("d", [0.0]) * n  # no n-byte temporary
         lat_view = np.frombuffer(lat_list, dtype=float)
         ready_list = [0.0] * n if paced else None
         console = self.console_interval if self.live is not None else 0.0
@@ -1271,8 +1274,7 @@ class RTHSLoop:
             status = "trip"
             self._last_command = c if k == 0 else self._last_command
             rec.event("trip", **{k2: v2 for k2, v2 in trip.as_event().items() if k2 != "kind"})
-        lateness = lat_view[:k].copy()
-        del lat_view  # release the buffer export
+        lateness = lat_view[:k]  # a view: keeps lat_list alive, no copy
         ready = np.array(ready_list[:k], dtype=float) if paced else np.zeros(0)
         return RunResult(
             status=status,
