@@ -188,7 +188,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "lockstep_timeout": Key(
             "float",
-            1.0,
+            5.0,
             "s",
             "lockstep: wait this long (wall clock) for each reply; none by then trips the watchdog",
             0,

@@ -42,7 +42,7 @@ BASE = [
     "safety.velocity_limit=0",
     "safety.stuck_motion=1e-6",  # the record is quiet at the fault: any command motion counts
 ]
-LOCKSTEP_LIMIT = 0.5  # loop.lockstep_timeout in these runs (s; the default is 1 s)
+LOCKSTEP_LIMIT = 0.5  # loop.lockstep_timeout in these runs (s; the default is 5 s)
 
 # fault → (expected rule or None, bound in steps after AT) in lockstep
 LOCKSTEP = {
