@@ -297,8 +297,9 @@ def _record_figures(rec: _Rows, fs: float, lean_rows: int) -> dict[str, Any]:
 _CHUNK = 1 << 18  # rows per chunk of a chunked pass (≈ 2 MB per float column)
 
 
-def _chunks(rec: _Rows, names, chunk: int = _CHUNK):
+def _chunks(rec: _Rows, names, chunk: int | None = None):
     """Yield ``{name: float or bool array}`` for consecutive row chunks of a record."""
+    chunk = chunk or _CHUNK
     for i in range(0, len(rec), chunk):
         part = rec.read(i, i + chunk)
         yield {
