@@ -4,11 +4,11 @@
   (step rate, p99 lateness, online A and d, peak displacement, margin to the nearest limit).
   The loop computes the numbers off the step path (every 0.5 s by default); formatting and
   printing happen here.
-* :func:`summarize` reads a run directory back and computes the whole-record FEI (seed
-  Eq. 2.1–2.5) of measured vs target and measured vs command, the tracking metrics J1–J3 and TI
-  (:mod:`rths_hil.metrics`), statistics of the online (MWO) estimates, lateness and the e-stop
+* :func:`summarize` reads a run directory back and computes the whole-record FEI (the FEI
+  paper's Eq. 2.1–2.5) of measured vs target and measured vs command, the tracking metrics J1–J3 and
+  TI (:mod:`rths_hil.metrics`), statistics of the online (MWO) estimates, lateness and the e-stop
   outcome; it writes ``summary.json``. :func:`format_summary` renders it for the console.
-* :func:`plot_report` draws ``report.png`` like the seed's Fig. 5.1 (calculated, command and
+* :func:`plot_report` draws ``report.png`` like the FEI paper's Fig. 5.1 (calculated, command and
   measured displacements) and Fig. 5.2 (online A and d), plus lateness or the Kalman estimates.
 """
 
@@ -334,7 +334,7 @@ def _windowed(rec: _Rows, name: str, M: int) -> tuple[np.ndarray, float]:
 
 
 def _fei_lean(rec: _Rows, ref: str, fs: float):
-    """Whole-record FEI of ``measured`` vs column ``ref`` in bounded memory (seed Eq. 2.1–2.5).
+    """Whole-record FEI of ``measured`` vs ``ref`` in bounded memory (the FEI paper, Eq. 2.1–2.5).
 
     The same sums as :func:`rths_hil.fei.fei` (Hann window, mean removal, zero-padding to
     ``M = 2p``, spectral sums E, F, S over bins 1 … p−1, then the same closing equations),
@@ -557,11 +557,11 @@ def format_summary(s: dict[str, Any]) -> str:
 def plot_report(
     run_dir: str | Path, path: str | Path | None = None, max_points: int = 20_000
 ) -> Path:
-    """Draw ``report.png`` (seed Fig. 5.1 and 5.2 style) for a run directory; return its path.
+    """Draw ``report.png`` (the FEI paper's Fig. 5.1 and 5.2 style) for a run directory.
 
-    The record is read in chunks; a record longer than ``max_points`` rows is drawn as its
-    min/max envelope over ``max_points / 2`` buckets (every peak stays visible), so a one-hour
-    record costs a few MB of memory, not gigabytes.
+    Returns the path of the PNG. The record is read in chunks; a record longer than
+    ``max_points`` rows is drawn as its min/max envelope over ``max_points / 2`` buckets (every
+    peak stays visible), so a one-hour record costs a few MB of memory, not gigabytes.
     """
     import matplotlib
 
@@ -597,7 +597,7 @@ def plot_report(
     ax.plot(t, env["command"] * mm, lw=0.8, label="command")
     ax.plot(t, env["measured"] * mm, lw=0.8, ls="--", label="measured")
     ax.set_ylabel("displacement (mm)")
-    ax.set_title(f"{run.path.name}: displacements (cf. seed Fig. 5.1)")
+    ax.set_title(f"{run.path.name}: displacements (cf. the FEI paper's Fig. 5.1)")
     ax.legend(loc="upper right", fontsize=8)
     ax = axes[1]
     if zoom is not None and len(zoom):
@@ -620,7 +620,7 @@ def plot_report(
         ax.legend(loc="upper right", fontsize=8)
     axes[2].set_title(
         f"online FEI, measured vs {run.meta.get('fei_pair', 'target')} "
-        "(cf. seed Fig. 5.2); grey: invalid windows"
+        "(cf. the FEI paper's Fig. 5.2); grey: invalid windows"
     )
     ax = axes[4]
     if paced:
