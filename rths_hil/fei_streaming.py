@@ -590,6 +590,17 @@ class StreamingFEI:
         Samples between reported windows.
     abs_floor, rel_floor : float
         Validity floors as in :mod:`rths_hil.fei`.
+    exact_band : float, optional
+        Bins below ``exact_band`` cycles per window are evaluated exactly by sliding DFTs
+        (default :data:`EXACT_BAND`); 0 takes the whole quadrature part from the analytic
+        signals.
+
+    References
+    ----------
+    The FEI paper, Eq. 2.1–2.5; E. Jacobsen and R. Lyons, "The sliding DFT", IEEE Signal
+    Processing Magazine 20(2), 2003; H. J. Orchard, "Synthesis of wideband two-phase networks",
+    Wireless Engineer 27, 1950; E. Bedrosian, "A product theorem for Hilbert transforms",
+    Proc. IEEE 51(5), 1963.
     """
 
     def __init__(
