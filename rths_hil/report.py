@@ -4,11 +4,11 @@
   (step rate, p99 lateness, online A and d, peak displacement, margin to the nearest limit).
   The loop computes the numbers off the step path (every 0.5 s by default); formatting and
   printing happen here.
-* :func:`summarize` reads a run directory back and computes the whole-record FEI (seed
-  Eq. 2.1–2.5) of measured vs target and measured vs command, the tracking metrics J1–J3 and TI
-  (:mod:`rths_hil.metrics`), statistics of the online (MWO) estimates, lateness and the e-stop
+* :func:`summarize` reads a run directory back and computes the whole-record FEI (the FEI
+  paper's Eq. 2.1–2.5) of measured vs target and measured vs command, the tracking metrics J1–J3 and
+  TI (:mod:`rths_hil.metrics`), statistics of the online (MWO) estimates, lateness and the e-stop
   outcome; it writes ``summary.json``. :func:`format_summary` renders it for the console.
-* :func:`plot_report` draws ``report.png`` like the seed's Fig. 5.1 (calculated, command and
+* :func:`plot_report` draws ``report.png`` like the FEI paper's Fig. 5.1 (calculated, command and
   measured displacements) and Fig. 5.2 (online A and d), plus lateness or the Kalman estimates.
 """
 
@@ -313,7 +313,8 @@ def format_summary(s: dict[str, Any]) -> str:
 
 
 def plot_report(run_dir: str | Path, path: str | Path | None = None) -> Path:
-    """Draw ``report.png`` (seed Fig. 5.1 and 5.2 style) for a run directory; return its path."""
+    """Draw ``report.png`` (the FEI paper's Fig. 5.1 and 5.2 style) for a run directory; return its
+    path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -331,7 +332,7 @@ def plot_report(run_dir: str | Path, path: str | Path | None = None) -> Path:
     ax.plot(t, rec["command"] * mm, lw=0.8, label="command")
     ax.plot(t, rec["measured"] * mm, lw=0.8, ls="--", label="measured")
     ax.set_ylabel("displacement (mm)")
-    ax.set_title(f"{run.path.name}: displacements (cf. seed Fig. 5.1)")
+    ax.set_title(f"{run.path.name}: displacements (cf. the FEI paper's Fig. 5.1)")
     ax.legend(loc="upper right", fontsize=8)
     # zoom around the peak target displacement
     ax = axes[1]
@@ -360,7 +361,7 @@ def plot_report(run_dir: str | Path, path: str | Path | None = None) -> Path:
         ax.legend(loc="upper right", fontsize=8)
     axes[2].set_title(
         f"online FEI, measured vs {run.meta.get('fei_pair', 'target')} "
-        "(cf. seed Fig. 5.2); grey: invalid windows"
+        "(cf. the FEI paper's Fig. 5.2); grey: invalid windows"
     )
     ax = axes[4]
     if paced:
