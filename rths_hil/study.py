@@ -1238,7 +1238,6 @@ def plan_trials(
     noise_seeds = rng.integers(0, 2**31 - 1, trials)
     base["loop"]["mode"] = "lockstep"
     base["loop"]["console"] = 0.0
-    base["compensation"]["adaptive"] = False
     # the exact-FEI cross-check is only recorded (no safety rule reads it, the MWO extremes
     # come from the streaming FEI the FEI rule uses): off, it halves a trial's time
     base["fei"]["exact_hop"] = 0
