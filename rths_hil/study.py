@@ -1,4 +1,4 @@
-"""The seed's computational study (Section 4): window size per natural frequency, accuracy table.
+"""The FEI paper's computational study (Section 4) and robustness studies on perturbed twins.
 
 Set-up (seed Fig. 4.1): an SDOF structure (mass, 2 % damping, linear or Bouc-Wen per Eq. 4.1–4.2)
 is driven by a recorded ground motion sampled at 1024 Hz and integrated with the CR algorithm; its
@@ -34,10 +34,18 @@ For each fn, linear and Bouc-Wen structures, gain 1.1 and delay 5 ms, window 3·
 seed's MWO, Eq. 7): the maximum over the counted windows (same selection as above) of the
 amplitude error ``|A − k_p|/k_p`` and the delay error ``|d − τ|/τ``, in %.
 
-Both studies run their cases through an executor (default
-``concurrent.futures.ProcessPoolExecutor(max_workers=2)``); any object with the
-:class:`concurrent.futures.Executor` ``submit`` method — e.g. a distributed one — can be passed.
-Progress goes to stderr through tqdm.
+Robustness study (``docs/studies.md``)
+--------------------------------------
+:func:`robustness_study` draws perturbed twins (:class:`Perturbation`, :func:`parse_vary`,
+benchmark-style :func:`default_perturbations`), runs each in lockstep through
+:func:`rths_hil.loop.run` (:func:`robustness_trial`) and evaluates it against the reference
+structure (:func:`reference_response`) with J1–J9 as the RTHS benchmark's paper and evaluation
+script define them (:mod:`rths_hil.metrics`), the whole-record FEI and the MWO extremes.
+
+All studies run their cases through an executor (default
+``concurrent.futures.ProcessPoolExecutor(max_workers=2)``); any
+:class:`concurrent.futures.Executor` can be passed, e.g. a Dask one from :func:`open_executor`
+(a ``LocalCluster`` on 127.0.0.1 or a lab's scheduler). Progress goes to stderr through tqdm.
 """
 
 from __future__ import annotations

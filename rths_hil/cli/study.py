@@ -1,12 +1,17 @@
-"""``rths-hil study``: the seed's computational study (Section 4).
+"""``rths-hil study``: the FEI paper's computational study (Section 4) and robustness studies.
 
 * ``study window-size``: smallest moving window meeting a delay-error criterion for each record
-  and natural frequency (seed Fig. 4.2); writes ``window_size.csv`` and ``window_size.png``.
+  and natural frequency (the FEI paper's Fig. 4.2); writes ``window_size.csv`` and
+  ``window_size.png``.
 * ``study accuracy``: maximum amplitude and delay errors of the moving-window FEI for linear and
-  Bouc-Wen structures (seed Table 4.1, Fig. 4.6); writes ``accuracy.csv`` and ``accuracy.png``.
+  Bouc-Wen structures (Table 4.1, Fig. 4.6); writes ``accuracy.csv`` and ``accuracy.png``.
+* ``study robustness CONFIG``: perturbed twins run in lockstep through the full chain; writes
+  ``trials.csv``, ``summary.csv``, ``summary.json`` and plots (``docs/studies.md``).
 
-Both run their cases on a process pool (``--workers``, default 2) with a progress bar on stderr.
-The procedure and the criterion are described in ``docs/simulation.md``.
+The first two run their cases on a process pool (``--workers``, default 2) or, with
+``--scheduler local|ADDRESS``, on Dask; ``robustness`` runs on Dask (default a local cluster on
+127.0.0.1). All show a progress bar on stderr. The window-size and accuracy procedures are
+described in ``docs/simulation.md``.
 """
 
 from __future__ import annotations
