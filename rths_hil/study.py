@@ -286,8 +286,18 @@ def _default_executor() -> Executor:
     return ProcessPoolExecutor(max_workers=2)
 
 
-def _run_cases(func, cases: Sequence[tuple], executor: Executor | None, progress: bool, desc: str):
-    """Submit ``func(*case)`` for each case; return results in case order."""
+def _run_cases(
+    func,
+    cases: Sequence[tuple],
+    executor: Executor | None,
+    progress: bool,
+    desc: str,
+    on_result=None,
+):
+    """Submit ``func(*case)`` for each case; return results in case order.
+
+    ``on_result(index, result)`` is called as each case completes (in completion order).
+    """
     from tqdm import tqdm
 
     own = executor is None
@@ -299,6 +309,8 @@ def _run_cases(func, cases: Sequence[tuple], executor: Executor | None, progress
         with bar:
             for fut in as_completed(futures):
                 results[futures[fut]] = fut.result()
+                if on_result is not None:
+                    on_result(futures[fut], results[futures[fut]])
                 bar.update(1)
     finally:
         if own:
@@ -625,6 +637,7 @@ def open_executor(scheduler: str | None = None, workers: int = 2) -> Iterator[Ex
             dashboard_address=None,
         )
         client = Client(cluster)
+        client.wait_for_workers(int(workers))
     else:
         address = scheduler if "://" in scheduler else f"tcp://{scheduler}"
         if not _ADDRESS_RE.match(address):
@@ -1279,6 +1292,7 @@ def robustness_study(
     duration: float | None = None,
     executor: Executor | None = None,
     progress: bool = True,
+    on_row=None,
 ) -> RobustnessResult:
     """Perturbed-plant trials in lockstep through the full chain (docs/studies.md).
 
@@ -1301,11 +1315,20 @@ def robustness_study(
         Dask one).
     progress : bool
         tqdm progress bar on stderr.
+    on_row : callable, optional
+        Called with each trial's row as it completes (e.g. to keep them on an interrupt).
     """
     base = _inline_twin(cfg)
     perts = list(perturbations) if perturbations is not None else default_perturbations(base)
     specs = plan_trials(base, perts, trials, seed, alphas, duration)
-    rows = _run_cases(robustness_trial, [(s,) for s in specs], executor, progress, "trials")
+    rows = _run_cases(
+        robustness_trial,
+        [(s,) for s in specs],
+        executor,
+        progress,
+        "trials",
+        None if on_row is None else (lambda _i, row: on_row(row)),
+    )
     alist = sorted({s.alpha for s in specs}, key=[s.alpha for s in specs].index)
     return RobustnessResult(rows, perts, alist, int(seed), [p.key for p in perts])
 

@@ -64,6 +64,8 @@ def cluster():
     with study.open_executor("local", 2) as ex:
         address = ex._client.scheduler.address
         assert address.startswith("tcp://127.0.0.1:")
+        workers = ex._client.scheduler_info()["workers"]
+        assert len(workers) == 2 and all(w.startswith("tcp://127.0.0.1:") for w in workers)
         yield ex, address
 
 

@@ -365,17 +365,33 @@ def run_robustness(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     t0 = time.perf_counter()
-    with study.open_executor(args.scheduler, args.workers) as ex:
-        res = study.robustness_study(
-            base,
-            perts,
-            args.trials,
-            seed=args.seed,
-            alphas=alphas,
-            duration=duration,
-            executor=ex,
-            progress=not args.no_progress,
+    done: list[dict] = []
+    try:
+        with study.open_executor(args.scheduler, args.workers) as ex:
+            res = study.robustness_study(
+                base,
+                perts,
+                args.trials,
+                seed=args.seed,
+                alphas=alphas,
+                duration=duration,
+                executor=ex,
+                progress=not args.no_progress,
+                on_row=done.append,
+            )
+    except KeyboardInterrupt:
+        order = {a: i for i, a in enumerate(dict.fromkeys(s.alpha for s in specs))}
+        done.sort(key=lambda r: (order.get(r["alpha"], 0), r["trial"]))
+        partial = study.RobustnessResult(
+            done, perts, list(order), args.seed, [p.key for p in perts]
         )
+        study.write_trials_csv(out / "trials.partial.csv", partial)
+        print(
+            f"rths-hil study robustness: interrupted; the {len(done)} of {len(specs)} runs "
+            f"that finished are in {out / 'trials.partial.csv'}",
+            file=sys.stderr,
+        )
+        return 130
     wall = time.perf_counter() - t0
     study.write_trials_csv(out / "trials.csv", res)
     study.write_summary(out / "summary.csv", res)
