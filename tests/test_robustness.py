@@ -175,6 +175,15 @@ def test_killed_worker_trial_is_rerun_and_the_study_completes(cluster, tmp_path)
     assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()
 
 
+def test_study_accuracy_on_the_cluster_equals_the_serial_run(cluster, tmp_path, capsys):
+    args = ["study", "accuracy", "--fn", "1.0", "--hop", "32", "--no-progress"]
+    assert main([*args, "--workers", "1", "--out", str(tmp_path / "serial")]) == 0
+    assert main([*args, "--scheduler", cluster[1], "--out", str(tmp_path / "dask")]) == 0
+    serial = (tmp_path / "serial" / "accuracy.csv").read_bytes()
+    assert serial == (tmp_path / "dask" / "accuracy.csv").read_bytes()
+    assert len(serial.decode().splitlines()) == 3  # linear and Bouc-Wen
+
+
 @pytest.mark.parametrize(
     "vary,message",
     [
