@@ -49,6 +49,15 @@ def _warm(spec) -> float:
     return time.perf_counter() - t
 
 
+def _timed(spec) -> float:
+    """Run one trial; return the CPU seconds the worker process spent on it."""
+    from rths_hil.study import robustness_trial
+
+    t = time.process_time()
+    robustness_trial(spec)
+    return time.process_time() - t
+
+
 def throughput(trials: int, seconds: float) -> list[list[object]]:
     """Trials per second in-process and on 1 and 2 Dask workers (same trials)."""
     from rths_hil import study
@@ -59,41 +68,32 @@ def throughput(trials: int, seconds: float) -> list[list[object]]:
     perts = study.default_perturbations(base)
     specs = study.plan_trials(base, perts, trials, seed=1, duration=seconds)
     warm = study.plan_trials(base, perts, 2, seed=99, duration=seconds)
-    rows = []
+    rows: list[list[object]] = []
+
+    def row(name: str, dt: float, cpu: float, ratio: str, load: str) -> None:
+        rows.append(
+            [name, trials, f"{dt:.1f}", f"{trials / dt:.3f}", ratio, f"{cpu / trials:.2f}", load]
+        )
+        print(rows[-1], file=sys.stderr, flush=True)
+
     _warm(warm[0])
     load0 = _load()
     t = time.perf_counter()
-    for s in specs:
-        study.robustness_trial(s)
-    dt = time.perf_counter() - t
-    rows.append(["in-process (no Dask)", trials, f"{dt:.1f}", f"{trials / dt:.3f}", "–", load0])
+    cpu = sum(_timed(s) for s in specs)
+    row("in-process (no Dask)", time.perf_counter() - t, cpu, "–", load0)
     ref = None
     for n in (1, 2):
         with study.open_executor("local", n) as ex:
             client = ex._client
-            client.wait_for_workers(n)
             # one warm-up trial on every worker before the clock starts
             for addr in client.scheduler_info()["workers"]:
                 client.submit(_warm, warm[1], workers=[addr], pure=False).result()
             load0 = _load()
             t = time.perf_counter()
-            futures = [ex.submit(study.robustness_trial, s) for s in specs]
-            for f in futures:
-                f.result()
+            cpu = sum(f.result() for f in [ex.submit(_timed, s) for s in specs])
             dt = time.perf_counter() - t
-        rate = trials / dt
-        ref = ref or rate
-        rows.append(
-            [
-                f"Dask, {n} worker(s)",
-                trials,
-                f"{dt:.1f}",
-                f"{rate:.3f}",
-                f"{rate / ref:.2f}×",
-                load0,
-            ]
-        )
-        print(rows[-1], file=sys.stderr, flush=True)
+        ref = ref or trials / dt
+        row(f"Dask, {n} worker(s)", dt, cpu, f"{trials / dt / ref:.2f}×", load0)
     return rows
 
 
@@ -122,7 +122,15 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     rows = throughput(args.trials, args.trial_seconds)
     table = "### Throughput\n\n" + markdown_table(
-        ["executor", "trials", "wall (s)", "trials/s", "vs 1 worker", "load avg 1/5/15 min"],
+        [
+            "executor",
+            "trials",
+            "wall (s)",
+            "trials/s",
+            "vs 1 worker",
+            "CPU s per trial",
+            "load avg 1/5/15 min",
+        ],
         rows,
     )
     two = float(rows[2][3]) / float(rows[1][3])
@@ -141,7 +149,9 @@ def main(argv: list[str] | None = None) -> int:
     notes.append(
         "The load average (runnable processes, this machine has "
         f"{os.cpu_count()} logical cores) shows how much of the machine other work took "
-        "during each measurement: above the core count the second worker shares a core."
+        "during each measurement: above the core count the second worker shares a core. "
+        "CPU s per trial is the worker process's CPU time per trial: when it stays put while "
+        "the wall time per trial grows, the workers were waiting for a core."
     )
     path = write_results(
         "bench_study",
