@@ -184,6 +184,23 @@ def test_study_accuracy_on_the_cluster_equals_the_serial_run(cluster, tmp_path, 
     assert len(serial.decode().splitlines()) == 3  # linear and Bouc-Wen
 
 
+def test_tune_sweep_on_the_cluster_equals_the_serial_sweep(cluster, tmp_path, capsys):
+    import csv
+
+    args = ["tune", str(EXAMPLE), "--sweep", "20,35", "--trial-duration", "2s", "--no-plot"]
+    args += ["-q", "--set", "driver.name=serial", "--set", "driver.connection={}"]
+    assert main([*args, "--out", str(tmp_path / "serial")]) == 0
+    assert main([*args, "--scheduler", cluster[1], "--out", str(tmp_path / "dask")]) == 0
+
+    def table(d):
+        with (tmp_path / d / "sweep.csv").open() as fh:
+            return [{k: v for k, v in r.items() if k != "run_dir"} for r in csv.DictReader(fh)]
+
+    assert table("serial") == table("dask")
+    assert len(table("dask")) == 2
+    assert (tmp_path / "dask" / "sweep-02" / "record.npy").is_file()
+
+
 @pytest.mark.parametrize(
     "vary,message",
     [
