@@ -1276,6 +1276,8 @@ def plan_trials(
             for k, v in values.items():
                 _set_value(c, k, v)
             c["compensation"]["alpha"] = a
+            if alphas:
+                c["compensation"]["enabled"] = True
             if c["twin"]["sensor"]:
                 c["twin"]["sensor"]["seed"] = int(noise_seeds[i])
             specs.append(TrialSpec(i, a, values, c, record, duration))
