@@ -223,12 +223,12 @@ def benchmark_transfer_function(
     specimen_mass: float = BENCHMARK_NOMINAL["specimen_mass"],
     specimen_damping: float = BENCHMARK_NOMINAL["specimen_damping"],
     specimen_stiffness: float = BENCHMARK_NOMINAL["specimen_stiffness"],
-    plant_gain: float = 1.0,
+    plant_gain: float = BENCHMARK_CODE_GAIN,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Continuous transfer function (num, den) from command to achieved displacement.
 
-    ``plant_gain = 1`` (default here) is the paper's Eq. 21; the benchmark's code multiplies it
-    by :data:`BENCHMARK_CODE_GAIN`.
+    The default ``plant_gain`` is the benchmark code's :data:`BENCHMARK_CODE_GAIN` (1.0261), as
+    :class:`BenchmarkServo`; ``plant_gain = 1`` is the paper's Eq. 21.
 
     Silva et al. (2020): with the servo-valve ``Gsv = a1β0/(s² + β1 s + β2)``, the actuator
     ``Ga = 1/(s + a3)``, the specimen ``Ge = 1/(m s² + c s + k)`` and the control-structure
