@@ -46,7 +46,8 @@ Modes
     that the in-process twin, the exact-FEI worker and the loop hand the GIL over quickly, and
     the cyclic garbage collector is paused.
 ``lockstep``
-    Virtual time: each step waits for its reply (timeout 1 s by default) and starts the next one
+    Virtual time: each step waits for its reply (loop.lockstep_timeout, 5 s of wall clock by
+    default; none by then trips the watchdog) and starts the next one
     at once. Deterministic; for CI, tuning and what-if runs. Lateness is recorded as 0.
 
 The exact-FEI cross-check runs synchronously in lockstep and in a worker thread when paced, so
@@ -88,7 +89,7 @@ from .compensation import AdaptiveAlpha, InverseCompensator
 from .config import SCHEMA, Config, load_config
 from .errors import InputError
 from .fei import OnlineFEI
-from .recorder import Recorder
+from .recorder import Recorder, RecordWriteError
 from .safety import (
     ControllerRule,
     FEIRule,
@@ -128,12 +129,14 @@ _MIN_SLEEP = 0.1
 
 def new_run_dir(pattern: str, base: Path | None = None) -> Path:
     """Expand ``{timestamp}`` in ``pattern``; add a suffix if the directory already has a run."""
+    if not str(pattern).strip():
+        raise InputError("output.dir is empty: give a run directory such as 'runs/{timestamp}'")
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     p = Path(pattern.replace("{timestamp}", stamp)).expanduser()
     if base is not None and not p.is_absolute():
         p = base / p
     out, i = p, 1
-    while (out / "record.npy").exists():
+    while any((out / f).exists() for f in ("record.npy", "events.jsonl", "meta.json")):
         out = p.with_name(f"{p.name}-{i}")
         i += 1
     return out
@@ -723,6 +726,16 @@ class RTHSLoop:
         self.window_s = cfg.window_s
         self.fei_pair = fe["pair"]
         self.stream_fei = _StreamingFEI(self.fs, self.window_s) if fe["enabled"] else None
+        if self.stream_fei is not None and self.stream_fei.N > min(n, gm.npts):
+            longer = "record" if gm.npts < n else "run"
+            what = (
+                f"FEI window fei.window = {self.window_s:g} s is longer than the {longer} "
+                f"({min(n, gm.npts) / self.fs:g} s): no FEI window completes and the FEI rule "
+                "never arms"
+            )
+            if self.stream_fei.N > gm.npts:  # longer than the whole record: can never work
+                raise InputError(f"{cfg.source}: {what}")
+            log.warning("%s", what)  # a short run asked for explicitly
         self.exact_hop = fe["exact_hop"] if fe["enabled"] else 0
         kc = cfg["kalman"]
         self.kalman = None
@@ -766,7 +779,14 @@ class RTHSLoop:
                 if kc["enabled"]
                 else None
             ),
-            watchdog=WatchdogRule(sf["watchdog_missed"]),
+            watchdog=WatchdogRule(
+                sf["watchdog_missed"],
+                # paced: wall-clock time since the last good reply; lockstep: the generous
+                # wall-clock bound of the wait for each reply (virtual time, deterministic)
+                (sf["watchdog_timeout"] or sf["watchdog_missed"] * self.dt)
+                if self.mode == "paced"
+                else lp["lockstep_timeout"],
+            ),
             sequence=SequenceRule(sf["max_sequence_gaps"]),
             overrun=OverrunRule(sf["max_overruns"]) if self.mode == "paced" else None,
             stuck=StuckRule(sf["stuck_steps"], sf["stuck_motion"]) if sf["stuck_steps"] else None,
@@ -774,7 +794,10 @@ class RTHSLoop:
         )
 
         # timing
-        self.timeout = lp["feedback_timeout"] or (0.8 * self.dt if self.mode == "paced" else 1.0)
+        if self.mode == "paced":
+            self.timeout = lp["feedback_timeout"] or 0.8 * self.dt
+        else:  # lockstep waits for every reply, up to the wall-clock bound that trips
+            self.timeout = lp["lockstep_timeout"]
         # never spin through a whole period: a SCHED_FIFO thread that never sleeps is stopped by
         # Linux's RT throttling (95 % of a CPU) for 50 ms every second
         self.spin = min(lp["spin"], 0.4 * self.dt)
@@ -804,7 +827,15 @@ class RTHSLoop:
             )
             try:
                 self.twin = start_twin(
-                    name, self.plant, faults=self.faults, threaded=not inline, **conn
+                    name,
+                    self.plant,
+                    faults=self.faults,
+                    threaded=not inline,
+                    # lockstep is virtual time: a stalled bridge is not a dead one
+                    heartbeat_timeout=(cfg["twin"]["watchdog"] or None)
+                    if self.mode == "paced"
+                    else None,
+                    **conn,
                 )
             except InputError as exc:
                 raise InputError(f"{cfg.source}: driver.connection: {exc}") from None
@@ -892,7 +923,20 @@ class RTHSLoop:
                 steps=self.n_steps,
                 rules=self.monitor.rules,
             )
+            # a new run on the controller: restart its sequence count, acknowledge a latch
+            armed = driver.arm(max(self.timeout, 0.5), self._receiver(driver))
+            rec.event(
+                "arm", 0.0, 0, replied=armed is not None,
+                status=None if armed is None else int(armed.status),
+            )  # fmt: skip
             result = self._loop(driver, rec, exact)
+            if result.status == "completed":
+                try:  # the last rows: a write failure here is still a safety event
+                    rec.flush()
+                except RecordWriteError as exc:
+                    result.status = "trip"
+                    result.trip = Trip("record", str(exc)).at(result.steps * self.dt, result.steps)
+                    rec.event("trip", **dict(list(result.trip.as_event().items())[1:]))
             if result.status != "completed":
                 result.estop_confirmed = self._estop(driver, rec, result)
             ls = result.lateness_stats()
@@ -904,7 +948,7 @@ class RTHSLoop:
                 result.steps * self.dt,
                 result.steps,
                 status=result.status,
-                wall_time=result.wall_time,
+                wall_duration=result.wall_time,
                 steps_per_second=result.steps_per_second,
                 lateness=ls,
                 overrun_causes=result.overrun_causes(),
@@ -949,7 +993,8 @@ class RTHSLoop:
     def _estop(self, driver: Driver, rec: Recorder, result: RunResult) -> bool | None:
         """Send the e-stop, then poll once to see the controller report it latched."""
         driver.estop()
-        rec.flush()
+        with contextlib.suppress(RecordWriteError):  # already a trip; keep what was flushed
+            rec.flush()
         # One status poll: a new command with enable=True is ignored by a latched controller
         # (it holds position) and answered with ESTOP_ACTIVE. enable=False would acknowledge
         # (clear) the latch, so it is not used here.
@@ -977,7 +1022,7 @@ class RTHSLoop:
         dt = self.dt
         fs = self.fs
         paced = self.mode == "paced"
-        ag = self.ag.tolist()
+        ag = array.array("d", self.ag)  # floats on indexing, 8 B each (a list: 32 B each)
         st = self.structure
         comp = self.compensator
         mon = self.monitor
@@ -1019,7 +1064,7 @@ class RTHSLoop:
         # lateness in a C double array: the console's p99 reads it as an ndarray without a copy
         # of the list (converting 2 k Python floats and np.percentile cost ≈ 240 µs per console
         # line on this VM, a whole 4096 Hz period; this way ≈ 15 µs)
-        lat_list = array.array("d", bytes(8 * n))
+        lat_list = array.array("d", [0.0]) * n  # no n-byte temporary
         lat_view = np.frombuffer(lat_list, dtype=float)
         ready_list = [0.0] * n if paced else None
         console = self.console_interval if self.live is not None else 0.0
@@ -1208,6 +1253,11 @@ class RTHSLoop:
                         last_console_k, last_console_t = k, now
                         next_console = now + console
             wall = perf() - t_start
+        except RecordWriteError as exc:  # disk full or gone: a safety event, not a crash
+            wall = perf() - t_start
+            trip = Trip("record", str(exc), values={"rows_on_disk": rec.rows}).at(k * dt, k)
+            self._last_command = c
+            k += 1  # step k was sent and answered; only its row is lost
         except BaseException:
             with contextlib.suppress(Exception):
                 driver.estop()
@@ -1225,8 +1275,7 @@ class RTHSLoop:
             status = "trip"
             self._last_command = c if k == 0 else self._last_command
             rec.event("trip", **{k2: v2 for k2, v2 in trip.as_event().items() if k2 != "kind"})
-        lateness = lat_view[:k].copy()
-        del lat_view  # release the buffer export
+        lateness = lat_view[:k]  # a view: keeps lat_list alive, no copy
         ready = np.array(ready_list[:k], dtype=float) if paced else np.zeros(0)
         return RunResult(
             status=status,

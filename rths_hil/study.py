@@ -471,7 +471,8 @@ def accuracy_study(
     progress: bool = True,
     **kwargs,
 ) -> list[AccuracyResult]:
-    """Seed Table 4.1: linear and Bouc-Wen SDOF for each fn, rows ordered by fn then structure.
+    """The FEI paper's Table 4.1: linear and Bouc-Wen SDOF for each fn, rows ordered by fn then
+    structure.
 
     The window is ``window_periods``·Tn unless ``window_s`` (s, same for every fn) is given.
     Other keyword arguments go to :func:`accuracy_case` (gain, delay, zeta, hop, min_level).
@@ -799,12 +800,14 @@ def _twin_spec(cfg):
 
 
 def _varyable_keys(cfg) -> list[str]:
-    from sim_backends.models import MODELS
+    from sim_backends.registry import MODEL_ALIASES, MODELS
 
     from .config import SCHEMA
 
     model = cfg["twin"]["actuator"].get("model", "delay_gain")
-    keys = [f"twin.actuator.{k}" for k in ("delay", "gain", *MODELS.get(model, {}))]
+    model = MODEL_ALIASES.get(model, model)
+    params = MODELS[model].params if model in MODELS else {}
+    keys = [f"twin.actuator.{k}" for k in ("delay", "gain", *params)]
     keys += [f"twin.specimen.{k}" for k in ("stiffness", "damping", "mass")]
     keys += [f"twin.{k}" for k in _TWIN_DOMAIN if k.startswith("sensor.")]
     for section in _CONFIG_SECTIONS:
@@ -943,7 +946,7 @@ def default_perturbations(cfg) -> list[Perturbation]:
         else:
             rel("twin.specimen.stiffness", k, _SIGMA_STIFFNESS)
         return out
-    if model == "first_order":
+    if model in ("servo_lag", "first_order"):
         rel("twin.actuator.time_constant", spec.actuator.params["time_constant"], _SIGMA_DELAY)
     elif spec.actuator.delay > 0:
         rel("twin.actuator.delay", spec.actuator.delay, _SIGMA_DELAY)

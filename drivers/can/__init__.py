@@ -11,6 +11,13 @@ The bus is opened through python-can from configuration: ``interface`` (default
 ``"virtual"``, in-process only), ``channel``, ``bitrate`` and any extra python-can options in
 ``bus_options``. On Linux with SocketCAN use ``interface="socketcan", channel="vcan0"``
 (or ``can0``).
+
+Every receive honours its timeout. Not every python-can interface does: ``serial`` (and other
+interfaces built on a blocking read) wait their own read timeout (0.1 s) whatever ``recv`` is
+given, which would make a paced loop's watchdog count wall-clock seconds as single steps. On
+such interfaces the driver reads the bus through python-can's own :class:`can.Notifier`
+thread into a :class:`can.BufferedReader`, whose queue honours the timeout to the
+microsecond; interfaces known to honour it (:data:`TIMEOUT_HONOURED`) are read directly.
 """
 
 from __future__ import annotations
@@ -28,7 +35,11 @@ from rths_hil.errors import InputError
 from ..base import Driver, Feedback, check_command
 from .codec import ActuatorCodecs, Frame, load
 
-__all__ = ["CANDriver", "virtual_rx_queue"]
+__all__ = ["TIMEOUT_HONOURED", "CANDriver", "virtual_rx_queue"]
+
+#: python-can interfaces whose ``recv(timeout)`` returns within the timeout (read directly);
+#: any other is read through a :class:`can.Notifier` thread (see the module docstring).
+TIMEOUT_HONOURED = frozenset({"virtual", "socketcan"})
 
 _BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
 
@@ -111,6 +122,8 @@ class CANDriver(Driver):
         self._cmd_data = self._cmd_msg.data
         self._bus: can.BusABC | None = None
         self._rxq: queue.Queue | None = None
+        self._notifier: can.Notifier | None = None
+        self._reader: can.BufferedReader | None = None
         self._hb = 0
 
     def open(self) -> None:
@@ -127,10 +140,20 @@ class CANDriver(Driver):
                 f"{self.channel!r}: {exc}"
             ) from None
         self._rxq = virtual_rx_queue(self._bus)
+        if self.interface not in TIMEOUT_HONOURED:
+            self._reader = can.BufferedReader()
+            self._notifier = can.Notifier(self._bus, [self._reader], timeout=0.01)
 
     def close(self) -> None:
         bus, self._bus = self._bus, None
         self._rxq = None
+        notifier, self._notifier = self._notifier, None
+        self._reader = None
+        if notifier is not None:
+            try:
+                notifier.stop(timeout=1.0)
+            except _BUS_ERRORS:  # pragma: no cover - already gone
+                pass
         if bus is not None:
             try:
                 bus.shutdown()
@@ -185,12 +208,17 @@ class CANDriver(Driver):
         deadline = time.perf_counter() + timeout
         remaining = timeout
         q = self._rxq
+        reader = self._reader
         while True:
             if q is not None:  # virtual bus: its queue directly (see virtual_rx_queue)
                 try:
                     msg = q.get(True, remaining)
                 except queue.Empty:
                     msg = None
+            elif reader is not None:  # an interface that ignores the timeout: its reader
+                msg = reader.get_message(max(remaining, 0.0))
+                if msg is None and self._notifier is not None and self._notifier.exception:
+                    stats.disconnects += 1
             else:
                 try:
                     msg = bus.recv(remaining)

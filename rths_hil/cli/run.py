@@ -2,7 +2,7 @@
 
 ``rths-hil run [CONFIG.toml] [--lockstep] [--duration S] [--out DIR] [--set key=value]...``
 
-Without a configuration it runs the embedded default (the seed's NEES-711 setup over the CAN
+Without a configuration it runs the embedded default (the FEI paper's NEES-711 setup over the CAN
 driver on python-can's virtual bus to an in-process twin, paced at 1024 Hz for 30 s). Prints a
 live status line, then the summary; writes the run directory (record, events, metadata,
 ``summary.json``, ``report.png``). Exit codes: 0 completed, 2 bad input, 3 safety trip (e-stop
@@ -73,6 +73,8 @@ def main(args: argparse.Namespace) -> int:
         duration = parse_time(args.duration, "--duration")
         if duration < 0:
             raise InputError(f"--duration must be >= 0 s, got {args.duration!r}")
+    if args.out is not None and not args.out.strip():
+        raise InputError("--out is empty: give a run directory")
     run_dir = Path(args.out) if args.out else new_run_dir(cfg["output"]["dir"])
     live = None if args.quiet or cfg["loop"]["console"] <= 0 else LiveLine(sys.stderr)
     loop = RTHSLoop(cfg, run_dir, live=live, mode=mode, duration=duration)
@@ -87,10 +89,19 @@ def main(args: argparse.Namespace) -> int:
     finally:
         if live is not None:
             live.finish()
-    summary = summarize(run_dir)
-    if cfg["output"]["plot"] and not args.no_plot and result.steps > 1:
-        plot_report(run_dir)
-    if not args.quiet:
+    del loop  # the run's arrays (ground motion, lateness) are not needed for the summary
+    result.lateness = result.ready = None
+    try:
+        summary = summarize(run_dir)
+        if cfg["output"]["plot"] and not args.no_plot and result.steps > 1:
+            plot_report(run_dir)
+    except OSError as exc:  # e.g. the disk filled up: the record and events are what is kept
+        summary = None
+        print(
+            f"rths-hil run: cannot write the summary or report in {run_dir}: {exc.strerror or exc}",
+            file=sys.stderr,
+        )
+    if not args.quiet and summary is not None:
         print(format_summary(summary))
     if result.status == "trip":
         t = result.trip

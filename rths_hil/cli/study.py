@@ -59,7 +59,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     ws = st.add_parser(
         "window-size",
         help="window size needed per natural frequency (the FEI paper's Fig. 4.2)",
-        description="Seed Fig. 4.2: t_w from 1·Tn upwards by 0.1·Tn until the criterion holds.",
+        description=(
+            "FEI paper, Fig. 4.2: t_w from 1·Tn upwards by 0.1·Tn until the criterion holds."
+        ),
     )
     ws.add_argument(
         "--record",
@@ -74,9 +76,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="p95",
         help="statistic of the window errors: max or pNN percentile (default p95)",
     )
-    ws.add_argument(
-        "--bouc-wen", action="store_true", help="Bouc-Wen structure (the FEI paper's Eq. 4.1-4.2)"
-    )
+    ws.add_argument("--bouc-wen", action="store_true", help="Bouc-Wen structure (Eq. 4.1-4.2)")
     ws.add_argument("--max-periods", default="10", help="largest window tried, in Tn (default 10)")
     common(ws, "1", "1ms")
     ws.set_defaults(func=run_window_size)
@@ -84,7 +84,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     acc = st.add_parser(
         "accuracy",
         help="max FEI errors, linear and Bouc-Wen (the FEI paper's Table 4.1, Fig. 4.6)",
-        description="Seed Table 4.1 / Fig. 4.6 for linear and Bouc-Wen SDOF structures.",
+        description="The FEI paper's Table 4.1 / Fig. 4.6 for linear and Bouc-Wen SDOF structures.",
     )
     acc.add_argument(
         "--record", default=None, help="ground motion file or bundled name (default El Centro)"

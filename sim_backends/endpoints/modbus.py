@@ -38,12 +38,12 @@ from pymodbus.pdu.register_message import (
     ReadWriteMultipleRegistersResponse,
 )
 
-from drivers.base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32
+from drivers.base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Status
 from drivers.modbus import COIL_ESTOP, REG, WRITE_ADDRESS, WRITE_COUNT, feedback_crc
 from rths_hil.errors import InputError
 
 from ..faults import Faults
-from .base import TwinController, TwinEndpoint
+from .base import TwinController, TwinEndpoint, listen
 
 __all__ = ["ModbusTwin"]
 
@@ -79,6 +79,7 @@ class ModbusTwin(TwinEndpoint):
         transport: str = "tcp",
         host: str = "127.0.0.1",
         port: int = 0,
+        allow_remote: bool = False,
         device: str | None = None,
         device_id: int = 1,
         baudrate: int = 115200,
@@ -87,7 +88,8 @@ class ModbusTwin(TwinEndpoint):
         if transport not in ("tcp", "rtu"):
             raise InputError(f"modbus twin: transport must be 'tcp' or 'rtu', got {transport!r}")
         self.transport = transport
-        self.host, self.port = host, int(port)
+        self.host, self.port = host, port
+        self.allow_remote = bool(allow_remote)
         self.device, self.device_id, self.baudrate = device, int(device_id), int(baudrate)
         self.registers = [0] * N_REGISTERS
         self.framer = (FramerSocket if transport == "tcp" else FramerRTU)(DecodePDU(True))
@@ -100,12 +102,7 @@ class ModbusTwin(TwinEndpoint):
     # -- lifecycle ------------------------------------------------------------------------------
     def _setup(self) -> None:
         if self.transport == "tcp":
-            try:
-                lst = socket.create_server((self.host, self.port))
-            except OSError as exc:
-                raise InputError(
-                    f"modbus twin: cannot listen on {self.host}:{self.port}: {exc}"
-                ) from None
+            lst = listen(self.host, self.port, self.allow_remote, "modbus twin")
             self._listener = lst
             host, port = lst.getsockname()[:2]
             self.connection = {
@@ -288,6 +285,8 @@ class ModbusTwin(TwinEndpoint):
             if a + n > N_REGISTERS:
                 self._send(conn, ExceptionResponse(fc, ExcCodes.ILLEGAL_ADDRESS), dev_id, tid)
                 return
+            if a <= REG["STATUS"] < a + n:
+                self._refresh_status()
             self._send(conn, ReadHoldingRegistersResponse(registers=regs[a : a + n]), dev_id, tid)
         elif fc == 1:
             if pdu.address != COIL_ESTOP or pdu.count != 1:
@@ -310,6 +309,17 @@ class ModbusTwin(TwinEndpoint):
             self._send(conn, ExceptionResponse(fc, ExcCodes.ILLEGAL_FUNCTION), dev_id, tid)
 
     # -- feedback (called through emit() with the faults applied) ------------------------------
+    def _refresh_status(self) -> None:
+        """STATUS (and FB_CRC) show the controller's state now: a watchdog latch that happened
+        after the last command is visible to a plain register read (FC 3)."""
+        regs = self.registers
+        keep = ~int(Status.ENABLED | Status.ESTOP_ACTIVE | Status.WATCHDOG) & 0xFFFF
+        status = (regs[REG["STATUS"]] & keep) | self.controller.status()
+        if status != regs[REG["STATUS"]]:
+            regs[REG["STATUS"]] = status
+            block = struct.pack(">6H", *regs[REG["FB_SEQ"] : REG["FB_SEQ"] + 6])
+            regs[REG["FB_CRC"]] = feedback_crc(block)
+
     def _encode(self, seq: int, displacement: float, force: float, status: int) -> list[Any]:
         regs = self.registers
         block = _FB.pack(
