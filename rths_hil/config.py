@@ -36,7 +36,7 @@ import math
 import re
 import tomllib
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +79,7 @@ class Key:
 
     kind: str
     default: Any
+    _: KW_ONLY
     unit: str = "-"
     doc: str = ""
     lo: float | None = None
@@ -92,115 +93,144 @@ class Key:
 SCHEMA: dict[str, dict[str, Key]] = {
     "structure": {
         "mass": Key(
-            "float", 503.4e3, "kg", "mass of the SDOF moment resisting frame", 0, None, True
+            "float",
+            503.4e3,
+            unit="kg",
+            doc="mass of the SDOF moment resisting frame",
+            lo=0,
+            lo_open=True,
         ),
         "fn": Key(
-            "float", 0.77, "Hz", "elastic natural frequency (sets k = m·(2π·fn)²)", 0, None, True
+            "float",
+            0.77,
+            unit="Hz",
+            doc="elastic natural frequency (sets k = m·(2π·fn)²)",
+            lo=0,
+            lo_open=True,
         ),
         "damping": Key(
-            "float", 0.02, "-", "inherent viscous damping ratio (c = 2ζ√(k·m))", 0, 1, False, True
+            "float",
+            0.02,
+            unit="-",
+            doc="inherent viscous damping ratio (c = 2ζ√(k·m))",
+            lo=0,
+            hi=1,
+            hi_open=True,
         ),
         "bouc_wen": Key(
-            "bool", True, "-", "Bouc-Wen restoring force (seed Eq. 4.1–4.2) instead of linear k·x"
+            "bool",
+            True,
+            unit="-",
+            doc="Bouc-Wen restoring force (seed Eq. 4.1–4.2) instead of linear k·x",
         ),
-        "x_y": Key("float", 0.010, "m", "Bouc-Wen yield displacement x_y", 0, None, True),
-        "eta": Key("float", 0.0, "-", "Bouc-Wen post- to pre-yield stiffness ratio η", 0, 1),
-        "beta": Key("float", 0.55, "-", "Bouc-Wen shape parameter β", None, None),
-        "gamma": Key("float", 0.45, "-", "Bouc-Wen shape parameter γ", None, None),
-        "q": Key("float", 2.0, "-", "Bouc-Wen sharpness exponent q", 0, None, True),
+        "x_y": Key(
+            "float", 0.010, unit="m", doc="Bouc-Wen yield displacement x_y", lo=0, lo_open=True
+        ),
+        "eta": Key(
+            "float", 0.0, unit="-", doc="Bouc-Wen post- to pre-yield stiffness ratio η", lo=0, hi=1
+        ),
+        "beta": Key("float", 0.55, unit="-", doc="Bouc-Wen shape parameter β"),
+        "gamma": Key("float", 0.45, unit="-", doc="Bouc-Wen shape parameter γ"),
+        "q": Key("float", 2.0, unit="-", doc="Bouc-Wen sharpness exponent q", lo=0, lo_open=True),
         "k_specimen": Key(
             "float",
             1.19e6,
-            "N/m",
-            "estimated specimen stiffness, used in the CR integration parameter",
-            0,
-            None,
+            unit="N/m",
+            doc="estimated specimen stiffness, used in the CR integration parameter",
+            lo=0,
         ),
     },
     "ground_motion": {
         "record": Key(
             "str",
             "default",
-            "-",
-            "record file (PEER .AT2 or CSV; relative to the config file) or the "
+            unit="-",
+            doc="record file (PEER .AT2 or CSV; relative to the config file) or the "
             "name of a bundled record; 'default' = El Centro 1940 (RSN 6, ELC180)",
         ),
         "pga": Key(
             "float",
             0.322,
-            "m/s²",
-            "scale the record to this peak ground acceleration (0 = unscaled)",
-            0,
-            None,
+            unit="m/s²",
+            doc="scale the record to this peak ground acceleration (0 = unscaled)",
+            lo=0,
         ),
         "tail": Key(
-            "float", 0.0, "s", "seconds of zero acceleration appended (free vibration)", 0, None
+            "float",
+            0.0,
+            unit="s",
+            doc="seconds of zero acceleration appended (free vibration)",
+            lo=0,
         ),
     },
     "loop": {
-        "fs": Key("float", 1024.0, "Hz", "loop (integration) rate", 1, 100_000),
+        "fs": Key("float", 1024.0, unit="Hz", doc="loop (integration) rate", lo=1, hi=100_000),
         "mode": Key(
             "choice",
             "paced",
-            "-",
-            "paced: wall clock, one step per period; lockstep: virtual time, as fast "
+            unit="-",
+            doc="paced: wall clock, one step per period; lockstep: virtual time, as fast "
             "as the actuator answers",
             choices=("paced", "lockstep"),
         ),
         "duration": Key(
-            "float", 30.0, "s", "simulated time to run (0 = the whole record plus tail)", 0, None
+            "float",
+            30.0,
+            unit="s",
+            doc="simulated time to run (0 = the whole record plus tail)",
+            lo=0,
         ),
         "spin": Key(
             "float",
             3e-4,
-            "s",
-            "paced: sleep until this long before the deadline, then busy-wait (at most 0.4 "
+            unit="s",
+            doc="paced: sleep until this long before the deadline, then busy-wait (at most 0.4 "
             "period is used)",
-            0,
-            0.01,
+            lo=0,
+            hi=0.01,
         ),
         "priority": Key(
             "int",
             10,
-            "-",
-            "paced: SCHED_FIFO real-time priority of the loop and its threads (0 = leave the "
+            unit="-",
+            doc="paced: SCHED_FIFO real-time priority of the loop and its threads (0 = leave the "
             "scheduler alone); needs root or CAP_SYS_NICE, else the run goes on without it",
-            0,
-            99,
+            lo=0,
+            hi=99,
         ),
         "overrun_threshold": Key(
             "float",
             0.5,
-            "-",
-            "paced: a step is an overrun when its command leaves later "
+            unit="-",
+            doc="paced: a step is an overrun when its command leaves later "
             "than this fraction of a period after its deadline",
-            0,
-            None,
-            True,
+            lo=0,
+            lo_open=True,
         ),
         "feedback_timeout": Key(
             "float",
             0.0,
-            "s",
-            "wait for a reply at most this long (0 = auto: 0.8 period when paced, 1 s in lockstep)",
-            0,
-            10,
+            unit="s",
+            doc="wait for a reply at most this long (0 = auto: 0.8 period when paced, "
+            "1 s in lockstep)",
+            lo=0,
+            hi=10,
         ),
-        "heartbeat": Key("float", 0.1, "s", "driver heartbeat interval (0 = never)", 0, None),
-        "console": Key("float", 0.5, "s", "live console line interval (0 = off)", 0, None),
+        "heartbeat": Key("float", 0.1, unit="s", doc="driver heartbeat interval (0 = never)", lo=0),
+        "console": Key("float", 0.5, unit="s", doc="live console line interval (0 = off)", lo=0),
     },
     "driver": {
         "name": Key(
             "str",
             "can",
-            "-",
-            "driver name in the registry (can, modbus, serial, or a lab's entry point)",
+            unit="-",
+            doc="driver name in the registry (can, modbus, serial, or a lab's entry point)",
         ),
         "connection": Key(
             "table",
             {},
-            "-",
-            "driver connection settings (e.g. interface/channel for CAN, "
+            unit="-",
+            doc="driver connection settings (e.g. interface/channel for CAN, "
             "host/port for Modbus, url for serial); with a twin they go to the "
             "twin, which hands the driver its endpoint",
         ),
@@ -209,159 +239,195 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "enabled": Key(
             "bool",
             True,
-            "-",
-            "run an in-process virtual twin (false: real controller at the connection)",
+            unit="-",
+            doc="run an in-process virtual twin (false: real controller at the connection)",
         ),
         "inline": Key(
             "bool",
             True,
-            "-",
-            "serve a twin on python-can's in-process virtual bus from the loop thread "
+            unit="-",
+            doc="serve a twin on python-can's in-process virtual bus from the loop thread "
             "(same frames and controller, no thread hand-off); false: in its own thread",
         ),
         "model": Key(
-            "str", "", "-", "twin model file (TOML, [actuator] ...); empty: the tables below"
+            "str",
+            "",
+            unit="-",
+            doc="twin model file (TOML, [actuator] ...); empty: the tables below",
         ),
         "actuator": Key(
             "table",
             {"model": "first_order", "time_constant": 0.020, "delay": 0.005, "gain": 1.0},
-            "-",
-            "actuator model as in a model file's [actuator] table",
+            unit="-",
+            doc="actuator model as in a model file's [actuator] table",
         ),
         "specimen": Key(
             "table",
             {},
-            "-",
-            "specimen model as in a model file's [specimen] table (empty: the model file default)",
+            unit="-",
+            doc="specimen model as in a model file's [specimen] table (empty: the model "
+            "file default)",
         ),
         "sensor": Key(
             "table",
             {"displacement_noise": 2e-6, "force_noise": 5.0, "seed": 0},
-            "-",
-            "sensor noise and quantisation as in a model file's [sensor] table",
+            unit="-",
+            doc="sensor noise and quantisation as in a model file's [sensor] table",
         ),
         "faults": Key(
             "str",
             "",
-            "-",
-            "fault plan for tests and dry runs, e.g. 'stuck_from=3000' (sim_backends.faults)",
+            unit="-",
+            doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' (sim_backends.faults)",
         ),
     },
     "compensation": {
-        "enabled": Key("bool", True, "-", "inverse compensation x_c = α·x_t − (α−1)·x_t,prev"),
+        "enabled": Key(
+            "bool", True, unit="-", doc="inverse compensation x_c = α·x_t − (α−1)·x_t,prev"
+        ),
         "alpha": Key(
-            "float", 26.6, "-", "α in steps (1 + delay/Δt; 26.6 ≈ 25 ms at 1024 Hz)", 1, None
+            "float", 26.6, unit="-", doc="α in steps (1 + delay/Δt; 26.6 ≈ 25 ms at 1024 Hz)", lo=1
         ),
-        "amplitude": Key("float", 1.0, "-", "amplitude factor on the command", 0, None, True),
-        "adaptive": Key("bool", False, "-", "adapt α online from the online FEI delay"),
+        "amplitude": Key(
+            "float", 1.0, unit="-", doc="amplitude factor on the command", lo=0, lo_open=True
+        ),
+        "adaptive": Key("bool", False, unit="-", doc="adapt α online from the online FEI delay"),
         "time_constant": Key(
-            "float", 6.0, "s", "adaptive: time constant of the α update", 0, None, True
+            "float",
+            6.0,
+            unit="s",
+            doc="adaptive: time constant of the α update",
+            lo=0,
+            lo_open=True,
         ),
-        "rate": Key("float", 5.0, "1/s", "adaptive: maximum |dα/dt|", 0, None, True),
-        "alpha_min": Key("float", 1.0, "-", "adaptive: lower bound of α", 1, None),
-        "alpha_max": Key("float", 100.0, "-", "adaptive: upper bound of α", 1, None),
+        "rate": Key("float", 5.0, unit="1/s", doc="adaptive: maximum |dα/dt|", lo=0, lo_open=True),
+        "alpha_min": Key("float", 1.0, unit="-", doc="adaptive: lower bound of α", lo=1),
+        "alpha_max": Key("float", 100.0, unit="-", doc="adaptive: upper bound of α", lo=1),
     },
     "fei": {
-        "enabled": Key("bool", True, "-", "online FEI (streaming every sample)"),
+        "enabled": Key("bool", True, unit="-", doc="online FEI (streaming every sample)"),
         "pair": Key(
             "choice",
             "target",
-            "-",
-            "evaluated pair: measured vs target (seed) or measured vs command",
+            unit="-",
+            doc="evaluated pair: measured vs target (seed) or measured vs command",
             choices=("target", "command"),
         ),
         "window": Key(
             "window",
             "3T",
-            "s",
-            "window length t_w in s, or in natural periods ('3T' = 3/fn)",
-            0,
-            None,
-            True,
+            unit="s",
+            doc="window length t_w in s, or in natural periods ('3T' = 3/fn)",
+            lo=0,
+            lo_open=True,
         ),
         "exact_hop": Key(
-            "int", 256, "steps", "exact FEI cross-check every this many samples (0 = off)", 0, None
+            "int",
+            256,
+            unit="steps",
+            doc="exact FEI cross-check every this many samples (0 = off)",
+            lo=0,
         ),
     },
     "kalman": {
-        "enabled": Key("bool", True, "-", "Kalman gain/delay estimator beside the FEI"),
+        "enabled": Key("bool", True, unit="-", doc="Kalman gain/delay estimator beside the FEI"),
         "pair": Key(
             "choice",
             "command",
-            "-",
-            "input of the estimator: command (the actuator's own delay) or target",
+            unit="-",
+            doc="input of the estimator: command (the actuator's own delay) or target",
             choices=("target", "command"),
         ),
-        "every": Key("int", 1, "steps", "run the estimator every this many steps", 1, None),
-        "options": Key("table", {}, "-", "estimator keyword arguments (rths_hil.estimation)"),
+        "every": Key("int", 1, unit="steps", doc="run the estimator every this many steps", lo=1),
+        "options": Key(
+            "table", {}, unit="-", doc="estimator keyword arguments (rths_hil.estimation)"
+        ),
     },
     "safety": {
         "displacement_limit": Key(
-            "float", 0.050, "m", "|target|, |command|, |measured| limit (0 = off)", 0, None
+            "float", 0.050, unit="m", doc="|target|, |command|, |measured| limit (0 = off)", lo=0
         ),
         "velocity_limit": Key(
             "float",
             0.5,
-            "m/s",
-            "|structure velocity| and |measured velocity| limit (0 = off)",
-            0,
-            None,
+            unit="m/s",
+            doc="|structure velocity| and |measured velocity| limit (0 = off)",
+            lo=0,
         ),
-        "force_limit": Key("float", 100e3, "N", "|measured force| limit (0 = off)", 0, None),
+        "force_limit": Key("float", 100e3, unit="N", doc="|measured force| limit (0 = off)", lo=0),
         "fei_amplitude_tol": Key(
-            "float", 0.2, "-", "FEI rule: tolerance on |A − 1| (0 = off)", 0, None
+            "float", 0.2, unit="-", doc="FEI rule: tolerance on |A − 1| (0 = off)", lo=0
         ),
-        "fei_delay_tol": Key("float", 0.015, "s", "FEI rule: tolerance on |d| (0 = off)", 0, None),
+        "fei_delay_tol": Key(
+            "float", 0.015, unit="s", doc="FEI rule: tolerance on |d| (0 = off)", lo=0
+        ),
         "fei_consecutive": Key(
             "int",
             256,
-            "windows",
-            "FEI rule: consecutive valid windows out of tolerance that trip",
-            1,
-            None,
+            unit="windows",
+            doc="FEI rule: consecutive valid windows out of tolerance that trip",
+            lo=1,
         ),
-        "kf_gain_min": Key("float", 0.5, "-", "Kalman rule: lowest gain estimate", None, None),
-        "kf_gain_max": Key("float", 1.5, "-", "Kalman rule: highest gain estimate", None, None),
+        "kf_gain_min": Key("float", 0.5, unit="-", doc="Kalman rule: lowest gain estimate"),
+        "kf_gain_max": Key("float", 1.5, unit="-", doc="Kalman rule: highest gain estimate"),
         "kf_delay_max": Key(
-            "float", 0.1, "s", "Kalman rule: |delay estimate| limit (0 = off)", 0, None
+            "float", 0.1, unit="s", doc="Kalman rule: |delay estimate| limit (0 = off)", lo=0
         ),
         "watchdog_missed": Key(
             "int",
             20,
-            "steps",
-            "consecutive missed replies that trip (20 ≈ 20 ms at 1024 Hz)",
-            1,
-            None,
+            unit="steps",
+            doc="consecutive missed replies that trip (20 ≈ 20 ms at 1024 Hz)",
+            lo=1,
         ),
-        "max_sequence_gaps": Key("int", 0, "-", "sequence gaps tolerated before a trip", 0, None),
+        "max_sequence_gaps": Key(
+            "int", 0, unit="-", doc="sequence gaps tolerated before a trip", lo=0
+        ),
         "controller_status": Key(
-            "bool", True, "-", "trip on the controller's alarm bits (e-stop, fault, watchdog)"
+            "bool",
+            True,
+            unit="-",
+            doc="trip on the controller's alarm bits (e-stop, fault, watchdog)",
         ),
-        "max_overruns": Key("int", 100, "steps", "consecutive paced overruns that trip", 1, None),
+        "max_overruns": Key(
+            "int", 100, unit="steps", doc="consecutive paced overruns that trip", lo=1
+        ),
         "stuck_steps": Key(
             "int",
             50,
-            "steps",
-            "identical measured values while the command moves that trip (0 = off)",
-            0,
-            None,
+            unit="steps",
+            doc="identical measured values while the command moves that trip (0 = off)",
+            lo=0,
         ),
         "stuck_motion": Key(
-            "float", 1e-4, "m", "stuck rule: command travel needed over those steps", 0, None, True
+            "float",
+            1e-4,
+            unit="m",
+            doc="stuck rule: command travel needed over those steps",
+            lo=0,
+            lo_open=True,
         ),
         "warmup": Key(
-            "float", 0.0, "s", "FEI and Kalman rules start after this loop time", 0, None
+            "float", 0.0, unit="s", doc="FEI and Kalman rules start after this loop time", lo=0
         ),
     },
     "output": {
         "dir": Key(
             "str",
             "runs/{timestamp}",
-            "-",
-            "run directory ({timestamp} is replaced by the start time)",
+            unit="-",
+            doc="run directory ({timestamp} is replaced by the start time)",
         ),
-        "flush_interval": Key("float", 0.05, "s", "record flush interval (≤ 0.1 s)", 0, 0.1, True),
-        "plot": Key("bool", True, "-", "write report.png at the end"),
+        "flush_interval": Key(
+            "float",
+            0.05,
+            unit="s",
+            doc="record flush interval (≤ 0.1 s)",
+            lo=0,
+            hi=0.1,
+            lo_open=True,
+        ),
+        "plot": Key("bool", True, unit="-", doc="write report.png at the end"),
     },
 }
 
