@@ -192,9 +192,7 @@ class ExactFEI:
             rest = self._pending + proc.stdout.read()
             n = len(rest) // _EXACT_RESULT.size
             if n:
-                a, d, f, v, w, end = _EXACT_RESULT.unpack_from(
-                    rest, (n - 1) * _EXACT_RESULT.size
-                )
+                a, d, f, v, w, end = _EXACT_RESULT.unpack_from(rest, (n - 1) * _EXACT_RESULT.size)
                 self.latest = (a, d, f, v > 0.5)
                 self.windows = w
                 self.end_step = end
