@@ -666,10 +666,14 @@ def resolve_channel(cfg: Config, entry: Mapping[str, Any]) -> ChannelConfig:
 
     A key the channel sets replaces the top-level value (tables too: a channel's
     ``twin.actuator`` is its whole actuator model), except ``driver.connection``, which is
-    merged key by key so that a channel can set only its ``node`` or ``device_id``.
+    merged key by key so that a channel can set only its ``node`` or ``device_id`` (a channel
+    on another driver than the top-level one starts from an empty connection).
     """
     out = Config(copy.deepcopy({k: v for k, v in cfg.items() if k != "actuators"}))
     out.source, out.base_dir = cfg.source, cfg.base_dir
+    own_driver = entry.get("driver", {}).get("name")
+    if own_driver is not None and own_driver != cfg["driver"]["name"]:
+        out["driver"]["connection"] = {}
     for section in CHANNEL_SECTIONS:
         for key, value in entry.get(section, {}).items():
             if section == "driver" and key == "connection":
@@ -1106,7 +1110,8 @@ def schema_markdown() -> str:
         "the defaults every channel inherits; a channel overrides any of their keys in its own",
         "sub-tables (`[actuators.compensation]`, …). A key a channel sets replaces the top-level",
         "value (tables too), except `driver.connection`, merged key by key (a channel sets only",
-        "its `node` or `device_id`). `--set section.key=value` sets a key on every channel;",
+        "its `node` or `device_id`; a channel on another driver starts from an empty",
+        "connection). `--set section.key=value` sets a key on every channel;",
         "`--set actuators.NAME.section.key=value` on one. See `docs/channels.md`.",
         "",
         "| key | type | description |",

@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import groundmotion
 from ..compensation import AdaptiveAlpha, InverseCompensator
-from ..config import ChannelConfig, Config, structure_dofs
+from ..config import ChannelConfig, Config
 from ..errors import InputError
 from ..recorder import COLUMNS
 from ..safety import (
@@ -111,11 +111,57 @@ def choose_plant(cfg: Config, dt: float):
         raise InputError(f"{cfg.source}: twin.{exc}") from None
 
 
-def build_structure(cfg: Config, dt: float, ag0: float) -> tuple[StructureStage, float]:
+def build_model(cfg: Config):
+    """The MDOF model of ``structure.kind`` (``shear_building`` or ``matrices``), no integrator.
+
+    Damping: ``structure.rayleigh = [α, β]`` when given, else ζ = ``structure.damping`` on
+    modes 1 and 2 (Rayleigh), or the file's ``C``. Bouc-Wen storeys (``bouc_wen = true``) take
+    the shape keys of ``[structure]`` with each storey's stiffness as ``k_a``.
+    """
+    from .. import mdof
+
+    s = cfg["structure"]
+    damping: dict[str, Any] = (
+        {"rayleigh": tuple(s["rayleigh"])} if s["rayleigh"] else {"zeta": s["damping"]}
+    )
+    if s["kind"] == "shear_building":
+        bw = None
+        if s["bouc_wen"]:
+            bw = {k: s[k] for k in ("x_y", "eta", "beta", "gamma", "q")}
+        return mdof.shear_building(s["masses"], s["stiffnesses"], bouc_wen=bw, **damping)
+    files = dict(s["matrices"])
+    unknown = sorted(set(files) - {"file", "M", "K", "C"})
+    if unknown:
+        raise InputError(f"matrices.{unknown[0]}: unknown key; known keys: file, M, K, C")
+    if "file" in files:
+        return mdof.load_npz(cfg.resolve_path(str(files["file"])), **damping)
+    if "M" not in files or "K" not in files:
+        raise InputError("matrices: give {file = 'model.npz'} or the CSV files M and K (and C)")
+    paths = {k: cfg.resolve_path(str(v)) for k, v in files.items()}
+    if "C" in paths:
+        return mdof.load_csv(paths["M"], paths["K"], paths["C"])
+    return mdof.load_csv(paths["M"], paths["K"], **damping)
+
+
+def structure_size(cfg: Config) -> tuple[int, Any]:
+    """Number of DOFs and the MDOF model (None for the SDOF frame)."""
+    if cfg["structure"]["kind"] == "sdof":
+        return 1, None
+    try:
+        model = build_model(cfg)
+    except InputError as exc:
+        raise InputError(f"{cfg.source}: structure: {exc}") from None
+    return model.n, model
+
+
+def build_structure(
+    cfg: Config, dt: float, ag0: float, rows: np.ndarray, model: Any = None
+) -> tuple[StructureStage, float]:
     """The structure stage of ``structure.kind`` and its first natural frequency (Hz).
 
     ``sdof``: the FEI paper's Section 5 frame (CR integration, Bouc-Wen). ``shear_building`` and
-    ``matrices``: :mod:`rths_hil.mdof`.
+    ``matrices``: the CR integrator in matrix form of :mod:`rths_hil.mdof`, with
+    ``structure.k_specimen`` seen through each actuator's transform row in α (``rows``).
     """
     s = cfg["structure"]
     if s["kind"] == "sdof":
@@ -138,13 +184,17 @@ def build_structure(cfg: Config, dt: float, ag0: float) -> tuple[StructureStage,
         except InputError as exc:
             raise InputError(f"{cfg.source}: structure: {exc}") from None
         return SDOFStage(st), float(s["fn"])
-    from .. import mdof
+    from ..mdof import MDOFCRStepper
 
+    if model is None:
+        model = structure_size(cfg)[1]
     try:
-        stepper, fn1 = mdof.from_config(cfg, dt, ag0)
+        stepper = MDOFCRStepper(
+            model, dt, transforms=rows, k_specimen=[s["k_specimen"]] * len(rows), ag0=ag0
+        )
     except InputError as exc:
         raise InputError(f"{cfg.source}: structure: {exc}") from None
-    return MDOFStage(stepper), float(fn1)
+    return MDOFStage(stepper), float(model.frequencies[0])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -299,6 +349,7 @@ class TestPlan:
     heartbeat_steps: int
     console_interval: float
     priority: int
+    links: list = field(default_factory=list)
     extra: dict = field(default_factory=dict)
 
     @property
@@ -317,12 +368,13 @@ def _window(ch_cfg: Config, fn1: float) -> float:
     return parse_window(w, fn1) if isinstance(w, str) else float(w)
 
 
-def _plan_channel(
-    cc: ChannelConfig, i: int, n_chan: int, n_dof: int, fs: float, mode: str, fn1: float, plant
-) -> ChannelPlan:
-    cfg = cc.config
-    dt = 1.0 / fs
-    where = cfg.source + (f": actuators[{i}] ({cc.name})" if cc.name else "")
+def _where(cc: ChannelConfig, i: int) -> str:
+    return cc.config.source + (f": actuators[{i}] ({cc.name})" if cc.name else "")
+
+
+def channel_row(cc: ChannelConfig, i: int, n_dof: int) -> np.ndarray:
+    """Row of T of a channel: its ``transform``, or the unit row of its ``dof`` (default 1)."""
+    where = _where(cc, i)
     if cc.transform is not None:
         row = np.asarray(cc.transform, dtype=float)
         if row.size != n_dof:
@@ -335,10 +387,19 @@ def _plan_channel(
             raise InputError(f"{where}.dof: {d} is out of range: the structure has {n_dof} DOF")
         row = np.zeros(n_dof)
         row[d - 1] = 1.0
-    nz = np.flatnonzero(row)
-    dof = int(nz[0]) if nz.size == 1 and row[nz[0]] == 1.0 else -1
     if not np.any(row):
         raise InputError(f"{where}.transform: all zero: the actuator acts on no DOF")
+    return row
+
+
+def _plan_channel(
+    cc: ChannelConfig, i: int, n_chan: int, row: np.ndarray, fs: float, fn1: float, plant
+) -> ChannelPlan:
+    cfg = cc.config
+    dt = 1.0 / fs
+    where = _where(cc, i)
+    nz = np.flatnonzero(row)
+    dof = int(nz[0]) if nz.size == 1 and row[nz[0]] == 1.0 else -1
 
     name = cfg["driver"]["name"]
     from drivers.registry import driver_class
@@ -492,12 +553,15 @@ def build_plan(
         ag = np.concatenate([ag, np.zeros(n - ag.size)])
     ag = ag[:n].copy()
 
-    structure, fn1 = build_structure(cfg, dt, float(ag[0]))
-    n_dof = structure.n_dof
-    known = structure_dofs(cfg)
-    if known is not None and known != n_dof:  # pragma: no cover - the model disagrees
-        raise InputError(f"{cfg.source}: structure: {known} DOF configured, {n_dof} built")
+    n_dof, model = structure_size(cfg)
     chans_cfg = cfg.channels()
+    if n_dof > 1 and not cfg.get("actuators"):
+        raise InputError(
+            f"{cfg.source}: actuators: a structure of {n_dof} DOF needs [[actuators]] entries "
+            "saying where each actuator acts (dof or transform)"
+        )
+    rows = [channel_row(cc, i, n_dof) for i, cc in enumerate(chans_cfg)]
+    structure, fn1 = build_structure(cfg, dt, float(ag[0]), np.array(rows), model)
     plants: dict[str, Any] = {}
     if plant is not None:
         if isinstance(plant, dict):
@@ -507,15 +571,11 @@ def build_plan(
         else:
             raise InputError("plant=: several channels: pass {channel name: plant}")
     channels = [
-        _plan_channel(cc, i, len(chans_cfg), n_dof, fs, mode, fn1, plants.get(cc.name))
+        _plan_channel(cc, i, len(chans_cfg), rows[i], fs, fn1, plants.get(cc.name))
         for i, cc in enumerate(chans_cfg)
     ]
-    if n_dof > 1 and len(channels) == 1 and not cfg.get("actuators"):
-        raise InputError(
-            f"{cfg.source}: actuators: a structure of {n_dof} DOF needs [[actuators]] entries "
-            "saying where each actuator acts (dof or transform)"
-        )
     _check_shared_links(cfg, channels)
+    links = link_loads(cfg, channels, fs)
     sf = cfg["safety"]
     return TestPlan(
         cfg=cfg,
@@ -539,7 +599,40 @@ def build_plan(
         heartbeat_steps=round(lp["heartbeat"] * fs) if lp["heartbeat"] > 0 else 0,
         console_interval=lp["console"],
         priority=lp["priority"],
+        links=links,
     )
+
+
+def link_loads(cfg: Config, channels: list[ChannelPlan], fs: float) -> list:
+    """Each link's load (:mod:`rths_hil.linkbudget`); refuse a link above 80 % (one line).
+
+    Channels with a twin and no explicit bus (CAN channel, Modbus port, serial port) each get a
+    link of their own (a fresh virtual bus, port or pseudo-terminal).
+    """
+    from ..linkbudget import check_links, link_key, link_load
+
+    groups: dict[str, list[ChannelPlan]] = {}
+    for i, ch in enumerate(channels):
+        conn = ch.connection
+        own = ch.twin_enabled and not (conn.get("channel") or conn.get("port") or conn.get("url"))
+        key = f"{link_key(ch.driver_name, conn)}#{i}" if own else link_key(ch.driver_name, conn)
+        groups.setdefault(key, []).append(ch)
+    hb = cfg["loop"]["heartbeat"]
+    try:
+        loads = [
+            link_load(
+                chs[0].driver_name,
+                chs[0].connection,
+                len(chs),
+                fs,
+                heartbeat_hz=1.0 / hb if hb > 0 else 0.0,
+            )
+            for chs in groups.values()
+        ]
+        check_links(loads)
+    except InputError as exc:
+        raise InputError(f"{cfg.source}: {exc}") from None
+    return loads
 
 
 def _check_shared_links(cfg: Config, channels: list[ChannelPlan]) -> None:
