@@ -36,11 +36,14 @@ def _fmt(v: float, scale: float = 1.0, spec: str = ".3f", signed: bool = False) 
 def format_live(s: dict[str, Any]) -> str:
     """One console line from the loop's status dict."""
     name, frac = s.get("margin", ("none", math.inf))
+    if s.get("channel"):  # several channels: the one nearest a limit
+        name = f"{s['channel']} {name}"
     margin = "no limits" if not math.isfinite(frac) else f"{name} {frac * 100:.0f} %"
     lat = f"p99 late {s['p99_lateness'] * 1e3:.3f} ms" if s.get("mode") == "paced" else "lockstep"
     return (
         f"t {s['t']:7.2f} s ({100.0 * s['k'] / s['n']:3.0f} %) | {s['rate']:7.0f} steps/s | {lat}"
-        f" | overruns {s['overruns']} | A {_fmt(s['amplitude'], spec='.4f')}"
+        f" | overruns {s['overruns']} | {('[' + s['channel'] + '] ') if s.get('channel') else ''}"
+        f"A {_fmt(s['amplitude'], spec='.4f')}"
         f" d {_fmt(s['delay'], 1e3, '.2f', True)} ms | peak {s['peak_displacement'] * 1e3:.2f} mm"
         f" | margin {margin} | α {s['alpha']:.2f}"
     )
@@ -79,6 +82,34 @@ class LiveLine:
             self._width = 0
 
 
+def channel_suffixes(run: RunData) -> list[tuple[str, str]]:
+    """(name, column suffix) of each channel of a run (one unnamed channel for older runs)."""
+    chans = run.meta.get("channels") or []
+    out = [(c.get("name", ""), c.get("suffix", "")) for c in chans]
+    return out or [("", "")]
+
+
+def exact_fei_points(rec: np.ndarray, sfx: str = "") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The exact-FEI cross-check as points: (window-end step, A, d), one per new valid window.
+
+    Each exact value is placed at the step its window ended (``fei_exact_step``), not at the
+    step its result came back from the worker process (paced runs), so the points sit on the
+    streaming curve. Records without ``fei_exact_step`` use the step the value appeared.
+    """
+    amp = rec["fei_exact_amplitude" + sfx].astype(float)
+    dly = rec["fei_exact_delay" + sfx].astype(float)
+    ok = rec["fei_exact_valid" + sfx].astype(bool)
+    name = "fei_exact_step" + sfx
+    if name in (rec.dtype.names or ()):
+        end = rec[name].astype(np.int64)
+        change = np.flatnonzero(np.diff(end, prepend=-1) != 0)
+        change = change[(end[change] >= 0) & ok[change] & np.isfinite(amp[change])]
+        return end[change], amp[change], dly[change]
+    change = np.flatnonzero(np.diff(amp, prepend=np.nan) != 0)
+    change = change[ok[change] & np.isfinite(amp[change])]
+    return change, amp[change], dly[change]
+
+
 def _events(run: RunData, kind: str) -> list[dict]:
     return [e for e in run.events if e.get("kind") == kind]
 
@@ -107,8 +138,6 @@ def summarize(run_dir: str | Path, write: bool = True) -> dict[str, Any]:
         ``steps_per_second``, ``missed_replies``, ``driver_stats``, ``twin_stats``,
         ``final_alpha``.
     """
-    from .fei import fei
-
     run = read_run(run_dir)
     rec = run.record
     fs = run.fs
@@ -133,7 +162,7 @@ def summarize(run_dir: str | Path, write: bool = True) -> dict[str, Any]:
     }
     if trips:
         t = trips[-1]
-        out["trip"] = {k: t.get(k) for k in ("rule", "reason", "time", "step", "values")}
+        out["trip"] = {k: t.get(k) for k in ("rule", "reason", "time", "step", "values", "channel")}
     elif stops:
         s = stops[-1]
         out["trip"] = {
@@ -143,46 +172,11 @@ def summarize(run_dir: str | Path, write: bool = True) -> dict[str, Any]:
             "step": s.get("step"),
             "values": {},
         }
-    if n >= 16:
-        target = rec["target"].astype(float)
-        command = rec["command"].astype(float)
-        measured = rec["measured"].astype(float)
-        ok = np.isfinite(measured)
-        for key, ref in (("fei_target", target), ("fei_command", command)):
-            sel = ok & np.isfinite(ref)
-            try:
-                r = fei(ref[sel], measured[sel], fs)
-                out[key] = {
-                    "amplitude": float(r.amplitude),
-                    "delay": float(r.delay),
-                    "f_eq": float(r.f_eq),
-                    "valid": bool(r.valid),
-                }
-            except Exception as exc:  # a record too short or degenerate: say so, don't fail
-                out[key] = {"error": str(exc)}
-        out["metrics"] = _metrics(target[ok], measured[ok], fs)
-        fa = rec["fei_amplitude"].astype(float)
-        fd = rec["fei_delay"].astype(float)
-        v = rec["fei_valid"].astype(bool) & np.isfinite(fa) & np.isfinite(fd)
-        if v.any():
-            out["online"] = {
-                "windows": int(v.sum()),
-                "amplitude": {
-                    "mean": float(fa[v].mean()),
-                    "min": float(fa[v].min()),
-                    "max": float(fa[v].max()),
-                },
-                "delay": {
-                    "mean": float(fd[v].mean()),
-                    "min": float(fd[v].min()),
-                    "max": float(fd[v].max()),
-                },
-            }
-        out["peak"] = {
-            "target": float(np.nanmax(np.abs(target))),
-            "measured": float(np.nanmax(np.abs(measured))),
-            "force": float(np.nanmax(np.abs(rec["force"].astype(float)))),
-        }
+    chans = channel_suffixes(run)
+    if len(chans) == 1:
+        out.update(_channel_summary(rec, chans[0][1], fs))
+    else:
+        out["channels"] = {name: _channel_summary(rec, sfx, fs) for name, sfx in chans}
     lat = rec["lateness"].astype(float) if n else np.zeros(0)
     if out["mode"] == "paced" and n:
         p50, p99, p999 = np.percentile(lat, [50, 99, 99.9])
@@ -207,6 +201,55 @@ def summarize(run_dir: str | Path, write: bool = True) -> dict[str, Any]:
     if write:
         p = Path(run_dir) / "summary.json"
         p.write_text(json.dumps(_clean(out), indent=2, allow_nan=False) + "\n")
+    return out
+
+
+def _channel_summary(rec: np.ndarray, sfx: str, fs: float) -> dict[str, Any]:
+    """FEI, metrics, online FEI and peaks of one channel (columns with suffix ``sfx``)."""
+    from .fei import fei
+
+    out: dict[str, Any] = {}
+    n = len(rec)
+    if n >= 16:
+        target = rec["target" + sfx].astype(float)
+        command = rec["command" + sfx].astype(float)
+        measured = rec["measured" + sfx].astype(float)
+        ok = np.isfinite(measured)
+        for key, ref in (("fei_target", target), ("fei_command", command)):
+            sel = ok & np.isfinite(ref)
+            try:
+                r = fei(ref[sel], measured[sel], fs)
+                out[key] = {
+                    "amplitude": float(r.amplitude),
+                    "delay": float(r.delay),
+                    "f_eq": float(r.f_eq),
+                    "valid": bool(r.valid),
+                }
+            except Exception as exc:  # a record too short or degenerate: say so, don't fail
+                out[key] = {"error": str(exc)}
+        out["metrics"] = _metrics(target[ok], measured[ok], fs)
+        fa = rec["fei_amplitude" + sfx].astype(float)
+        fd = rec["fei_delay" + sfx].astype(float)
+        v = rec["fei_valid" + sfx].astype(bool) & np.isfinite(fa) & np.isfinite(fd)
+        if v.any():
+            out["online"] = {
+                "windows": int(v.sum()),
+                "amplitude": {
+                    "mean": float(fa[v].mean()),
+                    "min": float(fa[v].min()),
+                    "max": float(fa[v].max()),
+                },
+                "delay": {
+                    "mean": float(fd[v].mean()),
+                    "min": float(fd[v].min()),
+                    "max": float(fd[v].max()),
+                },
+            }
+        out["peak"] = {
+            "target": float(np.nanmax(np.abs(target))),
+            "measured": float(np.nanmax(np.abs(measured))),
+            "force": float(np.nanmax(np.abs(rec["force" + sfx].astype(float)))),
+        }
     return out
 
 
@@ -248,7 +291,9 @@ def format_summary(s: dict[str, Any]) -> str:
     trip = s.get("trip")
     if trip:
         lines.append(
-            f"  e-stop: {trip['rule']} at t = {_num(trip['time']):.4f} s "
+            f"  e-stop: {trip['rule']}"
+            + (f" on channel {trip['channel']}" if trip.get("channel") else "")
+            + f" at t = {_num(trip['time']):.4f} s "
             f"(step {trip['step']}): {trip['reason']}"
             + (
                 ""
@@ -258,6 +303,37 @@ def format_summary(s: dict[str, Any]) -> str:
         )
     else:
         lines.append("  e-stop: none")
+    chans = s.get("channels")
+    if chans:
+        for name, block in chans.items():
+            lines.append(f"  channel {name}:")
+            lines += ["  " + line for line in _format_channel(block)]
+    else:
+        lines += _format_channel(s)
+    lat = s.get("lateness")
+    if lat:
+        lines.append(
+            f"  lateness p50 {lat['p50'] * 1e6:.0f} µs, p99 {lat['p99'] * 1e6:.0f} µs, "
+            f"p99.9 {lat['p99.9'] * 1e6:.0f} µs, max {lat['max'] * 1e6:.0f} µs, "
+            f"overruns {lat.get('overruns')}"
+        )
+        c = s.get("overrun_causes")
+        if c:
+            lines.append(
+                f"  overruns by cause: machine {c.get('machine')} "
+                f"(+{c.get('machine_backlog')} catch-up), work {c.get('work')} "
+                f"(+{c.get('work_backlog')} catch-up)"
+            )
+    if s.get("steps_per_second"):
+        lines.append(
+            f"  {s['steps_per_second']:.0f} steps/s, missed replies {s.get('missed_replies', 0)}"
+        )
+    return "\n".join(lines)
+
+
+def _format_channel(s: dict[str, Any]) -> list[str]:
+    """Summary lines of one channel (FEI, metrics, online FEI, peaks)."""
+    lines: list[str] = []
     for key, label in (
         ("fei_target", "measured vs target "),
         ("fei_command", "measured vs command"),
@@ -291,29 +367,17 @@ def format_summary(s: dict[str, Any]) -> str:
             f"  peak target {p['target'] * 1e3:.2f} mm, measured "
             f"{p['measured'] * 1e3:.2f} mm, force {p['force'] / 1e3:.2f} kN"
         )
-    lat = s.get("lateness")
-    if lat:
-        lines.append(
-            f"  lateness p50 {lat['p50'] * 1e6:.0f} µs, p99 {lat['p99'] * 1e6:.0f} µs, "
-            f"p99.9 {lat['p99.9'] * 1e6:.0f} µs, max {lat['max'] * 1e6:.0f} µs, "
-            f"overruns {lat.get('overruns')}"
-        )
-        c = s.get("overrun_causes")
-        if c:
-            lines.append(
-                f"  overruns by cause: machine {c.get('machine')} "
-                f"(+{c.get('machine_backlog')} catch-up), work {c.get('work')} "
-                f"(+{c.get('work_backlog')} catch-up)"
-            )
-    if s.get("steps_per_second"):
-        lines.append(
-            f"  {s['steps_per_second']:.0f} steps/s, missed replies {s.get('missed_replies', 0)}"
-        )
-    return "\n".join(lines)
+    return lines
 
 
 def plot_report(run_dir: str | Path, path: str | Path | None = None) -> Path:
-    """Draw ``report.png`` (seed Fig. 5.1 and 5.2 style) for a run directory; return its path."""
+    """Draw ``report.png`` (the FEI paper's Fig. 5.1 and 5.2 style); return its path.
+
+    One channel: displacements, a zoom around the peak, online FEI A and d (streaming curve,
+    exact cross-check dots at their windows' ends), lateness or Kalman. Several channels: a
+    displacement panel and the FEI A and d panels per channel, then the lateness or Kalman
+    panel of the first channel.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -325,55 +389,68 @@ def plot_report(run_dir: str | Path, path: str | Path | None = None) -> Path:
     t = rec["time"].astype(float)
     mm = 1e3
     paced = run.meta.get("mode") == "paced"
-    fig, axes = plt.subplots(5, 1, figsize=(11, 13), constrained_layout=True)
-    ax = axes[0]
-    ax.plot(t, rec["target"] * mm, lw=1.0, label="calculated (target)")
-    ax.plot(t, rec["command"] * mm, lw=0.8, label="command")
-    ax.plot(t, rec["measured"] * mm, lw=0.8, ls="--", label="measured")
-    ax.set_ylabel("displacement (mm)")
-    ax.set_title(f"{run.path.name}: displacements (cf. seed Fig. 5.1)")
-    ax.legend(loc="upper right", fontsize=8)
-    # zoom around the peak target displacement
-    ax = axes[1]
-    if len(t):
-        i = int(np.nanargmax(np.abs(rec["target"])))
-        sel = (t >= t[i] - 1.0) & (t <= t[i] + 1.0)
-        ax.plot(t[sel], rec["target"][sel] * mm, lw=1.2, label="calculated (target)")
-        ax.plot(t[sel], rec["command"][sel] * mm, lw=1.0, label="command")
-        ax.plot(t[sel], rec["measured"][sel] * mm, lw=1.0, ls="--", label="measured")
-        ax.legend(loc="upper right", fontsize=8)
-    ax.set_ylabel("displacement (mm)")
-    ax.set_title("around the peak")
-    valid = rec["fei_valid"].astype(bool)
-    for ax, col, ex, scale, label in (
-        (axes[2], "fei_amplitude", "fei_exact_amplitude", 1.0, "A"),
-        (axes[3], "fei_delay", "fei_exact_delay", 1e3, "d (ms)"),
-    ):
-        ax.plot(t, rec[col] * scale, lw=1.0, label="online, streaming")
-        ev = rec["fei_exact_valid"].astype(bool)
-        exv = rec[ex].astype(float)
-        change = np.flatnonzero(np.diff(exv, prepend=np.nan) != 0)
-        change = change[ev[change] & np.isfinite(exv[change])]
-        ax.plot(t[change], exv[change] * scale, "o", ms=3, label="exact (cross-check)")
-        _shade_invalid(ax, t, valid)
-        ax.set_ylabel(label)
-        ax.legend(loc="upper right", fontsize=8)
-    axes[2].set_title(
-        f"online FEI, measured vs {run.meta.get('fei_pair', 'target')} "
-        "(cf. seed Fig. 5.2); grey: invalid windows"
+    chans = channel_suffixes(run)
+    multi = len(chans) > 1
+    per = 3 if multi else 4
+    rows = per * len(chans) + 1
+    fig, axes = plt.subplots(
+        rows, 1, figsize=(11, 2.6 * rows), constrained_layout=True, squeeze=False
     )
-    ax = axes[4]
+    axes = axes[:, 0]
+    pair = run.meta.get("fei_pair", "target")
+    for c, (name, sfx) in enumerate(chans):
+        head = f"channel {name}: " if multi else ""
+        ax = axes[per * c]
+        ax.plot(t, rec["target" + sfx] * mm, lw=1.0, label="calculated (target)")
+        ax.plot(t, rec["command" + sfx] * mm, lw=0.8, label="command")
+        ax.plot(t, rec["measured" + sfx] * mm, lw=0.8, ls="--", label="measured")
+        ax.set_ylabel("displacement (mm)")
+        ax.set_title(f"{run.path.name}: {head}displacements (cf. the FEI paper's Fig. 5.1)")
+        ax.legend(loc="upper right", fontsize=8)
+        k = per * c + 1
+        if not multi:  # zoom around the peak target displacement
+            ax = axes[k]
+            if len(t):
+                i = int(np.nanargmax(np.abs(rec["target"])))
+                sel = (t >= t[i] - 1.0) & (t <= t[i] + 1.0)
+                ax.plot(t[sel], rec["target"][sel] * mm, lw=1.2, label="calculated (target)")
+                ax.plot(t[sel], rec["command"][sel] * mm, lw=1.0, label="command")
+                ax.plot(t[sel], rec["measured"][sel] * mm, lw=1.0, ls="--", label="measured")
+                ax.legend(loc="upper right", fontsize=8)
+            ax.set_ylabel("displacement (mm)")
+            ax.set_title("around the peak")
+            k += 1
+        valid = rec["fei_valid" + sfx].astype(bool)
+        ex_k, ex_a, ex_d = exact_fei_points(rec, sfx)
+        ex_t = ex_k / run.fs
+        for ax, col, exv, scale, label in (
+            (axes[k], "fei_amplitude", ex_a, 1.0, "A"),
+            (axes[k + 1], "fei_delay", ex_d, 1e3, "d (ms)"),
+        ):
+            ax.plot(t, rec[col + sfx] * scale, lw=1.0, label="online, streaming")
+            ax.plot(ex_t, exv * scale, "o", ms=3, label="exact (cross-check)")
+            _shade_invalid(ax, t, valid)
+            ax.set_ylabel(label)
+            ax.legend(loc="upper right", fontsize=8)
+        axes[k].set_title(
+            f"{head}online FEI, measured vs {pair} (cf. the FEI paper's Fig. 5.2); "
+            "grey: invalid windows"
+        )
+    ax = axes[-1]
+    sfx = chans[0][1]
     if paced:
         ax.plot(t, rec["lateness"] * 1e6, lw=0.6)
         ax.set_ylabel("lateness (µs)")
         ax.set_title("send time minus deadline")
     else:
-        ax.plot(t, rec["kf_delay"] * 1e3, lw=1.0, label="Kalman delay (ms)")
+        ax.plot(t, rec["kf_delay" + sfx] * 1e3, lw=1.0, label="Kalman delay (ms)")
         ax2 = ax.twinx()
-        ax2.plot(t, rec["kf_gain"], lw=1.0, color="C1", label="Kalman gain")
+        ax2.plot(t, rec["kf_gain" + sfx], lw=1.0, color="C1", label="Kalman gain")
         ax.set_ylabel("delay (ms)")
         ax2.set_ylabel("gain")
-        ax.set_title("Kalman estimates of the actuator")
+        ax.set_title(
+            "Kalman estimates of the actuator" + (f" (channel {chans[0][0]})" if multi else "")
+        )
     ax.set_xlabel("time (s)")
     for tr in _events(run, "trip") + _events(run, "operator_stop"):
         for a in axes:
