@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from enum import IntFlag
 from types import TracebackType
@@ -244,6 +245,29 @@ class Driver(ABC):
 
     def heartbeat(self) -> None:  # noqa: B027 - deliberately a no-op by default
         """Send a keep-alive where the bus needs one; a no-op otherwise."""
+
+    def arm(
+        self, timeout: float, receive: Callable[[float], Feedback | None] | None = None
+    ) -> Feedback | None:
+        """Start a new run on the controller: send the arming command, forget old sequences.
+
+        The arming command is sequence number 0 with ``enable=False`` (position 0.0 is not
+        used: the controller holds). A controller (every twin) takes it as the start of a new
+        run: it restarts its sequence count (so the run's step 0 is a new command, whatever a
+        previous run sent), acknowledges a latched e-stop or watchdog trip and holds position;
+        the run's first command (step 0, ``enable=True``) then enables it. Afterwards this
+        driver's own sequence bookkeeping is reset, so the reply to step 0 is not taken for a
+        duplicate of the arming reply.
+
+        Returns the controller's reply to the arming command (its status before the run), or
+        ``None`` when none came within ``timeout`` seconds. ``receive`` replaces
+        :meth:`receive` (the loop passes its own, which serves an inline twin first).
+        """
+        self.send(0, 0.0, False)
+        fb = (receive or self.receive)(timeout)
+        self._last_sent = -1
+        self._last_delivered = -1
+        return fb
 
     # -- shared sequence bookkeeping ------------------------------------------------------------
     def _classify(self, seq: int) -> bool:

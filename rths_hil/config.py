@@ -250,10 +250,19 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             0.0,
             unit="s",
-            doc="wait for a reply at most this long (0 = auto: 0.8 period when paced, "
-            "1 s in lockstep)",
+            doc="paced: wait for a reply at most this long (0 = auto: 0.8 period)",
             lo=0,
             hi=10,
+        ),
+        "lockstep_timeout": Key(
+            "float",
+            1.0,
+            unit="s",
+            doc="lockstep: wait this long (wall clock) for each reply; none by then trips the "
+            "watchdog",
+            lo=0,
+            hi=60,
+            lo_open=True,
         ),
         "heartbeat": Key("float", 0.1, unit="s", doc="driver heartbeat interval (0 = never)", lo=0),
         "console": Key("float", 0.5, unit="s", doc="live console line interval (0 = off)", lo=0),
@@ -312,6 +321,14 @@ SCHEMA: dict[str, dict[str, Key]] = {
             {"displacement_noise": 2e-6, "force_noise": 5.0, "seed": 0},
             unit="-",
             doc="sensor noise and quantisation as in a model file's [sensor] table",
+        ),
+        "watchdog": Key(
+            "float",
+            0.5,
+            unit="s",
+            doc="controller-side watchdog: no command or heartbeat for this long while enabled → "
+            "the twin holds and latches its e-stop (0 = off)",
+            lo=0,
         ),
         "faults": Key(
             "str",
@@ -418,6 +435,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
             unit="steps",
             doc="consecutive missed replies that trip (20 ≈ 20 ms at 1024 Hz)",
             lo=1,
+        ),
+        "watchdog_timeout": Key(
+            "float",
+            0.0,
+            unit="s",
+            doc="paced: time without a good reply that trips (0 = auto: watchdog_missed periods)",
+            lo=0,
         ),
         "max_sequence_gaps": Key(
             "int", 0, unit="-", doc="sequence gaps tolerated before a trip", lo=0

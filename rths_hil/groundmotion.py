@@ -376,7 +376,27 @@ def load(
         dt, accel = _parse_at2(p, label)
     else:
         dt, accel = _parse_csv(p, label, column, units)
+    _check_physical(accel, dt, label)
     return GroundMotion(name or p.stem, dt, accel, label)
+
+
+#: Largest |acceleration| accepted from a record file, in g. The strongest recorded ground
+#: motions peak near 4 g (2008 Iwate–Miyagi, IWTH25: 4.36 g); 20 g leaves room for any real
+#: record and refuses spikes (a wrong unit, a corrupt sample) that PGA scaling would hide.
+MAX_ACCEL_G = 20.0
+
+
+def _check_physical(accel: np.ndarray, dt: float, label: str) -> None:
+    """Refuse non-finite or non-physical samples, naming the first (index and time)."""
+    a = np.asarray(accel, dtype=float)
+    limit = MAX_ACCEL_G * G
+    bad = ~(np.abs(a) <= limit)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(
+            f"{label}: sample {i} (t = {i * dt:.4g} s) is {a[i] / G:.6g} g: not a physical "
+            f"ground acceleration (limit ±{MAX_ACCEL_G:g} g; check the units and the data)"
+        )
 
 
 def bundled_records() -> list[Path]:

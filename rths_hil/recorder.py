@@ -29,6 +29,7 @@ and, when ``h5py`` is importable, ``record.h5``. See ``docs/records.md``.
 from __future__ import annotations
 
 import ast
+import contextlib
 import datetime as _dt
 import json
 import logging
@@ -51,6 +52,8 @@ __all__ = [
     "EVENTS_FILE",
     "META_FILE",
     "RECORD_FILE",
+    "RUN_FILES",
+    "RecordWriteError",
     "Recorder",
     "RunData",
     "export_run",
@@ -64,6 +67,18 @@ log = logging.getLogger(__name__)
 RECORD_FILE = "record.npy"
 EVENTS_FILE = "events.jsonl"
 META_FILE = "meta.json"
+#: The files whose presence marks a directory as holding a run (never reused).
+RUN_FILES = (RECORD_FILE, EVENTS_FILE, META_FILE)
+
+
+class RecordWriteError(RuntimeError):
+    """The record could not be written (disk full, file-size limit, device gone).
+
+    The loop treats it as a safety event: e-stop, keep what was flushed, exit 3. After it the
+    :class:`Recorder` writes nothing more to ``record.npy``; the rows counted in its header
+    (:attr:`Recorder.rows`) are intact.
+    """
+
 
 #: The record's columns: (name, numpy dtype, unit, description), in file order.
 COLUMNS: tuple[tuple[str, str, str, str], ...] = (
@@ -221,8 +236,11 @@ class Recorder:
                 f"cannot create run directory {self.run_dir}: {exc.strerror}"
             ) from None
         self.path = self.run_dir / RECORD_FILE
-        if self.path.exists():
-            raise InputError(f"{self.path} already exists: choose a new output directory")
+        for name in RUN_FILES:
+            if (self.run_dir / name).exists():
+                raise InputError(
+                    f"{self.run_dir} already holds a run ({name}): choose a new output directory"
+                )
         self.fs = float(fs)
         self.columns = tuple(tuple(c) for c in columns)
         self.dtype = record_dtype(self.columns)
@@ -245,7 +263,8 @@ class Recorder:
         self.rows = 0  # rows on disk and counted in the header
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         os.write(self._fd, header)
-        self._events = open(self.run_dir / EVENTS_FILE, "a", encoding="utf-8")
+        self._events = open(self.run_dir / EVENTS_FILE, "x", encoding="utf-8")
+        self.failed: str | None = None  # why writing stopped (RecordWriteError), else None
         self.start_time = _now_iso()
         meta = {
             "format": "rths_hil run directory v1 (see docs/records.md)",
@@ -281,25 +300,58 @@ class Recorder:
 
     # -- slow path ---------------------------------------------------------------------------
     def flush(self) -> None:
-        """Write the buffered rows, then patch the header's row count (digits only)."""
+        """Write the buffered rows, then patch the header's row count (digits only).
+
+        Raises
+        ------
+        RecordWriteError
+            The write failed (disk full, file-size limit …). Every complete row that reached
+            the file is counted in the header; nothing more is written afterwards.
+        """
         n = self._off
-        if n == 0 or self.closed:
+        if n == 0 or self.closed or self.failed is not None:
             return
         fd = self._fd
-        written = os.write(fd, self._chunk if n == self._chunk_end else self._chunk[:n])
-        if written < n:  # pragma: no cover - a short write to a regular file (disk full)
-            view = memoryview(self._chunk)[:n]
-            while written < n:
-                written += os.write(fd, view[written:])
+        written = 0
+        try:
+            written = os.write(fd, self._chunk if n == self._chunk_end else self._chunk[:n])
+            if written < n:  # a short write to a regular file: the disk is (nearly) full
+                view = memoryview(self._chunk)[:n]
+                while written < n:
+                    written += os.write(fd, view[written:])
+        except OSError as exc:
+            rows = self.rows + written // self._rowsize  # complete rows that reached the file
+            self._fail(exc, rows)
         self.rows += n // self._rowsize
         self._off = 0
-        os.pwrite(fd, b"%d,)}" % self.rows, self._count_at)
+        try:
+            os.pwrite(fd, b"%d,)}" % self.rows, self._count_at)
+        except OSError as exc:
+            self._fail(exc, self.rows)
+
+    def _fail(self, exc: OSError, rows: int) -> None:
+        """Stop writing; keep the header counting ``rows``; raise :class:`RecordWriteError`."""
+        self.failed = f"{exc.strerror or exc}"
+        self._off = 0
+        self.rows = rows
+        with contextlib.suppress(OSError):
+            os.pwrite(self._fd, b"%d,)}" % rows, self._count_at)
+        log.info("record write failed: %s (%d rows kept in %s)", self.failed, rows, self.path)
+        raise RecordWriteError(
+            f"cannot write the record ({self.failed}); {rows} rows kept in {self.path}"
+        ) from None
 
     def event(self, kind: str, time: float = math.nan, step: int = -1, **fields) -> dict:
         """Append an event line to ``events.jsonl`` and flush it to the OS immediately."""
-        ev = {"kind": kind, "time": time, "step": step, "wall_time": _now_iso(), **fields}
-        self._events.write(json.dumps(_clean(ev), default=_json_default, allow_nan=False) + "\n")
-        self._events.flush()
+        ev = {"kind": kind, "time": time, "step": step, **fields, "wall_time": _now_iso()}
+        line = json.dumps(_clean(ev), default=_json_default, allow_nan=False) + "\n"
+        try:
+            self._events.write(line)
+            self._events.flush()
+        except OSError as exc:  # disk full: the event is lost, the run must still stop cleanly
+            if self.failed is None:
+                self.failed = f"{exc.strerror or exc}"
+            log.error("cannot write event %r to %s: %s", kind, EVENTS_FILE, exc.strerror or exc)
         return ev
 
     def update_meta(self, **fields) -> None:
@@ -312,13 +364,15 @@ class Recorder:
         if self.closed:
             return
         try:
-            self.flush()
-            os.fsync(self._fd)
+            with contextlib.suppress(RecordWriteError):
+                self.flush()
+            with contextlib.suppress(OSError):
+                os.fsync(self._fd)
         finally:
             self.closed = True
             os.close(self._fd)
-            self._events.flush()
-            self._events.close()
+            with contextlib.suppress(OSError):
+                self._events.close()
 
     def __enter__(self) -> Recorder:
         return self
@@ -351,15 +405,24 @@ class RunData:
     @property
     def fs(self) -> float:
         """Loop rate in Hz."""
-        return float(self.meta.get("fs", 1.0 / float(np.diff(self.record["time"][:2])[0])))
+        fs = self.meta.get("fs")
+        if fs is not None:
+            return float(fs)
+        t = self.record["time"]
+        if len(t) < 2:
+            raise InputError(f"{self.path}: no sampling rate (no meta.json and < 2 rows)")
+        return 1.0 / float(t[1] - t[0])
 
     def column(self, name: str) -> np.ndarray:
         """One column as a float array."""
         return np.asarray(self.record[name], dtype=float)
 
 
-def read_run(run_dir: str | Path) -> RunData:
+def read_run(run_dir: str | Path, mmap: bool = False) -> RunData:
     """Read a run directory written by :class:`Recorder` (also after a crash).
+
+    With ``mmap=True`` the record is memory-mapped read-only (``np.load(mmap_mode="r")``):
+    nothing is read until a column is used, so a long record costs no memory up front.
 
     Raises
     ------
@@ -371,7 +434,7 @@ def read_run(run_dir: str | Path) -> RunData:
     if not rec_path.is_file():
         raise InputError(f"{d}: not a run directory (no {RECORD_FILE})")
     try:
-        record = np.load(rec_path, allow_pickle=False)
+        record = np.load(rec_path, allow_pickle=False, mmap_mode="r" if mmap else None)
     except (ValueError, OSError, EOFError) as exc:
         raise InputError(f"{rec_path}: unreadable record ({exc})") from None
     if record.dtype.names is None or "time" not in record.dtype.names:

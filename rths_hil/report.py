@@ -17,12 +17,13 @@ from __future__ import annotations
 import json
 import math
 import sys
+import warnings
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
-from .recorder import RunData, read_run
+from .recorder import RECORD_FILE, RunData, read_run
 
 __all__ = ["LiveLine", "format_live", "format_summary", "plot_report", "summarize"]
 
@@ -123,7 +124,7 @@ def _num(v) -> float:
     return math.nan if v is None else float(v)
 
 
-def summarize(run_dir: str | Path, write: bool = True) -> dict[str, Any]:
+def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21) -> dict[str, Any]:
     """Summary of a run directory (also of a crashed or tripped run); writes ``summary.json``.
 
     Returns
@@ -136,9 +137,18 @@ def summarize(run_dir: str | Path, write: bool = True) -> dict[str, Any]:
         and from the ``end`` event when it has them ``overrun_causes`` (paced overruns by
         cause: ``machine``, ``machine_backlog``, ``work``, ``work_backlog``), ``wall_time``,
         ``steps_per_second``, ``missed_replies``, ``driver_stats``, ``twin_stats``,
-        ``final_alpha``.
+        ``final_alpha``. With several channels the per-record figures (FEI, metrics, online,
+        peak) are under ``channels`` → channel name, and ``trip`` names its ``channel``.
+
+    Notes
+    -----
+    The record is read memory-mapped and column by column. Records longer than ``lean_rows``
+    rows (≈ 8.5 min at 4096 Hz) are evaluated in chunks with the same equations
+    (:func:`_fei_lean`, :func:`_metrics_lean`): a one-hour record at 4096 Hz is 2.3 GB on
+    disk, and the whole-record FEI then needs only the two spectra in memory (≈ 0.3 GB) instead
+    of ≈ 4.7 GB.
     """
-    run = read_run(run_dir)
+    run = read_run(run_dir, mmap=True)
     rec = run.record
     fs = run.fs
     n = len(rec)
@@ -172,13 +182,17 @@ def summarize(run_dir: str | Path, write: bool = True) -> dict[str, Any]:
             "step": s.get("step"),
             "values": {},
         }
-    chans = channel_suffixes(run)
-    if len(chans) == 1:
-        out.update(_channel_summary(rec, chans[0][1], fs))
-    else:
-        out["channels"] = {name: _channel_summary(rec, sfx, fs) for name, sfx in chans}
-    lat = rec["lateness"].astype(float) if n else np.zeros(0)
+    if n >= 16:
+        chans = channel_suffixes(run)
+        with _Rows(run.path / RECORD_FILE) as src:
+            if len(chans) == 1:
+                out.update(_record_figures(src, fs, lean_rows, chans[0][1]))
+            else:  # several channels: the same figures per channel
+                out["channels"] = {
+                    name: _record_figures(src, fs, lean_rows, sfx) for name, sfx in chans
+                }
     if out["mode"] == "paced" and n:
+        lat = np.array(rec["lateness"], dtype=float)
         p50, p99, p999 = np.percentile(lat, [50, 99, 99.9])
         out["lateness"] = {
             "p50": float(p50),
@@ -187,8 +201,12 @@ def summarize(run_dir: str | Path, write: bool = True) -> dict[str, Any]:
             "max": float(lat.max()),
             "overruns": (end.get("lateness") or {}).get("overruns"),
         }
+        del lat
+    # the run's wall-clock duration (s); the event's wall_time is its ISO 8601 stamp
+    wall = end.get("wall_duration", end.get("wall_time"))
+    if isinstance(wall, int | float):
+        out["wall_time"] = wall
     for key in (
-        "wall_time",
         "steps_per_second",
         "missed_replies",
         "overrun_causes",
@@ -204,53 +222,276 @@ def summarize(run_dir: str | Path, write: bool = True) -> dict[str, Any]:
     return out
 
 
-def _channel_summary(rec: np.ndarray, sfx: str, fs: float) -> dict[str, Any]:
-    """FEI, metrics, online FEI and peaks of one channel (columns with suffix ``sfx``)."""
+class _Rows:
+    """Rows of ``record.npy`` read in chunks with plain file reads.
+
+    Not memory-mapped on purpose: pages of a mapped file that have been read count in the
+    process's resident set (a one-hour record at 4096 Hz is 2.3 GB); data read with ``read``
+    stays in the OS page cache, outside it.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self._f = open(path, "rb")
+        version = np.lib.format.read_magic(self._f)
+        read_header = (
+            np.lib.format.read_array_header_1_0
+            if version == (1, 0)
+            else np.lib.format.read_array_header_2_0
+        )
+        shape, _, self.dtype = read_header(self._f)
+        self.offset = self._f.tell()
+        self.n = int(shape[0])
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __enter__(self) -> _Rows:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._f.close()
+
+    def read(self, i: int, j: int) -> np.ndarray:
+        """Rows ``i … j−1`` (structured array)."""
+        j = min(j, self.n)
+        self._f.seek(self.offset + i * self.dtype.itemsize)
+        return np.fromfile(self._f, dtype=self.dtype, count=max(j - i, 0))
+
+    def column(self, name: str, i: int = 0, j: int | None = None) -> np.ndarray:
+        """Rows ``i … j−1`` of one column as float64 (the whole column by default)."""
+        j = self.n if j is None else min(j, self.n)
+        out = np.empty(max(j - i, 0))
+        for a in range(i, j, _CHUNK):
+            b = min(a + _CHUNK, j)
+            out[a - i : b - i] = self.read(a, b)[name]
+        return out
+
+
+def _record_figures(rec: _Rows, fs: float, lean_rows: int, sfx: str = "") -> dict[str, Any]:
+    """Whole-record FEI, metrics, online-estimate statistics and peaks of a record (≥ 16 rows).
+
+    ``sfx`` selects a channel's columns (``"_left"``: ``target_left`` …; ``""``: one channel).
+    """
     from .fei import fei
 
     out: dict[str, Any] = {}
     n = len(rec)
-    if n >= 16:
-        target = rec["target" + sfx].astype(float)
-        command = rec["command" + sfx].astype(float)
-        measured = rec["measured" + sfx].astype(float)
-        ok = np.isfinite(measured)
-        for key, ref in (("fei_target", target), ("fei_command", command)):
-            sel = ok & np.isfinite(ref)
-            try:
+    finite = _all_finite(rec, ("target" + sfx, "command" + sfx, "measured" + sfx))
+    lean = n > lean_rows and finite
+    meas = "measured" + sfx
+    for key, col in (("fei_target", "target" + sfx), ("fei_command", "command" + sfx)):
+        try:
+            if lean:
+                r = _fei_lean(rec, col, fs, meas)
+            else:
+                ref = rec.column(col)
+                measured = rec.column(meas)
+                sel = np.isfinite(measured) & np.isfinite(ref)
                 r = fei(ref[sel], measured[sel], fs)
-                out[key] = {
-                    "amplitude": float(r.amplitude),
-                    "delay": float(r.delay),
-                    "f_eq": float(r.f_eq),
-                    "valid": bool(r.valid),
-                }
-            except Exception as exc:  # a record too short or degenerate: say so, don't fail
-                out[key] = {"error": str(exc)}
-        out["metrics"] = _metrics(target[ok], measured[ok], fs)
-        fa = rec["fei_amplitude" + sfx].astype(float)
-        fd = rec["fei_delay" + sfx].astype(float)
-        v = rec["fei_valid" + sfx].astype(bool) & np.isfinite(fa) & np.isfinite(fd)
-        if v.any():
-            out["online"] = {
-                "windows": int(v.sum()),
-                "amplitude": {
-                    "mean": float(fa[v].mean()),
-                    "min": float(fa[v].min()),
-                    "max": float(fa[v].max()),
-                },
-                "delay": {
-                    "mean": float(fd[v].mean()),
-                    "min": float(fd[v].min()),
-                    "max": float(fd[v].max()),
-                },
+                del ref, measured, sel
+            out[key] = {
+                "amplitude": float(r.amplitude),
+                "delay": float(r.delay),
+                "f_eq": float(r.f_eq),
+                "valid": bool(r.valid),
             }
-        out["peak"] = {
-            "target": float(np.nanmax(np.abs(target))),
-            "measured": float(np.nanmax(np.abs(measured))),
-            "force": float(np.nanmax(np.abs(rec["force" + sfx].astype(float)))),
+        except Exception as exc:  # a record too short or degenerate: say so, don't fail
+            out[key] = {"error": str(exc)}
+    if lean:
+        out["metrics"] = _metrics_lean(rec, fs, "target" + sfx, meas)
+    else:
+        target = rec.column("target" + sfx)
+        measured = rec.column(meas)
+        ok = np.isfinite(measured)
+        out["metrics"] = _metrics(target[ok], measured[ok], fs)
+        del target, measured, ok
+    # online estimates and peaks, chunk by chunk
+    cnt = 0
+    a_sum = d_sum = 0.0
+    a_min = d_min = math.inf
+    a_max = d_max = -math.inf
+    pk = {"target": 0.0, "measured": 0.0, "force": 0.0}
+    online = ("fei_amplitude" + sfx, "fei_delay" + sfx, "fei_valid" + sfx)
+    for c in _chunks(rec, (*online, *(name + sfx for name in pk))):
+        fa, fd = c[online[0]], c[online[1]]
+        v = c[online[2]].astype(bool) & np.isfinite(fa) & np.isfinite(fd)
+        if v.any():
+            cnt += int(v.sum())
+            a_sum += float(fa[v].sum())
+            d_sum += float(fd[v].sum())
+            a_min, a_max = min(a_min, float(fa[v].min())), max(a_max, float(fa[v].max()))
+            d_min, d_max = min(d_min, float(fd[v].min())), max(d_max, float(fd[v].max()))
+        for name in pk:
+            x = np.abs(c[name + sfx])
+            if np.isfinite(x).any():
+                pk[name] = max(pk[name], float(np.nanmax(x)))
+    if cnt:
+        out["online"] = {
+            "windows": cnt,
+            "amplitude": {"mean": a_sum / cnt, "min": a_min, "max": a_max},
+            "delay": {"mean": d_sum / cnt, "min": d_min, "max": d_max},
         }
+    out["peak"] = pk
     return out
+
+
+_CHUNK = 1 << 18  # rows per chunk of a chunked pass (≈ 2 MB per float column)
+
+
+def _chunks(rec: _Rows, names, chunk: int = _CHUNK):
+    """Yield ``{name: float or bool array}`` for consecutive row chunks of a record."""
+    for i in range(0, len(rec), chunk):
+        part = rec.read(i, i + chunk)
+        yield {
+            name: np.array(part[name], dtype=bool if part.dtype[name].kind == "b" else float)
+            for name in names
+        }
+
+
+def _all_finite(rec: _Rows, names) -> bool:
+    return all(bool(np.isfinite(c[name]).all()) for c in _chunks(rec, names) for name in names)
+
+
+def _windowed(rec: _Rows, name: str, M: int) -> tuple[np.ndarray, float]:
+    """Column ``name`` mean-free times the Hann window, zero-padded to ``M``; and max |x|.
+
+    ``np.hanning(n)[i] = 0.5 − 0.5·cos(2πi/(n−1))``, built chunk by chunk.
+    """
+    n = len(rec)
+    x = np.zeros(M)
+    peak = 0.0
+    for i in range(0, n, _CHUNK):
+        j = min(i + _CHUNK, n)
+        x[i:j] = rec.read(i, j)[name]
+    mean = float(x[:n].mean())
+    for i in range(0, n, _CHUNK):
+        seg = x[i : min(i + _CHUNK, n)]
+        peak = max(peak, float(np.abs(seg).max()))
+        k = np.arange(i, i + seg.size, dtype=float)
+        seg -= mean
+        seg *= 0.5 - 0.5 * np.cos(2.0 * math.pi * k / (n - 1))
+    return x, peak
+
+
+def _fei_lean(rec: _Rows, ref: str, fs: float, meas: str = "measured"):
+    """Whole-record FEI of column ``meas`` vs column ``ref`` in bounded memory (seed Eq. 2.1–2.5).
+
+    The same sums as :func:`rths_hil.fei.fei` (Hann window, mean removal, zero-padding to
+    ``M = 2p``, spectral sums E, F, S over bins 1 … p−1, then the same closing equations),
+    but the time series are built column by column and each spectrum is summed in chunks:
+    the peak memory is two one-sided spectra and one padded column.
+    """
+    import scipy.fft as sfft
+
+    from .fei import ABS_FLOOR, ZERO_VARIANCE_RTOL, FEIResult, _finish, fft_length
+
+    n = len(rec)
+    M = fft_length(n)
+    p = M // 2
+    x, peak = _windowed(rec, ref, M)
+    X = sfft.rfft(x, overwrite_x=True)
+    del x
+    E = F = 0.0
+    for b in range(1, p, _CHUNK):
+        Xb = X[b : min(b + _CHUNK, p)]
+        P = Xb.real * Xb.real + Xb.imag * Xb.imag
+        E += float(P.sum())
+        F += float(P @ np.arange(b, b + Xb.size, dtype=float))
+    y, _ = _windowed(rec, meas, M)
+    Y = sfft.rfft(y, overwrite_x=True)
+    del y
+    S = 0j
+    for b in range(1, p, _CHUNK):
+        e = min(b + _CHUNK, p)
+        S += complex(np.vdot(X[b:e], Y[b:e]))  # Σ Y·conj(X)
+    del X, Y
+    ww = 0.0
+    for i in range(0, n, _CHUNK):
+        k = np.arange(i, min(i + _CHUNK, n), dtype=float)
+        w = 0.5 - 0.5 * np.cos(2.0 * math.pi * k / (n - 1))
+        ww += float(w @ w)
+    floor = max(ABS_FLOOR, ZERO_VARIANCE_RTOL * peak)
+    amp, phase, f_eq, delay, valid, level, _ = _finish(
+        np.atleast_1d(E), np.atleast_1d(F), np.atleast_1d(S), fs, M, ww, floor, 0.0
+    )
+    return FEIResult(
+        float(amp[0]), float(phase[0]), float(f_eq[0]), float(delay[0]), bool(valid[0]),
+        float(level[0]),
+    )  # fmt: skip
+
+
+def _metrics_lean(
+    rec: _Rows, fs: float, tcol: str = "target", mcol: str = "measured", max_lag_s: float = 0.1
+) -> dict[str, float]:
+    """J1–J3 and TI of column ``mcol`` vs ``tcol`` in chunks (same equations as
+    :mod:`rths_hil.metrics`; all rows finite)."""
+    from scipy.signal import correlate
+
+    n = len(rec)
+    sx = sy = 0.0
+    for c in _chunks(rec, (tcol, mcol)):
+        sx += float(c[tcol].sum())
+        sy += float(c[mcol].sum())
+    mx, my = sx / n, sy / n
+    L = min(int(np.floor(max_lag_s * fs + 1e-9)), n - 1)
+    R = np.zeros(2 * L + 1)
+    xx = ee = 0.0
+    xpk = epk = 0.0
+    ti = 0.0
+    prev = None  # last (x, y) of the previous chunk, raw
+    for i in range(0, n, _CHUNK):
+        j = min(i + _CHUNK, n)
+        x = rec.column(tcol, i, j)
+        y = rec.column(mcol, i, j)
+        # J2, J3 (raw values), TI (trapezoids, joined across chunks)
+        d = y - x
+        ee += float(d @ d)
+        xx += float(x @ x)
+        epk = max(epk, float(np.abs(d).max()))
+        xpk = max(xpk, float(np.abs(x).max()))
+        xs = x if prev is None else np.r_[prev[0], x]
+        ys = y if prev is None else np.r_[prev[1], y]
+        ti += float((0.5 * (xs[1:] + xs[:-1]) * np.diff(ys)).sum())
+        ti -= float((0.5 * (ys[1:] + ys[:-1]) * np.diff(xs)).sum())
+        prev = (x[-1], y[-1])
+        # J1: R(τ) = Σ_t x(t)·y(t+τ), mean-free, |τ| ≤ L; y zero outside the record
+        a, b = max(i - L, 0), min(j + L, n)
+        yseg = np.zeros(j - i + 2 * L)
+        yseg[a - (i - L) : b - (i - L)] = rec.column(mcol, a, b) - my
+        R += correlate(yseg, x - mx, mode="valid", method="fft")
+    out: dict[str, float] = {}
+    out["j2_nrms"] = 100.0 * math.sqrt(ee / n) / math.sqrt(xx / n) if xx > 0 else math.nan
+    out["j3_peak"] = 100.0 * epk / xpk if xpk > 0 else math.nan
+    out["tracking_indicator"] = 0.5 * ti
+    # overlap energies of each lag (as metrics.j1_delay), from the record's head and tail
+    head_x = rec.column(tcol, 0, L + 1) - mx
+    tail_x = rec.column(tcol, n - L - 1, n) - mx
+    head_y = rec.column(mcol, 0, L + 1) - my
+    tail_y = rec.column(mcol, n - L - 1, n) - my
+    tx = ty = 0.0
+    for c in _chunks(rec, (tcol, mcol)):
+        tx += float(((c[tcol] - mx) ** 2).sum())
+        ty += float(((c[mcol] - my) ** 2).sum())
+    lags = np.arange(-L, L + 1)
+    hx = np.r_[0.0, np.cumsum(head_x * head_x)]  # Σ of the first m samples' squares
+    hy = np.r_[0.0, np.cumsum(head_y * head_y)]
+    tlx = np.r_[0.0, np.cumsum((tail_x * tail_x)[::-1])]  # Σ of the last m samples' squares
+    tly = np.r_[0.0, np.cumsum((tail_y * tail_y)[::-1])]
+    pos = np.maximum(lags, 0)
+    neg = np.maximum(-lags, 0)
+    ex = np.where(lags >= 0, tx - tlx[pos], tx - hx[neg])
+    ey = np.where(lags >= 0, ty - hy[pos], ty - tly[neg])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = R / np.sqrt(ex * ey)
+    r = np.nan_to_num(r, nan=-np.inf)
+    k = int(np.argmax(r))
+    frac = 0.0
+    if 0 < k < r.size - 1:
+        denom = r[k - 1] - 2 * r[k] + r[k + 1]
+        if denom < 0:
+            frac = 0.5 * (r[k - 1] - r[k + 1]) / denom
+    out["j1_delay"] = float((lags[k] + frac) / fs)
+    return {k2: out[k2] for k2 in ("j1_delay", "j2_nrms", "j3_peak", "tracking_indicator")}
 
 
 def _clean(obj):
@@ -370,27 +611,51 @@ def _format_channel(s: dict[str, Any]) -> list[str]:
     return lines
 
 
-def plot_report(run_dir: str | Path, path: str | Path | None = None) -> Path:
+def plot_report(
+    run_dir: str | Path, path: str | Path | None = None, max_points: int = 20_000
+) -> Path:
     """Draw ``report.png`` (the FEI paper's Fig. 5.1 and 5.2 style); return its path.
 
     One channel: displacements, a zoom around the peak, online FEI A and d (streaming curve,
     exact cross-check dots at their windows' ends), lateness or Kalman. Several channels: a
     displacement panel and the FEI A and d panels per channel, then the lateness or Kalman
     panel of the first channel.
+
+    The record is read in chunks; a record longer than ``max_points`` rows is drawn as its
+    min/max envelope over ``max_points / 2`` buckets (every peak stays visible), so a one-hour
+    record costs a few MB of memory, not gigabytes.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    run = read_run(run_dir)
-    rec = run.record
+    run = read_run(run_dir, mmap=True)
     out = Path(path) if path is not None else run.path / "report.png"
-    t = rec["time"].astype(float)
-    mm = 1e3
-    paced = run.meta.get("mode") == "paced"
     chans = channel_suffixes(run)
     multi = len(chans) > 1
+    per_channel = (
+        "target", "command", "measured", "fei_amplitude", "fei_delay", "fei_valid",
+        "kf_delay", "kf_gain",
+    )  # fmt: skip
+    with _Rows(run.path / RECORD_FILE) as src:
+        cols = ("lateness", *(c + sfx for _, sfx in chans for c in per_channel))
+        env = _envelopes(src, cols, max_points)
+        n = len(src)
+        zoom = None
+        if not multi and n:  # zoom around the peak target displacement: ±1 s of full rate
+            ipk, best = 0, -1.0
+            for i in range(0, n, _CHUNK):
+                x = np.abs(src.column("target", i, i + _CHUNK))
+                if x.size and np.isfinite(x).any():
+                    j = int(np.nanargmax(x))
+                    if x[j] > best:
+                        ipk, best = i + j, float(x[j])
+            zoom = src.read(max(ipk - int(run.fs), 0), ipk + int(run.fs) + 1)
+        exact = {sfx: _exact_points(src, run.fs, sfx) for _, sfx in chans}
+    t = env["time"]
+    mm = 1e3
+    paced = run.meta.get("mode") == "paced"
     per = 3 if multi else 4
     rows = per * len(chans) + 1
     fig, axes = plt.subplots(
@@ -401,34 +666,32 @@ def plot_report(run_dir: str | Path, path: str | Path | None = None) -> Path:
     for c, (name, sfx) in enumerate(chans):
         head = f"channel {name}: " if multi else ""
         ax = axes[per * c]
-        ax.plot(t, rec["target" + sfx] * mm, lw=1.0, label="calculated (target)")
-        ax.plot(t, rec["command" + sfx] * mm, lw=0.8, label="command")
-        ax.plot(t, rec["measured" + sfx] * mm, lw=0.8, ls="--", label="measured")
+        ax.plot(t, env["target" + sfx] * mm, lw=1.0, label="calculated (target)")
+        ax.plot(t, env["command" + sfx] * mm, lw=0.8, label="command")
+        ax.plot(t, env["measured" + sfx] * mm, lw=0.8, ls="--", label="measured")
         ax.set_ylabel("displacement (mm)")
         ax.set_title(f"{run.path.name}: {head}displacements (cf. the FEI paper's Fig. 5.1)")
         ax.legend(loc="upper right", fontsize=8)
         k = per * c + 1
-        if not multi:  # zoom around the peak target displacement
+        if not multi:
             ax = axes[k]
-            if len(t):
-                i = int(np.nanargmax(np.abs(rec["target"])))
-                sel = (t >= t[i] - 1.0) & (t <= t[i] + 1.0)
-                ax.plot(t[sel], rec["target"][sel] * mm, lw=1.2, label="calculated (target)")
-                ax.plot(t[sel], rec["command"][sel] * mm, lw=1.0, label="command")
-                ax.plot(t[sel], rec["measured"][sel] * mm, lw=1.0, ls="--", label="measured")
+            if zoom is not None and len(zoom):
+                tz = zoom["time"]
+                ax.plot(tz, zoom["target"] * mm, lw=1.2, label="calculated (target)")
+                ax.plot(tz, zoom["command"] * mm, lw=1.0, label="command")
+                ax.plot(tz, zoom["measured"] * mm, lw=1.0, ls="--", label="measured")
                 ax.legend(loc="upper right", fontsize=8)
             ax.set_ylabel("displacement (mm)")
             ax.set_title("around the peak")
             k += 1
-        valid = rec["fei_valid" + sfx].astype(bool)
-        ex_k, ex_a, ex_d = exact_fei_points(rec, sfx)
-        ex_t = ex_k / run.fs
+        valid = env["fei_valid" + sfx] > 0.5
+        ex = exact[sfx]
         for ax, col, exv, scale, label in (
-            (axes[k], "fei_amplitude", ex_a, 1.0, "A"),
-            (axes[k + 1], "fei_delay", ex_d, 1e3, "d (ms)"),
+            (axes[k], "fei_amplitude", ex["amplitude"], 1.0, "A"),
+            (axes[k + 1], "fei_delay", ex["delay"], 1e3, "d (ms)"),
         ):
-            ax.plot(t, rec[col + sfx] * scale, lw=1.0, label="online, streaming")
-            ax.plot(ex_t, exv * scale, "o", ms=3, label="exact (cross-check)")
+            ax.plot(t, env[col + sfx] * scale, lw=1.0, label="online, streaming")
+            ax.plot(ex["time"], exv * scale, "o", ms=3, label="exact (cross-check)")
             _shade_invalid(ax, t, valid)
             ax.set_ylabel(label)
             ax.legend(loc="upper right", fontsize=8)
@@ -439,13 +702,13 @@ def plot_report(run_dir: str | Path, path: str | Path | None = None) -> Path:
     ax = axes[-1]
     sfx = chans[0][1]
     if paced:
-        ax.plot(t, rec["lateness"] * 1e6, lw=0.6)
+        ax.plot(t, env["lateness"] * 1e6, lw=0.6)
         ax.set_ylabel("lateness (µs)")
         ax.set_title("send time minus deadline")
     else:
-        ax.plot(t, rec["kf_delay" + sfx] * 1e3, lw=1.0, label="Kalman delay (ms)")
+        ax.plot(t, env["kf_delay" + sfx] * 1e3, lw=1.0, label="Kalman delay (ms)")
         ax2 = ax.twinx()
-        ax2.plot(t, rec["kf_gain" + sfx], lw=1.0, color="C1", label="Kalman gain")
+        ax2.plot(t, env["kf_gain" + sfx], lw=1.0, color="C1", label="Kalman gain")
         ax.set_ylabel("delay (ms)")
         ax2.set_ylabel("gain")
         ax.set_title(
@@ -458,6 +721,65 @@ def plot_report(run_dir: str | Path, path: str | Path | None = None) -> Path:
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
+
+
+def _envelopes(src: _Rows, names, max_points: int) -> dict[str, np.ndarray]:
+    """Columns (and ``time``) at full rate, or as a min/max envelope when the record is long.
+
+    With ``q = ceil(2n / max_points)`` rows per bucket each bucket contributes its minimum and
+    its maximum, in time order (``fei_valid``: its minimum twice, so a bucket with an invalid
+    window is shaded). NaNs are ignored within a bucket.
+    """
+    n = len(src)
+    names = ("time", *names)
+    if n <= max_points:
+        part = src.read(0, n)
+        return {k: np.asarray(part[k], dtype=float) for k in names}
+    q = -(-2 * n // max_points)
+    chunk = max(q, (_CHUNK // q) * q)
+    out: dict[str, list] = {k: [] for k in names}
+    for i in range(0, n, chunk):
+        part = src.read(i, i + chunk)
+        m = len(part) // q * q
+        if m == 0:
+            continue
+        for k in names:
+            v = np.asarray(part[k][:m], dtype=float).reshape(-1, q)
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN buckets stay NaN
+                lo, hi = np.nanmin(v, axis=1), np.nanmax(v, axis=1)
+            if k == "time":
+                lo, hi = v[:, 0], v[:, -1]
+            elif k.startswith("fei_valid"):
+                hi = lo
+            out[k].append(np.column_stack([lo, hi]).ravel())
+    return {k: np.concatenate(v) if v else np.zeros(0) for k, v in out.items()}
+
+
+def _exact_points(src: _Rows, fs: float, sfx: str = "") -> dict[str, np.ndarray]:
+    """The exact-FEI cross-check of a channel, chunk by chunk: ``time`` (s), ``amplitude``,
+    ``delay``, one point per new valid window, at the step its window ended
+    (``fei_exact_step``; see :func:`exact_fei_points`)."""
+    keep: dict[str, list] = {"time": [], "amplitude": [], "delay": []}
+    has_step = "fei_exact_step" + sfx in (src.dtype.names or ())
+    prev = -1 if has_step else np.nan
+    for i in range(0, len(src), _CHUNK):
+        part = src.read(i, i + _CHUNK)
+        amp = np.asarray(part["fei_exact_amplitude" + sfx], dtype=float)
+        ok = part["fei_exact_valid" + sfx].astype(bool) & np.isfinite(amp)
+        if has_step:
+            end = np.asarray(part["fei_exact_step" + sfx], dtype=np.int64)
+            sel = (np.diff(end, prepend=prev) != 0) & (end >= 0) & ok
+            prev = end[-1] if end.size else prev
+            t_end = end[sel] / fs
+        else:  # records before fei_exact_step: where the value appeared
+            sel = (np.diff(amp, prepend=prev) != 0) & ok
+            prev = amp[-1] if amp.size else prev
+            t_end = np.asarray(part["time"][sel], dtype=float)
+        keep["time"].append(t_end)
+        keep["amplitude"].append(amp[sel])
+        keep["delay"].append(np.asarray(part["fei_exact_delay" + sfx][sel], dtype=float))
+    return {k: np.concatenate(v) if v else np.zeros(0) for k, v in keep.items()}
 
 
 def _shade_invalid(ax, t: np.ndarray, valid: np.ndarray) -> None:

@@ -23,7 +23,9 @@ Rules (names as they appear in events and on the console):
 ``kalman``
     Kalman gain outside ``[gain_min, gain_max]`` or ``|delay| > delay_max``.
 ``watchdog``
-    ``missed`` consecutive steps without a matching feedback reply.
+    ``missed`` consecutive steps without a matching feedback reply, or (paced runs, and the
+    wall-clock bound of a lockstep run) more than ``timeout`` seconds since the last good reply,
+    however long each receive took: a reply that comes later than that is a missed reply.
 ``sequence``
     More than ``max_gaps`` sequence gaps: a reply whose echoed sequence number is not the one
     sent, or a reply flagged ``SEQ_GAP`` by the controller (a command went missing).
@@ -36,6 +38,9 @@ Rules (names as they appear in events and on the console):
     The measured displacement identical for ``steps`` consecutive replies while the command
     moved by more than ``motion`` (m) over the same steps (a frozen sensor or a stalled
     actuator).
+``record``
+    Not a rule of the monitor: the recorder could not write (disk full, file-size limit); the
+    loop stops with an e-stop and keeps the rows already on disk (:mod:`rths_hil.recorder`).
 ``operator``
     Not a rule: the operator stop (Ctrl-C) uses the same path (see :mod:`rths_hil.loop`).
 """
@@ -43,7 +48,8 @@ Rules (names as they appear in events and on the console):
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -308,17 +314,70 @@ class KalmanRule:
 
 
 class WatchdogRule:
-    """Feedback watchdog: ``missed`` consecutive steps without a matching reply trip it."""
+    """Feedback watchdog: wall-clock time since the last good reply, and missed steps.
 
-    __slots__ = ("count", "missed", "rule")
+    Trips when ``missed`` consecutive steps had no matching reply, or — when ``timeout`` is
+    given — when more than ``timeout`` seconds of the monotonic ``clock`` have passed since the
+    last good reply (since the first check before any reply), however long each receive took.
+    A reply that arrives later than ``timeout`` after the previous good one is therefore a
+    missed reply: the rule trips on it instead of accepting it as the current measurement.
+    The time limit is what makes a paced run safe when a receive blocks longer than the loop
+    period; the step count is what a lockstep run (virtual time) relies on.
 
-    def __init__(self, missed: int) -> None:
+    Parameters
+    ----------
+    missed : int
+        Consecutive steps without a reply that trip (≥ 1).
+    timeout : float or None
+        Seconds without a good reply that trip (> 0), or ``None`` for the step count only.
+    clock : callable
+        Monotonic clock in seconds (default :func:`time.perf_counter`, the loop's clock).
+    """
+
+    __slots__ = ("clock", "count", "last_ok", "missed", "rule", "timeout")
+
+    def __init__(
+        self,
+        missed: int,
+        timeout: float | None = None,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
         self.rule = "watchdog"
         self.missed = _count("watchdog missed replies", missed)
+        self.timeout = None if timeout is None else _positive("watchdog timeout", timeout)
+        self.clock = clock
         self.count = 0
+        self.last_ok = math.nan
+
+    def reset(self) -> None:
+        """Forget the previous replies (the next check starts the clock)."""
+        self.count = 0
+        self.last_ok = math.nan
 
     def check(self, ok: bool) -> Trip | None:
-        """Feed whether this step got its reply."""
+        """Feed whether this step got its reply (called once the receive has returned)."""
+        timeout = self.timeout
+        if timeout is not None:
+            now = self.clock()
+            last = self.last_ok
+            if last != last:  # first check: the clock starts now
+                last = self.last_ok = now
+            elapsed = now - last
+            if elapsed > timeout:
+                self.count += 0 if ok else 1
+                return Trip(
+                    self.rule,
+                    f"no good feedback for {elapsed * 1e3:.1f} ms "
+                    f"(limit {timeout * 1e3:.1f} ms, {self.count} missed steps)",
+                    values={
+                        "elapsed": elapsed,
+                        "timeout": timeout,
+                        "missed": self.count,
+                        "late_reply": bool(ok),
+                    },
+                )
+            if ok:
+                self.last_ok = now
         if ok:
             self.count = 0
             return None

@@ -125,6 +125,11 @@ class Faults:
                 ) from None
         return cls(**kwargs)  # type: ignore[arg-type]
 
+    def rearm(self) -> None:
+        """Back to the start of the plan (a new run on the same twin): same random draws."""
+        self._rng = random.Random(self.seed)
+        self._stuck_value = None
+
     # -- used by the endpoints ------------------------------------------------------------------
     def command_lost(self, seq: int) -> bool:
         """True if the command of step ``seq`` never reaches the controller."""

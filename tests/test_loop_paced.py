@@ -106,7 +106,7 @@ def test_kill_9_leaves_the_record_complete_up_to_the_kill(tmp_path):
     assert t_kill - t_last <= 0.25, t_kill - t_last
     assert np.isfinite(rec["target"]).all() and rec["feedback_ok"].any()
     assert json.loads((out / "meta.json").read_text())["mode"] == "paced"
-    assert [e["kind"] for e in run.events][:2] == ["start", "clock"]
+    assert [e["kind"] for e in run.events][:3] == ["start", "arm", "clock"]
 
 
 def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):

@@ -120,7 +120,7 @@ def test_events_are_flushed_immediately_and_meta_written_first(tmp_path):
 
 def test_existing_record_is_refused(tmp_path):
     Recorder(tmp_path / "run", fs=10.0).close()
-    with pytest.raises(InputError, match="already exists"):
+    with pytest.raises(InputError, match="already holds a run"):
         Recorder(tmp_path / "run", fs=10.0)
     with pytest.raises(InputError, match="flush interval"):
         Recorder(tmp_path / "run2", fs=10.0, flush_interval=0.5)

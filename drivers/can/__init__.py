@@ -18,6 +18,13 @@ its message identifiers are the DBC's plus ``n`` (``Command`` 0x100 + n, ``Feedb
 node's e-stop still outranks every command. The drivers of the nodes on one bus share one
 python-can bus object (:func:`shared_bus`): a driver that reads another node's feedback off it
 hands the frame to that node's inbox, so every frame is read once.
+
+Every receive honours its timeout. Not every python-can interface does: ``serial`` (and other
+interfaces built on a blocking read) wait their own read timeout (0.1 s) whatever ``recv`` is
+given, which would make a paced loop's watchdog count wall-clock seconds as single steps. On
+such interfaces the driver reads the bus through python-can's own :class:`can.Notifier`
+thread into a :class:`can.BufferedReader`, whose queue honours the timeout to the
+microsecond; interfaces known to honour it (:data:`TIMEOUT_HONOURED`) are read directly.
 """
 
 from __future__ import annotations
@@ -37,10 +44,22 @@ from rths_hil.errors import InputError
 from ..base import Driver, Feedback, check_command
 from .codec import ActuatorCodecs, Frame, load
 
-__all__ = ["MAX_NODE", "CANDriver", "SharedBus", "release_bus", "shared_bus", "virtual_rx_queue"]
+__all__ = [
+    "MAX_NODE",
+    "TIMEOUT_HONOURED",
+    "CANDriver",
+    "SharedBus",
+    "release_bus",
+    "shared_bus",
+    "virtual_rx_queue",
+]
 
 #: Highest CAN node number (identifier offset) of an actuator on a shared bus.
 MAX_NODE = 15
+
+#: python-can interfaces whose ``recv(timeout)`` returns within the timeout (read directly);
+#: any other is read through a :class:`can.Notifier` thread (see the module docstring).
+TIMEOUT_HONOURED = frozenset({"virtual", "socketcan"})
 
 _BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
 
@@ -80,6 +99,8 @@ class SharedBus:
         self.refs = 0
         self.inboxes: dict[int, deque] = {}
         self.handlers: dict[int, Any] = {}
+        self.reader: can.BufferedReader | None = None
+        self.notifier: can.Notifier | None = None
 
 
 _SHARED: dict[tuple, SharedBus] = {}
@@ -105,6 +126,9 @@ def shared_bus(side: str, interface: str, channel: str, **kwargs: Any) -> Shared
                     f"CAN: cannot open interface {interface!r} channel {channel!r}: {exc}"
                 ) from None
             share = _SHARED[key] = SharedBus(key, bus)
+            if side == "bridge" and str(interface) not in TIMEOUT_HONOURED:
+                share.reader = can.BufferedReader()
+                share.notifier = can.Notifier(bus, [share.reader], timeout=0.01)
         share.refs += 1
         return share
 
@@ -116,6 +140,12 @@ def release_bus(share: SharedBus) -> None:
         if share.refs > 0:
             return
         _SHARED.pop(share.key, None)
+    notifier, share.notifier = share.notifier, None
+    if notifier is not None:
+        try:
+            notifier.stop(timeout=1.0)
+        except _BUS_ERRORS:  # pragma: no cover - already gone
+            pass
     try:
         share.bus.shutdown()
     except _BUS_ERRORS:  # pragma: no cover - already gone
@@ -201,6 +231,7 @@ class CANDriver(Driver):
         self._share: SharedBus | None = None
         self._box: deque = deque()  # frames for this node read off the bus by another node
         self._routes: dict[int, deque] = {}
+        self._reader: can.BufferedReader | None = None
         self._hb = 0
 
     def open(self) -> None:
@@ -223,11 +254,13 @@ class CANDriver(Driver):
         self._routes = share.inboxes
         self._bus = share.bus
         self._rxq = share.rxq
+        self._reader = share.reader
 
     def close(self) -> None:
         share, self._share = self._share, None
         self._bus = None
         self._rxq = None
+        self._reader = None
         if share is not None:
             share.inboxes.pop(self._f_id, None)
             release_bus(share)
@@ -285,12 +318,23 @@ class CANDriver(Driver):
         deadline = time.perf_counter() + timeout
         remaining = timeout
         q = self._rxq
+        reader = self._reader
         while True:
             if q is not None:  # virtual bus: its queue directly (see virtual_rx_queue)
                 try:
                     msg = q.get(True, remaining)
                 except queue.Empty:
                     msg = None
+            elif reader is not None:  # an interface that ignores the timeout: its reader
+                msg = reader.get_message(max(remaining, 0.0))
+                share = self._share
+                if (
+                    msg is None
+                    and share is not None
+                    and share.notifier
+                    and share.notifier.exception
+                ):
+                    stats.disconnects += 1
             else:
                 try:
                     msg = bus.recv(remaining)

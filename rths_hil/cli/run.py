@@ -87,10 +87,19 @@ def main(args: argparse.Namespace) -> int:
     finally:
         if live is not None:
             live.finish()
-    summary = summarize(run_dir)
-    if cfg["output"]["plot"] and not args.no_plot and result.steps > 1:
-        plot_report(run_dir)
-    if not args.quiet:
+    del loop  # the run's arrays (ground motion, lateness) are not needed for the summary
+    result.lateness = result.ready = None
+    try:
+        summary = summarize(run_dir)
+        if cfg["output"]["plot"] and not args.no_plot and result.steps > 1:
+            plot_report(run_dir)
+    except OSError as exc:  # e.g. the disk filled up: the record and events are what is kept
+        summary = None
+        print(
+            f"rths-hil run: cannot write the summary or report in {run_dir}: {exc.strerror or exc}",
+            file=sys.stderr,
+        )
+    if not args.quiet and summary is not None:
         print(format_summary(summary))
     if result.status == "trip":
         t = result.trip

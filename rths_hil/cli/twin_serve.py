@@ -41,6 +41,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--transport", help="modbus: tcp (default) or rtu; serial: pty (default) or tcp")
     p.add_argument("--host", default="127.0.0.1", help="TCP bind address (default 127.0.0.1)")
     p.add_argument(
+        "--allow-remote",
+        action="store_true",
+        help="allow a --host other than loopback (the twin becomes reachable from the network)",
+    )
+    p.add_argument(
         "--port", type=int, default=None, help="TCP port (default 0: any free port, printed)"
     )
     p.add_argument("--device", help="modbus rtu: serial device to serve (default: a new pty)")
@@ -49,7 +54,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--channel", default="vcan0", help="CAN: channel (default vcan0)")
     p.add_argument("--bitrate", type=int, default=None, help="CAN: bit rate (bit/s)")
     p.add_argument("--faults", default=None, help='fault plan, e.g. "drop=5,9; p_corrupt=0.01"')
-    p.add_argument("--heartbeat-timeout", default=None, help="trip the e-stop when heartbeats stop")
+    p.add_argument(
+        "--heartbeat-timeout",
+        default="0.5s",
+        help="controller-side watchdog: no command or heartbeat for this long while enabled → "
+        "hold and latch the e-stop (default 0.5s; 0 = off)",
+    )
     p.set_defaults(func=run)
 
 
@@ -73,7 +83,11 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
         )
     conn = {"transport": transport}
     if transport == "tcp":
-        conn |= {"host": args.host, "port": 0 if args.port is None else args.port}
+        conn |= {
+            "host": args.host,
+            "port": 0 if args.port is None else args.port,
+            "allow_remote": args.allow_remote,
+        }
     if args.driver == "modbus":
         conn["device_id"] = args.device_id
         if transport == "rtu" and args.device:
@@ -96,11 +110,10 @@ def run(args: argparse.Namespace) -> int:
     else:
         plant = default_plant(dt=dt)
     faults = Faults.parse(args.faults) if args.faults else None
-    hb = (
-        None
-        if args.heartbeat_timeout is None
-        else parse_time(args.heartbeat_timeout, "--heartbeat-timeout")
-    )
+    hb = parse_time(args.heartbeat_timeout, "--heartbeat-timeout")
+    if not hb >= 0:
+        raise InputError(f"--heartbeat-timeout {args.heartbeat_timeout}: must be >= 0 s")
+    hb = hb or None
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:

@@ -97,6 +97,15 @@ class Channel:
         self.last_command = 0.0
         self.estop_confirmed: bool | None = None
         self.send = self.receive = self.heartbeat = None
+        # the time this channel's receive returned (perf_counter): its watchdog measures the
+        # time between its own replies, not the time other channels' waits took
+        self.t_rx = 0.0
+        wd = plan.monitor.watchdog
+        if wd is not None and getattr(wd, "timeout", None) is not None:
+            wd.clock = self._rx_clock
+
+    def _rx_clock(self) -> float:
+        return self.t_rx
 
     # ------------------------------------------------------------------------------------------
     # opening
@@ -115,7 +124,12 @@ class Channel:
             # frames, codecs and controller; no thread hand-off and GIL contention per step).
             try:
                 self.twin = start_twin(
-                    name, plan.plant, faults=plan.faults, threaded=not plan.twin_inline, **conn
+                    name,
+                    plan.plant,
+                    faults=plan.faults,
+                    threaded=not plan.twin_inline,
+                    heartbeat_timeout=plan.twin_watchdog,
+                    **conn,
                 )
             except InputError as exc:
                 raise InputError(f"{where}: driver.connection: {exc}") from None

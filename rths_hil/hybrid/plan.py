@@ -60,7 +60,7 @@ def new_run_dir(pattern: str, base: Path | None = None) -> Path:
     if base is not None and not p.is_absolute():
         p = base / p
     out, i = p, 1
-    while (out / "record.npy").exists():
+    while any((out / f).exists() for f in ("record.npy", "events.jsonl", "meta.json")):
         out = p.with_name(f"{p.name}-{i}")
         i += 1
     return out
@@ -311,6 +311,7 @@ class ChannelPlan:
     connection: dict[str, Any]
     twin_enabled: bool
     twin_inline: bool
+    twin_watchdog: float | None
     plant: Any
     faults: Any
     compensator: InverseCompensator
@@ -393,7 +394,14 @@ def channel_row(cc: ChannelConfig, i: int, n_dof: int) -> np.ndarray:
 
 
 def _plan_channel(
-    cc: ChannelConfig, i: int, n_chan: int, row: np.ndarray, fs: float, fn1: float, plant
+    cc: ChannelConfig,
+    i: int,
+    n_chan: int,
+    row: np.ndarray,
+    fs: float,
+    fn1: float,
+    plant,
+    mode: str,
 ) -> ChannelPlan:
     cfg = cc.config
     dt = 1.0 / fs
@@ -474,7 +482,14 @@ def _plan_channel(
             if kc["enabled"]
             else None
         ),
-        watchdog=WatchdogRule(sf["watchdog_missed"]),
+        watchdog=WatchdogRule(
+            sf["watchdog_missed"],
+            # paced: wall-clock time since the last good reply; lockstep: the generous
+            # wall-clock bound of the wait for each reply (virtual time, deterministic)
+            (sf["watchdog_timeout"] or sf["watchdog_missed"] * dt)
+            if mode == "paced"
+            else cfg["loop"]["lockstep_timeout"],
+        ),
         sequence=SequenceRule(sf["max_sequence_gaps"]),
         overrun=None,  # one rule for the whole loop (TestPlan.max_overruns)
         stuck=StuckRule(sf["stuck_steps"], sf["stuck_motion"]) if sf["stuck_steps"] else None,
@@ -490,6 +505,7 @@ def _plan_channel(
         connection=conn,
         twin_enabled=bool(tw["enabled"]),
         twin_inline=inline,
+        twin_watchdog=tw["watchdog"] or None,
         plant=plant,
         faults=faults,
         compensator=comp,
@@ -571,7 +587,7 @@ def build_plan(
         else:
             raise InputError("plant=: several channels: pass {channel name: plant}")
     channels = [
-        _plan_channel(cc, i, len(chans_cfg), rows[i], fs, fn1, plants.get(cc.name))
+        _plan_channel(cc, i, len(chans_cfg), rows[i], fs, fn1, plants.get(cc.name), mode)
         for i, cc in enumerate(chans_cfg)
     ]
     _check_shared_links(cfg, channels)
@@ -590,7 +606,9 @@ def build_plan(
         fn1=fn1,
         channels=channels,
         columns=record_columns([c.suffix for c in channels], n_dof),
-        timeout=lp["feedback_timeout"] or (0.8 * dt if mode == "paced" else 1.0),
+        # paced: at most 0.8 period; lockstep waits for every reply, up to the wall-clock bound
+        # that trips the watchdog
+        timeout=(lp["feedback_timeout"] or 0.8 * dt) if mode == "paced" else lp["lockstep_timeout"],
         # never spin through a whole period: a SCHED_FIFO thread that never sleeps is stopped by
         # Linux's RT throttling (95 % of a CPU) for 50 ms every second
         spin=min(lp["spin"], 0.4 * dt),

@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..recorder import Recorder
+from ..recorder import Recorder, RecordWriteError
 from ..safety import OverrunRule, Trip
 from .channel import Channel
 from .plan import CHANNEL_COLUMNS_A, CHANNEL_COLUMNS_B, CHANNEL_COLUMNS_C, TestPlan
@@ -369,7 +369,21 @@ class Runner:
                 rules=self.safety.rules,
                 channels=[ch.name for ch in self.channels],
             )
+            # a new run on each controller: restart its sequence count, acknowledge a latch
+            for ch in self.channels:
+                armed = ch.driver.arm(max(plan.timeout, 0.5), ch.receive)
+                rec.event(
+                    "arm", 0.0, 0, channel=ch.name, replied=armed is not None,
+                    status=None if armed is None else int(armed.status),
+                )  # fmt: skip
             result = self._loop(rec)
+            if result.status == "completed":
+                try:  # the last rows: a write failure here is still a safety event
+                    rec.flush()
+                except RecordWriteError as exc:
+                    result.status = "trip"
+                    result.trip = Trip("record", str(exc)).at(result.steps * plan.dt, result.steps)
+                    rec.event("trip", **dict(list(result.trip.as_event().items())[1:]))
             if result.status != "completed":
                 result.estop_confirmed = self._estop_all(rec, result)
             ls = result.lateness_stats()
@@ -387,7 +401,7 @@ class Runner:
                 result.steps * plan.dt,
                 result.steps,
                 status=result.status,
-                wall_time=result.wall_time,
+                wall_duration=result.wall_time,
                 steps_per_second=result.steps_per_second,
                 lateness=ls,
                 overrun_causes=result.overrun_causes(),
@@ -405,7 +419,8 @@ class Runner:
         """E-stop every channel at once, then confirm each latch with one status poll."""
         for ch in self.channels:
             ch.estop()
-        rec.flush()
+        with contextlib.suppress(RecordWriteError):  # already a trip; keep what was flushed
+            rec.flush()
         confirmed = True
         for ch in self.channels:
             ok = ch.confirm_estop(result.steps)
@@ -426,7 +441,7 @@ class Runner:
         n = plan.n_steps
         dt = plan.dt
         paced = plan.mode == "paced"
-        ag = plan.ag.tolist()
+        ag = array.array("d", plan.ag)  # floats on indexing, 8 B each (a list: 32 B each)
         chans = self.channels
         n_ch = len(chans)
         multi = n_ch > 1
@@ -540,7 +555,8 @@ class Runner:
                 for ch in chans:
                     rem = t_lim - perf() if multi else timeout
                     fb = ch.receive(rem if rem > 0.0 else 0.0)
-                    t = perf() - now
+                    t = ch.t_rx = perf()
+                    t -= now
                     if fb is not None:
                         ch.ok = True
                         ch.meas = fb.displacement
@@ -658,6 +674,12 @@ class Runner:
                         last_console_k, last_console_t = k, now
                         next_console = now + console
             wall = perf() - t_start
+        except RecordWriteError as exc:  # disk full or gone: a safety event, not a crash
+            wall = perf() - t_start
+            trip = Trip("record", str(exc), values={"rows_on_disk": rec.rows}).at(k * dt, k)
+            for ch in chans:
+                ch.last_command = ch.c
+            k += 1  # step k was sent and answered; only its row is lost
         except BaseException:
             for ch in chans:
                 ch.estop()

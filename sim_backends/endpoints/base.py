@@ -11,8 +11,15 @@ real-time loop relies on):
 * An e-stop latches: the plant is no longer stepped, the feedback repeats the last measured
   displacement and force with status ``ESTOP_ACTIVE`` for every command, until a command with
   ``enable=False`` acknowledges it; a later ``enable=True`` command re-enables.
-* An optional heartbeat watchdog trips the e-stop (status ``WATCHDOG``) when no heartbeat came
-  for ``heartbeat_timeout`` seconds after the first one.
+* Controller-side watchdog (as a servo controller has): while the controller is enabled, a
+  valid command or a heartbeat must come at least every ``heartbeat_timeout`` seconds. When
+  none does (the bridge crashed, was killed or lost the link) the controller holds its last
+  position and latches the e-stop (status ``ESTOP_ACTIVE | WATCHDOG``) until it is re-armed.
+  The check runs in the endpoint's own thread, so it fires whether or not anything arrives.
+* Arming (the start of a run): a command with sequence number 0 and ``enable=False`` restarts
+  the sequence count (the run's step 0 is a new command whatever a previous run sent),
+  acknowledges a latched e-stop or watchdog trip, puts the twin's plant back at rest and
+  holds; the run's first ``enable=True`` command enables it (:meth:`drivers.base.Driver.arm`).
 
 :class:`TwinEndpoint` runs the protocol side in a daemon thread and applies the frame faults of a
 :class:`~sim_backends.faults.Faults` plan.
@@ -22,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
+import socket
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -37,7 +45,54 @@ from ..faults import Faults
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TwinController", "TwinEndpoint", "TwinStats"]
+__all__ = ["TwinController", "TwinEndpoint", "TwinStats", "listen"]
+
+_LOOPBACK = ("127.", "::1", "localhost")
+
+
+def listen(host: str, port: int, allow_remote: bool, who: str) -> socket.socket:
+    """A listening TCP socket on ``host:port`` for a twin, loopback unless told otherwise.
+
+    Parameters
+    ----------
+    host : str
+        Bind address. Anything but a loopback address (``127.x.x.x``, ``::1``, ``localhost``)
+        exposes the twin to the network and needs ``allow_remote``; then a warning names the
+        address and port.
+    port : int
+        TCP port, 0–65535 (0: any free port).
+    allow_remote : bool
+        Whether a non-loopback ``host`` is allowed.
+    who : str
+        Endpoint name for messages (``modbus twin``).
+
+    Raises
+    ------
+    InputError
+        A port out of range, a non-loopback host without ``allow_remote``, or a bind failure.
+    """
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise InputError(f"{who}: port must be an integer in 0..65535, got {port!r}")
+    host = str(host)
+    remote = not host.startswith(_LOOPBACK)
+    if remote and not allow_remote:
+        raise InputError(
+            f"{who}: host {host!r} would accept connections from the network; bind 127.0.0.1 "
+            "or allow it explicitly (twin serve --allow-remote, driver.connection.allow_remote "
+            "= true)"
+        )
+    try:
+        lst = socket.create_server((host, port))
+    except (OSError, OverflowError) as exc:
+        raise InputError(f"{who}: cannot listen on {host}:{port}: {exc}") from None
+    if remote:
+        log.warning(
+            "%s: listening on %s port %d: reachable from the network, not only this machine",
+            who,
+            host,
+            lst.getsockname()[1],
+        )
+    return lst
 
 
 @dataclass(slots=True)
@@ -72,7 +127,8 @@ class TwinController:
         Width of the wire sequence number (16 on CAN and Modbus, ``None`` for full integers);
         wire values are extended to a running count.
     heartbeat_timeout : float or None
-        Watchdog period (s); ``None`` disables the watchdog.
+        Controller-side watchdog (s): the longest time without a valid command or heartbeat
+        while enabled; ``None`` disables it.
     """
 
     def __init__(
@@ -100,7 +156,7 @@ class TwinController:
         self.displacement = 0.0
         self.force = 0.0
         self.last_reply: tuple[int, float, float, int] | None = None
-        self._last_heartbeat: float | None = None
+        self._last_heartbeat: float | None = None  # last valid command or heartbeat
 
     def _extend(self, raw: int) -> int:
         if not self._mask or self.last_seq < 0:
@@ -118,19 +174,47 @@ class TwinController:
             self.enabled = False
 
     def heartbeat(self) -> None:
-        """Record a heartbeat (arms the watchdog)."""
+        """Record a heartbeat (keeps the watchdog fed)."""
         self.stats.heartbeats += 1
         self._last_heartbeat = time.monotonic()
 
     def check_watchdog(self) -> None:
-        """Trip the e-stop when the heartbeat is overdue."""
+        """Hold and latch the e-stop when no command or heartbeat came in time while enabled."""
         if self.heartbeat_timeout is None or self._last_heartbeat is None:
             return
+        if not self.enabled and not self.estop_latched:
+            return  # holding on purpose (enable=False): nothing to watch
         if time.monotonic() - self._last_heartbeat > self.heartbeat_timeout:
-            if not self.estop_latched:
-                log.warning("twin: heartbeat watchdog expired, e-stop latched")
-                self.estop()
-            self.watchdog_tripped = True
+            with self.lock:
+                if not self.watchdog_tripped:
+                    log.warning(
+                        "twin: no command or heartbeat for %.3f s, e-stop latched",
+                        self.heartbeat_timeout,
+                    )
+                    self.stats.estops += 1
+                    self.estop_latched = True
+                    self.enabled = False
+                    self.watchdog_tripped = True
+
+    @property
+    def watchdog_poll(self) -> float:
+        """How often the endpoint must run :meth:`check_watchdog` (s)."""
+        hb = self.heartbeat_timeout
+        return 0.05 if hb is None else max(min(0.05, hb / 4.0), 0.001)
+
+    def _arm(self) -> tuple[int, float, float, int]:
+        """Sequence 0 with enable=False: a new run (see the module docstring)."""
+        self.plant.reset()
+        self.last_seq = -1  # the run's step 0 starts the count afresh
+        self.enabled = False
+        self.estop_latched = False
+        self.watchdog_tripped = False
+        self.displacement = 0.0
+        self.force = 0.0
+        self.faults.rearm()
+        self._last_heartbeat = time.monotonic()
+        self.last_reply = None  # step 0 of the run is a new command, not a repeat
+        return (0, self.displacement, self.force, self.status())
 
     def status(self) -> int:
         """Current :class:`~drivers.base.Status` flags (without per-sample flags)."""
@@ -154,6 +238,8 @@ class TwinController:
         """
         with self.lock:
             self.stats.commands += 1
+            if raw_seq == 0 and not enable:
+                return self._arm()
             seq = self._extend(raw_seq)
             if self.faults.command_lost(seq):
                 return None
@@ -168,6 +254,7 @@ class TwinController:
                 self.stats.seq_gaps += seq - self.last_seq - 1
                 extra |= Status.SEQ_GAP
             self.last_seq = seq
+            self._last_heartbeat = time.monotonic()  # a valid command feeds the watchdog
             if self.estop_latched:
                 if not enable:
                     self.estop_latched = False  # acknowledged; next enable=True re-enables
@@ -279,8 +366,9 @@ class TwinEndpoint(ABC):
 
     def _run(self) -> None:
         try:
+            poll = min(self.poll, self.controller.watchdog_poll)
             while not self._stop.is_set():
-                self._serve_once(self.poll)
+                self._serve_once(poll)
                 self.controller.check_watchdog()
         except BaseException as exc:  # pragma: no cover - surfaced through .error
             log.exception("twin %s endpoint stopped on an error", self.name)

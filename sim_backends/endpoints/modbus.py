@@ -43,7 +43,7 @@ from drivers.modbus import COIL_ESTOP, REG, WRITE_ADDRESS, WRITE_COUNT, feedback
 from rths_hil.errors import InputError
 
 from ..faults import Faults
-from .base import TwinController, TwinEndpoint
+from .base import TwinController, TwinEndpoint, listen
 
 __all__ = ["ModbusTwin"]
 
@@ -79,6 +79,7 @@ class ModbusTwin(TwinEndpoint):
         transport: str = "tcp",
         host: str = "127.0.0.1",
         port: int = 0,
+        allow_remote: bool = False,
         device: str | None = None,
         device_id: int = 1,
         baudrate: int = 115200,
@@ -87,7 +88,8 @@ class ModbusTwin(TwinEndpoint):
         if transport not in ("tcp", "rtu"):
             raise InputError(f"modbus twin: transport must be 'tcp' or 'rtu', got {transport!r}")
         self.transport = transport
-        self.host, self.port = host, int(port)
+        self.host, self.port = host, port
+        self.allow_remote = bool(allow_remote)
         self.device, self.device_id, self.baudrate = device, int(device_id), int(baudrate)
         self.registers = [0] * N_REGISTERS
         self.framer = (FramerSocket if transport == "tcp" else FramerRTU)(DecodePDU(True))
@@ -100,12 +102,7 @@ class ModbusTwin(TwinEndpoint):
     # -- lifecycle ------------------------------------------------------------------------------
     def _setup(self) -> None:
         if self.transport == "tcp":
-            try:
-                lst = socket.create_server((self.host, self.port))
-            except OSError as exc:
-                raise InputError(
-                    f"modbus twin: cannot listen on {self.host}:{self.port}: {exc}"
-                ) from None
+            lst = listen(self.host, self.port, self.allow_remote, "modbus twin")
             self._listener = lst
             host, port = lst.getsockname()[:2]
             self.connection = {

@@ -30,7 +30,7 @@ from drivers.serial import encode_frame as _encode_frame
 from rths_hil.errors import InputError
 
 from ..faults import Faults
-from .base import TwinController, TwinEndpoint
+from .base import TwinController, TwinEndpoint, listen
 
 __all__ = ["SerialTwin"]
 
@@ -46,12 +46,14 @@ class SerialTwin(TwinEndpoint):
         transport: str = "pty",
         host: str = "127.0.0.1",
         port: int = 0,
+        allow_remote: bool = False,
     ) -> None:
         super().__init__(controller)
         if transport not in ("pty", "tcp"):
             raise InputError(f"serial twin: transport must be 'pty' or 'tcp', got {transport!r}")
         self.transport = transport
-        self.host, self.port = host, int(port)
+        self.host, self.port = host, port
+        self.allow_remote = bool(allow_remote)
         self._fd: int | None = None  # pty master, or the connected client's socket fd
         self._slave: int | None = None
         self._listener: socket.socket | None = None
@@ -67,12 +69,7 @@ class SerialTwin(TwinEndpoint):
             self.connection = {"url": path}
             self.where = path
         else:
-            try:
-                lst = socket.create_server((self.host, self.port))
-            except OSError as exc:
-                raise InputError(
-                    f"serial twin: cannot listen on {self.host}:{self.port}: {exc}"
-                ) from None
+            lst = listen(self.host, self.port, self.allow_remote, "serial twin")
             self._listener = lst
             host, port = lst.getsockname()[:2]
             self.connection = {"url": f"socket://{host}:{port}"}
