@@ -186,6 +186,22 @@ class Safety:
         self.channels = channels
         self.overrun = overrun
         self.tripped: Trip | None = None
+        if len(channels) == 1:  # the same checks without the loop over channels (≈ 0.5 µs)
+            self._ch = channels[0]
+            self._check_feedback = channels[0].monitor.check_feedback
+            self._check_command = channels[0].monitor.check_command
+            self.feedback = self._feedback_one
+            self.command = self._command_one
+
+    def _feedback_one(self, t: float, k: int) -> Trip | None:
+        ch = self._ch
+        trip = self._check_feedback(t, k, ch.ok, k, ch.seq_rx, ch.status, ch.c, ch.meas, ch.force)
+        return None if trip is None else self._fire(trip, ch, t, k)
+
+    def _command_one(self, t: float, k: int) -> Trip | None:
+        ch = self._ch
+        trip = self._check_command(t, k, ch.x_next, ch.v, ch.c_next)
+        return None if trip is None else self._fire(trip, ch, t, k)
 
     def _fire(self, trip: Trip, ch: Channel | None, t: float, k: int) -> Trip:
         trip = trip.at(t, k) if trip.step < 0 else trip
@@ -453,13 +469,7 @@ class Runner:
         unit = all(ch.dof >= 0 for ch in chans)
         dofs = [ch.dof for ch in chans]
 
-        # the record row, by name: per-channel getters in the plan's column order
-        get_a = [(attrgetter(*(a for _, a in CHANNEL_COLUMNS_A)), ch) for ch in chans]
-        get_b = [(attrgetter(*(a for _, a in CHANNEL_COLUMNS_B)), ch) for ch in chans]
-        get_c = [(attrgetter(*(c[1] for c in CHANNEL_COLUMNS_C)), ch) for ch in chans]
-        if len(CHANNEL_COLUMNS_B) == 1:  # attrgetter of one name returns the value itself
-            get_b = [(lambda c, g=g: (g(c),), ch) for g, ch in get_b]
-        append = rec.append
+        write_row = _row_writer(rec, chans, multi, n_dof)
         if rec.dtype.names != tuple(c[0] for c in plan.columns):  # pragma: no cover
             raise AssertionError("record columns differ from the plan's")
 
@@ -629,36 +639,24 @@ class Runner:
                         trip = check_timing(tk, k, over, lat)
                     was_over = over
                 # ---- record row k (columns by name, see plan.record_columns) ----------------
-                row = [tk, k, ag[k]]
-                for g, ch in get_a:
-                    row += g(ch)
-                row.append(lat)
-                for g, ch in get_b:
-                    row += g(ch)
-                row.append(k)
-                for g, ch in get_c:
-                    row += g(ch)
-                if multi:
-                    row.append(skew)
-                if n_dof > 1:
-                    row += xs
-                append(*row)
+                write_row(tk, k, ag[k], lat, skew, xs)
                 for ch in chans:
-                    a = ch.x_t
-                    if a < 0:
-                        a = -a
-                    if a > ch.pk_disp:
-                        ch.pk_disp = a
-                    a = ch.v
-                    if a < 0:
-                        a = -a
-                    if a > ch.pk_vel:
-                        ch.pk_vel = a
-                    a = ch.force
-                    if a < 0:
-                        a = -a
-                    if a > ch.pk_force:
-                        ch.pk_force = a
+                    if console:  # peaks, for the console's safety margin only
+                        a = ch.x_t
+                        if a < 0:
+                            a = -a
+                        if a > ch.pk_disp:
+                            ch.pk_disp = a
+                        a = ch.v
+                        if a < 0:
+                            a = -a
+                        if a > ch.pk_vel:
+                            ch.pk_vel = a
+                        a = ch.force
+                        if a < 0:
+                            a = -a
+                        if a > ch.pk_force:
+                            ch.pk_force = a
                     ch.last_command = ch.c
                     ch.x_t = ch.x_next
                     ch.c = ch.c_next
@@ -738,6 +736,46 @@ class Runner:
             "alpha": ch.comp.alpha,
             "mode": self.plan.mode,
         }
+
+
+def _row_writer(rec: Recorder, chans: list[Channel], multi: bool, n_dof: int):
+    """``write(t, k, ag, lateness, skew, dofs)``: one record row, each column read by name.
+
+    The plan's column list (:func:`rths_hil.hybrid.plan.record_columns`) names each channel
+    column after a :class:`Channel` attribute (:data:`~rths_hil.hybrid.plan.CHANNEL_COLUMNS_A`
+    …); an :func:`operator.attrgetter` per group reads them in column order. One channel on
+    one DOF gets a writer without an intermediate list (≈ 1 µs less per step).
+    """
+    append = rec.append
+    get_a = attrgetter(*(a for _, a in CHANNEL_COLUMNS_A))
+    get_b = attrgetter(*(a for _, a in CHANNEL_COLUMNS_B), "ok")  # ≥ 2 names: a tuple
+    nb = len(CHANNEL_COLUMNS_B)
+    get_c = attrgetter(*(c[1] for c in CHANNEL_COLUMNS_C))
+    if not multi and n_dof == 1:
+        (ch,) = chans
+
+        def write(t, k, ag, lat, skew, dofs):
+            append(t, k, ag, *get_a(ch), lat, *get_b(ch)[:nb], k, *get_c(ch))
+
+        return write
+
+    def write_many(t, k, ag, lat, skew, dofs):
+        row = [t, k, ag]
+        for ch in chans:
+            row += get_a(ch)
+        row.append(lat)
+        for ch in chans:
+            row += get_b(ch)[:nb]
+        row.append(k)
+        for ch in chans:
+            row += get_c(ch)
+        if multi:
+            row.append(skew)
+        if n_dof > 1:
+            row += dofs
+        append(*row)
+
+    return write_many
 
 
 def _dot(row: list[float], x) -> float:
