@@ -885,8 +885,10 @@ def _apply_override(cfg: Config, text: str) -> None:
         return
     if section in CHANNEL_SECTIONS and len(parts) == 2:
         # a top-level --set applies to every channel: the channels' own values give way
-        for entry in cfg.get("actuators") or []:
-            entry.get(section, {}).pop(name, None)
+        # (driver.connection is merged key by key: the channels keep their node / unit id)
+        if (section, name) != ("driver", "connection"):
+            for entry in cfg.get("actuators") or []:
+                entry.get(section, {}).pop(name, None)
     if section not in SCHEMA:
         raise InputError(f"{where}: {_unknown(section, section, SCHEMA)}")
     keys = SCHEMA[section]
