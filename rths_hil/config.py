@@ -256,7 +256,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "lockstep_timeout": Key(
             "float",
-            1.0,
+            5.0,
             unit="s",
             doc="lockstep: wait this long (wall clock) for each reply; none by then trips the "
             "watchdog",
@@ -326,8 +326,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             0.5,
             unit="s",
-            doc="controller-side watchdog: no command or heartbeat for this long while enabled → "
-            "the twin holds and latches its e-stop (0 = off)",
+            doc="paced: the in-process twin's controller-side watchdog: no command or heartbeat "
+            "for this long while enabled → it holds and latches its e-stop (0 = off; off in "
+            "lockstep)",
             lo=0,
         ),
         "faults": Key(

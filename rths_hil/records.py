@@ -23,6 +23,10 @@ from .errors import InputError
 
 #: Relative tolerance on the time step when checking that a record is uniformly sampled.
 UNIFORM_RTOL = 1e-3
+#: Largest |value| accepted in a record (SI units: m, N, m/s², s). Far beyond any test (a
+#: 10⁶ MN force, 10¹² m), it refuses corrupt values such as 1e300 whose squares overflow the
+#: FEI and metric sums into inf or nonsense.
+MAX_ABS_VALUE = 1e12
 
 
 @dataclass
@@ -89,8 +93,9 @@ def read_record(
     Raises
     ------
     InputError
-        Missing file or column, unreadable or non-finite value, non-monotonic or non-uniform
-        time, too few samples — naming the file and the row.
+        Missing file or column, unreadable, non-finite or non-physical (|v| >
+        :data:`MAX_ABS_VALUE`) value, non-monotonic or non-uniform time, too few samples —
+        naming the file and the row.
     """
     p = Path(path)
     name = str(path)
@@ -139,6 +144,11 @@ def read_record(
                         raise InputError(
                             f"{name}:{lineno}: column {header[i]!r}: "
                             f"non-finite value {text.strip()!r}"
+                        )
+                    if abs(v) > MAX_ABS_VALUE:
+                        raise InputError(
+                            f"{name}:{lineno}: column {header[i]!r}: value {text.strip()!r} is "
+                            f"not physical (|value| > {MAX_ABS_VALUE:g} in SI units)"
                         )
                     vals.append(v)
                 rows.append(vals)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -34,6 +35,9 @@ class _Parser(argparse.ArgumentParser):
     """ArgumentParser whose errors are one line and exit code 2."""
 
     def error(self, message: str) -> None:  # pragma: no cover - exercised via CLI tests
+        if message.endswith("expected one argument"):
+            # "--window -3s": argparse takes a value starting with "-" for an option
+            message += " (a value starting with '-' is written as --option=-value)"
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
@@ -56,7 +60,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``rths-hil`` console script."""
-    parser = build_parser()
+    # Ctrl-C while the sub-commands are imported (the first second of every command): let the
+    # imports finish (a KeyboardInterrupt inside an import leaves the interpreter half set up
+    # and it then dies by the signal), then stop with the operator-stop code
+    interrupted: list[int] = []
+    try:
+        old = signal.signal(signal.SIGINT, lambda *_: interrupted.append(1))
+    except ValueError:  # not the main thread
+        old = None
+    try:
+        parser = build_parser()
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGINT, old)
+    if interrupted:
+        print("rths-hil: interrupted", file=sys.stderr)
+        return 130
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.WARNING - 10 * min(args.verbose, 2),

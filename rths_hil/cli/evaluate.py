@@ -79,6 +79,11 @@ def run(args: argparse.Namespace) -> int:
     window_s = parse_window(window_text, args.fn)
     if window_s <= 0:
         raise InputError(f"--window must be positive, got {window_text!r}")
+    for flag, target in (("--out", args.out), ("--plot", args.plot)):
+        if target:
+            parent = Path(target).expanduser().resolve().parent
+            if not parent.is_dir():
+                raise InputError(f"{flag} {target}: directory {parent} does not exist")
     ref_col = args.pair
     rec = read_record(
         args.record, required=("time", ref_col, "measured"), optional=(), min_samples=8
@@ -131,6 +136,15 @@ def run(args: argparse.Namespace) -> int:
         f"min {1e3 * d_min:+.3f}  max {1e3 * d_max:+.3f}"
     )
     t0 = float(rec.time[0])
+    try:
+        _write_outputs(args, rec, res, whole, x, y, window_s, t0)
+    except OSError as exc:
+        raise InputError(f"cannot write {exc.filename or 'output'}: {exc.strerror}") from None
+    return 0
+
+
+def _write_outputs(args, rec, res, whole, x, y, window_s: float, t0: float) -> None:
+    """Write ``--out`` (per-window CSV) and ``--plot`` (PNG) when asked."""
     if args.out:
         write_record(
             args.out,
@@ -158,4 +172,3 @@ def run(args: argparse.Namespace) -> int:
             f"d = {1e3 * whole.delay:+.2f} ms (window {window_s:g} s)",
         )
         print(f"wrote       {args.plot}")
-    return 0

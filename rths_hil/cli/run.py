@@ -73,6 +73,8 @@ def main(args: argparse.Namespace) -> int:
         duration = parse_time(args.duration, "--duration")
         if duration < 0:
             raise InputError(f"--duration must be >= 0 s, got {args.duration!r}")
+    if args.out is not None and not args.out.strip():
+        raise InputError("--out is empty: give a run directory")
     run_dir = Path(args.out) if args.out else new_run_dir(cfg["output"]["dir"])
     live = None if args.quiet or cfg["loop"]["console"] <= 0 else LiveLine(sys.stderr)
     loop = RTHSLoop(cfg, run_dir, live=live, mode=mode, duration=duration)

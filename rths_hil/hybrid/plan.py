@@ -13,6 +13,7 @@ Which twin a channel gets is decided in one function, :func:`choose_plant`.
 from __future__ import annotations
 
 import datetime as _dt
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +39,8 @@ from ..structure import BoucWenParams, CRStepper
 from ..units import parse_window
 from .structures import MDOFStage, SDOFStage, StructureStage
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "ChannelPlan",
     "TestPlan",
@@ -55,6 +58,8 @@ TWIN_DRIVERS = ("can", "modbus", "serial")
 
 def new_run_dir(pattern: str, base: Path | None = None) -> Path:
     """Expand ``{timestamp}`` in ``pattern``; add a suffix if the directory already has a run."""
+    if not str(pattern).strip():
+        raise InputError("output.dir is empty: give a run directory such as 'runs/{timestamp}'")
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     p = Path(pattern.replace("{timestamp}", stamp)).expanduser()
     if base is not None and not p.is_absolute():
@@ -505,7 +510,8 @@ def _plan_channel(
         connection=conn,
         twin_enabled=bool(tw["enabled"]),
         twin_inline=inline,
-        twin_watchdog=tw["watchdog"] or None,
+        # lockstep is virtual time: a stalled bridge is not a dead one
+        twin_watchdog=(tw["watchdog"] or None) if mode == "paced" else None,
         plant=plant,
         faults=faults,
         compensator=comp,
@@ -590,6 +596,19 @@ def build_plan(
         _plan_channel(cc, i, len(chans_cfg), rows[i], fs, fn1, plants.get(cc.name), mode)
         for i, cc in enumerate(chans_cfg)
     ]
+    for i, ch in enumerate(channels):
+        N = round(ch.window_s * fs)
+        if ch.fei_enabled and N > min(n, gm.npts):
+            longer = "record" if gm.npts < n else "run"
+            what = (
+                f"FEI window fei.window = {ch.window_s:g} s is longer than the {longer} "
+                f"({min(n, gm.npts) / fs:g} s): no FEI window completes and the FEI rule "
+                "never arms"
+            )
+            where = _where(chans_cfg[i], i)
+            if N > gm.npts:  # longer than the whole record: can never work
+                raise InputError(f"{where}: {what}")
+            log.warning("%s", what)  # a short run asked for explicitly
     _check_shared_links(cfg, channels)
     links = link_loads(cfg, channels, fs)
     sf = cfg["safety"]

@@ -489,9 +489,9 @@ class Runner:
         del warm_min
 
         # lateness in a C double array: the console's p99 reads it as an ndarray without a copy
-        lat_list = array.array("d", bytes(8 * n))
+        lat_list = array.array("d", [0.0]) * n  # no n-byte temporary
         lat_view = np.frombuffer(lat_list, dtype=float)
-        work_list = array.array("d", bytes(8 * n))
+        work_list = array.array("d", [0.0]) * n
         ready_list = [0.0] * n if paced else None
         console = plan.console_interval if self.live is not None else 0.0
         next_console = math.inf
@@ -691,8 +691,7 @@ class Runner:
         if trip is not None and status != "operator_stop":
             status = "trip"
             rec.event("trip", **{k2: v2 for k2, v2 in trip.as_event().items() if k2 != "kind"})
-        lateness = lat_view[:k].copy()
-        del lat_view  # release the buffer export
+        lateness = lat_view[:k]  # a view: keeps lat_list alive, no copy
         ready = np.array(ready_list[:k], dtype=float) if paced else np.zeros(0)
         return RunResult(
             status=status,
@@ -710,7 +709,7 @@ class Runner:
             final_alpha=chans[0].comp.alpha,
             ready=ready,
             overrun_threshold=thr if paced else math.nan,
-            work=np.frombuffer(work_list, dtype=float)[:k].copy(),
+            work=np.frombuffer(work_list, dtype=float)[:k],
             channels=[ch.name for ch in chans],
         )
 

@@ -19,7 +19,8 @@ real-time loop relies on):
 * Arming (the start of a run): a command with sequence number 0 and ``enable=False`` restarts
   the sequence count (the run's step 0 is a new command whatever a previous run sent),
   acknowledges a latched e-stop or watchdog trip, puts the twin's plant back at rest and
-  holds; the run's first ``enable=True`` command enables it (:meth:`drivers.base.Driver.arm`).
+  holds; its reply reports the state before arming. The run's first ``enable=True`` command
+  enables it (:meth:`drivers.base.Driver.arm`).
 
 :class:`TwinEndpoint` runs the protocol side in a daemon thread and applies the frame faults of a
 :class:`~sim_backends.faults.Faults` plan.
@@ -203,7 +204,12 @@ class TwinController:
         return 0.05 if hb is None else max(min(0.05, hb / 4.0), 0.001)
 
     def _arm(self) -> tuple[int, float, float, int]:
-        """Sequence 0 with enable=False: a new run (see the module docstring)."""
+        """Sequence 0 with enable=False: a new run (see the module docstring).
+
+        The reply reports the state before arming (e.g. a latched watchdog trip), so the run's
+        record shows what the controller had to be re-armed from.
+        """
+        before = (0, self.displacement, self.force, self.status())
         self.plant.reset()
         self.last_seq = -1  # the run's step 0 starts the count afresh
         self.enabled = False
@@ -214,7 +220,7 @@ class TwinController:
         self.faults.rearm()
         self._last_heartbeat = time.monotonic()
         self.last_reply = None  # step 0 of the run is a new command, not a repeat
-        return (0, self.displacement, self.force, self.status())
+        return before
 
     def status(self) -> int:
         """Current :class:`~drivers.base.Status` flags (without per-sample flags)."""

@@ -38,7 +38,7 @@ from pymodbus.pdu.register_message import (
     ReadWriteMultipleRegistersResponse,
 )
 
-from drivers.base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32
+from drivers.base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Status
 from drivers.modbus import COIL_ESTOP, REG, WRITE_ADDRESS, WRITE_COUNT, feedback_crc
 from rths_hil.errors import InputError
 
@@ -285,6 +285,8 @@ class ModbusTwin(TwinEndpoint):
             if a + n > N_REGISTERS:
                 self._send(conn, ExceptionResponse(fc, ExcCodes.ILLEGAL_ADDRESS), dev_id, tid)
                 return
+            if a <= REG["STATUS"] < a + n:
+                self._refresh_status()
             self._send(conn, ReadHoldingRegistersResponse(registers=regs[a : a + n]), dev_id, tid)
         elif fc == 1:
             if pdu.address != COIL_ESTOP or pdu.count != 1:
@@ -307,6 +309,17 @@ class ModbusTwin(TwinEndpoint):
             self._send(conn, ExceptionResponse(fc, ExcCodes.ILLEGAL_FUNCTION), dev_id, tid)
 
     # -- feedback (called through emit() with the faults applied) ------------------------------
+    def _refresh_status(self) -> None:
+        """STATUS (and FB_CRC) show the controller's state now: a watchdog latch that happened
+        after the last command is visible to a plain register read (FC 3)."""
+        regs = self.registers
+        keep = ~int(Status.ENABLED | Status.ESTOP_ACTIVE | Status.WATCHDOG) & 0xFFFF
+        status = (regs[REG["STATUS"]] & keep) | self.controller.status()
+        if status != regs[REG["STATUS"]]:
+            regs[REG["STATUS"]] = status
+            block = struct.pack(">6H", *regs[REG["FB_SEQ"] : REG["FB_SEQ"] + 6])
+            regs[REG["FB_CRC"]] = feedback_crc(block)
+
     def _encode(self, seq: int, displacement: float, force: float, status: int) -> list[Any]:
         regs = self.registers
         block = _FB.pack(

@@ -1,0 +1,119 @@
+"""Helpers for tests that run the twin and the bridge as their own processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from rths_hil.recorder import header_row_count
+
+ROOT = Path(__file__).resolve().parents[1]
+LATCH_LINE = "e-stop latched"
+
+
+class ServedTwin:
+    """``rths-hil twin serve`` in its own process; stderr lines are time-stamped on arrival."""
+
+    def __init__(self, *args: str) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "rths_hil", "twin", "serve", *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+        )
+        line = self.proc.stdout.readline()
+        if "connection" not in line:
+            self.proc.kill()
+            raise RuntimeError(f"twin serve did not start: {line!r} {self.proc.stderr.read()}")
+        self.connection = json.loads(line.split("connection", 1)[1])
+        self.lines: list[tuple[float, str]] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stderr:
+            self.lines.append((time.monotonic(), line.rstrip()))
+
+    def first(self, text: str, after: float = 0.0, timeout: float = 5.0) -> float | None:
+        """Arrival time of the first stderr line containing ``text`` after ``after``."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            for t, line in list(self.lines):
+                if t >= after and text in line:
+                    return t
+            time.sleep(0.005)
+        return None
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def toml_table(d: dict) -> str:
+    """A TOML inline table of strings and ints (for ``--set driver.connection=...``)."""
+    parts = [f"{k} = {json.dumps(v) if isinstance(v, str) else v}" for k, v in d.items()]
+    return "{" + ", ".join(parts) + "}"
+
+
+def bridge_cmd(driver: str, connection: dict, out: Path, *extra: str) -> list[str]:
+    """``rths-hil run`` against an external twin (``twin.enabled = false``)."""
+    return [
+        sys.executable,
+        "-m",
+        "rths_hil",
+        "run",
+        "-q",
+        "--no-plot",
+        "--out",
+        str(out),
+        "--set",
+        "twin.enabled=false",
+        "--set",
+        f"driver.name={driver}",
+        "--set",
+        f"driver.connection={toml_table(connection)}",
+        *extra,
+    ]
+
+
+def start_bridge(cmd: list[str]) -> subprocess.Popen:
+    return subprocess.Popen(
+        cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT
+    )
+
+
+def wait_rows(out: Path, rows: int, proc: subprocess.Popen, timeout: float = 60.0) -> None:
+    """Wait until the run in ``out`` has flushed ``rows`` rows (the bridge is stepping)."""
+    end = time.monotonic() + timeout
+    rec = out / "record.npy"
+    while time.monotonic() < end:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the bridge ended early: {proc.stderr.read()}")
+        if rec.exists():
+            try:
+                if header_row_count(rec) >= rows:
+                    return
+            except (OSError, ValueError, SyntaxError):
+                pass
+        time.sleep(0.02)
+    raise TimeoutError(f"the bridge did not reach {rows} rows in {timeout} s")
+
+
+def kill9(proc: subprocess.Popen) -> float:
+    """SIGKILL ``proc``; return the monotonic time of the kill."""
+    t = time.monotonic()
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    return t
