@@ -357,6 +357,8 @@ def paced_config(name: str, fs: float, duration: float, priority: int, extra=())
         f"loop.priority={priority}",
         "ground_motion.tail=60",
         "safety.max_overruns=1000000",
+        "safety.displacement_limit=0.3",
+        "safety.velocity_limit=2.0",
         "safety.watchdog_missed=1000000",
         *extra,
     ]
@@ -555,6 +557,8 @@ def channels_config(n: int, extra=()) -> list[str]:
         "loop.console=0",
         "output.plot=false",
         "safety.max_overruns=1000000",
+        "safety.displacement_limit=0.3",
+        "safety.velocity_limit=2.0",
         *extra,
     ]
     return over
