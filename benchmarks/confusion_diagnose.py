@@ -30,6 +30,7 @@ import time
 from collections import Counter, defaultdict
 
 import numpy as np
+from _results import write_results
 
 from rths_hil.diagnose import CANDIDATES, diagnose
 from rths_hil.diagnose.candidates import EFFECT_ORDER
@@ -227,6 +228,19 @@ def accuracy_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _without_csv(argv: list[str]) -> list[str]:
+    """The arguments without ``--csv FILE`` (a local path: not part of the reproduction)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--csv":
+            skip = True
+        elif not a.startswith("--csv="):
+            out.append(a)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sets", default="single,pairs,nomodel,short,unreached")
@@ -272,6 +286,12 @@ def main(argv: list[str] | None = None) -> int:
             w = csv.DictWriter(fh, fieldnames=names)
             w.writeheader()
             w.writerows(rows)
+    report: list[str] = []
+
+    def emit(text: str = "") -> None:
+        print(text)
+        report.append(text)
+
     for set_name, title in (
         ("single", f"one hidden effect, model file given ({args.duration:g} s records)"),
         ("nomodel", "one hidden effect, no model file (delay + gain fitted to the record)"),
@@ -280,35 +300,45 @@ def main(argv: list[str] | None = None) -> int:
     ):
         rs = [r for r in rows if r["set"] == set_name]
         if rs:
-            print(confusion_table(rs, title))
-            print()
+            emit(confusion_table(rs, title))
+            emit()
     rs = [r for r in rows if r["set"] == "pairs"]
     if rs:
-        print(pairs_table(rs, "two hidden effects, model file given"))
-        print()
+        emit(pairs_table(rs, "two hidden effects, model file given"))
+        emit()
     rs = [r for r in rows if r["set"] == "single"]
     if rs:
-        print("**parameter accuracy (single, correctly named)**\n")
-        print(accuracy_table(rs))
-        print()
+        emit("**parameter accuracy (single, correctly named)**\n")
+        emit(accuracy_table(rs))
+        emit()
     rt = np.array([r["runtime_s"] for r in rows if r["named"] != "refused"])
-    print(
+    emit(
         f"{len(rows)} cases in {wall:.0f} s wall; diagnose runtime median {np.median(rt):.2f} s, "
         f"max {rt.max():.2f} s per case"
     )
     misses = [r for r in rows if not r["exact"]]
     if misses:
-        print("\nnot exact:")
+        emit("\nnot exact:")
         for r in misses:
             if r["named"] == "refused":
-                print(f"- {r['set']} seed {r['seed']}: true {r['true']} → refused: {r['refused']}")
+                emit(f"- {r['set']} seed {r['seed']}: true {r['true']} → refused: {r['refused']}")
                 continue
-            print(
+            emit(
                 f"- {r['set']} seed {r['seed']}: true {r['true']} → {r['named']} "
                 f"(alternatives {r['alternatives'] or '-'}, ΔBIC {r['delta_bic'] or '-'}, "
                 f"SNR {r['snr']:.3g}, fn {r['fn']:.2f} Hz; hidden {r['hidden']}; "
                 f"fitted {r['fitted']})"
             )
+    write_results(
+        "confusion_diagnose",
+        "\n".join(report),
+        title="Confusion matrix of the discrepancy diagnosis",
+        command=" ".join(
+            ["python benchmarks/confusion_diagnose.py", *_without_csv(argv or sys.argv[1:])]
+        ),
+        notes="Cases are seeded (`--seed`): the tables are reproducible; runtimes depend on the "
+        "machine and its load.",
+    )
     return 0
 
 

@@ -1,13 +1,18 @@
 """Driver registry: find a driver class by name and build it from connection settings.
 
-The built-in drivers (``can``, ``modbus``, ``serial``) and any third-party driver are found
-through the ``rths_hil.drivers`` entry-point group, so a lab can ship its own driver package::
+Two sources, in the style of python-can's ``BACKENDS`` plus entry points:
 
-    [project.entry-points."rths_hil.drivers"]
-    mylab = "mylab_driver:MyLabDriver"
+* :data:`BUILTIN` — the drivers shipped here (``can``, ``modbus``, ``serial``), by name →
+  ``"module:Class"``, imported only when asked for. A driver added to this repository gets one
+  line here.
+* the ``rths_hil.drivers`` entry-point group — a lab's own driver package, installed beside
+  rths_hil, declares in its ``pyproject.toml``::
+
+      [project.entry-points."rths_hil.drivers"]
+      mylab = "mylab_driver:MyLabDriver"
 
 The class must subclass :class:`drivers.base.Driver` and take its connection settings as
-keyword arguments.
+keyword arguments. An entry point with a built-in name replaces the built-in driver.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from .base import Driver
 
 ENTRY_POINT_GROUP = "rths_hil.drivers"
 
-#: Built-in drivers, used when the package metadata is not installed (e.g. a source checkout).
+#: The drivers shipped with rths_hil: name → ``"module:Class"``.
 BUILTIN: dict[str, str] = {
     "can": "drivers.can:CANDriver",
     "modbus": "drivers.modbus:ModbusDriver",

@@ -12,8 +12,8 @@ and sends its inverse::
 amplitude factor (1 by default). For a slowly varying target this is a linear extrapolation
 ``x_c ≈ x_t(t + (α − 1)·Δt)``, so an actuator of delay τ is compensated by
 ``α = 1 + τ/Δt``; ``α = 1`` is no compensation. Issue 6's tuning rule ``α ← α + d/Δt``
-follows from the same relation: a residual equivalent delay ``d`` of measured vs target (seed
-Eq. 2.5, d > 0 when measured lags) asks for ``d/Δt`` more steps of lead.
+follows from the same relation: a residual equivalent delay ``d`` of measured vs target (the FEI
+paper's Eq. 2.5, d > 0 when measured lags) asks for ``d/Δt`` more steps of lead.
 
 The adaptive option (:class:`AdaptiveAlpha`) moves α online towards that goal from the online FEI
 delay estimate, through a first-order law with time constant ``time_constant`` (it must exceed

@@ -1,8 +1,8 @@
 """Online Kalman estimation of an actuator's gain and delay, and twin calibration from a record.
 
-The seed's actuator model (Fig. 4.1) is ``measured(t) = A·target(t − d)``. The FEI (seed
-Eq. 2.1–2.5) measures ``A`` and ``d`` in the frequency domain over a window; this module tracks
-the same two numbers in the time domain, sample by sample, as a second opinion in the loop.
+The FEI paper's actuator model (Fig. 4.1) is ``measured(t) = A·target(t − d)``. The FEI (the FEI
+paper's Eq. 2.1–2.5) measures ``A`` and ``d`` in the frequency domain over a window; this module
+tracks the same two numbers in the time domain, sample by sample, as a second opinion in the loop.
 
 Formulation (:class:`DelayGainEstimator`)
 -----------------------------------------
@@ -18,7 +18,7 @@ extended Kalman filter (filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter
 linearises it with the Jacobian ``H = [u(t−τ), g·∂u(t−τ)/∂τ, 1]``, the derivative taken
 analytically on the Lagrange polynomial. ``M`` is a small look-ahead (the measurement is held
 ``M`` samples) so that negative delays — a measured signal leading its target after
-over-compensation, seed Section 5 — can be tracked too; estimates are then ``M·dt`` old.
+over-compensation, the FEI paper's Section 5 — can be tracked too; estimates are then ``M·dt`` old.
 
 Why not the linear regression: ``y ≈ g·u − g·τ·u̇`` (:class:`LinearDelayGainKF`) is linear in
 ``θ = [g, −gτ]`` but is the first term of a Taylor series. On a sinusoid of angular frequency
@@ -565,7 +565,7 @@ def calibrate(
     measured : array_like
         Measured displacement (m).
     servo_lag : bool
-        Also fit a first-order servo lag (model ``first_order``). Delay and lag are only
+        Also fit a first-order servo lag (model ``servo_lag``). Delay and lag are only
         separable with excitation well above ``1/(2π·T)``; with narrow-band seismic response
         their sum is what the record determines.
     fit_offset : bool
@@ -579,7 +579,7 @@ def calibrate(
     Returns
     -------
     ModelSpec
-        Actuator ``delay``/``gain`` (+ ``first_order`` ``time_constant``), optional ``offset``
+        Actuator ``delay``/``gain`` (+ ``servo_lag`` ``time_constant``), optional ``offset``
         effect, ``[sensor]`` with the residual's standard deviation as displacement noise and
         the detected quantisation step. No ``[specimen]`` (a displacement record says nothing
         about it).
@@ -636,7 +636,7 @@ def calibrate(
     actuator = ActuatorSpec(
         delay=delay,
         gain=gain,
-        model="first_order" if servo_lag else "delay_gain",
+        model="servo_lag" if servo_lag else "delay_gain",
         params={"time_constant": time_constant} if servo_lag else {},
         effects=effects,
     )

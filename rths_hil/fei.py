@@ -1,14 +1,15 @@
 """Frequency-domain evaluation index (FEI) of actuator tracking, whole-record and moving-window.
 
-The FEI (Guo et al., seed ref. [6]; seed Eq. 2.1–2.5) condenses a target/measured pair into a
-generalised amplitude ``A`` and an equivalent delay ``d``. Moving windows with overlap (MWO,
-seed Section 3–4, Eq. 7: overlap ``OL = N − 1``) make it local in time.
+The FEI (Guo et al., the FEI paper's ref. [6]; the FEI paper's Eq. 2.1–2.5) condenses a
+target/measured pair into a generalised amplitude ``A`` and an equivalent delay ``d``. Moving
+windows with overlap (MWO, the FEI paper's Section 3–4, Eq. 7: overlap ``OL = N − 1``) make it local
+in time.
 
 Conventions (fixed here, documented in ``docs/fei.md``)
 -------------------------------------------------------
 * ``y_I`` = target (calculated) displacement, ``y_o`` = measured displacement, ``fs`` in Hz.
 * Each window of ``N`` samples: subtract each signal's mean, multiply by the symmetric Hann
-  window ``numpy.hanning(N)`` (the seed's Eq. 3.2 as printed is not a Hann window; we treat it
+  window ``numpy.hanning(N)`` (the FEI paper's Eq. 3.2 as printed is not a Hann window; we treat it
   as a typo), zero-pad to ``M`` = the smallest power of two ≥ ``N`` (``M = 2p``), FFT.
 * Sums run over the one-sided bins ``k = 1 … p−1`` (DC and Nyquist excluded), for both the FEI
   and ``f_eq``. The ratio ``y_o/y_I · |y_I|²`` of Eq. 2.1 is computed as ``y_o · conj(y_I)``, so
@@ -73,7 +74,7 @@ BATCH_BYTES = 64 * 2**20
 
 @dataclass(frozen=True)
 class FEIResult:
-    """FEI of one window (seed Eq. 2.1–2.5).
+    """FEI of one window (the FEI paper's Eq. 2.1–2.5).
 
     Attributes
     ----------
@@ -146,7 +147,7 @@ class MovingFEIResult:
 
 
 def fft_length(n: int) -> int:
-    """``M`` = the smallest power of two ≥ ``n`` (seed Section 2: ``2p``)."""
+    """``M`` = the smallest power of two ≥ ``n`` (the FEI paper's Section 2: ``2p``)."""
     if n < 1:
         raise ValueError("window length must be ≥ 1")
     return 1 << (int(n) - 1).bit_length()
@@ -221,7 +222,7 @@ def fei(
     fs: float,
     abs_floor: float = ABS_FLOOR,
 ) -> FEIResult:
-    """FEI of a whole target/measured pair (seed Eq. 2.1–2.5; conventions in module doc).
+    """FEI of a whole target/measured pair (the FEI paper's Eq. 2.1–2.5; conventions in module doc).
 
     Parameters
     ----------
@@ -511,7 +512,8 @@ def moving_fei(
     rel_floor: float = REL_FLOOR,
     algorithm: str = "auto",
 ) -> MovingFEIResult:
-    """FEI on moving windows (seed Section 3–4): MW for ``hop = N``, MWO with OL = N − 1 for 1.
+    """FEI on moving windows (the FEI paper's Section 3–4): MW for ``hop = N``, MWO with OL = N − 1
+    for 1.
 
     Parameters
     ----------
@@ -524,14 +526,16 @@ def moving_fei(
         ``round(window_s · fs / decimate)``).
     hop : int
         Samples (of the decimated signal) between consecutive window ends. ``hop = 1`` is the
-        seed's MWO with ``OL = N − 1`` (seed Eq. 7); ``hop = N`` gives MW without overlap.
+        the FEI paper's MWO with ``OL = N − 1`` (the FEI paper's Eq. 7); ``hop = N`` gives MW
+        without overlap.
     method : {"exact", "streaming"}
         ``exact`` evaluates Eq. 2.1–2.5 on every window; ``streaming`` runs the O(1)-per-sample
         estimator of :class:`OnlineFEI` over the record (an approximation, see docs/fei.md).
     decimate : int
         Low-pass filter (order-8 Chebyshev I, zero phase, ``scipy.signal.decimate``) and keep
-        every ``decimate``-th sample of both signals before windowing (after Guo et al., seed
-        ref. [7]). The same filter is applied to both signals, so their relative phase is kept.
+        every ``decimate``-th sample of both signals before windowing (after Guo et al., the FEI
+        paper's ref. [7]). The same filter is applied to both signals, so their relative phase is
+        kept.
     abs_floor, rel_floor : float
         Validity floors (see module docstring).
     algorithm : {"auto", "direct", "recursive"}
@@ -607,7 +611,7 @@ class OnlineFEI:
     window_s : float
         Window length t_w (s); ``N = round(window_s · fs)``.
     hop : int
-        Report every ``hop``-th window (``hop = 1``: MWO with OL = N − 1, seed Eq. 7).
+        Report every ``hop``-th window (``hop = 1``: MWO with OL = N − 1, the FEI paper's Eq. 7).
     method : {"exact", "streaming"}
         ``exact``: each completed window is evaluated exactly as :func:`moving_fei` (equal to
         round-off): for ``hop ≤ SLIDING_MAX_HOP`` by sliding DFTs updated at every sample

@@ -1,6 +1,6 @@
 """Recorded ground motions: PEER AT2 and CSV accelerograms, PGA scaling, resampling.
 
-The seed (Section 4) drives an SDOF structure with records from the PEER strong-motion database
+The FEI paper (Section 4) drives an SDOF structure with records from the PEER strong-motion database
 sampled at 1024 Hz. :func:`load` reads
 
 * **PEER AT2** files: free-text header lines followed by the acceleration values (in g), any

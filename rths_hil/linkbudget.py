@@ -516,12 +516,17 @@ def _what_fits(ld: LinkLoad, limit: float) -> str:
                 t = 2 * can_fd_frame_time(8 * ld.channels, *CAN_FD_RATES)
                 fd = t * ld.fs
                 if fd <= limit:
-                    options.append(
-                        f"CAN FD ({_rate_text(CAN_FD_RATES[0])} nominal, "
-                        f"{_rate_text(CAN_FD_RATES[1])} data) with all {ld.channels} channels "
-                        f"in one {nb}-byte command and one "
-                        f"feedback frame: {fd * 100:.0f} %"
+                    rates = (
+                        f"{_rate_text(CAN_FD_RATES[0])} nominal, {_rate_text(CAN_FD_RATES[1])} data"
                     )
+                    if ld.channels > 1:
+                        what = (
+                            f"with all {ld.channels} channels in one {nb}-byte command and one "
+                            "feedback frame"
+                        )
+                    else:
+                        what = "frames"
+                    options.append(f"CAN FD ({rates}) {what}: {fd * 100:.0f} %")
         elif ld.kind in ("serial", "modbus-rtu"):
             r = _next_rate(needed, BAUDRATES)
             if r is not None and r > ld.rate:

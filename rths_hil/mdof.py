@@ -482,12 +482,18 @@ def load_npz(path: str | Path, **damping: Any) -> MDOFModel:
     """
     p = Path(path)
     try:
-        with np.load(p, allow_pickle=False) as data:
-            arrays = {k: np.array(data[k]) for k in data.files}
+        data = np.load(p, allow_pickle=False)
     except FileNotFoundError:
         raise InputError(f"{p}: no such file") from None
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{p}: not a readable .npz file ({exc})") from None
+    except (OSError, ValueError, EOFError):
+        raise InputError(f"{p}: not a NumPy .npz archive of arrays") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise InputError(f"{p}: a single array (.npy), expected an .npz archive with M and K")
+    try:
+        with data:
+            arrays = {k: np.array(data[k]) for k in data.files}
+    except (OSError, ValueError, EOFError):
+        raise InputError(f"{p}: an array in the archive cannot be read") from None
     by_lower = {k.lower(): k for k in arrays}
     found: dict[str, np.ndarray] = {}
     for key in _NPZ_KEYS:
@@ -553,20 +559,8 @@ def load_csv(
     c = None if C is None else _check_square_spd(_read_csv_matrix(C), f"{Path(C)} (C)", n, True)
     iota: Any = influence
     if isinstance(influence, str | Path):
-        iota = _as_vector(_read_csv_matrix_any(influence), n, f"{Path(influence)} (influence)")
+        iota = _as_vector(_read_csv_matrix(influence), n, f"{Path(influence)} (influence)")
     return from_matrices(m, k, c, influence=iota, name=Path(M).name, **damping)
-
-
-def _read_csv_matrix_any(path: str | Path) -> np.ndarray:
-    """Like :func:`_read_csv_matrix` but for a row or a column vector."""
-    p = Path(path)
-    try:
-        data = np.loadtxt(p, delimiter="," if "," in p.read_text() else None, ndmin=1)
-    except FileNotFoundError:
-        raise InputError(f"{p}: no such file") from None
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{p}: not a vector of numbers ({exc})") from None
-    return data.reshape(-1)
 
 
 # --------------------------------------------------------------------------------------------

@@ -33,7 +33,8 @@ def plot_moving_fei(
     amplitude_band: tuple[float, float] | None = None,
     delay_band: tuple[float, float] | None = None,
 ) -> Path:
-    """Seed Fig. 5.1/5.2-style figure: target/measured overlay, A(t) and d(t) of the windows.
+    """The FEI paper's Fig. 5.1/5.2-style figure: target/measured overlay, A(t) and d(t) of the
+    windows.
 
     Parameters
     ----------

@@ -4,11 +4,11 @@
   (step rate, p99 lateness, online A and d, peak displacement, margin to the nearest limit).
   The loop computes the numbers off the step path (every 0.5 s by default); formatting and
   printing happen here.
-* :func:`summarize` reads a run directory back and computes the whole-record FEI (seed
-  Eq. 2.1–2.5) of measured vs target and measured vs command, the tracking metrics J1–J3 and TI
-  (:mod:`rths_hil.metrics`), statistics of the online (MWO) estimates, lateness and the e-stop
+* :func:`summarize` reads a run directory back and computes the whole-record FEI (the FEI
+  paper's Eq. 2.1–2.5) of measured vs target and measured vs command, the tracking metrics J1–J3 and
+  TI (:mod:`rths_hil.metrics`), statistics of the online (MWO) estimates, lateness and the e-stop
   outcome; it writes ``summary.json``. :func:`format_summary` renders it for the console.
-* :func:`plot_report` draws ``report.png`` like the seed's Fig. 5.1 (calculated, command and
+* :func:`plot_report` draws ``report.png`` like the FEI paper's Fig. 5.1 (calculated, command and
   measured displacements) and Fig. 5.2 (online A and d), plus lateness or the Kalman estimates.
 """
 

@@ -18,8 +18,8 @@ Rules (names as they appear in events and on the console):
     measured specimen force.
 ``fei``
     :class:`FEIRule` (issue 2): ``consecutive`` valid online FEI windows with
-    ``|A − 1| > amplitude_tol`` or ``|d| > delay_tol`` (seed Eq. 2.2, 2.5). Invalid windows
-    neither trip nor reset the count.
+    ``|A − 1| > amplitude_tol`` or ``|d| > delay_tol`` (the FEI paper's Eq. 2.2, 2.5). Invalid
+    windows neither trip nor reset the count.
 ``kalman``
     Kalman gain outside ``[gain_min, gain_max]`` or ``|delay| > delay_max``.
 ``watchdog``
@@ -184,8 +184,8 @@ class FEIRule:
     """E-stop on the online FEI: ``consecutive`` valid windows out of tolerance (issue 2).
 
     A valid window is out of tolerance when ``|A − 1| > amplitude_tol`` or
-    ``|d| > delay_tol`` (A and d per seed Eq. 2.2 and 2.5). ``consecutive`` such windows in a row
-    trip the rule; a valid window within tolerance resets the count; an invalid window (too
+    ``|d| > delay_tol`` (A and d per the FEI paper's Eq. 2.2 and 2.5). ``consecutive`` such windows
+    in a row trip the rule; a valid window within tolerance resets the count; an invalid window (too
     little target energy, NaN values) neither trips nor resets it.
 
     Parameters

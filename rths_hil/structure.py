@@ -1,17 +1,18 @@
 """SDOF structures (linear or Bouc-Wen) and step-by-step integrators for RTHS.
 
-Equation of motion of the numerical substructure (relative displacement ``x``, seed Section 4)::
+Equation of motion of the numerical substructure (relative displacement ``x``, the FEI paper's
+Section 4)::
 
     m·ẍ + c·ẋ + r(x) + f_e = −m·a_g(t),      c = 2·ζ·√(k·m)
 
-``r`` is the numerical restoring force — linear ``k·x`` or Bouc-Wen (seed Eq. 4.1–4.2, see
-:class:`BoucWen`) — and ``f_e`` an externally supplied restoring force: in a hybrid test, the
+``r`` is the numerical restoring force — linear ``k·x`` or Bouc-Wen (the FEI paper's Eq. 4.1–4.2,
+see :class:`BoucWen`) — and ``f_e`` an externally supplied restoring force: in a hybrid test, the
 force measured on the physical specimen.
 
 Integrators (one call per step, plain Python floats, no allocation per step):
 
 * :class:`CRStepper` — the explicit, unconditionally stable CR algorithm of Chen & Ricles
-  (2008), used by the seed's experiment (Section 5). The displacement of step n+1 depends only
+  (2008), used by the FEI paper's experiment (Section 5). The displacement of step n+1 depends only
   on step n, so it can be sent to the actuator *before* the specimen force at n+1 is measured.
 * :class:`NewmarkStepper` — Newmark average acceleration (β = 1/4, γ = 1/2), implicit
   (Newton iteration for Bouc-Wen), for comparison.
@@ -39,8 +40,8 @@ from .errors import InputError
 
 log = logging.getLogger(__name__)
 
-#: Seed's analytical-substructure stiffness k_a = 11.765 kN/mm, in N/m (Section 4).
-K_SEED = 1.1765e7
+#: The FEI paper's analytical-substructure stiffness k_a = 11.765 kN/mm, in N/m (Section 4).
+K_A_PAPER = 1.1765e7
 
 
 def _positive(value: float, what: str) -> float:
@@ -52,24 +53,24 @@ def _positive(value: float, what: str) -> float:
 
 @dataclass(frozen=True)
 class BoucWenParams:
-    """Bouc-Wen parameters (seed Eq. 4.1–4.2), defaults as in the seed, SI units.
+    """Bouc-Wen parameters (the FEI paper's Eq. 4.1–4.2), defaults as in the FEI paper, SI units.
 
     Attributes
     ----------
     x_y : float
-        Yield displacement x_y in m (seed: 10 mm).
+        Yield displacement x_y in m (the FEI paper: 10 mm).
     k_a : float
-        Initial (elastic) stiffness k_a in N/m (seed: 11.765 kN/mm = 1.1765e7 N/m).
+        Initial (elastic) stiffness k_a in N/m (the FEI paper: 11.765 kN/mm = 1.1765e7 N/m).
     eta : float
-        Ratio η of post- to pre-yield stiffness (seed: 0).
+        Ratio η of post- to pre-yield stiffness (the FEI paper: 0).
     beta, gamma : float
-        Loop-shape parameters β, γ (seed: 0.55, 0.45).
+        Loop-shape parameters β, γ (the FEI paper: 0.55, 0.45).
     q : float
-        Sharpness exponent q (seed: 2).
+        Sharpness exponent q (the FEI paper: 2).
     """
 
     x_y: float = 0.010
-    k_a: float = K_SEED
+    k_a: float = K_A_PAPER
     eta: float = 0.0
     beta: float = 0.55
     gamma: float = 0.45
@@ -102,7 +103,7 @@ class BoucWenParams:
 class BoucWen:
     """Bouc-Wen hysteretic restoring force, a state machine driven by displacement.
 
-    Seed Eq. 4.1 and 4.2::
+    The FEI paper's Eq. 4.1 and 4.2::
 
         r = η·k_a·x + (1 − η)·k_a·x_y·z
         x_y·ż + γ·|ẋ|·z·|z|^(q−1) + β·ẋ·|z|^q − ẋ = 0
@@ -115,7 +116,7 @@ class BoucWen:
     Parameters
     ----------
     params : BoucWenParams, optional
-        Seed defaults if omitted.
+        The FEI paper's defaults if omitted.
     """
 
     __slots__ = ("_a", "_b", "_c", "_q", "_q2", "_xy", "_zt", "k_a", "params", "x", "z")
@@ -214,7 +215,7 @@ def _make_restoring(
         raise InputError("give either the stiffness k or the natural frequency fn, not both")
     if isinstance(bouc_wen, bool):
         bw_params = BoucWenParams() if bouc_wen else None
-        tie = True  # seed shape, stiffness of the structure
+        tie = True  # the FEI paper's shape, stiffness of the structure
     elif isinstance(bouc_wen, BoucWen):
         bw_params, tie = bouc_wen.params, False
     else:
@@ -345,7 +346,7 @@ class CRStepper(_SDOFStepper):
     fn : float, optional
         Natural frequency (Hz), alternative to ``k``.
     bouc_wen : BoucWenParams, BoucWen or bool, optional
-        Bouc-Wen restoring force instead of ``k·x``. ``True`` means the seed's shape parameters
+        Bouc-Wen restoring force instead of ``k·x``. ``True`` means the FEI paper's shape parameters
         with ``k_a = k``. An explicit ``k_a`` must equal ``k``.
     k_specimen : float
         Estimated initial stiffness of the physical specimen (N/m), used only in α.
@@ -569,7 +570,7 @@ def simulate_sdof(
 
     The mass is ``m = k / (2π·fn)²`` so that the initial natural frequency is ``fn``. The
     displacement of a linear SDOF does not depend on ``k``; with Bouc-Wen it depends on ``k``
-    only through ``x_y`` (seed Eq. 4.1–4.2), so ``k`` may be left at the seed's k_a.
+    only through ``x_y`` (the FEI paper's Eq. 4.1–4.2), so ``k`` may be left at the FEI paper's k_a.
 
     Parameters
     ----------
@@ -583,10 +584,10 @@ def simulate_sdof(
         Damping ratio.
     k : float, optional
         Initial stiffness (N/m). Default: ``bouc_wen.k_a`` when Bouc-Wen parameters are given,
-        else the seed's k_a (:data:`K_SEED`).
+        else the FEI paper's k_a (:data:`K_A_PAPER`).
     bouc_wen : BoucWenParams or bool, optional
-        ``None``/``False``: linear. ``True``: seed Bouc-Wen with ``k_a = k``. Parameters: used
-        as given (their ``k_a`` must equal ``k``; pass ``k=params.k_a``).
+        ``None``/``False``: linear. ``True``: the FEI paper's Bouc-Wen with ``k_a = k``. Parameters:
+        used as given (their ``k_a`` must equal ``k``; pass ``k=params.k_a``).
     method : {"cr", "newmark"}
         Integrator: CR (default) or Newmark average acceleration.
     full : bool
@@ -602,7 +603,7 @@ def simulate_sdof(
     fs = _positive(fs, "sampling rate fs (Hz)")
     fn = _positive(fn, "natural frequency fn (Hz)")
     if k is None:
-        k = bouc_wen.k_a if isinstance(bouc_wen, BoucWenParams) else K_SEED
+        k = bouc_wen.k_a if isinstance(bouc_wen, BoucWenParams) else K_A_PAPER
     k = _positive(k, "stiffness k (N/m)")
     if fn >= fs / 2:
         raise InputError(

@@ -1,12 +1,13 @@
-"""The seed's computational study (Section 4): window size per natural frequency, accuracy table.
+"""The FEI paper's computational study (Section 4): window size per natural frequency, accuracy
+table.
 
-Set-up (seed Fig. 4.1): an SDOF structure (mass, 2 % damping, linear or Bouc-Wen per Eq. 4.1–4.2)
-is driven by a recorded ground motion sampled at 1024 Hz and integrated with the CR algorithm; its
-displacement is the *target*. The actuator is a transport delay τ (fractional, not rounded to
-samples) followed by a gain k_p: *measured* = k_p · target(t − τ). The moving-window FEI
+Set-up (the FEI paper's Fig. 4.1): an SDOF structure (mass, 2 % damping, linear or Bouc-Wen per
+Eq. 4.1–4.2) is driven by a recorded ground motion sampled at 1024 Hz and integrated with the CR
+algorithm; its displacement is the *target*. The actuator is a transport delay τ (fractional, not
+rounded to samples) followed by a gain k_p: *measured* = k_p · target(t − τ). The moving-window FEI
 (:func:`rths_hil.fei.moving_fei`) of the pair should return A = k_p and d = τ in every window.
 
-Window-size study (seed Fig. 4.2)
+Window-size study (the FEI paper's Fig. 4.2)
 ---------------------------------
 For each record and natural frequency fn (period Tn), windows ``t_w = Tn·(1 + 0.1 j)``, j = 0, 1,
 …, are tried in turn; the answer is the first one that satisfies the :class:`WindowCriterion`:
@@ -19,7 +20,8 @@ For each record and natural frequency fn (period Tn), windows ``t_w = Tn·(1 + 0
   through, and the decayed tail are left out). ``min_level = 0`` counts every valid window;
 * **statistic** over the counted windows: ``"max"`` (every window within tolerance) or a
   percentile ``"pNN"`` (default ``"p95"``: 95 % of the windows within tolerance);
-* the window passes when the statistic is ≤ ``tolerance`` (default 1 %, seed: 0.01 ms of 1 ms).
+* the window passes when the statistic is ≤ ``tolerance`` (default 1 %, the FEI paper:
+  0.01 ms of 1 ms).
 
 If no window up to ``max_periods``·Tn (and half the record) passes, t_w is NaN.
 
@@ -28,10 +30,10 @@ statistics within 0.1 percentage point): both signals are decimated to the large
 factor (≤ 8) that keeps ``fs/decimate ≥ 64·fn``, and windows are evaluated every ``N/64`` samples
 instead of every sample (the FEI of overlapping windows varies smoothly with the end time).
 
-Accuracy study (seed Table 4.1, Fig. 4.6)
+Accuracy study (the FEI paper's Table 4.1, Fig. 4.6)
 -----------------------------------------
 For each fn, linear and Bouc-Wen structures, gain 1.1 and delay 5 ms, window 3·Tn, hop 1 (the
-seed's MWO, Eq. 7): the maximum over the counted windows (same selection as above) of the
+the FEI paper's MWO, Eq. 7): the maximum over the counted windows (same selection as above) of the
 amplitude error ``|A − k_p|/k_p`` and the delay error ``|d − τ|/τ``, in %.
 
 Both studies run their cases through an executor (default
@@ -197,20 +199,21 @@ def window_size_for(
     decimate: int | None = None,
     hop: int | None = None,
 ) -> WindowSizeResult:
-    """Smallest moving window that meets ``criterion`` for one record and fn (seed Fig. 4.2).
+    """Smallest moving window that meets ``criterion`` for one record and fn (the FEI paper's
+    Fig. 4.2).
 
     Parameters
     ----------
     gm : GroundMotion
-        Ground motion, already at the simulation rate (seed: 1024 Hz) and scale.
+        Ground motion, already at the simulation rate (the FEI paper: 1024 Hz) and scale.
     fn : float
         Natural frequency (Hz).
     zeta, gain, delay : float
-        Damping ratio, actuator gain k_p and delay τ (s) (seed: 0.02, 1, 1 ms).
+        Damping ratio, actuator gain k_p and delay τ (s) (the FEI paper: 0.02, 1, 1 ms).
     criterion : WindowCriterion, optional
         Default: 1 % on the 95th percentile of strong-motion windows.
     bouc_wen : BoucWenParams or bool, optional
-        Bouc-Wen structure (``True``: seed parameters) instead of linear.
+        Bouc-Wen structure (``True``: the FEI paper's parameters) instead of linear.
     start_periods, step_periods, max_periods : float
         Window sizes tried: ``Tn·(start + j·step)`` up to ``max_periods·Tn`` (and at most half
         the record).
@@ -306,14 +309,14 @@ def window_size_study(
     progress: bool = True,
     **kwargs,
 ) -> list[WindowSizeResult]:
-    """Run :func:`window_size_for` for every record × fn (seed Fig. 4.2), in parallel.
+    """Run :func:`window_size_for` for every record × fn (the FEI paper's Fig. 4.2), in parallel.
 
     Parameters
     ----------
     records : sequence of GroundMotion
         At the simulation rate and scale.
     fns : sequence of float
-        Natural frequencies (Hz) (seed: 0.2 … 5.1 Hz by 0.1).
+        Natural frequencies (Hz) (the FEI paper: 0.2 … 5.1 Hz by 0.1).
     executor : concurrent.futures.Executor, optional
         Default: a ``ProcessPoolExecutor(max_workers=2)`` created and shut down here.
     progress : bool
@@ -345,7 +348,7 @@ def window_size_study(
 
 @dataclass
 class AccuracyResult:
-    """One row of the seed's Table 4.1 plus the time histories for Fig. 4.6.
+    """One row of the FEI paper's Table 4.1 plus the time histories for Fig. 4.6.
 
     Attributes
     ----------
@@ -402,7 +405,8 @@ def accuracy_case(
     hop: int = 1,
     min_level: float = 0.1,
 ) -> AccuracyResult:
-    """Maximum FEI errors for one structure (seed Table 4.1); ``window_s`` defaults to 3·Tn."""
+    """Maximum FEI errors for one structure (the FEI paper's Table 4.1); ``window_s`` defaults to
+    3·Tn."""
     _check_common(fn, zeta, gain, delay)
     tw = 3.0 / fn if window_s is None else float(window_s)
     if not (math.isfinite(tw) and tw > 0):
@@ -446,7 +450,8 @@ def accuracy_study(
     progress: bool = True,
     **kwargs,
 ) -> list[AccuracyResult]:
-    """Seed Table 4.1: linear and Bouc-Wen SDOF for each fn, rows ordered by fn then structure.
+    """The FEI paper's Table 4.1: linear and Bouc-Wen SDOF for each fn, rows ordered by fn then
+    structure.
 
     The window is ``window_periods``·Tn unless ``window_s`` (s, same for every fn) is given.
     Other keyword arguments go to :func:`accuracy_case` (gain, delay, zeta, hop, min_level).
@@ -482,7 +487,7 @@ def write_window_size_csv(path: str | Path, rows: Sequence[WindowSizeResult]) ->
 
 
 def write_accuracy_csv(path: str | Path, rows: Sequence[AccuracyResult]) -> None:
-    """CSV with the columns of :data:`ACCURACY_COLUMNS` (seed Table 4.1)."""
+    """CSV with the columns of :data:`ACCURACY_COLUMNS` (the FEI paper's Table 4.1)."""
     import csv
 
     with Path(path).open("w", newline="") as fh:

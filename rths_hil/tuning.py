@@ -3,12 +3,13 @@
 Inverse compensation (Chen & Ricles 2009; :mod:`rths_hil.compensation`) sends
 ``x_c[k] = a·(α·x_t[k] − (α − 1)·x_t[k−1])``. It is the backward-Euler inverse of a first-order
 actuator lag ``T = (α − 1)·Δt``; for a slowly varying target it leads by ``(α − 1)·Δt``. Too
-small an α leaves the actuator lagging (equivalent delay ``d > 0``, seed Eq. 2.5), too large
-makes it lead (``d < 0``).
+small an α leaves the actuator lagging (equivalent delay ``d > 0``, the FEI paper's Eq. 2.5), too
+large makes it lead (``d < 0``).
 
 Offline tuning (:func:`tune`)
     Run a short trial with the current ``(α, a)``, evaluate the FEI of measured vs target over
-    the whole trial (seed Eq. 2.1–2.5: amplitude ``A``, equivalent delay ``d``), then update::
+    the whole trial (the FEI paper's Eq. 2.1–2.5: amplitude ``A``, equivalent delay ``d``), then
+    update::
 
         α ← α + d/Δt          (a residual delay d asks for d/Δt more steps of lead)
         a ← a / A             (when the amplitude factor is tuned)
@@ -118,7 +119,7 @@ def compensator_response(alpha: float, f: float | np.ndarray, dt: float) -> np.n
 
 
 def residual_delay(alpha: float, f: float, dt: float, plant_lag: float) -> float:
-    """Equivalent delay (s, seed Eq. 2.5) of compensator + actuator at frequency ``f``.
+    """Equivalent delay (s, the FEI paper's Eq. 2.5) of compensator + actuator at frequency ``f``.
 
     ``plant_lag`` is the actuator's phase lag (rad, > 0 for a lagging actuator) at ``f``:
     ``d = (plant_lag − angle C(α, f)) / (2π f)``.
@@ -160,11 +161,11 @@ class Trial:
     factor : float
         Amplitude factor ``a`` used.
     amplitude : float
-        FEI amplitude A of measured vs target over the trial (seed Eq. 2.2).
+        FEI amplitude A of measured vs target over the trial (the FEI paper's Eq. 2.2).
     delay : float
-        FEI equivalent delay d (s, seed Eq. 2.5), > 0 when measured lags.
+        FEI equivalent delay d (s, the FEI paper's Eq. 2.5), > 0 when measured lags.
     f_eq : float
-        Equivalent frequency (Hz, seed Eq. 2.4).
+        Equivalent frequency (Hz, the FEI paper's Eq. 2.4).
     valid : bool
         The FEI is valid (the target moved).
     j1 : float
@@ -222,7 +223,7 @@ class TrialRunner(Protocol):
 def evaluate_trial(
     target: np.ndarray, measured: np.ndarray, fs: float
 ) -> tuple[float, float, float, bool, float, float]:
-    """FEI (seed Eq. 2.1–2.5), J1 and J2 of one trial.
+    """FEI (the FEI paper's Eq. 2.1–2.5), J1 and J2 of one trial.
 
     Returns
     -------

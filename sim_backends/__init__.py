@@ -1,7 +1,9 @@
 """Virtual servo-hydraulic twins: actuator models behind real protocol endpoints.
 
-A twin is an actuator model (delay + gain per the seed's Fig. 4.1, servo dynamics, an effects
-catalogue, a specimen model for the force) plus a protocol endpoint that speaks a driver's real
-protocol over a real transport (a python-can bus, a pymodbus server on 127.0.0.1, a
-pseudo-terminal). Tests, CI and an operator's dry run need no hardware.
+A twin is a plant (:class:`sim_backends.plant.TwinPlant`: an actuator model with the delay +
+gain of the FEI paper's Fig. 4.1, servo dynamics, an effects catalogue, a specimen model for the
+force, sensor noise) behind a protocol endpoint that speaks a driver's real protocol over a real
+transport (a python-can bus, a pymodbus server on 127.0.0.1, a pseudo-terminal). Tests, CI and an
+operator's dry run need no hardware. Endpoints and actuator models are registered in
+:mod:`sim_backends.registry`, effects in :data:`sim_backends.effects.EFFECTS`.
 """

@@ -1,4 +1,4 @@
-"""The seed's actuator block model (Fig. 4.1): a fractional transport delay followed by a gain.
+"""The FEI paper's actuator block model (Fig. 4.1): a fractional transport delay followed by a gain.
 
 The delay is not rounded to whole samples. A delay of ``D = delay·fs`` samples is split into an
 integer part ``n0`` and a fractional part ``D - n0`` in [1, 2) (or [0, 1) for delays below one
@@ -125,7 +125,8 @@ class FractionalDelay:
 
 
 class DelayGain(ActuatorModel):
-    """Seed Fig. 4.1: measured = gain · command delayed by ``delay`` seconds (fractional).
+    """The FEI paper's Fig. 4.1: measured = gain · command delayed by ``delay`` seconds
+    (fractional).
 
     Parameters
     ----------

@@ -46,13 +46,17 @@ from rths_hil.errors import InputError
 from .delay import ORDER, lagrange_taps
 from .models import FirstOrderServo, _first_order_coeffs
 
+_MM = 1e-3
+
 __all__ = [
     "EFFECTS",
+    "EFFECT_ORDER",
     "EFFECT_RANGES",
     "Backlash",
     "Drift",
     "Effect",
     "EffectChain",
+    "Fitting",
     "ForceFeedback",
     "Offset",
     "Param",
@@ -64,19 +68,6 @@ __all__ = [
     "draw_effect_params",
     "make_effect",
 ]
-
-
-@dataclass(frozen=True)
-class Param:
-    """One parameter of an effect: name, SI unit, meaning, default (None = required), bounds."""
-
-    name: str
-    unit: str
-    doc: str
-    default: float | None = None
-    minimum: float | None = None
-    maximum: float | None = None
-    exclusive_minimum: bool = False
 
 
 @dataclass(frozen=True)
@@ -94,11 +85,104 @@ class ParamRange:
     note: str = ""
 
 
+@dataclass(frozen=True)
+class Param:
+    """One parameter of an effect.
+
+    Attributes
+    ----------
+    name, unit, doc : str
+        Name (as in a model file), SI unit, meaning.
+    default : float or None
+        Default value; ``None`` = required.
+    minimum, maximum : float or None
+        Bounds checked by :func:`validate_params`; ``exclusive_minimum`` makes the minimum
+        strict.
+    typical : ParamRange or None
+        Realistic range (random hidden effects of the diagnosis benchmarks and tests,
+        :func:`draw_effect_params`); ``None`` for parameters that are not drawn.
+    polish : bool
+        Re-fitted by the diagnosis' joint re-fit (:func:`rths_hil.diagnose.candidates.polish`);
+        ``False`` for parameters that come from elsewhere (the specimen of ``force_feedback``).
+    step : float or None
+        Scale of the joint re-fit's steps for a parameter that is not on a log scale (SI);
+        ``None``: the magnitude of its start value.
+    """
+
+    name: str
+    unit: str
+    doc: str
+    default: float | None = None
+    minimum: float | None = None
+    maximum: float | None = None
+    exclusive_minimum: bool = False
+    typical: ParamRange | None = None
+    polish: bool = True
+    step: float | None = None
+
+    @property
+    def log_scale(self) -> bool:
+        """A positive scale parameter spanning decades (its realistic range is drawn
+        log-uniformly and has one sign): the joint re-fit moves its logarithm."""
+        t = self.typical
+        return t is not None and t.log and not t.signed
+
+
+@dataclass(frozen=True)
+class Fitting:
+    """How the discrepancy diagnosis fits an effect as a candidate explanation.
+
+    The fitting methods themselves are in :mod:`rths_hil.diagnose.candidates`; an effect only
+    says which one suits it and over what range.
+
+    Attributes
+    ----------
+    method : {"linear", "scalar", "stops", "modulated_delay"}
+        ``linear``: ``y = x + v·regressor(t)``, least squares in closed form; ``scalar``: one
+        parameter by a log-spaced grid and bounded Brent between ``low`` and ``high`` (see
+        :meth:`Effect.fit_bounds`); ``stops``: one grid + Brent per stop of a saturation;
+        ``modulated_delay``: linearised search over the period, then exact least squares.
+    param : str
+        The parameter fitted (``linear`` and ``scalar``).
+    low, high : float
+        Default search range of ``param`` (``scalar``; SI).
+    needs_specimen : bool
+        The fit needs the specimen's stiffness and damping (from the record's force column or
+        the model's ``[specimen]``); skipped without them.
+    """
+
+    method: str
+    param: str = ""
+    low: float = 0.0
+    high: float = 0.0
+    needs_specimen: bool = False
+
+
+def _positive(name: str, unit: str, doc: str, typical: ParamRange, **kw: float) -> Param:
+    """A parameter that must be > 0."""
+    return Param(name, unit, doc, minimum=0.0, exclusive_minimum=True, typical=typical, **kw)
+
+
 class Effect(ABC):
-    """Base of every catalogue effect: construct with ``dt`` and parameters, then step/simulate."""
+    """Base of every catalogue effect: construct with ``dt`` and parameters, then step/simulate.
+
+    Everything the twin and the diagnosis know about an effect is on its class: ``kind`` (its
+    name in model files and reports), ``PARAMS`` (units, bounds, realistic ranges, how the joint
+    re-fit treats each), ``CHAIN`` (its place in the physical chain), ``PREFERENCE`` (which
+    candidate is named when two explain a record equally well) and ``FIT`` (how the diagnosis
+    fits it), plus the hooks below. Register a new effect in :data:`EFFECTS`.
+    """
 
     kind: ClassVar[str]
     PARAMS: ClassVar[tuple[Param, ...]]
+    #: Place in the physical chain from the actuator to the transducer (lower = nearer the
+    #: actuator): a twin applies its effects, and the diagnosis inserts a new one, in this order.
+    CHAIN: ClassVar[int]
+    #: Preference between candidates within the tie margin (lower = named first; simpler
+    #: effects first).
+    PREFERENCE: ClassVar[int]
+    #: How the diagnosis fits this effect.
+    FIT: ClassVar[Fitting]
 
     def __init__(self, dt: float, **params: float) -> None:
         if not math.isfinite(float(dt)) or float(dt) <= 0:
@@ -115,6 +199,44 @@ class Effect(ABC):
     @classmethod
     def check(cls, params: dict[str, float], where: str) -> None:
         """Cross-parameter checks after each parameter passed its own bounds (none by default)."""
+        return None
+
+    # -- what the diagnosis asks (rths_hil.diagnose.candidates) -------------------------------
+    @classmethod
+    def regressor(cls, t: np.ndarray) -> np.ndarray:
+        """``FIT.method == "linear"``: the change of the output per unit of ``FIT.param`` at
+        times ``t`` (s)."""
+        raise NotImplementedError(f"effect {cls.kind!r} is not linear in a parameter")
+
+    @classmethod
+    def fit_bounds(
+        cls, x: np.ndarray, fs: float, specimen: tuple[float, float] | None
+    ) -> tuple[float, float]:
+        """``FIT.method == "scalar"``: search range of ``FIT.param`` for the input ``x`` (m,
+        sampled at ``fs`` Hz) of the effect, given the specimen ``(k_s, c_s)`` when known."""
+        return cls.FIT.low, cls.FIT.high
+
+    @classmethod
+    def fit_fixed(cls, specimen: tuple[float, float] | None) -> dict[str, float]:
+        """Parameters held fixed while ``FIT.param`` is fitted (none by default)."""
+        return {}
+
+    @classmethod
+    def low_frequency(cls, params: dict[str, float]) -> tuple[float, float] | None:
+        """Low-frequency equivalent ``(delay in s, gain)`` the effect adds, or ``None`` when it
+        adds neither. When the actuator's delay and gain are fitted to the record, the actuator
+        gives them back while this effect is fitted."""
+        return None
+
+    @classmethod
+    def fit_note(cls, params: dict[str, float], x: np.ndarray, fs: float) -> str:
+        """Anything worth reporting about a fit with ``params`` on input ``x`` (m, at ``fs``)."""
+        return ""
+
+    @classmethod
+    def clamp(cls, params: dict[str, float]) -> None:
+        """Bring ``params`` back into validity in place, continuously (the joint re-fit moves
+        them freely)."""
         return None
 
     @abstractmethod
@@ -192,7 +314,23 @@ class Offset(_Stateless):
     """
 
     kind = "offset"
-    PARAMS = (Param("offset", "m", "constant displacement error"),)
+    PARAMS = (
+        Param(
+            "offset",
+            "m",
+            "constant displacement error",
+            typical=ParamRange(
+                0.1 * _MM, 2 * _MM, signed=True, log=True, note="transducer zero / set-point error"
+            ),
+        ),
+    )
+    CHAIN = 60
+    PREFERENCE = 10
+    FIT = Fitting("linear", "offset")
+
+    @classmethod
+    def regressor(cls, t: np.ndarray) -> np.ndarray:
+        return np.ones(len(t))
 
     def _setup(self) -> None:
         self._offset = self.params["offset"]
@@ -213,7 +351,23 @@ class Drift(_Stateless):
     """
 
     kind = "drift"
-    PARAMS = (Param("rate", "m/s", "drift velocity"),)
+    PARAMS = (
+        Param(
+            "rate",
+            "m/s",
+            "drift velocity",
+            typical=ParamRange(
+                0.5 * _MM / 60, 5 * _MM / 60, signed=True, log=True, note="0.5-5 mm/min"
+            ),
+        ),
+    )
+    CHAIN = 70
+    PREFERENCE = 20
+    FIT = Fitting("linear", "rate")
+
+    @classmethod
+    def regressor(cls, t: np.ndarray) -> np.ndarray:
+        return t
 
     def _setup(self) -> None:
         self._step = self.params["rate"] * self.dt
@@ -239,15 +393,24 @@ class StrokeLimit(_Stateless):
 
     kind = "stroke_limit"
     PARAMS = (
-        Param(
+        _positive(
             "limit",
             "m",
             "half stroke (distance from center to either stop)",
-            minimum=0.0,
-            exclusive_minimum=True,
+            ParamRange(5 * _MM, 150 * _MM, log=True, note="end stop or interlock"),
         ),
-        Param("center", "m", "mid-stroke position", default=0.0),
+        Param(
+            "center",
+            "m",
+            "mid-stroke position",
+            default=0.0,
+            typical=ParamRange(0.0, 2 * _MM, signed=True, note="mid-stroke error"),
+            step=1e-3,
+        ),
     )
+    CHAIN = 40
+    PREFERENCE = 70
+    FIT = Fitting("stops")
 
     def _setup(self) -> None:
         self._lo = self.params["center"] - self.params["limit"]
@@ -280,7 +443,24 @@ class Backlash(Effect):
     """
 
     kind = "backlash"
-    PARAMS = (Param("width", "m", "total play", minimum=0.0),)
+    PARAMS = (
+        Param(
+            "width",
+            "m",
+            "total play",
+            minimum=0.0,
+            typical=ParamRange(
+                0.05 * _MM, 0.5 * _MM, log=True, note="clearance of pins and swivels"
+            ),
+        ),
+    )
+    CHAIN = 50
+    PREFERENCE = 50
+    FIT = Fitting("scalar", "width", 1e-6, 5e-3)
+
+    @classmethod
+    def clamp(cls, params: dict[str, float]) -> None:
+        params["width"] = max(params["width"], 0.0)
 
     def _setup(self) -> None:
         self._half = 0.5 * self.params["width"]
@@ -346,7 +526,35 @@ class VelocityLimit(Effect):
     """
 
     kind = "velocity_limit"
-    PARAMS = (Param("limit", "m/s", "maximum speed", minimum=0.0, exclusive_minimum=True),)
+    PARAMS = (
+        _positive(
+            "limit",
+            "m/s",
+            "maximum speed",
+            ParamRange(0.02, 0.2, log=True, note="rated valve flow / piston area"),
+        ),
+    )
+    CHAIN = 30
+    PREFERENCE = 60
+    FIT = Fitting("scalar", "limit")
+
+    @staticmethod
+    def _peak_speed(x: np.ndarray, fs: float) -> float:
+        return float(np.max(np.abs(np.diff(x)))) * fs
+
+    @classmethod
+    def fit_bounds(
+        cls, x: np.ndarray, fs: float, specimen: tuple[float, float] | None
+    ) -> tuple[float, float]:
+        """From a fiftieth of the input's peak speed to just above it."""
+        vmax = cls._peak_speed(x, fs)
+        return vmax / 50.0, vmax * 1.01
+
+    @classmethod
+    def fit_note(cls, params: dict[str, float], x: np.ndarray, fs: float) -> str:
+        if params["limit"] >= cls._peak_speed(x, fs):
+            return "limit above the model's peak speed: inactive"
+        return ""
 
     def _setup(self) -> None:
         self._dmax = self.params["limit"] * self.dt
@@ -415,8 +623,21 @@ class ServoLag(Effect):
 
     kind = "servo_lag"
     PARAMS = (
-        Param("time_constant", "s", "lag time constant", minimum=0.0, exclusive_minimum=True),
+        _positive(
+            "time_constant",
+            "s",
+            "lag time constant",
+            ParamRange(2e-3, 20e-3, log=True, note="position-loop bandwidth 8-80 Hz"),
+        ),
     )
+    CHAIN = 10
+    PREFERENCE = 30
+    FIT = Fitting("scalar", "time_constant", 1e-4, 0.1)
+
+    @classmethod
+    def low_frequency(cls, params: dict[str, float]) -> tuple[float, float]:
+        """A delay of ``T`` at gain 1."""
+        return params["time_constant"], 1.0
 
     def _setup(self) -> None:
         self._servo = FirstOrderServo(self.params["time_constant"], self.dt)
@@ -445,17 +666,38 @@ class TimeVaryingDelay(Effect):
 
     kind = "time_varying_delay"
     PARAMS = (
-        Param("delay", "s", "mean delay", minimum=0.0),
-        Param("amplitude", "s", "amplitude of the sinusoidal variation", default=0.0, minimum=0.0),
         Param(
+            "delay",
+            "s",
+            "mean delay",
+            minimum=0.0,
+            typical=ParamRange(5e-3, 30e-3, note="mean equivalent delay"),
+            step=1e-3,
+        ),
+        Param(
+            "amplitude",
+            "s",
+            "amplitude of the sinusoidal variation",
+            default=0.0,
+            minimum=0.0,
+            typical=ParamRange(0.5e-3, 5e-3, note="≤ delay by construction of the ranges"),
+        ),
+        _positive(
             "period",
             "s",
             "period of the variation",
+            ParamRange(2.0, 60.0, log=True, note="slow variation over a test"),
             default=10.0,
-            minimum=0.0,
-            exclusive_minimum=True,
         ),
     )
+    CHAIN = 0
+    PREFERENCE = 80
+    FIT = Fitting("modulated_delay")
+
+    @classmethod
+    def clamp(cls, params: dict[str, float]) -> None:
+        params["amplitude"] = min(max(params["amplitude"], 0.0), max(params["delay"], 0.0))
+        params["delay"] = max(params["delay"], 0.0)
 
     @classmethod
     def check(cls, params: dict[str, float], where: str) -> None:
@@ -560,16 +802,55 @@ class ForceFeedback(Effect):
 
     kind = "force_feedback"
     PARAMS = (
-        Param(
+        _positive(
             "actuator_stiffness",
             "N/m",
             "oil-column stiffness k_h",
-            minimum=0.0,
-            exclusive_minimum=True,
+            ParamRange(2e7, 2e8, log=True, note="oil column 4βA²/V"),
         ),
-        Param("specimen_stiffness", "N/m", "specimen stiffness k_s", minimum=0.0),
-        Param("specimen_damping", "N·s/m", "specimen damping c_s", default=0.0, minimum=0.0),
+        Param(
+            "specimen_stiffness",
+            "N/m",
+            "specimen stiffness k_s",
+            minimum=0.0,
+            typical=ParamRange(1e5, 5e6, log=True, note="specimen"),
+            polish=False,
+        ),
+        Param(
+            "specimen_damping",
+            "N·s/m",
+            "specimen damping c_s",
+            default=0.0,
+            minimum=0.0,
+            typical=ParamRange(0.0, 2e5, note="0 for elastic specimens, dampers up"),
+            polish=False,
+        ),
     )
+    CHAIN = 20
+    PREFERENCE = 40
+    FIT = Fitting("scalar", "actuator_stiffness", needs_specimen=True)
+
+    @classmethod
+    def fit_bounds(
+        cls, x: np.ndarray, fs: float, specimen: tuple[float, float] | None
+    ) -> tuple[float, float]:
+        """From the specimen's stiffness (at least 1 kN/m) to 1e5 times it."""
+        k_s = specimen[0] if specimen is not None else 0.0
+        return max(k_s, 1e3) * 1.0, max(k_s, 1e3) * 1e5
+
+    @classmethod
+    def fit_fixed(cls, specimen: tuple[float, float] | None) -> dict[str, float]:
+        """The specimen's stiffness and damping, as regressed from the record."""
+        if specimen is None:
+            raise InputError("force_feedback: needs the specimen's stiffness and damping")
+        return {"specimen_stiffness": specimen[0], "specimen_damping": specimen[1]}
+
+    @classmethod
+    def low_frequency(cls, params: dict[str, float]) -> tuple[float, float]:
+        """Lag ``c_s/(k_h + k_s)`` and static gain ``k_h/(k_h + k_s)``."""
+        k_h, k_s = params["actuator_stiffness"], params["specimen_stiffness"]
+        c_s = params["specimen_damping"]
+        return c_s / (k_h + k_s), k_h / (k_h + k_s)
 
     def _setup(self) -> None:
         p = self.params
@@ -636,42 +917,16 @@ EFFECTS: dict[str, type[Effect]] = {
     )
 }
 
-_MM = 1e-3
-#: Realistic ranges of each effect's parameters (SI), shared by the twin's documentation, the
-#: random hidden effects of the diagnosis workflow and its fitting bounds. See docs/models.md
-#: for the justification of each range.
+#: Realistic ranges of each effect's parameters (SI), from each :class:`Param`'s ``typical``:
+#: the twin's documentation, the random hidden effects of the diagnosis benchmarks and tests.
+#: See docs/models.md for the justification of each range.
 EFFECT_RANGES: dict[str, dict[str, ParamRange]] = {
-    "offset": {
-        "offset": ParamRange(
-            0.1 * _MM, 2 * _MM, signed=True, log=True, note="transducer zero / set-point error"
-        )
-    },
-    "drift": {
-        "rate": ParamRange(0.5 * _MM / 60, 5 * _MM / 60, signed=True, log=True, note="0.5-5 mm/min")
-    },
-    "backlash": {
-        "width": ParamRange(0.05 * _MM, 0.5 * _MM, log=True, note="clearance of pins and swivels")
-    },
-    "velocity_limit": {
-        "limit": ParamRange(0.02, 0.2, log=True, note="rated valve flow / piston area")
-    },
-    "stroke_limit": {
-        "limit": ParamRange(5 * _MM, 150 * _MM, log=True, note="end stop or interlock"),
-        "center": ParamRange(0.0, 2 * _MM, signed=True, note="mid-stroke error"),
-    },
-    "servo_lag": {
-        "time_constant": ParamRange(2e-3, 20e-3, log=True, note="position-loop bandwidth 8-80 Hz")
-    },
-    "time_varying_delay": {
-        "delay": ParamRange(5e-3, 30e-3, note="mean equivalent delay"),
-        "amplitude": ParamRange(0.5e-3, 5e-3, note="≤ delay by construction of the ranges"),
-        "period": ParamRange(2.0, 60.0, log=True, note="slow variation over a test"),
-    },
-    "force_feedback": {
-        "actuator_stiffness": ParamRange(2e7, 2e8, log=True, note="oil column 4βA²/V"),
-        "specimen_stiffness": ParamRange(1e5, 5e6, log=True, note="specimen"),
-        "specimen_damping": ParamRange(0.0, 2e5, note="0 for elastic specimens, dampers up"),
-    },
+    kind: {p.name: p.typical for p in cls.PARAMS if p.typical is not None}
+    for kind, cls in EFFECTS.items()
+}
+#: Physical order of the effects in a chain (each class's ``CHAIN``): kind → position.
+EFFECT_ORDER: dict[str, int] = {
+    kind: i for i, kind in enumerate(sorted(EFFECTS, key=lambda k: EFFECTS[k].CHAIN))
 }
 
 

@@ -3,9 +3,9 @@
 Format (all values SI; times and lengths may also be strings with units, ``"12ms"``, ``"0.2mm"``)::
 
     [actuator]
-    delay = 0.012              # s, transport delay (seed Fig. 4.1), default 0
+    delay = 0.012              # s, transport delay (the FEI paper, Fig. 4.1), default 0
     gain = 0.98                # amplitude gain, default 1
-    model = "first_order"      # optional: "delay_gain" (default), "first_order", "benchmark"
+    model = "servo_lag"        # optional: "delay_gain" (default), "servo_lag", "benchmark"
     time_constant = 0.008      # the model's parameters, in the same table
 
     [[actuator.effects]]       # optional, applied in order after the model
@@ -49,8 +49,9 @@ from rths_hil.errors import InputError
 from rths_hil.units import parse_length, parse_time
 
 from .effects import EFFECTS, make_effect, validate_params
-from .models import MODELS, make_model
+from .models import make_model
 from .plant import Sensor, TwinPlant
+from .registry import MODELS, model_entry
 from .specimen import SPECIMEN_DEFAULTS, KelvinVoigt
 
 __all__ = [
@@ -235,11 +236,15 @@ def load_model(source: str | Path | Mapping[str, Any], name: str | None = None) 
 
     at = _table(data["actuator"], f"{p}actuator")
     model = at.get("model", "delay_gain")
-    if not isinstance(model, str) or model not in MODELS:
+    if not isinstance(model, str):
         raise InputError(
             f"{p}actuator.model: unknown actuator model {model!r} (known: {', '.join(MODELS)})"
         )
-    model_params = MODELS[model]
+    try:
+        model, entry = model_entry(model)
+    except InputError as exc:
+        raise InputError(f"{p}actuator.model: {exc}") from None
+    model_params = entry.params
     _unknown(at, ("delay", "gain", "model", "effects", *model_params), f"{p}actuator.")
     delay = _number(at.get("delay", 0.0), f"{p}actuator.delay", "s")
     if delay < 0:
@@ -251,7 +256,7 @@ def load_model(source: str | Path | Mapping[str, Any], name: str | None = None) 
             params[key] = _number(at[key], f"{p}actuator.{key}", _UNITS.get(key, unit))
         elif default is None:
             raise InputError(f"{p}actuator.{key}: required by model {model!r}")
-    if model == "benchmark":
+    if entry.uses_specimen:
         for key in _SPECIMEN_KEYS:
             if f"specimen_{key}" not in params and key in specimen_given:
                 params[f"specimen_{key}"] = specimen_given[key]

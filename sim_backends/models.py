@@ -2,7 +2,7 @@
 
 Three families, all :class:`~sim_backends.base.ActuatorModel` subclasses stepped at ``dt``:
 
-* :class:`DelayGain` — the seed's block model (Fig. 4.1): a fractional transport delay followed
+* :class:`DelayGain` — the FEI paper's block model (Fig. 4.1): a fractional transport delay followed
   by a gain (re-exported from :mod:`sim_backends.delay`).
 * :class:`FirstOrderServo` — a first-order servo lag ``1 / (T s + 1)``; its low-frequency
   equivalent delay is ``T`` and its amplitude at frequency ``f`` is ``1/sqrt(1 + (2π f T)²)``.
@@ -13,7 +13,7 @@ Three families, all :class:`~sim_backends.base.ActuatorModel` subclasses stepped
   specimen's mass, damping and stiffness as parameters.
 
 :class:`Series` chains models (the model file's ``model`` dynamics followed by the ``delay`` and
-``gain`` of the seed's Fig. 4.1). Continuous models are discretised with
+``gain`` of the FEI paper's Fig. 4.1). Continuous models are discretised with
 :func:`scipy.signal.cont2discrete` using a first-order (triangle) hold: exact for a command that
 is linear between samples, with no frequency warping and no half-sample delay (a zero-order hold
 would add ``dt/2`` of delay, Tustin would warp the benchmark's 67 Hz mode). The per-sample
@@ -39,7 +39,6 @@ from .delay import DelayGain
 
 __all__ = [
     "BENCHMARK_NOMINAL",
-    "MODELS",
     "BenchmarkServo",
     "DelayGain",
     "FirstOrderServo",
@@ -316,24 +315,16 @@ class Series(ActuatorModel):
         return x
 
 
-#: Model names accepted by the model file's ``actuator.model`` and their parameters
-#: (name → (default or None when required, unit)).
-MODELS: dict[str, dict[str, tuple[float | None, str]]] = {
-    "delay_gain": {},
-    "first_order": {"time_constant": (None, "s")},
-    "benchmark": {k: (v, "") for k, v in BENCHMARK_NOMINAL.items()},
-}
-
-
 def make_model(
     name: str, dt: float, delay: float = 0.0, gain: float = 1.0, **params: float
 ) -> ActuatorModel:
-    """Build ``name``'s dynamics followed by the seed's delay and gain (Fig. 4.1).
+    """Build ``name``'s dynamics followed by the delay and gain of the FEI paper's Fig. 4.1.
 
     Parameters
     ----------
-    name : {"delay_gain", "first_order", "benchmark"}
-        Dynamics in front of the transport delay.
+    name : str
+        Dynamics in front of the transport delay, a name of
+        :data:`sim_backends.registry.MODELS` (``delay_gain``, ``servo_lag``, ``benchmark``).
     dt : float
         Step in seconds.
     delay : float
@@ -341,16 +332,17 @@ def make_model(
     gain : float
         Amplitude gain applied after the dynamics.
     **params
-        The dynamics' parameters (see :data:`MODELS`).
+        The dynamics' parameters (see :data:`sim_backends.registry.MODELS`).
     """
+    from .registry import model_class, model_entry
+
     dt = _check_dt(dt)
-    if name not in MODELS:
-        raise InputError(f"unknown actuator model {name!r} (known: {', '.join(MODELS)})")
+    name, entry = model_entry(name)
     if not math.isfinite(delay) or delay < 0:
         raise InputError(f"delay: must be ≥ 0 s, got {delay!r}")
     if not math.isfinite(gain):
         raise InputError(f"gain: must be a finite number, got {gain!r}")
-    known = MODELS[name]
+    known = entry.params
     unknown = sorted(set(params) - set(known))
     if unknown:
         raise InputError(f"{unknown[0]}: not a parameter of model {name!r}")
@@ -358,10 +350,7 @@ def make_model(
     if missing:
         raise InputError(f"{missing[0]}: required by model {name!r}")
     tail = DelayGain(delay, gain, dt)
-    if name == "delay_gain":
+    cls = model_class(name)
+    if cls is None:
         return tail
-    if name == "first_order":
-        head: ActuatorModel = FirstOrderServo(params["time_constant"], dt)
-    else:
-        head = BenchmarkServo(dt, **params)
-    return Series([head, tail])
+    return Series([cls(dt=dt, **params), tail])

@@ -1,7 +1,9 @@
-"""The composite twin plant: actuator model → effects → specimen → sensors.
+"""The twin plant: actuator model → effects → specimen → sensors.
 
-:class:`TwinPlant` is what a protocol endpoint (CAN, Modbus, serial twin) drives; it satisfies
-:class:`sim_backends.base.Plant`. One step::
+:class:`TwinPlant` is the one plant of the twins: every protocol endpoint (CAN, Modbus, serial
+twin) drives one, through the :class:`sim_backends.base.Plant` protocol it satisfies (a model
+file, a configuration's ``[twin]`` section and :func:`sim_backends.twin.default_plant` all build
+it). One step::
 
     x_a = actuator.step(command)          # achieved displacement of the model (m)
     x   = effects.step(x_a)               # catalogue effects, in order (m)
@@ -142,11 +144,14 @@ class TwinPlant:
         f = self.specimen.step(x) if self.specimen is not None else 0.0
         self.true_displacement = x
         self.true_force = f
+        s = self.sensor
+        if not (s.displacement_noise or s.force_noise or s.displacement_resolution):
+            if not s.force_resolution:  # noiseless and unquantised: the true values
+                return x, f
         if self._i >= _BLOCK:
             self._refill()
         i = self._i
         self._i = i + 1
-        s = self.sensor
         md = x + s.displacement_noise * float(self._nd[i])
         mf = f + s.force_noise * float(self._nf[i])
         qd = s.displacement_resolution

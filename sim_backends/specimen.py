@@ -22,7 +22,7 @@ from scipy.signal import lfilter
 
 from rths_hil.errors import InputError
 
-__all__ = ["SPECIMEN_DEFAULTS", "KelvinVoigt", "SpringDashpot"]
+__all__ = ["SPECIMEN_DEFAULTS", "KelvinVoigt"]
 
 #: Default Kelvin–Voigt specimen (benchmark specimen of Silva et al. 2020, Table 2, no mass).
 SPECIMEN_DEFAULTS: dict[str, float] = {"stiffness": 1.19e6, "damping": 114.6, "mass": 0.0}
@@ -79,7 +79,3 @@ class KelvinVoigt:
     def params(self) -> dict[str, float]:
         """Parameters as written in the model file's ``[specimen]`` table."""
         return {"stiffness": self.stiffness, "damping": self.damping, "mass": self.mass}
-
-
-#: The issue's name for the default specimen.
-SpringDashpot = KelvinVoigt

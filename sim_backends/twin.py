@@ -17,56 +17,26 @@ from typing import Any
 
 from rths_hil.errors import InputError
 
-from .base import ActuatorModel, Plant
+from .base import Plant
 from .delay import DelayGain
 from .endpoints.base import TwinController, TwinEndpoint
 from .faults import Faults
+from .plant import TwinPlant
+from .registry import twin_class
+from .specimen import KelvinVoigt
 
-__all__ = ["SpringPlant", "default_plant", "start_twin"]
+__all__ = ["default_plant", "start_twin"]
 
 #: Default step of the twins (s): the bridge's 1024 Hz loop.
 DEFAULT_DT = 1.0 / 1024.0
 
 
-class SpringPlant:
-    """An actuator model driving a linear spring–dashpot specimen.
-
-    ``force = stiffness · x + damping · (x - x_prev) / dt`` with ``x`` the model's displacement
-    (backward-difference velocity). Satisfies :class:`sim_backends.base.Plant`.
-
-    Parameters
-    ----------
-    model : ActuatorModel
-        Command → displacement model (e.g. :class:`~sim_backends.delay.DelayGain`).
-    stiffness : float
-        Specimen stiffness (N/m).
-    damping : float
-        Specimen damping (N·s/m).
-    """
-
-    def __init__(self, model: ActuatorModel, stiffness: float = 1.0e6, damping: float = 0.0):
-        self.model = model
-        self.dt = model.dt
-        self.stiffness = float(stiffness)
-        self.damping = float(damping)
-        self._prev = 0.0
-
-    def reset(self) -> None:
-        self.model.reset()
-        self._prev = 0.0
-
-    def step(self, command: float) -> tuple[float, float]:
-        x = self.model.step(command)
-        v = (x - self._prev) / self.dt
-        self._prev = x
-        return x, self.stiffness * x + self.damping * v
-
-
 def default_plant(
     delay: float = 0.020, gain: float = 1.0, stiffness: float = 1.0e6, dt: float = DEFAULT_DT
-) -> SpringPlant:
-    """Seed Fig. 4.1 delay + gain actuator (20 ms, gain 1) on a 1 MN/m spring, at 1024 Hz."""
-    return SpringPlant(DelayGain(delay, gain, dt), stiffness=stiffness)
+) -> TwinPlant:
+    """The delay + gain actuator of the FEI paper's Fig. 4.1 (20 ms, gain 1) on a 1 MN/m
+    spring, noiseless, at 1024 Hz."""
+    return TwinPlant(DelayGain(delay, gain, dt), specimen=KelvinVoigt(stiffness, 0.0, dt))
 
 
 def start_twin(
@@ -82,8 +52,9 @@ def start_twin(
 
     Parameters
     ----------
-    driver_name : {"can", "modbus", "serial"}
-        Which protocol to speak.
+    driver_name : str
+        Which protocol to speak: a name of :data:`sim_backends.registry.TWINS` (``can``,
+        ``modbus``, ``serial``).
     plant : Plant
         The plant stepped once per command.
     faults : Faults, optional
@@ -110,26 +81,14 @@ def start_twin(
     InputError
         Unknown driver name or endpoint setting, or a transport that cannot be opened.
     """
-    seq_bits = None if driver_name == "serial" else 16
+    cls, entry = twin_class(driver_name)
     controller = TwinController(
-        plant, faults, seq_bits=seq_bits, heartbeat_timeout=heartbeat_timeout
+        plant, faults, seq_bits=entry.seq_bits, heartbeat_timeout=heartbeat_timeout
     )
+    if entry.fresh_channel:
+        connection.setdefault("channel", f"rths-twin-{uuid.uuid4().hex[:8]}")
     try:
-        if driver_name == "can":
-            from .endpoints.can import CANTwin
-
-            connection.setdefault("channel", f"rths-twin-{uuid.uuid4().hex[:8]}")
-            endpoint: TwinEndpoint = CANTwin(controller, **connection)
-        elif driver_name == "modbus":
-            from .endpoints.modbus import ModbusTwin
-
-            endpoint = ModbusTwin(controller, **connection)
-        elif driver_name == "serial":
-            from .endpoints.serial import SerialTwin
-
-            endpoint = SerialTwin(controller, **connection)
-        else:
-            raise InputError(f"no twin for driver {driver_name!r}; use can, modbus or serial")
+        endpoint: TwinEndpoint = cls(controller, **connection)
     except TypeError as exc:
         raise InputError(f"twin {driver_name!r}: bad endpoint setting: {exc}") from None
     return endpoint.start(threaded)

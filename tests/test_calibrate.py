@@ -50,7 +50,7 @@ def test_recovers_servo_lag_and_offset_from_broadband_excitation():
         "actuator": {
             "delay": 0.005,
             "gain": 0.99,
-            "model": "first_order",
+            "model": "servo_lag",
             "time_constant": 0.010,
             "effects": [{"kind": "offset", "offset": 3e-4}],
         },
@@ -59,7 +59,7 @@ def test_recovers_servo_lag_and_offset_from_broadband_excitation():
     y = _twin_record(true, u)
     spec = calibrate(t, u, y, servo_lag=True)
     a = spec.actuator
-    assert a.model == "first_order"
+    assert a.model == "servo_lag"
     assert a.params["time_constant"] == pytest.approx(0.010, rel=0.02)
     assert a.delay == pytest.approx(0.005, abs=1e-4)
     assert a.gain == pytest.approx(0.99, rel=2e-3)

@@ -31,9 +31,10 @@ def test_embedded_default_is_the_nees711_setup():
     s = cfg["structure"]
     assert s["mass"] == 503400.0 and s["fn"] == 0.77 and s["damping"] == 0.02
     assert s["bouc_wen"] is True
-    # seed Eq. 4.1-4.2 parameters (Section 4): x_y = 10 mm, η = 0, β = 0.55, γ = 0.45, q = 2
+    # the FEI paper's Eq. 4.1-4.2 parameters (Section 4): x_y = 10 mm, η = 0, β = 0.55, γ = 0.45,
+    # q = 2
     assert (s["x_y"], s["eta"], s["beta"], s["gamma"], s["q"]) == (0.01, 0.0, 0.55, 0.45, 2.0)
-    # k = m (2π fn)² is the seed's k_a = 11.765 kN/mm within 0.2 %
+    # k = m (2π fn)² is the FEI paper's k_a = 11.765 kN/mm within 0.2 %
     assert s["mass"] * (2 * math.pi * s["fn"]) ** 2 == pytest.approx(11.765e6, rel=2e-3)
     assert cfg["ground_motion"]["record"] == "default"
     assert cfg["ground_motion"]["pga"] == 0.322

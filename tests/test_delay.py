@@ -1,4 +1,4 @@
-"""Actuator block model of the seed's Fig. 4.1: fractional delay + gain, exactness checks."""
+"""Actuator block model of the FEI paper's Fig. 4.1: fractional delay + gain, exactness checks."""
 
 from __future__ import annotations
 

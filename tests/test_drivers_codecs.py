@@ -36,11 +36,10 @@ from drivers.modbus import ModbusDriver
 from drivers.registry import available, create_driver, driver_class
 from drivers.serial import SerialDriver
 from rths_hil.errors import InputError
-from sim_backends.delay import DelayGain
 from sim_backends.endpoints.base import TwinController
 from sim_backends.endpoints.can import CANTwin
 from sim_backends.faults import Faults
-from sim_backends.twin import SpringPlant
+from sim_backends.twin import default_plant
 
 DB = cantools.database.load_file(str(DBC_PATH))
 
@@ -204,7 +203,7 @@ def test_can_driver_reads_a_filtered_virtual_bus_through_recv() -> None:
 
 def test_can_twin_feedback_bytes_equal_cantools() -> None:
     """The twin's compiled feedback encoder against cantools, clamping and INVALID included."""
-    twin = CANTwin(TwinController(SpringPlant(DelayGain(0.0, 1.0, 1e-3))), channel="unused")
+    twin = CANTwin(TwinController(default_plant(0.0, 1.0, dt=1e-3)), channel="unused")
     msg = DB.get_message_by_name("Feedback")
     d_lo, d_hi = -(2**23), 2**23 - 1
     rng = random.Random(4)

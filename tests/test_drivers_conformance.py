@@ -24,9 +24,10 @@ import pytest
 from drivers.base import Status
 from drivers.registry import create_driver
 from rths_hil.errors import InputError
-from sim_backends.delay import DelayGain, fractional_delay
+from sim_backends.delay import fractional_delay
 from sim_backends.faults import Faults
-from sim_backends.twin import SpringPlant, start_twin
+from sim_backends.plant import TwinPlant
+from sim_backends.twin import default_plant, start_twin
 
 DT = 1.0 / 1024.0
 DELAY, GAIN, STIFFNESS = 0.0033, 0.9, 2.0e5
@@ -81,8 +82,8 @@ def transport(request: pytest.FixtureRequest) -> Transport:
     return t
 
 
-def plant() -> SpringPlant:
-    return SpringPlant(DelayGain(DELAY, GAIN, DT), stiffness=STIFFNESS)
+def plant() -> TwinPlant:
+    return default_plant(DELAY, GAIN, STIFFNESS, DT)
 
 
 class Rig:

@@ -1,4 +1,4 @@
-"""FEI engine: exactness against a brute-force DFT of seed Eq. 2.1–2.5, recovery of known
+"""FEI engine: exactness against a brute-force DFT of the FEI paper's Eq. 2.1–2.5, recovery of known
 delay/gain, sign conventions, moving windows, online = batch, streaming vs exact."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ FS = 1024.0
 
 
 def brute_fei(target, measured, fs):
-    """Seed Eq. 2.1–2.5 written out with an explicit DFT sum (no FFT, no shortcuts)."""
+    """The FEI paper's Eq. 2.1–2.5 written out with an explicit DFT sum (no FFT, no shortcuts)."""
     x = np.asarray(target, float)
     y = np.asarray(measured, float)
     n = x.size
@@ -156,7 +156,7 @@ def test_mwo_recovers_constant_delay_and_gain_on_sdof():
     res = F.moving_fei(x, y, FS, 3.0)
     v = res.valid
     assert v.mean() > 0.7
-    # The seed's Table 4.1 (linear, 1 Hz): max errors 0.6 % in A and 0.1 % in d with MWO.
+    # The FEI paper's Table 4.1 (linear, 1 Hz): max errors 0.6 % in A and 0.1 % in d with MWO.
     # Ours: the onset windows (response building up) are the worst; the bulk is far tighter.
     err_a = np.abs(res.amplitude[v] / 1.1 - 1)
     err_d = np.abs(res.delay[v] / 0.005 - 1)

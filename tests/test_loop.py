@@ -17,7 +17,7 @@ from rths_hil.structure import BoucWenParams, CRStepper
 from sim_backends.modelfile import load_plant
 
 FS = 1024.0
-DELAY = 0.020  # the twin's pure transport delay (seed Fig. 4.1 block model)
+DELAY = 0.020  # the twin's pure transport delay (the FEI paper's Fig. 4.1 block model)
 DRIVERS = ["can", "modbus", "serial"]
 LSB = {
     "can": (1e-7, 0.5),  # DBC: feedback force 0.5 N per count

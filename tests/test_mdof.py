@@ -41,13 +41,14 @@ def _nrms(x: np.ndarray, ref: np.ndarray) -> float:
 def _modal_reference(model, ag: np.ndarray, fs: float) -> np.ndarray:
     """u(t) = Σ φ_i·q_i(t), q̈_i + 2ζ_i·ω_i·q̇_i + ω_i²·q_i = −Γ_i·a_g(t) (Chopra Eq. 13.1.5).
 
-    Modes from numpy's eigen-solver on M^(-1/2)·K·M^(-1/2) (not the model's own modes()),
+    Modes from numpy's eigen-solver on L⁻¹·K·L⁻ᵀ, M = L·Lᵀ (not the model's own modes()),
     each modal SDOF solved exactly for linearly interpolated a_g by scipy.signal.lsim.
     """
     M, K, C = model.M, model.K, model.C
-    mh = np.diag(1.0 / np.sqrt(np.diag(M)))  # M is diagonal for a shear building
-    lam, psi = np.linalg.eigh(mh @ K @ mh)
-    phi = mh @ psi  # mass-normalised: φᵀ·M·φ = I
+    L = np.linalg.cholesky(M)  # M = L·Lᵀ ; K·φ = ω²·M·φ  ⇔  (L⁻¹·K·L⁻ᵀ)·ψ = ω²·ψ, φ = L⁻ᵀ·ψ
+    Li = np.linalg.inv(L)
+    lam, psi = np.linalg.eigh(Li @ K @ Li.T)
+    phi = Li.T @ psi  # mass-normalised: φᵀ·M·φ = I
     omega = np.sqrt(lam)
     zeta = np.diag(phi.T @ C @ phi) / (2 * omega)
     # classical damping: Φᵀ·C·Φ is diagonal
@@ -90,6 +91,24 @@ def test_linear_3dof_chichi_rayleigh_given():
     u = simulate_mdof(model, ag, FS)
     ref = _modal_reference(model, ag, FS)
     for dof in range(3):
+        assert _nrms(u[:, dof], ref[:, dof]) < 1e-3, dof
+
+
+def test_matrices_consistent_mass_modal_damping_matches_modal_superposition(el_centro):
+    """A 4-DOF model with a non-diagonal M, a damping ratio per mode and ι ≠ 1 (a DOF that
+    the ground motion does not load directly) against modal superposition."""
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(4, 4))
+    M = np.diag([3e4, 2e4, 2e4, 1e4]) + 2e3 * (A @ A.T) / 4
+    k = np.array([4e7, 3e7, 3e7, 2e7])
+    D = np.eye(4) - np.eye(4, k=-1)
+    K = D.T @ np.diag(k) @ D
+    model = from_matrices(M, K, modal_damping=[0.02, 0.04, 0.06, 0.08], influence=[1, 1, 1, 0])
+    assert np.max(model.frequencies) < 20.0
+    ag = el_centro[: int(30 * FS)]
+    u = simulate_mdof(model, ag, FS)
+    ref = _modal_reference(model, ag, FS)
+    for dof in range(4):
         assert _nrms(u[:, dof], ref[:, dof]) < 1e-3, dof
 
 
@@ -187,6 +206,38 @@ def test_bouc_wen_storeys_match_solve_ivp():
         assert _nrms(u[:, dof], ref[:, dof]) < 2e-3, dof
 
 
+def _amplification(st: MDOFCRStepper) -> np.ndarray:
+    """The linear map (u[n], v[n]) → (u[n+1], v[n+1]) of one step, column by column."""
+    n = st.n_dof
+    cols = []
+    for i in range(2 * n):
+        s0 = np.zeros(2 * n)
+        s0[i] = 1.0
+        st.reset(x0=s0[:n], v0=s0[n:])
+        st.step(0.0, None)
+        cols.append(np.concatenate([st.x, st.v]))
+    return np.array(cols).T
+
+
+@pytest.mark.parametrize("dt", [1 / 1024, 1 / 50, 0.5])
+def test_unconditionally_stable_no_numerical_damping(dt):
+    """Spectral radius of the CR step: exactly 1 undamped (no numerical damping), < 1 damped,
+    at steps up to ω_max·Δt ≈ 1000 (Chen & Ricles 2008: unconditionally stable if linear)."""
+    masses = [1.0e3] * 10
+    stiff = np.linspace(4e8, 1e8, 10)
+    undamped = shear_building(masses, stiff)
+    w_max = undamped.modes()[0][-1]
+    rho = np.abs(np.linalg.eigvals(_amplification(MDOFCRStepper(undamped, dt))))
+    assert np.max(np.abs(rho - 1.0)) < 1e-9, (w_max * dt, rho)
+    damped = MDOFCRStepper(shear_building(masses, stiff, zeta=0.05), dt)
+    assert np.max(np.abs(np.linalg.eigvals(_amplification(damped)))) < 1.0 - 1e-6
+    # with a stiff specimen in α as well
+    st = MDOFCRStepper(undamped, dt, transforms=np.eye(10)[:2], k_specimen=[1e9, 1e9])
+    assert np.max(np.abs(np.linalg.eigvals(_amplification(st)))) <= 1.0 + 1e-9
+    if dt == 0.5:
+        assert w_max * dt > 500
+
+
 def test_explicit_interface_and_reset(el_centro):
     model = shear_building(MASSES, STIFFNESSES, zeta=0.05)
     st = MDOFCRStepper(model, 1 / FS, ag0=el_centro[0])
@@ -202,6 +253,32 @@ def test_explicit_interface_and_reset(el_centro):
     st.reset(ag0=el_centro[0])
     np.testing.assert_array_equal(st.x_next, first)
     np.testing.assert_array_equal(st.step(el_centro[1], np.zeros(3)), targets[1])
+
+
+def test_hybrid_partition_equals_monolithic_model(el_centro):
+    """A spring specimen between floors 1 and 2, imposed through T = [-1, 1, 0] with its force
+    returned as Tᵀ·f, gives the response of the building with that spring inside K."""
+    ks = 8.0e6
+    T = np.array([[-1.0, 1.0, 0.0]])
+    model = shear_building(MASSES, STIFFNESSES, rayleigh=(0.5, 0.001))
+    mono = from_matrices(model.M, model.K + ks * T.T @ T, model.C)
+    ag = el_centro[: int(20 * FS)]
+    ref = simulate_mdof(mono, ag, FS)
+    st = MDOFCRStepper(model, 1 / FS, transforms=T, k_specimen=[ks], ag0=ag[0])
+    u = np.empty_like(ref)
+    u[0] = st.x
+    target = st.x_next
+    for i in range(1, ag.size):
+        u[i] = target
+        f = ks * (T @ target)  # the specimen's force at the imposed actuator displacement
+        target = st.step(ag[i], T.T @ f)
+    assert np.max(np.abs(u - ref)) <= 1e-9 * np.max(np.abs(ref))
+    # without the specimen in α the partitioned run differs (α is part of the scheme)
+    st2 = MDOFCRStepper(model, 1 / FS, ag0=ag[0])
+    target = st2.x_next
+    for i in range(1, 2000):
+        target = st2.step(ag[i], T.T @ (ks * (T @ target)))
+    assert np.max(np.abs(st2.x - ref[1999])) > 1e-9 * np.max(np.abs(ref))
 
 
 def test_specimen_stiffness_through_transforms():
@@ -232,6 +309,10 @@ def test_files_npz_and_csv(tmp_path, el_centro):
     u = simulate_mdof(model, ag, FS)
     for other in (m2, m3):
         np.testing.assert_allclose(simulate_mdof(other, ag, FS), u, rtol=1e-12, atol=1e-15)
+    # an influence vector as a CSV column
+    (tmp_path / "iota.csv").write_text("# influence\n1\n1\n0.5\n")
+    m5 = load_csv(tmp_path / "M.csv", tmp_path / "K.csv", influence=tmp_path / "iota.csv")
+    np.testing.assert_array_equal(m5.influence, [1.0, 1.0, 0.5])
     # damping from the file's modes
     np.savez(tmp_path / "mk.npz", m=model.M, k=model.K)
     m4 = load_npz(tmp_path / "mk.npz", modal_damping=0.04)
@@ -278,6 +359,14 @@ def test_bad_matrices_give_one_line_errors(tmp_path):
     with pytest.raises(InputError) as e:
         load_npz(tmp_path / "missing.npz")
     _one_line_error(e, "missing.npz", "no such file")
+    np.save(tmp_path / "single.npy", M)
+    with pytest.raises(InputError) as e:
+        load_npz(tmp_path / "single.npy")
+    _one_line_error(e, "single.npy", ".npz")
+    (tmp_path / "text.npz").write_text("M = [[1]]\n")
+    with pytest.raises(InputError) as e:
+        load_npz(tmp_path / "text.npz")
+    _one_line_error(e, "text.npz", "not a NumPy .npz archive")
 
     (tmp_path / "M.csv").write_text("1e4, 0\n0, 1e4\n")
     (tmp_path / "K.csv").write_text("4e7, -2e7\n-2e7, nan\n")

@@ -75,7 +75,7 @@ def test_full_file_loads_with_units_and_defaults(tmp_path):
     a = spec.actuator
     assert a.delay == pytest.approx(0.012)
     assert a.gain == 0.98
-    assert a.model == "first_order"
+    assert a.model == "servo_lag"  # the old name "first_order" reads as servo_lag
     assert a.params == {"time_constant": 0.008}
     assert [e.kind for e in a.effects] == ["backlash", "time_varying_delay", "force_feedback"]
     assert a.effects[0].params == {"width": pytest.approx(2e-4)}
@@ -117,7 +117,7 @@ def test_toml_floats_survive_exactly():
 def test_plant_equals_manual_composition(tmp_path):
     plant = load_plant(_write(tmp_path, FULL), DT)
     manual = TwinPlant(
-        make_model("first_order", DT, delay=0.012, gain=0.98, time_constant=0.008),
+        make_model("servo_lag", DT, delay=0.012, gain=0.98, time_constant=0.008),
         [
             make_effect("backlash", DT, width=2e-4),
             make_effect("time_varying_delay", DT, delay=0.01, amplitude=0.002, period=7.5),
@@ -178,9 +178,9 @@ BAD = [
         "[actuator]\nmodel = 'hexapod'\n",
         "twin.toml: actuator.model: unknown actuator model 'hexapod'",
     ),
-    ("[actuator]\nmodel = 'first_order'\n", "twin.toml: actuator.time_constant: required by model"),
+    ("[actuator]\nmodel = 'servo_lag'\n", "twin.toml: actuator.time_constant: required by model"),
     (
-        "[actuator]\nmodel = 'first_order'\ntime_constant = -1.0\n",
+        "[actuator]\nmodel = 'servo_lag'\ntime_constant = -1.0\n",
         "twin.toml: actuator.time_constant: must be > 0",
     ),
     ("[actuator]\ndelay = -0.001\n", "twin.toml: actuator.delay: must be ≥ 0 s"),

@@ -65,7 +65,7 @@ def test_first_order_sine_amplitude_and_phase():
 
 @pytest.mark.parametrize(
     "name,params",
-    [("delay_gain", {}), ("first_order", {"time_constant": 0.006}), ("benchmark", {})],
+    [("delay_gain", {}), ("servo_lag", {"time_constant": 0.006}), ("benchmark", {})],
 )
 def test_step_path_equals_simulate(name, params):
     m = make_model(name, DT, delay=0.0071, gain=1.03, **params)
@@ -131,7 +131,7 @@ def test_make_model_errors():
     with pytest.raises(InputError, match="unknown actuator model 'foo'"):
         make_model("foo", DT)
     with pytest.raises(InputError, match="time_constant: required"):
-        make_model("first_order", DT)
+        make_model("servo_lag", DT)
     with pytest.raises(InputError, match="delay: must be ≥ 0"):
         make_model("delay_gain", DT, delay=-0.001)
     with pytest.raises(InputError, match="beta9: not a parameter"):
@@ -187,7 +187,7 @@ def _plant(seed: int = 7, **sensor) -> TwinPlant:
     )
     kw.update(sensor)
     return TwinPlant(
-        make_model("first_order", DT, delay=0.004, gain=0.98, time_constant=0.006),
+        make_model("servo_lag", DT, delay=0.004, gain=0.98, time_constant=0.006),
         [make_effect("backlash", DT, width=2e-4), make_effect("offset", DT, offset=5e-4)],
         KelvinVoigt(1.0e6, 200.0, DT),
         Sensor(**kw),

@@ -1,4 +1,4 @@
-"""The seed's Section 5 (NEES project 711, Table 5.1) rebuilt on the twin, in lockstep.
+"""The FEI paper's Section 5 (NEES project 711, Table 5.1) rebuilt on the twin, in lockstep.
 
 Runs ``examples/nees711`` end to end: the three tests α = 15, 29, 45 over the whole 30 s record
 (through the serial driver, the fastest transport; the example's CAN driver gives the same
@@ -46,7 +46,7 @@ def table(tmp_path_factory):
     return mod, rows, result, out
 
 
-def test_table51_reproduces_the_seed_pattern(table):
+def test_table51_reproduces_the_paper_pattern(table):
     mod, rows, result, _ = table
     assert [r.trial.alpha for r in rows] == [15, 29, 45]
     d = [r.trial.delay for r in rows]
@@ -55,15 +55,15 @@ def test_table51_reproduces_the_seed_pattern(table):
     for r in rows:
         t = r.trial
         assert t.status == "completed" and t.steps == 30710  # the whole record (29.99 s)
-        assert abs(t.delay - r.seed_delay) <= 2e-3, (t.alpha, t.delay)
+        assert abs(t.delay - r.paper_delay) <= 2e-3, (t.alpha, t.delay)
         assert abs(t.amplitude - 1) < 0.01, (t.alpha, t.amplitude)
-        # the MWO time history (seed Fig. 5.2) stays around the same value
-        assert abs(r.mwo_delay_median() - r.seed_delay) <= 2e-3
+        # the MWO time history (the FEI paper's Fig. 5.2) stays around the same value
+        assert abs(r.mwo_delay_median() - r.paper_delay) <= 2e-3
         lo, hi = r.mwo_delay_range()
-        assert np.sign(lo) == np.sign(hi) == np.sign(r.seed_delay)
+        assert np.sign(lo) == np.sign(hi) == np.sign(r.paper_delay)
         assert r.mwo.valid.mean() > 0.8
-    # the balanced α (zero crossing) matches the seed's own interpolation
-    assert result.alpha == pytest.approx(mod.seed_zero_crossing(), abs=0.5)
+    # the balanced α (zero crossing) matches the FEI paper's own interpolation
+    assert result.alpha == pytest.approx(mod.paper_zero_crossing(), abs=0.5)
 
 
 def test_table51_delays_and_amplitudes_follow_the_compensator_physics(table):

@@ -1,4 +1,4 @@
-"""The seed's computational study: criterion, window search, accuracy table, CLI."""
+"""The FEI paper's computational study: criterion, window search, accuracy table, CLI."""
 
 from __future__ import annotations
 
@@ -89,8 +89,8 @@ def test_window_search_is_the_first_passing_multiple_of_tenths(elcentro):
 
 
 def test_seed_findings_window_size(elcentro):
-    """Seed Section 4: lower fn needs a longer window; 2–3 (here ≤ 5) periods suffice for a
-    linear structure; a nonlinear structure needs at least as long as a linear one."""
+    """The FEI paper's Section 4: lower fn needs a longer window; 2–3 (here ≤ 5) periods suffice for
+    a linear structure; a nonlinear structure needs at least as long as a linear one."""
     lin = study.window_size_study(
         [elcentro], [0.5, 2.0, 1.0], executor=study.SerialExecutor(), progress=False
     )
@@ -119,7 +119,7 @@ def test_executors_are_pluggable(chopra):
 
 
 def test_seed_findings_accuracy(chopra):
-    """Seed Table 4.1: amplitude errors below 1 %; delay errors larger for the nonlinear
+    """The FEI paper's Table 4.1: amplitude errors below 1 %; delay errors larger for the nonlinear
     structure than for the linear one at the same frequency."""
     rows = study.accuracy_study(
         chopra, (0.5, 0.7, 1.0), executor=study.SerialExecutor(), progress=False, hop=4

@@ -194,7 +194,7 @@ def _plant_lag(f, delay, time_constant=None):
     [
         ("delay_gain", 0.010, 0.95, None),
         ("delay_gain", 0.040, 1.05, None),
-        ("first_order", 0.005, 0.98, 0.020),
+        ("servo_lag", 0.005, 0.98, 0.020),
     ],
 )
 def test_tuning_through_the_loop_converges_on_twins(tmp_path, model, delay, gain, tc):

@@ -28,16 +28,17 @@ from drivers.base import Status
 from drivers.can import CANDriver
 from drivers.can.codec import DBC_PATH
 from drivers.registry import create_driver
-from sim_backends.delay import DelayGain, fractional_delay
-from sim_backends.twin import SpringPlant, start_twin
+from sim_backends.delay import fractional_delay
+from sim_backends.plant import TwinPlant
+from sim_backends.twin import default_plant, start_twin
 
 DT = 1.0 / 1024.0
 DELAY, GAIN, K = 0.0042, 1.05, 3.0e5
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def plant() -> SpringPlant:
-    return SpringPlant(DelayGain(DELAY, GAIN, DT), stiffness=K)
+def plant() -> TwinPlant:
+    return default_plant(DELAY, GAIN, K, DT)
 
 
 def commands(n: int) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Online adaptive α against offline tuning on the NEES-711 twin (docs/tuning.md).
 
-Both start from α = 15 (the seed's under-compensated test). The loop's adaptive option
+Both start from α = 15 (the FEI paper's under-compensated test). The loop's adaptive option
 (``compensation.adaptive``, :class:`rths_hil.compensation.AdaptiveAlpha`) moves α during the
 test from the streaming MWO delay estimate (window 3T = 3.9 s) with time constant T and rate
 limit 5 /s; offline tuning (``rths-hil tune``) runs 15 s trials between tests. The balanced α

@@ -1,17 +1,18 @@
-"""Seed Table 5.1 and Fig. 5.1/5.2 (NEES project 711) rebuilt on the twin: α = 15, 29, 45.
+"""The FEI paper's Table 5.1 and Fig. 5.1/5.2 (NEES project 711) rebuilt on the twin: α = 15, 29,
+45.
 
-Runs the configuration of the seed's Section 5 (``nees711.toml``: SDOF MRF with Bouc-Wen,
+Runs the configuration of the FEI paper's Section 5 (``nees711.toml``: SDOF MRF with Bouc-Wen,
 elastomeric damper as a Kelvin–Voigt specimen on a first-order servo-hydraulic twin, CR at
 1024 Hz, Northridge 1994 MUL009 scaled to 0.322 m/s²) in lockstep for the three actuator-delay
-estimates of the seed, through the library's sweep (:func:`rths_hil.tuning.sweep`), and
-evaluates each whole record (seed Eq. 2.1–2.5) and its moving windows with overlap (MWO,
-OL = N − 1, 3 natural periods = 3.9 s, seed Fig. 5.2).
+estimates of the FEI paper, through the library's sweep (:func:`rths_hil.tuning.sweep`), and
+evaluates each whole record (the FEI paper's Eq. 2.1–2.5) and its moving windows with overlap (MWO,
+OL = N − 1, 3 natural periods = 3.9 s, the FEI paper's Fig. 5.2).
 
 Usage::
 
     python examples/nees711/table51.py [--out DIR] [--docs] [--set key=value]...
 
-prints the table next to the seed's values; ``--docs`` also writes ``docs/nees711_table51.md``
+prints the table next to the FEI paper's values; ``--docs`` also writes ``docs/nees711_table51.md``
 and the figures ``docs/img/nees711_fig51.png`` (calculated, command and measured displacement)
 and ``docs/img/nees711_fig52.png`` (MWO A(t), d(t)).
 """
@@ -35,10 +36,10 @@ from rths_hil.tuning import LoopTrials, SweepResult, Trial, sweep
 HERE = Path(__file__).resolve().parent
 CONFIG = HERE / "nees711.toml"
 DOCS = HERE.parent.parent / "docs"
-#: Seed Table 5.1: equivalent delay d (s) for each α_es.
-SEED_DELAY = {15: 12.3e-3, 29: -1.1e-3, 45: -16.2e-3}
-#: Seed Section 5: "the amplitude errors for all three tests are less than 0.5 %".
-SEED_AMPLITUDE_ERROR = 0.005
+#: The FEI paper's Table 5.1: equivalent delay d (s) for each α_es.
+PAPER_DELAY = {15: 12.3e-3, 29: -1.1e-3, 45: -16.2e-3}
+#: The FEI paper's Section 5: "the amplitude errors for all three tests are less than 0.5 %".
+PAPER_AMPLITUDE_ERROR = 0.005
 ALPHAS = (15.0, 29.0, 45.0)
 
 
@@ -54,8 +55,8 @@ class Row:
     measured: np.ndarray
 
     @property
-    def seed_delay(self) -> float:
-        return SEED_DELAY.get(round(self.trial.alpha), math.nan)
+    def paper_delay(self) -> float:
+        return PAPER_DELAY.get(round(self.trial.alpha), math.nan)
 
     def mwo_delay_median(self) -> float:
         d = self.mwo.delay[self.mwo.valid]
@@ -96,9 +97,9 @@ def run_table(
 
 
 def markdown_table(rows: list[Row], result: SweepResult, note: str = "") -> str:
-    """Table 5.1 next to the seed's values (markdown)."""
+    """Table 5.1 next to the FEI paper's values (markdown)."""
     out = [
-        "| α_es | seed d (ms) | twin d (ms) | twin − seed (ms) | seed A error | twin A | "
+        "| α_es | paper d (ms) | twin d (ms) | twin − paper (ms) | paper A error | twin A | "
         "twin A error | MWO d median [5–95 %] (ms) | J1 (ms) | J2 (%) | f_eq (Hz) |",
         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
@@ -106,8 +107,8 @@ def markdown_table(rows: list[Row], result: SweepResult, note: str = "") -> str:
         t = r.trial
         lo, hi = r.mwo_delay_range()
         out.append(
-            f"| {t.alpha:g} | {1e3 * r.seed_delay:+.1f} | {1e3 * t.delay:+.2f} | "
-            f"{1e3 * (t.delay - r.seed_delay):+.2f} | < {100 * SEED_AMPLITUDE_ERROR:g} % | "
+            f"| {t.alpha:g} | {1e3 * r.paper_delay:+.1f} | {1e3 * t.delay:+.2f} | "
+            f"{1e3 * (t.delay - r.paper_delay):+.2f} | < {100 * PAPER_AMPLITUDE_ERROR:g} % | "
             f"{t.amplitude:.4f} | {100 * abs(t.amplitude - 1):.2f} % | "
             f"{1e3 * r.mwo_delay_median():+.2f} [{1e3 * lo:+.1f}, {1e3 * hi:+.1f}] | "
             f"{1e3 * t.j1:+.2f} | {t.j2:.2f} | {t.f_eq:.3f} |"
@@ -116,24 +117,24 @@ def markdown_table(rows: list[Row], result: SweepResult, note: str = "") -> str:
     if result.found:
         out.append(
             f"Zero crossing of d(α) through the three tests (linear interpolation): "
-            f"α = {result.alpha:.2f}; seed (same interpolation of its Table 5.1): α = "
-            f"{seed_zero_crossing():.2f}."
+            f"α = {result.alpha:.2f}; the FEI paper (same interpolation of its Table 5.1): α = "
+            f"{paper_zero_crossing():.2f}."
         )
     if note:
         out += ["", note]
     return "\n".join(out)
 
 
-def seed_zero_crossing() -> float:
-    """Zero crossing of the seed's d(α), linear between α = 15 and 29."""
+def paper_zero_crossing() -> float:
+    """Zero crossing of the FEI paper's d(α), linear between α = 15 and 29."""
     from rths_hil.tuning import zero_crossing
 
-    a = sorted(SEED_DELAY)
-    return float(zero_crossing(a, [SEED_DELAY[k] for k in a]))
+    a = sorted(PAPER_DELAY)
+    return float(zero_crossing(a, [PAPER_DELAY[k] for k in a]))
 
 
 def plot_fig51(rows: list[Row], path: str | Path) -> Path:
-    """Seed Fig. 5.1: calculated (target), command and measured displacement per α."""
+    """The FEI paper's Fig. 5.1: calculated (target), command and measured displacement per α."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -160,7 +161,7 @@ def plot_fig51(rows: list[Row], path: str | Path) -> Path:
         full.set_ylabel("displacement (mm)")
         full.set_title(
             f"α_es = {r.trial.alpha:g}: d = {1e3 * r.trial.delay:+.1f} ms "
-            f"(seed {1e3 * r.seed_delay:+.1f} ms), A = {r.trial.amplitude:.4f}",
+            f"(FEI paper {1e3 * r.paper_delay:+.1f} ms), A = {r.trial.amplitude:.4f}",
             fontsize=10,
         )
         zoom.set_title(f"zoom at the peak (t = {t0:.2f} s)", fontsize=10)
@@ -174,7 +175,7 @@ def plot_fig51(rows: list[Row], path: str | Path) -> Path:
 
 
 def plot_fig52(rows: list[Row], path: str | Path, window_s: float) -> Path:
-    """Seed Fig. 5.2: MWO amplitude A(t) and equivalent delay d(t) of the three tests."""
+    """The FEI paper's Fig. 5.2: MWO amplitude A(t) and equivalent delay d(t) of the three tests."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -188,12 +189,12 @@ def plot_fig52(rows: list[Row], path: str | Path, window_s: float) -> Path:
         lab = f"α_es = {r.trial.alpha:g}"
         axes[0].plot(m.t_end, a, lw=1.0, color=f"C{i}", label=lab)
         axes[1].plot(m.t_end, 1e3 * d, lw=1.0, color=f"C{i}", label=lab)
-        axes[1].axhline(1e3 * r.seed_delay, color=f"C{i}", ls=":", lw=0.9)
+        axes[1].axhline(1e3 * r.paper_delay, color=f"C{i}", ls=":", lw=0.9)
     axes[0].axhline(1.0, color="0.4", lw=0.6)
     axes[0].set_ylabel("A")
     axes[0].set_ylim(0.95, 1.05)
     axes[1].axhline(0.0, color="0.4", lw=0.6)
-    axes[1].set_ylabel("d (ms)  (dotted: seed Table 5.1)")
+    axes[1].set_ylabel("d (ms)  (dotted: the FEI paper's Table 5.1)")
     axes[1].set_xlabel("window end time (s)")
     for ax in axes:
         ax.grid(True, alpha=0.3)
@@ -226,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.docs:
         (DOCS / "img").mkdir(parents=True, exist_ok=True)
         (DOCS / "nees711_table51.md").write_text(
-            "# Seed Table 5.1 on the twin\n\n" + table + "\n", encoding="utf-8"
+            "# The FEI paper's Table 5.1 on the twin\n\n" + table + "\n", encoding="utf-8"
         )
         plot_fig51(rows, DOCS / "img" / "nees711_fig51.png")
         plot_fig52(rows, DOCS / "img" / "nees711_fig52.png", cfg.window_s)

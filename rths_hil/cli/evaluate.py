@@ -22,8 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="FEI (whole record and moving windows), J1–J3 and TI of a target/measured record",
         description=(
             "Evaluate actuator tracking of a record CSV with columns time,target,measured "
-            "(SI units): whole-record FEI (seed Eq. 2.1–2.5), J1–J3, TI, and the moving-window "
-            "FEI with overlap (seed Section 3–4)."
+            "(SI units): whole-record FEI (FEI paper, Eq. 2.1–2.5), J1–J3, TI, and the "
+            "moving-window FEI with overlap (the FEI paper's Section 3–4)."
         ),
     )
     p.add_argument("record", help="record CSV (header with time,target,measured; SI units)")

@@ -2,7 +2,7 @@
 
 ``rths-hil run [CONFIG.toml] [--lockstep] [--duration S] [--out DIR] [--set key=value]...``
 
-Without a configuration it runs the embedded default (the seed's NEES-711 setup over the CAN
+Without a configuration it runs the embedded default (the FEI paper's NEES-711 setup over the CAN
 driver on python-can's virtual bus to an in-process twin, paced at 1024 Hz for 30 s). Prints a
 live status line, then the summary; writes the run directory (record, events, metadata,
 ``summary.json``, ``report.png``). Exit codes: 0 completed, 2 bad input, 3 safety trip (e-stop

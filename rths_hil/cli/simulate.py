@@ -1,4 +1,4 @@
-"""``rths-hil simulate``: the seed's Fig. 4.1 simulation, written as a record CSV.
+"""``rths-hil simulate``: the FEI paper's Fig. 4.1 simulation, written as a record CSV.
 
 An SDOF structure (linear or Bouc-Wen, CR integration) under a ground motion gives the target
 displacement; the actuator block model (fractional transport delay + gain,
@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``simulate`` sub-command."""
     p = sub.add_parser(
         "simulate",
-        help="simulate an SDOF + delay/gain actuator under a ground motion (seed Fig. 4.1)",
+        help="simulate an SDOF + delay/gain actuator under a ground motion (FEI paper, Fig. 4.1)",
         description=__doc__.splitlines()[0],
     )
     p.add_argument(
@@ -43,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--bouc-wen",
         action="store_true",
-        help="Bouc-Wen restoring force (seed Eq. 4.1-4.2: x_y 10 mm, k_a 11.765 kN/mm, "
+        help="Bouc-Wen restoring force (the FEI paper's Eq. 4.1-4.2: x_y 10 mm, k_a 11.765 kN/mm, "
         "eta 0, beta 0.55, gamma 0.45, q 2)",
     )
     p.add_argument("--gain", default="1.0", help="actuator gain k_p (default 1)")

@@ -1,9 +1,11 @@
-"""``rths-hil study``: the seed's computational study (Section 4).
+"""``rths-hil study``: the FEI paper's computational study (Section 4).
 
 * ``study window-size``: smallest moving window meeting a delay-error criterion for each record
-  and natural frequency (seed Fig. 4.2); writes ``window_size.csv`` and ``window_size.png``.
+  and natural frequency (the FEI paper's Fig. 4.2); writes ``window_size.csv`` and
+  ``window_size.png``.
 * ``study accuracy``: maximum amplitude and delay errors of the moving-window FEI for linear and
-  Bouc-Wen structures (seed Table 4.1, Fig. 4.6); writes ``accuracy.csv`` and ``accuracy.png``.
+  Bouc-Wen structures (the FEI paper's Table 4.1, Fig. 4.6); writes ``accuracy.csv`` and
+  ``accuracy.png``.
 
 Both run their cases on a process pool (``--workers``, default 2) with a progress bar on stderr.
 The procedure and the criterion are described in ``docs/simulation.md``.
@@ -22,7 +24,7 @@ from ..units import parse_accel, parse_fraction, parse_range, parse_time
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``study window-size`` and ``study accuracy``."""
-    parser = sub.add_parser("study", help="the seed's window-size and accuracy studies (Section 4)")
+    parser = sub.add_parser("study", help="the FEI paper's window-size and accuracy studies")
     st = parser.add_subparsers(dest="study_command", metavar="STUDY")
 
     def common(p: argparse.ArgumentParser, gain: str, delay: str) -> None:
@@ -43,8 +45,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     ws = st.add_parser(
         "window-size",
-        help="window size needed per natural frequency (seed Fig. 4.2)",
-        description="Seed Fig. 4.2: t_w from 1·Tn upwards by 0.1·Tn until the criterion holds.",
+        help="window size needed per natural frequency (the FEI paper's Fig. 4.2)",
+        description=(
+            "FEI paper, Fig. 4.2: t_w from 1·Tn upwards by 0.1·Tn until the criterion holds."
+        ),
     )
     ws.add_argument(
         "--record",
@@ -59,15 +63,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="p95",
         help="statistic of the window errors: max or pNN percentile (default p95)",
     )
-    ws.add_argument("--bouc-wen", action="store_true", help="Bouc-Wen structure (seed Eq. 4.1-4.2)")
+    ws.add_argument("--bouc-wen", action="store_true", help="Bouc-Wen structure (Eq. 4.1-4.2)")
     ws.add_argument("--max-periods", default="10", help="largest window tried, in Tn (default 10)")
     common(ws, "1", "1ms")
     ws.set_defaults(func=run_window_size)
 
     acc = st.add_parser(
         "accuracy",
-        help="max FEI errors, linear and Bouc-Wen (seed Table 4.1, Fig. 4.6)",
-        description="Seed Table 4.1 / Fig. 4.6 for linear and Bouc-Wen SDOF structures.",
+        help="max FEI errors, linear and Bouc-Wen (the FEI paper's Table 4.1, Fig. 4.6)",
+        description="The FEI paper's Table 4.1 / Fig. 4.6 for linear and Bouc-Wen SDOF structures.",
     )
     acc.add_argument(
         "--record", default=None, help="ground motion file or bundled name (default El Centro)"

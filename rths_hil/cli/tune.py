@@ -6,8 +6,8 @@
 
 Runs short trial tests of the configured RTHS (lockstep against the configured twin; paced
 against real hardware, only after the operator's explicit confirmation and at a reduced
-amplitude), evaluates the FEI of each (seed Eq. 2.1–2.5) and updates ``α ← α + d/Δt`` and the
-amplitude factor ``a ← a/A`` until ``|d|`` and ``|A − 1|`` are within tolerance, or says why it
+amplitude), evaluates the FEI of each (the FEI paper's Eq. 2.1–2.5) and updates ``α ← α + d/Δt`` and
+the amplitude factor ``a ← a/A`` until ``|d|`` and ``|A − 1|`` are within tolerance, or says why it
 stopped (see :mod:`rths_hil.tuning`). ``--sweep START:STOP:STEP`` (stop exclusive) runs the α
 grid instead and recommends the zero crossing of d(α).
 

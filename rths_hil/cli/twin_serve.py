@@ -30,12 +30,14 @@ DEFAULT_DT = 1.0 / 1024.0
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``serve`` to the ``twin`` sub-command group."""
+    from sim_backends.registry import TWINS
+
     p = sub.add_parser(
         "serve",
         help="run a virtual actuator twin behind a CAN, Modbus or serial endpoint",
         description=__doc__.splitlines()[0] if __doc__ else None,
     )
-    p.add_argument("--driver", required=True, choices=("can", "modbus", "serial"))
+    p.add_argument("--driver", required=True, choices=sorted(TWINS))
     p.add_argument("--model", help="twin model file (TOML); default: 20 ms delay, gain 1, spring")
     p.add_argument("--dt", default=None, help="twin step, e.g. 1ms (default 1/1024 s)")
     p.add_argument("--transport", help="modbus: tcp (default) or rtu; serial: pty (default) or tcp")
@@ -64,6 +66,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _connection(args: argparse.Namespace) -> dict[str, Any]:
+    """The endpoint settings the options give (transports from the twin registry)."""
+    from sim_backends.registry import TWINS
+
     if args.driver == "can":
         if args.interface == "virtual":
             raise InputError(
@@ -75,22 +80,24 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
         if args.bitrate is not None:
             conn["bitrate"] = args.bitrate
         return conn
-    transport = args.transport or ("tcp" if args.driver == "modbus" else "pty")
-    allowed = ("tcp", "rtu") if args.driver == "modbus" else ("pty", "tcp")
-    if transport not in allowed:
-        raise InputError(
-            f"--transport {transport}: use {' or '.join(allowed)} with --driver {args.driver}"
-        )
-    conn = {"transport": transport}
-    if transport == "tcp":
-        conn |= {
-            "host": args.host,
-            "port": 0 if args.port is None else args.port,
-            "allow_remote": args.allow_remote,
-        }
+    conn = {}
+    allowed = TWINS[args.driver].transports
+    if allowed:
+        transport = args.transport or allowed[0]
+        if transport not in allowed:
+            raise InputError(
+                f"--transport {transport}: use {' or '.join(allowed)} with --driver {args.driver}"
+            )
+        conn["transport"] = transport
+        if transport == "tcp":
+            conn |= {
+                "host": args.host,
+                "port": 0 if args.port is None else args.port,
+                "allow_remote": args.allow_remote,
+            }
     if args.driver == "modbus":
         conn["device_id"] = args.device_id
-        if transport == "rtu" and args.device:
+        if conn.get("transport") == "rtu" and args.device:
             conn["device"] = args.device
     return conn
 
@@ -104,9 +111,9 @@ def run(args: argparse.Namespace) -> int:
     if not dt > 0:
         raise InputError(f"--dt {args.dt}: the step must be > 0")
     if args.model:
-        from sim_backends.modelfile import load_plant
+        from sim_backends.registry import build_plant
 
-        plant = load_plant(args.model, dt)
+        plant = build_plant(args.model, dt)
     else:
         plant = default_plant(dt=dt)
     faults = Faults.parse(args.faults) if args.faults else None

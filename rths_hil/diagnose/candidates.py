@@ -2,29 +2,32 @@
 
 Every candidate is the current model with one change, fitted to the record by least squares
 (the sum of squared residuals ``RSS = Σ (measured − predicted)²``). A new catalogue effect is
-inserted at its place in the physical chain :data:`EFFECT_ORDER` (actuator dynamics, valve
-flow limit, stops, play of the load train, then the transducer's zero and drift);
-``delay`` and ``gain`` re-fit the actuator's own parameters.
+inserted at its place in the physical chain (each effect class's ``CHAIN``,
+:data:`sim_backends.effects.EFFECT_ORDER`: actuator dynamics, valve flow limit, stops, play of
+the load train, then the transducer's zero and drift); ``delay`` and ``gain`` re-fit the
+actuator's own parameters.
 
-Fitting (bounded, :mod:`scipy.optimize`; the search spans well beyond
-:data:`sim_backends.effects.EFFECT_RANGES`, which a real actuator may exceed):
+What to fit and over which range is on each effect's class (:class:`sim_backends.effects.Effect`:
+``FIT``, ``fit_bounds``, ``fit_fixed``, ``low_frequency``, ``PARAMS``); this module holds the
+fitting methods (bounded, :mod:`scipy.optimize`; the search spans well beyond the realistic
+ranges, which a real actuator may exceed):
 
 ====================== =========================================================================
-``offset``, ``drift``  linear in the parameter: the least-squares solution (closed form).
-``delay``              cross-correlation start (:func:`rths_hil.metrics.j1_delay`), then bounded
+``linear``             ``offset``, ``drift``: ``y = x + v·regressor(t)``, the least-squares
+                       solution (closed form).
+``scalar``             one parameter, not smooth (clamps) in general (``backlash``,
+                       ``velocity_limit``, ``servo_lag``, ``force_feedback``): a log-spaced
+                       grid, then bounded Brent between the grid neighbours of the best point.
+``stops``              ``stroke_limit``: the two stops act on disjoint samples, so the RSS
+                       separates into one term per stop: a grid + Brent per side; a stop the data
+                       never reach is not counted as a parameter.
+``modulated_delay``    ``time_varying_delay``, ``τ(t) = D + a·sin(2πt/P)``: for each period of a
+                       log grid the residual of the best constant delay is regressed
+                       (linearised, ``r ≈ −δτ(t)·ẏ``) on ``ẏ`` and ``sin(2πt/P)·ẏ``; the best
+                       period starts :func:`scipy.optimize.least_squares` on the exact model.
+``delay`` (re-fit)     cross-correlation start (:func:`rths_hil.metrics.j1_delay`), then bounded
                        Brent (:func:`scipy.optimize.minimize_scalar`) within ±3 ms.
-``gain``               closed form without effects, else bounded Brent within ±20 %.
-``backlash``,          one parameter, not smooth (clamps): a log-spaced grid, then bounded Brent
-``velocity_limit``,    between the grid neighbours of the best point.
-``servo_lag``,
-``force_feedback``
-``stroke_limit``       the two stops act on disjoint samples, so the RSS separates into one term
-                       per stop: a grid + Brent per side; a stop the data never reach is not
-                       counted as a parameter.
-``time_varying_delay`` ``τ(t) = D + a·sin(2πt/P)``: for each period of a log grid the residual of
-                       the best constant delay is regressed (linearised, ``r ≈ −δτ(t)·ẏ``) on
-                       ``ẏ`` and ``sin(2πt/P)·ẏ``; the best period starts
-                       :func:`scipy.optimize.least_squares` on the exact model.
+``gain`` (re-fit)      closed form without effects, else bounded Brent within ±20 %.
 ====================== =========================================================================
 
 :func:`polish` re-fits jointly the parameters of several effects (and the actuator's delay and
@@ -32,8 +35,9 @@ gain) with :func:`scipy.optimize.least_squares` on the exact model.
 
 When the base model was fitted to the record (no model file), its delay and gain are nuisance
 parameters: every candidate's RSS is then taken after their linearised least-squares correction
-(``Data.project``), and the candidates that add a low-frequency delay or gain (``servo_lag``,
-``force_feedback``) give it back to the actuator while they are fitted.
+(``Data.project``), and the candidates that add a low-frequency delay or gain (an effect's
+``low_frequency``: ``servo_lag``, ``force_feedback``) give it back to the actuator while they are
+fitted.
 
 ``force_feedback`` needs the specimen's stiffness and damping: they are regressed from the
 record's force column (``F = k_s·y + c_s·ẏ + F0`` on the measured displacement and force
@@ -53,7 +57,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, signal
 
-from sim_backends.effects import EFFECTS
+from sim_backends.effects import EFFECT_ORDER, EFFECTS, Effect
 from sim_backends.modelfile import EffectSpec, ModelSpec
 from sim_backends.models import make_model
 
@@ -71,6 +75,7 @@ __all__ = [
     "Data",
     "Fit",
     "Model",
+    "delta_bic",
     "fit_candidate",
     "polish",
     "simulate_model",
@@ -79,37 +84,8 @@ __all__ = [
 #: Re-fits of the actuator's own parameters, tried before the catalogue effects.
 REFITS: tuple[str, ...] = ("delay", "gain")
 #: Every candidate, in the order of preference when two explain the record equally well
-#: (a re-fit of an existing parameter first, then the simpler effects).
-CANDIDATES: tuple[str, ...] = (
-    *REFITS,
-    "offset",
-    "drift",
-    "servo_lag",
-    "force_feedback",
-    "backlash",
-    "velocity_limit",
-    "stroke_limit",
-    "time_varying_delay",
-)
-assert set(CANDIDATES) - set(REFITS) == set(EFFECTS)
-#: Physical order of the effects in a chain, from the actuator to the transducer: the delay and
-#: the dynamics of the actuator, the valve's flow limit, the piston's stops, the play of the load
-#: train, then the transducer's zero and drift. A new effect is inserted at its place.
-EFFECT_ORDER: dict[str, int] = {
-    k: i
-    for i, k in enumerate(
-        (
-            "time_varying_delay",
-            "servo_lag",
-            "force_feedback",
-            "velocity_limit",
-            "stroke_limit",
-            "backlash",
-            "offset",
-            "drift",
-        )
-    )
-}
+#: (a re-fit of an existing parameter first, then the effects by their ``PREFERENCE``).
+CANDIDATES: tuple[str, ...] = (*REFITS, *sorted(EFFECTS, key=lambda k: EFFECTS[k].PREFERENCE))
 
 _MIN_SPECIMEN_STIFFNESS = 1.0  # N/m: below this the force column does not describe a specimen
 
@@ -123,6 +99,9 @@ class Data:
     fs: float
     force: np.ndarray | None = None
     project: bool = False
+    #: Specimen ``(k_s, c_s, source)`` for the effects that need it
+    #: (:func:`specimen_from_record`); ``None`` when unknown.
+    specimen: tuple[float, float, str] | None = None
 
     def __post_init__(self) -> None:
         self.n = len(self.command)
@@ -158,6 +137,25 @@ class Model:
         a = spec.actuator
         self.act = a.gain * fractional_delay(self.head, a.delay, data.fs)
         self.pred = _effects(a.effects, self.act, data.dt)
+        self._best_delay: tuple[float, np.ndarray] | None = None
+
+    def best_delay(self) -> tuple[float, np.ndarray]:
+        """The actuator delay that best fits the record with everything else fixed, and its
+        prediction: a cross-correlation start (:func:`rths_hil.metrics.j1_delay`), then
+        bounded Brent within ±3 ms (computed once per model)."""
+        if self._best_delay is None:
+            d = self.data
+            a = self.spec.actuator
+
+            def pred_of(tau: float) -> np.ndarray:
+                return _effects(a.effects, a.gain * fractional_delay(self.head, tau, d.fs), d.dt)
+
+            shift = j1_delay(self.pred, d.measured, d.fs, max_lag_s=0.2)
+            centre = max(a.delay + shift, 0.0)
+            lo, hi = max(centre - 3e-3, 0.0), centre + 3e-3
+            tau, _ = _scalar_fit(lambda v: _rss(d, pred_of(v)), lo, hi, n_grid=7, log_scale=False)
+            self._best_delay = (tau, pred_of(tau))
+        return self._best_delay
 
     @property
     def kinds(self) -> list[str]:
@@ -311,9 +309,11 @@ def specimen_from_record(data: Data, spec: ModelSpec) -> tuple[float, float, str
 # -- candidates -------------------------------------------------------------------------------
 
 
-def _fit_additive(m: Model, d: Data, kind: str, name: str, shape: np.ndarray) -> Fit:
-    """``offset`` (shape 1) or ``drift`` (shape t): linear, closed form at the end of the chain
+def _fit_linear(m: Model, d: Data, cls: type[Effect]) -> Fit:
+    """``y = x + v·regressor(t)`` (``offset``, ``drift``): closed form at the end of the chain
     (bounded Brent when effects follow it or the delay and gain are projected out)."""
+    kind, name = cls.kind, cls.FIT.param
+    shape = cls.regressor(d.t)
     i, x, suffix = m.slot(kind)
 
     def pred_of(v: float) -> np.ndarray:
@@ -332,31 +332,12 @@ def _fit_additive(m: Model, d: Data, kind: str, name: str, shape: np.ndarray) ->
     return Fit(kind, {name: v}, 1, _rss(d, pred), pred, spec)
 
 
-def _fit_offset(m: Model, d: Data, ctx: dict) -> Fit:
-    return _fit_additive(m, d, "offset", "offset", np.ones(d.n))
-
-
-def _fit_drift(m: Model, d: Data, ctx: dict) -> Fit:
-    return _fit_additive(m, d, "drift", "rate", d.t)
-
-
-def _fit_delay(m: Model, d: Data, ctx: dict) -> Fit:
-    a = m.spec.actuator
-    effects = a.effects
-
-    def pred_of(tau: float) -> np.ndarray:
-        return _effects(effects, a.gain * fractional_delay(m.head, tau, d.fs), d.dt)
-
-    shift = j1_delay(m.pred, d.measured, d.fs, max_lag_s=0.2)
-    centre = max(a.delay + shift, 0.0)
-    lo, hi = max(centre - 3e-3, 0.0), centre + 3e-3
-    tau, _ = _scalar_fit(lambda v: _rss(d, pred_of(v)), lo, hi, n_grid=7, log_scale=False)
-    pred = pred_of(tau)
-    ctx["delay"] = tau
+def _fit_delay(m: Model, d: Data) -> Fit:
+    tau, pred = m.best_delay()
     return Fit("delay", {"delay": tau}, 1, _rss(d, pred), pred, m.with_changes(delay=tau))
 
 
-def _fit_gain(m: Model, d: Data, ctx: dict) -> Fit:
+def _fit_gain(m: Model, d: Data) -> Fit:
     a = m.spec.actuator
     base = m.act / a.gain if a.gain != 0 else fractional_delay(m.head, a.delay, d.fs)
     # linearised start: the gain that best scales the current prediction's motion
@@ -377,31 +358,27 @@ def _fit_gain(m: Model, d: Data, ctx: dict) -> Fit:
     return Fit("gain", {"gain": g}, 1, _rss(d, pred), pred, m.with_changes(gain=g))
 
 
-def _fit_one_param_effect(
-    m: Model,
-    d: Data,
-    kind: str,
-    name: str,
-    lo: float,
-    hi: float,
-    fixed: dict | None = None,
-    neutral: Callable[[float], tuple[float, float]] | None = None,
-) -> Fit:
-    """Fit the one free parameter ``name`` of a new ``kind`` effect (grid + bounded Brent).
+def _fit_scalar(m: Model, d: Data, cls: type[Effect]) -> Fit:
+    """Fit the one free parameter ``cls.FIT.param`` of a new effect (grid + bounded Brent)
+    within ``cls.fit_bounds``, the parameters of ``cls.fit_fixed`` held.
 
-    ``neutral(v) -> (delay, gain factor)`` is the low-frequency delay and gain the effect adds;
-    when the actuator's delay and gain are nuisance parameters (``d.project``), the actuator
-    gives them back (its delay shortened, its gain divided), so that the candidate is compared
-    at the delay and gain that suit it rather than at those the base absorbed.
+    ``cls.low_frequency(params) -> (delay, gain factor)`` is the low-frequency delay and gain
+    the effect adds; when the actuator's delay and gain are nuisance parameters
+    (``d.project``), the actuator gives them back (its delay shortened, its gain divided), so
+    that the candidate is compared at the delay and gain that suit it rather than at those the
+    base absorbed.
     """
-    fixed = fixed or {}
+    kind, name = cls.kind, cls.FIT.param
+    specimen = d.specimen[:2] if d.specimen is not None else None
+    fixed = cls.fit_fixed(specimen)
     i, x, suffix = m.slot(kind)
+    lo, hi = cls.fit_bounds(x, d.fs, specimen)
     a = m.spec.actuator
-    compensate = neutral is not None and d.project
+    compensate = d.project and cls.low_frequency({name: 1.0, **fixed}) is not None
     prefix = a.effects[:i]
 
     def actuator_for(v: float) -> tuple[float, float]:
-        shift, factor = neutral(v)  # type: ignore[misc]
+        shift, factor = cls.low_frequency({name: v, **fixed})  # type: ignore[misc]
         return max(a.delay - shift, 0.0), a.gain / factor
 
     def pred_of(v: float) -> np.ndarray:
@@ -419,50 +396,15 @@ def _fit_one_param_effect(
         spec = m.with_changes(delay=tau, gain=g, effect=EffectSpec(kind, params), index=i)
     else:
         spec = m.with_changes(effect=EffectSpec(kind, params), index=i)
-    return Fit(kind, params, 1, _rss(d, pred), pred, spec)
+    note = cls.fit_note(params, x, d.fs)
+    if cls.FIT.needs_specimen and d.specimen is not None:
+        k_s, c_s, source = d.specimen
+        note = f"specimen k = {k_s:.4g} N/m, c = {c_s:.4g} N·s/m from the {source}"
+    return Fit(kind, params, 1, _rss(d, pred), pred, spec, note=note)
 
 
-def _fit_backlash(m: Model, d: Data, ctx: dict) -> Fit:
-    return _fit_one_param_effect(m, d, "backlash", "width", 1e-6, 5e-3)
-
-
-def _fit_velocity_limit(m: Model, d: Data, ctx: dict) -> Fit:
-    _, x, _ = m.slot("velocity_limit")
-    vmax = float(np.max(np.abs(np.diff(x)))) * d.fs
-    fit = _fit_one_param_effect(m, d, "velocity_limit", "limit", vmax / 50.0, vmax * 1.01)
-    if fit.params["limit"] >= vmax:
-        fit.note = "limit above the model's peak speed: inactive"
-    return fit
-
-
-def _fit_servo_lag(m: Model, d: Data, ctx: dict) -> Fit:
-    return _fit_one_param_effect(
-        m, d, "servo_lag", "time_constant", 1e-4, 0.1, neutral=lambda v: (v, 1.0)
-    )
-
-
-def _fit_force_feedback(m: Model, d: Data, ctx: dict) -> Fit | Candidate:
-    spec = ctx.get("specimen")
-    if spec is None:
-        return Candidate(
-            "force_feedback", "needs a force column or a [specimen] in the model (specimen k, c)"
-        )
-    k_s, c_s, source = spec
-    fit = _fit_one_param_effect(
-        m,
-        d,
-        "force_feedback",
-        "actuator_stiffness",
-        max(k_s, 1e3) * 1.0,
-        max(k_s, 1e3) * 1e5,
-        fixed={"specimen_stiffness": k_s, "specimen_damping": c_s},
-        neutral=lambda k_h: (c_s / (k_h + k_s), k_h / (k_h + k_s)),
-    )
-    fit.note = f"specimen k = {k_s:.4g} N/m, c = {c_s:.4g} N·s/m from the {source}"
-    return fit
-
-
-def _fit_stroke_limit(m: Model, d: Data, ctx: dict) -> Fit:
+def _fit_stops(m: Model, d: Data, cls: type[Effect]) -> Fit:
+    """``stroke_limit``: one grid + Brent per stop."""
     i, p, suffix = m.slot("stroke_limit")
     pmax, pmin = float(np.max(p)), float(np.min(p))
     span = pmax - pmin
@@ -517,12 +459,16 @@ def _fit_stroke_limit(m: Model, d: Data, ctx: dict) -> Fit:
 _TVD_PERIODS = np.geomspace(1.0, 200.0, 64)
 
 
-def _fit_time_varying_delay(m: Model, d: Data, ctx: dict) -> Fit:
+def _fit_modulated_delay(m: Model, d: Data, cls: type[Effect]) -> Fit:
+    """``time_varying_delay``: linearised search over the period, then exact least squares."""
     a = m.spec.actuator
     base = a.gain * m.head  # the actuator output without its transport delay
     t = d.t
-    tau = ctx.get("delay", a.delay)  # best constant delay (from the delay candidate)
-    q = _effects(a.effects, a.gain * fractional_delay(m.head, tau, d.fs), d.dt)
+    if d.project:  # the delay is a nuisance parameter, re-fitted with every candidate
+        tau = a.delay
+        q = _effects(a.effects, a.gain * fractional_delay(m.head, tau, d.fs), d.dt)
+    else:  # the best constant delay
+        tau, q = m.best_delay()
     qd = np.gradient(q, d.dt)
     r = d.measured - q
     w = qd * qd
@@ -581,43 +527,38 @@ def _fit_time_varying_delay(m: Model, d: Data, ctx: dict) -> Fit:
     )
 
 
-_FITTERS: dict[str, Callable[[Model, Data, dict], Fit | Candidate]] = {
-    "delay": _fit_delay,
-    "gain": _fit_gain,
-    "offset": _fit_offset,
-    "drift": _fit_drift,
-    "servo_lag": _fit_servo_lag,
-    "force_feedback": _fit_force_feedback,
-    "backlash": _fit_backlash,
-    "velocity_limit": _fit_velocity_limit,
-    "stroke_limit": _fit_stroke_limit,
-    "time_varying_delay": _fit_time_varying_delay,
+#: The fitting methods an effect's ``FIT.method`` names.
+_METHODS: dict[str, Callable[[Model, Data, type[Effect]], Fit]] = {
+    "linear": _fit_linear,
+    "scalar": _fit_scalar,
+    "stops": _fit_stops,
+    "modulated_delay": _fit_modulated_delay,
 }
 
 
-def fit_candidate(name: str, model: Model, data: Data, ctx: dict) -> Fit | Candidate:
-    """Fit candidate ``name`` on top of ``model``; ``ctx`` carries shared intermediate results
-    (the specimen for ``force_feedback``, the best constant delay for ``time_varying_delay``)."""
+def fit_candidate(name: str, model: Model, data: Data) -> Fit | Candidate:
+    """Fit candidate ``name`` (a re-fit or a catalogue effect) on top of ``model``."""
     if name not in REFITS and name in model.kinds:
         return Candidate(name, "already in the model")
     if name in REFITS and data.project:
         return Candidate(name, "re-fitted with every candidate (base fitted to the record)")
-    return _FITTERS[name](model, data, ctx)
+    if name == "delay":
+        return _fit_delay(model, data)
+    if name == "gain":
+        return _fit_gain(model, data)
+    cls = EFFECTS[name]
+    if cls.FIT.needs_specimen and data.specimen is None:
+        return Candidate(name, "needs a force column or a [specimen] in the model (specimen k, c)")
+    return _METHODS[cls.FIT.method](model, data, cls)
 
 
-#: Parameters re-fitted jointly by :func:`polish`, per effect kind (the others stay fixed: the
-#: force-feedback specimen comes from the force column).
-_POLISH_PARAMS: dict[str, tuple[str, ...]] = {
-    "offset": ("offset",),
-    "drift": ("rate",),
-    "backlash": ("width",),
-    "velocity_limit": ("limit",),
-    "stroke_limit": ("limit", "center"),
-    "servo_lag": ("time_constant",),
-    "time_varying_delay": ("delay", "amplitude", "period"),
-    "force_feedback": ("actuator_stiffness",),
-}
-_LOG_PARAMS = {"width", "limit", "time_constant", "period", "actuator_stiffness"}
+def delta_bic(n: int, rss_before: float, rss_after: float, k: int) -> float:
+    """BIC improvement of a model with ``k`` more parameters (Schwarz 1978, Gaussian residuals
+    with unknown variance): ``N·ln(RSS_before/RSS_after) − k·ln N``; infinite when the new model
+    fits exactly."""
+    if rss_after <= 0:
+        return math.inf
+    return n * math.log(rss_before / rss_after) - k * math.log(n)
 
 
 def polish(
@@ -649,25 +590,26 @@ def polish(
         slots.append(("actuator", None, "delay", a.delay, False))
     if actuator:
         slots.append(("actuator", None, "gain", a.gain, False))
+    steps: dict[tuple[int, str], float | None] = {}
     for i in effects:
         e = a.effects[i]
-        for name in _POLISH_PARAMS[e.kind]:
-            v = float(e.params[name])
-            slots.append(("effect", i, name, v, name in _LOG_PARAMS and v > 0))
+        for prm in EFFECTS[e.kind].PARAMS:
+            if not prm.polish:
+                continue
+            v = float(e.params[prm.name])
+            slots.append(("effect", i, prm.name, v, prm.log_scale and v > 0))
+            steps[i, prm.name] = prm.step
     pred_in = Model(spec, exact).pred
     rss_in = _rss(exact, pred_in)
     if not slots or rss_in == 0:
         return spec, pred_in, rss_in
     scales = []
-    for _, _, name, v, lg in slots:
+    for where, i, name, v, lg in slots:
+        step = steps.get((i, name)) if where == "effect" else {"delay": 1e-3, "gain": 1e-2}[name]
         if lg:
             scales.append(1.0)
-        elif name == "delay":
-            scales.append(1e-3)
-        elif name == "gain":
-            scales.append(1e-2)
-        elif name == "center":
-            scales.append(1e-3)
+        elif step is not None:
+            scales.append(step)
         else:
             scales.append(max(abs(v), 1e-9))
     lower = np.array([-math.log(10.0) if sl[4] else -10.0 for sl in slots])
@@ -684,12 +626,7 @@ def polish(
             else:
                 a.effects[i].params[name] = v  # type: ignore[index]
         for e in a.effects:  # keep the effects valid (continuously: clamp, don't reject)
-            p = e.params
-            if e.kind == "time_varying_delay":
-                p["amplitude"] = min(max(p["amplitude"], 0.0), max(p["delay"], 0.0))
-                p["delay"] = max(p["delay"], 0.0)
-            elif e.kind == "backlash":
-                p["width"] = max(p["width"], 0.0)
+            EFFECTS[e.kind].clamp(e.params)
         return work
 
     norm = math.sqrt(rss_in)

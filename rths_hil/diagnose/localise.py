@@ -10,8 +10,8 @@ deviation (×1.4826) ignores the sparse kinks of clamps and limits.
 **When.** The mean square of ``r`` over moving windows (length ``window_s``, hop a quarter of
 it) is compared with its noise band: for white noise of variance σ², ``M·ms/σ² ~ χ²_M``, so a
 window leaves the band when ``ms > σ²(1 + z·√(2/M))`` (z = 5). The moving-window FEI of measured
-against predicted (seed Eq. 2.1-2.5 on moving windows with overlap, Section 3) gives A(t) and
-d(t); their noise band is the linearised FEI error of white noise, ``std ∝ σ/level`` per window
+against predicted (the FEI paper's Eq. 2.1-2.5 on moving windows with overlap, Section 3) gives A(t)
+and d(t); their noise band is the linearised FEI error of white noise, ``std ∝ σ/level`` per window
 (``level`` = the window's target RMS, see :mod:`rths_hil.fei`), with the constant measured on
 one surrogate run of ``predicted + σ·white noise``; a window leaves it at 4 standard deviations.
 
@@ -240,7 +240,7 @@ def localise(
         Measured force (N), for the force regime.
     window_s : float, optional
         Moving-window length (s); default three periods of the command's equivalent frequency
-        (seed Eq. 2.4; the seed's 2-3 T_n), within [1 s, duration/4].
+        (the FEI paper's Eq. 2.4; the FEI paper's 2-3 T_n), within [1 s, duration/4].
     noise : float, optional
         Noise standard deviation (m); estimated from the residual when omitted.
 

@@ -1,12 +1,13 @@
 """Records with hidden effects, for testing the diagnosis workflow and measuring its confusion.
 
-A case is an RTHS-like record: the command is the displacement response of a linear SDOF
-structure (seed Section 4: 2-5 % damping, CR integration, :func:`rths_hil.structure.simulate_sdof`)
-to the strong-motion part of a bundled ground motion; the measured displacement and force come
-from a twin (:class:`sim_backends.plant.TwinPlant`) whose actuator is the seed's delay + gain
-block (Fig. 4.1) followed by one or more *hidden* catalogue effects of random size drawn from
-:data:`sim_backends.effects.EFFECT_RANGES`, a Kelvin-Voigt specimen and sensor noise. The
-diagnosis receives only the record and the *base* model (the twin without the hidden effects).
+A case is an RTHS-like record: the command is the displacement response of a linear SDOF structure
+(the FEI paper's Section 4: 2-5 % damping, CR integration,
+:func:`rths_hil.structure.simulate_sdof`) to the strong-motion part of a bundled ground motion; the
+measured displacement and force come from a twin (:class:`sim_backends.plant.TwinPlant`) whose
+actuator is the FEI paper's delay + gain block (Fig. 4.1) followed by one or more *hidden*
+catalogue effects of random size drawn from :data:`sim_backends.effects.EFFECT_RANGES`, a
+Kelvin-Voigt specimen and sensor noise. The diagnosis receives only the record and the *base* model
+(the twin without the hidden effects).
 
 Two effects are only visible when the drive reaches them, so the drive is scaled to reach them
 (an unreached limit leaves no trace in the record and the right answer is then ``none``):
@@ -31,11 +32,9 @@ import numpy as np
 from rths_hil.errors import InputError
 from rths_hil.groundmotion import bundled_path, load
 from rths_hil.structure import simulate_sdof
-from sim_backends.effects import EFFECT_RANGES, EFFECTS, draw_effect_params
+from sim_backends.effects import EFFECT_ORDER, EFFECT_RANGES, EFFECTS, draw_effect_params
 from sim_backends.modelfile import ActuatorSpec, EffectSpec, ModelSpec, SpecimenSpec
 from sim_backends.plant import Sensor
-
-from .candidates import EFFECT_ORDER
 
 __all__ = ["GROUND_MOTIONS", "SyntheticCase", "make_case"]
 
@@ -127,7 +126,7 @@ def make_case(
     ----------
     effects : sequence of str
         Hidden effect kinds, possibly empty (a record with no hidden effect); the twin applies
-        them in the physical order :data:`rths_hil.diagnose.candidates.EFFECT_ORDER`.
+        them in the physical order :data:`sim_backends.effects.EFFECT_ORDER`.
     rng : Generator or int
         Random generator (or seed) for every draw.
     duration : float

@@ -23,7 +23,7 @@ Loop (``rths-hil diagnose``, :func:`diagnose`):
    better candidate, dropped when no longer significant);
 6. the gap before and after each step: J2 (NRMS, %) and J3 (peak, %) of the prediction against
    the measurement (:mod:`rths_hil.metrics`, normalised by the measurement), and the FEI
-   A and d of measured against predicted (seed Eq. 2.1-2.5).
+   A and d of measured against predicted (the FEI paper's Eq. 2.1-2.5).
 
 The BIC assumes independent residuals: white sensor noise once the model is right. A residual
 that stays coloured (model error the catalogue cannot express) makes the criterion liberal;
@@ -54,6 +54,7 @@ from .candidates import (
     Fit,
     Model,
     _rss,
+    delta_bic,
     fit_candidate,
     polish,
     specimen_from_record,
@@ -79,7 +80,8 @@ DEFAULT_THRESHOLD = 10.0
 DEFAULT_TIE_MARGIN = 2.0
 #: Shortest record the workflow decides on (s) …
 MIN_DURATION_S = 5.0
-#: … and the fewest cycles of the command's equivalent frequency (seed Eq. 2.4) it must hold.
+#: … and the fewest cycles of the command's equivalent frequency (the FEI paper's Eq. 2.4) it must
+#: hold.
 MIN_CYCLES = 5.0
 _MIN_SAMPLES = 256
 
@@ -95,8 +97,8 @@ class Gap:
     j3 : float
         Peak error, % of the measurement's peak (J3).
     fei_amplitude, fei_delay : float
-        FEI A and d (s) of measured against predicted (seed Eq. 2.1-2.5): 1 and 0 when they
-        agree.
+        FEI A and d (s) of measured against predicted (the FEI paper's Eq. 2.1-2.5): 1 and 0 when
+        they agree.
     rms : float
         RMS of the residual (m).
     """
@@ -380,13 +382,6 @@ def _step_params(name: str, spec: ModelSpec) -> dict[str, float]:
     return {}
 
 
-def _delta_bic(n: int, rss0: float, fit: Fit) -> float:
-    """BIC improvement of ``fit`` over a model with residual sum of squares ``rss0``."""
-    if fit.rss <= 0:
-        return math.inf
-    return n * math.log(rss0 / fit.rss) - fit.k * math.log(n)
-
-
 @dataclass
 class _Item:
     """A named effect or re-fit while the search runs."""
@@ -428,7 +423,6 @@ class _Search:
         base: ModelSpec,
         data: Data,
         exact: Data,
-        ctx: dict[str, Any],
         candidates: tuple[str, ...],
         threshold: float,
         tie_margin: float,
@@ -438,7 +432,6 @@ class _Search:
         self.base = base
         self.data = data
         self.exact = exact
-        self.ctx = ctx
         self.candidates = candidates
         self.threshold = threshold
         self.tie_margin = tie_margin
@@ -478,13 +471,12 @@ class _Search:
         fits: list[tuple[float, Fit]] = []
         entries: dict[int, dict[str, Any]] = {}
         table: list[dict[str, Any]] = []
-        self.ctx.pop("delay", None)
         for name in self.candidates:
-            res = fit_candidate(name, current, self.data, self.ctx)
+            res = fit_candidate(name, current, self.data)
             if isinstance(res, Candidate):
                 table.append({"name": name, "skipped": res.reason})
                 continue
-            db = _delta_bic(self.n, rss0, res)
+            db = delta_bic(self.n, rss0, res.rss, res.k)
             fits.append((db, res))
             entry: dict[str, Any] = {
                 "name": name,
@@ -508,7 +500,7 @@ class _Search:
                 sp, pred, rss = self.polish(ft.spec, [*items, new_item])
                 ft.spec, ft.pred, ft.rss = sp, pred, rss
                 ft.params = _step_params(ft.name, sp)
-                db = self.n * math.log(rss_exact / rss) - ft.k * math.log(self.n)
+                db = delta_bic(self.n, rss_exact, rss, ft.k)
                 entries[id(ft)].update(delta_bic=db, parameters=ft.params, verified=True)
                 pool.append((db, ft))
             fits = [(entries[id(ft)]["delta_bic"], ft) for _, ft in fits]
@@ -718,16 +710,14 @@ def diagnose(
     source = base.source
     data = Data(u, y, fs, f, project=fitted_base)
     base_model = Model(base, data)
-    ctx: dict[str, Any] = {"specimen": specimen_from_record(data, base)}
-    if ctx["specimen"] is None:
+    data.specimen = specimen_from_record(data, base)
+    if data.specimen is None:
         notes.append("force_feedback not tried: needs a force column or a [specimen] table")
     else:
-        k_s, c_s, src = ctx["specimen"]
+        k_s, c_s, src = data.specimen
         notes.append(f"specimen for force_feedback: k = {k_s:.4g} N/m, c = {c_s:.4g} N·s/m ({src})")
     exact = Data(u, y, fs, f)
-    search = _Search(
-        base, data, exact, ctx, candidates, threshold, tie_margin, max_effects, fitted_base
-    )
+    search = _Search(base, data, exact, candidates, threshold, tie_margin, max_effects, fitted_base)
     spec, items, stop = search.run(refine)
     history = search.history
     # the final model and each step's gap, localisation and significance in it
@@ -751,7 +741,7 @@ def diagnose(
         r0 = y - preds[k]
         r1 = y - preds[k + 1]
         rss0, rss1 = float(r0 @ r0), float(r1 @ r1)
-        db = n * math.log(rss0 / rss1) - it.k * math.log(n) if rss1 > 0 else math.inf
+        db = delta_bic(n, rss0, rss1, it.k)
         where = loc.to_json()
         where["acts"] = _acts(preds[k + 1] - preds[k], fs, sigma0, loc.when["window_s"])
         spec_k = specs[k + 1] if k + 1 < len(specs) else spec

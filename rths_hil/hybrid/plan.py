@@ -94,26 +94,17 @@ def choose_plant(cfg: Config, dt: float):
     """The twin's plant of a channel (``cfg`` is the channel's resolved configuration).
 
     ``twin.model`` (a model file) or the ``twin.actuator`` / ``specimen`` / ``sensor`` tables,
-    built by :func:`sim_backends.modelfile.load_plant`. This is the one place a twin is chosen.
+    built by the twin registry (:func:`sim_backends.registry.build_plant`). This is the one
+    place the loop chooses a twin.
     """
-    from sim_backends.modelfile import load_plant
+    from sim_backends.registry import build_plant
 
     tw = cfg["twin"]
-    if tw["model"]:
-        path = cfg.resolve_path(tw["model"])
-        try:
-            return load_plant(path, dt)
-        except InputError as exc:
-            raise InputError(f"{cfg.source}: twin.model: {exc}") from None
-    spec: dict[str, Any] = {"actuator": dict(tw["actuator"])}
-    if tw["specimen"]:
-        spec["specimen"] = dict(tw["specimen"])
-    if tw["sensor"]:
-        spec["sensor"] = dict(tw["sensor"])
     try:
-        return load_plant(spec, dt)
+        return build_plant(tw, dt, str(cfg.base_dir))
     except InputError as exc:
-        raise InputError(f"{cfg.source}: twin.{exc}") from None
+        key = "twin.model" if tw["model"] else "twin"
+        raise InputError(f"{cfg.source}: {key}: {exc}") from None
 
 
 def build_model(cfg: Config):

@@ -1,0 +1,210 @@
+"""The twins' registries: where a twin endpoint, an actuator model or an effect is added.
+
+Three tables, in the style of python-can's ``BACKENDS`` (name → where the class lives, imported
+only when asked for):
+
+* :data:`TWINS` — driver name → the endpoint that speaks that driver's protocol
+  (:mod:`sim_backends.endpoints`). :func:`sim_backends.twin.start_twin` and ``rths-hil twin
+  serve`` ask it. The driver registry beside it is :data:`drivers.registry.BUILTIN`.
+* :data:`MODELS` — actuator model name (a model file's ``actuator.model``) → the
+  :class:`~sim_backends.base.ActuatorModel` in front of the transport delay and gain of the
+  FEI paper's Fig. 4.1, with its parameters. :func:`build_plant` and the model file ask it.
+* :data:`sim_backends.effects.EFFECTS` — effect kind → :class:`~sim_backends.effects.Effect`
+  subclass (each class carries everything the twin and the diagnosis know about it).
+
+Adding one of them touches one module (the class) and one line here (or in ``EFFECTS``); see
+docs/models.md, "Adding a twin model or an effect", and docs/protocols.md, "Adding a driver".
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from rths_hil.errors import InputError
+
+from .effects import EFFECTS
+
+if TYPE_CHECKING:
+    from .plant import TwinPlant
+
+__all__ = ["EFFECTS", "MODELS", "TWINS", "ModelEntry", "TwinEntry", "build_plant", "twin_class"]
+
+
+@dataclass(frozen=True)
+class TwinEntry:
+    """A twin endpoint.
+
+    Attributes
+    ----------
+    target : str
+        ``"module:Class"`` of the :class:`~sim_backends.endpoints.base.TwinEndpoint` subclass.
+    seq_bits : int or None
+        Width of the sequence counter the protocol's frames carry (the controller checks and
+        echoes it); ``None`` when the protocol has none.
+    transports : tuple of str
+        Transports ``rths-hil twin serve --transport`` accepts, the default first (empty: the
+        endpoint's own settings, e.g. a python-can interface).
+    fresh_channel : bool
+        The ``channel`` setting defaults to a fresh unique name (python-can's ``virtual`` bus:
+        twins started in one process must not hear each other).
+    """
+
+    target: str
+    seq_bits: int | None = 16
+    transports: tuple[str, ...] = ()
+    fresh_channel: bool = False
+
+
+#: Twin endpoints by the name of the driver whose protocol they speak.
+TWINS: dict[str, TwinEntry] = {
+    "can": TwinEntry("sim_backends.endpoints.can:CANTwin", fresh_channel=True),
+    "modbus": TwinEntry("sim_backends.endpoints.modbus:ModbusTwin", transports=("tcp", "rtu")),
+    "serial": TwinEntry(
+        "sim_backends.endpoints.serial:SerialTwin", seq_bits=None, transports=("pty", "tcp")
+    ),
+}
+
+
+@dataclass(frozen=True)
+class ModelEntry:
+    """An actuator model.
+
+    Attributes
+    ----------
+    target : str
+        ``"module:Class"`` of the :class:`~sim_backends.base.ActuatorModel`, built as
+        ``Class(dt=dt, **params)``; empty for the bare delay and gain.
+    params : dict
+        Parameter name → (default, or ``None`` when required; SI unit).
+    doc : str
+        One line for the documentation and error messages.
+    uses_specimen : bool
+        The model takes ``specimen_stiffness``, ``specimen_damping`` and ``specimen_mass`` from
+        a model file's ``[specimen]`` unless set in ``[actuator]`` (one specimen loads the
+        actuator and produces the measured force).
+    """
+
+    target: str
+    params: Mapping[str, tuple[float | None, str]]
+    doc: str = ""
+    uses_specimen: bool = False
+
+
+def _benchmark_params() -> dict[str, tuple[float | None, str]]:
+    """``BenchmarkServo.PARAMS`` with their defaults (Table 2, or the constructor's own)."""
+    import inspect
+
+    from .models import BENCHMARK_NOMINAL, BenchmarkServo
+
+    own = inspect.signature(BenchmarkServo.__init__).parameters
+    return {
+        k: (BENCHMARK_NOMINAL[k] if k in BENCHMARK_NOMINAL else own[k].default, "")
+        for k in BenchmarkServo.PARAMS
+    }
+
+
+#: Actuator models by the name a model file's ``actuator.model`` uses.
+MODELS: dict[str, ModelEntry] = {
+    "delay_gain": ModelEntry("", {}, "transport delay and gain only (the FEI paper, Fig. 4.1)"),
+    "servo_lag": ModelEntry(
+        "sim_backends.models:FirstOrderServo",
+        {"time_constant": (None, "s")},
+        "first-order servo lag 1/(T s + 1)",
+    ),
+    "benchmark": ModelEntry(
+        "sim_backends.models:BenchmarkServo",
+        _benchmark_params(),
+        "servo-hydraulic plant of the RTHS benchmark (Silva et al. 2020)",
+        uses_specimen=True,
+    ),
+}
+
+#: Names a model file may still use for a model of :data:`MODELS` (read as the new name).
+MODEL_ALIASES: dict[str, str] = {"first_order": "servo_lag"}
+
+
+def _load(target: str) -> Any:
+    module, _, attr = target.partition(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
+    """The endpoint class and its entry for ``driver_name``.
+
+    Raises
+    ------
+    InputError
+        No twin speaks that driver's protocol.
+    """
+    entry = TWINS.get(driver_name)
+    if entry is None:
+        raise InputError(
+            f"no twin for driver {driver_name!r}; twins exist for {', '.join(sorted(TWINS))}"
+        )
+    return _load(entry.target), entry
+
+
+def model_entry(name: str) -> tuple[str, ModelEntry]:
+    """``(canonical name, entry)`` of actuator model ``name`` (an alias gives its new name).
+
+    Raises
+    ------
+    InputError
+        Unknown model name.
+    """
+    name = MODEL_ALIASES.get(name, name)
+    if name not in MODELS:
+        raise InputError(f"unknown actuator model {name!r} (known: {', '.join(MODELS)})")
+    return name, MODELS[name]
+
+
+def model_class(name: str) -> type | None:
+    """The actuator model class registered under ``name`` (``None`` for ``delay_gain``)."""
+    _, entry = model_entry(name)
+    return _load(entry.target) if entry.target else None
+
+
+def build_plant(
+    twin: Mapping[str, Any] | str | os.PathLike[str], dt: float, base_dir: str | None = None
+) -> TwinPlant:
+    """Build a twin's plant from a configuration's ``[twin]`` section (or a model file).
+
+    Parameters
+    ----------
+    twin : mapping or str
+        Either a path to a model file (TOML), or a mapping with the model file's tables:
+        ``actuator`` (required: ``model``, ``delay``, ``gain``, the model's parameters,
+        ``effects``), ``specimen`` and ``sensor`` (optional), or a ``[twin]`` section with a
+        ``model`` key naming a model file (then the other tables are ignored). Empty tables
+        count as absent.
+    dt : float
+        Step of the plant (s).
+    base_dir : str, optional
+        Directory a relative model-file path is resolved against.
+
+    Returns
+    -------
+    sim_backends.plant.TwinPlant
+
+    Raises
+    ------
+    InputError
+        Unknown model or effect, a bad parameter, or an unreadable model file; the message
+        names the key.
+    """
+    from .modelfile import load_plant
+
+    if isinstance(twin, str | os.PathLike):
+        path = os.fspath(twin)
+        if base_dir is not None and not os.path.isabs(path):
+            path = os.path.join(base_dir, path)
+        return load_plant(path, dt)
+    model = twin.get("model")
+    if isinstance(model, str) and model:
+        return build_plant(model, dt, base_dir)
+    spec = {k: dict(twin[k]) for k in ("actuator", "specimen", "sensor") if twin.get(k)}
+    return load_plant(spec, dt)
