@@ -638,6 +638,8 @@ def channels(duration: float, paced_s: float, baseline: str | None, rounds: int)
         f"## 6. Channels over CAN virtual (one bus, nodes 1..n; n-storey shear building; "
         f"lockstep {duration:g} s simulated, best of 3)",
         "",
+        f"Load average at the start: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs.",
+        "",
         "| channels | lockstep steps/s | loop work p50 (µs) | loop work p99 (µs) | "
         "work per channel p50 (µs) |",
         "|---|---|---|---|---|",
@@ -674,6 +676,7 @@ def channels(duration: float, paced_s: float, baseline: str | None, rounds: int)
         _, row = one_channel_vs_baseline(baseline, rounds, 5.0)
         lines += ["", "| comparison | steps/s | result |", "|---|---|---|", row]
         print(row)
+    lines += ["", f"Load average at the end: {os.getloadavg()[0]:.2f}."]
     return "\n".join(lines)
 
 

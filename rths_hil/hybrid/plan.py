@@ -103,8 +103,8 @@ def choose_plant(cfg: Config, dt: float):
     try:
         return build_plant(tw, dt, str(cfg.base_dir))
     except InputError as exc:
-        key = "twin.model" if tw["model"] else "twin"
-        raise InputError(f"{cfg.source}: {key}: {exc}") from None
+        where = "twin.model: " if tw["model"] else "twin."  # the message names the table key
+        raise InputError(f"{cfg.source}: {where}{exc}") from None
 
 
 def build_model(cfg: Config):
