@@ -32,6 +32,7 @@ import contextlib
 import math
 import os
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -44,8 +45,10 @@ from drivers.registry import create_driver
 from rths_hil.compensation import InverseCompensator
 from rths_hil.config import load_config
 from rths_hil.estimation import DelayGainEstimator
+from rths_hil.hybrid.runner import Runner
 from rths_hil.loop import (
     WORK,
+    WORK_BACKLOG,
     RTHSLoop,
     _ExactFEI,
     _StreamingFEI,
@@ -58,6 +61,9 @@ from rths_hil.safety import SafetyMonitor, StuckRule, WatchdogRule
 from rths_hil.structure import BoucWenParams, CRStepper
 from sim_backends.modelfile import load_plant
 from sim_backends.twin import default_plant, start_twin
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _results import write_results
 
 FS = 1024.0
 DRIVERS = ("can", "modbus", "serial")
@@ -91,6 +97,9 @@ class DirectDriver(Driver):
         pass
 
     def send(self, seq, displacement, enable=True) -> None:
+        if not enable:  # arming / hold: no plant step
+            self.fb = Feedback(seq, 0.0, 0.0, 0)
+            return
         x, f = self.plant.step(displacement)
         self.fb = Feedback(seq, x, f, 1)
 
@@ -102,10 +111,17 @@ class DirectDriver(Driver):
         pass
 
 
+class DirectRunner(Runner):
+    """The runner with each channel's driver replaced by a :class:`DirectDriver`."""
+
+    def open_channel(self, ch, stack):
+        ch.bind(DirectDriver(ch.plan.plant))
+        if ch.stream is not None and ch.plan.exact_hop > 0:
+            ch.exact = _ExactFEI(self.plan.fs, ch.plan.window_s, ch.plan.exact_hop, False)
+
+
 class DirectLoop(RTHSLoop):
-    def _open_transport(self, stack):
-        self.driver = DirectDriver(self.plant)
-        return self.driver
+    runner_class = DirectRunner
 
 
 def breakdown() -> None:
@@ -341,6 +357,8 @@ def paced_config(name: str, fs: float, duration: float, priority: int, extra=())
         f"loop.priority={priority}",
         "ground_motion.tail=60",
         "safety.max_overruns=1000000",
+        "safety.displacement_limit=0.3",
+        "safety.velocity_limit=2.0",
         "safety.watchdog_missed=1000000",
         *extra,
     ]
@@ -432,32 +450,36 @@ class _Proxy:
         setattr(self._obj, name, value)
 
 
-class ProfiledLoop(RTHSLoop):
-    """RTHSLoop with every per-step call timed (≈ 0.3 µs overhead per call)."""
+class ProfiledRunner(Runner):
+    """The runner with every per-step call timed (≈ 0.3 µs overhead per call)."""
 
-    def __init__(self, *a, **kw) -> None:
-        super().__init__(*a, **kw)
-        self.ph = ph = _Phases()
-        self.structure = _Proxy(self.structure, ph, {"step": "structure (CR step)"})
-        self.compensator = _Proxy(self.compensator, ph, {"step": "compensation"})
-        checks = ("check_feedback", "check_command", "check_fei", "check_kalman", "check_overrun")
-        self.monitor = _Proxy(self.monitor, ph, dict.fromkeys(checks, "safety"))
-        if self.stream_fei is not None:
-            self.stream_fei = _Proxy(self.stream_fei, ph, {"push": "streaming FEI push"})
-        if self.kalman is not None:
-            methods = ("update", "push", "predict", "correct")
-            self.kalman = _Proxy(self.kalman, ph, dict.fromkeys(methods, "Kalman"))
+    ph: _Phases
 
-    def _loop(self, driver, rec, exact):
+    def open_channel(self, ch, stack):
+        super().open_channel(ch, stack)
+        ph = self.ph = getattr(self, "ph", None) or _Phases()
+        w = ph.wrap
+        ch.send = w("driver send", ch.send)
+        ch.receive = w("driver receive (+ inline twin pump)", ch.receive)
+        ch.comp_step = w("compensation", ch.comp_step)
+        ch.evaluate = w("evaluators (streaming + exact FEI, Kalman)", ch.evaluate)
+
+    def _loop(self, rec):
         w = self.ph.wrap
-        driver.send = w("driver send", driver.send)
-        driver.receive = w("driver receive", driver.receive)
-        if self.twin is not None and getattr(self.twin, "inline", False):
-            self.twin.pump = w("inline twin pump", self.twin.pump)
+        st = self.plan.structure
+        st.step = w("structure (CR step)", st.step)
+        for name in ("feedback", "command", "evaluators", "timing"):
+            setattr(self.safety, name, w("safety", getattr(self.safety, name)))
         rec.append = w("recorder append (+ flush)", rec.append)
-        if exact is not None:
-            exact.push = w("exact FEI push (+ hand-off)", exact.push)
-        return super()._loop(driver, rec, exact)
+        return super()._loop(rec)
+
+
+class ProfiledLoop(RTHSLoop):
+    runner_class = ProfiledRunner
+
+    @property
+    def ph(self):
+        return self.runner.ph
 
 
 def profile(name: str, fs: float, duration: float, priority: int, lock: str | None) -> None:
@@ -515,6 +537,149 @@ def profile(name: str, fs: float, duration: float, priority: int, lock: str | No
                 )
 
 
+# ----------------------------------------------------------------------------------------------
+# 6. channels (issue 13)
+
+
+def channels_config(n: int, extra=()) -> list[str]:
+    """``n`` actuators over CAN virtual (one bus, nodes 1..n) on an n-storey shear building."""
+    m = ", ".join(["2.0e5"] * n)
+    k = ", ".join(["1.0e8"] * n)
+    over = [
+        "structure.kind=shear_building",
+        f"structure.masses=[{m}]",
+        f"structure.stiffnesses=[{k}]",
+        "structure.bouc_wen=false",
+        "ground_motion.pga=1.0",
+        "driver.connection={interface='virtual', channel='bench-channels'}",
+        "twin.actuator={model='delay_gain', delay=0.01, gain=1.0}",
+        "compensation.alpha=11.24",
+        "loop.console=0",
+        "output.plot=false",
+        "safety.max_overruns=1000000",
+        "safety.displacement_limit=0.3",
+        "safety.velocity_limit=2.0",
+        *extra,
+    ]
+    return over
+
+
+def _channels_toml(n: int) -> str:
+    return "\n".join(
+        f'[[actuators]]\nname = "a{i + 1}"\ndof = {i + 1}\n'
+        f"driver = {{ connection = {{ node = {i + 1} }} }}\n"
+        for i in range(n)
+    )
+
+
+def run_channels(n: int, mode: str, duration: float, extra=()):
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "c.toml"
+        p.write_text(_channels_toml(n))
+        cfg = load_config(p, channels_config(n, extra))
+        return RTHSLoop(cfg, Path(d) / "r", mode=mode, duration=duration).run()
+
+
+_BASELINE_SNIPPET = (
+    "import sys, tempfile; from pathlib import Path; from rths_hil.config import load_config;"
+    " from rths_hil.loop import RTHSLoop; cfg = load_config(None, ['loop.console=0',"
+    " 'output.plot=false']); d = tempfile.mkdtemp();"
+    " r = RTHSLoop(cfg, Path(d) / 'r', mode='lockstep', duration=float(sys.argv[1])).run();"
+    " print(r.steps_per_second)"
+)
+
+
+def one_channel_vs_baseline(rev: str, rounds: int, duration: float) -> tuple[list, str]:
+    """Lockstep steps/s of today's default single-actuator test: this tree vs ``rev``.
+
+    ``rev`` is checked out in a temporary git worktree; the two run alternately in fresh
+    processes (``rounds`` each) so that both see the same machine load.
+    """
+    root = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory() as tmp:
+        wt = Path(tmp) / "baseline"
+        subprocess.run(
+            ["git", "-C", str(root), "worktree", "add", "--detach", "-f", str(wt), rev],
+            check=True,
+            capture_output=True,
+        )
+        try:
+            new, old = [], []
+            for _ in range(rounds):
+                for tree, out in ((root, new), (wt, old)):
+                    env = dict(os.environ, PYTHONPATH=str(tree))
+                    r = subprocess.run(
+                        [sys.executable, "-c", _BASELINE_SNIPPET, str(duration)],
+                        env=env,
+                        cwd=tmp,
+                        capture_output=True,
+                        text=True,
+                        check=True,
+                    )
+                    out.append(float(r.stdout.strip().splitlines()[-1]))
+        finally:
+            subprocess.run(
+                ["git", "-C", str(root), "worktree", "remove", "--force", str(wt)],
+                capture_output=True,
+            )
+    ratios = [a / b for a, b in zip(new, old, strict=True)]
+    med = statistics.median(ratios)
+    row = (
+        f"| 1 channel (default config) vs `{rev}` | {statistics.median(new):.0f} vs "
+        f"{statistics.median(old):.0f} steps/s | median ratio {med:.3f} over {rounds} "
+        f"alternations (goal ≥ 0.95) |"
+    )
+    return ratios, row
+
+
+def channels(duration: float, paced_s: float, baseline: str | None, rounds: int) -> str:
+    """Section 6: 1, 2, 4 and 8 channels over CAN virtual; returns the Markdown table."""
+    lines = [
+        f"## 6. Channels over CAN virtual (one bus, nodes 1..n; n-storey shear building; "
+        f"lockstep {duration:g} s simulated, best of 3)",
+        "",
+        f"Load average at the start: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs.",
+        "",
+        "| channels | lockstep steps/s | loop work p50 (µs) | loop work p99 (µs) | "
+        "work per channel p50 (µs) |",
+        "|---|---|---|---|---|",
+    ]
+    print("\n" + lines[0] + "\n")
+    print("\n".join(lines[2:]))
+    for n in (1, 2, 4, 8):
+        best = None
+        for _ in range(3):
+            r = run_channels(n, "lockstep", duration)
+            assert r.status == "completed", r.trip
+            if best is None or r.steps_per_second > best.steps_per_second:
+                best = r
+        w50, w99 = np.percentile(best.work, [50, 99]) * 1e6
+        row = f"| {n} | {best.steps_per_second:.0f} | {w50:.1f} | {w99:.1f} | {w50 / n:.1f} |"
+        lines.append(row)
+        print(row)
+    if paced_s > 0:
+        r = run_channels(4, "paced", paced_s, ("fei.exact_hop=256",))
+        period = 1.0 / r.fs
+        w99 = float(np.percentile(r.work, 99))
+        cause = attribute_overruns(r.lateness, r.ready, r.overrun_threshold)
+        work_over = int(np.sum((cause == WORK) | (cause == WORK_BACKLOG)))
+        lines += [
+            "",
+            f"Paced, 4 channels at {r.fs:g} Hz for {paced_s:g} s: loop work p99 "
+            f"{w99 * 1e6:.1f} µs = {100 * w99 / period:.1f} % of the period (goal ≤ 30 %); "
+            f"overruns {r.overruns} of {r.steps} steps, caused by the work "
+            f"{work_over} = {100 * work_over / max(r.steps, 1):.4f} % (goal ≤ 0.01 %), "
+            f"status {r.status}.",
+        ]
+        print(lines[-1])
+    if baseline:
+        _, row = one_channel_vs_baseline(baseline, rounds, 5.0)
+        lines += ["", "| comparison | steps/s | result |", "|---|---|---|", row]
+        print(row)
+    lines += ["", f"Load average at the end: {os.getloadavg()[0]:.2f}."]
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=60.0, help="paced run length (s)")
@@ -538,11 +703,35 @@ def main() -> None:
         metavar="PATH",
         help="flock PATH around each timed measurement (each floor + run + floor separately)",
     )
+    ap.add_argument(
+        "--channels",
+        action="store_true",
+        help="only section 6 (1/2/4/8 channels) and write benchmarks/results/bench_loop.md",
+    )
+    ap.add_argument("--channels-paced", type=float, default=20.0, help="paced 4-channel run (s)")
+    ap.add_argument(
+        "--baseline",
+        metavar="REV",
+        help="git revision to compare the single-channel lockstep rate with (same run)",
+    )
+    ap.add_argument("--rounds", type=int, default=5, help="alternations of the comparison")
     args = ap.parse_args()
     print(
         f"# bench_loop — {time.strftime('%Y-%m-%d %H:%M')}, python {sys.version.split()[0]}, "
         f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}"
     )
+    if args.channels:
+        with bench_lock(args.lock):
+            table = channels(10.0, args.channels_paced, args.baseline, args.rounds)
+        write_results(
+            "bench_loop",
+            table,
+            goals="4 channels at 1024 Hz paced: loop work p99 ≤ 30 % of the period, "
+            "work-caused overruns ≤ 0.01 %; lockstep ≥ 4 000 steps/s with 4 channels; one "
+            "channel no slower than before the channels redesign (±5 %, same run).",
+            command="python benchmarks/bench_loop.py --channels --baseline REV",
+        )
+        return
     if args.profile:
         name, fs = args.profile.split("@")
         profile(name, float(fs), args.duration, args.priority, args.lock)

@@ -37,11 +37,14 @@ def _fmt(v: float, scale: float = 1.0, spec: str = ".3f", signed: bool = False) 
 def format_live(s: dict[str, Any]) -> str:
     """One console line from the loop's status dict."""
     name, frac = s.get("margin", ("none", math.inf))
+    if s.get("channel"):  # several channels: the one nearest a limit
+        name = f"{s['channel']} {name}"
     margin = "no limits" if not math.isfinite(frac) else f"{name} {frac * 100:.0f} %"
     lat = f"p99 late {s['p99_lateness'] * 1e3:.3f} ms" if s.get("mode") == "paced" else "lockstep"
     return (
         f"t {s['t']:7.2f} s ({100.0 * s['k'] / s['n']:3.0f} %) | {s['rate']:7.0f} steps/s | {lat}"
-        f" | overruns {s['overruns']} | A {_fmt(s['amplitude'], spec='.4f')}"
+        f" | overruns {s['overruns']} | {('[' + s['channel'] + '] ') if s.get('channel') else ''}"
+        f"A {_fmt(s['amplitude'], spec='.4f')}"
         f" d {_fmt(s['delay'], 1e3, '.2f', True)} ms | peak {s['peak_displacement'] * 1e3:.2f} mm"
         f" | margin {margin} | α {s['alpha']:.2f}"
     )
@@ -80,6 +83,34 @@ class LiveLine:
             self._width = 0
 
 
+def channel_suffixes(run: RunData) -> list[tuple[str, str]]:
+    """(name, column suffix) of each channel of a run (one unnamed channel for older runs)."""
+    chans = run.meta.get("channels") or []
+    out = [(c.get("name", ""), c.get("suffix", "")) for c in chans]
+    return out or [("", "")]
+
+
+def exact_fei_points(rec: np.ndarray, sfx: str = "") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The exact-FEI cross-check as points: (window-end step, A, d), one per new valid window.
+
+    Each exact value is placed at the step its window ended (``fei_exact_step``), not at the
+    step its result came back from the worker process (paced runs), so the points sit on the
+    streaming curve. Records without ``fei_exact_step`` use the step the value appeared.
+    """
+    amp = rec["fei_exact_amplitude" + sfx].astype(float)
+    dly = rec["fei_exact_delay" + sfx].astype(float)
+    ok = rec["fei_exact_valid" + sfx].astype(bool)
+    name = "fei_exact_step" + sfx
+    if name in (rec.dtype.names or ()):
+        end = rec[name].astype(np.int64)
+        change = np.flatnonzero(np.diff(end, prepend=-1) != 0)
+        change = change[(end[change] >= 0) & ok[change] & np.isfinite(amp[change])]
+        return end[change], amp[change], dly[change]
+    change = np.flatnonzero(np.diff(amp, prepend=np.nan) != 0)
+    change = change[ok[change] & np.isfinite(amp[change])]
+    return change, amp[change], dly[change]
+
+
 def _events(run: RunData, kind: str) -> list[dict]:
     return [e for e in run.events if e.get("kind") == kind]
 
@@ -106,7 +137,8 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
         and from the ``end`` event when it has them ``overrun_causes`` (paced overruns by
         cause: ``machine``, ``machine_backlog``, ``work``, ``work_backlog``), ``wall_time``,
         ``steps_per_second``, ``missed_replies``, ``driver_stats``, ``twin_stats``,
-        ``final_alpha``.
+        ``final_alpha``. With several channels the per-record figures (FEI, metrics, online,
+        peak) are under ``channels`` → channel name, and ``trip`` names its ``channel``.
 
     Notes
     -----
@@ -142,7 +174,7 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
     }
     if trips:
         t = trips[-1]
-        out["trip"] = {k: t.get(k) for k in ("rule", "reason", "time", "step", "values")}
+        out["trip"] = {k: t.get(k) for k in ("rule", "reason", "time", "step", "values", "channel")}
     elif stops:
         s = stops[-1]
         out["trip"] = {
@@ -153,8 +185,14 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
             "values": {},
         }
     if n >= 16:
+        chans = channel_suffixes(run)
         with _Rows(run.path / RECORD_FILE) as src:
-            out.update(_record_figures(src, fs, lean_rows))
+            if len(chans) == 1:
+                out.update(_record_figures(src, fs, lean_rows, chans[0][1]))
+            else:  # several channels: the same figures per channel
+                out["channels"] = {
+                    name: _record_figures(src, fs, lean_rows, sfx) for name, sfx in chans
+                }
     if out["mode"] == "paced" and n:
         lat = np.array(rec["lateness"], dtype=float)
         p50, p99, p999 = np.percentile(lat, [50, 99, 99.9])
@@ -231,21 +269,25 @@ class _Rows:
         return out
 
 
-def _record_figures(rec: _Rows, fs: float, lean_rows: int) -> dict[str, Any]:
-    """Whole-record FEI, metrics, online-estimate statistics and peaks of a record (≥ 16 rows)."""
+def _record_figures(rec: _Rows, fs: float, lean_rows: int, sfx: str = "") -> dict[str, Any]:
+    """Whole-record FEI, metrics, online-estimate statistics and peaks of a record (≥ 16 rows).
+
+    ``sfx`` selects a channel's columns (``"_left"``: ``target_left`` …; ``""``: one channel).
+    """
     from .fei import fei
 
     out: dict[str, Any] = {}
     n = len(rec)
-    finite = _all_finite(rec, ("target", "command", "measured"))
+    finite = _all_finite(rec, ("target" + sfx, "command" + sfx, "measured" + sfx))
     lean = n > lean_rows and finite
-    for key, col in (("fei_target", "target"), ("fei_command", "command")):
+    meas = "measured" + sfx
+    for key, col in (("fei_target", "target" + sfx), ("fei_command", "command" + sfx)):
         try:
             if lean:
-                r = _fei_lean(rec, col, fs)
+                r = _fei_lean(rec, col, fs, meas)
             else:
                 ref = rec.column(col)
-                measured = rec.column("measured")
+                measured = rec.column(meas)
                 sel = np.isfinite(measured) & np.isfinite(ref)
                 r = fei(ref[sel], measured[sel], fs)
                 del ref, measured, sel
@@ -258,10 +300,10 @@ def _record_figures(rec: _Rows, fs: float, lean_rows: int) -> dict[str, Any]:
         except Exception as exc:  # a record too short or degenerate: say so, don't fail
             out[key] = {"error": str(exc)}
     if lean:
-        out["metrics"] = _metrics_lean(rec, fs)
+        out["metrics"] = _metrics_lean(rec, fs, "target" + sfx, meas)
     else:
-        target = rec.column("target")
-        measured = rec.column("measured")
+        target = rec.column("target" + sfx)
+        measured = rec.column(meas)
         ok = np.isfinite(measured)
         out["metrics"] = _metrics(target[ok], measured[ok], fs)
         del target, measured, ok
@@ -271,9 +313,10 @@ def _record_figures(rec: _Rows, fs: float, lean_rows: int) -> dict[str, Any]:
     a_min = d_min = math.inf
     a_max = d_max = -math.inf
     pk = {"target": 0.0, "measured": 0.0, "force": 0.0}
-    for c in _chunks(rec, ("fei_amplitude", "fei_delay", "fei_valid", *pk)):
-        fa, fd = c["fei_amplitude"], c["fei_delay"]
-        v = c["fei_valid"].astype(bool) & np.isfinite(fa) & np.isfinite(fd)
+    online = ("fei_amplitude" + sfx, "fei_delay" + sfx, "fei_valid" + sfx)
+    for c in _chunks(rec, (*online, *(name + sfx for name in pk))):
+        fa, fd = c[online[0]], c[online[1]]
+        v = c[online[2]].astype(bool) & np.isfinite(fa) & np.isfinite(fd)
         if v.any():
             cnt += int(v.sum())
             a_sum += float(fa[v].sum())
@@ -281,7 +324,7 @@ def _record_figures(rec: _Rows, fs: float, lean_rows: int) -> dict[str, Any]:
             a_min, a_max = min(a_min, float(fa[v].min())), max(a_max, float(fa[v].max()))
             d_min, d_max = min(d_min, float(fd[v].min())), max(d_max, float(fd[v].max()))
         for name in pk:
-            x = np.abs(c[name])
+            x = np.abs(c[name + sfx])
             if np.isfinite(x).any():
                 pk[name] = max(pk[name], float(np.nanmax(x)))
     if cnt:
@@ -333,8 +376,9 @@ def _windowed(rec: _Rows, name: str, M: int) -> tuple[np.ndarray, float]:
     return x, peak
 
 
-def _fei_lean(rec: _Rows, ref: str, fs: float):
-    """Whole-record FEI of ``measured`` vs ``ref`` in bounded memory (the FEI paper, Eq. 2.1–2.5).
+def _fei_lean(rec: _Rows, ref: str, fs: float, meas: str = "measured"):
+    """Whole-record FEI of column ``meas`` vs column ``ref`` in bounded memory (the FEI paper,
+    Eq. 2.1–2.5).
 
     The same sums as :func:`rths_hil.fei.fei` (Hann window, mean removal, zero-padding to
     ``M = 2p``, spectral sums E, F, S over bins 1 … p−1, then the same closing equations),
@@ -357,7 +401,7 @@ def _fei_lean(rec: _Rows, ref: str, fs: float):
         P = Xb.real * Xb.real + Xb.imag * Xb.imag
         E += float(P.sum())
         F += float(P @ np.arange(b, b + Xb.size, dtype=float))
-    y, _ = _windowed(rec, "measured", M)
+    y, _ = _windowed(rec, meas, M)
     Y = sfft.rfft(y, overwrite_x=True)
     del y
     S = 0j
@@ -380,16 +424,18 @@ def _fei_lean(rec: _Rows, ref: str, fs: float):
     )  # fmt: skip
 
 
-def _metrics_lean(rec: _Rows, fs: float, max_lag_s: float = 0.1) -> dict[str, float]:
-    """J1–J3 and TI of ``measured`` vs ``target`` in chunks (same equations as
+def _metrics_lean(
+    rec: _Rows, fs: float, tcol: str = "target", mcol: str = "measured", max_lag_s: float = 0.1
+) -> dict[str, float]:
+    """J1–J3 and TI of column ``mcol`` vs ``tcol`` in chunks (same equations as
     :mod:`rths_hil.metrics`; all rows finite)."""
     from scipy.signal import correlate
 
     n = len(rec)
     sx = sy = 0.0
-    for c in _chunks(rec, ("target", "measured")):
-        sx += float(c["target"].sum())
-        sy += float(c["measured"].sum())
+    for c in _chunks(rec, (tcol, mcol)):
+        sx += float(c[tcol].sum())
+        sy += float(c[mcol].sum())
     mx, my = sx / n, sy / n
     L = min(int(np.floor(max_lag_s * fs + 1e-9)), n - 1)
     R = np.zeros(2 * L + 1)
@@ -399,8 +445,8 @@ def _metrics_lean(rec: _Rows, fs: float, max_lag_s: float = 0.1) -> dict[str, fl
     prev = None  # last (x, y) of the previous chunk, raw
     for i in range(0, n, _CHUNK):
         j = min(i + _CHUNK, n)
-        x = rec.column("target", i, j)
-        y = rec.column("measured", i, j)
+        x = rec.column(tcol, i, j)
+        y = rec.column(mcol, i, j)
         # J2, J3 (raw values), TI (trapezoids, joined across chunks)
         d = y - x
         ee += float(d @ d)
@@ -415,21 +461,21 @@ def _metrics_lean(rec: _Rows, fs: float, max_lag_s: float = 0.1) -> dict[str, fl
         # J1: R(τ) = Σ_t x(t)·y(t+τ), mean-free, |τ| ≤ L; y zero outside the record
         a, b = max(i - L, 0), min(j + L, n)
         yseg = np.zeros(j - i + 2 * L)
-        yseg[a - (i - L) : b - (i - L)] = rec.column("measured", a, b) - my
+        yseg[a - (i - L) : b - (i - L)] = rec.column(mcol, a, b) - my
         R += correlate(yseg, x - mx, mode="valid", method="fft")
     out: dict[str, float] = {}
     out["j2_nrms"] = 100.0 * math.sqrt(ee / n) / math.sqrt(xx / n) if xx > 0 else math.nan
     out["j3_peak"] = 100.0 * epk / xpk if xpk > 0 else math.nan
     out["tracking_indicator"] = 0.5 * ti
     # overlap energies of each lag (as metrics.j1_delay), from the record's head and tail
-    head_x = rec.column("target", 0, L + 1) - mx
-    tail_x = rec.column("target", n - L - 1, n) - mx
-    head_y = rec.column("measured", 0, L + 1) - my
-    tail_y = rec.column("measured", n - L - 1, n) - my
+    head_x = rec.column(tcol, 0, L + 1) - mx
+    tail_x = rec.column(tcol, n - L - 1, n) - mx
+    head_y = rec.column(mcol, 0, L + 1) - my
+    tail_y = rec.column(mcol, n - L - 1, n) - my
     tx = ty = 0.0
-    for c in _chunks(rec, ("target", "measured")):
-        tx += float(((c["target"] - mx) ** 2).sum())
-        ty += float(((c["measured"] - my) ** 2).sum())
+    for c in _chunks(rec, (tcol, mcol)):
+        tx += float(((c[tcol] - mx) ** 2).sum())
+        ty += float(((c[mcol] - my) ** 2).sum())
     lags = np.arange(-L, L + 1)
     hx = np.r_[0.0, np.cumsum(head_x * head_x)]  # Σ of the first m samples' squares
     hy = np.r_[0.0, np.cumsum(head_y * head_y)]
@@ -490,7 +536,9 @@ def format_summary(s: dict[str, Any]) -> str:
     trip = s.get("trip")
     if trip:
         lines.append(
-            f"  e-stop: {trip['rule']} at t = {_num(trip['time']):.4f} s "
+            f"  e-stop: {trip['rule']}"
+            + (f" on channel {trip['channel']}" if trip.get("channel") else "")
+            + f" at t = {_num(trip['time']):.4f} s "
             f"(step {trip['step']}): {trip['reason']}"
             + (
                 ""
@@ -500,6 +548,37 @@ def format_summary(s: dict[str, Any]) -> str:
         )
     else:
         lines.append("  e-stop: none")
+    chans = s.get("channels")
+    if chans:
+        for name, block in chans.items():
+            lines.append(f"  channel {name}:")
+            lines += ["  " + line for line in _format_channel(block)]
+    else:
+        lines += _format_channel(s)
+    lat = s.get("lateness")
+    if lat:
+        lines.append(
+            f"  lateness p50 {lat['p50'] * 1e6:.0f} µs, p99 {lat['p99'] * 1e6:.0f} µs, "
+            f"p99.9 {lat['p99.9'] * 1e6:.0f} µs, max {lat['max'] * 1e6:.0f} µs, "
+            f"overruns {lat.get('overruns')}"
+        )
+        c = s.get("overrun_causes")
+        if c:
+            lines.append(
+                f"  overruns by cause: machine {c.get('machine')} "
+                f"(+{c.get('machine_backlog')} catch-up), work {c.get('work')} "
+                f"(+{c.get('work_backlog')} catch-up)"
+            )
+    if s.get("steps_per_second"):
+        lines.append(
+            f"  {s['steps_per_second']:.0f} steps/s, missed replies {s.get('missed_replies', 0)}"
+        )
+    return "\n".join(lines)
+
+
+def _format_channel(s: dict[str, Any]) -> list[str]:
+    """Summary lines of one channel (FEI, metrics, online FEI, peaks)."""
+    lines: list[str] = []
     for key, label in (
         ("fei_target", "measured vs target "),
         ("fei_command", "measured vs command"),
@@ -533,31 +612,18 @@ def format_summary(s: dict[str, Any]) -> str:
             f"  peak target {p['target'] * 1e3:.2f} mm, measured "
             f"{p['measured'] * 1e3:.2f} mm, force {p['force'] / 1e3:.2f} kN"
         )
-    lat = s.get("lateness")
-    if lat:
-        lines.append(
-            f"  lateness p50 {lat['p50'] * 1e6:.0f} µs, p99 {lat['p99'] * 1e6:.0f} µs, "
-            f"p99.9 {lat['p99.9'] * 1e6:.0f} µs, max {lat['max'] * 1e6:.0f} µs, "
-            f"overruns {lat.get('overruns')}"
-        )
-        c = s.get("overrun_causes")
-        if c:
-            lines.append(
-                f"  overruns by cause: machine {c.get('machine')} "
-                f"(+{c.get('machine_backlog')} catch-up), work {c.get('work')} "
-                f"(+{c.get('work_backlog')} catch-up)"
-            )
-    if s.get("steps_per_second"):
-        lines.append(
-            f"  {s['steps_per_second']:.0f} steps/s, missed replies {s.get('missed_replies', 0)}"
-        )
-    return "\n".join(lines)
+    return lines
 
 
 def plot_report(
     run_dir: str | Path, path: str | Path | None = None, max_points: int = 20_000
 ) -> Path:
     """Draw ``report.png`` (the FEI paper's Fig. 5.1 and 5.2 style) for a run directory.
+
+    One channel: displacements, a zoom around the peak, online FEI A and d (streaming curve,
+    exact cross-check dots at their windows' ends), lateness or Kalman. Several channels: a
+    displacement panel and the FEI A and d panels per channel, then the lateness or Kalman
+    panel of the first channel.
 
     Returns the path of the PNG. The record is read in chunks; a record longer than
     ``max_points`` rows is drawn as its min/max envelope over ``max_points / 2`` buckets (every
@@ -570,70 +636,88 @@ def plot_report(
 
     run = read_run(run_dir, mmap=True)
     out = Path(path) if path is not None else run.path / "report.png"
+    chans = channel_suffixes(run)
+    multi = len(chans) > 1
+    per_channel = (
+        "target", "command", "measured", "fei_amplitude", "fei_delay", "fei_valid",
+        "kf_delay", "kf_gain",
+    )  # fmt: skip
     with _Rows(run.path / RECORD_FILE) as src:
-        cols = (
-            "target", "command", "measured", "fei_amplitude", "fei_delay", "fei_valid",
-            "fei_exact_amplitude", "fei_exact_delay", "fei_exact_valid", "lateness",
-            "kf_delay", "kf_gain",
-        )  # fmt: skip
+        cols = ("lateness", *(c + sfx for _, sfx in chans for c in per_channel))
         env = _envelopes(src, cols, max_points)
         n = len(src)
-        # zoom around the peak target displacement: ±1 s of full-rate rows
-        ipk, best = 0, -1.0
-        for i in range(0, n, _CHUNK):
-            x = np.abs(src.column("target", i, i + _CHUNK))
-            if x.size and np.isfinite(x).any():
-                j = int(np.nanargmax(x))
-                if x[j] > best:
-                    ipk, best = i + j, float(x[j])
-        zoom = src.read(max(ipk - int(run.fs), 0), ipk + int(run.fs) + 1) if n else None
-        exact = _exact_points(src)
+        zoom = None
+        if not multi and n:  # zoom around the peak target displacement: ±1 s of full rate
+            ipk, best = 0, -1.0
+            for i in range(0, n, _CHUNK):
+                x = np.abs(src.column("target", i, i + _CHUNK))
+                if x.size and np.isfinite(x).any():
+                    j = int(np.nanargmax(x))
+                    if x[j] > best:
+                        ipk, best = i + j, float(x[j])
+            zoom = src.read(max(ipk - int(run.fs), 0), ipk + int(run.fs) + 1)
+        exact = {sfx: _exact_points(src, run.fs, sfx) for _, sfx in chans}
     t = env["time"]
     mm = 1e3
     paced = run.meta.get("mode") == "paced"
-    fig, axes = plt.subplots(5, 1, figsize=(11, 13), constrained_layout=True)
-    ax = axes[0]
-    ax.plot(t, env["target"] * mm, lw=1.0, label="calculated (target)")
-    ax.plot(t, env["command"] * mm, lw=0.8, label="command")
-    ax.plot(t, env["measured"] * mm, lw=0.8, ls="--", label="measured")
-    ax.set_ylabel("displacement (mm)")
-    ax.set_title(f"{run.path.name}: displacements (cf. the FEI paper's Fig. 5.1)")
-    ax.legend(loc="upper right", fontsize=8)
-    ax = axes[1]
-    if zoom is not None and len(zoom):
-        tz = zoom["time"]
-        ax.plot(tz, zoom["target"] * mm, lw=1.2, label="calculated (target)")
-        ax.plot(tz, zoom["command"] * mm, lw=1.0, label="command")
-        ax.plot(tz, zoom["measured"] * mm, lw=1.0, ls="--", label="measured")
-        ax.legend(loc="upper right", fontsize=8)
-    ax.set_ylabel("displacement (mm)")
-    ax.set_title("around the peak")
-    valid = env["fei_valid"] > 0.5
-    for ax, col, ex, scale, label in (
-        (axes[2], "fei_amplitude", "fei_exact_amplitude", 1.0, "A"),
-        (axes[3], "fei_delay", "fei_exact_delay", 1e3, "d (ms)"),
-    ):
-        ax.plot(t, env[col] * scale, lw=1.0, label="online, streaming")
-        ax.plot(exact["time"], exact[ex] * scale, "o", ms=3, label="exact (cross-check)")
-        _shade_invalid(ax, t, valid)
-        ax.set_ylabel(label)
-        ax.legend(loc="upper right", fontsize=8)
-    axes[2].set_title(
-        f"online FEI, measured vs {run.meta.get('fei_pair', 'target')} "
-        "(cf. the FEI paper's Fig. 5.2); grey: invalid windows"
+    per = 3 if multi else 4
+    rows = per * len(chans) + 1
+    fig, axes = plt.subplots(
+        rows, 1, figsize=(11, 2.6 * rows), constrained_layout=True, squeeze=False
     )
-    ax = axes[4]
+    axes = axes[:, 0]
+    pair = run.meta.get("fei_pair", "target")
+    for c, (name, sfx) in enumerate(chans):
+        head = f"channel {name}: " if multi else ""
+        ax = axes[per * c]
+        ax.plot(t, env["target" + sfx] * mm, lw=1.0, label="calculated (target)")
+        ax.plot(t, env["command" + sfx] * mm, lw=0.8, label="command")
+        ax.plot(t, env["measured" + sfx] * mm, lw=0.8, ls="--", label="measured")
+        ax.set_ylabel("displacement (mm)")
+        ax.set_title(f"{run.path.name}: {head}displacements (cf. the FEI paper's Fig. 5.1)")
+        ax.legend(loc="upper right", fontsize=8)
+        k = per * c + 1
+        if not multi:
+            ax = axes[k]
+            if zoom is not None and len(zoom):
+                tz = zoom["time"]
+                ax.plot(tz, zoom["target"] * mm, lw=1.2, label="calculated (target)")
+                ax.plot(tz, zoom["command"] * mm, lw=1.0, label="command")
+                ax.plot(tz, zoom["measured"] * mm, lw=1.0, ls="--", label="measured")
+                ax.legend(loc="upper right", fontsize=8)
+            ax.set_ylabel("displacement (mm)")
+            ax.set_title("around the peak")
+            k += 1
+        valid = env["fei_valid" + sfx] > 0.5
+        ex = exact[sfx]
+        for ax, col, exv, scale, label in (
+            (axes[k], "fei_amplitude", ex["amplitude"], 1.0, "A"),
+            (axes[k + 1], "fei_delay", ex["delay"], 1e3, "d (ms)"),
+        ):
+            ax.plot(t, env[col + sfx] * scale, lw=1.0, label="online, streaming")
+            ax.plot(ex["time"], exv * scale, "o", ms=3, label="exact (cross-check)")
+            _shade_invalid(ax, t, valid)
+            ax.set_ylabel(label)
+            ax.legend(loc="upper right", fontsize=8)
+        axes[k].set_title(
+            f"{head}online FEI, measured vs {pair} (cf. the FEI paper's Fig. 5.2); "
+            "grey: invalid windows"
+        )
+    ax = axes[-1]
+    sfx = chans[0][1]
     if paced:
         ax.plot(t, env["lateness"] * 1e6, lw=0.6)
         ax.set_ylabel("lateness (µs)")
         ax.set_title("send time minus deadline")
     else:
-        ax.plot(t, env["kf_delay"] * 1e3, lw=1.0, label="Kalman delay (ms)")
+        ax.plot(t, env["kf_delay" + sfx] * 1e3, lw=1.0, label="Kalman delay (ms)")
         ax2 = ax.twinx()
-        ax2.plot(t, env["kf_gain"], lw=1.0, color="C1", label="Kalman gain")
+        ax2.plot(t, env["kf_gain" + sfx], lw=1.0, color="C1", label="Kalman gain")
         ax.set_ylabel("delay (ms)")
         ax2.set_ylabel("gain")
-        ax.set_title("Kalman estimates of the actuator")
+        ax.set_title(
+            "Kalman estimates of the actuator" + (f" (channel {chans[0][0]})" if multi else "")
+        )
     ax.set_xlabel("time (s)")
     for tr in _events(run, "trip") + _events(run, "operator_stop"):
         for a in axes:
@@ -670,24 +754,35 @@ def _envelopes(src: _Rows, names, max_points: int) -> dict[str, np.ndarray]:
                 lo, hi = np.nanmin(v, axis=1), np.nanmax(v, axis=1)
             if k == "time":
                 lo, hi = v[:, 0], v[:, -1]
-            elif k == "fei_valid":
+            elif k.startswith("fei_valid"):
                 hi = lo
             out[k].append(np.column_stack([lo, hi]).ravel())
     return {k: np.concatenate(v) if v else np.zeros(0) for k, v in out.items()}
 
 
-def _exact_points(src: _Rows) -> dict[str, np.ndarray]:
-    """Rows where a new exact-FEI window (valid, finite) was recorded."""
-    keep: dict[str, list] = {"time": [], "fei_exact_amplitude": [], "fei_exact_delay": []}
-    prev = np.nan
+def _exact_points(src: _Rows, fs: float, sfx: str = "") -> dict[str, np.ndarray]:
+    """The exact-FEI cross-check of a channel, chunk by chunk: ``time`` (s), ``amplitude``,
+    ``delay``, one point per new valid window, at the step its window ended
+    (``fei_exact_step``; see :func:`exact_fei_points`)."""
+    keep: dict[str, list] = {"time": [], "amplitude": [], "delay": []}
+    has_step = "fei_exact_step" + sfx in (src.dtype.names or ())
+    prev = -1 if has_step else np.nan
     for i in range(0, len(src), _CHUNK):
         part = src.read(i, i + _CHUNK)
-        ex = np.asarray(part["fei_exact_amplitude"], dtype=float)
-        change = np.diff(ex, prepend=prev) != 0
-        prev = ex[-1] if ex.size else prev
-        sel = change & part["fei_exact_valid"].astype(bool) & np.isfinite(ex)
-        for k in keep:
-            keep[k].append(np.asarray(part[k][sel], dtype=float))
+        amp = np.asarray(part["fei_exact_amplitude" + sfx], dtype=float)
+        ok = part["fei_exact_valid" + sfx].astype(bool) & np.isfinite(amp)
+        if has_step:
+            end = np.asarray(part["fei_exact_step" + sfx], dtype=np.int64)
+            sel = (np.diff(end, prepend=prev) != 0) & (end >= 0) & ok
+            prev = end[-1] if end.size else prev
+            t_end = end[sel] / fs
+        else:  # records before fei_exact_step: where the value appeared
+            sel = (np.diff(amp, prepend=prev) != 0) & ok
+            prev = amp[-1] if amp.size else prev
+            t_end = np.asarray(part["time"][sel], dtype=float)
+        keep["time"].append(t_end)
+        keep["amplitude"].append(amp[sel])
+        keep["delay"].append(np.asarray(part["fei_exact_delay" + sfx][sel], dtype=float))
     return {k: np.concatenate(v) if v else np.zeros(0) for k, v in keep.items()}
 
 

@@ -12,6 +12,13 @@ The bus is opened through python-can from configuration: ``interface`` (default
 ``bus_options``. On Linux with SocketCAN use ``interface="socketcan", channel="vcan0"``
 (or ``can0``).
 
+**Several actuators on one bus.** Each controller is a CAN *node* ``n`` (``node``, 0–15): all
+its message identifiers are the DBC's plus ``n`` (``Command`` 0x100 + n, ``Feedback``
+0x180 + n, ``EStop`` 0x010 + n, ``Heartbeat`` 0x700 + n), so node 0 is the plain DBC and every
+node's e-stop still outranks every command. The drivers of the nodes on one bus share one
+python-can bus object (:func:`shared_bus`): a driver that reads another node's feedback off it
+hands the frame to that node's inbox, so every frame is read once.
+
 Every receive honours its timeout. Not every python-can interface does: ``serial`` (and other
 interfaces built on a blocking read) wait their own read timeout (0.1 s) whatever ``recv`` is
 given, which would make a paced loop's watchdog count wall-clock seconds as single steps. On
@@ -24,7 +31,9 @@ from __future__ import annotations
 
 import math
 import queue
+import threading
 import time
+from collections import deque
 from typing import Any, ClassVar
 
 import can
@@ -35,7 +44,18 @@ from rths_hil.errors import InputError
 from ..base import Driver, Feedback, check_command
 from .codec import ActuatorCodecs, Frame, load
 
-__all__ = ["TIMEOUT_HONOURED", "CANDriver", "virtual_rx_queue"]
+__all__ = [
+    "MAX_NODE",
+    "TIMEOUT_HONOURED",
+    "CANDriver",
+    "SharedBus",
+    "release_bus",
+    "shared_bus",
+    "virtual_rx_queue",
+]
+
+#: Highest CAN node number (identifier offset) of an actuator on a shared bus.
+MAX_NODE = 15
 
 #: python-can interfaces whose ``recv(timeout)`` returns within the timeout (read directly);
 #: any other is read through a :class:`can.Notifier` thread (see the module docstring).
@@ -58,6 +78,86 @@ def virtual_rx_queue(bus: can.BusABC | None) -> queue.Queue | None:
     return q if isinstance(q, queue.Queue) else None
 
 
+class SharedBus:
+    """One python-can bus opened once per (side, interface, channel) and shared by its nodes.
+
+    Attributes
+    ----------
+    bus : can.BusABC
+    rxq : queue.Queue or None
+        The virtual bus's receive queue (:func:`virtual_rx_queue`), else None.
+    inboxes : dict
+        Arbitration id → deque of frames read by another user of the bus (driver side).
+    handlers : dict
+        Arbitration id → endpoint that handles it (twin side).
+    """
+
+    def __init__(self, key: tuple, bus: can.BusABC) -> None:
+        self.key = key
+        self.bus = bus
+        self.rxq = virtual_rx_queue(bus)
+        self.refs = 0
+        self.inboxes: dict[int, deque] = {}
+        self.handlers: dict[int, Any] = {}
+        self.reader: can.BufferedReader | None = None
+        self.notifier: can.Notifier | None = None
+
+
+_SHARED: dict[tuple, SharedBus] = {}
+_SHARED_LOCK = threading.Lock()
+
+
+def shared_bus(side: str, interface: str, channel: str, **kwargs: Any) -> SharedBus:
+    """The bus of ``side`` (``"bridge"`` or ``"twin"``) on ``interface``/``channel``, opened once.
+
+    Raises
+    ------
+    InputError
+        The bus cannot be opened.
+    """
+    key = (side, str(interface), str(channel))
+    with _SHARED_LOCK:
+        share = _SHARED.get(key)
+        if share is None:
+            try:
+                bus = can.Bus(interface=interface, channel=channel, **kwargs)
+            except _BUS_ERRORS as exc:
+                raise InputError(
+                    f"CAN: cannot open interface {interface!r} channel {channel!r}: {exc}"
+                ) from None
+            share = _SHARED[key] = SharedBus(key, bus)
+            if side == "bridge" and str(interface) not in TIMEOUT_HONOURED:
+                share.reader = can.BufferedReader()
+                share.notifier = can.Notifier(bus, [share.reader], timeout=0.01)
+        share.refs += 1
+        return share
+
+
+def release_bus(share: SharedBus) -> None:
+    """Drop one user of ``share``; the last one shuts the bus down."""
+    with _SHARED_LOCK:
+        share.refs -= 1
+        if share.refs > 0:
+            return
+        _SHARED.pop(share.key, None)
+    notifier, share.notifier = share.notifier, None
+    if notifier is not None:
+        try:
+            notifier.stop(timeout=1.0)
+        except _BUS_ERRORS:  # pragma: no cover - already gone
+            pass
+    try:
+        share.bus.shutdown()
+    except _BUS_ERRORS:  # pragma: no cover - already gone
+        pass
+
+
+def _check_node(node: int) -> int:
+    if isinstance(node, bool) or not isinstance(node, int) or not 0 <= node <= MAX_NODE:
+        raise InputError(f"CAN: node must be an integer 0..{MAX_NODE}, got {node!r}")
+    return node
+
+
 class CANDriver(Driver):
     """Lockstep actuator driver over CAN (see the module docstring).
 
@@ -73,6 +173,8 @@ class CANDriver(Driver):
         Path to a DBC replacing the shipped one (same message and signal names).
     bus_options : dict, optional
         Extra keyword arguments for ``can.Bus``.
+    node : int
+        CAN node of the controller (0–15): every identifier is offset by it (module docstring).
     """
 
     name: ClassVar[str] = "can"
@@ -84,8 +186,10 @@ class CANDriver(Driver):
         bitrate: int | None = None,
         dbc: str | None = None,
         bus_options: dict[str, Any] | None = None,
+        node: int = 0,
     ) -> None:
         super().__init__()
+        self.node = _check_node(node)
         self.interface = str(interface)
         self.channel = str(channel)
         self.bitrate = None if bitrate is None else int(bitrate)
@@ -100,7 +204,7 @@ class CANDriver(Driver):
         self._c_scale, self._c_offset = cmd.scales[1], cmd.offsets[1]
         self._c_lo, self._c_hi = cmd.raw_range(1)
         self._c_len = cmd.length
-        self._f_id, self._f_len = fb.frame_id, fb.length
+        self._f_id, self._f_len = fb.frame_id + node, fb.length
         # Feedback: Seq, Status, Displacement, Force — bit positions, masks, sign bits, scales
         # and INVALID values as one tuple: _handle unpacks it once per frame.
         self._f_layout = (
@@ -118,11 +222,15 @@ class CANDriver(Driver):
             fb.invalid[3],
         )
         # one command frame, reused: its payload is rewritten in place by send()
-        self._cmd_msg = Frame.blank(cmd.frame_id, cmd.length)
+        self._cmd_msg = Frame.blank(cmd.frame_id + node, cmd.length)
         self._cmd_data = self._cmd_msg.data
+        self._estop_id = self.codecs.estop.frame_id + node
+        self._hb_id = self.codecs.heartbeat.frame_id + node
         self._bus: can.BusABC | None = None
         self._rxq: queue.Queue | None = None
-        self._notifier: can.Notifier | None = None
+        self._share: SharedBus | None = None
+        self._box: deque = deque()  # frames for this node read off the bus by another node
+        self._routes: dict[int, deque] = {}
         self._reader: can.BufferedReader | None = None
         self._hb = 0
 
@@ -133,32 +241,29 @@ class CANDriver(Driver):
         if self.bitrate is not None:
             kwargs["bitrate"] = self.bitrate
         try:
-            self._bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
-        except _BUS_ERRORS as exc:
+            share = shared_bus("bridge", self.interface, self.channel, **kwargs)
+        except InputError as exc:
+            raise InputError(f"CAN driver: {exc}") from None
+        if self._f_id in share.inboxes:
+            release_bus(share)
             raise InputError(
-                f"CAN driver: cannot open interface {self.interface!r} channel "
-                f"{self.channel!r}: {exc}"
-            ) from None
-        self._rxq = virtual_rx_queue(self._bus)
-        if self.interface not in TIMEOUT_HONOURED:
-            self._reader = can.BufferedReader()
-            self._notifier = can.Notifier(self._bus, [self._reader], timeout=0.01)
+                f"CAN driver: node {self.node} is already open on channel {self.channel!r}"
+            )
+        self._share = share
+        self._box = share.inboxes[self._f_id] = deque()
+        self._routes = share.inboxes
+        self._bus = share.bus
+        self._rxq = share.rxq
+        self._reader = share.reader
 
     def close(self) -> None:
-        bus, self._bus = self._bus, None
+        share, self._share = self._share, None
+        self._bus = None
         self._rxq = None
-        notifier, self._notifier = self._notifier, None
         self._reader = None
-        if notifier is not None:
-            try:
-                notifier.stop(timeout=1.0)
-            except _BUS_ERRORS:  # pragma: no cover - already gone
-                pass
-        if bus is not None:
-            try:
-                bus.shutdown()
-            except _BUS_ERRORS:  # pragma: no cover - already gone
-                pass
+        if share is not None:
+            share.inboxes.pop(self._f_id, None)
+            release_bus(share)
 
     def _send_frame(self, msg: can.Message) -> None:
         if self._bus is None:
@@ -190,13 +295,13 @@ class CANDriver(Driver):
         c = self.codecs.estop
         self.stats.estops += 1
         data = c.pack(self.codecs.estop_key)
-        self._send_frame(Frame(arbitration_id=c.frame_id, data=data, is_extended_id=False))
+        self._send_frame(Frame(arbitration_id=self._estop_id, data=data, is_extended_id=False))
 
     def heartbeat(self) -> None:
         c = self.codecs.heartbeat
         self._hb = (self._hb + 1) & 0xFF
         self._send_frame(
-            Frame(arbitration_id=c.frame_id, data=c.pack(self._hb), is_extended_id=False)
+            Frame(arbitration_id=self._hb_id, data=c.pack(self._hb), is_extended_id=False)
         )
 
     def receive(self, timeout: float) -> Feedback | None:
@@ -205,6 +310,11 @@ class CANDriver(Driver):
         if bus is None:
             stats.timeouts += 1
             return None
+        box = self._box
+        while box:  # read off the shared bus by another node's driver
+            fb = self._handle(box.popleft())
+            if fb is not None:
+                return fb
         deadline = time.perf_counter() + timeout
         remaining = timeout
         q = self._rxq
@@ -217,7 +327,13 @@ class CANDriver(Driver):
                     msg = None
             elif reader is not None:  # an interface that ignores the timeout: its reader
                 msg = reader.get_message(max(remaining, 0.0))
-                if msg is None and self._notifier is not None and self._notifier.exception:
+                share = self._share
+                if (
+                    msg is None
+                    and share is not None
+                    and share.notifier
+                    and share.notifier.exception
+                ):
                     stats.disconnects += 1
             else:
                 try:
@@ -242,6 +358,10 @@ class CANDriver(Driver):
             stats.count_malformed("bad_frame")
             return None
         if msg.arbitration_id != self._f_id:
+            other = self._routes.get(msg.arbitration_id)
+            if other is not None:  # another node's feedback on the shared bus
+                other.append(msg)
+                return None
             stats.count_malformed("unknown_id")
             return None
         data = msg.data

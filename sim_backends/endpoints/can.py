@@ -11,6 +11,11 @@ compiled once from the DBC (the same layout as :class:`drivers.can.codec.Message
 tests check it against cantools) and sends one reused :class:`drivers.can.codec.Frame` whose
 payload is rewritten in place. Served inline on python-can's virtual bus, :meth:`CANTwin.pump`
 reads the bus's receive queue directly (:func:`drivers.can.virtual_rx_queue`).
+
+Several twins on one bus are CAN nodes (``node``: every identifier offset by the node number,
+see :mod:`drivers.can`). They share one python-can bus object (:func:`drivers.can.shared_bus`,
+twin side); whichever endpoint reads a frame hands it to the endpoint of its identifier, so
+pumping any of them (inline) or any of their threads serves them all.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from typing import Any
 
 import can
 
-from drivers.can import virtual_rx_queue
+from drivers.can import SharedBus, _check_node, release_bus, shared_bus
 from drivers.can.codec import Frame, load
 from rths_hil.errors import InputError
 
@@ -41,8 +46,10 @@ class CANTwin(TwinEndpoint):
         bitrate: int | None = None,
         dbc: str | None = None,
         bus_options: dict[str, Any] | None = None,
+        node: int = 0,
     ) -> None:
         super().__init__(controller)
+        self.node = _check_node(node)
         self.interface, self.channel, self.bitrate = str(interface), str(channel), bitrate
         self.dbc = dbc
         self.bus_options = dict(bus_options or {})
@@ -52,7 +59,7 @@ class CANTwin(TwinEndpoint):
         # Command (Seq, Displacement, Control) decoding, compiled: one tuple read per frame.
         sign = cmd.sign_bit(1)
         self._cmd_layout = (
-            cmd.frame_id,
+            cmd.frame_id + node,
             cmd.length,
             *cmd.field(0),
             *cmd.field(1),
@@ -82,7 +89,12 @@ class CANTwin(TwinEndpoint):
             fb.length,
         )
         # the feedback frame, reused: _encode rewrites its payload in place
-        self._fb_frame = Frame.blank(fb.frame_id, fb.length)
+        self._fb_frame = Frame.blank(fb.frame_id + node, fb.length)
+        self._estop_id = c.estop.frame_id + node
+        self._hb_id = c.heartbeat.frame_id + node
+        self._ids = (cmd.frame_id + node, self._estop_id, self._hb_id)
+        self._share: SharedBus | None = None
+        self._handlers: dict[int, CANTwin] = {}
         self._fb_data = self._fb_frame.data
         self._fb_frames = [self._fb_frame]
         self._bus: can.BusABC | None = None
@@ -93,27 +105,44 @@ class CANTwin(TwinEndpoint):
         if self.bitrate is not None:
             kwargs["bitrate"] = self.bitrate
         try:
-            self._bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
-        except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
-            raise InputError(
-                f"CAN twin: cannot open interface {self.interface!r} channel "
-                f"{self.channel!r}: {exc}"
-            ) from None
+            share = shared_bus("twin", self.interface, self.channel, **kwargs)
+        except InputError as exc:
+            raise InputError(f"CAN twin: {exc}") from None
+        if any(i in share.handlers for i in self._ids):
+            release_bus(share)
+            raise InputError(f"CAN twin: node {self.node} already served on {self.channel!r}")
+        for i in self._ids:
+            share.handlers[i] = self
+        self._share = share
+        self._handlers = share.handlers
+        self._bus = share.bus
         self.connection = {"interface": self.interface, "channel": self.channel}
+        if self.node:
+            self.connection["node"] = self.node
         if self.bitrate is not None:
             self.connection["bitrate"] = self.bitrate
         if self.dbc is not None:
             self.connection["dbc"] = self.dbc
         if self.bus_options:
             self.connection["bus_options"] = dict(self.bus_options)
-        self.where = f"CAN interface {self.interface} channel {self.channel}"
-        self._rxq = virtual_rx_queue(self._bus)
+        self.where = f"CAN interface {self.interface} channel {self.channel} node {self.node}"
+        self._rxq = share.rxq
 
     def _teardown(self) -> None:
-        bus, self._bus = self._bus, None
+        share, self._share = self._share, None
+        self._bus = None
         self._rxq = None
-        if bus is not None:
-            bus.shutdown()
+        if share is not None:
+            for i in self._ids:
+                if share.handlers.get(i) is self:
+                    del share.handlers[i]
+            release_bus(share)
+
+    def _dispatch(self, msg: can.Message) -> None:
+        """Handle ``msg`` in the endpoint of its identifier (this one when unknown)."""
+        ep = self._handlers.get(msg.arbitration_id, self)
+        if not ep._gone:
+            ep._handle(msg)
 
     @property
     def supports_inline(self) -> bool:  # type: ignore[override]
@@ -127,17 +156,14 @@ class CANTwin(TwinEndpoint):
         q = self._rxq
         if q is not None:  # python-can's virtual bus: its receive queue, no filters
             while q.qsize():
-                msg = q.get_nowait()
-                if not self._gone:
-                    self._handle(msg)
+                self._dispatch(q.get_nowait())
                 n += 1
         else:
             while bus is not None:
                 msg = bus.recv(0.0)
                 if msg is None:
                     break
-                if not self._gone:
-                    self._handle(msg)
+                self._dispatch(msg)
                 n += 1
         self.controller.check_watchdog()
         return n
@@ -146,9 +172,9 @@ class CANTwin(TwinEndpoint):
         bus = self._bus
         assert bus is not None
         msg = bus.recv(timeout)
-        if msg is None or self._gone:
+        if msg is None:
             return
-        self._handle(msg)
+        self._dispatch(msg)
 
     def _handle(self, msg: can.Message) -> None:
         ctl = self.controller
@@ -173,12 +199,12 @@ class CANTwin(TwinEndpoint):
             )
             return
         c = self.codecs
-        if fid == c.estop.frame_id:
+        if fid == self._estop_id:
             if len(msg.data) == 1 and msg.data[0] == c.estop_key:
                 ctl.estop()
             else:
                 ctl.stats.malformed += 1
-        elif fid == c.heartbeat.frame_id:
+        elif fid == self._hb_id:
             ctl.heartbeat()
         else:
             ctl.stats.malformed += 1
