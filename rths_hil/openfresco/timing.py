@@ -1,0 +1,506 @@
+"""Timing modes of the experimental site: how OpenSees' trials become actuator commands.
+
+The loop calls :meth:`TimingMode.step` once per loop step ``k`` with the measurement of the
+command it sent at step ``k`` and sends the returned command at step ``k + 1``; the actuator
+never waits on OpenSees' schedule. A *target* is the trial whose forces OpenSees asked for
+(:class:`rths_hil.openfresco.server.Target`); its measurement is handed back through the
+:class:`~rths_hil.openfresco.server.Mailbox` at the first loop step whose command equals it.
+
+:class:`Lockstep`
+    Virtual time (loop ``mode = "lockstep"``): each target is executed by a linear ramp from
+    the current command over the trial's time step (from the trial's time block, rounded to
+    whole loop steps, at least one), the force measured at the end of the ramp is returned,
+    then the loop waits for the next target. Deterministic; for CI and what-if runs.
+:class:`PredictorCorrector`
+    Real time (loop ``mode = "paced"``): the loop is the master at its own rate and a new
+    target is due every ``k_sub = element step / loop step`` loop steps. Between targets the
+    command is extrapolated from the last targets by a Lagrange polynomial (the *predictor*);
+    when the new target arrives the command is steered from where the prediction left it to
+    the target so that it arrives at the end of the cycle (the *corrector*). This is the
+    predictor–corrector of Schellenberg, Mahin and Fenves (2009) after Mosqueda, Stojadinovic
+    and Mahin (2007), here in the form::
+
+        predictor   c(s) = L_p(s),                  L_p through the last p + 1 targets (s_j, d_j)
+        corrector   c(s) = L_c(s) + (c_r − L_c(s_r))·(s_e − s)/(s_e − s_r)
+
+    where ``s`` is the loop step, ``L_c`` interpolates the last ``p`` targets and the new one
+    placed at the cycle's end ``s_e``, and ``c_r`` is the last command sent before the target
+    arrived at step ``s_r`` (the blending term keeps the command continuous and vanishes at
+    ``s_e``). A cycle ends at ``max(s_i + k_sub, s_r + 1)``: a late target stretches it. When
+    the next command would be the end of the cycle and no target has come, the loop waits up
+    to ``wait`` seconds for it (so one-loop-step element steps can run in real time); if the
+    target is later than ``hold_after`` past the cycle's end the actuator holds, later than
+    ``estop_after`` the site faults (e-stop). Every loop step is recorded as executed,
+    predicted, corrected or held, and every target with OpenSees' latency (from the force
+    reply to the next request).
+:class:`RampHold`
+    Slow continuous testing (loop ``mode = "paced"``): each target is reached by a linear ramp
+    of ``ramp_time`` seconds, held ``hold_time`` seconds, then its force is returned; the
+    actuator holds while OpenSees computes.
+
+References
+----------
+A. Schellenberg, S. A. Mahin, G. L. Fenves, "Advanced implementation of hybrid simulation",
+PEER Report 2009/104, Section 4.3 (predictor–corrector for continuous testing).
+G. Mosqueda, B. Stojadinovic, S. A. Mahin, "Real-time error monitoring for hybrid simulation.
+Part I: Methodology and experimental verification", J. Struct. Eng. 133(8), 1100–1108, 2007.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+
+import numpy as np
+
+from .server import Mailbox, Target
+
+__all__ = [
+    "CORRECTED",
+    "EXECUTED",
+    "HELD",
+    "IDLE",
+    "KINDS",
+    "PREDICTED",
+    "Lockstep",
+    "PredictorCorrector",
+    "RampHold",
+    "SiteFault",
+    "TimingMode",
+    "make_timing",
+]
+
+IDLE, EXECUTED, PREDICTED, CORRECTED, HELD = 0, 1, 2, 3, 4
+#: Per-step command kinds as recorded.
+KINDS = {IDLE: "idle", EXECUTED: "executed", PREDICTED: "predicted", CORRECTED: "corrected",
+         HELD: "held"}  # fmt: skip
+
+
+class SiteFault(Exception):
+    """The session failed (disconnect, bad frame, OpenSees too late): one line, e-stop."""
+
+
+def lagrange(xs: list[float], ys: list[np.ndarray], x: float) -> np.ndarray:
+    """Lagrange polynomial through ``(xs[j], ys[j])`` evaluated at ``x`` (extrapolates too)."""
+    out = np.zeros_like(ys[0])
+    n = len(xs)
+    for j in range(n):
+        w = 1.0
+        xj = xs[j]
+        for m in range(n):
+            if m != j:
+                w *= (x - xs[m]) / (xj - xs[m])
+        out += w * ys[j]
+    return out
+
+
+class TimingMode:
+    """Common bookkeeping: the command, the per-step kinds and the per-target log.
+
+    Parameters
+    ----------
+    mailbox : Mailbox
+        Shared with the server thread.
+    n : int
+        Number of actuator channels.
+    dt : float
+        Loop step in seconds.
+    start_timeout : float
+        Seconds to wait for the first target.
+    client_timeout : float
+        Seconds to wait for any later target (lockstep and ramp-hold; 0 = no limit).
+    """
+
+    name = ""
+
+    def __init__(
+        self,
+        mailbox: Mailbox,
+        n: int,
+        dt: float,
+        *,
+        start_timeout: float = 60.0,
+        client_timeout: float = 60.0,
+    ) -> None:
+        self.mb = mailbox
+        self.n = int(n)
+        self.dt = float(dt)
+        self.start_timeout = float(start_timeout)
+        self.client_timeout = float(client_timeout)
+        self.cmd = np.zeros(self.n)
+        self.kinds: list[int] = []
+        #: per target: (seq, loop step it arrived at, latency s, trial time s)
+        self.targets: list[tuple[int, int, float, float]] = []
+        self.seq = 0  # last target taken
+        self.pending: Target | None = None  # taken, its force not yet returned
+        self.wall_reply = time.perf_counter()
+        self.t_trial = 0.0  # time block of the last target
+        self.finished = False
+
+    # -- helpers ------------------------------------------------------------------------------
+    def _check_closed(self) -> bool:
+        """True when the client said DIE; :class:`SiteFault` on any other end of session."""
+        mb = self.mb
+        if mb.closed is None:
+            return False
+        if mb.fault or mb.closed != "die":
+            raise SiteFault(mb.closed if mb.fault else f"openfresco: {mb.closed}")
+        self.finished = True
+        return True
+
+    def _new_target(self) -> Target | None:
+        t = self.mb.target
+        if t is not None and t.seq > self.seq:
+            return t
+        return None
+
+    def _take(self, t: Target, k: int) -> None:
+        self.seq = t.seq
+        self.pending = t
+        lat = t.wall - self.wall_reply if self.targets else math.nan
+        self.targets.append((t.seq, k, lat, t.time))
+
+    def _reply(self, k: int, disp: np.ndarray, force: np.ndarray) -> None:
+        t = self.pending
+        self.pending = None
+        self.wall_reply = time.perf_counter()
+        d = np.array(disp, dtype=float)
+        self.mb.post_reply(t.seq, d, np.array(force, dtype=float), k * self.dt)
+
+    def _steps_for(self, t: Target, default: float) -> int:
+        """Loop steps to spend on a target: its time step (from the time block) or ``default``."""
+        span = t.time - self.t_trial if math.isfinite(t.time) else default
+        if math.isfinite(t.time):
+            self.t_trial = t.time
+        return max(1, round(span / self.dt)) if span > 0 else 1
+
+    def step(self, k: int, disp: np.ndarray, force: np.ndarray) -> np.ndarray | None:
+        """Measurement of step ``k`` in; command of step ``k + 1`` out (None: client done)."""
+        raise NotImplementedError
+
+    # -- summary ------------------------------------------------------------------------------
+    def kind_counts(self) -> dict[str, int]:
+        """How many loop steps were idle, executed, predicted, corrected, held."""
+        a = np.bincount(np.asarray(self.kinds, dtype=int), minlength=len(KINDS))
+        return {KINDS[i]: int(a[i]) for i in KINDS}
+
+    def latencies(self) -> np.ndarray:
+        """OpenSees' latency per target (s): from the force reply to the next request."""
+        lat = np.array([t[2] for t in self.targets], dtype=float)
+        return lat[np.isfinite(lat)]
+
+
+class _RampBase(TimingMode):
+    """Ramp to each target over some loop steps, return the force at its end."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.ramp: deque[np.ndarray] = deque()
+        self.reply_at: int | None = None  # loop step whose measurement answers the target
+        self.vel = np.zeros(self.n)  # slope of the path at the current target
+        self.hermite = False
+        self.path: deque[tuple[float, np.ndarray]] = deque(maxlen=2)  # (virtual time, target)
+
+    def _start_ramp(self, t: Target, k: int, steps: int, hold: int = 0) -> None:
+        """Ramp from the current command to ``t`` over ``steps`` loop steps, then hold.
+
+        Lockstep uses a C¹ cubic Hermite path: its slope at each target is the three-point
+        backward difference through the last three targets, ``(3d₂ − 4d₁ + d₀)/(2h)`` on a
+        uniform grid (second-order accurate; the non-uniform form below), so the specimen
+        moves through the targets with the velocity of a smooth path. The client's own
+        velocity block is not used: its meaning depends on the integrator (Newmark's
+        predictor sends ``−v_n``).
+        """
+        self._take(t, k)
+        c0 = self.cmd
+        d = np.array(t.displacement, dtype=float)
+        span = steps * self.dt
+        v0 = self.vel
+        v1 = None
+        if self.hermite and self.path:
+            (t0, d0), (t1, d1) = (
+                self.path[-2] if len(self.path) > 1 else self.path[-1],
+                self.path[-1],
+            )
+            h2 = span
+            h1 = t1 - t0
+            if h1 > 0:  # f'(t2) from (t0, d0), (t1, d1), (t2, d)
+                v1 = (
+                    d0 * (h2 / (h1 * (h1 + h2)))
+                    - d1 * ((h1 + h2) / (h1 * h2))
+                    + d * ((2.0 * h2 + h1) / (h2 * (h1 + h2)))
+                )
+            else:
+                v1 = (d - d1) / h2
+        for j in range(1, steps + 1):
+            s = j / steps
+            if v1 is not None:
+                # cubic Hermite: position and velocity continuous at both ends of the ramp
+                h00 = (1.0 + 2.0 * s) * (1.0 - s) ** 2
+                h10 = s * (1.0 - s) ** 2
+                h01 = s * s * (3.0 - 2.0 * s)
+                h11 = s * s * (s - 1.0)
+                self.ramp.append(h00 * c0 + h10 * span * v0 + h01 * d + h11 * span * v1)
+            else:
+                self.ramp.append(c0 + (d - c0) * s)
+        for _ in range(hold):
+            self.ramp.append(d.copy())
+        self.vel = v1 if v1 is not None and not hold else np.zeros(self.n)
+        t_end = (self.path[-1][0] if self.path else 0.0) + span
+        if self.path and span > 0 and not hold:
+            self.path.append((t_end, d))
+        elif not self.path:
+            self.path.append((0.0, c0.copy()))
+            self.path.append((t_end, d))
+        self.reply_at = k + steps + hold
+
+
+class Lockstep(_RampBase):
+    """Each target ramped over its time step in virtual time; the loop waits for OpenSees.
+
+    Parameters
+    ----------
+    ramp_time : float
+        Ramp duration (s) for a trial without a time block (OpenFresco GenericTCP without
+        ``-ctrlModes … 1`` for time).
+    """
+
+    name = "lockstep"
+
+    def __init__(self, *args, ramp_time: float = 0.01, hermite: bool = True, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.ramp_time = float(ramp_time)
+        self.hermite = bool(hermite)
+
+    def step(self, k: int, disp: np.ndarray, force: np.ndarray) -> np.ndarray | None:
+        if self.pending is not None and k >= self.reply_at:
+            self._reply(k, disp, force)
+        if self.ramp:
+            self.cmd = self.ramp.popleft()
+            self.kinds.append(EXECUTED)
+            return self.cmd
+        # wait (virtual time stands still) for the next target
+        mb = self.mb
+        limit = self.start_timeout if not self.targets else self.client_timeout
+        deadline = time.monotonic() + limit if limit > 0 else math.inf
+        with mb.cond:
+            while True:
+                t = self._new_target()
+                if t is not None:
+                    break
+                if self._check_closed():
+                    return None
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise SiteFault(f"openfresco: no trial from the client within {limit:g} s")
+                mb.cond.wait(min(left, 1.0))
+        self._start_ramp(t, k, self._steps_for(t, self.ramp_time))
+        self.cmd = self.ramp.popleft()
+        self.kinds.append(EXECUTED)
+        return self.cmd
+
+
+class RampHold(_RampBase):
+    """Ramp ``ramp_time``, hold ``hold_time``, return the force; hold while OpenSees computes."""
+
+    name = "ramp-hold"
+
+    def __init__(self, *args, ramp_time: float = 0.5, hold_time: float = 0.1, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.ramp_steps = max(1, round(float(ramp_time) / self.dt))
+        self.hold_steps = max(0, round(float(hold_time) / self.dt))
+        self.wait_since = time.monotonic()
+
+    def step(self, k: int, disp: np.ndarray, force: np.ndarray) -> np.ndarray | None:
+        if self.pending is not None and k >= self.reply_at:
+            self._reply(k, disp, force)
+            self.wait_since = time.monotonic()
+        if self.ramp:
+            self.cmd = self.ramp.popleft()
+            self.kinds.append(EXECUTED)
+            return self.cmd
+        t = self._new_target()
+        if t is None:
+            if self._check_closed():
+                return None
+            limit = self.start_timeout if not self.targets else self.client_timeout
+            if limit > 0 and time.monotonic() - self.wait_since > limit:
+                raise SiteFault(f"openfresco: no trial from the client within {limit:g} s")
+            self.kinds.append(HELD if self.targets else IDLE)
+            return self.cmd
+        if math.isfinite(t.time):
+            self.t_trial = t.time
+        self._start_ramp(t, k, self.ramp_steps, self.hold_steps)
+        self.cmd = self.ramp.popleft()
+        self.kinds.append(EXECUTED)
+        return self.cmd
+
+
+class PredictorCorrector(TimingMode):
+    """Real-time predictor–corrector (Schellenberg et al. 2009, Section 4.3); see the module.
+
+    Parameters
+    ----------
+    order : int
+        Polynomial order ``p`` of predictor and corrector (1 linear, 2 quadratic, 3 cubic).
+    wait : float
+        Seconds the loop may wait, after its feedback, for a target due at the next step.
+    hold_after, estop_after : float
+        Lateness of a target past the end of its cycle (s) at which the actuator holds and at
+        which the site faults.
+    element_dt : float
+        OpenSees' time step (s) when the trials carry no time block (0: from the time block).
+    """
+
+    name = "predictor-corrector"
+
+    def __init__(
+        self,
+        *args,
+        order: int = 2,
+        wait: float = 0.0,
+        hold_after: float = 0.02,
+        estop_after: float = 0.25,
+        element_dt: float = 0.0,
+        **kwargs,
+    ) -> None:
+        super().__init__(*args, **kwargs)
+        if order not in (1, 2, 3):
+            raise ValueError(f"order must be 1, 2 or 3, got {order!r}")
+        self.order = int(order)
+        self.wait = float(wait)
+        self.hold_after = float(hold_after)
+        self.estop_after = float(estop_after)
+        self.element_dt = float(element_dt)
+        self.hist_s: deque[float] = deque([0.0], maxlen=order + 1)
+        self.hist_d: deque[np.ndarray] = deque([np.zeros(self.n)], maxlen=order + 1)
+        self.k_sub = 0  # loop steps per element step (from the targets)
+        self.cycle_start = 0  # loop step of the last cycle end
+        self.end: int | None = None  # correcting: loop step the command reaches the target
+        self.target_d: np.ndarray | None = None
+        self.s_r = 0
+        self.c_r = self.cmd
+        self.reply_at: int | None = None
+        self.start_wall = time.monotonic()
+        self.worst_late = 0.0
+
+    def _arrive(self, t: Target, k: int) -> None:
+        """Target ``t`` seen at loop step ``k`` (after the command of ``k`` was sent)."""
+        self._take(t, k)
+        if math.isfinite(t.time):
+            span = t.time - self.t_trial
+            self.t_trial = t.time
+        else:
+            span = self.element_dt
+        self.k_sub = max(1, round(span / self.dt)) if span > 0 else max(self.k_sub, 1)
+        self.end = max(self.cycle_start + self.k_sub, k + 1)
+        self.target_d = np.array(t.displacement, dtype=float)
+        self.s_r = k
+        self.c_r = self.cmd.copy()
+        xs = list(self.hist_s)[-(self.order) :] if self.order > 0 else []
+        ys = list(self.hist_d)[-(self.order) :] if self.order > 0 else []
+        self._cx = [*xs, float(self.end)]
+        self._cy = [*ys, self.target_d]
+        self._blend0 = self.c_r - lagrange(self._cx, self._cy, float(k))
+
+    def step(self, k: int, disp: np.ndarray, force: np.ndarray) -> np.ndarray | None:
+        if self.pending is not None and self.reply_at is not None and k >= self.reply_at:
+            self._reply(k, disp, force)
+            self.reply_at = None
+        if self.end is None:
+            t = self._new_target()
+            if t is None and self.targets and self.wait > 0 and self.pending is None:
+                due = self.cycle_start + self.k_sub
+                if k + 1 >= due:  # the next command ends the cycle: wait a little for it
+                    t = self._wait_for(self.wait)
+            if t is not None:
+                self._arrive(t, k)
+        s = k + 1
+        if self.end is not None:
+            if s >= self.end:
+                c = self.target_d
+                kind = EXECUTED
+                self.hist_s.append(float(self.end))
+                self.hist_d.append(self.target_d)
+                self.cycle_start = self.end
+                self.reply_at = s
+                self.end = None
+            else:
+                frac = (self.end - s) / (self.end - self.s_r)
+                c = lagrange(self._cx, self._cy, float(s)) + self._blend0 * frac
+                kind = CORRECTED
+        elif not self.targets:  # before the first target: stand still
+            if self._check_closed():
+                return None
+            if time.monotonic() - self.start_wall > self.start_timeout > 0:
+                raise SiteFault(
+                    f"openfresco: no trial from the client within {self.start_timeout:g} s"
+                )
+            c = self.cmd
+            kind = IDLE
+        else:
+            if self.pending is None and self._check_closed():
+                return None
+            late = (s - (self.cycle_start + self.k_sub)) * self.dt
+            if late > self.worst_late:
+                self.worst_late = late
+            if late > self.estop_after:
+                raise SiteFault(
+                    f"openfresco: OpenSees is {late * 1e3:.1f} ms late with its next trial "
+                    f"(bound timing.estop_after = {self.estop_after * 1e3:g} ms)"
+                )
+            if late > self.hold_after:
+                c = self.cmd
+                kind = HELD
+            else:
+                c = lagrange(list(self.hist_s), list(self.hist_d), float(s))
+                kind = PREDICTED
+        self.cmd = c
+        self.kinds.append(kind)
+        return c
+
+    def _wait_for(self, limit: float) -> Target | None:
+        mb = self.mb
+        deadline = time.perf_counter() + limit
+        with mb.cond:
+            while True:
+                t = self._new_target()
+                if t is not None or mb.closed is not None:
+                    return t
+                left = deadline - time.perf_counter()
+                if left <= 0:
+                    return None
+                mb.cond.wait(left)
+
+
+def make_timing(name: str, mailbox: Mailbox, n: int, dt: float, opts: dict) -> TimingMode:
+    """Build the timing mode ``name`` with the options of ``[openfresco]``."""
+    common = {
+        "start_timeout": opts.get("start_timeout", 60.0),
+        "client_timeout": opts.get("client_timeout", 60.0),
+    }
+    if name == "lockstep":
+        return Lockstep(mailbox, n, dt, ramp_time=opts.get("ramp_time", 0.01), **common)
+    if name == "ramp-hold":
+        return RampHold(
+            mailbox,
+            n,
+            dt,
+            ramp_time=opts.get("ramp_time", 0.5),
+            hold_time=opts.get("hold_time", 0.1),
+            **common,
+        )
+    if name == "predictor-corrector":
+        return PredictorCorrector(
+            mailbox,
+            n,
+            dt,
+            order=int(opts.get("order", 2)),
+            wait=opts.get("wait", 0.4 * dt),
+            hold_after=opts.get("hold_after", 0.02),
+            estop_after=opts.get("estop_after", 0.25),
+            element_dt=opts.get("element_dt", 0.0),
+            **common,
+        )
+    raise ValueError(f"unknown timing {name!r}")
