@@ -37,13 +37,18 @@ SPECIMEN_C = 2.0e4
 ZETA = 0.02
 
 
-def ground_motion(duration: float, pga: float) -> tuple[float, np.ndarray]:
-    """El Centro 1940 (the bridge's bundled record), scaled to ``pga`` m/s², cut to duration."""
-    from rths_hil import groundmotion
+def ground_motion(args: argparse.Namespace) -> tuple[float, np.ndarray]:
+    """``--accel`` (one value per line, m/s², step ``--accel-dt``) or the bridge's bundled
+    El Centro 1940 record scaled to ``--pga``; cut to ``--duration``."""
+    if args.accel:
+        dt, a = args.accel_dt, np.loadtxt(args.accel, ndmin=1)
+    else:
+        from rths_hil import groundmotion
 
-    gm = groundmotion.default_record().scaled(pga)
-    n = min(len(gm.accel), int(round(duration / gm.dt)) + 1)
-    return gm.dt, np.asarray(gm.accel[:n], dtype=float)
+        gm = groundmotion.default_record().scaled(args.pga)
+        dt, a = gm.dt, np.asarray(gm.accel, dtype=float)
+    n = min(len(a), round(args.duration / dt) + 1)
+    return dt, a[:n]
 
 
 def build(ops, model: str, numerical: bool, host: str, port: int, specimen_k: float,
@@ -88,7 +93,7 @@ def run(args: argparse.Namespace) -> np.ndarray:
 
     nodes = build(ops, args.model, args.numerical, args.host, args.port, args.specimen_k,
                   args.specimen_c)  # fmt: skip
-    gdt, ag = ground_motion(args.duration, args.pga)
+    gdt, ag = ground_motion(args)
     ops.timeSeries("Path", 1, "-dt", gdt, "-values", *ag.tolist())
     ops.pattern("UniformExcitation", 1, 1, "-accel", 1)
     # 2 % mass-proportional damping at the first mode (C = αM, α = 2ζω)
@@ -107,7 +112,7 @@ def run(args: argparse.Namespace) -> np.ndarray:
     else:
         ops.integrator(args.integrator)
     ops.analysis("Transient")
-    n = int(round(args.duration / args.dt))
+    n = round(args.duration / args.dt)
     out = np.zeros((n + 1, 1 + len(nodes)))
     for i in range(1, n + 1):
         if ops.analyze(1, args.dt) != 0:
@@ -129,6 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dt", type=float, default=1 / 256, help="analysis step (s)")
     p.add_argument("--duration", type=float, default=10.0, help="seconds of the record")
     p.add_argument("--pga", type=float, default=3.0, help="peak ground acceleration (m/s²)")
+    p.add_argument("--accel", help="ground acceleration file (m/s², one value per line)")
+    p.add_argument("--accel-dt", type=float, default=0.02, help="step of --accel (s)")
     p.add_argument("--algorithm", default="Linear", help="OpenSees solution algorithm")
     p.add_argument("--integrator", default="NewmarkExplicit", help="OpenSees integrator")
     p.add_argument("--specimen-k", type=float, default=SPECIMEN_K)
