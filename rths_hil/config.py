@@ -36,7 +36,7 @@ import math
 import re
 import tomllib
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +44,9 @@ from .errors import InputError
 from .units import parse_accel, parse_fraction, parse_length, parse_time, parse_window
 
 __all__ = [
+    "CHANNEL_SECTIONS",
     "SCHEMA",
+    "ChannelConfig",
     "Config",
     "Key",
     "default_config",
@@ -63,7 +65,8 @@ class Key:
     ----------
     kind : str
         ``float`` (a quantity in ``unit``), ``int``, ``bool``, ``str``, ``choice``, ``window``
-        (seconds or natural periods) or ``table`` (free-form, checked by its consumer).
+        (seconds or natural periods), ``array`` (a list of quantities in ``unit``) or
+        ``table`` (free-form, checked by its consumer).
     default : Any
         Default value (already in SI units).
     unit : str
@@ -79,6 +82,7 @@ class Key:
 
     kind: str
     default: Any
+    _: KW_ONLY
     unit: str = "-"
     doc: str = ""
     lo: float | None = None
@@ -91,116 +95,181 @@ class Key:
 #: The schema: section → key → :class:`Key`. The defaults form the embedded NEES-711 setup.
 SCHEMA: dict[str, dict[str, Key]] = {
     "structure": {
+        "kind": Key(
+            "choice",
+            "sdof",
+            doc="numerical substructure: sdof (the keys below), shear_building (storeys: "
+            "masses, stiffnesses) or matrices (M, K, C from files)",
+            choices=("sdof", "shear_building", "matrices"),
+        ),
         "mass": Key(
-            "float", 503.4e3, "kg", "mass of the SDOF moment resisting frame", 0, None, True
+            "float",
+            503.4e3,
+            unit="kg",
+            doc="mass of the SDOF moment resisting frame",
+            lo=0,
+            lo_open=True,
         ),
         "fn": Key(
-            "float", 0.77, "Hz", "elastic natural frequency (sets k = m·(2π·fn)²)", 0, None, True
+            "float",
+            0.77,
+            unit="Hz",
+            doc="elastic natural frequency (sets k = m·(2π·fn)²)",
+            lo=0,
+            lo_open=True,
         ),
         "damping": Key(
-            "float", 0.02, "-", "inherent viscous damping ratio (c = 2ζ√(k·m))", 0, 1, False, True
+            "float",
+            0.02,
+            unit="-",
+            doc="inherent viscous damping ratio (c = 2ζ√(k·m))",
+            lo=0,
+            hi=1,
+            hi_open=True,
         ),
         "bouc_wen": Key(
-            "bool", True, "-", "Bouc-Wen restoring force (seed Eq. 4.1–4.2) instead of linear k·x"
+            "bool",
+            True,
+            unit="-",
+            doc="Bouc-Wen restoring force (seed Eq. 4.1–4.2) instead of linear k·x",
         ),
-        "x_y": Key("float", 0.010, "m", "Bouc-Wen yield displacement x_y", 0, None, True),
-        "eta": Key("float", 0.0, "-", "Bouc-Wen post- to pre-yield stiffness ratio η", 0, 1),
-        "beta": Key("float", 0.55, "-", "Bouc-Wen shape parameter β", None, None),
-        "gamma": Key("float", 0.45, "-", "Bouc-Wen shape parameter γ", None, None),
-        "q": Key("float", 2.0, "-", "Bouc-Wen sharpness exponent q", 0, None, True),
+        "x_y": Key(
+            "float", 0.010, unit="m", doc="Bouc-Wen yield displacement x_y", lo=0, lo_open=True
+        ),
+        "eta": Key(
+            "float", 0.0, unit="-", doc="Bouc-Wen post- to pre-yield stiffness ratio η", lo=0, hi=1
+        ),
+        "beta": Key("float", 0.55, unit="-", doc="Bouc-Wen shape parameter β"),
+        "gamma": Key("float", 0.45, unit="-", doc="Bouc-Wen shape parameter γ"),
+        "q": Key("float", 2.0, unit="-", doc="Bouc-Wen sharpness exponent q", lo=0, lo_open=True),
         "k_specimen": Key(
             "float",
             1.19e6,
-            "N/m",
-            "estimated specimen stiffness, used in the CR integration parameter",
-            0,
-            None,
+            unit="N/m",
+            doc="estimated specimen stiffness, used in the CR integration parameter",
+            lo=0,
+        ),
+        "masses": Key(
+            "array",
+            [],
+            unit="kg",
+            doc="shear_building: storey masses, first storey first",
+            lo=0,
+            lo_open=True,
+        ),
+        "stiffnesses": Key(
+            "array",
+            [],
+            unit="N/m",
+            doc="shear_building: storey (inter-storey) stiffnesses, first storey first",
+            lo=0,
+            lo_open=True,
+        ),
+        "rayleigh": Key(
+            "array",
+            [],
+            unit="-",
+            doc="Rayleigh damping [α (1/s), β (s)], C = α·M + β·K; empty: ζ = damping on "
+            "modes 1 and 2",
+        ),
+        "matrices": Key(
+            "table",
+            {},
+            doc="matrices: {file = 'model.npz'} with arrays M, K and C (or zeta), or "
+            "{M = 'M.csv', K = 'K.csv', C = 'C.csv'}; paths relative to the config file",
         ),
     },
     "ground_motion": {
         "record": Key(
             "str",
             "default",
-            "-",
-            "record file (PEER .AT2 or CSV; relative to the config file) or the "
+            unit="-",
+            doc="record file (PEER .AT2 or CSV; relative to the config file) or the "
             "name of a bundled record; 'default' = El Centro 1940 (RSN 6, ELC180)",
         ),
         "pga": Key(
             "float",
             0.322,
-            "m/s²",
-            "scale the record to this peak ground acceleration (0 = unscaled)",
-            0,
-            None,
+            unit="m/s²",
+            doc="scale the record to this peak ground acceleration (0 = unscaled)",
+            lo=0,
         ),
         "tail": Key(
-            "float", 0.0, "s", "seconds of zero acceleration appended (free vibration)", 0, None
+            "float",
+            0.0,
+            unit="s",
+            doc="seconds of zero acceleration appended (free vibration)",
+            lo=0,
         ),
     },
     "loop": {
-        "fs": Key("float", 1024.0, "Hz", "loop (integration) rate", 1, 100_000),
+        "fs": Key("float", 1024.0, unit="Hz", doc="loop (integration) rate", lo=1, hi=100_000),
         "mode": Key(
             "choice",
             "paced",
-            "-",
-            "paced: wall clock, one step per period; lockstep: virtual time, as fast "
+            unit="-",
+            doc="paced: wall clock, one step per period; lockstep: virtual time, as fast "
             "as the actuator answers",
             choices=("paced", "lockstep"),
         ),
         "duration": Key(
-            "float", 30.0, "s", "simulated time to run (0 = the whole record plus tail)", 0, None
+            "float",
+            30.0,
+            unit="s",
+            doc="simulated time to run (0 = the whole record plus tail)",
+            lo=0,
         ),
         "spin": Key(
             "float",
             3e-4,
-            "s",
-            "paced: sleep until this long before the deadline, then busy-wait (at most 0.4 "
+            unit="s",
+            doc="paced: sleep until this long before the deadline, then busy-wait (at most 0.4 "
             "period is used)",
-            0,
-            0.01,
+            lo=0,
+            hi=0.01,
         ),
         "priority": Key(
             "int",
             10,
-            "-",
-            "paced: SCHED_FIFO real-time priority of the loop and its threads (0 = leave the "
+            unit="-",
+            doc="paced: SCHED_FIFO real-time priority of the loop and its threads (0 = leave the "
             "scheduler alone); needs root or CAP_SYS_NICE, else the run goes on without it",
-            0,
-            99,
+            lo=0,
+            hi=99,
         ),
         "overrun_threshold": Key(
             "float",
             0.5,
-            "-",
-            "paced: a step is an overrun when its command leaves later "
+            unit="-",
+            doc="paced: a step is an overrun when its command leaves later "
             "than this fraction of a period after its deadline",
-            0,
-            None,
-            True,
+            lo=0,
+            lo_open=True,
         ),
         "feedback_timeout": Key(
             "float",
             0.0,
-            "s",
-            "wait for a reply at most this long (0 = auto: 0.8 period when paced, 1 s in lockstep)",
-            0,
-            10,
+            unit="s",
+            doc="wait for a reply at most this long (0 = auto: 0.8 period when paced, "
+            "1 s in lockstep)",
+            lo=0,
+            hi=10,
         ),
-        "heartbeat": Key("float", 0.1, "s", "driver heartbeat interval (0 = never)", 0, None),
-        "console": Key("float", 0.5, "s", "live console line interval (0 = off)", 0, None),
+        "heartbeat": Key("float", 0.1, unit="s", doc="driver heartbeat interval (0 = never)", lo=0),
+        "console": Key("float", 0.5, unit="s", doc="live console line interval (0 = off)", lo=0),
     },
     "driver": {
         "name": Key(
             "str",
             "can",
-            "-",
-            "driver name in the registry (can, modbus, serial, or a lab's entry point)",
+            unit="-",
+            doc="driver name in the registry (can, modbus, serial, or a lab's entry point)",
         ),
         "connection": Key(
             "table",
             {},
-            "-",
-            "driver connection settings (e.g. interface/channel for CAN, "
+            unit="-",
+            doc="driver connection settings (e.g. interface/channel for CAN, "
             "host/port for Modbus, url for serial); with a twin they go to the "
             "twin, which hands the driver its endpoint",
         ),
@@ -209,159 +278,195 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "enabled": Key(
             "bool",
             True,
-            "-",
-            "run an in-process virtual twin (false: real controller at the connection)",
+            unit="-",
+            doc="run an in-process virtual twin (false: real controller at the connection)",
         ),
         "inline": Key(
             "bool",
             True,
-            "-",
-            "serve a twin on python-can's in-process virtual bus from the loop thread "
+            unit="-",
+            doc="serve a twin on python-can's in-process virtual bus from the loop thread "
             "(same frames and controller, no thread hand-off); false: in its own thread",
         ),
         "model": Key(
-            "str", "", "-", "twin model file (TOML, [actuator] ...); empty: the tables below"
+            "str",
+            "",
+            unit="-",
+            doc="twin model file (TOML, [actuator] ...); empty: the tables below",
         ),
         "actuator": Key(
             "table",
             {"model": "first_order", "time_constant": 0.020, "delay": 0.005, "gain": 1.0},
-            "-",
-            "actuator model as in a model file's [actuator] table",
+            unit="-",
+            doc="actuator model as in a model file's [actuator] table",
         ),
         "specimen": Key(
             "table",
             {},
-            "-",
-            "specimen model as in a model file's [specimen] table (empty: the model file default)",
+            unit="-",
+            doc="specimen model as in a model file's [specimen] table (empty: the model "
+            "file default)",
         ),
         "sensor": Key(
             "table",
             {"displacement_noise": 2e-6, "force_noise": 5.0, "seed": 0},
-            "-",
-            "sensor noise and quantisation as in a model file's [sensor] table",
+            unit="-",
+            doc="sensor noise and quantisation as in a model file's [sensor] table",
         ),
         "faults": Key(
             "str",
             "",
-            "-",
-            "fault plan for tests and dry runs, e.g. 'stuck_from=3000' (sim_backends.faults)",
+            unit="-",
+            doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' (sim_backends.faults)",
         ),
     },
     "compensation": {
-        "enabled": Key("bool", True, "-", "inverse compensation x_c = α·x_t − (α−1)·x_t,prev"),
+        "enabled": Key(
+            "bool", True, unit="-", doc="inverse compensation x_c = α·x_t − (α−1)·x_t,prev"
+        ),
         "alpha": Key(
-            "float", 26.6, "-", "α in steps (1 + delay/Δt; 26.6 ≈ 25 ms at 1024 Hz)", 1, None
+            "float", 26.6, unit="-", doc="α in steps (1 + delay/Δt; 26.6 ≈ 25 ms at 1024 Hz)", lo=1
         ),
-        "amplitude": Key("float", 1.0, "-", "amplitude factor on the command", 0, None, True),
-        "adaptive": Key("bool", False, "-", "adapt α online from the online FEI delay"),
+        "amplitude": Key(
+            "float", 1.0, unit="-", doc="amplitude factor on the command", lo=0, lo_open=True
+        ),
+        "adaptive": Key("bool", False, unit="-", doc="adapt α online from the online FEI delay"),
         "time_constant": Key(
-            "float", 6.0, "s", "adaptive: time constant of the α update", 0, None, True
+            "float",
+            6.0,
+            unit="s",
+            doc="adaptive: time constant of the α update",
+            lo=0,
+            lo_open=True,
         ),
-        "rate": Key("float", 5.0, "1/s", "adaptive: maximum |dα/dt|", 0, None, True),
-        "alpha_min": Key("float", 1.0, "-", "adaptive: lower bound of α", 1, None),
-        "alpha_max": Key("float", 100.0, "-", "adaptive: upper bound of α", 1, None),
+        "rate": Key("float", 5.0, unit="1/s", doc="adaptive: maximum |dα/dt|", lo=0, lo_open=True),
+        "alpha_min": Key("float", 1.0, unit="-", doc="adaptive: lower bound of α", lo=1),
+        "alpha_max": Key("float", 100.0, unit="-", doc="adaptive: upper bound of α", lo=1),
     },
     "fei": {
-        "enabled": Key("bool", True, "-", "online FEI (streaming every sample)"),
+        "enabled": Key("bool", True, unit="-", doc="online FEI (streaming every sample)"),
         "pair": Key(
             "choice",
             "target",
-            "-",
-            "evaluated pair: measured vs target (seed) or measured vs command",
+            unit="-",
+            doc="evaluated pair: measured vs target (seed) or measured vs command",
             choices=("target", "command"),
         ),
         "window": Key(
             "window",
             "3T",
-            "s",
-            "window length t_w in s, or in natural periods ('3T' = 3/fn)",
-            0,
-            None,
-            True,
+            unit="s",
+            doc="window length t_w in s, or in natural periods ('3T' = 3/fn)",
+            lo=0,
+            lo_open=True,
         ),
         "exact_hop": Key(
-            "int", 256, "steps", "exact FEI cross-check every this many samples (0 = off)", 0, None
+            "int",
+            256,
+            unit="steps",
+            doc="exact FEI cross-check every this many samples (0 = off)",
+            lo=0,
         ),
     },
     "kalman": {
-        "enabled": Key("bool", True, "-", "Kalman gain/delay estimator beside the FEI"),
+        "enabled": Key("bool", True, unit="-", doc="Kalman gain/delay estimator beside the FEI"),
         "pair": Key(
             "choice",
             "command",
-            "-",
-            "input of the estimator: command (the actuator's own delay) or target",
+            unit="-",
+            doc="input of the estimator: command (the actuator's own delay) or target",
             choices=("target", "command"),
         ),
-        "every": Key("int", 1, "steps", "run the estimator every this many steps", 1, None),
-        "options": Key("table", {}, "-", "estimator keyword arguments (rths_hil.estimation)"),
+        "every": Key("int", 1, unit="steps", doc="run the estimator every this many steps", lo=1),
+        "options": Key(
+            "table", {}, unit="-", doc="estimator keyword arguments (rths_hil.estimation)"
+        ),
     },
     "safety": {
         "displacement_limit": Key(
-            "float", 0.050, "m", "|target|, |command|, |measured| limit (0 = off)", 0, None
+            "float", 0.050, unit="m", doc="|target|, |command|, |measured| limit (0 = off)", lo=0
         ),
         "velocity_limit": Key(
             "float",
             0.5,
-            "m/s",
-            "|structure velocity| and |measured velocity| limit (0 = off)",
-            0,
-            None,
+            unit="m/s",
+            doc="|structure velocity| and |measured velocity| limit (0 = off)",
+            lo=0,
         ),
-        "force_limit": Key("float", 100e3, "N", "|measured force| limit (0 = off)", 0, None),
+        "force_limit": Key("float", 100e3, unit="N", doc="|measured force| limit (0 = off)", lo=0),
         "fei_amplitude_tol": Key(
-            "float", 0.2, "-", "FEI rule: tolerance on |A − 1| (0 = off)", 0, None
+            "float", 0.2, unit="-", doc="FEI rule: tolerance on |A − 1| (0 = off)", lo=0
         ),
-        "fei_delay_tol": Key("float", 0.015, "s", "FEI rule: tolerance on |d| (0 = off)", 0, None),
+        "fei_delay_tol": Key(
+            "float", 0.015, unit="s", doc="FEI rule: tolerance on |d| (0 = off)", lo=0
+        ),
         "fei_consecutive": Key(
             "int",
             256,
-            "windows",
-            "FEI rule: consecutive valid windows out of tolerance that trip",
-            1,
-            None,
+            unit="windows",
+            doc="FEI rule: consecutive valid windows out of tolerance that trip",
+            lo=1,
         ),
-        "kf_gain_min": Key("float", 0.5, "-", "Kalman rule: lowest gain estimate", None, None),
-        "kf_gain_max": Key("float", 1.5, "-", "Kalman rule: highest gain estimate", None, None),
+        "kf_gain_min": Key("float", 0.5, unit="-", doc="Kalman rule: lowest gain estimate"),
+        "kf_gain_max": Key("float", 1.5, unit="-", doc="Kalman rule: highest gain estimate"),
         "kf_delay_max": Key(
-            "float", 0.1, "s", "Kalman rule: |delay estimate| limit (0 = off)", 0, None
+            "float", 0.1, unit="s", doc="Kalman rule: |delay estimate| limit (0 = off)", lo=0
         ),
         "watchdog_missed": Key(
             "int",
             20,
-            "steps",
-            "consecutive missed replies that trip (20 ≈ 20 ms at 1024 Hz)",
-            1,
-            None,
+            unit="steps",
+            doc="consecutive missed replies that trip (20 ≈ 20 ms at 1024 Hz)",
+            lo=1,
         ),
-        "max_sequence_gaps": Key("int", 0, "-", "sequence gaps tolerated before a trip", 0, None),
+        "max_sequence_gaps": Key(
+            "int", 0, unit="-", doc="sequence gaps tolerated before a trip", lo=0
+        ),
         "controller_status": Key(
-            "bool", True, "-", "trip on the controller's alarm bits (e-stop, fault, watchdog)"
+            "bool",
+            True,
+            unit="-",
+            doc="trip on the controller's alarm bits (e-stop, fault, watchdog)",
         ),
-        "max_overruns": Key("int", 100, "steps", "consecutive paced overruns that trip", 1, None),
+        "max_overruns": Key(
+            "int", 100, unit="steps", doc="consecutive paced overruns that trip", lo=1
+        ),
         "stuck_steps": Key(
             "int",
             50,
-            "steps",
-            "identical measured values while the command moves that trip (0 = off)",
-            0,
-            None,
+            unit="steps",
+            doc="identical measured values while the command moves that trip (0 = off)",
+            lo=0,
         ),
         "stuck_motion": Key(
-            "float", 1e-4, "m", "stuck rule: command travel needed over those steps", 0, None, True
+            "float",
+            1e-4,
+            unit="m",
+            doc="stuck rule: command travel needed over those steps",
+            lo=0,
+            lo_open=True,
         ),
         "warmup": Key(
-            "float", 0.0, "s", "FEI and Kalman rules start after this loop time", 0, None
+            "float", 0.0, unit="s", doc="FEI and Kalman rules start after this loop time", lo=0
         ),
     },
     "output": {
         "dir": Key(
             "str",
             "runs/{timestamp}",
-            "-",
-            "run directory ({timestamp} is replaced by the start time)",
+            unit="-",
+            doc="run directory ({timestamp} is replaced by the start time)",
         ),
-        "flush_interval": Key("float", 0.05, "s", "record flush interval (≤ 0.1 s)", 0, 0.1, True),
-        "plot": Key("bool", True, "-", "write report.png at the end"),
+        "flush_interval": Key(
+            "float",
+            0.05,
+            unit="s",
+            doc="record flush interval (≤ 0.1 s)",
+            lo=0,
+            hi=0.1,
+            lo_open=True,
+        ),
+        "plot": Key("bool", True, unit="-", doc="write report.png at the end"),
     },
 }
 
@@ -457,6 +562,15 @@ def _coerce(key: Key, value: Any, path: str) -> Any:
         v = _quantity(value, "s", path)
         _check_range(key, v, path)
         return v
+    if kind == "array":
+        if not isinstance(value, list):
+            raise InputError(f"{path}: expected an array of numbers, got {_describe(value)}")
+        out = []
+        for i, item in enumerate(value):
+            v = _quantity(item, key.unit, f"{path}[{i}]")
+            _check_range(key, v, f"{path}[{i}]")
+            out.append(v)
+        return out
     if kind == "table":
         if not isinstance(value, dict):
             raise InputError(f"{path}: expected a table, got {_describe(value)}")
@@ -507,6 +621,68 @@ class Config(dict):
         """A plain nested dict (JSON-ready)."""
         return copy.deepcopy(dict(self))
 
+    def channels(self) -> list[ChannelConfig]:
+        """The test's channels, each with its sections resolved (see :func:`resolve_channel`).
+
+        No ``[[actuators]]`` entry: one unnamed channel on DOF 1 with the top-level sections
+        (today's single-actuator test).
+        """
+        entries = self.get("actuators") or [{"name": ""}]
+        return [resolve_channel(self, e) for e in entries]
+
+
+@dataclass
+class ChannelConfig:
+    """One channel (``[[actuators]]`` entry) with its sections resolved.
+
+    Attributes
+    ----------
+    name : str
+        Channel name (``""`` for the implicit single channel).
+    dof : int or None
+        1-based degree of freedom the actuator acts on (``None`` when ``transform`` is given).
+    transform : list of float or None
+        Row of the transformation matrix: actuator displacement = T·u, force returned as Tᵀ·f.
+    config : Config
+        A full configuration whose channel sections (:data:`CHANNEL_SECTIONS`) are this
+        channel's: the top-level values overridden by the channel's own.
+    """
+
+    name: str
+    dof: int | None
+    transform: list[float] | None
+    config: Config
+
+
+#: Sections an ``[[actuators]]`` entry may set for its channel; the top-level ones are the
+#: defaults every channel inherits.
+CHANNEL_SECTIONS = ("driver", "twin", "compensation", "fei", "kalman", "safety")
+_CHANNEL_KEYS = ("name", "dof", "transform")
+_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
+
+
+def resolve_channel(cfg: Config, entry: Mapping[str, Any]) -> ChannelConfig:
+    """A channel's configuration: the top-level sections with the channel's keys over them.
+
+    A key the channel sets replaces the top-level value (tables too: a channel's
+    ``twin.actuator`` is its whole actuator model), except ``driver.connection``, which is
+    merged key by key so that a channel can set only its ``node`` or ``device_id``.
+    """
+    out = Config(copy.deepcopy({k: v for k, v in cfg.items() if k != "actuators"}))
+    out.source, out.base_dir = cfg.source, cfg.base_dir
+    for section in CHANNEL_SECTIONS:
+        for key, value in entry.get(section, {}).items():
+            if section == "driver" and key == "connection":
+                out[section][key] = {**out[section][key], **copy.deepcopy(value)}
+            else:
+                out[section][key] = copy.deepcopy(value)
+    return ChannelConfig(
+        name=entry.get("name", ""),
+        dof=entry.get("dof"),
+        transform=copy.deepcopy(entry.get("transform")),
+        config=out,
+    )
+
 
 def default_config() -> Config:
     """The embedded default configuration (the seed's NEES-711 setup, see module docstring)."""
@@ -516,11 +692,78 @@ def default_config() -> Config:
             for s, keys in SCHEMA.items()
         }
     )
+    cfg["actuators"] = []
     return cfg
+
+
+def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:
+    """Validate one ``[[actuators]]`` entry (its own keys, not the cross-channel rules)."""
+    path = f"actuators[{i}]"
+    if not isinstance(entry, dict):
+        raise InputError(f"{where}: {path}: expected a table [[actuators]], got {_describe(entry)}")
+    out: dict[str, Any] = {}
+    for key, value in entry.items():
+        kp = f"{path}.{key}"
+        if key == "name":
+            if not isinstance(value, str) or not _NAME_RE.match(value):
+                raise InputError(
+                    f"{where}: {kp}: expected a name of letters, digits and _ starting with a "
+                    f"letter, got {_describe(value)}"
+                )
+            out["name"] = value
+        elif key == "dof":
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise InputError(
+                    f"{where}: {kp}: expected a storey/DOF number ≥ 1, got {_describe(value)}"
+                )
+            out["dof"] = value
+        elif key == "transform":
+            if (
+                not isinstance(value, list)
+                or not value
+                or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+                or not all(math.isfinite(v) for v in value)
+            ):
+                raise InputError(
+                    f"{where}: {kp}: expected a non-empty array of finite numbers (a row of T), "
+                    f"got {_describe(value)}"
+                )
+            out["transform"] = [float(v) for v in value]
+        elif key in CHANNEL_SECTIONS:
+            if not isinstance(value, dict):
+                raise InputError(f"{where}: {kp}: expected a table, got {_describe(value)}")
+            keys = SCHEMA[key]
+            sec: dict[str, Any] = {}
+            for name, v in value.items():
+                if name not in keys:
+                    raise InputError(f"{where}: {_unknown(f'{kp}.{name}', name, keys)}")
+                try:
+                    sec[name] = _coerce(keys[name], v, f"{kp}.{name}")
+                except InputError as exc:
+                    raise InputError(f"{where}: {exc}") from None
+            out[key] = sec
+        else:
+            raise InputError(
+                f"{where}: {_unknown(kp, key, (*_CHANNEL_KEYS, *CHANNEL_SECTIONS))} "
+                "(an actuator sets name, dof or transform and the sections it overrides)"
+            )
+    if "name" not in out:
+        raise InputError(f"{where}: {path}.name: every [[actuators]] entry needs a name")
+    if "dof" in out and "transform" in out:
+        raise InputError(f"{where}: {path}.transform: give dof or transform, not both")
+    return out
 
 
 def _merge(cfg: Config, data: Mapping[str, Any], where: str) -> None:
     for section, table in data.items():
+        if section == "actuators":
+            if not isinstance(table, list):
+                raise InputError(
+                    f"{where}: actuators: expected an array of tables [[actuators]], "
+                    f"got {_describe(table)}"
+                )
+            cfg["actuators"] = [_actuator(e, i, where) for i, e in enumerate(table)]
+            continue
         if section not in SCHEMA:
             raise InputError(f"{where}: {_unknown(section, section, SCHEMA)}")
         if not isinstance(table, dict):
@@ -560,10 +803,62 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return parts, value
 
 
+def _apply_channel_override(cfg: Config, parts: list[str], value: Any, where: str) -> None:
+    """``--set actuators.NAME.key=value`` or ``--set actuators.NAME.section.key=value``."""
+    chans = cfg.get("actuators") or []
+    names = [c["name"] for c in chans]
+    if len(parts) < 3:
+        raise InputError(f"{where}: expected actuators.NAME.key=value")
+    name = parts[1]
+    if name not in names:
+        known = ", ".join(names) if names else "none: the configuration has no [[actuators]]"
+        raise InputError(f"{where}: actuators.{name}: no channel of that name (channels: {known})")
+    i = names.index(name)
+    entry = dict(chans[i])
+    key = parts[2]
+    if key in ("dof", "transform"):
+        if len(parts) != 3:
+            raise InputError(f"{where}: actuators.{name}.{key} is not a table")
+        entry[key] = value
+        entry.pop("transform" if key == "dof" else "dof", None)
+    elif key in CHANNEL_SECTIONS:
+        if len(parts) < 4:
+            raise InputError(f"{where}: expected actuators.{name}.{key}.KEY=value")
+        sec = copy.deepcopy(entry.get(key, {}))
+        kname = parts[3]
+        if kname not in SCHEMA[key]:
+            raise InputError(
+                f"{where}: {_unknown(f'actuators.{name}.{key}.{kname}', kname, SCHEMA[key])}"
+            )
+        if len(parts) > 4:
+            if SCHEMA[key][kname].kind != "table":
+                raise InputError(f"{where}: actuators.{name}.{key}.{kname} is not a table")
+            node = sec.setdefault(kname, copy.deepcopy(cfg[key][kname]))
+            for p in parts[4:-1]:
+                node = node.setdefault(p, {})
+                if not isinstance(node, dict):
+                    raise InputError(f"{where}: {'.'.join(parts[:-1])} is not a table")
+            node[parts[-1]] = value
+        else:
+            sec[kname] = value
+        entry[key] = sec
+    else:
+        known = (*_CHANNEL_KEYS[1:], *CHANNEL_SECTIONS)
+        raise InputError(f"{where}: {_unknown(f'actuators.{name}.{key}', key, known)}")
+    chans[i] = _actuator(entry, i, where)
+
+
 def _apply_override(cfg: Config, text: str) -> None:
     parts, value = parse_override(text)
     where = f"--set {text}"
     section, name = parts[0], parts[1]
+    if section == "actuators":
+        _apply_channel_override(cfg, parts, value, where)
+        return
+    if section in CHANNEL_SECTIONS and len(parts) == 2:
+        # a top-level --set applies to every channel: the channels' own values give way
+        for entry in cfg.get("actuators") or []:
+            entry.get(section, {}).pop(name, None)
     if section not in SCHEMA:
         raise InputError(f"{where}: {_unknown(section, section, SCHEMA)}")
     keys = SCHEMA[section]
@@ -588,6 +883,56 @@ def _apply_override(cfg: Config, text: str) -> None:
 
 def _cross_check(cfg: Config, note: str = "") -> None:
     where = cfg.source + note
+    _cross_check_one(cfg, where)
+    st = cfg["structure"]
+    if st["kind"] == "shear_building":
+        if not st["masses"] or len(st["masses"]) != len(st["stiffnesses"]):
+            raise InputError(
+                f"{where}: structure.stiffnesses: a shear building needs one mass and one "
+                f"stiffness per storey, got {len(st['masses'])} masses and "
+                f"{len(st['stiffnesses'])} stiffnesses"
+            )
+    if st["rayleigh"] and len(st["rayleigh"]) != 2:
+        raise InputError(f"{where}: structure.rayleigh: expected [alpha, beta] or []")
+    if st["kind"] == "matrices" and not st["matrices"]:
+        raise InputError(f"{where}: structure.matrices: kind = 'matrices' needs the files")
+    chans = cfg.get("actuators") or []
+    seen: set[str] = set()
+    for i, e in enumerate(chans):
+        if e["name"] in seen:
+            raise InputError(f"{where}: actuators[{i}].name: duplicate channel name {e['name']!r}")
+        seen.add(e["name"])
+    n_dof = structure_dofs(cfg)
+    for i, e in enumerate(chans):
+        path = f"{where}: actuators[{i}] ({e['name']})"
+        if n_dof is not None and "dof" in e and not e["dof"] <= n_dof:
+            raise InputError(
+                f"{path}.dof: {e['dof']} is out of range: the structure has {n_dof} DOF "
+                f"(1..{n_dof})"
+            )
+        if n_dof is not None and "transform" in e and len(e["transform"]) != n_dof:
+            raise InputError(
+                f"{path}.transform: {len(e['transform'])} entries, the structure has {n_dof} DOF"
+            )
+        if n_dof is not None and n_dof > 1 and "dof" not in e and "transform" not in e:
+            raise InputError(
+                f"{path}: say where the actuator acts: dof = 1..{n_dof} or transform = [...]"
+            )
+        if any(section in e for section in CHANNEL_SECTIONS):
+            _cross_check_one(resolve_channel(cfg, e).config, f"{path}")
+
+
+def structure_dofs(cfg: Config) -> int | None:
+    """Number of DOF of the configured structure (None when only the model file knows)."""
+    s = cfg["structure"]
+    if s["kind"] == "sdof":
+        return 1
+    if s["kind"] == "shear_building":
+        return len(s["masses"])
+    return None
+
+
+def _cross_check_one(cfg: Config, where: str) -> None:
     s, lp, c, sf = cfg["structure"], cfg["loop"], cfg["compensation"], cfg["safety"]
     if s["fn"] >= lp["fs"] / 2:
         raise InputError(
@@ -694,6 +1039,16 @@ def to_toml(cfg: Mapping[str, Mapping[str, Any]], comments: bool = True) -> str:
                 line = f"{line:<44} # {unit}{key.doc}"
             lines.append(line)
         lines.append("")
+    for entry in cfg.get("actuators") or []:
+        lines.append("[[actuators]]")
+        for key in _CHANNEL_KEYS:
+            if key in entry:
+                lines.append(f"{key} = {_toml_value(entry[key])}")
+        for section in CHANNEL_SECTIONS:
+            if entry.get(section):
+                lines.append(f"[actuators.{section}]")
+                lines += [f"{k} = {_toml_value(v)}" for k, v in entry[section].items()]
+        lines.append("")
     return "\n".join(lines)
 
 
@@ -734,10 +1089,32 @@ def schema_markdown() -> str:
                 rng = f"{lo or '(−∞'}, {hi or '∞)'}"
             else:
                 rng = ""
-            kind = {"window": 'float or "nT"', "table": "table"}.get(key.kind, key.kind)
+            kind = {"window": 'float or "nT"', "table": "table", "array": "array"}.get(
+                key.kind, key.kind
+            )
             out.append(
                 f"| `{name}` | {kind} | {key.unit} | {rng} | "
                 f"`{_toml_value(key.default)}` | {key.doc} |"
             )
         out.append("")
+    out += [
+        "## [[actuators]]",
+        "",
+        "Several actuators (channels) in one test: one `[[actuators]]` table per channel. Without",
+        "any, the test has one channel made of the top-level sections (a single-actuator test).",
+        "The top-level `driver`, `twin`, `compensation`, `fei`, `kalman` and `safety` sections are",
+        "the defaults every channel inherits; a channel overrides any of their keys in its own",
+        "sub-tables (`[actuators.compensation]`, …). A key a channel sets replaces the top-level",
+        "value (tables too), except `driver.connection`, merged key by key (a channel sets only",
+        "its `node` or `device_id`). `--set section.key=value` sets a key on every channel;",
+        "`--set actuators.NAME.section.key=value` on one. See `docs/channels.md`.",
+        "",
+        "| key | type | description |",
+        "|---|---|---|",
+        "| `name` | str | channel name (letters, digits, _); record columns carry `_NAME` |",
+        "| `dof` | int | 1-based DOF (storey) the actuator acts on |",
+        "| `transform` | array | row of T: actuator displacement = T·u, force returned as Tᵀ·f "
+        "(`[-1, 1, 0]`: between storeys 1 and 2); instead of `dof` |",
+        "",
+    ]
     return "\n".join(out)

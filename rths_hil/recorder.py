@@ -189,10 +189,13 @@ class Recorder:
         Loop time between data flushes in s (0 < interval ≤ 0.1).
     extra_meta : dict, optional
         More metadata keys.
+    columns : sequence of (name, dtype, unit, description)
+        The record's columns (default :data:`COLUMNS`, a single-channel test; the runner
+        passes its plan's, :func:`rths_hil.hybrid.plan.record_columns`).
 
     Notes
     -----
-    :meth:`append` takes one value per column of :data:`COLUMNS`, positionally, in order; it packs
+    :meth:`append` takes one value per column of ``columns``, positionally, in order; it packs
     them with :meth:`struct.Struct.pack_into` into a preallocated chunk (about 0.5 µs) and writes
     the chunk when it is full. Use it as a context manager or call :meth:`close`.
     """
@@ -204,6 +207,7 @@ class Recorder:
         config: dict | None = None,
         flush_interval: float = 0.05,
         extra_meta: dict | None = None,
+        columns: Sequence[tuple[str, str, str, str]] = COLUMNS,
     ) -> None:
         if not (0 < flush_interval <= 0.1):
             raise InputError(f"recorder flush interval must be in (0, 0.1] s, got {flush_interval}")
@@ -220,7 +224,8 @@ class Recorder:
         if self.path.exists():
             raise InputError(f"{self.path} already exists: choose a new output directory")
         self.fs = float(fs)
-        self.dtype = record_dtype()
+        self.columns = tuple(tuple(c) for c in columns)
+        self.dtype = record_dtype(self.columns)
         self._descr = np.lib.format.dtype_to_descr(self.dtype)
         header = _header_bytes(self._descr, 0)
         self._header_len = len(header)
@@ -228,7 +233,7 @@ class Recorder:
         # after "'shape': (" and are followed by ",)}" and the padding (rows only grow, so
         # writing the new digits and ",)}" over the old ones gives the full new header)
         self._count_at = header.index(b"'shape': (") + len(b"'shape': (")
-        fmt = "<" + "".join(_STRUCT_CODES[c] for _, c, _, _ in COLUMNS)
+        fmt = "<" + "".join(_STRUCT_CODES[c] for _, c, _, _ in self.columns)
         self._struct = struct.Struct(fmt)
         assert self._struct.size == self.dtype.itemsize
         self._rowsize = self._struct.size
@@ -251,7 +256,7 @@ class Recorder:
             "events": EVENTS_FILE,
             "flush_interval": self.flush_rows / self.fs,
             "columns": [
-                {"name": n, "dtype": c, "unit": u, "description": d} for n, c, u, d in COLUMNS
+                {"name": n, "dtype": c, "unit": u, "description": d} for n, c, u, d in self.columns
             ],
             "versions": package_versions(),
             "config": config or {},

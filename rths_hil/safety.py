@@ -86,6 +86,8 @@ class Trip:
         Loop step index (-1 when not known to the rule).
     values : dict
         The quantities involved (name → value), for the event record.
+    channel : str
+        The channel (actuator) whose rule fired (``""``: the single channel or the whole loop).
     """
 
     rule: str
@@ -93,10 +95,15 @@ class Trip:
     time: float = math.nan
     step: int = -1
     values: dict[str, float] = field(default_factory=dict)
+    channel: str = ""
 
     def at(self, time: float, step: int) -> Trip:
         """This trip stamped with the loop time and step."""
-        return Trip(self.rule, self.reason, float(time), int(step), self.values)
+        return Trip(self.rule, self.reason, float(time), int(step), self.values, self.channel)
+
+    def on(self, channel: str) -> Trip:
+        """This trip attributed to ``channel``."""
+        return Trip(self.rule, self.reason, self.time, self.step, self.values, channel)
 
     def as_event(self) -> dict:
         """JSON-ready event fields."""
@@ -106,6 +113,7 @@ class Trip:
             "reason": self.reason,
             "time": self.time,
             "step": self.step,
+            "channel": self.channel,
             "values": {k: _jsonable(v) for k, v in self.values.items()},
         }
 

@@ -1,0 +1,578 @@
+"""Configuration → test plan: every decision about what runs, made once, before any I/O.
+
+:func:`build_plan` reads a resolved :class:`~rths_hil.config.Config` and returns a
+:class:`TestPlan`: the ground motion, the structure stage, one :class:`ChannelPlan` per
+actuator (where it acts, its driver and twin, compensator, evaluators and safety rules) and the
+record's columns. All validation of a configuration beyond single keys happens here, so a
+reader who asks "where does this key go" reads this module only; what happens at each step is
+in :mod:`rths_hil.hybrid.runner`.
+
+Which twin a channel gets is decided in one function, :func:`choose_plant`.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import groundmotion
+from ..compensation import AdaptiveAlpha, InverseCompensator
+from ..config import ChannelConfig, Config, structure_dofs
+from ..errors import InputError
+from ..recorder import COLUMNS
+from ..safety import (
+    ControllerRule,
+    FEIRule,
+    KalmanRule,
+    SafetyMonitor,
+    SequenceRule,
+    StuckRule,
+    WatchdogRule,
+)
+from ..structure import BoucWenParams, CRStepper
+from ..units import parse_window
+from .structures import MDOFStage, SDOFStage, StructureStage
+
+__all__ = [
+    "ChannelPlan",
+    "TestPlan",
+    "build_ground_motion",
+    "build_plan",
+    "build_structure",
+    "choose_plant",
+    "new_run_dir",
+    "record_columns",
+]
+
+#: Twins exist for these drivers.
+TWIN_DRIVERS = ("can", "modbus", "serial")
+
+
+def new_run_dir(pattern: str, base: Path | None = None) -> Path:
+    """Expand ``{timestamp}`` in ``pattern``; add a suffix if the directory already has a run."""
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    p = Path(pattern.replace("{timestamp}", stamp)).expanduser()
+    if base is not None and not p.is_absolute():
+        p = base / p
+    out, i = p, 1
+    while (out / "record.npy").exists():
+        out = p.with_name(f"{p.name}-{i}")
+        i += 1
+    return out
+
+
+def build_ground_motion(cfg: Config) -> groundmotion.GroundMotion:
+    """The configured record: loaded, PGA-scaled, padded with the tail, resampled to ``fs``."""
+    g = cfg["ground_motion"]
+    spec = g["record"]
+    try:
+        if spec == "default":
+            gm = groundmotion.default_record()
+        else:
+            p = cfg.resolve_path(spec)
+            gm = groundmotion.load(p) if p.is_file() else groundmotion.resolve(spec)
+        if g["pga"] > 0:
+            gm = gm.scaled(g["pga"])
+        if g["tail"] > 0:
+            gm = gm.padded(g["tail"])
+        return gm.resampled(cfg["loop"]["fs"])
+    except InputError as exc:
+        raise InputError(f"{cfg.source}: ground_motion.record: {exc}") from None
+
+
+def choose_plant(cfg: Config, dt: float):
+    """The twin's plant of a channel (``cfg`` is the channel's resolved configuration).
+
+    ``twin.model`` (a model file) or the ``twin.actuator`` / ``specimen`` / ``sensor`` tables,
+    built by :func:`sim_backends.modelfile.load_plant`. This is the one place a twin is chosen.
+    """
+    from sim_backends.modelfile import load_plant
+
+    tw = cfg["twin"]
+    if tw["model"]:
+        path = cfg.resolve_path(tw["model"])
+        try:
+            return load_plant(path, dt)
+        except InputError as exc:
+            raise InputError(f"{cfg.source}: twin.model: {exc}") from None
+    spec: dict[str, Any] = {"actuator": dict(tw["actuator"])}
+    if tw["specimen"]:
+        spec["specimen"] = dict(tw["specimen"])
+    if tw["sensor"]:
+        spec["sensor"] = dict(tw["sensor"])
+    try:
+        return load_plant(spec, dt)
+    except InputError as exc:
+        raise InputError(f"{cfg.source}: twin.{exc}") from None
+
+
+def build_structure(cfg: Config, dt: float, ag0: float) -> tuple[StructureStage, float]:
+    """The structure stage of ``structure.kind`` and its first natural frequency (Hz).
+
+    ``sdof``: the FEI paper's Section 5 frame (CR integration, Bouc-Wen). ``shear_building`` and
+    ``matrices``: :mod:`rths_hil.mdof`.
+    """
+    s = cfg["structure"]
+    if s["kind"] == "sdof":
+        k_struct = s["mass"] * (2.0 * math.pi * s["fn"]) ** 2
+        bw = None
+        if s["bouc_wen"]:
+            bw = BoucWenParams(
+                x_y=s["x_y"], k_a=k_struct, eta=s["eta"], beta=s["beta"], gamma=s["gamma"], q=s["q"]
+            )
+        try:
+            st = CRStepper(
+                s["mass"],
+                s["damping"],
+                k_struct,
+                dt,
+                bouc_wen=bw,
+                k_specimen=s["k_specimen"],
+                ag0=ag0,
+            )
+        except InputError as exc:
+            raise InputError(f"{cfg.source}: structure: {exc}") from None
+        return SDOFStage(st), float(s["fn"])
+    from .. import mdof
+
+    try:
+        stepper, fn1 = mdof.from_config(cfg, dt, ag0)
+    except InputError as exc:
+        raise InputError(f"{cfg.source}: structure: {exc}") from None
+    return MDOFStage(stepper), float(fn1)
+
+
+# ----------------------------------------------------------------------------------------------
+# record columns
+
+
+#: Per-channel columns before ``lateness``: (name, source attribute on a runner channel).
+CHANNEL_COLUMNS_A = (
+    ("target", "x_t"),
+    ("command", "c"),
+    ("measured", "meas"),
+    ("force", "force"),
+    ("velocity", "v"),
+    ("restoring_force", "r"),
+    ("alpha", "alpha"),
+    ("fei_amplitude", "a_fei"),
+    ("fei_delay", "d_fei"),
+    ("fei_f_eq", "f_fei"),
+    ("fei_valid", "v_fei"),
+    ("fei_exact_amplitude", "a_ex"),
+    ("fei_exact_delay", "d_ex"),
+    ("fei_exact_valid", "v_ex"),
+    ("kf_gain", "kf_g"),
+    ("kf_delay", "kf_d"),
+)
+#: Per-channel column between ``lateness`` and ``seq``.
+CHANNEL_COLUMNS_B = (("feedback_ok", "ok"),)
+#: Per-channel columns after ``seq`` (new with channels; also in a single-channel record).
+CHANNEL_COLUMNS_C = (
+    ("feedback_time", "fb_time", "<f8", "s", "time from the step's first send to this reply"),
+    (
+        "fei_exact_step",
+        "ex_step",
+        "<i8",
+        "-",
+        "step at which the window of the held exact FEI value ended (-1: none yet)",
+    ),
+)
+_BASE = {name: (code, unit, desc) for name, code, unit, desc in COLUMNS}
+_CH_DESC = {
+    "velocity": "velocity of the structure along the actuator (T·v)",
+    "restoring_force": "numerical restoring force along the actuator (T·r)",
+}
+
+
+def record_columns(suffixes: list[str], n_dof: int) -> list[tuple[str, str, str, str]]:
+    """The record's columns (name, dtype, unit, description), in file order.
+
+    One channel (suffix ``""``) on an SDOF: today's :data:`rths_hil.recorder.COLUMNS`, then
+    ``feedback_time`` and ``fei_exact_step``. Several channels: each per-channel column once per
+    channel with ``_<name>``, plus ``skew``; more than one DOF: ``u_1 … u_n``.
+    """
+    multi = len(suffixes) > 1 or suffixes != [""]
+    cols: list[tuple[str, str, str, str]] = []
+
+    def base(name: str) -> tuple[str, str, str, str]:
+        code, unit, desc = _BASE[name]
+        return (name, code, unit, desc)
+
+    cols += [base("time"), base("step"), base("ground_accel")]
+    for sfx in suffixes:
+        for name, _ in CHANNEL_COLUMNS_A:
+            code, unit, desc = _BASE[name]
+            if multi:
+                desc = _CH_DESC.get(name, desc)
+            cols.append((name + sfx, code, unit, desc))
+    cols.append(base("lateness"))
+    for sfx in suffixes:
+        for name, _ in CHANNEL_COLUMNS_B:
+            code, unit, desc = _BASE[name]
+            cols.append((name + sfx, code, unit, desc))
+    cols.append(base("seq"))
+    for sfx in suffixes:
+        for name, _, code, unit, desc in CHANNEL_COLUMNS_C:
+            cols.append((name + sfx, code, unit, desc))
+    if len(suffixes) > 1:
+        cols.append(
+            ("skew", "<f8", "s", "latest minus earliest reply time of the step over the channels")
+        )
+    if n_dof > 1:
+        for i in range(n_dof):
+            cols.append((f"u_{i + 1}", "<f8", "m", f"displacement of DOF {i + 1} (target)"))
+    return cols
+
+
+# ----------------------------------------------------------------------------------------------
+# plans
+
+
+@dataclass
+class ChannelPlan:
+    """One actuator channel, planned (no I/O yet).
+
+    Attributes
+    ----------
+    name : str
+        Channel name (``""``: the single unnamed channel).
+    suffix : str
+        Column suffix (``""`` for a single channel, else ``_<name>``).
+    row : ndarray
+        Row of the transformation matrix T (n_dof).
+    dof : int
+        0-based DOF when the row is a unit vector, else -1.
+    cfg : Config
+        The channel's resolved configuration.
+    """
+
+    name: str
+    suffix: str
+    row: np.ndarray
+    dof: int
+    cfg: Config
+    driver_name: str
+    connection: dict[str, Any]
+    twin_enabled: bool
+    twin_inline: bool
+    plant: Any
+    faults: Any
+    compensator: InverseCompensator
+    adaptive: AdaptiveAlpha | None
+    fei_enabled: bool
+    window_s: float
+    fei_pair: str
+    exact_hop: int
+    kalman: Any
+    kalman_pair: str
+    kalman_every: int
+    monitor: SafetyMonitor
+    warmup_steps: int
+
+
+@dataclass
+class TestPlan:
+    """Everything a run needs, decided (see :func:`build_plan`)."""
+
+    cfg: Config
+    mode: str
+    fs: float
+    dt: float
+    n_steps: int
+    ag: np.ndarray
+    ground_motion: groundmotion.GroundMotion
+    run_dir: Path
+    structure: StructureStage
+    fn1: float
+    channels: list[ChannelPlan]
+    columns: list[tuple[str, str, str, str]]
+    timeout: float
+    spin: float
+    overrun_threshold: float
+    max_overruns: int
+    heartbeat_steps: int
+    console_interval: float
+    priority: int
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_dof(self) -> int:
+        """Number of DOFs of the structure."""
+        return self.structure.n_dof
+
+    @property
+    def transform(self) -> np.ndarray:
+        """T: one row per channel (channels × DOFs)."""
+        return np.array([c.row for c in self.channels])
+
+
+def _window(ch_cfg: Config, fn1: float) -> float:
+    w = ch_cfg["fei"]["window"]
+    return parse_window(w, fn1) if isinstance(w, str) else float(w)
+
+
+def _plan_channel(
+    cc: ChannelConfig, i: int, n_chan: int, n_dof: int, fs: float, mode: str, fn1: float, plant
+) -> ChannelPlan:
+    cfg = cc.config
+    dt = 1.0 / fs
+    where = cfg.source + (f": actuators[{i}] ({cc.name})" if cc.name else "")
+    if cc.transform is not None:
+        row = np.asarray(cc.transform, dtype=float)
+        if row.size != n_dof:
+            raise InputError(
+                f"{where}.transform: {row.size} entries, the structure has {n_dof} DOF"
+            )
+    else:
+        d = cc.dof if cc.dof is not None else 1
+        if not 1 <= d <= n_dof:
+            raise InputError(f"{where}.dof: {d} is out of range: the structure has {n_dof} DOF")
+        row = np.zeros(n_dof)
+        row[d - 1] = 1.0
+    nz = np.flatnonzero(row)
+    dof = int(nz[0]) if nz.size == 1 and row[nz[0]] == 1.0 else -1
+    if not np.any(row):
+        raise InputError(f"{where}.transform: all zero: the actuator acts on no DOF")
+
+    name = cfg["driver"]["name"]
+    from drivers.registry import driver_class
+
+    try:
+        driver_class(name)
+    except InputError as exc:
+        raise InputError(f"{where}: driver.name: {exc}") from None
+    tw = cfg["twin"]
+    if tw["enabled"] and name not in TWIN_DRIVERS:
+        raise InputError(
+            f"{where}: twin.enabled: there is no twin for driver {name!r} (twins exist "
+            "for can, modbus, serial); set twin.enabled = false to use the real controller"
+        )
+    conn = dict(cfg["driver"]["connection"])
+    if tw["enabled"] and plant is None:
+        plant = choose_plant(cfg, dt)
+    faults = None
+    if tw["faults"]:
+        from sim_backends.faults import Faults
+
+        try:
+            faults = Faults.parse(tw["faults"])
+        except InputError as exc:
+            raise InputError(f"{where}: twin.faults: {exc}") from None
+    inline = bool(tw["inline"] and name == "can" and conn.get("interface", "virtual") == "virtual")
+
+    c = cfg["compensation"]
+    comp = InverseCompensator(c["alpha"], c["amplitude"], c["enabled"])
+    fe = cfg["fei"]
+    adaptive = None
+    if c["adaptive"] and c["enabled"]:
+        adaptive = AdaptiveAlpha(
+            comp, dt, fe["pair"], c["time_constant"], c["rate"], c["alpha_min"], c["alpha_max"]
+        )
+    try:
+        window_s = _window(cfg, fn1)
+    except InputError as exc:
+        raise InputError(f"{where}: fei.window: {exc}") from None
+    if not window_s * fs >= 8:
+        raise InputError(f"{where}: fei.window: fewer than 8 samples at {fs:g} Hz")
+    kc = cfg["kalman"]
+    kalman = None
+    if kc["enabled"]:
+        from ..estimation import DelayGainEstimator
+
+        opts = dict(kc["options"])
+        if kc["pair"] == "command":
+            opts.setdefault("delay0", min((comp.alpha - 1.0) * dt, 0.09) if c["enabled"] else 0.0)
+        try:
+            kalman = DelayGainEstimator(fs, **opts)
+        except (TypeError, InputError) as exc:
+            raise InputError(f"{where}: kalman.options: {exc}") from None
+
+    sf = cfg["safety"]
+    monitor = SafetyMonitor(
+        dt,
+        displacement_limit=sf["displacement_limit"] or None,
+        velocity_limit=sf["velocity_limit"] or None,
+        force_limit=sf["force_limit"] or None,
+        fei=(
+            FEIRule(
+                sf["fei_amplitude_tol"] or math.inf,
+                sf["fei_delay_tol"] or math.inf,
+                sf["fei_consecutive"],
+            )
+            if fe["enabled"] and (sf["fei_amplitude_tol"] or sf["fei_delay_tol"])
+            else None
+        ),
+        kalman=(
+            KalmanRule(sf["kf_gain_min"], sf["kf_gain_max"], sf["kf_delay_max"] or math.inf)
+            if kc["enabled"]
+            else None
+        ),
+        watchdog=WatchdogRule(sf["watchdog_missed"]),
+        sequence=SequenceRule(sf["max_sequence_gaps"]),
+        overrun=None,  # one rule for the whole loop (TestPlan.max_overruns)
+        stuck=StuckRule(sf["stuck_steps"], sf["stuck_motion"]) if sf["stuck_steps"] else None,
+        controller=ControllerRule() if sf["controller_status"] else None,
+    )
+    return ChannelPlan(
+        name=cc.name,
+        suffix=f"_{cc.name}" if n_chan > 1 else "",
+        row=row,
+        dof=dof,
+        cfg=cfg,
+        driver_name=name,
+        connection=conn,
+        twin_enabled=bool(tw["enabled"]),
+        twin_inline=inline,
+        plant=plant,
+        faults=faults,
+        compensator=comp,
+        adaptive=adaptive,
+        fei_enabled=bool(fe["enabled"]),
+        window_s=window_s,
+        fei_pair=fe["pair"],
+        exact_hop=fe["exact_hop"] if fe["enabled"] else 0,
+        kalman=kalman,
+        kalman_pair=kc["pair"],
+        kalman_every=kc["every"],
+        monitor=monitor,
+        warmup_steps=round(sf["warmup"] * fs),
+    )
+
+
+def build_plan(
+    cfg: Config,
+    run_dir: str | Path | None = None,
+    *,
+    plant: Any = None,
+    mode: str | None = None,
+    duration: float | None = None,
+) -> TestPlan:
+    """Validate ``cfg`` and decide everything a run needs (no I/O).
+
+    Parameters
+    ----------
+    cfg : Config
+        Resolved configuration.
+    run_dir : str or Path, optional
+        Run directory; default from ``output.dir``.
+    plant : Plant or dict, optional
+        The twin's plant instead of the configured one: one plant (single channel) or
+        ``{channel name: plant}``.
+    mode, duration : optional
+        Override ``loop.mode`` and ``loop.duration``.
+
+    Raises
+    ------
+    InputError
+        Anything wrong in the configuration, naming the key.
+    """
+    lp = cfg["loop"]
+    mode = mode or lp["mode"]
+    if mode not in ("paced", "lockstep"):
+        raise InputError(f"mode must be 'paced' or 'lockstep', got {mode!r}")
+    fs = float(lp["fs"])
+    dt = 1.0 / fs
+    dur = lp["duration"] if duration is None else float(duration)
+    if not (math.isfinite(dur) and dur >= 0):
+        raise InputError(f"duration must be >= 0 s, got {duration!r}")
+    run_dir = Path(run_dir) if run_dir is not None else new_run_dir(cfg["output"]["dir"])
+
+    gm = build_ground_motion(cfg)
+    ag = np.asarray(gm.accel, dtype=float)
+    n = round(dur * fs) if dur > 0 else ag.size
+    if n < 2:
+        raise InputError(f"duration {dur:g} s is shorter than two steps at {fs:g} Hz")
+    if n > ag.size:
+        ag = np.concatenate([ag, np.zeros(n - ag.size)])
+    ag = ag[:n].copy()
+
+    structure, fn1 = build_structure(cfg, dt, float(ag[0]))
+    n_dof = structure.n_dof
+    known = structure_dofs(cfg)
+    if known is not None and known != n_dof:  # pragma: no cover - the model disagrees
+        raise InputError(f"{cfg.source}: structure: {known} DOF configured, {n_dof} built")
+    chans_cfg = cfg.channels()
+    plants: dict[str, Any] = {}
+    if plant is not None:
+        if isinstance(plant, dict):
+            plants = dict(plant)
+        elif len(chans_cfg) == 1:
+            plants = {chans_cfg[0].name: plant}
+        else:
+            raise InputError("plant=: several channels: pass {channel name: plant}")
+    channels = [
+        _plan_channel(cc, i, len(chans_cfg), n_dof, fs, mode, fn1, plants.get(cc.name))
+        for i, cc in enumerate(chans_cfg)
+    ]
+    if n_dof > 1 and len(channels) == 1 and not cfg.get("actuators"):
+        raise InputError(
+            f"{cfg.source}: actuators: a structure of {n_dof} DOF needs [[actuators]] entries "
+            "saying where each actuator acts (dof or transform)"
+        )
+    _check_shared_links(cfg, channels)
+    sf = cfg["safety"]
+    return TestPlan(
+        cfg=cfg,
+        mode=mode,
+        fs=fs,
+        dt=dt,
+        n_steps=n,
+        ag=ag,
+        ground_motion=gm,
+        run_dir=run_dir,
+        structure=structure,
+        fn1=fn1,
+        channels=channels,
+        columns=record_columns([c.suffix for c in channels], n_dof),
+        timeout=lp["feedback_timeout"] or (0.8 * dt if mode == "paced" else 1.0),
+        # never spin through a whole period: a SCHED_FIFO thread that never sleeps is stopped by
+        # Linux's RT throttling (95 % of a CPU) for 50 ms every second
+        spin=min(lp["spin"], 0.4 * dt),
+        overrun_threshold=lp["overrun_threshold"] * dt,
+        max_overruns=sf["max_overruns"],
+        heartbeat_steps=round(lp["heartbeat"] * fs) if lp["heartbeat"] > 0 else 0,
+        console_interval=lp["console"],
+        priority=lp["priority"],
+    )
+
+
+def _check_shared_links(cfg: Config, channels: list[ChannelPlan]) -> None:
+    """Channels sharing a link must be told apart: CAN node ids, Modbus unit ids; serial: no."""
+    seen: dict[tuple, str] = {}
+    for ch in channels:
+        conn = ch.connection
+        if ch.driver_name == "can":
+            key = (
+                "can",
+                conn.get("interface", "virtual"),
+                conn.get("channel"),
+                conn.get("node", 0),
+            )
+            if conn.get("channel") is None and ch.twin_enabled:
+                continue  # each twin gets a bus of its own
+        elif ch.driver_name == "modbus":
+            if ch.twin_enabled and not conn.get("port"):
+                continue  # each twin gets a port of its own
+            key = ("modbus", conn.get("host"), conn.get("port"), conn.get("device_id", 1))
+        elif ch.driver_name == "serial":
+            if ch.twin_enabled and not (conn.get("url") or conn.get("port")):
+                continue
+            key = ("serial", conn.get("url"), conn.get("port"))
+        else:
+            continue
+        if key in seen:
+            what = {
+                "can": "the same CAN node on one bus (set driver.connection.node)",
+                "modbus": "the same Modbus unit on one server (set driver.connection.device_id)",
+                "serial": "one serial port (serial links carry one channel each)",
+            }[ch.driver_name]
+            raise InputError(
+                f"{cfg.source}: actuators: channels {seen[key]!r} and {ch.name!r} use {what}"
+            )
+        seen[key] = ch.name

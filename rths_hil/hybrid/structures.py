@@ -1,0 +1,139 @@
+"""Structure stages: the numerical substructure as the runner sees it.
+
+A structure stage turns the measured restoring forces of the DOFs into the next targets of the
+DOFs. It is the one place the runner asks "where do the actuators go next"; anything that can
+answer it can drive a test: the paper's SDOF frame (:class:`SDOFStage`, Chen & Ricles' CR
+integration), a shear building or a model given by its matrices (:class:`MDOFStage`, the CR
+integrator in matrix form of :mod:`rths_hil.mdof`), or an experimental site's client
+(OpenSees/OpenFresco) whose analysis computes the targets.
+
+The interface (:class:`StructureStage`)::
+
+    stage.n_dof                      number of DOFs n
+    stage.reset() -> x0              DOF displacements of step 0 (list of n floats)
+    stage.step(k, ag, force) -> x    commit step k with the measured DOF forces Tᵀ·f (list of
+                                     n floats, N) and the ground acceleration of step k
+                                     (m/s²); return the DOF displacements of step k+1. At
+                                     k = 0 nothing is committed: the explicit prediction from
+                                     the initial state is returned (the force at rest is not
+                                     used), as in CR's first step.
+    stage.v, stage.r                 DOF velocities (m/s) and numerical restoring forces (N)
+                                     of the last committed step (lists of n floats)
+    stage.finished                   True when the structure ends the test early (an external
+                                     analysis that stopped); the runner then stops, completed
+    stage.close()                    release what the stage holds (sockets, processes)
+
+Explicit integration is what makes the loop work: the targets of step k+1 are known before
+the force of step k+1 is measured (Chen & Ricles 2008), so every command leaves at its deadline
+with no computation in front of it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Protocol, runtime_checkable
+
+__all__ = ["MDOFStage", "SDOFStage", "StructureStage"]
+
+
+@runtime_checkable
+class StructureStage(Protocol):
+    """What the runner needs from the numerical substructure (see the module docstring)."""
+
+    n_dof: int
+    v: list[float]
+    r: list[float]
+    finished: bool
+
+    def reset(self) -> list[float]:
+        """DOF displacements of step 0."""
+        ...
+
+    def step(self, k: int, ag: float, force: Sequence[float]) -> list[float]:
+        """Commit step ``k`` with the measured DOF forces; the DOF displacements of step k+1."""
+        ...
+
+    def close(self) -> None:
+        """Release resources (idempotent)."""
+        ...
+
+
+class SDOFStage:
+    """The paper's SDOF frame: :class:`rths_hil.structure.CRStepper` behind the stage interface.
+
+    Parameters
+    ----------
+    stepper : CRStepper
+        The CR stepper (Chen & Ricles 2008; Bouc-Wen restoring force, the FEI paper Eq. 4.1–4.2).
+    """
+
+    n_dof = 1
+
+    def __init__(self, stepper) -> None:
+        self.stepper = stepper
+        self._step = stepper.step
+        self.v = [0.0]
+        self.r = [0.0]
+        self.finished = False
+
+    def reset(self) -> list[float]:
+        st = self.stepper
+        self.v[0] = st.v
+        self.r[0] = st.restoring_force
+        return [st.x]
+
+    def step(self, k: int, ag: float, force: Sequence[float]) -> list[float]:
+        st = self.stepper
+        if k == 0:
+            return [st.x_next]
+        x = self._step(ag, force[0])
+        self.v[0] = st.v
+        self.r[0] = st.restoring_force
+        return [x]
+
+    def close(self) -> None:
+        pass
+
+
+class MDOFStage:
+    """A multi-DOF model (shear building, matrices) behind the stage interface.
+
+    Parameters
+    ----------
+    stepper
+        CR integrator in matrix form (:mod:`rths_hil.mdof`): ``x_next`` (n-vector known before
+        the force is measured), ``step(ag, extra_force) -> x_next``, ``v`` and (if it has one)
+        ``restoring_force``.
+    """
+
+    def __init__(self, stepper) -> None:
+        self.stepper = stepper
+        self._step = stepper.step
+        self.n_dof = len(stepper.x_next)
+        self.v = [0.0] * self.n_dof
+        self.r = [0.0] * self.n_dof
+        self.finished = False
+
+    def _state(self) -> None:
+        st = self.stepper
+        self.v = [float(x) for x in st.v]
+        r = getattr(st, "restoring_force", None)
+        self.r = [float(x) for x in r] if r is not None else [math.nan] * self.n_dof
+
+    def reset(self) -> list[float]:
+        self._state()
+        return [float(x) for x in self.stepper.x]
+
+    def step(self, k: int, ag: float, force: Sequence[float]) -> list[float]:
+        import numpy as np
+
+        st = self.stepper
+        if k == 0:
+            return [float(x) for x in st.x_next]
+        x = self._step(ag, np.asarray(force, dtype=float))
+        self._state()
+        return x.tolist()
+
+    def close(self) -> None:
+        pass
