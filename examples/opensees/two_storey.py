@@ -28,12 +28,12 @@ import sys
 
 import numpy as np
 
-# The frame: two floors of 5 t each, storey stiffnesses 4 and 3 MN/m, 2 % mass-proportional
-# damping on the first mode; the damper (the specimen): 1.19 MN/m and 20 kN·s/m.
-MASSES = (5000.0, 5000.0)
+# The frame: two floors of 50 t each, storey stiffnesses 4 and 3 MN/m, 2 % mass-proportional
+# damping on the first mode; the damper (the specimen): 1.19 MN/m and 2 kN·s/m.
+MASSES = (50.0e3, 50.0e3)
 STOREY_K = (4.0e6, 3.0e6)
 SPECIMEN_K = 1.19e6
-SPECIMEN_C = 2.0e4
+SPECIMEN_C = 2.0e3
 ZETA = 0.02
 
 
@@ -133,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--port", type=int, default=8090)
     p.add_argument("--dt", type=float, default=1 / 256, help="analysis step (s)")
     p.add_argument("--duration", type=float, default=10.0, help="seconds of the record")
-    p.add_argument("--pga", type=float, default=3.0, help="peak ground acceleration (m/s²)")
+    p.add_argument("--pga", type=float, default=1.0, help="peak ground acceleration (m/s²)")
     p.add_argument("--accel", help="ground acceleration file (m/s², one value per line)")
     p.add_argument("--accel-dt", type=float, default=0.02, help="step of --accel (s)")
     p.add_argument("--algorithm", default="Linear", help="OpenSees solution algorithm")

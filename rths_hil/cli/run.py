@@ -82,6 +82,17 @@ def main(args: argparse.Namespace) -> int:
             f"{cfg['driver']['name']}{' + twin' if loop.twin_enabled else ''}, record in {run_dir}",
             file=sys.stderr,
         )
+    site = loop.structure if hasattr(loop.structure, "paste_lines") else None
+    if site is not None:  # structure.kind = "openfresco": listen, say what to paste, then wait
+        host, port = site.listen()
+        py, tcl = site.paste_lines()
+        o = cfg["openfresco"]
+        print(
+            f"rths-hil run: experimental site ({o['protocol']}, {o['timing']}) listening on "
+            f"{host}:{port}; in OpenSees:\n  OpenSeesPy: {py}\n  Tcl:        {tcl}",
+            file=sys.stderr,
+            flush=True,
+        )
     try:
         result = loop.run()
     finally:

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from ..config import SCHEMA
 from ..errors import InputError
 from . import protocol as P
 from .server import SiteServer
@@ -40,45 +41,28 @@ __all__ = ["DEFAULTS", "TIMINGS", "ExperimentalSite", "Mapping", "SiteFault"]
 
 TIMINGS = ("lockstep", "predictor-corrector", "ramp-hold")
 
-#: ``[openfresco]`` keys and their defaults (SI units).
-DEFAULTS: dict[str, Any] = {
-    "host": "127.0.0.1",
-    "port": 8090,
-    "protocol": "elem-server",
-    "timing": "lockstep",
-    "actuators": 1,
-    "transform": [],
-    "stiffness": 0.0,
-    "damping": 0.0,
-    "mass": 0.0,
-    "order": 2,
-    "wait": -1.0,
-    "hold_after": 0.02,
-    "estop_after": 0.25,
-    "ramp_time": 0.0,
-    "hold_time": 0.1,
-    "element_dt": 0.0,
-    "start_timeout": 60.0,
-    "client_timeout": 60.0,
-    "connect_timeout": 0.0,
-    "quickack": True,
-}
+#: ``[openfresco]`` keys and their defaults (SI units), from the configuration schema.
+DEFAULTS: dict[str, Any] = {name: key.default for name, key in SCHEMA["openfresco"].items()}
 
 
 def _matrix(value: Any, n: int, what: str) -> np.ndarray:
-    """A per-actuator scalar, a list of n values (diagonal) or an n×n matrix."""
+    """Per-actuator values: none (zero), a number, n values (diagonal) or n² (row-major)."""
     try:
-        a = np.asarray(value, dtype=float)
+        a = np.asarray(value if value is not None else [], dtype=float)
     except (TypeError, ValueError):
         raise InputError(f"openfresco.{what}: not a number or list of numbers: {value!r}") from None
-    if a.ndim == 0:
-        a = np.eye(n) * float(a)
-    elif a.ndim == 1 and a.size == n:
-        a = np.diag(a)
-    elif a.shape != (n, n):
+    if a.size == 0:
+        a = np.zeros((n, n))
+    elif a.ndim == 0 or a.size == 1:
+        a = np.eye(n) * float(a.ravel()[0])
+    elif a.size == n:
+        a = np.diag(a.ravel())
+    elif a.size == n * n:
+        a = a.reshape(n, n)
+    else:
         raise InputError(
-            f"openfresco.{what}: expected a number, {n} values or a {n}×{n} matrix, "
-            f"got shape {a.shape}"
+            f"openfresco.{what}: {a.size} values for {n} actuator(s): give {n} (one per "
+            f"actuator) or {n * n} (a matrix, row-major)"
         )
     if not np.all(np.isfinite(a)):
         raise InputError(f"openfresco.{what}: values must be finite")
@@ -110,13 +94,30 @@ class Mapping:
         if int(n_actuators) < 1:
             raise InputError(f"openfresco.actuators must be ≥ 1, got {n_actuators!r}")
         self.n_actuators = int(n_actuators)
-        self._transform = transform or None
+        self._transform = (
+            self._rows(transform) if transform is not None and len(transform) else None
+        )
         self.K = _matrix(stiffness, self.n_actuators, "stiffness")
         self.C = _matrix(damping, self.n_actuators, "damping")
         self.M = _matrix(mass, self.n_actuators, "mass")
         self.T: np.ndarray | None = None
         if self._transform is not None:
-            self._check(np.asarray(self._transform, dtype=float), None)
+            self._check(self._transform, None)
+
+    def _rows(self, transform: Any) -> np.ndarray:
+        """``T`` from nested rows or a flat row-major list of ``n_actuators`` rows."""
+        try:
+            T = np.asarray(transform, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError(f"openfresco.transform: not numbers: {transform!r}") from None
+        if T.ndim == 1:
+            if T.size % self.n_actuators:
+                raise InputError(
+                    f"openfresco.transform: {T.size} values are not {self.n_actuators} rows "
+                    "(one row of element-DOF weights per actuator, row-major)"
+                )
+            T = T.reshape(self.n_actuators, -1)
+        return T
 
     def _check(self, T: np.ndarray, nb: int | None) -> np.ndarray:
         if T.ndim == 1:
@@ -146,7 +147,7 @@ class Mapping:
                     f"{self.n_actuators} actuators"
                 )
         elif self._transform is not None:
-            T = self._check(np.asarray(self._transform, dtype=float), nb)
+            T = self._check(self._transform, nb)
         elif self.n_actuators == 1 and nb == 1:
             T = np.array([[1.0]])
         elif self.n_actuators == 1 and nb == 2:
@@ -209,7 +210,7 @@ class ExperimentalSite:
     dt : float
         Loop step (s).
     n_actuators : int, optional
-        Overrides ``options["actuators"]`` (the loop's channel count).
+        Number of actuator channels (the loop's channels; default 1).
 
     Notes
     -----
@@ -225,27 +226,13 @@ class ExperimentalSite:
         if unknown:
             raise InputError(f"openfresco.{unknown[0]}: unknown key (known: {', '.join(DEFAULTS)})")
         o = {**DEFAULTS, **dict(options)}
-        if o["protocol"] not in P.PROTOCOLS:
-            raise InputError(
-                f"openfresco.protocol: {o['protocol']!r} is not one of {', '.join(P.PROTOCOLS)}"
-            )
-        if o["timing"] not in TIMINGS:
-            raise InputError(
-                f"openfresco.timing: {o['timing']!r} is not one of {', '.join(TIMINGS)}"
-            )
-        port = o["port"]
-        if not isinstance(port, int) or not 0 <= port <= 65535:
-            raise InputError(f"openfresco.port: must be an integer 0 … 65535, got {port!r}")
-        for key in ("hold_after", "estop_after", "ramp_time", "hold_time", "element_dt",
-                    "start_timeout", "client_timeout", "connect_timeout"):  # fmt: skip
-            v = o[key]
-            if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise InputError(f"openfresco.{key}: must be a number ≥ 0 s, got {v!r}")
-        if o["order"] not in (1, 2, 3):
-            raise InputError(f"openfresco.order: must be 1, 2 or 3, got {o['order']!r}")
+        for key in ("protocol", "timing"):
+            if o[key] not in SCHEMA["openfresco"][key].choices:
+                choices = ", ".join(SCHEMA["openfresco"][key].choices)
+                raise InputError(f"openfresco.{key}: {o[key]!r} is not one of {choices}")
         self.options = o
         self.dt = float(dt)
-        n = int(n_actuators if n_actuators is not None else o["actuators"])
+        n = int(n_actuators if n_actuators is not None else 1)
         self.mapping = Mapping(n, o["transform"], o["stiffness"], o["damping"], o["mass"])
         self.n = n
         self.host = str(o["host"])
@@ -277,8 +264,7 @@ class ExperimentalSite:
         host = self.server.host if self.server else self.host
         port = self.server.port if self.server else self.options["port"]
         T = self.mapping._transform
-        nb = len(T[0]) if T and isinstance(T[0], list) else len(T) if T else 2
-        return _genericclient_lines(host, port, nb)
+        return _genericclient_lines(host, port, T.shape[1] if T is not None else 2)
 
     def accept(self, stop: Callable[[], bool] = lambda: False) -> P.SessionID:
         """Wait for the client and its ID (one line + :class:`InputError` when wrong)."""
@@ -288,7 +274,7 @@ class ExperimentalSite:
         ses = self.server.accept(limit, stop)
         o = self.options
         ramp = o["ramp_time"] or (0.01 if o["timing"] == "lockstep" else 0.5)
-        wait = o["wait"] if o["wait"] >= 0 else 0.4 * self.dt
+        wait = o["wait"] * self.dt
         self.timing = make_timing(
             o["timing"],
             self.server.mailbox,

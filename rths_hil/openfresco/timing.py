@@ -20,17 +20,21 @@ never waits on OpenSees' schedule. A *target* is the trial whose forces OpenSees
     predictor–corrector of Schellenberg, Mahin and Fenves (2009) after Mosqueda, Stojadinovic
     and Mahin (2007), here in the form::
 
-        predictor   c(s) = L_p(s),                  L_p through the last p + 1 targets (s_j, d_j)
-        corrector   c(s) = L_c(s) + (c_r − L_c(s_r))·(s_e − s)/(s_e − s_r)
+        predictor   c(s) = L_p(s),      L_p through the last p + 1 targets (s_j, d_j)
+        corrector   c(s) = L_c(s) + (c_r − L_c(s_r))·h00(τ) + (ċ_r − L_c'(s_r))·h10(τ)·(s_e − s_r)
 
     where ``s`` is the loop step, ``L_c`` interpolates the last ``p`` targets and the new one
-    placed at the cycle's end ``s_e``, and ``c_r`` is the last command sent before the target
-    arrived at step ``s_r`` (the blending term keeps the command continuous and vanishes at
-    ``s_e``). A cycle ends at ``max(s_i + k_sub, s_r + 1)``: a late target stretches it. When
-    the next command would be the end of the cycle and no target has come, the loop waits up
-    to ``wait`` seconds for it (so one-loop-step element steps can run in real time); if the
-    target is later than ``hold_after`` past the cycle's end the actuator holds, later than
-    ``estop_after`` the site faults (e-stop). Every loop step is recorded as executed,
+    placed at the cycle's end ``s_e``, ``c_r`` and ``ċ_r`` are the last command sent before the
+    target arrived at step ``s_r`` and its slope, ``τ = (s − s_r)/(s_e − s_r)`` and ``h00``,
+    ``h10`` the cubic Hermite basis functions: the command and its slope stay continuous (the
+    compensator extrapolates the target ahead, so a kink would become a spike) and the command
+    lands on the target at ``s_e``. A cycle ends where it was due, ``s_i + k_sub``, when the
+    target came in time, otherwise a whole element step after it came (a late target stretches
+    the cycle). When the next command would be the end of the cycle and no target has come,
+    the loop waits up to ``wait`` seconds for it (so one-loop-step element steps can run in
+    real time); if the target is later than ``hold_after`` past the cycle's end the actuator
+    holds (its velocity decays by a factor 0.7 per step), later than ``estop_after`` the site
+    faults (e-stop). Every loop step is recorded as executed,
     predicted, corrected or held, and every target with OpenSees' latency (from the force
     reply to the next request).
 :class:`RampHold`
@@ -72,6 +76,7 @@ __all__ = [
 ]
 
 IDLE, EXECUTED, PREDICTED, CORRECTED, HELD = 0, 1, 2, 3, 4
+_SMOOTH = 0.2  # per loop step: first-order smoothing of the predictor–corrector's clock speed
 #: Per-step command kinds as recorded.
 KINDS = {IDLE: "idle", EXECUTED: "executed", PREDICTED: "predicted", CORRECTED: "corrected",
          HELD: "held"}  # fmt: skip
@@ -338,17 +343,38 @@ class RampHold(_RampBase):
 
 
 class PredictorCorrector(TimingMode):
-    """Real-time predictor–corrector (Schellenberg et al. 2009, Section 4.3); see the module.
+    """Real-time predictor–corrector (after Schellenberg et al. 2009, Section 4.3).
+
+    The command follows the structure's trajectory through OpenSees' targets on a clock that
+    runs in real time: ``c(s) = L(τ(s)) + e(s)``. ``τ`` is *structure time* (OpenSees' analysis
+    time in loop steps) and advances by one per loop step; ``L`` is the Lagrange polynomial of
+    order ``p`` through the last ``p + 1`` known targets — between targets it extrapolates (the
+    *predictor*); when a target arrives, the point set moves on to include it (the
+    *corrector*) and the jump this makes at ``τ_r``, ``L_old(τ_r) − L_new(τ_r)``, becomes the
+    offset ``e`` that is blended out with the cubic Hermite ``h00`` over the steps left to the
+    target's time (an element step, at least four loop steps, when it came late), so command
+    and slope stay
+    continuous: the compensator after the site extrapolates the target ``α − 1`` steps ahead,
+    so any stall or kink would come out ``α − 1`` times larger.
+
+    The force is returned from the first loop step whose structure time reached the target's:
+    exactly the target when it came in time, otherwise a point up to the lateness further
+    along the trajectory (the clock is not stopped: stalls would be amplified by the
+    compensation). When the clock gets ahead of OpenSees — past the time the next target is
+    due — its speed is lowered smoothly, ``σ* = 1 − excess/H`` (``excess`` the steps past the
+    due time, ``H = hold_after/Δt``; ``σ`` follows ``σ*`` with a first-order lag of five
+    steps): a slow client slows the test, a stalled one brings the actuator to a hold on the
+    trajectory by ``hold_after``; a target later than ``estop_after`` faults the site
+    (e-stop).
 
     Parameters
     ----------
     order : int
-        Polynomial order ``p`` of predictor and corrector (1 linear, 2 quadratic, 3 cubic).
+        Polynomial order ``p`` (1 linear, 2 quadratic, 3 cubic).
     wait : float
         Seconds the loop may wait, after its feedback, for a target due at the next step.
     hold_after, estop_after : float
-        Lateness of a target past the end of its cycle (s) at which the actuator holds and at
-        which the site faults.
+        Lateness (s) past the due time by which the actuator holds, and at which it faults.
     element_dt : float
         OpenSees' time step (s) when the trials carry no time block (0: from the time block).
     """
@@ -373,89 +399,115 @@ class PredictorCorrector(TimingMode):
         self.hold_after = float(hold_after)
         self.estop_after = float(estop_after)
         self.element_dt = float(element_dt)
+        # known targets: structure time (loop steps) and displacement; rest at time 0
         self.hist_s: deque[float] = deque([0.0], maxlen=order + 1)
         self.hist_d: deque[np.ndarray] = deque([np.zeros(self.n)], maxlen=order + 1)
-        self.k_sub = 0  # loop steps per element step (from the targets)
-        self.cycle_start = 0  # loop step of the last cycle end
-        self.end: int | None = None  # correcting: loop step the command reaches the target
-        self.target_d: np.ndarray | None = None
-        self.s_r = 0
-        self.c_r = self.cmd
+        self.k_sub = 1  # loop steps per element step (from the targets)
+        self.tau = 0.0  # structure time of the command (loop steps)
+        self.sigma = 1.0  # clock speed (1 = real time; < 1 only while holding)
+        self.t_goal: float | None = None  # structure time of the target awaiting its force
         self.reply_at: int | None = None
         self.start_wall = time.monotonic()
         self.worst_late = 0.0
+        self.late_steps = 0
+        self._horizon = max(1.0, self.hold_after / self.dt)
+        self._e0 = np.zeros(self.n)  # blended offset e: value at s_r, over m steps
+        self._s_r = 0
+        self._m = 1
+
+    def _base(self, tau: float) -> np.ndarray:
+        return lagrange(list(self.hist_s), list(self.hist_d), tau)
+
+    def _offset(self, s: int) -> np.ndarray | None:
+        x = (s - self._s_r) / self._m
+        if x >= 1.0:
+            return None
+        return self._e0 * ((1.0 + 2.0 * x) * (1.0 - x) ** 2)
 
     def _arrive(self, t: Target, k: int) -> None:
         """Target ``t`` seen at loop step ``k`` (after the command of ``k`` was sent)."""
         self._take(t, k)
+        t_last = self.hist_s[-1]
         if math.isfinite(t.time):
-            span = t.time - self.t_trial
+            t_new = t.time / self.dt
             self.t_trial = t.time
         else:
-            span = self.element_dt
-        self.k_sub = max(1, round(span / self.dt)) if span > 0 else max(self.k_sub, 1)
-        self.end = max(self.cycle_start + self.k_sub, k + 1)
-        self.target_d = np.array(t.displacement, dtype=float)
-        self.s_r = k
-        self.c_r = self.cmd.copy()
-        xs = list(self.hist_s)[-(self.order) :] if self.order > 0 else []
-        ys = list(self.hist_d)[-(self.order) :] if self.order > 0 else []
-        self._cx = [*xs, float(self.end)]
-        self._cy = [*ys, self.target_d]
-        self._blend0 = self.c_r - lagrange(self._cx, self._cy, float(k))
+            t_new = t_last + (self.element_dt / self.dt if self.element_dt > 0 else self.k_sub)
+        if t_new <= t_last:  # an iteration at the same time: a tiny step
+            t_new = t_last + 1e-6
+        self.k_sub = max(1, round(t_new - t_last))
+        old = self._base(self.tau)
+        rest = self._offset(k)
+        self.hist_s.append(t_new)
+        self.hist_d.append(np.array(t.displacement, dtype=float))
+        new = self._base(self.tau)
+        self._e0 = (old - new) + (rest if rest is not None else 0.0)
+        self._s_r = k
+        left = t_new - self.tau
+        # on time: blend out by the target's time; late: over an element step, at least 4
+        self._m = max(1, round(left)) if left >= 1.0 else max(self.k_sub, 4)
+        self.t_goal = t_new
 
     def step(self, k: int, disp: np.ndarray, force: np.ndarray) -> np.ndarray | None:
         if self.pending is not None and self.reply_at is not None and k >= self.reply_at:
             self._reply(k, disp, force)
             self.reply_at = None
-        if self.end is None:
+        if self.t_goal is None and self.pending is None:
             t = self._new_target()
-            if t is None and self.targets and self.wait > 0 and self.pending is None:
-                due = self.cycle_start + self.k_sub
-                if k + 1 >= due:  # the next command ends the cycle: wait a little for it
+            if t is None and self.targets and self.wait > 0:
+                if self.tau + 1.0 >= self.hist_s[-1] + self.k_sub:  # due at the next step
                     t = self._wait_for(self.wait)
             if t is not None:
                 self._arrive(t, k)
         s = k + 1
-        if self.end is not None:
-            if s >= self.end:
-                c = self.target_d
-                kind = EXECUTED
-                self.hist_s.append(float(self.end))
-                self.hist_d.append(self.target_d)
-                self.cycle_start = self.end
-                self.reply_at = s
-                self.end = None
-            else:
-                frac = (self.end - s) / (self.end - self.s_r)
-                c = lagrange(self._cx, self._cy, float(s)) + self._blend0 * frac
-                kind = CORRECTED
-        elif not self.targets:  # before the first target: stand still
+        if not self.targets:  # before the first target: stand still
             if self._check_closed():
                 return None
             if time.monotonic() - self.start_wall > self.start_timeout > 0:
                 raise SiteFault(
                     f"openfresco: no trial from the client within {self.start_timeout:g} s"
                 )
-            c = self.cmd
-            kind = IDLE
-        else:
-            if self.pending is None and self._check_closed():
-                return None
-            late = (s - (self.cycle_start + self.k_sub)) * self.dt
+            self.kinds.append(IDLE)
+            return self.cmd
+        if self.t_goal is None and self.pending is None and self._check_closed():
+            return None
+        kind = PREDICTED
+        # how far the clock would run past the due time of the next target nobody sent yet:
+        # the clock slows smoothly as it gets ahead of OpenSees (σ* = 1 − excess/H, H the
+        # hold_after horizon) so a slow or stalled client brings the actuator to a hold
+        # without a jerk (the compensation multiplies jerks by α − 1)
+        excess = self.tau + 1.0 - (self.hist_s[-1] + self.k_sub)
+        if excess > 0.0 and self.t_goal is None:
+            self.late_steps += 1
+            late = self.late_steps * self.dt
             if late > self.worst_late:
                 self.worst_late = late
             if late > self.estop_after:
                 raise SiteFault(
                     f"openfresco: OpenSees is {late * 1e3:.1f} ms late with its next trial "
-                    f"(bound timing.estop_after = {self.estop_after * 1e3:g} ms)"
+                    f"(bound openfresco.estop_after = {self.estop_after * 1e3:g} ms)"
                 )
-            if late > self.hold_after:
-                c = self.cmd
-                kind = HELD
+        elif self.t_goal is not None:
+            self.late_steps = 0
+        goal = 1.0 - min(1.0, max(0.0, excess) / self._horizon)
+        if goal < 1.0:
+            kind = HELD
+        self.sigma += _SMOOTH * (goal - self.sigma)
+        self.tau += self.sigma
+        c = self._base(self.tau)
+        e = self._offset(s)
+        if e is not None:
+            c = c + e
+            if kind == PREDICTED:
+                kind = CORRECTED
+        if self.t_goal is not None:
+            if self.tau >= self.t_goal - 1e-9:  # the target's time is reached: its force next
+                if abs(self.tau - self.t_goal) < 1e-9 and e is None:
+                    kind = EXECUTED
+                self.t_goal = None
+                self.reply_at = s
             else:
-                c = lagrange(list(self.hist_s), list(self.hist_d), float(s))
-                kind = PREDICTED
+                kind = CORRECTED
         self.cmd = c
         self.kinds.append(kind)
         return c
