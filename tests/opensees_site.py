@@ -82,7 +82,13 @@ def hybrid(
     _, port = stage.listen()
     out = tmp / f"{name}.npy"
     proc = subprocess.Popen(
-        [*opensees_args(model, dt, duration, accel, *extra), "--port", str(port), "--out", str(out)],
+        [
+            *opensees_args(model, dt, duration, accel, *extra),
+            "--port",
+            str(port),
+            "--out",
+            str(out),
+        ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

@@ -251,7 +251,10 @@ class _RampBase(TimingMode):
                 self.ramp.append(c0 + (d - c0) * s)
         for _ in range(hold):
             self.ramp.append(d.copy())
-        self.vel = v1 if v1 is not None and not hold else np.zeros(self.n)
+        if hold:
+            self.vel = np.zeros(self.n)
+        else:  # the slope the path leaves the target with
+            self.vel = v1 if v1 is not None else (d - c0) / span
         t_end = (self.path[-1][0] if self.path else 0.0) + span
         if self.path and span > 0 and not hold:
             self.path.append((t_end, d))
