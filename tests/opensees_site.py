@@ -48,13 +48,22 @@ def opensees_args(model: str, dt: float, duration: float, accel: tuple[Path, flo
 def reference(tmp: Path, model: str, dt: float, duration: float, accel, *extra) -> np.ndarray:
     """The all-numerical model (damper as zeroLength elastic + viscous)."""
     out = tmp / f"ref-{model}-{dt:g}.npy"
-    subprocess.run(
+    reference.last = subprocess.run(
         [*opensees_args(model, dt, duration, accel, *extra), "--numerical", "--out", str(out)],
         check=True,
         capture_output=True,
+        text=True,
         timeout=120,
     )
     return np.load(out)
+
+
+def analysis_seconds(stdout: str) -> float:
+    """The analysis time the example prints (``… N steps in T s``)."""
+    for line in stdout.splitlines():
+        if " steps in " in line:
+            return float(line.split(" steps in ")[1].split()[0])
+    raise ValueError("no timing line in the example's output")
 
 
 def hybrid(

@@ -493,9 +493,9 @@ class PredictorCorrector(TimingMode):
         elif self.t_goal is not None:
             self.late_steps = 0
         goal = 1.0 - min(1.0, max(0.0, excess) / self._horizon)
-        if goal < 1.0:
-            kind = HELD
         self.sigma += _SMOOTH * (goal - self.sigma)
+        if self.sigma < 0.5:
+            kind = HELD  # the clock is below half speed: the actuator is coming to a hold
         self.tau += self.sigma
         c = self._base(self.tau)
         e = self._offset(s)
