@@ -138,8 +138,8 @@ def main() -> int:
             "Frame of examples/opensees/two_storey.py (2 storeys, damper as genericClient), "
             "bundled El Centro at PGA 1 m/s². 'Predicted' counts loop steps whose command was "
             "extrapolated beyond the last target OpenSees sent, including the held ones (clock "
-            "below half speed while a target was late). The overrun rule is relaxed in the real-time runs "
-            "(the machine is shared), the e-stop bound for a late target is 1 s."
+            "below half speed while a target was late). The overrun rule is relaxed in the "
+            "real-time runs (the machine is shared), the e-stop bound for a late target is 1 s."
         ),
     )
     return 0
