@@ -62,7 +62,7 @@ def main() -> int:
     rows.append(
         "| lockstep, element step 1/256 s | "
         f"{lock:.0f} steps/s ({res.steps_per_second:.0f} loop steps/s) | "
-        f"numerical alone {num:.0f} steps/s (ratio {lock / num:.2f}) | NRMS {nrms:.3f} % |"
+        f"numerical alone {num:.0f} steps/s (ratio {lock / num:.3f}) | NRMS {nrms:.3f} % |"
     )
 
     # ---- TCP_QUICKACK on and off ------------------------------------------------------------
