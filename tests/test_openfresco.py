@@ -273,6 +273,41 @@ def test_generic_tcp_flavour_round_trip(tmp_path):
     assert summary["actions"]["getDaqResponse"] == 5
 
 
+def test_ramp_hold_executes_each_trial_in_real_time(tmp_path):
+    """ramp-hold (paced loop): ramp 50 ms, hold 20 ms, then the force; hold while waiting."""
+    forces, t_req = [], []
+
+    def script(s):
+        for i in range(1, 4):
+            s.sendall(_frame(256, P.SET_TRIAL, 0.0, 0.001 * i, 0, 0, 0, 0, i / 256))
+            t0 = time.perf_counter()
+            s.sendall(_frame(256, P.GET_FORCE))
+            forces.append(_recv(s, 256)[:2].copy())
+            t_req.append(time.perf_counter() - t0)
+            s.sendall(_frame(256, P.COMMIT))
+        s.sendall(_frame(256, P.DIE))
+
+    loop, port = _loop(
+        tmp_path,
+        "ramphold",
+        "openfresco.timing=ramp-hold",
+        "openfresco.ramp_time=50ms",
+        "openfresco.hold_time=20ms",
+        "safety.max_overruns=1000000",
+        "fei.exact_hop=0",  # no exact-FEI worker process to start for a 0.3 s run
+    )
+    th = _client(port, GENERIC_CLIENT_ID, script)
+    result = loop.run()
+    th.join(5)
+    assert result.status == "completed" and result.mode == "paced"
+    for i, f in enumerate(forces, start=1):
+        # held still for 20 ms: the dashpot is at rest, the force is k·(u2 − u1) as (−F, +F)
+        assert f[1] == pytest.approx(1.19e6 * 0.001 * i, abs=0.5) and f[0] == -f[1]
+    assert min(t_req) >= 0.065  # 70 ms of ramp and hold in real time (one step of slack)
+    kinds = loop.structure.summary()["kinds"]
+    assert kinds["executed"] == 3 * (51 + 20) and kinds["held"] > 0
+
+
 def test_wrong_id_is_one_line_at_start_up(tmp_path):
     loop, port = _loop(tmp_path, "badid")
     _client(port, (7, 7, 7, 7, 7, 7, 7, 7, 7, 7, 7), lambda s: time.sleep(1))

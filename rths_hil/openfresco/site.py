@@ -280,7 +280,7 @@ class ExperimentalSite:
             self.server.mailbox,
             self.n,
             self.dt,
-            {**o, "ramp_time": ramp, "wait": wait},
+            {**o, "ramp_time": ramp, "wait": wait, "stiffness_matrix": self.mapping.K},
         )
         self.server.start()
         return ses

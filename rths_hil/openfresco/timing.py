@@ -142,6 +142,8 @@ class TimingMode:
         self.wall_reply = time.perf_counter()
         self.t_trial = 0.0  # time block of the last target
         self.finished = False
+        self.reply_delta: np.ndarray | None = None  # command − target of a passed target
+        self.stiffness: np.ndarray | None = None  # actuator-coordinates estimate (N/m)
 
     # -- helpers ------------------------------------------------------------------------------
     def _check_closed(self) -> bool:
@@ -171,7 +173,14 @@ class TimingMode:
         self.pending = None
         self.wall_reply = time.perf_counter()
         d = np.array(disp, dtype=float)
-        self.mb.post_reply(t.seq, d, np.array(force, dtype=float), k * self.dt)
+        f = np.array(force, dtype=float)
+        delta = self.reply_delta
+        if delta is not None:  # measured past the target: correct back to it (force correction)
+            d = d - delta
+            if self.stiffness is not None:
+                f = f - self.stiffness @ delta
+            self.reply_delta = None
+        self.mb.post_reply(t.seq, d, f, k * self.dt)
 
     def _steps_for(self, t: Target, default: float) -> int:
         """Loop steps to spend on a target: its time step (from the time block) or ``default``."""
@@ -363,12 +372,16 @@ class PredictorCorrector(TimingMode):
     The force is returned from the first loop step whose structure time reached the target's:
     exactly the target when it came in time, otherwise a point up to the lateness further
     along the trajectory (the clock is not stopped: stalls would be amplified by the
-    compensation). When the clock gets ahead of OpenSees — past the time the next target is
-    due — its speed is lowered smoothly, ``σ* = 1 − excess/H`` (``excess`` the steps past the
-    due time, ``H = hold_after/Δt``; ``σ`` follows ``σ*`` with a first-order lag of five
-    steps): a slow client slows the test, a stalled one brings the actuator to a hold on the
-    trajectory by ``hold_after``; a target later than ``estop_after`` faults the site
-    (e-stop).
+    compensation). Such a measurement is corrected back to the target with the configured
+    stiffness estimate ``K`` (``openfresco.stiffness``), ``f = f_m − K·(c − d)`` and
+    ``d_m − (c − d)``, with ``c`` the command and ``d`` the target (a first-order force
+    correction; exact for a linear specimen whose stiffness is known).
+
+    When the clock gets ahead of OpenSees — past the time the next target is due — its speed is
+    lowered smoothly, ``σ* = 1 − excess/H`` (``excess`` the steps past the due time, ``H =
+    hold_after/Δt``; ``σ`` follows ``σ*`` with a first-order lag of five steps): a slow client
+    slows the test, a stalled one brings the actuator to a hold on the trajectory by
+    ``hold_after``; a target later than ``estop_after`` faults the site (e-stop).
 
     Parameters
     ----------
@@ -507,6 +520,8 @@ class PredictorCorrector(TimingMode):
             if self.tau >= self.t_goal - 1e-9:  # the target's time is reached: its force next
                 if abs(self.tau - self.t_goal) < 1e-9 and e is None:
                     kind = EXECUTED
+                else:  # passed (a late target) or not yet blended: measured off the target
+                    self.reply_delta = c - self.hist_d[-1]
                 self.t_goal = None
                 self.reply_at = s
             else:
@@ -547,7 +562,7 @@ def make_timing(name: str, mailbox: Mailbox, n: int, dt: float, opts: dict) -> T
             **common,
         )
     if name == "predictor-corrector":
-        return PredictorCorrector(
+        pc = PredictorCorrector(
             mailbox,
             n,
             dt,
@@ -558,4 +573,6 @@ def make_timing(name: str, mailbox: Mailbox, n: int, dt: float, opts: dict) -> T
             element_dt=opts.get("element_dt", 0.0),
             **common,
         )
+        pc.stiffness = opts.get("stiffness_matrix")
+        return pc
     raise ValueError(f"unknown timing {name!r}")
