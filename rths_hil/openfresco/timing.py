@@ -13,30 +13,17 @@ never waits on OpenSees' schedule. A *target* is the trial whose forces OpenSees
     then the loop waits for the next target. Deterministic; for CI and what-if runs.
 :class:`PredictorCorrector`
     Real time (loop ``mode = "paced"``): the loop is the master at its own rate and a new
-    target is due every ``k_sub = element step / loop step`` loop steps. Between targets the
-    command is extrapolated from the last targets by a Lagrange polynomial (the *predictor*);
-    when the new target arrives the command is steered from where the prediction left it to
-    the target so that it arrives at the end of the cycle (the *corrector*). This is the
-    predictor–corrector of Schellenberg, Mahin and Fenves (2009) after Mosqueda, Stojadinovic
-    and Mahin (2007), here in the form::
-
-        predictor   c(s) = L_p(s),      L_p through the last p + 1 targets (s_j, d_j)
-        corrector   c(s) = L_c(s) + (c_r − L_c(s_r))·h00(τ) + (ċ_r − L_c'(s_r))·h10(τ)·(s_e − s_r)
-
-    where ``s`` is the loop step, ``L_c`` interpolates the last ``p`` targets and the new one
-    placed at the cycle's end ``s_e``, ``c_r`` and ``ċ_r`` are the last command sent before the
-    target arrived at step ``s_r`` and its slope, ``τ = (s − s_r)/(s_e − s_r)`` and ``h00``,
-    ``h10`` the cubic Hermite basis functions: the command and its slope stay continuous (the
-    compensator extrapolates the target ahead, so a kink would become a spike) and the command
-    lands on the target at ``s_e``. A cycle ends where it was due, ``s_i + k_sub``, when the
-    target came in time, otherwise a whole element step after it came (a late target stretches
-    the cycle). When the next command would be the end of the cycle and no target has come,
-    the loop waits up to ``wait`` seconds for it (so one-loop-step element steps can run in
-    real time); if the target is later than ``hold_after`` past the cycle's end the actuator
-    holds (its velocity decays by a factor 0.7 per step), later than ``estop_after`` the site
-    faults (e-stop). Every loop step is recorded as executed,
-    predicted, corrected or held, and every target with OpenSees' latency (from the force
-    reply to the next request).
+    target is due every ``k = element step / loop step`` loop steps. The command follows the
+    structure's trajectory on a clock in structure time, ``c(s) = L(τ(s)) + e(s)``: ``L`` the
+    Lagrange polynomial through the last targets (it extrapolates between targets: the
+    *predictor*; a new target moves the point set on: the *corrector*), ``e`` the jump this
+    makes, blended out with a cubic Hermite so command and slope stay continuous, after the
+    predictor–corrector of Schellenberg, Mahin and Fenves (2009) and Mosqueda, Stojadinovic
+    and Mahin (2007). The clock runs in real time and slows smoothly when OpenSees falls
+    behind (to a hold by ``hold_after``, an e-stop past ``estop_after``); a measurement taken
+    past a late target is corrected back to it with the stiffness estimate. Every loop step
+    is recorded as executed, corrected, predicted, held or idle, and every target with
+    OpenSees' latency (from the force reply to the next request). Details in the class.
 :class:`RampHold`
     Slow continuous testing (loop ``mode = "paced"``): each target is reached by a linear ramp
     of ``ramp_time`` seconds, held ``hold_time`` seconds, then its force is returned; the
