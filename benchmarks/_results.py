@@ -3,7 +3,7 @@
 Every benchmark script ends with::
 
     from _results import write_results
-    write_results("bench_fei", table_markdown, goals="...", command="python benchmarks/bench_fei.py")
+    write_results("bench_fei", table_markdown, goals="...")
 
 which (re)writes ``benchmarks/results/bench_fei.md``: the command that reproduces it, the
 machine (CPU model, cores, memory, OS, Python and the versions of the libraries that matter), the
