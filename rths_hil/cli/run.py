@@ -89,11 +89,25 @@ def main(args: argparse.Namespace) -> int:
     live = None if args.quiet or cfg["loop"]["console"] <= 0 else LiveLine(sys.stderr)
     loop = RTHSLoop(cfg, run_dir, live=live, mode=mode, duration=duration)
     watcher = _start_watcher(run_dir, args.watch_port) if args.watch else None
+    site = loop.structure if hasattr(loop.structure, "paste_lines") else None
     if not args.quiet:
+        span = f"{loop.n_steps / loop.fs:.1f} s"
+        if site is not None:
+            span = f"until the client ends (at most {span})"
         print(
-            f"rths-hil run: {loop.mode} {loop.n_steps / loop.fs:.1f} s at {loop.fs:g} Hz, driver "
+            f"rths-hil run: {loop.mode} {span} at {loop.fs:g} Hz, driver "
             f"{cfg['driver']['name']}{' + twin' if loop.twin_enabled else ''}, record in {run_dir}",
             file=sys.stderr,
+        )
+    if site is not None:  # structure.kind = "openfresco": listen, say what to paste, then wait
+        host, port = site.listen()
+        py, tcl = site.paste_lines()
+        o = cfg["openfresco"]
+        print(
+            f"rths-hil run: experimental site ({o['protocol']}, {o['timing']}) listening on "
+            f"{host}:{port}; in OpenSees:\n  OpenSeesPy: {py}\n  Tcl:        {tcl}",
+            file=sys.stderr,
+            flush=True,
         )
     try:
         result = loop.run()
