@@ -23,7 +23,7 @@ import numpy as np
 
 from .. import groundmotion
 from ..compensation import AdaptiveAlpha, InverseCompensator
-from ..config import ChannelConfig, Config
+from ..config import ChannelConfig, Config, structure_dofs
 from ..errors import InputError
 from ..recorder import COLUMNS
 from ..safety import (
