@@ -143,6 +143,8 @@ def structure_size(cfg: Config) -> tuple[int, Any]:
     """Number of DOFs and the MDOF model (None for the SDOF frame)."""
     if cfg["structure"]["kind"] == "sdof":
         return 1, None
+    if cfg["structure"]["kind"] == "openfresco":  # the site's DOFs are its actuators
+        return structure_dofs(cfg), None
     try:
         model = build_model(cfg)
     except InputError as exc:
