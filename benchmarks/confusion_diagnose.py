@@ -18,6 +18,7 @@ Sets (``--sets``, comma-separated):
 Usage::
 
     python benchmarks/confusion_diagnose.py --per 8 --jobs 2 --csv confusion.csv
+    python benchmarks/confusion_diagnose.py --per 8 --scheduler tcp://host:8786   # a Dask cluster
 """
 
 from __future__ import annotations
@@ -254,13 +255,31 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=30.0, help="record length (s)")
     p.add_argument("--seed", type=int, default=2024)
     p.add_argument("--jobs", type=int, default=1)
+    p.add_argument(
+        "--scheduler",
+        metavar="local|ADDRESS",
+        help="run the cases on Dask: 'local' (--jobs worker processes on 127.0.0.1, at least 2) "
+        "or a scheduler address, e.g. tcp://host:8786",
+    )
     p.add_argument("--csv", help="write every case here")
     args = p.parse_args(argv)
     jobs = jobs_for(args)
     print(f"{len(jobs)} cases, {args.jobs} process(es)", file=sys.stderr)
     t0 = time.perf_counter()
     rows = []
-    if args.jobs > 1:
+    if args.scheduler:
+        from rths_hil.study import open_executor
+
+        with open_executor(args.scheduler, max(2, args.jobs)) as ex:
+            for i, r in enumerate(ex.map(run_case, jobs), 1):
+                rows.append(r)
+                print(
+                    f"{i:4d} {r['set']:9s} {r['true']:32s} → {r['named']:32s} "
+                    f"{r['runtime_s']:.1f} s",
+                    file=sys.stderr,
+                    flush=True,
+                )
+    elif args.jobs > 1:
         with mp.get_context("fork").Pool(args.jobs) as pool:
             for i, r in enumerate(pool.imap(run_case, jobs), 1):
                 rows.append(r)

@@ -99,8 +99,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "choice",
             "sdof",
             doc="numerical substructure: sdof (the keys below), shear_building (storeys: "
-            "masses, stiffnesses) or matrices (M, K, C from files)",
-            choices=("sdof", "shear_building", "matrices"),
+            "masses, stiffnesses), matrices (M, K, C from files) or openfresco (an OpenSees "
+            "model drives the test through [openfresco])",
+            choices=("sdof", "shear_building", "matrices", "openfresco"),
         ),
         "mass": Key(
             "float",
@@ -473,6 +474,103 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "warmup": Key(
             "float", 0.0, unit="s", doc="FEI and Kalman rules start after this loop time", lo=0
+        ),
+    },
+    # structure.kind = "openfresco": OpenSees (genericClient) or OpenFresco (GenericTCP) sends
+    # the targets; see docs/opensees.md and rths_hil/openfresco
+    "openfresco": {
+        "host": Key("str", "127.0.0.1", doc="address to listen on (other than 127.0.0.1: warned)"),
+        "port": Key("int", 8090, doc="TCP port to listen on (0 = any free port)", lo=0, hi=65535),
+        "protocol": Key(
+            "choice",
+            "elem-server",
+            doc="client: elem-server (OpenSees genericClient) or generic-tcp (OpenFresco "
+            "expControl GenericTCP)",
+            choices=("elem-server", "generic-tcp"),
+        ),
+        "timing": Key(
+            "choice",
+            "lockstep",
+            doc="lockstep (virtual time), predictor-corrector (real time) or ramp-hold (slow)",
+            choices=("lockstep", "predictor-corrector", "ramp-hold"),
+        ),
+        "transform": Key(
+            "array",
+            [],
+            doc="element DOF weights per actuator, row-major (default: one actuator, [-1, 1] "
+            "for a two-node element, [1] for one DOF)",
+        ),
+        "stiffness": Key(
+            "array",
+            [],
+            unit="N/m",
+            doc="specimen stiffness per actuator (n values, or n×n row-major) for the "
+            "stiffness replies",
+        ),
+        "damping": Key("array", [], unit="N·s/m", doc="damping reply per actuator (default zero)"),
+        "mass": Key("array", [], unit="kg", doc="mass reply per actuator (default zero)"),
+        "order": Key("int", 2, doc="predictor–corrector polynomial order (1, 2 or 3)", lo=1, hi=3),
+        "wait": Key(
+            "float",
+            0.4,
+            doc="predictor–corrector: fraction of a loop period to wait for a target due next",
+            lo=0,
+            hi=0.8,
+        ),
+        "hold_after": Key(
+            "float",
+            0.02,
+            unit="s",
+            doc="predictor–corrector: hold when OpenSees is this late past a cycle's end",
+            lo=0,
+        ),
+        "estop_after": Key(
+            "float",
+            0.25,
+            unit="s",
+            doc="predictor–corrector: e-stop when OpenSees is this late past a cycle's end",
+            lo=0,
+            lo_open=True,
+        ),
+        "ramp_time": Key(
+            "float",
+            0.0,
+            unit="s",
+            doc="ramp-hold: ramp per target; lockstep: ramp for trials without time "
+            "(0 = 0.5 s and 0.01 s)",
+            lo=0,
+        ),
+        "hold_time": Key("float", 0.1, unit="s", doc="ramp-hold: hold before the force", lo=0),
+        "element_dt": Key(
+            "float",
+            0.0,
+            unit="s",
+            doc="OpenSees' step when the trials carry no time (0 = from the time block)",
+            lo=0,
+        ),
+        "start_timeout": Key(
+            "float", 60.0, unit="s", doc="wait this long for the first trial (0 = forever)", lo=0
+        ),
+        "client_timeout": Key(
+            "float",
+            60.0,
+            unit="s",
+            doc="lockstep, ramp-hold: wait this long for a later trial (0 = forever)",
+            lo=0,
+        ),
+        "connect_timeout": Key(
+            "float", 0.0, unit="s", doc="wait this long for the client (0 = forever)", lo=0
+        ),
+        "quickack": Key(
+            "bool", True, doc="re-arm TCP_QUICKACK after every recv (off only to measure it)"
+        ),
+        "max_duration": Key(
+            "float",
+            3600.0,
+            unit="s",
+            doc="longest test when loop.duration = 0 (the client ends it with DIE)",
+            lo=0,
+            lo_open=True,
         ),
     },
     "output": {
@@ -960,6 +1058,8 @@ def structure_dofs(cfg: Config) -> int | None:
         return 1
     if s["kind"] == "shear_building":
         return len(s["masses"])
+    if s["kind"] == "openfresco":  # the site's DOFs are its actuators
+        return len(cfg.get("actuators") or []) or 1
     return None
 
 

@@ -73,6 +73,8 @@ def test_modbus_twin_latches_when_the_bridge_is_killed(modbus_twin, tmp_path):
     t_kill = kill9(bridge)
     t_latch = modbus_twin.first(LATCH_LINE, after=t_kill - 1.0)
     assert t_latch is not None, modbus_twin.lines
+    dt_ms = (t_latch - t_kill) * 1e3
+    print(f"\nMATRIX | modbus | bridge_killed | lockstep | twin latch | {dt_ms:.0f} ms")
     assert 0.0 < t_latch - t_kill <= TIMEOUT + SLACK, t_latch - t_kill
     # what a plain Modbus client sees: coil 0 (e-stop) on, STATUS latched and not ENABLED
     client = ModbusTcpClient(conn["host"], port=conn["port"])
@@ -101,6 +103,8 @@ def test_serial_twin_latches_when_the_bridge_is_killed(serial_twin, tmp_path):
     t_kill = kill9(bridge)
     t_latch = serial_twin.first(LATCH_LINE, after=t_kill - 1.0)
     assert t_latch is not None, serial_twin.lines
+    dt_ms = (t_latch - t_kill) * 1e3
+    print(f"\nMATRIX | serial | bridge_killed | lockstep | twin latch | {dt_ms:.0f} ms")
     assert 0.0 < t_latch - t_kill <= TIMEOUT + SLACK, t_latch - t_kill
     # a new client's next command is answered with the latch, position held
     with create_driver("serial", **conn) as drv:

@@ -42,7 +42,9 @@ BASE = [
     "safety.velocity_limit=0",
     "safety.stuck_motion=1e-6",  # the record is quiet at the fault: any command motion counts
 ]
-LOCKSTEP_LIMIT = 0.5  # loop.lockstep_timeout in these runs (s; the default is 5 s)
+# loop.lockstep_timeout in these runs (s; the default is 5 s): generous enough for a reply of a
+# twin thread starved for most of a second on a loaded 2-core machine (measured: 0.92 s)
+LOCKSTEP_LIMIT = 1.5
 
 # fault → (expected rule or None, bound in steps after AT) in lockstep
 LOCKSTEP = {
@@ -50,7 +52,7 @@ LOCKSTEP = {
     "corrupt": ("watchdog", 0),  # rejected by the driver's checks: as if never sent
     "duplicate": (None, None),  # the copy is counted and skipped
     "delay_short": (None, None),  # 50 ms < the bound: waited for, nothing changes
-    "delay_long": ("watchdog", 0),  # 0.8 s > the bound
+    "delay_long": ("watchdog", 0),  # 2 s > the bound
     "disconnect": ("watchdog", 19),  # a closed transport answers at once: 20 missed steps
     "stuck": ("stuck", 50),  # 50 identical values while the command moves
     "runaway": ("controller", 0),  # the controller flags FAULT with the first runaway reply
@@ -75,7 +77,7 @@ FAULTS = {
     "corrupt": f"corrupt={AT}",
     "duplicate": f"duplicate={AT}",
     "delay_short": f"delay={AT}:0.05",
-    "delay_long": f"delay={AT}:0.8",
+    "delay_long": f"delay={AT}:2.0",
     "delay_paced": f"delay={AT}:0.4",
     "disconnect": f"disconnect_from={AT}",
     "stuck": f"stuck_from={AT}",

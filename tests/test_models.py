@@ -91,11 +91,11 @@ def _benchmark_tf_by_interconnection(p: dict[str, float]) -> tuple[np.ndarray, n
 
 def test_benchmark_matches_block_diagram_and_discretisation():
     p = dict(BENCHMARK_NOMINAL)
-    num, den = benchmark_transfer_function(**p)
+    num, den = benchmark_transfer_function(**p, plant_gain=1.0)  # the paper's Eq. 21
     rnum, rden = _benchmark_tf_by_interconnection(p)
     np.testing.assert_allclose(num, rnum, rtol=0)
     np.testing.assert_allclose(den, rden, rtol=1e-14)
-    m = BenchmarkServo(DT)
+    m = BenchmarkServo(DT, plant_gain=1.0)  # the paper's Eq. 21
     freqs = np.array([0.2, 1.0, 2.0, 5.0, 10.0, 30.0, 67.0])
     _, hc = signal.freqs(num, den, worN=2 * np.pi * freqs)
     hd = m.frequency_response(freqs)
@@ -117,6 +117,19 @@ def test_benchmark_time_response_matches_lsim():
     _, ref, _ = signal.lsim((num, den), x, t)
     y = BenchmarkServo(DT).simulate(x)
     assert np.max(np.abs(y - ref)) < 1e-10 * np.max(np.abs(x))
+
+
+def test_benchmark_default_gain_is_the_distributed_codes():
+    # F1_input_file.m: G_plant = gain*feedback(Gs*G0,1,-1) with gain = 1.0261
+    freqs = np.array([0.5, 1.0, 5.0, 20.0])
+    paper = BenchmarkServo(DT, plant_gain=1.0).frequency_response(freqs)
+    code = BenchmarkServo(DT).frequency_response(freqs)
+    np.testing.assert_allclose(code / paper, 1.0261, rtol=1e-9)
+    assert make_model("benchmark", DT).models[0].dc_gain() == pytest.approx(
+        1.0261 * BenchmarkServo(DT, plant_gain=1.0).dc_gain(), rel=1e-12
+    )
+    with pytest.raises(InputError, match="plant_gain"):
+        BenchmarkServo(DT, plant_gain=0.0)
 
 
 def test_benchmark_stiffer_specimen_lowers_gain_and_lengthens_delay():

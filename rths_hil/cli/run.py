@@ -1,13 +1,15 @@
 """``rths-hil run``: run a real-time hybrid simulation through a driver (and its twin).
 
-``rths-hil run [CONFIG.toml] [--lockstep] [--duration S] [--out DIR] [--set key=value]...``
+``rths-hil run [CONFIG.toml] [--lockstep] [--duration S] [--out DIR] [--set key=value]...
+[--watch]``
 
 Without a configuration it runs the embedded default (the FEI paper's NEES-711 setup over the CAN
 driver on python-can's virtual bus to an in-process twin, paced at 1024 Hz for 30 s). Prints a
 live status line, then the summary; writes the run directory (record, events, metadata,
 ``summary.json``, ``report.png``). Exit codes: 0 completed, 2 bad input, 3 safety trip (e-stop
 sent; one line on stderr names the rule), 130 operator stop (Ctrl-C or SIGTERM; same flush
-path).
+path). ``--watch`` also starts ``rths-hil watch`` on the run directory (the live view in the
+browser, a separate process that reads the record) and prints its URL.
 """
 
 from __future__ import annotations
@@ -52,6 +54,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-plot", action="store_true", help="do not write report.png")
     p.add_argument("-q", "--quiet", action="store_true", help="no live line, no summary")
+    p.add_argument(
+        "--watch",
+        action="store_true",
+        help="also start `rths-hil watch` on the run (live view in the browser; prints the URL)",
+    )
+    p.add_argument(
+        "--watch-port", type=int, default=8050, metavar="PORT", help="port of --watch (8050)"
+    )
     p.set_defaults(func=main)
 
 
@@ -78,17 +88,34 @@ def main(args: argparse.Namespace) -> int:
     run_dir = Path(args.out) if args.out else new_run_dir(cfg["output"]["dir"])
     live = None if args.quiet or cfg["loop"]["console"] <= 0 else LiveLine(sys.stderr)
     loop = RTHSLoop(cfg, run_dir, live=live, mode=mode, duration=duration)
+    watcher = _start_watcher(run_dir, args.watch_port) if args.watch else None
+    site = loop.structure if hasattr(loop.structure, "paste_lines") else None
     if not args.quiet:
+        span = f"{loop.n_steps / loop.fs:.1f} s"
+        if site is not None:
+            span = f"until the client ends (at most {span})"
         print(
-            f"rths-hil run: {loop.mode} {loop.n_steps / loop.fs:.1f} s at {loop.fs:g} Hz, driver "
+            f"rths-hil run: {loop.mode} {span} at {loop.fs:g} Hz, driver "
             f"{cfg['driver']['name']}{' + twin' if loop.twin_enabled else ''}, record in {run_dir}",
             file=sys.stderr,
+        )
+    if site is not None:  # structure.kind = "openfresco": listen, say what to paste, then wait
+        host, port = site.listen()
+        py, tcl = site.paste_lines()
+        o = cfg["openfresco"]
+        print(
+            f"rths-hil run: experimental site ({o['protocol']}, {o['timing']}) listening on "
+            f"{host}:{port}; in OpenSees:\n  OpenSeesPy: {py}\n  Tcl:        {tcl}",
+            file=sys.stderr,
+            flush=True,
         )
     try:
         result = loop.run()
     finally:
         if live is not None:
             live.finish()
+        if watcher is not None:
+            _stop_watcher(watcher, run_dir)
     del loop  # the run's arrays (ground motion, lateness) are not needed for the summary
     result.lateness = result.ready = None
     try:
@@ -117,3 +144,63 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return result.exit_code
+
+
+def _start_watcher(run_dir: Path, port: int):
+    """Start ``rths-hil watch RUN_DIR`` beside the run; wait until it listens (≤ 15 s).
+
+    The watcher is its own process in its own session (Ctrl-C in this terminal stops the run,
+    not the view); it prints its URL itself. If it cannot start (port in use), it says why and
+    the run goes on without it.
+    """
+    import os
+    import socket
+    import subprocess
+    import time
+
+    if port == 0:  # any free port: choose it here, to know where to wait for the watcher
+        from ..watch.server import _free_port
+
+        port = _free_port("127.0.0.1")
+    cmd = [
+        sys.executable,
+        "-m",
+        "rths_hil",
+        "watch",
+        str(run_dir),
+        "--port",
+        str(port),
+        "--quiet",
+        "--parent",
+        str(os.getpid()),
+    ]
+    proc = subprocess.Popen(
+        cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, start_new_session=True
+    )
+    t_end = time.monotonic() + 15.0
+    while time.monotonic() < t_end and proc.poll() is None:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return proc
+        except OSError:
+            time.sleep(0.1)
+    if proc.poll() is None:
+        print("rths-hil run: the live view is slow to start; going on", file=sys.stderr)
+        return proc
+    print("rths-hil run: no live view (rths-hil watch could not start)", file=sys.stderr)
+    return None
+
+
+def _stop_watcher(proc, run_dir: Path) -> None:
+    """Let open pages show the final state, then end the watcher."""
+    import subprocess
+    import time
+
+    time.sleep(0.6)  # three refreshes of the page
+    proc.terminate()
+    try:
+        proc.wait(5)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+    print(f"rths-hil run: live view closed; replay with: rths-hil watch {run_dir}", file=sys.stderr)

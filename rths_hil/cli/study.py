@@ -1,14 +1,17 @@
-"""``rths-hil study``: the FEI paper's computational study (Section 4).
+"""``rths-hil study``: the FEI paper's computational study (Section 4) and robustness studies.
 
 * ``study window-size``: smallest moving window meeting a delay-error criterion for each record
   and natural frequency (the FEI paper's Fig. 4.2); writes ``window_size.csv`` and
   ``window_size.png``.
 * ``study accuracy``: maximum amplitude and delay errors of the moving-window FEI for linear and
-  Bouc-Wen structures (the FEI paper's Table 4.1, Fig. 4.6); writes ``accuracy.csv`` and
-  ``accuracy.png``.
+  Bouc-Wen structures (Table 4.1, Fig. 4.6); writes ``accuracy.csv`` and ``accuracy.png``.
+* ``study robustness CONFIG``: perturbed twins run in lockstep through the full chain; writes
+  ``trials.csv``, ``summary.csv``, ``summary.json`` and plots (``docs/studies.md``).
 
-Both run their cases on a process pool (``--workers``, default 2) with a progress bar on stderr.
-The procedure and the criterion are described in ``docs/simulation.md``.
+The first two run their cases on a process pool (``--workers``, default 2) or, with
+``--scheduler local|ADDRESS``, on Dask; ``robustness`` runs on Dask (default a local cluster on
+127.0.0.1). All show a progress bar on stderr. The window-size and accuracy procedures are
+described in ``docs/simulation.md``.
 """
 
 from __future__ import annotations
@@ -24,7 +27,9 @@ from ..units import parse_accel, parse_fraction, parse_range, parse_time
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``study window-size`` and ``study accuracy``."""
-    parser = sub.add_parser("study", help="the FEI paper's window-size and accuracy studies")
+    parser = sub.add_parser(
+        "study", help="the FEI paper's window-size and accuracy studies (Section 4), robustness"
+    )
     st = parser.add_subparsers(dest="study_command", metavar="STUDY")
 
     def common(p: argparse.ArgumentParser, gain: str, delay: str) -> None:
@@ -40,6 +45,14 @@ def register(sub: argparse._SubParsersAction) -> None:
             "(default 0.1; 0 counts every valid window)",
         )
         p.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
+        p.add_argument(
+            "--scheduler",
+            default=None,
+            metavar="local|ADDRESS",
+            help="run the cases on Dask: 'local' (a cluster of --workers processes on "
+            "127.0.0.1) or a scheduler address, e.g. tcp://host:8786 (default: a local "
+            "process pool)",
+        )
         p.add_argument("--no-progress", action="store_true", help="no progress bar")
         p.add_argument("--out", required=True, help="output directory (created if missing)")
 
@@ -81,6 +94,55 @@ def register(sub: argparse._SubParsersAction) -> None:
     acc.add_argument("--hop", type=int, default=1, help="samples between windows (default 1)")
     common(acc, "1.1", "5ms")
     acc.set_defaults(func=run_accuracy)
+
+    rb = st.add_parser(
+        "robustness",
+        help="perturbed-twin trials in lockstep: J1–J9, FEI, trips (docs/studies.md)",
+        description="Draw perturbed twins over the named keys, run each in lockstep through the "
+        "full chain on Dask, collect J1–J9 (paper and benchmark script), the whole-record FEI, "
+        "the MWO extremes and the safety trips; write trials.csv, summary.csv and plots.",
+    )
+    rb.add_argument("config", metavar="CONFIG", help="TOML configuration of the test (a twin)")
+    rb.add_argument(
+        "--set",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        help="override a configuration key before drawing (repeatable)",
+    )
+    rb.add_argument("--trials", type=int, default=200, help="perturbed twins (default 200)")
+    rb.add_argument(
+        "--vary",
+        metavar="KEY=LOW:HIGH[:normal]",
+        action="append",
+        default=None,
+        help="vary a key uniformly (or normally, ±2σ = LOW:HIGH), e.g. "
+        "twin.actuator.delay=15ms:35ms (repeatable; default: benchmark-style spreads)",
+    )
+    rb.add_argument("--seed", type=int, default=0, help="seed of the draws (default 0)")
+    rb.add_argument(
+        "--scheduler",
+        default="local",
+        metavar="local|ADDRESS",
+        help="'local' (default: a Dask cluster of --workers processes on 127.0.0.1) or a "
+        "Dask scheduler address, e.g. tcp://host:8786",
+    )
+    rb.add_argument(
+        "--workers", type=int, default=2, help="worker processes of a local cluster (default 2)"
+    )
+    rb.add_argument(
+        "--alpha",
+        default=None,
+        metavar="A,B,C",
+        help="run every twin with each α (e.g. 15,20,29) and chart robustness against α",
+    )
+    rb.add_argument(
+        "--duration", default=None, help="seconds of the record per trial (default: the config's)"
+    )
+    rb.add_argument("--no-progress", action="store_true", help="no progress bar")
+    rb.add_argument("--no-plot", action="store_true", help="do not write the PNGs")
+    rb.add_argument("--out", required=True, help="output directory (created if missing)")
+    rb.set_defaults(func=run_robustness)
     parser.set_defaults(func=lambda args: _no_study(parser))
 
 
@@ -181,8 +243,7 @@ def run_window_size(args: argparse.Namespace) -> int:
                 f"{min(fns):g} Hz: the window search cannot start"
             )
     out = _outdir(args.out)
-    ex = study.make_executor(args.workers)
-    try:
+    with study.open_executor(args.scheduler, args.workers) as ex:
         rows = study.window_size_study(
             gms,
             fns,
@@ -195,8 +256,6 @@ def run_window_size(args: argparse.Namespace) -> int:
             bouc_wen=True if args.bouc_wen else None,
             max_periods=max_periods,
         )
-    finally:
-        ex.shutdown(wait=True, cancel_futures=True)
     study.write_window_size_csv(out / "window_size.csv", rows)
     study.plot_window_size(out / "window_size.png", rows)
     print(f"{'record':<34}{'fn (Hz)':>8}{'t_w (s)':>9}{'t_w/Tn':>8}{'err %':>8}")
@@ -238,8 +297,7 @@ def run_accuracy(args: argparse.Namespace) -> int:
             raise InputError(f"--fn {f:g} Hz is not below the Nyquist frequency")
     gm = _records(["default"] if args.record is None else [args.record], c["fs"], c["pga"])[0]
     out = _outdir(args.out)
-    ex = study.make_executor(args.workers)
-    try:
+    with study.open_executor(args.scheduler, args.workers) as ex:
         rows = study.accuracy_study(
             gm,
             fns,
@@ -253,8 +311,6 @@ def run_accuracy(args: argparse.Namespace) -> int:
             hop=args.hop,
             min_level=c["min_level"],
         )
-    finally:
-        ex.shutdown(wait=True, cancel_futures=True)
     study.write_accuracy_csv(out / "accuracy.csv", rows)
     study.plot_accuracy(out / "accuracy.png", rows, c["gain"], c["delay"])
     print(
@@ -270,4 +326,106 @@ def run_accuracy(args: argparse.Namespace) -> int:
             f"{r.max_err_delay_pct:>9.3f}{1e3 * r.peak_displacement_m:>9.2f}"
         )
     print(f"wrote {out / 'accuracy.csv'} and {out / 'accuracy.png'}")
+    return 0
+
+
+def run_robustness(args: argparse.Namespace) -> int:
+    """``study robustness``."""
+    import json
+    import sys
+    import time
+
+    from .. import study
+    from ..config import load_config
+
+    cfg = load_config(args.config, args.set)
+    base = study._inline_twin(cfg)
+    if args.trials < 1:
+        raise InputError(f"--trials must be ≥ 1, got {args.trials}")
+    if args.workers < 1:
+        raise InputError(f"--workers must be ≥ 1, got {args.workers}")
+    if args.vary:
+        perts = [study.parse_vary(text, base) for text in args.vary]
+    else:
+        perts = study.default_perturbations(base)
+    alphas = None
+    if args.alpha is not None:
+        alphas = parse_range(args.alpha, "--alpha")
+        if not alphas:
+            raise InputError(f"--alpha {args.alpha!r}: no values")
+    duration = None
+    if args.duration is not None:
+        duration = parse_time(args.duration, "--duration")
+        if not (math.isfinite(duration) and duration > 0):
+            raise InputError(f"--duration must be > 0 s, got {args.duration!r}")
+    specs = study.plan_trials(base, perts, args.trials, args.seed, alphas, duration)
+    out = _outdir(args.out)
+    if (out / "trials.csv").exists():
+        raise InputError(f"--out {out}: already holds a study (trials.csv); choose a new one")
+    where = "a local Dask cluster" if args.scheduler == "local" else args.scheduler
+    print(
+        f"rths-hil study robustness: {args.trials} twins × {len({s.alpha for s in specs})} α "
+        f"= {len(specs)} lockstep runs on {where}; varying " + ", ".join(p.text for p in perts),
+        file=sys.stderr,
+    )
+    t0 = time.perf_counter()
+    done: list[dict] = []
+    try:
+        with study.open_executor(args.scheduler, args.workers) as ex:
+            res = study.robustness_study(
+                base,
+                perts,
+                args.trials,
+                seed=args.seed,
+                alphas=alphas,
+                duration=duration,
+                executor=ex,
+                progress=not args.no_progress,
+                on_row=done.append,
+            )
+    except KeyboardInterrupt:
+        order = {a: i for i, a in enumerate(dict.fromkeys(s.alpha for s in specs))}
+        done.sort(key=lambda r: (order.get(r["alpha"], 0), r["trial"]))
+        partial = study.RobustnessResult(
+            done, perts, list(order), args.seed, [p.key for p in perts]
+        )
+        study.write_trials_csv(out / "trials.partial.csv", partial)
+        print(
+            f"rths-hil study robustness: interrupted; the {len(done)} of {len(specs)} runs "
+            f"that finished are in {out / 'trials.partial.csv'}",
+            file=sys.stderr,
+        )
+        return 130
+    wall = time.perf_counter() - t0
+    study.write_trials_csv(out / "trials.csv", res)
+    study.write_summary(out / "summary.csv", res)
+    summary = {
+        "config": cfg.source,
+        "overrides": list(args.set),
+        "trials": args.trials,
+        "seed": args.seed,
+        "alphas": res.alphas,
+        "perturbations": [vars(p) for p in perts],
+        "duration": duration,
+        "scheduler": args.scheduler,
+        "wall_time_s": wall,
+        "summary": res.summary(),
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+    written = ["trials.csv", "summary.csv", "summary.json"]
+    if not args.no_plot:
+        written += [p.name for p in study.plot_robustness(out, res)]
+    print(
+        f"{'alpha':>6} {'tripped':>8} {'d median (ms)':>14} {'d 5-95 % (ms)':>18} "
+        f"{'J2 median':>10} {'J2 95 %':>8}"
+    )
+    for a in res.alphas:
+        s = {r["metric"]: r for r in res.summary() if r["alpha"] == a}
+        d, j2 = s["fei_delay"], s["J2"]
+        print(
+            f"{a:>6g} {100 * d['share_tripped']:>7.1f}% {1e3 * d['median']:>14.2f} "
+            f"{1e3 * d['p5']:>8.2f} … {1e3 * d['p95']:<7.2f} {j2['median']:>10.2f} "
+            f"{j2['p95']:>8.2f}"
+        )
+    print(f"wrote {', '.join(written)} to {out} ({len(res.rows)} runs in {wall:.1f} s)")
     return 0

@@ -90,6 +90,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="ground-motion scale of hardware trials, fraction of the configured PGA "
         "(default 25%%)",
     )
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="local|ADDRESS",
+        help="run the --sweep trials in parallel on Dask: 'local' (two worker processes on "
+        "127.0.0.1) or a scheduler address, e.g. tcp://host:8786 (twin only)",
+    )
     p.add_argument("--no-plot", action="store_true", help="do not write the PNG")
     p.add_argument("-q", "--quiet", action="store_true", help="print only the result line")
     p.set_defaults(func=main)
@@ -152,6 +159,10 @@ def main(args: argparse.Namespace) -> int:
     if grid is not None and any(not (math.isfinite(a) and a >= 1) for a in grid):
         raise InputError(f"--sweep: every α must be ≥ 1, got {args.sweep!r}")
     hardware = not cfg["twin"]["enabled"]
+    if args.scheduler is not None and grid is None:
+        raise InputError("--scheduler runs the trials of a --sweep in parallel; give --sweep")
+    if args.scheduler is not None and hardware:
+        raise InputError("--scheduler: hardware trials share one actuator and run one by one")
     scale = 1.0
     if hardware:
         scale = parse_fraction(args.hardware_scale, "--hardware-scale")
@@ -219,8 +230,11 @@ def main(args: argparse.Namespace) -> int:
         "tolerance_delay": tol_d,
         "tolerance_amplitude": tol_a,
     }
-    if grid is not None:
+    if grid is not None and args.scheduler is not None:
+        res = _parallel_sweep(runner, grid, c["amplitude"], args.scheduler, on_trial)
+    elif grid is not None:
         res = sweep(runner, grid, factor=c["amplitude"], stop_on_trip=hardware)
+    if grid is not None:
         write_table_csv(res.trials, out / "sweep.csv")
         summary["sweep"] = res.as_dict()
         if res.found:
@@ -281,3 +295,29 @@ def main(args: argparse.Namespace) -> int:
     if res.stop == "operator_stop":
         return 130
     return 0 if res.converged else 1
+
+
+def _parallel_sweep(runner, grid: list[float], factor: float, scheduler: str, on_trial):
+    """The sweep's twin trials submitted at once to a Dask executor, evaluated in grid order.
+
+    The trials run where the workers are (their run directories are written there: give an
+    absolute ``--out`` on a shared file system for a remote cluster); the table rows are
+    printed here as the results arrive in order.
+    """
+    import copy
+
+    from ..study import open_executor
+    from ..tuning import sweep
+
+    remote = copy.copy(runner)
+    remote.on_trial = None  # printing happens here, not on the workers
+    remote.out_dir = runner.out_dir.resolve()
+    with open_executor(scheduler, 2) as ex:
+        futures = {i: ex.submit(remote, a, factor, i) for i, a in enumerate(grid, 1)}
+
+        def run_trial(alpha: float, fac: float, index: int):
+            trial = futures[index].result()
+            on_trial(trial)
+            return trial
+
+        return sweep(run_trial, grid, factor=factor, stop_on_trip=False)

@@ -23,7 +23,7 @@ import numpy as np
 
 from .. import groundmotion
 from ..compensation import AdaptiveAlpha, InverseCompensator
-from ..config import ChannelConfig, Config
+from ..config import ChannelConfig, Config, structure_dofs
 from ..errors import InputError
 from ..recorder import COLUMNS
 from ..safety import (
@@ -160,6 +160,13 @@ def build_structure(
     ``structure.k_specimen`` seen through each actuator's transform row in α (``rows``).
     """
     s = cfg["structure"]
+    if s["kind"] == "openfresco":  # OpenSees computes the targets (rths_hil.openfresco)
+        from ..openfresco.stage import SiteStage
+
+        try:
+            return SiteStage(cfg["openfresco"], dt, structure_dofs(cfg)), float(s["fn"])
+        except InputError as exc:
+            raise InputError(f"{cfg.source}: {exc}") from None
     if s["kind"] == "sdof":
         k_struct = s["mass"] * (2.0 * math.pi * s["fn"]) ** 2
         bw = None
@@ -547,6 +554,15 @@ def build_plan(
         Anything wrong in the configuration, naming the key.
     """
     lp = cfg["loop"]
+    site = cfg["structure"]["kind"] == "openfresco"
+    if site:  # the timing mode decides the loop mode; OpenSees applies the ground motion
+        timing = cfg["openfresco"]["timing"]
+        need = "lockstep" if timing == "lockstep" else "paced"
+        if mode is not None and mode != need:
+            raise InputError(
+                f"{cfg.source}: openfresco.timing = {timing!r} runs the loop {need}, not {mode}"
+            )
+        mode = need
     mode = mode or lp["mode"]
     if mode not in ("paced", "lockstep"):
         raise InputError(f"mode must be 'paced' or 'lockstep', got {mode!r}")
@@ -555,6 +571,8 @@ def build_plan(
     dur = lp["duration"] if duration is None else float(duration)
     if not (math.isfinite(dur) and dur >= 0):
         raise InputError(f"duration must be >= 0 s, got {duration!r}")
+    if site and dur == 0:
+        dur = cfg["openfresco"]["max_duration"]
     run_dir = Path(run_dir) if run_dir is not None else new_run_dir(cfg["output"]["dir"])
 
     gm = build_ground_motion(cfg)
@@ -565,6 +583,8 @@ def build_plan(
     if n > ag.size:
         ag = np.concatenate([ag, np.zeros(n - ag.size)])
     ag = ag[:n].copy()
+    if site:
+        ag[:] = 0.0  # the record is OpenSees' business
 
     n_dof, model = structure_size(cfg)
     chans_cfg = cfg.channels()

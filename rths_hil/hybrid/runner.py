@@ -496,7 +496,9 @@ class Runner:
         console = plan.console_interval if self.live is not None else 0.0
         next_console = math.inf
 
-        # state of step 0
+        # state of step 0 (an external structure, e.g. an OpenSees site, first gets the runner)
+        if hasattr(st, "attach"):
+            st.attach(self)
         xs = st.reset()
         for ch in chans:
             ch.x_t = xs[ch.dof] if ch.dof >= 0 else _dot(ch.row, xs)
@@ -620,7 +622,9 @@ class Runner:
                         ch.c_next = ch.comp_step(ch.x_next)
                     trip = check_command(tk, k)
                     if st.finished and trip is None:
-                        n = k + 1  # the structure ends the test after this step
+                        trip = getattr(st, "trip", None)  # an external structure's fault
+                        if trip is None:
+                            n = k + 1  # the structure ends the test after this step
                 else:
                     x_next = xs
                     for ch in chans:

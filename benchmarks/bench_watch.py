@@ -1,0 +1,286 @@
+"""Benchmark of ``rths-hil watch``: what watching costs the loop, and how live the page is.
+
+Paced runs of the default test (NEES-711 over the CAN twin, 1024 Hz) in this process,
+alternately without and with a watcher attached — ``--pairs`` of each, in the same invocation of
+this script. For a watched run, ``rths-hil watch RUN_DIR`` is started before the run and a
+headless Chromium (the Debian ``chromium``) has its page open (waiting for the run) when the
+run's clock starts; between runs the browser shows ``about:blank``. Driving the browser is a
+separate process (this script with ``--driver``), so nothing but the loop runs in the loop's
+process.
+
+Measured:
+
+* the loop's own work per step, from its send to the moment it was ready for the next step
+  (``dt + ready[k+1] − lateness[k]``, as ``bench_loop.py``), p50 / p99 / p99.9 over the runs
+  without and with the watcher (the first second of each run left out); goal: p99 with the
+  watcher within 2 % of p99 without;
+* the page's refresh rate (refreshes the browser applied per second) and its lag behind the
+  record: wall-clock time when the browser holds the row of loop time t minus the time that
+  row was sent (``wall_t0 + t + lateness``, from the record); goals ≥ 5 Hz and ≤ 0.5 s.
+
+Usage: ``python benchmarks/bench_watch.py [--duration 20] [--pairs 2]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import select
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from rths_hil.config import load_config
+from rths_hil.loop import RTHSLoop
+from rths_hil.recorder import read_run
+
+GOALS = (
+    "- the loop's own work per step, p99, with a watcher and its page within 2 % of p99 "
+    "without\n- page refresh ≥ 5 Hz, lag behind the record ≤ 0.5 s"
+)
+
+
+def _wall_t0(run_dir: Path) -> float:
+    for line in (run_dir / "events.jsonl").read_text().splitlines():
+        e = json.loads(line)
+        if e.get("kind") == "clock":
+            return float(e["wall_t0"])
+    raise ValueError("no clock event")
+
+
+def tree_cpu(pid: int) -> float:
+    """CPU time (s, user + system) of process ``pid`` and all its descendants (Linux)."""
+    stats: dict[int, tuple[int, float]] = {}  # pid -> (parent, cpu seconds)
+    tick = os.sysconf("SC_CLK_TCK")
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        stats[int(d)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) / tick)
+    total, todo = 0.0, [pid]
+    while todo:
+        p = todo.pop()
+        total += stats.get(p, (0, 0.0))[1]
+        todo += [c for c, (parent, _) in stats.items() if parent == p]
+    return total
+
+
+def driver() -> None:
+    """Browser process: ``open URL`` → page loaded → ``ready``, samples until ``blank``."""
+    from rths_hil.watch.browser import Browser
+
+    def say(text: str) -> None:
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+
+    with Browser(width=1200, height=1500) as b:
+        say("started")
+        for line in sys.stdin:
+            cmd, _, arg = line.strip().partition(" ")
+            if cmd != "open":
+                break
+            b.goto(arg)
+            b.wait_for(
+                "!!(window.Bokeh && Bokeh.documents.length && "
+                "Bokeh.documents[0].get_model_by_name('state'))",
+                timeout=120,
+            )
+            cpu0 = tree_cpu(b.proc.pid)
+            say("ready")
+            samples: list[tuple[float, float, float]] = []  # (wall time, page's last t, tick)
+            while not select.select([sys.stdin], [], [], 0.1)[0]:
+                try:
+                    t_col = b.column("window", "t")
+                    tick = b.model("tick", "start")
+                except RuntimeError:
+                    continue
+                if t_col and tick is not None:
+                    samples.append((time.time(), float(t_col[-1]), float(tick)))
+            sys.stdin.readline()  # "blank"
+            cpu = tree_cpu(b.proc.pid) - cpu0
+            b.goto("about:blank")
+            say(json.dumps({"samples": samples, "cpu": cpu}))
+
+
+def _stats(x: np.ndarray) -> tuple[float, float, float]:
+    p50, p99, p999 = np.percentile(x, [50, 99, 99.9])
+    return float(p50), float(p99), float(p999)
+
+
+def _watched(cfg, run_dir: Path, drv: subprocess.Popen):
+    """One run with ``rths-hil watch`` and the page open; returns (result, samples)."""
+    watch = subprocess.Popen(
+        [sys.executable, "-m", "rths_hil", "watch", str(run_dir), "--port", "0", "--quiet"],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        line = watch.stderr.readline()
+        m = re.search(r"(http://\S+)", line)
+        if not m:
+            raise SystemExit(f"rths-hil watch did not start: {line}")
+        drv.stdin.write(f"open {m.group(1)}\n")
+        drv.stdin.flush()
+        if drv.stdout.readline().strip() != "ready":
+            raise SystemExit("the browser did not open the page")
+        cpu0 = tree_cpu(watch.pid)
+        res = RTHSLoop(cfg, run_dir, mode="paced").run()
+        server_cpu = tree_cpu(watch.pid) - cpu0
+        drv.stdin.write("blank\n")
+        drv.stdin.flush()
+        out = json.loads(drv.stdout.readline())
+    finally:
+        watch.terminate()
+        watch.wait(10)
+    return res, out["samples"], out["cpu"], server_cpu
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=20.0, help="loop time of each run (s)")
+    ap.add_argument("--pairs", type=int, default=2, help="runs without and with the watcher")
+    ap.add_argument("--driver", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.driver:
+        driver()
+        return
+
+    load0 = os.getloadavg()[0]
+    tmp = Path(tempfile.mkdtemp(prefix="bench-watch-"))
+    cfg = load_config(
+        None,
+        [
+            f"loop.duration={args.duration}",
+            "loop.console=0",
+            "output.plot=false",
+            # the benchmark measures time; a slow minute of the VM must not stop a run
+            "safety.max_overruns=1000000",
+            "safety.watchdog_missed=1000000",
+        ],
+    )
+    drv = subprocess.Popen(
+        [sys.executable, __file__, "--driver"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    work: dict[bool, list[np.ndarray]] = {False: [], True: []}
+    late: dict[bool, list[np.ndarray]] = {False: [], True: []}
+    lags: list[float] = []
+    rates: list[float] = []
+    cpu: list[tuple[float, float, float, float]] = []  # browser s, server s, refreshes, wall s
+    runs = []
+    try:
+        if drv.stdout.readline().strip() != "started":
+            raise SystemExit("the browser did not start")
+        for i in range(2 * args.pairs):
+            watched = i % 2 == 1
+            run_dir = tmp / f"run{i}"
+            if watched:
+                res, samples, b_cpu, s_cpu = _watched(cfg, run_dir, drv)
+                if samples:
+                    n_ref = samples[-1][2] - samples[0][2]
+                    cpu.append((b_cpu, s_cpu, n_ref, res.wall_time))
+            else:
+                res, samples = RTHSLoop(cfg, run_dir, mode="paced").run(), []
+            runs.append(res)
+            dt = 1.0 / res.fs
+            w = (res.ready[1:] + dt - res.lateness[:-1]) * 1e6  # µs, work of step k
+            keep = np.arange(w.size) * dt >= 1.0
+            work[watched].append(w[keep])
+            late[watched].append(res.lateness[:-1][keep] * 1e6)
+            if samples:
+                rec = read_run(run_dir).record
+                w0 = _wall_t0(run_dir)
+                s = [x for x in samples if x[1] >= 1.0]  # once the run is under way
+                for wall, t_page, _ in s:
+                    k = min(round(t_page * res.fs), len(rec) - 1)
+                    lags.append(wall - (w0 + t_page + float(rec["lateness"][k])))
+                if len(s) > 2 and s[-1][0] > s[0][0]:
+                    rates.append((s[-1][2] - s[0][2]) / (s[-1][0] - s[0][0]))
+    finally:
+        if drv.poll() is None:
+            drv.stdin.close()
+            drv.terminate()
+            drv.wait(10)
+
+    w_off, w_on = _stats(np.concatenate(work[False])), _stats(np.concatenate(work[True]))
+    l_off, l_on = _stats(np.concatenate(late[False])), _stats(np.concatenate(late[True]))
+    diff = 100.0 * (w_on[1] / w_off[1] - 1.0)
+    lags_a = np.array(lags) if lags else np.array([np.nan])
+
+    from _results import markdown_table, write_results
+
+    b_tot = sum(c[0] for c in cpu)
+    s_tot = sum(c[1] for c in cpu)
+    n_tot = sum(c[2] for c in cpu)
+    wall_tot = max(sum(c[3] for c in cpu), 1e-9)
+
+    n_off = sum(x.size for x in work[False])
+    n_on = sum(x.size for x in work[True])
+    table = markdown_table(
+        ["runs", "steps", "work p50 µs", "work p99 µs", "work p99.9 µs", "lateness p99 µs"],
+        [
+            ["without a watcher", n_off, *(f"{v:.1f}" for v in w_off), f"{l_off[1]:.1f}"],
+            ["with the page open", n_on, *(f"{v:.1f}" for v in w_on), f"{l_on[1]:.1f}"],
+        ],
+    )
+    table += (
+        f"\n\nWork p99 with the watcher vs without: **{diff:+.2f} %** (goal ≤ 2 %).\n\n"
+        + markdown_table(
+            ["page", "value", "goal"],
+            [
+                [
+                    "refresh rate (applied by the browser)",
+                    f"{np.mean(rates):.1f} Hz" if rates else "–",
+                    "≥ 5 Hz",
+                ],
+                [
+                    "CPU per refresh: browser / watcher server",
+                    f"{1e3 * b_tot / max(n_tot, 1):.0f} / {1e3 * s_tot / max(n_tot, 1):.0f} ms",
+                    "",
+                ],
+                [
+                    "CPU while watching: browser / watcher server (share of one core)",
+                    f"{100 * b_tot / wall_tot:.0f} % / {100 * s_tot / wall_tot:.0f} %",
+                    "",
+                ],
+                [
+                    "lag behind the record, p50 / p95 / max",
+                    f"{np.nanmedian(lags_a):.2f} / {np.nanpercentile(lags_a, 95):.2f} / "
+                    f"{np.nanmax(lags_a):.2f} s",
+                    "≤ 0.5 s",
+                ],
+            ],
+        )
+    )
+    notes = (
+        f"{2 * args.pairs} paced runs of {args.duration:g} s at {runs[0].fs:g} Hz, alternately "
+        "without and with `rths-hil watch` and its page open in headless Chromium on the same "
+        f"machine (overruns per run: {', '.join(str(r.overruns) for r in runs)}); the first "
+        "second of each run is left out. Lag samples: the page's newest row, polled 10 times "
+        "a second over the DevTools protocol (the polling is itself a load on the browser). "
+        "CPU: user + system time of the browser's processes and of the watcher's server "
+        "process while the watched runs ran, divided by the refreshes the browser applied: "
+        "what a refresh costs whatever else the machine is doing. Load average of the "
+        f"machine (1 min, {os.cpu_count()} cores): {load0:.1f} before, "
+        f"{os.getloadavg()[0]:.1f} after."
+    )
+    path = write_results("bench_watch", table, goals=GOALS, notes=notes)
+    print(table)
+    print(f"\nwritten to {path}")
+
+
+if __name__ == "__main__":
+    main()
