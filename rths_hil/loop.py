@@ -166,11 +166,28 @@ class RTHSLoop:
         self.ag = p.ag
         self.ground_motion = p.ground_motion
         self.structure = p.structure
-        self.live = live
         self.twin_enabled = any(c.twin_enabled for c in p.channels)
         self.runner = self.runner_class(p, live=live)
         self.channels = self.runner.channels
         self.result: RunResult | None = None
+
+    @property
+    def live(self) -> Callable[[dict], None] | None:
+        """The console callback (settable before :meth:`run`)."""
+        return self.runner.live
+
+    @live.setter
+    def live(self, fn: Callable[[dict], None] | None) -> None:
+        self.runner.live = fn
+
+    @property
+    def console_interval(self) -> float:
+        """Seconds between console calls (``loop.console``; settable before :meth:`run`)."""
+        return self.plan.console_interval
+
+    @console_interval.setter
+    def console_interval(self, value: float) -> None:
+        self.plan.console_interval = float(value)
 
     @property
     def driver(self):
