@@ -17,11 +17,11 @@ import time
 
 import numpy as np
 from _results import markdown_table, write_results
+from rths_hil.sim_backends.delay import fractional_delay
 
 from rths_hil import fei as F
 from rths_hil.groundmotion import bundled_records, load
 from rths_hil.structure import simulate_sdof
-from sim_backends.delay import fractional_delay
 
 
 def main() -> None:

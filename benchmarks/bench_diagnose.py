@@ -28,14 +28,14 @@ import time
 
 import numpy as np
 from _results import markdown_table, write_results
+from rths_hil.sim_backends.effects import EFFECT_RANGES, make_effect
+from rths_hil.sim_backends.models import make_model
 from scipy import optimize
 
 from rths_hil.diagnose import CANDIDATES, diagnose, write_outputs
 from rths_hil.diagnose.candidates import Data, Model, fit_candidate, specimen_from_record
 from rths_hil.diagnose.synthetic import make_case
 from rths_hil.errors import InputError
-from sim_backends.effects import EFFECT_RANGES, make_effect
-from sim_backends.models import make_model
 
 FS = 1024.0
 DURATION = 60.0

@@ -42,12 +42,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import can
-
-from drivers.can.codec import load as load_dbc
-from drivers.modbus import _TCP_REQ, READ_ADDRESS, READ_COUNT, WRITE_ADDRESS
-from drivers.registry import create_driver
-from drivers.serial import COMMAND, T_COMMAND, encode_frame
-from sim_backends.twin import default_plant, start_twin
+from rths_hil.drivers.can.codec import load as load_dbc
+from rths_hil.drivers.modbus import _TCP_REQ, READ_ADDRESS, READ_COUNT, WRITE_ADDRESS
+from rths_hil.drivers.registry import create_driver
+from rths_hil.drivers.serial import COMMAND, T_COMMAND, encode_frame
+from rths_hil.sim_backends.twin import default_plant, start_twin
 
 Step = Callable[[int], None]
 GOALS_P99 = {"can-virtual": 150e-6, "modbus-tcp": 300e-6, "serial-pty": 150e-6}
@@ -285,7 +284,7 @@ def modbus_rtu_modes(n: int) -> dict[str, tuple[Step, Callable[[], None]]]:
 
 # -- serial -------------------------------------------------------------------------------------
 def serial_modes(n: int) -> dict[str, tuple[Step, Callable[[], None]]]:
-    from drivers.serial import FEEDBACK, T_FEEDBACK
+    from rths_hil.drivers.serial import FEEDBACK, T_FEEDBACK
 
     command = encode_frame(COMMAND.pack(T_COMMAND, 1, 1, 0.001))
     reply = encode_frame(FEEDBACK.pack(T_FEEDBACK, 1, 1, 0.001, 1.0))

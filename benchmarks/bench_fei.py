@@ -22,11 +22,11 @@ import time
 
 import numpy as np
 from _results import markdown_table, write_results
+from rths_hil.sim_backends.delay import fractional_delay
 
 from rths_hil.fei import OnlineFEI, fft_length, moving_fei
 from rths_hil.groundmotion import default_record
 from rths_hil.structure import simulate_sdof
-from sim_backends.delay import fractional_delay
 
 FS = 1024.0
 

@@ -39,9 +39,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+from rths_hil.drivers.base import Driver, Feedback
+from rths_hil.drivers.registry import create_driver
+from rths_hil.sim_backends.modelfile import load_plant
+from rths_hil.sim_backends.twin import default_plant, start_twin
 
-from drivers.base import Driver, Feedback
-from drivers.registry import create_driver
 from rths_hil.compensation import InverseCompensator
 from rths_hil.config import load_config
 from rths_hil.estimation import DelayGainEstimator
@@ -59,8 +61,6 @@ from rths_hil.loop import (
 from rths_hil.recorder import COLUMNS, Recorder
 from rths_hil.safety import SafetyMonitor, StuckRule, WatchdogRule
 from rths_hil.structure import BoucWenParams, CRStepper
-from sim_backends.modelfile import load_plant
-from sim_backends.twin import default_plant, start_twin
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import write_results

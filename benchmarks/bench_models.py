@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 from _results import markdown_table, write_results
+from rths_hil.sim_backends.effects import EFFECTS, make_effect
+from rths_hil.sim_backends.modelfile import load_plant
+from rths_hil.sim_backends.models import BenchmarkServo
 from scipy import signal
 
 from rths_hil.estimation import DelayGainEstimator, LinearDelayGainKF
-from sim_backends.effects import EFFECTS, make_effect
-from sim_backends.modelfile import load_plant
-from sim_backends.models import BenchmarkServo
 
 FS = 1024.0
 DT = 1.0 / FS

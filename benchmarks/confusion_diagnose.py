@@ -32,13 +32,13 @@ from collections import Counter, defaultdict
 
 import numpy as np
 from _results import write_results
+from rths_hil.sim_backends.effects import EFFECTS
 
 from rths_hil.diagnose import CANDIDATES, diagnose
 from rths_hil.diagnose.candidates import EFFECT_ORDER
 from rths_hil.diagnose.synthetic import make_case
 from rths_hil.errors import InputError
 from rths_hil.metrics import j2_nrms
-from sim_backends.effects import EFFECTS
 
 KINDS = list(EFFECTS)
 #: The parameter that sizes each effect.
@@ -57,7 +57,7 @@ MAIN = {
 def _unreached_case(kind: str, seed: int, duration: float):
     """A stroke/velocity limit drawn from its range with the drive drawn independently."""
     rng = np.random.default_rng(seed)
-    from sim_backends.effects import draw_effect_params
+    from rths_hil.sim_backends.effects import draw_effect_params
 
     params = draw_effect_params(kind, rng)
     return make_case([kind], seed, duration=duration, params={kind: params})

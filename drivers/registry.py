@@ -11,7 +11,7 @@ Two sources, in the style of python-can's ``BACKENDS`` plus entry points:
       [project.entry-points."rths_hil.drivers"]
       mylab = "mylab_driver:MyLabDriver"
 
-The class must subclass :class:`drivers.base.Driver` and take its connection settings as
+The class must subclass :class:`rths_hil.drivers.base.Driver` and take its connection settings as
 keyword arguments. An entry point with a built-in name replaces the built-in driver.
 """
 
@@ -30,9 +30,9 @@ ENTRY_POINT_GROUP = "rths_hil.drivers"
 
 #: The drivers shipped with rths_hil: name → ``"module:Class"``.
 BUILTIN: dict[str, str] = {
-    "can": "drivers.can:CANDriver",
-    "modbus": "drivers.modbus:ModbusDriver",
-    "serial": "drivers.serial:SerialDriver",
+    "can": "rths_hil.drivers.can:CANDriver",
+    "modbus": "rths_hil.drivers.modbus:ModbusDriver",
+    "serial": "rths_hil.drivers.serial:SerialDriver",
 }
 
 

@@ -13,7 +13,8 @@ with a random-walk process model ``x[k+1] = x[k] + w[k]``, ``w ~ N(0, Q)``,
     y[k − M] = g·u(t_k − M·dt − τ) + b + v,     v ~ N(0, R)
 
 where ``u(t_k − D·dt)`` is the third-order Lagrange interpolation of the input history at the
-fractional delay ``D = τ·fs + M`` samples (the interpolator of :mod:`sim_backends.delay`). An
+fractional delay ``D = τ·fs + M`` samples (the interpolator of :mod:`rths_hil.sim_backends.delay`).
+An
 extended Kalman filter (filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` equations)
 linearises it with the Jacobian ``H = [u(t−τ), g·∂u(t−τ)/∂τ, 1]``, the derivative taken
 analytically on the Lagrange polynomial. ``M`` is a small look-ahead (the measurement is held
@@ -52,11 +53,11 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
 from scipy import optimize, signal
 
-from sim_backends.delay import fractional_delay
-from sim_backends.effects import Offset
-from sim_backends.modelfile import ActuatorSpec, EffectSpec, ModelSpec
-from sim_backends.models import FirstOrderServo
-from sim_backends.plant import Sensor
+from rths_hil.sim_backends.delay import fractional_delay
+from rths_hil.sim_backends.effects import Offset
+from rths_hil.sim_backends.modelfile import ActuatorSpec, EffectSpec, ModelSpec
+from rths_hil.sim_backends.models import FirstOrderServo
+from rths_hil.sim_backends.plant import Sensor
 
 from .errors import InputError
 

@@ -160,7 +160,7 @@ def modbus_rtu_frame_bytes(
     (w = 4, r = 7 → 21 and 19 bytes).
     """
     if write_count is None or read_count is None:
-        from drivers.modbus import READ_COUNT, WRITE_COUNT
+        from rths_hil.drivers.modbus import READ_COUNT, WRITE_COUNT
 
         write_count = WRITE_COUNT if write_count is None else write_count
         read_count = READ_COUNT if read_count is None else read_count
@@ -209,7 +209,7 @@ def cobs_frame_bytes(body_bytes: int) -> int:
 
 def serial_frame_bytes() -> tuple[int, int]:
     """Command and feedback frame sizes of ``drivers/serial.py`` on the wire (18 and 26)."""
-    from drivers.serial import COMMAND, FEEDBACK
+    from rths_hil.drivers.serial import COMMAND, FEEDBACK
 
     crc = 2
     return cobs_frame_bytes(COMMAND.size + crc), cobs_frame_bytes(FEEDBACK.size + crc)
@@ -217,7 +217,7 @@ def serial_frame_bytes() -> tuple[int, int]:
 
 def _can_frame_lengths(dbc: str | None) -> tuple[int, int, int]:
     """Command, feedback and heartbeat data lengths from the DBC the driver uses."""
-    from drivers.can.codec import load
+    from rths_hil.drivers.can.codec import load
 
     c = load(dbc)
     return c.command.length, c.feedback.length, c.heartbeat.length
@@ -353,7 +353,7 @@ def link_load(
     driver_name : str
         Driver registry name (``can``, ``modbus``, ``serial``; others report "not checked").
     connection : dict
-        The driver's connection settings (as given to ``drivers.registry.create_driver``).
+        The driver's connection settings (as given to ``rths_hil.drivers.registry.create_driver``).
     channels_on_link : int
         Channels sharing this link (see :func:`link_key`).
     fs : float

@@ -31,7 +31,7 @@ Rules (names as they appear in events and on the console):
     sent, or a reply flagged ``SEQ_GAP`` by the controller (a command went missing).
 ``controller``
     The reply's status word carries an alarm of the controller itself: ``ESTOP_ACTIVE``,
-    ``FAULT`` or ``WATCHDOG`` (:class:`drivers.base.Status`).
+    ``FAULT`` or ``WATCHDOG`` (:class:`rths_hil.drivers.base.Status`).
 ``overrun``
     ``consecutive`` consecutive paced steps later than the overrun threshold.
 ``stuck``
@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.base import Status
+from rths_hil.drivers.base import Status
 
 from .errors import InputError
 
@@ -435,7 +435,7 @@ class ControllerRule:
     ----------
     mask : int
         Status bits that trip (default ``ESTOP_ACTIVE | FAULT | WATCHDOG`` of
-        :class:`drivers.base.Status`).
+        :class:`rths_hil.drivers.base.Status`).
     """
 
     __slots__ = ("mask", "rule")
@@ -655,7 +655,7 @@ class SafetyMonitor:
 
         ``ok`` is False when no matching reply came within the timeout; then ``measured`` and
         ``force`` are the held previous values and only the watchdog is fed. ``status`` is the
-        reply's :class:`drivers.base.Status` word.
+        reply's :class:`rths_hil.drivers.base.Status` word.
         """
         if self.tripped is not None:
             return self.tripped

@@ -137,7 +137,7 @@ def auto_decimation(fs: float, fn: float, max_factor: int = 8) -> int:
 
 
 def _actuator(target: np.ndarray, fs: float, gain: float, delay: float) -> np.ndarray:
-    from sim_backends.delay import DelayGain
+    from rths_hil.sim_backends.delay import DelayGain
 
     return DelayGain(delay=delay, gain=gain, dt=1.0 / fs).simulate(target)
 
@@ -756,7 +756,7 @@ def _set_value(cfg, key: str, value: float) -> None:
 
 def _inline_twin(cfg):
     """A copy of ``cfg`` whose twin is given by inline tables (a ``twin.model`` file is read)."""
-    from sim_backends.modelfile import load_model
+    from rths_hil.sim_backends.modelfile import load_model
 
     from .config import Config
 
@@ -788,7 +788,7 @@ def _inline_twin(cfg):
 
 def _twin_spec(cfg):
     """The validated :class:`~sim_backends.modelfile.ModelSpec` of an inline-twin Config."""
-    from sim_backends.modelfile import load_model
+    from rths_hil.sim_backends.modelfile import load_model
 
     tw = cfg["twin"]
     data: dict = {"actuator": tw["actuator"]}
@@ -800,7 +800,7 @@ def _twin_spec(cfg):
 
 
 def _varyable_keys(cfg) -> list[str]:
-    from sim_backends.registry import MODEL_ALIASES, MODELS
+    from rths_hil.sim_backends.registry import MODEL_ALIASES, MODELS
 
     from .config import SCHEMA
 
@@ -936,7 +936,7 @@ def default_perturbations(cfg) -> list[Perturbation]:
 
     k = spec.specimen.stiffness if spec.specimen is not None else None
     if model == "benchmark":
-        from sim_backends.models import BENCHMARK_NOMINAL
+        from rths_hil.sim_backends.models import BENCHMARK_NOMINAL
 
         p = {**BENCHMARK_NOMINAL, **spec.actuator.params}
         for name, sigma in (("a3", 1.3), ("beta1", 3.3), ("beta2", 3.3e3)):
@@ -1012,7 +1012,7 @@ def reference_response(cfg, n: int | None = None) -> np.ndarray:
     n : int, optional
         Steps (default: as the loop, from ``loop.duration`` or the record).
     """
-    from sim_backends.specimen import SPECIMEN_DEFAULTS, KelvinVoigt
+    from rths_hil.sim_backends.specimen import SPECIMEN_DEFAULTS, KelvinVoigt
 
     from .loop import build_ground_motion
     from .structure import CRStepper

@@ -3,7 +3,7 @@
 Each effect maps the displacement coming out of the previous stage (the actuator model or the
 previous effect) to a modified displacement, one sample at a time (:meth:`Effect.step`) or over a
 whole history (:meth:`Effect.simulate`, vectorised, equal to the step path to round-off). The
-same catalogue serves the twin (:mod:`sim_backends.plant`) and the discrepancy-diagnosis
+same catalogue serves the twin (:mod:`rths_hil.sim_backends.plant`) and the discrepancy-diagnosis
 workflow, which fits the parameters of these effects to records; :data:`EFFECT_RANGES` gives
 the realistic parameter ranges both draw from. Names, in SI units (``x`` input, ``y`` output,
 ``t = k·dt`` the time since reset, ``k = 0`` at the first sample):
@@ -19,7 +19,7 @@ the realistic parameter ranges both draw from. Names, in SI units (``x`` input, 
                        ``y = clip(x, center - limit, center + limit)``.
 ``servo_lag``          first-order lag ``1/(T s + 1)`` (first-order hold), ``T = time_constant``.
 ``time_varying_delay`` ``y(t) = x(t - τ(t))``, ``τ(t) = delay + amplitude·sin(2π t/period)``,
-                       fractional (Lagrange, as :mod:`sim_backends.delay`).
+                       fractional (Lagrange, as :mod:`rths_hil.sim_backends.delay`).
 ``force_feedback``     control-structure interaction through the oil-column compliance:
                        ``k_h (x - y) = k_s y + c_s ẏ`` → ``y = x·k_h/(k_h + k_s)`` lagged by
                        ``T = c_s/(k_h + k_s)``.
@@ -660,7 +660,7 @@ class TimeVaryingDelay(Effect):
     specimen stiffness during a test; 10-20 % variation of a 10-30 ms delay is typical.
     Realistic ``delay`` 5-30 ms, ``amplitude`` 0.5-5 ms (must not exceed ``delay``),
     ``period`` 2-60 s. The interpolation is the 4-tap Lagrange FIR of
-    :func:`sim_backends.delay.lagrange_taps` evaluated per sample (vectorised gather in
+    :func:`rths_hil.sim_backends.delay.lagrange_taps` evaluated per sample (vectorised gather in
     :meth:`simulate`), from rest (zeros before the first sample).
     """
 
@@ -765,7 +765,9 @@ class TimeVaryingDelay(Effect):
 
 
 def _taps_scalar(d: float) -> tuple[int, tuple[float, float, float, float]]:
-    """Lagrange taps as in :func:`sim_backends.delay.lagrange_taps`, scalar and allocation-light."""
+    """Lagrange taps as in :func:`rths_hil.sim_backends.delay.lagrange_taps`, scalar and
+    allocation-light.
+    """
     n0 = max(math.floor(d) - 1, 0)
     f = d - n0
     f1, f2, f3 = f - 1.0, f - 2.0, f - 3.0

@@ -3,7 +3,7 @@
 Three families, all :class:`~sim_backends.base.ActuatorModel` subclasses stepped at ``dt``:
 
 * :class:`DelayGain` — the FEI paper's block model (Fig. 4.1): a fractional transport delay followed
-  by a gain (re-exported from :mod:`sim_backends.delay`).
+  by a gain (re-exported from :mod:`rths_hil.sim_backends.delay`).
 * :class:`FirstOrderServo` — a first-order servo lag ``1 / (T s + 1)``; its low-frequency
   equivalent delay is ``T`` and its amplitude at frequency ``f`` is ``1/sqrt(1 + (2π f T)²)``.
 * :class:`BenchmarkServo` — the servo-valve / actuator / control-structure-interaction plant of
@@ -343,7 +343,8 @@ def make_model(
     ----------
     name : str
         Dynamics in front of the transport delay, a name of
-        :data:`sim_backends.registry.MODELS` (``delay_gain``, ``servo_lag``, ``benchmark``).
+        :data:`rths_hil.sim_backends.registry.MODELS` (``delay_gain``, ``servo_lag``,
+        ``benchmark``).
     dt : float
         Step in seconds.
     delay : float
@@ -351,7 +352,7 @@ def make_model(
     gain : float
         Amplitude gain applied after the dynamics.
     **params
-        The dynamics' parameters (see :data:`sim_backends.registry.MODELS`).
+        The dynamics' parameters (see :data:`rths_hil.sim_backends.registry.MODELS`).
     """
     from .registry import model_class, model_entry
 

@@ -4,12 +4,14 @@ Three tables, in the style of python-can's ``BACKENDS`` (name → where the clas
 only when asked for):
 
 * :data:`TWINS` — driver name → the endpoint that speaks that driver's protocol
-  (:mod:`sim_backends.endpoints`). :func:`sim_backends.twin.start_twin` and ``rths-hil twin
-  serve`` ask it. The driver registry beside it is :data:`drivers.registry.BUILTIN`.
+  (:mod:`rths_hil.sim_backends.endpoints`). :func:`rths_hil.sim_backends.twin.start_twin` and
+  ``rths-hil twin
+  serve`` ask it. The driver registry beside it is :data:`rths_hil.drivers.registry.BUILTIN`.
 * :data:`MODELS` — actuator model name (a model file's ``actuator.model``) → the
   :class:`~sim_backends.base.ActuatorModel` in front of the transport delay and gain of the
   FEI paper's Fig. 4.1, with its parameters. :func:`build_plant` and the model file ask it.
-* :data:`sim_backends.effects.EFFECTS` — effect kind → :class:`~sim_backends.effects.Effect`
+* :data:`rths_hil.sim_backends.effects.EFFECTS` — effect kind →
+:class:`~sim_backends.effects.Effect`
   subclass (each class carries everything the twin and the diagnosis know about it).
 
 Adding one of them touches one module (the class) and one line here (or in ``EFFECTS``); see
@@ -61,10 +63,14 @@ class TwinEntry:
 
 #: Twin endpoints by the name of the driver whose protocol they speak.
 TWINS: dict[str, TwinEntry] = {
-    "can": TwinEntry("sim_backends.endpoints.can:CANTwin", fresh_channel=True),
-    "modbus": TwinEntry("sim_backends.endpoints.modbus:ModbusTwin", transports=("tcp", "rtu")),
+    "can": TwinEntry("rths_hil.sim_backends.endpoints.can:CANTwin", fresh_channel=True),
+    "modbus": TwinEntry(
+        "rths_hil.sim_backends.endpoints.modbus:ModbusTwin", transports=("tcp", "rtu")
+    ),
     "serial": TwinEntry(
-        "sim_backends.endpoints.serial:SerialTwin", seq_bits=None, transports=("pty", "tcp")
+        "rths_hil.sim_backends.endpoints.serial:SerialTwin",
+        seq_bits=None,
+        transports=("pty", "tcp"),
     ),
 }
 
@@ -111,12 +117,12 @@ def _benchmark_params() -> dict[str, tuple[float | None, str]]:
 MODELS: dict[str, ModelEntry] = {
     "delay_gain": ModelEntry("", {}, "transport delay and gain only (the FEI paper, Fig. 4.1)"),
     "servo_lag": ModelEntry(
-        "sim_backends.models:FirstOrderServo",
+        "rths_hil.sim_backends.models:FirstOrderServo",
         {"time_constant": (None, "s")},
         "first-order servo lag 1/(T s + 1)",
     ),
     "benchmark": ModelEntry(
-        "sim_backends.models:BenchmarkServo",
+        "rths_hil.sim_backends.models:BenchmarkServo",
         _benchmark_params(),
         "servo-hydraulic plant of the RTHS benchmark (Silva et al. 2020)",
         uses_specimen=True,

@@ -53,12 +53,12 @@ def start_twin(
     Parameters
     ----------
     driver_name : str
-        Which protocol to speak: a name of :data:`sim_backends.registry.TWINS` (``can``,
+        Which protocol to speak: a name of :data:`rths_hil.sim_backends.registry.TWINS` (``can``,
         ``modbus``, ``serial``).
     plant : Plant
         The plant stepped once per command.
     faults : Faults, optional
-        Fault plan (:mod:`sim_backends.faults`).
+        Fault plan (:mod:`rths_hil.sim_backends.faults`).
     heartbeat_timeout : float, optional
         Heartbeat watchdog period (s); off by default.
     threaded : bool

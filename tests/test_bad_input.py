@@ -127,7 +127,7 @@ def test_host_0000_needs_allow_remote(capsys, caplog):
         "0.0.0.0",
         "--allow-remote",
     )
-    from sim_backends.twin import default_plant, start_twin
+    from rths_hil.sim_backends.twin import default_plant, start_twin
 
     with (
         caplog.at_level(logging.WARNING),

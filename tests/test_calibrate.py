@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.modelfile import load_model, load_plant
 from scipy import signal
 from twin_signals import FS, sdof_response
 
@@ -11,7 +12,6 @@ from rths_hil.cli import main
 from rths_hil.errors import InputError
 from rths_hil.estimation import calibrate
 from rths_hil.records import read_record, write_record
-from sim_backends.modelfile import load_model, load_plant
 
 
 def _twin_record(model: dict, u: np.ndarray) -> np.ndarray:

@@ -116,7 +116,7 @@ def test_structure_targets_equal_the_offline_mdof_integration(tmp_path):
 
 
 def _delay_jump_plant(dt: float, k_jump: int):
-    from sim_backends.delay import DelayGain
+    from rths_hil.sim_backends.delay import DelayGain
 
     class Jump:
         """A pure delay of 20 ms that grows to 60 ms over 0.25 s from step ``k_jump`` (a cross-fade:

@@ -6,12 +6,12 @@ import json
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.modelfile import dump_model, load_model
 
 from rths_hil.cli import main
 from rths_hil.diagnose.synthetic import make_case
 from rths_hil.metrics import j2_nrms
 from rths_hil.records import write_record
-from sim_backends.modelfile import dump_model, load_model
 
 
 def _write_case(tmp_path, kinds, seed, duration=20.0, force=True):

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.delay import fractional_delay
 
 from rths_hil.cli import main
 from rths_hil.records import write_record
-from sim_backends.delay import fractional_delay
 
 FS = 512.0
 

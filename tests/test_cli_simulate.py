@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.delay import fractional_delay
 
 from rths_hil.cli import main
 from rths_hil.fei import fei
@@ -11,7 +12,6 @@ from rths_hil.groundmotion import default_record
 from rths_hil.records import read_record
 from rths_hil.structure import simulate_sdof
 from rths_hil.units import G
-from sim_backends.delay import fractional_delay
 
 
 def _run(capsys, *argv):

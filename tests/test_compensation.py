@@ -6,11 +6,11 @@ import math
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.delay import fractional_delay
 from scipy.signal import lfilter
 
 from rths_hil.compensation import AdaptiveAlpha, InverseCompensator, alpha_for_delay
 from rths_hil.errors import InputError
-from sim_backends.delay import fractional_delay
 
 FS = 1024.0
 DT = 1 / FS

@@ -19,9 +19,8 @@ import time
 import numpy as np
 import pytest
 from _procs import LATCH_LINE, ServedTwin, bridge_cmd, kill9, start_bridge, wait_rows
-
-from drivers.base import Status
-from drivers.registry import create_driver
+from rths_hil.drivers.base import Status
+from rths_hil.drivers.registry import create_driver
 
 # The twins' watchdog in these tests (s). Served twins: 0.25 s, so that a lockstep bridge
 # descheduled for tens of ms on a loaded 2-core machine is not taken for a dead one; in-process
@@ -120,7 +119,7 @@ def test_serial_twin_latches_when_the_bridge_is_killed(serial_twin, tmp_path):
 @pytest.mark.parametrize("driver", ["can", "modbus", "serial"])
 def test_in_process_twin_latches_when_commands_stop(driver):
     """The in-process twins (threaded) hold and latch the same way when the bridge falls silent."""
-    from sim_backends.twin import default_plant, start_twin
+    from rths_hil.sim_backends.twin import default_plant, start_twin
 
     with start_twin(driver, default_plant(), heartbeat_timeout=TIMEOUT_IN) as twin:
         with create_driver(driver, **twin.connection) as drv:
@@ -149,7 +148,7 @@ def test_in_process_twin_latches_when_commands_stop(driver):
 
 def test_holding_on_purpose_does_not_trip_the_watchdog():
     """enable=False (hold) is not a dead bridge: the watchdog watches an enabled controller."""
-    from sim_backends.twin import default_plant, start_twin
+    from rths_hil.sim_backends.twin import default_plant, start_twin
 
     with start_twin("modbus", default_plant(), heartbeat_timeout=TIMEOUT_IN) as twin:
         with create_driver("modbus", **twin.connection) as drv:

@@ -6,8 +6,7 @@ import math
 
 import numpy as np
 import pytest
-
-from sim_backends.delay import DelayGain, FractionalDelay, fractional_delay, lagrange_taps
+from rths_hil.sim_backends.delay import DelayGain, FractionalDelay, fractional_delay, lagrange_taps
 
 FS = 1024.0
 RNG = np.random.default_rng(11)

@@ -14,12 +14,12 @@ import math
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.effects import EFFECT_RANGES, EFFECTS
 
 from rths_hil.diagnose import diagnose
 from rths_hil.diagnose.synthetic import make_case
 from rths_hil.errors import InputError
 from rths_hil.metrics import j2_nrms
-from sim_backends.effects import EFFECT_RANGES, EFFECTS
 
 DURATION = 20.0
 

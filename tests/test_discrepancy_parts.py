@@ -9,6 +9,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.delay import fractional_delay
+from rths_hil.sim_backends.effects import EFFECTS, draw_effect_params, make_effect
+from rths_hil.sim_backends.modelfile import (
+    ActuatorSpec,
+    EffectSpec,
+    ModelSpec,
+    dump_model,
+    load_model,
+)
 from scipy import signal
 
 from rths_hil.diagnose import localise, noise_level
@@ -16,9 +25,6 @@ from rths_hil.diagnose._fast import fractional_delay as fast_delay
 from rths_hil.diagnose._fast import simulate_effect
 from rths_hil.diagnose.candidates import Data, Model, _rss, polish
 from rths_hil.diagnose.synthetic import make_case
-from sim_backends.delay import fractional_delay
-from sim_backends.effects import EFFECTS, draw_effect_params, make_effect
-from sim_backends.modelfile import ActuatorSpec, EffectSpec, ModelSpec, dump_model, load_model
 
 FS = 1024.0
 

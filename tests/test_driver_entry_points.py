@@ -8,13 +8,13 @@ import sys
 from pathlib import Path
 
 import pytest
+from rths_hil.drivers.base import Driver
+from rths_hil.drivers.registry import BUILTIN, available, create_driver, driver_class
 
-from drivers.base import Driver
-from drivers.registry import BUILTIN, available, create_driver, driver_class
 from rths_hil.errors import InputError
 
 _MODULE = """
-from drivers.base import Driver
+from rths_hil.drivers.base import Driver
 
 
 class MyLabDriver(Driver):

@@ -28,18 +28,18 @@ from pymodbus.pdu.register_message import (
     ReadWriteMultipleRegistersRequest,
     ReadWriteMultipleRegistersResponse,
 )
+from rths_hil.drivers.base import Driver, Status, extend_seq
+from rths_hil.drivers.can import CANDriver, virtual_rx_queue
+from rths_hil.drivers.can.codec import DBC_PATH, Frame, load
+from rths_hil.drivers.modbus import ModbusDriver
+from rths_hil.drivers.registry import available, create_driver, driver_class
+from rths_hil.drivers.serial import SerialDriver
+from rths_hil.sim_backends.endpoints.base import TwinController
+from rths_hil.sim_backends.endpoints.can import CANTwin
+from rths_hil.sim_backends.faults import Faults
+from rths_hil.sim_backends.twin import default_plant
 
-from drivers.base import Driver, Status, extend_seq
-from drivers.can import CANDriver, virtual_rx_queue
-from drivers.can.codec import DBC_PATH, Frame, load
-from drivers.modbus import ModbusDriver
-from drivers.registry import available, create_driver, driver_class
-from drivers.serial import SerialDriver
 from rths_hil.errors import InputError
-from sim_backends.endpoints.base import TwinController
-from sim_backends.endpoints.can import CANTwin
-from sim_backends.faults import Faults
-from sim_backends.twin import default_plant
 
 DB = cantools.database.load_file(str(DBC_PATH))
 

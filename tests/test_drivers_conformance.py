@@ -20,14 +20,14 @@ from typing import Any
 
 import numpy as np
 import pytest
+from rths_hil.drivers.base import Status
+from rths_hil.drivers.registry import create_driver
+from rths_hil.sim_backends.delay import fractional_delay
+from rths_hil.sim_backends.faults import Faults
+from rths_hil.sim_backends.plant import TwinPlant
+from rths_hil.sim_backends.twin import default_plant, start_twin
 
-from drivers.base import Status
-from drivers.registry import create_driver
 from rths_hil.errors import InputError
-from sim_backends.delay import fractional_delay
-from sim_backends.faults import Faults
-from sim_backends.plant import TwinPlant
-from sim_backends.twin import default_plant, start_twin
 
 DT = 1.0 / 1024.0
 DELAY, GAIN, STIFFNESS = 0.0033, 0.9, 2.0e5

@@ -6,11 +6,8 @@ import math
 
 import numpy as np
 import pytest
-from scipy import signal
-
-from rths_hil.errors import InputError
-from sim_backends.delay import fractional_delay
-from sim_backends.effects import (
+from rths_hil.sim_backends.delay import fractional_delay
+from rths_hil.sim_backends.effects import (
     EFFECT_RANGES,
     EFFECTS,
     EffectChain,
@@ -18,6 +15,9 @@ from sim_backends.effects import (
     make_effect,
     validate_params,
 )
+from scipy import signal
+
+from rths_hil.errors import InputError
 
 DT = 1.0 / 1024.0
 KINDS = [

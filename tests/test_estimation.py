@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.delay import fractional_delay
+from rths_hil.sim_backends.modelfile import load_plant
+from rths_hil.sim_backends.models import benchmark_transfer_function
 from scipy import signal
 from twin_signals import FS, sdof_response
 
 from rths_hil.errors import InputError
 from rths_hil.estimation import DelayGainEstimator, LinearDelayGainKF
-from sim_backends.delay import fractional_delay
-from sim_backends.modelfile import load_plant
-from sim_backends.models import benchmark_transfer_function
 
 SENSOR = {"displacement_noise": 2e-5, "displacement_resolution": 1e-6}  # 20 µm rms, 1 µm steps
 

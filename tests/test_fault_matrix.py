@@ -1,6 +1,7 @@
 """The fault matrix: driver × fault → the rule that must trip and how soon (issue 12).
 
-Every built-in fault of :mod:`sim_backends.faults` on every driver, in lockstep (the bound is in
+Every built-in fault of :mod:`rths_hil.sim_backends.faults` on every driver, in lockstep (the bound
+is in
 steps after the faulty one) and paced at 1024 Hz (the bound is wall-clock time from the fault's
 deadline to the trip, read from the run's own events: ``clock`` gives the wall time of deadline
 0, the ``trip`` event its ISO 8601 wall time). Process faults use ``rths-hil twin serve`` as its

@@ -7,12 +7,12 @@ import math
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.delay import fractional_delay
 
 from rths_hil import fei as F
 from rths_hil.errors import InputError
 from rths_hil.groundmotion import bundled_path, load
 from rths_hil.structure import simulate_sdof
-from sim_backends.delay import fractional_delay
 
 FS = 1024.0
 

@@ -20,9 +20,9 @@ from pymodbus.pdu.register_message import (
     ReadWriteMultipleRegistersRequest,
     ReadWriteMultipleRegistersResponse,
 )
+from rths_hil.drivers.can.codec import DBC_PATH
+from rths_hil.drivers.serial import COMMAND, FEEDBACK, T_COMMAND, T_FEEDBACK, encode_frame
 
-from drivers.can.codec import DBC_PATH
-from drivers.serial import COMMAND, FEEDBACK, T_COMMAND, T_FEEDBACK, encode_frame
 from rths_hil.errors import InputError
 from rths_hil.linkbudget import (
     can_fd_frame_time,

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.modelfile import load_plant
 
 from rths_hil import groundmotion
 from rths_hil.compensation import InverseCompensator
@@ -14,7 +15,6 @@ from rths_hil.fei import fei
 from rths_hil.loop import RTHSLoop
 from rths_hil.recorder import read_run
 from rths_hil.structure import BoucWenParams, CRStepper
-from sim_backends.modelfile import load_plant
 
 FS = 1024.0
 DELAY = 0.020  # the twin's pure transport delay (the FEI paper's Fig. 4.1 block model)

@@ -141,7 +141,7 @@ class _SlowPlant:
     """The default twin plant, taking ``slow`` seconds per step from step ``after`` on."""
 
     def __init__(self, after: int, slow: float) -> None:
-        from sim_backends.twin import default_plant
+        from rths_hil.sim_backends.twin import default_plant
 
         self.inner = default_plant()
         self.dt = self.inner.dt

@@ -6,11 +6,11 @@ import math
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.delay import fractional_delay
 from scipy.signal import fftconvolve
 
 from rths_hil import metrics
 from rths_hil.errors import InputError
-from sim_backends.delay import fractional_delay
 
 FS = 1024.0
 T = np.arange(int(20 * FS)) / FS

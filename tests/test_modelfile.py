@@ -6,10 +6,8 @@ import tomllib
 
 import numpy as np
 import pytest
-
-from rths_hil.errors import InputError
-from sim_backends.effects import make_effect
-from sim_backends.modelfile import (
+from rths_hil.sim_backends.effects import make_effect
+from rths_hil.sim_backends.modelfile import (
     ActuatorSpec,
     EffectSpec,
     ModelSpec,
@@ -19,9 +17,11 @@ from sim_backends.modelfile import (
     load_plant,
     model_to_toml,
 )
-from sim_backends.models import make_model
-from sim_backends.plant import Sensor, TwinPlant
-from sim_backends.specimen import KelvinVoigt
+from rths_hil.sim_backends.models import make_model
+from rths_hil.sim_backends.plant import Sensor, TwinPlant
+from rths_hil.sim_backends.specimen import KelvinVoigt
+
+from rths_hil.errors import InputError
 
 DT = 1.0 / 1024.0
 
@@ -145,7 +145,7 @@ def test_minimal_file_and_defaults(tmp_path):
     plant = spec.build(DT)
     x = _cmd()
     d, f = plant.simulate(x)
-    from sim_backends.delay import fractional_delay
+    from rths_hil.sim_backends.delay import fractional_delay
 
     np.testing.assert_allclose(d, fractional_delay(x, 0.01, 1 / DT), atol=1e-15)
     # default specimen: the benchmark's spring-dashpot

@@ -4,13 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy import signal
-
-from rths_hil.errors import InputError
-from sim_backends import delay as delay_mod
-from sim_backends.base import Plant
-from sim_backends.effects import make_effect
-from sim_backends.models import (
+from rths_hil.sim_backends import delay as delay_mod
+from rths_hil.sim_backends.base import Plant
+from rths_hil.sim_backends.effects import make_effect
+from rths_hil.sim_backends.models import (
     BENCHMARK_NOMINAL,
     BenchmarkServo,
     DelayGain,
@@ -19,8 +16,11 @@ from sim_backends.models import (
     benchmark_transfer_function,
     make_model,
 )
-from sim_backends.plant import Sensor, TwinPlant
-from sim_backends.specimen import KelvinVoigt
+from rths_hil.sim_backends.plant import Sensor, TwinPlant
+from rths_hil.sim_backends.specimen import KelvinVoigt
+from scipy import signal
+
+from rths_hil.errors import InputError
 
 DT = 1.0 / 1024.0
 

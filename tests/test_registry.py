@@ -7,16 +7,16 @@ import math
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.effects import EFFECT_ORDER, EFFECTS, Effect
+from rths_hil.sim_backends.endpoints.base import TwinEndpoint
+from rths_hil.sim_backends.modelfile import load_model, load_plant
+from rths_hil.sim_backends.models import BenchmarkServo, FirstOrderServo, Series, make_model
+from rths_hil.sim_backends.plant import TwinPlant
+from rths_hil.sim_backends.registry import MODELS, TWINS, build_plant, model_class, twin_class
+from rths_hil.sim_backends.twin import default_plant
 
 from rths_hil.diagnose.candidates import _METHODS, CANDIDATES, REFITS, delta_bic
 from rths_hil.errors import InputError
-from sim_backends.effects import EFFECT_ORDER, EFFECTS, Effect
-from sim_backends.endpoints.base import TwinEndpoint
-from sim_backends.modelfile import load_model, load_plant
-from sim_backends.models import BenchmarkServo, FirstOrderServo, Series, make_model
-from sim_backends.plant import TwinPlant
-from sim_backends.registry import MODELS, TWINS, build_plant, model_class, twin_class
-from sim_backends.twin import default_plant
 
 DT = 1.0 / 1024.0
 

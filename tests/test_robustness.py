@@ -32,11 +32,12 @@ def _cfg():
 
 
 def test_reference_response_equals_the_loop_with_an_ideal_transfer_system(tmp_path):
+    from rths_hil.sim_backends.models import Identity
+    from rths_hil.sim_backends.plant import Sensor, TwinPlant
+    from rths_hil.sim_backends.specimen import KelvinVoigt
+
     from rths_hil.loop import run
     from rths_hil.recorder import read_run
-    from sim_backends.models import Identity
-    from sim_backends.plant import Sensor, TwinPlant
-    from sim_backends.specimen import KelvinVoigt
 
     # the serial transport carries float64 (the CAN frames quantise displacement and force)
     cfg = study._inline_twin(

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from rths_hil.drivers.base import Status
 
-from drivers.base import Status
 from rths_hil.errors import InputError
 from rths_hil.safety import (
     ControllerRule,

@@ -88,8 +88,7 @@ def test_ctrl_c_during_start_up_exits_130_without_a_traceback(tmp_path):
 def test_can_receive_honours_its_timeout_on_interfaces_that_do_not():
     """python-can's ``serial`` interface waits 0.1 s whatever recv is given; the driver not."""
     import can
-
-    from drivers.can import CANDriver
+    from rths_hil.drivers.can import CANDriver
 
     bus = can.Bus(interface="serial", channel="loop://")
     try:

@@ -333,7 +333,7 @@ def test_hardware_tuning_prompt_answered_no_runs_nothing(tmp_path, capsys, monke
 
 
 def test_hardware_tuning_with_confirmation_runs_paced_at_reduced_amplitude(tmp_path, capsys):
-    from sim_backends.twin import default_plant, start_twin
+    from rths_hil.sim_backends.twin import default_plant, start_twin
 
     out = tmp_path / "hw"
     with start_twin("can", default_plant(delay=0.02), interface="virtual") as twin:

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.twin import default_plant, start_twin
 
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.loop import RTHSLoop
 from rths_hil.recorder import read_run
-from sim_backends.twin import default_plant, start_twin
 
 COLUMNS = ("target", "command", "measured", "force", "fei_amplitude", "fei_delay", "kf_delay")
 

@@ -23,14 +23,13 @@ import cantools
 import numpy as np
 import pytest
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
-
-from drivers.base import Status
-from drivers.can import CANDriver
-from drivers.can.codec import DBC_PATH
-from drivers.registry import create_driver
-from sim_backends.delay import fractional_delay
-from sim_backends.plant import TwinPlant
-from sim_backends.twin import default_plant, start_twin
+from rths_hil.drivers.base import Status
+from rths_hil.drivers.can import CANDriver
+from rths_hil.drivers.can.codec import DBC_PATH
+from rths_hil.drivers.registry import create_driver
+from rths_hil.sim_backends.delay import fractional_delay
+from rths_hil.sim_backends.plant import TwinPlant
+from rths_hil.sim_backends.twin import default_plant, start_twin
 
 DT = 1.0 / 1024.0
 DELAY, GAIN, K = 0.0042, 1.05, 3.0e5
@@ -176,7 +175,7 @@ def test_start_twin_rejects_unknown_driver_and_setting() -> None:
 
 
 def test_twin_with_model_file_plant(tmp_path: Path) -> None:
-    modelfile = pytest.importorskip("sim_backends.modelfile")
+    modelfile = pytest.importorskip("rths_hil.sim_backends.modelfile")
     path = tmp_path / "twin.toml"
     path.write_text("[actuator]\ndelay = 0.0042\ngain = 1.05\n")
     p = modelfile.load_plant(path, DT)

@@ -5,7 +5,8 @@ byte) and the controller answers with one ``Feedback`` frame (0x180: low byte of
 status, measured displacement, measured force), so that a 1024 Hz loop costs two frames per
 step (≈ 260 µs of a 1 Mbit/s bus). ``EStop`` (0x010) has the lowest identifier of the set, so it
 wins arbitration on a busy bus. ``Heartbeat`` (0x700) is optional. Layout and scaling are in
-``docs/protocols.md`` and the DBC; :mod:`drivers.can.codec` compiles the DBC for the hot path.
+``docs/protocols.md`` and the DBC; :mod:`rths_hil.drivers.can.codec` compiles the DBC for the hot
+path.
 
 The bus is opened through python-can from configuration: ``interface`` (default
 ``"virtual"``, in-process only), ``channel``, ``bitrate`` and any extra python-can options in

@@ -15,7 +15,7 @@ import argparse
 import math
 from pathlib import Path
 
-from sim_backends.modelfile import load_model
+from rths_hil.sim_backends.modelfile import load_model
 
 from ..diagnose import (
     CANDIDATES,

@@ -2,7 +2,8 @@
 
 An SDOF structure (linear or Bouc-Wen, CR integration) under a ground motion gives the target
 displacement; the actuator block model (fractional transport delay + gain,
-:class:`sim_backends.delay.DelayGain`) gives the measured one. The record CSV has the columns
+:class:`rths_hil.sim_backends.delay.DelayGain`) gives the measured one. The record CSV has the
+columns
 ``time,target,measured,ground_accel,force`` (s, m, m, m/s², N) and is what ``rths-hil evaluate``
 reads. See ``docs/simulation.md``.
 """
@@ -83,7 +84,7 @@ def _fraction(text: str, what: str) -> float:
 
 def run(args: argparse.Namespace) -> int:
     """Run the simulation and write the record; returns the exit code."""
-    from sim_backends.delay import DelayGain
+    from rths_hil.sim_backends.delay import DelayGain
 
     from ..groundmotion import default_record, resolve
     from ..records import write_record

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_backends.modelfile import dump_model, model_to_toml
+from rths_hil.sim_backends.modelfile import dump_model, model_to_toml
 
 from ..errors import InputError
 from ..estimation import DelayGainEstimator, calibrate

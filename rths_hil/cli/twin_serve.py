@@ -30,7 +30,7 @@ DEFAULT_DT = 1.0 / 1024.0
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``serve`` to the ``twin`` sub-command group."""
-    from sim_backends.registry import TWINS
+    from rths_hil.sim_backends.registry import TWINS
 
     p = sub.add_parser(
         "serve",
@@ -67,7 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _connection(args: argparse.Namespace) -> dict[str, Any]:
     """The endpoint settings the options give (transports from the twin registry)."""
-    from sim_backends.registry import TWINS
+    from rths_hil.sim_backends.registry import TWINS
 
     if args.driver == "can":
         if args.interface == "virtual":
@@ -104,14 +104,14 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     """Serve until SIGINT/SIGTERM; return 0."""
-    from sim_backends.faults import Faults
-    from sim_backends.twin import default_plant, start_twin
+    from rths_hil.sim_backends.faults import Faults
+    from rths_hil.sim_backends.twin import default_plant, start_twin
 
     dt = DEFAULT_DT if args.dt is None else parse_time(args.dt, "--dt")
     if not dt > 0:
         raise InputError(f"--dt {args.dt}: the step must be > 0")
     if args.model:
-        from sim_backends.registry import build_plant
+        from rths_hil.sim_backends.registry import build_plant
 
         plant = build_plant(args.model, dt)
     else:

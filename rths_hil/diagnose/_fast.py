@@ -2,7 +2,8 @@
 
 The diagnosis simulates candidate effects hundreds of times per record, so:
 
-* ``velocity_limit`` — :class:`sim_backends.effects.VelocityLimit` has no closed form and its
+* ``velocity_limit`` — :class:`rths_hil.sim_backends.effects.VelocityLimit` has no closed form and
+its
   vectorised path loops in Python over every stretch where the limit is active (most of the
   record for the small limits a fit tries); here the same recursion is compiled with numba,
   with the same comparisons in the same order as its ``step``: equal bit for bit.
@@ -17,9 +18,11 @@ The diagnosis simulates candidate effects hundreds of times per record, so:
 
 * ``time_varying_delay`` — the catalogue gathers 4 Lagrange taps per sample with numpy
   (a dozen temporary arrays); compiled, the same formula (``τ[k] = D + a·sin(2πk dt/P)`` in
-  samples, ``n0 = max(⌊τ⌋ − 1, 0)``, taps of :func:`sim_backends.delay.lagrange_taps`) is one
+  samples, ``n0 = max(⌊τ⌋ − 1, 0)``, taps of :func:`rths_hil.sim_backends.delay.lagrange_taps`) is
+  one
   pass, equal to round-off.
-* the transport delay — :func:`sim_backends.delay.fractional_delay` runs its FIR (``n0`` zeros
+* the transport delay — :func:`rths_hil.sim_backends.delay.fractional_delay` runs its FIR (``n0``
+zeros
   and 4 Lagrange taps) through :func:`scipy.signal.lfilter`; here the shift is a slice and the 4
   taps are 4 vector operations (equal to round-off).
 
@@ -34,9 +37,9 @@ import numba
 import numpy as np
 from scipy.signal import lfilter
 
-from sim_backends.delay import lagrange_taps
-from sim_backends.effects import make_effect, validate_params
-from sim_backends.modelfile import EffectSpec
+from rths_hil.sim_backends.delay import lagrange_taps
+from rths_hil.sim_backends.effects import make_effect, validate_params
+from rths_hil.sim_backends.modelfile import EffectSpec
 
 __all__ = [
     "backlash",
@@ -129,7 +132,9 @@ def velocity_limit(x: np.ndarray, limit: float, dt: float) -> np.ndarray:
 
 
 def fractional_delay(x: np.ndarray, delay_s: float, fs: float) -> np.ndarray:
-    """``x`` delayed by ``delay_s`` (Lagrange, as :func:`sim_backends.delay.fractional_delay`)."""
+    """``x`` delayed by ``delay_s`` (Lagrange, as
+    :func:`rths_hil.sim_backends.delay.fractional_delay`).
+    """
     x = np.asarray(x, dtype=float)
     n = x.shape[0]
     n0, taps = lagrange_taps(delay_s * fs)

@@ -3,11 +3,13 @@
 Every candidate is the current model with one change, fitted to the record by least squares
 (the sum of squared residuals ``RSS = Σ (measured − predicted)²``). A new catalogue effect is
 inserted at its place in the physical chain (each effect class's ``CHAIN``,
-:data:`sim_backends.effects.EFFECT_ORDER`: actuator dynamics, valve flow limit, stops, play of
+:data:`rths_hil.sim_backends.effects.EFFECT_ORDER`: actuator dynamics, valve flow limit, stops,
+play of
 the load train, then the transducer's zero and drift); ``delay`` and ``gain`` re-fit the
 actuator's own parameters.
 
-What to fit and over which range is on each effect's class (:class:`sim_backends.effects.Effect`:
+What to fit and over which range is on each effect's class
+(:class:`rths_hil.sim_backends.effects.Effect`:
 ``FIT``, ``fit_bounds``, ``fit_fixed``, ``low_frequency``, ``PARAMS``); this module holds the
 fitting methods (bounded, :mod:`scipy.optimize`; the search spans well beyond the realistic
 ranges, which a real actuator may exceed):
@@ -57,9 +59,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, signal
 
-from sim_backends.effects import EFFECT_ORDER, EFFECTS, Effect
-from sim_backends.modelfile import EffectSpec, ModelSpec
-from sim_backends.models import make_model
+from rths_hil.sim_backends.effects import EFFECT_ORDER, EFFECTS, Effect
+from rths_hil.sim_backends.modelfile import EffectSpec, ModelSpec
+from rths_hil.sim_backends.models import make_model
 
 from ..errors import InputError
 from ..metrics import j1_delay

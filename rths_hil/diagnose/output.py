@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from sim_backends.modelfile import dump_model
+from rths_hil.sim_backends.modelfile import dump_model
 
 from ..errors import InputError
 from .workflow import Diagnosis

@@ -3,9 +3,10 @@
 A case is an RTHS-like record: the command is the displacement response of a linear SDOF structure
 (the FEI paper's Section 4: 2-5 % damping, CR integration,
 :func:`rths_hil.structure.simulate_sdof`) to the strong-motion part of a bundled ground motion; the
-measured displacement and force come from a twin (:class:`sim_backends.plant.TwinPlant`) whose
+measured displacement and force come from a twin (:class:`rths_hil.sim_backends.plant.TwinPlant`)
+whose
 actuator is the FEI paper's delay + gain block (Fig. 4.1) followed by one or more *hidden*
-catalogue effects of random size drawn from :data:`sim_backends.effects.EFFECT_RANGES`, a
+catalogue effects of random size drawn from :data:`rths_hil.sim_backends.effects.EFFECT_RANGES`, a
 Kelvin-Voigt specimen and sensor noise. The diagnosis receives only the record and the *base* model
 (the twin without the hidden effects).
 
@@ -31,10 +32,10 @@ import numpy as np
 
 from rths_hil.errors import InputError
 from rths_hil.groundmotion import bundled_path, load
+from rths_hil.sim_backends.effects import EFFECT_ORDER, EFFECT_RANGES, EFFECTS, draw_effect_params
+from rths_hil.sim_backends.modelfile import ActuatorSpec, EffectSpec, ModelSpec, SpecimenSpec
+from rths_hil.sim_backends.plant import Sensor
 from rths_hil.structure import simulate_sdof
-from sim_backends.effects import EFFECT_ORDER, EFFECT_RANGES, EFFECTS, draw_effect_params
-from sim_backends.modelfile import ActuatorSpec, EffectSpec, ModelSpec, SpecimenSpec
-from sim_backends.plant import Sensor
 
 __all__ = ["GROUND_MOTIONS", "SyntheticCase", "make_case"]
 
@@ -126,7 +127,7 @@ def make_case(
     ----------
     effects : sequence of str
         Hidden effect kinds, possibly empty (a record with no hidden effect); the twin applies
-        them in the physical order :data:`sim_backends.effects.EFFECT_ORDER`.
+        them in the physical order :data:`rths_hil.sim_backends.effects.EFFECT_ORDER`.
     rng : Generator or int
         Random generator (or seed) for every draw.
     duration : float

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from sim_backends.modelfile import ModelSpec
+from rths_hil.sim_backends.modelfile import ModelSpec
 
 from ..errors import InputError
 from ..estimation import calibrate
@@ -668,7 +668,8 @@ def diagnose(
         Measured specimen force (N): localisation by force and the ``force_feedback``
         candidate's specimen.
     model : ModelSpec, optional
-        The base model (a model file, :func:`sim_backends.modelfile.load_model`). Default: a
+        The base model (a model file, :func:`rths_hil.sim_backends.modelfile.load_model`). Default:
+        a
         delay + gain model fitted to the record (:func:`rths_hil.estimation.calibrate`, no
         offset, so that an offset stays a candidate); its delay and gain are then nuisance
         parameters, re-fitted with every candidate.

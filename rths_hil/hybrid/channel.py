@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.base import Driver, Status
+from rths_hil.drivers.base import Driver, Status
 
 from ..errors import InputError
 from ..fei import OnlineFEI
@@ -178,7 +178,7 @@ class Channel:
         name = plan.driver_name
         conn = dict(plan.connection)
         if plan.twin_enabled:
-            from sim_backends.twin import start_twin
+            from rths_hil.sim_backends.twin import start_twin
 
             # Over the in-process virtual CAN bus, serve the twin from the loop thread (same
             # frames, codecs and controller; no thread hand-off and GIL contention per step).
@@ -195,7 +195,7 @@ class Channel:
                 raise InputError(f"{where}: driver.connection: {exc}") from None
             stack.callback(self.twin.stop)
             conn = dict(self.twin.connection)
-        from drivers.registry import create_driver
+        from rths_hil.drivers.registry import create_driver
 
         try:
             driver = create_driver(name, **conn)

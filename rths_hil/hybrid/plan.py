@@ -94,10 +94,10 @@ def choose_plant(cfg: Config, dt: float):
     """The twin's plant of a channel (``cfg`` is the channel's resolved configuration).
 
     ``twin.model`` (a model file) or the ``twin.actuator`` / ``specimen`` / ``sensor`` tables,
-    built by the twin registry (:func:`sim_backends.registry.build_plant`). This is the one
+    built by the twin registry (:func:`rths_hil.sim_backends.registry.build_plant`). This is the one
     place the loop chooses a twin.
     """
-    from sim_backends.registry import build_plant
+    from rths_hil.sim_backends.registry import build_plant
 
     tw = cfg["twin"]
     try:
@@ -415,7 +415,7 @@ def _plan_channel(
     dof = int(nz[0]) if nz.size == 1 and row[nz[0]] == 1.0 else -1
 
     name = cfg["driver"]["name"]
-    from drivers.registry import driver_class
+    from rths_hil.drivers.registry import driver_class
 
     try:
         driver_class(name)
@@ -432,7 +432,7 @@ def _plan_channel(
         plant = choose_plant(cfg, dt)
     faults = None
     if tw["faults"]:
-        from sim_backends.faults import Faults
+        from rths_hil.sim_backends.faults import Faults
 
         try:
             faults = Faults.parse(tw["faults"])

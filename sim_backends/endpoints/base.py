@@ -20,7 +20,7 @@ real-time loop relies on):
   the sequence count (the run's step 0 is a new command whatever a previous run sent),
   acknowledges a latched e-stop or watchdog trip, puts the twin's plant back at rest and
   holds; its reply reports the state before arming. The run's first ``enable=True`` command
-  enables it (:meth:`drivers.base.Driver.arm`).
+  enables it (:meth:`rths_hil.drivers.base.Driver.arm`).
 
 :class:`TwinEndpoint` runs the protocol side in a daemon thread and applies the frame faults of a
 :class:`~sim_backends.faults.Faults` plan.
@@ -38,7 +38,8 @@ from dataclasses import asdict, dataclass
 from types import TracebackType
 from typing import Any
 
-from drivers.base import Status
+from rths_hil.drivers.base import Status
+
 from rths_hil.errors import InputError
 
 from ..base import Plant

@@ -6,16 +6,17 @@ frames. Malformed frames (wrong length, unknown ID, error frames) are counted an
 The ``corrupt`` fault sends the feedback truncated by one byte (what a broken gateway or a
 DLC error looks like to software; the bus CRC-15 discards bit errors before software sees them).
 
-Per frame the endpoint decodes the command and encodes the feedback with shifts and masks
-compiled once from the DBC (the same layout as :class:`drivers.can.codec.MessageCodec`, whose
-tests check it against cantools) and sends one reused :class:`drivers.can.codec.Frame` whose
-payload is rewritten in place. Served inline on python-can's virtual bus, :meth:`CANTwin.pump`
-reads the bus's receive queue directly (:func:`drivers.can.virtual_rx_queue`).
+Per frame the endpoint decodes the command and encodes the feedback with shifts and masks compiled
+once from the DBC (the same layout as :class:`rths_hil.drivers.can.codec.MessageCodec`, whose tests
+check it against cantools) and sends one reused :class:`rths_hil.drivers.can.codec.Frame` whose
+payload is rewritten in place. Served inline on python-can's virtual bus, :meth:`CANTwin.pump` reads
+the bus's receive queue directly (:func:`rths_hil.drivers.can.virtual_rx_queue`).
 
-Several twins on one bus are CAN nodes (``node``: every identifier offset by the node number,
-see :mod:`drivers.can`). They share one python-can bus object (:func:`drivers.can.shared_bus`,
-twin side); whichever endpoint reads a frame hands it to the endpoint of its identifier, so
-pumping any of them (inline) or any of their threads serves them all.
+Several twins on one bus are CAN nodes (``node``: every identifier offset by the node number, see
+:mod:`rths_hil.drivers.can`). They share one python-can bus object
+(:func:`rths_hil.drivers.can.shared_bus`, twin side); whichever endpoint reads a frame hands it to
+the endpoint of its identifier, so pumping any of them (inline) or any of their threads serves them
+all.
 """
 
 from __future__ import annotations
@@ -23,9 +24,9 @@ from __future__ import annotations
 from typing import Any
 
 import can
+from rths_hil.drivers.can import SharedBus, _check_node, release_bus, shared_bus
+from rths_hil.drivers.can.codec import Frame, load
 
-from drivers.can import SharedBus, _check_node, release_bus, shared_bus
-from drivers.can.codec import Frame, load
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint

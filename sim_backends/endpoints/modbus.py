@@ -1,6 +1,6 @@
 """Modbus twin endpoint: a Modbus TCP server on 127.0.0.1 or an RTU slave on a pseudo-terminal.
 
-The register map is the one of :mod:`drivers.modbus`. Requests are decoded and responses
+The register map is the one of :mod:`rths_hil.drivers.modbus`. Requests are decoded and responses
 encoded with pymodbus's own framers (``FramerSocket``, ``FramerRTU``) and PDU classes
 (``DecodePDU(is_server=True)``, ``ReadWriteMultipleRegistersResponse`` …), so any Modbus client
 can talk to it; the event loop is a plain ``select`` loop in one thread rather than pymodbus's
@@ -37,9 +37,9 @@ from pymodbus.pdu.register_message import (
     ReadHoldingRegistersResponse,
     ReadWriteMultipleRegistersResponse,
 )
+from rths_hil.drivers.base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Status
+from rths_hil.drivers.modbus import COIL_ESTOP, REG, WRITE_ADDRESS, WRITE_COUNT, feedback_crc
 
-from drivers.base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Status
-from drivers.modbus import COIL_ESTOP, REG, WRITE_ADDRESS, WRITE_COUNT, feedback_crc
 from rths_hil.errors import InputError
 
 from ..faults import Faults

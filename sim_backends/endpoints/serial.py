@@ -1,5 +1,5 @@
 """Serial twin endpoint: the far end of a pseudo-terminal (or a TCP socket) speaking the
-COBS/CRC frame format of :mod:`drivers.serial`.
+COBS/CRC frame format of :mod:`rths_hil.drivers.serial`.
 
 ``transport="pty"`` (default) opens a pseudo-terminal pair with :func:`os.openpty`; the twin
 keeps the master side and the driver opens the slave path (``connection = {"url":
@@ -16,7 +16,7 @@ import socket
 import tty
 from typing import Any
 
-from drivers.serial import (
+from rths_hil.drivers.serial import (
     COMMAND,
     ESTOP_KEY,
     FEEDBACK,
@@ -26,7 +26,8 @@ from drivers.serial import (
     T_HEARTBEAT,
     decode_frame,
 )
-from drivers.serial import encode_frame as _encode_frame
+from rths_hil.drivers.serial import encode_frame as _encode_frame
+
 from rths_hil.errors import InputError
 
 from ..faults import Faults
@@ -158,7 +159,7 @@ class SerialTwin(TwinEndpoint):
         # Flip a bit inside the CRC-protected body, keeping the COBS structure intact.
         body, _ = decode_frame(frame[:-1])
         assert body is not None
-        from drivers.serial import _CRC, _cobs_encode, _crc
+        from rths_hil.drivers.serial import _CRC, _cobs_encode, _crc
 
         raw = body + _CRC.pack(_crc(body, 0xFFFF))
         return _cobs_encode(Faults.flip_bit(raw, 8, 0)) + b"\x00"
