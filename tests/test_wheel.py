@@ -65,10 +65,9 @@ def test_lockstep_run_from_the_installed_wheel(installed, driver):
             "--lockstep",
             "--duration",
             "2",
-            "--set",
-            "output.plot=false",
-            "--set",
-            f"output.dir={out}",
+            "--no-plot",
+            "--out",
+            str(out),
         ],
         cwd=work,
         capture_output=True,
@@ -76,8 +75,7 @@ def test_lockstep_run_from_the_installed_wheel(installed, driver):
         timeout=300,
     )
     assert proc.returncode == 0, proc.stderr
-    (run_dir,) = [p for p in out.iterdir() if p.is_dir()]
-    summary = json.loads((run_dir / "summary.json").read_text())
+    summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == 2048
     # the package came from the venv, not from the checkout
     where = subprocess.run(
