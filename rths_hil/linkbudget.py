@@ -68,6 +68,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .errors import InputError
+from .units import positive_number
 
 log = logging.getLogger(__name__)
 
@@ -328,14 +329,7 @@ def link_key(driver_name: str, connection: dict[str, Any]) -> str:
     return f"{name} " + ",".join(f"{k}={c[k]}" for k in sorted(c))
 
 
-def _positive(value: Any, what: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{what} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise InputError(f"{what} must be a finite number > 0, got {value!r}")
-    return v
+_positive = positive_number  # one checker for the package (rths_hil.units)
 
 
 def link_load(

@@ -51,6 +51,7 @@ import scipy.linalg
 
 from .errors import InputError
 from .structure import BoucWenParams
+from .units import positive_number
 
 log = logging.getLogger(__name__)
 
@@ -73,14 +74,7 @@ SYMMETRY_RTOL = 1e-9
 # --------------------------------------------------------------------------------------------
 # checks
 # --------------------------------------------------------------------------------------------
-def _finite_positive(value: Any, what: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{what} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise InputError(f"{what} must be a finite number > 0, got {value!r}")
-    return v
+_finite_positive = positive_number  # one checker for the package (rths_hil.units)
 
 
 def _as_matrix(a: Any, what: str) -> np.ndarray:

@@ -6,7 +6,9 @@ All values are returned in SI units (s, m, m/s², Hz) or as plain fractions. Err
 
 from __future__ import annotations
 
+import math
 import re
+from typing import Any
 
 from .errors import InputError
 
@@ -100,3 +102,15 @@ def parse_range(text: str, what: str = "range") -> list[float]:
         return [float(p) for p in s.split(",") if p.strip()]
     except ValueError:
         raise InputError(f"cannot read {what} {text!r}: use start:stop:step or a,b,c") from None
+
+
+def positive_number(value: Any, what: str) -> float:
+    """``value`` as a finite float > 0, or one :class:`~rths_hil.errors.InputError` line naming
+    ``what``."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be a number, got {value!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise InputError(f"{what} must be a finite number > 0, got {value!r}")
+    return v
