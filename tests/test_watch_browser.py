@@ -41,7 +41,7 @@ PACED = [
     "--set", "safety.kf_gain_max=100",
 ]  # fmt: skip
 
-# No skip: these tests must run wherever the suite runs (`make test` installs Chromium through
+# These tests must run wherever the suite runs (`make test` installs Chromium through
 # scripts/system-deps.sh); a machine without it fails here with the reason.
 if chromium_path() is None:  # pragma: no cover - only on a machine set up by hand
     raise RuntimeError("the browser tests need Chromium: run `bash scripts/system-deps.sh`")
