@@ -86,13 +86,26 @@ def j1_delay(target: np.ndarray, measured: np.ndarray, fs: float, max_lag_s: flo
     n = x.size
     ex = np.where(lags >= 0, cx[n - np.maximum(lags, 0)], cx[n] - cx[np.maximum(-lags, 0)])
     ey = np.where(lags >= 0, cy[n] - cy[np.maximum(lags, 0)], cy[n - np.maximum(-lags, 0)])
+    return overlap_peak_lag(r, lags, ex, ey, fs)
+
+
+def overlap_peak_lag(
+    r: np.ndarray, lags: np.ndarray, ex: np.ndarray, ey: np.ndarray, fs: float
+) -> float:
+    """Lag (s) of the largest overlap correlation ``r / √(ex·ey)``, refined to a fraction of a
+    sample by the parabola through the peak and its two neighbours.
+
+    ``r`` are the cross-correlation sums at ``lags`` (samples) and ``ex``, ``ey`` the energies
+    of the two overlapping segments at each lag (J1 of :func:`j1_delay` and of the chunked
+    summary in :mod:`rths_hil.report`).
+    """
     with np.errstate(invalid="ignore", divide="ignore"):
         r = r / np.sqrt(ex * ey)
     r = np.nan_to_num(r, nan=-np.inf)
     i = int(np.argmax(r))
     frac = 0.0
     if 0 < i < r.size - 1:
-        denom = r[i - 1] - 2 * r[i] + r[i + 1]
+        denom = r[i - 1] - 2 * r[i] + r[i + 1]  # parabola y = a·u² + b·u + c, vertex −b/2a
         if denom < 0:
             frac = 0.5 * (r[i - 1] - r[i + 1]) / denom
     return float((lags[i] + frac) / fs)

@@ -23,6 +23,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from .metrics import overlap_peak_lag
 from .recorder import RECORD_FILE, RunData, read_run
 
 __all__ = ["LiveLine", "format_live", "format_summary", "plot_report", "summarize"]
@@ -485,16 +486,7 @@ def _metrics_lean(
     neg = np.maximum(-lags, 0)
     ex = np.where(lags >= 0, tx - tlx[pos], tx - hx[neg])
     ey = np.where(lags >= 0, ty - hy[pos], ty - tly[neg])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        r = R / np.sqrt(ex * ey)
-    r = np.nan_to_num(r, nan=-np.inf)
-    k = int(np.argmax(r))
-    frac = 0.0
-    if 0 < k < r.size - 1:
-        denom = r[k - 1] - 2 * r[k] + r[k + 1]
-        if denom < 0:
-            frac = 0.5 * (r[k - 1] - r[k + 1]) / denom
-    out["j1_delay"] = float((lags[k] + frac) / fs)
+    out["j1_delay"] = overlap_peak_lag(R, lags, ex, ey, fs)
     return {k2: out[k2] for k2 in ("j1_delay", "j2_nrms", "j3_peak", "tracking_indicator")}
 
 
