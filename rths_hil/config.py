@@ -1043,7 +1043,8 @@ def _cross_check(cfg: Config, note: str = "") -> None:
             raise InputError(
                 f"{path}.transform: {len(e['transform'])} entries, the structure has {n_dof} DOF"
             )
-        if n_dof is not None and n_dof > 1 and "dof" not in e and "transform" not in e:
+        site = st["kind"] == "openfresco"  # its DOFs are its actuators: channel i on DOF i
+        if n_dof is not None and n_dof > 1 and "dof" not in e and "transform" not in e and not site:
             raise InputError(
                 f"{path}: say where the actuator acts: dof = 1..{n_dof} or transform = [...]"
             )
