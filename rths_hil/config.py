@@ -497,8 +497,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "transform": Key(
             "array",
             [],
-            doc="element DOF weights per actuator, row-major (default: one actuator, [-1, 1] "
-            "for a two-node element, [1] for one DOF)",
+            doc="element DOF weights per actuator, row-major (default for n actuators: "
+            "u_{i+1} − u_i on an element of n + 1 DOFs, e.g. [-1, 1] for one actuator on a "
+            "two-node element; the identity on n DOFs)",
         ),
         "stiffness": Key(
             "array",

@@ -338,7 +338,7 @@ def test_ramp_hold_executes_each_trial_in_real_time(tmp_path):
     th = _client(port, GENERIC_CLIENT_ID, script)
     result = loop.run()
     th.join(5)
-    assert result.status == "completed" and result.mode == "paced"
+    assert result.status == "completed" and result.mode == "paced", result.trip
     for i, f in enumerate(forces, start=1):
         # held still for 20 ms: the dashpot is at rest, the force is k·(u2 − u1) as (−F, +F)
         assert f[1] == pytest.approx(1.19e6 * 0.001 * i, abs=0.5) and f[0] == -f[1]
