@@ -457,8 +457,14 @@ def test_two_channels_in_lockstep_equal_the_numerical_model(tmp_path, accel):
 @pytest.mark.parametrize("dt", [1 / 1024, 1 / 256])
 def test_real_time_with_a_20ms_actuator(tmp_path, accel, dt):
     """Issue test 2: paced 1024 Hz loop, twin with a 20 ms delay, compensation on,
-    predictor–corrector; NRMS ≤ 3 %, OpenSees' latency recorded, no e-stop. The loop's own
-    overrun rule is relaxed (a shared CI machine is not a real-time target)."""
+    predictor–corrector; NRMS ≤ 3 %, OpenSees' latency recorded, no e-stop.
+
+    The loop's own overrun rule (site_realtime.toml: 64 consecutive late steps) is relaxed:
+    on a 2-core machine shared with other work the paced loop and OpenSees' process compete
+    for the CPUs, and runs of late steps longer than 64 happen (measured at load ≈ 9 on two
+    cores: 92 overruns, the longest run 78 steps, element step 1/256 s; 34 and 20 at
+    1/1024 s) while tracking stays within 1 % NRMS. What this test checks is the site, not
+    the machine's real-time capability (benchmarks/bench_loop.py measures that)."""
     dur = 3.0
     ref = S.reference(tmp_path, "frame", dt, dur, accel)
     result, _, floors, _ = S.hybrid(
@@ -468,6 +474,7 @@ def test_real_time_with_a_20ms_actuator(tmp_path, accel, dt):
         dt,
         dur,
         accel,
+        # overruns: see the docstring; a late OpenSees (a busy machine) holds, not e-stops
         overrides=("safety.max_overruns=1000000", "openfresco.estop_after=1s"),
         name=f"rt{round(1 / dt)}",
     )
