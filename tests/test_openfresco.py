@@ -382,6 +382,7 @@ def test_frame_of_wrong_size_or_disconnect_trips_and_keeps_the_record(tmp_path, 
         assert "disconnected mid-test" in reason
     rec = read_run(tmp_path / fault)
     assert len(rec.record) == result.steps  # every step up to the trip is on disk
+    assert np.isfinite(rec.record["of_latency"]).sum() == 2  # trials 2 and 3 (1 has none)
     assert rec.record["measured"][-1] == pytest.approx(0.003, rel=1e-6)  # the actuator held
     assert any(e["kind"] == "estop" for e in rec.events)
 
@@ -538,4 +539,7 @@ def test_opensees_killed_mid_test_trips_with_one_line(tmp_path, accel):
     assert "disconnected mid-test" in result.trip.reason
     rec = read_run(tmp_path / "killed")
     assert len(rec.record) == result.steps > 400  # ≥ 100 OpenSees steps of 4 loop steps
+    # the site's columns are part of each row: on disk up to the trip like the rest
+    assert np.all(rec.record["of_kind"][1:] == EXECUTED)
+    assert np.isfinite(rec.record["of_latency"]).sum() >= 99
     assert any(e["kind"] == "estop" for e in rec.events)
