@@ -25,7 +25,7 @@ hands the bridge the other (``connection = {"interface": "serial", "channel": "/
 both sides use python-can's framing, and nothing leaves the machine. ``slcan`` is the ASCII
 protocol of USB–CAN adapters (Lawicel, CANable): 22 characters per 8-byte frame, parsed by
 python-can one byte at a time (≈ 0.8 ms round trip here, enough for paced runs up to ≈ 512 Hz);
-``serial`` is python-can's binary framing (18 bytes per frame, ≈ 0.3 ms round trip: paced
+``serial`` is python-can's binary framing (19 bytes per frame, ≈ 0.3 ms round trip: paced
 1024 Hz). ``channel="pty"`` (their default) asks for the cable; any other channel is a serial
 device opened as it is.
 """
