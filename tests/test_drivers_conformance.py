@@ -1,7 +1,8 @@
 """One conformance suite for every driver, against its twin over a real transport.
 
-Transports: the python-can virtual bus (and SocketCAN vcan0 where the host has it), Modbus TCP
-on 127.0.0.1 and Modbus RTU over an os.openpty pseudo-terminal pair, the COBS/CRC serial
+Transports: the python-can virtual bus (and SocketCAN vcan0 where the host has it), python-can's
+``serial`` and ``slcan`` interfaces over the CAN twin's null-modem pair of pseudo-terminals,
+Modbus TCP on 127.0.0.1 and Modbus RTU over an os.openpty pseudo-terminal pair, the COBS/CRC serial
 protocol over an os.openpty pair and over a TCP socket (pyserial socket://).
 
 The expected feedback is computed independently of the twin's streaming code: the offline
@@ -67,6 +68,10 @@ TRANSPORTS = [
               corrupt_reason="bad_length"),
     Transport("can-socketcan", "can", {"interface": "socketcan", "channel": "vcan0"},
               force_lsb=0.5, corrupt_reason="bad_length", skip=_socketcan_reason()),
+    Transport("can-serial-pty", "can", {"interface": "serial"}, force_lsb=0.5,
+              corrupt_reason="bad_length"),
+    Transport("can-slcan-pty", "can", {"interface": "slcan"}, force_lsb=0.5,
+              corrupt_reason="bad_length"),
     Transport("modbus-tcp", "modbus", {"transport": "tcp"}),
     Transport("modbus-rtu", "modbus", {"transport": "rtu"}),
     Transport("serial-pty", "serial", {"transport": "pty"}, None, None, None),
