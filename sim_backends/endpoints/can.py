@@ -61,7 +61,8 @@ PTY_INTERFACES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
 
 class CANTwin(TwinEndpoint):
     """Controller node on ``interface``/``channel`` (``virtual`` buses are in-process only;
-    ``slcan`` with ``channel="pty"`` reaches other processes, see the module docstring)."""
+    ``serial`` or ``slcan`` with ``channel="pty"`` reaches other processes on this machine, see
+    the module docstring)."""
 
     name = "can"
 
