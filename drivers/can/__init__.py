@@ -72,11 +72,20 @@ log = logging.getLogger(__name__)
 
 class _Reader(can.BufferedReader):
     """python-can's buffered reader that takes the notifier thread's error (the bus gone, e.g.
-    the far end of a pseudo-terminal closed) instead of letting the thread die with a traceback:
-    the driver reports it as a disconnect through ``Notifier.exception``."""
+    the far end of a pseudo-terminal closed) instead of letting the thread die with a traceback.
+
+    A handled error does not end python-can's notifier loop, which would retry the dead bus at
+    once, forever: the reader stops its notifier (``stop(timeout=0)`` from its own thread joins
+    nothing), and the driver reports the bus as disconnected through ``Notifier.exception``.
+    """
+
+    notifier: can.Notifier | None = None
 
     def on_error(self, exc: Exception) -> None:
         log.warning("CAN: reading the bus failed, no more frames: %s", exc)
+        notifier, self.notifier = self.notifier, None
+        if notifier is not None:
+            notifier.stop(timeout=0.0)
 
 
 def virtual_rx_queue(bus: can.BusABC | None) -> queue.Queue | None:
@@ -142,8 +151,8 @@ def shared_bus(side: str, interface: str, channel: str, **kwargs: Any) -> Shared
                 ) from None
             share = _SHARED[key] = SharedBus(key, bus)
             if side == "bridge" and str(interface) not in TIMEOUT_HONOURED:
-                share.reader = _Reader()
-                share.notifier = can.Notifier(bus, [share.reader], timeout=0.01)
+                share.reader = reader = _Reader()
+                share.notifier = reader.notifier = can.Notifier(bus, [reader], timeout=0.01)
         share.refs += 1
         return share
 
