@@ -10,6 +10,7 @@ Examples::
     rths-hil twin serve --driver modbus --transport rtu          # prints the /dev/pts path
     rths-hil twin serve --driver serial                          # pseudo-terminal
     rths-hil twin serve --driver serial --transport tcp --port 5000
+    rths-hil twin serve --driver can --interface serial              # pseudo-terminal pair
     rths-hil twin serve --driver can --interface socketcan --channel vcan0 --model twin.toml
 """
 
@@ -52,8 +53,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--device", help="modbus rtu: serial device to serve (default: a new pty)")
     p.add_argument("--device-id", type=int, default=1, help="modbus unit id (default 1)")
-    p.add_argument("--interface", default="socketcan", help="CAN: python-can interface")
-    p.add_argument("--channel", default="vcan0", help="CAN: channel (default vcan0)")
+    p.add_argument(
+        "--interface",
+        default="socketcan",
+        help="CAN: python-can interface (default socketcan; serial or slcan: a pseudo-terminal "
+        "pair on this machine)",
+    )
+    p.add_argument(
+        "--channel",
+        default=None,
+        help="CAN: channel (default vcan0; serial, slcan: pty = a new pseudo-terminal pair)",
+    )
     p.add_argument("--bitrate", type=int, default=None, help="CAN: bit rate (bit/s)")
     p.add_argument("--faults", default=None, help='fault plan, e.g. "drop=5,9; p_corrupt=0.01"')
     p.add_argument(
@@ -67,16 +77,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _connection(args: argparse.Namespace) -> dict[str, Any]:
     """The endpoint settings the options give (transports from the twin registry)."""
+    from rths_hil.sim_backends.endpoints.can import PTY_INTERFACES
     from rths_hil.sim_backends.registry import TWINS
 
     if args.driver == "can":
         if args.interface == "virtual":
             raise InputError(
                 "--interface virtual: python-can's virtual bus only reaches buses inside the same "
-                "process; use --interface socketcan --channel vcan0 (or the lab's interface), or "
+                "process; use --interface serial or slcan (a pseudo-terminal pair on this "
+                "machine), --interface socketcan --channel vcan0 (or the lab's interface), or "
                 "start the twin in-process with sim_backends.twin.start_twin"
             )
-        conn: dict[str, Any] = {"interface": args.interface, "channel": args.channel}
+        channel = args.channel
+        if channel is None:
+            channel = "pty" if args.interface in PTY_INTERFACES else "vcan0"
+        conn: dict[str, Any] = {"interface": args.interface, "channel": channel}
         if args.bitrate is not None:
             conn["bitrate"] = args.bitrate
         return conn
