@@ -99,6 +99,7 @@ class ModbusServer:
         self.serial: Any = None
         self.key: tuple[str, int] | None = None
         self.serving = threading.Lock()
+        self.accepted = 0  # TCP connections accepted
 
     @classmethod
     def join(cls, twin: ModbusTwin) -> ModbusServer:
@@ -209,6 +210,7 @@ class ModbusServer:
                 sock, _ = self.listener.accept()
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 self.conns.append(_Conn(sock.fileno(), sock))
+                self.accepted += 1
                 continue
             conn = next((c for c in self.conns if c.fd == item), None)
             if conn is None:
@@ -344,8 +346,8 @@ class ModbusTwin(TwinEndpoint):
             self.where = str(path)
 
     def _teardown(self) -> None:
-        srv, self.server = self.server, None
-        if srv is not None:
+        srv = self.server  # kept after the stop: which server served this unit
+        if srv is not None and srv.units.get(self.device_id) is self:
             srv.leave(self)
 
     def _go_away(self) -> None:
