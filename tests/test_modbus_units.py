@@ -215,3 +215,14 @@ def test_twin_serve_several_units(tmp_path):
     served._reader.join(5)
     text = "\n".join(line for _, line in served.lines)
     assert "unit 1: stopped after 20 steps" in text and "unit 2: stopped after 20 steps" in text
+
+
+def test_two_channels_on_one_rtu_line_are_refused(tmp_path):
+    over = [
+        "driver.connection.transport=rtu",
+        "driver.connection.device=/dev/ttyUSB0",
+        "twin.enabled=false",
+        "loop.fs=50",
+    ]
+    with pytest.raises(InputError, match=r"'storey1' and 'storey3' use one Modbus RTU line"):
+        RTHSLoop(load_config(UNITS, over), tmp_path / "r")
