@@ -141,7 +141,6 @@ class Link:
         self.fd: int | None = None
         self.buf = b""
         self.units: dict[int, ModbusDriver] = {}
-        self.slots = 0
 
     @classmethod
     def get(cls, driver: ModbusDriver) -> Link:
@@ -170,8 +169,8 @@ class Link:
                     f"modbus driver: unit {driver.device_id} is already open on "
                     f"{driver.host}:{driver.port} (give each channel its own device_id)"
                 )
-            driver._tid_x = (link.slots & 0xFF) << 8
-            link.slots += 1
+            used = {d._tid_x for d in link.units.values()}
+            driver._tid_x = next(s << 8 for s in range(256) if s << 8 not in used)
             link.units[driver.device_id] = driver
             return link
 

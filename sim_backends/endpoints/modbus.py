@@ -49,7 +49,14 @@ from pymodbus.pdu.register_message import (
     ReadWriteMultipleRegistersResponse,
 )
 from rths_hil.drivers.base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Status
-from rths_hil.drivers.modbus import COIL_ESTOP, REG, WRITE_ADDRESS, WRITE_COUNT, feedback_crc
+from rths_hil.drivers.modbus import (
+    COIL_ESTOP,
+    MAX_UNIT,
+    REG,
+    WRITE_ADDRESS,
+    WRITE_COUNT,
+    feedback_crc,
+)
 
 from rths_hil.errors import InputError
 
@@ -316,9 +323,11 @@ class ModbusTwin(TwinEndpoint):
         if (
             isinstance(device_id, bool)
             or not isinstance(device_id, int)
-            or not (1 <= device_id <= 247)
+            or not (1 <= device_id <= MAX_UNIT)
         ):
-            raise InputError(f"modbus twin: device_id must be a unit id 1..247, got {device_id!r}")
+            raise InputError(
+                f"modbus twin: device_id must be a unit id 1..{MAX_UNIT}, got {device_id!r}"
+            )
         self.transport = transport
         self.host, self.port = host, port
         self.allow_remote = bool(allow_remote)
