@@ -12,6 +12,7 @@ Run: ``.venv/bin/python benchmarks/bench_modbus_units.py [--seconds 5] [--repeat
 from __future__ import annotations
 
 import argparse
+import os
 import socket
 import statistics
 import sys
@@ -56,6 +57,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=5.0, help="simulated seconds per run")
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
+    load0 = os.getloadavg()[0]
     rates: dict[bool, list[float]] = {True: [], False: []}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.repeats):
@@ -85,7 +87,8 @@ def main() -> None:
         command=f"benchmarks/bench_modbus_units.py --seconds {args.seconds:g} "
         f"--repeats {args.repeats}",
         notes=f"examples/modbus_units.toml, {args.seconds:g} simulated s per run at 1024 Hz, "
-        "twins in-process (one thread per unit), same process and run, runs interleaved.",
+        "twins in-process (one thread per unit), same process and run, runs interleaved; "
+        f"load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end.",
     )
 
 
