@@ -330,3 +330,26 @@ def test_can_serial_line_on_a_pseudo_terminal_has_no_limit():
             ld = link_load("can", {"interface": interface, "channel": cable.bridge_path}, 4, FS)
             assert ld.load is None and "pseudo-terminal" in ld.summary()
             assert "no limit" in ld.summary()
+
+
+def test_modbus_rtu_units_on_one_line_sum_their_transactions():
+    # one master, one line: the units' FC 23 transactions queue. 115 200 baud 8E1:
+    # T = (21 + 19 + 7) × 11 / 115 200 = 4.488 ms per unit and step.
+    t = 47 * 11 / 115200
+    line = {"transport": "rtu", "device": "/dev/ttyUSB0"}
+    two_at_50 = link_load("modbus", line, 2, 50.0)
+    assert two_at_50.load == pytest.approx(2 * t * 50) == pytest.approx(0.44878, abs=1e-5)
+    check_links([two_at_50])  # 44.9 %: fits
+    assert two_at_50.channels == 2 and "2 × FC 23" in two_at_50.detail
+    # the same two units at 100 Hz: 2 × 4.488 ms × 100 = 89.8 % > 80 %
+    two_at_100 = link_load("modbus", line, 2, 100.0)
+    assert two_at_100.load == pytest.approx(0.89757, abs=1e-5)
+    with pytest.raises(InputError) as e:
+        check_links([two_at_100])
+    msg = str(e.value)
+    assert "90 % loaded with 2 channels at 100 Hz" in msg
+    assert "≤ 89 Hz" in msg  # 0.8 / (2 × 4.488 ms) = 89.1 Hz
+    assert "≤ 1 channel per link" in msg  # 0.8 / (4.488 ms × 100 Hz) = 1.78
+    assert "230400 baud" in msg and "Modbus TCP" in msg
+    # units on one TCP connection to the loopback: no limit, whatever their number
+    assert link_load("modbus", {"host": "127.0.0.1", "port": 1502}, 8, FS).load is None

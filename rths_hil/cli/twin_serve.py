@@ -1,12 +1,15 @@
 """``rths-hil twin serve``: run a virtual servo-hydraulic twin as its own process.
 
 For a lab's dry run: the twin speaks the chosen driver's real protocol on a real transport and
-prints, on one line, where it listens and the driver connection settings (JSON) that reach it.
+prints, on one line, where it listens and the driver connection settings (JSON) that reach it
+(one line per Modbus unit when ``--device-id`` is given several times: units of one TCP
+server, each its own controller, plant, faults and watchdog).
 Ctrl-C (SIGINT) or SIGTERM stops it cleanly with exit code 0.
 
 Examples::
 
     rths-hil twin serve --driver modbus --port 1502
+    rths-hil twin serve --driver modbus --port 1502 --device-id 1 --device-id 2   # two units
     rths-hil twin serve --driver modbus --transport rtu          # prints the /dev/pts path
     rths-hil twin serve --driver serial                          # pseudo-terminal
     rths-hil twin serve --driver serial --transport tcp --port 5000
@@ -52,7 +55,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--port", type=int, default=None, help="TCP port (default 0: any free port, printed)"
     )
     p.add_argument("--device", help="modbus rtu: serial device to serve (default: a new pty)")
-    p.add_argument("--device-id", type=int, default=1, help="modbus unit id (default 1)")
+    p.add_argument(
+        "--device-id",
+        type=int,
+        action="append",
+        default=None,
+        help="modbus unit id (default 1); repeat for several units on one TCP server",
+    )
     p.add_argument(
         "--interface",
         default="socketcan",
@@ -111,7 +120,12 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
                 "allow_remote": args.allow_remote,
             }
     if args.driver == "modbus":
-        conn["device_id"] = args.device_id
+        units = args.device_id or [1]
+        if len(units) > 1 and conn.get("transport") != "tcp":
+            raise InputError("--device-id given several times: several units are served over TCP")
+        if len(set(units)) != len(units):
+            raise InputError(f"--device-id: unit ids repeat: {units}")
+        conn["device_id"] = units[0]
         if conn.get("transport") == "rtu" and args.device:
             conn["device"] = args.device
     return conn
@@ -125,13 +139,14 @@ def run(args: argparse.Namespace) -> int:
     dt = DEFAULT_DT if args.dt is None else parse_time(args.dt, "--dt")
     if not dt > 0:
         raise InputError(f"--dt {args.dt}: the step must be > 0")
-    if args.model:
-        from rths_hil.sim_backends.registry import build_plant
 
-        plant = build_plant(args.model, dt)
-    else:
-        plant = default_plant(dt=dt)
-    faults = Faults.parse(args.faults) if args.faults else None
+    def plant():
+        if args.model:
+            from rths_hil.sim_backends.registry import build_plant
+
+            return build_plant(args.model, dt)
+        return default_plant(dt=dt)
+
     hb = parse_time(args.heartbeat_timeout, "--heartbeat-timeout")
     if not hb >= 0:
         raise InputError(f"--heartbeat-timeout {args.heartbeat_timeout}: must be >= 0 s")
@@ -139,26 +154,42 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        twin = start_twin(
-            args.driver, plant, faults=faults, heartbeat_timeout=hb, **_connection(args)
-        )
+        conn = _connection(args)
+        units = (args.device_id or [1]) if args.driver == "modbus" else [None]
+        twins: list[Any] = []
         try:
-            print(
-                f"rths-hil twin serve: {args.driver} twin listening on {twin.where} "
-                f"connection {json.dumps(twin.connection)}",
-                flush=True,
-            )
+            for unit in units:
+                if unit is not None and twins:  # the next unit of the first one's server
+                    conn = dict(twins[0].connection, device_id=unit)
+                    conn["allow_remote"] = args.allow_remote
+                twin = start_twin(
+                    args.driver,
+                    plant(),
+                    faults=Faults.parse(args.faults) if args.faults else None,
+                    heartbeat_timeout=hb,
+                    **conn,
+                )
+                twins.append(twin)
+                print(
+                    f"rths-hil twin serve: {args.driver} twin listening on {twin.where} "
+                    f"connection {json.dumps(twin.connection)}",
+                    flush=True,
+                )
             while not stop.wait(0.2):
-                if twin.error is not None:
-                    raise InputError(f"twin endpoint stopped: {twin.error}")
+                for twin in twins:
+                    if twin.error is not None:
+                        raise InputError(f"twin endpoint stopped: {twin.error}")
         finally:
-            twin.stop()
-        s = twin.stats
-        print(
-            f"rths-hil twin serve: stopped after {s.steps} steps "
-            f"({s.commands} commands, {s.estops} e-stops, {s.malformed} malformed)",
-            file=sys.stderr,
-        )
+            for twin in reversed(twins):
+                twin.stop()
+        for twin in twins:
+            s = twin.stats
+            who = f"unit {twin.device_id}: " if len(twins) > 1 else ""
+            print(
+                f"rths-hil twin serve: {who}stopped after {s.steps} steps "
+                f"({s.commands} commands, {s.estops} e-stops, {s.malformed} malformed)",
+                file=sys.stderr,
+            )
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
