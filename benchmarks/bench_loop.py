@@ -673,9 +673,11 @@ def channels(duration: float, paced_s: float, baseline: str | None, rounds: int)
         ]
         print(lines[-1])
     if baseline:
-        _, row = one_channel_vs_baseline(baseline, rounds, 5.0)
-        lines += ["", "| comparison | steps/s | result |", "|---|---|---|", row]
-        print(row)
+        lines += ["", "| comparison | steps/s | result |", "|---|---|---|"]
+        for rev in baseline.split(","):
+            _, row = one_channel_vs_baseline(rev.strip(), rounds, 5.0)
+            lines.append(row)
+            print(row)
     lines += ["", f"Load average at the end: {os.getloadavg()[0]:.2f}."]
     return "\n".join(lines)
 
@@ -712,7 +714,8 @@ def main() -> None:
     ap.add_argument(
         "--baseline",
         metavar="REV",
-        help="git revision to compare the single-channel lockstep rate with (same run)",
+        help="git revision(s), comma separated, to compare the single-channel lockstep rate "
+        "with (same run)",
     )
     ap.add_argument("--rounds", type=int, default=5, help="alternations of the comparison")
     args = ap.parse_args()
