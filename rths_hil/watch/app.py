@@ -5,9 +5,10 @@ disk (at most once per refresh period whatever the number of sessions), and the 
 the browser only what changed. The cost of a refresh in the browser is mostly the repaint of
 each plot whose data or range changed (every renderer of such a plot is painted again), so:
 
-* the 10 s plots (displacement, FEI A and d) get the new rows only
-  (:meth:`ColumnDataSource.stream` with a rollover of 10 s), decimated by a stride aligned to
-  the step index, so a point never moves; their time axis is set, and their value axes move
+* the 10 s plots get the new rows only (:meth:`ColumnDataSource.stream` with a rollover of
+  10 s), decimated by a stride aligned to the step index, so a point never moves: the
+  displacement at every refresh, the FEI A and d (estimates over a window of seconds) every
+  :data:`FEI_S`, on a time axis of their own; the time axes are set, and the value axes move
   only when the data leaves them or uses less than a third of them;
 * the whole-test plot (the minimum and maximum of each bucket of about one pixel, only for
   completed buckets), the force–displacement loop, the lateness plot (on its own time axis),
@@ -57,12 +58,21 @@ from bokeh.plotting import figure
 
 from .source import RunFollower, RunState, channel_column
 
-__all__ = ["REFRESH_S", "SLOW_S", "WINDOW_POINTS", "WINDOW_S", "WatchContext", "build_document"]
+__all__ = [
+    "FEI_S",
+    "REFRESH_S",
+    "SLOW_S",
+    "WINDOW_POINTS",
+    "WINDOW_S",
+    "WatchContext",
+    "build_document",
+]
 
 log = logging.getLogger(__name__)
 
 REFRESH_S = 0.2  # s between two refreshes of a page (5 Hz)
 SLOW_S = 1.0  # s between two refreshes of the slow panels (overview, loop, lateness, bars)
+FEI_S = 0.4  # s between two refreshes of the FEI plots (estimates over a window of seconds)
 TICK_S = 0.05  # s between two checks whether a refresh is due
 IN_FLIGHT = 2  # refreshes sent and not yet applied by the browser, at most
 WINDOW_S = 10.0  # s of record in the detailed plots
@@ -70,8 +80,9 @@ WINDOW_POINTS = 600  # at most this many points per line in the detailed plots
 OVERVIEW_BUCKETS = 500  # buckets (about one pixel each) of the whole-test plot
 CONFIRM_S = 10.0  # s the stop confirmation stays open
 
-#: Columns of the 10 s window's source (delays in ms).
-WINDOW_COLUMNS = ("t", "target", "command", "measured", "a", "d", "a_ex", "d_ex", "kf_g", "kf_d")
+#: Columns of the 10 s displacement plot's source, and of the FEI plots' source (delays in ms).
+WINDOW_COLUMNS = ("t", "target", "command", "measured")
+FEI_COLUMNS = ("t", "a", "d", "a_ex", "d_ex", "kf_g", "kf_d")
 
 COLORS = {
     "target": "#1f77b4",
@@ -410,6 +421,7 @@ class _ChannelView:
         cfg: dict,
         paced: bool,
         x_range: Range1d,
+        fei_range: Range1d,
         overview_range: Range1d,
         fs: float,
         gap: int,
@@ -421,6 +433,7 @@ class _ChannelView:
         tools = "pan,wheel_zoom,box_zoom,reset,save"
         # the 10 s window (streamed), the force–displacement loop and the whole test (slow)
         self.win = ColumnDataSource(data={k: [] for k in WINDOW_COLUMNS}, name=f"window{sfx}")
+        self.fei = ColumnDataSource(data={k: [] for k in FEI_COLUMNS}, name=f"fei{sfx}")
         self.fd = ColumnDataSource(data={"measured": [], "force": []}, name=f"loop{sfx}")
         self.ovw = ColumnDataSource(
             data={"t": [], "target": [], "measured": []}, name=f"overview{sfx}"
@@ -478,7 +491,7 @@ class _ChannelView:
             title="FEI amplitude A (1 = perfect); Kalman gain",
             height=220,
             width=w,
-            x_range=x_range,
+            x_range=fei_range,
             y_range=self.y_a,
             tools=tools,
             x_axis_label="time (s)",
@@ -487,7 +500,7 @@ class _ChannelView:
             title="FEI delay d (ms, > 0: measured lags); Kalman delay",
             height=220,
             width=w,
-            x_range=x_range,
+            x_range=fei_range,
             y_range=self.y_d,
             tools=tools,
             x_axis_label="time (s)",
@@ -498,9 +511,9 @@ class _ChannelView:
         ):
             fig.vstrip(x0="l", x1="r", source=self.invalid, fill_color="#9ca3af", fill_alpha=0.35)
             lines = [
-                fig.line("t", key, source=self.win, color=COLORS["measured"], line_width=1.6),
-                fig.line("t", ex, source=self.win, color=COLORS["exact"], line_dash="dashed"),
-                fig.line("t", kf, source=self.win, color=COLORS["kalman"]),
+                fig.line("t", key, source=self.fei, color=COLORS["measured"], line_width=1.6),
+                fig.line("t", ex, source=self.fei, color=COLORS["exact"], line_dash="dashed"),
+                fig.line("t", kf, source=self.fei, color=COLORS["kalman"]),
             ]
             fig.add_layout(
                 Legend(
@@ -568,14 +581,19 @@ class _ChannelView:
         self.layout = column(self.title, row(p, q), row(pa, pd), row(pf, pb))
 
     # -- data ----------------------------------------------------------------------------------
-    def window_data(self, rec: np.ndarray, names, idx: slice) -> dict:
-        """The 10 s plots' columns at the rows ``idx`` (delays in ms)."""
+    def window_data(self, rec: np.ndarray, names, idx: slice, group: str = "win") -> dict:
+        """The columns of the 10 s plots' source ``group`` (``win``, ``fei``) at rows ``idx``."""
         ch = self.ch
+        t = np.asarray(rec["time"][idx], dtype=float)
+        if group == "win":
+            return {
+                "t": t,
+                "target": _col(rec, names, "target", ch, idx),
+                "command": _col(rec, names, "command", ch, idx),
+                "measured": _col(rec, names, "measured", ch, idx),
+            }
         return {
-            "t": np.asarray(rec["time"][idx], dtype=float),
-            "target": _col(rec, names, "target", ch, idx),
-            "command": _col(rec, names, "command", ch, idx),
-            "measured": _col(rec, names, "measured", ch, idx),
+            "t": t,
             "a": _col(rec, names, "fei_amplitude", ch, idx),
             "d": _col(rec, names, "fei_delay", ch, idx) * 1e3,
             "a_ex": _col(rec, names, "fei_exact_amplitude", ch, idx),
@@ -584,17 +602,19 @@ class _ChannelView:
             "kf_d": _col(rec, names, "kf_delay", ch, idx) * 1e3,
         }
 
-    def fit_axes(self, data: dict) -> None:
-        """Value axes of the 10 s plots around ``data`` (the window's columns)."""
+    def fit_axes(self, group: str) -> None:
+        """Value axes of the 10 s plots of ``group`` around the data they hold."""
 
-        def span(*keys: str) -> tuple[float, float]:
+        def span(data, *keys: str) -> tuple[float, float]:
             x = np.concatenate([np.asarray(data[k], dtype=float) for k in keys])
             x = x[np.isfinite(x)]
             return (float(x.min()), float(x.max())) if x.size else (math.nan, math.nan)
 
-        _fit(self.y_disp, *span("target", "command", "measured"), 1e-4)
-        _fit(self.y_a, *span("a", "a_ex", "kf_g"), 0.02)
-        _fit(self.y_d, *span("d", "d_ex", "kf_d"), 1.0)
+        if group == "win":
+            _fit(self.y_disp, *span(self.win.data, "target", "command", "measured"), 1e-4)
+        else:
+            _fit(self.y_a, *span(self.fei.data, "a", "a_ex", "kf_g"), 0.02)
+            _fit(self.y_d, *span(self.fei.data, "d", "d_ex", "kf_d"), 1.0)
 
     def overview_update(self, rec: np.ndarray, names, rows: int, planned: int, final: bool):
         """Extend the whole-test plot with the buckets completed since the last call.
@@ -655,10 +675,11 @@ class _Page:
         self._slow_at = 0.0
         self._last_key = None
         self._n_ovr = 0
-        # what the browser holds of the 10 s window: every ``_win_m``-th row up to ``_win_next``
-        # (exclusive) while following the live end; 0: nothing to stream onto (replace it)
-        self._win_m = 0
-        self._win_next = 0
+        # what the browser holds of each 10 s source group (``win``, ``fei``): every m-th row
+        # up to the row in ``_next`` (exclusive) while following the live end; absent: nothing
+        # to stream onto (replace it)
+        self._next: dict[str, int] = {}
+        self._fei_at = 0.0
         self.stop_btn = Button(
             label="Operator stop…", button_type="danger", name="stop", visible=False, width=160
         )
@@ -697,6 +718,7 @@ class _Page:
         # data change, cost the browser far more than the plots themselves); the lateness plot
         # has its own, set once per SLOW_S: a plot whose range moves is painted again
         self.x_range = Range1d(0.0, WINDOW_S)
+        self.fei_range = Range1d(0.0, WINDOW_S)
         self.lat_range = Range1d(0.0, WINDOW_S)
         self.overview_range = Range1d(0.0, 1.0)
 
@@ -834,12 +856,13 @@ class _Page:
                     cfg,
                     meta.get("mode") == "paced",
                     self.x_range,
+                    self.fei_range,
                     self.overview_range,
                     fs,
                     gap,
                 )
             )
-        self._win_m = 0
+        self._next = {}
         self.channel_box.children = [v.layout for v in self.views]
 
     def refresh(self) -> None:
@@ -915,21 +938,19 @@ class _Page:
         t_from = max(t_end - WINDOW_S, t_first)
         self.x_range.start = t_from
         self.x_range.end = t_from + WINDOW_S
-        # the 10 s window: while following the live end, only the rows new since the last
-        # refresh (streamed; the browser drops those older than the window); else all of it
-        stream = self.follow and self._win_m == m and first <= self._win_next <= k_end
-        a = self._win_next if stream else first
-        self._win_m = m if self.follow else 0
-        self._win_next = a + m * max(0, math.ceil((k_end - a) / m))
         rollover = math.ceil(n_win / m) + 1
-        for v in self.views:
-            if not stream:
-                v.win.data = v.window_data(rec, names, slice(first, k_end, m))
-            elif a < k_end:
-                v.win.stream(v.window_data(rec, names, slice(a, k_end, m)), rollover)
-            v.fit_axes(v.win.data)
-            valid_name = channel_column(names, "fei_valid", v.ch)
-            if valid_name is not None:
+        self._window("win", rec, names, first, k_end, m, rollover)
+        # the FEI plots: every FEI_S while following a live run (the FEI and Kalman estimates
+        # are over a window of seconds); at each change otherwise
+        if not (st.live and self.follow) or now - self._fei_at >= FEI_S - 0.5 * TICK_S:
+            self._fei_at = now
+            self.fei_range.start = t_from
+            self.fei_range.end = t_from + WINDOW_S
+            self._window("fei", rec, names, first, k_end, m, rollover)
+            for v in self.views:
+                valid_name = channel_column(names, "fei_valid", v.ch)
+                if valid_name is None:
+                    continue
                 tr = v.invalid_tracker
                 if f.rows > tr.upto:
                     tr.update(rec[valid_name][tr.upto : f.rows], tr.upto)
@@ -944,6 +965,28 @@ class _Page:
             self._slow(st, f, rec, names, fs, (first, k_end, m), t_from, t_end, thr)
         self._events(f.events)
         self.info_div.text = self._info(st, t_end)  # sent only when it changed
+
+    def _window(self, group: str, rec, names, first: int, k_end: int, m: int, roll: int) -> None:
+        """Send the 10 s source ``group`` of every channel: rows ``first:k_end:m``.
+
+        While following the live end, only the rows new since the last time (streamed with a
+        rollover of ``roll`` points: the browser drops those older than the window); else the
+        whole window.
+        """
+        nxt = self._next.get(group)
+        stream = self.follow and nxt is not None and first <= nxt <= k_end
+        a = nxt if stream else first
+        if self.follow:
+            self._next[group] = a + m * max(0, math.ceil((k_end - a) / m))
+        else:
+            self._next.pop(group, None)
+        for v in self.views:
+            src = v.win if group == "win" else v.fei
+            if not stream:
+                src.data = v.window_data(rec, names, slice(first, k_end, m), group)
+            elif a < k_end:
+                src.stream(v.window_data(rec, names, slice(a, k_end, m), group), roll)
+            v.fit_axes(group)
 
     def _slow(self, st, f, rec, names, fs, rows, t_from, t_end, thr) -> None:
         """The panels refreshed once per SLOW_S: lateness, counts, overview, loop, bars."""
