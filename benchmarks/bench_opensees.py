@@ -5,7 +5,8 @@ experimental site (examples/opensees/site.toml, site_realtime.toml) over the ful
 driver ⇄ twin, FEI, safety, record) and reports:
 
 * lockstep: OpenSees analysis steps per second through the bridge, beside the same model run
-  all-numerically (the ratio is what the bridge costs per step);
+  all-numerically (the ratio is what the bridge costs per step), with one channel and with
+  two (both storey dampers through one genericClient, examples/opensees/site_two.toml);
 * the effect of re-arming ``TCP_QUICKACK`` after every ``recv`` (``openfresco.quickack``):
   OpenSees' client leaves Nagle's algorithm on, so without it Linux' delayed ACK holds every
   request ≈ 40 ms;
@@ -13,6 +14,7 @@ driver ⇄ twin, FEI, safety, record) and reports:
   steps whose command was predicted (or slowed for a late target), OpenSees' latency (force
   reply → next request) and the stretch of the test (loop steps per element step over the
   nominal), for element steps of 1/1024 s and 1/256 s; NRMS against the numerical model.
+  The share and the latency are read from the record's ``of_kind`` and ``of_latency``.
 
 Usage: ``python benchmarks/bench_opensees.py [--duration S]``
 """
@@ -34,10 +36,12 @@ import opensees_site as S  # noqa: E402
 from _results import write_results  # noqa: E402
 
 from rths_hil.metrics import j2_nrms  # noqa: E402
+from rths_hil.openfresco.timing import KINDS  # noqa: E402
+from rths_hil.recorder import read_run  # noqa: E402
 
 
-def _numerical_rate(tmp: Path, dt: float, dur: float, accel) -> float:
-    S.reference(tmp, "frame", dt, dur, accel)
+def _numerical_rate(tmp: Path, dt: float, dur: float, accel, *extra: str) -> float:
+    S.reference(tmp, "frame", dt, dur, accel, *extra)
     return round(dur / dt) / S.analysis_seconds(S.reference.last.stdout)
 
 
@@ -54,7 +58,7 @@ def main() -> int:
     dt = 1 / 256
     dur = args.duration
     num = _numerical_rate(tmp, dt, dur, accel)
-    res, stage, floors, _ = S.hybrid(tmp, S.SITE, "frame", dt, dur, accel, name="lockstep")
+    res, _, floors, _ = S.hybrid(tmp, S.SITE, "frame", dt, dur, accel, name="lockstep")
     n = round(dur / dt)
     ref = S.reference(tmp, "frame", dt, dur, accel)
     nrms = max(j2_nrms(ref[:, j], floors[:, j]) for j in (1, 2))
@@ -63,6 +67,21 @@ def main() -> int:
         "| lockstep, element step 1/256 s | "
         f"{lock:.0f} steps/s ({res.steps_per_second:.0f} loop steps/s) | "
         f"numerical alone {num:.0f} steps/s (ratio {lock / num:.3f}) | NRMS {nrms:.3f} % |"
+    )
+
+    # ---- two channels: both storey dampers through one genericClient of three DOFs ----------
+    num2 = _numerical_rate(tmp, dt, dur, accel, "--dampers", "2")
+    ref2 = S.reference(tmp, "frame", dt, dur, accel, "--dampers", "2")
+    res, _, floors, _ = S.hybrid(
+        tmp, S.SITE_TWO, "frame", dt, dur, accel, extra=("--dampers", "2"), name="two"
+    )
+    nrms = [j2_nrms(ref2[:, j], floors[:, j]) for j in (1, 2)]
+    lock2 = n / res.wall_time
+    rows.append(
+        "| lockstep, two channels (both dampers), element step 1/256 s | "
+        f"{lock2:.0f} steps/s ({res.steps_per_second:.0f} loop steps/s) | "
+        f"numerical alone {num2:.0f} steps/s (ratio {lock2 / num2:.3f}) | "
+        f"NRMS {nrms[0]:.3f} % / {nrms[1]:.3f} % (floor 1 / 2) |"
     )
 
     # ---- TCP_QUICKACK on and off ------------------------------------------------------------
@@ -90,7 +109,7 @@ def main() -> int:
     for dt in (1 / 1024, 1 / 256):
         rt = args.rt_duration
         ref = S.reference(tmp, "frame", dt, rt, accel)
-        res, stage, floors, _ = S.hybrid(
+        res, _, floors, _ = S.hybrid(
             tmp,
             S.SITE_RT,
             "frame",
@@ -100,11 +119,13 @@ def main() -> int:
             overrides=("safety.max_overruns=1000000", "openfresco.estop_after=1s"),
             name=f"rt-{round(1 / dt)}",
         )
-        s = stage.summary()
-        kinds = s["kinds"]
+        # what the record says: of_kind per loop step, of_latency per OpenSees step
+        rec = read_run(tmp / f"rt-{round(1 / dt)}").record
+        kinds = dict(zip(KINDS.values(), np.bincount(rec["of_kind"], minlength=len(KINDS)),
+                         strict=True))  # fmt: skip
         total = sum(kinds.values())
         predicted = (kinds["predicted"] + kinds["held"]) / total
-        lat = stage.site.timing.latencies()
+        lat = rec["of_latency"][np.isfinite(rec["of_latency"])]
         stretch = res.steps / round(rt * 1024)
         if floors is not None and res.status == "completed":
             n = min(len(floors), len(ref))

@@ -497,8 +497,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "transform": Key(
             "array",
             [],
-            doc="element DOF weights per actuator, row-major (default: one actuator, [-1, 1] "
-            "for a two-node element, [1] for one DOF)",
+            doc="element DOF weights per actuator, row-major (default for n actuators: "
+            "u_{i+1} − u_i on an element of n + 1 DOFs, e.g. [-1, 1] for one actuator on a "
+            "two-node element; the identity on n DOFs)",
         ),
         "stiffness": Key(
             "array",
@@ -1043,7 +1044,8 @@ def _cross_check(cfg: Config, note: str = "") -> None:
             raise InputError(
                 f"{path}.transform: {len(e['transform'])} entries, the structure has {n_dof} DOF"
             )
-        if n_dof is not None and n_dof > 1 and "dof" not in e and "transform" not in e:
+        site = st["kind"] == "openfresco"  # its DOFs are its actuators: channel i on DOF i
+        if n_dof is not None and n_dof > 1 and "dof" not in e and "transform" not in e and not site:
             raise InputError(
                 f"{path}: say where the actuator acts: dof = 1..{n_dof} or transform = [...]"
             )

@@ -994,6 +994,39 @@ class TrialSpec:
 #: garbage-collector pause are per process.
 _TRIAL_LOCK = threading.Lock()
 
+#: Scratch directory of one trial: ``<tmp>/rths-trial-<pid>-<random>`` (the pid of the worker
+#: process that runs it, so that a dead worker's scratch can be recognised and removed).
+_SCRATCH_PREFIX = "rths-trial-"
+
+
+def _sweep_dead_scratch(tmp: str | None = None) -> int:
+    """Remove trial scratch directories left by worker processes that no longer exist.
+
+    A worker killed during a trial (SIGKILL, out of memory) cannot remove its scratch
+    directory; the next trial on this machine does. Returns how many were removed.
+    """
+    import os
+    import shutil
+    import tempfile
+
+    root = Path(tmp or tempfile.gettempdir())
+    removed = 0
+    for d in root.glob(_SCRATCH_PREFIX + "*"):
+        pid = d.name[len(_SCRATCH_PREFIX) :].split("-", 1)[0]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+            continue  # its worker is alive (maybe running a trial now)
+        except ProcessLookupError:
+            pass
+        except PermissionError:  # another user's live process
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed += 1
+        log.info("removed %s, the scratch of a worker that died", d)
+    return removed
+
 
 def reference_response(cfg, n: int | None = None) -> np.ndarray:
     """The reference structure's displacement: the same test with an ideal transfer system.
@@ -1064,6 +1097,7 @@ def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
     (:func:`rths_hil.metrics.criteria`, J1 in s) and as the benchmark's script computes them
     (:func:`rths_hil.metrics.benchmark_criteria`, ``bench_J1`` in ms), and the peaks.
     """
+    import os
     import tempfile
 
     from .fei import fei
@@ -1071,7 +1105,9 @@ def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
     from .metrics import benchmark_criteria, criteria
     from .recorder import read_run
 
-    with _TRIAL_LOCK, tempfile.TemporaryDirectory(prefix="rths-trial-") as tmp:
+    _sweep_dead_scratch()
+    scratch = tempfile.TemporaryDirectory(prefix=f"{_SCRATCH_PREFIX}{os.getpid()}-")
+    with _TRIAL_LOCK, scratch as tmp:
         cfg = copy.deepcopy(spec.cfg)
         if spec.record is not None:
             path = Path(tmp) / Path(spec.record[0]).name

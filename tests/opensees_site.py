@@ -16,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "opensees" / "two_storey.py"
 SITE = ROOT / "examples" / "opensees" / "site.toml"
 SITE_RT = ROOT / "examples" / "opensees" / "site_realtime.toml"
+SITE_TWO = ROOT / "examples" / "opensees" / "site_two.toml"
 
 
 def write_accel(path: Path, pga: float = 1.0) -> tuple[Path, float]:

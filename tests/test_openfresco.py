@@ -26,8 +26,12 @@ from rths_hil.openfresco import protocol as P
 from rths_hil.openfresco.server import Mailbox, Target
 from rths_hil.openfresco.site import Mapping
 from rths_hil.openfresco.timing import (
+    CORRECTED,
     EXECUTED,
     HELD,
+    IDLE,
+    KINDS,
+    PREDICTED,
     Lockstep,
     PredictorCorrector,
     SiteFault,
@@ -94,6 +98,41 @@ def test_basic_system_mapping_and_matrix_replies():
     # displacement reply: the trial corrected by the measurement (minimum norm)
     u = m.dofs_from_measured(np.array([0.0, 0.003]), np.array([0.0029]))
     assert u[1] - u[0] == pytest.approx(0.0029)
+
+
+def test_default_mapping_of_several_actuators():
+    """n actuators: n + 1 element DOFs → the basic system of n elements in series; n DOFs →
+    actuator i on element DOF i; anything else needs openfresco.transform."""
+
+    def ses(nb):
+        return P.SessionID.parse(P.client_id((nb, nb, nb, 0, 1), (0, 0, 0, nb, 0)), "elem-server")
+
+    m = Mapping(2, None, [1.0e6, 2.0e6])
+    m.bind(ses(3))
+    np.testing.assert_array_equal(m.T, [[-1.0, 1.0, 0.0], [0.0, -1.0, 1.0]])
+    np.testing.assert_allclose(m.to_actuators(np.array([1.0, 3.0, 6.0])), [2.0, 3.0])
+    # forces of two elements in series: (−f1, f1 − f2, f2)
+    np.testing.assert_allclose(m.to_dofs(np.array([10.0, 4.0])), [-10.0, 6.0, 4.0])
+    np.testing.assert_allclose(
+        m.matrix(P.GET_TANGENT_STIFF), [[1e6, -1e6, 0], [-1e6, 3e6, -2e6], [0, -2e6, 2e6]]
+    )
+    m.bind(ses(2))
+    np.testing.assert_array_equal(m.T, np.eye(2))
+    with pytest.raises(InputError, match=r"give openfresco\.transform"):
+        m.bind(ses(4))
+
+
+def test_site_channels_default_to_their_own_dof_and_record_the_site_columns(tmp_path):
+    """Without dof/transform, channel i of an openfresco site is on site DOF i; the record
+    gets of_kind and of_latency after the other columns (and only for a site)."""
+    from rths_hil.hybrid.plan import build_plan
+
+    plan = build_plan(load_config(S.SITE_TWO, ["openfresco.port=0"]), tmp_path / "plan")
+    np.testing.assert_array_equal(plan.transform, np.eye(2))
+    names = [c[0] for c in plan.columns]
+    assert names[-2:] == ["of_kind", "of_latency"] and names[-4:-2] == ["u_1", "u_2"]
+    other = build_plan(load_config(S.ROOT / "examples" / "can.toml"), tmp_path / "other")
+    assert not any(c[0].startswith("of_") for c in other.columns)
 
 
 def test_transform_rows_are_checked():
@@ -299,7 +338,7 @@ def test_ramp_hold_executes_each_trial_in_real_time(tmp_path):
     th = _client(port, GENERIC_CLIENT_ID, script)
     result = loop.run()
     th.join(5)
-    assert result.status == "completed" and result.mode == "paced"
+    assert result.status == "completed" and result.mode == "paced", result.trip
     for i, f in enumerate(forces, start=1):
         # held still for 20 ms: the dashpot is at rest, the force is k·(u2 − u1) as (−F, +F)
         assert f[1] == pytest.approx(1.19e6 * 0.001 * i, abs=0.5) and f[0] == -f[1]
@@ -343,6 +382,7 @@ def test_frame_of_wrong_size_or_disconnect_trips_and_keeps_the_record(tmp_path, 
         assert "disconnected mid-test" in reason
     rec = read_run(tmp_path / fault)
     assert len(rec.record) == result.steps  # every step up to the trip is on disk
+    assert np.isfinite(rec.record["of_latency"]).sum() == 2  # trials 2 and 3 (1 has none)
     assert rec.record["measured"][-1] == pytest.approx(0.003, rel=1e-6)  # the actuator held
     assert any(e["kind"] == "estop" for e in rec.events)
 
@@ -374,13 +414,59 @@ def test_lockstep_equals_the_numerical_model(tmp_path, accel, model):
     n = round(dur / dt)
     assert s["actions"]["getForce"] == n and s["actions"]["DIE"] == 1
     assert s["kinds"]["executed"] == result.steps - 1  # every loop step ramps a trial
+    # the record's site columns: row 0's target is the rest before any trial, every later
+    # one a ramp toward a trial; a latency in each step a trial arrived (but the first)
+    rec = read_run(tmp_path / model).record
+    assert rec["of_kind"][0] == IDLE and np.all(rec["of_kind"][1:] == EXECUTED)
+    lat = rec["of_latency"]
+    assert np.isfinite(lat).sum() == n - 1 and np.nanmin(lat) > 0
+    assert np.all(np.isfinite(lat[rec["step"] % 4 == 0][1:n]))  # 4 loop steps per trial
+
+
+def test_two_channels_in_lockstep_equal_the_numerical_model(tmp_path, accel):
+    """Both storey dampers as one genericClient of three DOFs, two channels (the site's
+    default mapping: channel i = u_{i+1} − u_i, on site DOF i): each floor within 0.5 % NRMS
+    of the model with both dampers numerical."""
+    dt, dur = 1 / 256, 5.0
+    ref = S.reference(tmp_path, "frame", dt, dur, accel, "--dampers", "2")
+    result, stage, floors, proc = S.hybrid(
+        tmp_path, S.SITE_TWO, "frame", dt, dur, accel, extra=("--dampers", "2"), name="two"
+    )
+    assert result.status == "completed", result.trip
+    assert proc.returncode == 0
+    np.testing.assert_array_equal(stage.site.mapping.T, [[-1, 1, 0], [0, -1, 1]])
+    for j in (1, 2):
+        nrms = j2_nrms(ref[:, j], floors[:, j])
+        print(f"two channels, floor {j}: NRMS {nrms:.3f} %")
+        assert nrms <= 0.5
+    rec = read_run(tmp_path / "two").record
+    # each channel drove its own storey's drift: the twins' specimens (1.19 and 0.8 MN/m)
+    # would give other forces on the other storey
+    drift = np.diff(np.column_stack([np.zeros(len(floors)), floors[:, 1:]]), axis=1)
+    for i, name in enumerate(("storey1", "storey2")):
+        assert np.abs(rec[f"measured_{name}"]).max() == pytest.approx(
+            np.abs(drift[:, i]).max(), rel=0.01
+        )
+    k = (1.19e6, 0.8e6)
+    for i, name in enumerate(("storey1", "storey2")):
+        f, d = rec[f"force_{name}"], rec[f"measured_{name}"]
+        assert np.polyfit(d, f, 1)[0] == pytest.approx(k[i], rel=0.02)
+    assert np.all(rec["of_kind"][1:] == EXECUTED)
+    assert np.isfinite(rec["of_latency"]).sum() == round(dur / dt) - 1
 
 
 @pytest.mark.parametrize("dt", [1 / 1024, 1 / 256])
 def test_real_time_with_a_20ms_actuator(tmp_path, accel, dt):
     """Issue test 2: paced 1024 Hz loop, twin with a 20 ms delay, compensation on,
-    predictor–corrector; NRMS ≤ 3 %, OpenSees' latency recorded, no e-stop. The loop's own
-    overrun rule is relaxed (a shared CI machine is not a real-time target)."""
+    predictor–corrector; NRMS ≤ 3 %, OpenSees' latency recorded, no e-stop.
+
+    The loop's own overrun rule (site_realtime.toml: 64 consecutive late steps) is relaxed:
+    on a 2-core machine shared with other work the paced loop and OpenSees' process compete
+    for the CPUs, and runs of late steps longer than 64 happen (measured at a load of 8–11
+    on two cores, three runs: the longest run of consecutive overruns 20, 28 and 1908 steps
+    at element step 1/1024 s, 2, 23 and 78 at 1/256 s) while tracking stays within 1 % NRMS.
+    What this test checks is the site, not the machine's real-time capability
+    (benchmarks/bench_loop.py measures that)."""
     dur = 3.0
     ref = S.reference(tmp_path, "frame", dt, dur, accel)
     result, _, floors, _ = S.hybrid(
@@ -390,6 +476,7 @@ def test_real_time_with_a_20ms_actuator(tmp_path, accel, dt):
         dt,
         dur,
         accel,
+        # overruns: see the docstring; a late OpenSees (a busy machine) holds, not e-stops
         overrides=("safety.max_overruns=1000000", "openfresco.estop_after=1s"),
         name=f"rt{round(1 / dt)}",
     )
@@ -398,11 +485,27 @@ def test_real_time_with_a_20ms_actuator(tmp_path, accel, dt):
         nrms = j2_nrms(ref[:, j], floors[:, j])
         print(f"real time 1/{round(1 / dt)} s, floor {j}: NRMS {nrms:.2f} %")
         assert nrms <= 3.0
-    site = np.load(tmp_path / f"rt{round(1 / dt)}" / "openfresco.npz")
-    lat = site["target_latency"][1:]
-    assert lat.size >= round(dur / dt) - 1  # one per OpenSees step
-    assert np.all(np.isfinite(lat)) and lat.max() > 0
-    print(f"latency p50 {np.median(lat) * 1e3:.2f} ms, max {lat.max() * 1e3:.1f} ms")
+    rec = read_run(tmp_path / f"rt{round(1 / dt)}").record
+    lat = rec["of_latency"][np.isfinite(rec["of_latency"])]
+    assert lat.size >= round(dur / dt) - 1  # one per OpenSees step (the first has none)
+    assert lat.max() > 0
+    kinds = np.bincount(rec["of_kind"], minlength=5)
+    assert kinds[EXECUTED] + kinds[CORRECTED] > 0 and kinds[PREDICTED] > 0
+    print(
+        f"latency p50 {np.median(lat) * 1e3:.2f} ms, max {lat.max() * 1e3:.1f} ms; "
+        f"overruns {result.overruns} (longest run {_longest_run(result)} steps); kinds "
+        f"{ {KINDS[i]: int(kinds[i]) for i in KINDS} }"
+    )
+
+
+def _longest_run(result) -> int:
+    """The longest run of consecutive overruns (what safety.max_overruns bounds)."""
+    over = result.lateness > result.overrun_threshold
+    best = cur = 0
+    for o in over:
+        cur = cur + 1 if o else 0
+        best = max(best, cur)
+    return best
 
 
 def test_opensees_killed_mid_test_trips_with_one_line(tmp_path, accel):
@@ -437,4 +540,7 @@ def test_opensees_killed_mid_test_trips_with_one_line(tmp_path, accel):
     assert "disconnected mid-test" in result.trip.reason
     rec = read_run(tmp_path / "killed")
     assert len(rec.record) == result.steps > 400  # ≥ 100 OpenSees steps of 4 loop steps
+    # the site's columns are part of each row: on disk up to the trip like the rest
+    assert np.all(rec.record["of_kind"][1:] == EXECUTED)
+    assert np.isfinite(rec.record["of_latency"]).sum() >= 99
     assert any(e["kind"] == "estop" for e in rec.events)

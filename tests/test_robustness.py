@@ -10,6 +10,9 @@ from __future__ import annotations
 import math
 import os
 import signal
+import subprocess
+import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -146,7 +149,8 @@ def test_killed_worker_trial_is_rerun_and_the_study_completes(cluster, tmp_path)
         if busy:
             time.sleep(0.3)  # let the trial get going
             addr, keys = next(iter(busy.items()))
-            os.kill(client.run(os.getpid, workers=[addr])[addr], signal.SIGKILL)
+            pid = client.run(os.getpid, workers=[addr])[addr]
+            os.kill(pid, signal.SIGKILL)
             killed = list(keys)
         time.sleep(0.05)
     assert killed, "no worker ever ran a trial"
@@ -167,6 +171,8 @@ def test_killed_worker_trial_is_rerun_and_the_study_completes(cluster, tmp_path)
     assert seen >= 1
     res = result["res"]
     assert [r["trial"] for r in res.rows] == [0, 1, 2, 3]
+    # the killed worker's scratch directory was removed by a later trial
+    assert not list(Path(tempfile.gettempdir()).glob(f"rths-trial-{pid}-*"))
     assert all(r["status"] == "completed" for r in res.rows)
     serial = study.robustness_study(
         base, perts, 4, seed=3, duration=DURATION, executor=study.SerialExecutor(), progress=False
@@ -243,3 +249,20 @@ def test_default_perturbations_are_the_benchmarks_spreads():
     draws = b["twin.actuator.a3"].draw(np.random.default_rng(0), 5000)
     assert draws.min() > 0  # truncated to the physical domain
     assert np.std(draws) == pytest.approx(1.3, rel=0.08)
+
+
+def test_scratch_of_a_dead_worker_is_swept_and_a_live_ones_kept(tmp_path):
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        d_dead = tmp_path / f"rths-trial-{int(dead.stdout)}-abc"
+        d_live = tmp_path / f"rths-trial-{live.pid}-def"
+        d_other = tmp_path / "rths-trial-notapid"
+        for d in (d_dead, d_live, d_other):
+            (d / "run").mkdir(parents=True)
+        assert study._sweep_dead_scratch(str(tmp_path)) == 1
+        assert not d_dead.exists() and d_live.exists() and d_other.exists()
+    finally:
+        live.kill()
+        live.wait()

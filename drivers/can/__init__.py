@@ -322,10 +322,14 @@ class CANDriver(Driver):
         reader = self._reader
         while True:
             if q is not None:  # virtual bus: its queue directly (see virtual_rx_queue)
-                try:
-                    msg = q.get(True, remaining)
-                except queue.Empty:
-                    msg = None
+                frames = q.queue
+                if frames:  # already there: take it without the queue's lock round trips
+                    msg = frames.popleft()
+                else:
+                    try:
+                        msg = q.get(True, remaining)
+                    except queue.Empty:
+                        msg = None
             elif reader is not None:  # an interface that ignores the timeout: its reader
                 msg = reader.get_message(max(remaining, 0.0))
                 share = self._share

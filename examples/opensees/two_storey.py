@@ -4,7 +4,11 @@ The damper (a linear spring–dashpot specimen between the ground and floor 1) i
 ``genericClient`` element served by ``rths-hil run examples/opensees/site.toml``; the frame's
 columns, masses and damping stay numerical. With ``--numerical`` the damper is an ordinary
 ``zeroLength`` element (elastic + viscous) instead: the reference the hybrid run must match.
-``--model sdof`` gives a one-storey version. SI units throughout (m, N, kg, s).
+``--model sdof`` gives a one-storey version. ``--dampers 2`` puts a second damper in storey 2
+and tests both through rths_hil: one ``genericClient`` on nodes 1, 2, 3 (three element DOFs),
+two actuator channels (``rths-hil run examples/opensees/site_two.toml``), the site's default
+mapping the basic system of two elements in series (actuator 1 = u₂ − u₁, actuator 2 =
+u₃ − u₂). SI units throughout (m, N, kg, s).
 
 Usage::
 
@@ -18,6 +22,10 @@ Each run writes the floor displacements per analysis step (``.npy``: time, u1[, 
 Equivalent Tcl (OpenSees 3.x) for the experimental element::
 
     element genericClient 3 -node 1 2 -dof 1 -dof 1 -server 8090 127.0.0.1
+
+and with ``--dampers 2`` (both storeys' dampers, two channels)::
+
+    element genericClient 3 -node 1 2 3 -dof 1 -dof 1 -dof 1 -server 8090 127.0.0.1
 """
 
 from __future__ import annotations
@@ -35,6 +43,9 @@ MASSES = (50.0e3, 50.0e3)
 STOREY_K = (4.0e6, 3.0e6)
 SPECIMEN_K = 1.19e6
 SPECIMEN_C = 2.0e3
+# the second damper (--dampers 2), in storey 2: another specimen, so a channel mix-up shows
+SPECIMEN2_K = 0.8e6
+SPECIMEN2_C = 1.5e3
 ZETA = 0.02
 
 
@@ -53,8 +64,8 @@ def ground_motion(args: argparse.Namespace) -> tuple[float, np.ndarray]:
 
 
 def build(ops, model: str, numerical: bool, host: str, port: int, specimen_k: float,
-          specimen_c: float) -> list[int]:  # fmt: skip
-    """Nodes, masses, columns and the damper; return the floor node tags."""
+          specimen_c: float, dampers: int = 1) -> list[int]:  # fmt: skip
+    """Nodes, masses, columns and the damper(s); return the floor node tags."""
     ops.wipe()
     ops.model("basic", "-ndm", 1, "-ndf", 1)
     floors = 1 if model == "sdof" else 2
@@ -67,22 +78,30 @@ def build(ops, model: str, numerical: bool, host: str, port: int, specimen_k: fl
     for i in range(floors):
         ops.uniaxialMaterial("Elastic", 10 + i, STOREY_K[i])
         ops.element("zeroLength", 10 + i, i + 1, i + 2, "-mat", 10 + i, "-dir", 1)
-    # the damper in storey 1
+    # the damper in storey 1 (and with dampers = 2 the one in storey 2)
     if numerical:
         ops.uniaxialMaterial("Elastic", 1, specimen_k)
         ops.uniaxialMaterial("Viscous", 2, specimen_c, 1.0)
         ops.element("zeroLength", 3, 1, 2, "-mat", 1, 2, "-dir", 1, 1)
+        if dampers == 2:
+            ops.uniaxialMaterial("Elastic", 3, SPECIMEN2_K)
+            ops.uniaxialMaterial("Viscous", 4, SPECIMEN2_C, 1.0)
+            ops.element("zeroLength", 4, 2, 3, "-mat", 3, 4, "-dir", 1, 1)
+    elif dampers == 2:  # one element, three DOFs: the site drives two actuators
+        ops.element("genericClient", 3, "-node", 1, 2, 3, "-dof", 1, "-dof", 1, "-dof", 1,
+                    "-server", port, host)  # fmt: skip
     else:
         ops.element("genericClient", 3, "-node", 1, 2, "-dof", 1, "-dof", 1,
                     "-server", port, host)  # fmt: skip
     return [i + 2 for i in range(floors)]
 
 
-def first_mode_omega(model: str, specimen_k: float) -> float:
-    """Circular frequency of the first mode with the damper's stiffness (rad/s)."""
+def first_mode_omega(model: str, specimen_k: float, dampers: int = 1) -> float:
+    """Circular frequency of the first mode with the dampers' stiffness (rad/s)."""
     if model == "sdof":
         return math.sqrt((STOREY_K[0] + specimen_k) / MASSES[0])
-    k1, k2 = STOREY_K[0] + specimen_k, STOREY_K[1]
+    k1 = STOREY_K[0] + specimen_k
+    k2 = STOREY_K[1] + (SPECIMEN2_K if dampers == 2 else 0.0)
     K = np.array([[k1 + k2, -k2], [-k2, k2]])
     M = np.diag(MASSES)
     w2 = np.linalg.eigvals(np.linalg.solve(M, K)).real
@@ -93,12 +112,13 @@ def run(args: argparse.Namespace) -> np.ndarray:
     import openseespy.opensees as ops
 
     nodes = build(ops, args.model, args.numerical, args.host, args.port, args.specimen_k,
-                  args.specimen_c)  # fmt: skip
+                  args.specimen_c, args.dampers)  # fmt: skip
     gdt, ag = ground_motion(args)
     ops.timeSeries("Path", 1, "-dt", gdt, "-values", *ag.tolist())
     ops.pattern("UniformExcitation", 1, 1, "-accel", 1)
     # 2 % mass-proportional damping at the first mode (C = αM, α = 2ζω)
-    ops.rayleigh(2.0 * ZETA * first_mode_omega(args.model, args.specimen_k), 0.0, 0.0, 0.0)
+    omega = first_mode_omega(args.model, args.specimen_k, args.dampers)
+    ops.rayleigh(2.0 * ZETA * omega, 0.0, 0.0, 0.0)
     ops.constraints("Plain")
     ops.numberer("Plain")
     ops.system("FullGeneral")
@@ -133,6 +153,13 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", choices=("frame", "sdof"), default="frame")
     p.add_argument("--numerical", action="store_true", help="damper as a numerical element")
+    p.add_argument(
+        "--dampers",
+        type=int,
+        choices=(1, 2),
+        default=1,
+        help="storeys with a damper (2: both tested, two channels; frame only)",
+    )
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8090)
     p.add_argument("--dt", type=float, default=1 / 256, help="analysis step (s)")
@@ -146,6 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--specimen-c", type=float, default=SPECIMEN_C)
     p.add_argument("--out", help="write time and floor displacements to this .npy")
     args = p.parse_args(argv)
+    if args.dampers == 2 and args.model != "frame":
+        p.error("--dampers 2 needs --model frame")
     out = run(args)
     if args.out:
         np.save(args.out, out)

@@ -24,6 +24,10 @@ element zeroLength 11 2 3 -mat 11 -dir 1
 
 # the damper: tested by rths_hil (basic system: actuator = u2 - u1, forces (-f, +f))
 element genericClient 3 -node 1 2 -dof 1 -dof 1 -server 8090 127.0.0.1
+# ... or both storeys' dampers tested, two channels (rths-hil run examples/opensees/site_two.toml;
+# actuator 1 = u2 - u1, actuator 2 = u3 - u2), instead of the line above:
+# element genericClient 3 -node 1 2 3 -dof 1 -dof 1 -dof 1 -server 8090 127.0.0.1
+# (the storey-2 damper of two_storey.py --dampers 2 as numerical: Elastic 0.8e6, Viscous 1.5e3)
 # ... or, all-numerical (the reference):
 # uniaxialMaterial Elastic 1 1.19e6
 # uniaxialMaterial Viscous 2 2.0e3 1.0

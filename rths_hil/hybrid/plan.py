@@ -378,8 +378,12 @@ def _where(cc: ChannelConfig, i: int) -> str:
     return cc.config.source + (f": actuators[{i}] ({cc.name})" if cc.name else "")
 
 
-def channel_row(cc: ChannelConfig, i: int, n_dof: int) -> np.ndarray:
-    """Row of T of a channel: its ``transform``, or the unit row of its ``dof`` (default 1)."""
+def channel_row(cc: ChannelConfig, i: int, n_dof: int, default_dof: int = 1) -> np.ndarray:
+    """Row of T of a channel: its ``transform``, or the unit row of its ``dof``.
+
+    ``dof`` defaults to ``default_dof`` (1; an experimental site passes ``i + 1``: its DOFs
+    are its actuators, channel ``i`` drives site DOF ``i``).
+    """
     where = _where(cc, i)
     if cc.transform is not None:
         row = np.asarray(cc.transform, dtype=float)
@@ -388,7 +392,7 @@ def channel_row(cc: ChannelConfig, i: int, n_dof: int) -> np.ndarray:
                 f"{where}.transform: {row.size} entries, the structure has {n_dof} DOF"
             )
     else:
-        d = cc.dof if cc.dof is not None else 1
+        d = cc.dof if cc.dof is not None else default_dof
         if not 1 <= d <= n_dof:
             raise InputError(f"{where}.dof: {d} is out of range: the structure has {n_dof} DOF")
         row = np.zeros(n_dof)
@@ -595,7 +599,7 @@ def build_plan(
             f"{cfg.source}: actuators: a structure of {n_dof} DOF needs [[actuators]] entries "
             "saying where each actuator acts (dof or transform)"
         )
-    rows = [channel_row(cc, i, n_dof) for i, cc in enumerate(chans_cfg)]
+    rows = [channel_row(cc, i, n_dof, i + 1 if site else 1) for i, cc in enumerate(chans_cfg)]
     structure, fn1 = build_structure(cfg, dt, float(ag[0]), np.array(rows), model)
     plants: dict[str, Any] = {}
     if plant is not None:
@@ -637,7 +641,8 @@ def build_plan(
         structure=structure,
         fn1=fn1,
         channels=channels,
-        columns=record_columns([c.suffix for c in channels], n_dof),
+        columns=record_columns([c.suffix for c in channels], n_dof)
+        + [(c[0], c[2], c[3], c[4]) for c in getattr(structure, "record_columns", ())],
         # paced: at most 0.8 period; lockstep waits for every reply, up to the wall-clock bound
         # that trips the watchdog
         timeout=(lp["feedback_timeout"] or 0.8 * dt) if mode == "paced" else lp["lockstep_timeout"],

@@ -469,7 +469,7 @@ class Runner:
         unit = all(ch.dof >= 0 for ch in chans)
         dofs = [ch.dof for ch in chans]
 
-        write_row = _row_writer(rec, chans, multi, n_dof)
+        write_row = _row_writer(rec, chans, multi, n_dof, st)
         if rec.dtype.names != tuple(c[0] for c in plan.columns):  # pragma: no cover
             raise AssertionError("record columns differ from the plan's")
 
@@ -741,15 +741,26 @@ class Runner:
         }
 
 
-def _row_writer(rec: Recorder, chans: list[Channel], multi: bool, n_dof: int):
+def _row_writer(rec: Recorder, chans: list[Channel], multi: bool, n_dof: int, st=None):
     """``write(t, k, ag, lateness, skew, dofs)``: one record row, each column read by name.
 
     The plan's column list (:func:`rths_hil.hybrid.plan.record_columns`) names each channel
     column after a :class:`Channel` attribute (:data:`~rths_hil.hybrid.plan.CHANNEL_COLUMNS_A`
     …); an :func:`operator.attrgetter` per group reads them in column order. One channel on
-    one DOF gets a writer without an intermediate list (≈ 1 µs less per step).
+    one DOF gets a writer without an intermediate list (≈ 1 µs less per step). A structure
+    stage's own ``record_columns`` (the plan appends them last) are read from ``st`` into the
+    same row; a stage without them costs nothing.
     """
     append = rec.append
+    extra = [c[1] for c in getattr(st, "record_columns", ())]
+    if extra:
+        get_x = attrgetter(*extra, *extra[:1])  # ≥ 2 names: a tuple; one too many if one
+        nx = len(extra)
+        rec_append = rec.append
+
+        def append(*row):
+            rec_append(*row, *get_x(st)[:nx])
+
     get_a = attrgetter(*(a for _, a in CHANNEL_COLUMNS_A))
     get_b = attrgetter(*(a for _, a in CHANNEL_COLUMNS_B), "ok")  # ≥ 2 names: a tuple
     nb = len(CHANNEL_COLUMNS_B)

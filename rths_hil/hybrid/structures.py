@@ -22,6 +22,12 @@ The interface (:class:`StructureStage`)::
     stage.finished                   True when the structure ends the test early (an external
                                      analysis that stopped); the runner then stops, completed
     stage.close()                    release what the stage holds (sockets, processes)
+    stage.record_columns             optional: extra record columns the stage keeps up to
+                                     date, ``(name, attribute, dtype, unit, description)``
+                                     each; the plan appends them to the record and the
+                                     runner writes ``getattr(stage, attribute)`` into every
+                                     row after ``step`` (the OpenSees site's ``of_kind``,
+                                     ``of_latency``)
 
 Explicit integration is what makes the loop work: the targets of step k+1 are known before
 the force of step k+1 is measured (Chen & Ricles 2008), so every command leaves at its deadline

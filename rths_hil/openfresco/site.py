@@ -8,11 +8,14 @@ forces back into element forces by a transformation ``T`` (``n_actuators × n_do
 
 The default for a two-node element with one DOF per node (``-dof 1 -dof 1``) is OpenFresco's
 basic system of a one-actuator setup: ``T = [−1, 1]``, the actuator elongation ``u₂ − u₁``,
-forces ``(−f, +f)``. A one-DOF element gets ``T = [1]``. Stiffness, damping and mass replies
-are ``Tᵀ·K·T`` with ``K`` (``C``, ``M``) given per actuator in the configuration (the specimen
-estimate); damping and mass default to zero (the measured force already contains the
-specimen's damping and inertia: a non-zero reply would count them twice in OpenSees'
-``genericClient``, which adds ``C·v`` and ``M·a`` to the measured forces).
+forces ``(−f, +f)``. With ``n`` actuators, an element of ``n + 1`` nodes (one DOF each) gets
+the basic system of ``n`` two-node elements in series (:func:`chain_transform`: actuator ``i``
+between nodes ``i`` and ``i + 1``), an element of ``n`` DOFs the identity (actuator ``i`` on
+element DOF ``i``); a one-DOF element with one actuator gets ``T = [1]``. Stiffness, damping
+and mass replies are ``Tᵀ·K·T`` with ``K`` (``C``, ``M``) given per actuator in the
+configuration (the specimen estimate); damping and mass default to zero (the measured force
+already contains the specimen's damping and inertia: a non-zero reply would count them twice
+in OpenSees' ``genericClient``, which adds ``C·v`` and ``M·a`` to the measured forces).
 
 :class:`ExperimentalSite` is the structure stage the loop drives: it listens, accepts the
 client, and each loop step turns the measurement into the next actuator command through its
@@ -37,7 +40,7 @@ from .timing import SiteFault, TimingMode, make_timing
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DEFAULTS", "TIMINGS", "ExperimentalSite", "Mapping", "SiteFault"]
+__all__ = ["DEFAULTS", "TIMINGS", "ExperimentalSite", "Mapping", "SiteFault", "chain_transform"]
 
 TIMINGS = ("lockstep", "predictor-corrector", "ramp-hold")
 
@@ -67,6 +70,18 @@ def _matrix(value: Any, n: int, what: str) -> np.ndarray:
     if not np.all(np.isfinite(a)):
         raise InputError(f"openfresco.{what}: values must be finite")
     return a
+
+
+def chain_transform(n: int) -> np.ndarray:
+    """``T`` of ``n`` actuators between ``n + 1`` nodes in series: row i is ``u_{i+1} − u_i``.
+
+    The basic system of a chain of two-node elements (one DOF per node): one actuator per
+    element, its elongation ``u_{i+1} − u_i``, forces ``(−f_i, +f_i)`` at its nodes.
+    """
+    T = np.zeros((n, n + 1))
+    for i in range(n):
+        T[i, i], T[i, i + 1] = -1.0, 1.0
+    return T
 
 
 class Mapping:
@@ -148,10 +163,10 @@ class Mapping:
                 )
         elif self._transform is not None:
             T = self._check(self._transform, nb)
-        elif self.n_actuators == 1 and nb == 1:
-            T = np.array([[1.0]])
-        elif self.n_actuators == 1 and nb == 2:
-            T = np.array([[-1.0, 1.0]])  # basic system: u2 − u1
+        elif nb == self.n_actuators:
+            T = np.eye(nb)  # actuator i on element DOF i
+        elif nb == self.n_actuators + 1:
+            T = chain_transform(self.n_actuators)  # basic system: u_{i+1} − u_i
         else:
             raise InputError(
                 f"the client's element has {nb} DOFs for {self.n_actuators} actuator(s): give "
@@ -264,7 +279,7 @@ class ExperimentalSite:
         host = self.server.host if self.server else self.host
         port = self.server.port if self.server else self.options["port"]
         T = self.mapping._transform
-        return _genericclient_lines(host, port, T.shape[1] if T is not None else 2)
+        return _genericclient_lines(host, port, T.shape[1] if T is not None else self.n + 1)
 
     def accept(self, stop: Callable[[], bool] = lambda: False) -> P.SessionID:
         """Wait for the client and its ID (one line + :class:`InputError` when wrong)."""

@@ -13,10 +13,13 @@ FEI, Kalman, safety and the crash-safe record work as in every run.
 * A fault (disconnect mid-test, a wrong frame, OpenSees too late) sets :attr:`finished` and
   :attr:`trip` (rule ``openfresco``, one line): the runner e-stops every channel, the actuators
   hold, and :meth:`close` then drops the connection (OpenSees reports its failed element).
-* Per loop step the command kind (executed, predicted, corrected, held, idle) and per target
-  OpenSees' latency are appended to ``openfresco.npz`` in the run directory at the end, with a
-  summary in ``openfresco.json``; the kinds are also flushed to ``openfresco_kinds.u8`` every
-  256 steps so a crashed run keeps them.
+* Per loop step, two columns of the crash-safe record (:attr:`SiteStage.record_columns`,
+  written and flushed with the row): ``of_kind``, how the row's target was made (the codes of
+  :data:`~rths_hil.openfresco.timing.KINDS`: 0 idle, 1 executed, 2 predicted, 3 corrected,
+  4 held), and ``of_latency``, OpenSees' latency of the trial that arrived during the step
+  (force reply → next request, s; NaN in steps without a new trial and for the first trial).
+  At the end, the session's counts (actions, kinds, latency p50/max, how it ended) go to
+  ``openfresco.json`` in the run directory.
 """
 
 from __future__ import annotations
@@ -31,11 +34,14 @@ import numpy as np
 
 from ..safety import Trip
 from .site import ExperimentalSite
-from .timing import SiteFault
+from .timing import IDLE, KINDS, SiteFault
 
 log = logging.getLogger(__name__)
 
 __all__ = ["SiteStage"]
+
+
+_KIND_CODES = ", ".join(f"{i} {name}" for i, name in KINDS.items())
 
 
 class SiteStage:
@@ -51,6 +57,20 @@ class SiteStage:
         Number of actuator channels.
     """
 
+    #: The stage's record columns (:mod:`rths_hil.hybrid.structures`): name, attribute,
+    #: dtype, unit, description.
+    record_columns = (
+        ("of_kind", "kind", "<i8", "-", f"how the row's target was made ({_KIND_CODES})"),
+        (
+            "of_latency",
+            "latency",
+            "<f8",
+            "s",
+            "OpenSees' latency of the trial that arrived in this step, force reply to next "
+            "request (NaN: no new trial, or the first)",
+        ),
+    )
+
     def __init__(self, options, dt: float, n_dof: int = 1) -> None:
         self.site = ExperimentalSite(options, dt, n_dof)
         self.dt = float(dt)
@@ -62,8 +82,9 @@ class SiteStage:
         self.runner: Any = None
         self.run_dir: Path | None = None
         self._x = [0.0] * self.n_dof
-        self._kinds_file = None
-        self._flushed = 0
+        self.kind = IDLE  # of_kind of the row being written: how its target was made
+        self.latency = math.nan  # of_latency: OpenSees' latency of a trial new in this step
+        self._next_kind = IDLE  # kind of the target step() just returned (the next row's)
         self._closed = False
 
     # -- set-up -------------------------------------------------------------------------------
@@ -97,19 +118,27 @@ class SiteStage:
         stop = (lambda: runner.stop_signal is not None) if runner is not None else (lambda: False)
         ses = self.site.accept(stop)
         log.info("openfresco: client connected, ID %s", ses.as_tuple())
-        if self.run_dir is not None:
-            self.run_dir.mkdir(parents=True, exist_ok=True)
-            self._kinds_file = open(self.run_dir / "openfresco_kinds.u8", "wb")
         self._x = [0.0] * self.n_dof
+        self.kind = self._next_kind = IDLE
+        self.latency = math.nan
         return list(self._x)
 
     # -- stepping -----------------------------------------------------------------------------
     def step(self, k: int, ag: float, force) -> list[float]:
-        """Measured forces of step ``k`` in, targets of step ``k + 1`` out (see the module)."""
+        """Measured forces of step ``k`` in, targets of step ``k + 1`` out (see the module).
+
+        Sets :attr:`kind` (row ``k``'s target, returned by the previous call) and
+        :attr:`latency` (a trial taken in this call) for the record's row ``k``.
+        """
+        self.kind = self._next_kind
+        self.latency = math.nan
         if self.finished:
             return self._x
         chans = getattr(self, "_chans", None)
         disp = [ch.meas for ch in chans] if chans else self._x
+        tm = self.site.timing
+        n_kinds = len(tm.kinds) if tm is not None else 0
+        n_targets = len(tm.targets) if tm is not None else 0
         try:
             c = self.site.step(k, np.asarray(disp, dtype=float), np.asarray(force, dtype=float))
         except SiteFault as exc:
@@ -117,46 +146,28 @@ class SiteStage:
             self.finished = True
             log.warning("%s", exc)
             return self._x
+        tm = self.site.timing
+        if len(tm.targets) > n_targets:
+            self.latency = tm.targets[-1][2]
         if c is None:
             self.finished = True
             return self._x
+        if len(tm.kinds) > n_kinds:
+            self._next_kind = tm.kinds[-1]
         x = c.tolist()
         self.v = [(a - b) / self.dt for a, b in zip(x, self._x, strict=True)]
         self._x = x
-        if self._kinds_file is not None and k - self._flushed >= 256:
-            self._flush()
         return x
-
-    def _flush(self) -> None:
-        kinds = self.site.timing.kinds if self.site.timing is not None else []
-        n = len(kinds)
-        if n > self._flushed and self._kinds_file is not None:
-            self._kinds_file.write(bytes(kinds[self._flushed : n]))
-            self._kinds_file.flush()
-            self._flushed = n
 
     # -- end ----------------------------------------------------------------------------------
     def close(self) -> None:
-        """Drop the connection (after the runner's e-stop) and write the site's record."""
+        """Drop the connection (after the runner's e-stop) and write the session's counts."""
         if self._closed:
             return
         self._closed = True
         self.site.close()
-        if self._kinds_file is not None:
-            self._flush()
-            self._kinds_file.close()
-        tm = self.site.timing
-        if self.run_dir is None or tm is None:
+        if self.run_dir is None or self.site.timing is None:
             return
-        targets = np.array(tm.targets, dtype=float).reshape(-1, 4)
-        np.savez(
-            self.run_dir / "openfresco.npz",
-            kinds=np.asarray(tm.kinds, dtype=np.uint8),
-            target_seq=targets[:, 0].astype(np.int64),
-            target_step=targets[:, 1].astype(np.int64),
-            target_latency=targets[:, 2],
-            target_time=targets[:, 3],
-        )
         summary = self.summary()
         (self.run_dir / "openfresco.json").write_text(json.dumps(summary, indent=1) + "\n")
 

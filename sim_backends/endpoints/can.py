@@ -156,8 +156,11 @@ class CANTwin(TwinEndpoint):
         n = 0
         q = self._rxq
         if q is not None:  # python-can's virtual bus: its receive queue, no filters
-            while q.qsize():
-                self._dispatch(q.get_nowait())
+            # the queue's deque: inline mode has no other reader, and a deque's popleft is
+            # atomic against the sender's put (Queue.get_nowait would add two lock round trips)
+            frames = q.queue
+            while frames:
+                self._dispatch(frames.popleft())
                 n += 1
         else:
             while bus is not None:
