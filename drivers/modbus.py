@@ -28,6 +28,18 @@ the ones pymodbus's own ``ReadWriteMultipleRegistersRequest`` / ``FramerSocket``
 CRCs come from pymodbus (``FramerRTU.compute_CRC``). The driver waits with ``select`` on the
 socket or serial descriptor: unlike pymodbus's synchronous RTU client it never polls in 1 ms
 sleeps.
+
+**Several actuators on one Modbus TCP connection.** Each controller is a Modbus *unit*
+(``device_id``, 1–247, the MBAP unit identifier). The drivers of the units on one server
+(same ``host`` and ``port``) share one TCP connection (:class:`Link`), as CAN nodes share one
+bus: every request carries its unit id, and a driver that reads another unit's response off the
+connection hands it to that unit's inbox, so every byte is read once. The requests of one step
+are pipelined — every channel's FC 23 is written before any response is awaited, as Modbus TCP
+allows several outstanding transactions on one connection — and told apart by the unit id and by
+the transaction id: ``SEQ`` XOR ``slot << 8``, where ``slot`` is the driver's place on the
+connection (0 for the first, so a single driver's transaction id is ``SEQ`` itself). A server that
+handles one transaction at a time answers them in order; the cost is then its processing time
+per unit, not a round trip per unit. RTU lines are not shared (one driver per serial line).
 """
 
 from __future__ import annotations
@@ -38,7 +50,9 @@ import os
 import select
 import socket
 import struct
+import threading
 import time
+from collections import deque
 from typing import Any, ClassVar
 
 import serial
@@ -52,11 +66,13 @@ from .base import extend_seq as _extend_seq
 __all__ = [
     "COIL_ESTOP",
     "FORCE_LSB",
+    "MAX_UNIT",
     "READ_ADDRESS",
     "READ_COUNT",
     "REG",
     "WRITE_ADDRESS",
     "WRITE_COUNT",
+    "Link",
     "ModbusDriver",
     "feedback_crc",
 ]
@@ -88,9 +104,105 @@ _crc_hqx = binascii.crc_hqx
 _rtu_crc = FramerRTU.compute_CRC
 
 
+#: Highest Modbus unit id a controller can have (1–247; 0 is broadcast, 248–255 reserved).
+MAX_UNIT = 247
+
+
 def feedback_crc(block12: bytes) -> int:
     """FB_CRC: CRC-16/CCITT-FALSE (``binascii.crc_hqx``, init 0xFFFF) of registers 16–21."""
     return _crc_hqx(block12, 0xFFFF)
+
+
+class Link:
+    """One transport (a TCP connection or a serial line) and the drivers of the units on it.
+
+    A TCP link is shared by every driver in the process with the same ``host`` and ``port``
+    (:meth:`get`); a serial line belongs to one driver. ``fd`` is ``None`` while the transport
+    is down; the next write reconnects it.
+
+    Attributes
+    ----------
+    fd : int or None
+        Descriptor the drivers read and write.
+    buf : bytes
+        Bytes read but not yet parsed (shared: a read may hold several units' responses).
+    units : dict
+        Unit id → the driver of that unit on this link.
+    """
+
+    _shared: ClassVar[dict[tuple, Link]] = {}
+    _lock: ClassVar[threading.Lock] = threading.Lock()
+
+    def __init__(self, key: tuple | None, opener: Any) -> None:
+        self.key = key
+        self._opener = opener
+        self.sock: socket.socket | None = None
+        self.ser: Any = None
+        self.fd: int | None = None
+        self.buf = b""
+        self.units: dict[int, ModbusDriver] = {}
+
+    @classmethod
+    def get(cls, driver: ModbusDriver) -> Link:
+        """The link of ``driver`` (TCP: shared by host and port), with the driver registered.
+
+        Raises
+        ------
+        InputError
+            Another open driver already speaks to this unit on this link, or the transport
+            cannot be opened.
+        """
+        if driver._rtu:
+            link = cls(None, driver._open_serial)
+            link.units[driver.device_id] = driver
+            link.connect()
+            return link
+        key = ("tcp", driver.host, driver.port)
+        with cls._lock:
+            link = cls._shared.get(key)
+            if link is None:
+                link = cls(key, driver._open_socket)
+                link.connect()
+                cls._shared[key] = link
+            elif driver.device_id in link.units:
+                raise InputError(
+                    f"modbus driver: unit {driver.device_id} is already open on "
+                    f"{driver.host}:{driver.port} (give each channel its own device_id)"
+                )
+            used = {d._tid_x for d in link.units.values()}
+            driver._tid_x = next(s << 8 for s in range(256) if s << 8 not in used)
+            link.units[driver.device_id] = driver
+            return link
+
+    def connect(self) -> None:
+        """Open the transport if it is down (raises InputError)."""
+        if self.fd is None:
+            self.sock, self.ser, self.fd = self._opener()
+            self.buf = b""
+
+    def disconnect(self) -> None:
+        """Close the transport (the drivers stay registered; a write reconnects)."""
+        sock, ser = self.sock, self.ser
+        self.sock = self.ser = self.fd = None
+        self.buf = b""
+        try:
+            if sock is not None:
+                sock.close()
+            if ser is not None:
+                ser.close()
+        except (OSError, serial.SerialException):  # pragma: no cover
+            pass
+
+    def release(self, driver: ModbusDriver) -> None:
+        """Drop ``driver``; the last one closes the transport."""
+        with self._lock:
+            if self.units.get(driver.device_id) is driver:
+                del self.units[driver.device_id]
+            if self.units:
+                return
+            if self.key is not None and self._shared.get(self.key) is self:
+                del self._shared[self.key]
+        self.disconnect()
 
 
 class ModbusDriver(Driver):
@@ -105,7 +217,8 @@ class ModbusDriver(Driver):
     device : str
         RTU: serial device or pyserial URL (``/dev/ttyUSB0``, ``/dev/pts/N``).
     device_id : int
-        Modbus unit / slave id (1–247).
+        Modbus unit / slave id (1–247); drivers of different units on one ``host:port`` share
+        one TCP connection (module docstring).
     baudrate, parity, stopbits : int, str, int
         RTU line settings (8 data bits).
     connect_timeout : float
@@ -145,70 +258,75 @@ class ModbusDriver(Driver):
         self.estop_timeout = float(estop_timeout)
         self._coil_ack = False
         self._stash: Feedback | None = None
-        self._sock: socket.socket | None = None
-        self._ser: Any = None
-        self._fd: int | None = None
-        self._buf = b""
+        self._link: Link | None = None
+        self._inbox: deque[bytes] = deque()  # this unit's ADUs read off the link by another unit
+        self._tid_x = 0  # transaction id = SEQ ^ _tid_x (the driver's slot on a shared link)
         self._rtu = transport == "rtu"
         # MBAP length, unit id, function code and byte count of a good FC 23 response
         self._resp_head = struct.pack(">HHBBB", 0, _TCP_RESP.size - 6, self.device_id, FC_RW, 14)
 
     # -- transport ------------------------------------------------------------------------------
+    def _open_serial(self) -> tuple[None, Any, int]:
+        try:
+            ser = serial.serial_for_url(
+                self.device,
+                baudrate=self.baudrate,
+                parity=self.parity,
+                stopbits=self.stopbits,
+                bytesize=8,
+                timeout=0,
+            )
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise InputError(f"modbus driver: cannot open {self.device!r}: {exc}") from None
+        if not hasattr(ser, "fd"):
+            ser.close()
+            raise InputError(f"modbus driver: RTU needs a serial device, got {self.device!r}")
+        return None, ser, ser.fd
+
+    def _open_socket(self) -> tuple[socket.socket, None, int]:
+        try:
+            sock = socket.create_connection((self.host, self.port), self.connect_timeout)
+        except OSError as exc:
+            raise InputError(
+                f"modbus driver: cannot connect to {self.host}:{self.port}: {exc}"
+            ) from None
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.setblocking(False)
+        return sock, None, sock.fileno()
+
+    @property
+    def link(self) -> Link | None:
+        """The transport this driver uses (shared with the other units on it over TCP)."""
+        return self._link
+
     def open(self) -> None:
-        if self._fd is not None:
+        if self._link is not None:
             return
-        if self._rtu:
-            try:
-                ser = serial.serial_for_url(
-                    self.device,
-                    baudrate=self.baudrate,
-                    parity=self.parity,
-                    stopbits=self.stopbits,
-                    bytesize=8,
-                    timeout=0,
-                )
-            except (serial.SerialException, OSError, ValueError) as exc:
-                raise InputError(f"modbus driver: cannot open {self.device!r}: {exc}") from None
-            if not hasattr(ser, "fd"):
-                ser.close()
-                raise InputError(f"modbus driver: RTU needs a serial device, got {self.device!r}")
-            self._ser, self._fd = ser, ser.fd
-        else:
-            try:
-                sock = socket.create_connection((self.host, self.port), self.connect_timeout)
-            except OSError as exc:
-                raise InputError(
-                    f"modbus driver: cannot connect to {self.host}:{self.port}: {exc}"
-                ) from None
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            sock.setblocking(False)
-            self._sock, self._fd = sock, sock.fileno()
-        self._buf = b""
+        self._inbox.clear()
+        self._link = Link.get(self)
 
     def close(self) -> None:
-        sock, ser = self._sock, self._ser
-        self._sock = self._ser = self._fd = None
-        try:
-            if sock is not None:
-                sock.close()
-            if ser is not None:
-                ser.close()
-        except (OSError, serial.SerialException):  # pragma: no cover
-            pass
+        link, self._link = self._link, None
+        if link is not None:
+            link.release(self)
 
     def _write(self, frame: bytes) -> None:
-        if self._fd is None:
+        link = self._link
+        if link is None:
+            self.stats.send_errors += 1
+            return
+        if link.fd is None:
             try:
-                self.open()  # reconnect after a lost connection
+                link.connect()  # reconnect after a lost connection
             except InputError:
                 self.stats.send_errors += 1
                 return
         try:
-            os.write(self._fd, frame)  # type: ignore[arg-type]
+            os.write(link.fd, frame)  # type: ignore[arg-type]
         except OSError:
             self.stats.send_errors += 1
             self.stats.disconnects += 1
-            self.close()
+            link.disconnect()
 
     # -- commands -------------------------------------------------------------------------------
     def send(self, seq: int, displacement: float, enable: bool = True) -> None:
@@ -224,8 +342,8 @@ class ModbusDriver(Driver):
             frame = body + _rtu_crc(body).to_bytes(2, "big")
         else:
             frame = _TCP_REQ.pack(
-                s16, 0, _TCP_REQ.size - 6, self.device_id, FC_RW, READ_ADDRESS, READ_COUNT,
-                WRITE_ADDRESS, WRITE_COUNT, 2 * WRITE_COUNT, s16, ctl, raw,
+                s16 ^ self._tid_x, 0, _TCP_REQ.size - 6, self.device_id, FC_RW, READ_ADDRESS,
+                READ_COUNT, WRITE_ADDRESS, WRITE_COUNT, 2 * WRITE_COUNT, s16, ctl, raw,
             )  # fmt: skip
         self._last_sent = seq
         self.stats.sent += 1
@@ -245,7 +363,8 @@ class ModbusDriver(Driver):
             body = bytes((self.device_id,)) + pdu
             frame = body + _rtu_crc(body).to_bytes(2, "big")
         else:
-            frame = struct.pack(">HHHB", 0xFFFF, 0, len(pdu) + 1, self.device_id) + pdu
+            tid = 0xFFFF ^ self._tid_x
+            frame = struct.pack(">HHHB", tid, 0, len(pdu) + 1, self.device_id) + pdu
         self._write(frame)
         if self._rtu:
             self._coil_ack = False
@@ -266,16 +385,25 @@ class ModbusDriver(Driver):
         if self._stash is not None:
             fb, self._stash = self._stash, None
             return fb
+        inbox = self._inbox
+        while inbox:  # read off the shared connection by another unit's driver
+            fb = self._handle_tcp(inbox.popleft())
+            if fb is not None:
+                return fb
+        link = self._link
+        if link is None:
+            stats.timeouts += 1
+            return None
         deadline = time.perf_counter() + timeout
         parse = self._parse_rtu if self._rtu else self._parse_tcp
         while True:
-            while self._buf:
-                fb, more = parse()
+            while link.buf:
+                fb, more = parse(link)
                 if fb is not None:
                     return fb
                 if not more:
                     break
-            fd = self._fd
+            fd = link.fd
             remaining = deadline - time.perf_counter()
             if fd is None:
                 stats.timeouts += 1
@@ -288,14 +416,14 @@ class ModbusDriver(Driver):
             except (OSError, ValueError):
                 stats.disconnects += 1
                 stats.timeouts += 1
-                self.close()
+                link.disconnect()
                 return None
             if data:
-                self._buf += data
+                link.buf += data
             elif remaining <= 0:
-                if self._rtu and self._buf:  # an idle line ends an RTU frame: drop the rest
+                if self._rtu and link.buf:  # an idle line ends an RTU frame: drop the rest
                     stats.count_malformed("bad_length")
-                    self._buf = b""
+                    link.buf = b""
                 stats.timeouts += 1
                 return None
 
@@ -311,71 +439,84 @@ class ModbusDriver(Driver):
             stats.invalid_values += 1
         return Feedback(seq, disp, force, status)
 
-    def _parse_tcp(self) -> tuple[Feedback | None, bool]:
-        """Handle the first complete ADU; return (feedback or None, keep parsing)."""
-        buf = self._buf
-        stats = self.stats
-        if len(buf) == _TCP_RESP.size and buf[2:9] == self._resp_head:
-            # fast path: exactly one well-formed FC 23 response for the last command
-            tid, _, _, _, _, _, seq16, status, rd, rf, crc = _TCP_RESP.unpack(buf)
+    def _parse_tcp(self, link: Link) -> tuple[Feedback | None, bool]:
+        """Take the first complete ADU off ``link``; return (feedback or None, keep parsing).
+
+        Another unit's response goes to that unit's inbox (a shared connection).
+        """
+        buf = link.buf
+        n = _TCP_RESP.size
+        if len(buf) >= n and buf[2:9] == self._resp_head:
+            # fast path: a well-formed FC 23 response of this unit for the last command
+            tid, _, _, _, _, _, seq16, status, rd, rf, crc = _TCP_RESP.unpack_from(buf)
             last = self._last_sent
             if (
-                tid == seq16 == (last & 0xFFFF)
+                seq16 == (last & 0xFFFF)
+                and tid == seq16 ^ self._tid_x
                 and last != self._last_delivered
                 and crc == _crc_hqx(buf[9:21], 0xFFFF)
             ):
-                self._buf = b""
-                return self._deliver(seq16, status, rd, rf), False
+                link.buf = buf[n:]
+                return self._deliver(seq16, status, rd, rf), True
         if len(buf) < 8:
             return None, False
         pid = (buf[2] << 8) | buf[3]
         length = (buf[4] << 8) | buf[5]
         if pid != 0 or not 2 <= length <= 254:
-            stats.count_malformed("bad_header")
-            self._buf = b""  # no way to resynchronise a TCP stream: drop what we have
+            self.stats.count_malformed("bad_header")
+            link.buf = b""  # no way to resynchronise a TCP stream: drop what we have
             return None, False
         end = 6 + length
         if len(buf) < end:
             return None, False
-        frame, self._buf = buf[:end], buf[end:]
+        frame, link.buf = buf[:end], buf[end:]
         if frame[6] != self.device_id:
-            stats.count_malformed("unknown_id")
+            other = link.units.get(frame[6])
+            if other is not None:  # another unit's response on the shared connection
+                other._inbox.append(frame)
+            else:
+                self.stats.count_malformed("unknown_id")
             return None, True
+        return self._handle_tcp(frame), True
+
+    def _handle_tcp(self, frame: bytes) -> Feedback | None:
+        """One complete ADU of this unit."""
+        stats = self.stats
         fc = frame[7]
         if fc == FC_RW:
-            if end != _TCP_RESP.size or frame[8] != 2 * READ_COUNT:
+            if len(frame) != _TCP_RESP.size or frame[8] != 2 * READ_COUNT:
                 stats.count_malformed("bad_length")
-                return None, True
+                return None
             tid, _, _, _, _, _, seq16, status, rd, rf, crc = _TCP_RESP.unpack(frame)
             if crc != _crc_hqx(frame[9:21], 0xFFFF):
                 stats.count_malformed("bad_crc")
-                return None, True
-            if tid != seq16:
+                return None
+            if tid != seq16 ^ self._tid_x:
                 stats.count_malformed("bad_frame")
-                return None, True
-            return self._deliver(seq16, status, rd, rf), True
+                return None
+            return self._deliver(seq16, status, rd, rf)
         if fc == FC_WRITE_COIL:
-            return None, True  # e-stop acknowledged
+            return None  # e-stop acknowledged
         stats.count_malformed("modbus_exception" if fc & 0x80 else "unknown_function")
-        return None, True
+        return None
 
-    def _parse_rtu(self) -> tuple[Feedback | None, bool]:
-        buf = self._buf
+    def _parse_rtu(self, link: Link) -> tuple[Feedback | None, bool]:
+        buf = link.buf
         stats = self.stats
         if len(buf) < 5:
             return None, False
         if buf[0] != self.device_id:
             stats.count_malformed("unknown_id")
-            self._buf = b""
+            link.buf = b""
             return None, False
         fc = buf[1]
         size = _RTU_RESP.size if fc == FC_RW else 8 if fc == FC_WRITE_COIL else 5
         if len(buf) < size:
             return None, False
-        frame, self._buf = buf[:size], buf[size:]
+        frame, link.buf = buf[:size], buf[size:]
         if _rtu_crc(frame[:-2]) != ((frame[-2] << 8) | frame[-1]):
             stats.count_malformed("bad_crc")
-            self._buf = b""  # resynchronise on the next frame
+            link.buf = b""  # resynchronise on the next frame
             return None, False
         if fc == FC_RW:
             if frame[2] != 2 * READ_COUNT:

@@ -779,6 +779,17 @@ class OnlineFEI:
             # ring buffer, no concatenation.
             self._remember(x, y)
             return self._finish_one(int(ends[0]), *self._one_window(*self._window()))
+        j = int(ends[0]) - first + 1  # samples of this block in the first window
+        if ends.size == 1 and min(self.N - 1, self._pos) >= self.N - j:
+            # One window ending inside the block (a block of hop samples that is not aligned
+            # with the window ends, as the loop's exact cross-check pushes them): the rest of
+            # the window from the history, then the same one-window sums as above.
+            hx, hy = self._history()
+            need = self.N - j
+            xw = np.concatenate([hx[hx.size - need :], x[:j]])
+            yw = np.concatenate([hy[hy.size - need :], y[:j]])
+            self._remember(x, y)
+            return self._finish_one(int(ends[0]), *self._one_window(xw, yw))
         else:
             hx, hy = self._history()
             start = first - hx.size  # absolute index of ext[0]

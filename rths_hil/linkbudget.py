@@ -46,8 +46,24 @@ step needs the line for both frames in turn::
 (+ 90 bytes each: preamble and interframe gap 20, Ethernet header and FCS 18, IPv4 20,
 TCP with timestamps 32) on an assumed 100 Mbit/s link.
 
-Links without a rate — the python-can ``virtual`` bus, pseudo-terminals, ``loop://`` and TCP
-to the loopback interface — report "no limit". A CAN bus whose interface sets the bit rate
+**CAN through a serial line** (python-can's ``slcan`` and ``serial`` interfaces: a USB–CAN
+adapter, or the served CAN twin's pseudo-terminals). Each frame crosses the line between the
+computer and the adapter as characters: ``slcan`` (Lawicel ASCII) ``t``, 3 hex identifier
+digits, the DLC digit, 2 hex digits per data byte and CR = ``6 + 2s`` characters (8 bytes: 22);
+python-can's ``serial`` framing 0xAA, 4-byte timestamp, DLC, 4-byte identifier, the data and
+0xBB = ``11 + s`` bytes (8 bytes: 19); 10-bit characters (8N1). As on a serial line the two
+frames of a step take the line in turn::
+
+    load = channels · (chars_command + chars_feedback) · 10 · fs / baud
+
+The baud rate is ``bus_options.tty_baudrate`` (``slcan``; or a channel ending in ``@baud``) or
+``bus_options.baudrate`` (``serial``), python-can's default 115 200 otherwise. With a CAN
+``bitrate`` too, the CAN bus behind the adapter is loaded as above and the larger of the two
+loads is the link's.
+
+Links without a rate — the python-can ``virtual`` bus, pseudo-terminals (so the served CAN
+twin's ``slcan``/``serial`` pair), ``loop://`` and TCP to the loopback interface — report "no
+limit". A CAN bus whose interface sets the bit rate
 itself (no ``bitrate`` in the connection) reports its bits per step and "bit rate unknown".
 
 References
@@ -78,6 +94,7 @@ __all__ = [
     "LinkLoad",
     "can_fd_frame_time",
     "can_frame_bits",
+    "can_serial_frame_chars",
     "check_links",
     "cobs_frame_bytes",
     "format_loads",
@@ -102,6 +119,10 @@ ETHERNET_BITRATE = 100_000_000
 TCP_SEGMENT_OVERHEAD = 90
 #: CAN FD rates used in the advice: 1 Mbit/s nominal, 5 Mbit/s data.
 CAN_FD_RATES = (1_000_000, 5_000_000)
+#: python-can interfaces that carry CAN frames over a serial line (see the module docstring).
+CAN_SERIAL_INTERFACES = ("slcan", "serial")
+#: python-can's default baud rate of those interfaces.
+CAN_SERIAL_DEFAULT_BAUD = 115200
 
 
 # --------------------------------------------------------------------------------------------
@@ -214,6 +235,41 @@ def serial_frame_bytes() -> tuple[int, int]:
 
     crc = 2
     return cobs_frame_bytes(COMMAND.size + crc), cobs_frame_bytes(FEEDBACK.size + crc)
+
+
+def can_serial_frame_chars(interface: str, data_bytes: int) -> int:
+    """Characters a standard-identifier CAN data frame takes on the serial line of ``interface``.
+
+    ``slcan``: ``t`` + 3 identifier + 1 DLC + 2 per data byte + CR = ``6 + 2s``. ``serial``
+    (python-can's framing): 0xAA + 4 timestamp + 1 DLC + 4 identifier + ``s`` + 0xBB = ``11 + s``.
+    """
+    n = int(data_bytes)
+    if not 0 <= n <= 8:
+        raise InputError(f"classic CAN carries 0–8 data bytes, got {data_bytes}")
+    if interface == "slcan":
+        return 6 + 2 * n
+    if interface == "serial":
+        return 11 + n
+    raise InputError(f"python-can interface {interface!r} is not a serial-line interface")
+
+
+def _can_serial_line(c: dict[str, Any], interface: str) -> tuple[str, float]:
+    """The serial device and baud rate of a python-can ``slcan``/``serial`` connection."""
+    device = str(c.get("channel", ""))
+    opts = dict(c.get("bus_options") or {})
+    baud: Any = opts.get("tty_baudrate" if interface == "slcan" else "baudrate")
+    if interface == "slcan" and "@" in device:
+        device, suffix = device.split("@", 1)
+        baud = suffix
+    if baud is None:
+        baud = CAN_SERIAL_DEFAULT_BAUD
+    try:
+        baud = float(baud)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"CAN {interface} {device}: baud rate must be a number, got {baud!r}"
+        ) from None
+    return device, baud
 
 
 def _can_frame_lengths(dbc: str | None) -> tuple[int, int, int]:
@@ -379,6 +435,8 @@ def link_load(
             frames += f" + heartbeats {ch} × {b_hb} bits at {hb:g} Hz"
         bitrate = c.get("bitrate")
         interface = str(c.get("interface", "virtual"))
+        if interface in CAN_SERIAL_INTERFACES:
+            return _can_serial_load(c, interface, name, (n_cmd, n_fb, n_hb), bits_step, hb, base)
         if bitrate is None:
             why = "virtual bus" if interface == "virtual" else "bit rate set by the interface"
             return LinkLoad(
@@ -478,6 +536,62 @@ def link_load(
         )
 
     return LinkLoad(name, None, f"driver {driver_name!r}: frame sizes unknown, not checked", **base)
+
+
+def _can_serial_load(
+    c: dict[str, Any],
+    interface: str,
+    name: str,
+    lengths: tuple[int, int, int],
+    can_bits_step: int,
+    hb: float,
+    base: dict[str, Any],
+) -> LinkLoad:
+    """Load of a CAN link through a serial line (``slcan``, ``serial``): module docstring."""
+    ch, fs = base["channels"], base["fs"]
+    device, baud = _can_serial_line(c, interface)
+    baud = _positive(baud, f"{name}: baud rate")
+    c_cmd, c_fb, c_hb = (can_serial_frame_chars(interface, n) for n in lengths)
+    bpc = _bits_per_char("N", 1)  # python-can opens both 8N1
+    unit = "characters" if interface == "slcan" else "bytes"
+    frames = f"{ch} × ({c_cmd} + {c_fb} {interface} {unit} of {bpc:g} bits per step) at {fs:g} Hz"
+    if hb > 0:
+        frames += f" + heartbeats {ch} × {c_hb} {unit} at {hb:g} Hz"
+    why = _serial_rate_kind(device)
+    if why is not None:
+        return LinkLoad(name, None, f"{why}; {frames}", kind="serial", **base)
+    t_step = (c_cmd + c_fb) * bpc / baud
+    t_hb = ch * c_hb * bpc * hb / baud
+    line = ch * t_step * fs + t_hb
+    detail = f"{frames} on {baud:.0f} baud"
+    bitrate = c.get("bitrate")
+    if bitrate is not None:
+        rate = _positive(bitrate, f"{name}: bitrate (bit/s)")
+        b_hb = can_frame_bits(lengths[2])
+        bus = (can_bits_step * fs + ch * b_hb * hb) / rate
+        detail += f"; the CAN bus behind it {bus * 100:.1f} % of {_rate_text(rate)}"
+        if bus > line:
+            b_step = can_frame_bits(lengths[0]) + can_frame_bits(lengths[1])
+            return LinkLoad(
+                name,
+                bus,
+                detail,
+                kind="can",
+                rate=rate,
+                per_channel=b_step / rate,
+                per_second=ch * b_hb * hb / rate,
+                **base,
+            )
+    return LinkLoad(
+        name,
+        line,
+        detail,
+        kind="serial",
+        rate=baud,
+        per_channel=t_step,
+        per_second=t_hb,
+        **base,
+    )
 
 
 def _next_rate(needed: float, rates: tuple[int, ...]) -> int | None:

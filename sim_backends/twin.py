@@ -65,8 +65,9 @@ def start_twin(
         Serve in a thread (default). ``False``: the caller serves with ``endpoint.pump()``
         (CAN on the ``virtual`` interface only; the lockstep loop's fast path).
     **connection
-        Endpoint settings. ``can``: ``interface`` (``virtual``), ``channel`` (a fresh unique
-        name by default), ``bitrate``, ``dbc``, ``bus_options``. ``modbus``: ``transport``
+        Endpoint settings. ``can``: ``interface`` (``virtual``; ``slcan`` reaches other
+        processes over a pseudo-terminal pair), ``channel`` (a fresh unique name by default;
+        ``slcan``: ``pty``), ``bitrate``, ``dbc``, ``bus_options``. ``modbus``: ``transport``
         (``tcp`` or ``rtu``), ``host`` (127.0.0.1), ``port`` (0 = any free port), ``device_id``
         (1), ``device`` (RTU: serial device; default a new pseudo-terminal). ``serial``:
         ``transport`` (``pty`` or ``tcp``), ``host``, ``port``.
@@ -85,7 +86,7 @@ def start_twin(
     controller = TwinController(
         plant, faults, seq_bits=entry.seq_bits, heartbeat_timeout=heartbeat_timeout
     )
-    if entry.fresh_channel:
+    if entry.fresh_channel and connection.get("interface", "virtual") == "virtual":
         connection.setdefault("channel", f"rths-twin-{uuid.uuid4().hex[:8]}")
     try:
         endpoint: TwinEndpoint = cls(controller, **connection)

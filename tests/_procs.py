@@ -62,9 +62,17 @@ class ServedTwin:
 
 
 def toml_table(d: dict) -> str:
-    """A TOML inline table of strings and ints (for ``--set driver.connection=...``)."""
-    parts = [f"{k} = {json.dumps(v) if isinstance(v, str) else v}" for k, v in d.items()]
-    return "{" + ", ".join(parts) + "}"
+    """A TOML inline table of strings, numbers, booleans and tables (for ``--set
+    driver.connection=...``)."""
+
+    def value(v):
+        if isinstance(v, dict):
+            return toml_table(v)
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        return json.dumps(v) if isinstance(v, str) else repr(v)
+
+    return "{" + ", ".join(f"{k} = {value(v)}" for k, v in d.items()) + "}"
 
 
 def bridge_cmd(driver: str, connection: dict, out: Path, *extra: str) -> list[str]:

@@ -152,7 +152,7 @@ def test_a_fault_on_one_channel_stops_every_channel(tmp_path, fault):
         over.append("actuators.storey3.twin.faults=stuck_from=3000")
     elif fault == "disconnect":
         # lockstep waits for each reply up to this wall-clock bound, which then trips
-        over += ["actuators.storey3.twin.faults=disconnect_from=3000", "loop.lockstep_timeout=0.2"]
+        over += ["actuators.storey3.twin.faults=disconnect_from=3000", "loop.lockstep_timeout=1.0"]
     else:
         over += ["actuators.storey3.safety.fei_consecutive=32", "safety.warmup=2.5"]
         plant = {"storey3": _delay_jump_plant(1 / 1024, 4000)}

@@ -31,7 +31,7 @@ from pymodbus.pdu.register_message import (
 from rths_hil.drivers.base import Driver, Status, extend_seq
 from rths_hil.drivers.can import CANDriver, virtual_rx_queue
 from rths_hil.drivers.can.codec import DBC_PATH, Frame, load
-from rths_hil.drivers.modbus import ModbusDriver
+from rths_hil.drivers.modbus import Link, ModbusDriver
 from rths_hil.drivers.registry import available, create_driver, driver_class
 from rths_hil.drivers.serial import SerialDriver
 from rths_hil.sim_backends.endpoints.base import TwinController
@@ -248,7 +248,10 @@ def _modbus_pair(transport: str) -> tuple[ModbusDriver, int]:
     drv = ModbusDriver(transport=transport, **kw)
     a, b = socket.socketpair()
     a.setblocking(False)
-    drv._sock, drv._fd = a, a.fileno()
+    link = Link(None, lambda: (a, None, a.fileno()))
+    link.units[drv.device_id] = drv
+    link.connect()
+    drv._link = link
     drv._peer = b  # keep it alive
     return drv, b.fileno()
 

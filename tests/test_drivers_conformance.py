@@ -1,7 +1,8 @@
 """One conformance suite for every driver, against its twin over a real transport.
 
-Transports: the python-can virtual bus (and SocketCAN vcan0 where the host has it), Modbus TCP
-on 127.0.0.1 and Modbus RTU over an os.openpty pseudo-terminal pair, the COBS/CRC serial
+Transports: the python-can virtual bus (and SocketCAN vcan0 where the host has it), python-can's
+``serial`` and ``slcan`` interfaces over the CAN twin's null-modem pair of pseudo-terminals,
+Modbus TCP on 127.0.0.1 and Modbus RTU over an os.openpty pseudo-terminal pair, the COBS/CRC serial
 protocol over an os.openpty pair and over a TCP socket (pyserial socket://).
 
 The expected feedback is computed independently of the twin's streaming code: the offline
@@ -67,6 +68,10 @@ TRANSPORTS = [
               corrupt_reason="bad_length"),
     Transport("can-socketcan", "can", {"interface": "socketcan", "channel": "vcan0"},
               force_lsb=0.5, corrupt_reason="bad_length", skip=_socketcan_reason()),
+    Transport("can-serial-pty", "can", {"interface": "serial"}, force_lsb=0.5,
+              corrupt_reason="bad_length"),
+    Transport("can-slcan-pty", "can", {"interface": "slcan"}, force_lsb=0.5,
+              corrupt_reason="bad_length"),
     Transport("modbus-tcp", "modbus", {"transport": "tcp"}),
     Transport("modbus-rtu", "modbus", {"transport": "rtu"}),
     Transport("serial-pty", "serial", {"transport": "pty"}, None, None, None),
@@ -342,3 +347,35 @@ def test_invalid_commands_are_refused(rig_factory) -> None:
     with pytest.raises(InputError, match="sequence"):
         rig.driver.send(-1, 0.0)
     assert rig.driver.stats.sent == 0
+
+
+@pytest.mark.parametrize("interface", ["serial", "slcan"])
+def test_can_over_a_serial_line_reports_the_far_end_gone(interface, caplog) -> None:
+    """The served CAN twin's pseudo-terminals closed under a connected driver (the twin process
+    killed): receive returns at once with a disconnect, and python-can's notifier thread
+    ends after one warning instead of retrying the dead line forever or dying with a traceback."""
+    import threading
+
+    twin = start_twin("can", plant(), interface=interface)
+    drv = create_driver("can", **twin.connection)
+    drv.open()
+    try:
+        assert drv.arm(1.0) is not None
+        for k in range(10):
+            drv.send(k, 0.001, True)
+            assert drv.receive(1.0) is not None
+        twin.stop()  # closes both pseudo-terminals
+        time.sleep(0.3)
+        t = time.perf_counter()
+        drv.send(10, 0.001, True)
+        assert drv.receive(0.2) is None
+        assert time.perf_counter() - t < 0.25
+        assert drv.stats.disconnects + drv.stats.send_errors >= 1
+        path = drv.channel
+        readers = [t for t in threading.enumerate() if "Notifier" in t.name and path in t.name]
+        assert not readers, readers
+        gone = [r for r in caplog.records if "reading the bus failed" in r.getMessage()]
+        assert len(gone) == 1, [r.getMessage() for r in caplog.records]
+    finally:
+        drv.close()
+        twin.stop()

@@ -5,9 +5,9 @@ is in
 steps after the faulty one) and paced at 1024 Hz (the bound is wall-clock time from the fault's
 deadline to the trip, read from the run's own events: ``clock`` gives the wall time of deadline
 0, the ``trip`` event its ISO 8601 wall time). Process faults use ``rths-hil twin serve`` as its
-own process (Modbus TCP and serial over a pseudo-terminal; CAN's virtual bus is in-process
-only): the twin
-killed with SIGKILL and the twin stopped for 1 s (SIGSTOP … SIGCONT). The bridge killed is
+own process (Modbus TCP, serial over a pseudo-terminal, CAN through python-can's ``serial``
+interface on the twin's pseudo-terminal pair): the twin killed with SIGKILL and the twin
+stopped for 1 s (SIGSTOP … SIGCONT). The bridge killed is
 ``tests/test_controller_watchdog.py``. Each run prints one matrix row (``pytest -s``).
 
 Faults that must not trip (a duplicated reply; a reply delayed less than the lockstep bound)
@@ -185,11 +185,15 @@ def test_paced(tmp_path, driver, fault):
     assert 0 <= t <= bound, (t, res.trip)
 
 
-@pytest.mark.parametrize("driver", ["modbus", "serial"])
+# driver → ``twin serve`` options for the process faults (serial: a pty by default)
+SERVED = {"can": ["--interface", "serial"], "modbus": [], "serial": []}
+
+
+@pytest.mark.parametrize("driver", sorted(SERVED))
 @pytest.mark.parametrize("fault", ["twin_killed", "twin_stopped_1s"])
 def test_paced_twin_process(tmp_path, driver, fault):
     """The twin as its own process, killed or stopped for 1 s while a paced run steps."""
-    twin = ServedTwin("--driver", driver, "--heartbeat-timeout", "0")  # serial: a pty
+    twin = ServedTwin("--driver", driver, *SERVED[driver], "--heartbeat-timeout", "0")
     try:
         cfg = load_config(
             None,

@@ -3,7 +3,8 @@
 References: the issue's hand-worked numbers (an 8-byte classic CAN frame is 111–135 bits;
 command + feedback per channel at 1024 Hz ≈ 28 % of 1 Mbit/s), CAN frames built bit by bit
 (CRC-15 and bit stuffing computed here) from cantools-encoded DBC messages, Modbus RTU frames
-built by pymodbus's FramerRTU, serial frames built by the driver's own encoder, and a real
+built by pymodbus's FramerRTU, serial frames built by the driver's own encoder, CAN frames
+through a serial line as python-can's ``slcan`` and ``serial`` interfaces write them, and a real
 pseudo-terminal for the "no limit" case.
 """
 
@@ -27,6 +28,7 @@ from rths_hil.errors import InputError
 from rths_hil.linkbudget import (
     can_fd_frame_time,
     can_frame_bits,
+    can_serial_frame_chars,
     check_links,
     cobs_frame_bytes,
     format_loads,
@@ -278,3 +280,76 @@ def test_bad_arguments():
     assert "bitrate" in str(e.value)
     with pytest.raises(InputError):
         link_load("modbus", {"transport": "rtu", "device": "/dev/ttyS0", "parity": "X"}, 1, FS)
+
+
+# -- CAN through a serial line (python-can slcan / serial) -------------------------------------
+@pytest.mark.parametrize("interface", ["slcan", "serial"])
+def test_can_serial_line_frames_as_python_can_writes_them(interface):
+    """Each data length: the bytes python-can's interface writes to a loop:// line."""
+    import can
+
+    opts = {"sleep_after_open": 0.0} if interface == "slcan" else {}
+    bus = can.Bus(interface=interface, channel="loop://", **opts)
+    port = bus.serialPortOrig if interface == "slcan" else bus._ser
+    try:
+        port.read(port.in_waiting)  # slcan's "O\r" on opening
+        for n in range(9):
+            msg = can.Message(arbitration_id=0x180, data=bytes(range(n)), is_extended_id=False)
+            bus.send(msg)
+            wrote = port.read(port.in_waiting)
+            assert len(wrote) == can_serial_frame_chars(interface, n), (n, wrote)
+    finally:
+        bus.shutdown()
+
+
+def test_can_serial_line_load_and_refusal():
+    # python-can serial framing, 8-byte command and feedback: 19 + 19 bytes of 10 bits
+    usb = {"interface": "serial", "channel": "/dev/ttyUSB0", "bus_options": {"baudrate": 921600}}
+    ld = link_load("can", usb, 1, FS)
+    assert ld.load == pytest.approx(38 * 10 * FS / 921600) and ld.kind == "serial"
+    # slcan at python-can's default 115 200 baud: 22 + 22 characters, ≈ 3.9 × the line
+    acm = {"interface": "slcan", "channel": "/dev/ttyACM0"}
+    ld = link_load("can", acm, 1, FS)
+    assert ld.load == pytest.approx(44 * 10 * FS / 115200)
+    # needs 115200 · 3.91 / 0.8 ≈ 563 kbaud: the next standard rate is 921 600
+    with pytest.raises(InputError, match=r"slcan:/dev/ttyACM0 is 391 % .*fit: .* 921600 baud$"):
+        check_links([ld])
+    # the baud rate from the channel suffix; the CAN bus behind it binds when it is slower
+    fast = link_load("can", {**acm, "channel": "/dev/ttyACM0@3000000", "bitrate": 125_000}, 1, FS)
+    assert fast.kind == "can" and fast.load == pytest.approx(2 * 135 * FS / 125_000)
+    with pytest.raises(InputError, match="baud rate must be a number"):
+        link_load("can", {**acm, "bus_options": {"tty_baudrate": "x"}}, 1, FS)
+
+
+def test_can_serial_line_on_a_pseudo_terminal_has_no_limit():
+    """The served CAN twin's null-modem pair: no line rate."""
+    from rths_hil.sim_backends.endpoints.nullmodem import NullModem
+
+    with NullModem() as cable:
+        for interface in ("slcan", "serial"):
+            ld = link_load("can", {"interface": interface, "channel": cable.bridge_path}, 4, FS)
+            assert ld.load is None and "pseudo-terminal" in ld.summary()
+            assert "no limit" in ld.summary()
+
+
+def test_modbus_rtu_units_on_one_line_sum_their_transactions():
+    # one master, one line: the units' FC 23 transactions queue. 115 200 baud 8E1:
+    # T = (21 + 19 + 7) × 11 / 115 200 = 4.488 ms per unit and step.
+    t = 47 * 11 / 115200
+    line = {"transport": "rtu", "device": "/dev/ttyUSB0"}
+    two_at_50 = link_load("modbus", line, 2, 50.0)
+    assert two_at_50.load == pytest.approx(2 * t * 50) == pytest.approx(0.44878, abs=1e-5)
+    check_links([two_at_50])  # 44.9 %: fits
+    assert two_at_50.channels == 2 and "2 × FC 23" in two_at_50.detail
+    # the same two units at 100 Hz: 2 × 4.488 ms × 100 = 89.8 % > 80 %
+    two_at_100 = link_load("modbus", line, 2, 100.0)
+    assert two_at_100.load == pytest.approx(0.89757, abs=1e-5)
+    with pytest.raises(InputError) as e:
+        check_links([two_at_100])
+    msg = str(e.value)
+    assert "90 % loaded with 2 channels at 100 Hz" in msg
+    assert "≤ 89 Hz" in msg  # 0.8 / (2 × 4.488 ms) = 89.1 Hz
+    assert "≤ 1 channel per link" in msg  # 0.8 / (4.488 ms × 100 Hz) = 1.78
+    assert "230400 baud" in msg and "Modbus TCP" in msg
+    # units on one TCP connection to the loopback: no limit, whatever their number
+    assert link_load("modbus", {"host": "127.0.0.1", "port": 1502}, 8, FS).load is None

@@ -58,8 +58,10 @@ def test_chunked_summary_equals_the_in_memory_one(run_dir):
     full = summarize(run_dir, write=False)
     lean = summarize(run_dir, write=False, lean_rows=1000)
     for key in ("fei_target", "fei_command"):
+        # the chunked FEI transforms in single precision (sums in double): ≈ 1e-7 relative
         for q in ("amplitude", "delay", "f_eq"):
-            assert lean[key][q] == pytest.approx(full[key][q], rel=1e-9, abs=1e-15)
+            assert lean[key][q] == pytest.approx(full[key][q], rel=2e-6, abs=1e-12)
+            assert lean[key][q] != full[key][q] or q == "f_eq"  # it is the chunked path
         assert lean[key]["valid"] == full[key]["valid"] is True
     for q, v in full["metrics"].items():
         assert lean["metrics"][q] == pytest.approx(v, rel=1e-9, abs=1e-15), q

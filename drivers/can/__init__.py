@@ -11,7 +11,9 @@ path.
 The bus is opened through python-can from configuration: ``interface`` (default
 ``"virtual"``, in-process only), ``channel``, ``bitrate`` and any extra python-can options in
 ``bus_options``. On Linux with SocketCAN use ``interface="socketcan", channel="vcan0"``
-(or ``can0``).
+(or ``can0``); a USB–CAN adapter or a twin served as its own process on this machine
+(``rths-hil twin serve --driver can --interface serial``) is reached through python-can's
+``serial`` or ``slcan`` interface with the serial device as ``channel``.
 
 **Several actuators on one bus.** Each controller is a CAN *node* ``n`` (``node``, 0–15): all
 its message identifiers are the DBC's plus ``n`` (``Command`` 0x100 + n, ``Feedback``
@@ -30,6 +32,7 @@ microsecond; interfaces known to honour it (:data:`TIMEOUT_HONOURED`) are read d
 
 from __future__ import annotations
 
+import logging
 import math
 import queue
 import threading
@@ -63,6 +66,26 @@ MAX_NODE = 15
 TIMEOUT_HONOURED = frozenset({"virtual", "socketcan"})
 
 _BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
+
+log = logging.getLogger(__name__)
+
+
+class _Reader(can.BufferedReader):
+    """python-can's buffered reader that takes the notifier thread's error (the bus gone, e.g.
+    the far end of a pseudo-terminal closed) instead of letting the thread die with a traceback.
+
+    A handled error does not end python-can's notifier loop, which would retry the dead bus at
+    once, forever: the reader stops its notifier (``stop(timeout=0)`` from its own thread joins
+    nothing), and the driver reports the bus as disconnected through ``Notifier.exception``.
+    """
+
+    notifier: can.Notifier | None = None
+
+    def on_error(self, exc: Exception) -> None:
+        log.warning("CAN: reading the bus failed, no more frames: %s", exc)
+        notifier, self.notifier = self.notifier, None
+        if notifier is not None:
+            notifier.stop(timeout=0.0)
 
 
 def virtual_rx_queue(bus: can.BusABC | None) -> queue.Queue | None:
@@ -128,8 +151,8 @@ def shared_bus(side: str, interface: str, channel: str, **kwargs: Any) -> Shared
                 ) from None
             share = _SHARED[key] = SharedBus(key, bus)
             if side == "bridge" and str(interface) not in TIMEOUT_HONOURED:
-                share.reader = can.BufferedReader()
-                share.notifier = can.Notifier(bus, [share.reader], timeout=0.01)
+                share.reader = reader = _Reader()
+                share.notifier = reader.notifier = can.Notifier(bus, [reader], timeout=0.01)
         share.refs += 1
         return share
 

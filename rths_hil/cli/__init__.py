@@ -42,13 +42,27 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Build the top-level parser with every available sub-command."""
+def _command_in(argv: Sequence[str] | None) -> str | None:
+    """The sub-command ``argv`` names (its first word that is not an option), if known."""
+    words = [a for a in (sys.argv[1:] if argv is None else argv) if not a.startswith("-")]
+    return words[0] if words and words[0] in COMMANDS else None
+
+
+def build_parser(
+    argv: Sequence[str] | None = None, *, only: bool = False
+) -> argparse.ArgumentParser:
+    """Build the top-level parser with every available sub-command.
+
+    With ``only``, just the sub-command ``argv`` names when it names one: each sub-command
+    imports what it needs when it registers (``evaluate`` scipy.signal, ``diagnose`` numba
+    kernels …), seconds of start-up that ``twin serve`` and the others do not need.
+    """
     parser = _Parser(prog="rths-hil", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"rths-hil {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    for name in COMMANDS:
+    named = _command_in(argv) if only else None
+    for name in (named,) if named else COMMANDS:
         try:
             module = importlib.import_module(f"{__name__}.{name}")
         except ModuleNotFoundError as exc:
@@ -70,7 +84,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError:  # not the main thread
         old = None
     try:
-        parser = build_parser()
+        parser = build_parser(argv, only=True)
     finally:
         if old is not None:
             signal.signal(signal.SIGINT, old)

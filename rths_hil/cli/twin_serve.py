@@ -1,15 +1,19 @@
 """``rths-hil twin serve``: run a virtual servo-hydraulic twin as its own process.
 
 For a lab's dry run: the twin speaks the chosen driver's real protocol on a real transport and
-prints, on one line, where it listens and the driver connection settings (JSON) that reach it.
+prints, on one line, where it listens and the driver connection settings (JSON) that reach it
+(one line per Modbus unit when ``--device-id`` is given several times: units of one TCP
+server, each its own controller, plant, faults and watchdog).
 Ctrl-C (SIGINT) or SIGTERM stops it cleanly with exit code 0.
 
 Examples::
 
     rths-hil twin serve --driver modbus --port 1502
+    rths-hil twin serve --driver modbus --port 1502 --device-id 1 --device-id 2   # two units
     rths-hil twin serve --driver modbus --transport rtu          # prints the /dev/pts path
     rths-hil twin serve --driver serial                          # pseudo-terminal
     rths-hil twin serve --driver serial --transport tcp --port 5000
+    rths-hil twin serve --driver can --interface serial              # pseudo-terminal pair
     rths-hil twin serve --driver can --interface socketcan --channel vcan0 --model twin.toml
 """
 
@@ -51,9 +55,24 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--port", type=int, default=None, help="TCP port (default 0: any free port, printed)"
     )
     p.add_argument("--device", help="modbus rtu: serial device to serve (default: a new pty)")
-    p.add_argument("--device-id", type=int, default=1, help="modbus unit id (default 1)")
-    p.add_argument("--interface", default="socketcan", help="CAN: python-can interface")
-    p.add_argument("--channel", default="vcan0", help="CAN: channel (default vcan0)")
+    p.add_argument(
+        "--device-id",
+        type=int,
+        action="append",
+        default=None,
+        help="modbus unit id (default 1); repeat for several units on one TCP server",
+    )
+    p.add_argument(
+        "--interface",
+        default="socketcan",
+        help="CAN: python-can interface (default socketcan; serial or slcan: a pseudo-terminal "
+        "pair on this machine)",
+    )
+    p.add_argument(
+        "--channel",
+        default=None,
+        help="CAN: channel (default vcan0; serial, slcan: pty = a new pseudo-terminal pair)",
+    )
     p.add_argument("--bitrate", type=int, default=None, help="CAN: bit rate (bit/s)")
     p.add_argument("--faults", default=None, help='fault plan, e.g. "drop=5,9; p_corrupt=0.01"')
     p.add_argument(
@@ -67,16 +86,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _connection(args: argparse.Namespace) -> dict[str, Any]:
     """The endpoint settings the options give (transports from the twin registry)."""
+    from rths_hil.sim_backends.endpoints.can import PTY_INTERFACES
     from rths_hil.sim_backends.registry import TWINS
 
     if args.driver == "can":
         if args.interface == "virtual":
             raise InputError(
                 "--interface virtual: python-can's virtual bus only reaches buses inside the same "
-                "process; use --interface socketcan --channel vcan0 (or the lab's interface), or "
+                "process; use --interface serial or slcan (a pseudo-terminal pair on this "
+                "machine), --interface socketcan --channel vcan0 (or the lab's interface), or "
                 "start the twin in-process with sim_backends.twin.start_twin"
             )
-        conn: dict[str, Any] = {"interface": args.interface, "channel": args.channel}
+        channel = args.channel
+        if channel is None:
+            channel = "pty" if args.interface in PTY_INTERFACES else "vcan0"
+        conn: dict[str, Any] = {"interface": args.interface, "channel": channel}
         if args.bitrate is not None:
             conn["bitrate"] = args.bitrate
         return conn
@@ -96,7 +120,12 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
                 "allow_remote": args.allow_remote,
             }
     if args.driver == "modbus":
-        conn["device_id"] = args.device_id
+        units = args.device_id or [1]
+        if len(units) > 1 and conn.get("transport") != "tcp":
+            raise InputError("--device-id given several times: several units are served over TCP")
+        if len(set(units)) != len(units):
+            raise InputError(f"--device-id: unit ids repeat: {units}")
+        conn["device_id"] = units[0]
         if conn.get("transport") == "rtu" and args.device:
             conn["device"] = args.device
     return conn
@@ -110,13 +139,14 @@ def run(args: argparse.Namespace) -> int:
     dt = DEFAULT_DT if args.dt is None else parse_time(args.dt, "--dt")
     if not dt > 0:
         raise InputError(f"--dt {args.dt}: the step must be > 0")
-    if args.model:
-        from rths_hil.sim_backends.registry import build_plant
 
-        plant = build_plant(args.model, dt)
-    else:
-        plant = default_plant(dt=dt)
-    faults = Faults.parse(args.faults) if args.faults else None
+    def plant():
+        if args.model:
+            from rths_hil.sim_backends.registry import build_plant
+
+            return build_plant(args.model, dt)
+        return default_plant(dt=dt)
+
     hb = parse_time(args.heartbeat_timeout, "--heartbeat-timeout")
     if not hb >= 0:
         raise InputError(f"--heartbeat-timeout {args.heartbeat_timeout}: must be >= 0 s")
@@ -124,26 +154,42 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        twin = start_twin(
-            args.driver, plant, faults=faults, heartbeat_timeout=hb, **_connection(args)
-        )
+        conn = _connection(args)
+        units = (args.device_id or [1]) if args.driver == "modbus" else [None]
+        twins: list[Any] = []
         try:
-            print(
-                f"rths-hil twin serve: {args.driver} twin listening on {twin.where} "
-                f"connection {json.dumps(twin.connection)}",
-                flush=True,
-            )
+            for unit in units:
+                if unit is not None and twins:  # the next unit of the first one's server
+                    conn = dict(twins[0].connection, device_id=unit)
+                    conn["allow_remote"] = args.allow_remote
+                twin = start_twin(
+                    args.driver,
+                    plant(),
+                    faults=Faults.parse(args.faults) if args.faults else None,
+                    heartbeat_timeout=hb,
+                    **conn,
+                )
+                twins.append(twin)
+                print(
+                    f"rths-hil twin serve: {args.driver} twin listening on {twin.where} "
+                    f"connection {json.dumps(twin.connection)}",
+                    flush=True,
+                )
             while not stop.wait(0.2):
-                if twin.error is not None:
-                    raise InputError(f"twin endpoint stopped: {twin.error}")
+                for twin in twins:
+                    if twin.error is not None:
+                        raise InputError(f"twin endpoint stopped: {twin.error}")
         finally:
-            twin.stop()
-        s = twin.stats
-        print(
-            f"rths-hil twin serve: stopped after {s.steps} steps "
-            f"({s.commands} commands, {s.estops} e-stops, {s.malformed} malformed)",
-            file=sys.stderr,
-        )
+            for twin in reversed(twins):
+                twin.stop()
+        for twin in twins:
+            s = twin.stats
+            who = f"unit {twin.device_id}: " if len(twins) > 1 else ""
+            print(
+                f"rths-hil twin serve: {who}stopped after {s.steps} steps "
+                f"({s.commands} commands, {s.estops} e-stops, {s.malformed} malformed)",
+                file=sys.stderr,
+            )
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

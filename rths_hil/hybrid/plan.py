@@ -691,12 +691,22 @@ def link_loads(cfg: Config, channels: list[ChannelPlan], fs: float) -> list:
 
 
 def _check_shared_links(cfg: Config, channels: list[ChannelPlan]) -> None:
-    """Channels sharing a link must be told apart: CAN node ids, Modbus unit ids; serial: no."""
+    """Channels sharing a link must be told apart: CAN node ids, Modbus unit ids; serial: no.
+
+    Modbus TCP channels on one ``host:port`` share one connection (and, with twins, one
+    server); each needs its own unit id (``driver.connection.device_id``, 1–247). A Modbus RTU
+    line carries one channel.
+    """
     seen: dict[tuple, str] = {}
-    for ch in channels:
+    tcp = [
+        (c.connection.get("host", "127.0.0.1"), c.connection.get("port", 502))
+        for c in channels
+        if c.driver_name == "modbus" and c.connection.get("transport", "tcp") == "tcp"
+    ]
+    for i, ch in enumerate(channels):
         conn = ch.connection
         if ch.driver_name == "can":
-            key = (
+            key: tuple = (
                 "can",
                 conn.get("interface", "virtual"),
                 conn.get("channel"),
@@ -705,9 +715,29 @@ def _check_shared_links(cfg: Config, channels: list[ChannelPlan]) -> None:
             if conn.get("channel") is None and ch.twin_enabled:
                 continue  # each twin gets a bus of its own
         elif ch.driver_name == "modbus":
-            if ch.twin_enabled and not conn.get("port"):
-                continue  # each twin gets a port of its own
-            key = ("modbus", conn.get("host"), conn.get("port"), conn.get("device_id", 1))
+            if conn.get("transport", "tcp") == "rtu":
+                if ch.twin_enabled and not conn.get("device"):
+                    continue  # each twin gets a pseudo-terminal of its own
+                key = ("modbus-rtu", conn.get("device"))
+            else:
+                if ch.twin_enabled and not conn.get("port"):
+                    continue  # each twin gets a port of its own
+                unit = conn.get("device_id", 1)
+                host, port = conn.get("host", "127.0.0.1"), conn.get("port", 502)
+                bad = isinstance(unit, bool) or not isinstance(unit, int) or not 1 <= unit <= 247
+                if bad and tcp.count((host, port)) > 1:  # alone, a device may answer unit 255
+                    raise InputError(
+                        f"{cfg.source}: actuators[{i}] ({ch.name}).driver.connection.device_id: "
+                        f"{unit!r} is not a Modbus unit id (1–247) for a connection it shares"
+                    )
+                where = f"{host}:{port}"
+                key = ("modbus", host, port, unit)
+                if key in seen:
+                    raise InputError(
+                        f"{cfg.source}: actuators: channels {seen[key]!r} and {ch.name!r} both "
+                        f"use Modbus unit {unit} on {where} "
+                        "(driver.connection.device_id): give each channel its own unit id"
+                    )
         elif ch.driver_name == "serial":
             if ch.twin_enabled and not (conn.get("url") or conn.get("port")):
                 continue
@@ -717,7 +747,8 @@ def _check_shared_links(cfg: Config, channels: list[ChannelPlan]) -> None:
         if key in seen:
             what = {
                 "can": "the same CAN node on one bus (set driver.connection.node)",
-                "modbus": "the same Modbus unit on one server (set driver.connection.device_id)",
+                "modbus": "one Modbus RTU line (an RTU line carries one channel; use one serial "
+                "port per channel or Modbus TCP)",
                 "serial": "one serial port (serial links carry one channel each)",
             }[ch.driver_name]
             raise InputError(

@@ -17,6 +17,17 @@ Several twins on one bus are CAN nodes (``node``: every identifier offset by the
 (:func:`rths_hil.drivers.can.shared_bus`, twin side); whichever endpoint reads a frame hands it to
 the endpoint of its identifier, so pumping any of them (inline) or any of their threads serves them
 all.
+
+**As its own process** (``rths-hil twin serve --driver can --interface serial`` or ``slcan``):
+python-can's serial-line interfaces over a virtual null-modem cable of two pseudo-terminals
+(:class:`~sim_backends.endpoints.nullmodem.NullModem`). The twin opens one end with python-can and
+hands the bridge the other (``connection = {"interface": "serial", "channel": "/dev/pts/N"}``);
+both sides use python-can's framing, and nothing leaves the machine. ``slcan`` is the ASCII
+protocol of USB–CAN adapters (Lawicel, CANable): 22 characters per 8-byte frame, parsed by
+python-can one byte at a time (≈ 0.8 ms round trip here, enough for paced runs up to ≈ 512 Hz);
+``serial`` is python-can's binary framing (19 bytes per frame, ≈ 0.3 ms round trip: paced
+1024 Hz). ``channel="pty"`` (their default) asks for the cable; any other channel is a serial
+device opened as it is.
 """
 
 from __future__ import annotations
@@ -30,12 +41,28 @@ from rths_hil.drivers.can.codec import Frame, load
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
+from .nullmodem import NullModem
 
-__all__ = ["CANTwin"]
+__all__ = ["PTY_CHANNEL", "PTY_INTERFACES", "CANTwin"]
+
+#: ``channel`` of a twin on a serial-line interface that asks for a new null-modem pair of
+#: pseudo-terminals (:class:`~sim_backends.endpoints.nullmodem.NullModem`).
+PTY_CHANNEL = "pty"
+#: python-can interfaces over a serial line that the twin serves on a null-modem cable, with
+#: the python-can options of the bridge's end and of the twin's end. ``slcan`` waits 2 s after
+#: opening for an adapter to boot (a pseudo-terminal needs no wait); ``serial`` reads with its
+#: own 0.1 s timeout whatever ``recv`` asks (the driver reads it through a notifier thread), so
+#: the twin's end reads with 5 ms to poll its watchdog on time.
+PTY_INTERFACES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
+    "slcan": ({"sleep_after_open": 0.0}, {"sleep_after_open": 0.0}),
+    "serial": ({}, {"timeout": 0.005}),
+}
 
 
 class CANTwin(TwinEndpoint):
-    """Controller node on ``interface``/``channel`` (``virtual`` buses are in-process only)."""
+    """Controller node on ``interface``/``channel`` (``virtual`` buses are in-process only;
+    ``serial`` or ``slcan`` with ``channel="pty"`` reaches other processes on this machine, see
+    the module docstring)."""
 
     name = "can"
 
@@ -43,7 +70,7 @@ class CANTwin(TwinEndpoint):
         self,
         controller: TwinController,
         interface: str = "virtual",
-        channel: str = "rths-hil",
+        channel: str | None = None,
         bitrate: int | None = None,
         dbc: str | None = None,
         bus_options: dict[str, Any] | None = None,
@@ -51,6 +78,8 @@ class CANTwin(TwinEndpoint):
     ) -> None:
         super().__init__(controller)
         self.node = _check_node(node)
+        if channel is None:
+            channel = PTY_CHANNEL if interface in PTY_INTERFACES else "rths-hil"
         self.interface, self.channel, self.bitrate = str(interface), str(channel), bitrate
         self.dbc = dbc
         self.bus_options = dict(bus_options or {})
@@ -100,33 +129,51 @@ class CANTwin(TwinEndpoint):
         self._fb_frames = [self._fb_frame]
         self._bus: can.BusABC | None = None
         self._rxq = None
+        self.cable: NullModem | None = None
 
     def _setup(self) -> None:
         kwargs = dict(self.bus_options)
         if self.bitrate is not None:
             kwargs["bitrate"] = self.bitrate
+        channel = bridge_channel = self.channel
+        if self.interface in PTY_INTERFACES and self.channel == PTY_CHANNEL:
+            try:
+                self.cable = NullModem()
+            except OSError as exc:
+                raise InputError(
+                    f"CAN twin: cannot open pseudo-terminals for {self.interface}: {exc}"
+                ) from None
+            channel, bridge_channel = self.cable.twin_path, self.cable.bridge_path
+            kwargs = {**PTY_INTERFACES[self.interface][1], **kwargs}
         try:
-            share = shared_bus("twin", self.interface, self.channel, **kwargs)
+            share = shared_bus("twin", self.interface, channel, **kwargs)
         except InputError as exc:
+            self._close_cable()
             raise InputError(f"CAN twin: {exc}") from None
         if any(i in share.handlers for i in self._ids):
             release_bus(share)
+            self._close_cable()
             raise InputError(f"CAN twin: node {self.node} already served on {self.channel!r}")
         for i in self._ids:
             share.handlers[i] = self
         self._share = share
         self._handlers = share.handlers
         self._bus = share.bus
-        self.connection = {"interface": self.interface, "channel": self.channel}
+        self.connection = {"interface": self.interface, "channel": bridge_channel}
         if self.node:
             self.connection["node"] = self.node
         if self.bitrate is not None:
             self.connection["bitrate"] = self.bitrate
         if self.dbc is not None:
             self.connection["dbc"] = self.dbc
-        if self.bus_options:
-            self.connection["bus_options"] = dict(self.bus_options)
-        self.where = f"CAN interface {self.interface} channel {self.channel} node {self.node}"
+        options = self.bus_options
+        if self.cable is not None:
+            options = {**PTY_INTERFACES[self.interface][0], **options}
+        if options:
+            self.connection["bus_options"] = dict(options)
+        self.where = f"CAN interface {self.interface} channel {bridge_channel} node {self.node}"
+        if self.cable is not None:
+            self.where += " (pseudo-terminal null modem)"
         self._rxq = share.rxq
 
     def _teardown(self) -> None:
@@ -138,6 +185,12 @@ class CANTwin(TwinEndpoint):
                 if share.handlers.get(i) is self:
                     del share.handlers[i]
             release_bus(share)
+        self._close_cable()
+
+    def _close_cable(self) -> None:
+        cable, self.cable = self.cable, None
+        if cable is not None:
+            cable.close()
 
     def _dispatch(self, msg: can.Message) -> None:
         """Handle ``msg`` in the endpoint of its identifier (this one when unknown)."""

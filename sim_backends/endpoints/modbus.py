@@ -14,7 +14,16 @@ coil 0 = e-stop latched) and FC 5 (write coil 0 ON = e-stop). Anything else gets
 exception ILLEGAL_FUNCTION or ILLEGAL_ADDRESS.
 
 ``transport="tcp"`` listens on ``host:port`` (port 0 = a free port, reported in
-``connection``). ``transport="rtu"`` opens a pseudo-terminal pair with :func:`os.openpty` and
+``connection``). **Several units on one server:** a twin started on the ``host:port`` of a
+running twin (same process) does not listen again: it joins that server as another Modbus unit
+(``device_id``), with its own controller, register file, e-stop coil, faults and watchdog. The
+server routes each request by its unit id (an unknown unit gets the exception GATEWAY TARGET
+DEVICE FAILED TO RESPOND, as from a gateway) and is served by whichever unit's thread holds it.
+A unit is a :class:`pymodbus.datastore.ModbusDeviceContext` in pymodbus' own server; that
+context API is deprecated in pymodbus 3.x (replaced by SimData/SimDevice in 4) and sits behind
+the asyncio server, so the routing here is the dictionary lookup it would do.
+
+``transport="rtu"`` opens a pseudo-terminal pair with :func:`os.openpty` and
 serves the master side (``connection["device"]`` = the slave path), or serves an existing
 serial ``device``; no socat is needed. An RTU frame ends when the line is idle for one poll
 period or when it is complete by length, whichever comes first.
@@ -26,8 +35,10 @@ import os
 import select
 import socket
 import struct
+import threading
+import time
 import tty
-from typing import Any
+from typing import Any, ClassVar
 
 from pymodbus.constants import ExcCodes
 from pymodbus.framer import FramerRTU, FramerSocket
@@ -38,14 +49,21 @@ from pymodbus.pdu.register_message import (
     ReadWriteMultipleRegistersResponse,
 )
 from rths_hil.drivers.base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Status
-from rths_hil.drivers.modbus import COIL_ESTOP, REG, WRITE_ADDRESS, WRITE_COUNT, feedback_crc
+from rths_hil.drivers.modbus import (
+    COIL_ESTOP,
+    MAX_UNIT,
+    REG,
+    WRITE_ADDRESS,
+    WRITE_COUNT,
+    feedback_crc,
+)
 
 from rths_hil.errors import InputError
 
 from ..faults import Faults
 from .base import TwinController, TwinEndpoint, listen
 
-__all__ = ["ModbusTwin"]
+__all__ = ["ModbusServer", "ModbusTwin"]
 
 N_REGISTERS = 32
 _S32_MAX = 2**31 - 1
@@ -67,8 +85,223 @@ class _Conn:
         self.fd, self.sock, self.buf = fd, sock, b""
 
 
+class ModbusServer:
+    """One Modbus TCP listener (or RTU line) and the units (:class:`ModbusTwin`) it serves.
+
+    TCP servers are registered by ``(host, port)`` so that a twin started on the address of a
+    running one joins it (:meth:`join`). ``serving`` is held by the thread that reads the
+    sockets; every unit's thread tries it, so the server is served while any unit runs.
+    """
+
+    _registry: ClassVar[dict[tuple[str, int], ModbusServer]] = {}
+    _lock: ClassVar[threading.Lock] = threading.Lock()
+
+    def __init__(self, transport: str) -> None:
+        self.transport = transport
+        self.framer = (FramerSocket if transport == "tcp" else FramerRTU)(DecodePDU(True))
+        self.units: dict[int, ModbusTwin] = {}
+        self.listener: socket.socket | None = None
+        self.conns: list[_Conn] = []
+        self.slave: int | None = None
+        self.serial: Any = None
+        self.key: tuple[str, int] | None = None
+        self.serving = threading.Lock()
+        self.accepted = 0  # TCP connections accepted
+
+    @classmethod
+    def join(cls, twin: ModbusTwin) -> ModbusServer:
+        """The server ``twin`` is served by: a running one on its ``host:port``, else a new one.
+
+        Raises
+        ------
+        InputError
+            The unit is already served there, or the transport cannot be opened.
+        """
+        if twin.transport != "tcp":
+            srv = cls(twin.transport)
+            srv._open_rtu(twin.device, twin.baudrate)
+            srv.units[twin.device_id] = twin
+            return srv
+        with cls._lock:
+            srv = cls._registry.get((str(twin.host), int(twin.port))) if twin.port else None
+            if srv is None:
+                srv = cls("tcp")
+                srv.listener = listen(twin.host, twin.port, twin.allow_remote, "modbus twin")
+                srv.key = (str(twin.host), int(srv.listener.getsockname()[1]))
+                cls._registry[srv.key] = srv
+            elif twin.device_id in srv.units:
+                raise InputError(
+                    f"modbus twin: unit {twin.device_id} is already served on "
+                    f"{twin.host}:{twin.port}"
+                )
+            srv.units[twin.device_id] = twin
+            return srv
+
+    def leave(self, twin: ModbusTwin) -> None:
+        """Stop serving ``twin``'s unit; the last unit closes the server."""
+        with self._lock:
+            if self.units.get(twin.device_id) is twin:
+                del self.units[twin.device_id]
+            if self.units:
+                return
+            if self.key is not None and self._registry.get(self.key) is self:
+                del self._registry[self.key]
+        self.close()
+
+    def _open_rtu(self, device: str | None, baudrate: int) -> None:
+        if device is None:
+            master, slave = os.openpty()
+            tty.setraw(slave)
+            self.slave = slave
+            self.conns = [_Conn(master)]
+            return
+        import serial
+
+        try:
+            self.serial = serial.serial_for_url(device, baudrate=baudrate, timeout=0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise InputError(f"modbus twin: cannot open {device!r}: {exc}") from None
+        self.conns = [_Conn(self.serial.fd)]
+
+    def close_conn(self, conn: _Conn) -> None:
+        if conn in self.conns:
+            self.conns.remove(conn)
+        try:
+            if conn.sock is not None:
+                conn.sock.close()
+            elif self.serial is None:
+                os.close(conn.fd)
+        except OSError:  # pragma: no cover
+            pass
+
+    def close(self, keep_serial: bool = False) -> None:
+        """Close every connection, the listener and the pseudo-terminal (and the serial port)."""
+        for conn in list(self.conns):
+            self.close_conn(conn)
+        if self.listener is not None:
+            self.listener.close()
+            self.listener = None
+        if self.slave is not None:
+            os.close(self.slave)
+            self.slave = None
+        if self.serial is not None and not keep_serial:
+            self.serial.close()
+            self.serial = None
+
+    def _malformed(self, dev_id: int | None = None) -> None:
+        unit = self.units.get(dev_id) if dev_id is not None else None
+        if unit is None and self.units:
+            unit = next(iter(self.units.values()))
+        if unit is not None:
+            unit.controller.stats.malformed += 1
+
+    # -- serving --------------------------------------------------------------------------------
+    def serve_once(self, timeout: float) -> None:
+        """Wait up to ``timeout`` for requests and answer them (holding :attr:`serving`)."""
+        rlist: list[Any] = [c.fd for c in self.conns]
+        if self.listener is not None:
+            rlist.append(self.listener)
+        if not rlist:
+            time.sleep(timeout)
+            return
+        ready = select.select(rlist, (), (), timeout)[0]
+        if not ready:
+            if self.transport == "rtu":
+                for conn in self.conns:
+                    if conn.buf:  # line idle: an incomplete RTU frame is garbage
+                        self._malformed()
+                        conn.buf = b""
+            return
+        for item in ready:
+            if item is self.listener:
+                sock, _ = self.listener.accept()
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                self.conns.append(_Conn(sock.fileno(), sock))
+                self.accepted += 1
+                continue
+            conn = next((c for c in self.conns if c.fd == item), None)
+            if conn is None:
+                continue
+            try:
+                data = os.read(conn.fd, 4096)
+            except OSError:
+                data = b""
+            if not data:
+                if conn.sock is not None:
+                    self.close_conn(conn)
+                continue
+            conn.buf += data
+            self._process(conn)
+
+    def _process(self, conn: _Conn) -> None:
+        framer = self.framer
+        while conn.buf and conn in self.conns:
+            data = conn.buf
+            if self.transport == "rtu":
+                # pymodbus's RTU framer consumes the whole buffer; cut one frame by its size so
+                # that back-to-back requests (e-stop then command) are both served.
+                if len(data) < framer.MIN_SIZE:
+                    return
+                pdu_class = framer.decoder.lookupPduClass(data)
+                if pdu_class is None:
+                    self._malformed()
+                    conn.buf = data[1:]  # hunt for the next frame start
+                    continue
+                size = pdu_class.calculateRtuFrameSize(data)
+                if not size or len(data) < size:
+                    return
+                data = data[:size]
+            used, dev_id, tid, pdu_bytes = framer.decode(data)
+            if not used:
+                if len(conn.buf) > 2 * framer.MAX_SIZE:
+                    self._malformed()
+                    conn.buf = b""
+                return
+            conn.buf = conn.buf[used:]
+            if not pdu_bytes:
+                self._malformed()  # RTU CRC error: garbage
+                continue
+            unit = self.units.get(dev_id)
+            if unit is None and self.transport == "rtu":
+                if dev_id != 0 or len(self.units) != 1:
+                    continue  # another slave's request
+                unit = next(iter(self.units.values()))
+            if unit is None:  # TCP: a unit this server does not have
+                self._malformed()
+                exc = ExceptionResponse(pdu_bytes[0] & 0x7F, ExcCodes.GATEWAY_NO_RESPONSE)
+                self.send(conn, exc, dev_id, tid)
+                continue
+            if unit._gone:
+                continue  # this unit fell silent (disconnect fault)
+            pdu = framer.decoder.decode(pdu_bytes)
+            if pdu is None:
+                unit.controller.stats.malformed += 1
+                self.send(
+                    conn,
+                    ExceptionResponse(pdu_bytes[0] & 0x7F, ExcCodes.ILLEGAL_FUNCTION),
+                    dev_id,
+                    tid,
+                )
+                continue
+            pdu.dev_id, pdu.transaction_id = dev_id, tid
+            unit._dispatch(conn, pdu)
+
+    def send(self, conn: _Conn, response: ModbusPDU, dev_id: int, tid: int) -> None:
+        response.dev_id, response.transaction_id = dev_id, tid
+        self.write_to(conn, self.framer.buildFrame(response))
+
+    def write_to(self, conn: _Conn, frame: bytes) -> None:
+        try:
+            os.write(conn.fd, frame)
+        except OSError:  # pragma: no cover - client gone
+            pass
+
+
 class ModbusTwin(TwinEndpoint):
-    """Modbus TCP server or RTU slave around a :class:`TwinController`."""
+    """One Modbus unit (a :class:`TwinController`) of a TCP server or an RTU slave.
+
+    Several ``ModbusTwin`` on one ``host:port`` are units of one :class:`ModbusServer`.
+    """
 
     name = "modbus"
     poll = 0.02
@@ -87,177 +320,66 @@ class ModbusTwin(TwinEndpoint):
         super().__init__(controller)
         if transport not in ("tcp", "rtu"):
             raise InputError(f"modbus twin: transport must be 'tcp' or 'rtu', got {transport!r}")
+        if (
+            isinstance(device_id, bool)
+            or not isinstance(device_id, int)
+            or not (1 <= device_id <= MAX_UNIT)
+        ):
+            raise InputError(
+                f"modbus twin: device_id must be a unit id 1..{MAX_UNIT}, got {device_id!r}"
+            )
         self.transport = transport
         self.host, self.port = host, port
         self.allow_remote = bool(allow_remote)
         self.device, self.device_id, self.baudrate = device, int(device_id), int(baudrate)
         self.registers = [0] * N_REGISTERS
-        self.framer = (FramerSocket if transport == "tcp" else FramerRTU)(DecodePDU(True))
-        self._listener: socket.socket | None = None
-        self._conns: list[_Conn] = []
-        self._slave: int | None = None
-        self._serial: Any = None
+        self.server: ModbusServer | None = None
         self._current: tuple[_Conn, ModbusPDU] | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------
     def _setup(self) -> None:
+        srv = self.server = ModbusServer.join(self)
         if self.transport == "tcp":
-            lst = listen(self.host, self.port, self.allow_remote, "modbus twin")
-            self._listener = lst
-            host, port = lst.getsockname()[:2]
+            assert srv.key is not None
+            host, port = srv.key
             self.connection = {
                 "transport": "tcp",
                 "host": host,
                 "port": port,
                 "device_id": self.device_id,
             }
-            self.where = f"modbus tcp {host}:{port}"
-        elif self.device is None:
-            master, slave = os.openpty()
-            tty.setraw(slave)
-            self._slave = slave
-            self._conns = [_Conn(master)]
-            path = os.ttyname(slave)
-            self.connection = {"transport": "rtu", "device": path, "device_id": self.device_id}
-            self.where = path
+            self.where = f"modbus tcp {host}:{port} unit {self.device_id}"
         else:
-            import serial
-
-            try:
-                self._serial = serial.serial_for_url(self.device, baudrate=self.baudrate, timeout=0)
-            except (serial.SerialException, OSError, ValueError) as exc:
-                raise InputError(f"modbus twin: cannot open {self.device!r}: {exc}") from None
-            self._conns = [_Conn(self._serial.fd)]
-            self.connection = {
-                "transport": "rtu",
-                "device": self.device,
-                "device_id": self.device_id,
-            }
-            self.where = self.device
-
-    def _close_conn(self, conn: _Conn) -> None:
-        if conn in self._conns:
-            self._conns.remove(conn)
-        try:
-            if conn.sock is not None:
-                conn.sock.close()
-            elif self._serial is None:
-                os.close(conn.fd)
-        except OSError:  # pragma: no cover
-            pass
+            path = os.ttyname(srv.slave) if srv.slave is not None else self.device
+            self.connection = {"transport": "rtu", "device": path, "device_id": self.device_id}
+            self.where = str(path)
 
     def _teardown(self) -> None:
-        for conn in list(self._conns):
-            self._close_conn(conn)
-        if self._listener is not None:
-            self._listener.close()
-            self._listener = None
-        if self._slave is not None:
-            os.close(self._slave)
-            self._slave = None
-        if self._serial is not None:
-            self._serial.close()
-            self._serial = None
+        srv = self.server  # kept after the stop: which server served this unit
+        if srv is not None and srv.units.get(self.device_id) is self:
+            srv.leave(self)
 
     def _go_away(self) -> None:
+        """Disconnect fault: this unit falls silent; a server with no other unit closes."""
         super()._go_away()
-        for conn in list(self._conns):
-            self._close_conn(conn)
-        if self._listener is not None:
-            self._listener.close()
-            self._listener = None
-        if self._slave is not None:
-            os.close(self._slave)
-            self._slave = None
+        srv = self.server
+        if srv is not None and all(u._gone for u in srv.units.values()):
+            srv.close(keep_serial=True)
 
     # -- serving --------------------------------------------------------------------------------
     def _serve_once(self, timeout: float) -> None:
-        rlist: list[Any] = [c.fd for c in self._conns]
-        if self._listener is not None:
-            rlist.append(self._listener)
-        if not rlist:
-            self._stop.wait(timeout)
-            return
-        ready = select.select(rlist, (), (), timeout)[0]
-        if not ready:
-            if self.transport == "rtu":
-                for conn in self._conns:
-                    if conn.buf:  # line idle: an incomplete RTU frame is garbage
-                        self.controller.stats.malformed += 1
-                        conn.buf = b""
-            return
-        for item in ready:
-            if item is self._listener:
-                sock, _ = self._listener.accept()
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                self._conns.append(_Conn(sock.fileno(), sock))
-                continue
-            conn = next((c for c in self._conns if c.fd == item), None)
-            if conn is None:
-                continue
+        srv = self.server
+        if srv is not None and srv.serving.acquire(blocking=False):
             try:
-                data = os.read(conn.fd, 4096)
-            except OSError:
-                data = b""
-            if not data:
-                if conn.sock is not None:
-                    self._close_conn(conn)
-                continue
-            conn.buf += data
-            self._process(conn)
-
-    def _process(self, conn: _Conn) -> None:
-        framer = self.framer
-        while conn.buf and conn in self._conns:
-            data = conn.buf
-            if self.transport == "rtu":
-                # pymodbus's RTU framer consumes the whole buffer; cut one frame by its size so
-                # that back-to-back requests (e-stop then command) are both served.
-                if len(data) < framer.MIN_SIZE:
-                    return
-                pdu_class = framer.decoder.lookupPduClass(data)
-                if pdu_class is None:
-                    self.controller.stats.malformed += 1
-                    conn.buf = data[1:]  # hunt for the next frame start
-                    continue
-                size = pdu_class.calculateRtuFrameSize(data)
-                if not size or len(data) < size:
-                    return
-                data = data[:size]
-            used, dev_id, tid, pdu_bytes = framer.decode(data)
-            if not used:
-                if len(conn.buf) > 2 * framer.MAX_SIZE:
-                    self.controller.stats.malformed += 1
-                    conn.buf = b""
-                return
-            conn.buf = conn.buf[used:]
-            if not pdu_bytes:
-                self.controller.stats.malformed += 1  # RTU CRC error: garbage
-                continue
-            if self.transport == "rtu" and dev_id not in (self.device_id, 0):
-                continue  # another slave's request
-            pdu = framer.decoder.decode(pdu_bytes)
-            if pdu is None:
-                self.controller.stats.malformed += 1
-                self._send(
-                    conn,
-                    ExceptionResponse(pdu_bytes[0] & 0x7F, ExcCodes.ILLEGAL_FUNCTION),
-                    dev_id,
-                    tid,
-                )
-                continue
-            pdu.dev_id, pdu.transaction_id = dev_id, tid
-            self._dispatch(conn, pdu)
+                srv.serve_once(timeout)
+            finally:
+                srv.serving.release()
+        else:  # another unit's thread serves the server
+            self._stop.wait(timeout)
 
     def _send(self, conn: _Conn, response: ModbusPDU, dev_id: int, tid: int) -> None:
-        response.dev_id, response.transaction_id = dev_id, tid
-        self._write_to(conn, self.framer.buildFrame(response))
-
-    def _write_to(self, conn: _Conn, frame: bytes) -> None:
-        try:
-            os.write(conn.fd, frame)
-        except OSError:  # pragma: no cover - client gone
-            pass
+        assert self.server is not None
+        self.server.send(conn, response, dev_id, tid)
 
     def _dispatch(self, conn: _Conn, pdu: ModbusPDU) -> None:
         fc = pdu.function_code
@@ -332,12 +454,12 @@ class ModbusTwin(TwinEndpoint):
         base = REG["FB_SEQ"]
         regs[base : base + 6] = words
         regs[REG["FB_CRC"]] = feedback_crc(block)
-        assert self._current is not None
+        assert self._current is not None and self.server is not None
         _conn, pdu = self._current
         ra, rc = pdu.read_address, pdu.read_count  # type: ignore[attr-defined]
         resp = ReadWriteMultipleRegistersResponse(registers=regs[ra : ra + rc])
         resp.dev_id, resp.transaction_id = pdu.dev_id, pdu.transaction_id
-        return [self.framer.buildFrame(resp)]
+        return [self.server.framer.buildFrame(resp)]
 
     def _corrupt(self, frame: bytes) -> bytes:
         # A line error inside the register data: caught by FB_CRC (TCP) or the RTU CRC.
@@ -345,5 +467,5 @@ class ModbusTwin(TwinEndpoint):
         return Faults.flip_bit(frame, min(index, len(frame) - 3))
 
     def _write(self, frame: bytes) -> None:
-        if self._current is not None:
-            self._write_to(self._current[0], frame)
+        if self._current is not None and self.server is not None:
+            self.server.write_to(self._current[0], frame)

@@ -1,0 +1,119 @@
+"""A virtual null-modem cable: two pseudo-terminals whose traffic is relayed to each other.
+
+What ``socat pty,raw,echo=0 pty,raw,echo=0`` or the ``tty0tty`` kernel module give a lab: two
+serial device paths such that bytes written to one are read from the other. A twin opens one end
+(:attr:`NullModem.twin_path`) with the same library the bridge uses on the other end
+(:attr:`NullModem.bridge_path`), so both sides speak the protocol through the library's own
+framing — the CAN twin serves python-can's ``slcan`` interface this way
+(:mod:`rths_hil.sim_backends.endpoints.can`). Nothing leaves the machine: a pseudo-terminal is a
+kernel object, not a network endpoint.
+
+The cable keeps a descriptor of each end open itself, so that a process closing its end (or
+being killed) does not hang the pair up: the next process that opens the same path continues
+on the same cable. Bytes written towards an end nobody reads fill that end's input buffer; once
+it is full, further bytes are dropped (a line with no listener loses them) rather than blocking
+the other direction.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import threading
+import tty
+
+log = logging.getLogger(__name__)
+
+__all__ = ["NullModem"]
+
+
+class NullModem:
+    """Two raw pseudo-terminals cross-connected by a relay thread.
+
+    Attributes
+    ----------
+    bridge_path, twin_path : str
+        The two ends (``/dev/pts/N``); either may be given to the bridge, by convention the first.
+    relayed : list of int
+        Bytes relayed bridge → twin and twin → bridge.
+    dropped : int
+        Bytes dropped because the receiving end's buffer was full (nobody reading it).
+    """
+
+    def __init__(self) -> None:
+        self._masters: list[int] = []
+        self._slaves: list[int] = []
+        paths = []
+        try:
+            for _ in range(2):
+                master, slave = os.openpty()
+                self._masters.append(master)
+                self._slaves.append(slave)
+                tty.setraw(slave)  # no echo, no CR → LF: the bytes as written
+                os.set_blocking(master, False)
+                paths.append(os.ttyname(slave))
+        except OSError:
+            self._close_fds()
+            raise
+        self.bridge_path, self.twin_path = paths
+        self.relayed = [0, 0]
+        self.dropped = 0
+        self._wake_r, self._wake_w = os.pipe()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._relay, name="null-modem", daemon=True)
+        self._thread.start()
+
+    def _relay(self) -> None:
+        a, b = self._masters
+        other = {a: (b, 0), b: (a, 1)}
+        while not self._stop.is_set():
+            ready = select.select((a, b, self._wake_r), (), (), 0.5)[0]
+            for fd in ready:
+                if fd == self._wake_r:
+                    return
+                try:
+                    data = os.read(fd, 4096)
+                except (BlockingIOError, InterruptedError):
+                    continue
+                except OSError:  # the pair is being closed
+                    return
+                dst, k = other[fd]
+                try:
+                    n = os.write(dst, data)
+                except BlockingIOError:
+                    n = 0
+                except OSError:
+                    return
+                self.relayed[k] += n
+                if n < len(data):
+                    self.dropped += len(data) - n
+                    log.debug("null modem: %d bytes dropped (nobody reading)", len(data) - n)
+
+    def close(self) -> None:
+        """Stop the relay and close both pseudo-terminals (their paths disappear)."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        try:
+            os.write(self._wake_w, b"x")
+        except OSError:  # pragma: no cover - already closed
+            pass
+        self._thread.join(timeout=2.0)
+        for fd in (self._wake_r, self._wake_w):
+            os.close(fd)
+        self._close_fds()
+
+    def _close_fds(self) -> None:
+        for fd in (*self._masters, *self._slaves):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self._masters, self._slaves = [], []
+
+    def __enter__(self) -> NullModem:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
