@@ -18,7 +18,11 @@ Measured:
   record: wall-clock time when the browser holds the row of loop time t minus the time that
   row was sent (``wall_t0 + t + lateness``, from the record); goals ≥ 5 Hz and ≤ 0.5 s.
 
-Usage: ``python benchmarks/bench_watch.py [--duration 20] [--pairs 2]``.
+With ``--baseline REV`` each pair also has a run watched by the watcher of git revision REV
+(exported with ``git archive``), so that the page's cost per refresh before and after a change
+is measured in the same invocation, as a ratio.
+
+Usage: ``python benchmarks/bench_watch.py [--duration 20] [--pairs 2] [--baseline REV]``.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import json
 import os
 import re
 import select
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -100,16 +105,25 @@ def driver() -> None:
             samples: list[tuple[float, float, float]] = []  # (wall time, page's last t, tick)
             while not select.select([sys.stdin], [], [], 0.1)[0]:
                 try:
-                    t_col = b.column("window", "t")
-                    tick = b.model("tick", "start")
+                    got = b.eval(_PROBE)
                 except RuntimeError:
                     continue
-                if t_col and tick is not None:
-                    samples.append((time.time(), float(t_col[-1]), float(tick)))
+                if got:
+                    samples.append((time.time(), float(got[0]), float(got[1])))
             sys.stdin.readline()  # "blank"
             cpu = tree_cpu(b.proc.pid) - cpu0
             b.goto("about:blank")
             say(json.dumps({"samples": samples, "cpu": cpu}))
+
+
+# the page's newest row and its refresh counter, in one small evaluation (not the whole column)
+_PROBE = """(() => {
+  const d = window.Bokeh && Bokeh.documents[0];
+  const w = d && d.get_model_by_name('window'), k = d && d.get_model_by_name('tick');
+  if (!w || !k) return null;
+  const t = w.data.get ? w.data.get('t') : w.data['t'];
+  return t && t.length ? [t[t.length - 1], k.start] : null;
+})()"""
 
 
 def _stats(x: np.ndarray) -> tuple[float, float, float]:
@@ -117,13 +131,14 @@ def _stats(x: np.ndarray) -> tuple[float, float, float]:
     return float(p50), float(p99), float(p999)
 
 
-def _watched(cfg, run_dir: Path, drv: subprocess.Popen):
-    """One run with ``rths-hil watch`` and the page open; returns (result, samples)."""
+def _watched(cfg, run_dir: Path, drv: subprocess.Popen, tree: Path | None = None):
+    """One run with ``rths-hil watch`` (of ``tree``, else this one) and the page open."""
     watch = subprocess.Popen(
         [sys.executable, "-m", "rths_hil", "watch", str(run_dir), "--port", "0", "--quiet"],
         stderr=subprocess.PIPE,
         stdout=subprocess.DEVNULL,
         text=True,
+        cwd=tree,  # ``-m`` imports rths_hil from the working directory first
     )
     try:
         line = watch.stderr.readline()
@@ -150,6 +165,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0, help="loop time of each run (s)")
     ap.add_argument("--pairs", type=int, default=2, help="runs without and with the watcher")
+    ap.add_argument(
+        "--baseline",
+        metavar="REV",
+        help="also watch runs with the watcher of this git revision (CPU per refresh ratio)",
+    )
     ap.add_argument("--driver", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.driver:
@@ -158,6 +178,19 @@ def main() -> None:
 
     load0 = os.getloadavg()[0]
     tmp = Path(tempfile.mkdtemp(prefix="bench-watch-"))
+    base_tree = None
+    if args.baseline:
+        base_tree = tmp / "baseline"
+        base_tree.mkdir()
+        root = Path(__file__).resolve().parent.parent
+        archive = subprocess.run(
+            ["git", "-C", str(root), "archive", args.baseline],
+            capture_output=True,
+            check=False,
+        )
+        if archive.returncode != 0:
+            raise SystemExit(f"--baseline {args.baseline}: {archive.stderr.decode().strip()}")
+        subprocess.run(["tar", "-x", "-C", str(base_tree)], input=archive.stdout, check=True)
     cfg = load_config(
         None,
         [
@@ -177,55 +210,73 @@ def main() -> None:
     )
     work: dict[bool, list[np.ndarray]] = {False: [], True: []}
     late: dict[bool, list[np.ndarray]] = {False: [], True: []}
-    lags: list[float] = []
-    rates: list[float] = []
-    cpu: list[tuple[float, float, float, float]] = []  # browser s, server s, refreshes, wall s
+    # per watcher (this one, the baseline): browser s, server s, refreshes, wall s
+    cpu: dict[str, list[tuple[float, float, float, float]]] = {"this": [], "baseline": []}
+    lags: dict[str, list[float]] = {"this": [], "baseline": []}
+    rates: dict[str, list[float]] = {"this": [], "baseline": []}
     runs = []
     try:
         if drv.stdout.readline().strip() != "started":
             raise SystemExit("the browser did not start")
-        for i in range(2 * args.pairs):
-            watched = i % 2 == 1
+        order = ["none", "this"] + (["baseline"] if base_tree else [])
+        plan = [w for p in range(args.pairs) for w in (order if p % 2 == 0 else order[::-1])]
+        for i, who in enumerate(plan):
+            watched = who != "none"
             run_dir = tmp / f"run{i}"
             if watched:
-                res, samples, b_cpu, s_cpu = _watched(cfg, run_dir, drv)
+                tree = base_tree if who == "baseline" else None
+                res, samples, b_cpu, s_cpu = _watched(cfg, run_dir, drv, tree)
                 if samples:
                     n_ref = samples[-1][2] - samples[0][2]
-                    cpu.append((b_cpu, s_cpu, n_ref, res.wall_time))
+                    cpu[who].append((b_cpu, s_cpu, n_ref, res.wall_time))
             else:
                 res, samples = RTHSLoop(cfg, run_dir, mode="paced").run(), []
             runs.append(res)
-            dt = 1.0 / res.fs
-            w = (res.ready[1:] + dt - res.lateness[:-1]) * 1e6  # µs, work of step k
-            keep = np.arange(w.size) * dt >= 1.0
-            work[watched].append(w[keep])
-            late[watched].append(res.lateness[:-1][keep] * 1e6)
+            if who == "baseline":
+                res = None  # the loop's cost is compared between no watcher and this one
+            fs = runs[-1].fs
+            if res is not None:
+                dt = 1.0 / res.fs
+                w = (res.ready[1:] + dt - res.lateness[:-1]) * 1e6  # µs, work of step k
+                keep = np.arange(w.size) * dt >= 1.0
+                work[watched].append(w[keep])
+                late[watched].append(res.lateness[:-1][keep] * 1e6)
             if samples:
                 rec = read_run(run_dir).record
                 w0 = _wall_t0(run_dir)
                 s = [x for x in samples if x[1] >= 1.0]  # once the run is under way
                 for wall, t_page, _ in s:
-                    k = min(round(t_page * res.fs), len(rec) - 1)
-                    lags.append(wall - (w0 + t_page + float(rec["lateness"][k])))
+                    k = min(round(t_page * fs), len(rec) - 1)
+                    lags[who].append(wall - (w0 + t_page + float(rec["lateness"][k])))
                 if len(s) > 2 and s[-1][0] > s[0][0]:
-                    rates.append((s[-1][2] - s[0][2]) / (s[-1][0] - s[0][0]))
+                    rates[who].append((s[-1][2] - s[0][2]) / (s[-1][0] - s[0][0]))
     finally:
         if drv.poll() is None:
             drv.stdin.close()
             drv.terminate()
             drv.wait(10)
+        if base_tree is not None:
+            shutil.rmtree(base_tree, ignore_errors=True)
 
     w_off, w_on = _stats(np.concatenate(work[False])), _stats(np.concatenate(work[True]))
     l_off, l_on = _stats(np.concatenate(late[False])), _stats(np.concatenate(late[True]))
     diff = 100.0 * (w_on[1] / w_off[1] - 1.0)
-    lags_a = np.array(lags) if lags else np.array([np.nan])
 
     from _results import markdown_table, write_results
 
-    b_tot = sum(c[0] for c in cpu)
-    s_tot = sum(c[1] for c in cpu)
-    n_tot = sum(c[2] for c in cpu)
-    wall_tot = max(sum(c[3] for c in cpu), 1e-9)
+    def page(who: str) -> dict[str, float]:
+        c = cpu[who]
+        n = max(sum(x[2] for x in c), 1)
+        wall = max(sum(x[3] for x in c), 1e-9)
+        lg = np.array(lags[who]) if lags[who] else np.array([np.nan])
+        return {
+            "rate": float(np.mean(rates[who])) if rates[who] else float("nan"),
+            "b_ref": 1e3 * sum(x[0] for x in c) / n,
+            "s_ref": 1e3 * sum(x[1] for x in c) / n,
+            "b_share": 100 * sum(x[0] for x in c) / wall,
+            "s_share": 100 * sum(x[1] for x in c) / wall,
+            "lag": (np.nanmedian(lg), np.nanpercentile(lg, 95), np.nanmax(lg)),
+        }
 
     n_off = sum(x.size for x in work[False])
     n_on = sum(x.size for x in work[True])
@@ -236,45 +287,56 @@ def main() -> None:
             ["with the page open", n_on, *(f"{v:.1f}" for v in w_on), f"{l_on[1]:.1f}"],
         ],
     )
+    whos = ["this"] + (["baseline"] if base_tree else [])
+    pages = {w: page(w) for w in whos}
+    head = ["page", "value", "goal"]
+    label = {"this": "", "baseline": f" (baseline {args.baseline})"}
+    rows = []
+    for w in whos:
+        pg, lb = pages[w], label[w]
+        rows += [
+            [f"refresh rate (applied by the browser){lb}", f"{pg['rate']:.1f} Hz", "≥ 5 Hz"],
+            [
+                f"CPU per refresh: browser / watcher server{lb}",
+                f"{pg['b_ref']:.0f} / {pg['s_ref']:.0f} ms",
+                "",
+            ],
+            [
+                f"CPU while watching: browser / watcher server (share of one core){lb}",
+                f"{pg['b_share']:.0f} % / {pg['s_share']:.0f} %",
+                "",
+            ],
+            [
+                f"lag behind the record, p50 / p95 / max{lb}",
+                " / ".join(f"{v:.2f}" for v in pg["lag"]) + " s",
+                "≤ 0.5 s",
+            ],
+        ]
     table += (
         f"\n\nWork p99 with the watcher vs without: **{diff:+.2f} %** (goal ≤ 2 %).\n\n"
-        + markdown_table(
-            ["page", "value", "goal"],
-            [
-                [
-                    "refresh rate (applied by the browser)",
-                    f"{np.mean(rates):.1f} Hz" if rates else "–",
-                    "≥ 5 Hz",
-                ],
-                [
-                    "CPU per refresh: browser / watcher server",
-                    f"{1e3 * b_tot / max(n_tot, 1):.0f} / {1e3 * s_tot / max(n_tot, 1):.0f} ms",
-                    "",
-                ],
-                [
-                    "CPU while watching: browser / watcher server (share of one core)",
-                    f"{100 * b_tot / wall_tot:.0f} % / {100 * s_tot / wall_tot:.0f} %",
-                    "",
-                ],
-                [
-                    "lag behind the record, p50 / p95 / max",
-                    f"{np.nanmedian(lags_a):.2f} / {np.nanpercentile(lags_a, 95):.2f} / "
-                    f"{np.nanmax(lags_a):.2f} s",
-                    "≤ 0.5 s",
-                ],
-            ],
+        + markdown_table(head, rows)
+    )
+    if base_tree:
+        ratio = pages["this"]["b_ref"] / pages["baseline"]["b_ref"]
+        table += (
+            f"\n\nBrowser CPU per refresh, this watcher / baseline {args.baseline}: "
+            f"**{ratio:.2f}**."
         )
+    base = (
+        f", and each pair a run watched by the watcher of {args.baseline} (the baseline)"
+        if base_tree
+        else ""
     )
     notes = (
-        f"{2 * args.pairs} paced runs of {args.duration:g} s at {runs[0].fs:g} Hz, alternately "
+        f"{len(runs)} paced runs of {args.duration:g} s at {runs[0].fs:g} Hz, alternately "
         "without and with `rths-hil watch` and its page open in headless Chromium on the same "
-        f"machine (overruns per run: {', '.join(str(r.overruns) for r in runs)}); the first "
-        "second of each run is left out. Lag samples: the page's newest row, polled 10 times "
-        "a second over the DevTools protocol (the polling is itself a load on the browser). "
-        "CPU: user + system time of the browser's processes and of the watcher's server "
-        "process while the watched runs ran, divided by the refreshes the browser applied: "
-        "what a refresh costs whatever else the machine is doing. Load average of the "
-        f"machine (1 min, {os.cpu_count()} cores): {load0:.1f} before, "
+        f"machine{base} (overruns per run: {', '.join(str(r.overruns) for r in runs)}); the "
+        "first second of each run is left out. Lag samples: the page's newest row, polled 10 "
+        "times a second over the DevTools protocol (one small evaluation; the polling is "
+        "itself a load on the browser). CPU: user + system time of the browser's processes and "
+        "of the watcher's server process while the watched runs ran, divided by the refreshes "
+        "the browser applied: what a refresh costs whatever else the machine is doing. Load "
+        f"average of the machine (1 min, {os.cpu_count()} cores): {load0:.1f} before, "
         f"{os.getloadavg()[0]:.1f} after."
     )
     path = write_results("bench_watch", table, goals=GOALS, notes=notes)

@@ -18,8 +18,10 @@ A run directory holds
     clock ``wall_time`` (ISO 8601, UTC).
 ``meta.json``
     Written (atomically) before the first step: the resolved configuration, package versions,
-    start time, sampling rate, the column table (name, dtype, unit, description) and a
-    description of the format.
+    start time, sampling rate, the column table (name, dtype, unit, description), a
+    description of the format and the id of the process writing the record (``pid``: what
+    ``rths-hil watch`` signals for an operator stop, after checking that this process still
+    holds ``record.npy`` open for writing).
 
 :func:`read_run` reads a (possibly crashed) run directory back, and :func:`export_run` writes
 ``record.csv`` (the record CSV of :mod:`rths_hil.records`, ``time`` first, same column names)
@@ -269,6 +271,7 @@ class Recorder:
         meta = {
             "format": "rths_hil run directory v1 (see docs/records.md)",
             "start_time": self.start_time,
+            "pid": os.getpid(),
             "fs": self.fs,
             "dt": 1.0 / self.fs,
             "record": RECORD_FILE,

@@ -5,7 +5,9 @@ The browser tests (headless Chromium against real runs) are in ``test_watch_brow
 
 from __future__ import annotations
 
+import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -163,3 +165,137 @@ def test_channel_limits_come_from_its_actuators_entry():
     assert channel_config(cfg, "left")["safety"] == {"displacement_limit": 0.02, "force_limit": 1e5}
     assert channel_config(cfg, "right")["safety"] == cfg["safety"]
     assert channel_config(cfg, "")["safety"] == cfg["safety"]
+
+
+def test_meta_names_the_recording_process(tmp_path):
+    with Recorder(tmp_path / "run", 100.0) as rec:
+        assert rec.meta["pid"] == os.getpid()
+    assert read_run(tmp_path / "run").meta["pid"] == os.getpid()
+
+
+def _hold_record(run_dir, meta_pid: bool = True) -> subprocess.Popen:
+    """A process recording ``run_dir`` (its Recorder open) until it is signalled."""
+    code = (
+        "import json, sys, time; from rths_hil.recorder import Recorder; "
+        f"r = Recorder({str(run_dir)!r}, 100.0); "
+        + ("" if meta_pid else "r.meta.pop('pid'); r.update_meta(); ")
+        + "print('open', flush=True); time.sleep(60)"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "open"
+    return proc
+
+
+@pytest.mark.parametrize("meta_pid", [True, False], ids=["pid in meta", "older run: /proc"])
+def test_stop_signals_the_process_recording_the_run(tmp_path, meta_pid):
+    run_dir = tmp_path / "run"
+    proc = _hold_record(run_dir, meta_pid)
+    try:
+        f = RunFollower(run_dir)
+        st = f.poll()
+        assert f.meta_pid == (proc.pid if meta_pid else None)
+        assert st.writer == proc.pid and st.phase == "starting"
+        assert f.signal_writer(signal.SIGINT) == proc.pid
+        # Python's default SIGINT: KeyboardInterrupt, then the process ends by that signal
+        assert proc.wait(10) == -signal.SIGINT
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert f.signal_writer(signal.SIGINT) is None  # nobody left to stop
+
+
+def test_a_stale_pid_in_meta_never_signals_a_stranger(tmp_path, monkeypatch):
+    """The recorder's process ended; its id now names another process: that one is left alone,
+    and so is a process that holds the record but is not the one the metadata names."""
+    run_dir = write_run(tmp_path / "run", monkeypatch, [""], seconds=1)
+    stranger = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    holder = None
+    try:
+        meta = json.loads((run_dir / "meta.json").read_text())
+        meta["pid"] = stranger.pid
+        (run_dir / "meta.json").write_text(json.dumps(meta))
+        f = RunFollower(run_dir)
+        f.poll()
+        assert f.meta_pid == stranger.pid and f.writer is None
+        assert f.signal_writer(signal.SIGINT) is None
+        # a process that opened the record for writing is not the run's recorder either
+        holder = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                f"import time; fh = open({str(run_dir / 'record.npy')!r}, 'r+b'); "
+                "print('open', flush=True); time.sleep(60)",
+            ],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        assert holder.stdout.readline().strip() == "open"
+        assert find_writer(run_dir / "record.npy") == holder.pid  # the /proc search sees it
+        assert f.signal_writer(signal.SIGINT) is None  # the metadata's pid decides
+        time.sleep(0.2)
+        assert stranger.poll() is None and holder.poll() is None
+    finally:
+        for p in (stranger, holder):
+            if p is not None:
+                p.kill()
+                p.wait()
+
+
+def test_envelope_keeps_each_buckets_extremes_in_order():
+    from rths_hil.watch.app import _envelope
+
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        m, n = int(rng.integers(1, 9)), int(rng.integers(0, 80))
+        x = rng.normal(size=n)
+        x[rng.random(n) < 0.2] = np.nan
+        e = _envelope(x, m).reshape(-1, 2)
+        assert len(e) == n // m
+        for i, (first, second) in enumerate(e):
+            b = x[i * m : (i + 1) * m]
+            if np.isnan(b).all():
+                assert np.isnan(first) and np.isnan(second)
+                continue
+            lo, hi = np.nanargmin(b), np.nanargmax(b)
+            assert (first, second) == ((b[lo], b[hi]) if lo <= hi else (b[hi], b[lo]))
+
+
+def test_invalid_spans_read_in_pieces_match_a_whole_read():
+    from rths_hil.watch.app import _Invalid
+
+    def whole(valid: np.ndarray, gap: int) -> list[list[int]]:
+        spans: list[list[int]] = []
+        k = 0
+        while k < valid.size:
+            if valid[k]:
+                k += 1
+                continue
+            e = k
+            while e < valid.size and not valid[e]:
+                e += 1
+            if spans and k - spans[-1][1] < gap:
+                spans[-1][1] = e
+            else:
+                spans.append([k, e])
+            k = e
+        if spans and spans[-1][1] == valid.size:
+            spans[-1][1] = -1  # open: still invalid at the newest row
+        return spans
+
+    rng = np.random.default_rng(2)
+    for _ in range(300):
+        gap = int(rng.integers(1, 6))
+        valid = np.repeat(rng.random(80) < 0.6, rng.integers(1, 5, size=80))
+        tr, a = _Invalid(gap), 0
+        while a < valid.size:
+            b = min(valid.size, a + int(rng.integers(1, 25)))
+            tr.update(valid[a:b], a)
+            a = b
+        assert tr.spans == whole(valid, gap)
+    # columns: an open span reaches far right; one that ended before the window is left out
+    tr = _Invalid(1)
+    tr.update(np.array([1, 0, 0, 1, 1, 1, 0, 0], dtype=bool), 0)
+    cols = tr.columns(0.0, 2.0, 0.0)
+    assert cols["l"] == [0.25, 2.75] and cols["r"] == [1.25, 3.0 + _Invalid.OPEN]
+    assert tr.columns(0.0, 2.0, 2.0) == {"l": [2.75], "r": [3.0 + _Invalid.OPEN]}

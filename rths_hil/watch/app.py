@@ -1,10 +1,20 @@
 """The live page: a Bokeh document per browser session, fed from a :class:`RunFollower`.
 
-Each session refreshes every :data:`REFRESH_S` (5 Hz): the shared follower reads what is new on
-disk (at most once per refresh period whatever the number of sessions), then the session
-replaces its sources with the window it shows (the last :data:`WINDOW_S` of the record, or the
-window ending at the replay slider's time), decimated to about :data:`WINDOW_POINTS` points by
-a stride aligned to the step index, so a point does not move between refreshes.
+Each session refreshes every :data:`REFRESH_S` (5.5 Hz): the shared follower reads what is new on
+disk (at most once per refresh period whatever the number of sessions), and the session sends
+the browser only what changed. The cost of a refresh in the browser is mostly the repaint of
+each plot whose data or range changed (every renderer of such a plot is painted again), so:
+
+* the 10 s plots get the new rows only (:meth:`ColumnDataSource.stream` with a rollover of
+  10 s), decimated by a stride aligned to the step index, so a point never moves: the
+  displacement at every refresh, the FEI A and d (estimates over a window of seconds) every
+  :data:`FEI_S`, on a time axis of their own; the time axes are set, and the value axes move
+  only when the data leaves them or uses less than a third of them;
+* the whole-test plot (the minimum and maximum of each bucket of about one pixel, only for
+  completed buckets), the force–displacement loop, the lateness plot (on its own time axis),
+  the limit bars and the counts are refreshed once per :data:`SLOW_S`;
+* text boxes change only when their text does (a text box re-lays out the page);
+* a session that looks back (replay slider) gets the window it asks for, whole.
 
 Per channel: target / command / measured over the window and the whole test (overview); the
 online FEI amplitude A(t) and delay d(t) (the FEI paper, Eq. 2.2 and 2.5; streaming and exact)
@@ -23,7 +33,6 @@ from __future__ import annotations
 import html
 import logging
 import math
-import os
 import signal
 import time
 from collections.abc import Callable
@@ -37,7 +46,6 @@ from bokeh.models import (
     Button,
     ColumnDataSource,
     CustomJS,
-    DataRange1d,
     Div,
     FactorRange,
     Legend,
@@ -48,19 +56,33 @@ from bokeh.models import (
 )
 from bokeh.plotting import figure
 
-from .source import RunFollower, RunState, channel_column, find_writer
+from .source import RunFollower, RunState, channel_column
 
-__all__ = ["REFRESH_S", "WINDOW_POINTS", "WINDOW_S", "WatchContext", "build_document"]
+__all__ = [
+    "FEI_S",
+    "REFRESH_S",
+    "SLOW_S",
+    "WINDOW_POINTS",
+    "WINDOW_S",
+    "WatchContext",
+    "build_document",
+]
 
 log = logging.getLogger(__name__)
 
-REFRESH_S = 0.2  # s between two refreshes of a page (5 Hz)
-TICK_S = 0.05  # s between two checks whether a refresh is due
+REFRESH_S = 0.18  # s between two refreshes of a page (5.5 Hz: ≥ 5 Hz with the timer's jitter)
+SLOW_S = 1.0  # s between two refreshes of the slow panels (overview, loop, lateness, bars)
+FEI_S = 2 * REFRESH_S  # s between two refreshes of the FEI plots (window estimates)
+TICK_S = 0.03  # s between two checks whether a refresh is due
 IN_FLIGHT = 2  # refreshes sent and not yet applied by the browser, at most
 WINDOW_S = 10.0  # s of record in the detailed plots
-WINDOW_POINTS = 600  # about this many points per line in the detailed plots
-OVERVIEW_POINTS = 2000  # about this many points per line in the whole-test plot
+WINDOW_POINTS = 600  # at most this many points per line in the detailed plots
+OVERVIEW_BUCKETS = 500  # buckets (about one pixel each) of the whole-test plot
 CONFIRM_S = 10.0  # s the stop confirmation stays open
+
+#: Columns of the 10 s displacement plot's source, and of the FEI plots' source (delays in ms).
+WINDOW_COLUMNS = ("t", "target", "command", "measured")
+FEI_COLUMNS = ("t", "a", "d", "a_ex", "d_ex", "kf_g", "kf_d")
 
 COLORS = {
     "target": "#1f77b4",
@@ -172,6 +194,93 @@ def _num(x, default: float = 0.0) -> float:
     except (TypeError, ValueError):
         return default
     return v if math.isfinite(v) else default
+
+
+def _envelope(x: np.ndarray, m: int) -> np.ndarray:
+    """Minimum and maximum of each block of ``m`` samples, in the order they occur.
+
+    Returns ``2 · (x.size // m)`` values: per block, its extreme that comes first, then the
+    other. Drawn as a line through two points per block of about one pixel, this is the
+    signal's envelope at that resolution: no peak is lost to decimation (unlike a stride).
+    NaN samples are ignored; a block of NaN gives NaN.
+    """
+    nb = x.size // m
+    b = x[: nb * m].reshape(nb, m)
+    nan = np.isnan(b)
+    lo = np.where(nan, np.inf, b)
+    hi = np.where(nan, -np.inf, b)
+    i_lo, i_hi = lo.argmin(axis=1), hi.argmax(axis=1)
+    r = np.arange(nb)
+    v_lo, v_hi = lo[r, i_lo], hi[r, i_hi]
+    empty = nan.all(axis=1)
+    v_lo[empty] = np.nan
+    v_hi[empty] = np.nan
+    lo_first = i_lo <= i_hi
+    out = np.empty((nb, 2))
+    out[:, 0] = np.where(lo_first, v_lo, v_hi)
+    out[:, 1] = np.where(lo_first, v_hi, v_lo)
+    return out.ravel()
+
+
+def _fit(rng: Range1d, lo: float, hi: float, min_span: float) -> None:
+    """Move a value axis only when the data leaves it or uses less than a third of it.
+
+    A value axis that follows the data at every refresh moves its ticks and labels at every
+    refresh; this one changes a few times in a test, and then with 15 % of room on each side.
+    """
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return
+    span = max(hi - lo, min_span)
+    start, end = rng.start, rng.end
+    if lo >= start and hi <= end and span >= (end - start) / 3:
+        return
+    mid = 0.5 * (lo + hi)
+    rng.start = min(lo, mid - 0.5 * span) - 0.15 * span
+    rng.end = max(hi, mid + 0.5 * span) + 0.15 * span
+
+
+class _Invalid:
+    """The spans of loop time where a channel's FEI is invalid, found incrementally.
+
+    Spans closer than ``gap`` samples are one span (the plot cannot show the gap); a span still
+    open at the newest row reaches far to the right (``r = +1e6 s``), so that the greyed area
+    follows the data without a change of the source at every refresh.
+    """
+
+    OPEN = 1e6  # s added to the start of a span still open
+
+    def __init__(self, gap: int) -> None:
+        self.gap = max(1, gap)
+        self.upto = 0  # rows read
+        self.spans: list[list[int]] = []  # [first row, end row (exclusive) or -1 while open]
+
+    def update(self, valid: np.ndarray, a: int) -> None:
+        """Read the validity of rows ``a, a + 1, …`` (``a`` = :attr:`upto`)."""
+        inv = ~np.asarray(valid, dtype=bool)
+        end = a + inv.size
+        if self.spans and self.spans[-1][1] == -1 and inv.size and not inv[0]:
+            self.spans[-1][1] = a  # the span open at the last read ended there
+        s, e = _runs(inv)
+        for s_i, e_i in zip((s + a).tolist(), (e + a).tolist(), strict=True):
+            last = self.spans[-1] if self.spans else None
+            if last is not None and (last[1] == -1 or s_i - last[1] < self.gap):
+                last[1] = e_i  # continues the open span, or joins one that ended a moment ago
+            else:
+                self.spans.append([s_i, e_i])
+        if self.spans and self.spans[-1][1] == end:
+            self.spans[-1][1] = -1  # still invalid at the newest row
+        self.upto = end
+
+    def columns(self, t0: float, fs: float, t_from: float) -> dict:
+        """The spans ending after loop time ``t_from`` as the strip source's columns."""
+        half = 0.5 / fs
+        left, right = [], []
+        for s, e in self.spans:
+            r = t0 + (e - 1) / fs + half if e != -1 else t0 + s / fs + self.OPEN
+            if r >= t_from:
+                left.append(t0 + s / fs - half)
+                right.append(r)
+        return {"l": left, "r": right}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -302,35 +411,52 @@ class _Limits:
 
 
 class _ChannelView:
-    """The plots of one actuator channel."""
+    """The plots of one actuator channel and what the browser already holds of them."""
 
     def __init__(
-        self, ch: str, label: str, safety: dict, cfg: dict, paced: bool, x_range, overview_range
+        self,
+        ch: str,
+        label: str,
+        safety: dict,
+        cfg: dict,
+        paced: bool,
+        x_range: Range1d,
+        fei_range: Range1d,
+        overview_range: Range1d,
+        fs: float,
+        gap: int,
     ) -> None:
         self.ch = ch
+        self.fs = fs
+        sfx = "_" + ch if ch else ""
         w = 560
         tools = "pan,wheel_zoom,box_zoom,reset,save"
-        self.win = ColumnDataSource(
-            data={k: [] for k in ("t", "target", "command", "measured", "force", "a", "d")}
-            | {k: [] for k in ("a_ex", "d_ex", "kf_g", "kf_d")},
-            name=f"window{'_' + ch if ch else ''}",
-        )
+        # the 10 s window (streamed), the force–displacement loop and the whole test (slow)
+        self.win = ColumnDataSource(data={k: [] for k in WINDOW_COLUMNS}, name=f"window{sfx}")
+        self.fei = ColumnDataSource(data={k: [] for k in FEI_COLUMNS}, name=f"fei{sfx}")
+        self.fd = ColumnDataSource(data={"measured": [], "force": []}, name=f"loop{sfx}")
         self.ovw = ColumnDataSource(
-            data={"t": [], "target": [], "measured": []},
-            name=f"overview{'_' + ch if ch else ''}",
+            data={"t": [], "target": [], "measured": []}, name=f"overview{sfx}"
         )
-        self.invalid = ColumnDataSource(data={"l": [], "r": []})
+        self.invalid = ColumnDataSource(data={"l": [], "r": []}, name=f"invalid{sfx}")
         self.bars = ColumnDataSource(data={"limit": [], "used": [], "peak": [], "color": []})
         self.title = Div(
             text=f"<h2 style='margin:8px 0 0 0'>Channel {html.escape(label)}</h2>",
-            name=f"title{'_' + ch if ch else ''}",
+            name=f"title{sfx}",
         )
+        self.invalid_tracker = _Invalid(gap)
+        self.ovw_bucket = 0  # rows per bucket of the whole-test plot (0: not started)
+        self.ovw_upto = 0  # rows of the record already in it
+        self.ovw_whole = -1  # rows of the ended run when it was drawn whole
 
+        # value axes set by the refresh (see _fit): an automatic range moves at every refresh
+        self.y_disp = Range1d(-1e-3, 1e-3)
         p = figure(
             title="displacement: last 10 s",
             height=260,
             width=w,
             x_range=x_range,
+            y_range=self.y_disp,
             tools=tools,
             x_axis_label="time (s)",
             y_axis_label="m",
@@ -342,7 +468,7 @@ class _ChannelView:
         self.disp = p
 
         q = figure(
-            title="displacement: whole test",
+            title="displacement: whole test (min/max per pixel)",
             height=260,
             width=w,
             x_range=overview_range,
@@ -359,11 +485,14 @@ class _ChannelView:
 
         a_tol = _num(safety.get("fei_amplitude_tol"))
         d_tol = _num(safety.get("fei_delay_tol"))
+        self.y_a = Range1d(0.9, 1.1)
+        self.y_d = Range1d(-5.0, 5.0)
         pa = figure(
             title="FEI amplitude A (1 = perfect); Kalman gain",
             height=220,
             width=w,
-            x_range=x_range,
+            x_range=fei_range,
+            y_range=self.y_a,
             tools=tools,
             x_axis_label="time (s)",
         )
@@ -371,7 +500,8 @@ class _ChannelView:
             title="FEI delay d (ms, > 0: measured lags); Kalman delay",
             height=220,
             width=w,
-            x_range=x_range,
+            x_range=fei_range,
+            y_range=self.y_d,
             tools=tools,
             x_axis_label="time (s)",
         )
@@ -381,9 +511,9 @@ class _ChannelView:
         ):
             fig.vstrip(x0="l", x1="r", source=self.invalid, fill_color="#9ca3af", fill_alpha=0.35)
             lines = [
-                fig.line("t", key, source=self.win, color=COLORS["measured"], line_width=1.6),
-                fig.line("t", ex, source=self.win, color=COLORS["exact"], line_dash="dashed"),
-                fig.line("t", kf, source=self.win, color=COLORS["kalman"]),
+                fig.line("t", key, source=self.fei, color=COLORS["measured"], line_width=1.6),
+                fig.line("t", ex, source=self.fei, color=COLORS["exact"], line_dash="dashed"),
+                fig.line("t", kf, source=self.fei, color=COLORS["kalman"]),
             ]
             fig.add_layout(
                 Legend(
@@ -397,20 +527,19 @@ class _ChannelView:
                     background_fill_alpha=0.6,
                 )
             )
-            fig.y_range = DataRange1d(renderers=lines, range_padding=0.2)
-            if tol > 0:
+            if tol > 0:  # the band, its edges dotted (one renderer: each costs a repaint)
                 ref = 1.0 if key == "a" else 0.0
                 fig.add_layout(
                     BoxAnnotation(
-                        bottom=ref - tol, top=ref + tol, fill_color="#22c55e", fill_alpha=0.12
+                        bottom=ref - tol,
+                        top=ref + tol,
+                        fill_color="#22c55e",
+                        fill_alpha=0.12,
+                        line_color="#16a34a",
+                        line_dash="dotted",
+                        line_alpha=1.0,
                     )
                 )
-                for y in (ref - tol, ref + tol):
-                    fig.add_layout(
-                        Span(
-                            location=y, dimension="width", line_color="#16a34a", line_dash="dotted"
-                        )
-                    )
         self.fei_a, self.fei_d = pa, pd
 
         pf = figure(
@@ -421,7 +550,7 @@ class _ChannelView:
             x_axis_label="measured displacement (m)",
             y_axis_label="force (N)",
         )
-        pf.line("measured", "force", source=self.win, color="#374151")
+        pf.line("measured", "force", source=self.fd, color="#374151")
         self.loop = pf
 
         factors = [
@@ -451,6 +580,79 @@ class _ChannelView:
         self.limits = _Limits(ch, safety, cfg, paced)
         self.layout = column(self.title, row(p, q), row(pa, pd), row(pf, pb))
 
+    # -- data ----------------------------------------------------------------------------------
+    def window_data(self, rec: np.ndarray, names, idx: slice, group: str = "win") -> dict:
+        """The columns of the 10 s plots' source ``group`` (``win``, ``fei``) at rows ``idx``."""
+        ch = self.ch
+        t = np.asarray(rec["time"][idx], dtype=float)
+        if group == "win":
+            return {
+                "t": t,
+                "target": _col(rec, names, "target", ch, idx),
+                "command": _col(rec, names, "command", ch, idx),
+                "measured": _col(rec, names, "measured", ch, idx),
+            }
+        return {
+            "t": t,
+            "a": _col(rec, names, "fei_amplitude", ch, idx),
+            "d": _col(rec, names, "fei_delay", ch, idx) * 1e3,
+            "a_ex": _col(rec, names, "fei_exact_amplitude", ch, idx),
+            "d_ex": _col(rec, names, "fei_exact_delay", ch, idx) * 1e3,
+            "kf_g": _col(rec, names, "kf_gain", ch, idx),
+            "kf_d": _col(rec, names, "kf_delay", ch, idx) * 1e3,
+        }
+
+    def fit_axes(self, group: str) -> None:
+        """Value axes of the 10 s plots of ``group`` around the data they hold."""
+
+        def span(data, *keys: str) -> tuple[float, float]:
+            x = np.concatenate([np.asarray(data[k], dtype=float) for k in keys])
+            x = x[np.isfinite(x)]
+            return (float(x.min()), float(x.max())) if x.size else (math.nan, math.nan)
+
+        if group == "win":
+            _fit(self.y_disp, *span(self.win.data, "target", "command", "measured"), 1e-4)
+        else:
+            _fit(self.y_a, *span(self.fei.data, "a", "a_ex", "kf_g"), 0.02)
+            _fit(self.y_d, *span(self.fei.data, "d", "d_ex", "kf_d"), 1.0)
+
+    def overview_update(self, rec: np.ndarray, names, rows: int, planned: int, final: bool):
+        """Extend the whole-test plot with the buckets completed since the last call.
+
+        Buckets of ``(planned or rows) / OVERVIEW_BUCKETS`` rows (about one pixel), each drawn
+        as its minimum and maximum (:func:`_envelope`); when the run outgrows the planned
+        length the buckets double and the plot is rebuilt. ``final``: the run has ended, the
+        last, incomplete bucket is drawn too (replacing the source).
+        """
+        if final and rows == self.ovw_whole:
+            return
+        want = max(1, math.ceil(max(rows, planned) / OVERVIEW_BUCKETS))
+        rebuild = final or self.ovw_bucket == 0 or want > 2 * self.ovw_bucket
+        if self.ovw_bucket == 0 or want > 2 * self.ovw_bucket:
+            self.ovw_bucket = want
+        if rebuild:
+            self.ovw_upto = 0
+        if final:
+            self.ovw_whole = rows
+        m = self.ovw_bucket
+        a = self.ovw_upto
+        b = rows if final else a + (rows - a) // m * m
+        if b <= a and not rebuild:
+            return
+        t = np.asarray(rec["time"][a:b:m], dtype=float)
+        ends = np.minimum(np.arange(a, b, m) + m, b)
+        half = 0.5 * (ends - np.arange(a, b, m)) / self.fs
+        data = {"t": np.column_stack([t, t + half]).ravel()}
+        for key in ("target", "measured"):
+            x = _col(rec, names, key, self.ch, slice(a, b))
+            pad = (-x.size) % m  # the last, incomplete bucket (final only): NaN-padded
+            data[key] = _envelope(np.append(x, np.full(pad, np.nan)), m)
+        self.ovw_upto = b
+        if rebuild:
+            self.ovw.data = data
+        else:
+            self.ovw.stream(data)
+
 
 class _Page:
     """One session's document and its refresh."""
@@ -473,6 +675,11 @@ class _Page:
         self._slow_at = 0.0
         self._last_key = None
         self._n_ovr = 0
+        # what the browser holds of each 10 s source group (``win``, ``fei``): every m-th row
+        # up to the row in ``_next`` (exclusive) while following the live end; absent: nothing
+        # to stream onto (replace it)
+        self._next: dict[str, int] = {}
+        self._fei_at = 0.0
         self.stop_btn = Button(
             label="Operator stop…", button_type="danger", name="stop", visible=False, width=160
         )
@@ -508,8 +715,11 @@ class _Page:
         self.live_btn.on_click(self._follow)
 
         # set by each refresh (an automatic range, recomputed from every plot sharing it at each
-        # data change, cost the browser far more than the plots themselves)
+        # data change, cost the browser far more than the plots themselves); the lateness plot
+        # has its own, set once per SLOW_S: a plot whose range moves is painted again
         self.x_range = Range1d(0.0, WINDOW_S)
+        self.fei_range = Range1d(0.0, WINDOW_S)
+        self.lat_range = Range1d(0.0, WINDOW_S)
         self.overview_range = Range1d(0.0, 1.0)
 
         self.lat_src = ColumnDataSource(data={"t": [], "lat": []}, name="lateness")
@@ -517,7 +727,7 @@ class _Page:
             title="lateness of the send (ms; paced; 0 in lockstep)",
             height=200,
             width=560,
-            x_range=self.x_range,
+            x_range=self.lat_range,
             tools="pan,wheel_zoom,box_zoom,reset,save",
             x_axis_label="time (s)",
         )
@@ -585,15 +795,13 @@ class _Page:
         if time.monotonic() > self.confirm_until:
             return
         self.confirm_until = 0.0
-        f = self.ctx.follower
-        pid = find_writer(f.record_path, hint=f.writer)
+        try:
+            pid = self.ctx.follower.signal_writer(signal.SIGINT)
+        except OSError as exc:
+            self.ctx.say(f"operator stop: cannot signal the run's process: {exc.strerror}")
+            return
         if pid is None:
             self.ctx.say("operator stop: no process is writing the record; nothing sent")
-            return
-        try:
-            os.kill(pid, signal.SIGINT)
-        except OSError as exc:
-            self.ctx.say(f"operator stop: cannot signal process {pid}: {exc.strerror}")
             return
         self.stop_sent = True
         self.stop_btn.disabled = True
@@ -634,7 +842,9 @@ class _Page:
     # -- refresh -------------------------------------------------------------------------------
     def _build_channels(self, chans: list[str], safety: dict) -> None:
         self.channels = chans
-        meta = self.ctx.follower.meta
+        f = self.ctx.follower
+        meta, fs = f.meta, f.fs()
+        gap = _stride(round(WINDOW_S * fs), WINDOW_POINTS)
         self.views = []
         for ch in chans:
             cfg = channel_config(meta.get("config", {}) or {}, ch)
@@ -646,9 +856,13 @@ class _Page:
                     cfg,
                     meta.get("mode") == "paced",
                     self.x_range,
+                    self.fei_range,
                     self.overview_range,
+                    fs,
+                    gap,
                 )
             )
+        self._next = {}
         self.channel_box.children = [v.layout for v in self.views]
 
     def refresh(self) -> None:
@@ -713,73 +927,90 @@ class _Page:
         if key == self._last_key:
             return  # nothing new: the browser redraws nothing
         self._last_key = key
-        # the whole-test plot, the limit bars and the counts change slowly: once a second
-        slow = not st.live or now - self._slow_at >= 1.0
+        # the slow panels: once per SLOW_S while live, at each change otherwise
+        slow = not st.live or now - self._slow_at >= SLOW_S
         if slow:
             self._slow_at = now
-        k0 = max(0, k_end - round(WINDOW_S * fs))
-        m = _stride(k_end - k0, WINDOW_POINTS)
-        first = k0 + (-k0) % m  # stride aligned to the step index
-        idx = slice(first, k_end, m)
-        t = np.asarray(rec["time"][idx], dtype=float)
-        self.x_range.start = max(t_end - WINDOW_S, t_first)
-        self.x_range.end = self.x_range.start + WINDOW_S
-        # run-wide: lateness (max over each stride block, so no overrun is hidden)
-        if slow:  # once a second: the overruns are also counted in the info line and the bars
-            lat_full = np.asarray(rec["lateness"][k0:k_end], dtype=float)
-            lat = _block_max(lat_full[first - k0 :], m) * 1e3
-            self.lat_src.data = {"t": t, "lat": lat[: t.size]}
-        thr = _num((cfg.get("loop", {}) or {}).get("overrun_threshold"), 0.5) / fs
-        self.thr_span.location = thr * 1e3
-        if slow and f.meta.get("mode") == "paced":
-            self._n_ovr = int((np.asarray(rec["lateness"][:k_end], dtype=float) > thr).sum())
-        # whole test (overview)
-        mo = _stride(max(f.rows, int(f.meta.get("planned_steps") or 0)), OVERVIEW_POINTS)
-        oidx = slice(0, k_end if not st.finished else f.rows, mo)
-        t_o = np.asarray(rec["time"][oidx], dtype=float)
+        n_win = round(WINDOW_S * fs)
+        m = _stride(n_win, WINDOW_POINTS)  # the window's stride: fixed for the run
+        k0 = max(0, k_end - n_win)
+        first = k0 + (-k0) % m  # stride aligned to the step index: a point never moves
+        t_from = max(t_end - WINDOW_S, t_first)
+        self.x_range.start = t_from
+        self.x_range.end = t_from + WINDOW_S
+        rollover = math.ceil(n_win / m) + 1
+        self._window("win", rec, names, first, k_end, m, rollover)
+        # the FEI plots: every FEI_S while following a live run (the FEI and Kalman estimates
+        # are over a window of seconds); at each change otherwise
+        if not (st.live and self.follow) or now - self._fei_at >= FEI_S - 0.5 * TICK_S:
+            self._fei_at = now
+            self.fei_range.start = t_from
+            self.fei_range.end = t_from + WINDOW_S
+            self._window("fei", rec, names, first, k_end, m, rollover)
+            for v in self.views:
+                valid_name = channel_column(names, "fei_valid", v.ch)
+                if valid_name is None:
+                    continue
+                tr = v.invalid_tracker
+                if f.rows > tr.upto:
+                    tr.update(rec[valid_name][tr.upto : f.rows], tr.upto)
+                spans = tr.columns(t_first, fs, t_from)
+                if spans != v.invalid.data:
+                    v.invalid.data = spans
         self.overview_range.start = t_first
         self.overview_range.end = max(t_first + f.planned_duration(), t_last)
-        for v in self.views:
-            ch = v.ch
-            data = {
-                "t": t,
-                "target": _col(rec, names, "target", ch, idx),
-                "command": _col(rec, names, "command", ch, idx),
-                "measured": _col(rec, names, "measured", ch, idx),
-                "force": _col(rec, names, "force", ch, idx),
-                "a": _col(rec, names, "fei_amplitude", ch, idx),
-                "d": _col(rec, names, "fei_delay", ch, idx) * 1e3,
-                "a_ex": _col(rec, names, "fei_exact_amplitude", ch, idx),
-                "d_ex": _col(rec, names, "fei_exact_delay", ch, idx) * 1e3,
-                "kf_g": _col(rec, names, "kf_gain", ch, idx),
-                "kf_d": _col(rec, names, "kf_delay", ch, idx) * 1e3,
-            }
-            v.win.data = data
-            if slow:
-                v.ovw.data = {
-                    "t": t_o,
-                    "target": _col(rec, names, "target", ch, oidx),
-                    "measured": _col(rec, names, "measured", ch, oidx),
-                }
-                v.window_box.left = t_end - WINDOW_S
-                v.window_box.right = t_end
-                v.bars.data = v.limits.update(rec, names, k_end, max(1, round(REFRESH_S * fs)))
-            valid_name = channel_column(names, "fei_valid", ch)
-            if valid_name is not None:
-                inv = ~np.asarray(rec[valid_name][idx], dtype=bool)
-                s, e = _runs(inv)
-                half = 0.5 * m / fs
-                left = t[s] - half if s.size else np.zeros(0)
-                right = t[np.minimum(e, t.size) - 1] + half if e.size else np.zeros(0)
-                old = v.invalid.data
-                if len(old["l"]) != left.size or not np.array_equal(old["l"], left):
-                    v.invalid.data = {"l": left, "r": right}
+        thr = _num((cfg.get("loop", {}) or {}).get("overrun_threshold"), 0.5) / fs
+        self.thr_span.location = thr * 1e3
+        if slow:
+            self._slow(st, f, rec, names, fs, (first, k_end, m), t_from, t_end, thr)
         self._events(f.events)
         self.info_div.text = self._info(st, t_end)  # sent only when it changed
-        if slow:
-            self.lat_plot.title.text = self._progress(st, t_last, self._n_ovr)
-        for v in self.views:  # inside the plot that is redrawn anyway: no page re-layout
-            v.disp.title.text = f"displacement: last 10 s (t = {t_end:.1f} s)"
+
+    def _window(self, group: str, rec, names, first: int, k_end: int, m: int, roll: int) -> None:
+        """Send the 10 s source ``group`` of every channel: rows ``first:k_end:m``.
+
+        While following the live end, only the rows new since the last time (streamed with a
+        rollover of ``roll`` points: the browser drops those older than the window); else the
+        whole window.
+        """
+        nxt = self._next.get(group)
+        stream = self.follow and nxt is not None and first <= nxt <= k_end
+        a = nxt if stream else first
+        if self.follow:
+            self._next[group] = a + m * max(0, math.ceil((k_end - a) / m))
+        else:
+            self._next.pop(group, None)
+        for v in self.views:
+            src = v.win if group == "win" else v.fei
+            if not stream:
+                src.data = v.window_data(rec, names, slice(first, k_end, m), group)
+            elif a < k_end:
+                src.stream(v.window_data(rec, names, slice(a, k_end, m), group), roll)
+            v.fit_axes(group)
+
+    def _slow(self, st, f, rec, names, fs, rows, t_from, t_end, thr) -> None:
+        """The panels refreshed once per SLOW_S: lateness, counts, overview, loop, bars."""
+        first, k_end, m = rows
+        # lateness: the maximum over each stride block, so that no overrun is hidden
+        lat = _block_max(np.asarray(rec["lateness"][first:k_end], dtype=float), m) * 1e3
+        t = np.asarray(rec["time"][first:k_end:m], dtype=float)
+        self.lat_src.data = {"t": t, "lat": lat[: t.size]}
+        self.lat_range.start = t_from
+        self.lat_range.end = t_from + WINDOW_S
+        if f.meta.get("mode") == "paced":
+            self._n_ovr = int((np.asarray(rec["lateness"][:k_end], dtype=float) > thr).sum())
+        planned = int(f.meta.get("planned_steps") or 0)
+        idx = slice(first, k_end, m)
+        for v in self.views:
+            v.fd.data = {
+                "measured": _col(rec, names, "measured", v.ch, idx),
+                "force": _col(rec, names, "force", v.ch, idx),
+            }
+            v.overview_update(rec, names, f.rows, planned, final=st.finished)
+            v.window_box.left = t_end - WINDOW_S
+            v.window_box.right = t_end
+            v.bars.data = v.limits.update(rec, names, k_end, max(1, round(REFRESH_S * fs)))
+        self.lat_plot.title.text = self._progress(st, float(rec["time"][-1]), self._n_ovr)
 
     def _events(self, events: list[dict]) -> None:
         if len(events) == self.n_events:

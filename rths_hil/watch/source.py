@@ -8,11 +8,14 @@ once). :class:`RunFollower` re-reads the header's row count on each :meth:`RunFo
 and maps the counted rows read-only (``np.load(mmap_mode="r")``), so a poll costs a few system
 calls whatever the length of the run, and reads the events appended since the last poll.
 
-The process writing the record is found without any help from it: on Linux,
-``/proc/<pid>/fd`` lists each process's open files, and the writer is the process that holds
-``record.npy`` open for writing (:func:`find_writer`). That is what the operator-stop button
-signals (SIGINT, the same stop as Ctrl-C), and its disappearance without an ``end`` event is
-how a killed run is recognised.
+The process writing the record is the one ``meta.json`` names (``pid``, written by the
+recorder), and only while it holds ``record.npy`` open for writing: on Linux,
+``/proc/<pid>/fd`` lists a process's open files (:func:`find_writer`), so a stale id of a
+finished run, reused by another process, is never taken for the writer. For a run recorded
+without ``pid`` in its metadata, every process this user may inspect is searched the way
+``lsof`` would. That is what the operator-stop button signals (:func:`signal_writer`: SIGINT,
+the same stop as Ctrl-C), and its disappearance without an ``end`` event is how a killed run
+is recognised.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import json
 import logging
 import os
 import re
+import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +41,7 @@ __all__ = [
     "channel_column",
     "find_channels",
     "find_writer",
+    "signal_writer",
 ]
 
 log = logging.getLogger(__name__)
@@ -117,12 +122,13 @@ def _holds_for_writing(pid: str, target: str) -> bool:
     return False
 
 
-def find_writer(record_path: str | Path, hint: int | None = None) -> int | None:
+def find_writer(record_path: str | Path, hint: int | None = None, scan: bool = True) -> int | None:
     """The id of the process that holds ``record_path`` open for writing, or None.
 
-    Looks at ``hint`` first (a previously found pid), then at every process this user may
-    inspect (``/proc/<pid>/fd``, Linux). Processes of other users are not visible, and could not
-    be signalled anyway.
+    Looks at ``hint`` first (the id the run's metadata names, or one found before), then, with
+    ``scan``, at every process this user may inspect (``/proc/<pid>/fd``, Linux). Processes of
+    other users are not visible, and could not be signalled anyway. This process is never its
+    own writer (the watcher never stops itself).
     """
     try:
         target = os.path.realpath(record_path)
@@ -133,6 +139,8 @@ def find_writer(record_path: str | Path, hint: int | None = None) -> int | None:
     me = os.getpid()
     if hint is not None and hint != me and _holds_for_writing(str(hint), target):
         return hint
+    if not scan:
+        return None
     try:
         pids = [p for p in os.listdir("/proc") if p.isdigit()]
     except OSError:
@@ -141,6 +149,39 @@ def find_writer(record_path: str | Path, hint: int | None = None) -> int | None:
         if int(p) != me and _holds_for_writing(p, target):
             return int(p)
     return None
+
+
+def signal_writer(
+    record_path: str | Path, sig: int, hint: int | None = None, scan: bool = True
+) -> int | None:
+    """Send ``sig`` to the process writing ``record_path``; its id, or None when there is none.
+
+    The process (``hint``, else, with ``scan``, the one :func:`find_writer` finds) is checked
+    to hold the record open for writing just before the signal, through a pidfd where Linux
+    has them (``os.pidfd_open``): the signal then reaches that very process or none, even if
+    it ended and its id was taken by another process in between. Raises OSError when the
+    signal cannot be sent (permission).
+    """
+    pid = find_writer(record_path, hint=hint, scan=scan)
+    if pid is None:
+        return None
+    try:
+        pidfd = os.pidfd_open(pid)
+    except (AttributeError, OSError):
+        pidfd = None  # no pidfd here (old kernel, not Linux): the check and the signal
+    try:
+        if find_writer(record_path, hint=pid, scan=False) != pid:
+            return None  # it ended between the two looks
+        if pidfd is not None:
+            signal.pidfd_send_signal(pidfd, sig)
+        else:
+            os.kill(pid, sig)
+    except ProcessLookupError:
+        return None
+    finally:
+        if pidfd is not None:
+            os.close(pidfd)
+    return pid
 
 
 # ----------------------------------------------------------------------------------------------
@@ -307,7 +348,17 @@ class RunFollower:
             raise ValueError("not an rths_hil record (no named columns)")
         self._header_len = start + hlen
 
+    @property
+    def meta_pid(self) -> int | None:
+        """The id of the recording process named by ``meta.json`` (None for older runs)."""
+        pid = self.meta.get("pid")
+        return pid if isinstance(pid, int) and not isinstance(pid, bool) and pid > 0 else None
+
     def _find_writer(self, now: float) -> None:
+        pid = self.meta_pid
+        if pid is not None:  # the recorder's process, while it holds the record
+            self.writer = find_writer(self.record_path, hint=pid, scan=False)
+            return
         if self.writer is not None:
             if find_writer(self.record_path, hint=self.writer) == self.writer:
                 return
@@ -394,6 +445,17 @@ class RunFollower:
                 msg = f"crashed: {err.get('error', 'error')}; the record holds {self.rows} steps"
             self.state = RunState("killed", msg, **common)
         return self.state
+
+    def signal_writer(self, sig: int = signal.SIGINT) -> int | None:
+        """Send ``sig`` to the process writing the record (:func:`signal_writer`).
+
+        The process ``meta.json`` names, and only that one, when the metadata names one;
+        otherwise (a run recorded without ``pid``) the process found by searching ``/proc``.
+        """
+        pid = self.meta_pid
+        if pid is not None:
+            return signal_writer(self.record_path, sig, hint=pid, scan=False)
+        return signal_writer(self.record_path, sig, hint=self.writer, scan=True)
 
     def fs(self) -> float:
         """The loop rate (Hz) from the metadata (or the record's time step)."""
