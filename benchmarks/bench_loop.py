@@ -589,12 +589,16 @@ _BASELINE_SNIPPET = (
 )
 
 
-def one_channel_vs_baseline(rev: str, rounds: int, duration: float) -> tuple[list, str]:
+def one_channel_vs_baseline(
+    rev: str, rounds: int, duration: float, cpu: int | None = None
+) -> tuple[list, str]:
     """Lockstep steps/s of today's default single-actuator test: this tree vs ``rev``.
 
     ``rev`` is checked out in a temporary git worktree; the two run alternately in fresh
-    processes (``rounds`` each) so that both see the same machine load.
+    processes (``rounds`` each) so that both see the same machine load. With ``cpu`` both are
+    pinned to that CPU (``taskset``), so that neither gains from landing on a quieter core.
     """
+    pin = ["taskset", "-c", str(cpu)] if cpu is not None else []
     root = Path(__file__).resolve().parents[1]
     with tempfile.TemporaryDirectory() as tmp:
         wt = Path(tmp) / "baseline"
@@ -609,7 +613,7 @@ def one_channel_vs_baseline(rev: str, rounds: int, duration: float) -> tuple[lis
                 for tree, out in ((root, new), (wt, old)):
                     env = dict(os.environ, PYTHONPATH=str(tree))
                     r = subprocess.run(
-                        [sys.executable, "-c", _BASELINE_SNIPPET, str(duration)],
+                        [*pin, sys.executable, "-c", _BASELINE_SNIPPET, str(duration)],
                         env=env,
                         cwd=tmp,
                         capture_output=True,
@@ -626,13 +630,15 @@ def one_channel_vs_baseline(rev: str, rounds: int, duration: float) -> tuple[lis
     med = statistics.median(ratios)
     row = (
         f"| 1 channel (default config) vs `{rev}` | {statistics.median(new):.0f} vs "
-        f"{statistics.median(old):.0f} steps/s | median ratio {med:.3f} over {rounds} "
-        f"alternations (goal ≥ 0.95) |"
+        f"{statistics.median(old):.0f} steps/s | median ratio {med:.3f} (range "
+        f"{min(ratios):.2f}–{max(ratios):.2f}) over {rounds} alternations (goal ≥ 0.95) |"
     )
     return ratios, row
 
 
-def channels(duration: float, paced_s: float, baseline: str | None, rounds: int) -> str:
+def channels(
+    duration: float, paced_s: float, baseline: str | None, rounds: int, pin: int | None = None
+) -> str:
     """Section 6: 1, 2, 4 and 8 channels over CAN virtual; returns the Markdown table."""
     lines = [
         f"## 6. Channels over CAN virtual (one bus, nodes 1..n; n-storey shear building; "
@@ -675,7 +681,7 @@ def channels(duration: float, paced_s: float, baseline: str | None, rounds: int)
     if baseline:
         lines += ["", "| comparison | steps/s | result |", "|---|---|---|"]
         for rev in baseline.split(","):
-            _, row = one_channel_vs_baseline(rev.strip(), rounds, 5.0)
+            _, row = one_channel_vs_baseline(rev.strip(), rounds, 5.0, pin)
             lines.append(row)
             print(row)
     lines += ["", f"Load average at the end: {os.getloadavg()[0]:.2f}."]
@@ -718,6 +724,9 @@ def main() -> None:
         "with (same run)",
     )
     ap.add_argument("--rounds", type=int, default=5, help="alternations of the comparison")
+    ap.add_argument(
+        "--pin", type=int, default=None, metavar="CPU", help="run the comparison on this CPU"
+    )
     args = ap.parse_args()
     print(
         f"# bench_loop — {time.strftime('%Y-%m-%d %H:%M')}, python {sys.version.split()[0]}, "
@@ -725,14 +734,14 @@ def main() -> None:
     )
     if args.channels:
         with bench_lock(args.lock):
-            table = channels(10.0, args.channels_paced, args.baseline, args.rounds)
+            table = channels(10.0, args.channels_paced, args.baseline, args.rounds, args.pin)
         write_results(
             "bench_loop",
             table,
             goals="4 channels at 1024 Hz paced: loop work p99 ≤ 30 % of the period, "
             "work-caused overruns ≤ 0.01 %; lockstep ≥ 4 000 steps/s with 4 channels; one "
             "channel no slower than before the channels redesign (±5 %, same run).",
-            command="python benchmarks/bench_loop.py --channels --baseline REV",
+            command="python benchmarks/bench_loop.py --channels --baseline REV[,REV] --pin 1",
         )
         return
     if args.profile:
