@@ -791,6 +791,20 @@ class MDOFCRStepper:
             np.stack([self._minv, self._C, self._K, self._adt, self._adt2])
         )
         self.reset(x0, v0, ag0, extra_force0)
+        # load (or compile) the kernel now, on copies, so that the real-time loop's first
+        # step does not: numba loads a cached kernel lazily, ≈ 6–11 ms at its first call
+        _cr_step(
+            self.x_next.copy(),
+            self._v_next.copy(),
+            0.0,
+            self._zero.copy(),
+            self._mats,
+            self._iota,
+            self.dt,
+            self._D,
+            self._bw,
+            self._est.copy(),
+        )
 
     # ----------------------------------------------------------------------------------------
     @property

@@ -36,7 +36,9 @@ from .specimen import KelvinVoigt
 
 __all__ = ["Sensor", "TwinPlant"]
 
-_BLOCK = 4096
+#: noise samples drawn per refill: small, so that a refill (≈ 5 µs) is not a spike in the
+#: reply time; the stream is the same for any block size
+_BLOCK = 256
 
 
 @dataclass(frozen=True)
@@ -118,7 +120,7 @@ class TwinPlant:
         disp_seq, force_seq = np.random.SeedSequence(int(self.sensor.seed)).spawn(2)
         self._rng_d = np.random.Generator(np.random.PCG64(disp_seq))
         self._rng_f = np.random.Generator(np.random.PCG64(force_seq))
-        self._i = _BLOCK  # force a refill on the first step
+        self._refill()  # now, not in the first step's reply
 
     def _refill(self) -> None:
         self._rng_d.standard_normal(out=self._nd)
@@ -175,13 +177,9 @@ class TwinPlant:
         n = len(cmd)
         x = self.effects.simulate(self.actuator.simulate(cmd))
         f = self.specimen.simulate(x) if self.specimen is not None else np.zeros(n)
-        nblocks = -(-n // _BLOCK)
-        nd = np.empty(nblocks * _BLOCK)
-        nf = np.empty(nblocks * _BLOCK)
-        for b in range(nblocks):
-            sl = slice(b * _BLOCK, (b + 1) * _BLOCK)
-            self._rng_d.standard_normal(out=nd[sl])
-            self._rng_f.standard_normal(out=nf[sl])
+        # the first block was drawn by reset(); the rest continue the same streams
+        nd = np.concatenate([self._nd, self._rng_d.standard_normal(max(n - _BLOCK, 0))])
+        nf = np.concatenate([self._nf, self._rng_f.standard_normal(max(n - _BLOCK, 0))])
         s = self.sensor
         md = x + s.displacement_noise * nd[:n]
         mf = f + s.force_noise * nf[:n]

@@ -402,3 +402,29 @@ def test_bad_matrices_give_one_line_errors(tmp_path):
             shear_building([1e4, 1e4], [2e7, 2e7]), 1e-3, transforms=[[1, 0, 0]], k_specimen=[1e6]
         )
     _one_line_error(e, "transforms", "2 columns")
+
+
+def test_stepper_loads_its_kernel_before_the_first_step():
+    """Constructing the stepper loads the numba kernel (a fresh process: nothing loaded yet).
+
+    numba loads a cached kernel lazily at its first call (6–11 ms here): that must happen
+    while the test is assembled, not in the real-time loop's first step. The warm-up call
+    works on copies: the first step equals a stepper built from the same model again.
+    """
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np\n"
+        "from rths_hil import mdof\n"
+        "m = mdof.shear_building([2e5, 2e5], [1e8, 1e8], zeta=0.02)\n"
+        "assert len(mdof._cr_step.overloads) == 0\n"
+        "s = mdof.MDOFCRStepper(m, 1 / 1024)\n"
+        "assert len(mdof._cr_step.overloads) == 1, mdof._cr_step.overloads\n"
+        "a = s.step(0.5, np.array([10.0, -5.0]))\n"
+        "b = mdof.MDOFCRStepper(m, 1 / 1024).step(0.5, np.array([10.0, -5.0]))\n"
+        "assert np.array_equal(a, b) and np.any(a != 0)\n"
+        "print('ok')\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]

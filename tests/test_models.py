@@ -264,3 +264,35 @@ def test_plant_quantisation_survives_nan_command():
     )
     md, mf = p.step(float("nan"))
     assert np.isnan(md) and np.isnan(mf)
+
+
+def test_plant_noise_is_drawn_before_the_first_step_and_in_small_blocks():
+    """The first step's reply does not pay for drawing the noise; later refills stay small.
+
+    The stream is the one a single draw from the sensor's seed gives, whatever the block size.
+    """
+    import sim_backends.plant as plant_mod
+
+    p = _plant()
+    calls: list[int] = []
+    for name in ("_rng_d", "_rng_f"):
+        rng = getattr(p, name)
+        draw = rng.standard_normal
+
+        def counted(*a, _draw=draw, **kw):
+            out = kw.get("out")
+            calls.append(out.size if out is not None else int(a[0]))
+            return _draw(*a, **kw)
+
+        setattr(p, name, type("R", (), {"standard_normal": staticmethod(counted)})())
+    n = plant_mod._BLOCK
+    steps = [p.step(1e-3)[0] for _ in range(n)]
+    assert calls == []  # reset() drew the first block
+    steps.append(p.step(1e-3)[0])
+    assert calls == [n, n] and n <= 512
+    disp_seq, _ = np.random.SeedSequence(int(p.sensor.seed)).spawn(2)
+    ref = np.random.Generator(np.random.PCG64(disp_seq)).standard_normal(n + 1)
+    x = np.asarray(steps) - p.true_displacement  # constant command: settled achieved value
+    q = p.sensor.displacement_resolution  # the sensor quantises (rounds to q)
+    np.testing.assert_allclose(x[-10:], p.sensor.displacement_noise * ref[-10:], atol=q / 2)
+    assert np.max(np.abs(x[-10:] - p.sensor.displacement_noise * ref[-11:-1])) > q
