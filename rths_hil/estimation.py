@@ -30,7 +30,8 @@ has no such bias.
 
 Cost: the filter is 3-state with a scalar measurement. filterpy's generic matrix code costs
 about 60-80 µs per sample here (numpy calls on 3×3 arrays dominate); the default
-``backend="fast"`` evaluates the same equations on Python floats at about 10 µs per sample
+``backend="fast"`` evaluates the same equations, unrolled, in one plain ``numba.njit`` kernel
+per sample (:func:`_ekf_update`: push, predict, correct) at about 1 µs including the call
 (see ``benchmarks/bench_models.py``) and matches the filterpy path to round-off.
 
 Calibration (:func:`calibrate`)
@@ -49,6 +50,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
+import numba
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
 from scipy import optimize, signal
@@ -71,7 +73,8 @@ __all__ = [
 ]
 
 
-def _lagrange(f: float) -> tuple[float, float, float, float, float, float, float, float]:
+@numba.njit(cache=True, nogil=True)
+def _lagrange(f):  # pragma: no cover - numba
     """Taps of the 4-point Lagrange interpolator at position ``f`` and their derivatives d/df."""
     f1, f2, f3 = f - 1.0, f - 2.0, f - 3.0
     h0 = -f1 * f2 * f3 / 6.0
@@ -83,6 +86,121 @@ def _lagrange(f: float) -> tuple[float, float, float, float, float, float, float
     d2 = -(f1 * f3 + f * f3 + f * f1) / 2.0
     d3 = (f1 * f2 + f * f2 + f * f1) / 6.0
     return h0, h1, h2, h3, d0, d1, d2, d3
+
+
+# Layout of the estimator's arrays, shared by the kernels below:
+#   u: ring of the input history (size slots), y: ring of the last M+1 measurements,
+#   st (int64): [position of the next input, samples pushed, look-ahead M],
+#   x: [g, τ, b, last innovation], p: P row-major (3×3),
+#   c: [fs, τ_lo, τ_hi, R, h2 (1 with the offset state, else 0), Q_g, Q_τ, Q_b].
+_FS, _LO, _HI, _R, _H2, _QG, _QT, _QB = range(8)
+
+
+@numba.njit(cache=True, nogil=True)
+def _ekf_push(u, y, st, u_k, y_k):  # pragma: no cover - numba
+    """Store input ``u_k`` and measurement ``y_k`` of sample k = st[1]."""
+    pos = st[0]
+    u[pos] = u_k
+    st[0] = (pos + 1) % u.size
+    y[st[1] % y.size] = y_k  # sample k in slot k mod (M+1): y[k−M] is then in slot (k+1) mod
+    st[1] += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _ekf_predict(p, c):  # pragma: no cover - numba
+    """Time update of the random walk: x unchanged, P ← P + Q (Q diagonal)."""
+    p[0] += c[_QG]
+    p[4] += c[_QT]
+    p[8] += c[_QB]
+
+
+@numba.njit(cache=True, nogil=True)
+def _ekf_interp(u, st, tau, fs):  # pragma: no cover - numba
+    """Input at t_k − M·dt − τ and its derivative d/dτ; ok False while the history is short.
+
+    Third-order Lagrange interpolation at D = τ·fs + M samples back (as
+    :mod:`rths_hil.sim_backends.delay`), the derivative taken on the polynomial.
+    """
+    d = tau * fs + st[2]
+    if d < 0.0:
+        d = 0.0
+    n0 = int(d) - 1
+    if n0 < 0:
+        n0 = 0
+    if st[1] < n0 + 4:
+        return False, 0.0, 0.0
+    h0, h1, h2, h3, d0, d1, d2, d3 = _lagrange(d - n0)
+    size = u.size
+    b = st[0] - 1 - n0  # newest sample, n0 back
+    u0 = u[b % size]
+    u1 = u[(b - 1) % size]
+    u2 = u[(b - 2) % size]
+    u3 = u[(b - 3) % size]
+    value = h0 * u0 + h1 * u1 + h2 * u2 + h3 * u3
+    dvalue = (d0 * u0 + d1 * u1 + d2 * u2 + d3 * u3) * fs
+    return True, value, dvalue
+
+
+@numba.njit(cache=True, nogil=True)
+def _ekf_correct(u, y, st, x, p, c):  # pragma: no cover - numba
+    """EKF measurement update with z = y[k−M]; False while warming up (x, P unchanged).
+
+    The 3-state update unrolled (filterpy's ``ExtendedKalmanFilter.update``); without the
+    offset state h2 = 0 and the third row/column of P stay zero: the 2-state filter.
+    """
+    if st[1] <= st[2]:
+        return False
+    z = y[st[1] % y.size]
+    g = x[0]
+    tau = x[1]
+    ok, v, dv = _ekf_interp(u, st, tau, c[_FS])
+    if not ok:
+        return False
+    # H = [u(t−τ), g·∂u(t−τ)/∂τ, 1]
+    h0 = v
+    h1 = g * dv
+    h2 = c[_H2]
+    p00, p01, p02 = p[0], p[1], p[2]
+    p10, p11, p12 = p[3], p[4], p[5]
+    p20, p21, p22 = p[6], p[7], p[8]
+    # a = P·Hᵀ
+    a0 = p00 * h0 + p01 * h1 + p02 * h2
+    a1 = p10 * h0 + p11 * h1 + p12 * h2
+    a2 = p20 * h0 + p21 * h1 + p22 * h2
+    # S = H·P·Hᵀ + R ;  innovation r = z − h(x) = z − (g·u(t−τ) + b)
+    s = h0 * a0 + h1 * a1 + h2 * a2 + c[_R]
+    r = z - (g * v + x[2])
+    x[3] = r
+    # K = P·Hᵀ/S ;  x ← x + K·r (τ clipped to its range)
+    k0 = a0 / s
+    k1 = a1 / s
+    k2 = a2 / s
+    x[0] = g + k0 * r
+    tau = tau + k1 * r
+    lo = c[_LO]
+    hi = c[_HI]
+    x[1] = lo if tau < lo else hi if tau > hi else tau
+    x[2] += k2 * r
+    # P ← P − K·(H·P) = P − K·aᵀ (P symmetric)
+    p[0] = p00 - k0 * a0
+    p[1] = p01 - k0 * a1
+    p[2] = p02 - k0 * a2
+    p[3] = p10 - k1 * a0
+    p[4] = p11 - k1 * a1
+    p[5] = p12 - k1 * a2
+    p[6] = p20 - k2 * a0
+    p[7] = p21 - k2 * a1
+    p[8] = p22 - k2 * a2
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _ekf_update(u, y, st, x, p, c, u_k, y_k):  # pragma: no cover - numba
+    """One sample: push, predict, correct; return (g, τ)."""
+    _ekf_push(u, y, st, u_k, y_k)
+    _ekf_predict(p, c)
+    _ekf_correct(u, y, st, x, p, c)
+    return x[0], x[1]
 
 
 class DelayGainEstimator:
@@ -157,18 +275,16 @@ class DelayGainEstimator:
         self._m = max(math.ceil(-lo * fs), 0)
         self._dmax = hi * fs + self._m
         size = math.floor(self._dmax) + 8
-        self._size = size
-        self._u = [0.0] * size
-        self._y = [0.0] * (self._m + 1)
-        self._pos = 0
-        self._count = 0
         q = [gain_rate**2 * self.dt, delay_rate**2 * self.dt, offset_rate**2 * self.dt]
         p0 = [gain_std0**2, delay_std0**2, offset_std0**2]
         if not self.estimate_offset:
             q[2] = p0[2] = 0.0
-        self._q = q
-        self._h2 = 1.0 if self.estimate_offset else 0.0
         self.R = float(measurement_noise) ** 2
+        # the kernels' arrays (layout above _FS): histories, counters, state, covariance
+        self._u = np.zeros(size)
+        self._y = np.zeros(self._m + 1)
+        self._st = np.array([0, 0, self._m], dtype=np.int64)
+        self._c = np.array([fs, lo, hi, self.R, 1.0 if self.estimate_offset else 0.0, *q])
         x0 = [float(gain0), float(delay0), 0.0][: self.n]
         self.kf = ExtendedKalmanFilter(dim_x=self.n, dim_z=1)
         self.kf.x = np.array(x0, dtype=float).reshape(self.n, 1)
@@ -176,10 +292,12 @@ class DelayGainEstimator:
         self.kf.Q = np.diag(q[: self.n])
         self.kf.R = np.array([[self.R]])
         self.kf.F = np.eye(self.n)
-        self._x = [float(gain0), float(delay0), 0.0]
-        self._p = [p0[0], 0.0, 0.0, 0.0, p0[1], 0.0, 0.0, 0.0, p0[2]]
-        self.innovation = 0.0
-        self._h = (0.0, 0.0)
+        self._x = np.array([float(gain0), float(delay0), 0.0, 0.0])  # g, τ, b, innovation
+        self._p = np.diag(p0).ravel()
+        self._arrays = (self._u, self._y, self._st, self._x, self._p, self._c)
+        self._innovation = 0.0  # filterpy backend
+        # load the kernel now on a throwaway copy, not at the loop's first sample
+        _ekf_update(*(a.copy() for a in self._arrays), 0.0, 0.0)
 
     # -- state ------------------------------------------------------------------------------
     @property
@@ -187,14 +305,14 @@ class DelayGainEstimator:
         """State estimate ``[g, τ(, b)]``."""
         if self.backend == "filterpy":
             return self.kf.x[:, 0].copy()
-        return np.array(self._x[: self.n])
+        return self._x[: self.n].copy()
 
     @property
     def P(self) -> np.ndarray:
         """State covariance."""
         if self.backend == "filterpy":
             return self.kf.P.copy()
-        return np.array(self._p).reshape(3, 3)[: self.n, : self.n].copy()
+        return self._p.reshape(3, 3)[: self.n, : self.n].copy()
 
     @property
     def gain(self) -> float:
@@ -217,6 +335,13 @@ class DelayGainEstimator:
         return np.sqrt(np.maximum(np.diag(self.P), 0.0))
 
     @property
+    def innovation(self) -> float:
+        """Innovation of the latest correction: measured minus predicted (m)."""
+        if self.backend == "filterpy":
+            return self._innovation
+        return float(self._x[3])
+
+    @property
     def latency(self) -> float:
         """Age of the measurement the latest update used, in s (the look-ahead ``M·dt``)."""
         return self._m * self.dt
@@ -224,93 +349,27 @@ class DelayGainEstimator:
     # -- filterpy-style steps ---------------------------------------------------------------
     def push(self, input_sample: float, measured_sample: float) -> None:
         """Store one (input, measured) sample pair; call before :meth:`predict`/:meth:`correct`."""
-        self._u[self._pos] = float(input_sample)
-        self._pos = (self._pos + 1) % self._size
-        y = self._y
-        y.append(float(measured_sample))
-        del y[0]
-        self._count += 1
+        _ekf_push(self._u, self._y, self._st, float(input_sample), float(measured_sample))
 
     def predict(self) -> None:
         """Time update of the random-walk model: ``x`` unchanged, ``P += Q``."""
         if self.backend == "filterpy":
             self.kf.predict()
             return
-        p = self._p
-        q = self._q
-        p[0] += q[0]
-        p[4] += q[1]
-        p[8] += q[2]
+        _ekf_predict(self._p, self._c)
 
     def _interp(self, tau: float) -> tuple[float, float] | None:
         """Input at ``t_k − M·dt − τ`` and its derivative with respect to ``τ``."""
-        d = tau * self.fs + self._m
-        if d < 0.0:
-            d = 0.0
-        n0 = int(d) - 1
-        if n0 < 0:
-            n0 = 0
-        f = d - n0
-        newest = self._pos - 1
-        if self._count < n0 + 4:
-            return None
-        h0, h1, h2, h3, d0, d1, d2, d3 = _lagrange(f)
-        u = self._u
-        size = self._size
-        b = newest - n0
-        u0 = u[b % size]
-        u1 = u[(b - 1) % size]
-        u2 = u[(b - 2) % size]
-        u3 = u[(b - 3) % size]
-        value = h0 * u0 + h1 * u1 + h2 * u2 + h3 * u3
-        dvalue = (d0 * u0 + d1 * u1 + d2 * u2 + d3 * u3) * self.fs
-        return value, dvalue
+        ok, value, dvalue = _ekf_interp(self._u, self._st, float(tau), self.fs)
+        return (value, dvalue) if ok else None
 
     def correct(self) -> bool:
         """Measurement update with the stored samples; return False while warming up."""
-        if self._count <= self._m:
-            return False
-        z = self._y[0]
         if self.backend == "filterpy":
-            return self._correct_filterpy(z)
-        x = self._x
-        g = x[0]
-        tau = x[1]
-        got = self._interp(tau)
-        if got is None:
-            return False
-        v, dv = got
-        # 3-state EKF update unrolled on floats; without the offset state h2 = 0 and the third
-        # row/column of P stay zero, which is exactly the 2-state filter
-        h0 = v
-        h1 = g * dv
-        h2 = self._h2
-        p = self._p
-        p00, p01, p02, p10, p11, p12, p20, p21, p22 = p
-        a0 = p00 * h0 + p01 * h1 + p02 * h2
-        a1 = p10 * h0 + p11 * h1 + p12 * h2
-        a2 = p20 * h0 + p21 * h1 + p22 * h2
-        s = h0 * a0 + h1 * a1 + h2 * a2 + self.R
-        r = z - (g * v + x[2])
-        self.innovation = r
-        k0 = a0 / s
-        k1 = a1 / s
-        k2 = a2 / s
-        x[0] = g + k0 * r
-        tau = tau + k1 * r
-        lo, hi = self.delay_range
-        x[1] = lo if tau < lo else hi if tau > hi else tau
-        x[2] += k2 * r
-        p[0] = p00 - k0 * a0
-        p[1] = p01 - k0 * a1
-        p[2] = p02 - k0 * a2
-        p[3] = p10 - k1 * a0
-        p[4] = p11 - k1 * a1
-        p[5] = p12 - k1 * a2
-        p[6] = p20 - k2 * a0
-        p[7] = p21 - k2 * a1
-        p[8] = p22 - k2 * a2
-        return True
+            if self._st[1] <= self._m:
+                return False
+            return self._correct_filterpy(float(self._y[self._st[1] % self._y.size]))
+        return _ekf_correct(*self._arrays)
 
     def _correct_filterpy(self, z: float) -> bool:
         kf = self.kf
@@ -323,7 +382,7 @@ class DelayGainEstimator:
         jac = np.array([row])
         pred = g * v + (float(kf.x[2, 0]) if self.estimate_offset else 0.0)
         kf.update(np.array([[z]]), HJacobian=lambda _x: jac, Hx=lambda _x: np.array([[pred]]))
-        self.innovation = float(kf.y[0, 0])
+        self._innovation = float(kf.y[0, 0])
         lo, hi = self.delay_range
         kf.x[1, 0] = min(max(kf.x[1, 0], lo), hi)
         return True
@@ -334,12 +393,12 @@ class DelayGainEstimator:
 
         The estimate refers to the measurement ``M`` samples back (:attr:`latency`).
         """
-        self.push(input_sample, measured_sample)
-        self.predict()
-        self.correct()
         if self.backend == "filterpy":
+            self.push(input_sample, measured_sample)
+            self.predict()
+            self.correct()
             return float(self.kf.x[0, 0]), float(self.kf.x[1, 0])
-        return self._x[0], self._x[1]
+        return _ekf_update(*self._arrays, float(input_sample), float(measured_sample))
 
     def run(self, inputs: np.ndarray, measured: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Feed whole histories; return the gain and delay estimate after each sample."""
