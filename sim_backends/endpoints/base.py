@@ -50,6 +50,10 @@ log = logging.getLogger(__name__)
 __all__ = ["TwinController", "TwinEndpoint", "TwinStats", "listen"]
 
 _LOOPBACK = ("127.", "::1", "localhost")
+_ENABLED = int(Status.ENABLED)
+_ESTOP_ACTIVE = int(Status.ESTOP_ACTIVE)
+_WATCHDOG = int(Status.WATCHDOG)
+_FAULT = int(Status.FAULT)
 
 
 def listen(host: str, port: int, allow_remote: bool, who: str) -> socket.socket:
@@ -225,16 +229,14 @@ class TwinController:
 
     def status(self) -> int:
         """Current :class:`~drivers.base.Status` flags (without per-sample flags)."""
-        s = 0
-        if self.enabled:
-            s |= Status.ENABLED
+        s = _ENABLED if self.enabled else 0  # plain ints: an IntFlag "|" builds an enum member
         if self.estop_latched:
-            s |= Status.ESTOP_ACTIVE
+            s |= _ESTOP_ACTIVE
         if self.watchdog_tripped:
-            s |= Status.WATCHDOG
+            s |= _WATCHDOG
         if self.faults.runaway_from is not None and self.last_seq >= self.faults.runaway_from:
-            s |= Status.FAULT
-        return int(s)
+            s |= _FAULT
+        return s
 
     def command(
         self, raw_seq: int, displacement: float, enable: bool
