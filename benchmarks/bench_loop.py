@@ -589,6 +589,29 @@ _BASELINE_SNIPPET = (
 )
 
 
+#: Python bytecodes executed per step of the same lockstep run (``sys.settrace`` with opcode
+#: events on the loop's frames and everything they call): deterministic, so it shows a change
+#: of the Python work per step that the wall clock of this machine cannot resolve; it does not
+#: see time spent inside numpy or numba kernels.
+_OPCODES_SNIPPET = (
+    "import sys, tempfile; from pathlib import Path; from rths_hil.config import load_config;"
+    " import rths_hil.loop as L\n"
+    "try:\n from rths_hil.hybrid.runner import Runner as C\n"
+    "except ImportError:\n C = L.RTHSLoop\n"
+    "n = [0]\n"
+    "def local(f, e, a):\n if e == 'opcode': n[0] += 1\n return local\n"
+    "def tracer(f, e, a):\n f.f_trace_opcodes = True\n return local\n"
+    "orig = C._loop\n"
+    "def traced(self, *a):\n sys.settrace(tracer)\n try: return orig(self, *a)\n"
+    " finally: sys.settrace(None)\n"
+    "C._loop = traced\n"
+    "cfg = load_config(None, ['loop.console=0', 'output.plot=false'])\n"
+    "r = L.RTHSLoop(cfg, Path(tempfile.mkdtemp()) / 'r', mode='lockstep',"
+    " duration=float(sys.argv[1])).run()\n"
+    "print(n[0] / r.steps)\n"
+)
+
+
 def one_channel_vs_baseline(
     rev: str, rounds: int, duration: float, cpu: int | None = None
 ) -> tuple[list, str]:
@@ -621,6 +644,18 @@ def one_channel_vs_baseline(
                         check=True,
                     )
                     out.append(float(r.stdout.strip().splitlines()[-1]))
+            ops = []
+            for tree in (root, wt):  # deterministic: one traced run each
+                env = dict(os.environ, PYTHONPATH=str(tree))
+                r = subprocess.run(
+                    [sys.executable, "-c", _OPCODES_SNIPPET, "2.0"],
+                    env=env,
+                    cwd=tmp,
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                )
+                ops.append(float(r.stdout.strip().splitlines()[-1]))
         finally:
             subprocess.run(
                 ["git", "-C", str(root), "worktree", "remove", "--force", str(wt)],
@@ -631,7 +666,8 @@ def one_channel_vs_baseline(
     row = (
         f"| 1 channel (default config) vs `{rev}` | {statistics.median(new):.0f} vs "
         f"{statistics.median(old):.0f} steps/s | median ratio {med:.3f} (range "
-        f"{min(ratios):.2f}–{max(ratios):.2f}) over {rounds} alternations (goal ≥ 0.95) |"
+        f"{min(ratios):.2f}–{max(ratios):.2f}) over {rounds} alternations (goal ≥ 0.95); "
+        f"Python bytecodes per step {ops[0]:.0f} vs {ops[1]:.0f} ({ops[0] / ops[1]:.3f}) |"
     )
     return ratios, row
 
