@@ -99,10 +99,24 @@ def read_record(
     """
     p = Path(path)
     name = str(path)
+    if p.is_dir():
+        raise InputError(
+            f"{name}: is a directory; for a run directory, write its record CSV with "
+            f"`rths-hil export {name}` and evaluate {p / 'record.csv'}"
+        )
     try:
+        with p.open("rb") as fb:
+            magic = fb.read(6)
         fh = p.open(newline="")
     except OSError as exc:
         raise InputError(f"{name}: cannot open record ({exc.strerror})") from None
+    if magic == b"\x93NUMPY":
+        fh.close()
+        run = p.parent
+        raise InputError(
+            f"{name}: a NumPy record (a run's record.npy), not a CSV; write the CSV with "
+            f"`rths-hil export {run}` and evaluate {run / 'record.csv'}"
+        )
     with fh:
         reader = csv.reader(fh)
         try:

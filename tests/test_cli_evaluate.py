@@ -99,3 +99,10 @@ def test_columns_it_does_not_use_may_hold_nan(tmp_path, capsys):
     write_record(p, {"time": t, "target": x, "measured": x, "fei_delay": np.full(t.size, np.nan)})
     assert main(["evaluate", str(p), "--window", "2s", "--hop", "64"]) == 0
     assert "A = 1.0000" in capsys.readouterr().out
+
+
+def test_a_run_record_npy_exits_2_naming_export(tmp_path, capsys):
+    np.save(tmp_path / "record.npy", np.zeros(10, dtype=[("time", "f8"), ("target", "f8")]))
+    assert main(["evaluate", str(tmp_path / "record.npy")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "rths-hil export" in err and len(err.splitlines()) == 1

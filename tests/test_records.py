@@ -56,3 +56,16 @@ def test_defects_name_file_and_row(tmp_path, text, where, what):
 def test_missing_file(tmp_path):
     with pytest.raises(InputError, match="cannot open"):
         read_record(tmp_path / "nope.csv")
+
+
+def test_a_run_record_npy_or_run_directory_says_how_to_export(tmp_path):
+    """A run's binary record or its directory: one line naming ``rths-hil export``."""
+    run = tmp_path / "run"
+    run.mkdir()
+    np.save(run / "record.npy", np.zeros(10, dtype=[("time", "f8"), ("target", "f8")]))
+    for path in (run / "record.npy", run):
+        with pytest.raises(InputError) as err:
+            read_record(path)
+        msg = str(err.value)
+        assert f"rths-hil export {run}" in msg and str(run / "record.csv") in msg
+        assert "\n" not in msg and "codec" not in msg
