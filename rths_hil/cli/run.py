@@ -68,6 +68,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     """Run the test; return the exit code."""
     from ..errors import InputError
+    from ..linkbudget import format_loads
     from ..loop import RTHSLoop, new_run_dir
     from ..report import LiveLine, format_summary, plot_report, summarize
 
@@ -92,13 +93,17 @@ def main(args: argparse.Namespace) -> int:
     site = loop.structure if hasattr(loop.structure, "paste_lines") else None
     if not args.quiet:
         span = f"{loop.n_steps / loop.fs:.1f} s"
+        drivers = ", ".join(dict.fromkeys(ch.driver_name for ch in loop.plan.channels))
         if site is not None:
             span = f"until the client ends (at most {span})"
+        twin = " + twin" if loop.twin_enabled else ""
         print(
-            f"rths-hil run: {loop.mode} {span} at {loop.fs:g} Hz, driver "
-            f"{cfg['driver']['name']}{' + twin' if loop.twin_enabled else ''}, record in {run_dir}",
+            f"rths-hil run: {loop.mode} {span} at {loop.fs:g} Hz, "
+            f"driver{'s' if ', ' in drivers else ''} {drivers}{twin}, record in {run_dir}",
             file=sys.stderr,
         )
+        for line in format_loads(loop.plan.links).splitlines():  # the link budget
+            print(f"rths-hil run: {line}", file=sys.stderr)
     if site is not None:  # structure.kind = "openfresco": listen, say what to paste, then wait
         host, port = site.listen()
         py, tcl = site.paste_lines()
