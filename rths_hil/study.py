@@ -739,17 +739,52 @@ class Perturbation:
         return out
 
 
-def _domain(key: str) -> tuple[float, bool]:
+def _twin_key(key: str) -> str | None:
+    """``twin.actuator.delay`` for ``twin.actuator.delay`` and for
+    ``actuators.NAME.twin.actuator.delay`` (one channel's twin); None for other keys."""
     if key.startswith("twin."):
-        return _TWIN_DOMAIN.get(key[5:], (-math.inf, False))
+        return key
+    parts = key.split(".")
+    if len(parts) == 5 and parts[0] == "actuators" and parts[2] == "twin":
+        return ".".join(parts[2:])
+    return None
+
+
+def _domain(key: str) -> tuple[float, bool]:
+    tk = _twin_key(key)
+    if tk is not None:
+        return _TWIN_DOMAIN.get(tk[5:], (-math.inf, False))
     return (-math.inf, False)  # the schema's own range is checked by the configuration
 
 
+def _channel_names(cfg) -> list[str]:
+    """Names of the ``[[actuators]]`` channels (empty for the implicit single channel)."""
+    return [a["name"] for a in (cfg.get("actuators") or [])]
+
+
+def channel_suffixes(cfg) -> list[str]:
+    """Record-column suffixes of the channels: ``[""]`` for one channel, else ``_<name>``
+    (as the loop names them, docs/channels.md)."""
+    names = _channel_names(cfg)
+    return [f"_{n}" for n in names] if len(names) > 1 else [""]
+
+
 def _set_value(cfg, key: str, value: float) -> None:
-    """Set ``key`` (a checked path) to ``value`` in a Config, in place."""
+    """Set ``key`` (a checked path) to ``value`` in a Config, in place.
+
+    ``twin.*`` sets the top-level twin and, in a configuration with ``[[actuators]]`` (whose
+    twins :func:`_inline_twin` made explicit), every channel's twin;
+    ``actuators.NAME.twin.*`` sets one channel's twin.
+    """
     parts = key.split(".")
     if parts[0] == "twin":
         cfg["twin"][parts[1]][parts[2]] = float(value)
+        for entry in cfg.get("actuators") or []:
+            if "twin" in entry:
+                entry["twin"][parts[1]][parts[2]] = float(value)
+    elif parts[0] == "actuators":
+        entry = next(a for a in cfg["actuators"] if a["name"] == parts[1])
+        entry["twin"][parts[3]][parts[4]] = float(value)
     else:
         cfg[parts[0]][parts[1]] = float(value)
 
@@ -758,39 +793,61 @@ def _inline_twin(cfg):
     """A copy of ``cfg`` whose twin is given by inline tables (a ``twin.model`` file is read)."""
     from rths_hil.sim_backends.modelfile import load_model
 
-    from .config import Config
+    from .config import Config, resolve_channel
 
     out = copy.deepcopy(cfg)
     if not isinstance(out, Config):
         raise InputError("expected a Config")
-    tw = out["twin"]
-    if not tw["enabled"]:
+    kind = out["structure"].get("kind", "sdof")
+    if kind not in ("sdof", "shear_building", "matrices"):
         raise InputError(
-            f"{cfg.source}: twin.enabled = false: robustness studies run on the twin, "
-            "never on the real actuator"
+            f"{cfg.source}: structure.kind = {kind!r}: a robustness study re-runs the numerical "
+            "substructure in every trial, so it needs one the bridge integrates (sdof, "
+            "shear_building, matrices)"
         )
-    if tw["model"]:
-        path = cfg.resolve_path(tw["model"])
-        try:
-            data = load_model(path).to_dict()
-        except InputError as exc:
-            raise InputError(f"{cfg.source}: twin.model: {exc}") from None
-        tw["model"] = ""
-        tw["actuator"] = data["actuator"]
-        tw["specimen"] = data.get("specimen", {})
-        tw["sensor"] = data.get("sensor", {})
-    else:
-        tw["actuator"] = dict(tw["actuator"])
-        tw["specimen"] = dict(tw["specimen"] or {})
-        tw["sensor"] = dict(tw["sensor"] or {})
+
+    def inline(tw: dict, where: str) -> dict:
+        if not tw["enabled"]:
+            raise InputError(
+                f"{cfg.source}: {where}.enabled = false: robustness studies run on the twin, "
+                "never on the real actuator"
+            )
+        if tw["model"]:
+            path = cfg.resolve_path(tw["model"])
+            try:
+                data = load_model(path).to_dict()
+            except InputError as exc:
+                raise InputError(f"{cfg.source}: {where}.model: {exc}") from None
+            return {
+                "model": "",
+                "actuator": data["actuator"],
+                "specimen": data.get("specimen", {}),
+                "sensor": data.get("sensor", {}),
+            }
+        return {
+            "model": "",
+            "actuator": dict(tw["actuator"]),
+            "specimen": dict(tw["specimen"] or {}),
+            "sensor": dict(tw["sensor"] or {}),
+        }
+
+    out["twin"].update(inline(out["twin"], "twin"))
+    # each channel's twin made explicit (its own, or the top-level one it inherits), so that
+    # one channel's twin can be varied without touching the others
+    for entry in out.get("actuators") or []:
+        own = resolve_channel(cfg, entry).config["twin"]
+        entry["twin"] = {**entry.get("twin", {}), **inline(own, f"actuators.{entry['name']}.twin")}
     return out
 
 
-def _twin_spec(cfg):
-    """The validated :class:`~sim_backends.modelfile.ModelSpec` of an inline-twin Config."""
+def _twin_spec(cfg, channel: str | None = None):
+    """The validated :class:`~sim_backends.modelfile.ModelSpec` of an inline-twin Config
+    (of channel ``channel``'s twin when given)."""
     from rths_hil.sim_backends.modelfile import load_model
 
     tw = cfg["twin"]
+    if channel is not None:
+        tw = next(a for a in cfg["actuators"] if a["name"] == channel)["twin"]
     data: dict = {"actuator": tw["actuator"]}
     if tw["specimen"]:
         data["specimen"] = tw["specimen"]
@@ -799,17 +856,30 @@ def _twin_spec(cfg):
     return load_model(data)
 
 
-def _varyable_keys(cfg) -> list[str]:
+def _twin_keys(tw: dict, prefix: str) -> list[str]:
     from rths_hil.sim_backends.registry import MODEL_ALIASES, MODELS
 
-    from .config import SCHEMA
-
-    model = cfg["twin"]["actuator"].get("model", "delay_gain")
+    model = tw["actuator"].get("model", "delay_gain")
     model = MODEL_ALIASES.get(model, model)
     params = MODELS[model].params if model in MODELS else {}
-    keys = [f"twin.actuator.{k}" for k in ("delay", "gain", *params)]
-    keys += [f"twin.specimen.{k}" for k in ("stiffness", "damping", "mass")]
-    keys += [f"twin.{k}" for k in _TWIN_DOMAIN if k.startswith("sensor.")]
+    keys = [f"{prefix}twin.actuator.{k}" for k in ("delay", "gain", *params)]
+    keys += [f"{prefix}twin.specimen.{k}" for k in ("stiffness", "damping", "mass")]
+    keys += [f"{prefix}twin.{k}" for k in _TWIN_DOMAIN if k.startswith("sensor.")]
+    return keys
+
+
+def _varyable_keys(cfg) -> list[str]:
+    from .config import SCHEMA
+
+    chans = cfg.get("actuators") or []
+    if chans:
+        # top-level twin.* keys apply to every channel, so only those all channels' models have
+        per = [_twin_keys(a["twin"], "") for a in chans]
+        keys = [k for k in per[0] if all(k in p for p in per)]
+        for a in chans:
+            keys += _twin_keys(a["twin"], f"actuators.{a['name']}.")
+    else:
+        keys = _twin_keys(cfg["twin"], "")
     for section in _CONFIG_SECTIONS:
         keys += [f"{section}.{k}" for k, key in SCHEMA[section].items() if key.kind == "float"]
     return keys
@@ -851,8 +921,8 @@ def parse_vary(text: str, cfg) -> Perturbation:
     if len(parts) != 2 or not all(parts):
         raise InputError(f"{where}: expected LOW:HIGH or LOW:HIGH:normal")
     name = key.split(".")[-1]
-    unit = _TWIN_UNITS.get(name) if key.startswith("twin.") else None
-    if not key.startswith("twin."):
+    unit = _TWIN_UNITS.get(name) if _twin_key(key) else None
+    if not _twin_key(key):
         unit = SCHEMA[key.split(".")[0]][name].unit
     values = []
     for p in parts:
@@ -895,7 +965,7 @@ def _check_values(cfg, values: dict[str, float], where: str) -> None:
     trial = copy.deepcopy(cfg)
     for key, v in values.items():
         parts = key.split(".")
-        if parts[0] != "twin":
+        if _twin_key(key) is None:
             try:
                 _coerce(SCHEMA[parts[0]][parts[1]], v, key)
             except InputError as exc:
@@ -903,8 +973,8 @@ def _check_values(cfg, values: dict[str, float], where: str) -> None:
         _set_value(trial, key, v)
     try:
         _cross_check(trial)
-        spec = _twin_spec(trial)
-        spec.build(1.0 / float(trial["loop"]["fs"]))
+        for name in _channel_names(trial) or [None]:
+            _twin_spec(trial, name).build(1.0 / float(trial["loop"]["fs"]))
     except InputError as exc:
         msg = str(exc).removeprefix(f"{trial.source}: ")
         raise InputError(f"{where}: {msg}") from None
@@ -922,6 +992,18 @@ def default_perturbations(cfg) -> list[Perturbation]:
     (or the transport delay of a pure ``delay_gain``) gets σ = 3.4 %, the gain σ = 0.73 %, and
     the specimen stiffness σ = 4.2 %. Each is a ``normal`` perturbation over ±2σ.
     """
+    chans = cfg.get("actuators") or []
+    if chans:
+        # several channels: each channel's twin drawn independently over the same ranges
+        out_all: list[Perturbation] = []
+        for a in chans:
+            one = copy.deepcopy(cfg)
+            one["actuators"] = []
+            one["twin"].update(copy.deepcopy(a["twin"]))
+            for p in default_perturbations(one):
+                key = f"actuators.{a['name']}.{p.key}"
+                out_all.append(Perturbation(key, p.low, p.high, p.dist))
+        return out_all
     act = cfg["twin"]["actuator"]
     spec = _twin_spec(cfg)
     model = act.get("model", "delay_gain")
@@ -1082,6 +1164,36 @@ def reference_response(cfg, n: int | None = None) -> np.ndarray:
     return out
 
 
+def reference_by_loop(cfg, n: int, tmp: str | Path) -> dict[str, np.ndarray]:
+    """Each channel's reference displacement x_r: the same test with ideal actuators.
+
+    For any structure and any number of channels: a lockstep run of :func:`rths_hil.loop.run`
+    in which every channel's twin keeps its specimen but achieves each command exactly
+    (``delay_gain`` with zero delay and unit gain, no effects, no sensor noise) and
+    compensation is off, so that the target each channel is given is x_r = T·u of the
+    numerical substructure coupled to ideal actuators and the specimens (Silva et al. 2020,
+    Eqs. 15 and 18). Returns ``{suffix: target}`` for the suffixes of
+    :func:`channel_suffixes`.
+    """
+    from .loop import run
+    from .recorder import read_run
+
+    ideal = copy.deepcopy(cfg)
+    perfect = {"model": "delay_gain", "delay": 0.0, "gain": 1.0}
+    for tw in [ideal["twin"], *(a["twin"] for a in ideal.get("actuators") or [])]:
+        tw["actuator"] = dict(perfect)
+        tw["sensor"] = {}
+    for entry in ideal.get("actuators") or []:
+        entry.get("compensation", {}).pop("enabled", None)
+    ideal["compensation"]["enabled"] = False
+    ideal["kalman"]["enabled"] = False
+    ideal["fei"]["exact_hop"] = 0
+    run_dir = Path(tmp) / "reference"
+    run(ideal, run_dir=run_dir, mode="lockstep", duration=n / float(ideal["loop"]["fs"]))
+    rec = read_run(run_dir).record
+    return {sfx: np.asarray(rec["target" + sfx], dtype=float) for sfx in channel_suffixes(cfg)}
+
+
 def _extremes(values: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
     v = values[valid & np.isfinite(values)]
     return (float(v.min()), float(v.max())) if v.size else (math.nan, math.nan)
@@ -1113,18 +1225,19 @@ def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
             path = Path(tmp) / Path(spec.record[0]).name
             path.write_bytes(spec.record[1])
             cfg["ground_motion"]["record"] = str(path)
+        sfx_all = channel_suffixes(cfg)
+        sdof = cfg["structure"].get("kind", "sdof") == "sdof" and not cfg.get("actuators")
         try:
             res = run(cfg, run_dir=Path(tmp) / "run", mode="lockstep", duration=spec.duration)
             rec = read_run(Path(tmp) / "run").record
-            reference = reference_response(cfg, res.planned_steps)
+            if sdof:
+                references = {"": reference_response(cfg, res.planned_steps)}
+            else:
+                references = reference_by_loop(cfg, res.planned_steps, tmp)
         except InputError as exc:  # e.g. a drawn benchmark plant that is unstable
             log.warning("trial %d (α = %g): %s", spec.index, spec.alpha, exc)
             return _invalid_row(spec, str(exc))
     fs = float(cfg["loop"]["fs"])
-    target = np.asarray(rec["target"], dtype=float)
-    measured = np.asarray(rec["measured"], dtype=float)
-    n = target.size
-    reference = reference[:n]
     row: dict[str, Any] = {"trial": spec.index, "alpha": float(cfg["compensation"]["alpha"])}
     row.update({k: float(v) for k, v in spec.values.items()})
     trip = res.trip
@@ -1135,38 +1248,48 @@ def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
         trip_time=float(trip.time) if trip is not None else math.nan,
         trip_reason=trip.reason if trip is not None else "",
     )
+    if sfx_all != [""]:
+        from .config import resolve_channel
+
+        row["trip_channel"] = trip.channel if trip is not None else ""
+        for sfx, entry in zip(sfx_all, cfg["actuators"], strict=True):
+            comp = resolve_channel(cfg, entry).config["compensation"]
+            row["alpha" + sfx] = float(comp["alpha"]) if comp["enabled"] else 1.0
     nan = math.nan
-    whole = fei(target, measured, fs) if n >= 8 else None
-    row.update(
-        fei_amplitude=whole.amplitude if whole is not None else nan,
-        fei_delay=whole.delay if whole is not None else nan,
-        fei_f_eq=whole.f_eq if whole is not None else nan,
-    )
-    valid = np.asarray(rec["fei_valid"], dtype=bool)
-    a_lo, a_hi = _extremes(np.asarray(rec["fei_amplitude"], dtype=float), valid)
-    d_lo, d_hi = _extremes(np.asarray(rec["fei_delay"], dtype=float), valid)
-    row.update(mwo_amplitude_min=a_lo, mwo_amplitude_max=a_hi)
-    row.update(mwo_delay_min=d_lo, mwo_delay_max=d_hi)
-    ok = n >= BENCHMARK_MIN_STEPS
-    paper = criteria(target, measured, fs, reference) if ok else {}
-    bench = benchmark_criteria(target, measured, fs, reference) if ok else {}
-    for i in range(1, 10):
-        row[f"J{i}"] = float(paper.get(f"J{i}", nan))
-    for i in range(1, 10):
-        row[f"bench_J{i}"] = float(bench.get(f"J{i}", nan))
-    row.update(
-        peak_target=float(np.max(np.abs(target))) if n else nan,
-        peak_reference=float(np.max(np.abs(reference))) if n else nan,
-        peak_force=float(np.max(np.abs(rec["force"]))) if n else nan,
-    )
+    for sfx in sfx_all:
+        target = np.asarray(rec["target" + sfx], dtype=float)
+        measured = np.asarray(rec["measured" + sfx], dtype=float)
+        n = target.size
+        reference = references[sfx][:n]
+        whole = fei(target, measured, fs) if n >= 8 else None
+        row["fei_amplitude" + sfx] = whole.amplitude if whole is not None else nan
+        row["fei_delay" + sfx] = whole.delay if whole is not None else nan
+        row["fei_f_eq" + sfx] = whole.f_eq if whole is not None else nan
+        valid = np.asarray(rec["fei_valid" + sfx], dtype=bool)
+        a_lo, a_hi = _extremes(np.asarray(rec["fei_amplitude" + sfx], dtype=float), valid)
+        d_lo, d_hi = _extremes(np.asarray(rec["fei_delay" + sfx], dtype=float), valid)
+        row["mwo_amplitude_min" + sfx], row["mwo_amplitude_max" + sfx] = a_lo, a_hi
+        row["mwo_delay_min" + sfx], row["mwo_delay_max" + sfx] = d_lo, d_hi
+        ok = n >= BENCHMARK_MIN_STEPS
+        paper = criteria(target, measured, fs, reference) if ok else {}
+        bench = benchmark_criteria(target, measured, fs, reference) if ok else {}
+        for i in range(1, 10):
+            row[f"J{i}{sfx}"] = float(paper.get(f"J{i}", nan))
+        for i in range(1, 10):
+            row[f"bench_J{i}{sfx}"] = float(bench.get(f"J{i}", nan))
+        row["peak_target" + sfx] = float(np.max(np.abs(target))) if n else nan
+        row["peak_reference" + sfx] = float(np.max(np.abs(reference))) if n else nan
+        row["peak_force" + sfx] = float(np.max(np.abs(rec["force" + sfx]))) if n else nan
     return row
 
 
 def _invalid_row(spec: TrialSpec, reason: str) -> dict[str, Any]:
     row: dict[str, Any] = {"trial": spec.index, "alpha": float(spec.cfg["compensation"]["alpha"])}
     row.update({k: float(v) for k, v in spec.values.items()})
-    row.update({c: math.nan for c in TRIAL_COLUMNS})
+    row.update({c: math.nan for c in trial_columns(channel_suffixes(spec.cfg))})
     row.update(status="invalid", steps=0, trip_rule="", trip_reason=reason)
+    if "trip_channel" in row:
+        row["trip_channel"] = ""
     return row
 
 
@@ -1195,11 +1318,12 @@ class RobustnessResult:
     alphas: list[float]
     seed: int
     keys: list[str]
+    suffixes: list[str] = field(default_factory=lambda: [""])
 
     @property
     def columns(self) -> list[str]:
         """CSV columns in order."""
-        return ["trial", "alpha", *self.keys, *TRIAL_COLUMNS]
+        return ["trial", "alpha", *self.keys, *trial_columns(self.suffixes)]
 
     def by_alpha(self, alpha: float) -> list[dict[str, Any]]:
         """The rows run with ``alpha``."""
@@ -1212,7 +1336,7 @@ class RobustnessResult:
         for alpha in self.alphas:
             rows = self.by_alpha(alpha)
             tripped = sum(r["status"] == "trip" for r in rows)
-            for m in SUMMARY_METRICS:
+            for m in (m + sfx for sfx in self.suffixes for m in SUMMARY_METRICS):
                 v = np.array([r[m] for r in rows], dtype=float)
                 v = v[np.isfinite(v)]
                 p5, p50, p95 = np.percentile(v, [5, 50, 95]) if v.size else (math.nan,) * 3
@@ -1251,7 +1375,22 @@ TRIAL_COLUMNS: tuple[str, ...] = (
     "peak_reference",
     "peak_force",
 )
-#: Metrics summarised per α.
+#: Per-channel trial columns (suffixed ``_<name>`` with several channels).
+_CHANNEL_COLUMNS = TRIAL_COLUMNS[5:]
+
+
+def trial_columns(suffixes: Sequence[str] = ("",)) -> list[str]:
+    """Trial columns after the varied keys: :data:`TRIAL_COLUMNS` for one channel; with
+    several, the run's columns, ``trip_channel``, then every per-channel column per channel."""
+    if list(suffixes) == [""]:
+        return list(TRIAL_COLUMNS)
+    out = [*TRIAL_COLUMNS[:5], "trip_channel"]
+    for sfx in suffixes:
+        out += ["alpha" + sfx, *(c + sfx for c in _CHANNEL_COLUMNS)]
+    return out
+
+
+#: Metrics summarised per α (and per channel).
 SUMMARY_METRICS: tuple[str, ...] = (
     "fei_amplitude",
     "fei_delay",
@@ -1318,8 +1457,15 @@ def plan_trials(
             c["compensation"]["alpha"] = a
             if alphas:
                 c["compensation"]["enabled"] = True
+                for entry in c.get("actuators") or []:  # --alpha: every channel's α
+                    comp = entry.setdefault("compensation", {})
+                    comp["alpha"] = a
+                    comp["enabled"] = True
             if c["twin"]["sensor"]:
                 c["twin"]["sensor"]["seed"] = int(noise_seeds[i])
+            for j, entry in enumerate(c.get("actuators") or []):
+                if entry["twin"]["sensor"]:  # each channel's sensor its own noise
+                    entry["twin"]["sensor"]["seed"] = int(noise_seeds[i]) + 7919 * (j + 1)
             specs.append(TrialSpec(i, a, values, c, record, duration))
     return specs
 
@@ -1372,7 +1518,9 @@ def robustness_study(
         None if on_row is None else (lambda _i, row: on_row(row)),
     )
     alist = sorted({s.alpha for s in specs}, key=[s.alpha for s in specs].index)
-    return RobustnessResult(rows, perts, alist, int(seed), [p.key for p in perts])
+    return RobustnessResult(
+        rows, perts, alist, int(seed), [p.key for p in perts], channel_suffixes(base)
+    )
 
 
 def write_trials_csv(path: str | Path, result: RobustnessResult) -> None:
@@ -1417,11 +1565,13 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
     out = Path(out_dir)
     paths = []
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
-    for i, a in enumerate(result.alphas):
+    series = [(a, sfx) for a in result.alphas for sfx in result.suffixes]
+    for i, (a, sfx) in enumerate(series):
         rows = result.by_alpha(a)
-        d = np.array([r["fei_delay"] for r in rows], dtype=float) * 1e3
-        j2 = np.array([r["J2"] for r in rows], dtype=float)
-        kw = {"alpha": 0.55, "color": f"C{i}", "label": f"α = {a:g}", "bins": 20}
+        d = np.array([r["fei_delay" + sfx] for r in rows], dtype=float) * 1e3
+        j2 = np.array([r["J2" + sfx] for r in rows], dtype=float)
+        label = f"α = {a:g}" + (f", {sfx[1:]}" if sfx else "")
+        kw = {"alpha": 0.55, "color": f"C{i}", "label": label, "bins": 20}
         ax1.hist(d[np.isfinite(d)], **kw)
         ax2.hist(j2[np.isfinite(j2)], **kw)
     ax1.set_xlabel("whole-record FEI delay d (ms)")
@@ -1444,12 +1594,16 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
             (axes[0], "fei_delay", 1e3, "FEI delay d (ms)"),
             (axes[1], "J2", 1.0, "J2 (%)"),
         ):
-            s = [next(r for r in summ if r["alpha"] == a and r["metric"] == m) for a in al]
-            med = np.array([r["median"] for r in s]) * scale
-            lo = np.array([r["p5"] for r in s]) * scale
-            hi = np.array([r["p95"] for r in s]) * scale
-            ax.fill_between(al, lo, hi, alpha=0.3, label="5–95 %")
-            ax.plot(al, med, "o-", label="median")
+            for j, sfx in enumerate(result.suffixes):
+                s = [
+                    next(r for r in summ if r["alpha"] == a and r["metric"] == m + sfx) for a in al
+                ]
+                med = np.array([r["median"] for r in s]) * scale
+                lo = np.array([r["p5"] for r in s]) * scale
+                hi = np.array([r["p95"] for r in s]) * scale
+                name = f" {sfx[1:]}" if sfx else ""
+                ax.fill_between(al, lo, hi, alpha=0.3, color=f"C{j}", label=f"5–95 %{name}")
+                ax.plot(al, med, "o-", color=f"C{j}", label=f"median{name}")
             ax.set_ylabel(label)
         axes[0].axhline(0.0, color="k", lw=0.6)
         share = [next(r for r in summ if r["alpha"] == a)["share_tripped"] * 100 for a in al]

@@ -266,3 +266,90 @@ def test_scratch_of_a_dead_worker_is_swept_and_a_live_ones_kept(tmp_path):
     finally:
         live.kill()
         live.wait()
+
+
+# ---- several actuators, MDOF structures ------------------------------------------------------
+
+TWO = Path(__file__).resolve().parents[1] / "examples" / "two_actuators.toml"
+TWO_SETS = ["fei.window=1.0", "actuators.storey3.fei.window=1.0", "safety.warmup=0.5"]
+
+
+def test_reference_by_loop_equals_the_sdof_reference(tmp_path):
+    """Two independent references agree: the loop with ideal twins, and the direct CR
+    integration with the specimen (serial driver: float64 on the wire)."""
+    cfg = study._inline_twin(
+        load_config(EXAMPLE, [*SETS, "driver.name=serial", "driver.connection={}"])
+    )
+    cfg["twin"]["specimen"]["stiffness"] = 1.4e6
+    n = 4 * 1024
+    direct = study.reference_response(cfg, n)
+    by_loop = study.reference_by_loop(cfg, n, tmp_path)[""]
+    assert np.max(np.abs(direct)) > 1e-3
+    np.testing.assert_allclose(by_loop, direct, rtol=0, atol=1e-12)
+
+
+def test_two_actuators_study_per_channel_columns_serially_and_on_a_local_cluster(
+    cluster, tmp_path, capsys
+):
+    """The two-actuator example (3-storey shear building, an inter-storey channel): every
+    per-channel quantity is suffixed; compensation off, each channel's whole-record FEI delay
+    is within 1 ms of its own drawn twin delay; the cluster gives the serial bytes."""
+    vary = ["actuators.storey1.twin.actuator.delay=8ms:12ms", "twin.specimen.stiffness=0.9e6:1.1e6"]
+    sets = [*TWO_SETS, "compensation.enabled=false"]
+    args = ["study", "robustness", str(TWO), "--trials", "3", "--seed", "3"]
+    args += ["--duration", "6", "--scheduler", cluster[1], "--no-progress"]
+    args += ["--out", str(tmp_path / "cluster")]
+    for s in sets:
+        args += ["--set", s]
+    for v in vary:
+        args += ["--vary", v]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "storey1" in out and "storey3" in out
+    base = study._inline_twin(load_config(TWO, sets))
+    perts = [study.parse_vary(v, base) for v in vary]
+    res = study.robustness_study(
+        base, perts, 3, seed=3, duration=6.0, executor=study.SerialExecutor(), progress=False
+    )
+    study.write_trials_csv(tmp_path / "serial.csv", res)
+    assert (tmp_path / "cluster" / "trials.csv").read_bytes() == (
+        tmp_path / "serial.csv"
+    ).read_bytes()
+    assert res.suffixes == ["_storey1", "_storey3"]
+    for r in res.rows:
+        assert r["status"] == "completed" and r["trip_channel"] == ""
+        assert "fei_delay" not in r and "J2" not in r
+        d1 = r["actuators.storey1.twin.actuator.delay"]
+        assert 0.008 <= d1 <= 0.012
+        assert abs(r["fei_delay_storey1"] - d1) < 1e-3
+        assert abs(r["fei_delay_storey3"] - 0.020) < 1e-3  # storey 3's twin: 20 ms, not varied
+        assert r["alpha_storey1"] == 1.0 and r["alpha_storey3"] == 1.0
+        for sfx in res.suffixes:
+            assert r["J2" + sfx] > 1.0 and r["peak_reference" + sfx] > 1e-3
+    # the top-level twin.* key reached both channels' specimens (the same drawn value)
+    spec = study.plan_trials(base, perts, 1, seed=3, duration=6.0)[0]
+    k = spec.values["twin.specimen.stiffness"]
+    assert [a["twin"]["specimen"]["stiffness"] for a in spec.cfg["actuators"]] == [k, k]
+    summ = {(s["metric"]) for s in res.summary()}
+    assert {"fei_delay_storey1", "J2_storey3"} <= summ
+
+
+@pytest.mark.parametrize(
+    "vary,message",
+    [
+        ("actuators.nobody.twin.actuator.delay=1ms:2ms", "unknown key"),
+        ("actuators.storey1.twin.actuator.delay=30ms:20ms", "is above high"),
+        ("actuators.storey3.twin.actuator.gain=0:1", "not physical"),
+    ],
+)
+def test_bad_per_channel_vary_is_one_line_and_exit_2(vary, message, tmp_path, capsys):
+    rc = main(["study", "robustness", str(TWO), "--vary", vary, "--out", str(tmp_path)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and message in err, err
+
+
+def test_a_structure_the_bridge_does_not_integrate_is_refused(tmp_path, capsys):
+    site = Path(__file__).resolve().parents[1] / "examples" / "opensees" / "site_two.toml"
+    rc = main(["study", "robustness", str(site), "--out", str(tmp_path)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "structure.kind" in err, err

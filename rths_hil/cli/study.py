@@ -387,7 +387,12 @@ def run_robustness(args: argparse.Namespace) -> int:
         order = {a: i for i, a in enumerate(dict.fromkeys(s.alpha for s in specs))}
         done.sort(key=lambda r: (order.get(r["alpha"], 0), r["trial"]))
         partial = study.RobustnessResult(
-            done, perts, list(order), args.seed, [p.key for p in perts]
+            done,
+            perts,
+            list(order),
+            args.seed,
+            [p.key for p in perts],
+            study.channel_suffixes(base),
         )
         study.write_trials_csv(out / "trials.partial.csv", partial)
         print(
@@ -415,17 +420,24 @@ def run_robustness(args: argparse.Namespace) -> int:
     written = ["trials.csv", "summary.csv", "summary.json"]
     if not args.no_plot:
         written += [p.name for p in study.plot_robustness(out, res)]
+    multi = res.suffixes != [""]
     print(
-        f"{'alpha':>6} {'tripped':>8} {'d median (ms)':>14} {'d 5-95 % (ms)':>18} "
+        f"{'alpha':>6} {'channel':>10} " * multi
+        + f"{'alpha':>6} " * (not multi)
+        + f"{'tripped':>8} {'d median (ms)':>14} {'d 5-95 % (ms)':>18} "
         f"{'J2 median':>10} {'J2 95 %':>8}"
     )
     for a in res.alphas:
         s = {r["metric"]: r for r in res.summary() if r["alpha"] == a}
-        d, j2 = s["fei_delay"], s["J2"]
-        print(
-            f"{a:>6g} {100 * d['share_tripped']:>7.1f}% {1e3 * d['median']:>14.2f} "
-            f"{1e3 * d['p5']:>8.2f} … {1e3 * d['p95']:<7.2f} {j2['median']:>10.2f} "
-            f"{j2['p95']:>8.2f}"
-        )
+        for sfx in res.suffixes:
+            d, j2 = s["fei_delay" + sfx], s["J2" + sfx]
+            rows = res.by_alpha(a)
+            a_ch = rows[0].get("alpha" + sfx, a) if rows else a  # the channel's own α
+            head = f"{a_ch:>6g} {sfx[1:]:>10} " if multi else f"{a:>6g} "
+            print(
+                f"{head}{100 * d['share_tripped']:>7.1f}% {1e3 * d['median']:>14.2f} "
+                f"{1e3 * d['p5']:>8.2f} … {1e3 * d['p95']:<7.2f} {j2['median']:>10.2f} "
+                f"{j2['p95']:>8.2f}"
+            )
     print(f"wrote {', '.join(written)} to {out} ({len(res.rows)} runs in {wall:.1f} s)")
     return 0
