@@ -238,6 +238,14 @@ SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
             hi=99,
         ),
+        "cpu": Key(
+            "int",
+            -1,
+            unit="-",
+            doc="paced: pin the loop (and the threads it starts) to this CPU, -1 = leave it to "
+            "the scheduler; the exact-FEI worker and the live view of `run --watch` keep off it",
+            lo=-1,
+        ),
         "overrun_threshold": Key(
             "float",
             0.5,

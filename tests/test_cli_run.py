@@ -31,6 +31,8 @@ def _one_line(err: str) -> str:
         (["--duration", "-1"], ["--duration"]),
         (["--duration", "5 parsecs"], ["--duration"]),
         (["--lockstep", "--paced"], ["exclude"]),
+        (["--set", "loop.cpu=4096"], ["loop.cpu = 4096", "may run on CPUs"]),
+        (["--set", "loop.cpu=-2"], ["loop.cpu"]),
     ],
 )
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, args, needles):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import queue
 import re
 import subprocess
@@ -219,11 +220,31 @@ def test_live_paced_run_plots_move_and_the_e_stop_shows(browser, tmp_path):
     assert "Traceback" not in err
 
 
+#: ``loop.cpu`` of the stop-button run: the last CPU (the CI machines have two or more).
+LOOP_CPU = max(os.sched_getaffinity(0))
+
+
+def _child_with(pid: int, word: str) -> int:
+    """The pid of the child process of ``pid`` whose command line contains ``word``."""
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            cmd = (d / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        if ppid == pid and word.encode() in cmd:
+            return int(d.name)
+    raise AssertionError(f"no child of {pid} runs {word!r}")
+
+
 def test_stop_button_ends_a_paced_run_with_exit_130_and_a_complete_record(browser, tmp_path):
     run_dir = tmp_path / "run"
     run = _follow_stderr(subprocess.Popen(
         [sys.executable, "-m", "rths_hil", "run", *PACED, "--duration", "60", "--out",
-         str(run_dir), "-q", "--watch", "--watch-port", "0"],
+         str(run_dir), "-q", "--watch", "--watch-port", "0", "--set", f"loop.cpu={LOOP_CPU}"],
         stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
     ))  # fmt: skip
     try:
@@ -232,6 +253,14 @@ def test_stop_button_ends_a_paced_run_with_exit_130_and_a_complete_record(browse
         assert m, line
         _open(browser, m.group(1))
         _wait_state(browser, "RUNNING")
+        # the loop runs on its CPU; the live view at nice 10, on the other CPUs
+        assert os.sched_getaffinity(run.pid) == {LOOP_CPU}
+        watcher = _child_with(run.pid, "watch")
+        assert os.getpriority(os.PRIO_PROCESS, watcher) == max(
+            10, os.getpriority(os.PRIO_PROCESS, 0)
+        )
+        assert LOOP_CPU not in os.sched_getaffinity(watcher)
+        assert os.sched_getaffinity(watcher) == set(range(os.cpu_count())) - {LOOP_CPU}
         # the confirmation comes first; cancelling it sends nothing
         browser.click_button("Operator stop…")
         browser.click_button("Cancel")

@@ -89,7 +89,9 @@ def main(args: argparse.Namespace) -> int:
     run_dir = Path(args.out) if args.out else new_run_dir(cfg["output"]["dir"])
     live = None if args.quiet or cfg["loop"]["console"] <= 0 else LiveLine(sys.stderr)
     loop = RTHSLoop(cfg, run_dir, live=live, mode=mode, duration=duration)
-    watcher = _start_watcher(run_dir, args.watch_port) if args.watch else None
+    watcher = None
+    if args.watch:
+        watcher = _start_watcher(run_dir, args.watch_port, cfg["loop"]["cpu"])
     site = loop.structure if hasattr(loop.structure, "paste_lines") else None
     if not args.quiet:
         span = f"{loop.n_steps / loop.fs:.1f} s"
@@ -151,13 +153,25 @@ def main(args: argparse.Namespace) -> int:
     return result.exit_code
 
 
-def _start_watcher(run_dir: Path, port: int):
+def _keep_off(loop_cpu: int) -> None:
+    """In the watcher's process before it starts: when the loop is pinned to a CPU
+    (``loop.cpu``), keep the watcher (and the threads it starts) on the other CPUs."""
+    import os
+
+    others = set(os.sched_getaffinity(0)) - {loop_cpu}
+    if loop_cpu >= 0 and others:
+        os.sched_setaffinity(0, others)
+
+
+def _start_watcher(run_dir: Path, port: int, loop_cpu: int = -1):
     """Start ``rths-hil watch RUN_DIR`` beside the run; wait until it listens (≤ 15 s).
 
     The watcher is its own process in its own session (Ctrl-C in this terminal stops the run,
-    not the view); it prints its URL itself. If it cannot start (port in use), it says why and
-    the run goes on without it.
+    not the view), off the loop's CPU when ``loop.cpu`` pins it (:func:`_keep_off`; the
+    watcher lowers its own priority to nice 10); it prints its URL itself. If it cannot start
+    (port in use), it says why and the run goes on without it.
     """
+    import functools
     import os
     import socket
     import subprocess
@@ -180,7 +194,11 @@ def _start_watcher(run_dir: Path, port: int):
         str(os.getpid()),
     ]
     proc = subprocess.Popen(
-        cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, start_new_session=True
+        cmd,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        start_new_session=True,
+        preexec_fn=functools.partial(_keep_off, int(loop_cpu)),
     )
     t_end = time.monotonic() + 15.0
     while time.monotonic() < t_end and proc.poll() is None:

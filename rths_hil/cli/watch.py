@@ -103,7 +103,8 @@ def main(args: argparse.Namespace) -> int:
             print(f"rths-hil watch: {line}", file=sys.stderr, flush=True)
 
     try:
-        os.nice(5)  # the watcher yields to the loop when both want the CPU
+        # the watcher yields to the loop when both want the CPU: nice 10 (or lower priority)
+        os.setpriority(os.PRIO_PROCESS, 0, max(10, os.getpriority(os.PRIO_PROCESS, 0)))
     except OSError:
         pass
     server = WatchServer(

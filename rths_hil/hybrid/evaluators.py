@@ -61,6 +61,11 @@ def exact_worker_main() -> None:  # pragma: no cover - runs in the worker proces
     fs, window_s, hop = float(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3])
     with contextlib.suppress(AttributeError, OSError):  # not under the loop's RT priority
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(AttributeError, OSError):  # and off a loop pinned to one CPU
+        pinned = os.sched_getaffinity(0)
+        others = set(range(os.cpu_count() or 1)) - pinned
+        if len(pinned) == 1 and others:
+            os.sched_setaffinity(0, others)
     online = OnlineFEI(fs, window_s, hop=hop, method="exact")
     warm = OnlineFEI(fs, window_s, hop=hop, method="exact")  # FFT plans and caches
     t = np.arange(online.N + hop) / fs

@@ -15,6 +15,7 @@ from __future__ import annotations
 import datetime as _dt
 import logging
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -356,6 +357,7 @@ class TestPlan:
     console_interval: float
     priority: int
     links: list = field(default_factory=list)
+    cpu: int = -1
     extra: dict = field(default_factory=dict)
 
     @property
@@ -655,7 +657,20 @@ def build_plan(
         console_interval=lp["console"],
         priority=lp["priority"],
         links=links,
+        cpu=_loop_cpu(lp["cpu"]),
     )
+
+
+def _loop_cpu(cpu: int) -> int:
+    """``loop.cpu``, checked against the CPUs this process may run on."""
+    if cpu < 0:
+        return -1
+    allowed = sorted(os.sched_getaffinity(0))
+    if cpu not in allowed:
+        raise InputError(
+            f"loop.cpu = {cpu}: this process may run on CPUs {', '.join(map(str, allowed))}"
+        )
+    return cpu
 
 
 def link_loads(cfg: Config, channels: list[ChannelPlan], fs: float) -> list:

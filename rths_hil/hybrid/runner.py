@@ -312,6 +312,13 @@ class Runner:
             return
         stack.callback(os.sched_setscheduler, 0, old[0], old[1])
 
+    def _pin(self, stack: contextlib.ExitStack, cpu: int) -> None:
+        """Run this thread (and the threads it starts: twins) on CPU ``cpu`` only."""
+        old = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, {cpu})
+        stack.callback(os.sched_setaffinity, 0, old)
+        log.info("loop pinned to CPU %d", cpu)
+
     def _install_signals(self, stack: contextlib.ExitStack) -> None:
         if threading.current_thread() is not threading.main_thread():
             return
@@ -333,6 +340,8 @@ class Runner:
             self._install_signals(stack)
             if plan.mode == "paced" and plan.priority > 0:
                 self._realtime(stack, plan.priority)
+            if plan.mode == "paced" and plan.cpu >= 0:
+                self._pin(stack, plan.cpu)
             for ch in self.channels:
                 self.open_channel(ch, stack)
             stack.callback(plan.structure.close)
