@@ -1,33 +1,44 @@
 """Benchmark of ``rths-hil watch``: what watching costs the loop, and how live the page is.
 
-Paced runs of the default test (NEES-711 over the CAN twin, 1024 Hz) in this process,
-alternately without and with a watcher attached — ``--pairs`` of each, in the same invocation of
-this script. For a watched run, ``rths-hil watch RUN_DIR`` is started before the run and a
-headless Chromium (the Debian ``chromium``) has its page open (waiting for the run) when the
-run's clock starts; between runs the browser shows ``about:blank``. Driving the browser is a
-separate process (this script with ``--driver``), so nothing but the loop runs in the loop's
-process.
+Paced runs of the default test (NEES-711 over the CAN twin, 1024 Hz) in this process, in
+``--blocks`` blocks of three runs: without a watcher; with ``rths-hil watch RUN_DIR`` serving
+but no page open (the operator looks from another machine); with the page open in a headless
+Chromium (the Debian ``chromium``) on this machine, waiting for the run when its clock starts
+(between runs the browser shows ``about:blank``). Blocks alternate in order (ABBA: none, served,
+page, page, served, none, …) so that a drift of the machine falls on every condition. Driving
+the browser is a separate process (this script with ``--driver``), so nothing but the loop runs
+in the loop's process.
+
+The loop is pinned to one CPU (``loop.cpu``, ``--pin``; default the last CPU) and runs at
+SCHED_FIFO priority 10; the watcher is started the way ``rths-hil run --watch`` starts it (off
+the loop's CPU; it runs at nice 10), and so is the browser (an operator's browser on the same
+machine, kept off the loop's CPU).
 
 Measured:
 
-* the loop's own work per step, from its send to the moment it was ready for the next step
-  (``dt + ready[k+1] − lateness[k]``, as ``bench_loop.py``), p50 / p99 / p99.9 over the runs
-  without and with the watcher (the first second of each run left out); goal: p99 with the
-  watcher within 2 % of p99 without;
+* the loop's own work per step (``RunResult.work``: from the moment every reply has arrived to
+  the end of the step, as ``bench_loop.py``), p50 / p99 / p99.9 per condition (the first second
+  of each run left out); goal: p99 with a watcher within 2 % of p99 without. Reported: the
+  pooled p99s, each block's ratio (watched run over the block's run without a watcher), and —
+  as the machine's own noise — the ratio of the back-to-back runs without a watcher where one
+  block ends and the next begins (A vs A′), each with median and range. The step's busy time
+  (send to ready for the next step, including the wait for the twin's reply) is shown beside;
 * the page's refresh rate (refreshes the browser applied per second) and its lag behind the
   record: wall-clock time when the browser holds the row of loop time t minus the time that
   row was sent (``wall_t0 + t + lateness``, from the record); goals ≥ 5 Hz and ≤ 0.5 s.
 
-With ``--baseline REV`` each pair also has a run watched by the watcher of git revision REV
+With ``--baseline REV`` each block also has a run watched by the watcher of git revision REV
 (exported with ``git archive``), so that the page's cost per refresh before and after a change
 is measured in the same invocation, as a ratio.
 
-Usage: ``python benchmarks/bench_watch.py [--duration 20] [--pairs 2] [--baseline REV]``.
+Usage: ``python benchmarks/bench_watch.py [--duration 20] [--blocks 4] [--pin CPU]
+[--baseline REV]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import re
@@ -41,6 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rths_hil.cli.run import _keep_off
 from rths_hil.config import load_config
 from rths_hil.loop import RTHSLoop
 from rths_hil.recorder import read_run
@@ -131,20 +143,30 @@ def _stats(x: np.ndarray) -> tuple[float, float, float]:
     return float(p50), float(p99), float(p999)
 
 
-def _watched(cfg, run_dir: Path, drv: subprocess.Popen, tree: Path | None = None):
-    """One run with ``rths-hil watch`` (of ``tree``, else this one) and the page open."""
+def _watched(
+    cfg,
+    run_dir: Path,
+    drv: subprocess.Popen,
+    tree: Path | None = None,
+    pin: int = -1,
+    page: bool = True,
+):
+    """One run with ``rths-hil watch`` (of ``tree``, else this one), the page open or not."""
     watch = subprocess.Popen(
         [sys.executable, "-m", "rths_hil", "watch", str(run_dir), "--port", "0", "--quiet"],
         stderr=subprocess.PIPE,
         stdout=subprocess.DEVNULL,
         text=True,
         cwd=tree,  # ``-m`` imports rths_hil from the working directory first
+        preexec_fn=functools.partial(_keep_off, pin),  # as ``rths-hil run --watch``
     )
     try:
         line = watch.stderr.readline()
         m = re.search(r"(http://\S+)", line)
         if not m:
             raise SystemExit(f"rths-hil watch did not start: {line}")
+        if not page:  # served, nobody looking
+            return RTHSLoop(cfg, run_dir, mode="paced").run(), [], 0.0, 0.0
         drv.stdin.write(f"open {m.group(1)}\n")
         drv.stdin.flush()
         if drv.stdout.readline().strip() != "ready":
@@ -164,7 +186,16 @@ def _watched(cfg, run_dir: Path, drv: subprocess.Popen, tree: Path | None = None
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0, help="loop time of each run (s)")
-    ap.add_argument("--pairs", type=int, default=2, help="runs without and with the watcher")
+    ap.add_argument(
+        "--blocks", type=int, default=4, help="blocks of one run per condition (ABBA order)"
+    )
+    ap.add_argument(
+        "--pin",
+        type=int,
+        default=max(os.sched_getaffinity(0)) if len(os.sched_getaffinity(0)) > 1 else -1,
+        metavar="CPU",
+        help="loop.cpu of the runs (-1: not pinned); default the last CPU",
+    )
     ap.add_argument(
         "--baseline",
         metavar="REV",
@@ -200,6 +231,7 @@ def main() -> None:
             # the benchmark measures time; a slow minute of the VM must not stop a run
             "safety.max_overruns=1000000",
             "safety.watchdog_missed=1000000",
+            f"loop.cpu={args.pin}",
         ],
     )
     drv = subprocess.Popen(
@@ -207,9 +239,13 @@ def main() -> None:
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
+        preexec_fn=functools.partial(_keep_off, args.pin),
     )
-    work: dict[bool, list[np.ndarray]] = {False: [], True: []}
-    late: dict[bool, list[np.ndarray]] = {False: [], True: []}
+    conds = ("none", "served", "this")  # no watcher; watcher, no page; watcher + page open
+    work: dict[str, list[np.ndarray]] = {c: [] for c in conds}
+    busy: dict[str, list[np.ndarray]] = {c: [] for c in conds}
+    late: dict[str, list[np.ndarray]] = {c: [] for c in conds}
+    p99_seq: list[tuple[str, float]] = []  # (condition, work p99) per run, in run order
     # per watcher (this one, the baseline): browser s, server s, refreshes, wall s
     cpu: dict[str, list[tuple[float, float, float, float]]] = {"this": [], "baseline": []}
     lags: dict[str, list[float]] = {"this": [], "baseline": []}
@@ -218,14 +254,16 @@ def main() -> None:
     try:
         if drv.stdout.readline().strip() != "started":
             raise SystemExit("the browser did not start")
-        order = ["none", "this"] + (["baseline"] if base_tree else [])
-        plan = [w for p in range(args.pairs) for w in (order if p % 2 == 0 else order[::-1])]
+        order = [*conds] + (["baseline"] if base_tree else [])
+        plan = [w for p in range(args.blocks) for w in (order if p % 2 == 0 else order[::-1])]
         for i, who in enumerate(plan):
             watched = who != "none"
             run_dir = tmp / f"run{i}"
             if watched:
                 tree = base_tree if who == "baseline" else None
-                res, samples, b_cpu, s_cpu = _watched(cfg, run_dir, drv, tree)
+                res, samples, b_cpu, s_cpu = _watched(
+                    cfg, run_dir, drv, tree, args.pin, page=who != "served"
+                )
                 if samples:
                     n_ref = samples[-1][2] - samples[0][2]
                     cpu[who].append((b_cpu, s_cpu, n_ref, res.wall_time))
@@ -237,10 +275,13 @@ def main() -> None:
             fs = runs[-1].fs
             if res is not None:
                 dt = 1.0 / res.fs
-                w = (res.ready[1:] + dt - res.lateness[:-1]) * 1e6  # µs, work of step k
-                keep = np.arange(w.size) * dt >= 1.0
-                work[watched].append(w[keep])
-                late[watched].append(res.lateness[:-1][keep] * 1e6)
+                b = (res.ready[1:] + dt - res.lateness[:-1]) * 1e6  # µs, send to ready
+                keep = np.arange(b.size) * dt >= 1.0
+                w = np.asarray(res.work[:-1])[keep] * 1e6  # µs, the loop's own work
+                work[who].append(w)
+                busy[who].append(b[keep])
+                late[who].append(res.lateness[:-1][keep] * 1e6)
+                p99_seq.append((who, float(np.percentile(w, 99))))
             if samples:
                 rec = read_run(run_dir).record
                 w0 = _wall_t0(run_dir)
@@ -258,9 +299,35 @@ def main() -> None:
         if base_tree is not None:
             shutil.rmtree(base_tree, ignore_errors=True)
 
-    w_off, w_on = _stats(np.concatenate(work[False])), _stats(np.concatenate(work[True]))
-    l_off, l_on = _stats(np.concatenate(late[False])), _stats(np.concatenate(late[True]))
-    diff = 100.0 * (w_on[1] / w_off[1] - 1.0)
+    w = {c: _stats(np.concatenate(work[c])) for c in conds}
+    b = {c: _stats(np.concatenate(busy[c])) for c in conds}
+    lt = {c: _stats(np.concatenate(late[c])) for c in conds}
+    diff = {c: 100.0 * (w[c][1] / w["none"][1] - 1.0) for c in conds[1:]}
+    # per block (ABBA over the conditions: each block has one run of each), each watched
+    # run's p99 over the block's run without a watcher; and A vs A′, the back-to-back runs
+    # without a watcher where one block ends and the next begins
+    size = len(conds)
+    ratios: dict[str, list[float]] = {c: [] for c in conds[1:]}
+    for i in range(0, len(p99_seq) - size + 1, size):
+        block = dict(p99_seq[i : i + size])
+        for c in conds[1:]:
+            ratios[c].append(block[c] / block["none"])
+    noise = [
+        p99_seq[i + 1][1] / p99_seq[i][1]
+        for i in range(len(p99_seq) - 1)
+        if p99_seq[i][0] == "none" and p99_seq[i + 1][0] == "none"
+    ]
+
+    def spread(r: list[float], what: str = "block") -> str:
+        if not r:
+            return "–"
+        pct = [100.0 * (x - 1.0) for x in r]
+        if len(r) == 1:
+            return f"{pct[0]:+.1f} % (1 {what})"
+        return (
+            f"median {np.median(pct):+.1f} % (range {min(pct):+.1f} … {max(pct):+.1f} %, "
+            f"{len(r)} {what}s)"
+        )
 
     from _results import markdown_table, write_results
 
@@ -278,13 +345,30 @@ def main() -> None:
             "lag": (np.nanmedian(lg), np.nanpercentile(lg, 95), np.nanmax(lg)),
         }
 
-    n_off = sum(x.size for x in work[False])
-    n_on = sum(x.size for x in work[True])
+    names = {
+        "none": "without a watcher",
+        "served": "watcher serving, no page open",
+        "this": "watcher + page open in the browser",
+    }
     table = markdown_table(
-        ["runs", "steps", "work p50 µs", "work p99 µs", "work p99.9 µs", "lateness p99 µs"],
         [
-            ["without a watcher", n_off, *(f"{v:.1f}" for v in w_off), f"{l_off[1]:.1f}"],
-            ["with the page open", n_on, *(f"{v:.1f}" for v in w_on), f"{l_on[1]:.1f}"],
+            "runs",
+            "steps",
+            "work p50 µs",
+            "work p99 µs",
+            "work p99.9 µs",
+            "busy p99 µs",
+            "lateness p99 µs",
+        ],
+        [
+            [
+                names[c],
+                sum(x.size for x in work[c]),
+                *(f"{v:.1f}" for v in w[c]),
+                f"{b[c][1]:.1f}",
+                f"{lt[c][1]:.1f}",
+            ]
+            for c in conds
         ],
     )
     whos = ["this"] + (["baseline"] if base_tree else [])
@@ -313,8 +397,13 @@ def main() -> None:
             ],
         ]
     table += (
-        f"\n\nWork p99 with the watcher vs without: **{diff:+.2f} %** (goal ≤ 2 %).\n\n"
-        + markdown_table(head, rows)
+        "\n\nWork p99 against the runs without a watcher (goal: within 2 %):\n\n"
+        f"- watcher serving, no page open: pooled **{diff['served']:+.2f} %**; per block "
+        f"{spread(ratios['served'])}\n"
+        f"- watcher + page open in the browser on this machine: pooled "
+        f"**{diff['this']:+.2f} %**; per block {spread(ratios['this'])}\n"
+        f"- the machine's own noise, A vs A′ (two back-to-back runs without a watcher): "
+        f"{spread(noise, 'pair')}\n\n" + markdown_table(head, rows)
     )
     if base_tree:
         ratio = pages["this"]["b_ref"] / pages["baseline"]["b_ref"]
@@ -323,14 +412,17 @@ def main() -> None:
             f"**{ratio:.2f}**."
         )
     base = (
-        f", and each pair a run watched by the watcher of {args.baseline} (the baseline)"
+        f", and in each block a run watched by the watcher of {args.baseline} (the baseline)"
         if base_tree
         else ""
     )
     notes = (
-        f"{len(runs)} paced runs of {args.duration:g} s at {runs[0].fs:g} Hz, alternately "
-        "without and with `rths-hil watch` and its page open in headless Chromium on the same "
-        f"machine{base} (overruns per run: {', '.join(str(r.overruns) for r in runs)}); the "
+        f"{len(runs)} paced runs of {args.duration:g} s at {runs[0].fs:g} Hz in ABBA blocks: "
+        "without a watcher, with `rths-hil watch` serving and no page open, and with its page "
+        f"open in headless Chromium on the same machine{base}; loop on CPU {args.pin} "
+        "(`loop.cpu`; -1 = not pinned), SCHED_FIFO, the watcher and the browser started off "
+        "that CPU as `rths-hil run --watch` starts the watcher "
+        f"(overruns per run: {', '.join(str(r.overruns) for r in runs)}); the "
         "first second of each run is left out. Lag samples: the page's newest row, polled 10 "
         "times a second over the DevTools protocol (one small evaluation; the polling is "
         "itself a load on the browser). CPU: user + system time of the browser's processes and "
