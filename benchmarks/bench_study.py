@@ -15,7 +15,7 @@ Measured in one run on this machine:
 The load average before and after each part is printed: on a machine shared with other work
 the speed-up of two workers is bounded by the cores that are actually free.
 
-Usage: ``python benchmarks/bench_study.py [--trials 16] [--trial-seconds 10] [--study-trials
+Usage: ``python benchmarks/bench_study.py [--trials 40] [--trial-seconds 10] [--study-trials
 200] [--skip-study]``
 """
 
@@ -115,7 +115,7 @@ def full_study(trials: int) -> tuple[float, str, str]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--trials", type=int, default=16, help="trials per throughput run")
+    p.add_argument("--trials", type=int, default=40, help="trials per throughput run")
     p.add_argument("--trial-seconds", type=float, default=10.0, help="record seconds per trial")
     p.add_argument("--study-trials", type=int, default=200)
     p.add_argument("--skip-study", action="store_true", help="throughput only")

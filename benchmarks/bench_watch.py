@@ -31,7 +31,7 @@ With ``--baseline REV`` each block also has a run watched by the watcher of git 
 (exported with ``git archive``), so that the page's cost per refresh before and after a change
 is measured in the same invocation, as a ratio.
 
-Usage: ``python benchmarks/bench_watch.py [--duration 20] [--blocks 4] [--pin CPU]
+Usage: ``python benchmarks/bench_watch.py [--duration 15] [--blocks 6] [--pin CPU]
 [--baseline REV]``.
 """
 
@@ -185,9 +185,9 @@ def _watched(
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--duration", type=float, default=20.0, help="loop time of each run (s)")
+    ap.add_argument("--duration", type=float, default=15.0, help="loop time of each run (s)")
     ap.add_argument(
-        "--blocks", type=int, default=4, help="blocks of one run per condition (ABBA order)"
+        "--blocks", type=int, default=6, help="blocks of one run per condition (ABBA order)"
     )
     ap.add_argument(
         "--pin",
