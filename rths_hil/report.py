@@ -36,18 +36,27 @@ def _fmt(v: float, scale: float = 1.0, spec: str = ".3f", signed: bool = False) 
 
 
 def format_live(s: dict[str, Any]) -> str:
-    """One console line from the loop's status dict."""
+    """One console line from the loop's status dict.
+
+    Displacements in mm. ``margin`` is the share of the nearest safety limit still unused
+    (``displacement limit 77 % left``: the peak so far is 23 % of ``safety.max_displacement``).
+    The progress percentage is left out when the run has no planned end (``open_ended``: an
+    OpenSees site runs until the client ends; ``n`` is then only the cap), α when compensation
+    is off (``compensation`` False).
+    """
     name, frac = s.get("margin", ("none", math.inf))
     if s.get("channel"):  # several channels: the one nearest a limit
         name = f"{s['channel']} {name}"
-    margin = "no limits" if not math.isfinite(frac) else f"{name} {frac * 100:.0f} %"
+    margin = "no limits" if not math.isfinite(frac) else f"{name} limit {frac * 100:.0f} % left"
     lat = f"p99 late {s['p99_lateness'] * 1e3:.3f} ms" if s.get("mode") == "paced" else "lockstep"
+    prog = "" if s.get("open_ended") else f" ({100.0 * s['k'] / s['n']:3.0f} %)"
+    alpha = f" | α {s['alpha']:.2f}" if s.get("compensation", True) else " | compensation off"
     return (
-        f"t {s['t']:7.2f} s ({100.0 * s['k'] / s['n']:3.0f} %) | {s['rate']:7.0f} steps/s | {lat}"
+        f"t {s['t']:7.2f} s{prog} | {s['rate']:7.0f} steps/s | {lat}"
         f" | overruns {s['overruns']} | {('[' + s['channel'] + '] ') if s.get('channel') else ''}"
         f"A {_fmt(s['amplitude'], spec='.4f')}"
         f" d {_fmt(s['delay'], 1e3, '.2f', True)} ms | peak {s['peak_displacement'] * 1e3:.2f} mm"
-        f" | margin {margin} | α {s['alpha']:.2f}"
+        f" | margin: {margin}{alpha}"
     )
 
 
@@ -185,6 +194,9 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
             "step": s.get("step"),
             "values": {},
         }
+    short = _too_short(n, fs, run.meta.get("window_s"))
+    if short:
+        out["too_short"] = short
     if n >= 16:
         chans = channel_suffixes(run)
         with _Rows(run.path / RECORD_FILE) as src:
@@ -223,6 +235,31 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
         p = Path(run_dir) / "summary.json"
         p.write_text(json.dumps(_clean(out), indent=2, allow_nan=False) + "\n")
     return out
+
+
+MIN_EVAL_DURATION = 1.0
+"""Shortest record (s) whose whole-record FEI and J1–J3 the summary reports (see
+:func:`_too_short`)."""
+
+
+def _too_short(n: int, fs: float, window_s: float | None) -> str | None:
+    """Why a record of ``n`` rows is too short for the whole-record FEI and J1–J3, or None.
+
+    The rule: a record shorter than 1 s (:data:`MIN_EVAL_DURATION`) or than one FEI window
+    (``window_s``, the run's ``fei.window``; about three natural periods) is too short. The FEI
+    paper's moving-window index is not defined before one window has filled, and the metrics
+    J1–J3 of a fraction of a cycle are dominated by the start-up transient (a 38-step OpenSees
+    run gave J2 = 1067 %). The values are still computed and kept in ``summary.json``; the
+    console says the run is too short instead of printing them.
+    """
+    dur = n / fs if fs else 0.0
+    need = MIN_EVAL_DURATION
+    what = "1 s"
+    if window_s and window_s > need:
+        need, what = float(window_s), f"one FEI window, {float(window_s):.2f} s"
+    if dur < need:
+        return f"run too short for the whole-record FEI and J1–J3 ({dur:.2f} s < {what})"
+    return None
 
 
 class _Rows:
@@ -545,12 +582,22 @@ def format_summary(s: dict[str, Any]) -> str:
     else:
         lines.append("  e-stop: none")
     chans = s.get("channels")
+    short = s.get("too_short")
+    if short:
+        lines.append(f"  {short}")
     if chans:
         for name, block in chans.items():
             lines.append(f"  channel {name}:")
-            lines += ["  " + line for line in _format_channel(block)]
+            lines += ["  " + line for line in _format_channel(block, bool(short))]
     else:
-        lines += _format_channel(s)
+        lines += _format_channel(s, bool(short))
+    if not short and any(
+        "amplitude" in (b.get("fei_target") or {}) for b in (chans or {"": s}).values()
+    ):
+        lines.append(
+            "  (FEI measured vs target: the tracking quality, what the structure received; "
+            "measured vs command: the actuator's raw lag and gain, before compensation)"
+        )
     lat = s.get("lateness")
     if lat:
         lines.append(
@@ -572,12 +619,17 @@ def format_summary(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _format_channel(s: dict[str, Any]) -> list[str]:
-    """Summary lines of one channel (FEI, metrics, online FEI, peaks)."""
+def _format_channel(s: dict[str, Any], short: bool = False) -> list[str]:
+    """Summary lines of one channel (FEI, metrics, online FEI, peaks); ``short``: the run is
+    too short for the whole-record FEI and J1–J3 (:func:`_too_short`), they are left out."""
     lines: list[str] = []
     for key, label in (
-        ("fei_target", "measured vs target "),
-        ("fei_command", "measured vs command"),
+        ()
+        if short
+        else (
+            ("fei_target", "measured vs target "),
+            ("fei_command", "measured vs command"),
+        )
     ):
         f = s.get(key)
         if f and "amplitude" in f:
@@ -586,7 +638,7 @@ def _format_channel(s: dict[str, Any]) -> list[str]:
                 f"d = {_fmt(f['delay'], 1e3, '.2f', True)} ms, "
                 f"f_eq = {_fmt(f['f_eq'], spec='.3f')} Hz"
             )
-    m = s.get("metrics") or {}
+    m = {} if short else (s.get("metrics") or {})
     if m:
         lines.append(
             f"  J1 = {_fmt(m.get('j1_delay'), 1e3, '.2f', True)} ms, "
@@ -612,19 +664,33 @@ def _format_channel(s: dict[str, Any]) -> list[str]:
 
 
 def plot_report(
-    run_dir: str | Path, path: str | Path | None = None, max_points: int = 20_000
-) -> Path:
+    run_dir: str | Path,
+    path: str | Path | None = None,
+    max_points: int = 20_000,
+    summary: dict[str, Any] | None = None,
+    keep_figure: bool = False,
+) -> Path | Any:
     """Draw ``report.png`` (the FEI paper's Fig. 5.1 and 5.2 style) for a run directory.
 
-    One channel: displacements, a zoom around the peak, online FEI A and d (streaming curve,
-    exact cross-check dots at their windows' ends), lateness or Kalman. Several channels: a
-    displacement panel and the FEI A and d panels per channel, then the lateness or Kalman
-    panel of the first channel.
+    One channel, top to bottom: the ground motion; displacements (calculated, command,
+    measured); a zoom around the peak; the tracking error (measured − target); online FEI A
+    and d (streaming curve, exact cross-check dots at their windows' ends); lateness (paced)
+    or the Kalman estimates (lockstep); then the force–displacement loop beside the summary
+    text (:func:`format_summary`). Several channels: the ground motion, then per channel the
+    displacements, the tracking error, A and d; the lateness or Kalman panel of the first
+    channel; every channel's force–displacement loop beside the summary. Displacements are
+    drawn in mm, forces in kN (the files stay SI). A trip or an operator stop is a red line on
+    every time panel, labelled with the rule and the time on the top one.
 
-    Returns the path of the PNG. The record is read in chunks; a record longer than
-    ``max_points`` rows is drawn as its min/max envelope over ``max_points / 2`` buckets (every
-    peak stays visible), so a one-hour record costs a few MB of memory, not gigabytes.
+    ``summary`` is the run's :func:`summarize` dict (read from ``summary.json``, or computed,
+    when not given). Returns the path of the PNG (``keep_figure``: the matplotlib figure,
+    not saved, for a notebook or a test). The record is read in chunks; a record
+    longer than ``max_points`` rows is drawn as its min/max envelope over ``max_points / 2``
+    buckets (every peak stays visible) and its force–displacement loop from every q-th row,
+    so a one-hour record costs a few MB of memory, not gigabytes.
     """
+    import textwrap
+
     import matplotlib
 
     matplotlib.use("Agg")
@@ -632,15 +698,30 @@ def plot_report(
 
     run = read_run(run_dir, mmap=True)
     out = Path(path) if path is not None else run.path / "report.png"
+    if summary is None:
+        sj = run.path / "summary.json"
+        try:
+            summary = json.loads(sj.read_text())
+        except (OSError, ValueError):
+            summary = summarize(run.path, write=False)
     chans = channel_suffixes(run)
     multi = len(chans) > 1
     per_channel = (
         "target", "command", "measured", "fei_amplitude", "fei_delay", "fei_valid",
         "kf_delay", "kf_gain",
     )  # fmt: skip
+    derived = {
+        "error" + sfx: (lambda p, sfx=sfx: p["measured" + sfx] - p["target" + sfx])
+        for _, sfx in chans
+    }
     with _Rows(run.path / RECORD_FILE) as src:
-        cols = ("lateness", *(c + sfx for _, sfx in chans for c in per_channel))
-        env = _envelopes(src, cols, max_points)
+        cols = (
+            "lateness",
+            "ground_accel",
+            *(c + sfx for _, sfx in chans for c in per_channel),
+            *derived,
+        )
+        env = _envelopes(src, cols, max_points, derived)
         n = len(src)
         zoom = None
         if not multi and n:  # zoom around the peak target displacement: ±1 s of full rate
@@ -653,26 +734,45 @@ def plot_report(
                         ipk, best = i + j, float(x[j])
             zoom = src.read(max(ipk - int(run.fs), 0), ipk + int(run.fs) + 1)
         exact = {sfx: _exact_points(src, run.fs, sfx) for _, sfx in chans}
+        loops = {
+            sfx: _strided(src, ("measured" + sfx, "force" + sfx), max_points) for _, sfx in chans
+        }
     t = env["time"]
     mm = 1e3
     paced = run.meta.get("mode") == "paced"
-    per = 3 if multi else 4
-    rows = per * len(chans) + 1
-    fig, axes = plt.subplots(
-        rows, 1, figsize=(11, 2.6 * rows), constrained_layout=True, squeeze=False
+    per = 5 if not multi else 4
+    n_time = 1 + per * len(chans) + 1  # ground motion, channels, lateness/Kalman
+    heights = [1.0] * n_time + [2.2]
+    fig = plt.figure(figsize=(11, 2.4 * n_time + 4.6), constrained_layout=True)
+    gs = fig.add_gridspec(n_time + 1, 5, height_ratios=heights)
+    axes = [fig.add_subplot(gs[0, :])]
+    for i in range(1, n_time):  # one time axis; the zoom around the peak (row 2) has its own
+        axes.append(fig.add_subplot(gs[i, :], sharex=None if i == 2 and not multi else axes[0]))
+    ax = axes[0]
+    gm = run.meta.get("ground_motion") or {}
+    ax.plot(t, env["ground_accel"], lw=0.7, color="0.3")
+    ax.set_ylabel("ground accel. (m/s²)")
+    ax.set_title(
+        f"{run.path.name}: ground motion"
+        + (f" ({gm['name']}, PGA {gm['pga']:.3g} m/s²)" if gm.get("name") and gm.get("pga") else "")
+        + (
+            " (applied by OpenSees: not in the record)"
+            if not np.nanmax(np.abs(env["ground_accel"]), initial=0)
+            else ""
+        )
     )
-    axes = axes[:, 0]
     pair = run.meta.get("fei_pair", "target")
     for c, (name, sfx) in enumerate(chans):
         head = f"channel {name}: " if multi else ""
-        ax = axes[per * c]
+        k = 1 + per * c
+        ax = axes[k]
         ax.plot(t, env["target" + sfx] * mm, lw=1.0, label="calculated (target)")
         ax.plot(t, env["command" + sfx] * mm, lw=0.8, label="command")
         ax.plot(t, env["measured" + sfx] * mm, lw=0.8, ls="--", label="measured")
         ax.set_ylabel("displacement (mm)")
-        ax.set_title(f"{run.path.name}: {head}displacements (cf. the FEI paper's Fig. 5.1)")
+        ax.set_title(f"{head}displacements (cf. the FEI paper's Fig. 5.1)")
         ax.legend(loc="upper right", fontsize=8)
-        k = per * c + 1
+        k += 1
         if not multi:
             ax = axes[k]
             if zoom is not None and len(zoom):
@@ -684,6 +784,12 @@ def plot_report(
             ax.set_ylabel("displacement (mm)")
             ax.set_title("around the peak")
             k += 1
+        ax = axes[k]
+        ax.plot(t, env["error" + sfx] * mm, lw=0.7, color="C3")
+        ax.axhline(0.0, color="0.5", lw=0.5)
+        ax.set_ylabel("error (mm)")
+        ax.set_title(f"{head}tracking error, measured − target")
+        k += 1
         valid = env["fei_valid" + sfx] > 0.5
         ex = exact[sfx]
         for ax, col, exv, scale, label in (
@@ -699,7 +805,7 @@ def plot_report(
             f"{head}online FEI, measured vs {pair} (cf. the FEI paper's Fig. 5.2); "
             "grey: invalid windows"
         )
-    ax = axes[-1]
+    ax = axes[n_time - 1]
     sfx = chans[0][1]
     if paced:
         ax.plot(t, env["lateness"] * 1e6, lw=0.6)
@@ -712,29 +818,89 @@ def plot_report(
         ax.set_ylabel("delay (ms)")
         ax2.set_ylabel("gain")
         ax.set_title(
-            "Kalman estimates of the actuator" + (f" (channel {chans[0][0]})" if multi else "")
+            "Kalman estimates of the actuator, measured vs command"
+            + (f" (channel {chans[0][0]})" if multi else "")
         )
     ax.set_xlabel("time (s)")
-    for tr in _events(run, "trip") + _events(run, "operator_stop"):
+    stops = _events(run, "trip") + _events(run, "operator_stop")
+    for tr in stops:
+        tt = _num(tr.get("time"))
+        label = tr.get("rule") or "operator stop"
+        if tr.get("channel"):
+            label += f" on {tr['channel']}"
         for a in axes:
-            a.axvline(_num(tr.get("time")), color="r", lw=1.0)
+            a.axvline(tt, color="r", lw=1.0)
+        axes[0].annotate(
+            f"e-stop: {label} at {tt:.3f} s",
+            xy=(tt, 1.0),
+            xycoords=("data", "axes fraction"),
+            xytext=(-4, -4),
+            textcoords="offset points",
+            ha="right",
+            va="top",
+            color="r",
+            fontsize=8,
+            bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": "r", "lw": 0.6},
+        )
+    # force–displacement loop(s) and the summary text
+    ax = fig.add_subplot(gs[n_time, :2])
+    for name, sfx in chans:
+        x, f = loops[sfx]
+        ax.plot(x * mm, f / 1e3, lw=0.6, label=name if multi else None)
+    ax.set_xlabel("measured displacement (mm)")
+    ax.set_ylabel("measured force (kN)")
+    ax.set_title("force–displacement")
+    if multi:
+        ax.legend(fontsize=8)
+    ax = fig.add_subplot(gs[n_time, 2:])
+    ax.axis("off")
+    text = "\n".join(
+        "\n".join(textwrap.wrap(line, 84, subsequent_indent="      ") or [""])
+        for line in format_summary(summary).splitlines()
+    )
+    ax.text(0.0, 1.0, text, va="top", ha="left", family="monospace", fontsize=7)
+    ax.set_title("summary", loc="left")
+    if keep_figure:
+        return fig
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
 
 
-def _envelopes(src: _Rows, names, max_points: int) -> dict[str, np.ndarray]:
+def _strided(src: _Rows, names, max_points: int) -> tuple[np.ndarray, ...]:
+    """Columns ``names`` at every q-th row, ``q = ceil(n / max_points)`` (pairs stay paired:
+    a force–displacement loop cannot be drawn from two separate envelopes)."""
+    n = len(src)
+    q = max(1, -(-n // max_points))
+    parts: dict[str, list] = {k: [] for k in names}
+    chunk = max(q, (_CHUNK // q) * q)
+    for i in range(0, n, chunk):
+        part = src.read(i, i + chunk)[::q]
+        for k in names:
+            parts[k].append(np.asarray(part[k], dtype=float))
+    return tuple(np.concatenate(v) if v else np.zeros(0) for v in parts.values())
+
+
+def _envelopes(
+    src: _Rows, names, max_points: int, derived: dict[str, Any] | None = None
+) -> dict[str, np.ndarray]:
     """Columns (and ``time``) at full rate, or as a min/max envelope when the record is long.
 
     With ``q = ceil(2n / max_points)`` rows per bucket each bucket contributes its minimum and
     its maximum, in time order (``fei_valid``: its minimum twice, so a bucket with an invalid
-    window is shaded). NaNs are ignored within a bucket.
+    window is shaded). NaNs are ignored within a bucket. ``derived`` maps a name that is not
+    a column to a function of a chunk of rows (e.g. the tracking error).
     """
+    derived = derived or {}
+
+    def col(part, k):
+        return derived[k](part) if k in derived else part[k]
+
     n = len(src)
     names = ("time", *names)
     if n <= max_points:
         part = src.read(0, n)
-        return {k: np.asarray(part[k], dtype=float) for k in names}
+        return {k: np.asarray(col(part, k), dtype=float) for k in names}
     q = -(-2 * n // max_points)
     chunk = max(q, (_CHUNK // q) * q)
     out: dict[str, list] = {k: [] for k in names}
@@ -744,7 +910,7 @@ def _envelopes(src: _Rows, names, max_points: int) -> dict[str, np.ndarray]:
         if m == 0:
             continue
         for k in names:
-            v = np.asarray(part[k][:m], dtype=float).reshape(-1, q)
+            v = np.asarray(col(part, k)[:m], dtype=float).reshape(-1, q)
             with np.errstate(all="ignore"), warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN buckets stay NaN
                 lo, hi = np.nanmin(v, axis=1), np.nanmax(v, axis=1)

@@ -149,11 +149,16 @@ def test_live_line_content_and_terminal_behaviour():
         "A 1.0031",
         "d +0.42 ms",
         "peak 11.27 mm",
-        "margin displacement 77 %",
+        "margin: displacement limit 77 % left",
+        "( 42 %)",
         "α 26.60",
     ):
         assert part in line, part
     assert "\n" not in line
+    # an OpenSees site has no planned end: no percentage of the cap; compensation off: no α
+    site = format_live(dict(status, open_ended=True, compensation=False))
+    assert "%)" not in site and "α" not in site and "compensation off" in site
+    assert "12.50 s |" in site
     invalid = format_live(dict(status, amplitude=float("nan"), delay=float("nan")))
     assert "A — d — ms" in invalid
 

@@ -128,7 +128,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         summary = summarize(run_dir)
         if cfg["output"]["plot"] and not args.no_plot and result.steps > 1:
-            plot_report(run_dir)
+            plot_report(run_dir, summary=summary)
     except OSError as exc:  # e.g. the disk filled up: the record and events are what is kept
         summary = None
         print(

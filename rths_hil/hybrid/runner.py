@@ -751,6 +751,8 @@ class Runner:
             "peak_displacement": ch.pk_disp,
             "margin": (quantity, margin),
             "alpha": ch.comp.alpha,
+            "compensation": ch.comp.enabled,
+            "open_ended": self.plan.cfg["structure"]["kind"] == "openfresco",
             "mode": self.plan.mode,
         }
 
