@@ -754,31 +754,37 @@ def format_table(trials: Sequence[Trial], best: int = 0) -> str:
     return "\n".join(lines)
 
 
+TABLE_CSV_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("index", "index"),
+    ("alpha", "alpha"),
+    ("factor", "factor"),
+    ("amplitude", "amplitude"),
+    ("delay", "delay_s"),
+    ("f_eq", "f_eq_Hz"),
+    ("valid", "valid"),
+    ("j1", "j1_s"),
+    ("j2", "j2_percent"),
+    ("status", "status"),
+    ("steps", "steps"),
+    ("pga", "pga_m_per_s2"),
+    ("reason", "reason"),
+    ("run_dir", "run_dir"),
+)
+"""(trial field, CSV column) of :func:`write_table_csv`: a quantity with a unit carries it in
+its column name (``delay_s``, ``j2_percent``, ``pga_m_per_s2``); the others are
+dimensionless (α, the amplitude factor, A) or not quantities."""
+
+
 def write_table_csv(trials: Sequence[Trial], path: str | Path) -> Path:
-    """Write the trials as CSV (SI units: delay and J1 in s, J2 in %)."""
-    cols = [
-        "index",
-        "alpha",
-        "factor",
-        "amplitude",
-        "delay",
-        "f_eq",
-        "valid",
-        "j1",
-        "j2",
-        "status",
-        "steps",
-        "pga",
-        "reason",
-        "run_dir",
-    ]
+    """Write the trials as CSV, SI units named in the columns (:data:`TABLE_CSV_COLUMNS`:
+    ``delay_s``, ``j1_s``, ``f_eq_Hz``, ``j2_percent``, ``pga_m_per_s2``)."""
     out = Path(path)
     with out.open("w", encoding="utf-8") as fh:
-        fh.write(",".join(cols) + "\n")
+        fh.write(",".join(name for _, name in TABLE_CSV_COLUMNS) + "\n")
         for t in trials:
             row = t.as_dict()
             vals = []
-            for c in cols:
+            for c, _ in TABLE_CSV_COLUMNS:
                 v = row[c]
                 if isinstance(v, float):
                     vals.append(repr(v))

@@ -256,6 +256,14 @@ def test_sweep_zero_crossing_matches_the_twin_delay(tmp_path):
     assert tuned["compensation"]["amplitude"] == pytest.approx(summary["factor"])
     assert (out / "sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len((out / "sweep.csv").read_text().splitlines()) == 1 + 4
+    # the CSV names its units: delay and J1 in s, f_eq in Hz, J2 in %
+    import csv
+
+    with (out / "sweep.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert {"delay_s", "j1_s", "f_eq_Hz", "j2_percent", "pga_m_per_s2"} <= set(rows[0])
+    for r, t in zip(rows, trials, strict=True):
+        assert float(r["delay_s"]) == t["delay"] and float(r["j2_percent"]) == t["j2"]
 
 
 def test_cli_tune_prints_the_table_and_writes_the_tuned_config(tmp_path, capsys):
