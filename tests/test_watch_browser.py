@@ -186,7 +186,7 @@ def test_live_paced_run_plots_move_and_the_e_stop_shows(browser, tmp_path):
         while _last_t(browser) < 1.5 and time.monotonic() < t_end:
             time.sleep(0.05)
         title = browser.model("title", "text")
-        assert "Channel can" in title
+        assert ">Actuator<" in title  # one unnamed actuator, not the driver's name
         shot1, t1 = browser.screenshot(tmp_path / "live1.png"), _last_t(browser)
         lag = time.time() - _sent_at(run_dir, t1)
         t_end = time.monotonic() + 20
@@ -293,11 +293,12 @@ def test_replay_of_a_multi_channel_record_with_the_slider(browser, tmp_path, mon
     try:
         _open(browser, url)
         assert "KILLED" in _wait_state(browser, "KILLED")
-        assert "Channel left" in browser.model("title_left", "text")
-        assert "Channel right" in browser.model("title_right", "text")
+        assert "Actuator left" in browser.model("title_left", "text")
+        assert "Actuator right" in browser.model("title_right", "text")
         assert _last_t(browser, "window_left") == pytest.approx(24 - 1 / 256, abs=0.05)
-        # the measured column of each channel is what was written (amplitudes 4 and 2 mm)
-        for ch, amp in (("left", 0.004), ("right", 0.002)):
+        # the measured column of each channel is what was written (amplitudes 4 and 2 mm),
+        # shown in mm
+        for ch, amp in (("left", 4.0), ("right", 2.0)):
             m = np.array(browser.column(f"window_{ch}", "measured"), dtype=float)
             assert np.nanmax(np.abs(m)) == pytest.approx(amp, rel=0.01)
         # replay: move the slider back to 12 s; the window follows it
@@ -344,6 +345,51 @@ def test_empty_and_unreadable_run_directories_are_messages(browser, tmp_path):
         _wait_state(browser, "has no run record")
         (empty / "record.npy").write_bytes(b"garbage, not a record")
         assert "UNREADABLE" in _wait_state(browser, "unreadable record")
+    finally:
+        err = _stop(watch)
+    assert "Traceback" not in err
+
+
+_RENDERED_Y = (
+    "(() => { const m = Bokeh.documents[0].get_model_by_name(%s);"
+    " return m.renderers.filter(r => r.glyph && r.glyph.y && r.glyph.y.field)"
+    ".map(r => r.glyph.y.field); })()"
+)
+_BANDS = (
+    "(() => { const m = Bokeh.documents[0].get_model_by_name(%s);"
+    " return m.center.filter(a => a.bottom !== undefined && a.top !== undefined"
+    " && a.bottom !== null && typeof a.bottom === 'number').map(a => [a.bottom, a.top]); })()"
+)
+
+
+def test_kalman_has_its_own_plot_and_band_units_in_mm(browser, tmp_path, monkeypatch):
+    """The Kalman delay (measured vs command, ≈ the actuator's lag) is not drawn over the FEI
+    delay's ±tolerance band: it has its own plot against ``safety.kf_delay_max``; the
+    displacements are in mm and the force in kN."""
+    run_dir = write_run(tmp_path / "one", monkeypatch, [""], seconds=4)
+    watch, url = _start_watch(run_dir)
+    try:
+        _open(browser, url)
+        _wait_state(browser, "COMPLETED")
+        t_end = time.monotonic() + 20
+        while not browser.column("loop", "force") and time.monotonic() < t_end:
+            time.sleep(0.1)
+        fei_d = browser.eval(_RENDERED_Y % json.dumps("fei_d"))
+        kalman = browser.eval(_RENDERED_Y % json.dumps("kalman"))
+        assert "d" in fei_d and "kf_d" not in fei_d, fei_d
+        assert "kf_d" in kalman and "kf_g" in kalman, kalman
+        cfg = json.loads((run_dir / "meta.json").read_text())["config"]["safety"]
+        bands_d = browser.eval(_BANDS % json.dumps("fei_d"))
+        bands_k = browser.eval(_BANDS % json.dumps("kalman"))
+        tol, kmax = cfg["fei_delay_tol"] * 1e3, cfg["kf_delay_max"] * 1e3
+        assert bands_d == [[pytest.approx(-tol), pytest.approx(tol)]], bands_d
+        assert bands_k == [[pytest.approx(-kmax), pytest.approx(kmax)]], bands_k
+        # mm and kN: the written amplitudes are 4 mm and 2e5 N/m · 4 mm = 0.8 kN
+        m = np.array(browser.column("window", "measured"), dtype=float)
+        f = np.array(browser.column("loop", "force"), dtype=float)
+        assert np.nanmax(np.abs(m)) == pytest.approx(4.0, rel=0.01)
+        assert np.nanmax(np.abs(f)) == pytest.approx(0.8, rel=0.01)
+        assert browser.model("title", "text").endswith(">Actuator</h2>")
     finally:
         err = _stop(watch)
     assert "Traceback" not in err

@@ -19,10 +19,13 @@ each plot whose data or range changed (every renderer of such a plot is painted 
 Per channel: target / command / measured over the window and the whole test (overview); the
 online FEI amplitude A(t) and delay d(t) (the FEI paper, Eq. 2.2 and 2.5; streaming and exact)
 with the safety rule's tolerance bands and the windows where the FEI is invalid greyed; the
-Kalman gain and delay on the same axes; the force–displacement loop; the share of every safety
-limit in use as bars. For the run: its state (running, completed, e-stop with rule, channel and
-time, operator stop, killed), the loop's lateness and overruns, the event list, a time slider to
-replay a finished run, and the operator-stop button.
+Kalman delay and gain (measured vs command: the actuator's own lag) on a plot of their own,
+the delay against its own band (``safety.kf_delay_max``); the force–displacement loop; the
+share of every safety limit in use as bars, the wall-clock feedback watchdog of a paced run
+among them. Displacements are shown in mm and forces in kN (the record stays SI). For the
+run: its state (running, completed, e-stop with rule, channel and time, operator stop,
+killed), the loop's lateness and overruns, the event list, a time slider to replay a finished
+run, and the operator-stop button.
 
 Nothing on the page can start or change motion: the only action is the operator stop, which
 sends the run's process SIGINT (what Ctrl-C sends), after a confirmation.
@@ -49,6 +52,7 @@ from bokeh.models import (
     Div,
     FactorRange,
     Legend,
+    LinearAxis,
     Range1d,
     Slider,
     Span,
@@ -321,7 +325,14 @@ class _Limits:
         self.cfg = cfg
         self.paced = paced
         fs = _num(cfg.get("loop", {}).get("fs"), 1.0) if cfg else 1.0
-        self.thr = _num((cfg.get("loop", {}) or {}).get("overrun_threshold"), 0.5) / fs
+        lp = (cfg.get("loop", {}) or {}) if cfg else {}
+        self.thr = _num(lp.get("overrun_threshold"), 0.5) / fs
+        # the wall-clock feedback watchdog of a paced run (rths_hil.safety.WatchdogRule):
+        # ``watchdog_timeout``, or ``watchdog_missed`` periods; a missed reply waited
+        # ``loop.feedback_timeout`` (0: 0.8 periods)
+        wd_missed = _num(safety.get("watchdog_missed"), 0.0)
+        self.wd_timeout = _num(safety.get("watchdog_timeout"), 0.0) or wd_missed / fs
+        self.fb_wait = _num(lp.get("feedback_timeout"), 0.0) or 0.8 / fs
         self.reset()
 
     def reset(self) -> None:
@@ -329,9 +340,11 @@ class _Limits:
         self.peak: dict[str, float] = {}
         self.last: dict[str, float] = {}
         self.carry: dict[str, int] = {}
+        self.last_ok = math.nan  # when the latest good reply arrived (s, loop clock)
 
-    def _shares(self, rec, names, a: int, b: int) -> dict[str, np.ndarray]:
-        """Share of each limit at each row of ``[a, b)``."""
+    def _shares(self, rec, names, a: int, b: int, carry: bool = True) -> dict[str, np.ndarray]:
+        """Share of each limit at each row of ``[a, b)`` (``carry``: continue from the rows
+        before ``a``, and remember where ``b`` ends; otherwise start afresh at ``a``)."""
         sf, ch = self.safety, self.ch
         out: dict[str, np.ndarray] = {}
 
@@ -370,12 +383,34 @@ class _Limits:
             miss = ~np.asarray(rec[ok][a:b], dtype=bool)
             run = _consecutive(miss, self.carry.get("missed replies", 0))
             out["missed replies"] = run / wd
+        fbt = channel_column(names, "feedback_time", ch)
+        if self.paced and self.wd_timeout > 0 and ok is not None and fbt is not None:
+            out["feedback watchdog"] = self._watchdog(rec, names, ok, fbt, a, b, carry)
         mo = _num(sf.get("max_overruns"))
         if self.paced and mo > 0 and "lateness" in names:
             over = np.asarray(rec["lateness"][a:b], dtype=float) > self.thr
             run = _consecutive(over, self.carry.get("overruns", 0))
             out["overruns"] = run / mo
         return out
+
+    def _watchdog(self, rec, names, ok: str, fbt: str, a: int, b: int, carry: bool):
+        """Share of the wall-clock watchdog's timeout at each row: the time from the latest
+        good reply before the row to the row's reply (or to the end of its wait when it had
+        none), over ``watchdog_timeout``. Reply times come from the record: the step's loop
+        time plus its lateness plus ``feedback_time``."""
+        t = np.asarray(rec["time"][a:b], dtype=float)
+        t = t + np.asarray(rec["lateness"][a:b], dtype=float) if "lateness" in names else t
+        good = np.asarray(rec[ok][a:b], dtype=bool)
+        fb = np.asarray(rec[fbt][a:b], dtype=float)
+        arrive = t + np.where(good & np.isfinite(fb), fb, self.fb_wait)
+        idx = np.arange(t.size)
+        last = np.maximum.accumulate(np.where(good, idx, -1))  # latest good row ≤ i
+        before = np.r_[-1, last[:-1]]  # latest good row < i
+        start = self.last_ok if carry else math.nan
+        prev = np.where(before >= 0, arrive[np.maximum(before, 0)], start)
+        if carry and good.any():
+            self.last_ok = float(arrive[last[-1]])
+        return (arrive - prev) / self.wd_timeout
 
     def update(self, rec, names, k_end: int, now_rows: int) -> dict:
         """Shares up to row ``k_end`` as the bar chart's columns."""
@@ -394,12 +429,12 @@ class _Limits:
                     )
                     self.carry[label] = round(float(x[-1]) * scale)
             self.upto = k_end
-        recent = self._shares(rec, names, max(0, k_end - now_rows), k_end)
+        recent = self._shares(rec, names, max(0, k_end - now_rows), k_end, carry=False)
         labels, now_v, peak_v = [], [], []
         for label in self.peak:
             x = recent.get(label, np.zeros(0))
             x = x[np.isfinite(x)]
-            if label in ("displacement", "velocity", "force"):
+            if label in ("displacement", "velocity", "force", "feedback watchdog"):
                 now = float(x.max()) if x.size else 0.0
             else:
                 now = self.last.get(label, 0.0)
@@ -408,6 +443,15 @@ class _Limits:
             peak_v.append(min(self.peak[label], 1.1))
         colors = ["#16a34a" if u < 0.7 else "#f59e0b" if u < 0.9 else "#dc2626" for u in now_v]
         return {"limit": labels, "used": now_v, "peak": peak_v, "color": colors}
+
+
+def _actuator_label(ch: str, meta: dict) -> str:
+    """The heading of a channel's plots: the actuator's name, or "Actuator" for the one
+    unnamed actuator of a single-channel test."""
+    if not ch:
+        chans = meta.get("channels") or []
+        ch = str(chans[0].get("name") or "") if len(chans) == 1 else ""
+    return f"Actuator {ch}" if ch else "Actuator"
 
 
 class _ChannelView:
@@ -439,9 +483,11 @@ class _ChannelView:
             data={"t": [], "target": [], "measured": []}, name=f"overview{sfx}"
         )
         self.invalid = ColumnDataSource(data={"l": [], "r": []}, name=f"invalid{sfx}")
-        self.bars = ColumnDataSource(data={"limit": [], "used": [], "peak": [], "color": []})
+        self.bars = ColumnDataSource(
+            data={"limit": [], "used": [], "peak": [], "color": []}, name=f"bars{sfx}"
+        )
         self.title = Div(
-            text=f"<h2 style='margin:8px 0 0 0'>Channel {html.escape(label)}</h2>",
+            text=f"<h2 style='margin:8px 0 0 0'>{html.escape(label)}</h2>",
             name=f"title{sfx}",
         )
         self.invalid_tracker = _Invalid(gap)
@@ -450,7 +496,7 @@ class _ChannelView:
         self.ovw_whole = -1  # rows of the ended run when it was drawn whole
 
         # value axes set by the refresh (see _fit): an automatic range moves at every refresh
-        self.y_disp = Range1d(-1e-3, 1e-3)
+        self.y_disp = Range1d(-1.0, 1.0)  # mm
         p = figure(
             title="displacement: last 10 s",
             height=260,
@@ -459,7 +505,7 @@ class _ChannelView:
             y_range=self.y_disp,
             tools=tools,
             x_axis_label="time (s)",
-            y_axis_label="m",
+            y_axis_label="mm",
         )
         for key in ("target", "command", "measured"):
             p.line("t", key, source=self.win, color=COLORS[key], legend_label=key, line_width=1.6)
@@ -474,7 +520,7 @@ class _ChannelView:
             x_range=overview_range,
             tools=tools,
             x_axis_label="time (s)",
-            y_axis_label="m",
+            y_axis_label="mm",
         )
         q.line("t", "target", source=self.ovw, color=COLORS["target"], legend_label="target")
         q.line("t", "measured", source=self.ovw, color=COLORS["measured"], legend_label="measured")
@@ -488,7 +534,8 @@ class _ChannelView:
         self.y_a = Range1d(0.9, 1.1)
         self.y_d = Range1d(-5.0, 5.0)
         pa = figure(
-            title="FEI amplitude A (1 = perfect); Kalman gain",
+            title="FEI amplitude A, measured vs target (1 = perfect)",
+            name=f"fei_a{sfx}",
             height=220,
             width=w,
             x_range=fei_range,
@@ -497,7 +544,8 @@ class _ChannelView:
             x_axis_label="time (s)",
         )
         pd = figure(
-            title="FEI delay d (ms, > 0: measured lags); Kalman delay",
+            title="FEI delay d, measured vs target (ms, > 0: measured lags)",
+            name=f"fei_d{sfx}",
             height=220,
             width=w,
             x_range=fei_range,
@@ -505,22 +553,20 @@ class _ChannelView:
             tools=tools,
             x_axis_label="time (s)",
         )
-        for fig, key, ex, kf, tol, label in (
-            (pa, "a", "a_ex", "kf_g", a_tol, "A"),
-            (pd, "d", "d_ex", "kf_d", d_tol * 1e3, "d"),
+        for fig, key, ex, tol, label in (
+            (pa, "a", "a_ex", a_tol, "A"),
+            (pd, "d", "d_ex", d_tol * 1e3, "d"),
         ):
             fig.vstrip(x0="l", x1="r", source=self.invalid, fill_color="#9ca3af", fill_alpha=0.35)
             lines = [
                 fig.line("t", key, source=self.fei, color=COLORS["measured"], line_width=1.6),
                 fig.line("t", ex, source=self.fei, color=COLORS["exact"], line_dash="dashed"),
-                fig.line("t", kf, source=self.fei, color=COLORS["kalman"]),
             ]
             fig.add_layout(
                 Legend(
                     items=[
                         (f"{label} streaming", [lines[0]]),
                         (f"{label} exact", [lines[1]]),
-                        ("Kalman", [lines[2]]),
                     ],
                     location="top_left",
                     orientation="horizontal",
@@ -542,13 +588,59 @@ class _ChannelView:
                 )
         self.fei_a, self.fei_d = pa, pd
 
+        # the Kalman estimates compare measured with *command* (the actuator's own lag, about
+        # the servo lag plus the transport delay): their own plot, delay on the left axis with
+        # its own band (|delay| ≤ safety.kf_delay_max), gain on the right axis
+        kd_max = _num(safety.get("kf_delay_max")) * 1e3
+        self.y_kd = Range1d(0.0, 30.0)
+        self.y_kg = Range1d(0.9, 1.1)
+        pk = figure(
+            title="Kalman estimates of the actuator, measured vs command: delay (ms), gain",
+            height=220,
+            width=w,
+            x_range=fei_range,
+            y_range=self.y_kd,
+            tools=tools,
+            x_axis_label="time (s)",
+            y_axis_label="delay (ms)",
+            name=f"kalman{sfx}",
+        )
+        pk.extra_y_ranges = {"gain": self.y_kg}
+        pk.add_layout(LinearAxis(y_range_name="gain", axis_label="gain"), "right")
+        kl = [
+            pk.line("t", "kf_d", source=self.fei, color=COLORS["kalman"], line_width=1.6),
+            pk.line("t", "kf_g", source=self.fei, color="#0891b2", y_range_name="gain"),
+        ]
+        pk.add_layout(
+            Legend(
+                items=[("delay", [kl[0]]), ("gain", [kl[1]])],
+                location="top_left",
+                orientation="horizontal",
+                background_fill_alpha=0.6,
+            )
+        )
+        if kd_max > 0:
+            pk.add_layout(
+                BoxAnnotation(
+                    bottom=-kd_max,
+                    top=kd_max,
+                    fill_color="#f97316",
+                    fill_alpha=0.08,
+                    line_color="#ea580c",
+                    line_dash="dotted",
+                    line_alpha=1.0,
+                )
+            )
+        self.kalman = pk
+
         pf = figure(
             title="force–displacement (last 10 s)",
+            name=f"fd{sfx}",
             height=260,
             width=w,
             tools=tools,
-            x_axis_label="measured displacement (m)",
-            y_axis_label="force (N)",
+            x_axis_label="measured displacement (mm)",
+            y_axis_label="force (kN)",
         )
         pf.line("measured", "force", source=self.fd, color="#374151")
         self.loop = pf
@@ -562,6 +654,7 @@ class _ChannelView:
             "Kalman gain",
             "Kalman delay",
             "missed replies",
+            "feedback watchdog",
             "overruns",
         ]
         pb = figure(
@@ -578,7 +671,7 @@ class _ChannelView:
         pb.add_layout(Span(location=1.0, dimension="height", line_color="#b91c1c", line_width=2))
         self.margin = pb
         self.limits = _Limits(ch, safety, cfg, paced)
-        self.layout = column(self.title, row(p, q), row(pa, pd), row(pf, pb))
+        self.layout = column(self.title, row(p, q), row(pa, pd), row(pk, pf), row(pb))
 
     # -- data ----------------------------------------------------------------------------------
     def window_data(self, rec: np.ndarray, names, idx: slice, group: str = "win") -> dict:
@@ -586,11 +679,11 @@ class _ChannelView:
         ch = self.ch
         t = np.asarray(rec["time"][idx], dtype=float)
         if group == "win":
-            return {
+            return {  # displacements in mm (the record stays in m)
                 "t": t,
-                "target": _col(rec, names, "target", ch, idx),
-                "command": _col(rec, names, "command", ch, idx),
-                "measured": _col(rec, names, "measured", ch, idx),
+                "target": _col(rec, names, "target", ch, idx) * 1e3,
+                "command": _col(rec, names, "command", ch, idx) * 1e3,
+                "measured": _col(rec, names, "measured", ch, idx) * 1e3,
             }
         return {
             "t": t,
@@ -611,10 +704,12 @@ class _ChannelView:
             return (float(x.min()), float(x.max())) if x.size else (math.nan, math.nan)
 
         if group == "win":
-            _fit(self.y_disp, *span(self.win.data, "target", "command", "measured"), 1e-4)
+            _fit(self.y_disp, *span(self.win.data, "target", "command", "measured"), 0.1)
         else:
-            _fit(self.y_a, *span(self.fei.data, "a", "a_ex", "kf_g"), 0.02)
-            _fit(self.y_d, *span(self.fei.data, "d", "d_ex", "kf_d"), 1.0)
+            _fit(self.y_a, *span(self.fei.data, "a", "a_ex"), 0.02)
+            _fit(self.y_d, *span(self.fei.data, "d", "d_ex"), 1.0)
+            _fit(self.y_kd, *span(self.fei.data, "kf_d"), 1.0)
+            _fit(self.y_kg, *span(self.fei.data, "kf_g"), 0.02)
 
     def overview_update(self, rec: np.ndarray, names, rows: int, planned: int, final: bool):
         """Extend the whole-test plot with the buckets completed since the last call.
@@ -644,7 +739,7 @@ class _ChannelView:
         half = 0.5 * (ends - np.arange(a, b, m)) / self.fs
         data = {"t": np.column_stack([t, t + half]).ravel()}
         for key in ("target", "measured"):
-            x = _col(rec, names, key, self.ch, slice(a, b))
+            x = _col(rec, names, key, self.ch, slice(a, b)) * 1e3  # mm
             pad = (-x.size) % m  # the last, incomplete bucket (final only): NaN-padded
             data[key] = _envelope(np.append(x, np.full(pad, np.nan)), m)
         self.ovw_upto = b
@@ -851,7 +946,7 @@ class _Page:
             self.views.append(
                 _ChannelView(
                     ch,
-                    ch or str(meta.get("driver", "actuator")),
+                    _actuator_label(ch, meta),
                     cfg.get("safety", {}) or {},
                     cfg,
                     meta.get("mode") == "paced",
@@ -1003,8 +1098,8 @@ class _Page:
         idx = slice(first, k_end, m)
         for v in self.views:
             v.fd.data = {
-                "measured": _col(rec, names, "measured", v.ch, idx),
-                "force": _col(rec, names, "force", v.ch, idx),
+                "measured": _col(rec, names, "measured", v.ch, idx) * 1e3,  # mm
+                "force": _col(rec, names, "force", v.ch, idx) * 1e-3,  # kN
             }
             v.overview_update(rec, names, f.rows, planned, final=st.finished)
             v.window_box.left = t_end - WINDOW_S
@@ -1044,7 +1139,10 @@ class _Page:
 
     def _banner(self, st: RunState) -> None:
         color, word = _BANNER.get(st.phase, ("#6b7280", st.phase.upper()))
-        msg = html.escape(st.message)
+        text = st.message
+        if text.lower().startswith(word.lower()):  # "E-STOP — e-stop: nan …": say it once
+            text = text[len(word) :].lstrip(": ")
+        msg = html.escape(text)
         self.state_div.text = (
             f"<div style='background:{color};color:white;padding:8px 14px;border-radius:6px;"
             f"font:600 17px sans-serif;max-height:46px;overflow:hidden'>{word} — {msg}</div>"
