@@ -165,6 +165,9 @@ def _local_only(requests: list[str], url: str) -> None:
         assert r.startswith((f"http://{host}/", f"ws://{host}/", "data:", "about:")), r
 
 
+WD_TIMEOUT = 2.0  # s: the wall-clock watchdog of the live run (generous on a loaded machine)
+
+
 def test_live_paced_run_plots_move_and_the_e_stop_shows(browser, tmp_path):
     run_dir = tmp_path / "run"
     watch, url = _start_watch(run_dir)
@@ -178,7 +181,8 @@ def test_live_paced_run_plots_move_and_the_e_stop_shows(browser, tmp_path):
         fault_step = 15 * FS  # NaN from the sensor at t = 15 s: the nan rule trips
         run = _follow_stderr(subprocess.Popen(
             [sys.executable, "-m", "rths_hil", "run", *PACED, "--duration", "20", "--out",
-             str(run_dir), "-q", "--set", f"twin.faults=nan={fault_step}"],
+             str(run_dir), "-q", "--set", f"twin.faults=nan={fault_step}",
+             "--set", f"safety.watchdog_timeout={WD_TIMEOUT}"],
             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
         ))  # fmt: skip
         _wait_state(browser, "RUNNING")
@@ -206,6 +210,12 @@ def test_live_paced_run_plots_move_and_the_e_stop_shows(browser, tmp_path):
         assert run.wait(60) == 3, _err(run)
         state = _wait_state(browser, "E-STOP", timeout=20)
         assert "nan" in state and f"step {fault_step}" in state and "t = 15.000 s" in state
+        assert state.lower().count("e-stop") == 1, state  # not "E-STOP — e-stop: …"
+        # the wall-clock feedback watchdog has its bar: at least one period between replies
+        # (a reply per step), well under the timeout (it did not trip)
+        limits, peaks = browser.column("bars", "limit"), browser.column("bars", "peak")
+        bars = dict(zip(limits, peaks, strict=True))
+        assert 0.99 / FS / WD_TIMEOUT <= bars["feedback watchdog"] < 1.0, bars
         browser.screenshot(tmp_path / "estop.png")
         events = browser.column("events", "kind")
         assert events[-3:] == ["trip", "estop", "end"], events
