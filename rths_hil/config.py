@@ -550,6 +550,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
         ),
         "hold_time": Key("float", 0.1, unit="s", doc="ramp-hold: hold before the force", lo=0),
+        "max_trials_per_step": Key(
+            "int",
+            -1,
+            unit="-",
+            doc="distinct trials OpenSees may send per time step before the site stops "
+            "(-1 = the timing's own: 1 for lockstep and ramp-hold, no limit for "
+            "predictor-corrector; 0 = no limit)",
+            lo=-1,
+        ),
         "element_dt": Key(
             "float",
             0.0,

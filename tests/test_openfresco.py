@@ -544,3 +544,109 @@ def test_opensees_killed_mid_test_trips_with_one_line(tmp_path, accel):
     assert np.all(rec.record["of_kind"][1:] == EXECUTED)
     assert np.isfinite(rec.record["of_latency"]).sum() >= 99
     assert any(e["kind"] == "estop" for e in rec.events)
+
+
+# ---------------------------------------------------------------------------------------------
+# OpenSees pitfalls: iterations on the specimen, a time step that is not whole loop periods
+
+
+def test_newton_iterations_stop_before_the_second_trial_moves_the_actuator(tmp_path, accel):
+    """Implicit Newmark + Newton (OpenSees' usual default) sends several trials per step, each
+    of which would be imposed on the specimen: the site stops at the second trial of the first
+    step, with one line naming the fix, and only the first trial was ever executed."""
+    result, stage, _, _ = S.hybrid(
+        tmp_path, S.SITE, "sdof", 1 / 256, 1.0, accel,
+        extra=("--integrator", "Newmark", "--algorithm", "Newton"), name="newton",
+    )  # fmt: skip
+    assert result.status == "trip" and result.exit_code == 3
+    assert result.trip.rule == "openfresco"
+    reason = result.trip.reason
+    assert "trial 2 of one time step (t = 0.00390625 s)" in reason, reason
+    assert "NewmarkExplicit" in reason and "Linear" in reason and "\n" not in reason
+    tm = stage.site.timing
+    assert len(tm.targets) == 1  # the iteration never became a target
+    first = stage.site.server.mailbox.target  # the last target posted: the first trial
+    assert first.seq == 1
+    rec = read_run(tmp_path / "newton").record
+    # every command lies on the ramp from rest to the first trial, none beyond it
+    peak = float(np.abs(rec["command"]).max())
+    assert peak <= abs(float(first.displacement[0])) * (1 + 1e-12)
+    assert len(rec) <= 4 + 2  # one OpenSees step of 4 loop steps, then the trip
+
+
+def test_newmark_explicit_and_linear_is_one_trial_per_step(tmp_path, accel):
+    """The fix the message names: NewmarkExplicit + Linear sends one trial per step."""
+    result, stage, _, _ = S.hybrid(
+        tmp_path, S.SITE, "sdof", 1 / 256, 0.5, accel,
+        extra=("--integrator", "NewmarkExplicit", "--algorithm", "Linear"), name="explicit",
+    )  # fmt: skip
+    assert result.status == "completed", result.trip
+    s = stage.summary()
+    assert s["targets"] == s["actions"]["commitState"] == 128
+
+
+def test_opensees_dt_not_whole_loop_periods_is_refused(tmp_path, accel):
+    """dt = 0.005 s at loop.fs = 1024 Hz is 5.12 loop periods: refused before the first trial
+    moves the actuator, naming loop.fs = 1000 Hz and dt = 5/1024 s; at 1000 Hz it runs and
+    equals the numerical model."""
+    result, stage, _, _ = S.hybrid(tmp_path, S.SITE, "sdof", 0.005, 1.0, accel, name="dt1024")
+    assert result.status == "trip" and result.trip.rule == "openfresco"
+    reason = result.trip.reason
+    assert "0.005 s is 5.120 loop periods at loop.fs = 1024 Hz" in reason, reason
+    assert "-2.3 %" in reason and "loop.fs = 1000 Hz" in reason
+    assert "dt of 0.0048828125 s" in reason
+    assert len(stage.site.timing.targets) == 0
+    ref = S.reference(tmp_path, "sdof", 0.005, 3.0, accel)
+    result, _, floors, _ = S.hybrid(
+        tmp_path, S.SITE, "sdof", 0.005, 3.0, accel, overrides=("loop.fs=1000",), name="dt1000"
+    )
+    assert result.status == "completed", result.trip
+    assert j2_nrms(ref[:, 1], floors[:, 1]) <= 0.5
+
+
+def test_dt_rule_and_element_dt_at_start_up():
+    from rths_hil.openfresco.server import _dt_fault
+    from rths_hil.openfresco.site import ExperimentalSite
+
+    dt = 1 / 1024
+    assert _dt_fault(4 / 1024, dt) is None
+    assert _dt_fault(4 / 1024 * (1 + 0.9e-3), dt) is None  # within 0.1 %
+    assert _dt_fault(4 / 1024 * (1 + 1.1e-3), dt) is not None
+    assert "loop.fs = 1000 Hz" in _dt_fault(0.01, dt)  # 10.24 periods → 10 at 1000 Hz
+    with pytest.raises(InputError, match=r"openfresco.element_dt 0.005 s is 5.120 loop periods"):
+        ExperimentalSite({"element_dt": 0.005, "timing": "predictor-corrector"}, dt)
+    ExperimentalSite({"element_dt": 0.005, "timing": "ramp-hold"}, dt)  # its own ramp time
+    # the timing's own trial limit: 1 (lockstep, ramp-hold), none (predictor–corrector)
+    assert ExperimentalSite({"timing": "lockstep"}, dt).max_trials == 1
+    assert ExperimentalSite({"timing": "predictor-corrector"}, dt).max_trials == 0
+    assert ExperimentalSite({"timing": "ramp-hold", "max_trials_per_step": 0}, dt).max_trials == 0
+
+
+def test_a_second_trial_before_commit_without_time_block_stops(tmp_path):
+    """A GenericTCP client without a time block: trials are counted between commitState
+    requests; the second one of a step stops the site before it is executed."""
+    replies = []
+
+    def script(s):
+        s.sendall(_frame(256, P.SET_TRIAL, 0.001))
+        s.sendall(_frame(256, P.GET_DAQ))
+        replies.append(_recv(s, 256)[:2].copy())
+        s.sendall(_frame(256, P.COMMIT))
+        s.sendall(_frame(256, P.SET_TRIAL, 0.002))
+        s.sendall(_frame(256, P.GET_DAQ))
+        replies.append(_recv(s, 256)[:2].copy())
+        s.sendall(_frame(256, P.SET_TRIAL, 0.0025))  # an iteration: no commit in between
+        s.sendall(_frame(256, P.GET_DAQ))
+        with contextlib.suppress(AssertionError, OSError):
+            _recv(s, 256)
+
+    loop, port = _loop(
+        tmp_path, "iter", "openfresco.protocol=generic-tcp", "openfresco.ramp_time=0.05s"
+    )
+    th = _client(port, (1, 0, 0, 0, 0, 1, 0, 0, 1, 0, 256), script)
+    result = loop.run()
+    th.join(5)
+    assert result.status == "trip" and "before its commitState" in result.trip.reason
+    assert len(replies) == 2 and len(loop.structure.site.timing.targets) == 2
+    rec = read_run(tmp_path / "iter").record
+    assert float(rec["command"].max()) <= 0.002 * (1 + 1e-12)  # 2.5 mm was never commanded

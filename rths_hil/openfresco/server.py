@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import select
 import socket
 import threading
@@ -144,6 +145,13 @@ class SiteServer:
         self.host, self.port = self._listener.getsockname()[:2]
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
+        #: distinct trials allowed per OpenSees time step (0: no limit); see :meth:`_check_trial`
+        self.max_trials = 0
+        #: the loop step (s) OpenSees' time step must be a whole multiple of (None: not checked)
+        self.loop_dt: float | None = None
+        self._trials = 0  # distinct trials in the current time step
+        self._last_t = 0.0  # analysis time of the latest trial (s)
+        self._commits = 0  # commitState requests seen
 
     # ------------------------------------------------------------------------------------------
     def accept(self, timeout: float | None = None, stop=lambda: False) -> P.SessionID:
@@ -310,6 +318,10 @@ class SiteServer:
                 elif action in (P.GET_FORCE, P.GET_DAQ, P.EXECUTE):
                     key = (trial_u.tobytes(), trial_t)
                     if key != executed:
+                        fault = self._check_trial(trial_t)
+                        if fault is not None:  # before the trial reaches the actuator
+                            mb.close(fault, fault=True)
+                            return
                         seq += 1
                         t = Target(
                             seq,
@@ -358,12 +370,54 @@ class SiteServer:
                 elif action == P.DIE:
                     mb.close("die", fault=False)
                     return
+                elif action == P.COMMIT:  # the step is over: the next trial starts a new one
+                    self._commits += 1
+                    self._trials = 0
                 # OPEN, SETUP, COMMIT: nothing to answer
         except OSError as exc:
             mb.close(f"openfresco: connection error: {exc}", fault=True)
         except Exception as exc:  # never leave the loop waiting on a dead thread
             log.exception("openfresco server thread failed")
             mb.close(f"openfresco: server error: {exc!r}", fault=True)
+
+    def _check_trial(self, t: float) -> str | None:
+        """A fault line when a new trial must not reach the actuator, else None.
+
+        * **Repeated trials within one time step.** A trial whose analysis time ``t`` equals
+          the previous trial's (or, for a client without a time block, a second trial before
+          ``commitState``) is an iteration of OpenSees' solution algorithm: with Newton and an
+          implicit Newmark every iteration would be imposed on the specimen (a one-step
+          example sent 4–5 per step; docs/opensees.md). More than :attr:`max_trials` distinct
+          trials in one step stop the site, before the extra trial moves the actuator.
+        * **A time step that is not a whole number of loop periods.** With :attr:`loop_dt`
+          set (lockstep and predictor–corrector timing), OpenSees' step ``Δt_OS`` is executed
+          in ``round(Δt_OS / Δt)`` loop steps; off by more than 0.1 % it would compress or
+          stretch the specimen's time (``dt = 0.005 s`` at 1024 Hz: 5 steps, −2.3 %).
+        """
+        finite = math.isfinite(t)
+        if finite and t <= self._last_t + 1e-9 * max(1.0, abs(t)) and self._trials:
+            self._trials += 1  # the same analysis time: an iteration
+        elif finite:
+            span = t - self._last_t
+            self._trials = 1
+            if self.loop_dt is not None and span > 0:
+                msg = _dt_fault(span, self.loop_dt)
+                if msg is not None:
+                    return msg
+            self._last_t = t
+        elif self._commits:  # no time block: trials since the last commitState
+            self._trials += 1
+        else:
+            self._trials = 1
+        if self.max_trials and self._trials > self.max_trials:
+            when = f"t = {t:.6g} s" if finite else "before its commitState"
+            return (
+                f"openfresco: OpenSees sent trial {self._trials} of one time step ({when}): "
+                "its solution algorithm iterates (Newton with implicit Newmark?) and every "
+                "iteration would move the actuator; use integrator('NewmarkExplicit', 0.5) "
+                "with algorithm('Linear'), or openfresco.timing = 'predictor-corrector'"
+            )
+        return None
 
     def _pack_daq(self, out: np.ndarray, daq: dict[str, slice], trial_u: np.ndarray) -> None:
         mb = self.mailbox
@@ -374,3 +428,19 @@ class SiteServer:
         if "time" in daq:
             out[daq["time"]] = mb.measured_time
         # velocity and acceleration are not measured by the site: zeros
+
+
+def _dt_fault(span: float, loop_dt: float) -> str | None:
+    """A fault line when OpenSees' step ``span`` (s) is not a whole number of loop periods
+    ``loop_dt`` within 0.1 %, naming a ``loop.fs`` and an OpenSees ``dt`` that would fit."""
+    r = span / loop_dt
+    m = max(1, round(r))
+    if abs(r - m) <= 1e-3 * r:
+        return None
+    fs = 1.0 / loop_dt
+    return (
+        f"openfresco: OpenSees' time step {span:.6g} s is {r:.3f} loop periods at loop.fs = "
+        f"{fs:g} Hz, not a whole number (within 0.1 %): executed in {m} it would change the "
+        f"specimen's time by {100.0 * (m / r - 1.0):+.1f} %; use loop.fs = {m / span:.6g} Hz "
+        f"or an OpenSees dt of {m * loop_dt:.10g} s"
+    )

@@ -256,6 +256,16 @@ class ExperimentalSite:
                 "openfresco.host = %r: the site accepts connections from other machines",
                 self.host,
             )
+        mt = int(o["max_trials_per_step"])
+        #: distinct trials per OpenSees step before the site stops (0: no limit)
+        self.max_trials = (0 if o["timing"] == "predictor-corrector" else 1) if mt < 0 else mt
+        edt = float(o["element_dt"] or 0.0)
+        if edt > 0 and o["timing"] != "ramp-hold":
+            from .server import _dt_fault
+
+            msg = _dt_fault(edt, self.dt)
+            if msg is not None:
+                raise InputError(msg.replace("OpenSees' time step", "openfresco.element_dt", 1))
         self.server: SiteServer | None = None
         self.timing: TimingMode | None = None
         self.fault: str | None = None
@@ -272,6 +282,10 @@ class ExperimentalSite:
         self.server = SiteServer(
             self.host, int(o["port"]), o["protocol"], self.mapping, quickack=bool(o["quickack"])
         )
+        self.server.max_trials = self.max_trials
+        # lockstep and predictor–corrector run the specimen on OpenSees' clock: its step
+        # must be a whole number of loop periods (ramp-hold runs on its own ramp time)
+        self.server.loop_dt = self.dt if o["timing"] != "ramp-hold" else None
         return self.server.host, self.server.port
 
     def paste_lines(self) -> tuple[str, str]:
