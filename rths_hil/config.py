@@ -993,9 +993,9 @@ def _apply_channel_override(cfg: Config, parts: list[str], value: Any, where: st
     chans[i] = _actuator(entry, i, where)
 
 
-def _apply_override(cfg: Config, text: str) -> None:
+def _apply_override(cfg: Config, text: str, where: str | None = None) -> None:
     parts, value = parse_override(text)
-    where = f"--set {text}"
+    where = where or f"--set {text}"
     section, name = parts[0], parts[1]
     if section == "actuators":
         _apply_channel_override(cfg, parts, value, where)

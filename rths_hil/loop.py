@@ -74,7 +74,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .config import Config, load_config
+from .config import Config
 from .hybrid.evaluators import ExactFEI as _ExactFEI
 from .hybrid.evaluators import StreamingFEI as _StreamingFEI
 from .hybrid.evaluators import exact_worker_main as _exact_worker_main
@@ -206,14 +206,21 @@ class RTHSLoop:
 
 
 def run(
-    config: str | Path | Config | None = None,
-    overrides: list[str] | tuple[str, ...] = (),
+    config: str | Path | Config | dict | None = None,
+    overrides: Any = (),
     **kwargs: Any,
 ) -> RunResult:
-    """Load a configuration (path, :class:`Config` or the embedded default) and run it.
+    """Load a configuration (path, dict, :class:`Config` or the embedded default) and run it.
 
-    ``kwargs`` go to :class:`RTHSLoop` (``run_dir``, ``plant``, ``live``, ``mode``,
-    ``duration``).
+    ``overrides`` are ``--set`` strings or a dict of dotted keys
+    (:func:`rths_hil.api.configure`); ``kwargs`` go to :class:`RTHSLoop` (``run_dir``,
+    ``plant``, ``live``, ``mode``, ``duration``). The documented entry point for scripts and
+    notebooks is :func:`rths_hil.run` (``docs/api.md``).
     """
-    cfg = config if isinstance(config, Config) else load_config(config, overrides)
+    if isinstance(config, Config) and not overrides:
+        cfg = config
+    else:
+        from .api import configure
+
+        cfg = configure(config, overrides or None)
     return RTHSLoop(cfg, **kwargs).run()
