@@ -41,7 +41,15 @@ from pathlib import Path
 from typing import Any
 
 from .errors import InputError
-from .units import parse_accel, parse_fraction, parse_length, parse_time, parse_window
+from .units import (
+    parse_accel,
+    parse_force,
+    parse_fraction,
+    parse_length,
+    parse_time,
+    parse_velocity,
+    parse_window,
+)
 
 __all__ = [
     "CHANNEL_SECTIONS",
@@ -639,6 +647,10 @@ def _quantity(value: Any, unit: str, path: str) -> float:
             return parse_time(value, path)
         if unit == "m":
             return parse_length(value, path)
+        if unit == "N":
+            return parse_force(value, path)
+        if unit == "m/s":
+            return parse_velocity(value, path)
         if unit == "m/s²":
             return parse_accel(value, path)
         if unit == "-":
@@ -1212,7 +1224,9 @@ def schema_markdown() -> str:
         "`rths-hil run [CONFIG.toml] [--set section.key=value]...` reads a TOML file over the",
         "embedded defaults (the FEI paper's NEES project 711 setup), then applies the `--set`",
         "overrides in order. Every key is optional. Floats take a plain number in the SI unit",
-        'shown, or a string with a unit (`"15ms"`, `"50mm"`, `"0.0328g"`, `"2%"`).',
+        'shown, or a string with a unit (`"15ms"`, `"50mm"`, `"2 in"`, `"0.0328g"`, `"2%"`,',
+        '`"100 kN"`, `"20 kip"`, `"200 mm/s"`): lengths in m, mm, cm, um, in or ft, forces in N,',
+        "kN, MN, lbf or kip, velocities in any of those lengths per s (`rths_hil/units.py`).",
         "A `--set` value is read as TOML (`--set loop.fs=2048`, `--set fei.enabled=false`,",
         "`--set 'driver.connection={port=1502}'`); text that is not TOML is taken as a string",
         "(`--set driver.name=modbus`, `--set safety.fei_delay_tol=10ms`). Keys inside a table",

@@ -3,9 +3,23 @@
 * :class:`InputError` — bad input (configuration, record file, frame, CLI argument). The CLI
   prints its message as one line and exits with code 2.
 * :class:`SafetyTrip` — a safety rule tripped and the e-stop was sent. Exit code 3.
+
+:func:`require` checks that an optional dependency (an *extra* of the package: ``hdf5``,
+``studies``, ``live``, ``opensees``) is installed, and otherwise raises an :class:`InputError`
+whose one line names the extra to install.
 """
 
 from __future__ import annotations
+
+import importlib.util
+
+#: The optional features: extra name → (import name, what it brings).
+EXTRAS: dict[str, tuple[str, str]] = {
+    "hdf5": ("h5py", "HDF5 export"),
+    "studies": ("distributed", "Dask studies and sweeps"),
+    "live": ("bokeh", "the live view in the browser"),
+    "opensees": ("openseespy", "OpenSeesPy models (the examples' OpenSees client)"),
+}
 
 
 class InputError(ValueError):
@@ -19,3 +33,18 @@ class SafetyTrip(RuntimeError):
         super().__init__(f"{rule}: {reason}")
         self.rule = rule
         self.reason = reason
+
+
+def require(extra: str, what: str) -> None:
+    """Raise :class:`InputError` naming ``pip install 'rths-hil[extra]'`` when the module of
+    the extra ``extra`` (:data:`EXTRAS`) cannot be imported; ``what`` is the feature asked
+    for (``"rths-hil watch"``). Only looks the module up (no import: start-up stays fast)."""
+    module = EXTRAS[extra][0]
+    try:
+        found = importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):
+        found = False
+    if not found:
+        raise InputError(
+            f"{what} needs {module}, which is not installed: pip install 'rths-hil[{extra}]'"
+        )

@@ -472,14 +472,19 @@ def export_run(
     hdf5: bool = False,
     out_dir: str | Path | None = None,
     columns: Sequence[str] | None = None,
+    mat: bool = False,
 ) -> list[Path]:
-    """Export a run's record to ``record.csv`` and/or ``record.h5``.
+    """Export a run's record to ``record.csv``, ``record.h5`` and/or ``record.mat``.
 
     The CSV is a record CSV (:func:`rths_hil.records.write_record`): header line with the column
     names of :data:`COLUMNS`, ``time`` first, SI units, booleans as 0/1, NaN as ``nan``
     (estimates of invalid windows). The HDF5 file has one dataset per column under ``/record``
     (attributes ``unit`` and ``description``), the metadata as the JSON attribute ``meta`` and the
-    events as the JSON attribute ``events`` of the root group. ``columns`` restricts the export
+    events as the JSON attribute ``events`` of the root group. The MATLAB file (``mat``,
+    :func:`scipy.io.savemat`, format 5) has one struct ``record`` with a double column vector
+    per record column (booleans as 0/1), a struct ``units`` with each column's unit as text,
+    and ``meta`` and ``events`` as JSON text: ``load('record.mat'); plot(record.time,
+    record.measured)``. ``columns`` restricts the export
     to those columns (``time`` is always first), e.g. ``("target", "command", "measured",
     "force")`` for a record without the NaN of invalid FEI windows.
 
@@ -491,7 +496,8 @@ def export_run(
     Raises
     ------
     InputError
-        Not a run directory; HDF5 asked for but ``h5py`` is not installed.
+        Not a run directory; HDF5 asked for but ``h5py`` (the ``hdf5`` extra) is not
+        installed.
     """
     from .records import write_record
 
@@ -513,10 +519,11 @@ def export_run(
         write_record(p, cols, fmt="%.10g")
         written.append(p)
     if hdf5:
-        try:
-            import h5py
-        except ImportError:
-            raise InputError("HDF5 export needs h5py (pip install h5py)") from None
+        from .errors import require
+
+        require("hdf5", "HDF5 export (--hdf5)")
+        import h5py
+
         p = dest / "record.h5"
         units = {c["name"]: c for c in run.meta.get("columns", [])}
         with h5py.File(p, "w") as h5:
@@ -528,6 +535,23 @@ def export_run(
                 ds.attrs["description"] = info.get("description", "")
             h5.attrs["meta"] = json.dumps(run.meta)
             h5.attrs["events"] = json.dumps(run.events)
+        written.append(p)
+    if mat:
+        from scipy.io import savemat
+
+        p = dest / "record.mat"
+        units = {c["name"]: c.get("unit", "") for c in run.meta.get("columns", [])}
+        savemat(
+            p,
+            {
+                "record": {n: np.asarray(run.record[n], dtype=float)[:, None] for n in names},
+                "units": {n: units.get(n, "") for n in names},
+                "meta": json.dumps(run.meta),
+                "events": json.dumps(run.events),
+            },
+            do_compression=True,
+            oned_as="column",
+        )
         written.append(p)
     return written
 

@@ -624,6 +624,9 @@ def open_executor(scheduler: str | None = None, workers: int = 2) -> Iterator[Ex
         return
     if int(workers) != workers or workers < 1:
         raise InputError(f"workers must be a positive integer, got {workers!r}")
+    from .errors import require
+
+    require("studies", "a Dask scheduler (--scheduler, study robustness)")
     from distributed import Client, LocalCluster
 
     if logging.getLogger().getEffectiveLevel() > logging.INFO:
@@ -937,6 +940,10 @@ def parse_vary(text: str, cfg) -> Perturbation:
                 from .units import parse_accel
 
                 v = parse_accel(p, key)
+            elif unit in ("N", "m/s"):
+                from .units import parse_force, parse_velocity
+
+                v = (parse_force if unit == "N" else parse_velocity)(p, key)
             else:
                 v = float(p)
         except (InputError, ValueError):

@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import Any
 
 from rths_hil.errors import InputError
-from rths_hil.units import parse_length, parse_time
+from rths_hil.units import parse_force, parse_length, parse_time, parse_velocity
 
 from .effects import EFFECTS, make_effect, validate_params
 from .models import make_model
@@ -147,9 +147,11 @@ class ModelSpec:
 
 
 def _number(value: Any, where: str, unit: str = "") -> float:
-    """A finite float from a TOML value; ``unit`` 's' or 'm' also accepts strings with units."""
-    if isinstance(value, str) and unit in ("s", "m"):
-        parse = parse_time if unit == "s" else parse_length
+    """A finite float from a TOML value; ``unit`` 's', 'm', 'N' or 'm/s' also accepts strings
+    with units (:mod:`rths_hil.units`)."""
+    parsers = {"s": parse_time, "m": parse_length, "N": parse_force, "m/s": parse_velocity}
+    if isinstance(value, str) and unit in parsers:
+        parse = parsers[unit]
         try:
             out = parse(value, "value")
         except InputError as exc:

@@ -120,6 +120,36 @@ def test_export_csv_columns_and_errors(tmp_path, capsys):
     assert main(["export", str(out), "--columns", "nope"]) == 2
 
 
+def test_export_mat_reads_back_in_scipy(tmp_path, capsys):
+    """record.mat: a struct of column vectors equal to the record, units, meta as JSON."""
+    import json
+
+    from scipy.io import loadmat
+
+    out = tmp_path / "run"
+    assert main(["run", *QUICK, "--duration", "1", "--out", str(out), "-q"]) == 0
+    assert main(["export", str(out), "--mat"]) == 0
+    assert capsys.readouterr().out.strip() == str(out / "record.mat")
+    assert not (out / "record.csv").exists()  # --mat alone: no CSV
+    m = loadmat(out / "record.mat", squeeze_me=False, struct_as_record=False)
+    rec = read_run(out).record
+    r, units = m["record"][0, 0], m["units"][0, 0]
+    for name in ("time", "target", "measured", "force", "fei_valid", "step"):
+        col = getattr(r, name)
+        assert col.shape == (len(rec), 1) and col.dtype == np.float64
+        np.testing.assert_array_equal(col[:, 0], rec[name].astype(float))
+    assert str(units.measured[0]) == "m" and str(units.force[0]) == "N"
+    meta = json.loads(str(m["meta"][0]))
+    assert meta["fs"] == 1024 and len(json.loads(str(m["events"][0]))) >= 2
+    sub = tmp_path / "sub"
+    assert (
+        main(["export", str(out), "--mat", "--csv", "--columns", "measured", "--out", str(sub)])
+        == 0
+    )
+    assert sorted(p.name for p in sub.iterdir()) == ["record.csv", "record.mat"]
+    assert sorted(loadmat(sub / "record.mat")["record"].dtype.names) == ["measured", "time"]
+
+
 def test_live_line_content_and_terminal_behaviour():
     import io
 

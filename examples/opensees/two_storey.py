@@ -109,7 +109,13 @@ def first_mode_omega(model: str, specimen_k: float, dampers: int = 1) -> float:
 
 
 def run(args: argparse.Namespace) -> np.ndarray:
-    import openseespy.opensees as ops
+    try:
+        import openseespy.opensees as ops
+    except ImportError:
+        raise SystemExit(
+            "two_storey.py needs OpenSeesPy, which is not installed: "
+            "pip install 'rths-hil[opensees]'"
+        ) from None
 
     nodes = build(ops, args.model, args.numerical, args.host, args.port, args.specimen_k,
                   args.specimen_c, args.dampers)  # fmt: skip

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import re
 import signal
 import sys
 from collections.abc import Sequence
@@ -32,8 +33,24 @@ COMMANDS: tuple[str, ...] = (
 )
 
 
+_ROLE = re.compile(r":(?:func|class|mod|meth|data|attr|exc):`~?([^`]+)`")
+
+
+def plain(text: str) -> str:
+    """Help text without reST markup: ``:func:`x``` → ``x``, double and single backticks
+    dropped (the docstrings the help is made of are reST; a terminal shows plain text)."""
+    return _ROLE.sub(r"\1", text).replace("``", "").replace("`", "")
+
+
 class _Parser(argparse.ArgumentParser):
-    """ArgumentParser whose errors are one line and exit code 2."""
+    """ArgumentParser whose errors are one line and exit code 2, and whose help is plain
+    text (:func:`plain`)."""
+
+    def format_help(self) -> str:
+        return plain(super().format_help())
+
+    def format_usage(self) -> str:
+        return plain(super().format_usage())
 
     def error(self, message: str) -> None:  # pragma: no cover - exercised via CLI tests
         if message.endswith("expected one argument"):

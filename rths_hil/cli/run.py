@@ -84,6 +84,10 @@ def main(args: argparse.Namespace) -> int:
         duration = parse_time(args.duration, "--duration")
         if duration < 0:
             raise InputError(f"--duration must be >= 0 s, got {args.duration!r}")
+    if args.watch:
+        from ..errors import require
+
+        require("live", "rths-hil run --watch")
     if args.out is not None and not args.out.strip():
         raise InputError("--out is empty: give a run directory")
     run_dir = Path(args.out) if args.out else new_run_dir(cfg["output"]["dir"])

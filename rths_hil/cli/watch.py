@@ -85,7 +85,9 @@ def _runs_base(args: argparse.Namespace) -> Path:
 
 def main(args: argparse.Namespace) -> int:
     """Serve the page until Ctrl-C; return the exit code."""
-    from ..errors import InputError
+    from ..errors import InputError, require
+
+    require("live", "rths-hil watch")
     from ..watch.server import LOCAL_HOSTS, WatchServer
 
     if args.latest and args.run_dir:
