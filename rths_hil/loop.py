@@ -56,8 +56,8 @@ Modes
     that the in-process twin, the exact-FEI worker and the loop hand the GIL over quickly, and
     the cyclic garbage collector is paused.
 ``lockstep``
-    Virtual time: each step waits for its reply (timeout 1 s by default) and starts the next one
-    at once. Deterministic; for CI, tuning and what-if runs. Lateness is recorded as 0.
+    Virtual time: each step waits for its reply (``loop.lockstep_timeout``, 5 s by default)
+    and starts the next one at once. Deterministic; for CI, tuning and what-if runs. Lateness is recorded as 0.
 
 The exact-FEI cross-check runs synchronously in lockstep and in a worker thread when paced, so
 its O(N log N) windows never sit on the step path.

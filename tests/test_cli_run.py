@@ -150,6 +150,36 @@ def test_export_mat_reads_back_in_scipy(tmp_path, capsys):
     assert sorted(loadmat(sub / "record.mat")["record"].dtype.names) == ["measured", "time"]
 
 
+def test_dbc_path_is_relative_to_the_config_file(tmp_path, capsys, monkeypatch):
+    """driver.connection.dbc: a lab's DBC next to its config; a wrong one is one line."""
+    import shutil
+
+    from rths_hil.drivers.can.codec import DBC_PATH
+
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    # the lab's DBC: the shipped one with the Command message moved to identifier 0x120
+    text = DBC_PATH.read_text()
+    assert "BO_ 256 Command" in text
+    (lab / "ours.dbc").write_text(text.replace("BO_ 256 Command", "BO_ 288 Command"))
+    cfg = lab / "test.toml"
+    cfg.write_text(
+        '[driver]\nname = "can"\nconnection = { interface = "virtual", dbc = "ours.dbc" }\n'
+    )
+    monkeypatch.chdir(tmp_path)  # not the config's folder: read from the cwd, it would not load
+    out = tmp_path / "run"
+    assert main(["run", str(cfg), *QUICK, "--duration", "0.5", "--out", str(out), "-q"]) == 0
+    stats = read_run(out).meta["config"]["driver"]["connection"]
+    assert stats["dbc"] == "ours.dbc"
+    shutil.copy(lab / "ours.dbc", lab / "bad.dbc")
+    (lab / "bad.dbc").write_text(text.replace("Feedback", "Feedbak"))
+    cfg.write_text(cfg.read_text().replace("ours.dbc", "bad.dbc"))
+    capsys.readouterr()
+    assert main(["run", str(cfg), *QUICK, "--duration", "0.5", "--out", str(tmp_path / "r2")]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert "bad.dbc" in line and "message Feedback is missing" in line
+
+
 def test_live_line_content_and_terminal_behaviour():
     import io
 

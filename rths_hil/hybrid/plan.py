@@ -434,6 +434,8 @@ def _plan_channel(
             "for can, modbus, serial); set twin.enabled = false to use the real controller"
         )
     conn = dict(cfg["driver"]["connection"])
+    if isinstance(conn.get("dbc"), str) and conn["dbc"]:  # relative to the config file
+        conn["dbc"] = str(cfg.resolve_path(conn["dbc"]))
     if tw["enabled"] and plant is None:
         plant = choose_plant(cfg, dt)
     faults = None
