@@ -362,6 +362,10 @@ def run_robustness(args: argparse.Namespace) -> int:
     out = _outdir(args.out)
     if (out / "trials.csv").exists():
         raise InputError(f"--out {out}: already holds a study (trials.csv); choose a new one")
+    if args.scheduler is not None:  # before anything starts
+        from ..errors import require
+
+        require("studies", "a Dask scheduler (--scheduler, study robustness)")
     where = "a local Dask cluster" if args.scheduler == "local" else args.scheduler
     print(
         f"rths-hil study robustness: {args.trials} twins × {len({s.alpha for s in specs})} α "
