@@ -57,7 +57,8 @@ Modes
     the cyclic garbage collector is paused.
 ``lockstep``
     Virtual time: each step waits for its reply (``loop.lockstep_timeout``, 5 s by default)
-    and starts the next one at once. Deterministic; for CI, tuning and what-if runs. Lateness is recorded as 0.
+    and starts the next one at once. Deterministic; for CI, tuning and what-if runs. Lateness
+    is recorded as 0.
 
 The exact-FEI cross-check runs synchronously in lockstep and in a worker thread when paced, so
 its O(N log N) windows never sit on the step path.
