@@ -51,6 +51,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -159,10 +160,18 @@ class LimitRule:
     limit : float
         Limit in SI units (> 0).
     unit : str
-        Unit shown in the reason.
+        SI unit of the values; the reason shows displacements in mm, velocities in mm/s and
+        forces in kN (what an operator reads), the trip's ``values`` stay SI.
     """
 
     __slots__ = ("limit", "rule", "unit")
+
+    #: SI unit → (unit shown in the reason, scale)
+    SHOWN: ClassVar[dict[str, tuple[str, float]]] = {
+        "m": ("mm", 1e3),
+        "m/s": ("mm/s", 1e3),
+        "N": ("kN", 1e-3),
+    }
 
     def __init__(self, rule: str, limit: float, unit: str) -> None:
         self.rule = rule
@@ -173,9 +182,10 @@ class LimitRule:
         """Trip when ``|value| > limit``; ``quantity`` names what was measured."""
         if -self.limit <= value <= self.limit:
             return None
+        u, f = self.SHOWN.get(self.unit, (self.unit, 1.0))
         return Trip(
             self.rule,
-            f"{quantity} {value:.6g} {self.unit} exceeds the limit ±{self.limit:.6g} {self.unit}",
+            f"{quantity} {value * f:.6g} {u} exceeds the limit ±{self.limit * f:.6g} {u}",
             values={quantity: value, "limit": self.limit},
         )
 

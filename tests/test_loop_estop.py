@@ -199,7 +199,8 @@ def test_displacement_limit_stops_the_command_before_it_is_sent(tmp_path):
     assert trip.step == first - 1  # caught at the end of the step before, never sent
     assert np.abs(run.record["command"]).max() <= lim
     assert np.abs(run.record["measured"]).max() <= lim
-    assert "exceeds the limit ±0.008 m" in trip.reason
+    assert "exceeds the limit ±8 mm" in trip.reason  # displayed in mm; values stay SI
+    assert trip.values["limit"] == lim
 
 
 def test_runaway_trips_the_controller_rule_or_the_measured_limit(tmp_path):

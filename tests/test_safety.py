@@ -125,7 +125,8 @@ def test_command_checked_before_send_and_monitor_latches_first_trip():
     assert m.check_command(0.0, 0, 0.01, 0.1, 0.012) is None
     trip = m.check_command(0.5, 512, 0.049, 0.1, 0.0501)
     assert trip.rule == "displacement" and trip.step == 512 and trip.time == 0.5
-    assert "command" in trip.reason and "0.0501" in trip.reason and "0.05" in trip.reason
+    assert trip.reason == "command 50.1 mm exceeds the limit ±50 mm"  # shown in mm
+    assert trip.values == {"command": 0.0501, "limit": 0.05}  # kept in SI
     # later problems do not replace the first trip
     again = m.check_feedback(0.6, 600, True, 600, 600, 1, 0.0, math.nan, 0.0)
     assert again is trip
