@@ -161,6 +161,8 @@ def test_a_40_ms_freeze_of_the_bridge_completes_with_a_stall_event(tmp_path):
     assert end["status"] == "completed"
     assert end["stalls"]["count"] == len(stalls)
     assert end["stalls"]["longest"] == pytest.approx(longest["length"])
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stalls"] == end["stalls"]
     # slip: a new clock event at the stalled step, and the step after it on time again
     k = longest["step"]
     clocks = [e for e in _events(out, "clock") if e["step"] == k]
