@@ -45,7 +45,7 @@ from can.interfaces.virtual import VirtualBus
 
 from rths_hil.errors import InputError
 
-from ..base import Driver, Feedback, check_command
+from ..base import Driver, Feedback, LinkDown
 from .codec import ActuatorCodecs, Frame, load
 
 __all__ = [
@@ -68,6 +68,7 @@ TIMEOUT_HONOURED = frozenset({"virtual", "socketcan"})
 _BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
 
 log = logging.getLogger(__name__)
+_perf = time.perf_counter
 
 
 class _Reader(can.BufferedReader):
@@ -202,6 +203,7 @@ class CANDriver(Driver):
     """
 
     name: ClassVar[str] = "can"
+    honours_deadline: ClassVar[bool] = True  # the virtual queue / SocketCAN / the Notifier
 
     def __init__(
         self,
@@ -298,8 +300,7 @@ class CANDriver(Driver):
         except (can.CanError, OSError):
             self.stats.send_errors += 1
 
-    def send(self, seq: int, displacement: float, enable: bool = True) -> None:
-        check_command(seq, displacement)
+    def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
         raw = round((displacement - self._c_offset) / self._c_scale)
         if not self._c_lo <= raw <= self._c_hi:
             raise InputError(
@@ -311,8 +312,6 @@ class CANDriver(Driver):
             | ((1 if enable else 0) << self._c_ctl_shift)
         )
         self._cmd_data[:] = value.to_bytes(self._c_len, "little")
-        self._last_sent = seq
-        self.stats.sent += 1
         self._send_frame(self._cmd_msg)
 
     def estop(self) -> None:
@@ -328,59 +327,51 @@ class CANDriver(Driver):
             Frame(arbitration_id=self._hb_id, data=c.pack(self._hb), is_extended_id=False)
         )
 
-    def receive(self, timeout: float) -> Feedback | None:
-        bus = self._bus
-        stats = self.stats
-        if bus is None:
-            stats.timeouts += 1
-            return None
+    def _recv_internal(self, deadline: float) -> Feedback | None:
         box = self._box
-        while box:  # read off the shared bus by another node's driver
-            fb = self._handle(box.popleft())
-            if fb is not None:
-                return fb
-        deadline = time.perf_counter() + timeout
-        remaining = timeout
+        if box:  # read off the shared bus by another node's driver
+            return self._decode(box.popleft())
         q = self._rxq
-        reader = self._reader
-        while True:
-            if q is not None:  # virtual bus: its queue directly (see virtual_rx_queue)
-                frames = q.queue
-                if frames:  # already there: take it without the queue's lock round trips
-                    msg = frames.popleft()
-                else:
-                    try:
-                        msg = q.get(True, remaining)
-                    except queue.Empty:
-                        msg = None
-            elif reader is not None:  # an interface that ignores the timeout: its reader
-                msg = reader.get_message(max(remaining, 0.0))
-                share = self._share
-                if (
-                    msg is None
-                    and share is not None
-                    and share.notifier
-                    and share.notifier.exception
-                ):
-                    stats.disconnects += 1
+        if q is not None:  # virtual bus: its queue directly (see virtual_rx_queue)
+            frames = q.queue
+            if frames:  # already there: take it without the queue's lock round trips
+                msg = frames.popleft()
             else:
+                remaining = deadline - _perf()
+                if remaining <= 0.0:
+                    return None
                 try:
-                    msg = bus.recv(remaining)
-                except (can.CanError, OSError):
-                    stats.disconnects += 1
-                    msg = None
+                    msg = q.get(True, remaining)
+                except queue.Empty:
+                    return None
+            return self._decode(msg)
+        bus = self._bus
+        if bus is None:
+            raise LinkDown("CAN bus closed")
+        remaining = deadline - _perf()
+        reader = self._reader
+        if reader is not None:  # an interface that ignores the timeout: its reader
+            msg = reader.get_message(remaining if remaining > 0.0 else 0.0)
             if msg is None:
-                stats.timeouts += 1
+                share = self._share
+                if share is not None and share.notifier and share.notifier.exception:
+                    self.stats.disconnects += 1
+                    raise LinkDown("CAN bus reader stopped")
                 return None
-            fb = self._handle(msg)
-            if fb is not None:
-                return fb
-            remaining = deadline - time.perf_counter()
-            if remaining <= 0:
-                stats.timeouts += 1
-                return None
+            return self._decode(msg)
+        try:
+            msg = bus.recv(remaining if remaining > 0.0 else 0.0)
+        except (can.CanError, OSError):
+            self.stats.disconnects += 1
+            raise LinkDown("CAN bus read failed") from None
+        return None if msg is None else self._decode(msg)
 
     def _handle(self, msg: can.Message) -> Feedback | None:
+        """Decode ``msg`` and apply the sequence rules and counters (as :meth:`receive`)."""
+        return self._accept(self._decode(msg))
+
+    def _decode(self, msg: can.Message) -> Feedback | None:
+        """The feedback in ``msg`` (sequence number extended), or None (counted)."""
         stats = self.stats
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             stats.count_malformed("bad_frame")
@@ -401,17 +392,12 @@ class CANDriver(Driver):
         v = int.from_bytes(data, "little")
         last = self._last_sent  # extend_seq, inline: the echo at or just below the last sent
         seq = last - ((last - ((v >> s_sh) & s_m)) & s_m)
-        if not self._classify(seq):
-            return None
         rd = (v >> d_sh) & d_m
         if rd & d_sign:
             rd -= d_sign << 1
         rf = (v >> f_sh) & f_m
         if rf & f_sign:
             rf -= f_sign << 1
-        stats.received += 1
-        if rd == d_bad or rf == f_bad:
-            stats.invalid_values += 1
         disp = math.nan if rd == d_bad else rd * d_sc + d_off
         force = math.nan if rf == f_bad else rf * f_sc + f_off
         return Feedback(seq, disp, force, (v >> st_sh) & st_m)
