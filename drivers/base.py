@@ -575,22 +575,23 @@ class Driver(ABC):
         """True when a channel with a twin gets a link of its own (no bus, port or device
         named in ``connection``: the twin opens a fresh one)."""
         c = connection or {}
-        return not (c.get("channel") or c.get("port") or c.get("url") or c.get("device"))
+        return not (c.get("channel") or c.get("port") or c.get("url"))
 
     @classmethod
-    def check_sharing(cls, channels: list[tuple[str, dict[str, Any], bool]]) -> None:
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
         """Refuse channels of this driver that cannot share their link (one line).
 
         Parameters
         ----------
-        channels : list of (name, connection, twin_enabled)
-            Every channel of the test that uses this driver.
+        channels : list of (index, name, connection, twin_enabled)
+            Every channel of the test that uses this driver (index in ``actuators``).
 
         Raises
         ------
         InputError
-            Two channels would speak to the same controller (the message names them and the
-            setting that tells them apart). Default: no check.
+            Two channels would speak to the same controller: one line starting
+            ``actuators: …`` naming them and the setting that tells them apart (the plan adds
+            the file). Default: no check.
         """
         return None
 

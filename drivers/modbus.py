@@ -53,12 +53,15 @@ import struct
 import threading
 import time
 from collections import deque
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import serial
 from pymodbus.framer import FramerRTU
 
 from rths_hil.errors import InputError
+
+if TYPE_CHECKING:
+    from rths_hil.linkbudget import LinkLoad
 
 from .base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Driver, Feedback, LinkDown
 from .base import extend_seq as _extend_seq
@@ -265,6 +268,68 @@ class ModbusDriver(Driver):
         self._rtu = transport == "rtu"
         # MBAP length, unit id, function code and byte count of a good FC 23 response
         self._resp_head = struct.pack(">HHBBB", 0, _TCP_RESP.size - 6, self.device_id, FC_RW, 14)
+
+    # -- what this driver knows about its links and its twin (drivers.base.Driver) ------------
+    @classmethod
+    def link_key(cls, connection: dict[str, Any]) -> str:
+        from rths_hil.linkbudget import modbus_link_key
+
+        return modbus_link_key(dict(connection or {}))
+
+    @classmethod
+    def link_load(
+        cls,
+        connection: dict[str, Any],
+        channels_on_link: int,
+        fs: float,
+        *,
+        heartbeat_hz: float = 0.0,
+    ) -> LinkLoad:
+        from rths_hil.linkbudget import modbus_load
+
+        return modbus_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
+
+    @classmethod
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
+        """Modbus TCP channels on one ``host:port`` need distinct unit ids (``device_id``,
+        1–247); a Modbus RTU line carries one channel."""
+        seen: dict[tuple, str] = {}
+        tcp = [
+            (c.get("host", "127.0.0.1"), c.get("port", 502))
+            for _, _, c, _ in channels
+            if c.get("transport", "tcp") == "tcp"
+        ]
+        for i, name, conn, twin in channels:
+            if conn.get("transport", "tcp") == "rtu":
+                if twin and not conn.get("device"):
+                    continue  # each twin gets a pseudo-terminal of its own
+                key: tuple = ("rtu", conn.get("device"))
+                if key in seen:
+                    raise InputError(
+                        f"actuators: channels {seen[key]!r} and {name!r} use one Modbus RTU line "
+                        "(an RTU line carries one channel; use one serial port per channel or "
+                        "Modbus TCP)"
+                    )
+                seen[key] = name
+                continue
+            if twin and not conn.get("port"):
+                continue  # each twin gets a port of its own
+            unit = conn.get("device_id", 1)
+            host, port = conn.get("host", "127.0.0.1"), conn.get("port", 502)
+            bad = isinstance(unit, bool) or not isinstance(unit, int) or not 1 <= unit <= MAX_UNIT
+            if bad and tcp.count((host, port)) > 1:  # alone, a device may answer unit 255
+                raise InputError(
+                    f"actuators[{i}] ({name}).driver.connection.device_id: {unit!r} is not a "
+                    "Modbus unit id (1–247) for a connection it shares"
+                )
+            key = ("tcp", host, port, unit)
+            if key in seen:
+                raise InputError(
+                    f"actuators: channels {seen[key]!r} and {name!r} both use Modbus unit "
+                    f"{unit} on {host}:{port} (driver.connection.device_id): give each channel "
+                    "its own unit id"
+                )
+            seen[key] = name
 
     # -- transport ------------------------------------------------------------------------------
     def _open_serial(self) -> tuple[None, Any, int]:

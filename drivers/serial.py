@@ -28,12 +28,15 @@ import os
 import select
 import struct
 import time
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import serial
 from cobs import cobs
 
 from rths_hil.errors import InputError
+
+if TYPE_CHECKING:
+    from rths_hil.linkbudget import LinkLoad
 
 from .base import Driver, Feedback, LinkDown
 
@@ -108,6 +111,41 @@ class SerialDriver(Driver):
         self._fd: int | None = None
         self._buf = b""
         self._hb = 0
+
+    # -- what this driver knows about its links and its twin (drivers.base.Driver) ------------
+    @classmethod
+    def link_key(cls, connection: dict[str, Any]) -> str:
+        from rths_hil.linkbudget import serial_link_key
+
+        return serial_link_key(dict(connection or {}))
+
+    @classmethod
+    def link_load(
+        cls,
+        connection: dict[str, Any],
+        channels_on_link: int,
+        fs: float,
+        *,
+        heartbeat_hz: float = 0.0,
+    ) -> LinkLoad:
+        from rths_hil.linkbudget import serial_load
+
+        return serial_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
+
+    @classmethod
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
+        """A serial port carries one channel."""
+        seen: dict[tuple, str] = {}
+        for _, name, conn, twin in channels:
+            if twin and not (conn.get("url") or conn.get("port")):
+                continue
+            key = (conn.get("url"), conn.get("port"))
+            if key in seen:
+                raise InputError(
+                    f"actuators: channels {seen[key]!r} and {name!r} use one serial port "
+                    "(serial links carry one channel each)"
+                )
+            seen[key] = name
 
     def open(self) -> None:
         if self._ser is not None:

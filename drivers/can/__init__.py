@@ -38,12 +38,15 @@ import queue
 import threading
 import time
 from collections import deque
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import can
 from can.interfaces.virtual import VirtualBus
 
 from rths_hil.errors import InputError
+
+if TYPE_CHECKING:
+    from rths_hil.linkbudget import LinkLoad
 
 from ..base import Driver, Feedback, LinkDown
 from .codec import ActuatorCodecs, Frame, load
@@ -259,6 +262,46 @@ class CANDriver(Driver):
         self._routes: dict[int, deque] = {}
         self._reader: can.BufferedReader | None = None
         self._hb = 0
+
+    # -- what this driver knows about its links and its twin (drivers.base.Driver) ------------
+    @classmethod
+    def link_key(cls, connection: dict[str, Any]) -> str:
+        from rths_hil.linkbudget import can_link_key
+
+        return can_link_key(dict(connection or {}))
+
+    @classmethod
+    def link_load(
+        cls,
+        connection: dict[str, Any],
+        channels_on_link: int,
+        fs: float,
+        *,
+        heartbeat_hz: float = 0.0,
+    ) -> LinkLoad:
+        from rths_hil.linkbudget import can_load
+
+        return can_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
+
+    @classmethod
+    def inline_twin(cls, connection: dict[str, Any]) -> bool:
+        """The twin on python-can's in-process ``virtual`` bus can be served inline."""
+        return str((connection or {}).get("interface", "virtual")) == "virtual"
+
+    @classmethod
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
+        """Channels on one bus need distinct CAN nodes (``driver.connection.node``)."""
+        seen: dict[tuple, str] = {}
+        for _, name, conn, twin in channels:
+            if conn.get("channel") is None and twin:
+                continue  # each twin gets a bus of its own
+            key = (conn.get("interface", "virtual"), conn.get("channel"), conn.get("node", 0))
+            if key in seen:
+                raise InputError(
+                    f"actuators: channels {seen[key]!r} and {name!r} use the same CAN node on "
+                    "one bus (set driver.connection.node)"
+                )
+            seen[key] = name
 
     def open(self) -> None:
         if self._bus is not None:

@@ -34,14 +34,14 @@ DEFAULT_DT = 1.0 / 1024.0
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``serve`` to the ``twin`` sub-command group."""
-    from rths_hil.sim_backends.registry import TWINS
+    from rths_hil.sim_backends.registry import available_twins
 
     p = sub.add_parser(
         "serve",
         help="run a virtual actuator twin behind a CAN, Modbus or serial endpoint",
         description=__doc__.splitlines()[0] if __doc__ else None,
     )
-    p.add_argument("--driver", required=True, choices=sorted(TWINS))
+    p.add_argument("--driver", required=True, choices=sorted(available_twins()))
     p.add_argument("--model", help="twin model file (TOML); default: 20 ms delay, gain 1, spring")
     p.add_argument("--dt", default=None, help="twin step, e.g. 1ms (default 1/1024 s)")
     p.add_argument("--transport", help="modbus: tcp (default) or rtu; serial: pty (default) or tcp")
@@ -84,51 +84,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _connection(args: argparse.Namespace) -> dict[str, Any]:
-    """The endpoint settings the options give (transports from the twin registry)."""
-    from rths_hil.sim_backends.endpoints.can import PTY_INTERFACES
-    from rths_hil.sim_backends.registry import TWINS
+def _endpoint(args: argparse.Namespace) -> type:
+    """The twin endpoint class of ``--driver`` (built-in or from an entry point)."""
+    from rths_hil.sim_backends.registry import twin_class
 
-    if args.driver == "can":
-        if args.interface == "virtual":
-            raise InputError(
-                "--interface virtual: python-can's virtual bus only reaches buses inside the same "
-                "process; use --interface serial or slcan (a pseudo-terminal pair on this "
-                "machine), --interface socketcan --channel vcan0 (or the lab's interface), or "
-                "start the twin in-process with sim_backends.twin.start_twin"
-            )
-        channel = args.channel
-        if channel is None:
-            channel = "pty" if args.interface in PTY_INTERFACES else "vcan0"
-        conn: dict[str, Any] = {"interface": args.interface, "channel": channel}
-        if args.bitrate is not None:
-            conn["bitrate"] = args.bitrate
-        return conn
-    conn = {}
-    allowed = TWINS[args.driver].transports
-    if allowed:
-        transport = args.transport or allowed[0]
-        if transport not in allowed:
-            raise InputError(
-                f"--transport {transport}: use {' or '.join(allowed)} with --driver {args.driver}"
-            )
-        conn["transport"] = transport
-        if transport == "tcp":
-            conn |= {
-                "host": args.host,
-                "port": 0 if args.port is None else args.port,
-                "allow_remote": args.allow_remote,
-            }
-    if args.driver == "modbus":
-        units = args.device_id or [1]
-        if len(units) > 1 and conn.get("transport") != "tcp":
-            raise InputError("--device-id given several times: several units are served over TCP")
-        if len(set(units)) != len(units):
-            raise InputError(f"--device-id: unit ids repeat: {units}")
-        conn["device_id"] = units[0]
-        if conn.get("transport") == "rtu" and args.device:
-            conn["device"] = args.device
-    return conn
+    return twin_class(args.driver)[0]
+
+
+def _connection(args: argparse.Namespace) -> dict[str, Any]:
+    """The endpoint settings the options give (the endpoint class maps them)."""
+    return _endpoint(args).connection_from_args(args)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -154,14 +119,14 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        conn = _connection(args)
-        units = (args.device_id or [1]) if args.driver == "modbus" else [None]
+        endpoint = _endpoint(args)
+        conn = endpoint.connection_from_args(args)
+        units = endpoint.serve_units(args)
         twins: list[Any] = []
         try:
             for unit in units:
-                if unit is not None and twins:  # the next unit of the first one's server
-                    conn = dict(twins[0].connection, device_id=unit)
-                    conn["allow_remote"] = args.allow_remote
+                if twins:  # the next unit of the first one's endpoint
+                    conn = endpoint.unit_connection(twins[0].connection, unit, args)
                 twin = start_twin(
                     args.driver,
                     plant(),
