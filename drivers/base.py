@@ -49,7 +49,7 @@ _perf = time.perf_counter
 
 #: How late past its deadline a driver that declares :attr:`Driver.honours_deadline` may
 #: return before it is counted and moved to a reader thread (s).
-DEADLINE_SLACK = 0.010
+DEADLINE_SLACK = 0.050
 #: How long a reader thread waits in one ``_recv_internal`` call (s).
 READER_POLL = 0.05
 #: A reader thread stops after this long without a :meth:`Driver.receive` call (s).
@@ -241,7 +241,9 @@ class Driver(ABC):
     :class:`can.Notifier`): :meth:`receive` then waits on a queue that honours the deadline to
     the microsecond, so a driver that blocks cannot hold the loop — and its watchdog — past the
     deadline. A driver that declares it and still returns more than :data:`DEADLINE_SLACK` late
-    is counted (``stats.deadline_overruns``), logged once and moved to the reader thread.
+    is counted (``stats.deadline_overruns``), logged once and moved to the reader thread (the
+    slack is wide, 50 ms, so that a process the OS did not schedule for a while is not taken for
+    a blocking driver; the reader thread is the protection, this only a fallback).
 
     A subclass may still override :meth:`send` and :meth:`receive` whole (the contract of
     earlier releases); it then keeps ``_last_sent``, the counters and the sequence rules itself
@@ -594,6 +596,21 @@ class Driver(ABC):
             the file). Default: no check.
         """
         return None
+
+    #: The ``protocol`` of the controller profiles this driver takes (``driver.profile``;
+    #: :mod:`rths_hil.drivers.profile`), or ``None``.
+    profile_protocol: ClassVar[str | None] = None
+
+    @classmethod
+    def profile_driver(cls) -> type[Driver]:
+        """The driver class that speaks a profile of :attr:`profile_protocol`.
+
+        Raises
+        ------
+        InputError
+            This driver takes no profile.
+        """
+        raise InputError(f"driver {getattr(cls, 'name', cls.__name__)!r} takes no profile")
 
     @classmethod
     def inline_twin(cls, connection: dict[str, Any]) -> bool:

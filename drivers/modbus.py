@@ -231,6 +231,7 @@ class ModbusDriver(Driver):
     """
 
     name: ClassVar[str] = "modbus"
+    profile_protocol: ClassVar[str | None] = "modbus"
     honours_deadline: ClassVar[bool] = True  # select() on the socket or serial descriptor
 
     def __init__(
@@ -288,6 +289,13 @@ class ModbusDriver(Driver):
         from rths_hil.linkbudget import modbus_load
 
         return modbus_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
+
+    @classmethod
+    def profile_driver(cls) -> type[Driver]:
+        """A lab's own register map: :class:`~.modbus_profile.ModbusProfileDriver`."""
+        from .modbus_profile import ModbusProfileDriver
+
+        return ModbusProfileDriver
 
     @classmethod
     def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:

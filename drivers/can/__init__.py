@@ -286,7 +286,10 @@ class CANDriver(Driver):
     @classmethod
     def inline_twin(cls, connection: dict[str, Any]) -> bool:
         """The twin on python-can's in-process ``virtual`` bus can be served inline."""
-        return str((connection or {}).get("interface", "virtual")) == "virtual"
+        from ..profile import is_builtin
+
+        c = connection or {}
+        return str(c.get("interface", "virtual")) == "virtual" and is_builtin(c.get("profile"))
 
     @classmethod
     def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:

@@ -436,6 +436,22 @@ def _plan_channel(
                 "controller"
             )
     conn = dict(cfg["driver"]["connection"])
+    profile = cfg["driver"]["profile"]
+    from rths_hil.drivers.profile import is_builtin, load_profile
+
+    if not is_builtin(profile):
+        path = cfg.resolve_path(profile)
+        try:
+            prof = load_profile(path)
+        except InputError as exc:
+            raise InputError(f"{where}: driver.profile: {exc}") from None
+        if prof.protocol != dcls.profile_protocol:
+            speaks = dcls.profile_protocol or "no profile"
+            raise InputError(
+                f"{where}: driver.profile: {path} is a {prof.protocol} profile; driver "
+                f"{name!r} takes {speaks}"
+            )
+        conn["profile"] = str(path)
     if tw["enabled"] and plant is None:
         plant = choose_plant(cfg, dt)
     faults = None

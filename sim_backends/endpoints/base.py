@@ -350,6 +350,17 @@ class TwinEndpoint(ABC):
         return conn
 
     @classmethod
+    def profile_twin(cls) -> type[TwinEndpoint]:
+        """The endpoint that speaks a controller profile of this protocol (``--profile``).
+
+        Raises
+        ------
+        InputError
+            No twin of this protocol speaks profiles.
+        """
+        raise InputError(f"twin {cls.name!r}: no twin of this protocol speaks a profile")
+
+    @classmethod
     def serve_units(cls, args: Any) -> list[Any]:
         """The controllers ``twin serve`` starts behind one endpoint (default: one)."""
         return [None]

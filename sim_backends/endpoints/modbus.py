@@ -318,6 +318,13 @@ class ModbusTwin(TwinEndpoint):
         return conn
 
     @classmethod
+    def profile_twin(cls) -> type[TwinEndpoint]:
+        """A lab's own register map: :class:`~.modbus_profile.ModbusProfileTwin`."""
+        from .modbus_profile import ModbusProfileTwin
+
+        return ModbusProfileTwin
+
+    @classmethod
     def serve_units(cls, args: Any) -> list[Any]:
         """The ``--device-id`` units (default 1): several only over TCP, each once."""
         units = args.device_id or [1]
