@@ -206,6 +206,7 @@ class CANDriver(Driver):
     """
 
     name: ClassVar[str] = "can"
+    profile_protocol: ClassVar[str | None] = "can"
     honours_deadline: ClassVar[bool] = True  # the virtual queue / SocketCAN / the Notifier
 
     def __init__(
@@ -282,6 +283,13 @@ class CANDriver(Driver):
         from rths_hil.linkbudget import can_load
 
         return can_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
+
+    @classmethod
+    def profile_driver(cls) -> type[Driver]:
+        """A lab's own DBC: :class:`~.profile.CANProfileDriver`."""
+        from .profile import CANProfileDriver
+
+        return CANProfileDriver
 
     @classmethod
     def inline_twin(cls, connection: dict[str, Any]) -> bool:

@@ -67,6 +67,13 @@ class CANTwin(TwinEndpoint):
     name = "can"
 
     @classmethod
+    def profile_twin(cls) -> type[TwinEndpoint]:
+        """A lab's own DBC: :class:`~.can_profile.CANProfileTwin`."""
+        from .can_profile import CANProfileTwin
+
+        return CANProfileTwin
+
+    @classmethod
     def connection_from_args(cls, args: Any) -> dict[str, Any]:
         """``--interface``, ``--channel`` (default ``vcan0``; ``pty`` for the serial-line
         interfaces) and ``--bitrate``; python-can's ``virtual`` bus is refused (it cannot
