@@ -6,9 +6,10 @@ holding registers within one read block, else a Write Multiple Registers (FC 16)
 one read per table (FC 3 holding, FC 4 input, FC 1 coils, FC 2 discrete inputs), all
 pipelined in one TCP write. A controller answers Modbus TCP requests with the request's
 transaction id, so the step travels in it: ``tid = (seq mod 4096) · 16 + slot`` (slot 0 the
-write or FC 23, 1… the reads, 14 the heartbeat, 15 the actions), and a feedback is delivered
-once every read of its step has come back. Actions (enable, disable, acknowledge) are written
-when the bridge's enable flag changes; the e-stop action is written at once.
+write or FC 23, 1… the reads, 13 the start-up check, 14 the heartbeat, 15 the actions), and a
+feedback is delivered once every read of its step has come back. Actions (enable, disable,
+acknowledge) are written when the bridge's enable flag changes; the e-stop action is written at
+once.
 
 Requests are built and responses decoded by pymodbus (``FramerSocket`` and its PDU classes);
 values are converted by pymodbus's ``convert_to_registers`` / ``convert_from_registers``.
@@ -53,6 +54,7 @@ _READS = {
     "coil": ReadCoilsRequest,
     "discrete": ReadDiscreteInputsRequest,
 }
+SLOT_CHECK = 13  # the start-up reads
 SLOT_HEARTBEAT = 14
 SLOT_ACTION = 15
 _EXC = {1: "illegal function", 2: "illegal data address", 3: "illegal data value"}
@@ -170,7 +172,9 @@ class ModbusProfileDriver(Driver):
         checks.append(("holding", self._sp.address, self._sp.count, "setpoint"))
         deadline = time.perf_counter() + self.connect_timeout
         for i, (table, address, count, roles) in enumerate(checks):
-            self._write(self._frame(_READS[table](address=address, count=count), 0xF000 + i))
+            self._write(
+                self._frame(_READS[table](address=address, count=count), (i << 4) | SLOT_CHECK)
+            )
             while True:
                 pdu = self._next_pdu(deadline)
                 if pdu is None:
@@ -180,7 +184,7 @@ class ModbusProfileDriver(Driver):
                         f"{address + count - 1} (roles.{roles})"
                     )
                 tid, resp = pdu
-                if tid != 0xF000 + i:
+                if tid != (i << 4) | SLOT_CHECK:
                     continue
                 if resp.function_code & 0x80:
                     code = getattr(resp, "exception_code", 0)
@@ -289,7 +293,7 @@ class ModbusProfileDriver(Driver):
             self.stats.count_malformed("modbus_exception")
             return None
         slot = tid & 15
-        if slot >= SLOT_HEARTBEAT or (slot == 0 and not self.profile.fc23) or tid >= 0xF000:
+        if slot >= SLOT_CHECK or (slot == 0 and not self.profile.fc23):
             return None  # a write's echo
         seq12 = tid >> 4
         if seq12 != self._parts_seq:

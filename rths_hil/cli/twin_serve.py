@@ -15,6 +15,7 @@ Examples::
     rths-hil twin serve --driver serial --transport tcp --port 5000
     rths-hil twin serve --driver can --interface serial              # pseudo-terminal pair
     rths-hil twin serve --driver can --interface socketcan --channel vcan0 --model twin.toml
+    rths-hil twin serve --driver modbus --port 1502 --profile examples/controllers/modbus_map.toml
 """
 
 from __future__ import annotations
@@ -42,6 +43,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=__doc__.splitlines()[0] if __doc__ else None,
     )
     p.add_argument("--driver", required=True, choices=sorted(available_twins()))
+    p.add_argument(
+        "--profile",
+        default=None,
+        help="controller profile (TOML: the lab's register map or DBC, docs/profiles.md); the "
+        "twin speaks it (modbus: tcp; can: socketcan or the lab's interface)",
+    )
     p.add_argument("--model", help="twin model file (TOML); default: 20 ms delay, gain 1, spring")
     p.add_argument("--dt", default=None, help="twin step, e.g. 1ms (default 1/1024 s)")
     p.add_argument("--transport", help="modbus: tcp (default) or rtu; serial: pty (default) or tcp")
@@ -93,7 +100,19 @@ def _endpoint(args: argparse.Namespace) -> type:
 
 def _connection(args: argparse.Namespace) -> dict[str, Any]:
     """The endpoint settings the options give (the endpoint class maps them)."""
-    return _endpoint(args).connection_from_args(args)
+    conn = _endpoint(args).connection_from_args(args)
+    if args.profile:
+        from pathlib import Path
+
+        from rths_hil.drivers.profile import load_profile
+
+        path = str(Path(args.profile).expanduser().resolve())
+        try:
+            load_profile(path)
+        except InputError as exc:
+            raise InputError(f"--profile: {exc}") from None
+        conn["profile"] = path
+    return conn
 
 
 def run(args: argparse.Namespace) -> int:
@@ -120,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         endpoint = _endpoint(args)
-        conn = endpoint.connection_from_args(args)
+        conn = _connection(args)
         units = endpoint.serve_units(args)
         twins: list[Any] = []
         try:

@@ -312,7 +312,8 @@ class ModbusTwin(TwinEndpoint):
         ``--device-id``."""
         conn = super().connection_from_args(args)
         units = cls.serve_units(args)
-        conn["device_id"] = units[0]
+        if args.device_id or not getattr(args, "profile", None):
+            conn["device_id"] = units[0]  # with a profile: its [modbus] unit by default
         if conn.get("transport") == "rtu" and args.device:
             conn["device"] = args.device
         return conn
