@@ -113,6 +113,7 @@ class ModbusProfileDriver(Driver):
         self._reads = prof.reads
         self._n_reads = 1 if prof.fc23 else len(prof.reads)
         self._parts: dict[int, Any] = {}
+        self._read_frames: list[bytes] | None = None
         self._parts_seq = -1
         self._pos, self._force, self._status = (
             prof.points["position"],
@@ -224,11 +225,19 @@ class ModbusProfileDriver(Driver):
         if dev_id != self.unit or not pdu_bytes:
             self.stats.count_malformed("unknown_id")
             return (-1, None)
+        if pdu_bytes[0] < 0x80 and self._is_echo(tid):
+            return (-1, None)  # a write's echo: nothing to decode
         pdu = self._framer.decoder.decode(pdu_bytes)
         if pdu is None:
             self.stats.count_malformed("bad_frame")
             return (-1, None)
         return tid, pdu
+
+    def _is_echo(self, tid: int) -> bool:
+        slot = tid & 15
+        return (
+            slot == SLOT_ACTION or slot == SLOT_HEARTBEAT or (slot == 0 and not self.profile.fc23)
+        )
 
     # -- commands -------------------------------------------------------------------------------
     def _action(self, action: ModbusAction | None) -> bytes:
@@ -252,6 +261,12 @@ class ModbusProfileDriver(Driver):
             self._enabled = enable
         base = (seq & 0x0FFF) << 4
         sp = self._sp
+        reads = self._read_frames
+        if reads is None:  # built by pymodbus once; per step only the transaction id changes
+            reads = self._read_frames = [
+                self._frame(_READS[b.table](address=b.address, count=b.count), i)
+                for i, b in enumerate(self._reads, start=1)
+            ]
         if self.profile.fc23:
             b = self._reads[0]
             out += self._frame(
@@ -267,8 +282,8 @@ class ModbusProfileDriver(Driver):
             out += self._frame(
                 WriteMultipleRegistersRequest(address=sp.address, registers=regs), base
             )
-            for i, b in enumerate(self._reads, start=1):
-                out += self._frame(_READS[b.table](address=b.address, count=b.count), base | i)
+            for i, frame in enumerate(reads, start=1):
+                out += (base | i).to_bytes(2, "big") + frame[2:]
         self._write(out)
 
     def estop(self) -> None:
