@@ -241,6 +241,15 @@ class ModbusPoint:
         """One past the last address."""
         return self.address + self.count
 
+    @property
+    def dtype(self) -> Any:
+        """pymodbus's ``DATATYPE`` of the point (cached)."""
+        dt = self.__dict__.get("_dtype")
+        if dt is None:
+            dt = _DT[self.type.upper()]
+            object.__setattr__(self, "_dtype", dt)
+        return dt
+
     def _swap(self, regs: list[int]) -> list[int]:
         if self.byte_order == "little":
             return [((r & 0xFF) << 8) | (r >> 8) for r in regs]
@@ -267,7 +276,7 @@ class ModbusPoint:
             value = raw
         regs = ModbusClientMixin.convert_to_registers(
             value,
-            _DT[self.type.upper()],
+            self.dtype,
             word_order=self.word_order,  # type: ignore[arg-type]
         )
         return self._swap(regs)
@@ -278,8 +287,8 @@ class ModbusPoint:
             raw: float = 1.0 if regs[0] else 0.0
         else:
             raw = ModbusClientMixin.convert_from_registers(
-                self._swap(list(regs)),
-                _DT[self.type.upper()],
+                self._swap(regs),
+                self.dtype,
                 word_order=self.word_order,  # type: ignore[arg-type]
             )  # type: ignore[assignment]
         return (raw * self.scale + self.offset) * self.factor
@@ -290,8 +299,8 @@ class ModbusPoint:
             return 1 if regs[0] else 0
         return int(
             ModbusClientMixin.convert_from_registers(
-                self._swap(list(regs)),
-                _DT[self.type.upper()],
+                self._swap(regs),
+                self.dtype,
                 word_order=self.word_order,  # type: ignore[arg-type]
             )
         )

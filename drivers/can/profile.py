@@ -34,6 +34,7 @@ from rths_hil.errors import InputError
 from ..base import Driver, Feedback, LinkDown
 from ..profile import CANProfile, load_profile, status_from_word
 from . import SharedBus, release_bus, shared_bus
+from .codec import Frame
 
 __all__ = ["CANProfileDriver", "CompiledMessage"]
 
@@ -167,6 +168,15 @@ class CANProfileDriver(Driver):
         self._status = r["status"].signal
         self._masks = prof.masks
         self._fb_id, self._fb_ext = fb.frame_id, bool(fb.is_extended_frame)
+        # one command frame, reused: send() rewrites its payload in place (codec.Frame copies
+        # cheaply on the virtual bus)
+        self._cmd_frame = Frame(
+            arbitration_id=cmd.frame_id,
+            is_extended_id=bool(cmd.is_extended_frame),
+            dlc=cmd.length,
+            data=bytearray(cmd.length),
+        )
+        self._cmd_data = self._cmd_frame.data
         self._decode = CompiledMessage(fb).decode
         self._encode = CompiledMessage(cmd).encode
         est = prof.actions["estop"]
@@ -248,15 +258,9 @@ class CANProfileDriver(Driver):
                 values[self._off[0]] = self._off[1]
             if self._ack is not None:
                 values[self._ack[0]] = self._ack[1]
-        data = self._encode(values)
+        self._cmd_data[:] = self._encode(values)
         self._drain_stale()
-        self._send_frame(
-            can.Message(
-                arbitration_id=self._cmd.frame_id,
-                is_extended_id=bool(self._cmd.is_extended_frame),
-                data=data,
-            )
-        )
+        self._send_frame(self._cmd_frame)
 
     def _drain_stale(self) -> None:
         """Feedback already waiting answers an earlier command: count it late, drop it."""

@@ -20,6 +20,7 @@ from typing import Any
 
 import can
 from rths_hil.drivers.can import SharedBus, release_bus, shared_bus
+from rths_hil.drivers.can.codec import Frame
 from rths_hil.drivers.profile import CANProfile, load_profile, word_from_status
 
 from rths_hil.errors import InputError
@@ -162,10 +163,11 @@ class CANProfileTwin(TwinEndpoint):
         values[self._status_sig] = word_from_status(status, self.profile.masks)
         data = self._fb.encode(values, strict=False)
         return [
-            can.Message(
+            Frame(
                 arbitration_id=self._fb.frame_id,
                 is_extended_id=bool(self._fb.is_extended_frame),
-                data=data,
+                dlc=len(data),
+                data=bytearray(data),
             )
         ]
 
