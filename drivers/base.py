@@ -271,11 +271,12 @@ class Driver(ABC):
     _last_sent = -1
     _last_delivered = -1
     _t_sent = 0.0
-    _reader: threading.Thread | None = None
-    _reader_q: queue.Queue | None = None
-    _reader_stop: threading.Event | None = None
+    _rx_thread: threading.Thread | None = None
+    _rx_queue: queue.Queue | None = None
+    _rx_stop: threading.Event | None = None
     _last_receive = 0.0
     _overrun_warned = False
+    _threaded = True
 
     def __init__(self) -> None:
         self.stats = DriverStats()
@@ -475,10 +476,10 @@ class Driver(ABC):
 
     # -- reader thread (drivers that do not honour the deadline) --------------------------------
     def _recv_queued(self, deadline: float) -> Feedback | None:
-        q = self._reader_q
-        if q is None or self._reader is None or not self._reader.is_alive():
+        q = self._rx_queue
+        if q is None or self._rx_thread is None or not self._rx_thread.is_alive():
             self._start_reader()
-            q = self._reader_q
+            q = self._rx_queue
         try:
             if q.queue:  # type: ignore[union-attr]
                 item = q.get_nowait()  # type: ignore[union-attr]
@@ -492,15 +493,15 @@ class Driver(ABC):
         return item
 
     def _start_reader(self) -> None:
-        self._reader_q = queue.Queue()
-        self._reader_stop = threading.Event()
-        self._reader = threading.Thread(
+        self._rx_queue = queue.Queue()
+        self._rx_stop = threading.Event()
+        self._rx_thread = threading.Thread(
             target=self._read_loop,
-            args=(self._reader_q, self._reader_stop),
+            args=(self._rx_queue, self._rx_stop),
             name=f"driver-{getattr(self, 'name', type(self).__name__)}-reader",
             daemon=True,
         )
-        self._reader.start()
+        self._rx_thread.start()
 
     def _read_loop(self, q: queue.Queue, stop: threading.Event) -> None:
         """Feed ``q`` from :meth:`_recv_internal` until stopped or idle for READER_IDLE s."""
@@ -525,14 +526,14 @@ class Driver(ABC):
                 q.put(fb)
             elif _perf() < until:
                 stop.wait(min(until - _perf(), 1e-3))  # returned early with nothing: no spin
-        if self._reader_q is q:
-            self._reader = None
+        if self._rx_queue is q:
+            self._rx_thread = None
 
     def stop_reader(self) -> None:
         """Stop the reader thread, if one runs (idempotent; :meth:`__exit__` calls it)."""
-        stop, t = self._reader_stop, self._reader
-        self._reader = None
-        self._reader_q = None
+        stop, t = self._rx_stop, self._rx_thread
+        self._rx_thread = None
+        self._rx_queue = None
         if stop is not None:
             stop.set()
         if t is not None and t is not threading.current_thread():
