@@ -15,7 +15,8 @@ of the CRC are bit-stuffed, at worst one stuff bit per 4 bits after the first
     load = channels · (bits(command) + bits(feedback)) · fs / bitrate
 
 The frame lengths come from the DBC the driver uses (``drivers/can/actuator.dbc``: Command and
-Feedback are 8 bytes each).
+Feedback are 8 bytes each), or from a controller profile's DBC (29-bit identifiers counted as
+extended frames: ``g`` = 54 in :func:`can_frame_bits`).
 
 **CAN FD** (ISO 11898-1:2015, base format, for the "what would fit" advice): 34 bits at the
 nominal rate (17 arbitration bits, ≤ 4 stuff bits in them, CRC delimiter, ACK, EOF, IFS) and at
@@ -486,7 +487,21 @@ def can_load(
     base = {"channels": ch, "fs": fs}
     name = can_link_key(c)
     n_cmd, n_fb, n_hb = _can_frame_lengths(c.get("dbc"))
-    b_cmd, b_fb, b_hb = can_frame_bits(n_cmd), can_frame_bits(n_fb), can_frame_bits(n_hb)
+    ext = (False, False, False)
+    profile = c.get("profile")
+    if profile not in (None, "", "rths-hil"):  # a controller profile: its DBC's frames
+        from rths_hil.drivers.profile import load_profile
+
+        prof: Any = load_profile(profile)
+        hb_msg = (
+            prof.database.get_message_by_name(prof.heartbeat.message) if prof.heartbeat else None
+        )
+        msgs = (prof.command, prof.feedback, hb_msg or prof.command)
+        n_cmd, n_fb, n_hb = (int(m.length) for m in msgs)
+        ext = tuple(bool(m.is_extended_frame) for m in msgs)  # type: ignore[assignment]
+    b_cmd, b_fb, b_hb = (
+        can_frame_bits(n, extended=e) for n, e in zip((n_cmd, n_fb, n_hb), ext, strict=True)
+    )
     bits_step = ch * (b_cmd + b_fb)
     frames = (
         f"{ch} × ({n_cmd}-byte command {b_cmd} + {n_fb}-byte feedback {b_fb}) bits at {fs:g} Hz"

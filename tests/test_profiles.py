@@ -311,3 +311,16 @@ def test_twin_serve_profile_subprocess() -> None:
     finally:
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=10) == 0
+
+
+def test_link_budget_counts_the_profile_dbc_extended_frames() -> None:
+    """Two axes of the example DBC (8-byte command and status frames with 29-bit identifiers)
+    at 1024 Hz on 1 Mbit/s: (54 + 64 + 13 + ⌊(54 + 64 − 1)/4⌋) = 160 bits per frame at worst
+    (Davis et al. 2007, Eq. 1), against 135 for the built-in 11-bit frames."""
+    from rths_hil.linkbudget import link_load
+
+    conn = {"interface": "socketcan", "channel": "can0", "bitrate": 1_000_000}
+    lab = link_load("can", {**conn, "profile": str(CAN_DBC)}, 2, 1024.0)
+    ours = link_load("can", conn, 2, 1024.0)
+    assert lab.load == pytest.approx(2 * (160 + 160) * 1024 / 1e6)
+    assert ours.load == pytest.approx(2 * (135 + 135) * 1024 / 1e6)
