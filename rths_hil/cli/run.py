@@ -10,8 +10,9 @@ live status line, then the summary; writes the run directory (record, events, me
 sent; one line on stderr names the rule), 130 operator stop (Ctrl-C, SIGTERM or SIGHUP: the
 actuators hold, then the controllers are disabled). A channel without a twin is real hardware:
 the run needs ``--confirm-hardware`` (or ``loop.confirm_hardware = true``) and is refused in
-lockstep unless ``driver.stepped`` says the controller advances one step per command. ``--watch`` also starts ``rths-hil watch`` on the run directory (the live view in the
-browser, a separate process that reads the record) and prints its URL.
+lockstep unless ``driver.stepped`` says the controller advances one step per command.
+``--watch`` also starts ``rths-hil watch`` on the run directory (the live view in the browser,
+a separate process that reads the record) and prints its URL.
 """
 
 from __future__ import annotations

@@ -182,8 +182,10 @@ class TwinController:
         return ref + (((raw - ref) + half) & mask) - half
 
     def estop(self) -> None:
-        """Latch the e-stop: hold position from now on."""
+        """Latch the e-stop: hold position from now on (unless the ``estop_ignored`` fault)."""
         with self.lock:
+            if self.faults.estop_ignored:
+                return
             self.stats.estops += 1
             self.estop_latched = True
             self.enabled = False
