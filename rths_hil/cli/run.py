@@ -118,6 +118,8 @@ def main(args: argparse.Namespace) -> int:
         )
         for line in format_loads(loop.plan.links).splitlines():  # the link budget
             print(f"rths-hil run: {line}", file=sys.stderr)
+        if loop.mode == "paced":
+            _host_line()
     if site is not None:  # structure.kind = "openfresco": listen, say what to paste, then wait
         host, port = site.listen()
         py, tcl = site.paste_lines()
@@ -163,6 +165,18 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return result.exit_code
+
+
+def _host_line() -> None:
+    """The last ``rths-hil check-host`` verdict, when this computer has one."""
+    import time
+
+    from ..checkhost import cached_verdict
+
+    v = cached_verdict()
+    if v and isinstance(v.get("line"), str):
+        when = time.strftime("%Y-%m-%d %H:%M", time.localtime(float(v.get("time", 0))))
+        print(f"rths-hil run: {v['line']} (rths-hil check-host, {when})", file=sys.stderr)
 
 
 def _keep_off(loop_cpu: int) -> None:
