@@ -3,7 +3,7 @@
 Two parts:
 
 Timing (:func:`measure`)
-    As ``cyclictest`` does (rt-tests; Rostedt & Hart 2007): one thread — SCHED_FIFO at
+    As ``cyclictest`` of the rt-tests suite does (docs/references.md): one thread — SCHED_FIFO at
     ``loop.priority`` when the limits allow it, else the normal scheduler — pinned to
     ``loop.cpu`` when one is named, wakes at absolute deadlines one loop period apart for N
     seconds (sleeping, no spinning) and records how late each wake-up is. The lateness
