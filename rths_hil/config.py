@@ -340,9 +340,10 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "hold": Key(
             "float",
-            0.1,
+            0.0,
             unit="s",
-            doc="keep commanding the rest position this long before disabling",
+            doc="keep commanding the rest position this long before disabling (0: disable at "
+            "once; a disabled controller holds where it is)",
             lo=0,
             hi=60,
         ),

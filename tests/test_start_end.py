@@ -71,6 +71,11 @@ def _run(tmp_path, over, mode="lockstep", name="run"):
     return loop, res, plant, read_run(tmp_path / name)
 
 
+def _twin_last(loop) -> float:
+    """The twin's last measured displacement (what a disabled controller holds)."""
+    return loop.twin.controller.displacement
+
+
 def _events(run, kind):
     return [e for e in run.events if e["kind"] == kind]
 
@@ -199,10 +204,20 @@ def test_completed_run_hands_the_controller_back_disabled(tmp_path):
     # default rest = hold: the actuator is held at the last command of the test, then disabled
     last = run.record["command"][-1]
     assert end_ramp["start"] == end_ramp["end"] == [pytest.approx(last)]
-    cmd = np.array(plant.commands) + 3 * MM  # the twin runs its plant about its home
-    n, m = res.steps, res.start_steps
-    assert np.max(np.abs(cmd[m + n :] - last)) <= LSB  # every end command is the hold position
+    # end.hold = 0 (default): disabled at once, the controller holds; the plant was stepped
+    # by the start ramp and the test only
+    assert len(plant.commands) == res.start_steps + res.steps
+    assert hb["position"] == pytest.approx(_twin_last(loop), abs=LSB)  # it holds there
     assert not _events(run, "estop")
+
+
+def test_end_hold_keeps_commanding_the_last_position(tmp_path):
+    _, res, plant, run = _run(tmp_path, ["end.hold=0.1"])
+    last = run.record["command"][-1]
+    tail = np.array(plant.commands[res.start_steps + res.steps :])
+    assert tail.size == round(0.1 * 1024)
+    assert np.max(np.abs(tail - last)) <= LSB  # every end command is the hold position
+    assert _events(run, "handback")[0]["disabled"]
 
 
 def test_end_ramp_to_a_rest_position(tmp_path):

@@ -407,13 +407,15 @@ class Phases:
         n_ramp = 0
         if dist > 0.0:
             n_ramp = max(1, math.ceil(ramp_duration(dist, v, 0.0) / dt))
-        n_hold = max(1, round(self.end_cfg["hold"] / dt))
+        n_hold = round(self.end_cfg["hold"] / dt)
         paths = [
             np.concatenate([cosine_ramp(ai, bi, n_ramp)[1:], np.full(n_hold, bi)])
             for ai, bi in zip(last, rest, strict=True)
         ]
         m = len(paths[0])
-        trip, meas = self._drive(paths, seq0=seq0, k0=k0)
+        trip, meas = None, [math.nan] * len(self.chans)
+        if m:
+            trip, meas = self._drive(paths, seq0=seq0, k0=k0)
         rec.event(
             "end_ramp", k0 * dt, k0, channels=[ch.name for ch in self.chans], start=last.tolist(),
             end=rest.tolist(), rest=self.end_cfg["rest"], duration=n_ramp * dt,
