@@ -28,6 +28,7 @@ def main() -> None:
     spin, thr = lp["spin"].default, lp["overrun_threshold"].default
     max_over = SCHEMA["safety"]["max_overruns"].default
     last = (os.cpu_count() or 1) - 1
+    load0 = os.getloadavg()[0]
     rows = []
     for fs in (1024.0, 4096.0):
         for prio in (0, 10):
@@ -53,6 +54,10 @@ def main() -> None:
         rows,
     )  # fmt: skip
     facts = "\n".join(f"- {ln}" for ln in facts_lines(host_facts()))
+    facts += (
+        f"\n- load average (1 min) at the start {load0:.2f}, at the end "
+        f"{os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs"
+    )
     write_results(
         "check_host",
         f"### Host\n\n{facts}\n\n### Wake-up lateness, {args.duration:g} s per case\n\n{table}",
