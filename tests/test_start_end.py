@@ -346,3 +346,27 @@ def test_hardware_needs_confirmation_and_lockstep_needs_stepped(tmp_path):
     assert res["lockstep"].returncode == 2 and len(err) == 1 and "driver.stepped" in err[0]
     assert res["stepped"].returncode == 0, res["stepped"].stderr
     assert json.loads((tmp_path / "c" / "meta.json").read_text())["mode"] == "lockstep"
+
+
+def test_tune_takes_the_configs_confirmation_and_refuses_a_silent_controller(tmp_path, capsys):
+    """loop.confirm_hardware = true confirms for tune; a controller that does not answer the
+    arming command cannot say where its actuator is: refused before anything moves."""
+    from rths_hil.cli import main as cli
+
+    over = [
+        "twin.enabled=false",
+        "driver.name=can",
+        'driver.connection={interface = "virtual", channel = "nobody-listens"}',
+        "loop.console=0",
+        "loop.confirm_hardware=true",
+    ]
+    out = tmp_path / "hw"
+    args = ["tune", *[f"--set={s}" for s in over], "--max-iterations=1", "--trial-duration=1s"]
+    code = cli([*args, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "confirmed" in err and "did not answer the arming command" in err
+    assert (
+        not (out / "trial-01" / "record.npy").exists()
+        or read_run(out / "trial-01").record.size == 0
+    )
