@@ -418,17 +418,14 @@ def commission(
 
 
 def _link_times(plan: Any) -> list[float | None]:
-    """Per channel: the link time of one step's traffic from the link budget (None unknown)."""
-    out = []
+    """Per channel: the link time of one step's traffic from the link budget.
+
+    Known when every channel is on one link with a rate (``None`` otherwise: a virtual bus,
+    a pseudo-terminal, or several links, which the budget does not map to channels).
+    """
     links = list(getattr(plan, "links", []) or [])
-    for _cp in plan.channels:
-        lt = None
-        for ln in links:
-            if ln.rate:
-                lt = ln.per_channel
-                break
-        out.append(lt)
-    return out
+    lt = links[0].per_channel if len(links) == 1 and links[0].rate else None
+    return [lt for _ in plan.channels]
 
 
 def write_report(reports: list[ChannelReport], plan: Any, out: Path) -> Path:
