@@ -315,11 +315,13 @@ def _channel(
     held_at = next((f.displacement for f in reversed(pre) if f is not None), x0)
     ch.driver.estop()
     during = ctl.hold(x0 + 0.5 * amp, 0.2, True)
-    latched = all(f is not None and f.status & _ESTOP for f in during)
+    answered = [f for f in during if f is not None]  # a reply lost on a loaded link is no vote
+    latched = bool(answered) and all(f.status & _ESTOP for f in answered)
     moved = max((abs(f.displacement - held_at) for f in during if f is not None), default=math.inf)
     ack, _ = ctl.exchange(held_at, False)
     re_on = ctl.hold(held_at, 0.1, True)
-    re_ok = re_on[-1] is not None and bool(re_on[-1].status & _ENABLED)
+    last_re = next((f for f in reversed(re_on) if f is not None), None)
+    re_ok = last_re is not None and bool(last_re.status & _ENABLED)
     ctl.exchange(held_at, False)
     figs = {
         "latched": bool(latched),
