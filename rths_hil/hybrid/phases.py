@@ -363,7 +363,7 @@ class Phases:
                 "start_ramp", t_start, k0, channels=[ch.name for ch in self.chans],
                 start=a.tolist(), end=b.tolist(), duration=n_ramp * self.dt,
                 hold=n_hold * self.dt, steps=m, peak_velocity=peak, velocity_limit=v,
-                measured_end=meas, completed=trip is None,
+                measured_end=meas, completed=trip is None and self.runner.stop_signal is None,
             )  # fmt: skip
             self.shift = m
         if self.shift or any(self.offsets):
