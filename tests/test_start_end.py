@@ -243,10 +243,11 @@ def test_trip_still_estops_without_a_ramp(tmp_path):
 
 
 HB = 0.25  # the served twin's heartbeat watchdog (s)
-# paced against a twin process on a loaded 2-core machine: the bridge's feedback watchdog at
-# 0.1 s (a twin descheduled for 20 ms is not a dead one), overruns counted, not tripped
-PACED = ["safety.watchdog_timeout=0.1", "safety.watchdog_missed=1000000",
-         "safety.max_overruns=100000"]  # fmt: skip
+# paced against a twin process on a loaded 2-core machine: a reply may take a few ms (the
+# loop waits up to 10 ms for it, then catches up), the bridge's feedback watchdog at 0.3 s (a
+# twin descheduled for 20 ms is not a dead one), overruns counted, not tripped
+PACED = ["loop.feedback_timeout=0.01", "safety.watchdog_timeout=0.3",
+         "safety.watchdog_missed=1000000", "safety.max_overruns=100000"]  # fmt: skip
 
 
 @pytest.fixture()
