@@ -284,6 +284,78 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "heartbeat": Key("float", 0.1, unit="s", doc="driver heartbeat interval (0 = never)", lo=0),
         "console": Key("float", 0.5, unit="s", doc="live console line interval (0 = off)", lo=0),
+        "confirm_hardware": Key(
+            "bool",
+            False,
+            unit="-",
+            doc="this configuration may drive real hardware (a channel without a twin) without "
+            "--confirm-hardware on the command line (for a lab's own configurations)",
+        ),
+    },
+    "start": {
+        "mode": Key(
+            "choice",
+            "ramp",
+            unit="-",
+            doc="ramp: move each actuator from where it is to the first target along a cosine "
+            "ramp; offset: run the test about where it is (commands + start position, "
+            "measurements − start position)",
+            choices=("ramp", "offset"),
+        ),
+        "ramp_time": Key(
+            "float",
+            2.0,
+            unit="s",
+            doc="shortest start ramp (longer when start.velocity needs it)",
+            lo=0,
+            lo_open=True,
+            hi=600,
+        ),
+        "velocity": Key(
+            "float",
+            0.01,
+            unit="m/s",
+            doc="peak velocity of the start and end ramps (at most half safety.velocity_limit)",
+            lo=0,
+            lo_open=True,
+        ),
+        "hold": Key(
+            "float",
+            0.2,
+            unit="s",
+            doc="hold at the first target after the start ramp, before step 0",
+            lo=0,
+            hi=60,
+        ),
+        "tolerance": Key(
+            "float",
+            5e-5,
+            unit="m",
+            doc="no start ramp when the actuator is this close to the first target",
+            lo=0,
+        ),
+    },
+    "end": {
+        "rest": Key(
+            "choice",
+            "hold",
+            unit="-",
+            doc="after a completed run or an operator stop: hold where the test ended, or ramp "
+            "to end.rest_position; then the controller is disabled (a trip e-stops instead)",
+            choices=("hold", "position"),
+        ),
+        "rest_position": Key(
+            "float", 0.0, unit="m", doc="end.rest = position: where to ramp to (absolute)"
+        ),
+        "hold": Key(
+            "float",
+            0.0,
+            unit="s",
+            doc="keep commanding the rest position this long before disabling (0: disable at "
+            "once; a disabled controller holds where it is)",
+            lo=0,
+            hi=60,
+        ),
     },
     "driver": {
         "name": Key(
@@ -306,6 +378,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
             unit="-",
             doc="controller profile: 'rths-hil' (the driver's own protocol) or a profile file "
             "(TOML: the lab's register map or DBC, docs/profiles.md); the twin speaks it too",
+        ),
+        "stepped": Key(
+            "bool",
+            False,
+            unit="-",
+            doc="the controller advances one step per command (virtual time), so a lockstep "
+            "run against it without a twin is allowed",
         ),
     },
     "twin": {
@@ -361,6 +440,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "",
             unit="-",
             doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' (sim_backends.faults)",
+        ),
+        "initial_position": Key(
+            "float",
+            0.0,
+            unit="m",
+            doc="where the twin's actuator sits at rest (an actuator left off centre)",
         ),
     },
     "compensation": {
@@ -608,6 +693,46 @@ SCHEMA: dict[str, dict[str, Key]] = {
             doc="longest test when loop.duration = 0 (the client ends it with DIE)",
             lo=0,
             lo_open=True,
+        ),
+    },
+    "commission": {
+        "amplitude": Key(
+            "float",
+            0.001,
+            unit="m",
+            doc="amplitude of the ramp–hold–ramp motion of `rths-hil commission`",
+            lo=0,
+            lo_open=True,
+        ),
+        "velocity": Key(
+            "float",
+            0.005,
+            unit="m/s",
+            doc="peak velocity of the commissioning motion",
+            lo=0,
+            lo_open=True,
+        ),
+        "latency_time": Key(
+            "float",
+            2.0,
+            unit="s",
+            doc="length of the round-trip latency measurement (actuator disabled)",
+            lo=0,
+            lo_open=True,
+        ),
+        "watchdog_test": Key(
+            "bool",
+            True,
+            unit="-",
+            doc="stop the heartbeat and check that the controller latches within its timeout",
+        ),
+        "watchdog_timeout": Key(
+            "float",
+            0.0,
+            unit="s",
+            doc="the controller's heartbeat timeout (0 = twin.watchdog for a twin; without it "
+            "the watchdog step is skipped on hardware)",
+            lo=0,
         ),
     },
     "output": {

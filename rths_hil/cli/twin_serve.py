@@ -28,7 +28,7 @@ import threading
 from typing import Any
 
 from ..errors import InputError
-from ..units import parse_time
+from ..units import parse_length, parse_time
 
 DEFAULT_DT = 1.0 / 1024.0
 
@@ -88,6 +88,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="controller-side watchdog: no command or heartbeat for this long while enabled → "
         "hold and latch the e-stop (default 0.5s; 0 = off)",
     )
+    p.add_argument(
+        "--initial-position",
+        default="0",
+        help="where the actuator sits at rest, e.g. 3mm (an off-centre actuator; default 0)",
+    )
     p.set_defaults(func=run)
 
 
@@ -135,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
     if not hb >= 0:
         raise InputError(f"--heartbeat-timeout {args.heartbeat_timeout}: must be >= 0 s")
     hb = hb or None
+    home = parse_length(args.initial_position, "--initial-position")
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -151,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
                     plant(),
                     faults=Faults.parse(args.faults) if args.faults else None,
                     heartbeat_timeout=hb,
+                    initial_position=home,
                     **conn,
                 )
                 twins.append(twin)

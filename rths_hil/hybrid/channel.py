@@ -190,6 +190,7 @@ class Channel:
                     faults=plan.faults,
                     threaded=not plan.twin_inline,
                     heartbeat_timeout=plan.twin_watchdog,
+                    initial_position=cfg["twin"]["initial_position"],
                     **conn,
                 )
             except InputError as exc:
