@@ -790,7 +790,7 @@ class ChannelConfig:
 #: defaults every channel inherits.
 CHANNEL_SECTIONS = ("driver", "twin", "compensation", "fei", "kalman", "safety")
 _CHANNEL_KEYS = ("name", "dof", "transform")
-_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
+_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}\Z")
 
 
 def resolve_channel(cfg: Config, entry: Mapping[str, Any]) -> ChannelConfig:
@@ -843,7 +843,7 @@ def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:
         if key == "name":
             if not isinstance(value, str) or not _NAME_RE.match(value):
                 raise InputError(
-                    f"{where}: {kp}: expected a name of letters, digits and _ starting with a "
+                    f"{where}: {kp}: expected a name of 1 to 32 letters, digits and _ starting with a "
                     f"letter, got {_describe(value)}"
                 )
             out["name"] = value
