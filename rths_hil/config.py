@@ -609,6 +609,8 @@ _PREFIX = {"": 1.0, "k": 1e3, "M": 1e6}
 
 def _describe(v: Any) -> str:
     if isinstance(v, str):
+        if len(v) > 60:  # a message stays one readable line
+            return f"{v[:40]!r}… ({len(v)} characters)"
         return repr(v)
     if isinstance(v, bool):
         return "true" if v else "false"
