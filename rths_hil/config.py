@@ -845,8 +845,8 @@ def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:
         if key == "name":
             if not isinstance(value, str) or not _NAME_RE.match(value):
                 raise InputError(
-                    f"{where}: {kp}: expected a name of 1 to 32 letters, digits and _ starting with a "
-                    f"letter, got {_describe(value)}"
+                    f"{where}: {kp}: expected a name of 1 to 32 letters, digits and _ starting "
+                    f"with a letter, got {_describe(value)}"
                 )
             out["name"] = value
         elif key == "dof":

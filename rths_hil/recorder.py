@@ -247,7 +247,13 @@ class Recorder:
         self.columns = tuple(tuple(c) for c in columns)
         self.dtype = record_dtype(self.columns)
         self._descr = np.lib.format.dtype_to_descr(self.dtype)
-        header = _header_bytes(self._descr, 0)
+        try:
+            header = _header_bytes(self._descr, 0)
+        except ValueError:
+            raise InputError(
+                f"recorder: {len(self.columns)} columns do not fit a record header (64 KiB): "
+                "fewer channels"
+            ) from None
         self._header_len = len(header)
         # the row count is the only part of the header that changes: its digits start right
         # after "'shape': (" and are followed by ",)}" and the padding (rows only grow, so
@@ -263,9 +269,32 @@ class Recorder:
         self._pack = self._struct.pack_into
         self._off = 0
         self.rows = 0  # rows on disk and counted in the header
-        self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        os.write(self._fd, header)
-        self._events = open(self.run_dir / EVENTS_FILE, "x", encoding="utf-8")
+        # the exclusive create is the claim on the directory: of two runs started at the same
+        # instant into one directory, exactly one creates record.npy, the other is refused
+        try:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            raise InputError(
+                f"{self.run_dir} already holds a run ({RECORD_FILE}): choose a new output "
+                "directory"
+            ) from None
+        except OSError as exc:
+            raise InputError(f"cannot create {self.path}: {exc.strerror}") from None
+        try:
+            os.write(self._fd, header)
+            self._events = open(self.run_dir / EVENTS_FILE, "x", encoding="utf-8")
+        except OSError as exc:
+            os.close(self._fd)
+            with contextlib.suppress(OSError):
+                os.unlink(self.path)
+            if isinstance(exc, FileExistsError):
+                raise InputError(
+                    f"{self.run_dir} already holds a run ({EVENTS_FILE}): choose a new output "
+                    "directory"
+                ) from None
+            raise InputError(
+                f"cannot create the record in {self.run_dir}: {exc.strerror}"
+            ) from None
         self.failed: str | None = None  # why writing stopped (RecordWriteError), else None
         self.start_time = _now_iso()
         meta = {

@@ -711,7 +711,9 @@ def plot_report(
     for tr in _events(run, "trip") + _events(run, "operator_stop"):
         for a in axes:
             a.axvline(_num(tr.get("time")), color="r", lw=1.0)
-    fig.savefig(out, dpi=90)
+    from .plotting import save_figure
+
+    save_figure(fig, out, 90)
     plt.close(fig)
     return out
 

@@ -176,7 +176,9 @@ def _plot(path: Path, t, target, measured, ag, force, title: str) -> None:
         ax.grid(True, alpha=0.3)
     fig.tight_layout()
     try:
-        fig.savefig(path, dpi=110)
+        from ..plotting import save_figure
+
+        save_figure(fig, path, 110)
     except OSError as exc:
         raise InputError(f"--plot: cannot write {str(path)!r} ({exc.strerror})") from None
     finally:

@@ -66,9 +66,12 @@ def new_run_dir(pattern: str, base: Path | None = None) -> Path:
     if base is not None and not p.is_absolute():
         p = base / p
     out, i = p, 1
-    while any((out / f).exists() for f in ("record.npy", "events.jsonl", "meta.json")):
-        out = p.with_name(f"{p.name}-{i}")
-        i += 1
+    try:
+        while any((out / f).exists() for f in ("record.npy", "events.jsonl", "meta.json")):
+            out = p.with_name(f"{p.name}-{i}")
+            i += 1
+    except OSError as exc:  # a path component over 255 characters, no permission
+        raise InputError(f"output.dir: {p}: {exc.strerror or exc}") from None
     return out
 
 
@@ -89,6 +92,10 @@ def build_ground_motion(cfg: Config) -> groundmotion.GroundMotion:
         return gm.resampled(cfg["loop"]["fs"])
     except InputError as exc:
         raise InputError(f"{cfg.source}: ground_motion.record: {exc}") from None
+    except OSError as exc:  # a path component over 255 characters, a directory, no permission
+        raise InputError(
+            f"{cfg.source}: ground_motion.record: cannot read {spec!r}: {exc.strerror or exc}"
+        ) from None
 
 
 def choose_plant(cfg: Config, dt: float):
