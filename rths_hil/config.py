@@ -40,7 +40,7 @@ from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 from typing import Any
 
-from .errors import InputError
+from .errors import InputError, check_regular_file
 from .units import parse_accel, parse_fraction, parse_length, parse_time, parse_window
 
 __all__ = [
@@ -1102,6 +1102,10 @@ def _cross_check_one(cfg: Config, where: str) -> None:
         raise InputError(f"{where}: compensation.adaptive needs fei.enabled = true")
 
 
+#: Largest configuration file read (bytes): a real one is a few kB.
+MAX_CONFIG_BYTES = 1 << 20
+
+
 def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
     """Read a configuration file over the defaults, then apply ``--set`` overrides.
 
@@ -1125,6 +1129,7 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
     cfg = default_config()
     if path is not None:
         p = Path(path)
+        check_regular_file(p, "a configuration", max_bytes=MAX_CONFIG_BYTES)
         try:
             text = p.read_text(encoding="utf-8")
         except OSError as exc:

@@ -275,8 +275,7 @@ class Recorder:
             self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         except FileExistsError:
             raise InputError(
-                f"{self.run_dir} already holds a run ({RECORD_FILE}): choose a new output "
-                "directory"
+                f"{self.run_dir} already holds a run ({RECORD_FILE}): choose a new output directory"
             ) from None
         except OSError as exc:
             raise InputError(f"cannot create {self.path}: {exc.strerror}") from None

@@ -159,3 +159,16 @@ def test_evaluate_plot_onto_a_full_disk(run_dir, capsys):
 def test_record_of_the_run_is_intact(run_dir):
     rec = np.load(run_dir / RECORD_FILE)  # a single-channel record: plain numpy reads it too
     assert len(rec) == 2048
+
+
+@pytest.mark.parametrize("kind", ["fifo", "/dev/zero"])
+def test_config_or_record_that_is_not_a_regular_file(tmp_path, capsys, kind):
+    if kind == "fifo":
+        path = tmp_path / "c.toml"
+        os.mkfifo(path)  # no writer: a plain read would block for ever
+        what = "a FIFO"
+    else:
+        path, what = kind, "a device"
+    _one_line_exit_2(["run", str(path), "--lockstep"], capsys, str(path), "regular file", what)
+    _one_line_exit_2(["evaluate", str(path)], capsys, str(path), "regular file", what)
+    _one_line_exit_2(["tune", str(path)], capsys, str(path), "regular file", what)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import threading
@@ -127,8 +128,26 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
             raise InputError(f"--device-id: unit ids repeat: {units}")
         conn["device_id"] = units[0]
         if conn.get("transport") == "rtu" and args.device:
+            _check_device(args.device)
             conn["device"] = args.device
+    if args.device and "device" not in conn:
+        raise InputError(
+            f"--device {args.device}: a device is served by --driver modbus --transport rtu "
+            f"only (--driver {args.driver} serves {conn.get('transport', 'its own line')})"
+        )
     return conn
+
+
+def _check_device(path: str) -> None:
+    """Refuse a ``--device`` that does not exist or is not a character (serial) device."""
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        raise InputError(f"--device {path}: {exc.strerror}") from None
+    if not stat.S_ISCHR(mode):
+        raise InputError(f"--device {path}: not a serial device (a character device)")
 
 
 def run(args: argparse.Namespace) -> int:
