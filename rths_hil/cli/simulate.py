@@ -108,6 +108,10 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(delay) and delay >= 0):
         raise InputError(f"--delay must be ≥ 0, got {args.delay}")
     gm = default_record() if args.record is None else resolve(args.record)
+    from ..resources import check_memory
+
+    # the resampled record, the SDOF response and the delay's complex spectra: ~64 bytes a sample
+    check_memory(64 * gm.duration * fs, f"--fs {fs:g} Hz over the record's {gm.duration:g} s")
     gm = gm.resampled(fs)
     if args.pga is not None:  # after resampling, so that the simulated PGA is exactly this
         gm = gm.scaled(parse_accel(args.pga, "--pga"))

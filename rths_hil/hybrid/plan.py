@@ -27,6 +27,7 @@ from ..compensation import AdaptiveAlpha, InverseCompensator
 from ..config import ChannelConfig, Config, structure_dofs
 from ..errors import InputError
 from ..recorder import COLUMNS
+from ..resources import check_disk, check_memory
 from ..safety import (
     ControllerRule,
     FEIRule,
@@ -595,6 +596,9 @@ def build_plan(
     n = round(dur * fs) if dur > 0 else ag.size
     if n < 2:
         raise InputError(f"duration {dur:g} s is shorter than two steps at {fs:g} Hz")
+    # the loop's per-step arrays (ground motion, its padding and copy): refuse before allocating
+    key = "loop.duration" if duration is None else "duration"
+    check_memory(4 * 8 * n, f"{key} = {dur:g} s at {fs:g} Hz ({n:.3g} steps)")
     if n > ag.size:
         ag = np.concatenate([ag, np.zeros(n - ag.size)])
     ag = ag[:n].copy()
@@ -623,6 +627,11 @@ def build_plan(
         for i, cc in enumerate(chans_cfg)
     ]
     for i, ch in enumerate(channels):
+        if ch.exact_hop > n:  # its block buffer alone would be 16·hop bytes
+            raise InputError(
+                f"{_where(chans_cfg[i], i)}: fei.exact_hop = {ch.exact_hop} steps is longer than "
+                f"the run ({n} steps): the exact cross-check would never run (0 turns it off)"
+            )
         N = round(ch.window_s * fs)
         if ch.fei_enabled and N > min(n, gm.npts):
             longer = "record" if gm.npts < n else "run"
@@ -638,6 +647,11 @@ def build_plan(
     _check_shared_links(cfg, channels)
     links = link_loads(cfg, channels, fs)
     sf = cfg["safety"]
+    columns = record_columns([c.suffix for c in channels], n_dof) + [
+        (c[0], c[2], c[3], c[4]) for c in getattr(structure, "record_columns", ())
+    ]
+    row_bytes = sum(np.dtype(c[1]).itemsize for c in columns)
+    check_disk(n * row_bytes, run_dir, f"the record of {dur or n / fs:g} s at {fs:g} Hz")
     return TestPlan(
         cfg=cfg,
         mode=mode,
@@ -650,8 +664,7 @@ def build_plan(
         structure=structure,
         fn1=fn1,
         channels=channels,
-        columns=record_columns([c.suffix for c in channels], n_dof)
-        + [(c[0], c[2], c[3], c[4]) for c in getattr(structure, "record_columns", ())],
+        columns=columns,
         # paced: at most 0.8 period; lockstep waits for every reply, up to the wall-clock bound
         # that trips the watchdog
         timeout=(lp["feedback_timeout"] or 0.8 * dt) if mode == "paced" else lp["lockstep_timeout"],
