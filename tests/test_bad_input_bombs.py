@@ -11,7 +11,6 @@ import re
 
 import pytest
 
-from rths_hil.cli import main
 from rths_hil.resources import MAX_TRIALS, available_memory, max_workers
 from tests.test_bad_input import _one_line_exit_2
 
