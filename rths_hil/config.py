@@ -40,6 +40,8 @@ from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 from typing import Any
 
+import tomli_w
+
 from .errors import InputError, check_regular_file
 from .units import parse_accel, parse_fraction, parse_length, parse_time, parse_window
 
@@ -93,6 +95,14 @@ class Key:
 
 
 #: The schema: section → key → :class:`Key`. The defaults form the embedded NEES-711 setup.
+#: Physically plausible masses (kg) of a numerical substructure: 1 g (a bench model's storey)
+#: to 10 Mt (ten times a 100-storey tower's floor). Beyond them the structure's matrices are
+#: numerically singular (1e-300 kg) or its response overflows: refused with the key and value.
+MASS_RANGE = (1e-3, 1e10)
+#: Physically plausible storey stiffnesses (N/m): 1 mN/m to 1 TN/m (a stiff concrete core
+#: storey is of order 1e10 N/m).
+STIFFNESS_RANGE = (1e-3, 1e12)
+
 SCHEMA: dict[str, dict[str, Key]] = {
     "structure": {
         "kind": Key(
@@ -107,9 +117,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             503.4e3,
             unit="kg",
-            doc="mass of the SDOF moment resisting frame",
-            lo=0,
-            lo_open=True,
+            doc="mass of the SDOF moment resisting frame (physically plausible: 1 g to 10 Mt)",
+            lo=MASS_RANGE[0],
+            hi=MASS_RANGE[1],
         ),
         "fn": Key(
             "float",
@@ -147,24 +157,27 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             1.19e6,
             unit="N/m",
-            doc="estimated specimen stiffness, used in the CR integration parameter",
+            doc="estimated specimen stiffness, used in the CR integration parameter "
+            "(at most 1 TN/m)",
             lo=0,
+            hi=STIFFNESS_RANGE[1],
         ),
         "masses": Key(
             "array",
             [],
             unit="kg",
-            doc="shear_building: storey masses, first storey first",
-            lo=0,
-            lo_open=True,
+            doc="shear_building: storey masses, first storey first (1 g to 10 Mt each)",
+            lo=MASS_RANGE[0],
+            hi=MASS_RANGE[1],
         ),
         "stiffnesses": Key(
             "array",
             [],
             unit="N/m",
-            doc="shear_building: storey (inter-storey) stiffnesses, first storey first",
-            lo=0,
-            lo_open=True,
+            doc="shear_building: storey (inter-storey) stiffnesses, first storey first "
+            "(1 mN/m to 1 TN/m each)",
+            lo=STIFFNESS_RANGE[0],
+            hi=STIFFNESS_RANGE[1],
         ),
         "rayleigh": Key(
             "array",
@@ -1156,22 +1169,24 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
 # rendering
 
 
+def _toml_key(k: str) -> str:
+    """``k`` as a TOML key: bare when it may be, else quoted by ``tomli_w``."""
+    return tomli_w.dumps({k: 0}).rstrip("\n").rsplit(" = ", 1)[0]
+
+
 def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    """One value as TOML text, written by ``tomli_w`` (strings with newlines, quotes or control
+    characters escaped as TOML requires; tables inline, as the one-key-a-line layout needs)."""
     if isinstance(v, dict):
-        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + "}"
+        return (
+            "{" + ", ".join(f"{_toml_key(str(k))} = {_toml_value(x)}" for k, x in v.items()) + "}"
+        )
     if isinstance(v, list | tuple):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(type(v))
+    if isinstance(v, float) and math.isnan(v):
+        return "nan"
+    text = tomli_w.dumps({"v": v})  # 'v = <value>\n'
+    return text[len("v = ") :].rstrip("\n")
 
 
 def to_toml(cfg: Mapping[str, Mapping[str, Any]], comments: bool = True) -> str:
