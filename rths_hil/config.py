@@ -1233,7 +1233,17 @@ def schema_markdown() -> str:
         "",
         "Errors (unknown key, wrong type, unit or range) are one line naming the file or the",
         "`--set` item and the key path; `rths-hil run` then exits with code 2.",
-        "`rths-hil run --show-config` prints the resolved configuration as TOML.",
+        "`rths-hil run --show-config` prints the resolved configuration as TOML (values written",
+        "by `tomli_w`: strings with newlines, quotes or control characters read back unchanged).",
+        "",
+        "A configuration file must be a regular file of at most 1 MiB (a FIFO or a device such",
+        "as `/dev/zero` is refused before it is read). Masses and stiffnesses of the numerical",
+        "substructure must be physically plausible: 1 g to 10 Mt, 1 mN/m to 1 TN/m (beyond",
+        "them the structure's matrices are singular or its response overflows). Before anything",
+        "is allocated the run estimates what it needs and refuses, naming the figure, a duration",
+        "whose per-step arrays (32 bytes a step) exceed half the available memory, a record",
+        "(rows × row size) larger than the free disk space of `output.dir`, and a",
+        "`fei.exact_hop` longer than the run (`rths_hil/resources.py`).",
         "",
     ]
     for section, keys in SCHEMA.items():
