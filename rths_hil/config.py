@@ -40,7 +40,9 @@ from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 from typing import Any
 
-from .errors import InputError
+import tomli_w
+
+from .errors import InputError, check_regular_file
 from .units import parse_accel, parse_fraction, parse_length, parse_time, parse_window
 
 __all__ = [
@@ -93,6 +95,14 @@ class Key:
 
 
 #: The schema: section → key → :class:`Key`. The defaults form the embedded NEES-711 setup.
+#: Physically plausible masses (kg) of a numerical substructure: 1 g (a bench model's storey)
+#: to 10 Mt (ten times a 100-storey tower's floor). Beyond them the structure's matrices are
+#: numerically singular (1e-300 kg) or its response overflows: refused with the key and value.
+MASS_RANGE = (1e-3, 1e10)
+#: Physically plausible storey stiffnesses (N/m): 1 mN/m to 1 TN/m (a stiff concrete core
+#: storey is of order 1e10 N/m).
+STIFFNESS_RANGE = (1e-3, 1e12)
+
 SCHEMA: dict[str, dict[str, Key]] = {
     "structure": {
         "kind": Key(
@@ -107,9 +117,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             503.4e3,
             unit="kg",
-            doc="mass of the SDOF moment resisting frame",
-            lo=0,
-            lo_open=True,
+            doc="mass of the SDOF moment resisting frame (physically plausible: 1 g to 10 Mt)",
+            lo=MASS_RANGE[0],
+            hi=MASS_RANGE[1],
         ),
         "fn": Key(
             "float",
@@ -147,24 +157,27 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             1.19e6,
             unit="N/m",
-            doc="estimated specimen stiffness, used in the CR integration parameter",
+            doc="estimated specimen stiffness, used in the CR integration parameter "
+            "(at most 1 TN/m)",
             lo=0,
+            hi=STIFFNESS_RANGE[1],
         ),
         "masses": Key(
             "array",
             [],
             unit="kg",
-            doc="shear_building: storey masses, first storey first",
-            lo=0,
-            lo_open=True,
+            doc="shear_building: storey masses, first storey first (1 g to 10 Mt each)",
+            lo=MASS_RANGE[0],
+            hi=MASS_RANGE[1],
         ),
         "stiffnesses": Key(
             "array",
             [],
             unit="N/m",
-            doc="shear_building: storey (inter-storey) stiffnesses, first storey first",
-            lo=0,
-            lo_open=True,
+            doc="shear_building: storey (inter-storey) stiffnesses, first storey first "
+            "(1 mN/m to 1 TN/m each)",
+            lo=STIFFNESS_RANGE[0],
+            hi=STIFFNESS_RANGE[1],
         ),
         "rayleigh": Key(
             "array",
@@ -762,6 +775,8 @@ _PREFIX = {"": 1.0, "k": 1e3, "M": 1e6}
 
 def _describe(v: Any) -> str:
     if isinstance(v, str):
+        if len(v) > 60:  # a message stays one readable line
+            return f"{v[:40]!r}… ({len(v)} characters)"
         return repr(v)
     if isinstance(v, bool):
         return "true" if v else "false"
@@ -943,7 +958,7 @@ class ChannelConfig:
 #: defaults every channel inherits.
 CHANNEL_SECTIONS = ("driver", "twin", "compensation", "fei", "kalman", "safety")
 _CHANNEL_KEYS = ("name", "dof", "transform")
-_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
+_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}\Z")
 
 
 def resolve_channel(cfg: Config, entry: Mapping[str, Any]) -> ChannelConfig:
@@ -996,8 +1011,8 @@ def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:
         if key == "name":
             if not isinstance(value, str) or not _NAME_RE.match(value):
                 raise InputError(
-                    f"{where}: {kp}: expected a name of letters, digits and _ starting with a "
-                    f"letter, got {_describe(value)}"
+                    f"{where}: {kp}: expected a name of 1 to 32 letters, digits and _ starting "
+                    f"with a letter, got {_describe(value)}"
                 )
             out["name"] = value
         elif key == "dof":
@@ -1253,6 +1268,10 @@ def _cross_check_one(cfg: Config, where: str) -> None:
         raise InputError(f"{where}: compensation.adaptive needs fei.enabled = true")
 
 
+#: Largest configuration file read (bytes): a real one is a few kB.
+MAX_CONFIG_BYTES = 1 << 20
+
+
 def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
     """Read a configuration file over the defaults, then apply ``--set`` overrides.
 
@@ -1276,6 +1295,7 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
     cfg = default_config()
     if path is not None:
         p = Path(path)
+        check_regular_file(p, "a configuration", max_bytes=MAX_CONFIG_BYTES)
         try:
             text = p.read_text(encoding="utf-8")
         except OSError as exc:
@@ -1302,22 +1322,24 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
 # rendering
 
 
+def _toml_key(k: str) -> str:
+    """``k`` as a TOML key: bare when it may be, else quoted by ``tomli_w``."""
+    return tomli_w.dumps({k: 0}).rstrip("\n").rsplit(" = ", 1)[0]
+
+
 def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    """One value as TOML text, written by ``tomli_w`` (strings with newlines, quotes or control
+    characters escaped as TOML requires; tables inline, as the one-key-a-line layout needs)."""
     if isinstance(v, dict):
-        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + "}"
+        return (
+            "{" + ", ".join(f"{_toml_key(str(k))} = {_toml_value(x)}" for k, x in v.items()) + "}"
+        )
     if isinstance(v, list | tuple):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(type(v))
+    if isinstance(v, float) and math.isnan(v):
+        return "nan"
+    text = tomli_w.dumps({"v": v})  # 'v = <value>\n'
+    return text[len("v = ") :].rstrip("\n")
 
 
 def to_toml(cfg: Mapping[str, Mapping[str, Any]], comments: bool = True) -> str:
@@ -1364,7 +1386,17 @@ def schema_markdown() -> str:
         "",
         "Errors (unknown key, wrong type, unit or range) are one line naming the file or the",
         "`--set` item and the key path; `rths-hil run` then exits with code 2.",
-        "`rths-hil run --show-config` prints the resolved configuration as TOML.",
+        "`rths-hil run --show-config` prints the resolved configuration as TOML (values written",
+        "by `tomli_w`: strings with newlines, quotes or control characters read back unchanged).",
+        "",
+        "A configuration file must be a regular file of at most 1 MiB (a FIFO or a device such",
+        "as `/dev/zero` is refused before it is read). Masses and stiffnesses of the numerical",
+        "substructure must be physically plausible: 1 g to 10 Mt, 1 mN/m to 1 TN/m (beyond",
+        "them the structure's matrices are singular or its response overflows). Before anything",
+        "is allocated the run estimates what it needs and refuses, naming the figure, a duration",
+        "whose per-step arrays (32 bytes a step) exceed half the available memory, a record",
+        "(rows × row size) larger than the free disk space of `output.dir`, and a",
+        "`fei.exact_hop` longer than the run (`rths_hil/resources.py`).",
         "",
     ]
     for section, keys in SCHEMA.items():

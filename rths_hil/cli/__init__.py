@@ -109,6 +109,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"rths-hil {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:
+        if exc.filename is None:
+            raise
+        # a file-system error on a path the command was given (name too long, read-only,
+        # disk full, not a directory …) is bad input: one line, not a traceback
+        print(
+            f"rths-hil {args.command}: error: {exc.filename}: {exc.strerror or exc}",
+            file=sys.stderr,
+        )
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import threading
@@ -117,7 +118,26 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
         except InputError as exc:
             raise InputError(f"--profile: {exc}") from None
         conn["profile"] = path
+    if args.device:
+        if "device" not in conn:
+            raise InputError(
+                f"--device {args.device}: --driver {args.driver} serves no device here "
+                f"({conn.get('transport', 'its own line')})"
+            )
+        _check_device(conn["device"])
     return conn
+
+
+def _check_device(path: str) -> None:
+    """Refuse a ``--device`` that does not exist or is not a character (serial) device."""
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        raise InputError(f"--device {path}: {exc.strerror}") from None
+    if not stat.S_ISCHR(mode):
+        raise InputError(f"--device {path}: not a serial device (a character device)")
 
 
 def run(args: argparse.Namespace) -> int:
