@@ -54,7 +54,7 @@ __all__ = [
 ]
 
 #: Twins exist for these drivers.
-TWIN_DRIVERS = ("can", "modbus", "serial")
+TWIN_DRIVERS = ("can", "modbus", "serial", "canopen")
 
 
 def new_run_dir(pattern: str, base: Path | None = None) -> Path:
@@ -434,6 +434,8 @@ def _plan_channel(
             "for can, modbus, serial); set twin.enabled = false to use the real controller"
         )
     conn = dict(cfg["driver"]["connection"])
+    if isinstance(conn.get("eds"), str) and conn["eds"]:  # a CANopen EDS: relative to the config
+        conn["eds"] = str(cfg.resolve_path(conn["eds"]))
     if tw["enabled"] and plant is None:
         plant = choose_plant(cfg, dt)
     faults = None
