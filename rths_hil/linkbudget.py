@@ -382,6 +382,8 @@ def link_key(driver_name: str, connection: dict[str, Any]) -> str:
         return f"modbus tcp {c.get('host', '127.0.0.1')}:{c.get('port', 502)}"
     if name == "serial":
         return f"serial {c.get('url')}"
+    if name == "canopen":
+        return f"canopen {c.get('interface', 'virtual')}:{c.get('channel', 'rths-canopen')}"
     return f"{name} " + ",".join(f"{k}={c[k]}" for k in sorted(c))
 
 
@@ -534,6 +536,11 @@ def link_load(
             per_second=t_hb,
             **base,
         )
+
+    if driver_name == "canopen":  # SYNC, PDOs and heartbeats: the driver module counts them
+        from rths_hil.drivers.canopen import link_load as canopen_load
+
+        return canopen_load(c, ch, fs, heartbeat_hz=hb)
 
     return LinkLoad(name, None, f"driver {driver_name!r}: frame sizes unknown, not checked", **base)
 

@@ -49,13 +49,14 @@ with NMT stop.
 ``WATCHDOG`` for 0x8130, heartbeat / life-guard error) until the next arming; the code is logged,
 counted in the driver's stats (``emcy``) and named by :meth:`fault_text`, which the loop adds to
 its controller trip. The controller's heartbeat (``controller_heartbeat``): when none came for
-three periods, :meth:`receive` returns nothing (counted ``heartbeat_lost``), so the loop's
+``controller_heartbeat_timeout`` (1 s), :meth:`receive` returns nothing (counted ``heartbeat_lost``), so the loop's
 watchdog — which counts time — trips.
 
 Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1–127), ``profile``
 (``cia402`` / ``cia408``), ``interface``, ``channel``, ``bitrate``, ``bus_options``,
 ``counts_per_m``, ``force_object``, ``newtons_per_count``, ``bridge_node_id``,
-``heartbeat_period``, ``controller_heartbeat``, ``device_watchdog``, ``start_tolerance``,
+``heartbeat_period``, ``controller_heartbeat``, ``controller_heartbeat_timeout``,
+``device_watchdog``, ``start_tolerance``,
 ``sdo_timeout``, ``vendor_id``, ``product_code``, ``configure_pdo`` (documented in
 ``docs/canopen.md``).
 """
@@ -215,6 +216,7 @@ class CANopenDriver(Driver):
         bridge_node_id: int = BRIDGE_NODE_ID,
         heartbeat_period: float = 0.1,
         controller_heartbeat: float = 0.1,
+        controller_heartbeat_timeout: float = 1.0,
         device_watchdog: float | None = None,
         start_tolerance: float = 1e-3,
         sdo_timeout: float = 0.5,
@@ -240,6 +242,7 @@ class CANopenDriver(Driver):
         for key, v in (
             ("heartbeat_period", heartbeat_period),
             ("controller_heartbeat", controller_heartbeat),
+            ("controller_heartbeat_timeout", controller_heartbeat_timeout),
             ("start_tolerance", start_tolerance),
             ("sdo_timeout", sdo_timeout),
             ("device_watchdog", 0.0 if device_watchdog is None else device_watchdog),
@@ -260,6 +263,7 @@ class CANopenDriver(Driver):
         self.newtons_per_count = float(newtons_per_count)
         self.heartbeat_period = float(heartbeat_period)
         self.controller_heartbeat = float(controller_heartbeat)
+        self.controller_heartbeat_timeout = float(controller_heartbeat_timeout)
         self.device_watchdog = None if not device_watchdog else float(device_watchdog)
         self.start_tolerance = float(start_tolerance)
         self.sdo_timeout = float(sdo_timeout) or 0.5
@@ -581,7 +585,7 @@ class CANopenDriver(Driver):
         deadline = time.perf_counter() + timeout
         while True:
             if self.controller_heartbeat and self._hb_seen is not None:
-                if time.monotonic() - self._hb_seen > 3.0 * self.controller_heartbeat:
+                if time.monotonic() - self._hb_seen > self.controller_heartbeat_timeout:
                     stats.heartbeat_lost += 1
                     stats.timeouts += 1
                     return None
