@@ -73,7 +73,9 @@ TWINS: dict[str, TwinEntry] = {
         transports=("pty", "tcp"),
     ),
     "canopen": TwinEntry(
-        "rths_hil.sim_backends.endpoints.canopen_twin:CANopenTwin", seq_bits=None, fresh_channel=True
+        "rths_hil.sim_backends.endpoints.canopen_twin:CANopenTwin",
+        seq_bits=None,
+        fresh_channel=True,
     ),
 }
 

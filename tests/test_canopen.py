@@ -60,7 +60,9 @@ def test_identity_check_refuses_wrong_product_and_wrong_profile():
         with pytest.raises(InputError, match=r"product_code is 0x00000402.*expects 0x00000999"):
             _open(twin, product_code=0x999)
         # the 408 driver on a 402 device: device type names the profile it found
-        with pytest.raises(InputError, match=r"device type 0x00020192 \(profile 402\), not CiA 408"):
+        with pytest.raises(
+            InputError, match=r"device type 0x00020192 \(profile 402\), not CiA 408"
+        ):
             _open(twin, profile="cia408", eds=default_eds("cia408"))
 
 
@@ -154,7 +156,9 @@ def test_emcy_trips_the_loop_naming_the_code(tmp_path):
 
 def test_twin_latches_when_the_bridge_heartbeat_stops():
     timeout = 0.1
-    with start_twin("canopen", default_plant(), profile="cia402", heartbeat_timeout=timeout) as twin:
+    with start_twin(
+        "canopen", default_plant(), profile="cia402", heartbeat_timeout=timeout
+    ) as twin:
         drv = _open(twin, heartbeat_period=0.02)
         drv.arm(1.0)
         for k in range(30):
@@ -189,7 +193,10 @@ def test_twin_latches_when_the_bridge_heartbeat_stops():
 )
 def test_bad_connection_is_one_line_exit_2(tmp_path, setting, message):
     cfg = (ROOT / "examples" / "controllers" / "cia402.toml").read_text()
-    cfg = cfg.replace("eds = \"cia402_drive.eds\"", "eds = \"" + str(ROOT / "examples/controllers/cia402_drive.eds") + "\"")
+    cfg = cfg.replace(
+        'eds = "cia402_drive.eds"',
+        'eds = "' + str(ROOT / "examples/controllers/cia402_drive.eds") + '"',
+    )
     key = setting.split(" = ")[0]
     line = next(x for x in cfg.splitlines() if x.startswith("connection = {"))
     import re

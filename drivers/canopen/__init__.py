@@ -140,7 +140,9 @@ def parse_object(text: Any, what: str) -> tuple[int, int]:
     try:
         return int(idx, 0), int(sub, 0) if sub else 0
     except ValueError:
-        raise InputError(f"canopen: {what}: {text!r} is not an object index like 0x2100 or 0x6600:1") from None
+        raise InputError(
+            f"canopen: {what}: {text!r} is not an object index like 0x2100 or 0x6600:1"
+        ) from None
 
 
 def load_od(eds: str | os.PathLike[str], node_id: int) -> canopen.ObjectDictionary:
@@ -154,7 +156,9 @@ def load_od(eds: str | os.PathLike[str], node_id: int) -> canopen.ObjectDictiona
         raise InputError(f"canopen: eds {path!r} cannot be read: {exc}") from None
 
 
-def _variable(od: canopen.ObjectDictionary, obj: tuple[int, int], path: str, what: str) -> ODVariable:
+def _variable(
+    od: canopen.ObjectDictionary, obj: tuple[int, int], path: str, what: str
+) -> ODVariable:
     index, sub = obj
     try:
         entry = od[index]
@@ -181,7 +185,9 @@ class Layout:
         """The little-endian layout of ``variables`` in order (CiA 301 PDO mapping)."""
         bits = sum(len(v) for v in variables)
         if bits > 64:
-            objs = " + ".join(f"0x{v.index:04X}:{v.subindex:02X} ({len(v)} bits)" for v in variables)
+            objs = " + ".join(
+                f"0x{v.index:04X}:{v.subindex:02X} ({len(v)} bits)" for v in variables
+            )
             raise InputError(f"canopen: {name} does not fit in 8 bytes: {objs} = {bits} bits")
         fmt = "<"
         for v in variables:
@@ -237,7 +243,11 @@ class CANopenDriver(Driver):
         if node_id == bridge_node_id:
             raise InputError(f"canopen: node_id and bridge_node_id are both {node_id}")
         for key, v in (("counts_per_m", counts_per_m), ("newtons_per_count", newtons_per_count)):
-            if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and v > 0):
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, int | float)
+                or not (math.isfinite(v) and v > 0)
+            ):
                 raise InputError(f"canopen: {key} must be a positive number, got {v!r}")
         for key, v in (
             ("heartbeat_period", heartbeat_period),
@@ -247,7 +257,11 @@ class CANopenDriver(Driver):
             ("sdo_timeout", sdo_timeout),
             ("device_watchdog", 0.0 if device_watchdog is None else device_watchdog),
         ):
-            if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and v >= 0):
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, int | float)
+                or not (math.isfinite(v) and v >= 0)
+            ):
                 raise InputError(f"canopen: {key} must be a number ≥ 0 (s), got {v!r}")
         if controller_heartbeat * 1000 > 65535:
             raise InputError("canopen: controller_heartbeat must be ≤ 65.535 s (0x1017 in ms)")
@@ -703,9 +717,7 @@ def step_frames(connection: dict[str, Any] | None = None) -> dict[str, int]:
     return {"rpdo": 6, "tpdo1": 6, "tpdo2": 4 if str(f).strip() else 0, "sync": 0, "heartbeat": 1}
 
 
-def link_load(
-    connection: dict[str, Any], channels: int, fs: float, *, heartbeat_hz: float = 0.0
-):
+def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat_hz: float = 0.0):
     """The CANopen link's load (:class:`rths_hil.linkbudget.LinkLoad`) of ``channels`` axes.
 
     Per step: one SYNC for the bus plus, per axis, RPDO1, TPDO1 and TPDO2; per second, per
@@ -759,7 +771,12 @@ def axes_that_fit(
 ) -> int:
     """How many axes one CANopen bus carries at ``fs`` below ``limit`` (SYNC, PDOs, heartbeats)."""
     n = 0
-    while link_load({**(connection or {}), "bitrate": bitrate, "interface": "socketcan"}, n + 1, fs).load <= limit:
+    while (
+        link_load(
+            {**(connection or {}), "bitrate": bitrate, "interface": "socketcan"}, n + 1, fs
+        ).load
+        <= limit
+    ):
         n += 1
         if n > 127:
             break

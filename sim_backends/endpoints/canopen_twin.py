@@ -111,11 +111,16 @@ class CANopenTwin(TwinEndpoint):
         self.interface, self.channel, self.bitrate = str(interface), str(channel), bitrate
         self.bus_options = dict(bus_options or {})
         self.eds = os.fspath(eds) if eds else default_eds(profile)
+        for key, v in (("node_id", node_id), ("bridge_node_id", bridge_node_id)):
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 127:
+                raise InputError(f"canopen: {key} must be an integer 1..127, got {v!r}")
         self.node_id = int(node_id)
         self.od = load_od(self.eds, self.node_id)
         self.counts_per_m = float(counts_per_m)
         self.newtons_per_count = float(newtons_per_count)
-        self.force_object = parse_object(force_object, "force_object") if str(force_object).strip() else None
+        self.force_object = (
+            parse_object(force_object, "force_object") if str(force_object).strip() else None
+        )
         self.bridge_node_id = int(bridge_node_id)
         self.driver_keys = dict(driver_keys)
         self.connection_keys = {
@@ -151,7 +156,9 @@ class CANopenTwin(TwinEndpoint):
         try:
             self.bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise InputError(f"canopen twin: cannot open {self.interface!r} {self.channel!r}: {exc}") from None
+            raise InputError(
+                f"canopen twin: cannot open {self.interface!r} {self.channel!r}: {exc}"
+            ) from None
         net = self.network = canopen.Network(self.bus)
         node = self.node = canopen.LocalNode(self.node_id, self.od)
         net.add_node(node)
@@ -342,7 +349,9 @@ class CANopenTwin(TwinEndpoint):
         if not self._hb_watch or ctl.heartbeat_timeout is None:
             return
         if ctl.watchdog_tripped and not self.profile.is_fault(self.state):
-            log.warning("canopen twin node %d: bridge heartbeat lost → fault, EMCY 0x8130", self.node_id)
+            log.warning(
+                "canopen twin node %d: bridge heartbeat lost → fault, EMCY 0x8130", self.node_id
+            )
             self._fault(EMCY_HEARTBEAT)
 
     # -- the step ------------------------------------------------------------------------------
@@ -407,7 +416,9 @@ class CANopenTwin(TwinEndpoint):
                 if v is None:
                     v = self._on_read(var.index, var.subindex, var.od)
                 var.raw = 0 if v is None else v
-            frames.append(can.Message(arbitration_id=m.cob_id, data=bytes(m.data), is_extended_id=False))
+            frames.append(
+                can.Message(arbitration_id=m.cob_id, data=bytes(m.data), is_extended_id=False)
+            )
         return frames
 
     def _corrupt(self, frame: can.Message) -> can.Message:
@@ -423,4 +434,3 @@ class CANopenTwin(TwinEndpoint):
             bus.send(frame)
         except (can.CanError, OSError):  # pragma: no cover - bus gone
             pass
-
