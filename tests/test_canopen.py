@@ -28,7 +28,8 @@ from rths_hil.sim_backends.twin import default_plant, start_twin
 
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
-from rths_hil.linkbudget import can_frame_bits, link_load as budget
+from rths_hil.linkbudget import can_frame_bits
+from rths_hil.linkbudget import link_load as budget
 from rths_hil.loop import RTHSLoop
 from rths_hil.recorder import read_run
 
@@ -131,7 +132,7 @@ def _run(tmp_path, profile, *overrides, name="run"):
 
 @pytest.mark.parametrize("profile", ["cia402", "cia408"])
 def test_lockstep_run_tracks(tmp_path, profile):
-    loop, res, run = _run(tmp_path, profile, "loop.duration=6")
+    _, res, run = _run(tmp_path, profile, "loop.duration=6")
     assert res.status == "completed", res.trip
     rec = run.record
     assert len(rec) == 6 * 1024
@@ -144,7 +145,7 @@ def test_lockstep_run_tracks(tmp_path, profile):
 
 def test_emcy_trips_the_loop_naming_the_code(tmp_path):
     at = 1024
-    loop, res, run = _run(
+    _, res, _ = _run(
         tmp_path, "cia402", f"twin.faults=runaway_from={at}; runaway_rate=0.5", "loop.duration=3"
     )
     assert res.status == "trip" and res.trip.rule == "controller"
@@ -184,32 +185,19 @@ def test_twin_latches_when_the_bridge_heartbeat_stops():
 @pytest.mark.parametrize(
     "setting, message",
     [
-        ("profile = 'cia999'", "profile 'cia999' is not known"),
-        ("eds = 'missing.eds'", "eds: no such file"),
-        ("force_object = '0x2999'", "has no object 0x2999:00 (force_object)"),
-        ("node_id = 0", "node_id must be an integer 1..127"),
-        ("counts_per_m = 0", "counts_per_m must be a positive number"),
+        ("profile=cia999", "profile 'cia999' is not known"),
+        ("eds=missing.eds", "eds: no such file"),
+        ("force_object=0x2999", "has no object 0x2999:00 (force_object)"),
+        ("node_id=0", "node_id must be an integer 1..127"),
+        ("counts_per_m=0", "counts_per_m must be a positive number"),
     ],
 )
 def test_bad_connection_is_one_line_exit_2(tmp_path, setting, message):
-    cfg = (ROOT / "examples" / "controllers" / "cia402.toml").read_text()
-    cfg = cfg.replace(
-        'eds = "cia402_drive.eds"',
-        'eds = "' + str(ROOT / "examples/controllers/cia402_drive.eds") + '"',
-    )
-    key = setting.split(" = ")[0]
-    line = next(x for x in cfg.splitlines() if x.startswith("connection = {"))
-    import re
-
-    new = re.sub(rf"{key} = [^,}}]+", setting.replace("'", '"'), line)
-    if new == line:
-        new = line.replace("{ ", "{ " + setting.replace("'", '"') + ", ")
-    (tmp_path / "c.toml").write_text(cfg.replace(line, new))
-    proc = subprocess.run(
-        [sys.executable, "-m", "rths_hil", "run", str(tmp_path / "c.toml"), "--lockstep",
-         "--duration", "0.5"],
-        capture_output=True, text=True, timeout=120, cwd=tmp_path,
-    )  # fmt: skip
+    cfg = ROOT / "examples" / "controllers" / "cia402.toml"
+    sets = ["--set", f"driver.connection.{setting}", "--set", f"output.dir={tmp_path}/r"]
+    cmd = [sys.executable, "-m", "rths_hil", "run", str(cfg), "--lockstep", "--duration", "0.5"]
+    cmd += sets
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr
     err = [x for x in proc.stderr.splitlines() if "error" in x]
@@ -219,8 +207,8 @@ def test_bad_connection_is_one_line_exit_2(tmp_path, setting, message):
 def test_eds_whose_pdo_does_not_fit_is_refused(tmp_path):
     eds = Path(default_eds("cia402")).read_text()
     # the target position as a 64-bit integer: control word + target = 80 bits > 8 bytes
-    eds = eds.replace("[607A]\nParameterName=Target position\nObjectType=0x7\nDataType=0x0004",
-                      "[607A]\nParameterName=Target position\nObjectType=0x7\nDataType=0x0015")  # fmt: skip
+    head = "[607A]\nParameterName=Target position\nObjectType=0x7\nDataType="
+    eds = eds.replace(head + "0x0004", head + "0x0015")
     (tmp_path / "big.eds").write_text(eds)
     with pytest.raises(InputError, match=r"RPDO1 does not fit in 8 bytes: .* = 80 bits"):
         CANopenDriver(eds=str(tmp_path / "big.eds"))

@@ -1,4 +1,4 @@
-"""CANopen driver: a CiA 402 servo drive or a CiA 408 hydraulic axis, through the ``canopen`` library.
+"""CANopen driver: a CiA 402 servo drive or a CiA 408 hydraulic axis, through ``canopen``.
 
 The bridge is the CANopen NMT master and SYNC producer; the controller is node ``node_id``.
 Everything of CiA 301 — SDO, NMT, PDO mapping, SYNC, heartbeat, EMCY — goes through the
@@ -49,8 +49,8 @@ with NMT stop.
 ``WATCHDOG`` for 0x8130, heartbeat / life-guard error) until the next arming; the code is logged,
 counted in the driver's stats (``emcy``) and named by :meth:`fault_text`, which the loop adds to
 its controller trip. The controller's heartbeat (``controller_heartbeat``): when none came for
-``controller_heartbeat_timeout`` (1 s), :meth:`receive` returns nothing (counted ``heartbeat_lost``), so the loop's
-watchdog — which counts time — trips.
+``controller_heartbeat_timeout`` (1 s), :meth:`receive` returns nothing (counted
+``heartbeat_lost``), so the loop's watchdog — which counts time — trips.
 
 Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1–127), ``profile``
 (``cia402`` / ``cia408``), ``interface``, ``channel``, ``bitrate``, ``bus_options``,

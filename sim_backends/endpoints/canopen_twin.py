@@ -1,4 +1,4 @@
-"""CANopen twin endpoint: a CiA 402 servo drive or CiA 408 hydraulic axis as a ``canopen`` LocalNode.
+"""CANopen twin endpoint: a CiA 402 servo drive or CiA 408 hydraulic axis, a ``canopen`` LocalNode.
 
 The node's object dictionary is one of the EDS files shipped in ``sim_backends/eds``
 (``cia402_twin.eds``, ``cia408_twin.eds``) or a lab's own. The ``canopen`` library serves SDO
