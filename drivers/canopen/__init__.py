@@ -81,6 +81,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from rths_hil.errors import InputError
 
 from ..base import Driver, DriverStats, Feedback, Status, check_command
+from ..can import TIMEOUT_HONOURED
 from .profiles import PROFILES, Profile
 
 __all__ = [
@@ -326,6 +327,9 @@ class CANopenDriver(Driver):
         self._actual_at_arm: float | None = None
         self._first_enable = True
         self._opened = False
+        # interfaces whose recv honours its timeout are read from the loop's thread between the
+        # SDO phases (no notifier thread hand-off per frame); others keep the library's notifier
+        self._direct = self.interface in TIMEOUT_HONOURED
 
     # ------------------------------------------------------------------------------------------
     # start-up
@@ -379,6 +383,40 @@ class CANopenDriver(Driver):
         except BaseException:
             self._shutdown_network()
             raise
+        self._listen(False)
+
+    def _listen(self, on: bool) -> None:
+        """Run the library's notifier thread (SDO phases) or read from the caller's thread."""
+        net = self.network
+        if not self._direct or net is None or net.bus is None:
+            return
+        if on and net.notifier is None:
+            net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
+        elif not on and net.notifier is not None:
+            notifier, net.notifier = net.notifier, None
+            notifier.stop(1.0)
+
+    def _pump(self, timeout: float) -> bool:
+        """Read one frame (waiting up to ``timeout``) and hand it to the library; False if none."""
+        net = self.network
+        bus = None if net is None else net.bus
+        if bus is None:
+            return False
+        try:
+            msg = bus.recv(timeout)
+        except (can.CanError, OSError):
+            self.stats.disconnects += 1
+            return False
+        if msg is None:
+            return False
+        if msg.is_error_frame or msg.is_remote_frame:
+            self.stats.count_malformed("bad_frame")
+            return True
+        try:
+            net.notify(msg.arbitration_id, msg.data, msg.timestamp)  # type: ignore[union-attr]
+        except Exception as exc:  # a callback's error must not end the run (as MessageListener)
+            log.error("canopen: frame 0x%03X: %s", msg.arbitration_id, exc)
+        return True
 
     def _start_up(self) -> None:
         node = self.node
@@ -580,6 +618,9 @@ class CANopenDriver(Driver):
             word = self.profile.cyclic_word(self._state, False, False)
         else:
             word = self.profile.cyclic_word(self._state, enable, self._latched)
+        if self._direct and self.network is not None and self.network.notifier is None:
+            while self._pump(0.0):  # frames of older steps are theirs, not this step's
+                pass
         while True:  # a feedback left from an older step: it will never be delivered
             try:
                 self._q.get_nowait()
@@ -604,9 +645,15 @@ class CANopenDriver(Driver):
                     stats.timeouts += 1
                     return None
             remaining = deadline - time.perf_counter()
+            direct = self._direct and self.network is not None and self.network.notifier is None
             try:
-                fb = self._q.get(True, remaining) if remaining > 0 else self._q.get_nowait()
+                if direct:
+                    fb = self._q.get_nowait()
+                else:
+                    fb = self._q.get(True, remaining) if remaining > 0 else self._q.get_nowait()
             except queue.Empty:
+                if direct and remaining > 0 and self._pump(remaining):
+                    continue
                 stats.timeouts += 1
                 return None
             if self._classify(fb.seq):
@@ -632,6 +679,7 @@ class CANopenDriver(Driver):
         SDO), or ``None`` when it does not answer within ``timeout``.
         """
         p = self.profile
+        self._listen(True)
         try:
             sw = self._sdo_read(*p.status)
             before = self._state = p.state(sw)
@@ -661,6 +709,8 @@ class CANopenDriver(Driver):
         except InputError as exc:
             log.warning("canopen: arming node %d failed: %s", self.node_id, exc)
             return None
+        finally:
+            self._listen(False)
         self._latched = False
         self._emcy_code, self._emcy_text = 0, ""
         self._first_enable = True
@@ -681,6 +731,7 @@ class CANopenDriver(Driver):
         if not self._opened:
             return
         p = self.profile
+        self._listen(True)
         try:
             if self.node is not None:
                 if not self._latched:
