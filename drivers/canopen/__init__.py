@@ -723,6 +723,7 @@ class CANopenDriver(Driver):
             self._part = {}
         while not self._q.empty():
             self._q.get_nowait()
+        self.heartbeat()  # the device's heartbeat consumer counts from here
         return Feedback(0, pos, force, flags)
 
     # ------------------------------------------------------------------------------------------
