@@ -89,7 +89,7 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
     from rths_hil.sim_backends.endpoints.can import PTY_INTERFACES
     from rths_hil.sim_backends.registry import TWINS
 
-    if args.driver == "can":
+    if args.driver in ("can", "canopen"):  # CANopen: a real interface (socketcan, …)
         if args.interface == "virtual":
             raise InputError(
                 "--interface virtual: python-can's virtual bus only reaches buses inside the same "
