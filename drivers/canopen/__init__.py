@@ -638,24 +638,30 @@ class CANopenDriver(Driver):
     def receive(self, timeout: float) -> Feedback | None:
         stats = self.stats
         deadline = time.perf_counter() + timeout
+        q = self._q
         while True:
-            if self.controller_heartbeat and self._hb_seen is not None:
-                if time.monotonic() - self._hb_seen > self.controller_heartbeat_timeout:
-                    stats.heartbeat_lost += 1
-                    stats.timeouts += 1
-                    return None
-            remaining = deadline - time.perf_counter()
             direct = self._direct and self.network is not None and self.network.notifier is None
             try:
-                if direct:
-                    fb = self._q.get_nowait()
-                else:
-                    fb = self._q.get(True, remaining) if remaining > 0 else self._q.get_nowait()
+                fb = q.get_nowait()
             except queue.Empty:
-                if direct and remaining > 0 and self._pump(remaining):
+                if direct and self._pump(0.0):  # what already arrived, heartbeats included
                     continue
-                stats.timeouts += 1
-                return None
+                if self.controller_heartbeat and self._hb_seen is not None:
+                    if time.monotonic() - self._hb_seen > self.controller_heartbeat_timeout:
+                        stats.heartbeat_lost += 1
+                        stats.timeouts += 1
+                        return None
+                remaining = deadline - time.perf_counter()
+                if remaining <= 0:
+                    stats.timeouts += 1
+                    return None
+                if direct:
+                    self._pump(remaining)
+                    continue
+                try:
+                    fb = q.get(True, remaining)
+                except queue.Empty:
+                    continue
             if self._classify(fb.seq):
                 stats.received += 1
                 if fb.displacement != fb.displacement or fb.force != fb.force:
