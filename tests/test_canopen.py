@@ -156,7 +156,8 @@ def test_emcy_trips_the_loop_naming_the_code(tmp_path):
 
 
 def test_twin_latches_when_the_bridge_heartbeat_stops():
-    timeout = 0.1
+    # 0.25 s: a bridge descheduled for tens of ms on a loaded 2-core machine is not a dead one
+    timeout = 0.25
     with start_twin(
         "canopen", default_plant(), profile="cia402", heartbeat_timeout=timeout
     ) as twin:
