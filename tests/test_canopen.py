@@ -248,3 +248,26 @@ def test_frame_faults_are_counted(faults, counter):
         assert missed and missed[0] == 40
         assert getattr(drv.stats, counter) >= 1
         assert drv.stats.received >= 60 - 3
+
+
+def test_pdo_bytes_equal_the_canopen_library_encoding():
+    """The driver's RPDO packing and the twin's TPDO packing (structs compiled from the maps)
+    give the bytes the library's own PdoVariable encoding gives."""
+    with start_twin("canopen", default_plant()) as twin:
+        drv = _open(twin)
+        drv.arm(1.0)
+        for k in range(5):
+            drv.send(k, 0.0, True)
+            drv.receive(1.0)
+        rp = drv.node.rpdo[1]
+        for word, counts in ((0x000F, 12345), (0x0002, -(2**31) + 1), (0x0006, 2**31 - 1)):
+            rp[0x6040].raw, rp[0x607A].raw = word, counts
+            assert drv.rpdo_layout.fmt.pack(word, counts) == bytes(rp.data)
+        frames = twin._encode(7, -0.0123456, 4567.89, 0)
+        values = {0x6041: twin.statusword(), 0x6064: -123456, 0x2100: 456789}
+        for m, frame in zip(twin._tpdo, frames, strict=True):
+            for var in m.map:
+                var.raw = values[var.index]
+            assert bytes(frame.data) == bytes(m.data)
+            assert frame.arbitration_id == m.cob_id
+        drv.close()
