@@ -81,7 +81,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from rths_hil.errors import InputError
 
 from ..base import Driver, DriverStats, Feedback, Status, check_command
-from ..can import TIMEOUT_HONOURED
+from ..can import TIMEOUT_HONOURED, virtual_rx_queue
 from .profiles import PROFILES, Profile
 
 __all__ = [
@@ -330,6 +330,12 @@ class CANopenDriver(Driver):
         # interfaces whose recv honours its timeout are read from the loop's thread between the
         # SDO phases (no notifier thread hand-off per frame); others keep the library's notifier
         self._direct = self.interface in TIMEOUT_HONOURED
+        self._rxq: queue.Queue | None = None
+        self._rpdo_msg = can.Message(
+            arbitration_id=self._rpdo_id, data=bytearray(self.rpdo_layout.fmt.size),
+            is_extended_id=False,
+        )  # fmt: skip
+        self._sync_msg = can.Message(arbitration_id=SYNC_ID, data=b"", is_extended_id=False)
 
     # ------------------------------------------------------------------------------------------
     # start-up
@@ -384,6 +390,7 @@ class CANopenDriver(Driver):
             self._shutdown_network()
             raise
         self._listen(False)
+        self._rxq = virtual_rx_queue(net.bus) if self._direct else None
 
     def _listen(self, on: bool) -> None:
         """Run the library's notifier thread (SDO phases) or read from the caller's thread."""
@@ -402,13 +409,26 @@ class CANopenDriver(Driver):
         bus = None if net is None else net.bus
         if bus is None:
             return False
-        try:
-            msg = bus.recv(timeout)
-        except (can.CanError, OSError):
-            self.stats.disconnects += 1
-            return False
-        if msg is None:
-            return False
+        q = self._rxq
+        if q is not None:  # python-can's virtual bus: its receive queue (drivers.can)
+            frames = q.queue
+            if frames:
+                msg = frames.popleft()
+            elif timeout <= 0:
+                return False
+            else:
+                try:
+                    msg = q.get(True, timeout)
+                except queue.Empty:
+                    return False
+        else:
+            try:
+                msg = bus.recv(timeout)
+            except (can.CanError, OSError):
+                self.stats.disconnects += 1
+                return False
+            if msg is None:
+                return False
         if msg.is_error_frame or msg.is_remote_frame:
             self.stats.count_malformed("bad_frame")
             return True
@@ -591,8 +611,21 @@ class CANopenDriver(Driver):
         with self._lock:
             self._step = step
             self._part = {}
-        self._send(self._rpdo_id, self.rpdo_layout.fmt.pack(word, counts))
-        self._send(SYNC_ID, b"")
+        net = self.network
+        bus = None if net is None else net.bus
+        if bus is None:
+            self.stats.send_errors += 1
+            return
+        # the two frames of every step, built once (python-can copies a frame per receiver)
+        self._rpdo_msg.arbitration_id = self._rpdo_id
+        self._rpdo_msg.data[:] = self.rpdo_layout.fmt.pack(word, counts)
+        try:
+            with net.send_lock:  # type: ignore[union-attr]
+                bus.send(self._rpdo_msg)
+                bus.send(self._sync_msg)
+        except (can.CanError, OSError):
+            self.stats.send_errors += 1
+            return
         self.stats.syncs += 1
 
     def send(self, seq: int, displacement: float, enable: bool = True) -> None:
@@ -753,6 +786,7 @@ class CANopenDriver(Driver):
 
     def _shutdown_network(self) -> None:
         net, self.network = self.network, None
+        self._rxq = None
         self.node = None
         self._opened = False
         if net is not None:
