@@ -302,6 +302,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "docs/canopen.md); with a twin they go to the twin, which hands the driver its "
             "endpoint",
         ),
+        "profile": Key(
+            "str",
+            "rths-hil",
+            unit="-",
+            doc="controller profile: 'rths-hil' (the driver's own protocol) or a profile file "
+            "(TOML: the lab's register map or DBC, docs/profiles.md); the twin speaks it too",
+        ),
     },
     "twin": {
         "enabled": Key(

@@ -83,6 +83,12 @@ def start_twin(
         Unknown driver name or endpoint setting, or a transport that cannot be opened.
     """
     cls, entry = twin_class(driver_name)
+    from rths_hil.drivers.profile import is_builtin
+
+    profile = connection.pop("profile", None)
+    if not is_builtin(profile):
+        cls = cls.profile_twin()
+        connection["profile"] = profile
     controller = TwinController(
         plant, faults, seq_bits=entry.seq_bits, heartbeat_timeout=heartbeat_timeout
     )

@@ -338,6 +338,41 @@ class CANopenDriver(Driver):
         self._sync_msg = can.Message(arbitration_id=SYNC_ID, data=b"", is_extended_id=False)
 
     # ------------------------------------------------------------------------------------------
+    # what the class knows: its link and who may share it
+    @classmethod
+    def link_key(cls, connection: dict[str, Any]) -> str:
+        """CANopen: the python-can interface and channel of the bus."""
+        c = connection or {}
+        return f"canopen {c.get('interface', 'virtual')}:{c.get('channel', 'rths-canopen')}"
+
+    @classmethod
+    def link_load(
+        cls,
+        connection: dict[str, Any],
+        channels_on_link: int,
+        fs: float,
+        *,
+        heartbeat_hz: float = 0.0,
+    ):
+        """SYNC, PDOs and heartbeats on the bus (:func:`link_load` of this module)."""
+        return link_load(connection, int(channels_on_link), float(fs), heartbeat_hz=heartbeat_hz)
+
+    @classmethod
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
+        """One CANopen axis per bus: each driver produces the bus's SYNC (the step clock)."""
+        seen: dict[str, str] = {}
+        for _, name, conn, twin in channels:
+            if twin and not (conn or {}).get("channel"):
+                continue  # each twin gets a bus of its own
+            key = cls.link_key(conn)
+            if key in seen:
+                raise InputError(
+                    f"actuators: channels {seen[key]!r} and {name!r} are CANopen axes on one bus "
+                    f"({key.split(' ', 1)[1]}): one axis per bus (each driver produces its SYNC)"
+                )
+            seen[key] = name
+
+    # ------------------------------------------------------------------------------------------
     # start-up
     def _sdo_read(self, index: int, sub: int = 0) -> int:
         assert self.node is not None

@@ -206,6 +206,7 @@ class Channel:
             raise InputError(f"{where}: driver.connection: {exc}") from None
         driver.open()
         stack.callback(driver.close)
+        stack.callback(driver.stop_reader)  # before close: a reader thread stops first
         self.bind(driver)
         if self.stream is not None and plan.exact_hop > 0:
             self.exact = ExactFEI(self.fs, plan.window_s, plan.exact_hop, background_exact)

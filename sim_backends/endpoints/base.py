@@ -320,6 +320,60 @@ class TwinEndpoint(ABC):
         """The plant being driven."""
         return self.controller.plant
 
+    # -- how ``rths-hil twin serve`` maps its options onto this endpoint ----------------------
+    #: Transports ``--transport`` accepts, the default first (empty: none to choose).
+    transports: tuple[str, ...] = ()
+
+    @classmethod
+    def connection_from_args(cls, args: Any) -> dict[str, Any]:
+        """Endpoint settings from ``rths-hil twin serve``'s options (``args``).
+
+        Default: ``--transport`` among :attr:`transports` (the registry's entry for a built-in
+        twin) and, for ``tcp``, ``--host``, ``--port`` and ``--allow-remote``.
+        """
+        from ..registry import twin_class
+
+        _, entry = twin_class(args.driver)
+        conn: dict[str, Any] = {}
+        allowed = entry.transports
+        if allowed:
+            transport = args.transport or allowed[0]
+            if transport not in allowed:
+                raise InputError(
+                    f"--transport {transport}: use {' or '.join(allowed)} with "
+                    f"--driver {args.driver}"
+                )
+            conn["transport"] = transport
+            if transport == "tcp":
+                conn |= {
+                    "host": args.host,
+                    "port": 0 if args.port is None else args.port,
+                    "allow_remote": args.allow_remote,
+                }
+        return conn
+
+    @classmethod
+    def profile_twin(cls) -> type[TwinEndpoint]:
+        """The endpoint that speaks a controller profile of this protocol (``--profile``).
+
+        Raises
+        ------
+        InputError
+            No twin of this protocol speaks profiles.
+        """
+        raise InputError(f"twin {cls.name!r}: no twin of this protocol speaks a profile")
+
+    @classmethod
+    def serve_units(cls, args: Any) -> list[Any]:
+        """The controllers ``twin serve`` starts behind one endpoint (default: one)."""
+        return [None]
+
+    @classmethod
+    def unit_connection(cls, first: dict[str, Any], unit: Any, args: Any) -> dict[str, Any]:
+        """Settings of a further unit joining the first one's endpoint (see
+        :meth:`serve_units`)."""
+        return dict(first)
+
     # -- lifecycle ------------------------------------------------------------------------------
     #: Whether :meth:`pump` can serve the transport from the caller's thread (synchronous,
     #: in-process transports only).

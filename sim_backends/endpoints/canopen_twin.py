@@ -89,6 +89,21 @@ class CANopenTwin(TwinEndpoint):
 
     name = "canopen"
 
+    @classmethod
+    def connection_from_args(cls, args: Any) -> dict[str, Any]:
+        """``--interface`` (not ``virtual``: it cannot leave the process), ``--channel``
+        (default ``vcan0``) and ``--bitrate``; the shipped CiA 402 EDS, node 1."""
+        if args.interface == "virtual":
+            raise InputError(
+                "--interface virtual: python-can's virtual bus only reaches buses inside the same "
+                "process; use --interface socketcan --channel vcan0 (or the lab's interface), or "
+                "start the twin in-process with sim_backends.twin.start_twin"
+            )
+        conn: dict[str, Any] = {"interface": args.interface, "channel": args.channel or "vcan0"}
+        if args.bitrate is not None:
+            conn["bitrate"] = args.bitrate
+        return conn
+
     def __init__(
         self,
         controller: TwinController,
