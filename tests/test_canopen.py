@@ -46,7 +46,7 @@ def _open(twin, **extra):
 @pytest.mark.parametrize("profile", ["cia402", "cia408"])
 def test_identity_check_passes_and_refuses(profile):
     number = int(profile[3:])
-    with start_twin("canopen", default_plant(), profile=profile) as twin:
+    with start_twin("canopen", default_plant(), device_profile=profile) as twin:
         code = int(str(number), 16)  # the shipped EDS's product code: 0x402 / 0x408
         drv = _open(twin, product_code=code, vendor_id=0)
         try:  # read by SDO from the twin's object dictionary
@@ -57,18 +57,18 @@ def test_identity_check_passes_and_refuses(profile):
 
 
 def test_identity_check_refuses_wrong_product_and_wrong_profile():
-    with start_twin("canopen", default_plant(), profile="cia402") as twin:
+    with start_twin("canopen", default_plant(), device_profile="cia402") as twin:
         with pytest.raises(InputError, match=r"product_code is 0x00000402.*expects 0x00000999"):
             _open(twin, product_code=0x999)
         # the 408 driver on a 402 device: device type names the profile it found
         with pytest.raises(
             InputError, match=r"device type 0x00020192 \(profile 402\), not CiA 408"
         ):
-            _open(twin, profile="cia408", eds=default_eds("cia408"))
+            _open(twin, device_profile="cia408", eds=default_eds("cia408"))
 
 
 def test_cia402_state_machine_on_the_twin():
-    with start_twin("canopen", default_plant(), profile="cia402") as twin:
+    with start_twin("canopen", default_plant(), device_profile="cia402") as twin:
         drv = _open(twin)
         armed = drv.arm(1.0)
         assert armed is not None and armed.status == 0
@@ -102,7 +102,7 @@ def test_cia402_state_machine_on_the_twin():
 
 
 def test_cia408_state_machine_on_the_twin():
-    with start_twin("canopen", default_plant(), profile="cia408") as twin:
+    with start_twin("canopen", default_plant(), device_profile="cia408") as twin:
         drv = _open(twin)
         assert drv.arm(1.0) is not None and twin.state == "HOLD"
         assert twin.mode == 1  # device mode 0x6042: set-point via the bus
@@ -159,7 +159,7 @@ def test_twin_latches_when_the_bridge_heartbeat_stops():
     # 0.25 s: a bridge descheduled for tens of ms on a loaded 2-core machine is not a dead one
     timeout = 0.25
     with start_twin(
-        "canopen", default_plant(), profile="cia402", heartbeat_timeout=timeout
+        "canopen", default_plant(), device_profile="cia402", heartbeat_timeout=timeout
     ) as twin:
         drv = _open(twin, heartbeat_period=0.02)
         drv.arm(1.0)
@@ -186,7 +186,7 @@ def test_twin_latches_when_the_bridge_heartbeat_stops():
 @pytest.mark.parametrize(
     "setting, message",
     [
-        ("profile=cia999", "profile 'cia999' is not known"),
+        ("device_profile=cia999", "device_profile 'cia999' is not known"),
         ("eds=missing.eds", "eds: no such file"),
         ("force_object=0x2999", "has no object 0x2999:00 (force_object)"),
         ("node_id=0", "node_id must be an integer 1..127"),

@@ -52,8 +52,9 @@ its controller trip. The controller's heartbeat (``controller_heartbeat``): when
 ``controller_heartbeat_timeout`` (1 s), :meth:`receive` returns nothing (counted
 ``heartbeat_lost``), so the loop's watchdog — which counts time — trips.
 
-Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1–127), ``profile``
-(``cia402`` / ``cia408``), ``interface``, ``channel``, ``bitrate``, ``bus_options``,
+Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1–127),
+``device_profile`` (``cia402`` / ``cia408``), ``interface``, ``channel``, ``bitrate``,
+``bus_options``,
 ``counts_per_m``, ``force_object``, ``newtons_per_count``, ``bridge_node_id``,
 ``heartbeat_period``, ``controller_heartbeat``, ``controller_heartbeat_timeout``,
 ``device_watchdog``, ``start_tolerance``,
@@ -212,7 +213,7 @@ class CANopenDriver(Driver):
         self,
         eds: str | None = None,
         node_id: int = 1,
-        profile: str = "cia402",
+        device_profile: str = "cia402",
         interface: str = "virtual",
         channel: str = "rths-canopen",
         bitrate: int | None = None,
@@ -233,11 +234,12 @@ class CANopenDriver(Driver):
     ) -> None:
         super().__init__()
         self.stats = CANopenStats()
-        if profile not in PROFILES:
+        if device_profile not in PROFILES:
             raise InputError(
-                f"canopen: profile {profile!r} is not known (known: {', '.join(PROFILES)})"
+                f"canopen: device_profile {device_profile!r} is not known (known: "
+                f"{', '.join(PROFILES)})"
             )
-        self.profile: Profile = PROFILES[profile]
+        self.profile: Profile = PROFILES[device_profile]
         for key, v, lo in (("node_id", node_id, 1), ("bridge_node_id", bridge_node_id, 1)):
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= 127:
                 raise InputError(f"canopen: {key} must be an integer 1..127, got {v!r}")
@@ -481,7 +483,8 @@ class CANopenDriver(Driver):
         if dev & 0xFFFF != p.number:
             raise InputError(
                 f"canopen: node {self.node_id} reports device type 0x{dev:08X} (profile "
-                f"{dev & 0xFFFF}), not CiA {p.number} (driver.connection.profile = {p.name!r})"
+                f"{dev & 0xFFFF}), not CiA {p.number} (driver.connection.device_profile = "
+                f"{p.name!r})"
             )
         vendor, product = self._sdo_read(0x1018, 1), self._sdo_read(0x1018, 2)
         self.identity = {

@@ -80,8 +80,8 @@ class CANopenTwin(TwinEndpoint):
     interface, channel, bitrate, bus_options
         The python-can bus (``virtual`` by default).
     eds : str, optional
-        EDS of the node (default: the shipped one of ``profile``).
-    node_id, profile, counts_per_m, force_object, newtons_per_count, bridge_node_id
+        EDS of the node (default: the shipped one of ``device_profile``).
+    node_id, device_profile, counts_per_m, force_object, newtons_per_count, bridge_node_id
         As the driver's keys (:mod:`rths_hil.drivers.canopen`).
     **driver_keys
         Other driver settings, handed on in :attr:`connection`.
@@ -113,7 +113,7 @@ class CANopenTwin(TwinEndpoint):
         bus_options: dict[str, Any] | None = None,
         eds: str | None = None,
         node_id: int = 1,
-        profile: str = "cia402",
+        device_profile: str = "cia402",
         counts_per_m: float = 1e7,
         force_object: str = "0x2100",
         newtons_per_count: float = 0.01,
@@ -121,12 +121,15 @@ class CANopenTwin(TwinEndpoint):
         **driver_keys: Any,
     ) -> None:
         super().__init__(controller)
-        if profile not in PROFILES:
-            raise InputError(f"canopen twin: profile {profile!r} is not known")
-        self.profile = PROFILES[profile]
+        if device_profile not in PROFILES:
+            raise InputError(
+                f"canopen: device_profile {device_profile!r} is not known (known: "
+                f"{', '.join(PROFILES)})"
+            )
+        self.profile = PROFILES[device_profile]
         self.interface, self.channel, self.bitrate = str(interface), str(channel), bitrate
         self.bus_options = dict(bus_options or {})
-        self.eds = os.fspath(eds) if eds else default_eds(profile)
+        self.eds = os.fspath(eds) if eds else default_eds(device_profile)
         for key, v in (("node_id", node_id), ("bridge_node_id", bridge_node_id)):
             if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 127:
                 raise InputError(f"canopen: {key} must be an integer 1..127, got {v!r}")
@@ -141,7 +144,7 @@ class CANopenTwin(TwinEndpoint):
         self.driver_keys = dict(driver_keys)
         self.connection_keys = {
             "interface": self.interface, "channel": self.channel, "eds": self.eds,
-            "node_id": self.node_id, "profile": profile, "counts_per_m": counts_per_m,
+            "node_id": self.node_id, "device_profile": device_profile, "counts_per_m": counts_per_m,
             "force_object": force_object, "newtons_per_count": newtons_per_count,
             "bridge_node_id": self.bridge_node_id, **self.driver_keys,
         }  # fmt: skip
