@@ -375,15 +375,17 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "str",
             "can",
             unit="-",
-            doc="driver name in the registry (can, modbus, serial, or a lab's entry point)",
+            doc="driver name in the registry (can, modbus, serial, canopen, or a lab's entry "
+            "point)",
         ),
         "connection": Key(
             "table",
             {},
             unit="-",
             doc="driver connection settings (e.g. interface/channel for CAN, "
-            "host/port for Modbus, url for serial); with a twin they go to the "
-            "twin, which hands the driver its endpoint",
+            "host/port for Modbus, url for serial, eds/node_id/profile for CANopen: "
+            "docs/canopen.md); with a twin they go to the twin, which hands the driver its "
+            "endpoint",
         ),
         "profile": Key(
             "str",

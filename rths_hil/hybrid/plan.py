@@ -446,6 +446,8 @@ def _plan_channel(
                 "controller"
             )
     conn = dict(cfg["driver"]["connection"])
+    if isinstance(conn.get("eds"), str) and conn["eds"]:  # a CANopen EDS: relative to the config
+        conn["eds"] = str(cfg.resolve_path(conn["eds"]))
     profile = cfg["driver"]["profile"]
     from rths_hil.drivers.profile import is_builtin, load_profile
 

@@ -227,6 +227,9 @@ class Safety:
 
     def _fire(self, trip: Trip, ch: Channel | None, t: float, k: int) -> Trip:
         trip = trip.at(t, k) if trip.step < 0 else trip
+        why = getattr(ch.driver, "fault_text", None) if ch is not None else None
+        if trip.rule == "controller" and why is not None and why():  # e.g. a CANopen EMCY code
+            trip = Trip(trip.rule, f"{trip.reason}; {why()}", trip.time, trip.step, trip.values)
         self.tripped = trip.on(ch.name) if ch is not None else trip
         return self.tripped
 
