@@ -120,10 +120,7 @@ def test_ats_fit_equals_brute_force_least_squares_of_its_window():
     for k in range(len(x)):
         cmd[k] = x[k] + 0.3 * x[k - 1]
         m = 0.95 * cmd[k - d] if k >= d else 0.0
-        moved = c._observe(
-            c._st, c._sos, c._zc, c._zm, c._ring, c.a, c.lower, c.upper, c._dmax, c.dt,
-            c._skip, c._thr2, cmd[k], m,
-        )  # fmt: skip
+        moved = c._observe(c._st, c._sos, c._ring, cmd[k], m)
         if moved:
             rows = c._ring
             ref = np.linalg.lstsq(rows[:, :3], rows[:, 3], rcond=None)[0]

@@ -49,28 +49,31 @@ from ..errors import InputError
 
 __all__ = ["ATSCompensator"]
 
-# scalar state layout (float64 array)
+# layout of the state vector (float64): scalars, coefficients, bounds, rates, then the filters
 _M0, _M1, _M2, _C0, _C1, _COUNT, _HEAD, _ROWS, _PRIMED = range(9)
+_A, _LO, _HI, _DMAX = 9, 12, 15, 18
+_DT, _SKIP, _THR2 = 21, 22, 23
+_Z = 24  # then 2 values per section for the command filter, 2 per section for the measured
 
 
 @numba.njit(cache=True)
-def _sos_step(sos, z, x):  # pragma: no cover - compiled
-    """One sample through second-order sections (transposed direct form II)."""
+def _sos_step(sos, s, base, x):  # pragma: no cover - compiled
+    """One sample through second-order sections (transposed direct form II), state in s."""
     for i in range(sos.shape[0]):
         b0, b1, b2, a1, a2 = sos[i, 0], sos[i, 1], sos[i, 2], sos[i, 4], sos[i, 5]
-        y = b0 * x + z[i, 0]
-        z[i, 0] = b1 * x - a1 * y + z[i, 1]
-        z[i, 1] = b2 * x - a2 * y
+        j = base + 2 * i
+        y = b0 * x + s[j]
+        s[j] = b1 * x - a1 * y + s[j + 1]
+        s[j + 1] = b2 * x - a2 * y
         x = y
     return x
 
 
 @numba.njit(cache=True)
-def _observe(st, sos, zc, zm, ring, a, lo, hi, dmax, dt, skip, thr2, command, measured):
-    # pragma: no cover - compiled
+def _observe(st, sos, ring, command, measured):  # pragma: no cover - compiled
     """Filter the pair, form a window row every ``skip`` samples, refit; True if ``a`` moved."""
-    cf = _sos_step(sos, zc, command)
-    mf = _sos_step(sos, zm, measured)
+    cf = _sos_step(sos, st, _Z, command)
+    mf = _sos_step(sos, st, _Z + 2 * sos.shape[0], measured)
     st[_M2] = st[_M1]
     st[_M1] = st[_M0]
     st[_M0] = mf
@@ -78,11 +81,12 @@ def _observe(st, sos, zc, zm, ring, a, lo, hi, dmax, dt, skip, thr2, command, me
     st[_C0] = cf
     st[_PRIMED] += 1.0
     st[_COUNT] += 1.0
-    if st[_COUNT] < skip or st[_PRIMED] < 3.0:
+    if st[_COUNT] < st[_SKIP] or st[_PRIMED] < 3.0:
         return False
     st[_COUNT] = 0.0
     q = ring.shape[0]
     h = int(st[_HEAD])
+    dt = st[_DT]
     m0, m1, m2 = st[_M0], st[_M1], st[_M2]
     ring[h, 0] = m1
     ring[h, 1] = (m0 - m2) / (2.0 * dt)
@@ -106,9 +110,9 @@ def _observe(st, sos, zc, zm, ring, a, lo, hi, dmax, dt, skip, thr2, command, me
         b0 += x0 * y
         b1 += x1 * y
         b2 += x2 * y
-    if s00 / q <= thr2 or s11 <= 0.0 or s22 <= 0.0:
+    if s00 / q <= st[_THR2] or s11 <= 0.0 or s22 <= 0.0:
         return False
-    # column scaling: unit diagonal
+    # column scaling: unit diagonal, then the closed-form inverse of the 3×3 matrix
     d0, d1, d2 = 1.0 / math.sqrt(s00), 1.0 / math.sqrt(s11), 1.0 / math.sqrt(s22)
     n01, n02, n12 = s01 * d0 * d1, s02 * d0 * d2, s12 * d1 * d2
     c0, c1, c2 = b0 * d0, b1 * d1, b2 * d2
@@ -124,22 +128,21 @@ def _observe(st, sos, zc, zm, ring, a, lo, hi, dmax, dt, skip, thr2, command, me
     sol0 = (i00 * c0 + i01 * c1 + i02 * c2) / det * d0
     sol1 = (i01 * c0 + i11 * c1 + i12 * c2) / det * d1
     sol2 = (i02 * c0 + i12 * c1 + i22 * c2) / det * d2
+    if sol0 != sol0 or sol1 != sol1 or sol2 != sol2:
+        return False
     sol = (sol0, sol1, sol2)
     for i in range(3):
         v = sol[i]
-        if v != v:
-            return False
-    for i in range(3):
-        v = sol[i]
-        if v > a[i] + dmax[i]:
-            v = a[i] + dmax[i]
-        elif v < a[i] - dmax[i]:
-            v = a[i] - dmax[i]
-        if v > hi[i]:
-            v = hi[i]
-        elif v < lo[i]:
-            v = lo[i]
-        a[i] = v
+        a, dm = st[_A + i], st[_DMAX + i]
+        if v > a + dm:
+            v = a + dm
+        elif v < a - dm:
+            v = a - dm
+        if v > st[_HI + i]:
+            v = st[_HI + i]
+        elif v < st[_LO + i]:
+            v = st[_LO + i]
+        st[_A + i] = v
     return True
 
 
@@ -232,63 +235,67 @@ class ATSCompensator(Compensator):
             )
         self.fs = fs
         self.dt = 1.0 / fs
-        self.lower = _triple(lower, "ats_min")
-        self.upper = _triple(upper, "ats_max")
+        lo = _triple(lower, "ats_min")
+        hi = _triple(upper, "ats_max")
         rate_arr = _triple(rate, "ats_rate")
-        if np.any(self.lower > self.upper) or np.any(rate_arr <= 0):
+        if np.any(lo > hi) or np.any(rate_arr <= 0):
             raise InputError("compensation.ats_min must not exceed ats_max; ats_rate must be > 0")
-        self._dmax = rate_arr * (skip / fs)
-        self._skip = float(skip)
-        self._thr2 = float(threshold) ** 2
         self._sos = np.ascontiguousarray(butter(6, cutoff, fs=fs, output="sos"))
-        self._zc = np.zeros((self._sos.shape[0], 2))
-        self._zm = np.zeros((self._sos.shape[0], 2))
+        self._st = np.zeros(_Z + 4 * self._sos.shape[0])
+        self._params = np.concatenate(
+            [lo, hi, rate_arr * (skip / fs), [self.dt, float(skip), float(threshold) ** 2]]
+        )
         self._ring = np.zeros((q, 4))
-        self._st = np.zeros(9)
         a0 = np.array([amplitude, delay, 0.5 * delay * delay], dtype=float)
-        self.a0_initial = np.clip(a0, self.lower, self.upper)
-        self.a = self.a0_initial.copy()
+        self.a0_initial = np.clip(a0, lo, hi)
         self.enabled = True
         self._x1 = self._x2 = self._x3 = 0.0
         self._c1 = 0.5 * fs
         self._c2 = fs * fs
-        self.alpha = 1.0 + float(self.a[1]) * fs
         self._observe = _observe
         self.updates = 0
         # compile now, not at a deadline
-        tmp = (np.zeros(9), np.zeros((q, 4)), self.a.copy())
-        _observe(
-            tmp[0], self._sos, self._zc.copy(), self._zm.copy(), tmp[1], tmp[2], self.lower,
-            self.upper, self._dmax, self.dt, self._skip, self._thr2, 0.0, 0.0,
-        )  # fmt: skip
         self.reset(0.0)
+        _observe(self._st.copy(), self._sos, self._ring.copy(), 0.0, 0.0)
+
+    @property
+    def a(self) -> np.ndarray:
+        """The current ``[a0, a1, a2]`` (a view into the state: writable)."""
+        return self._st[_A : _A + 3]
+
+    @property
+    def lower(self) -> np.ndarray:
+        """Lower bounds of ``a0, a1, a2``."""
+        return self._st[_LO : _LO + 3]
+
+    @property
+    def upper(self) -> np.ndarray:
+        """Upper bounds of ``a0, a1, a2``."""
+        return self._st[_HI : _HI + 3]
 
     def reset(self, target: float = 0.0) -> None:
         """Back to the initial coefficients; the target and the filters at rest at ``target``."""
         x = float(target)
         self._x1 = self._x2 = self._x3 = x
-        self.a[:] = self.a0_initial
-        self._zc[:] = 0.0
-        self._zm[:] = 0.0
-        self._ring[:] = 0.0
         self._st[:] = 0.0
-        self.alpha = 1.0 + float(self.a[1]) * self.fs
+        self._st[_LO:_Z] = self._params
+        self._st[_A : _A + 3] = self.a0_initial
+        self._ring[:] = 0.0
+        self._a0, self._a1, self._a2 = self.a0_initial.tolist()
+        self.alpha = 1.0 + self._a1 * self.fs
         self.updates = 0
 
     def step(self, target: float) -> float:
         """``a0·x + a1·ẋ + a2·ẍ`` with second-order backward differences of the target."""
-        x1, x2, x3 = self._x1, self._x2, self._x3
+        x1, x2 = self._x1, self._x2
         v = (3.0 * target - 4.0 * x1 + x2) * self._c1
-        acc = (2.0 * target - 5.0 * x1 + 4.0 * x2 - x3) * self._c2
+        acc = (2.0 * target - 5.0 * x1 + 4.0 * x2 - self._x3) * self._c2
         self._x3, self._x2, self._x1 = x2, x1, target
-        a = self.a
-        return a[0] * target + a[1] * v + a[2] * acc
+        return self._a0 * target + self._a1 * v + self._a2 * acc
 
     def observe(self, target: float, command: float, measured: float) -> None:
         """Feed the (command, measured) pair of the step to the moving-window fit."""
-        if self._observe(
-            self._st, self._sos, self._zc, self._zm, self._ring, self.a, self.lower,
-            self.upper, self._dmax, self.dt, self._skip, self._thr2, command, measured,
-        ):  # fmt: skip
+        if self._observe(self._st, self._sos, self._ring, command, measured):
             self.updates += 1
-            self.alpha = 1.0 + float(self.a[1]) * self.fs
+            self._a0, self._a1, self._a2 = self._st[_A : _A + 3].tolist()
+            self.alpha = 1.0 + self._a1 * self.fs
