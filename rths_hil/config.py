@@ -501,7 +501,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "model_order": Key(
             "int",
-            2,
+            3,
             unit="-",
             doc="model: Taylor order of the delay prediction e^(s·τ)",
             lo=0,

@@ -144,7 +144,7 @@ class ModelCompensator(Compensator):
         num: Sequence[float] = (),
         den: Sequence[float] = (),
         cutoff: float = 60.0,
-        order: int = 2,
+        order: int = 3,
         kp: float = 0.0,
         amplitude: float = 1.0,
     ) -> None:
