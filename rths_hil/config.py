@@ -216,6 +216,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "as the actuator answers",
             choices=("paced", "lockstep"),
         ),
+        "after_stall": Key(
+            "choice",
+            "slip",
+            unit="-",
+            doc="paced: after a stall of the bridge, slip: shift the time base and go on at "
+            "the normal rate (the actuator held during the stall); catch_up: run the missed "
+            "steps back to back, no faster than the velocity limit allows",
+            choices=("slip", "catch_up"),
+        ),
         "duration": Key(
             "float",
             30.0,
@@ -585,17 +594,29 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "watchdog_missed": Key(
             "int",
-            20,
+            0,
             unit="steps",
-            doc="consecutive missed replies that trip (20 ≈ 20 ms at 1024 Hz)",
-            lo=1,
+            doc="consecutive missed replies that also trip (0 = none beyond watchdog_timeout; "
+            "lockstep counts watchdog_timeout in steps of virtual time)",
+            lo=0,
         ),
         "watchdog_timeout": Key(
             "float",
-            0.0,
+            0.02,
             unit="s",
-            doc="paced: time without a good reply that trips (0 = auto: watchdog_missed periods)",
+            doc="controller silence that trips: time without a good reply while the bridge "
+            "ran (paced: wall clock, stalls of the bridge not counted; lockstep: virtual time)",
             lo=0,
+            lo_open=True,
+        ),
+        "max_stall": Key(
+            "float",
+            0.2,
+            unit="s",
+            doc="paced: a stall of the bridge itself (this process or computer not running "
+            "the loop) longer than this trips; shorter ones are events and the test goes on",
+            lo=0,
+            lo_open=True,
         ),
         "max_sequence_gaps": Key(
             "int", 0, unit="-", doc="sequence gaps tolerated before a trip", lo=0

@@ -213,6 +213,7 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
         "steps_per_second",
         "missed_replies",
         "overrun_causes",
+        "stalls",
         "driver_stats",
         "twin_stats",
         "final_alpha",
@@ -564,6 +565,12 @@ def format_summary(s: dict[str, Any]) -> str:
                 f"  overruns by cause: machine {c.get('machine')} "
                 f"(+{c.get('machine_backlog')} catch-up), work {c.get('work')} "
                 f"(+{c.get('work_backlog')} catch-up)"
+            )
+        st = s.get("stalls")
+        if st and st.get("count"):
+            lines.append(
+                f"  stalls of the bridge itself (not the controller): {st['count']}, longest "
+                f"{st['longest'] * 1e3:.1f} ms, total {st['total'] * 1e3:.1f} ms"
             )
     if s.get("steps_per_second"):
         lines.append(

@@ -23,9 +23,11 @@ Rules (names as they appear in events and on the console):
 ``kalman``
     Kalman gain outside ``[gain_min, gain_max]`` or ``|delay| > delay_max``.
 ``watchdog``
-    ``missed`` consecutive steps without a matching feedback reply, or (paced runs, and the
-    wall-clock bound of a lockstep run) more than ``timeout`` seconds since the last good reply,
-    however long each receive took: a reply that comes later than that is a missed reply.
+    Controller silence: more than ``timeout`` seconds without a good reply while the bridge was
+    running (paced runs, and the wall-clock bound of a lockstep run; stalls of the bridge itself
+    do not count), or ``missed`` consecutive steps without a matching reply (lockstep).
+``stall``
+    :class:`StallRule`: the bridge itself did not run for longer than ``max_stall`` (paced).
 ``sequence``
     More than ``max_gaps`` sequence gaps: a reply whose echoed sequence number is not the one
     sent, or a reply flagged ``SEQ_GAP`` by the controller (a command went missing).
@@ -66,6 +68,7 @@ __all__ = [
     "OverrunRule",
     "SafetyMonitor",
     "SequenceRule",
+    "StallRule",
     "StuckRule",
     "Trip",
     "WatchdogRule",
@@ -314,27 +317,32 @@ class KalmanRule:
 
 
 class WatchdogRule:
-    """Feedback watchdog: wall-clock time since the last good reply, and missed steps.
+    """Feedback watchdog: controller silence while the bridge was running and looking.
 
-    Trips when ``missed`` consecutive steps had no matching reply, or — when ``timeout`` is
-    given — when more than ``timeout`` seconds of the monotonic ``clock`` have passed since the
-    last good reply (since the first check before any reply), however long each receive took.
-    A reply that arrives later than ``timeout`` after the previous good one is therefore a
-    missed reply: the rule trips on it instead of accepting it as the current measurement.
-    The time limit is what makes a paced run safe when a receive blocks longer than the loop
-    period; the step count is what a lockstep run (virtual time) relies on.
+    Two limits, either may be off:
+
+    * ``timeout`` (s, paced runs): time since the last good reply during which the bridge was
+      running, on the monotonic ``clock``. Time in which the bridge itself was not running — a
+      stall of this process or of the computer, found by the loop and reported through
+      :meth:`stalled` — does not count: the controller cannot be blamed for replies nobody
+      was there to read. A good reply (one that echoes the command just sent) always resets
+      the clock, however long after the previous one it came: a controller that answered the
+      current command is not silent, and the gap is the loop's own stall (its rule is
+      :class:`StallRule`).
+    * ``missed`` consecutive steps without a matching reply (virtual time: what a lockstep run
+      relies on; 0 = off).
 
     Parameters
     ----------
     missed : int
-        Consecutive steps without a reply that trip (≥ 1).
+        Consecutive steps without a reply that trip (0 = no step limit).
     timeout : float or None
-        Seconds without a good reply that trip (> 0), or ``None`` for the step count only.
+        Seconds of silence that trip (> 0), or ``None`` for the step count only.
     clock : callable
         Monotonic clock in seconds (default :func:`time.perf_counter`, the loop's clock).
     """
 
-    __slots__ = ("clock", "count", "last_ok", "missed", "rule", "timeout")
+    __slots__ = ("clock", "count", "credit", "last_ok", "missed", "rule", "timeout")
 
     def __init__(
         self,
@@ -343,51 +351,116 @@ class WatchdogRule:
         clock: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.rule = "watchdog"
-        self.missed = _count("watchdog missed replies", missed)
+        self.missed = _count("watchdog missed replies", missed, minimum=0)
         self.timeout = None if timeout is None else _positive("watchdog timeout", timeout)
+        if self.missed == 0 and self.timeout is None:
+            raise InputError("watchdog: give a timeout (s) or a number of missed replies")
         self.clock = clock
         self.count = 0
         self.last_ok = math.nan
+        self.credit = 0.0  # stalled time of the bridge since last_ok (s)
 
     def reset(self) -> None:
         """Forget the previous replies (the next check starts the clock)."""
         self.count = 0
         self.last_ok = math.nan
+        self.credit = 0.0
+
+    def stalled(self, start: float, end: float) -> None:
+        """The bridge was not running from ``start`` to ``end`` (clock seconds): not silence.
+
+        Only the part after the last good reply counts (a stall found late, after a reply that
+        came when it ended, discounts nothing twice).
+        """
+        last = self.last_ok
+        if last == last and end > start:
+            self.credit += max(0.0, end - max(start, last))
 
     def check(self, ok: bool) -> Trip | None:
         """Feed whether this step got its reply (called once the receive has returned)."""
         timeout = self.timeout
         if timeout is not None:
             now = self.clock()
-            last = self.last_ok
-            if last != last:  # first check: the clock starts now
-                last = self.last_ok = now
-            elapsed = now - last
-            if elapsed > timeout:
-                self.count += 0 if ok else 1
-                return Trip(
-                    self.rule,
-                    f"no good feedback for {elapsed * 1e3:.1f} ms "
-                    f"(limit {timeout * 1e3:.1f} ms, {self.count} missed steps)",
-                    values={
-                        "elapsed": elapsed,
-                        "timeout": timeout,
-                        "missed": self.count,
-                        "late_reply": bool(ok),
-                    },
-                )
             if ok:
                 self.last_ok = now
+                self.credit = 0.0
+            else:
+                last = self.last_ok
+                if last != last:  # first check: the clock starts now
+                    last = self.last_ok = now
+                silent = now - last - self.credit
+                if silent > timeout:
+                    self.count += 1
+                    return Trip(
+                        self.rule,
+                        f"no good feedback for {silent * 1e3:.1f} ms while the bridge ran "
+                        f"(limit {timeout * 1e3:.1f} ms, {self.count} missed steps"
+                        + (
+                            f"; {self.credit * 1e3:.1f} ms of bridge stall not counted)"
+                            if self.credit > 0.0
+                            else ")"
+                        ),
+                        values={
+                            "elapsed": silent,
+                            "timeout": timeout,
+                            "missed": self.count,
+                            "stalled": self.credit,
+                        },
+                    )
         if ok:
             self.count = 0
             return None
         self.count += 1
-        if self.count < self.missed:
+        if self.missed == 0 or self.count < self.missed:
             return None
         return Trip(
             self.rule,
             f"no feedback for {self.count} consecutive steps (limit {self.missed})",
             values={"missed": self.count, "limit": self.missed},
+        )
+
+
+class StallRule:
+    """A stall of the bridge itself: the loop found a deadline long past (paced runs).
+
+    A stall is a gap in the loop's own progress — this process or the computer did not run it
+    (``SIGSTOP``, a host or hypervisor stall, swapping) — measured as the time between two
+    sends beyond one period. It is not controller silence (:meth:`WatchdogRule.stalled`
+    discounts it there). Below ``max_stall`` the test goes on and the stall is an event; above
+    it the test trips with a reason that names the stall and the machine.
+
+    Parameters
+    ----------
+    max_stall : float
+        Longest stall (s) after which the test may go on.
+    min_stall : float
+        Shortest gap (s) reported as a stall (shorter ones are ordinary overruns).
+    """
+
+    __slots__ = ("count", "longest", "max_stall", "min_stall", "rule", "total")
+
+    def __init__(self, max_stall: float, min_stall: float) -> None:
+        self.rule = "stall"
+        self.max_stall = _positive("max_stall", max_stall)
+        self.min_stall = _positive("min_stall", min_stall)
+        self.count = 0
+        self.longest = 0.0
+        self.total = 0.0
+
+    def check(self, length: float) -> Trip | None:
+        """Feed one stall of ``length`` seconds (≥ ``min_stall``, found by the loop)."""
+        self.count += 1
+        self.total += length
+        if length > self.longest:
+            self.longest = length
+        if length <= self.max_stall:
+            return None
+        return Trip(
+            self.rule,
+            f"the bridge itself stalled for {length * 1e3:.1f} ms (limit "
+            f"{self.max_stall * 1e3:.0f} ms): this computer did not run the loop; "
+            "the controllers were not at fault",
+            values={"stall": length, "max_stall": self.max_stall},
         )
 
 

@@ -54,7 +54,9 @@ LOCKSTEP = {
     "duplicate": (None, None),  # the copy is counted and skipped
     "delay_short": (None, None),  # 50 ms < the bound: waited for, nothing changes
     "delay_long": ("watchdog", 0),  # 2 s > the bound
-    "disconnect": ("watchdog", 19),  # a closed transport answers at once: 20 missed steps
+    # a closed transport answers at once: the default 20 ms of silence in virtual time is
+    # ceil(0.02 · 1024) = 21 missed steps
+    "disconnect": ("watchdog", 20),
     "stuck": ("stuck", 50),  # 50 identical values while the command moves
     "runaway": ("controller", 0),  # the controller flags FAULT with the first runaway reply
     "nan": ("nan", 0),
@@ -99,8 +101,10 @@ def _run(tmp_path, name, mode, *overrides, duration=None):
 
 
 def _time_to_trip(run, at: int) -> float:
-    """Wall-clock seconds from step ``at``'s deadline to the trip event."""
-    wall_t0 = next(e for e in run.events if e["kind"] == "clock")["wall_t0"]
+    """Wall-clock seconds from step ``at``'s deadline to the trip event (the time base of step
+    ``at``: the last ``clock`` event at or before it — a stall of the bridge slips it)."""
+    clocks = [e for e in run.events if e["kind"] == "clock" and e["step"] <= at]
+    wall_t0 = clocks[-1]["wall_t0"]
     trip = next(e for e in run.events if e["kind"] == "trip")
     return _iso(trip["wall_time"]) - (wall_t0 + at / FS)
 

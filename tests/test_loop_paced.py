@@ -130,12 +130,20 @@ def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
     assert summary["status"] == "operator_stop" and summary["trip"]["rule"] == "operator"
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM])
-def test_sigterm_takes_the_operator_stop_path(tmp_path, sig):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1])
+def test_every_terminating_signal_takes_the_operator_stop_path(tmp_path, sig):
+    """A closed terminal or ssh session (SIGHUP) stops the run as Ctrl-C does: the stop and
+    end events, every controller e-stopped and confirmed, exit 130."""
     out = tmp_path / "run"
     proc = _start(out)
     _wait_rows(out / "record.npy", proc)
     proc.send_signal(sig)
     proc.communicate(timeout=30)
     assert proc.returncode == 130
-    assert read_run(out).events[-1]["status"] == "operator_stop"
+    run = read_run(out)
+    stop = next(e for e in run.events if e["kind"] == "operator_stop")
+    assert stop["signal"] == signal.Signals(sig).name
+    assert run.events[-1]["kind"] == "end" and run.events[-1]["status"] == "operator_stop"
+    assert run.events[-1]["step"] == len(run.record)
+    estop = next(e for e in run.events if e["kind"] == "estop")
+    assert estop["confirmed"] is True

@@ -65,6 +65,49 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=main)
 
 
+class _Console:
+    """A console stream that a closed terminal cannot break: once a write or flush fails (the
+    terminal or the pipe went away: EIO, EPIPE), the rest is dropped and the test goes on —
+    the record, the events and ``summary.json`` are where nothing is lost."""
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+        self.gone = False
+
+    def write(self, text: str) -> int:
+        if not self.gone:
+            try:
+                return self._stream.write(text)
+            except (OSError, ValueError):
+                self.gone = True
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.gone:
+            try:
+                self._stream.flush()
+            except (OSError, ValueError):
+                self.gone = True
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+def _tolerant_console() -> None:
+    """Make stdout, stderr and the log handlers on them survive a closed terminal."""
+    import logging
+
+    for name in ("stdout", "stderr"):
+        old = getattr(sys, name)
+        if old is None or isinstance(old, _Console):
+            continue
+        new = _Console(old)
+        setattr(sys, name, new)
+        for h in logging.getLogger().handlers:
+            if isinstance(h, logging.StreamHandler) and h.stream is old:
+                h.setStream(new)
+
+
 def main(args: argparse.Namespace) -> int:
     """Run the test; return the exit code."""
     from ..errors import InputError
@@ -87,6 +130,7 @@ def main(args: argparse.Namespace) -> int:
     if args.out is not None and not args.out.strip():
         raise InputError("--out is empty: give a run directory")
     run_dir = Path(args.out) if args.out else new_run_dir(cfg["output"]["dir"])
+    _tolerant_console()  # from here on hardware may move: a closed terminal must not stop it
     live = None if args.quiet or cfg["loop"]["console"] <= 0 else LiveLine(sys.stderr)
     loop = RTHSLoop(cfg, run_dir, live=live, mode=mode, duration=duration)
     watcher = None

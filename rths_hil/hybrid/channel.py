@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -228,10 +229,20 @@ class Channel:
         if twin is None or not getattr(twin, "inline", False):
             return driver.receive
         pump, recv = twin.pump, driver.receive
+        perf = time.perf_counter
 
         def receive(timeout: float):
             pump()
-            return recv(timeout)
+            if twin._held is None:
+                return recv(timeout)
+            # the twin holds a delayed reply (a stalled controller): wait for it in slices,
+            # serving the twin between them, so the reply comes when it would from a thread
+            end = perf() + timeout
+            while True:
+                fb = recv(min(0.001, max(0.0, end - perf())))
+                if fb is not None or perf() >= end:
+                    return fb
+                pump()
 
         return receive
 

@@ -358,6 +358,8 @@ class TestPlan:
     priority: int
     links: list = field(default_factory=list)
     cpu: int = -1
+    max_stall: float = 0.2
+    after_stall: str = "slip"
     extra: dict = field(default_factory=dict)
 
     @property
@@ -510,12 +512,13 @@ def _plan_channel(
             else None
         ),
         watchdog=WatchdogRule(
-            sf["watchdog_missed"],
-            # paced: wall-clock time since the last good reply; lockstep: the generous
-            # wall-clock bound of the wait for each reply (virtual time, deterministic)
-            (sf["watchdog_timeout"] or sf["watchdog_missed"] * dt)
+            # paced: silence in wall-clock time while the bridge ran (+ an explicit step
+            # count); lockstep: the silence limit in steps of virtual time, and the generous
+            # wall-clock bound of the wait for each reply
+            sf["watchdog_missed"]
             if mode == "paced"
-            else cfg["loop"]["lockstep_timeout"],
+            else sf["watchdog_missed"] or max(1, math.ceil(sf["watchdog_timeout"] * fs - 1e-9)),
+            sf["watchdog_timeout"] if mode == "paced" else cfg["loop"]["lockstep_timeout"],
         ),
         sequence=SequenceRule(sf["max_sequence_gaps"]),
         overrun=None,  # one rule for the whole loop (TestPlan.max_overruns)
@@ -669,6 +672,8 @@ def build_plan(
         spin=min(lp["spin"], 0.4 * dt),
         overrun_threshold=lp["overrun_threshold"] * dt,
         max_overruns=sf["max_overruns"],
+        max_stall=sf["max_stall"],
+        after_stall=lp["after_stall"],
         heartbeat_steps=round(lp["heartbeat"] * fs) if lp["heartbeat"] > 0 else 0,
         console_interval=lp["console"],
         priority=lp["priority"],

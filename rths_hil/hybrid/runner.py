@@ -45,14 +45,23 @@ import numpy as np
 
 from ..errors import InputError
 from ..recorder import Recorder, RecordWriteError
-from ..safety import OverrunRule, Trip
+from ..safety import OverrunRule, StallRule, Trip
 from .channel import Channel
 from .plan import CHANNEL_COLUMNS_A, CHANNEL_COLUMNS_B, CHANNEL_COLUMNS_C, TestPlan
 from .timing import CAUSES, LEAD_IN, MIN_SLEEP, attribute_overruns, count_causes, p99
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunResult", "Runner", "Safety"]
+__all__ = ["STOP_SIGNALS", "RunResult", "Runner", "Safety"]
+
+#: Signals that end a run through the operator-stop path (the same as Ctrl-C): every signal
+#: whose default action terminates the process and that a terminal, a session manager or an
+#: operator sends — a closed terminal or ssh session (SIGHUP) included.
+STOP_SIGNALS = tuple(
+    getattr(signal, name)
+    for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2")
+    if hasattr(signal, name)
+)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -105,6 +114,9 @@ class RunResult:
         record (structure, compensation, evaluators, safety, recorder).
     channels : list of str
         Channel names.
+    stalls : list of tuple
+        Paced: each stall of the bridge itself as ``(step, length in s)``
+        (:class:`~rths_hil.safety.StallRule`).
     """
 
     status: str
@@ -126,6 +138,7 @@ class RunResult:
     overrun_threshold: float = math.nan
     work: np.ndarray = field(default_factory=lambda: np.zeros(0))
     channels: list = field(default_factory=list)
+    stalls: list = field(default_factory=list)
 
     @property
     def exit_code(self) -> int:
@@ -287,8 +300,12 @@ class Runner:
         self.plan = plan
         self.live = live
         self.channels = [Channel(cp, plan.fs) for cp in plan.channels]
-        overrun = OverrunRule(plan.max_overruns) if plan.mode == "paced" else None
+        paced = plan.mode == "paced"
+        overrun = OverrunRule(plan.max_overruns) if paced else None
         self.safety = Safety(self.channels, overrun)
+        #: the bridge's own stalls (paced): a gap between two sends longer than a period by
+        #: at least ``min_stall`` — 2 ms, or two periods at rates below 1 kHz
+        self.stall = StallRule(plan.max_stall, max(2e-3, 2.0 * plan.dt)) if paced else None
         self.result: RunResult | None = None
         self.stop_signal: str | None = None
 
@@ -328,7 +345,7 @@ class Runner:
                 raise KeyboardInterrupt
             self.stop_signal = signal.Signals(signum).name
 
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             old = signal.signal(sig, handler)
             stack.callback(signal.signal, sig, old)
 
@@ -431,6 +448,7 @@ class Runner:
                 lateness=ls,
                 overrun_causes=result.overrun_causes(),
                 missed_replies=result.missed_replies,
+                stalls=_stall_summary(result.stalls),
                 estop_confirmed=result.estop_confirmed,
                 driver_stats=result.driver_stats,
                 twin_stats=result.twin_stats,
@@ -494,6 +512,10 @@ class Runner:
         min_sleep = MIN_SLEEP * dt
         thr = plan.overrun_threshold
         hb_steps = plan.heartbeat_steps
+        stall_rule = self.stall
+        min_stall = stall_rule.min_stall if stall_rule is not None else math.inf
+        slip = plan.after_stall == "slip"
+        stalls: list[tuple[int, float]] = []
         perf = time.perf_counter
         sleep = time.sleep
         nan = math.nan
@@ -538,6 +560,7 @@ class Runner:
         gc.disable()
         t_start = perf()
         t0 = t_start + (LEAD_IN if paced else 0.0)
+        prev_send = t0 - dt  # the previous step's send (perf_counter): stalls are gaps from it
         # wall-clock time of deadline 0: row k was sent at wall_t0 + k·Δt + lateness[k]
         rec.event("clock", 0.0, 0, wall_t0=time.time() + (t0 - perf()))
         if console > 0:
@@ -566,9 +589,21 @@ class Runner:
                         now = perf()
                     while now < deadline:
                         now = perf()
+                    lat = now - deadline
+                    if lat > thr:  # late: a stall of the bridge, or an overrun to catch up
+                        if lat > min_stall and now - prev_send - dt > min_stall:
+                            trip = self._stall(rec, tk, k, prev_send + dt, now, lat, stalls)
+                            if trip is not None:
+                                break  # step k is not sent: every channel is e-stopped
+                            if slip:  # shift the time base: step k is on time from here
+                                t0 += lat
+                                rec.event("clock", tk, k, wall_t0=time.time() - tk, slip=lat)
+                        elif not slip:
+                            now = self._catch_up_spacing(now, prev_send)
+                            lat = now - deadline
                     for ch in chans:
                         ch.send(k, ch.c, True)
-                    lat = now - deadline
+                    prev_send = now
                     lat_list[k] = lat
                 else:
                     for ch in chans:
@@ -729,7 +764,49 @@ class Runner:
             overrun_threshold=thr if paced else math.nan,
             work=np.frombuffer(work_list, dtype=float)[:k],
             channels=[ch.name for ch in chans],
+            stalls=stalls,
         )
+
+    def _stall(
+        self,
+        rec: Recorder,
+        tk: float,
+        k: int,
+        start: float,
+        end: float,
+        lateness: float,
+        stalls: list,
+    ) -> Trip | None:
+        """The loop did not run from ``start`` to ``end`` (perf_counter s): a stall of the bridge.
+
+        Every channel's watchdog is told (the time is not controller silence), the stall is an
+        event with its length and what the loop does next, and a stall longer than
+        ``safety.max_stall`` trips.
+        """
+        length = end - start
+        for ch in self.channels:
+            wd = ch.monitor.watchdog
+            if wd is not None:
+                wd.stalled(start, end)
+        stalls.append((k, length))
+        trip = self.stall.check(length)
+        action = "trip" if trip is not None else self.plan.after_stall
+        rec.event("stall", tk, k, length=length, lateness=lateness, action=action)
+        log.warning("the bridge stalled for %.1f ms before step %d (%s)", length * 1e3, k, action)
+        return None if trip is None else self.safety._fire(trip, None, tk, k)
+
+    def _catch_up_spacing(self, now: float, prev_send: float) -> float:
+        """Catch-up after a stall: wait until no channel's command moves faster (in wall-clock
+        time, from the previous send) than its velocity limit allows; return the send time."""
+        need = 0.0
+        for ch in self.channels:
+            lim = ch.monitor.vel_limit
+            if lim != math.inf:
+                need = max(need, abs(ch.c - ch.last_command) / lim)
+        perf = time.perf_counter
+        while now < prev_send + need:
+            now = perf()
+        return now
 
     def _status(self, tk, k, n, rate, recent, overruns, paced) -> dict:
         """The console's status dict: the worst channel (nearest a limit) and its FEI."""
@@ -804,6 +881,16 @@ def _row_writer(rec: Recorder, chans: list[Channel], multi: bool, n_dof: int, st
         append(*row)
 
     return write_many
+
+
+def _stall_summary(stalls: list) -> dict:
+    """Count, longest and total of a run's stalls (s), for the end event and the summary."""
+    lengths = [s for _, s in stalls]
+    return {
+        "count": len(lengths),
+        "longest": max(lengths, default=0.0),
+        "total": sum(lengths),
+    }
 
 
 def _dot(row: list[float], x) -> float:

@@ -472,8 +472,9 @@ class RunFollower:
         return float(n) / self.fs() if n else 0.0
 
     def wall_t0(self) -> float | None:
-        """Wall-clock time (Unix s) of step 0's deadline (the ``clock`` event)."""
-        for e in self.events:
+        """Wall-clock time (Unix s) of step 0's deadline (the last ``clock`` event: a paced
+        run that slipped its time base after a stall of the bridge writes a new one)."""
+        for e in reversed(self.events):
             if e.get("kind") == "clock":
                 try:
                     return float(e["wall_t0"])

@@ -306,6 +306,9 @@ class TwinEndpoint(ABC):
         self._gone = False
         self.error: BaseException | None = None
         self.inline = False
+        # inline mode: a delayed reply (release time, frames, copies); until then the endpoint
+        # serves nothing, as a stalled controller (a pause must not stall the bridge's thread)
+        self._held: tuple[float, list[Any], int] | None = None
 
     @property
     def stats(self) -> TwinStats:
@@ -399,14 +402,31 @@ class TwinEndpoint(ABC):
             return
         frames = self._encode(*reply)
         copies, pause, corrupt = faults.reply_plan(seq)
-        if pause:
-            time.sleep(pause)
         if corrupt:
             frames = [self._corrupt(f) for f in frames]
+        if pause:
+            if self.inline:  # served from the bridge's thread: hold the reply, do not sleep
+                self._held = (time.monotonic() + pause, frames, copies)
+                return
+            time.sleep(pause)
         for _ in range(copies):
             for frame in frames:
                 self._write(frame)
         self.controller.stats.replies += copies
+
+    def _paused(self) -> bool:
+        """Inline mode: True while a delayed reply is held; sends it when its time has come."""
+        held = self._held
+        if held is None:
+            return False
+        if time.monotonic() < held[0]:
+            return True
+        self._held = None
+        for _ in range(held[2]):
+            for frame in held[1]:
+                self._write(frame)
+        self.controller.stats.replies += held[2]
+        return False
 
     @abstractmethod
     def _encode(self, seq: int, displacement: float, force: float, status: int) -> list[Any]:

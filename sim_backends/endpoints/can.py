@@ -207,16 +207,18 @@ class CANTwin(TwinEndpoint):
         """Serve every frame already on the bus (inline mode); return how many."""
         bus = self._bus
         n = 0
+        if self._held is not None and self._paused():  # a delayed reply: a stalled controller
+            return 0
         q = self._rxq
         if q is not None:  # python-can's virtual bus: its receive queue, no filters
             # the queue's deque: inline mode has no other reader, and a deque's popleft is
             # atomic against the sender's put (Queue.get_nowait would add two lock round trips)
             frames = q.queue
-            while frames:
+            while frames and self._held is None:
                 self._dispatch(frames.popleft())
                 n += 1
         else:
-            while bus is not None:
+            while bus is not None and self._held is None:
                 msg = bus.recv(0.0)
                 if msg is None:
                     break
