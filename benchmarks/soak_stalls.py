@@ -37,6 +37,8 @@ from rths_hil.groundmotion import default_record
 from rths_hil.units import G
 
 HOG = "while True: pass"
+LISTED = 0.010  # stalls at least this long (s) are listed one by one
+BINS = [0.0, 0.005, 0.010, 0.050, 0.200, np.inf]  # the histogram of stall lengths (s)
 
 
 def tiled_record(path: Path, duration: float) -> None:
@@ -85,8 +87,11 @@ def describe(name: str, out: Path, code: int, wall: float) -> tuple[list, list]:
     rows = [
         [name, e["step"], f"{e['time']:.3f}", f"{e['length'] * 1e3:.1f}", e["action"]]
         for e in stalls
+        if e["length"] >= LISTED
     ]
-    return row, rows
+    lengths = np.array([e["length"] for e in stalls])
+    counts = np.histogram(lengths, bins=BINS)[0] if lengths.size else [0] * (len(BINS) - 1)
+    return row + [int(c) for c in counts], rows
 
 
 def main() -> int:
@@ -147,10 +152,18 @@ def main() -> int:
             "total ms",
             "overruns machine / work",
             "missed replies",
+            "stalls < 5 ms",
+            "5–10 ms",
+            "10–50 ms",
+            "50–200 ms",
+            "> 200 ms",
         ],
         summary,
     )
-    table += "\n\nEvery stall (`stall` events: step, loop time, length, what the loop did):\n\n"
+    table += (
+        "\n\nEvery stall of 10 ms or more (`stall` events: step, loop time, length, what the "
+        "loop did):\n\n"
+    )
     table += (
         markdown_table(["run", "step", "t s", "length ms", "then"], stall_rows)
         if stall_rows

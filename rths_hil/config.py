@@ -40,7 +40,9 @@ from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 from typing import Any
 
-from .errors import InputError
+import tomli_w
+
+from .errors import InputError, check_regular_file
 from .units import parse_accel, parse_fraction, parse_length, parse_time, parse_window
 
 __all__ = [
@@ -96,6 +98,14 @@ class Key:
 
 
 #: The schema: section → key → :class:`Key`. The defaults form the embedded NEES-711 setup.
+#: Physically plausible masses (kg) of a numerical substructure: 1 g (a bench model's storey)
+#: to 10 Mt (ten times a 100-storey tower's floor). Beyond them the structure's matrices are
+#: numerically singular (1e-300 kg) or its response overflows: refused with the key and value.
+MASS_RANGE = (1e-3, 1e10)
+#: Physically plausible storey stiffnesses (N/m): 1 mN/m to 1 TN/m (a stiff concrete core
+#: storey is of order 1e10 N/m).
+STIFFNESS_RANGE = (1e-3, 1e12)
+
 SCHEMA: dict[str, dict[str, Key]] = {
     "structure": {
         "kind": Key(
@@ -110,9 +120,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             503.4e3,
             unit="kg",
-            doc="mass of the SDOF moment resisting frame",
-            lo=0,
-            lo_open=True,
+            doc="mass of the SDOF moment resisting frame (physically plausible: 1 g to 10 Mt)",
+            lo=MASS_RANGE[0],
+            hi=MASS_RANGE[1],
         ),
         "fn": Key(
             "float",
@@ -150,24 +160,27 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             1.19e6,
             unit="N/m",
-            doc="estimated specimen stiffness, used in the CR integration parameter",
+            doc="estimated specimen stiffness, used in the CR integration parameter "
+            "(at most 1 TN/m)",
             lo=0,
+            hi=STIFFNESS_RANGE[1],
         ),
         "masses": Key(
             "array",
             [],
             unit="kg",
-            doc="shear_building: storey masses, first storey first",
-            lo=0,
-            lo_open=True,
+            doc="shear_building: storey masses, first storey first (1 g to 10 Mt each)",
+            lo=MASS_RANGE[0],
+            hi=MASS_RANGE[1],
         ),
         "stiffnesses": Key(
             "array",
             [],
             unit="N/m",
-            doc="shear_building: storey (inter-storey) stiffnesses, first storey first",
-            lo=0,
-            lo_open=True,
+            doc="shear_building: storey (inter-storey) stiffnesses, first storey first "
+            "(1 mN/m to 1 TN/m each)",
+            lo=STIFFNESS_RANGE[0],
+            hi=STIFFNESS_RANGE[1],
         ),
         "rayleigh": Key(
             "array",
@@ -287,21 +300,109 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "heartbeat": Key("float", 0.1, unit="s", doc="driver heartbeat interval (0 = never)", lo=0),
         "console": Key("float", 0.5, unit="s", doc="live console line interval (0 = off)", lo=0),
+        "confirm_hardware": Key(
+            "bool",
+            False,
+            unit="-",
+            doc="this configuration may drive real hardware (a channel without a twin) without "
+            "--confirm-hardware on the command line (for a lab's own configurations)",
+        ),
+    },
+    "start": {
+        "mode": Key(
+            "choice",
+            "ramp",
+            unit="-",
+            doc="ramp: move each actuator from where it is to the first target along a cosine "
+            "ramp; offset: run the test about where it is (commands + start position, "
+            "measurements − start position)",
+            choices=("ramp", "offset"),
+        ),
+        "ramp_time": Key(
+            "float",
+            2.0,
+            unit="s",
+            doc="shortest start ramp (longer when start.velocity needs it)",
+            lo=0,
+            lo_open=True,
+            hi=600,
+        ),
+        "velocity": Key(
+            "float",
+            0.01,
+            unit="m/s",
+            doc="peak velocity of the start and end ramps (at most half safety.velocity_limit)",
+            lo=0,
+            lo_open=True,
+        ),
+        "hold": Key(
+            "float",
+            0.2,
+            unit="s",
+            doc="hold at the first target after the start ramp, before step 0",
+            lo=0,
+            hi=60,
+        ),
+        "tolerance": Key(
+            "float",
+            5e-5,
+            unit="m",
+            doc="no start ramp when the actuator is this close to the first target",
+            lo=0,
+        ),
+    },
+    "end": {
+        "rest": Key(
+            "choice",
+            "hold",
+            unit="-",
+            doc="after a completed run or an operator stop: hold where the test ended, or ramp "
+            "to end.rest_position; then the controller is disabled (a trip e-stops instead)",
+            choices=("hold", "position"),
+        ),
+        "rest_position": Key(
+            "float", 0.0, unit="m", doc="end.rest = position: where to ramp to (absolute)"
+        ),
+        "hold": Key(
+            "float",
+            0.0,
+            unit="s",
+            doc="keep commanding the rest position this long before disabling (0: disable at "
+            "once; a disabled controller holds where it is)",
+            lo=0,
+            hi=60,
+        ),
     },
     "driver": {
         "name": Key(
             "str",
             "can",
             unit="-",
-            doc="driver name in the registry (can, modbus, serial, or a lab's entry point)",
+            doc="driver name in the registry (can, modbus, serial, canopen, or a lab's entry "
+            "point)",
         ),
         "connection": Key(
             "table",
             {},
             unit="-",
             doc="driver connection settings (e.g. interface/channel for CAN, "
-            "host/port for Modbus, url for serial); with a twin they go to the "
-            "twin, which hands the driver its endpoint",
+            "host/port for Modbus, url for serial, eds/node_id/profile for CANopen: "
+            "docs/canopen.md); with a twin they go to the twin, which hands the driver its "
+            "endpoint",
+        ),
+        "profile": Key(
+            "str",
+            "rths-hil",
+            unit="-",
+            doc="controller profile: 'rths-hil' (the driver's own protocol) or a profile file "
+            "(TOML: the lab's register map or DBC, docs/profiles.md); the twin speaks it too",
+        ),
+        "stepped": Key(
+            "bool",
+            False,
+            unit="-",
+            doc="the controller advances one step per command (virtual time), so a lockstep "
+            "run against it without a twin is allowed",
         ),
     },
     "twin": {
@@ -357,6 +458,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "",
             unit="-",
             doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' (sim_backends.faults)",
+        ),
+        "initial_position": Key(
+            "float",
+            0.0,
+            unit="m",
+            doc="where the twin's actuator sits at rest (an actuator left off centre)",
         ),
     },
     "compensation": {
@@ -747,6 +854,46 @@ SCHEMA: dict[str, dict[str, Key]] = {
             lo_open=True,
         ),
     },
+    "commission": {
+        "amplitude": Key(
+            "float",
+            0.001,
+            unit="m",
+            doc="amplitude of the ramp–hold–ramp motion of `rths-hil commission`",
+            lo=0,
+            lo_open=True,
+        ),
+        "velocity": Key(
+            "float",
+            0.005,
+            unit="m/s",
+            doc="peak velocity of the commissioning motion",
+            lo=0,
+            lo_open=True,
+        ),
+        "latency_time": Key(
+            "float",
+            2.0,
+            unit="s",
+            doc="length of the round-trip latency measurement (actuator disabled)",
+            lo=0,
+            lo_open=True,
+        ),
+        "watchdog_test": Key(
+            "bool",
+            True,
+            unit="-",
+            doc="stop the heartbeat and check that the controller latches within its timeout",
+        ),
+        "watchdog_timeout": Key(
+            "float",
+            0.0,
+            unit="s",
+            doc="the controller's heartbeat timeout (0 = twin.watchdog for a twin; without it "
+            "the watchdog step is skipped on hardware)",
+            lo=0,
+        ),
+    },
     "output": {
         "dir": Key(
             "str",
@@ -774,6 +921,8 @@ _PREFIX = {"": 1.0, "k": 1e3, "M": 1e6}
 
 def _describe(v: Any) -> str:
     if isinstance(v, str):
+        if len(v) > 60:  # a message stays one readable line
+            return f"{v[:40]!r}… ({len(v)} characters)"
         return repr(v)
     if isinstance(v, bool):
         return "true" if v else "false"
@@ -955,7 +1104,7 @@ class ChannelConfig:
 #: defaults every channel inherits.
 CHANNEL_SECTIONS = ("driver", "twin", "compensation", "fei", "kalman", "safety")
 _CHANNEL_KEYS = ("name", "dof", "transform")
-_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
+_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}\Z")
 
 
 #: Compensation keys in loop steps and the time key each stands for:
@@ -1084,8 +1233,8 @@ def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:
         if key == "name":
             if not isinstance(value, str) or not _NAME_RE.match(value):
                 raise InputError(
-                    f"{where}: {kp}: expected a name of letters, digits and _ starting with a "
-                    f"letter, got {_describe(value)}"
+                    f"{where}: {kp}: expected a name of 1 to 32 letters, digits and _ starting "
+                    f"with a letter, got {_describe(value)}"
                 )
             out["name"] = value
         elif key == "dof":
@@ -1356,6 +1505,10 @@ def _cross_check_one(cfg: Config, where: str) -> None:
         raise InputError(f"{where}: compensation.adaptive needs fei.enabled = true")
 
 
+#: Largest configuration file read (bytes): a real one is a few kB.
+MAX_CONFIG_BYTES = 1 << 20
+
+
 def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
     """Read a configuration file over the defaults, then apply ``--set`` overrides.
 
@@ -1379,6 +1532,7 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
     cfg = default_config()
     if path is not None:
         p = Path(path)
+        check_regular_file(p, "a configuration", max_bytes=MAX_CONFIG_BYTES)
         try:
             text = p.read_text(encoding="utf-8")
         except OSError as exc:
@@ -1428,22 +1582,24 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
 # rendering
 
 
+def _toml_key(k: str) -> str:
+    """``k`` as a TOML key: bare when it may be, else quoted by ``tomli_w``."""
+    return tomli_w.dumps({k: 0}).rstrip("\n").rsplit(" = ", 1)[0]
+
+
 def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    """One value as TOML text, written by ``tomli_w`` (strings with newlines, quotes or control
+    characters escaped as TOML requires; tables inline, as the one-key-a-line layout needs)."""
     if isinstance(v, dict):
-        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + "}"
+        return (
+            "{" + ", ".join(f"{_toml_key(str(k))} = {_toml_value(x)}" for k, x in v.items()) + "}"
+        )
     if isinstance(v, list | tuple):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(type(v))
+    if isinstance(v, float) and math.isnan(v):
+        return "nan"
+    text = tomli_w.dumps({"v": v})  # 'v = <value>\n'
+    return text[len("v = ") :].rstrip("\n")
 
 
 def to_toml(cfg: Mapping[str, Mapping[str, Any]], comments: bool = True) -> str:
@@ -1490,7 +1646,17 @@ def schema_markdown() -> str:
         "",
         "Errors (unknown key, wrong type, unit or range) are one line naming the file or the",
         "`--set` item and the key path; `rths-hil run` then exits with code 2.",
-        "`rths-hil run --show-config` prints the resolved configuration as TOML.",
+        "`rths-hil run --show-config` prints the resolved configuration as TOML (values written",
+        "by `tomli_w`: strings with newlines, quotes or control characters read back unchanged).",
+        "",
+        "A configuration file must be a regular file of at most 1 MiB (a FIFO or a device such",
+        "as `/dev/zero` is refused before it is read). Masses and stiffnesses of the numerical",
+        "substructure must be physically plausible: 1 g to 10 Mt, 1 mN/m to 1 TN/m (beyond",
+        "them the structure's matrices are singular or its response overflows). Before anything",
+        "is allocated the run estimates what it needs and refuses, naming the figure, a duration",
+        "whose per-step arrays (32 bytes a step) exceed half the available memory, a record",
+        "(rows × row size) larger than the free disk space of `output.dir`, and a",
+        "`fei.exact_hop` longer than the run (`rths_hil/resources.py`).",
         "",
     ]
     for section, keys in SCHEMA.items():

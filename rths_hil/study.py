@@ -555,7 +555,9 @@ def plot_window_size(path: str | Path, rows: Sequence[WindowSizeResult]) -> None
         ax.grid(True, alpha=0.3)
     ax2.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    from .plotting import save_figure
+
+    save_figure(fig, path, 120)
     plt.close(fig)
 
 
@@ -586,7 +588,9 @@ def plot_accuracy(
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    from .plotting import save_figure
+
+    save_figure(fig, path, 120)
     plt.close(fig)
 
 
@@ -1593,7 +1597,9 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
     fig.suptitle(f"{n} perturbed twins: " + ", ".join(p.key for p in result.perturbations))
     fig.tight_layout()
     paths.append(out / "robustness_hist.png")
-    fig.savefig(paths[-1], dpi=120)
+    from .plotting import save_figure
+
+    save_figure(fig, paths[-1], 120)
     plt.close(fig)
     if len(result.alphas) > 1:
         summ = result.summary()
@@ -1627,6 +1633,8 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
         fig.suptitle("robustness against α over the same perturbed twins")
         fig.tight_layout()
         paths.append(out / "robustness_alpha.png")
-        fig.savefig(paths[-1], dpi=120)
+        from .plotting import save_figure
+
+        save_figure(fig, paths[-1], 120)
         plt.close(fig)
     return paths

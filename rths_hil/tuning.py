@@ -866,7 +866,9 @@ def plot_tuning(result: TuneResult, path: str | Path, title: str = "") -> Path:
     ax.grid(True, alpha=0.3)
     fig.suptitle(title or f"rths-hil tune: {result.stop}")
     out = Path(path)
-    fig.savefig(out, dpi=110)
+    from .plotting import save_figure
+
+    save_figure(fig, out, 110)
     plt.close(fig)
     return out
 
@@ -913,6 +915,8 @@ def plot_sweep(
         ax.legend(loc="best")
     fig.suptitle(title or "rths-hil tune --sweep")
     out = Path(path)
-    fig.savefig(out, dpi=110)
+    from .plotting import save_figure
+
+    save_figure(fig, out, 110)
     plt.close(fig)
     return out

@@ -18,11 +18,25 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import re
 from pathlib import Path
 
 from ..errors import InputError
+from ..resources import MAX_TRIALS, check_count, check_memory, max_workers
 from ..units import parse_accel, parse_fraction, parse_range, parse_time
+
+
+def _check_workers(workers: int) -> None:
+    """Refuse fewer than one worker or more than the machine can hold (before starting any)."""
+    if workers < 1:
+        raise InputError(f"--workers must be ≥ 1, got {workers}")
+    check_count(
+        workers,
+        max_workers(),
+        "--workers",
+        f"four processes per CPU; this machine has {os.cpu_count() or 1}",
+    )
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -229,8 +243,7 @@ def _common(args: argparse.Namespace) -> dict:
     min_level = parse_fraction(args.min_level, "--min-level")
     if not 0 <= min_level < 1:
         raise InputError(f"--min-level must lie in [0, 1), got {args.min_level}")
-    if args.workers < 1:
-        raise InputError(f"--workers must be ≥ 1, got {args.workers}")
+    _check_workers(args.workers)
     return {
         "zeta": zeta,
         "gain": _positive(args.gain, "--gain"),
@@ -390,8 +403,10 @@ def run_robustness(args: argparse.Namespace) -> int:
     base = study._inline_twin(cfg)
     if args.trials < 1:
         raise InputError(f"--trials must be ≥ 1, got {args.trials}")
-    if args.workers < 1:
-        raise InputError(f"--workers must be ≥ 1, got {args.workers}")
+    check_count(args.trials, MAX_TRIALS, "--trials", "each trial is a whole lockstep run")
+    _check_workers(args.workers)
+    if args.seed < 0:
+        raise InputError(f"--seed must be an integer ≥ 0, got {args.seed}")
     if args.vary:
         perts = [study.parse_vary(text, base) for text in args.vary]
     else:
@@ -406,6 +421,11 @@ def run_robustness(args: argparse.Namespace) -> int:
         duration = parse_time(args.duration, "--duration")
         if not (math.isfinite(duration) and duration > 0):
             raise InputError(f"--duration must be > 0 s, got {args.duration!r}")
+        fs = float(cfg["loop"]["fs"])
+        check_memory(
+            4 * 8 * duration * fs * min(args.workers, args.trials),
+            f"--duration {duration:g} s at {fs:g} Hz on {min(args.workers, args.trials)} workers",
+        )
     specs = study.plan_trials(base, perts, args.trials, args.seed, alphas, duration)
     out = _outdir(args.out)
     if (out / "trials.csv").exists():

@@ -195,6 +195,7 @@ class Channel:
                     faults=plan.faults,
                     threaded=not plan.twin_inline,
                     heartbeat_timeout=plan.twin_watchdog,
+                    initial_position=cfg["twin"]["initial_position"],
                     **conn,
                 )
             except InputError as exc:
@@ -211,6 +212,7 @@ class Channel:
             raise InputError(f"{where}: driver.connection: {exc}") from None
         driver.open()
         stack.callback(driver.close)
+        stack.callback(driver.stop_reader)  # before close: a reader thread stops first
         self.bind(driver)
         if self.stream is not None and plan.exact_hop > 0:
             self.exact = ExactFEI(self.fs, plan.window_s, plan.exact_hop, background_exact)
