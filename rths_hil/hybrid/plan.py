@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from .. import groundmotion
-from ..compensation import AdaptiveAlpha, InverseCompensator
+from ..compensation import AdaptiveAlpha, Compensator
 from ..config import ChannelConfig, Config, structure_dofs
 from ..errors import InputError
 from ..recorder import COLUMNS
@@ -325,7 +325,7 @@ class ChannelPlan:
     twin_watchdog: float | None
     plant: Any
     faults: Any
-    compensator: InverseCompensator
+    compensator: Compensator
     adaptive: AdaptiveAlpha | None
     fei_enabled: bool
     window_s: float
@@ -476,13 +476,29 @@ def _plan_channel(
             raise InputError(f"{where}: twin.faults: {exc}") from None
     inline = bool(tw["inline"] and tw["enabled"] and dcls.inline_twin(conn))
 
-    c = cfg["compensation"]
-    comp = InverseCompensator(c["alpha"], c["amplitude"], c["enabled"])
+    c = cfg["compensation"]  # in time units (delay, delay_rate, …): the same at any loop.fs
+    from ..compensators import build_compensator
+
+    try:
+        comp = build_compensator(c, fs)
+    except InputError as exc:
+        raise InputError(f"{where}: compensation: {exc}") from None
     fe = cfg["fei"]
     adaptive = None
     if c["adaptive"] and c["enabled"]:
+        if c["method"] != "inverse":
+            raise InputError(
+                f"{where}: compensation.adaptive adapts the inverse method's α; method "
+                f"{c['method']!r} does not take it (ats adapts on its own)"
+            )
         adaptive = AdaptiveAlpha(
-            comp, dt, fe["pair"], c["time_constant"], c["rate"], c["alpha_min"], c["alpha_max"]
+            comp,
+            dt,
+            fe["pair"],
+            c["time_constant"],
+            c["delay_rate"] * fs,
+            1.0 + c["delay_min"] * fs,
+            1.0 + c["delay_max"] * fs,
         )
     try:
         window_s = _window(cfg, fn1)
