@@ -23,10 +23,11 @@ from typing import Any
 import numpy as np
 
 from .. import groundmotion
-from ..compensation import AdaptiveAlpha, InverseCompensator
+from ..compensation import AdaptiveAlpha, Compensator
 from ..config import ChannelConfig, Config, structure_dofs
 from ..errors import InputError
 from ..recorder import COLUMNS
+from ..resources import check_disk, check_memory
 from ..safety import (
     ControllerRule,
     FEIRule,
@@ -53,9 +54,6 @@ __all__ = [
     "record_columns",
 ]
 
-#: Twins exist for these drivers.
-TWIN_DRIVERS = ("can", "modbus", "serial")
-
 
 def new_run_dir(pattern: str, base: Path | None = None) -> Path:
     """Expand ``{timestamp}`` in ``pattern``; add a suffix if the directory already has a run."""
@@ -66,9 +64,12 @@ def new_run_dir(pattern: str, base: Path | None = None) -> Path:
     if base is not None and not p.is_absolute():
         p = base / p
     out, i = p, 1
-    while any((out / f).exists() for f in ("record.npy", "events.jsonl", "meta.json")):
-        out = p.with_name(f"{p.name}-{i}")
-        i += 1
+    try:
+        while any((out / f).exists() for f in ("record.npy", "events.jsonl", "meta.json")):
+            out = p.with_name(f"{p.name}-{i}")
+            i += 1
+    except OSError as exc:  # a path component over 255 characters, no permission
+        raise InputError(f"output.dir: {p}: {exc.strerror or exc}") from None
     return out
 
 
@@ -89,6 +90,10 @@ def build_ground_motion(cfg: Config) -> groundmotion.GroundMotion:
         return gm.resampled(cfg["loop"]["fs"])
     except InputError as exc:
         raise InputError(f"{cfg.source}: ground_motion.record: {exc}") from None
+    except OSError as exc:  # a path component over 255 characters, a directory, no permission
+        raise InputError(
+            f"{cfg.source}: ground_motion.record: cannot read {spec!r}: {exc.strerror or exc}"
+        ) from None
 
 
 def choose_plant(cfg: Config, dt: float):
@@ -320,7 +325,7 @@ class ChannelPlan:
     twin_watchdog: float | None
     plant: Any
     faults: Any
-    compensator: InverseCompensator
+    compensator: Compensator
     adaptive: AdaptiveAlpha | None
     fei_enabled: bool
     window_s: float
@@ -426,18 +431,41 @@ def _plan_channel(
     from rths_hil.drivers.registry import driver_class
 
     try:
-        driver_class(name)
+        dcls = driver_class(name)
     except InputError as exc:
         raise InputError(f"{where}: driver.name: {exc}") from None
     tw = cfg["twin"]
-    if tw["enabled"] and name not in TWIN_DRIVERS:
-        raise InputError(
-            f"{where}: twin.enabled: there is no twin for driver {name!r} (twins exist "
-            "for can, modbus, serial); set twin.enabled = false to use the real controller"
-        )
+    if tw["enabled"]:
+        from rths_hil.sim_backends.registry import available_twins
+
+        twins = available_twins()
+        if name not in twins:
+            raise InputError(
+                f"{where}: twin.enabled: there is no twin for driver {name!r} (twins exist "
+                f"for {', '.join(sorted(twins))}); set twin.enabled = false to use the real "
+                "controller"
+            )
     conn = dict(cfg["driver"]["connection"])
     if isinstance(conn.get("dbc"), str) and conn["dbc"]:  # relative to the config file
         conn["dbc"] = str(cfg.resolve_path(conn["dbc"]))
+    if isinstance(conn.get("eds"), str) and conn["eds"]:  # a CANopen EDS: relative to the config
+        conn["eds"] = str(cfg.resolve_path(conn["eds"]))
+    profile = cfg["driver"]["profile"]
+    from rths_hil.drivers.profile import is_builtin, load_profile
+
+    if not is_builtin(profile):
+        path = cfg.resolve_path(profile)
+        try:
+            prof = load_profile(path)
+        except InputError as exc:
+            raise InputError(f"{where}: driver.profile: {exc}") from None
+        if prof.protocol != dcls.profile_protocol:
+            speaks = dcls.profile_protocol or "no profile"
+            raise InputError(
+                f"{where}: driver.profile: {path} is a {prof.protocol} profile; driver "
+                f"{name!r} takes {speaks}"
+            )
+        conn["profile"] = str(path)
     if tw["enabled"] and plant is None:
         plant = choose_plant(cfg, dt)
     faults = None
@@ -448,15 +476,31 @@ def _plan_channel(
             faults = Faults.parse(tw["faults"])
         except InputError as exc:
             raise InputError(f"{where}: twin.faults: {exc}") from None
-    inline = bool(tw["inline"] and name == "can" and conn.get("interface", "virtual") == "virtual")
+    inline = bool(tw["inline"] and tw["enabled"] and dcls.inline_twin(conn))
 
-    c = cfg["compensation"]
-    comp = InverseCompensator(c["alpha"], c["amplitude"], c["enabled"])
+    c = cfg["compensation"]  # in time units (delay, delay_rate, …): the same at any loop.fs
+    from ..compensators import build_compensator
+
+    try:
+        comp = build_compensator(c, fs)
+    except InputError as exc:
+        raise InputError(f"{where}: compensation: {exc}") from None
     fe = cfg["fei"]
     adaptive = None
     if c["adaptive"] and c["enabled"]:
+        if c["method"] != "inverse":
+            raise InputError(
+                f"{where}: compensation.adaptive adapts the inverse method's α; method "
+                f"{c['method']!r} does not take it (ats adapts on its own)"
+            )
         adaptive = AdaptiveAlpha(
-            comp, dt, fe["pair"], c["time_constant"], c["rate"], c["alpha_min"], c["alpha_max"]
+            comp,
+            dt,
+            fe["pair"],
+            c["time_constant"],
+            c["delay_rate"] * fs,
+            1.0 + c["delay_min"] * fs,
+            1.0 + c["delay_max"] * fs,
         )
     try:
         window_s = _window(cfg, fn1)
@@ -593,6 +637,9 @@ def build_plan(
     n = round(dur * fs) if dur > 0 else ag.size
     if n < 2:
         raise InputError(f"duration {dur:g} s is shorter than two steps at {fs:g} Hz")
+    # the loop's per-step arrays (ground motion, its padding and copy): refuse before allocating
+    key = "loop.duration" if duration is None else "duration"
+    check_memory(4 * 8 * n, f"{key} = {dur:g} s at {fs:g} Hz ({n:.3g} steps)")
     if n > ag.size:
         ag = np.concatenate([ag, np.zeros(n - ag.size)])
     ag = ag[:n].copy()
@@ -621,6 +668,21 @@ def build_plan(
         for i, cc in enumerate(chans_cfg)
     ]
     for i, ch in enumerate(channels):
+        if ch.exact_hop > max(n, gm.npts):  # its block buffer alone would be 16·hop bytes
+            raise InputError(
+                f"{_where(chans_cfg[i], i)}: fei.exact_hop = {ch.exact_hop} steps is longer than "
+                f"the run ({n} steps) and the record: the exact cross-check would never run "
+                "(0 turns it off)"
+            )
+        if ch.exact_hop > n:  # a run shortened below one hop: no exact window, nothing held
+            log.warning(
+                "%s: fei.exact_hop = %d steps is longer than this run (%d steps): no exact "
+                "cross-check in it",
+                _where(chans_cfg[i], i),
+                ch.exact_hop,
+                n,
+            )
+            ch.exact_hop = 0
         N = round(ch.window_s * fs)
         if ch.fei_enabled and N > min(n, gm.npts):
             longer = "record" if gm.npts < n else "run"
@@ -636,6 +698,11 @@ def build_plan(
     _check_shared_links(cfg, channels)
     links = link_loads(cfg, channels, fs)
     sf = cfg["safety"]
+    columns = record_columns([c.suffix for c in channels], n_dof) + [
+        (c[0], c[2], c[3], c[4]) for c in getattr(structure, "record_columns", ())
+    ]
+    row_bytes = sum(np.dtype(c[1]).itemsize for c in columns)
+    check_disk(n * row_bytes, run_dir, f"the record of {dur or n / fs:g} s at {fs:g} Hz")
     return TestPlan(
         cfg=cfg,
         mode=mode,
@@ -648,8 +715,7 @@ def build_plan(
         structure=structure,
         fn1=fn1,
         channels=channels,
-        columns=record_columns([c.suffix for c in channels], n_dof)
-        + [(c[0], c[2], c[3], c[4]) for c in getattr(structure, "record_columns", ())],
+        columns=columns,
         # paced: at most 0.8 period; lockstep waits for every reply, up to the wall-clock bound
         # that trips the watchdog
         timeout=(lp["feedback_timeout"] or 0.8 * dt) if mode == "paced" else lp["lockstep_timeout"],
@@ -686,12 +752,14 @@ def link_loads(cfg: Config, channels: list[ChannelPlan], fs: float) -> list:
     Channels with a twin and no explicit bus (CAN channel, Modbus port, serial port) each get a
     link of their own (a fresh virtual bus, port or pseudo-terminal).
     """
+    from rths_hil.drivers.registry import driver_class
+
     from ..linkbudget import check_links, link_key, link_load
 
     groups: dict[str, list[ChannelPlan]] = {}
     for i, ch in enumerate(channels):
         conn = ch.connection
-        own = ch.twin_enabled and not (conn.get("channel") or conn.get("port") or conn.get("url"))
+        own = ch.twin_enabled and driver_class(ch.driver_name).own_link(conn)
         key = f"{link_key(ch.driver_name, conn)}#{i}" if own else link_key(ch.driver_name, conn)
         groups.setdefault(key, []).append(ch)
     hb = cfg["loop"]["heartbeat"]
@@ -713,67 +781,17 @@ def link_loads(cfg: Config, channels: list[ChannelPlan], fs: float) -> list:
 
 
 def _check_shared_links(cfg: Config, channels: list[ChannelPlan]) -> None:
-    """Channels sharing a link must be told apart: CAN node ids, Modbus unit ids; serial: no.
+    """Channels sharing a link must be told apart (CAN node ids, Modbus unit ids; one channel
+    per serial line): each driver class checks its own channels (``Driver.check_sharing``)."""
+    from rths_hil.drivers.registry import driver_class
 
-    Modbus TCP channels on one ``host:port`` share one connection (and, with twins, one
-    server); each needs its own unit id (``driver.connection.device_id``, 1–247). A Modbus RTU
-    line carries one channel.
-    """
-    seen: dict[tuple, str] = {}
-    tcp = [
-        (c.connection.get("host", "127.0.0.1"), c.connection.get("port", 502))
-        for c in channels
-        if c.driver_name == "modbus" and c.connection.get("transport", "tcp") == "tcp"
-    ]
+    by_driver: dict[str, list[tuple[int, str, dict[str, Any], bool]]] = {}
     for i, ch in enumerate(channels):
-        conn = ch.connection
-        if ch.driver_name == "can":
-            key: tuple = (
-                "can",
-                conn.get("interface", "virtual"),
-                conn.get("channel"),
-                conn.get("node", 0),
-            )
-            if conn.get("channel") is None and ch.twin_enabled:
-                continue  # each twin gets a bus of its own
-        elif ch.driver_name == "modbus":
-            if conn.get("transport", "tcp") == "rtu":
-                if ch.twin_enabled and not conn.get("device"):
-                    continue  # each twin gets a pseudo-terminal of its own
-                key = ("modbus-rtu", conn.get("device"))
-            else:
-                if ch.twin_enabled and not conn.get("port"):
-                    continue  # each twin gets a port of its own
-                unit = conn.get("device_id", 1)
-                host, port = conn.get("host", "127.0.0.1"), conn.get("port", 502)
-                bad = isinstance(unit, bool) or not isinstance(unit, int) or not 1 <= unit <= 247
-                if bad and tcp.count((host, port)) > 1:  # alone, a device may answer unit 255
-                    raise InputError(
-                        f"{cfg.source}: actuators[{i}] ({ch.name}).driver.connection.device_id: "
-                        f"{unit!r} is not a Modbus unit id (1–247) for a connection it shares"
-                    )
-                where = f"{host}:{port}"
-                key = ("modbus", host, port, unit)
-                if key in seen:
-                    raise InputError(
-                        f"{cfg.source}: actuators: channels {seen[key]!r} and {ch.name!r} both "
-                        f"use Modbus unit {unit} on {where} "
-                        "(driver.connection.device_id): give each channel its own unit id"
-                    )
-        elif ch.driver_name == "serial":
-            if ch.twin_enabled and not (conn.get("url") or conn.get("port")):
-                continue
-            key = ("serial", conn.get("url"), conn.get("port"))
-        else:
-            continue
-        if key in seen:
-            what = {
-                "can": "the same CAN node on one bus (set driver.connection.node)",
-                "modbus": "one Modbus RTU line (an RTU line carries one channel; use one serial "
-                "port per channel or Modbus TCP)",
-                "serial": "one serial port (serial links carry one channel each)",
-            }[ch.driver_name]
-            raise InputError(
-                f"{cfg.source}: actuators: channels {seen[key]!r} and {ch.name!r} use {what}"
-            )
-        seen[key] = ch.name
+        by_driver.setdefault(ch.driver_name, []).append(
+            (i, ch.name, ch.connection, ch.twin_enabled)
+        )
+    for name, chs in by_driver.items():
+        try:
+            driver_class(name).check_sharing(chs)
+        except InputError as exc:
+            raise InputError(f"{cfg.source}: {exc}") from None
