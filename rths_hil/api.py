@@ -26,10 +26,9 @@ from typing import TYPE_CHECKING, Any
 
 from .config import (
     Config,
-    _apply_override,
-    _cross_check,
     _merge,
     _toml_value,
+    apply_overrides,
     default_config,
     load_config,
 )
@@ -125,10 +124,7 @@ def configure(
         raise InputError(
             f"config: expected a TOML path, a dict or a Config, got {type(config).__name__}"
         )
-    for item in items:
-        _apply_override(base, item, "rths_hil.configure")
-    _cross_check(base, " (with overrides)" if items else "")
-    return base
+    return apply_overrides(base, items, "rths_hil.configure")
 
 
 def run(

@@ -1569,11 +1569,17 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
         _merge(cfg, data, str(path))
     else:
         cfg.base_dir = Path.cwd()
+    return apply_overrides(cfg, overrides)
+
+
+def apply_overrides(cfg: Config, overrides: Iterable[str], where: str | None = None) -> Config:
+    """Apply ``section.key=value`` items to ``cfg`` in place as ``--set`` does (α read at the
+    final loop rate), then cross-check; ``where`` labels errors (default ``--set ITEM``)."""
     overrides = list(overrides)
     # (channel name or None, step key) → the key of the pair the last --set gave
     last: dict[tuple[str | None, str], str] = {}
     for item in overrides:
-        _apply_override(cfg, item)
+        _apply_override(cfg, item, where)
         parts = parse_override(item)[0]
         if parts[0] == "compensation" and len(parts) == 2 and parts[1] in _PAIR:
             sk = _PAIR[parts[1]]

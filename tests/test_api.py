@@ -45,9 +45,10 @@ def test_dict_overrides_equal_the_set_strings():
     by_section = rths_hil.configure(
         compensation={"alpha": 20}, safety={"displacement_limit": 0.04}, loop={"fs": 2048}
     )
+    # a dict is read like a file: its α at its own loop rate
     by_dict = rths_hil.configure(
-        {"compensation": {"alpha": 20}, "safety": {"displacement_limit": "4 cm"}},
-        {"loop.fs": 2048},
+        {"loop": {"fs": 2048}, "compensation": {"alpha": 20}},
+        {"safety.displacement_limit": "4 cm"},
     )
     for cfg in (by_dotted, by_section, by_dict):
         assert cfg.as_dict() == ref
