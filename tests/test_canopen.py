@@ -271,3 +271,18 @@ def test_pdo_bytes_equal_the_canopen_library_encoding():
             assert bytes(frame.data) == bytes(m.data)
             assert frame.arbitration_id == m.cob_id
         drv.close()
+
+
+def test_one_canopen_axis_per_bus():
+    """Each driver produces the bus's SYNC: two axes on one named bus are refused in one line;
+    twins without a named channel each get a bus of their own."""
+    same = {"interface": "socketcan", "channel": "can0"}
+    with pytest.raises(
+        InputError, match=r"'x' and 'y' are CANopen axes on one bus \(socketcan:can0\)"
+    ):
+        CANopenDriver.check_sharing([(0, "x", {**same, "node_id": 1}, False),
+                                     (1, "y", {**same, "node_id": 2}, False)])  # fmt: skip
+    CANopenDriver.check_sharing([(0, "x", {}, True), (1, "y", {}, True)])
+    CANopenDriver.check_sharing(
+        [(0, "x", same, False), (1, "y", {"interface": "socketcan", "channel": "can1"}, False)]
+    )
