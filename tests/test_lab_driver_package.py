@@ -123,7 +123,7 @@ def test_lab_driver_paced_run_completes(lab_package: Path, tmp_path: Path, capsy
 
 
 def test_a_blocking_driver_cannot_hold_the_watchdog(lab_package: Path, tmp_path: Path) -> None:
-    """Its receive blocks 0.4 s; the watchdog (20 periods) still trips within its limit plus
+    """Its receive blocks 0.4 s; the watchdog (20 ms) still trips within its limit plus
     one period of the deadline of the first unanswered step (wall time, perf_counter)."""
     import mylab_block
 
@@ -138,7 +138,7 @@ def test_a_blocking_driver_cannot_hold_the_watchdog(lab_package: Path, tmp_path:
     first_miss = int(np.flatnonzero(~ok.astype(bool))[0])
     assert first_miss >= mylab_block.STALL_AT
     dt = 1.0 / 1024.0
-    limit = 20 * dt
+    limit = 0.02  # safety.watchdog_timeout
     waited = mylab_block.ESTOPS[0] - mylab_block.SENT[first_miss]
     assert 0.0 < waited <= limit + dt, (waited, limit + dt)
     assert waited < mylab_block.STALL / 2  # nowhere near the blocked call's 0.4 s
