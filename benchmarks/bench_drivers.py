@@ -326,8 +326,90 @@ def serial_modes(n: int) -> dict[str, tuple[Step, Callable[[], None]]]:
     }
 
 
+# -- CANopen (CiA 402 twin, virtual bus) -------------------------------------------------------
+def canopen_modes(n: int) -> dict[str, tuple[Step, Callable[[], None]]]:
+    """Per step RPDO1 (6 bytes) + SYNC in, TPDO1 (6) + TPDO2 (4) out."""
+    a = can.Bus(interface="virtual", channel="bench-canopen-raw")
+    b = can.Bus(interface="virtual", channel="bench-canopen-raw")
+    out = [
+        can.Message(arbitration_id=0x181, data=bytes(6), is_extended_id=False),
+        can.Message(arbitration_id=0x281, data=bytes(4), is_extended_id=False),
+    ]
+    stop = threading.Event()
+
+    def echo() -> None:
+        while not stop.is_set():
+            msg = b.recv(0.05)
+            if msg is not None and msg.arbitration_id == 0x80:
+                for m in out:
+                    b.send(m)
+
+    th = threading.Thread(target=echo, daemon=True)
+    th.start()
+    rpdo = can.Message(arbitration_id=0x201, data=bytes(6), is_extended_id=False)
+    sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
+
+    def raw(_k: int) -> None:
+        a.send(rpdo)
+        a.send(sync)
+        a.recv(TIMEOUT)
+        a.recv(TIMEOUT)
+
+    def raw_close() -> None:
+        stop.set()
+        th.join()
+        a.shutdown()
+        b.shutdown()
+
+    # raw→twin: a driver configures the twin (SDO, NMT) and enables it, then steps stop going
+    # through it: precomputed RPDO1 + SYNC frames, the two TPDOs read but not decoded
+    twin = start_twin("canopen", default_plant())
+    cfg = create_driver("canopen", **twin.connection)
+    cfg.open()
+    cfg.arm(1.0)
+    for k in range(5):
+        cfg.send(k, 0.0)
+        cfg.receive(TIMEOUT)
+    c = can.Bus(interface="virtual", channel=twin.connection["channel"])
+    frames = [
+        can.Message(
+            arbitration_id=0x201,
+            data=(0x0F).to_bytes(2, "little")
+            + round(0.001 * math.sin(k / 50) * 1e7).to_bytes(4, "little", signed=True),
+            is_extended_id=False,
+        )
+        for k in range(n)
+    ]
+
+    def raw_twin(k: int) -> None:
+        c.send(frames[k])
+        c.send(sync)
+        got = 0
+        while got < 2:
+            msg = c.recv(TIMEOUT)
+            if msg is None:
+                raise RuntimeError(f"raw→twin: no TPDO at step {k}")
+            got += msg.arbitration_id in (0x181, 0x281)
+
+    def raw_twin_close() -> None:
+        c.shutdown()
+        cfg.close()
+        twin.stop()
+
+    twin2 = start_twin("canopen", default_plant())
+    drv = create_driver("canopen", **twin2.connection)
+    drv.open()
+    drv.arm(1.0)
+    return {
+        "raw": (raw, raw_close),
+        "raw→twin": (raw_twin, raw_twin_close),
+        "driver": (_driver_step(drv), lambda: (drv.close(), twin2.stop())),
+    }
+
+
 TRANSPORTS = {
     "can-virtual": can_modes,
+    "canopen-virtual": canopen_modes,
     "modbus-tcp": modbus_tcp_modes,
     "serial-pty": serial_modes,
     "modbus-rtu": modbus_rtu_modes,
@@ -443,12 +525,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     results = {}
     rows: list[list[object]] = []
-    print(f"{'transport':12s} {'mode':9s} {'median µs':>10s} {'p99 µs':>8s} {'max µs':>8s}")
+    print(f"{'transport':15s} {'mode':9s} {'median µs':>10s} {'p99 µs':>8s} {'max µs':>8s}")
     for name in args.only or list(TRANSPORTS):
         st = measure(name, args.steps, args.rounds)
         results[name] = st
         for m, s in st.items():
-            print(f"{name:12s} {m:9s} {s['median_us']:10.1f} {s['p99_us']:8.1f} {s['max_us']:8.0f}")
+            print(f"{name:15s} {m:9s} {s['median_us']:10.1f} {s['p99_us']:8.1f} {s['max_us']:8.0f}")
         drv, twin, raw = st["driver"], st["raw→twin"], st["raw"]
         over_twin = drv["median_us"] / twin["median_us"] - 1
         over_raw = drv["median_us"] / raw["median_us"] - 1

@@ -464,7 +464,8 @@ class Driver(ABC):
         driver's own sequence bookkeeping is reset, so the reply to step 0 is not taken for a
         duplicate of the arming reply.
 
-        Returns the controller's reply to the arming command (its status before the run), or
+        Returns the controller's reply to the arming command (its status before the run and
+        where the actuator is: the run starts from there, :mod:`rths_hil.hybrid.phases`), or
         ``None`` when none came within ``timeout`` seconds. ``receive`` replaces
         :meth:`receive` (the loop passes its own, which serves an inline twin first).
         """

@@ -33,6 +33,7 @@ BUILTIN: dict[str, str] = {
     "can": "rths_hil.drivers.can:CANDriver",
     "modbus": "rths_hil.drivers.modbus:ModbusDriver",
     "serial": "rths_hil.drivers.serial:SerialDriver",
+    "canopen": "rths_hil.drivers.canopen:CANopenDriver",
 }
 
 

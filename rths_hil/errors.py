@@ -19,3 +19,40 @@ class SafetyTrip(RuntimeError):
         super().__init__(f"{rule}: {reason}")
         self.rule = rule
         self.reason = reason
+
+
+def check_regular_file(path, what: str, max_bytes: int | None = None) -> None:
+    """Refuse a ``path`` that is not a regular file (before anything reads it).
+
+    A FIFO blocks its reader until a writer comes, ``/dev/zero`` never ends: read as a
+    configuration or a record either hangs for ever or fills the memory. ``max_bytes`` bounds
+    the size of a file read whole into memory. A missing file is left to the reader (its own
+    message names it).
+
+    Raises
+    ------
+    InputError
+        Not a regular file, or larger than ``max_bytes``, naming ``path`` and ``what``.
+    """
+    import os
+    import stat
+
+    try:
+        st = os.stat(path)
+    except OSError:
+        return
+    if not stat.S_ISREG(st.st_mode):
+        kind = (
+            "a FIFO"
+            if stat.S_ISFIFO(st.st_mode)
+            else "a device"
+            if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)
+            else "a directory"
+            if stat.S_ISDIR(st.st_mode)
+            else "not a regular file"
+        )
+        raise InputError(f"{path}: {what} must be a regular file, this is {kind}")
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise InputError(
+            f"{path}: {what} of {st.st_size} bytes is larger than the {max_bytes} bytes accepted"
+        )

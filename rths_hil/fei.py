@@ -780,7 +780,7 @@ class OnlineFEI:
             self._remember(x, y)
             return self._finish_one(int(ends[0]), *self._one_window(*self._window()))
         j = int(ends[0]) - first + 1  # samples of this block in the first window
-        if ends.size == 1 and min(self.N - 1, self._pos) >= self.N - j:
+        if ends.size == 1 and min(self.N - 1, getattr(self, "_pos", 0)) >= self.N - j:
             # One window ending inside the block (a block of hop samples that is not aligned
             # with the window ends, as the loop's exact cross-check pushes them): the rest of
             # the window from the history, then the same one-window sums as above.

@@ -2,11 +2,35 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 
+from .errors import InputError
 from .fei import MovingFEIResult
+
+
+def save_figure(fig, path: str | Path, dpi: int) -> Path:
+    """Write ``fig`` to ``path`` (format from the suffix, PNG without one), or raise.
+
+    The figure is rendered into memory first and written with one checked write and close, so
+    a full disk (``/dev/full``), a read-only directory or a name too long is an
+    :class:`~rths_hil.errors.InputError` naming the file, never a figure silently lost.
+    """
+    out = Path(path)
+    fmt = out.suffix.lstrip(".").lower() or "png"
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, dpi=dpi, format=fmt)
+    except ValueError as exc:  # an unknown format
+        raise InputError(f"{out}: cannot write a figure: {exc}") from None
+    try:
+        with open(out, "wb") as fh:
+            fh.write(buf.getvalue())
+    except OSError as exc:
+        raise InputError(f"{out}: cannot write the figure: {exc.strerror or exc}") from None
+    return out
 
 
 def shade_invalid(
@@ -77,7 +101,6 @@ def plot_moving_fei(
     axes[2].set_xlabel("time (s)")
     if title:
         fig.suptitle(title)
-    out = Path(path)
-    fig.savefig(out, dpi=110)
+    out = save_figure(fig, path, 110)
     plt.close(fig)
     return out

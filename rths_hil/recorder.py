@@ -93,7 +93,7 @@ COLUMNS: tuple[tuple[str, str, str, str], ...] = (
     ("force", "<f8", "N", "measured restoring force of the experimental substructure"),
     ("velocity", "<f8", "m/s", "velocity of the structure (integrator state)"),
     ("restoring_force", "<f8", "N", "numerical substructure restoring force (Bouc-Wen)"),
-    ("alpha", "<f8", "-", "inverse-compensation α used for this step's command"),
+    ("alpha", "<f8", "-", "compensation α of this step's command (1 + lead·fs)"),
     ("fei_amplitude", "<f8", "-", "online FEI amplitude A (streaming, window ending here)"),
     ("fei_delay", "<f8", "s", "online FEI equivalent delay d (streaming)"),
     ("fei_f_eq", "<f8", "Hz", "online FEI equivalent frequency (streaming)"),
@@ -247,7 +247,13 @@ class Recorder:
         self.columns = tuple(tuple(c) for c in columns)
         self.dtype = record_dtype(self.columns)
         self._descr = np.lib.format.dtype_to_descr(self.dtype)
-        header = _header_bytes(self._descr, 0)
+        try:
+            header = _header_bytes(self._descr, 0)
+        except ValueError:
+            raise InputError(
+                f"recorder: {len(self.columns)} columns do not fit a record header (64 KiB): "
+                "fewer channels"
+            ) from None
         self._header_len = len(header)
         # the row count is the only part of the header that changes: its digits start right
         # after "'shape': (" and are followed by ",)}" and the padding (rows only grow, so
@@ -263,9 +269,31 @@ class Recorder:
         self._pack = self._struct.pack_into
         self._off = 0
         self.rows = 0  # rows on disk and counted in the header
-        self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        os.write(self._fd, header)
-        self._events = open(self.run_dir / EVENTS_FILE, "x", encoding="utf-8")
+        # the exclusive create is the claim on the directory: of two runs started at the same
+        # instant into one directory, exactly one creates record.npy, the other is refused
+        try:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            raise InputError(
+                f"{self.run_dir} already holds a run ({RECORD_FILE}): choose a new output directory"
+            ) from None
+        except OSError as exc:
+            raise InputError(f"cannot create {self.path}: {exc.strerror}") from None
+        try:
+            os.write(self._fd, header)
+            self._events = open(self.run_dir / EVENTS_FILE, "x", encoding="utf-8")
+        except OSError as exc:
+            os.close(self._fd)
+            with contextlib.suppress(OSError):
+                os.unlink(self.path)
+            if isinstance(exc, FileExistsError):
+                raise InputError(
+                    f"{self.run_dir} already holds a run ({EVENTS_FILE}): choose a new output "
+                    "directory"
+                ) from None
+            raise InputError(
+                f"cannot create the record in {self.run_dir}: {exc.strerror}"
+            ) from None
         self.failed: str | None = None  # why writing stopped (RecordWriteError), else None
         self.start_time = _now_iso()
         meta = {
@@ -424,7 +452,7 @@ class RunData:
 def read_run(run_dir: str | Path, mmap: bool = False) -> RunData:
     """Read a run directory written by :class:`Recorder` (also after a crash).
 
-    With ``mmap=True`` the record is memory-mapped read-only (``np.load(mmap_mode="r")``):
+    With ``mmap=True`` the record is memory-mapped read-only (:func:`read_record`):
     nothing is read until a column is used, so a long record costs no memory up front.
 
     Raises
@@ -436,12 +464,7 @@ def read_run(run_dir: str | Path, mmap: bool = False) -> RunData:
     rec_path = d / RECORD_FILE
     if not rec_path.is_file():
         raise InputError(f"{d}: not a run directory (no {RECORD_FILE})")
-    try:
-        record = np.load(rec_path, allow_pickle=False, mmap_mode="r" if mmap else None)
-    except (ValueError, OSError, EOFError) as exc:
-        raise InputError(f"{rec_path}: unreadable record ({exc})") from None
-    if record.dtype.names is None or "time" not in record.dtype.names:
-        raise InputError(f"{rec_path}: not an rths_hil record (no named columns)")
+    record = read_record(rec_path, mmap=mmap)
     meta: dict = {}
     mp = d / META_FILE
     if mp.is_file():
@@ -449,6 +472,12 @@ def read_run(run_dir: str | Path, mmap: bool = False) -> RunData:
             meta = json.loads(mp.read_text(encoding="utf-8"))
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise InputError(f"{mp}: unreadable metadata ({exc})") from None
+        except OSError as exc:
+            raise InputError(f"{mp}: unreadable metadata ({exc.strerror})") from None
+        if not isinstance(meta, dict):
+            raise InputError(
+                f"{mp}: unreadable metadata (expected a JSON object, got {type(meta).__name__})"
+            )
     events: list[dict] = []
     ep = d / EVENTS_FILE
     if ep.is_file():
@@ -457,12 +486,15 @@ def read_run(run_dir: str | Path, mmap: bool = False) -> RunData:
             if not line.strip():
                 continue
             try:
-                events.append(json.loads(line))
+                ev = json.loads(line)
             except json.JSONDecodeError:
                 if i == len(lines) - 1:
                     log.warning("%s: ignoring a truncated last event line", ep)
-                else:
-                    raise InputError(f"{ep}:{i + 1}: malformed event line") from None
+                    continue
+                raise InputError(f"{ep}:{i + 1}: malformed event line") from None
+            if not isinstance(ev, dict):
+                raise InputError(f"{ep}:{i + 1}: malformed event line (not a JSON object)")
+            events.append(ev)
     return RunData(record=record, events=events, meta=meta, path=d)
 
 
@@ -496,8 +528,18 @@ def export_run(
     from .records import write_record
 
     run = read_run(run_dir)
+    if len(run.record) == 0:
+        raise InputError(
+            f"{run.path / RECORD_FILE}: the record holds no rows (the run ended or was killed "
+            "before its first flush): nothing to export"
+        )
     dest = Path(out_dir) if out_dir is not None else run.path
-    dest.mkdir(parents=True, exist_ok=True)
+    try:
+        dest.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"export: cannot create {dest}: {exc.strerror}") from None
+    if not dest.is_dir():
+        raise InputError(f"export: {dest} is not a directory")
     names = list(run.record.dtype.names)
     if columns is not None:
         unknown = [c for c in columns if c not in names]
@@ -510,7 +552,10 @@ def export_run(
     if csv:
         p = dest / "record.csv"
         cols = {n: np.asarray(run.record[n], dtype=float) for n in names}
-        write_record(p, cols, fmt="%.10g")
+        try:
+            write_record(p, cols, fmt="%.10g")
+        except OSError as exc:
+            raise InputError(f"export: cannot write {p}: {exc.strerror or exc}") from None
         written.append(p)
     if hdf5:
         try:
@@ -519,25 +564,136 @@ def export_run(
             raise InputError("HDF5 export needs h5py (pip install h5py)") from None
         p = dest / "record.h5"
         units = {c["name"]: c for c in run.meta.get("columns", [])}
-        with h5py.File(p, "w") as h5:
-            grp = h5.create_group("record")
-            for n in names:
-                ds = grp.create_dataset(n, data=np.asarray(run.record[n]))
-                info = units.get(n, {})
-                ds.attrs["unit"] = info.get("unit", "")
-                ds.attrs["description"] = info.get("description", "")
-            h5.attrs["meta"] = json.dumps(run.meta)
-            h5.attrs["events"] = json.dumps(run.events)
+        try:
+            with h5py.File(p, "w") as h5:
+                grp = h5.create_group("record")
+                for n in names:
+                    ds = grp.create_dataset(n, data=np.asarray(run.record[n]))
+                    info = units.get(n, {})
+                    ds.attrs["unit"] = info.get("unit", "")
+                    ds.attrs["description"] = info.get("description", "")
+                h5.attrs["meta"] = json.dumps(run.meta)
+                h5.attrs["events"] = json.dumps(run.events)
+        except OSError as exc:
+            # h5py: read-only directory, disk full, or another process holds the file's lock
+            reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise InputError(f"export: cannot write {p}: {reason}") from None
         written.append(p)
     return written
 
 
+#: Largest ``.npy`` header read back (bytes): 1 MiB is room for thousands of columns; a
+#: larger length field is garbage, refused before anything is read or allocated.
+MAX_HEADER_BYTES = 1 << 20
+
+
+@dataclass(frozen=True)
+class NpyHeader:
+    """The parsed, checked header of a record ``.npy`` file.
+
+    Attributes
+    ----------
+    dtype : numpy.dtype
+        The structured row dtype.
+    rows : int
+        Rows the header counts (checked against the file size).
+    offset : int
+        Byte offset of the first row.
+    """
+
+    dtype: np.dtype
+    rows: int
+    offset: int
+
+
+def read_npy_header(path: str | Path) -> NpyHeader:
+    """Parse and check the ``.npy`` header of a record without trusting any of it.
+
+    numpy's own reader refuses headers over 10 000 bytes unless told otherwise (a record of
+    16 or more channels has a longer one) and allocates whatever row count the header claims.
+    Here the header length is bounded (:data:`MAX_HEADER_BYTES`), the header is a literal
+    (``ast.literal_eval``, never pickle), the dtype must be a structured dtype of plain numbers
+    with a ``time`` column, and the claimed rows must lie in the file: a hand-edited row count
+    is refused naming both figures, before anything is allocated.
+
+    Raises
+    ------
+    InputError
+        Any of the above, naming the file.
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            head = fh.read(12)
+            if len(head) < 10 or head[:6] != _MAGIC[:6]:
+                raise InputError(f"{p}: unreadable record (not a .npy file)")
+            major = head[6]
+            if major == 1:
+                (hlen,) = struct.unpack("<H", head[8:10])
+                start = 10
+            elif major in (2, 3) and len(head) == 12:
+                (hlen,) = struct.unpack("<I", head[8:12])
+                start = 12
+            else:
+                raise InputError(f"{p}: unreadable record (.npy version {major} unknown)")
+            if hlen > MAX_HEADER_BYTES or start + hlen > size:
+                raise InputError(
+                    f"{p}: unreadable record (header length {hlen} bytes in a file of {size})"
+                )
+            fh.seek(start)
+            text = fh.read(hlen)
+    except OSError as exc:
+        raise InputError(f"{p}: unreadable record ({exc.strerror})") from None
+    try:
+        header = ast.literal_eval(text.decode("latin1"))
+    except (ValueError, SyntaxError, MemoryError, RecursionError, TypeError):
+        raise InputError(f"{p}: unreadable record (the .npy header is not a literal)") from None
+    shape = header.get("shape") if isinstance(header, dict) else None
+    if (
+        not isinstance(header, dict)
+        or not isinstance(shape, tuple)
+        or len(shape) != 1
+        or not isinstance(shape[0], int)
+        or isinstance(shape[0], bool)
+        or shape[0] < 0
+        or header.get("fortran_order") is not False
+    ):
+        raise InputError(f"{p}: unreadable record (the .npy header is not a record's header)")
+    try:
+        dtype = np.lib.format.descr_to_dtype(header.get("descr"))
+    except (ValueError, TypeError, KeyError, IndexError):
+        raise InputError(f"{p}: unreadable record (bad dtype in the .npy header)") from None
+    if dtype.names is None or "time" not in dtype.names or dtype.hasobject:
+        raise InputError(f"{p}: not an rths_hil record (no named columns)")
+    rows = shape[0]
+    on_disk = (size - start - hlen) // max(1, dtype.itemsize)
+    if rows > on_disk:
+        raise InputError(
+            f"{p}: the .npy header counts {rows} rows but the file holds {on_disk} "
+            "(hand-edited or damaged header)"
+        )
+    return NpyHeader(dtype=dtype, rows=rows, offset=start + hlen)
+
+
+def read_record(path: str | Path, mmap: bool = False) -> np.ndarray:
+    """The rows a record's header counts (checked by :func:`read_npy_header`).
+
+    With ``mmap`` the rows are mapped read-only; else read into memory.
+    """
+    h = read_npy_header(path)
+    if h.rows == 0:
+        return np.zeros(0, dtype=h.dtype)
+    try:
+        if mmap:
+            return np.memmap(path, dtype=h.dtype, mode="r", offset=h.offset, shape=(h.rows,))
+        with open(path, "rb") as fh:
+            fh.seek(h.offset)
+            return np.fromfile(fh, dtype=h.dtype, count=h.rows)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: unreadable record ({exc})") from None
+
+
 def header_row_count(path: str | Path) -> int:
     """The row count the ``.npy`` header of ``path`` currently claims (for tests and tools)."""
-    with open(path, "rb") as fh:
-        magic = fh.read(8)
-        if magic[:6] != _MAGIC[:6]:
-            raise InputError(f"{path}: not a .npy file")
-        (hlen,) = struct.unpack("<H", fh.read(2))
-        header = ast.literal_eval(fh.read(hlen).decode("latin1"))
-    return int(header["shape"][0])
+    return read_npy_header(path).rows

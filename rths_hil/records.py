@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, check_regular_file
 
 #: Relative tolerance on the time step when checking that a record is uniformly sampled.
 UNIFORM_RTOL = 1e-3
@@ -104,6 +104,7 @@ def read_record(
             f"{name}: is a directory; for a run directory, write its record CSV with "
             f"`rths-hil export {name}` and evaluate {p / 'record.csv'}"
         )
+    check_regular_file(p, "a record")
     try:
         with p.open("rb") as fb:
             magic = fb.read(6)

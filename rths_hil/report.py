@@ -24,7 +24,7 @@ from typing import IO, Any
 import numpy as np
 
 from .metrics import overlap_peak_lag
-from .recorder import RECORD_FILE, RunData, read_run
+from .recorder import RECORD_FILE, RunData, read_npy_header, read_run
 
 __all__ = ["LiveLine", "format_live", "format_summary", "plot_report", "summarize"]
 
@@ -235,16 +235,9 @@ class _Rows:
     """
 
     def __init__(self, path: Path) -> None:
+        h = read_npy_header(path)  # checked: any header length, rows within the file
         self._f = open(path, "rb")
-        version = np.lib.format.read_magic(self._f)
-        read_header = (
-            np.lib.format.read_array_header_1_0
-            if version == (1, 0)
-            else np.lib.format.read_array_header_2_0
-        )
-        shape, _, self.dtype = read_header(self._f)
-        self.offset = self._f.tell()
-        self.n = int(shape[0])
+        self.dtype, self.offset, self.n = h.dtype, h.offset, h.rows
 
     def __len__(self) -> int:
         return self.n
@@ -725,7 +718,9 @@ def plot_report(
     for tr in _events(run, "trip") + _events(run, "operator_stop"):
         for a in axes:
             a.axvline(_num(tr.get("time")), color="r", lw=1.0)
-    fig.savefig(out, dpi=90)
+    from .plotting import save_figure
+
+    save_figure(fig, out, 90)
     plt.close(fig)
     return out
 

@@ -555,7 +555,9 @@ def plot_window_size(path: str | Path, rows: Sequence[WindowSizeResult]) -> None
         ax.grid(True, alpha=0.3)
     ax2.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    from .plotting import save_figure
+
+    save_figure(fig, path, 120)
     plt.close(fig)
 
 
@@ -586,7 +588,9 @@ def plot_accuracy(
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    from .plotting import save_figure
+
+    save_figure(fig, path, 120)
     plt.close(fig)
 
 
@@ -785,6 +789,10 @@ def _set_value(cfg, key: str, value: float) -> None:
     elif parts[0] == "actuators":
         entry = next(a for a in cfg["actuators"] if a["name"] == parts[1])
         entry["twin"][parts[3]][parts[4]] = float(value)
+    elif parts[0] == "compensation":  # α and delay (and the other pairs) kept together
+        from .config import set_compensation
+
+        set_compensation(cfg["compensation"], parts[1], value, cfg["loop"]["fs"])
     else:
         cfg[parts[0]][parts[1]] = float(value)
 
@@ -1454,13 +1462,18 @@ def plan_trials(
             values = {k: float(draws[k][i]) for k in keys}
             for k, v in values.items():
                 _set_value(c, k, v)
-            c["compensation"]["alpha"] = a
+            fs = c["loop"]["fs"]
+            from .config import set_compensation
+
+            set_compensation(c["compensation"], "alpha", a, fs)
             if alphas:
                 c["compensation"]["enabled"] = True
+                c["compensation"]["method"] = "inverse"
                 for entry in c.get("actuators") or []:  # --alpha: every channel's α
                     comp = entry.setdefault("compensation", {})
-                    comp["alpha"] = a
+                    set_compensation(comp, "alpha", a, fs)
                     comp["enabled"] = True
+                    comp["method"] = "inverse"
             if c["twin"]["sensor"]:
                 c["twin"]["sensor"]["seed"] = int(noise_seeds[i])
             for j, entry in enumerate(c.get("actuators") or []):
@@ -1584,7 +1597,9 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
     fig.suptitle(f"{n} perturbed twins: " + ", ".join(p.key for p in result.perturbations))
     fig.tight_layout()
     paths.append(out / "robustness_hist.png")
-    fig.savefig(paths[-1], dpi=120)
+    from .plotting import save_figure
+
+    save_figure(fig, paths[-1], 120)
     plt.close(fig)
     if len(result.alphas) > 1:
         summ = result.summary()
@@ -1618,6 +1633,8 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
         fig.suptitle("robustness against α over the same perturbed twins")
         fig.tight_layout()
         paths.append(out / "robustness_alpha.png")
-        fig.savefig(paths[-1], dpi=120)
+        from .plotting import save_figure
+
+        save_figure(fig, paths[-1], 120)
         plt.close(fig)
     return paths

@@ -85,21 +85,33 @@ def parse_window(text: str | float, fn: float | None = None) -> float:
     return parse_time(text, "window")
 
 
-def parse_range(text: str, what: str = "range") -> list[float]:
-    """Parse ``start:stop:step`` (stop exclusive, like numpy.arange) or ``a,b,c`` into a list."""
+def parse_range(text: str, what: str = "range", max_points: int = 1000) -> list[float]:
+    """Parse ``start:stop:step`` (stop exclusive, like numpy.arange) or ``a,b,c`` into a list.
+
+    More than ``max_points`` values (each one a trial run where ranges are used) is refused
+    before the list is built.
+    """
     s = str(text).strip()
     try:
         if ":" in s:
             parts = [float(p) for p in s.split(":")]
-            if len(parts) != 3 or parts[2] <= 0:
+            if len(parts) != 3 or parts[2] <= 0 or not all(math.isfinite(p) for p in parts):
                 raise ValueError
             start, stop, step = parts
-            n = round((stop - start) / step)
+            count = (stop - start) / step
+            if not (math.isfinite(count) and count <= max_points):
+                raise InputError(
+                    f"{what} {text!r}: {count:.3g} values, more than {max_points} (each value "
+                    "is a run)"
+                )
+            n = round(count)
             vals = [round(start + i * step, 12) for i in range(max(n, 0))]
             if not vals:
                 raise ValueError
             return vals
         return [float(p) for p in s.split(",") if p.strip()]
+    except InputError:
+        raise
     except ValueError:
         raise InputError(f"cannot read {what} {text!r}: use start:stop:step or a,b,c") from None
 

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rths_hil.errors import InputError
+from rths_hil.errors import InputError, check_regular_file
 from rths_hil.units import parse_length, parse_time
 
 from .effects import EFFECTS, make_effect, validate_params
@@ -200,6 +200,7 @@ def load_model(source: str | Path | Mapping[str, Any], name: str | None = None) 
         data = source
     else:
         name = str(source) if name is None else name
+        check_regular_file(source, "a model file", max_bytes=1 << 20)
         try:
             text = Path(source).read_text(encoding="utf-8")
         except OSError as exc:

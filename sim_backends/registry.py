@@ -87,6 +87,11 @@ TWINS: dict[str, TwinEntry] = {
         seq_bits=None,
         transports=("pty", "tcp"),
     ),
+    "canopen": TwinEntry(
+        "rths_hil.sim_backends.endpoints.canopen_twin:CANopenTwin",
+        seq_bits=None,
+        fresh_channel=True,
+    ),
 }
 
 

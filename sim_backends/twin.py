@@ -45,6 +45,7 @@ def start_twin(
     *,
     faults: Faults | None = None,
     heartbeat_timeout: float | None = None,
+    initial_position: float = 0.0,
     threaded: bool = True,
     **connection: Any,
 ) -> TwinEndpoint:
@@ -61,6 +62,8 @@ def start_twin(
         Fault plan (:mod:`rths_hil.sim_backends.faults`).
     heartbeat_timeout : float, optional
         Heartbeat watchdog period (s); off by default.
+    initial_position : float
+        Where the twin's actuator sits at rest (m; :class:`TwinController`).
     threaded : bool
         Serve in a thread (default). ``False``: the caller serves with ``endpoint.pump()``
         (CAN on the ``virtual`` interface only; the lockstep loop's fast path).
@@ -90,7 +93,11 @@ def start_twin(
         cls = cls.profile_twin()
         connection["profile"] = profile
     controller = TwinController(
-        plant, faults, seq_bits=entry.seq_bits, heartbeat_timeout=heartbeat_timeout
+        plant,
+        faults,
+        seq_bits=entry.seq_bits,
+        heartbeat_timeout=heartbeat_timeout,
+        initial_position=initial_position,
     )
     if entry.fresh_channel and connection.get("interface", "virtual") == "virtual":
         connection.setdefault("channel", f"rths-twin-{uuid.uuid4().hex[:8]}")

@@ -326,3 +326,17 @@ def test_online_rejects_mismatched_blocks():
     online = F.OnlineFEI(FS, 1.0)
     with pytest.raises(InputError, match="differ in length"):
         online.update(np.zeros(3), np.zeros(4))
+
+
+def test_online_first_window_ending_inside_the_first_block():
+    """The first block already holds a whole window that ends before its last sample (a short
+    window at a low loop rate): the one-window path with no history yet equals the batch."""
+    x, y = sdof_pair("el_centro_1940_NS_chopra_0p02.csv", 2.0, 0.005, 1.1, seconds=4)
+    n = int(FS)  # one-second window
+    online = F.OnlineFEI(FS, 1.0, hop=n)
+    first = online.update(x[: n + 5], y[: n + 5])
+    batch = F.moving_fei(x[:n], y[:n], FS, 1.0)
+    assert first.t_end.size == 1 and batch.t_end.size == 1
+    np.testing.assert_allclose(first.t_end, batch.t_end)
+    np.testing.assert_array_equal(first.valid, batch.valid)
+    np.testing.assert_allclose(first.amplitude, batch.amplitude, rtol=1e-9)

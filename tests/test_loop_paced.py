@@ -106,7 +106,7 @@ def test_kill_9_leaves_the_record_complete_up_to_the_kill(tmp_path):
     assert t_kill - t_last <= 0.25, t_kill - t_last
     assert np.isfinite(rec["target"]).all() and rec["feedback_ok"].any()
     assert json.loads((out / "meta.json").read_text())["mode"] == "paced"
-    assert [e["kind"] for e in run.events][:3] == ["start", "arm", "clock"]
+    assert [e["kind"] for e in run.events][:4] == ["start", "arm", "start_position", "clock"]
 
 
 def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
@@ -124,8 +124,10 @@ def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
     assert "operator_stop" in kinds and kinds[-1] == "end"
     end = run.events[-1]
     assert end["status"] == "operator_stop" and end["step"] == len(run.record)
-    estop = next(e for e in run.events if e["kind"] == "estop")
-    assert estop["confirmed"] is True
+    # an operator stop holds the actuator and hands the controller back disabled (no e-stop)
+    assert "estop" not in kinds and kinds.index("end_ramp") < kinds.index("handback")
+    handback = next(e for e in run.events if e["kind"] == "handback")
+    assert handback["disabled"] is True and handback["latched"] is False
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "operator_stop" and summary["trip"]["rule"] == "operator"
 

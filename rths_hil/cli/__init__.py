@@ -29,6 +29,8 @@ COMMANDS: tuple[str, ...] = (
     "tune",
     "diagnose",
     "watch",
+    "commission",
+    "check-host",
 )
 
 
@@ -64,9 +66,9 @@ def build_parser(
     named = _command_in(argv) if only else None
     for name in (named,) if named else COMMANDS:
         try:
-            module = importlib.import_module(f"{__name__}.{name}")
+            module = importlib.import_module(f"{__name__}.{name.replace('-', '_')}")
         except ModuleNotFoundError as exc:
-            if exc.name == f"{__name__}.{name}":
+            if exc.name == f"{__name__}.{name.replace('-', '_')}":
                 continue  # sub-command not built yet
             raise
         module.register(sub)
@@ -107,6 +109,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"rths-hil {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:
+        if exc.filename is None:
+            raise
+        # a file-system error on a path the command was given (name too long, read-only,
+        # disk full, not a directory …) is bad input: one line, not a traceback
+        print(
+            f"rths-hil {args.command}: error: {exc.filename}: {exc.strerror or exc}",
+            file=sys.stderr,
+        )
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

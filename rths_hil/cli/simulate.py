@@ -108,6 +108,10 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(delay) and delay >= 0):
         raise InputError(f"--delay must be ≥ 0, got {args.delay}")
     gm = default_record() if args.record is None else resolve(args.record)
+    from ..resources import check_memory
+
+    # the resampled record, the SDOF response and the delay's complex spectra: ~64 bytes a sample
+    check_memory(64 * gm.duration * fs, f"--fs {fs:g} Hz over the record's {gm.duration:g} s")
     gm = gm.resampled(fs)
     if args.pga is not None:  # after resampling, so that the simulated PGA is exactly this
         gm = gm.scaled(parse_accel(args.pga, "--pga"))
@@ -176,7 +180,9 @@ def _plot(path: Path, t, target, measured, ag, force, title: str) -> None:
         ax.grid(True, alpha=0.3)
     fig.tight_layout()
     try:
-        fig.savefig(path, dpi=110)
+        from ..plotting import save_figure
+
+        save_figure(fig, path, 110)
     except OSError as exc:
         raise InputError(f"--plot: cannot write {str(path)!r} ({exc.strerror})") from None
     finally:

@@ -22,13 +22,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import threading
 from typing import Any
 
 from ..errors import InputError
-from ..units import parse_time
+from ..units import parse_length, parse_time
 
 DEFAULT_DT = 1.0 / 1024.0
 
@@ -88,6 +89,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="controller-side watchdog: no command or heartbeat for this long while enabled → "
         "hold and latch the e-stop (default 0.5s; 0 = off)",
     )
+    p.add_argument(
+        "--initial-position",
+        default="0",
+        help="where the actuator sits at rest, e.g. 3mm (an off-centre actuator; default 0)",
+    )
     p.set_defaults(func=run)
 
 
@@ -112,7 +118,26 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
         except InputError as exc:
             raise InputError(f"--profile: {exc}") from None
         conn["profile"] = path
+    if args.device:
+        if "device" not in conn:
+            raise InputError(
+                f"--device {args.device}: --driver {args.driver} serves no device here "
+                f"({conn.get('transport', 'its own line')})"
+            )
+        _check_device(conn["device"])
     return conn
+
+
+def _check_device(path: str) -> None:
+    """Refuse a ``--device`` that does not exist or is not a character (serial) device."""
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        raise InputError(f"--device {path}: {exc.strerror}") from None
+    if not stat.S_ISCHR(mode):
+        raise InputError(f"--device {path}: not a serial device (a character device)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -135,6 +160,7 @@ def run(args: argparse.Namespace) -> int:
     if not hb >= 0:
         raise InputError(f"--heartbeat-timeout {args.heartbeat_timeout}: must be >= 0 s")
     hb = hb or None
+    home = parse_length(args.initial_position, "--initial-position")
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -151,6 +177,7 @@ def run(args: argparse.Namespace) -> int:
                     plant(),
                     faults=Faults.parse(args.faults) if args.faults else None,
                     heartbeat_timeout=hb,
+                    initial_position=home,
                     **conn,
                 )
                 twins.append(twin)

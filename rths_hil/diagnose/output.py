@@ -199,7 +199,9 @@ def plot_diagnosis(dx: Diagnosis, path: str | Path, title: str = "") -> Path:
     ax7.set_ylabel("residual (mm)")
     ax7.legend(fontsize=8, markerscale=5)
     out = Path(path)
-    fig.savefig(out, dpi=90)
+    from ..plotting import save_figure
+
+    save_figure(fig, out, 90)
     plt.close(fig)
     return out
 

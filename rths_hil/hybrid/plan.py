@@ -23,10 +23,11 @@ from typing import Any
 import numpy as np
 
 from .. import groundmotion
-from ..compensation import AdaptiveAlpha, InverseCompensator
+from ..compensation import AdaptiveAlpha, Compensator
 from ..config import ChannelConfig, Config, structure_dofs
 from ..errors import InputError
 from ..recorder import COLUMNS
+from ..resources import check_disk, check_memory
 from ..safety import (
     ControllerRule,
     FEIRule,
@@ -63,9 +64,12 @@ def new_run_dir(pattern: str, base: Path | None = None) -> Path:
     if base is not None and not p.is_absolute():
         p = base / p
     out, i = p, 1
-    while any((out / f).exists() for f in ("record.npy", "events.jsonl", "meta.json")):
-        out = p.with_name(f"{p.name}-{i}")
-        i += 1
+    try:
+        while any((out / f).exists() for f in ("record.npy", "events.jsonl", "meta.json")):
+            out = p.with_name(f"{p.name}-{i}")
+            i += 1
+    except OSError as exc:  # a path component over 255 characters, no permission
+        raise InputError(f"output.dir: {p}: {exc.strerror or exc}") from None
     return out
 
 
@@ -86,6 +90,10 @@ def build_ground_motion(cfg: Config) -> groundmotion.GroundMotion:
         return gm.resampled(cfg["loop"]["fs"])
     except InputError as exc:
         raise InputError(f"{cfg.source}: ground_motion.record: {exc}") from None
+    except OSError as exc:  # a path component over 255 characters, a directory, no permission
+        raise InputError(
+            f"{cfg.source}: ground_motion.record: cannot read {spec!r}: {exc.strerror or exc}"
+        ) from None
 
 
 def choose_plant(cfg: Config, dt: float):
@@ -317,7 +325,7 @@ class ChannelPlan:
     twin_watchdog: float | None
     plant: Any
     faults: Any
-    compensator: InverseCompensator
+    compensator: Compensator
     adaptive: AdaptiveAlpha | None
     fei_enabled: bool
     window_s: float
@@ -438,6 +446,8 @@ def _plan_channel(
                 "controller"
             )
     conn = dict(cfg["driver"]["connection"])
+    if isinstance(conn.get("eds"), str) and conn["eds"]:  # a CANopen EDS: relative to the config
+        conn["eds"] = str(cfg.resolve_path(conn["eds"]))
     profile = cfg["driver"]["profile"]
     from rths_hil.drivers.profile import is_builtin, load_profile
 
@@ -466,13 +476,29 @@ def _plan_channel(
             raise InputError(f"{where}: twin.faults: {exc}") from None
     inline = bool(tw["inline"] and tw["enabled"] and dcls.inline_twin(conn))
 
-    c = cfg["compensation"]
-    comp = InverseCompensator(c["alpha"], c["amplitude"], c["enabled"])
+    c = cfg["compensation"]  # in time units (delay, delay_rate, …): the same at any loop.fs
+    from ..compensators import build_compensator
+
+    try:
+        comp = build_compensator(c, fs)
+    except InputError as exc:
+        raise InputError(f"{where}: compensation: {exc}") from None
     fe = cfg["fei"]
     adaptive = None
     if c["adaptive"] and c["enabled"]:
+        if c["method"] != "inverse":
+            raise InputError(
+                f"{where}: compensation.adaptive adapts the inverse method's α; method "
+                f"{c['method']!r} does not take it (ats adapts on its own)"
+            )
         adaptive = AdaptiveAlpha(
-            comp, dt, fe["pair"], c["time_constant"], c["rate"], c["alpha_min"], c["alpha_max"]
+            comp,
+            dt,
+            fe["pair"],
+            c["time_constant"],
+            c["delay_rate"] * fs,
+            1.0 + c["delay_min"] * fs,
+            1.0 + c["delay_max"] * fs,
         )
     try:
         window_s = _window(cfg, fn1)
@@ -609,6 +635,9 @@ def build_plan(
     n = round(dur * fs) if dur > 0 else ag.size
     if n < 2:
         raise InputError(f"duration {dur:g} s is shorter than two steps at {fs:g} Hz")
+    # the loop's per-step arrays (ground motion, its padding and copy): refuse before allocating
+    key = "loop.duration" if duration is None else "duration"
+    check_memory(4 * 8 * n, f"{key} = {dur:g} s at {fs:g} Hz ({n:.3g} steps)")
     if n > ag.size:
         ag = np.concatenate([ag, np.zeros(n - ag.size)])
     ag = ag[:n].copy()
@@ -637,6 +666,11 @@ def build_plan(
         for i, cc in enumerate(chans_cfg)
     ]
     for i, ch in enumerate(channels):
+        if ch.exact_hop > n:  # its block buffer alone would be 16·hop bytes
+            raise InputError(
+                f"{_where(chans_cfg[i], i)}: fei.exact_hop = {ch.exact_hop} steps is longer than "
+                f"the run ({n} steps): the exact cross-check would never run (0 turns it off)"
+            )
         N = round(ch.window_s * fs)
         if ch.fei_enabled and N > min(n, gm.npts):
             longer = "record" if gm.npts < n else "run"
@@ -652,6 +686,11 @@ def build_plan(
     _check_shared_links(cfg, channels)
     links = link_loads(cfg, channels, fs)
     sf = cfg["safety"]
+    columns = record_columns([c.suffix for c in channels], n_dof) + [
+        (c[0], c[2], c[3], c[4]) for c in getattr(structure, "record_columns", ())
+    ]
+    row_bytes = sum(np.dtype(c[1]).itemsize for c in columns)
+    check_disk(n * row_bytes, run_dir, f"the record of {dur or n / fs:g} s at {fs:g} Hz")
     return TestPlan(
         cfg=cfg,
         mode=mode,
@@ -664,8 +703,7 @@ def build_plan(
         structure=structure,
         fn1=fn1,
         channels=channels,
-        columns=record_columns([c.suffix for c in channels], n_dof)
-        + [(c[0], c[2], c[3], c[4]) for c in getattr(structure, "record_columns", ())],
+        columns=columns,
         # paced: at most 0.8 period; lockstep waits for every reply, up to the wall-clock bound
         # that trips the watchdog
         timeout=(lp["feedback_timeout"] or 0.8 * dt) if mode == "paced" else lp["lockstep_timeout"],

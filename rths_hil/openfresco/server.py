@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import select
 import socket
 import threading
@@ -35,6 +36,9 @@ from . import protocol as P
 log = logging.getLogger(__name__)
 
 __all__ = ["Mailbox", "SiteServer", "Target"]
+
+#: Largest trial time accepted (s): a test's clock, not 1e12 s or infinity (ten days).
+MAX_TRIAL_TIME = 864_000.0
 
 _TCP_QUICKACK = getattr(socket, "TCP_QUICKACK", None)
 
@@ -179,6 +183,12 @@ class SiteServer:
                 f"openfresco: client {self.peer[0]}:{self.peer[1]} sent {got} of the "
                 f"{P.ID_BYTES} bytes of its ID, then closed or stalled"
             ) from None
+        except TimeoutError:
+            self._drop()
+            raise InputError(
+                f"openfresco: client {self.peer[0]}:{self.peer[1]} connected but sent no ID "
+                "within 5 s (is it an OpenSees genericClient or OpenFresco GenericTCP?)"
+            ) from None
         try:
             n_act = self.mapping.n_actuators if self.protocol == "generic-tcp" else None
             session = P.SessionID.parse(bytes(raw[:got]), self.protocol, n_act)
@@ -281,11 +291,12 @@ class SiteServer:
                         mb.close("openfresco: the client disconnected mid-test", fault=True)
                     return
                 code = frame[0]
-                action = int(code) if code == int(code) else -1
+                # a NaN or infinite code is no action (int() of it would raise)
+                action = int(code) if math.isfinite(code) and code == int(code) else -1
                 name = P.ACTIONS.get(action)
                 if name is None:
                     mb.close(
-                        f"openfresco: unknown action code {code!r} in a {size}-value frame "
+                        f"openfresco: unknown action code {float(code)!r} in a {size}-value frame "
                         "(a frame of the wrong size shifts the next one)",
                         fault=True,
                     )
@@ -299,6 +310,15 @@ class SiteServer:
                     if "accel" in ctrl:
                         trial_a[:] = frame[ctrl["accel"]]
                     trial_t = float(frame[ctrl["time"]][0]) if "time" in ctrl else float("nan")
+                    if "time" in ctrl and not (
+                        math.isfinite(trial_t) and abs(trial_t) <= MAX_TRIAL_TIME
+                    ):
+                        mb.close(
+                            f"openfresco: trial time {trial_t!r} s is not a time of a test "
+                            f"(finite, at most {MAX_TRIAL_TIME:g} s)",
+                            fault=True,
+                        )
+                        return
                     if not np.all(np.isfinite(trial_u)):
                         mb.close(
                             f"openfresco: trial displacement {trial_u.tolist()} is not finite",

@@ -118,10 +118,41 @@ class SiteStage:
         stop = (lambda: runner.stop_signal is not None) if runner is not None else (lambda: False)
         ses = self.site.accept(stop)
         log.info("openfresco: client connected, ID %s", ses.as_tuple())
+        tm = self.site.timing
+        tm.stop = stop
+        tm.keepalive = self._keepalive
+        tm.resume = self._resume
         self._x = [0.0] * self.n_dof
         self.kind = self._next_kind = IDLE
         self.latency = math.nan
         return list(self._x)
+
+    def _keepalive(self) -> None:
+        """While the loop waits for OpenSees: each channel's heartbeat (the actuator holds).
+
+        The controllers' own watchdogs (the twins' heartbeat timeout, a real controller's) are
+        fed by the heartbeat; an in-process twin is served so that it sees it.
+        """
+        for ch in getattr(self, "_chans", ()):
+            try:
+                if ch.heartbeat is not None:
+                    ch.heartbeat()
+                twin = ch.twin
+                if twin is not None and getattr(twin, "inline", False):
+                    twin.pump()
+            except Exception as exc:  # the next step's command and reply will tell
+                log.warning("openfresco: heartbeat while waiting for OpenSees failed: %s", exc)
+
+    def _resume(self) -> None:
+        """After a wait for OpenSees: restart the feedback watchdogs' clocks.
+
+        The loop sent no command while it waited (virtual time stood still), so no reply was
+        due: the wait is not controller silence. The next command's reply is checked as usual.
+        """
+        for ch in getattr(self, "_chans", ()):
+            wd = getattr(getattr(ch, "monitor", None), "watchdog", None)
+            if wd is not None and hasattr(wd, "reset"):
+                wd.reset()
 
     # -- stepping -----------------------------------------------------------------------------
     def step(self, k: int, ag: float, force) -> list[float]:

@@ -42,6 +42,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 
@@ -63,6 +64,11 @@ __all__ = [
 ]
 
 IDLE, EXECUTED, PREDICTED, CORRECTED, HELD = 0, 1, 2, 3, 4
+#: Longest time step between two trials (s) the ramp modes execute (an element's step of an
+#: earthquake analysis is milliseconds; a quasi-static test's a few seconds).
+MAX_TRIAL_STEP = 60.0
+#: Poll period (s) of a lockstep wait for OpenSees: stop flag and controller keep-alive.
+KEEPALIVE = 0.1
 _SMOOTH = 0.2  # per loop step: first-order smoothing of the predictor–corrector's clock speed
 #: Per-step command kinds as recorded.
 KINDS = {IDLE: "idle", EXECUTED: "executed", PREDICTED: "predicted", CORRECTED: "corrected",
@@ -131,6 +137,14 @@ class TimingMode:
         self.finished = False
         self.reply_delta: np.ndarray | None = None  # command − target of a passed target
         self.stiffness: np.ndarray | None = None  # actuator-coordinates estimate (N/m)
+        #: the runner's stop flag (SIGINT/SIGTERM): a wait for OpenSees ends when it is set
+        self.stop: Callable[[], bool] = lambda: False
+        #: called every :data:`KEEPALIVE` s while the loop waits for OpenSees (keeps the
+        #: controllers fed; the site stage sends each channel's heartbeat)
+        self.keepalive: Callable[[], None] = lambda: None
+        #: called once after such a wait (the site stage restarts the feedback watchdogs'
+        #: clocks: time spent waiting on OpenSees is not controller silence)
+        self.resume: Callable[[], None] = lambda: None
 
     # -- helpers ------------------------------------------------------------------------------
     def _check_closed(self) -> bool:
@@ -170,8 +184,17 @@ class TimingMode:
         self.mb.post_reply(t.seq, d, f, k * self.dt)
 
     def _steps_for(self, t: Target, default: float) -> int:
-        """Loop steps to spend on a target: its time step (from the time block) or ``default``."""
+        """Loop steps to spend on a target: its time step (from the time block) or ``default``.
+
+        A time step over :data:`MAX_TRIAL_STEP` is a :class:`SiteFault` (one line): its ramp
+        would hold the loop for that long in one call.
+        """
         span = t.time - self.t_trial if math.isfinite(t.time) else default
+        if span > MAX_TRIAL_STEP:
+            raise SiteFault(
+                f"openfresco: trial {t.seq} at time {t.time:g} s is {span:g} s after the last "
+                f"one: a time step over {MAX_TRIAL_STEP:g} s is not a test step"
+            )
         if math.isfinite(t.time):
             self.t_trial = t.time
         return max(1, round(span / self.dt)) if span > 0 else 1
@@ -190,6 +213,28 @@ class TimingMode:
         """OpenSees' latency per target (s): from the force reply to the next request."""
         lat = np.array([t[2] for t in self.targets], dtype=float)
         return lat[np.isfinite(lat)]
+
+
+def _monotone_slopes(
+    c0: np.ndarray, d: np.ndarray, span: float, v0: np.ndarray, v1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """End slopes of a cubic Hermite from ``c0`` to ``d`` limited so that it is monotone.
+
+    Fritsch and Carlson (1980): with ``δ = (d − c0)/span``, a slope against ``δ`` becomes 0,
+    and when ``α = v0/δ``, ``β = v1/δ`` leave the circle ``α² + β² ≤ 9`` both are scaled onto
+    it. The segment then never leaves ``[min(c0, d), max(c0, d)]``: the command between two
+    trials stays within their envelope, however uneven the trials' time steps (a slope
+    estimated over a tiny step and used over a long one would overshoot by far).
+    """
+    delta = (d - c0) / span
+    v0 = np.where(v0 * delta > 0.0, v0, 0.0)
+    v1 = np.where(v1 * delta > 0.0, v1, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.where(delta != 0.0, v0 / delta, 0.0)
+        b = np.where(delta != 0.0, v1 / delta, 0.0)
+        r = np.hypot(a, b)
+        scale = np.where(r > 3.0, 3.0 / np.where(r > 0.0, r, 1.0), 1.0)
+    return v0 * scale, v1 * scale
 
 
 class _RampBase(TimingMode):
@@ -234,6 +279,9 @@ class _RampBase(TimingMode):
                 )
             else:
                 v1 = (d - d1) / h2
+        if v1 is not None:
+            v0, v1 = _monotone_slopes(c0, d, span, np.asarray(v0, float), np.asarray(v1, float))
+            lo, hi = np.minimum(c0, d), np.maximum(c0, d)
         for j in range(1, steps + 1):
             s = j / steps
             if v1 is not None:
@@ -242,7 +290,9 @@ class _RampBase(TimingMode):
                 h10 = s * (1.0 - s) ** 2
                 h01 = s * s * (3.0 - 2.0 * s)
                 h11 = s * s * (s - 1.0)
-                self.ramp.append(h00 * c0 + h10 * span * v0 + h01 * d + h11 * span * v1)
+                # within [c0, d] by the slopes' limits; the clip only removes round-off
+                p = h00 * c0 + h10 * span * v0 + h01 * d + h11 * span * v1
+                self.ramp.append(np.clip(p, lo, hi))
             else:
                 self.ramp.append(c0 + (d - c0) * s)
         for _ in range(hold):
@@ -284,21 +334,33 @@ class Lockstep(_RampBase):
             self.cmd = self.ramp.popleft()
             self.kinds.append(EXECUTED)
             return self.cmd
-        # wait (virtual time stands still) for the next target
+        # wait (virtual time stands still) for the next target, in short polls: each one
+        # checks the runner's stop flag and keeps the controllers fed (the actuator holds its
+        # last command meanwhile)
         mb = self.mb
         limit = self.start_timeout if not self.targets else self.client_timeout
         deadline = time.monotonic() + limit if limit > 0 else math.inf
-        with mb.cond:
-            while True:
+        waited = False
+        while True:
+            with mb.cond:
                 t = self._new_target()
-                if t is not None:
-                    break
-                if self._check_closed():
-                    return None
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise SiteFault(f"openfresco: no trial from the client within {limit:g} s")
-                mb.cond.wait(min(left, 1.0))
+                if t is None:
+                    if self._check_closed():
+                        return None
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        raise SiteFault(f"openfresco: no trial from the client within {limit:g} s")
+                    mb.cond.wait(min(left, KEEPALIVE))
+                    t = self._new_target()
+            if t is not None:
+                break
+            waited = True
+            if self.stop():  # hold; the runner stops at its next step (e-stop, end event)
+                self.kinds.append(HELD)
+                return self.cmd
+            self.keepalive()
+        if waited:
+            self.resume()
         self._start_ramp(t, k, self._steps_for(t, self.ramp_time))
         self.cmd = self.ramp.popleft()
         self.kinds.append(EXECUTED)

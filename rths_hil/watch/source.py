@@ -20,7 +20,6 @@ is recognised.
 
 from __future__ import annotations
 
-import ast
 import json
 import logging
 import os
@@ -32,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..recorder import EVENTS_FILE, META_FILE, RECORD_FILE
+from ..recorder import EVENTS_FILE, META_FILE, RECORD_FILE, read_npy_header
 
 __all__ = [
     "CHANNEL_COLUMNS",
@@ -258,6 +257,7 @@ class RunFollower:
         self.writer_check = float(writer_check)
         self._events_off = 0
         self._events_tail = b""
+        self.skipped_events = 0  # event lines that were not JSON objects
         self._header_len = 0
         self._dtype: np.dtype | None = None
         self._last_writer_check = -1e9
@@ -272,9 +272,13 @@ class RunFollower:
             return
         p = self.run_dir / META_FILE
         try:
-            self.meta = json.loads(p.read_text(encoding="utf-8"))
+            meta = json.loads(p.read_text(encoding="utf-8"))
         except (OSError, ValueError):
-            self.meta = {}
+            meta = {}
+        if not isinstance(meta, dict):
+            log.warning("%s: metadata is not a JSON object; ignored", p)
+            meta = {}
+        self.meta = meta
 
     def _read_events(self) -> None:
         p = self.run_dir / EVENTS_FILE
@@ -294,19 +298,27 @@ class RunFollower:
             if not line.strip():
                 continue
             try:
-                self.events.append(json.loads(line))
+                ev = json.loads(line)
             except ValueError:
-                log.warning("%s: skipping a malformed event line", p)
+                ev = None
+            if isinstance(ev, dict):
+                self.events.append(ev)
+            else:
+                self.skipped_events += 1
+                log.warning("%s: skipping a malformed event line (not a JSON object)", p)
 
     def _read_record(self) -> None:
         """Map the rows the header counts (the header never counts a row not on disk)."""
+        if self._dtype is None:
+            if not self.record_path.exists():
+                return
+            h = read_npy_header(self.record_path)  # checked; any header length
+            self._dtype, self._header_len = h.dtype, h.offset
         try:
             with open(self.record_path, "rb") as fh:
-                head = fh.read(4096 if not self._header_len else self._header_len)
+                head = fh.read(self._header_len)
         except FileNotFoundError:
             return
-        if self._dtype is None:
-            self._parse_header(head)
         m = _SHAPE.search(head)
         if m is None:
             raise ValueError("no row count in the .npy header")
@@ -329,24 +341,6 @@ class RunFollower:
                 offset=self._header_len,
                 shape=(rows,),
             )
-
-    def _parse_header(self, head: bytes) -> None:
-        if len(head) < 10 or head[:6] != b"\x93NUMPY":
-            raise ValueError("not a .npy file")
-        major = head[6]
-        if major == 1:
-            hlen = int.from_bytes(head[8:10], "little")
-            start = 10
-        else:
-            hlen = int.from_bytes(head[8:12], "little")
-            start = 12
-        if len(head) < start + hlen:
-            raise ValueError("truncated .npy header")
-        d = ast.literal_eval(head[start : start + hlen].decode("latin1"))
-        self._dtype = np.lib.format.descr_to_dtype(d["descr"])
-        if self._dtype.names is None or "time" not in self._dtype.names:
-            raise ValueError("not an rths_hil record (no named columns)")
-        self._header_len = start + hlen
 
     @property
     def meta_pid(self) -> int | None:

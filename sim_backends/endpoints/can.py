@@ -32,6 +32,8 @@ device opened as it is.
 
 from __future__ import annotations
 
+import logging
+import struct
 from typing import Any
 
 import can
@@ -43,6 +45,8 @@ from rths_hil.errors import InputError
 from .base import TwinController, TwinEndpoint
 from .nullmodem import NullModem
 
+log = logging.getLogger(__name__)
+
 __all__ = ["PTY_CHANNEL", "PTY_INTERFACES", "CANTwin"]
 
 #: ``channel`` of a twin on a serial-line interface that asks for a new null-modem pair of
@@ -53,6 +57,9 @@ PTY_CHANNEL = "pty"
 #: opening for an adapter to boot (a pseudo-terminal needs no wait); ``serial`` reads with its
 #: own 0.1 s timeout whatever ``recv`` asks (the driver reads it through a notifier thread), so
 #: the twin's end reads with 5 ms to poll its watchdog on time.
+#: What :meth:`CANTwin._recv` returns for bytes on the line that are no frame.
+_GARBLED = object()
+
 PTY_INTERFACES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     "slcan": ({"sleep_after_open": 0.0}, {"sleep_after_open": 0.0}),
     "serial": ({}, {"timeout": 0.005}),
@@ -246,19 +253,34 @@ class CANTwin(TwinEndpoint):
                 n += 1
         else:
             while bus is not None and self._held is None:
-                msg = bus.recv(0.0)
+                msg = self._recv(bus, 0.0)
                 if msg is None:
                     break
-                self._dispatch(msg)
+                if msg is not _GARBLED:
+                    self._dispatch(msg)
                 n += 1
         self.controller.check_watchdog()
         return n
 
+    def _recv(self, bus: can.BusABC, timeout: float):
+        """One frame from ``bus``; :data:`_GARBLED` when the interface could not decode one.
+
+        A second writer on the line (a pseudo-terminal or serial cable) can put bytes on it
+        that python-can's decoder refuses (``ValueError`` "DLC may not exceed 8 bytes",
+        ``CanError``): like a controller, the twin counts the frame as malformed and goes on.
+        """
+        try:
+            return bus.recv(timeout)
+        except (can.CanError, ValueError, IndexError, struct.error) as exc:
+            self.controller.stats.malformed += 1
+            log.warning("CAN twin %s: malformed frame on the line (%s); ignored", self.where, exc)
+            return _GARBLED
+
     def _serve_once(self, timeout: float) -> None:
         bus = self._bus
         assert bus is not None
-        msg = bus.recv(timeout)
-        if msg is None:
+        msg = self._recv(bus, timeout)
+        if msg is None or msg is _GARBLED:
             return
         self._dispatch(msg)
 
