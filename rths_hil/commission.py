@@ -127,6 +127,19 @@ class _Controller:
             self.last = fb
         return fb, rtt
 
+    def poll(self, x: float, enable: bool, tries: int = 5) -> Feedback | None:
+        """A command answered at last: up to ``tries`` exchanges, each waiting ≥ 0.2 s."""
+        timeout = self.timeout
+        self.timeout = max(timeout, 0.2)
+        try:
+            for _ in range(tries):
+                fb, _ = self.exchange(x, enable)
+                if fb is not None:
+                    return fb
+            return None
+        finally:
+            self.timeout = timeout
+
     def run(
         self, path: np.ndarray, enable: bool, each: Callable[[int, Feedback | None, float], None]
     ) -> None:
@@ -353,8 +366,8 @@ def _channel(
         ctl.hold(x0, 0.1, True)
         t_quiet = time.perf_counter()
         time.sleep(timeout + max(0.25, 0.5 * timeout))
-        fb, _ = ctl.exchange(x0, True)
         quiet = time.perf_counter() - t_quiet
+        fb = ctl.poll(x0, True)
         st = None if fb is None else int(fb.status)
         ok = st is not None and st & (_ESTOP | _WATCHDOG) == (_ESTOP | _WATCHDOG)
         ack, _ = ctl.exchange(x0, False)

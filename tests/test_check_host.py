@@ -91,7 +91,7 @@ def test_cli_verdict_is_cached_and_shown_by_run(tmp_path):
     assert line.endswith(cached["line"]) and cached["fs"] == 1024.0
     assert (proc.returncode == 0) == (cached["word"] == "holds")
     run = subprocess.run(
-        [*cmd, "run", "--duration", "0.2", "--no-plot", "--out", str(tmp_path / "r"),
+        [*cmd, "run", "--duration", "0.5", "--no-plot", "--out", str(tmp_path / "r"),
          "--set=loop.console=0", "--set=safety.max_overruns=100000"],
         capture_output=True, text=True, timeout=120, cwd=ROOT, env=env,
     )  # fmt: skip

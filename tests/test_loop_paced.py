@@ -135,7 +135,7 @@ def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1])
 def test_every_terminating_signal_takes_the_operator_stop_path(tmp_path, sig):
     """A closed terminal or ssh session (SIGHUP) stops the run as Ctrl-C does: the stop and
-    end events, every controller e-stopped and confirmed, exit 130."""
+    end events, every controller handed back disabled and not latched, exit 130."""
     out = tmp_path / "run"
     proc = _start(out)
     _wait_rows(out / "record.npy", proc)
@@ -147,5 +147,6 @@ def test_every_terminating_signal_takes_the_operator_stop_path(tmp_path, sig):
     assert stop["signal"] == signal.Signals(sig).name
     assert run.events[-1]["kind"] == "end" and run.events[-1]["status"] == "operator_stop"
     assert run.events[-1]["step"] == len(run.record)
-    estop = next(e for e in run.events if e["kind"] == "estop")
-    assert estop["confirmed"] is True
+    assert not any(e["kind"] == "estop" for e in run.events)
+    handback = next(e for e in run.events if e["kind"] == "handback")
+    assert handback["disabled"] is True and handback["latched"] is False

@@ -666,11 +666,21 @@ def build_plan(
         for i, cc in enumerate(chans_cfg)
     ]
     for i, ch in enumerate(channels):
-        if ch.exact_hop > n:  # its block buffer alone would be 16·hop bytes
+        if ch.exact_hop > max(n, gm.npts):  # its block buffer alone would be 16·hop bytes
             raise InputError(
                 f"{_where(chans_cfg[i], i)}: fei.exact_hop = {ch.exact_hop} steps is longer than "
-                f"the run ({n} steps): the exact cross-check would never run (0 turns it off)"
+                f"the run ({n} steps) and the record: the exact cross-check would never run "
+                "(0 turns it off)"
             )
+        if ch.exact_hop > n:  # a run shortened below one hop: no exact window, nothing held
+            log.warning(
+                "%s: fei.exact_hop = %d steps is longer than this run (%d steps): no exact "
+                "cross-check in it",
+                _where(chans_cfg[i], i),
+                ch.exact_hop,
+                n,
+            )
+            ch.exact_hop = 0
         N = round(ch.window_s * fs)
         if ch.fei_enabled and N > min(n, gm.npts):
             longer = "record" if gm.npts < n else "run"
