@@ -467,6 +467,8 @@ PROFILE_MODES: dict[str, tuple[str, dict]] = {
         "modbus",
         {"port": 0, "profile": str(CONTROLLERS / "modbus_map.toml")},
     ),
+    "canopen CiA 402": ("canopen", {"device_profile": "cia402"}),
+    "canopen CiA 408": ("canopen", {"device_profile": "cia408"}),
 }
 PROFILE_GOAL = 1.5
 
@@ -566,7 +568,7 @@ def main(argv: list[str] | None = None) -> int:
     prof_rows = []
     for label, r in prof.items():
         verdict = ""
-        if "profile" in label:
+        if "profile" in label or label.startswith("canopen"):
             verdict = f"≤ {PROFILE_GOAL:g}×: {'met' if r['vs_can'] <= PROFILE_GOAL else 'NOT met'}"
         print(f"{label:26s} work {r['work_us']:7.1f} µs/step ({r['vs_can']:.2f}× CAN), "
               f"round trip {r['round_trip_us']:7.1f} µs {verdict}")  # fmt: skip

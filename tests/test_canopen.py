@@ -139,7 +139,8 @@ def test_lockstep_run_tracks(tmp_path, profile):
     fei = rec["fei_amplitude"][~np.isnan(rec["fei_amplitude"])]
     assert fei.size > 500
     assert np.abs(fei[-200:] - 1.0).max() < 0.01
-    assert res.driver_stats["syncs"] == len(rec)
+    # one SYNC per step of the record (the runner's start and end phases may add a few)
+    assert 0 <= res.driver_stats["syncs"] - len(rec) <= 4
     assert res.driver_stats["received"] >= len(rec) - 2
 
 
@@ -271,3 +272,18 @@ def test_pdo_bytes_equal_the_canopen_library_encoding():
             assert bytes(frame.data) == bytes(m.data)
             assert frame.arbitration_id == m.cob_id
         drv.close()
+
+
+def test_one_canopen_axis_per_bus():
+    """Each driver produces the bus's SYNC: two axes on one named bus are refused in one line;
+    twins without a named channel each get a bus of their own."""
+    same = {"interface": "socketcan", "channel": "can0"}
+    with pytest.raises(
+        InputError, match=r"'x' and 'y' are CANopen axes on one bus \(socketcan:can0\)"
+    ):
+        CANopenDriver.check_sharing([(0, "x", {**same, "node_id": 1}, False),
+                                     (1, "y", {**same, "node_id": 2}, False)])  # fmt: skip
+    CANopenDriver.check_sharing([(0, "x", {}, True), (1, "y", {}, True)])
+    CANopenDriver.check_sharing(
+        [(0, "x", same, False), (1, "y", {"interface": "socketcan", "channel": "can1"}, False)]
+    )

@@ -123,8 +123,9 @@ def test_lab_driver_paced_run_completes(lab_package: Path, tmp_path: Path, capsy
 
 
 def test_a_blocking_driver_cannot_hold_the_watchdog(lab_package: Path, tmp_path: Path) -> None:
-    """Its receive blocks 0.4 s; the watchdog (20 ms) still trips within its limit plus
-    one period of the deadline of the first unanswered step (wall time, perf_counter)."""
+    """Its receive blocks 0.4 s; the watchdog (safety.watchdog_timeout) still trips within its
+    limit plus one period of the deadline of the first unanswered step (wall time,
+    perf_counter)."""
     import mylab_block
 
     out = tmp_path / "block"
@@ -135,10 +136,13 @@ def test_a_blocking_driver_cannot_hold_the_watchdog(lab_package: Path, tmp_path:
     trips = [e for e in run.events if e.get("kind") == "trip"]
     assert trips and trips[0]["rule"] == "watchdog", trips
     ok = run.record["feedback_ok"]
-    first_miss = int(np.flatnonzero(~ok.astype(bool))[0])
-    assert first_miss >= mylab_block.STALL_AT
+    missed = np.flatnonzero(~ok.astype(bool))
+    # the first step the blocked call leaves unanswered (a loaded machine may miss one earlier)
+    first_miss = int(missed[missed >= mylab_block.STALL_AT][0])
+    from rths_hil.config import default_config
+
     dt = 1.0 / 1024.0
-    limit = 0.02  # safety.watchdog_timeout
+    limit = default_config()["safety"]["watchdog_timeout"]  # the default test's limit
     waited = mylab_block.ESTOPS[0] - mylab_block.SENT[first_miss]
     assert 0.0 < waited <= limit + dt, (waited, limit + dt)
     assert waited < mylab_block.STALL / 2  # nowhere near the blocked call's 0.4 s
