@@ -863,7 +863,10 @@ class Runner:
         trip = self.stall.check(length)
         action = "trip" if trip is not None else self.plan.after_stall
         rec.event("stall", tk, k, length=length, lateness=lateness, action=action)
-        log.warning("the bridge stalled for %.1f ms before step %d (%s)", length * 1e3, k, action)
+        # every stall is an event; the console hears of the long ones (the summary counts all)
+        (log.warning if length >= 0.01 or trip is not None else log.info)(
+            "the bridge stalled for %.1f ms before step %d (%s)", length * 1e3, k, action
+        )
         return None if trip is None else self.safety._fire(trip, None, tk, k)
 
     def _catch_up_spacing(self, now: float, prev_send: float) -> float:
