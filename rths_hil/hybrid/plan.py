@@ -630,12 +630,13 @@ def build_plan(
         for i, cc in enumerate(chans_cfg)
     ]
     for i, ch in enumerate(channels):
-        if ch.exact_hop > n:  # its block buffer alone would be 16·hop bytes
+        N = round(ch.window_s * fs)
+        if ch.exact_hop > max(n, N):  # its block buffer alone would be 16·hop bytes
             raise InputError(
                 f"{_where(chans_cfg[i], i)}: fei.exact_hop = {ch.exact_hop} steps is longer than "
-                f"the run ({n} steps): the exact cross-check would never run (0 turns it off)"
+                f"the run ({n} steps) and the FEI window ({N} samples): the exact cross-check "
+                "would never run (0 turns it off)"
             )
-        N = round(ch.window_s * fs)
         if ch.fei_enabled and N > min(n, gm.npts):
             longer = "record" if gm.npts < n else "run"
             what = (
