@@ -326,8 +326,90 @@ def serial_modes(n: int) -> dict[str, tuple[Step, Callable[[], None]]]:
     }
 
 
+# -- CANopen (CiA 402 twin, virtual bus) -------------------------------------------------------
+def canopen_modes(n: int) -> dict[str, tuple[Step, Callable[[], None]]]:
+    """Per step RPDO1 (6 bytes) + SYNC in, TPDO1 (6) + TPDO2 (4) out."""
+    a = can.Bus(interface="virtual", channel="bench-canopen-raw")
+    b = can.Bus(interface="virtual", channel="bench-canopen-raw")
+    out = [
+        can.Message(arbitration_id=0x181, data=bytes(6), is_extended_id=False),
+        can.Message(arbitration_id=0x281, data=bytes(4), is_extended_id=False),
+    ]
+    stop = threading.Event()
+
+    def echo() -> None:
+        while not stop.is_set():
+            msg = b.recv(0.05)
+            if msg is not None and msg.arbitration_id == 0x80:
+                for m in out:
+                    b.send(m)
+
+    th = threading.Thread(target=echo, daemon=True)
+    th.start()
+    rpdo = can.Message(arbitration_id=0x201, data=bytes(6), is_extended_id=False)
+    sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
+
+    def raw(_k: int) -> None:
+        a.send(rpdo)
+        a.send(sync)
+        a.recv(TIMEOUT)
+        a.recv(TIMEOUT)
+
+    def raw_close() -> None:
+        stop.set()
+        th.join()
+        a.shutdown()
+        b.shutdown()
+
+    # raw→twin: a driver configures the twin (SDO, NMT) and enables it, then steps stop going
+    # through it: precomputed RPDO1 + SYNC frames, the two TPDOs read but not decoded
+    twin = start_twin("canopen", default_plant())
+    cfg = create_driver("canopen", **twin.connection)
+    cfg.open()
+    cfg.arm(1.0)
+    for k in range(5):
+        cfg.send(k, 0.0)
+        cfg.receive(TIMEOUT)
+    c = can.Bus(interface="virtual", channel=twin.connection["channel"])
+    frames = [
+        can.Message(
+            arbitration_id=0x201,
+            data=(0x0F).to_bytes(2, "little")
+            + round(0.001 * math.sin(k / 50) * 1e7).to_bytes(4, "little", signed=True),
+            is_extended_id=False,
+        )
+        for k in range(n)
+    ]
+
+    def raw_twin(k: int) -> None:
+        c.send(frames[k])
+        c.send(sync)
+        got = 0
+        while got < 2:
+            msg = c.recv(TIMEOUT)
+            if msg is None:
+                raise RuntimeError(f"raw→twin: no TPDO at step {k}")
+            got += msg.arbitration_id in (0x181, 0x281)
+
+    def raw_twin_close() -> None:
+        c.shutdown()
+        cfg.close()
+        twin.stop()
+
+    twin2 = start_twin("canopen", default_plant())
+    drv = create_driver("canopen", **twin2.connection)
+    drv.open()
+    drv.arm(1.0)
+    return {
+        "raw": (raw, raw_close),
+        "raw→twin": (raw_twin, raw_twin_close),
+        "driver": (_driver_step(drv), lambda: (drv.close(), twin2.stop())),
+    }
+
+
 TRANSPORTS = {
     "can-virtual": can_modes,
+    "canopen-virtual": canopen_modes,
     "modbus-tcp": modbus_tcp_modes,
     "serial-pty": serial_modes,
     "modbus-rtu": modbus_rtu_modes,
@@ -375,21 +457,82 @@ def measure(name: str, steps: int, rounds: int) -> dict[str, dict[str, float]]:
     return stats
 
 
+CONTROLLERS = Path(__file__).resolve().parents[1] / "examples" / "controllers"
+#: The profile drivers beside today's drivers: label → (driver, twin/driver settings).
+PROFILE_MODES: dict[str, tuple[str, dict]] = {
+    "can (built-in)": ("can", {}),
+    "can profile (own DBC)": ("can", {"profile": str(CONTROLLERS / "can_dbc.toml")}),
+    "modbus (built-in)": ("modbus", {"port": 0}),
+    "modbus profile (own map)": (
+        "modbus",
+        {"port": 0, "profile": str(CONTROLLERS / "modbus_map.toml")},
+    ),
+    "canopen CiA 402": ("canopen", {"device_profile": "cia402"}),
+    "canopen CiA 408": ("canopen", {"device_profile": "cia408"}),
+}
+PROFILE_GOAL = 1.5
+
+
+def profile_work(steps: int, rounds: int) -> dict[str, dict[str, float]]:
+    """Loop work per step of each driver in :data:`PROFILE_MODES`, interleaved in one run.
+
+    Loop work = CPU time of the calling thread (``time.thread_time``) in ``send`` + ``receive``
+    per step: the encoding, decoding, bookkeeping and transport calls the loop's thread pays,
+    not the wait for the reply nor the twin (its own thread, the same plant everywhere).
+    """
+    live = {}
+    try:
+        for label, (name, conn) in PROFILE_MODES.items():
+            twin = start_twin(name, default_plant(), **dict(conn))
+            drv = create_driver(name, **twin.connection)
+            drv.open()
+            drv.arm(1.0)
+            live[label] = (twin, drv, [0], [], [])
+        block = steps // rounds
+        for _ in range(rounds):
+            for _twin, drv, k, cpu, wall in live.values():
+                gc.collect()
+                gc.disable()
+                try:
+                    c0, w0 = time.thread_time(), time.perf_counter()
+                    for i in range(k[0], k[0] + block):
+                        drv.send(i, 0.001 * math.sin(i / 50.0), True)
+                        if drv.receive(TIMEOUT) is None:
+                            raise RuntimeError(f"{drv.name}: no reply to step {i}")
+                    cpu.append((time.thread_time() - c0) / block)
+                    wall.append((time.perf_counter() - w0) / block)
+                finally:
+                    gc.enable()
+                k[0] += block
+    finally:
+        for twin, drv, *_ in live.values():
+            drv.close()
+            twin.stop()
+    ref = float(np.median(live["can (built-in)"][3]))
+    out = {}
+    for label, (_, _, _, cpu, wall) in live.items():
+        c = float(np.median(cpu))
+        out[label] = {"work_us": c * 1e6, "round_trip_us": float(np.median(wall)) * 1e6,
+                      "vs_can": c / ref}  # fmt: skip
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=4000, help="round trips per mode")
     ap.add_argument("--rounds", type=int, default=8, help="interleaved blocks")
     ap.add_argument("--only", choices=sorted(TRANSPORTS), action="append")
     ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--profile-steps", type=int, default=4000, help="steps per profile-driver mode")
     args = ap.parse_args(argv)
     results = {}
     rows: list[list[object]] = []
-    print(f"{'transport':12s} {'mode':9s} {'median µs':>10s} {'p99 µs':>8s} {'max µs':>8s}")
+    print(f"{'transport':15s} {'mode':9s} {'median µs':>10s} {'p99 µs':>8s} {'max µs':>8s}")
     for name in args.only or list(TRANSPORTS):
         st = measure(name, args.steps, args.rounds)
         results[name] = st
         for m, s in st.items():
-            print(f"{name:12s} {m:9s} {s['median_us']:10.1f} {s['p99_us']:8.1f} {s['max_us']:8.0f}")
+            print(f"{name:15s} {m:9s} {s['median_us']:10.1f} {s['p99_us']:8.1f} {s['max_us']:8.0f}")
         drv, twin, raw = st["driver"], st["raw→twin"], st["raw"]
         over_twin = drv["median_us"] / twin["median_us"] - 1
         over_raw = drv["median_us"] / raw["median_us"] - 1
@@ -420,6 +563,19 @@ def main(argv: list[str] | None = None) -> int:
                     goal_text if m == "driver" else "",
                 ]
             )
+    prof = profile_work(args.profile_steps, args.rounds)
+    results["profiles"] = prof
+    prof_rows = []
+    for label, r in prof.items():
+        verdict = ""
+        if "profile" in label or label.startswith("canopen"):
+            verdict = f"≤ {PROFILE_GOAL:g}×: {'met' if r['vs_can'] <= PROFILE_GOAL else 'NOT met'}"
+        print(f"{label:26s} work {r['work_us']:7.1f} µs/step ({r['vs_can']:.2f}× CAN), "
+              f"round trip {r['round_trip_us']:7.1f} µs {verdict}")  # fmt: skip
+        prof_rows.append(
+            [label, f"{r['work_us']:.1f}", f"{r['vs_can']:.2f}×", f"{r['round_trip_us']:.1f}",
+             verdict]
+        )  # fmt: skip
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     from _results import markdown_table, write_results
@@ -433,17 +589,28 @@ def main(argv: list[str] | None = None) -> int:
         "driver vs raw→twin",
         "p99 goal",
     ]
+    prof_table = markdown_table(
+        ["driver", "loop work µs/step", "vs CAN built-in", "round trip µs (median)", "goal"],
+        prof_rows,
+    )
     write_results(
         "bench_drivers",
-        markdown_table(header, rows),
+        markdown_table(header, rows)
+        + "\n\n### Profile drivers: loop work per step (examples/controllers)\n\n"
+        + prof_table,
         title="Round trips of each driver against its twin",
         goals="Driver overhead (median, driver vs raw→twin) ≤ 30 %; driver p99 ≤ 300 µs for "
-        "Modbus TCP and ≤ 150 µs for CAN virtual and serial.",
-        command=f"python benchmarks/bench_drivers.py --steps {args.steps} --rounds {args.rounds}",
+        "Modbus TCP and ≤ 150 µs for CAN virtual and serial. Profile drivers: loop work per "
+        f"step ≤ {PROFILE_GOAL:g}× the built-in CAN driver's in the same run.",
+        command=f"python benchmarks/bench_drivers.py --steps {args.steps} --rounds {args.rounds} "
+        f"--profile-steps {args.profile_steps}",
         notes="`raw`: the bare transport with payloads of the same sizes; `raw→twin`: "
         "precomputed frames to the real twin without the driver; `driver`: `driver.send` + "
         "`driver.receive` against the same twin. Modes are interleaved block by block so that "
-        "they share the machine's load; the garbage collector is off in the timed blocks.",
+        "they share the machine's load; the garbage collector is off in the timed blocks. "
+        "Profile table: loop work = CPU time of the calling thread (`time.thread_time`) in "
+        "`send` + `receive` per step against threaded twins (the twin's own work excluded), "
+        "interleaved in blocks; round trip = wall time per step.",
     )
     return 0
 

@@ -16,28 +16,54 @@ Sequence rules shared by all drivers (:meth:`Driver._classify`): feedback echoin
 sequence number is delivered; an older one is counted as ``late`` (answering a command whose
 feedback already timed out) or ``duplicates`` (already delivered) and skipped; one newer than any
 command sent is malformed (``unexpected_seq``). When a delivered sequence number is more than one
-above the previous delivered one, the missing ones are counted in ``seq_gaps``.
+above the previous delivered one, the missing ones are counted in ``seq_gaps``. A controller that
+echoes no sequence number (:attr:`Driver.echoes_seq` false): the first feedback received after a
+command was sent answers it (its age is recorded in :attr:`Feedback.age`); any further one before
+the next command is a ``duplicate``.
+
+The receive loop, the deadline and the counters belong to :class:`Driver`; a driver implements
+``_send_raw`` and ``_recv_internal`` (see :class:`Driver` and ``docs/protocols.md``).
 """
 
 from __future__ import annotations
 
+import logging
 import math
+import queue
+import threading
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from enum import IntFlag
 from types import TracebackType
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from rths_hil.errors import InputError
 
+if TYPE_CHECKING:
+    from rths_hil.linkbudget import LinkLoad
+
+log = logging.getLogger(__name__)
+_perf = time.perf_counter
+
+#: How late past its deadline a driver that declares :attr:`Driver.honours_deadline` may
+#: return before it is counted and moved to a reader thread (s).
+DEADLINE_SLACK = 0.050
+#: How long a reader thread waits in one ``_recv_internal`` call (s).
+READER_POLL = 0.05
+#: A reader thread stops after this long without a :meth:`Driver.receive` call (s).
+READER_IDLE = 2.0
+
 __all__ = [
+    "DEADLINE_SLACK",
     "DISPLACEMENT_LSB",
     "FORCE_LSB",
     "INVALID_S32",
     "Driver",
     "DriverStats",
     "Feedback",
+    "LinkDown",
     "Status",
     "check_command",
     "extend_seq",
@@ -93,12 +119,16 @@ class Feedback:
         Measured specimen force (N); NaN when invalid.
     status : int
         :class:`Status` bit flags.
+    age : float
+        Time from sending the command to delivering this feedback (s), set by
+        :meth:`Driver.receive`; NaN until then.
     """
 
     seq: int
     displacement: float
     force: float
     status: int
+    age: float = math.nan
 
 
 @dataclass(slots=True)
@@ -126,6 +156,9 @@ class DriverStats:
         Commands that could not be written to the transport.
     estops : int
         E-stop frames sent.
+    deadline_overruns : int
+        Receives whose driver returned more than ``DEADLINE_SLACK`` past the deadline (the
+        driver is then read through a reader thread).
     """
 
     sent: int = 0
@@ -139,6 +172,7 @@ class DriverStats:
     disconnects: int = 0
     send_errors: int = 0
     estops: int = 0
+    deadline_overruns: int = 0
     malformed_reasons: dict[str, int] = field(default_factory=dict)
 
     def count_malformed(self, reason: str) -> None:
@@ -184,21 +218,72 @@ def check_command(seq: int, displacement: float, lsb: float | None = DISPLACEMEN
         )
 
 
+class LinkDown(Exception):
+    """Raised by :meth:`Driver._recv_internal` when the transport is closed or gone."""
+
+
 class Driver(ABC):
     """Bus driver: lockstep command/feedback exchange with an actuator controller.
 
-    Subclasses implement :meth:`open`, :meth:`close`, :meth:`send`, :meth:`receive`,
-    :meth:`estop` and, where the bus needs it, :meth:`heartbeat`. They use :meth:`_classify`
-    for the shared sequence-number rules (module docstring).
+    The base class owns the driver contract, in the style of python-can's ``BusABC.recv`` /
+    ``_recv_internal``: :meth:`send` checks the command and keeps the books, :meth:`receive`
+    owns the deadline (absolute, from :func:`time.perf_counter`), the timeout accounting, the
+    sequence rules (:meth:`_classify`) and the counters. A driver implements
+
+    * :meth:`open`, :meth:`close` and :meth:`estop` (and :meth:`heartbeat` where the bus has one);
+    * :meth:`_send_raw` ``(seq, displacement, enable)``: encode and write one command;
+    * :meth:`_recv_internal` ``(deadline)``: the next well-formed feedback that arrived, or
+      ``None`` when nothing usable came (a malformed frame counted in :attr:`stats`, or the
+      deadline passed), **without blocking past** ``deadline``.
+
+    A driver whose class does not declare :attr:`honours_deadline` is read through a reader
+    thread (as python-can reads interfaces that ignore the timeout through a
+    :class:`can.Notifier`): :meth:`receive` then waits on a queue that honours the deadline to
+    the microsecond, so a driver that blocks cannot hold the loop — and its watchdog — past the
+    deadline. A driver that declares it and still returns more than :data:`DEADLINE_SLACK` late
+    is counted (``stats.deadline_overruns``), logged once and moved to the reader thread (the
+    slack is wide, 50 ms, so that a process the OS did not schedule for a while is not taken for
+    a blocking driver; the reader thread is the protection, this only a fallback).
+
+    A subclass may still override :meth:`send` and :meth:`receive` whole (the contract of
+    earlier releases); it then keeps ``_last_sent``, the counters and the sequence rules itself
+    (:meth:`_classify`).
+
+    Class attributes a driver sets: :attr:`name`, :attr:`honours_deadline`,
+    :attr:`echoes_seq`, :attr:`command_lsb`; class methods describing its links and twin:
+    :meth:`link_key`, :meth:`link_load`, :meth:`share_key`, :meth:`own_link`,
+    :meth:`inline_twin` (see ``docs/protocols.md``, "Adding a driver").
     """
 
     name: ClassVar[str]
+    #: ``_recv_internal`` never blocks past its deadline (then it is called from the loop's
+    #: thread; otherwise from a reader thread).
+    honours_deadline: ClassVar[bool] = False
+    #: The controller echoes the command's sequence number in its feedback. ``False``: the
+    #: first feedback received after a command was sent answers it (its age is recorded).
+    echoes_seq: ClassVar[bool] = True
+    #: Fixed-point resolution of the command on the wire (m per count) for
+    #: :func:`check_command`; ``None`` for a float wire format.
+    command_lsb: ClassVar[float | None] = DISPLACEMENT_LSB
+
     stats: DriverStats
+    # class-level defaults: a subclass that does not call Driver.__init__ still works
+    _last_sent = -1
+    _last_delivered = -1
+    _t_sent = 0.0
+    _rx_thread: threading.Thread | None = None
+    _rx_queue: queue.Queue | None = None
+    _rx_stop: threading.Event | None = None
+    _last_receive = 0.0
+    _overrun_warned = False
+    _threaded = True
 
     def __init__(self) -> None:
         self.stats = DriverStats()
         self._last_sent = -1
         self._last_delivered = -1
+        self._t_sent = 0.0
+        self._threaded = not self.honours_deadline
 
     @abstractmethod
     def open(self) -> None:
@@ -218,22 +303,142 @@ class Driver(ABC):
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
+        self.stop_reader()
         self.close()
 
-    @abstractmethod
+    # -- the contract: what a driver implements -------------------------------------------------
+    def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
+        """Encode and write the command of step ``seq`` (already checked).
+
+        Transport failures are counted (``stats.send_errors``), never raised.
+        """
+        raise NotImplementedError(f"{type(self).__name__}: implement _send_raw (or override send)")
+
+    def _recv_internal(self, deadline: float) -> Feedback | None:
+        """The next well-formed feedback, or ``None``, without blocking past ``deadline``.
+
+        Parameters
+        ----------
+        deadline : float
+            Absolute time (:func:`time.perf_counter`) after which the call must return.
+
+        Returns
+        -------
+        Feedback or None
+            A feedback decoded from the wire with its full sequence number (the driver extends
+            a narrow wire counter, e.g. with :func:`extend_seq` against ``self._last_sent``;
+            ``seq`` is ignored when :attr:`echoes_seq` is false); ``None`` when nothing usable
+            arrived — the base class calls again while time remains. Malformed frames are
+            counted by the driver (``stats.count_malformed``); lost connections in
+            ``stats.disconnects``. It never raises on what the bus brings.
+
+        Raises
+        ------
+        LinkDown
+            The transport is closed or gone: nothing can arrive before the deadline (the
+            receive ends at once, counted as a timeout, instead of waiting it out).
+        """
+        raise NotImplementedError(
+            f"{type(self).__name__}: implement _recv_internal (or override receive)"
+        )
+
+    # -- the contract: what the base class does -------------------------------------------------
     def send(self, seq: int, displacement: float, enable: bool = True) -> None:
         """Send the command for step ``seq``: ``displacement`` in metres, ``enable`` flag.
 
         Raises :class:`~rths_hil.errors.InputError` for a non-finite or out-of-range command;
         transport failures are counted (``send_errors``), not raised.
         """
+        check_command(seq, displacement, self.command_lsb)
+        prev = self._last_sent
+        self._last_sent = seq
+        self._t_sent = _perf()
+        try:
+            self._send_raw(seq, displacement, enable)
+        except InputError:  # refused by the wire format (e.g. out of a DBC signal's range)
+            self._last_sent = prev
+            raise
+        self.stats.sent += 1
 
-    @abstractmethod
     def receive(self, timeout: float) -> Feedback | None:
         """Wait up to ``timeout`` seconds for the feedback of the last command sent.
 
-        Returns ``None`` on timeout (counted); never raises on bus faults.
+        Returns ``None`` on timeout (counted); never raises on bus faults. What arrives is
+        sorted by the sequence rules (module docstring); a delivered feedback carries its
+        :attr:`Feedback.age` (time since the command was sent, s).
         """
+        now = _perf()
+        deadline = now + (timeout if timeout > 0.0 else 0.0)
+        self._last_receive = now
+        if self._threaded:
+            recv = self._recv_queued
+        else:
+            recv = self._recv_internal
+        stats = self.stats
+        while True:
+            try:
+                fb = recv(deadline)
+            except LinkDown:
+                stats.timeouts += 1
+                return None
+            now = _perf()
+            if fb is not None:
+                if self.echoes_seq:
+                    ok = self._classify(fb.seq)
+                else:
+                    ok = self._match(fb)
+                if ok:
+                    stats.received += 1
+                    d = fb.displacement
+                    f = fb.force
+                    if d != d or f != f:
+                        stats.invalid_values += 1
+                    fb.age = now - self._t_sent
+                    return fb
+            if now >= deadline:
+                if now - deadline > DEADLINE_SLACK and recv is not self._recv_queued:
+                    self._overran(now - deadline)
+                stats.timeouts += 1
+                return None
+
+    def _accept(self, fb: Feedback | None) -> Feedback | None:
+        """Apply the sequence rules and the counters to one decoded feedback (what
+        :meth:`receive` does with each); ``fb`` if it is delivered, else ``None``."""
+        if fb is None:
+            return None
+        ok = self._classify(fb.seq) if self.echoes_seq else self._match(fb)
+        if not ok:
+            return None
+        self.stats.received += 1
+        if fb.displacement != fb.displacement or fb.force != fb.force:
+            self.stats.invalid_values += 1
+        fb.age = _perf() - self._t_sent
+        return fb
+
+    def _match(self, fb: Feedback) -> bool:
+        """Sequence rule without an echo: the first feedback after a command answers it."""
+        last = self._last_sent
+        if last < 0 or last == self._last_delivered:
+            self.stats.duplicates += 1
+            return False
+        prev = self._last_delivered
+        if prev >= 0 and last > prev + 1:
+            self.stats.seq_gaps += last - prev - 1
+        self._last_delivered = last
+        fb.seq = last
+        return True
+
+    def _overran(self, late: float) -> None:
+        self.stats.deadline_overruns += 1
+        if not self._overrun_warned:
+            self._overrun_warned = True
+            log.warning(
+                "driver %s returned %.1f ms past its receive deadline: reading it through a "
+                "reader thread from now on",
+                getattr(self, "name", type(self).__name__),
+                late * 1e3,
+            )
+        self._threaded = True
 
     @abstractmethod
     def estop(self) -> None:
@@ -259,7 +464,8 @@ class Driver(ABC):
         driver's own sequence bookkeeping is reset, so the reply to step 0 is not taken for a
         duplicate of the arming reply.
 
-        Returns the controller's reply to the arming command (its status before the run), or
+        Returns the controller's reply to the arming command (its status before the run and
+        where the actuator is: the run starts from there, :mod:`rths_hil.hybrid.phases`), or
         ``None`` when none came within ``timeout`` seconds. ``receive`` replaces
         :meth:`receive` (the loop passes its own, which serves an inline twin first).
         """
@@ -268,6 +474,150 @@ class Driver(ABC):
         self._last_sent = -1
         self._last_delivered = -1
         return fb
+
+    # -- reader thread (drivers that do not honour the deadline) --------------------------------
+    def _recv_queued(self, deadline: float) -> Feedback | None:
+        q = self._rx_queue
+        if q is None or self._rx_thread is None or not self._rx_thread.is_alive():
+            self._start_reader()
+            q = self._rx_queue
+        try:
+            if q.queue:  # type: ignore[union-attr]
+                item = q.get_nowait()  # type: ignore[union-attr]
+            else:
+                rem = deadline - _perf()
+                item = q.get(True, rem) if rem > 0.0 else None  # type: ignore[union-attr]
+        except queue.Empty:
+            return None
+        if isinstance(item, LinkDown):
+            raise item
+        return item
+
+    def _start_reader(self) -> None:
+        self._rx_queue = queue.Queue()
+        self._rx_stop = threading.Event()
+        self._rx_thread = threading.Thread(
+            target=self._read_loop,
+            args=(self._rx_queue, self._rx_stop),
+            name=f"driver-{getattr(self, 'name', type(self).__name__)}-reader",
+            daemon=True,
+        )
+        self._rx_thread.start()
+
+    def _read_loop(self, q: queue.Queue, stop: threading.Event) -> None:
+        """Feed ``q`` from :meth:`_recv_internal` until stopped or idle for READER_IDLE s."""
+        while not stop.is_set():
+            now = _perf()
+            if now - self._last_receive > READER_IDLE:
+                break  # nobody receives any more (the run ended): stop polling
+            until = now + READER_POLL
+            try:
+                fb = self._recv_internal(until)
+            except LinkDown as exc:
+                q.put(exc)
+                stop.wait(READER_POLL)
+                continue
+            except Exception:  # a broken driver must not kill the loop with a traceback
+                log.exception("driver %s: _recv_internal failed", type(self).__name__)
+                if hasattr(self, "stats"):
+                    self.stats.disconnects += 1
+                stop.wait(READER_POLL)
+                continue
+            if fb is not None:
+                q.put(fb)
+            elif _perf() < until:
+                stop.wait(min(until - _perf(), 1e-3))  # returned early with nothing: no spin
+        if self._rx_queue is q:
+            self._rx_thread = None
+
+    def stop_reader(self) -> None:
+        """Stop the reader thread, if one runs (idempotent; :meth:`__exit__` calls it)."""
+        stop, t = self._rx_stop, self._rx_thread
+        self._rx_thread = None
+        self._rx_queue = None
+        if stop is not None:
+            stop.set()
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout=1.0)
+
+    # -- what the driver class knows: its links and its twin -----------------------------------
+    @classmethod
+    def link_key(cls, connection: dict[str, Any]) -> str:
+        """Name of the physical link ``connection`` uses; equal names share one link.
+
+        Default: the driver name and its sorted settings (every channel its own link).
+        """
+        c = dict(connection or {})
+        return f"{cls.name} " + ",".join(f"{k}={c[k]}" for k in sorted(c))
+
+    @classmethod
+    def link_load(
+        cls,
+        connection: dict[str, Any],
+        channels_on_link: int,
+        fs: float,
+        *,
+        heartbeat_hz: float = 0.0,
+    ) -> LinkLoad:
+        """Load of the link used by ``channels_on_link`` channels at the loop rate ``fs``.
+
+        Default: frame sizes unknown, not checked. A driver that knows its frames returns the
+        fraction of the link's capacity (formulas and helpers in :mod:`rths_hil.linkbudget`).
+        """
+        from rths_hil.linkbudget import LinkLoad
+
+        return LinkLoad(
+            cls.link_key(connection),
+            None,
+            f"driver {cls.name!r}: frame sizes unknown, not checked",
+            channels=int(channels_on_link),
+            fs=float(fs),
+        )
+
+    @classmethod
+    def own_link(cls, connection: dict[str, Any]) -> bool:
+        """True when a channel with a twin gets a link of its own (no bus, port or device
+        named in ``connection``: the twin opens a fresh one)."""
+        c = connection or {}
+        return not (c.get("channel") or c.get("port") or c.get("url"))
+
+    @classmethod
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
+        """Refuse channels of this driver that cannot share their link (one line).
+
+        Parameters
+        ----------
+        channels : list of (index, name, connection, twin_enabled)
+            Every channel of the test that uses this driver (index in ``actuators``).
+
+        Raises
+        ------
+        InputError
+            Two channels would speak to the same controller: one line starting
+            ``actuators: …`` naming them and the setting that tells them apart (the plan adds
+            the file). Default: no check.
+        """
+        return None
+
+    #: The ``protocol`` of the controller profiles this driver takes (``driver.profile``;
+    #: :mod:`rths_hil.drivers.profile`), or ``None``.
+    profile_protocol: ClassVar[str | None] = None
+
+    @classmethod
+    def profile_driver(cls) -> type[Driver]:
+        """The driver class that speaks a profile of :attr:`profile_protocol`.
+
+        Raises
+        ------
+        InputError
+            This driver takes no profile.
+        """
+        raise InputError(f"driver {getattr(cls, 'name', cls.__name__)!r} takes no profile")
+
+    @classmethod
+    def inline_twin(cls, connection: dict[str, Any]) -> bool:
+        """Whether this driver's twin can be served from the loop's thread (``twin.inline``)."""
+        return False
 
     # -- shared sequence bookkeeping ------------------------------------------------------------
     def _classify(self, seq: int) -> bool:

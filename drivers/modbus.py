@@ -53,14 +53,17 @@ import struct
 import threading
 import time
 from collections import deque
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import serial
 from pymodbus.framer import FramerRTU
 
 from rths_hil.errors import InputError
 
-from .base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Driver, Feedback, check_command
+if TYPE_CHECKING:
+    from rths_hil.linkbudget import LinkLoad
+
+from .base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Driver, Feedback, LinkDown
 from .base import extend_seq as _extend_seq
 
 __all__ = [
@@ -228,6 +231,8 @@ class ModbusDriver(Driver):
     """
 
     name: ClassVar[str] = "modbus"
+    profile_protocol: ClassVar[str | None] = "modbus"
+    honours_deadline: ClassVar[bool] = True  # select() on the socket or serial descriptor
 
     def __init__(
         self,
@@ -264,6 +269,75 @@ class ModbusDriver(Driver):
         self._rtu = transport == "rtu"
         # MBAP length, unit id, function code and byte count of a good FC 23 response
         self._resp_head = struct.pack(">HHBBB", 0, _TCP_RESP.size - 6, self.device_id, FC_RW, 14)
+
+    # -- what this driver knows about its links and its twin (drivers.base.Driver) ------------
+    @classmethod
+    def link_key(cls, connection: dict[str, Any]) -> str:
+        from rths_hil.linkbudget import modbus_link_key
+
+        return modbus_link_key(dict(connection or {}))
+
+    @classmethod
+    def link_load(
+        cls,
+        connection: dict[str, Any],
+        channels_on_link: int,
+        fs: float,
+        *,
+        heartbeat_hz: float = 0.0,
+    ) -> LinkLoad:
+        from rths_hil.linkbudget import modbus_load
+
+        return modbus_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
+
+    @classmethod
+    def profile_driver(cls) -> type[Driver]:
+        """A lab's own register map: :class:`~.modbus_profile.ModbusProfileDriver`."""
+        from .modbus_profile import ModbusProfileDriver
+
+        return ModbusProfileDriver
+
+    @classmethod
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
+        """Modbus TCP channels on one ``host:port`` need distinct unit ids (``device_id``,
+        1–247); a Modbus RTU line carries one channel."""
+        seen: dict[tuple, str] = {}
+        tcp = [
+            (c.get("host", "127.0.0.1"), c.get("port", 502))
+            for _, _, c, _ in channels
+            if c.get("transport", "tcp") == "tcp"
+        ]
+        for i, name, conn, twin in channels:
+            if conn.get("transport", "tcp") == "rtu":
+                if twin and not conn.get("device"):
+                    continue  # each twin gets a pseudo-terminal of its own
+                key: tuple = ("rtu", conn.get("device"))
+                if key in seen:
+                    raise InputError(
+                        f"actuators: channels {seen[key]!r} and {name!r} use one Modbus RTU line "
+                        "(an RTU line carries one channel; use one serial port per channel or "
+                        "Modbus TCP)"
+                    )
+                seen[key] = name
+                continue
+            if twin and not conn.get("port"):
+                continue  # each twin gets a port of its own
+            unit = conn.get("device_id", 1)
+            host, port = conn.get("host", "127.0.0.1"), conn.get("port", 502)
+            bad = isinstance(unit, bool) or not isinstance(unit, int) or not 1 <= unit <= MAX_UNIT
+            if bad and tcp.count((host, port)) > 1:  # alone, a device may answer unit 255
+                raise InputError(
+                    f"actuators[{i}] ({name}).driver.connection.device_id: {unit!r} is not a "
+                    "Modbus unit id (1–247) for a connection it shares"
+                )
+            key = ("tcp", host, port, unit)
+            if key in seen:
+                raise InputError(
+                    f"actuators: channels {seen[key]!r} and {name!r} both use Modbus unit "
+                    f"{unit} on {host}:{port} (driver.connection.device_id): give each channel "
+                    "its own unit id"
+                )
+            seen[key] = name
 
     # -- transport ------------------------------------------------------------------------------
     def _open_serial(self) -> tuple[None, Any, int]:
@@ -329,8 +403,7 @@ class ModbusDriver(Driver):
             link.disconnect()
 
     # -- commands -------------------------------------------------------------------------------
-    def send(self, seq: int, displacement: float, enable: bool = True) -> None:
-        check_command(seq, displacement)
+    def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
         s16 = seq & 0xFFFF
         raw = round(displacement / DISPLACEMENT_LSB)
         ctl = 1 if enable else 0
@@ -345,8 +418,6 @@ class ModbusDriver(Driver):
                 s16 ^ self._tid_x, 0, _TCP_REQ.size - 6, self.device_id, FC_RW, READ_ADDRESS,
                 READ_COUNT, WRITE_ADDRESS, WRITE_COUNT, 2 * WRITE_COUNT, s16, ctl, raw,
             )  # fmt: skip
-        self._last_sent = seq
-        self.stats.sent += 1
         self._write(frame)
 
     def estop(self) -> None:
@@ -369,74 +440,63 @@ class ModbusDriver(Driver):
         if self._rtu:
             self._coil_ack = False
             deadline = time.perf_counter() + self.estop_timeout
-            timeouts = self.stats.timeouts
-            while not self._coil_ack:
-                remaining = deadline - time.perf_counter()
-                if remaining <= 0:
+            while not self._coil_ack and time.perf_counter() < deadline:
+                try:
+                    fb = self._recv_internal(deadline)
+                except LinkDown:
                     break
-                fb = self.receive(remaining)
                 if fb is not None:
-                    self._stash = fb
-            self.stats.timeouts = timeouts  # waiting for the echo is not a feedback timeout
+                    self._stash = fb  # a feedback, not yet classified: for the next receive
 
     # -- feedback -------------------------------------------------------------------------------
-    def receive(self, timeout: float) -> Feedback | None:
-        stats = self.stats
+    def _recv_internal(self, deadline: float) -> Feedback | None:
         if self._stash is not None:
             fb, self._stash = self._stash, None
             return fb
         inbox = self._inbox
-        while inbox:  # read off the shared connection by another unit's driver
-            fb = self._handle_tcp(inbox.popleft())
-            if fb is not None:
-                return fb
+        if inbox:  # read off the shared connection by another unit's driver
+            return self._handle_tcp(inbox.popleft())
         link = self._link
         if link is None:
-            stats.timeouts += 1
-            return None
-        deadline = time.perf_counter() + timeout
+            raise LinkDown("modbus driver closed")
         parse = self._parse_rtu if self._rtu else self._parse_tcp
-        while True:
+        while link.buf:
+            fb, more = parse(link)
+            if fb is not None:
+                return fb
+            if not more:
+                break
+        fd = link.fd
+        if fd is None:
+            raise LinkDown("modbus connection lost")
+        remaining = deadline - time.perf_counter()
+        try:
+            ready = select.select((fd,), (), (), remaining if remaining > 0.0 else 0.0)[0]
+            data = os.read(fd, 4096) if ready else b""
+            if ready and not data:
+                raise ConnectionResetError("peer closed the connection")
+        except (OSError, ValueError):
+            self.stats.disconnects += 1
+            link.disconnect()
+            raise LinkDown("modbus connection lost") from None
+        if data:
+            link.buf += data
             while link.buf:
                 fb, more = parse(link)
                 if fb is not None:
                     return fb
                 if not more:
                     break
-            fd = link.fd
-            remaining = deadline - time.perf_counter()
-            if fd is None:
-                stats.timeouts += 1
-                return None
-            try:
-                ready = select.select((fd,), (), (), max(remaining, 0.0))[0]
-                data = os.read(fd, 4096) if ready else b""
-                if ready and not data:
-                    raise ConnectionResetError("peer closed the connection")
-            except (OSError, ValueError):
-                stats.disconnects += 1
-                stats.timeouts += 1
-                link.disconnect()
-                return None
-            if data:
-                link.buf += data
-            elif remaining <= 0:
-                if self._rtu and link.buf:  # an idle line ends an RTU frame: drop the rest
-                    stats.count_malformed("bad_length")
-                    link.buf = b""
-                stats.timeouts += 1
-                return None
+        elif remaining <= 0 and self._rtu and link.buf:
+            # an idle line ends an RTU frame: drop the rest
+            self.stats.count_malformed("bad_length")
+            link.buf = b""
+        return None
 
     def _deliver(self, raw_seq: int, status: int, rd: int, rf: int) -> Feedback | None:
         seq = _extend_seq(raw_seq, self._last_sent, 16)
-        if not self._classify(seq):
-            return None
-        stats = self.stats
-        stats.received += 1
         disp = math.nan if rd == INVALID_S32 else rd * DISPLACEMENT_LSB
         force = math.nan if rf == INVALID_S32 else rf * FORCE_LSB
-        if rd == INVALID_S32 or rf == INVALID_S32:
-            stats.invalid_values += 1
         return Feedback(seq, disp, force, status)
 
     def _parse_tcp(self, link: Link) -> tuple[Feedback | None, bool]:

@@ -33,6 +33,7 @@ BUILTIN: dict[str, str] = {
     "can": "rths_hil.drivers.can:CANDriver",
     "modbus": "rths_hil.drivers.modbus:ModbusDriver",
     "serial": "rths_hil.drivers.serial:SerialDriver",
+    "canopen": "rths_hil.drivers.canopen:CANopenDriver",
 }
 
 
@@ -75,6 +76,13 @@ def create_driver(name: str, **connection: Any) -> Driver:
         Unknown driver name, or a connection key the driver does not take.
     """
     cls = driver_class(name)
+    connection = dict(connection)
+    profile = connection.pop("profile", None)
+    from .profile import is_builtin
+
+    if not is_builtin(profile):
+        cls = cls.profile_driver()
+        connection["profile"] = profile
     params = inspect.signature(cls.__init__).parameters
     if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
         accepted = [n for n, p in params.items() if n != "self" and p.kind is p.KEYWORD_ONLY]

@@ -24,19 +24,21 @@ file descriptor (no polling sleeps); other URL handlers use pyserial's own timeo
 from __future__ import annotations
 
 import binascii
-import math
 import os
 import select
 import struct
 import time
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import serial
 from cobs import cobs
 
 from rths_hil.errors import InputError
 
-from .base import Driver, Feedback, check_command
+if TYPE_CHECKING:
+    from rths_hil.linkbudget import LinkLoad
+
+from .base import Driver, Feedback, LinkDown
 
 __all__ = [
     "ESTOP_KEY",
@@ -98,6 +100,8 @@ class SerialDriver(Driver):
     """
 
     name: ClassVar[str] = "serial"
+    honours_deadline: ClassVar[bool] = True  # select() on POSIX ports, pyserial's own timeout
+    command_lsb: ClassVar[float | None] = None  # displacements travel as IEEE-754 doubles
 
     def __init__(self, url: str, baudrate: int = 921600) -> None:
         super().__init__()
@@ -107,6 +111,41 @@ class SerialDriver(Driver):
         self._fd: int | None = None
         self._buf = b""
         self._hb = 0
+
+    # -- what this driver knows about its links and its twin (drivers.base.Driver) ------------
+    @classmethod
+    def link_key(cls, connection: dict[str, Any]) -> str:
+        from rths_hil.linkbudget import serial_link_key
+
+        return serial_link_key(dict(connection or {}))
+
+    @classmethod
+    def link_load(
+        cls,
+        connection: dict[str, Any],
+        channels_on_link: int,
+        fs: float,
+        *,
+        heartbeat_hz: float = 0.0,
+    ) -> LinkLoad:
+        from rths_hil.linkbudget import serial_load
+
+        return serial_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
+
+    @classmethod
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
+        """A serial port carries one channel."""
+        seen: dict[tuple, str] = {}
+        for _, name, conn, twin in channels:
+            if twin and not (conn.get("url") or conn.get("port")):
+                continue
+            key = (conn.get("url"), conn.get("port"))
+            if key in seen:
+                raise InputError(
+                    f"actuators: channels {seen[key]!r} and {name!r} use one serial port "
+                    "(serial links carry one channel each)"
+                )
+            seen[key] = name
 
     def open(self) -> None:
         if self._ser is not None:
@@ -144,12 +183,9 @@ class SerialDriver(Driver):
         except (serial.SerialException, OSError):
             self.stats.send_errors += 1
 
-    def send(self, seq: int, displacement: float, enable: bool = True) -> None:
-        check_command(seq, displacement, lsb=None)
+    def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
         if seq > 0xFFFFFFFF:
             raise InputError(f"serial driver: sequence number {seq} exceeds 32 bits")
-        self._last_sent = seq
-        self.stats.sent += 1
         self._write(encode_frame(COMMAND.pack(T_COMMAND, seq, 1 if enable else 0, displacement)))
 
     def estop(self) -> None:
@@ -180,29 +216,22 @@ class SerialDriver(Driver):
         except (serial.SerialException, OSError):
             return None
 
-    def receive(self, timeout: float) -> Feedback | None:
-        stats = self.stats
+    def _recv_internal(self, deadline: float) -> Feedback | None:
+        if b"\x00" in self._buf:
+            return self._drain()
         if self._ser is None:
-            stats.timeouts += 1
-            return None
-        deadline = time.perf_counter() + timeout
-        while True:
-            while b"\x00" in self._buf:
-                fb = self._drain()
-                if fb is not None:
-                    return fb
-            remaining = deadline - time.perf_counter()
-            data = self._read(max(remaining, 0.0))
-            if data is None:
-                stats.disconnects += 1
-                stats.timeouts += 1
-                self.close()
-                return None
-            if data:
-                self._buf += data
-            elif remaining <= 0:
-                stats.timeouts += 1
-                return None
+            raise LinkDown("serial line closed")
+        remaining = deadline - time.perf_counter()
+        data = self._read(remaining if remaining > 0.0 else 0.0)
+        if data is None:
+            self.stats.disconnects += 1
+            self.close()
+            raise LinkDown("serial line gone")
+        if data:
+            self._buf += data
+            if b"\x00" in self._buf:
+                return self._drain()
+        return None
 
     def _drain(self) -> Feedback | None:
         """Handle the first complete frame in the buffer."""
@@ -221,9 +250,4 @@ class SerialDriver(Driver):
             stats.count_malformed("bad_length")
             return None
         _, seq, status, disp, force = FEEDBACK.unpack(body)
-        if not self._classify(seq):
-            return None
-        stats.received += 1
-        if math.isnan(disp) or math.isnan(force):
-            stats.invalid_values += 1
         return Feedback(seq, disp, force, status)

@@ -48,13 +48,16 @@ from .units import parse_accel, parse_fraction, parse_length, parse_time, parse_
 __all__ = [
     "CHANNEL_SECTIONS",
     "SCHEMA",
+    "STEP_KEYS",
     "ChannelConfig",
     "Config",
     "Key",
+    "check_compensation_units",
     "default_config",
     "load_config",
     "parse_override",
     "schema_markdown",
+    "set_compensation",
     "to_toml",
 ]
 
@@ -297,21 +300,109 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "heartbeat": Key("float", 0.1, unit="s", doc="driver heartbeat interval (0 = never)", lo=0),
         "console": Key("float", 0.5, unit="s", doc="live console line interval (0 = off)", lo=0),
+        "confirm_hardware": Key(
+            "bool",
+            False,
+            unit="-",
+            doc="this configuration may drive real hardware (a channel without a twin) without "
+            "--confirm-hardware on the command line (for a lab's own configurations)",
+        ),
+    },
+    "start": {
+        "mode": Key(
+            "choice",
+            "ramp",
+            unit="-",
+            doc="ramp: move each actuator from where it is to the first target along a cosine "
+            "ramp; offset: run the test about where it is (commands + start position, "
+            "measurements − start position)",
+            choices=("ramp", "offset"),
+        ),
+        "ramp_time": Key(
+            "float",
+            2.0,
+            unit="s",
+            doc="shortest start ramp (longer when start.velocity needs it)",
+            lo=0,
+            lo_open=True,
+            hi=600,
+        ),
+        "velocity": Key(
+            "float",
+            0.01,
+            unit="m/s",
+            doc="peak velocity of the start and end ramps (at most half safety.velocity_limit)",
+            lo=0,
+            lo_open=True,
+        ),
+        "hold": Key(
+            "float",
+            0.2,
+            unit="s",
+            doc="hold at the first target after the start ramp, before step 0",
+            lo=0,
+            hi=60,
+        ),
+        "tolerance": Key(
+            "float",
+            5e-5,
+            unit="m",
+            doc="no start ramp when the actuator is this close to the first target",
+            lo=0,
+        ),
+    },
+    "end": {
+        "rest": Key(
+            "choice",
+            "hold",
+            unit="-",
+            doc="after a completed run or an operator stop: hold where the test ended, or ramp "
+            "to end.rest_position; then the controller is disabled (a trip e-stops instead)",
+            choices=("hold", "position"),
+        ),
+        "rest_position": Key(
+            "float", 0.0, unit="m", doc="end.rest = position: where to ramp to (absolute)"
+        ),
+        "hold": Key(
+            "float",
+            0.0,
+            unit="s",
+            doc="keep commanding the rest position this long before disabling (0: disable at "
+            "once; a disabled controller holds where it is)",
+            lo=0,
+            hi=60,
+        ),
     },
     "driver": {
         "name": Key(
             "str",
             "can",
             unit="-",
-            doc="driver name in the registry (can, modbus, serial, or a lab's entry point)",
+            doc="driver name in the registry (can, modbus, serial, canopen, or a lab's entry "
+            "point)",
         ),
         "connection": Key(
             "table",
             {},
             unit="-",
             doc="driver connection settings (e.g. interface/channel for CAN, "
-            "host/port for Modbus, url for serial); with a twin they go to the "
-            "twin, which hands the driver its endpoint",
+            "host/port for Modbus, url for serial, eds/node_id/profile for CANopen: "
+            "docs/canopen.md); with a twin they go to the twin, which hands the driver its "
+            "endpoint",
+        ),
+        "profile": Key(
+            "str",
+            "rths-hil",
+            unit="-",
+            doc="controller profile: 'rths-hil' (the driver's own protocol) or a profile file "
+            "(TOML: the lab's register map or DBC, docs/profiles.md); the twin speaks it too",
+        ),
+        "stepped": Key(
+            "bool",
+            False,
+            unit="-",
+            doc="the controller advances one step per command (virtual time), so a lockstep "
+            "run against it without a twin is allowed",
         ),
     },
     "twin": {
@@ -368,18 +459,45 @@ SCHEMA: dict[str, dict[str, Key]] = {
             unit="-",
             doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' (sim_backends.faults)",
         ),
+        "initial_position": Key(
+            "float",
+            0.0,
+            unit="m",
+            doc="where the twin's actuator sits at rest (an actuator left off centre)",
+        ),
     },
     "compensation": {
-        "enabled": Key(
-            "bool", True, unit="-", doc="inverse compensation x_c = α·x_t − (α−1)·x_t,prev"
+        "enabled": Key("bool", True, unit="-", doc="actuator delay compensation on"),
+        "method": Key(
+            "str",
+            "inverse",
+            unit="-",
+            doc="compensator: inverse, polynomial, ats, model or a lab's own registered under "
+            "the entry-point group rths_hil.compensators (docs/compensation.md)",
+        ),
+        "delay": Key(
+            "float",
+            0.025,
+            unit="s",
+            doc="delay to compensate (inverse: α = 1 + delay·fs; polynomial: extrapolation "
+            "horizon; ats: initial a1; model: the model's transport delay)",
+            lo=0,
         ),
         "alpha": Key(
-            "float", 26.6, unit="-", doc="α in steps (1 + delay/Δt; 26.6 ≈ 25 ms at 1024 Hz)", lo=1
+            "float",
+            26.6,
+            unit="steps",
+            doc="inverse compensation α = 1 + delay·fs, another way to give delay: a file's α "
+            "is read at that file's loop.fs, a --set α at the final loop.fs (26.6 = 25 ms at "
+            "1024 Hz)",
+            lo=1,
         ),
         "amplitude": Key(
             "float", 1.0, unit="-", doc="amplitude factor on the command", lo=0, lo_open=True
         ),
-        "adaptive": Key("bool", False, unit="-", doc="adapt α online from the online FEI delay"),
+        "adaptive": Key(
+            "bool", False, unit="-", doc="inverse: adapt α online from the online FEI delay"
+        ),
         "time_constant": Key(
             "float",
             6.0,
@@ -388,9 +506,129 @@ SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
             lo_open=True,
         ),
-        "rate": Key("float", 5.0, unit="1/s", doc="adaptive: maximum |dα/dt|", lo=0, lo_open=True),
-        "alpha_min": Key("float", 1.0, unit="-", doc="adaptive: lower bound of α", lo=1),
-        "alpha_max": Key("float", 100.0, unit="-", doc="adaptive: upper bound of α", lo=1),
+        "delay_rate": Key(
+            "float",
+            0.0048828125,
+            unit="s/s",
+            doc="adaptive: maximum rate of change of the compensated delay (5 steps/s at 1024 Hz)",
+            lo=0,
+            lo_open=True,
+        ),
+        "rate": Key(
+            "float",
+            5.0,
+            unit="1/s",
+            doc="adaptive: maximum |dα/dt|, another way to give delay_rate (rate = delay_rate·fs)",
+            lo=0,
+            lo_open=True,
+        ),
+        "delay_min": Key("float", 0.0, unit="s", doc="adaptive: lower bound of delay", lo=0),
+        "delay_max": Key(
+            "float", 0.0966796875, unit="s", doc="adaptive: upper bound of delay", lo=0
+        ),
+        "alpha_min": Key(
+            "float", 1.0, unit="steps", doc="adaptive: lower bound of α (1 + delay_min·fs)", lo=1
+        ),
+        "alpha_max": Key(
+            "float", 100.0, unit="steps", doc="adaptive: upper bound of α (1 + delay_max·fs)", lo=1
+        ),
+        "order": Key(
+            "int", 3, unit="-", doc="polynomial: order n of the extrapolation (1 … 4)", lo=1, hi=4
+        ),
+        "ats_window": Key(
+            "float",
+            1.0,
+            unit="s",
+            doc="ats: length of the moving least-squares window",
+            lo=0,
+            lo_open=True,
+        ),
+        "ats_interval": Key(
+            "float",
+            0.015625,
+            unit="s",
+            doc="ats: time between window samples and coefficient updates (16 steps at 1024 Hz)",
+            lo=0,
+            lo_open=True,
+        ),
+        "ats_cutoff": Key(
+            "float",
+            20.0,
+            unit="Hz",
+            doc="ats: cut-off of the 6th-order Butterworth on command and measured",
+            lo=0,
+            lo_open=True,
+        ),
+        "ats_threshold": Key(
+            "float",
+            0.000254,
+            unit="m",
+            doc="ats: coefficients adapt only while the window's RMS measured displacement "
+            "exceeds this",
+            lo=0,
+        ),
+        "ats_min": Key(
+            "array", [0.7, 0.0, 0.0], unit="-", doc="ats: lower bounds of a0 (-), a1 (s), a2 (s²)"
+        ),
+        "ats_max": Key(
+            "array",
+            [1.3, 0.08, 0.0032],
+            unit="-",
+            doc="ats: upper bounds of a0 (-), a1 (s), a2 (s²)",
+        ),
+        "ats_rate": Key(
+            "array",
+            [2.0, 0.05, 0.001],
+            unit="-",
+            doc="ats: maximum rate of change of a0 (1/s), a1 (s/s), a2 (s²/s)",
+        ),
+        "model_time_constant": Key(
+            "float",
+            0.0,
+            unit="s",
+            doc="model: servo lag T of the actuator model g·e^(−s·delay)/(T s + 1)",
+            lo=0,
+        ),
+        "model_gain": Key(
+            "float",
+            1.0,
+            unit="-",
+            doc="model: static gain g of the actuator model",
+            lo=0,
+            lo_open=True,
+        ),
+        "model_num": Key(
+            "array",
+            [],
+            unit="-",
+            doc="model: numerator of a rational actuator model (powers of s, highest first); "
+            "with model_den it replaces g/(T s + 1)",
+        ),
+        "model_den": Key(
+            "array", [], unit="-", doc="model: denominator of the rational actuator model"
+        ),
+        "model_cutoff": Key(
+            "float",
+            60.0,
+            unit="Hz",
+            doc="model: corner of the low-pass that makes the inverse proper",
+            lo=0,
+            lo_open=True,
+        ),
+        "model_order": Key(
+            "int",
+            3,
+            unit="-",
+            doc="model: Taylor order of the delay prediction e^(s·τ)",
+            lo=0,
+            hi=4,
+        ),
+        "model_kp": Key(
+            "float", 0.0, unit="-", doc="model: proportional feedback gain on target − measured"
+        ),
+        "options": Key(
+            "table", {}, unit="-", doc="a lab compensator's own keys (passed to its from_config)"
+        ),
     },
     "fei": {
         "enabled": Key("bool", True, unit="-", doc="online FEI (streaming every sample)"),
@@ -616,6 +854,46 @@ SCHEMA: dict[str, dict[str, Key]] = {
             lo_open=True,
         ),
     },
+    "commission": {
+        "amplitude": Key(
+            "float",
+            0.001,
+            unit="m",
+            doc="amplitude of the ramp–hold–ramp motion of `rths-hil commission`",
+            lo=0,
+            lo_open=True,
+        ),
+        "velocity": Key(
+            "float",
+            0.005,
+            unit="m/s",
+            doc="peak velocity of the commissioning motion",
+            lo=0,
+            lo_open=True,
+        ),
+        "latency_time": Key(
+            "float",
+            2.0,
+            unit="s",
+            doc="length of the round-trip latency measurement (actuator disabled)",
+            lo=0,
+            lo_open=True,
+        ),
+        "watchdog_test": Key(
+            "bool",
+            True,
+            unit="-",
+            doc="stop the heartbeat and check that the controller latches within its timeout",
+        ),
+        "watchdog_timeout": Key(
+            "float",
+            0.0,
+            unit="s",
+            doc="the controller's heartbeat timeout (0 = twin.watchdog for a twin; without it "
+            "the watchdog step is skipped on hardware)",
+            lo=0,
+        ),
+    },
     "output": {
         "dir": Key(
             "str",
@@ -636,7 +914,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
     },
 }
 
-_QUANTITY_UNITS = {"kg", "N", "N/m", "m/s", "1/s", "Hz"}
+_QUANTITY_UNITS = {"kg", "N", "N/m", "m/s", "1/s", "Hz", "s/s"}
 _NUM_RE = re.compile(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(\S*)\s*")
 _PREFIX = {"": 1.0, "k": 1e3, "M": 1e6}
 
@@ -829,6 +1107,77 @@ _CHANNEL_KEYS = ("name", "dof", "transform")
 _NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}\Z")
 
 
+#: Compensation keys in loop steps and the time key each stands for:
+#: ``steps = offset + time·fs`` (``alpha = 1 + delay·fs``, ``rate = delay_rate·fs``).
+STEP_KEYS: dict[str, tuple[str, float]] = {
+    "alpha": ("delay", 1.0),
+    "alpha_min": ("delay_min", 1.0),
+    "alpha_max": ("delay_max", 1.0),
+    "rate": ("delay_rate", 0.0),
+}
+_PAIR = {**{s: s for s in STEP_KEYS}, **{t: s for s, (t, _) in STEP_KEYS.items()}}
+
+
+def _steps_to_time(sec: dict[str, Any], given: Mapping[str, Any], fs: float, where: str) -> None:
+    """Set the time keys of ``sec`` from the step keys ``given`` sets, read at ``fs``.
+
+    ``given`` is a compensation table as one source wrote it (a file's, an ``[[actuators]]``
+    entry's). A step key and its time key both given must agree.
+    """
+    for sk, (tk, off) in STEP_KEYS.items():
+        if sk not in given:
+            continue
+        t = (given[sk] - off) / fs
+        if tk in given and not math.isclose(given[tk], t, rel_tol=1e-9, abs_tol=1e-12):
+            raise InputError(
+                f"{where}: compensation.{sk} = {given[sk]:g} and compensation.{tk} = "
+                f"{given[tk]:g} disagree at loop.fs = {fs:g} Hz ({sk} = {off:g} + {tk}·fs): "
+                "give one of them"
+            )
+        sec[tk] = t
+
+
+def _derive_steps(sec: dict[str, Any], fs: float) -> None:
+    """Set every step key of a compensation section from its time key at ``fs``."""
+    for sk, (tk, off) in STEP_KEYS.items():
+        sec[sk] = off + sec[tk] * fs
+
+
+def set_compensation(sec: dict[str, Any], key: str, value: float, fs: float) -> None:
+    """Set a compensation key in a resolved section and keep its step/time partner in step.
+
+    ``set_compensation(cfg["compensation"], "alpha", 15, 1024)`` also sets ``delay`` to
+    ``14/1024`` s; the compensators read the time keys (``delay``, ``delay_min``, …).
+    """
+    sec[key] = float(value)
+    sk = _PAIR.get(key)
+    if sk is None:
+        return
+    tk, off = STEP_KEYS[sk]
+    if key == sk:
+        sec[tk] = (float(value) - off) / fs
+    else:
+        sec[sk] = off + float(value) * fs
+
+
+def check_compensation_units(cfg: Config) -> None:
+    """Raise if a step key and its time key of ``cfg``'s top-level compensation disagree.
+
+    A resolved configuration keeps both consistent at ``loop.fs``; code that edits one of them
+    must use :func:`set_compensation`.
+    """
+    sec, fs = cfg["compensation"], cfg["loop"]["fs"]
+    for sk, (tk, off) in STEP_KEYS.items():
+        if sk in sec and tk in sec:
+            want = off + sec[tk] * fs
+            if not math.isclose(sec[sk], want, rel_tol=1e-9, abs_tol=1e-9):
+                raise InputError(
+                    f"{cfg.source}: compensation.{sk} = {sec[sk]:g} disagrees with "
+                    f"compensation.{tk} = {sec[tk]:g} at loop.fs = {fs:g} Hz ({sk} = {off:g} + "
+                    f"{tk}·fs); set them with rths_hil.config.set_compensation"
+                )
+
+
 def resolve_channel(cfg: Config, entry: Mapping[str, Any]) -> ChannelConfig:
     """A channel's configuration: the top-level sections with the channel's keys over them.
 
@@ -848,6 +1197,11 @@ def resolve_channel(cfg: Config, entry: Mapping[str, Any]) -> ChannelConfig:
                 out[section][key] = {**out[section][key], **copy.deepcopy(value)}
             else:
                 out[section][key] = copy.deepcopy(value)
+    check_compensation_units(cfg)
+    fs = out["loop"]["fs"]
+    own = entry.get("compensation", {})
+    _steps_to_time(out["compensation"], {k: v for k, v in own.items() if k in STEP_KEYS}, fs, "")
+    _derive_steps(out["compensation"], fs)
     return ChannelConfig(
         name=entry.get("name", ""),
         dof=entry.get("dof"),
@@ -951,6 +1305,17 @@ def _merge(cfg: Config, data: Mapping[str, Any], where: str) -> None:
                 cfg[section][name] = _coerce(keys[name], value, path)
             except InputError as exc:
                 raise InputError(f"{where}: {exc}") from None
+    # α and the other step keys of this source are read at this source's loop rate
+    fs = cfg["loop"]["fs"]
+    comp = data.get("compensation")
+    if isinstance(comp, dict):
+        _steps_to_time(cfg["compensation"], {k: cfg["compensation"][k] for k in comp}, fs, where)
+    for entry in cfg.get("actuators") or []:
+        own = entry.get("compensation")
+        if own:
+            _steps_to_time(own, own, fs, f"{where}: actuators.{entry['name']}")
+            for sk in STEP_KEYS:
+                own.pop(sk, None)
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -1031,8 +1396,12 @@ def _apply_override(cfg: Config, text: str) -> None:
         # a top-level --set applies to every channel: the channels' own values give way
         # (driver.connection is merged key by key: the channels keep their node / unit id)
         if (section, name) != ("driver", "connection"):
+            names = [name]
+            if section == "compensation" and name in _PAIR:
+                names = [_PAIR[name], STEP_KEYS[_PAIR[name]][0]]  # α and delay alike
             for entry in cfg.get("actuators") or []:
-                entry.get(section, {}).pop(name, None)
+                for n in names:
+                    entry.get(section, {}).pop(n, None)
     if section not in SCHEMA:
         raise InputError(f"{where}: {_unknown(section, section, SCHEMA)}")
     keys = SCHEMA[section]
@@ -1180,8 +1549,31 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
     else:
         cfg.base_dir = Path.cwd()
     overrides = list(overrides)
+    # (channel name or None, step key) → the key of the pair the last --set gave
+    last: dict[tuple[str | None, str], str] = {}
     for item in overrides:
         _apply_override(cfg, item)
+        parts = parse_override(item)[0]
+        if parts[0] == "compensation" and len(parts) == 2 and parts[1] in _PAIR:
+            sk = _PAIR[parts[1]]
+            last = {k: v for k, v in last.items() if k[1] != sk}  # the channels' gave way
+            last[(None, sk)] = parts[1]
+        elif parts[0] == "actuators" and len(parts) == 4 and parts[2] == "compensation":
+            if parts[3] in _PAIR:
+                last[(parts[1], _PAIR[parts[3]])] = parts[3]
+    # a --set α is read at the final loop rate; the time keys carry over a change of rate
+    fs = cfg["loop"]["fs"]
+    for (chan, sk), key in last.items():
+        tk, off = STEP_KEYS[sk]
+        if chan is None:
+            sec = cfg["compensation"]
+        else:
+            sec = next(e for e in cfg["actuators"] if e["name"] == chan)["compensation"]
+        if key == sk:
+            sec[tk] = (sec[sk] - off) / fs
+        if chan is not None:
+            sec.pop(sk, None)
+    _derive_steps(cfg["compensation"], fs)
     _cross_check(cfg, " (with --set overrides)" if overrides else "")
     return cfg
 
@@ -1264,7 +1656,7 @@ def schema_markdown() -> str:
         "is allocated the run estimates what it needs and refuses, naming the figure, a duration",
         "whose per-step arrays (32 bytes a step) exceed half the available memory, a record",
         "(rows × row size) larger than the free disk space of `output.dir`, and a",
-        "`fei.exact_hop` longer than both the run and the FEI window (`rths_hil/resources.py`).",
+        "`fei.exact_hop` longer than both the run and the record (`rths_hil/resources.py`).",
         "",
     ]
     for section, keys in SCHEMA.items():

@@ -15,7 +15,8 @@ of the CRC are bit-stuffed, at worst one stuff bit per 4 bits after the first
     load = channels · (bits(command) + bits(feedback)) · fs / bitrate
 
 The frame lengths come from the DBC the driver uses (``drivers/can/actuator.dbc``: Command and
-Feedback are 8 bytes each).
+Feedback are 8 bytes each), or from a controller profile's DBC (29-bit identifiers counted as
+extended frames: ``g`` = 54 in :func:`can_frame_bits`).
 
 **CAN FD** (ISO 11898-1:2015, base format, for the "what would fit" advice): 34 bits at the
 nominal rate (17 arbitration bits, ≤ 4 stuff bits in them, CRC delimiter, ACK, EOF, IFS) and at
@@ -94,15 +95,21 @@ __all__ = [
     "LinkLoad",
     "can_fd_frame_time",
     "can_frame_bits",
+    "can_link_key",
+    "can_load",
     "can_serial_frame_chars",
     "check_links",
     "cobs_frame_bytes",
     "format_loads",
     "link_key",
     "link_load",
+    "modbus_link_key",
+    "modbus_load",
     "modbus_rtu_frame_bytes",
     "rtu_transaction_time",
     "serial_frame_bytes",
+    "serial_link_key",
+    "serial_load",
 ]
 
 #: Default refusal threshold: a link above 80 % of its capacity is refused.
@@ -366,23 +373,53 @@ def _serial_rate_kind(device: str) -> str | None:
     return None
 
 
+def _channels(channels_on_link: int) -> int:
+    ch = int(channels_on_link)
+    if ch < 1:
+        raise InputError(f"channels on a link must be ≥ 1, got {channels_on_link}")
+    return ch
+
+
+def _driver_class(driver_name: str) -> Any:
+    """The registered driver class of ``driver_name``, or ``None`` for an unknown name."""
+    from rths_hil.drivers.registry import available, driver_class
+
+    if str(driver_name) not in available():
+        return None
+    return driver_class(str(driver_name))
+
+
 def link_key(driver_name: str, connection: dict[str, Any]) -> str:
     """Name of the physical link a channel's connection uses; equal names share one link.
 
-    CAN: interface and channel; Modbus TCP: host and port; Modbus RTU: the serial device;
-    serial: the port or URL. Other drivers: the driver name and its sorted settings.
+    Asks the driver class (``Driver.link_key``): CAN: interface and channel; Modbus TCP: host
+    and port; Modbus RTU: the serial device; serial: the port or URL. Other drivers (and
+    unknown names): the driver name and its sorted settings.
     """
     c = dict(connection or {})
-    name = str(driver_name)
-    if name == "can":
-        return f"can {c.get('interface', 'virtual')}:{c.get('channel', 'rths-hil')}"
-    if name == "modbus":
-        if c.get("transport", "tcp") == "rtu":
-            return f"modbus rtu {c.get('device')}"
-        return f"modbus tcp {c.get('host', '127.0.0.1')}:{c.get('port', 502)}"
-    if name == "serial":
-        return f"serial {c.get('url')}"
-    return f"{name} " + ",".join(f"{k}={c[k]}" for k in sorted(c))
+    cls = _driver_class(driver_name)
+    if cls is None:
+        return f"{driver_name} " + ",".join(f"{k}={c[k]}" for k in sorted(c))
+    return cls.link_key(c)
+
+
+def can_link_key(connection: dict[str, Any]) -> str:
+    """CAN: interface and channel."""
+    c = connection
+    return f"can {c.get('interface', 'virtual')}:{c.get('channel', 'rths-hil')}"
+
+
+def modbus_link_key(connection: dict[str, Any]) -> str:
+    """Modbus TCP: host and port; RTU: the serial device."""
+    c = connection
+    if c.get("transport", "tcp") == "rtu":
+        return f"modbus rtu {c.get('device')}"
+    return f"modbus tcp {c.get('host', '127.0.0.1')}:{c.get('port', 502)}"
+
+
+def serial_link_key(connection: dict[str, Any]) -> str:
+    """Serial: the port or URL."""
+    return f"serial {connection.get('url')}"
 
 
 _positive = positive_number  # one checker for the package (rths_hil.units)
@@ -398,10 +435,14 @@ def link_load(
 ) -> LinkLoad:
     """Load of the link used by ``channels_on_link`` channels of ``driver_name`` at ``fs``.
 
+    The driver class computes it (``Driver.link_load``; the built-in drivers call
+    :func:`can_load`, :func:`modbus_load` and :func:`serial_load` below); a driver that does
+    not know its frames, or an unknown name, reports "not checked".
+
     Parameters
     ----------
     driver_name : str
-        Driver registry name (``can``, ``modbus``, ``serial``; others report "not checked").
+        Driver registry name (``can``, ``modbus``, ``serial`` or a lab's entry point).
     connection : dict
         The driver's connection settings (as given to ``rths_hil.drivers.registry.create_driver``).
     channels_on_link : int
@@ -417,125 +458,185 @@ def link_load(
     """
     c = dict(connection or {})
     fs = _positive(fs, "loop rate fs (Hz)")
-    ch = int(channels_on_link)
-    if ch < 1:
-        raise InputError(f"channels on a link must be ≥ 1, got {channels_on_link}")
+    ch = _channels(channels_on_link)
+    cls = _driver_class(driver_name)
+    if cls is None:
+        return LinkLoad(
+            link_key(driver_name, c),
+            None,
+            f"driver {driver_name!r}: frame sizes unknown, not checked",
+            channels=ch,
+            fs=fs,
+        )
+    return cls.link_load(c, ch, fs, heartbeat_hz=float(heartbeat_hz))
+
+
+def can_load(
+    connection: dict[str, Any],
+    channels_on_link: int,
+    fs: float,
+    *,
+    heartbeat_hz: float = 0.0,
+) -> LinkLoad:
+    """Classic CAN: command + feedback frames from the DBC, worst-case stuffing (module
+    docstring); CAN through a serial line (``slcan``, ``serial``)."""
+    c = dict(connection or {})
+    fs = _positive(fs, "loop rate fs (Hz)")
+    ch = _channels(channels_on_link)
     hb = float(heartbeat_hz)
-    name = link_key(driver_name, c)
     base = {"channels": ch, "fs": fs}
+    name = can_link_key(c)
+    n_cmd, n_fb, n_hb = _can_frame_lengths(c.get("dbc"))
+    ext = (False, False, False)
+    profile = c.get("profile")
+    if profile not in (None, "", "rths-hil"):  # a controller profile: its DBC's frames
+        from rths_hil.drivers.profile import load_profile
 
-    if driver_name == "can":
-        n_cmd, n_fb, n_hb = _can_frame_lengths(c.get("dbc"))
-        b_cmd, b_fb, b_hb = can_frame_bits(n_cmd), can_frame_bits(n_fb), can_frame_bits(n_hb)
-        bits_step = ch * (b_cmd + b_fb)
-        frames = (
-            f"{ch} × ({n_cmd}-byte command {b_cmd} + {n_fb}-byte feedback {b_fb}) bits at {fs:g} Hz"
+        prof: Any = load_profile(profile)
+        hb_msg = (
+            prof.database.get_message_by_name(prof.heartbeat.message) if prof.heartbeat else None
         )
-        if hb > 0:
-            frames += f" + heartbeats {ch} × {b_hb} bits at {hb:g} Hz"
-        bitrate = c.get("bitrate")
-        interface = str(c.get("interface", "virtual"))
-        if interface in CAN_SERIAL_INTERFACES:
-            return _can_serial_load(c, interface, name, (n_cmd, n_fb, n_hb), bits_step, hb, base)
-        if bitrate is None:
-            why = "virtual bus" if interface == "virtual" else "bit rate set by the interface"
-            return LinkLoad(
-                name, None, f"{why}; {frames} = {bits_step * fs:.0f} bit/s", kind="can", **base
-            )
-        rate = _positive(bitrate, f"{name}: bitrate (bit/s)")
-        load = (bits_step * fs + ch * b_hb * hb) / rate
-        detail = f"{frames}, worst-case stuffing, of {_rate_text(rate)}"
-        if interface == "virtual":
-            detail += "; virtual bus"
+        msgs = (prof.command, prof.feedback, hb_msg or prof.command)
+        n_cmd, n_fb, n_hb = (int(m.length) for m in msgs)
+        ext = tuple(bool(m.is_extended_frame) for m in msgs)  # type: ignore[assignment]
+    b_cmd, b_fb, b_hb = (
+        can_frame_bits(n, extended=e) for n, e in zip((n_cmd, n_fb, n_hb), ext, strict=True)
+    )
+    bits_step = ch * (b_cmd + b_fb)
+    frames = (
+        f"{ch} × ({n_cmd}-byte command {b_cmd} + {n_fb}-byte feedback {b_fb}) bits at {fs:g} Hz"
+    )
+    if hb > 0:
+        frames += f" + heartbeats {ch} × {b_hb} bits at {hb:g} Hz"
+    bitrate = c.get("bitrate")
+    interface = str(c.get("interface", "virtual"))
+    if interface in CAN_SERIAL_INTERFACES:
+        return _can_serial_load(c, interface, name, (n_cmd, n_fb, n_hb), bits_step, hb, base)
+    if bitrate is None:
+        why = "virtual bus" if interface == "virtual" else "bit rate set by the interface"
         return LinkLoad(
-            name,
-            load,
-            detail,
-            enforced=interface != "virtual",
-            kind="can",
-            rate=rate,
-            per_channel=(b_cmd + b_fb) / rate,
-            per_second=ch * b_hb * hb / rate,
-            **base,
+            name, None, f"{why}; {frames} = {bits_step * fs:.0f} bit/s", kind="can", **base
         )
+    rate = _positive(bitrate, f"{name}: bitrate (bit/s)")
+    load = (bits_step * fs + ch * b_hb * hb) / rate
+    detail = f"{frames}, worst-case stuffing, of {_rate_text(rate)}"
+    if interface == "virtual":
+        detail += "; virtual bus"
+    return LinkLoad(
+        name,
+        load,
+        detail,
+        enforced=interface != "virtual",
+        kind="can",
+        rate=rate,
+        per_channel=(b_cmd + b_fb) / rate,
+        per_second=ch * b_hb * hb / rate,
+        **base,
+    )
 
-    if driver_name == "modbus":
-        if c.get("transport", "tcp") == "rtu":
-            device = str(c.get("device"))
-            why = _serial_rate_kind(device)
-            req, resp = modbus_rtu_frame_bytes()
-            baud = _positive(c.get("baudrate", 115200), f"{name}: baudrate")
-            parity, stop = c.get("parity", "E"), c.get("stopbits", 1)
-            t = rtu_transaction_time(baud, parity, stop, frame_bytes=(req, resp))
-            bpc = _bits_per_char(parity, stop)
-            frames = (
-                f"{ch} × FC 23 ({req} + {resp} bytes + 2 × 3.5 characters of {bpc:g} bits "
-                f"= {t * 1e3:.2f} ms) at {fs:g} Hz"
-            )
-            if why is not None:
-                return LinkLoad(name, None, f"{why}; {frames}", kind="modbus-rtu", **base)
-            return LinkLoad(
-                name,
-                ch * t * fs,
-                f"{frames} on {baud:g} baud",
-                kind="modbus-rtu",
-                rate=baud,
-                per_channel=t,
-                **base,
-            )
-        host = str(c.get("host", "127.0.0.1"))
-        req, resp = 25, 23  # MBAP header (7) + FC 23 PDU
-        if _is_loopback(host):
-            return LinkLoad(
-                name,
-                None,
-                f"TCP loopback; {ch} × FC 23 ({req} + {resp} bytes) at {fs:g} Hz",
-                kind="modbus-tcp",
-                **base,
-            )
-        bits = 8 * (req + resp + 2 * TCP_SEGMENT_OVERHEAD)
-        return LinkLoad(
-            name,
-            ch * bits * fs / ETHERNET_BITRATE,
-            f"{ch} × FC 23 in TCP/IP/Ethernet ({bits} bits) at {fs:g} Hz of an assumed "
-            f"{_rate_text(ETHERNET_BITRATE)} Ethernet",
-            kind="modbus-tcp",
-            rate=ETHERNET_BITRATE,
-            per_channel=bits / ETHERNET_BITRATE,
-            **base,
-        )
 
-    if driver_name == "serial":
-        url = str(c.get("url"))
-        why = _serial_rate_kind(url)
-        n_cmd, n_fb = serial_frame_bytes()
-        n_hb = cobs_frame_bytes(4)
-        baud = _positive(c.get("baudrate", 921600), f"{name}: baudrate")
-        bpc = _bits_per_char("N", 1)  # drivers/serial.py opens 8N1
+def modbus_load(
+    connection: dict[str, Any],
+    channels_on_link: int,
+    fs: float,
+    *,
+    heartbeat_hz: float = 0.0,
+) -> LinkLoad:
+    """Modbus RTU (FC 23 transactions and silences) or Modbus TCP (MBAP in Ethernet frames)."""
+    c = dict(connection or {})
+    fs = _positive(fs, "loop rate fs (Hz)")
+    ch = _channels(channels_on_link)
+    del heartbeat_hz  # Modbus has no heartbeat frame
+    base = {"channels": ch, "fs": fs}
+    name = modbus_link_key(c)
+    if c.get("transport", "tcp") == "rtu":
+        device = str(c.get("device"))
+        why = _serial_rate_kind(device)
+        req, resp = modbus_rtu_frame_bytes()
+        baud = _positive(c.get("baudrate", 115200), f"{name}: baudrate")
+        parity, stop = c.get("parity", "E"), c.get("stopbits", 1)
+        t = rtu_transaction_time(baud, parity, stop, frame_bytes=(req, resp))
+        bpc = _bits_per_char(parity, stop)
         frames = (
-            f"{ch} × (command {n_cmd} bytes out, feedback {n_fb} bytes in) of {bpc:g}-bit "
-            f"characters at {fs:g} Hz"
+            f"{ch} × FC 23 ({req} + {resp} bytes + 2 × 3.5 characters of {bpc:g} bits "
+            f"= {t * 1e3:.2f} ms) at {fs:g} Hz"
         )
-        if hb > 0:
-            frames += f" + heartbeats {ch} × {n_hb} bytes at {hb:g} Hz"
         if why is not None:
-            return LinkLoad(name, None, f"{why}; {frames}", kind="serial", **base)
-        # lockstep: the feedback answers the command, so each step needs the line for both
-        # frames in turn (full duplex does not overlap them); heartbeats go with the commands
-        t_step = (n_cmd + n_fb) * bpc / baud
-        t_hb = ch * n_hb * bpc * hb / baud
+            return LinkLoad(name, None, f"{why}; {frames}", kind="modbus-rtu", **base)
         return LinkLoad(
             name,
-            ch * t_step * fs + t_hb,
+            ch * t * fs,
             f"{frames} on {baud:g} baud",
-            kind="serial",
+            kind="modbus-rtu",
             rate=baud,
-            per_channel=t_step,
-            per_second=t_hb,
+            per_channel=t,
             **base,
         )
+    host = str(c.get("host", "127.0.0.1"))
+    req, resp = 25, 23  # MBAP header (7) + FC 23 PDU
+    if _is_loopback(host):
+        return LinkLoad(
+            name,
+            None,
+            f"TCP loopback; {ch} × FC 23 ({req} + {resp} bytes) at {fs:g} Hz",
+            kind="modbus-tcp",
+            **base,
+        )
+    bits = 8 * (req + resp + 2 * TCP_SEGMENT_OVERHEAD)
+    return LinkLoad(
+        name,
+        ch * bits * fs / ETHERNET_BITRATE,
+        f"{ch} × FC 23 in TCP/IP/Ethernet ({bits} bits) at {fs:g} Hz of an assumed "
+        f"{_rate_text(ETHERNET_BITRATE)} Ethernet",
+        kind="modbus-tcp",
+        rate=ETHERNET_BITRATE,
+        per_channel=bits / ETHERNET_BITRATE,
+        **base,
+    )
 
-    return LinkLoad(name, None, f"driver {driver_name!r}: frame sizes unknown, not checked", **base)
+
+def serial_load(
+    connection: dict[str, Any],
+    channels_on_link: int,
+    fs: float,
+    *,
+    heartbeat_hz: float = 0.0,
+) -> LinkLoad:
+    """The serial driver's COBS frames on the line (module docstring)."""
+    c = dict(connection or {})
+    fs = _positive(fs, "loop rate fs (Hz)")
+    ch = _channels(channels_on_link)
+    hb = float(heartbeat_hz)
+    base = {"channels": ch, "fs": fs}
+    name = serial_link_key(c)
+    url = str(c.get("url"))
+    why = _serial_rate_kind(url)
+    n_cmd, n_fb = serial_frame_bytes()
+    n_hb = cobs_frame_bytes(4)
+    baud = _positive(c.get("baudrate", 921600), f"{name}: baudrate")
+    bpc = _bits_per_char("N", 1)  # drivers/serial.py opens 8N1
+    frames = (
+        f"{ch} × (command {n_cmd} bytes out, feedback {n_fb} bytes in) of {bpc:g}-bit "
+        f"characters at {fs:g} Hz"
+    )
+    if hb > 0:
+        frames += f" + heartbeats {ch} × {n_hb} bytes at {hb:g} Hz"
+    if why is not None:
+        return LinkLoad(name, None, f"{why}; {frames}", kind="serial", **base)
+    # lockstep: the feedback answers the command, so each step needs the line for both
+    # frames in turn (full duplex does not overlap them); heartbeats go with the commands
+    t_step = (n_cmd + n_fb) * bpc / baud
+    t_hb = ch * n_hb * bpc * hb / baud
+    return LinkLoad(
+        name,
+        ch * t_step * fs + t_hb,
+        f"{frames} on {baud:g} baud",
+        kind="serial",
+        rate=baud,
+        per_channel=t_step,
+        per_second=t_hb,
+        **base,
+    )
 
 
 def _can_serial_load(

@@ -93,7 +93,7 @@ COLUMNS: tuple[tuple[str, str, str, str], ...] = (
     ("force", "<f8", "N", "measured restoring force of the experimental substructure"),
     ("velocity", "<f8", "m/s", "velocity of the structure (integrator state)"),
     ("restoring_force", "<f8", "N", "numerical substructure restoring force (Bouc-Wen)"),
-    ("alpha", "<f8", "-", "inverse-compensation α used for this step's command"),
+    ("alpha", "<f8", "-", "compensation α of this step's command (1 + lead·fs)"),
     ("fei_amplitude", "<f8", "-", "online FEI amplitude A (streaming, window ending here)"),
     ("fei_delay", "<f8", "s", "online FEI equivalent delay d (streaming)"),
     ("fei_f_eq", "<f8", "Hz", "online FEI equivalent frequency (streaming)"),

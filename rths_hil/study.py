@@ -789,6 +789,10 @@ def _set_value(cfg, key: str, value: float) -> None:
     elif parts[0] == "actuators":
         entry = next(a for a in cfg["actuators"] if a["name"] == parts[1])
         entry["twin"][parts[3]][parts[4]] = float(value)
+    elif parts[0] == "compensation":  # α and delay (and the other pairs) kept together
+        from .config import set_compensation
+
+        set_compensation(cfg["compensation"], parts[1], value, cfg["loop"]["fs"])
     else:
         cfg[parts[0]][parts[1]] = float(value)
 
@@ -1458,13 +1462,18 @@ def plan_trials(
             values = {k: float(draws[k][i]) for k in keys}
             for k, v in values.items():
                 _set_value(c, k, v)
-            c["compensation"]["alpha"] = a
+            fs = c["loop"]["fs"]
+            from .config import set_compensation
+
+            set_compensation(c["compensation"], "alpha", a, fs)
             if alphas:
                 c["compensation"]["enabled"] = True
+                c["compensation"]["method"] = "inverse"
                 for entry in c.get("actuators") or []:  # --alpha: every channel's α
                     comp = entry.setdefault("compensation", {})
-                    comp["alpha"] = a
+                    set_compensation(comp, "alpha", a, fs)
                     comp["enabled"] = True
+                    comp["method"] = "inverse"
             if c["twin"]["sensor"]:
                 c["twin"]["sensor"]["seed"] = int(noise_seeds[i])
             for j, entry in enumerate(c.get("actuators") or []):

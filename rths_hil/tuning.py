@@ -61,7 +61,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from .config import Config, to_toml
+from .config import Config, set_compensation, to_toml
 from .errors import InputError
 from .fei import fei
 from .metrics import j1_delay, j2_nrms
@@ -328,7 +328,8 @@ class LoopTrials:
         cfg = copy.deepcopy(self.cfg)
         c = cfg["compensation"]
         c["enabled"] = True
-        c["alpha"] = float(alpha)
+        c["method"] = "inverse"
+        set_compensation(c, "alpha", alpha, cfg["loop"]["fs"])
         c["amplitude"] = float(factor)
         c["adaptive"] = False
         cfg["loop"]["console"] = 0.0
@@ -794,7 +795,8 @@ def tuned_config(cfg: Config, alpha: float, factor: float) -> Config:
     """A copy of ``cfg`` with the tuned compensation (adaptive left as configured)."""
     out = copy.deepcopy(cfg)
     out["compensation"]["enabled"] = True
-    out["compensation"]["alpha"] = float(alpha)
+    out["compensation"]["method"] = "inverse"
+    set_compensation(out["compensation"], "alpha", alpha, out["loop"]["fs"])
     out["compensation"]["amplitude"] = float(factor)
     return out
 

@@ -19,6 +19,9 @@ Measurement faults (applied to the values of step ``k`` and later)
 Link faults
     ``disconnect_from``: from step ``k`` on the endpoint goes away (closes its socket or
     pseudo-terminal, or falls silent on a CAN bus).
+Controller faults
+    ``estop_ignored=1``: the e-stop command does not latch (a broken e-stop chain; what
+    ``rths-hil commission`` must catch).
 
 A plan can be written as text for ``rths-hil twin serve --faults``, e.g.
 ``"drop=5,9; delay=12:0.02; corrupt=20; stuck_from=100; p_drop=0.01; seed=3"``.
@@ -35,7 +38,7 @@ from rths_hil.errors import InputError
 __all__ = ["Faults"]
 
 _SET_FIELDS = ("drop", "drop_command", "corrupt", "duplicate", "nan")
-_INT_FIELDS = ("stuck_from", "runaway_from", "disconnect_from", "seed")
+_INT_FIELDS = ("stuck_from", "runaway_from", "disconnect_from", "seed", "estop_ignored")
 _FLOAT_FIELDS = ("runaway_rate", "p_drop", "p_corrupt", "p_duplicate")
 
 
@@ -58,6 +61,9 @@ class Faults:
         Probability per step of each frame fault, drawn from ``random.Random(seed)``.
     seed : int
         Seed of the random frame faults.
+    estop_ignored : int
+        1: the controller does not latch an e-stop (a broken e-stop chain, for commissioning
+        tests); 0 (default): it latches.
     """
 
     drop: set[int] = field(default_factory=set)
@@ -74,6 +80,7 @@ class Faults:
     p_corrupt: float = 0.0
     p_duplicate: float = 0.0
     seed: int = 0
+    estop_ignored: int = 0
 
     def __post_init__(self) -> None:
         for name in _SET_FIELDS:

@@ -4,9 +4,15 @@ Three tables, in the style of python-can's ``BACKENDS`` (name → where the clas
 only when asked for):
 
 * :data:`TWINS` — driver name → the endpoint that speaks that driver's protocol
-  (:mod:`rths_hil.sim_backends.endpoints`). :func:`rths_hil.sim_backends.twin.start_twin` and
-  ``rths-hil twin
-  serve`` ask it. The driver registry beside it is :data:`rths_hil.drivers.registry.BUILTIN`.
+  (:mod:`rths_hil.sim_backends.endpoints`), plus the ``rths_hil.twins`` entry-point group, so
+  a lab's driver package ships its twin beside its driver (same name in both groups)::
+
+      [project.entry-points."rths_hil.twins"]
+      mylab = "mylab_driver:MyLabTwin"
+
+  :func:`rths_hil.sim_backends.twin.start_twin`, the plan and ``rths-hil twin serve`` ask it
+  (:func:`available_twins`, :func:`twin_class`). The driver registry beside it is
+  :data:`rths_hil.drivers.registry.BUILTIN` with the ``rths_hil.drivers`` group.
 * :data:`MODELS` — actuator model name (a model file's ``actuator.model``) → the
   :class:`~sim_backends.base.ActuatorModel` in front of the transport delay and gain of the
   FEI paper's Fig. 4.1, with its parameters. :func:`build_plant` and the model file ask it.
@@ -33,7 +39,16 @@ from .effects import EFFECTS
 if TYPE_CHECKING:
     from .plant import TwinPlant
 
-__all__ = ["EFFECTS", "MODELS", "TWINS", "ModelEntry", "TwinEntry", "build_plant", "twin_class"]
+__all__ = [
+    "EFFECTS",
+    "MODELS",
+    "TWINS",
+    "ModelEntry",
+    "TwinEntry",
+    "available_twins",
+    "build_plant",
+    "twin_class",
+]
 
 
 @dataclass(frozen=True)
@@ -71,6 +86,11 @@ TWINS: dict[str, TwinEntry] = {
         "rths_hil.sim_backends.endpoints.serial:SerialTwin",
         seq_bits=None,
         transports=("pty", "tcp"),
+    ),
+    "canopen": TwinEntry(
+        "rths_hil.sim_backends.endpoints.canopen_twin:CANopenTwin",
+        seq_bits=None,
+        fresh_channel=True,
     ),
 }
 
@@ -138,20 +158,58 @@ def _load(target: str) -> Any:
     return getattr(importlib.import_module(module), attr)
 
 
+#: Entry-point group of twins shipped by other packages (name = the driver's name).
+TWIN_ENTRY_POINT_GROUP = "rths_hil.twins"
+
+
+def available_twins() -> dict[str, str]:
+    """Every driver name a twin exists for → its ``module:Class`` (entry points included; an
+    entry point with a built-in name replaces the built-in twin)."""
+    from importlib.metadata import entry_points
+
+    found = {name: e.target for name, e in TWINS.items()}
+    for ep in entry_points(group=TWIN_ENTRY_POINT_GROUP):
+        found[ep.name] = ep.value
+    return found
+
+
 def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
     """The endpoint class and its entry for ``driver_name``.
+
+    A twin from an entry point describes itself with class attributes of its endpoint
+    (``seq_bits``, ``transports``, ``fresh_channel``; :class:`TwinEntry` documents them).
 
     Raises
     ------
     InputError
-        No twin speaks that driver's protocol.
+        No twin speaks that driver's protocol, or the entry point is not a TwinEndpoint.
     """
-    entry = TWINS.get(driver_name)
-    if entry is None:
+    from .endpoints.base import TwinEndpoint
+
+    targets = available_twins()
+    target = targets.get(driver_name)
+    if target is None:
         raise InputError(
-            f"no twin for driver {driver_name!r}; twins exist for {', '.join(sorted(TWINS))}"
+            f"no twin for driver {driver_name!r}; twins exist for {', '.join(sorted(targets))}"
         )
-    return _load(entry.target), entry
+    entry = TWINS.get(driver_name)
+    if entry is not None and entry.target == target:
+        return _load(target), entry
+    try:
+        cls = _load(target)
+    except (ImportError, AttributeError) as exc:
+        raise InputError(f"twin entry point {driver_name!r} = {target!r}: {exc}") from None
+    if not (isinstance(cls, type) and issubclass(cls, TwinEndpoint)):
+        raise InputError(
+            f"twin entry point {target!r} is not a sim_backends.endpoints.base.TwinEndpoint"
+        )
+    entry = TwinEntry(
+        target,
+        seq_bits=getattr(cls, "seq_bits", 16),
+        transports=tuple(getattr(cls, "transports", ())),
+        fresh_channel=bool(getattr(cls, "fresh_channel", False)),
+    )
+    return cls, entry
 
 
 def model_entry(name: str) -> tuple[str, ModelEntry]:

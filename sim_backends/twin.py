@@ -45,6 +45,7 @@ def start_twin(
     *,
     faults: Faults | None = None,
     heartbeat_timeout: float | None = None,
+    initial_position: float = 0.0,
     threaded: bool = True,
     **connection: Any,
 ) -> TwinEndpoint:
@@ -61,6 +62,8 @@ def start_twin(
         Fault plan (:mod:`rths_hil.sim_backends.faults`).
     heartbeat_timeout : float, optional
         Heartbeat watchdog period (s); off by default.
+    initial_position : float
+        Where the twin's actuator sits at rest (m; :class:`TwinController`).
     threaded : bool
         Serve in a thread (default). ``False``: the caller serves with ``endpoint.pump()``
         (CAN on the ``virtual`` interface only; the lockstep loop's fast path).
@@ -83,8 +86,18 @@ def start_twin(
         Unknown driver name or endpoint setting, or a transport that cannot be opened.
     """
     cls, entry = twin_class(driver_name)
+    from rths_hil.drivers.profile import is_builtin
+
+    profile = connection.pop("profile", None)
+    if not is_builtin(profile):
+        cls = cls.profile_twin()
+        connection["profile"] = profile
     controller = TwinController(
-        plant, faults, seq_bits=entry.seq_bits, heartbeat_timeout=heartbeat_timeout
+        plant,
+        faults,
+        seq_bits=entry.seq_bits,
+        heartbeat_timeout=heartbeat_timeout,
+        initial_position=initial_position,
     )
     if entry.fresh_channel and connection.get("interface", "virtual") == "virtual":
         connection.setdefault("channel", f"rths-twin-{uuid.uuid4().hex[:8]}")

@@ -76,7 +76,8 @@ def toml_table(d: dict) -> str:
 
 
 def bridge_cmd(driver: str, connection: dict, out: Path, *extra: str) -> list[str]:
-    """``rths-hil run`` against an external twin (``twin.enabled = false``)."""
+    """``rths-hil run`` against an external twin (``twin.enabled = false``): hardware to the
+    bridge, so confirmed, and stepped by its commands (lockstep allowed)."""
     return [
         sys.executable,
         "-m",
@@ -84,10 +85,13 @@ def bridge_cmd(driver: str, connection: dict, out: Path, *extra: str) -> list[st
         "run",
         "-q",
         "--no-plot",
+        "--confirm-hardware",
         "--out",
         str(out),
         "--set",
         "twin.enabled=false",
+        "--set",
+        "driver.stepped=true",
         "--set",
         f"driver.name={driver}",
         "--set",

@@ -69,7 +69,7 @@ def test_served_can_twin_survives_a_malformed_frame_from_a_second_writer():
 @pytest.mark.parametrize(
     "argv, needle",
     [
-        (["--driver", "serial", "--device", "/bogus/ttyUSB9"], "--driver modbus --transport rtu"),
+        (["--driver", "serial", "--device", "/bogus/ttyUSB9"], "serves no device"),
         (["--driver", "modbus", "--transport", "rtu", "--device", "/bogus/ttyUSB9"], "No such"),
         (["--driver", "modbus", "--transport", "rtu", "--device", "/etc/hostname"], "not a serial"),
     ],

@@ -59,7 +59,7 @@ def lab_package(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 
 def test_builtin_drivers_need_no_metadata() -> None:
-    assert set(BUILTIN) == {"can", "modbus", "serial"}
+    assert set(BUILTIN) == {"can", "modbus", "serial", "canopen"}
     for name in BUILTIN:
         assert issubclass(driver_class(name), Driver)
 

@@ -31,7 +31,7 @@ from rths_hil.recorder import read_run
 
 FS = 1024
 AT = 300  # the faulty step (≈ 0.29 s into the run)
-DRIVERS = ("can", "modbus", "serial")
+DRIVERS = ("can", "modbus", "serial", "canopen")
 BASE = [
     f"loop.fs={FS}",
     "loop.console=0",

@@ -106,7 +106,7 @@ def test_kill_9_leaves_the_record_complete_up_to_the_kill(tmp_path):
     assert t_kill - t_last <= 0.25, t_kill - t_last
     assert np.isfinite(rec["target"]).all() and rec["feedback_ok"].any()
     assert json.loads((out / "meta.json").read_text())["mode"] == "paced"
-    assert [e["kind"] for e in run.events][:3] == ["start", "arm", "clock"]
+    assert [e["kind"] for e in run.events][:4] == ["start", "arm", "start_position", "clock"]
 
 
 def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
@@ -124,8 +124,10 @@ def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
     assert "operator_stop" in kinds and kinds[-1] == "end"
     end = run.events[-1]
     assert end["status"] == "operator_stop" and end["step"] == len(run.record)
-    estop = next(e for e in run.events if e["kind"] == "estop")
-    assert estop["confirmed"] is True
+    # an operator stop holds the actuator and hands the controller back disabled (no e-stop)
+    assert "estop" not in kinds and kinds.index("end_ramp") < kinds.index("handback")
+    handback = next(e for e in run.events if e["kind"] == "handback")
+    assert handback["disabled"] is True and handback["latched"] is False
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "operator_stop" and summary["trip"]["rule"] == "operator"
 
@@ -133,7 +135,7 @@ def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1])
 def test_every_terminating_signal_takes_the_operator_stop_path(tmp_path, sig):
     """A closed terminal or ssh session (SIGHUP) stops the run as Ctrl-C does: the stop and
-    end events, every controller e-stopped and confirmed, exit 130."""
+    end events, every controller handed back disabled and not latched, exit 130."""
     out = tmp_path / "run"
     proc = _start(out)
     _wait_rows(out / "record.npy", proc)
@@ -145,5 +147,6 @@ def test_every_terminating_signal_takes_the_operator_stop_path(tmp_path, sig):
     assert stop["signal"] == signal.Signals(sig).name
     assert run.events[-1]["kind"] == "end" and run.events[-1]["status"] == "operator_stop"
     assert run.events[-1]["step"] == len(run.record)
-    estop = next(e for e in run.events if e["kind"] == "estop")
-    assert estop["confirmed"] is True
+    assert not any(e["kind"] == "estop" for e in run.events)
+    handback = next(e for e in run.events if e["kind"] == "handback")
+    assert handback["disabled"] is True and handback["latched"] is False

@@ -60,7 +60,7 @@ def test_two_units_on_one_connection_fei_delay_per_channel(tmp_path):
     assert [c.driver.device_id for c in loop.channels] == [1, 2]
     for ch in loop.channels:
         assert ch.twin.stats.steps == res.steps and ch.driver.stats.malformed == 0
-        assert ch.driver.stats.received == res.steps + 1  # and the arming reply
+        assert ch.driver.stats.received == res.steps + 2  # and the arming and hand-back replies
     rec = run.record
     assert abs(_median_delay(rec, "_storey1")) < 1e-3
     assert abs(_median_delay(rec, "_storey3")) < 1e-3

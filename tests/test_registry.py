@@ -27,7 +27,7 @@ def _command(n: int = 4096) -> np.ndarray:
 
 
 def test_every_twin_entry_resolves_to_an_endpoint() -> None:
-    assert set(TWINS) == {"can", "modbus", "serial"}
+    assert set(TWINS) == {"can", "modbus", "serial", "canopen"}
     for name in TWINS:
         cls, entry = twin_class(name)
         assert issubclass(cls, TwinEndpoint)

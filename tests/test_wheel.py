@@ -50,13 +50,15 @@ def test_wheel_has_only_the_rths_hil_top_level(installed):
     assert tops == {"rths_hil"}
     # the data files travel with the packages that read them
     assert "rths_hil/drivers/can/actuator.dbc" in names
+    assert "rths_hil/sim_backends/eds/cia402_twin.eds" in names
+    assert "rths_hil/sim_backends/eds/cia408_twin.eds" in names
     assert any(n.startswith("rths_hil/data/ground_motions/") for n in names)
 
 
-@pytest.mark.parametrize("driver", ["can", "modbus", "serial"])
+@pytest.mark.parametrize("driver", ["can", "modbus", "serial", "controllers/cia402"])
 def test_lockstep_run_from_the_installed_wheel(installed, driver):
     _, env_dir, work = installed
-    out = work / f"runs-{driver}"
+    out = work / f"runs-{driver.replace('/', '-')}"
     proc = subprocess.run(
         [
             env_dir / "bin" / "rths-hil",

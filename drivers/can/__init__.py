@@ -38,14 +38,17 @@ import queue
 import threading
 import time
 from collections import deque
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import can
 from can.interfaces.virtual import VirtualBus
 
 from rths_hil.errors import InputError
 
-from ..base import Driver, Feedback, check_command
+if TYPE_CHECKING:
+    from rths_hil.linkbudget import LinkLoad
+
+from ..base import Driver, Feedback, LinkDown
 from .codec import ActuatorCodecs, Frame, load
 
 __all__ = [
@@ -68,6 +71,7 @@ TIMEOUT_HONOURED = frozenset({"virtual", "socketcan"})
 _BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
 
 log = logging.getLogger(__name__)
+_perf = time.perf_counter
 
 
 class _Reader(can.BufferedReader):
@@ -202,6 +206,8 @@ class CANDriver(Driver):
     """
 
     name: ClassVar[str] = "can"
+    profile_protocol: ClassVar[str | None] = "can"
+    honours_deadline: ClassVar[bool] = True  # the virtual queue / SocketCAN / the Notifier
 
     def __init__(
         self,
@@ -258,6 +264,56 @@ class CANDriver(Driver):
         self._reader: can.BufferedReader | None = None
         self._hb = 0
 
+    # -- what this driver knows about its links and its twin (drivers.base.Driver) ------------
+    @classmethod
+    def link_key(cls, connection: dict[str, Any]) -> str:
+        from rths_hil.linkbudget import can_link_key
+
+        return can_link_key(dict(connection or {}))
+
+    @classmethod
+    def link_load(
+        cls,
+        connection: dict[str, Any],
+        channels_on_link: int,
+        fs: float,
+        *,
+        heartbeat_hz: float = 0.0,
+    ) -> LinkLoad:
+        from rths_hil.linkbudget import can_load
+
+        return can_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
+
+    @classmethod
+    def profile_driver(cls) -> type[Driver]:
+        """A lab's own DBC: :class:`~.profile.CANProfileDriver`."""
+        from .profile import CANProfileDriver
+
+        return CANProfileDriver
+
+    @classmethod
+    def inline_twin(cls, connection: dict[str, Any]) -> bool:
+        """The twin on python-can's in-process ``virtual`` bus can be served inline."""
+        from ..profile import is_builtin
+
+        c = connection or {}
+        return str(c.get("interface", "virtual")) == "virtual" and is_builtin(c.get("profile"))
+
+    @classmethod
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
+        """Channels on one bus need distinct CAN nodes (``driver.connection.node``)."""
+        seen: dict[tuple, str] = {}
+        for _, name, conn, twin in channels:
+            if conn.get("channel") is None and twin:
+                continue  # each twin gets a bus of its own
+            key = (conn.get("interface", "virtual"), conn.get("channel"), conn.get("node", 0))
+            if key in seen:
+                raise InputError(
+                    f"actuators: channels {seen[key]!r} and {name!r} use the same CAN node on "
+                    "one bus (set driver.connection.node)"
+                )
+            seen[key] = name
+
     def open(self) -> None:
         if self._bus is not None:
             return
@@ -298,8 +354,7 @@ class CANDriver(Driver):
         except (can.CanError, OSError):
             self.stats.send_errors += 1
 
-    def send(self, seq: int, displacement: float, enable: bool = True) -> None:
-        check_command(seq, displacement)
+    def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
         raw = round((displacement - self._c_offset) / self._c_scale)
         if not self._c_lo <= raw <= self._c_hi:
             raise InputError(
@@ -311,8 +366,6 @@ class CANDriver(Driver):
             | ((1 if enable else 0) << self._c_ctl_shift)
         )
         self._cmd_data[:] = value.to_bytes(self._c_len, "little")
-        self._last_sent = seq
-        self.stats.sent += 1
         self._send_frame(self._cmd_msg)
 
     def estop(self) -> None:
@@ -328,59 +381,51 @@ class CANDriver(Driver):
             Frame(arbitration_id=self._hb_id, data=c.pack(self._hb), is_extended_id=False)
         )
 
-    def receive(self, timeout: float) -> Feedback | None:
-        bus = self._bus
-        stats = self.stats
-        if bus is None:
-            stats.timeouts += 1
-            return None
+    def _recv_internal(self, deadline: float) -> Feedback | None:
         box = self._box
-        while box:  # read off the shared bus by another node's driver
-            fb = self._handle(box.popleft())
-            if fb is not None:
-                return fb
-        deadline = time.perf_counter() + timeout
-        remaining = timeout
+        if box:  # read off the shared bus by another node's driver
+            return self._decode(box.popleft())
         q = self._rxq
-        reader = self._reader
-        while True:
-            if q is not None:  # virtual bus: its queue directly (see virtual_rx_queue)
-                frames = q.queue
-                if frames:  # already there: take it without the queue's lock round trips
-                    msg = frames.popleft()
-                else:
-                    try:
-                        msg = q.get(True, remaining)
-                    except queue.Empty:
-                        msg = None
-            elif reader is not None:  # an interface that ignores the timeout: its reader
-                msg = reader.get_message(max(remaining, 0.0))
-                share = self._share
-                if (
-                    msg is None
-                    and share is not None
-                    and share.notifier
-                    and share.notifier.exception
-                ):
-                    stats.disconnects += 1
+        if q is not None:  # virtual bus: its queue directly (see virtual_rx_queue)
+            frames = q.queue
+            if frames:  # already there: take it without the queue's lock round trips
+                msg = frames.popleft()
             else:
+                remaining = deadline - _perf()
+                if remaining <= 0.0:
+                    return None
                 try:
-                    msg = bus.recv(remaining)
-                except (can.CanError, OSError):
-                    stats.disconnects += 1
-                    msg = None
+                    msg = q.get(True, remaining)
+                except queue.Empty:
+                    return None
+            return self._decode(msg)
+        bus = self._bus
+        if bus is None:
+            raise LinkDown("CAN bus closed")
+        remaining = deadline - _perf()
+        reader = self._reader
+        if reader is not None:  # an interface that ignores the timeout: its reader
+            msg = reader.get_message(remaining if remaining > 0.0 else 0.0)
             if msg is None:
-                stats.timeouts += 1
+                share = self._share
+                if share is not None and share.notifier and share.notifier.exception:
+                    self.stats.disconnects += 1
+                    raise LinkDown("CAN bus reader stopped")
                 return None
-            fb = self._handle(msg)
-            if fb is not None:
-                return fb
-            remaining = deadline - time.perf_counter()
-            if remaining <= 0:
-                stats.timeouts += 1
-                return None
+            return self._decode(msg)
+        try:
+            msg = bus.recv(remaining if remaining > 0.0 else 0.0)
+        except (can.CanError, OSError):
+            self.stats.disconnects += 1
+            raise LinkDown("CAN bus read failed") from None
+        return None if msg is None else self._decode(msg)
 
     def _handle(self, msg: can.Message) -> Feedback | None:
+        """Decode ``msg`` and apply the sequence rules and counters (as :meth:`receive`)."""
+        return self._accept(self._decode(msg))
+
+    def _decode(self, msg: can.Message) -> Feedback | None:
+        """The feedback in ``msg`` (sequence number extended), or None (counted)."""
         stats = self.stats
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             stats.count_malformed("bad_frame")
@@ -401,17 +446,12 @@ class CANDriver(Driver):
         v = int.from_bytes(data, "little")
         last = self._last_sent  # extend_seq, inline: the echo at or just below the last sent
         seq = last - ((last - ((v >> s_sh) & s_m)) & s_m)
-        if not self._classify(seq):
-            return None
         rd = (v >> d_sh) & d_m
         if rd & d_sign:
             rd -= d_sign << 1
         rf = (v >> f_sh) & f_m
         if rf & f_sign:
             rf -= f_sign << 1
-        stats.received += 1
-        if rd == d_bad or rf == f_bad:
-            stats.invalid_values += 1
         disp = math.nan if rd == d_bad else rd * d_sc + d_off
         force = math.nan if rf == f_bad else rf * f_sc + f_off
         return Feedback(seq, disp, force, (v >> st_sh) & st_m)

@@ -29,6 +29,8 @@ COMMANDS: tuple[str, ...] = (
     "tune",
     "diagnose",
     "watch",
+    "commission",
+    "check-host",
 )
 
 
@@ -64,9 +66,9 @@ def build_parser(
     named = _command_in(argv) if only else None
     for name in (named,) if named else COMMANDS:
         try:
-            module = importlib.import_module(f"{__name__}.{name}")
+            module = importlib.import_module(f"{__name__}.{name.replace('-', '_')}")
         except ModuleNotFoundError as exc:
-            if exc.name == f"{__name__}.{name}":
+            if exc.name == f"{__name__}.{name.replace('-', '_')}":
                 continue  # sub-command not built yet
             raise
         module.register(sub)

@@ -7,9 +7,12 @@ Without a configuration it runs the embedded default (the FEI paper's NEES-711 s
 driver on python-can's virtual bus to an in-process twin, paced at 1024 Hz for 30 s). Prints a
 live status line, then the summary; writes the run directory (record, events, metadata,
 ``summary.json``, ``report.png``). Exit codes: 0 completed, 2 bad input, 3 safety trip (e-stop
-sent; one line on stderr names the rule), 130 operator stop (Ctrl-C or SIGTERM; same flush
-path). ``--watch`` also starts ``rths-hil watch`` on the run directory (the live view in the
-browser, a separate process that reads the record) and prints its URL.
+sent; one line on stderr names the rule), 130 operator stop (Ctrl-C, SIGTERM or SIGHUP: the
+actuators hold, then the controllers are disabled). A channel without a twin is real hardware:
+the run needs ``--confirm-hardware`` (or ``loop.confirm_hardware = true``) and is refused in
+lockstep unless ``driver.stepped`` says the controller advances one step per command.
+``--watch`` also starts ``rths-hil watch`` on the run directory (the live view in the browser,
+a separate process that reads the record) and prints its URL.
 """
 
 from __future__ import annotations
@@ -62,6 +65,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--watch-port", type=int, default=8050, metavar="PORT", help="port of --watch (8050)"
     )
+    p.add_argument(
+        "--confirm-hardware",
+        action="store_true",
+        help="confirm that the run may drive real hardware (a channel with twin.enabled = false; "
+        "or loop.confirm_hardware = true in the configuration)",
+    )
     p.set_defaults(func=main)
 
 
@@ -111,6 +120,7 @@ def _tolerant_console() -> None:
 def main(args: argparse.Namespace) -> int:
     """Run the test; return the exit code."""
     from ..errors import InputError
+    from ..hybrid.phases import preflight, require_confirmation
     from ..linkbudget import format_loads
     from ..loop import RTHSLoop, new_run_dir
     from ..report import LiveLine, format_summary, plot_report, summarize
@@ -133,6 +143,8 @@ def main(args: argparse.Namespace) -> int:
     _tolerant_console()  # from here on hardware may move: a closed terminal must not stop it
     live = None if args.quiet or cfg["loop"]["console"] <= 0 else LiveLine(sys.stderr)
     loop = RTHSLoop(cfg, run_dir, live=live, mode=mode, duration=duration)
+    require_confirmation(loop.plan, args.confirm_hardware, "run")
+    preflight(loop.plan)
     watcher = None
     if args.watch:
         watcher = _start_watcher(run_dir, args.watch_port, cfg["loop"]["cpu"])
@@ -150,6 +162,8 @@ def main(args: argparse.Namespace) -> int:
         )
         for line in format_loads(loop.plan.links).splitlines():  # the link budget
             print(f"rths-hil run: {line}", file=sys.stderr)
+        if loop.mode == "paced":
+            _host_line()
     if site is not None:  # structure.kind = "openfresco": listen, say what to paste, then wait
         host, port = site.listen()
         py, tcl = site.paste_lines()
@@ -195,6 +209,18 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return result.exit_code
+
+
+def _host_line() -> None:
+    """The last ``rths-hil check-host`` verdict, when this computer has one."""
+    import time
+
+    from ..checkhost import cached_verdict
+
+    v = cached_verdict()
+    if v and isinstance(v.get("line"), str):
+        when = time.strftime("%Y-%m-%d %H:%M", time.localtime(float(v.get("time", 0))))
+        print(f"rths-hil run: {v['line']} (rths-hil check-host, {when})", file=sys.stderr)
 
 
 def _keep_off(loop_cpu: int) -> None:

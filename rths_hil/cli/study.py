@@ -157,6 +157,54 @@ def register(sub: argparse._SubParsersAction) -> None:
     rb.add_argument("--no-plot", action="store_true", help="do not write the PNGs")
     rb.add_argument("--out", required=True, help="output directory (created if missing)")
     rb.set_defaults(func=run_robustness)
+
+    cp = st.add_parser(
+        "compensators",
+        help="every compensator on the same perturbed twins: J1–J9, FEI, trips "
+        "(docs/compensation.md)",
+        description="Draw perturbed twins as the robustness study does, run every method on "
+        "every draw in lockstep, compare J1–J9 (paper and benchmark script), the whole-record "
+        "FEI and the trips; write trials.csv, comparison.csv, comparison.md and box plots.",
+    )
+    cp.add_argument("config", metavar="CONFIG", help="TOML configuration of the test (a twin)")
+    cp.add_argument(
+        "--set",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        help="override a configuration key before drawing (repeatable)",
+    )
+    cp.add_argument(
+        "--methods",
+        default="inverse,polynomial,ats,model",
+        metavar="A,B",
+        help="compensators to compare (default inverse,polynomial,ats,model)",
+    )
+    cp.add_argument("--trials", type=int, default=100, help="perturbed twins (default 100)")
+    cp.add_argument(
+        "--vary",
+        metavar="KEY=LOW:HIGH[:normal]",
+        action="append",
+        default=None,
+        help="vary a key as in study robustness (repeatable; default: benchmark-style spreads)",
+    )
+    cp.add_argument("--seed", type=int, default=0, help="seed of the draws (default 0)")
+    cp.add_argument(
+        "--scheduler",
+        default="local",
+        metavar="local|ADDRESS",
+        help="'local' (a Dask cluster of --workers processes on 127.0.0.1) or a scheduler address",
+    )
+    cp.add_argument(
+        "--workers", type=int, default=2, help="worker processes of a local cluster (default 2)"
+    )
+    cp.add_argument(
+        "--duration", default=None, help="seconds of the record per trial (default: the config's)"
+    )
+    cp.add_argument("--no-progress", action="store_true", help="no progress bar")
+    cp.add_argument("--no-plot", action="store_true", help="do not write the PNG")
+    cp.add_argument("--out", required=True, help="output directory (created if missing)")
+    cp.set_defaults(func=run_compensators)
     parser.set_defaults(func=lambda args: _no_study(parser))
 
 
@@ -458,6 +506,75 @@ def run_robustness(args: argparse.Namespace) -> int:
                 f"{head}{100 * d['share_tripped']:>7.1f}% {1e3 * d['median']:>14.2f} "
                 f"{1e3 * d['p5']:>8.2f} … {1e3 * d['p95']:<7.2f} {j2['median']:>10.2f} "
                 f"{j2['p95']:>8.2f}"
+            )
+    print(f"wrote {', '.join(written)} to {out} ({len(res.rows)} runs in {wall:.1f} s)")
+    return 0
+
+
+def run_compensators(args: argparse.Namespace) -> int:
+    """``study compensators``."""
+    import sys
+    import time
+
+    from .. import compensator_study as cs
+    from .. import study
+    from ..config import load_config
+
+    cfg = load_config(args.config, args.set)
+    base = study._inline_twin(cfg)
+    if args.trials < 1:
+        raise InputError(f"--trials must be ≥ 1, got {args.trials}")
+    if args.workers < 1:
+        raise InputError(f"--workers must be ≥ 1, got {args.workers}")
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    if args.vary:
+        perts = [study.parse_vary(text, base) for text in args.vary]
+    else:
+        perts = study.default_perturbations(base)
+    duration = None
+    if args.duration is not None:
+        duration = parse_time(args.duration, "--duration")
+        if not (math.isfinite(duration) and duration > 0):
+            raise InputError(f"--duration must be > 0 s, got {args.duration!r}")
+    cases = cs.plan_method_trials(base, methods, perts, args.trials, args.seed, duration)
+    out = _outdir(args.out)
+    if (out / "trials.csv").exists():
+        raise InputError(f"--out {out}: already holds a study (trials.csv); choose a new one")
+    where = "a local Dask cluster" if args.scheduler == "local" else args.scheduler
+    print(
+        f"rths-hil study compensators: {args.trials} twins × {len(methods)} methods = "
+        f"{len(cases)} lockstep runs on {where}; varying " + ", ".join(p.text for p in perts),
+        file=sys.stderr,
+    )
+    t0 = time.perf_counter()
+    with study.open_executor(args.scheduler, args.workers) as ex:
+        res = cs.compensator_study(
+            base,
+            methods,
+            perts,
+            args.trials,
+            seed=args.seed,
+            duration=duration,
+            executor=ex,
+            progress=not args.no_progress,
+        )
+    wall = time.perf_counter() - t0
+    written = cs.write_comparison(out, res, plot=not args.no_plot)
+    summ = {(r["method"], r["metric"]): r for r in res.summary()}
+    for sfx in res.suffixes:
+        if sfx:
+            print(f"channel {sfx[1:]}")
+        print(
+            f"{'method':>12} {'tripped':>8} {'A median':>9} {'d median (ms)':>14} "
+            f"{'J2 median':>10} {'bench J2 median':>16} {'bench J2 95 %':>14}"
+        )
+        for m in methods:
+            a, d = summ[(m, "fei_amplitude" + sfx)], summ[(m, "fei_delay" + sfx)]
+            j2, b2 = summ[(m, "J2" + sfx)], summ[(m, "bench_J2" + sfx)]
+            print(
+                f"{m:>12} {100 * a['share_tripped']:>7.1f}% {a['median']:>9.4f} "
+                f"{1e3 * d['median']:>14.3f} {j2['median']:>10.3f} {b2['median']:>16.3f} "
+                f"{b2['p95']:>14.3f}"
             )
     print(f"wrote {', '.join(written)} to {out} ({len(res.rows)} runs in {wall:.1f} s)")
     return 0

@@ -158,7 +158,7 @@ def main(args: argparse.Namespace) -> int:
     grid = parse_range(args.sweep, "--sweep") if args.sweep else None
     if grid is not None and any(not (math.isfinite(a) and a >= 1) for a in grid):
         raise InputError(f"--sweep: every α must be ≥ 1, got {args.sweep!r}")
-    hardware = not cfg["twin"]["enabled"]
+    hardware = any(not ch.config["twin"]["enabled"] for ch in cfg.channels())
     if args.scheduler is not None and grid is None:
         raise InputError("--scheduler runs the trials of a --sweep in parallel; give --sweep")
     if args.scheduler is not None and hardware:
@@ -202,7 +202,7 @@ def main(args: argparse.Namespace) -> int:
             runner.pga,
             scale,
             cfg,
-            args.confirm_hardware,
+            args.confirm_hardware or cfg["loop"]["confirm_hardware"],
         )
     try:
         out.mkdir(parents=True, exist_ok=True)

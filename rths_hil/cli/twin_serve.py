@@ -15,6 +15,7 @@ Examples::
     rths-hil twin serve --driver serial --transport tcp --port 5000
     rths-hil twin serve --driver can --interface serial              # pseudo-terminal pair
     rths-hil twin serve --driver can --interface socketcan --channel vcan0 --model twin.toml
+    rths-hil twin serve --driver modbus --port 1502 --profile examples/controllers/modbus_map.toml
 """
 
 from __future__ import annotations
@@ -28,21 +29,27 @@ import threading
 from typing import Any
 
 from ..errors import InputError
-from ..units import parse_time
+from ..units import parse_length, parse_time
 
 DEFAULT_DT = 1.0 / 1024.0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``serve`` to the ``twin`` sub-command group."""
-    from rths_hil.sim_backends.registry import TWINS
+    from rths_hil.sim_backends.registry import available_twins
 
     p = sub.add_parser(
         "serve",
         help="run a virtual actuator twin behind a CAN, Modbus or serial endpoint",
         description=__doc__.splitlines()[0] if __doc__ else None,
     )
-    p.add_argument("--driver", required=True, choices=sorted(TWINS))
+    p.add_argument("--driver", required=True, choices=sorted(available_twins()))
+    p.add_argument(
+        "--profile",
+        default=None,
+        help="controller profile (TOML: the lab's register map or DBC, docs/profiles.md); the "
+        "twin speaks it (modbus: tcp; can: socketcan or the lab's interface)",
+    )
     p.add_argument("--model", help="twin model file (TOML); default: 20 ms delay, gain 1, spring")
     p.add_argument("--dt", default=None, help="twin step, e.g. 1ms (default 1/1024 s)")
     p.add_argument("--transport", help="modbus: tcp (default) or rtu; serial: pty (default) or tcp")
@@ -82,59 +89,42 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="controller-side watchdog: no command or heartbeat for this long while enabled → "
         "hold and latch the e-stop (default 0.5s; 0 = off)",
     )
+    p.add_argument(
+        "--initial-position",
+        default="0",
+        help="where the actuator sits at rest, e.g. 3mm (an off-centre actuator; default 0)",
+    )
     p.set_defaults(func=run)
 
 
-def _connection(args: argparse.Namespace) -> dict[str, Any]:
-    """The endpoint settings the options give (transports from the twin registry)."""
-    from rths_hil.sim_backends.endpoints.can import PTY_INTERFACES
-    from rths_hil.sim_backends.registry import TWINS
+def _endpoint(args: argparse.Namespace) -> type:
+    """The twin endpoint class of ``--driver`` (built-in or from an entry point)."""
+    from rths_hil.sim_backends.registry import twin_class
 
-    if args.driver == "can":
-        if args.interface == "virtual":
+    return twin_class(args.driver)[0]
+
+
+def _connection(args: argparse.Namespace) -> dict[str, Any]:
+    """The endpoint settings the options give (the endpoint class maps them)."""
+    conn = _endpoint(args).connection_from_args(args)
+    if args.profile:
+        from pathlib import Path
+
+        from rths_hil.drivers.profile import load_profile
+
+        path = str(Path(args.profile).expanduser().resolve())
+        try:
+            load_profile(path)
+        except InputError as exc:
+            raise InputError(f"--profile: {exc}") from None
+        conn["profile"] = path
+    if args.device:
+        if "device" not in conn:
             raise InputError(
-                "--interface virtual: python-can's virtual bus only reaches buses inside the same "
-                "process; use --interface serial or slcan (a pseudo-terminal pair on this "
-                "machine), --interface socketcan --channel vcan0 (or the lab's interface), or "
-                "start the twin in-process with sim_backends.twin.start_twin"
+                f"--device {args.device}: --driver {args.driver} serves no device here "
+                f"({conn.get('transport', 'its own line')})"
             )
-        channel = args.channel
-        if channel is None:
-            channel = "pty" if args.interface in PTY_INTERFACES else "vcan0"
-        conn: dict[str, Any] = {"interface": args.interface, "channel": channel}
-        if args.bitrate is not None:
-            conn["bitrate"] = args.bitrate
-        return conn
-    conn = {}
-    allowed = TWINS[args.driver].transports
-    if allowed:
-        transport = args.transport or allowed[0]
-        if transport not in allowed:
-            raise InputError(
-                f"--transport {transport}: use {' or '.join(allowed)} with --driver {args.driver}"
-            )
-        conn["transport"] = transport
-        if transport == "tcp":
-            conn |= {
-                "host": args.host,
-                "port": 0 if args.port is None else args.port,
-                "allow_remote": args.allow_remote,
-            }
-    if args.driver == "modbus":
-        units = args.device_id or [1]
-        if len(units) > 1 and conn.get("transport") != "tcp":
-            raise InputError("--device-id given several times: several units are served over TCP")
-        if len(set(units)) != len(units):
-            raise InputError(f"--device-id: unit ids repeat: {units}")
-        conn["device_id"] = units[0]
-        if conn.get("transport") == "rtu" and args.device:
-            _check_device(args.device)
-            conn["device"] = args.device
-    if args.device and "device" not in conn:
-        raise InputError(
-            f"--device {args.device}: a device is served by --driver modbus --transport rtu "
-            f"only (--driver {args.driver} serves {conn.get('transport', 'its own line')})"
-        )
+        _check_device(conn["device"])
     return conn
 
 
@@ -170,22 +160,24 @@ def run(args: argparse.Namespace) -> int:
     if not hb >= 0:
         raise InputError(f"--heartbeat-timeout {args.heartbeat_timeout}: must be >= 0 s")
     hb = hb or None
+    home = parse_length(args.initial_position, "--initial-position")
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
+        endpoint = _endpoint(args)
         conn = _connection(args)
-        units = (args.device_id or [1]) if args.driver == "modbus" else [None]
+        units = endpoint.serve_units(args)
         twins: list[Any] = []
         try:
             for unit in units:
-                if unit is not None and twins:  # the next unit of the first one's server
-                    conn = dict(twins[0].connection, device_id=unit)
-                    conn["allow_remote"] = args.allow_remote
+                if twins:  # the next unit of the first one's endpoint
+                    conn = endpoint.unit_connection(twins[0].connection, unit, args)
                 twin = start_twin(
                     args.driver,
                     plant(),
                     faults=Faults.parse(args.faults) if args.faults else None,
                     heartbeat_timeout=hb,
+                    initial_position=home,
                     **conn,
                 )
                 twins.append(twin)

@@ -20,6 +20,7 @@ import numpy as np
 
 from rths_hil.drivers.base import Driver, Status
 
+from ..compensation import Compensator
 from ..errors import InputError
 from ..fei import OnlineFEI
 from .evaluators import ExactFEI, StreamingFEI
@@ -67,6 +68,7 @@ class Channel:
         "c",
         "c_next",
         "comp",
+        "comp_observe",
         "comp_step",
         "d_ex",
         "d_fei",
@@ -125,6 +127,9 @@ class Channel:
         self.fs = fs
         self.comp = plan.compensator
         self.comp_step = plan.compensator.step
+        # a compensator that learns from the replies (ats, model feedback) observes each one
+        observe = type(plan.compensator).observe
+        self.comp_observe = None if observe is Compensator.observe else plan.compensator.observe
         self.adaptive = plan.adaptive
         self.kalman = plan.kalman
         self.monitor = plan.monitor
@@ -190,6 +195,7 @@ class Channel:
                     faults=plan.faults,
                     threaded=not plan.twin_inline,
                     heartbeat_timeout=plan.twin_watchdog,
+                    initial_position=cfg["twin"]["initial_position"],
                     **conn,
                 )
             except InputError as exc:
@@ -206,6 +212,7 @@ class Channel:
             raise InputError(f"{where}: driver.connection: {exc}") from None
         driver.open()
         stack.callback(driver.close)
+        stack.callback(driver.stop_reader)  # before close: a reader thread stops first
         self.bind(driver)
         if self.stream is not None and plan.exact_hop > 0:
             self.exact = ExactFEI(self.fs, plan.window_s, plan.exact_hop, background_exact)
@@ -267,6 +274,8 @@ class Channel:
         Sets :attr:`fei_new` / :attr:`kal_new` when a new estimate is there for the rules.
         """
         meas = self.meas
+        if self.comp_observe is not None and self.ok:
+            self.comp_observe(self.x_t, self.c, meas)
         stream = self.stream
         self.fei_new = False
         if stream is not None:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from .. import groundmotion
-from ..compensation import AdaptiveAlpha, InverseCompensator
+from ..compensation import AdaptiveAlpha, Compensator
 from ..config import ChannelConfig, Config, structure_dofs
 from ..errors import InputError
 from ..recorder import COLUMNS
@@ -53,9 +53,6 @@ __all__ = [
     "new_run_dir",
     "record_columns",
 ]
-
-#: Twins exist for these drivers.
-TWIN_DRIVERS = ("can", "modbus", "serial")
 
 
 def new_run_dir(pattern: str, base: Path | None = None) -> Path:
@@ -328,7 +325,7 @@ class ChannelPlan:
     twin_watchdog: float | None
     plant: Any
     faults: Any
-    compensator: InverseCompensator
+    compensator: Compensator
     adaptive: AdaptiveAlpha | None
     fei_enabled: bool
     window_s: float
@@ -434,16 +431,39 @@ def _plan_channel(
     from rths_hil.drivers.registry import driver_class
 
     try:
-        driver_class(name)
+        dcls = driver_class(name)
     except InputError as exc:
         raise InputError(f"{where}: driver.name: {exc}") from None
     tw = cfg["twin"]
-    if tw["enabled"] and name not in TWIN_DRIVERS:
-        raise InputError(
-            f"{where}: twin.enabled: there is no twin for driver {name!r} (twins exist "
-            "for can, modbus, serial); set twin.enabled = false to use the real controller"
-        )
+    if tw["enabled"]:
+        from rths_hil.sim_backends.registry import available_twins
+
+        twins = available_twins()
+        if name not in twins:
+            raise InputError(
+                f"{where}: twin.enabled: there is no twin for driver {name!r} (twins exist "
+                f"for {', '.join(sorted(twins))}); set twin.enabled = false to use the real "
+                "controller"
+            )
     conn = dict(cfg["driver"]["connection"])
+    if isinstance(conn.get("eds"), str) and conn["eds"]:  # a CANopen EDS: relative to the config
+        conn["eds"] = str(cfg.resolve_path(conn["eds"]))
+    profile = cfg["driver"]["profile"]
+    from rths_hil.drivers.profile import is_builtin, load_profile
+
+    if not is_builtin(profile):
+        path = cfg.resolve_path(profile)
+        try:
+            prof = load_profile(path)
+        except InputError as exc:
+            raise InputError(f"{where}: driver.profile: {exc}") from None
+        if prof.protocol != dcls.profile_protocol:
+            speaks = dcls.profile_protocol or "no profile"
+            raise InputError(
+                f"{where}: driver.profile: {path} is a {prof.protocol} profile; driver "
+                f"{name!r} takes {speaks}"
+            )
+        conn["profile"] = str(path)
     if tw["enabled"] and plant is None:
         plant = choose_plant(cfg, dt)
     faults = None
@@ -454,15 +474,31 @@ def _plan_channel(
             faults = Faults.parse(tw["faults"])
         except InputError as exc:
             raise InputError(f"{where}: twin.faults: {exc}") from None
-    inline = bool(tw["inline"] and name == "can" and conn.get("interface", "virtual") == "virtual")
+    inline = bool(tw["inline"] and tw["enabled"] and dcls.inline_twin(conn))
 
-    c = cfg["compensation"]
-    comp = InverseCompensator(c["alpha"], c["amplitude"], c["enabled"])
+    c = cfg["compensation"]  # in time units (delay, delay_rate, …): the same at any loop.fs
+    from ..compensators import build_compensator
+
+    try:
+        comp = build_compensator(c, fs)
+    except InputError as exc:
+        raise InputError(f"{where}: compensation: {exc}") from None
     fe = cfg["fei"]
     adaptive = None
     if c["adaptive"] and c["enabled"]:
+        if c["method"] != "inverse":
+            raise InputError(
+                f"{where}: compensation.adaptive adapts the inverse method's α; method "
+                f"{c['method']!r} does not take it (ats adapts on its own)"
+            )
         adaptive = AdaptiveAlpha(
-            comp, dt, fe["pair"], c["time_constant"], c["rate"], c["alpha_min"], c["alpha_max"]
+            comp,
+            dt,
+            fe["pair"],
+            c["time_constant"],
+            c["delay_rate"] * fs,
+            1.0 + c["delay_min"] * fs,
+            1.0 + c["delay_max"] * fs,
         )
     try:
         window_s = _window(cfg, fn1)
@@ -630,13 +666,22 @@ def build_plan(
         for i, cc in enumerate(chans_cfg)
     ]
     for i, ch in enumerate(channels):
-        N = round(ch.window_s * fs)
-        if ch.exact_hop > max(n, N):  # its block buffer alone would be 16·hop bytes
+        if ch.exact_hop > max(n, gm.npts):  # its block buffer alone would be 16·hop bytes
             raise InputError(
                 f"{_where(chans_cfg[i], i)}: fei.exact_hop = {ch.exact_hop} steps is longer than "
-                f"the run ({n} steps) and the FEI window ({N} samples): the exact cross-check "
-                "would never run (0 turns it off)"
+                f"the run ({n} steps) and the record: the exact cross-check would never run "
+                "(0 turns it off)"
             )
+        if ch.exact_hop > n:  # a run shortened below one hop: no exact window, nothing held
+            log.warning(
+                "%s: fei.exact_hop = %d steps is longer than this run (%d steps): no exact "
+                "cross-check in it",
+                _where(chans_cfg[i], i),
+                ch.exact_hop,
+                n,
+            )
+            ch.exact_hop = 0
+        N = round(ch.window_s * fs)
         if ch.fei_enabled and N > min(n, gm.npts):
             longer = "record" if gm.npts < n else "run"
             what = (
@@ -705,12 +750,14 @@ def link_loads(cfg: Config, channels: list[ChannelPlan], fs: float) -> list:
     Channels with a twin and no explicit bus (CAN channel, Modbus port, serial port) each get a
     link of their own (a fresh virtual bus, port or pseudo-terminal).
     """
+    from rths_hil.drivers.registry import driver_class
+
     from ..linkbudget import check_links, link_key, link_load
 
     groups: dict[str, list[ChannelPlan]] = {}
     for i, ch in enumerate(channels):
         conn = ch.connection
-        own = ch.twin_enabled and not (conn.get("channel") or conn.get("port") or conn.get("url"))
+        own = ch.twin_enabled and driver_class(ch.driver_name).own_link(conn)
         key = f"{link_key(ch.driver_name, conn)}#{i}" if own else link_key(ch.driver_name, conn)
         groups.setdefault(key, []).append(ch)
     hb = cfg["loop"]["heartbeat"]
@@ -732,67 +779,17 @@ def link_loads(cfg: Config, channels: list[ChannelPlan], fs: float) -> list:
 
 
 def _check_shared_links(cfg: Config, channels: list[ChannelPlan]) -> None:
-    """Channels sharing a link must be told apart: CAN node ids, Modbus unit ids; serial: no.
+    """Channels sharing a link must be told apart (CAN node ids, Modbus unit ids; one channel
+    per serial line): each driver class checks its own channels (``Driver.check_sharing``)."""
+    from rths_hil.drivers.registry import driver_class
 
-    Modbus TCP channels on one ``host:port`` share one connection (and, with twins, one
-    server); each needs its own unit id (``driver.connection.device_id``, 1–247). A Modbus RTU
-    line carries one channel.
-    """
-    seen: dict[tuple, str] = {}
-    tcp = [
-        (c.connection.get("host", "127.0.0.1"), c.connection.get("port", 502))
-        for c in channels
-        if c.driver_name == "modbus" and c.connection.get("transport", "tcp") == "tcp"
-    ]
+    by_driver: dict[str, list[tuple[int, str, dict[str, Any], bool]]] = {}
     for i, ch in enumerate(channels):
-        conn = ch.connection
-        if ch.driver_name == "can":
-            key: tuple = (
-                "can",
-                conn.get("interface", "virtual"),
-                conn.get("channel"),
-                conn.get("node", 0),
-            )
-            if conn.get("channel") is None and ch.twin_enabled:
-                continue  # each twin gets a bus of its own
-        elif ch.driver_name == "modbus":
-            if conn.get("transport", "tcp") == "rtu":
-                if ch.twin_enabled and not conn.get("device"):
-                    continue  # each twin gets a pseudo-terminal of its own
-                key = ("modbus-rtu", conn.get("device"))
-            else:
-                if ch.twin_enabled and not conn.get("port"):
-                    continue  # each twin gets a port of its own
-                unit = conn.get("device_id", 1)
-                host, port = conn.get("host", "127.0.0.1"), conn.get("port", 502)
-                bad = isinstance(unit, bool) or not isinstance(unit, int) or not 1 <= unit <= 247
-                if bad and tcp.count((host, port)) > 1:  # alone, a device may answer unit 255
-                    raise InputError(
-                        f"{cfg.source}: actuators[{i}] ({ch.name}).driver.connection.device_id: "
-                        f"{unit!r} is not a Modbus unit id (1–247) for a connection it shares"
-                    )
-                where = f"{host}:{port}"
-                key = ("modbus", host, port, unit)
-                if key in seen:
-                    raise InputError(
-                        f"{cfg.source}: actuators: channels {seen[key]!r} and {ch.name!r} both "
-                        f"use Modbus unit {unit} on {where} "
-                        "(driver.connection.device_id): give each channel its own unit id"
-                    )
-        elif ch.driver_name == "serial":
-            if ch.twin_enabled and not (conn.get("url") or conn.get("port")):
-                continue
-            key = ("serial", conn.get("url"), conn.get("port"))
-        else:
-            continue
-        if key in seen:
-            what = {
-                "can": "the same CAN node on one bus (set driver.connection.node)",
-                "modbus": "one Modbus RTU line (an RTU line carries one channel; use one serial "
-                "port per channel or Modbus TCP)",
-                "serial": "one serial port (serial links carry one channel each)",
-            }[ch.driver_name]
-            raise InputError(
-                f"{cfg.source}: actuators: channels {seen[key]!r} and {ch.name!r} use {what}"
-            )
-        seen[key] = ch.name
+        by_driver.setdefault(ch.driver_name, []).append(
+            (i, ch.name, ch.connection, ch.twin_enabled)
+        )
+    for name, chs in by_driver.items():
+        try:
+            driver_class(name).check_sharing(chs)
+        except InputError as exc:
+            raise InputError(f"{cfg.source}: {exc}") from None

@@ -47,6 +47,7 @@ from ..errors import InputError
 from ..recorder import Recorder, RecordWriteError
 from ..safety import OverrunRule, StallRule, Trip
 from .channel import Channel
+from .phases import Phases, preflight
 from .plan import CHANNEL_COLUMNS_A, CHANNEL_COLUMNS_B, CHANNEL_COLUMNS_C, TestPlan
 from .timing import CAUSES, LEAD_IN, MIN_SLEEP, attribute_overruns, count_causes, p99
 
@@ -117,6 +118,12 @@ class RunResult:
     stalls : list of tuple
         Paced: each stall of the bridge itself as ``(step, length in s)``
         (:class:`~rths_hil.safety.StallRule`).
+    handback : bool or None
+        After a completed run or an operator stop: whether every controller confirmed it was
+        disabled and not latched (:mod:`.phases`); None when the run ended in an e-stop.
+    start_steps : int
+        Steps of the start ramp before step 0 (0: the actuators were already at the first
+        command, or offset mode).
     """
 
     status: str
@@ -139,6 +146,8 @@ class RunResult:
     work: np.ndarray = field(default_factory=lambda: np.zeros(0))
     channels: list = field(default_factory=list)
     stalls: list = field(default_factory=list)
+    handback: bool | None = None
+    start_steps: int = 0
 
     @property
     def exit_code(self) -> int:
@@ -218,6 +227,9 @@ class Safety:
 
     def _fire(self, trip: Trip, ch: Channel | None, t: float, k: int) -> Trip:
         trip = trip.at(t, k) if trip.step < 0 else trip
+        why = getattr(ch.driver, "fault_text", None) if ch is not None else None
+        if trip.rule == "controller" and why is not None and why():  # e.g. a CANopen EMCY code
+            trip = Trip(trip.rule, f"{trip.reason}; {why()}", trip.time, trip.step, trip.values)
         self.tripped = trip.on(ch.name) if ch is not None else trip
         return self.tripped
 
@@ -353,6 +365,7 @@ class Runner:
         """Run the test; return a :class:`RunResult` (never raises on a safety trip)."""
         plan = self.plan
         cfg = plan.cfg
+        preflight(plan)
         with contextlib.ExitStack() as stack:
             self._install_signals(stack)
             if plan.mode == "paced" and plan.priority > 0:
@@ -412,13 +425,41 @@ class Runner:
                 channels=[ch.name for ch in self.channels],
             )
             # a new run on each controller: restart its sequence count, acknowledge a latch
+            replies = []
             for ch in self.channels:
                 armed = ch.driver.arm(max(plan.timeout, 0.5), ch.receive)
+                replies.append(armed)
                 rec.event(
                     "arm", 0.0, 0, channel=ch.name, replied=armed is not None,
                     status=None if armed is None else int(armed.status),
                 )  # fmt: skip
-            result = self._loop(rec)
+            # from where each actuator is to step 0 (a ramp, or an offset), see .phases
+            phases = Phases(self, rec)
+            try:
+                trip0 = phases.start(replies)
+            except InputError as exc:
+                rec.event("refused", 0.0, 0, reason=str(exc))
+                raise
+            except BaseException:
+                self._estop_on_error(rec, 0)
+                raise
+            if trip0 is None:
+                result = self._loop(rec)
+            else:
+                result = self._not_started(trip0)
+                rec.event("trip", **{k: v for k, v in trip0.as_event().items() if k != "kind"})
+            result.start_steps = phases.shift
+            if result.status in ("completed", "operator_stop"):
+                # back to rest (or hold) and hand the controllers back disabled
+                try:
+                    trip1 = phases.end(result)
+                except BaseException:
+                    self._estop_on_error(rec, result.steps)
+                    raise
+                result.handback = phases.handback_ok
+                if trip1 is not None:
+                    result.status, result.trip = "trip", trip1
+                    rec.event("trip", **{k: v for k, v in trip1.as_event().items() if k != "kind"})
             if result.status == "completed":
                 try:  # the last rows: a write failure here is still a safety event
                     rec.flush()
@@ -426,7 +467,7 @@ class Runner:
                     result.status = "trip"
                     result.trip = Trip("record", str(exc)).at(result.steps * plan.dt, result.steps)
                     rec.event("trip", **dict(list(result.trip.as_event().items())[1:]))
-            if result.status != "completed":
+            if result.status == "trip":
                 result.estop_confirmed = self._estop_all(rec, result)
             ls = result.lateness_stats()
             if multi:
@@ -453,10 +494,40 @@ class Runner:
                 driver_stats=result.driver_stats,
                 twin_stats=result.twin_stats,
                 final_alpha=result.final_alpha,
+                handback=result.handback,
+                start_steps=result.start_steps,
                 exact_windows=first.exact.windows if first.exact is not None else 0,
             )
         self.result = result
         return result
+
+    def _estop_on_error(self, rec: Recorder, k: int) -> None:
+        """An exception (a second Ctrl-C) in a start or end phase: e-stop every channel."""
+        for ch in self.channels:
+            ch.estop()
+        rec.event("error", k * self.plan.dt, k, error=repr(sys.exc_info()[1]))
+
+    def _not_started(self, trip: Trip) -> RunResult:
+        """The result of a run whose start ramp tripped (no loop step was taken)."""
+        plan = self.plan
+        return RunResult(
+            status="trip",
+            steps=0,
+            planned_steps=plan.n_steps,
+            trip=trip,
+            run_dir=plan.run_dir,
+            mode=plan.mode,
+            fs=plan.fs,
+            wall_time=0.0,
+            lateness=np.zeros(0),
+            overruns=0,
+            missed_replies=0,
+            estop_confirmed=None,
+            final_alpha=self.channels[0].comp.alpha,
+            overrun_threshold=plan.overrun_threshold if plan.mode == "paced" else math.nan,
+            work=np.zeros(0),
+            channels=[ch.name for ch in self.channels],
+        )
 
     def _estop_all(self, rec: Recorder, result: RunResult) -> bool:
         """E-stop every channel at once, then confirm each latch with one status poll."""

@@ -1022,7 +1022,8 @@ class _Page:
             kinds.append(str(e.get("kind", "?")))
             skip = {"kind", "time", "step", "wall_time"}
             if e.get("kind") == "end":
-                keys = ["status", "steps_per_second", "estop_confirmed", "missed_replies"]
+                keys = ["status", "steps_per_second", "estop_confirmed", "handback"]
+                keys.append("missed_replies")
             elif e.get("kind") == "start":
                 keys = ["mode", "fs", "steps"]
             else:

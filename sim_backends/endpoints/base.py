@@ -19,8 +19,13 @@ real-time loop relies on):
 * Arming (the start of a run): a command with sequence number 0 and ``enable=False`` restarts
   the sequence count (the run's step 0 is a new command whatever a previous run sent),
   acknowledges a latched e-stop or watchdog trip, puts the twin's plant back at rest and
-  holds; its reply reports the state before arming. The run's first ``enable=True`` command
-  enables it (:meth:`rths_hil.drivers.base.Driver.arm`).
+  holds; its reply reports the status before arming and where the actuator is now (the
+  controller's position after arming). The run's first ``enable=True`` command enables it
+  (:meth:`rths_hil.drivers.base.Driver.arm`).
+* Initial position (``initial_position``, m): where the actuator sits at rest, as a real
+  actuator that a previous test or the operator left off centre. The plant runs about it
+  (``measured = initial_position + plant(command − initial_position)``): commanding the
+  initial position holds still, commanding 0 moves the actuator there through its dynamics.
 
 :class:`TwinEndpoint` runs the protocol side in a daemon thread and applies the frame faults of a
 :class:`~sim_backends.faults.Faults` plan.
@@ -135,6 +140,8 @@ class TwinController:
     heartbeat_timeout : float or None
         Controller-side watchdog (s): the longest time without a valid command or heartbeat
         while enabled; ``None`` disables it.
+    initial_position : float
+        Where the actuator sits at rest (m; module docstring).
     """
 
     def __init__(
@@ -143,8 +150,10 @@ class TwinController:
         faults: Faults | None = None,
         seq_bits: int | None = None,
         heartbeat_timeout: float | None = None,
+        initial_position: float = 0.0,
     ) -> None:
         self.plant = plant
+        self.home = float(initial_position)
         self.faults = faults or Faults()
         self.stats = TwinStats()
         self._mask = (1 << seq_bits) - 1 if seq_bits else 0
@@ -159,7 +168,7 @@ class TwinController:
         self.enabled = False
         self.estop_latched = False
         self.watchdog_tripped = False
-        self.displacement = 0.0
+        self.displacement = self.home
         self.force = 0.0
         self.last_reply: tuple[int, float, float, int] | None = None
         self._last_heartbeat: float | None = None  # last valid command or heartbeat
@@ -173,8 +182,10 @@ class TwinController:
         return ref + (((raw - ref) + half) & mask) - half
 
     def estop(self) -> None:
-        """Latch the e-stop: hold position from now on."""
+        """Latch the e-stop: hold position from now on (unless the ``estop_ignored`` fault)."""
         with self.lock:
+            if self.faults.estop_ignored:
+                return
             self.stats.estops += 1
             self.estop_latched = True
             self.enabled = False
@@ -211,21 +222,22 @@ class TwinController:
     def _arm(self) -> tuple[int, float, float, int]:
         """Sequence 0 with enable=False: a new run (see the module docstring).
 
-        The reply reports the state before arming (e.g. a latched watchdog trip), so the run's
-        record shows what the controller had to be re-armed from.
+        The reply reports the status before arming (e.g. a latched watchdog trip), so the run's
+        record shows what the controller had to be re-armed from, and the position and force
+        after arming: where the run starts from.
         """
-        before = (0, self.displacement, self.force, self.status())
+        status = self.status()
         self.plant.reset()
         self.last_seq = -1  # the run's step 0 starts the count afresh
         self.enabled = False
         self.estop_latched = False
         self.watchdog_tripped = False
-        self.displacement = 0.0
+        self.displacement = self.home
         self.force = 0.0
         self.faults.rearm()
         self._last_heartbeat = time.monotonic()
         self.last_reply = None  # step 0 of the run is a new command, not a repeat
-        return before
+        return (0, self.displacement, self.force, status)
 
     def status(self) -> int:
         """Current :class:`~drivers.base.Status` flags (without per-sample flags)."""
@@ -272,7 +284,12 @@ class TwinController:
             else:
                 self.enabled = bool(enable)
             if self.enabled and math.isfinite(displacement):
-                d, f = self.plant.step(displacement)
+                home = self.home
+                if home:
+                    d, f = self.plant.step(displacement - home)
+                    d += home
+                else:
+                    d, f = self.plant.step(displacement)
                 self.stats.steps += 1
                 d, f, invalid = self.faults.measure(seq, float(d), float(f), self.plant.dt)
                 self.displacement, self.force = d, f
@@ -319,6 +336,60 @@ class TwinEndpoint(ABC):
     def plant(self) -> Plant:
         """The plant being driven."""
         return self.controller.plant
+
+    # -- how ``rths-hil twin serve`` maps its options onto this endpoint ----------------------
+    #: Transports ``--transport`` accepts, the default first (empty: none to choose).
+    transports: tuple[str, ...] = ()
+
+    @classmethod
+    def connection_from_args(cls, args: Any) -> dict[str, Any]:
+        """Endpoint settings from ``rths-hil twin serve``'s options (``args``).
+
+        Default: ``--transport`` among :attr:`transports` (the registry's entry for a built-in
+        twin) and, for ``tcp``, ``--host``, ``--port`` and ``--allow-remote``.
+        """
+        from ..registry import twin_class
+
+        _, entry = twin_class(args.driver)
+        conn: dict[str, Any] = {}
+        allowed = entry.transports
+        if allowed:
+            transport = args.transport or allowed[0]
+            if transport not in allowed:
+                raise InputError(
+                    f"--transport {transport}: use {' or '.join(allowed)} with "
+                    f"--driver {args.driver}"
+                )
+            conn["transport"] = transport
+            if transport == "tcp":
+                conn |= {
+                    "host": args.host,
+                    "port": 0 if args.port is None else args.port,
+                    "allow_remote": args.allow_remote,
+                }
+        return conn
+
+    @classmethod
+    def profile_twin(cls) -> type[TwinEndpoint]:
+        """The endpoint that speaks a controller profile of this protocol (``--profile``).
+
+        Raises
+        ------
+        InputError
+            No twin of this protocol speaks profiles.
+        """
+        raise InputError(f"twin {cls.name!r}: no twin of this protocol speaks a profile")
+
+    @classmethod
+    def serve_units(cls, args: Any) -> list[Any]:
+        """The controllers ``twin serve`` starts behind one endpoint (default: one)."""
+        return [None]
+
+    @classmethod
+    def unit_connection(cls, first: dict[str, Any], unit: Any, args: Any) -> dict[str, Any]:
+        """Settings of a further unit joining the first one's endpoint (see
+        :meth:`serve_units`)."""
+        return dict(first)
 
     # -- lifecycle ------------------------------------------------------------------------------
     #: Whether :meth:`pump` can serve the transport from the caller's thread (synchronous,

@@ -73,6 +73,33 @@ class CANTwin(TwinEndpoint):
 
     name = "can"
 
+    @classmethod
+    def profile_twin(cls) -> type[TwinEndpoint]:
+        """A lab's own DBC: :class:`~.can_profile.CANProfileTwin`."""
+        from .can_profile import CANProfileTwin
+
+        return CANProfileTwin
+
+    @classmethod
+    def connection_from_args(cls, args: Any) -> dict[str, Any]:
+        """``--interface``, ``--channel`` (default ``vcan0``; ``pty`` for the serial-line
+        interfaces) and ``--bitrate``; python-can's ``virtual`` bus is refused (it cannot
+        leave the process)."""
+        if args.interface == "virtual":
+            raise InputError(
+                "--interface virtual: python-can's virtual bus only reaches buses inside the same "
+                "process; use --interface serial or slcan (a pseudo-terminal pair on this "
+                "machine), --interface socketcan --channel vcan0 (or the lab's interface), or "
+                "start the twin in-process with sim_backends.twin.start_twin"
+            )
+        channel = args.channel
+        if channel is None:
+            channel = "pty" if args.interface in PTY_INTERFACES else "vcan0"
+        conn: dict[str, Any] = {"interface": args.interface, "channel": channel}
+        if args.bitrate is not None:
+            conn["bitrate"] = args.bitrate
+        return conn
+
     def __init__(
         self,
         controller: TwinController,

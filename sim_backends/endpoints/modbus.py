@@ -306,6 +306,40 @@ class ModbusTwin(TwinEndpoint):
     name = "modbus"
     poll = 0.02
 
+    @classmethod
+    def connection_from_args(cls, args: Any) -> dict[str, Any]:
+        """``--transport`` (tcp, rtu), ``--host``/``--port``, ``--device`` (RTU) and the first
+        ``--device-id``."""
+        conn = super().connection_from_args(args)
+        units = cls.serve_units(args)
+        if args.device_id or not getattr(args, "profile", None):
+            conn["device_id"] = units[0]  # with a profile: its [modbus] unit by default
+        if conn.get("transport") == "rtu" and args.device:
+            conn["device"] = args.device
+        return conn
+
+    @classmethod
+    def profile_twin(cls) -> type[TwinEndpoint]:
+        """A lab's own register map: :class:`~.modbus_profile.ModbusProfileTwin`."""
+        from .modbus_profile import ModbusProfileTwin
+
+        return ModbusProfileTwin
+
+    @classmethod
+    def serve_units(cls, args: Any) -> list[Any]:
+        """The ``--device-id`` units (default 1): several only over TCP, each once."""
+        units = args.device_id or [1]
+        if len(units) > 1 and (args.transport or "tcp") != "tcp":
+            raise InputError("--device-id given several times: several units are served over TCP")
+        if len(set(units)) != len(units):
+            raise InputError(f"--device-id: unit ids repeat: {units}")
+        return list(units)
+
+    @classmethod
+    def unit_connection(cls, first: dict[str, Any], unit: Any, args: Any) -> dict[str, Any]:
+        """The next unit joins the first one's TCP server."""
+        return dict(first, device_id=unit, allow_remote=args.allow_remote)
+
     def __init__(
         self,
         controller: TwinController,

@@ -1,0 +1,354 @@
+"""CAN driver for a controller described by the lab's own DBC and a profile (:mod:`..profile`).
+
+The profile names, for each role, a DBC message and signal; cantools encodes the command and
+decodes the feedback with the DBC's byte order (Intel or Motorola), sign, scale and offset, and
+the profile's (or the DBC's) unit converts to SI. Standard and extended identifiers come from
+the DBC. The hot path packs and unpacks with :class:`CompiledMessage` (the DBC compiled once by
+cantools into shifts and masks, checked against cantools by the tests); the e-stop and heartbeat
+frames are encoded by cantools. Per step the driver sends one command frame: the set-point
+signal, the enable signal (``actions.enable`` / ``actions.disable``) and, with the enable flag
+off, the acknowledge signal; the e-stop is a frame of its own (``actions.estop``), the
+heartbeat a counter signal.
+
+Such a controller echoes no sequence number, so the base class's rule for it applies
+(:attr:`~..base.Driver.echoes_seq` false): the first feedback frame received after a command
+answers it, and its age (time since the command was sent) is recorded. Feedback frames that
+arrived before the command (answers to an earlier one, e.g. after a timeout) are taken off
+the bus when the command is sent and counted as ``late``.
+
+The bus is opened as for :class:`~.CANDriver` (python-can, shared per interface and channel).
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import time
+from collections import deque
+from typing import Any, ClassVar
+
+import can
+
+from rths_hil.errors import InputError
+
+from ..base import Driver, Feedback, LinkDown
+from ..profile import CANProfile, load_profile, status_from_word
+from . import SharedBus, release_bus, shared_bus
+from .codec import Frame
+
+__all__ = ["CANProfileDriver", "CompiledMessage"]
+
+_perf = time.perf_counter
+
+
+class CompiledMessage:
+    """A cantools message compiled to shifts and masks for the hot path (Intel and Motorola).
+
+    The frame is read as one integer twice — big-endian for Motorola signals, little-endian for
+    Intel ones. An Intel signal with start bit ``s`` and length ``n`` is ``(v_le >> s) & mask``.
+    A Motorola signal's DBC start bit is its most significant bit in the DBC's sawtooth
+    numbering; counted from the first bit on the wire (bit 7 of byte 0) its position is
+    ``p = 8 · (s // 8) + 7 − s mod 8``, its least significant bit ``p + n − 1``, so it is
+    ``(v_be >> (8 L − p − n)) & mask`` for a frame of ``L`` bytes. Physical = raw · scale +
+    offset (cantools's definition). ``tests/test_profiles.py`` checks encode and decode against
+    cantools on random values. Messages with float or multiplexed signals fall back to cantools.
+    """
+
+    def __init__(self, message: Any) -> None:
+        self.message = message
+        self.length = int(message.length)
+        self.compiled = all(
+            not s.is_float and not s.is_multiplexer and not s.multiplexer_ids
+            for s in message.signals
+        )
+        nbits = 8 * self.length
+        self.fields: dict[str, tuple[bool, int, int, int, float, float]] = {}
+        for sig in message.signals:
+            n = int(sig.length)
+            if sig.byte_order == "big_endian":
+                pos = 8 * (sig.start // 8) + 7 - sig.start % 8
+                shift = nbits - pos - n
+                big = True
+            else:
+                shift, big = int(sig.start), False
+            sign = 1 << (n - 1) if sig.is_signed else 0
+            self.fields[sig.name] = (
+                big,
+                shift,
+                (1 << n) - 1,
+                sign,
+                float(sig.scale),
+                float(sig.offset),
+            )
+
+    def encode(self, values: dict[str, float]) -> bytes:
+        """The frame payload of ``values`` (physical, every signal given)."""
+        if not self.compiled:
+            return self.message.encode(values, strict=False)
+        vb = vl = 0
+        for name, (big, shift, mask, _sign, scale, offset) in self.fields.items():
+            raw = round((values[name] - offset) / scale) & mask
+            if big:
+                vb |= raw << shift
+            else:
+                vl |= raw << shift
+        n = self.length
+        if vl:
+            vb |= int.from_bytes(vl.to_bytes(n, "little"), "big")
+        return vb.to_bytes(n, "big")
+
+    def decode(self, data: bytes | bytearray) -> dict[str, float]:
+        """Physical values of every signal of a payload of :attr:`length` bytes."""
+        if not self.compiled:
+            return self.message.decode(data, decode_choices=False)  # type: ignore[return-value]
+        vb = int.from_bytes(data, "big")
+        vl = int.from_bytes(data, "little")
+        out = {}
+        for name, (big, shift, mask, sign, scale, offset) in self.fields.items():
+            raw = ((vb if big else vl) >> shift) & mask
+            if raw & sign:
+                raw -= sign << 1
+            out[name] = raw * scale + offset
+        return out
+
+
+class CANProfileDriver(Driver):
+    """Lockstep driver for a CAN controller with its own DBC (see the module docstring).
+
+    Parameters
+    ----------
+    profile : str
+        Path of the profile file (``protocol = "can"``).
+    interface, channel, bitrate, bus_options
+        The python-can bus, as for :class:`~.CANDriver`.
+    """
+
+    name: ClassVar[str] = "can"
+    honours_deadline: ClassVar[bool] = True
+    echoes_seq: ClassVar[bool] = False
+    command_lsb: ClassVar[float | None] = None  # the DBC signal's range is checked
+
+    def __init__(
+        self,
+        profile: str,
+        interface: str = "virtual",
+        channel: str = "rths-hil",
+        bitrate: int | None = None,
+        bus_options: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__()
+        prof = load_profile(profile)
+        if not isinstance(prof, CANProfile):
+            raise InputError(f"can driver: profile {profile} is not a CAN profile")
+        self.profile = prof
+        self.interface, self.channel = str(interface), str(channel)
+        self.bitrate = None if bitrate is None else int(bitrate)
+        self.bus_options = dict(bus_options or {})
+        cmd, fb = prof.command, prof.feedback
+        self._cmd = cmd
+        self._fb = fb
+        r = prof.roles
+        self._sp_sig, self._sp_factor = r["setpoint"].signal, r["setpoint"].factor
+        sp = cmd.get_signal_by_name(self._sp_sig)
+        self._sp_range = (sp.minimum, sp.maximum)
+        # the command's signals: every one 0 (or its DBC initial value) unless a role sets it
+        self._values: dict[str, float] = {
+            s.name: float(s.raw_initial or 0) * s.scale + s.offset for s in cmd.signals
+        }
+        acts = prof.actions
+        self._on = self._off = self._ack = None
+        if "enable" in acts:
+            self._on = (acts["enable"].signal, acts["enable"].value)
+        if "disable" in acts:
+            self._off = (acts["disable"].signal, acts["disable"].value)
+        if "acknowledge" in acts:
+            self._ack = (acts["acknowledge"].signal, acts["acknowledge"].value)
+        self._pos = (r["position"].signal, r["position"].factor)
+        self._force = (r["force"].signal, r["force"].factor)
+        self._status = r["status"].signal
+        self._masks = prof.masks
+        self._fb_id, self._fb_ext = fb.frame_id, bool(fb.is_extended_frame)
+        # one command frame, reused: send() rewrites its payload in place (codec.Frame copies
+        # cheaply on the virtual bus)
+        self._cmd_frame = Frame(
+            arbitration_id=cmd.frame_id,
+            is_extended_id=bool(cmd.is_extended_frame),
+            dlc=cmd.length,
+            data=bytearray(cmd.length),
+        )
+        self._cmd_data = self._cmd_frame.data
+        self._decode = CompiledMessage(fb).decode
+        self._encode = CompiledMessage(cmd).encode
+        est = prof.actions["estop"]
+        emsg = prof.database.get_message_by_name(est.message)
+        self._estop_frame = can.Message(
+            arbitration_id=emsg.frame_id,
+            is_extended_id=bool(emsg.is_extended_frame),
+            data=emsg.encode(
+                {s.name: est.value if s.name == est.signal else 0 for s in emsg.signals}
+            ),
+        )
+        self._hb_msg = None
+        if prof.heartbeat is not None:
+            self._hb_msg = prof.database.get_message_by_name(prof.heartbeat.message)
+        self._hb = 0
+        self._share: SharedBus | None = None
+        self._bus: can.BusABC | None = None
+        self._rxq: queue.Queue | None = None
+        self._reader: can.BufferedReader | None = None
+        self._box: deque = deque()
+        self._routes: dict[int, deque] = {}
+
+    # -- transport ------------------------------------------------------------------------------
+    def open(self) -> None:
+        if self._bus is not None:
+            return
+        kwargs = dict(self.bus_options)
+        if self.bitrate is not None:
+            kwargs["bitrate"] = self.bitrate
+        try:
+            share = shared_bus("bridge", self.interface, self.channel, **kwargs)
+        except InputError as exc:
+            raise InputError(f"CAN driver: {exc}") from None
+        if self._fb_id in share.inboxes:
+            release_bus(share)
+            raise InputError(
+                f"CAN driver: a driver for feedback id 0x{self._fb_id:X} is already open on "
+                f"channel {self.channel!r}"
+            )
+        self._share = share
+        self._box = share.inboxes[self._fb_id] = deque()
+        self._routes = share.inboxes
+        self._bus, self._rxq, self._reader = share.bus, share.rxq, share.reader
+
+    def close(self) -> None:
+        share, self._share = self._share, None
+        self._bus = self._rxq = self._reader = None
+        if share is not None:
+            share.inboxes.pop(self._fb_id, None)
+            release_bus(share)
+
+    def _send_frame(self, msg: can.Message) -> None:
+        if self._bus is None:
+            self.stats.send_errors += 1
+            return
+        try:
+            self._bus.send(msg)
+        except (can.CanError, OSError):
+            self.stats.send_errors += 1
+
+    # -- commands -------------------------------------------------------------------------------
+    def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
+        value = displacement / self._sp_factor
+        lo, hi = self._sp_range
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            raise InputError(
+                f"command displacement {displacement} m for step {seq}: out of the DBC range "
+                f"of {self._cmd.name}.{self._sp_sig}"
+            )
+        values = self._values
+        values[self._sp_sig] = value
+        if enable:
+            if self._on is not None:
+                values[self._on[0]] = self._on[1]
+            if self._ack is not None:
+                values[self._ack[0]] = 0
+        else:
+            if self._off is not None:
+                values[self._off[0]] = self._off[1]
+            if self._ack is not None:
+                values[self._ack[0]] = self._ack[1]
+        self._cmd_data[:] = self._encode(values)
+        self._drain_stale()
+        self._send_frame(self._cmd_frame)
+
+    def _drain_stale(self) -> None:
+        """Feedback already waiting answers an earlier command: count it late, drop it."""
+        box = self._box
+        while box:
+            if self._parse(box.popleft()) is not None:
+                self.stats.late += 1
+        q = self._rxq
+        if q is not None:
+            frames = q.queue
+            while frames:
+                if self._parse(frames.popleft()) is not None:
+                    self.stats.late += 1
+
+    def estop(self) -> None:
+        self.stats.estops += 1
+        self._send_frame(self._estop_frame)
+
+    def heartbeat(self) -> None:
+        m = self._hb_msg
+        hb = self.profile.heartbeat
+        if m is None or hb is None:
+            return
+        self._hb = (self._hb + 1) & 0xFF
+        data = m.encode(
+            {s.name: self._hb if s.name == hb.signal else 0 for s in m.signals}, strict=False
+        )
+        self._send_frame(
+            can.Message(
+                arbitration_id=m.frame_id, is_extended_id=bool(m.is_extended_frame), data=data
+            )
+        )
+
+    # -- feedback -------------------------------------------------------------------------------
+    def _parse(self, msg: can.Message) -> Feedback | None:
+        if msg.is_error_frame or msg.is_remote_frame:
+            self.stats.count_malformed("bad_frame")
+            return None
+        if msg.arbitration_id != self._fb_id or bool(msg.is_extended_id) != self._fb_ext:
+            other = self._routes.get(msg.arbitration_id)
+            if other is not None and other is not self._box:
+                other.append(msg)
+            else:
+                self.stats.count_malformed("unknown_id")
+            return None
+        if len(msg.data) != self._fb.length:
+            self.stats.count_malformed("bad_length")
+            return None
+        try:
+            v = self._decode(msg.data)
+        except (ValueError, KeyError):
+            self.stats.count_malformed("bad_frame")
+            return None
+        ps, pf = self._pos
+        fs, ff = self._force
+        word = int(v[self._status])  # type: ignore[arg-type]
+        d = float(v[ps]) * pf  # type: ignore[arg-type]
+        f = float(v[fs]) * ff  # type: ignore[arg-type]
+        return Feedback(
+            -1, d if math.isfinite(d) else math.nan, f, status_from_word(word, self._masks)
+        )
+
+    def _recv_internal(self, deadline: float) -> Feedback | None:
+        box = self._box
+        if box:
+            return self._parse(box.popleft())
+        q = self._rxq
+        if q is not None:
+            frames = q.queue
+            if frames:
+                return self._parse(frames.popleft())
+            remaining = deadline - _perf()
+            if remaining <= 0.0:
+                return None
+            try:
+                return self._parse(q.get(True, remaining))
+            except queue.Empty:
+                return None
+        bus = self._bus
+        if bus is None:
+            raise LinkDown("CAN bus closed")
+        remaining = deadline - _perf()
+        if self._reader is not None:
+            msg = self._reader.get_message(remaining if remaining > 0.0 else 0.0)
+        else:
+            try:
+                msg = bus.recv(remaining if remaining > 0.0 else 0.0)
+            except (can.CanError, OSError):
+                self.stats.disconnects += 1
+                raise LinkDown("CAN bus read failed") from None
+        return None if msg is None else self._parse(msg)

@@ -1,0 +1,913 @@
+"""CANopen driver: a CiA 402 servo drive or a CiA 408 hydraulic axis, through ``canopen``.
+
+The bridge is the CANopen NMT master and SYNC producer; the controller is node ``node_id``.
+Everything of CiA 301 — SDO, NMT, PDO mapping, SYNC, heartbeat, EMCY — goes through the
+``canopen`` library (:class:`canopen.Network`, :class:`canopen.RemoteNode`) over a python-can bus
+(``virtual`` in tests, ``socketcan``/``pcan``/``kvaser`` … on a real bus).
+
+**Start-up** (:meth:`CANopenDriver.open`): read the device type 0x1000 and the identity 0x1018
+by SDO and check them against the profile (the low 16 bits of 0x1000 must be 402 or 408;
+``vendor_id`` / ``product_code`` when given); NMT pre-operational; write the profile's mode
+object (402: 0x6060 = 8, cyclic synchronous position; 408: 0x6042 = 1, set-point via bus), the
+device's heartbeat producer time 0x1017 (``controller_heartbeat``) and, when given, its heartbeat
+consumer 0x1016 (``device_watchdog``: the bridge's heartbeat, node ``bridge_node_id``); map by SDO
+(``configure_pdo = true``, the default) or read from the device:
+
+* RPDO1 (COB-ID 0x200 + node, synchronous): control word 0x6040 + position set-point
+  (402: target position 0x607A; 408: axis position set-point 0x6600:01), 6 bytes;
+* TPDO1 (0x180 + node, every SYNC): status word 0x6041 + actual position (402: 0x6064;
+  408: 0x6601:01), 6 bytes;
+* TPDO2 (0x280 + node, every SYNC): the measured force (``force_object``, default 0x2100,
+  manufacturer-specific INTEGER32 of the project's twins; ``""`` for none), 4 bytes;
+
+then NMT operational. A PDO longer than 8 bytes, an EDS without one of the objects, a wrong
+device type or identity is refused with one line (:class:`~rths_hil.errors.InputError`, exit 2).
+
+**Each step** (:meth:`send`): RPDO1 with the control word and the set-point, then one SYNC. The
+SYNC is the step clock: the device applies the RPDO received before it and answers with its
+TPDOs. The feedback of step ``k`` is the TPDO set received after SYNC ``k`` (TPDOs carry no
+sequence number: a TPDO that comes after the next SYNC is taken for the next step's, see
+``docs/canopen.md``). Positions are counts on the wire (``counts_per_m``), forces counts of
+``newtons_per_count``.
+
+**State machine.** The control word of each step follows the device's last reported state one
+transition at a time (402: shutdown → switch on → enable operation; 408: active), so the run's
+first ``enable=True`` steps bring the drive into operation without a jump (the first set-point
+must be within ``start_tolerance`` of the actual position read at arming). :meth:`estop` sends
+the profile's e-stop word at once (402 quick stop 0x0002 → QUICK STOP ACTIVE; 408 hold 0x0003,
+latched by the driver since the 408 FSA has no quick-stop state) with its own SYNC, and repeats
+it every step until a command with ``enable=False`` acknowledges it (402: disable voltage →
+SWITCH ON DISABLED). :meth:`arm` resets a fault (402 fault reset 0x0080, 408 bit 3, each a
+rising edge) and brings the device to holding (402 SWITCHED ON, 408 HOLD) by SDO. At a normal
+end :meth:`close` hands the device back disabled by its own sequence (402 shutdown → disable
+voltage: SWITCH ON DISABLED; 408 DISABLED), after an e-stop it leaves the latch, and always ends
+with NMT stop.
+
+**Status.** 402 OPERATION ENABLED → ``ENABLED``, QUICK STOP ACTIVE → ``ESTOP_ACTIVE``, FAULT
+(REACTION ACTIVE) → ``FAULT``; 408 ACTIVE → ``ENABLED``, HOLD after the e-stop →
+``ESTOP_ACTIVE``, FAULT * → ``FAULT``. An EMCY with a non-zero error code sets ``FAULT`` (and
+``WATCHDOG`` for 0x8130, heartbeat / life-guard error) until the next arming; the code is logged,
+counted in the driver's stats (``emcy``) and named by :meth:`fault_text`, which the loop adds to
+its controller trip. The controller's heartbeat (``controller_heartbeat``): when none came for
+``controller_heartbeat_timeout`` (1 s), :meth:`receive` returns nothing (counted
+``heartbeat_lost``), so the loop's watchdog — which counts time — trips.
+
+Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1–127),
+``device_profile`` (``cia402`` / ``cia408``), ``interface``, ``channel``, ``bitrate``,
+``bus_options``,
+``counts_per_m``, ``force_object``, ``newtons_per_count``, ``bridge_node_id``,
+``heartbeat_period``, ``controller_heartbeat``, ``controller_heartbeat_timeout``,
+``device_watchdog``, ``start_tolerance``,
+``sdo_timeout``, ``vendor_id``, ``product_code``, ``configure_pdo`` (documented in
+``docs/canopen.md``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import queue
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import can
+import canopen
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
+
+from rths_hil.errors import InputError
+
+from ..base import Driver, DriverStats, Feedback, Status, check_command
+from ..can import TIMEOUT_HONOURED, virtual_rx_queue
+from .profiles import PROFILES, Profile
+
+__all__ = [
+    "BRIDGE_NODE_ID",
+    "CANopenDriver",
+    "CANopenStats",
+    "Layout",
+    "axes_that_fit",
+    "link_load",
+    "load_od",
+    "parse_object",
+    "step_frames",
+]
+
+log = logging.getLogger(__name__)
+
+#: Default node id of the bridge (its heartbeat is 0x700 + this).
+BRIDGE_NODE_ID = 127
+#: SYNC COB-ID (CiA 301).
+SYNC_ID = 0x80
+#: Heartbeat NMT state byte of an operational node.
+NMT_OPERATIONAL = 0x05
+#: EMCY error code of a heartbeat / life-guard event (CiA 301).
+EMCY_HEARTBEAT = 0x8130
+_WATCHDOG = int(Status.WATCHDOG)
+_FAULT = int(Status.FAULT)
+_S32 = (-(2**31), 2**31 - 1)
+_BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
+_SDO_ERRORS = (SdoAbortedError, SdoCommunicationError)
+
+
+@dataclass(slots=True)
+class CANopenStats(DriverStats):
+    """:class:`DriverStats` plus the CANopen counters.
+
+    Attributes
+    ----------
+    syncs : int
+        SYNC frames sent.
+    emcy : list of str
+        Every EMCY received, as ``"0x8130 Monitoring"``.
+    heartbeat_lost : int
+        Receives that returned nothing because the controller's heartbeat had stopped.
+    """
+
+    syncs: int = 0
+    emcy: list[str] = field(default_factory=list)
+    heartbeat_lost: int = 0
+
+
+def parse_object(text: Any, what: str) -> tuple[int, int]:
+    """``"0x6064"`` or ``"0x6600:1"`` (or an int) → (index, sub-index)."""
+    if isinstance(text, int) and not isinstance(text, bool):
+        return int(text), 0
+    s = str(text).strip()
+    idx, _, sub = s.partition(":")
+    try:
+        return int(idx, 0), int(sub, 0) if sub else 0
+    except ValueError:
+        raise InputError(
+            f"canopen: {what}: {text!r} is not an object index like 0x2100 or 0x6600:1"
+        ) from None
+
+
+def load_od(eds: str | os.PathLike[str], node_id: int) -> canopen.ObjectDictionary:
+    """The object dictionary of an EDS file; one line when it cannot be read."""
+    path = os.fspath(eds)
+    if not os.path.isfile(path):
+        raise InputError(f"canopen: eds: no such file {path!r}")
+    try:
+        return canopen.import_od(path, node_id)
+    except Exception as exc:  # the EDS parser raises anything from configparser to KeyError
+        raise InputError(f"canopen: eds {path!r} cannot be read: {exc}") from None
+
+
+def _variable(
+    od: canopen.ObjectDictionary, obj: tuple[int, int], path: str, what: str
+) -> ODVariable:
+    index, sub = obj
+    try:
+        entry = od[index]
+        if isinstance(entry, ODRecord | ODArray):
+            entry = entry[sub]
+    except KeyError:
+        raise InputError(
+            f"canopen: eds {path!r} has no object 0x{index:04X}:{sub:02X} ({what})"
+        ) from None
+    if not isinstance(entry, ODVariable):  # pragma: no cover - defensive
+        raise InputError(f"canopen: eds {path!r}: 0x{index:04X}:{sub:02X} ({what}) is not a value")
+    return entry
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Byte layout of one PDO: ``struct`` format and the bits it takes (checked ≤ 64)."""
+
+    fmt: struct.Struct
+    bits: int
+
+    @classmethod
+    def of(cls, variables: list[ODVariable], name: str) -> Layout:
+        """The little-endian layout of ``variables`` in order (CiA 301 PDO mapping)."""
+        bits = sum(len(v) for v in variables)
+        if bits > 64:
+            objs = " + ".join(
+                f"0x{v.index:04X}:{v.subindex:02X} ({len(v)} bits)" for v in variables
+            )
+            raise InputError(f"canopen: {name} does not fit in 8 bytes: {objs} = {bits} bits")
+        fmt = "<"
+        for v in variables:
+            st = v.STRUCT_TYPES.get(v.data_type)
+            if st is None or 8 * st.size != len(v):
+                raise InputError(
+                    f"canopen: {name}: object 0x{v.index:04X}:{v.subindex:02X} is not a "
+                    "whole-byte integer"
+                )
+            fmt += st.format.lstrip("<")
+        return cls(struct.Struct(fmt), bits)
+
+
+class CANopenDriver(Driver):
+    """Lockstep actuator driver over CANopen (see the module docstring)."""
+
+    name: ClassVar[str] = "canopen"
+    stats: CANopenStats
+
+    def __init__(
+        self,
+        eds: str | None = None,
+        node_id: int = 1,
+        device_profile: str = "cia402",
+        interface: str = "virtual",
+        channel: str = "rths-canopen",
+        bitrate: int | None = None,
+        bus_options: dict[str, Any] | None = None,
+        counts_per_m: float = 1e7,
+        force_object: str = "0x2100",
+        newtons_per_count: float = 0.01,
+        bridge_node_id: int = BRIDGE_NODE_ID,
+        heartbeat_period: float = 0.1,
+        controller_heartbeat: float = 0.1,
+        controller_heartbeat_timeout: float = 1.0,
+        device_watchdog: float | None = None,
+        start_tolerance: float = 1e-3,
+        sdo_timeout: float = 0.5,
+        vendor_id: int | None = None,
+        product_code: int | None = None,
+        configure_pdo: bool = True,
+    ) -> None:
+        super().__init__()
+        self.stats = CANopenStats()
+        if device_profile not in PROFILES:
+            raise InputError(
+                f"canopen: device_profile {device_profile!r} is not known (known: "
+                f"{', '.join(PROFILES)})"
+            )
+        self.profile: Profile = PROFILES[device_profile]
+        for key, v, lo in (("node_id", node_id, 1), ("bridge_node_id", bridge_node_id, 1)):
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= 127:
+                raise InputError(f"canopen: {key} must be an integer 1..127, got {v!r}")
+        if node_id == bridge_node_id:
+            raise InputError(f"canopen: node_id and bridge_node_id are both {node_id}")
+        for key, v in (("counts_per_m", counts_per_m), ("newtons_per_count", newtons_per_count)):
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, int | float)
+                or not (math.isfinite(v) and v > 0)
+            ):
+                raise InputError(f"canopen: {key} must be a positive number, got {v!r}")
+        for key, v in (
+            ("heartbeat_period", heartbeat_period),
+            ("controller_heartbeat", controller_heartbeat),
+            ("controller_heartbeat_timeout", controller_heartbeat_timeout),
+            ("start_tolerance", start_tolerance),
+            ("sdo_timeout", sdo_timeout),
+            ("device_watchdog", 0.0 if device_watchdog is None else device_watchdog),
+        ):
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, int | float)
+                or not (math.isfinite(v) and v >= 0)
+            ):
+                raise InputError(f"canopen: {key} must be a number ≥ 0 (s), got {v!r}")
+        if controller_heartbeat * 1000 > 65535:
+            raise InputError("canopen: controller_heartbeat must be ≤ 65.535 s (0x1017 in ms)")
+        if eds is None:
+            raise InputError("canopen: eds: give the controller's EDS file (driver.connection.eds)")
+        self.eds = os.fspath(eds)
+        self.node_id = node_id
+        self.bridge_node_id = bridge_node_id
+        self.interface, self.channel = str(interface), str(channel)
+        self.bitrate = None if bitrate is None else int(bitrate)
+        self.bus_options = dict(bus_options or {})
+        self.counts_per_m = float(counts_per_m)
+        self.newtons_per_count = float(newtons_per_count)
+        self.heartbeat_period = float(heartbeat_period)
+        self.controller_heartbeat = float(controller_heartbeat)
+        self.controller_heartbeat_timeout = float(controller_heartbeat_timeout)
+        self.device_watchdog = None if not device_watchdog else float(device_watchdog)
+        self.start_tolerance = float(start_tolerance)
+        self.sdo_timeout = float(sdo_timeout) or 0.5
+        self.vendor_id, self.product_code = vendor_id, product_code
+        self.configure_pdo = bool(configure_pdo)
+        self.od = load_od(self.eds, node_id)
+        p = self.profile
+        f_obj = parse_object(force_object, "force_object") if str(force_object).strip() else None
+        self.force_object = f_obj
+        v = {
+            "control": _variable(self.od, p.control, self.eds, "control word"),
+            "status": _variable(self.od, p.status, self.eds, "status word"),
+            "setpoint": _variable(self.od, p.setpoint, self.eds, "position set-point"),
+            "actual": _variable(self.od, p.actual, self.eds, "actual position"),
+        }
+        for obj, what in ((0x1000, "device type"), (0x1018, "identity")):
+            if obj not in self.od:
+                raise InputError(f"canopen: eds {self.eds!r} has no object 0x{obj:04X} ({what})")
+        if p.mode is not None:
+            _variable(self.od, p.mode[:2], self.eds, "mode")
+        self._rpdo_vars = [v["control"], v["setpoint"]]
+        self._tpdo1_vars = [v["status"], v["actual"]]
+        self._tpdo2_vars = (
+            [_variable(self.od, f_obj, self.eds, "force_object")] if f_obj is not None else []
+        )
+        self.rpdo_layout = Layout.of(self._rpdo_vars, "RPDO1")
+        self.tpdo1_layout = Layout.of(self._tpdo1_vars, "TPDO1")
+        self.tpdo2_layout = Layout.of(self._tpdo2_vars, "TPDO2") if self._tpdo2_vars else None
+        self._rpdo_id = 0x200 + node_id
+        self._tpdo_ids = (0x180 + node_id, 0x280 + node_id)
+        self._hb_id = 0x700 + bridge_node_id
+        self.network: canopen.Network | None = None
+        self.node: canopen.RemoteNode | None = None
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._part: dict[int, bytes] = {}
+        self._step = -1  # the step the last SYNC belongs to
+        self._delivered_sync = -2
+        self._state = "NOT READY TO SWITCH ON" if p.number == 402 else "NOT READY"
+        self._latched = False
+        self._emcy_code = 0
+        self._emcy_text = ""
+        self._hb_seen: float | None = None
+        self._hb_last_sent = 0.0
+        self._last_counts = 0
+        self._actual_at_arm: float | None = None
+        self._first_enable = True
+        self._opened = False
+        # interfaces whose recv honours its timeout are read from the loop's thread between the
+        # SDO phases (no notifier thread hand-off per frame); others keep the library's notifier
+        self._direct = self.interface in TIMEOUT_HONOURED
+        self._rxq: queue.Queue | None = None
+        self._rpdo_msg = can.Message(
+            arbitration_id=self._rpdo_id, data=bytearray(self.rpdo_layout.fmt.size),
+            is_extended_id=False,
+        )  # fmt: skip
+        self._sync_msg = can.Message(arbitration_id=SYNC_ID, data=b"", is_extended_id=False)
+
+    # ------------------------------------------------------------------------------------------
+    # what the class knows: its link and who may share it
+    @classmethod
+    def link_key(cls, connection: dict[str, Any]) -> str:
+        """CANopen: the python-can interface and channel of the bus."""
+        c = connection or {}
+        return f"canopen {c.get('interface', 'virtual')}:{c.get('channel', 'rths-canopen')}"
+
+    @classmethod
+    def link_load(
+        cls,
+        connection: dict[str, Any],
+        channels_on_link: int,
+        fs: float,
+        *,
+        heartbeat_hz: float = 0.0,
+    ):
+        """SYNC, PDOs and heartbeats on the bus (:func:`link_load` of this module)."""
+        return link_load(connection, int(channels_on_link), float(fs), heartbeat_hz=heartbeat_hz)
+
+    @classmethod
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
+        """One CANopen axis per bus: each driver produces the bus's SYNC (the step clock)."""
+        seen: dict[str, str] = {}
+        for _, name, conn, twin in channels:
+            if twin and not (conn or {}).get("channel"):
+                continue  # each twin gets a bus of its own
+            key = cls.link_key(conn)
+            if key in seen:
+                raise InputError(
+                    f"actuators: channels {seen[key]!r} and {name!r} are CANopen axes on one bus "
+                    f"({key.split(' ', 1)[1]}): one axis per bus (each driver produces its SYNC)"
+                )
+            seen[key] = name
+
+    # ------------------------------------------------------------------------------------------
+    # start-up
+    def _sdo_read(self, index: int, sub: int = 0) -> int:
+        assert self.node is not None
+        try:
+            var = self.node.sdo[index]
+            if not isinstance(var.od, ODVariable):
+                var = var[sub]
+            return int(var.raw)
+        except _SDO_ERRORS as exc:
+            raise InputError(
+                f"canopen: node {self.node_id}: SDO read of 0x{index:04X}:{sub:02X} failed: {exc}"
+            ) from None
+
+    def _sdo_write(self, index: int, sub: int, value: int) -> None:
+        assert self.node is not None
+        try:
+            var = self.node.sdo[index]
+            if not isinstance(var.od, ODVariable):
+                var = var[sub]
+            var.raw = value
+        except _SDO_ERRORS as exc:
+            raise InputError(
+                f"canopen: node {self.node_id}: SDO write of 0x{index:04X}:{sub:02X} = {value} "
+                f"failed: {exc}"
+            ) from None
+
+    def open(self) -> None:
+        if self._opened:
+            return
+        net = canopen.Network()
+        net.NOTIFIER_CYCLE = 0.05  # how long close() may wait for the notifier thread
+        kwargs = dict(self.bus_options)
+        if self.bitrate is not None:
+            kwargs["bitrate"] = self.bitrate
+        try:
+            net.connect(interface=self.interface, channel=self.channel, **kwargs)
+        except _BUS_ERRORS as exc:
+            raise InputError(
+                f"canopen: cannot open interface {self.interface!r} channel {self.channel!r}: {exc}"
+            ) from None
+        self.network = net
+        node = canopen.RemoteNode(self.node_id, self.od)
+        node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout
+        net.add_node(node)
+        self.node = node
+        self._opened = True
+        try:
+            self._start_up()
+        except BaseException:
+            self._shutdown_network()
+            raise
+        self._listen(False)
+        self._rxq = virtual_rx_queue(net.bus) if self._direct else None
+
+    def _listen(self, on: bool) -> None:
+        """Run the library's notifier thread (SDO phases) or read from the caller's thread."""
+        net = self.network
+        if not self._direct or net is None or net.bus is None:
+            return
+        if on and net.notifier is None:
+            net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
+        elif not on and net.notifier is not None:
+            notifier, net.notifier = net.notifier, None
+            notifier.stop(1.0)
+
+    def _pump(self, timeout: float) -> bool:
+        """Read one frame (waiting up to ``timeout``) and hand it to the library; False if none."""
+        net = self.network
+        bus = None if net is None else net.bus
+        if bus is None:
+            return False
+        q = self._rxq
+        if q is not None:  # python-can's virtual bus: its receive queue (drivers.can)
+            frames = q.queue
+            if frames:
+                msg = frames.popleft()
+            elif timeout <= 0:
+                return False
+            else:
+                try:
+                    msg = q.get(True, timeout)
+                except queue.Empty:
+                    return False
+        else:
+            try:
+                msg = bus.recv(timeout)
+            except (can.CanError, OSError):
+                self.stats.disconnects += 1
+                return False
+            if msg is None:
+                return False
+        if msg.is_error_frame or msg.is_remote_frame:
+            self.stats.count_malformed("bad_frame")
+            return True
+        try:
+            net.notify(msg.arbitration_id, msg.data, msg.timestamp)  # type: ignore[union-attr]
+        except Exception as exc:  # a callback's error must not end the run (as MessageListener)
+            log.error("canopen: frame 0x%03X: %s", msg.arbitration_id, exc)
+        return True
+
+    def _start_up(self) -> None:
+        node = self.node
+        assert node is not None
+        p = self.profile
+        dev = self._sdo_read(0x1000)
+        if dev & 0xFFFF != p.number:
+            raise InputError(
+                f"canopen: node {self.node_id} reports device type 0x{dev:08X} (profile "
+                f"{dev & 0xFFFF}), not CiA {p.number} (driver.connection.device_profile = "
+                f"{p.name!r})"
+            )
+        vendor, product = self._sdo_read(0x1018, 1), self._sdo_read(0x1018, 2)
+        self.identity = {
+            "device_type": dev,
+            "vendor_id": vendor,
+            "product_code": product,
+            "revision": self._sdo_read(0x1018, 3),
+        }
+        for key, want, got in (
+            ("vendor_id", self.vendor_id, vendor),
+            ("product_code", self.product_code, product),
+        ):
+            if want is not None and int(want) != got:
+                raise InputError(
+                    f"canopen: node {self.node_id} identity 0x1018: {key} is 0x{got:08X}, the "
+                    f"configuration expects 0x{int(want):08X}"
+                )
+        log.info("canopen: node %d identity %s", self.node_id, self.identity)
+        node.nmt.send_command(0x80)  # pre-operational
+        if p.mode is not None:
+            self._sdo_write(*p.mode)
+        self._sdo_write(0x1017, 0, round(self.controller_heartbeat * 1000))
+        if self.device_watchdog is not None:
+            ms = max(1, round(self.device_watchdog * 1000))
+            self._sdo_write(0x1016, 1, (self.bridge_node_id << 16) | min(ms, 0xFFFF))
+        try:
+            self._map_pdos()
+        except _SDO_ERRORS as exc:
+            raise InputError(f"canopen: node {self.node_id}: PDO mapping failed: {exc}") from None
+        node.emcy.add_callback(self._on_emcy)
+        node.nmt.add_heartbeat_callback(self._on_heartbeat)
+        node.nmt.send_command(0x01)  # operational
+        self._hb_seen = time.monotonic()
+
+    def _map_pdos(self) -> None:
+        node = self.node
+        assert node is not None
+        if self.configure_pdo:
+            for pdo, cob, variables in (
+                (node.rpdo[1], self._rpdo_id, self._rpdo_vars),
+                (node.tpdo[1], self._tpdo_ids[0], self._tpdo1_vars),
+                (node.tpdo[2], self._tpdo_ids[1], self._tpdo2_vars),
+            ):
+                pdo.clear()
+                for var in variables:
+                    pdo.add_variable(var.index, var.subindex)
+                pdo.cob_id = cob
+                pdo.trans_type = 1  # RPDO: applied at the next SYNC; TPDO: sent on every SYNC
+                pdo.enabled = bool(variables)
+                pdo.rtr_allowed = False
+                pdo.save()
+        else:
+            for pdo in (node.rpdo[1], node.tpdo[1], node.tpdo[2]):
+                pdo.read()
+        # what the device now holds must be what this driver packs and unpacks
+        for pdo, variables, name in (
+            (node.rpdo[1], self._rpdo_vars, "RPDO1"),
+            (node.tpdo[1], self._tpdo1_vars, "TPDO1"),
+            (node.tpdo[2], self._tpdo2_vars, "TPDO2"),
+        ):
+            got = [(v.index, v.subindex, v.length) for v in pdo.map]
+            want = [(v.index, v.subindex, len(v)) for v in variables]
+            if got != want:
+                raise InputError(
+                    f"canopen: node {self.node_id}: {name} maps "
+                    f"{', '.join(f'0x{i:04X}:{s:02X}' for i, s, _ in got) or 'nothing'}; the "
+                    f"profile needs {', '.join(f'0x{i:04X}:{s:02X}' for i, s, _ in want)}"
+                )
+            if variables and pdo.cob_id != {"RPDO1": self._rpdo_id, "TPDO1": self._tpdo_ids[0],
+                                             "TPDO2": self._tpdo_ids[1]}[name]:  # fmt: skip
+                self._retarget(name, pdo.cob_id)
+        node.tpdo[1].add_callback(self._on_tpdo)
+        if self._tpdo2_vars:
+            node.tpdo[2].add_callback(self._on_tpdo)
+
+    def _retarget(self, name: str, cob: int) -> None:
+        if name == "RPDO1":
+            self._rpdo_id = cob
+        elif name == "TPDO1":
+            self._tpdo_ids = (cob, self._tpdo_ids[1])
+        else:
+            self._tpdo_ids = (self._tpdo_ids[0], cob)
+
+    # ------------------------------------------------------------------------------------------
+    # callbacks (the canopen library's notifier thread)
+    def _on_tpdo(self, pdo_map: Any) -> None:
+        cob = pdo_map.cob_id
+        data = bytes(pdo_map.data)
+        with self._lock:
+            step = self._step
+            if step == self._delivered_sync:
+                self.stats.duplicates += 1
+                return
+            self._part[cob] = data
+            if len(self._part) < (2 if self._tpdo2_vars else 1):
+                return
+            part, self._part = self._part, {}
+            self._delivered_sync = step
+        fb = self._decode(step, part)
+        if fb is not None:
+            self._q.put(fb)
+
+    def _decode(self, step: int, part: dict[int, bytes]) -> Feedback | None:
+        t1 = part.get(self._tpdo_ids[0], b"")
+        lay = self.tpdo1_layout
+        if len(t1) != lay.fmt.size:
+            self.stats.count_malformed("bad_length")
+            return None
+        sw, pos = lay.fmt.unpack(t1)
+        force = math.nan
+        if self.tpdo2_layout is not None:
+            t2 = part.get(self._tpdo_ids[1], b"")
+            if len(t2) != self.tpdo2_layout.fmt.size:
+                self.stats.count_malformed("bad_length")
+                return None
+            (fc,) = self.tpdo2_layout.fmt.unpack(t2)
+            force = math.nan if fc == _S32[0] else fc * self.newtons_per_count
+        self._state = state = self.profile.state(sw)
+        status = self.profile.flags(state, self._latched)
+        code = self._emcy_code
+        if code:
+            status |= _FAULT | (_WATCHDOG if code == EMCY_HEARTBEAT else 0)
+        disp = math.nan if pos == _S32[0] else pos / self.counts_per_m
+        return Feedback(step, disp, force, status)
+
+    def _on_emcy(self, entry: Any) -> None:
+        code = int(entry.code)
+        text = f"0x{code:04X} {entry.get_desc()}".strip()
+        self.stats.emcy.append(text)
+        if code & 0xFF00 == 0:  # error reset / no error
+            log.info("canopen: node %d EMCY %s (error reset)", self.node_id, text)
+            return
+        log.warning("canopen: node %d EMCY %s", self.node_id, text)
+        if not self._emcy_code:
+            self._emcy_code, self._emcy_text = code, text
+
+    def _on_heartbeat(self, state: int) -> None:
+        self._hb_seen = time.monotonic()
+
+    def fault_text(self) -> str:
+        """The device's latest fault as one phrase (EMCY code, FSA state), or ``""``."""
+        parts = []
+        if self._emcy_code:
+            parts.append(f"EMCY {self._emcy_text}")
+        if self.profile.is_fault(self._state) or self.profile.device_latched(self._state):
+            parts.append(f"CiA {self.profile.number} state {self._state}")
+        return f"canopen node {self.node_id}: {', '.join(parts)}" if parts else ""
+
+    # ------------------------------------------------------------------------------------------
+    # per step
+    def _send(self, cob: int, data: bytes) -> None:
+        net = self.network
+        if net is None:
+            self.stats.send_errors += 1
+            return
+        try:
+            net.send_message(cob, data)
+        except (can.CanError, OSError, RuntimeError):
+            self.stats.send_errors += 1
+
+    def _rpdo_and_sync(self, step: int, word: int, counts: int) -> None:
+        with self._lock:
+            self._step = step
+            self._part = {}
+        net = self.network
+        bus = None if net is None else net.bus
+        if bus is None:
+            self.stats.send_errors += 1
+            return
+        # the two frames of every step, built once (python-can copies a frame per receiver)
+        self._rpdo_msg.arbitration_id = self._rpdo_id
+        self._rpdo_msg.data[:] = self.rpdo_layout.fmt.pack(word, counts)
+        try:
+            with net.send_lock:  # type: ignore[union-attr]
+                bus.send(self._rpdo_msg)
+                bus.send(self._sync_msg)
+        except (can.CanError, OSError):
+            self.stats.send_errors += 1
+            return
+        self.stats.syncs += 1
+
+    def send(self, seq: int, displacement: float, enable: bool = True) -> None:
+        check_command(seq, displacement, lsb=None)
+        counts = round(displacement * self.counts_per_m)
+        if not _S32[0] < counts <= _S32[1]:
+            raise InputError(
+                f"command displacement {displacement} m for step {seq} is out of the INTEGER32 "
+                f"range at {self.counts_per_m:g} counts/m"
+            )
+        if enable and self._first_enable and self._actual_at_arm is not None:
+            gap = abs(displacement - self._actual_at_arm)
+            if gap > self.start_tolerance:
+                raise InputError(
+                    f"canopen: the first set-point {displacement:.6g} m is {gap:.6g} m from the "
+                    f"actual position {self._actual_at_arm:.6g} m read at arming (start_tolerance "
+                    f"{self.start_tolerance:g} m): the axis would jump"
+                )
+        if enable:
+            self._first_enable = False
+        if not enable and self._latched:
+            self._latched = False  # acknowledged: the word below releases the device
+            word = self.profile.cyclic_word(self._state, False, False)
+        else:
+            word = self.profile.cyclic_word(self._state, enable, self._latched)
+        if self._direct and self.network is not None and self.network.notifier is None:
+            while self._pump(0.0):  # frames of older steps are theirs, not this step's
+                pass
+        while True:  # a feedback left from an older step: it will never be delivered
+            try:
+                self._q.get_nowait()
+            except queue.Empty:
+                break
+            self.stats.late += 1
+        self._last_sent = seq
+        self._last_counts = counts
+        self.stats.sent += 1
+        self._rpdo_and_sync(seq, word, counts)
+        now = time.monotonic()
+        if self.heartbeat_period and now - self._hb_last_sent >= self.heartbeat_period:
+            self.heartbeat()
+
+    def receive(self, timeout: float) -> Feedback | None:
+        stats = self.stats
+        deadline = time.perf_counter() + timeout
+        q = self._q
+        while True:
+            direct = self._direct and self.network is not None and self.network.notifier is None
+            try:
+                fb = q.get_nowait()
+            except queue.Empty:
+                if direct and self._pump(0.0):  # what already arrived, heartbeats included
+                    continue
+                if self.controller_heartbeat and self._hb_seen is not None:
+                    if time.monotonic() - self._hb_seen > self.controller_heartbeat_timeout:
+                        stats.heartbeat_lost += 1
+                        stats.timeouts += 1
+                        return None
+                remaining = deadline - time.perf_counter()
+                if remaining <= 0:
+                    stats.timeouts += 1
+                    return None
+                if direct:
+                    self._pump(remaining)
+                    continue
+                try:
+                    fb = q.get(True, remaining)
+                except queue.Empty:
+                    continue
+            if self._classify(fb.seq):
+                stats.received += 1
+                if fb.displacement != fb.displacement or fb.force != fb.force:
+                    stats.invalid_values += 1
+                return fb
+
+    def estop(self) -> None:
+        self.stats.estops += 1
+        self._latched = True
+        step = max(self._last_sent, 0)
+        self._rpdo_and_sync(step, self.profile.estop_word(), self._last_counts)
+
+    def heartbeat(self) -> None:
+        self._hb_last_sent = time.monotonic()
+        self._send(self._hb_id, bytes((NMT_OPERATIONAL,)))
+
+    def arm(self, timeout: float, receive: Any = None) -> Feedback | None:
+        """Reset a fault and bring the device to holding by SDO (see the module docstring).
+
+        Returns the device's state before arming (status word, position and force read by
+        SDO), or ``None`` when it does not answer within ``timeout``.
+        """
+        p = self.profile
+        self._listen(True)
+        try:
+            sw = self._sdo_read(*p.status)
+            before = self._state = p.state(sw)
+            pos = self._sdo_read(*p.actual) / self.counts_per_m
+            force = math.nan
+            if self.force_object is not None:
+                force = self._sdo_read(*self.force_object) * self.newtons_per_count
+            flags = p.flags(before, self._latched)
+            if self._emcy_code:
+                flags |= _FAULT | (_WATCHDOG if self._emcy_code == EMCY_HEARTBEAT else 0)
+            deadline = time.monotonic() + max(timeout, 0.5)
+            for word in p.arm_words(before):
+                self._sdo_write(p.control[0], p.control[1], word)
+            want = "SWITCHED ON" if p.number == 402 else "HOLD"
+            while True:
+                self._state = p.state(self._sdo_read(*p.status))
+                if self._state == want:
+                    break
+                if time.monotonic() > deadline:
+                    log.warning(
+                        "canopen: node %d did not reach %s at arming (state %s)",
+                        self.node_id, want, self._state,
+                    )  # fmt: skip
+                    break
+                time.sleep(0.005)
+            self._actual_at_arm = self._sdo_read(*p.actual) / self.counts_per_m
+        except InputError as exc:
+            log.warning("canopen: arming node %d failed: %s", self.node_id, exc)
+            return None
+        finally:
+            self._listen(False)
+        self._latched = False
+        self._emcy_code, self._emcy_text = 0, ""
+        self._first_enable = True
+        self._last_counts = round(self._actual_at_arm * self.counts_per_m)
+        self._last_sent = -1
+        self._last_delivered = -1
+        with self._lock:
+            self._step = -1
+            self._delivered_sync = -2
+            self._part = {}
+        while not self._q.empty():
+            self._q.get_nowait()
+        self.heartbeat()  # the device's heartbeat consumer counts from here
+        return Feedback(0, pos, force, flags)
+
+    # ------------------------------------------------------------------------------------------
+    # end
+    def close(self) -> None:
+        if not self._opened:
+            return
+        p = self.profile
+        self._listen(True)
+        try:
+            if self.node is not None:
+                if not self._latched:
+                    state = p.state(self._sdo_read(*p.status))
+                    for word in p.disable_words(state):
+                        self._sdo_write(p.control[0], p.control[1], word)
+                    self._state = p.state(self._sdo_read(*p.status))
+                self.node.nmt.send_command(0x02)  # NMT stop
+        except (InputError, *_BUS_ERRORS, RuntimeError) as exc:
+            log.warning("canopen: handing node %d back disabled failed: %s", self.node_id, exc)
+        self._shutdown_network()
+
+    def _shutdown_network(self) -> None:
+        net, self.network = self.network, None
+        self._rxq = None
+        self.node = None
+        self._opened = False
+        if net is not None:
+            try:
+                net.disconnect()
+            except (*_BUS_ERRORS, RuntimeError):  # pragma: no cover - already gone
+                pass
+
+
+# ---------------------------------------------------------------------------------------------
+# link budget
+def step_frames(connection: dict[str, Any] | None = None) -> dict[str, int]:
+    """Data bytes of the frames of one axis per step, and of the SYNC (shared by the bus).
+
+    RPDO1 (control word + set-point), TPDO1 (status word + actual position), TPDO2 (force, absent
+    when ``force_object = ""``) and the SYNC without a counter (0 bytes); heartbeats are 1 byte.
+    """
+    c = dict(connection or {})
+    f = c.get("force_object", "0x2100")
+    return {"rpdo": 6, "tpdo1": 6, "tpdo2": 4 if str(f).strip() else 0, "sync": 0, "heartbeat": 1}
+
+
+def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat_hz: float = 0.0):
+    """The CANopen link's load (:class:`rths_hil.linkbudget.LinkLoad`) of ``channels`` axes.
+
+    Per step: one SYNC for the bus plus, per axis, RPDO1, TPDO1 and TPDO2; per second, per
+    axis, the bridge's heartbeat (``heartbeat_hz``, at least ``1/heartbeat_period``) and the
+    device's (``1/controller_heartbeat``). Frame bits with worst-case stuffing
+    (:func:`rths_hil.linkbudget.can_frame_bits`).
+    """
+    from rths_hil.linkbudget import LinkLoad, can_frame_bits, link_key
+
+    c = dict(connection or {})
+    n = step_frames(c)
+    per_axis = sum(can_frame_bits(n[k]) for k in ("rpdo", "tpdo1", "tpdo2") if n[k] or k != "tpdo2")
+    b_sync = can_frame_bits(0)
+    hb_bridge = max(heartbeat_hz, 1.0 / c["heartbeat_period"] if c.get("heartbeat_period") else 0.0)
+    ctrl = c.get("controller_heartbeat", 0.1)
+    hb_dev = 1.0 / ctrl if ctrl else 0.0
+    b_hb = can_frame_bits(1)
+    name = link_key("canopen", c)
+    per_second_bits = channels * b_hb * (hb_bridge + hb_dev)
+    detail = (
+        f"SYNC {b_sync} + {channels} × (RPDO {can_frame_bits(n['rpdo'])} + TPDO "
+        f"{can_frame_bits(n['tpdo1'])}"
+        + (f" + TPDO {can_frame_bits(n['tpdo2'])}" if n["tpdo2"] else "")
+        + f") bits at {fs:g} Hz + heartbeats {channels} × {b_hb} bits at "
+        f"{hb_bridge + hb_dev:g} Hz"
+    )
+    base = {"channels": channels, "fs": fs}
+    bitrate = c.get("bitrate")
+    interface = str(c.get("interface", "virtual"))
+    bits_s = (b_sync + channels * per_axis) * fs + per_second_bits
+    if bitrate is None:
+        why = "virtual bus" if interface == "virtual" else "bit rate set by the interface"
+        return LinkLoad(name, None, f"{why}; {detail} = {bits_s:.0f} bit/s", kind="can", **base)
+    rate = float(bitrate)
+    return LinkLoad(
+        name,
+        bits_s / rate,
+        f"{detail}, worst-case stuffing, of {rate / 1e6:g} Mbit/s"
+        + ("; virtual bus" if interface == "virtual" else ""),
+        enforced=interface != "virtual",
+        kind="can",
+        rate=rate,
+        per_channel=per_axis / rate,
+        per_second=(b_sync * fs + per_second_bits) / rate,
+        **base,
+    )
+
+
+def axes_that_fit(
+    fs: float, bitrate: float = 1e6, limit: float = 0.8, connection: dict[str, Any] | None = None
+) -> int:
+    """How many axes one CANopen bus carries at ``fs`` below ``limit`` (SYNC, PDOs, heartbeats)."""
+    n = 0
+    while (
+        link_load(
+            {**(connection or {}), "bitrate": bitrate, "interface": "socketcan"}, n + 1, fs
+        ).load
+        <= limit
+    ):
+        n += 1
+        if n > 127:
+            break
+    return n

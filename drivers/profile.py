@@ -1,0 +1,616 @@
+"""Controller profiles: a lab's own register map or DBC, declared in a TOML file, not in code.
+
+A profile maps the bridge's **roles** onto the controller's protocol:
+
+========================  ===============================================================
+role                      meaning
+========================  ===============================================================
+``roles.setpoint``        commanded actuator displacement (written every step)
+``roles.position``        measured actuator displacement (read every step)
+``roles.force``           measured specimen force (read every step)
+``roles.status``          the controller's status word; ``[status]`` gives the bit masks
+                          ``enabled``, ``estop``, ``fault``, ``watchdog``
+``actions.estop``         what latches the controller's e-stop (required)
+``actions.enable``,       what enables / disables (holds) the controller; written when the
+``actions.disable``       bridge's enable flag changes
+``actions.acknowledge``   what acknowledges a latched e-stop (written with ``disable``)
+``heartbeat``             a counter the bridge writes at ``loop.heartbeat``
+========================  ===============================================================
+
+``protocol = "modbus"`` (Modbus TCP): each role is a *point* — ``table`` (``holding``,
+``input``, ``coil``, ``discrete``), ``address`` (0-based PDU address), ``type`` (``int16``,
+``uint16``, ``int32``, ``uint32``, ``float32``, ``float64``; ``bool`` for coils and discrete
+inputs), ``word_order`` and ``byte_order`` (``big`` or ``little``, defaults from
+``[modbus]``), ``scale`` and ``offset`` (value in ``units`` = raw · scale + offset) and
+``units`` (``m``, ``mm``, ``um``, ``in``, ``N``, ``kN``, ``lbf``; SI when omitted). Registers
+are converted by pymodbus (``convert_to_registers`` / ``convert_from_registers``); a
+``byte_order = "little"`` swaps the two bytes of each register. Actions are a ``table``
+(``coil`` or ``holding``), an ``address`` and the ``value`` written. ``[modbus] unit`` is the
+unit id.
+
+``protocol = "can"``: ``dbc`` (path, relative to the profile) and, for each role, the DBC
+``message`` and ``signal``; byte order (Intel or Motorola), sign, scale and offset come from
+the DBC through cantools; ``units`` as above, else the DBC signal's unit. Actions are a
+``message``, a ``signal`` and a ``value`` (an action in the set-point message is a signal of
+every command; one in another message is a frame of its own). The controller echoes no
+sequence number: the first feedback frame received after a command answers it (its age is
+recorded). Extended (29-bit) identifiers are taken from the DBC.
+
+The profile is validated when loaded: one line naming the file and the key, exit 2
+(:class:`~rths_hil.errors.InputError`): unknown type, table or unit, overlapping or
+out-of-range registers, a missing role, scale 0, a DBC without the named message or signal.
+``driver.profile = "rths-hil"`` (the default) is the built-in protocol of each driver.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from pymodbus.client.mixin import ModbusClientMixin
+
+from rths_hil.errors import InputError
+
+from .base import Status
+
+__all__ = [
+    "BUILTIN_PROFILE",
+    "CANProfile",
+    "CANSignal",
+    "ModbusAction",
+    "ModbusPoint",
+    "ModbusProfile",
+    "is_builtin",
+    "load_profile",
+]
+
+#: The name of the built-in profile: each driver's own protocol.
+BUILTIN_PROFILE = "rths-hil"
+
+#: Unit name → SI factor (value in the unit × factor = SI).
+UNITS: dict[str, float] = {
+    "": 1.0,
+    "-": 1.0,
+    "m": 1.0,
+    "mm": 1e-3,
+    "um": 1e-6,
+    "µm": 1e-6,
+    "in": 0.0254,
+    "N": 1.0,
+    "kN": 1e3,
+    "lbf": 4.4482216152605,
+}
+#: Modbus register types → registers per value.
+REG_TYPES: dict[str, int] = {
+    "int16": 1,
+    "uint16": 1,
+    "int32": 2,
+    "uint32": 2,
+    "float32": 2,
+    "float64": 4,
+}
+#: Modbus tables: name → (readable by FC, writable).
+TABLES: dict[str, tuple[int, bool]] = {
+    "holding": (3, True),
+    "input": (4, False),
+    "coil": (1, True),
+    "discrete": (2, False),
+}
+READ_ROLES = ("position", "force", "status")
+ROLES = ("setpoint", *READ_ROLES)
+ACTIONS = ("enable", "disable", "estop", "acknowledge")
+STATUS_BITS: dict[str, int] = {
+    "enabled": int(Status.ENABLED),
+    "estop": int(Status.ESTOP_ACTIVE),
+    "fault": int(Status.FAULT),
+    "watchdog": int(Status.WATCHDOG),
+}
+_DT = ModbusClientMixin.DATATYPE
+_INT_RANGE = {
+    "int16": (-(2**15), 2**15 - 1),
+    "uint16": (0, 2**16 - 1),
+    "int32": (-(2**31), 2**31 - 1),
+    "uint32": (0, 2**32 - 1),
+}
+
+
+def is_builtin(profile: str | None) -> bool:
+    """True for no profile or the built-in ``rths-hil`` one."""
+    return profile is None or str(profile) in ("", BUILTIN_PROFILE)
+
+
+class _Reader:
+    """Typed access to one TOML table, with errors naming the file and the key."""
+
+    def __init__(self, source: str, data: dict[str, Any], where: str = "") -> None:
+        self.source, self.data, self.where = source, data, where
+
+    def key(self, name: str) -> str:
+        return f"{self.where}.{name}" if self.where else name
+
+    def fail(self, name: str, why: str) -> InputError:
+        return InputError(f"profile {self.source}: {self.key(name)}: {why}")
+
+    def table(self, name: str, required: bool = False) -> _Reader | None:
+        v = self.data.get(name)
+        if v is None:
+            if required:
+                raise InputError(f"profile {self.source}: {self.key(name)} is missing")
+            return None
+        if not isinstance(v, dict):
+            raise self.fail(name, "must be a table")
+        return _Reader(self.source, v, self.key(name))
+
+    def str(self, name: str, default: str | None = None, choices: Any = None) -> str:
+        v = self.data.get(name, default)
+        if v is None:
+            raise InputError(f"profile {self.source}: {self.key(name)} is missing")
+        if not isinstance(v, str):
+            raise self.fail(name, f"must be a string, got {v!r}")
+        if choices is not None and v not in choices:
+            raise self.fail(name, f"unknown value {v!r} (known: {', '.join(choices)})")
+        return v
+
+    def int(self, name: str, default: int | None = None, lo: int = 0, hi: int = 65535) -> int:
+        v = self.data.get(name, default)
+        if v is None:
+            raise InputError(f"profile {self.source}: {self.key(name)} is missing")
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.fail(name, f"must be an integer, got {v!r}")
+        if not lo <= v <= hi:
+            raise self.fail(name, f"{v} is out of range {lo}..{hi}")
+        return v
+
+    def float(self, name: str, default: float) -> float:
+        v = self.data.get(name, default)
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise self.fail(name, f"must be a finite number, got {v!r}")
+        return float(v)
+
+    def unknown(self, known: tuple[str, ...]) -> None:
+        extra = sorted(set(self.data) - set(known))
+        if extra:
+            raise self.fail(extra[0], f"unknown key (known: {', '.join(known)})")
+
+
+def _units(r: _Reader, default: str = "") -> float:
+    u = r.str("units", default)
+    if u not in UNITS:
+        raise r.fail("units", f"unknown unit {u!r} (known: {', '.join(k for k in UNITS if k)})")
+    return UNITS[u]
+
+
+def _masks(r: _Reader) -> dict[int, int]:
+    """``[status]``: flag → mask (a bit of the status word that sets the flag)."""
+    st = r.table("status", required=True)
+    assert st is not None
+    st.unknown(tuple(STATUS_BITS))
+    out: dict[int, int] = {}
+    for name, flag in STATUS_BITS.items():
+        if name in st.data:
+            mask = st.int(name, lo=1, hi=2**32 - 1)
+            out[flag] = mask
+    for need in ("enabled", "estop"):
+        if need not in st.data:
+            raise InputError(f"profile {r.source}: status.{need} (bit mask) is missing")
+    return out
+
+
+def status_from_word(word: int, masks: dict[int, int]) -> int:
+    """The bridge's :class:`Status` flags from a controller status word."""
+    s = 0
+    for flag, mask in masks.items():
+        if word & mask:
+            s |= flag
+    return s
+
+
+def word_from_status(status: int, masks: dict[int, int]) -> int:
+    """The controller status word for the bridge's :class:`Status` flags (twins)."""
+    w = 0
+    for flag, mask in masks.items():
+        if status & flag:
+            w |= mask
+    return w
+
+
+# ------------------------------------------------------------------------------------------
+# Modbus
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ModbusPoint:
+    """One role on a Modbus table (see the module docstring)."""
+
+    role: str
+    table: str
+    address: int
+    type: str
+    count: int
+    word_order: str
+    byte_order: str
+    scale: float
+    offset: float
+    factor: float
+
+    @property
+    def end(self) -> int:
+        """One past the last address."""
+        return self.address + self.count
+
+    @property
+    def dtype(self) -> Any:
+        """pymodbus's ``DATATYPE`` of the point (cached)."""
+        dt = self.__dict__.get("_dtype")
+        if dt is None:
+            dt = _DT[self.type.upper()]
+            object.__setattr__(self, "_dtype", dt)
+        return dt
+
+    def _swap(self, regs: list[int]) -> list[int]:
+        if self.byte_order == "little":
+            return [((r & 0xFF) << 8) | (r >> 8) for r in regs]
+        return regs
+
+    def to_registers(self, si: float) -> list[int]:
+        """Registers (or one coil value) for the SI value ``si``.
+
+        Raises
+        ------
+        InputError
+            The value does not fit the point's integer type.
+        """
+        value = (si / self.factor - self.offset) / self.scale
+        if self.type == "bool":
+            return [1 if value else 0]
+        if self.type in _INT_RANGE:
+            raw = round(value)
+            lo, hi = _INT_RANGE[self.type]
+            if not lo <= raw <= hi:
+                raise InputError(
+                    f"{self.role}: {si} is out of the {self.type} range of the profile's map"
+                )
+            value = raw
+        regs = ModbusClientMixin.convert_to_registers(
+            value,
+            self.dtype,
+            word_order=self.word_order,  # type: ignore[arg-type]
+        )
+        return self._swap(regs)
+
+    def from_registers(self, regs: list[int]) -> float:
+        """The SI value of the point's registers (or coil value)."""
+        if self.type == "bool":
+            raw: float = 1.0 if regs[0] else 0.0
+        else:
+            raw = ModbusClientMixin.convert_from_registers(
+                self._swap(regs),
+                self.dtype,
+                word_order=self.word_order,  # type: ignore[arg-type]
+            )  # type: ignore[assignment]
+        return (raw * self.scale + self.offset) * self.factor
+
+    def raw_from_registers(self, regs: list[int]) -> int:
+        """The integer of a status word (no scale)."""
+        if self.type == "bool":
+            return 1 if regs[0] else 0
+        return int(
+            ModbusClientMixin.convert_from_registers(
+                self._swap(regs),
+                self.dtype,
+                word_order=self.word_order,  # type: ignore[arg-type]
+            )
+        )
+
+
+@dataclass(frozen=True)
+class ModbusAction:
+    """A write that performs an action: ``value`` to ``table[address]`` (coil or holding)."""
+
+    name: str
+    table: str
+    address: int
+    value: int
+
+
+@dataclass(frozen=True)
+class ReadBlock:
+    """One read request per step: ``count`` items of ``table`` from ``address``."""
+
+    table: str
+    address: int
+    count: int
+    points: tuple[ModbusPoint, ...]
+
+
+@dataclass(frozen=True)
+class ModbusProfile:
+    """A validated Modbus profile (see the module docstring).
+
+    Attributes
+    ----------
+    fc23 : bool
+        One Read/Write Multiple Registers (FC 23) per step: the set-point is in holding
+        registers and every read role is in one block of holding registers (≤ 125).
+    reads : tuple of ReadBlock
+        The read requests per step otherwise (one per table, contiguous span ≤ 125 / 2000).
+    """
+
+    source: str
+    unit: int
+    points: dict[str, ModbusPoint]
+    actions: dict[str, ModbusAction]
+    masks: dict[int, int]
+    heartbeat: ModbusPoint | None
+    reads: tuple[ReadBlock, ...]
+    fc23: bool
+    protocol: str = "modbus"
+    units_doc: dict[str, str] = field(default_factory=dict)
+
+
+def _modbus_point(r: _Reader, role: str, defaults: dict[str, str]) -> ModbusPoint:
+    p = r.table(role, required=True)
+    assert p is not None
+    p.unknown(("table", "address", "type", "word_order", "byte_order", "scale", "offset", "units"))
+    table = p.str("table", choices=tuple(TABLES))
+    bit = table in ("coil", "discrete")
+    typ = p.str("type", "bool" if bit else None)
+    if bit and typ != "bool":
+        raise p.fail("type", f"a {table} holds a bool, got {typ!r}")
+    if not bit and typ not in REG_TYPES:
+        raise p.fail("type", f"unknown type {typ!r} (known: {', '.join(REG_TYPES)})")
+    count = 1 if bit else REG_TYPES[typ]
+    address = p.int("address", lo=0, hi=65535)
+    if address + count > 65536:
+        raise p.fail("address", f"{address}+{count} registers run past 65535")
+    scale = p.float("scale", 1.0)
+    if scale == 0.0:
+        raise p.fail("scale", "must not be 0")
+    return ModbusPoint(
+        role=role,
+        table=table,
+        address=address,
+        type=typ,
+        count=count,
+        word_order=p.str("word_order", defaults["word_order"], ("big", "little")),
+        byte_order=p.str("byte_order", defaults["byte_order"], ("big", "little")),
+        scale=scale,
+        offset=p.float("offset", 0.0),
+        factor=_units(p),
+    )
+
+
+def _check_overlaps(source: str, points: list[ModbusPoint], actions: list[ModbusAction]) -> None:
+    spans = [(p.table, p.address, p.end, f"roles.{p.role}") for p in points]
+    spans += [(a.table, a.address, a.address + 1, f"actions.{a.name}") for a in actions]
+    for i, (t1, a1, e1, n1) in enumerate(spans):
+        for t2, a2, e2, n2 in spans[i + 1 :]:
+            if t1 == t2 and a1 < e2 and a2 < e1:
+                if n1.startswith("actions.") and n2.startswith("actions."):
+                    continue  # enable/disable/acknowledge may write one control word
+                raise InputError(
+                    f"profile {source}: {n2}: {t2} {a2}–{e2 - 1} overlaps {n1} ({a1}–{e1 - 1})"
+                )
+
+
+def _read_blocks(points: list[ModbusPoint]) -> tuple[ReadBlock, ...]:
+    by_table: dict[str, list[ModbusPoint]] = {}
+    for p in points:
+        by_table.setdefault(p.table, []).append(p)
+    out = []
+    for table, pts in by_table.items():
+        a = min(p.address for p in pts)
+        e = max(p.end for p in pts)
+        out.append(ReadBlock(table, a, e - a, tuple(pts)))
+    return tuple(out)
+
+
+def _load_modbus(r: _Reader) -> ModbusProfile:
+    src = r.source
+    mb = r.table("modbus")
+    defaults = {"word_order": "big", "byte_order": "big"}
+    unit = 1
+    if mb is not None:
+        mb.unknown(("unit", "word_order", "byte_order"))
+        unit = mb.int("unit", 1, lo=0, hi=255)
+        defaults = {
+            "word_order": mb.str("word_order", "big", ("big", "little")),
+            "byte_order": mb.str("byte_order", "big", ("big", "little")),
+        }
+    roles = r.table("roles", required=True)
+    assert roles is not None
+    roles.unknown(ROLES)
+    missing = [x for x in ROLES if x not in roles.data]
+    if missing:
+        raise InputError(
+            f"profile {src}: roles.{missing[0]} is missing (the bridge needs {', '.join(ROLES)})"
+        )
+    points = {role: _modbus_point(roles, role, defaults) for role in ROLES}
+    sp = points["setpoint"]
+    if not TABLES[sp.table][1]:
+        raise InputError(f"profile {src}: roles.setpoint: the {sp.table} table is read-only")
+    if sp.type == "bool":
+        raise InputError(f"profile {src}: roles.setpoint: a displacement needs a register type")
+    acts = r.table("actions", required=True)
+    assert acts is not None
+    acts.unknown(ACTIONS)
+    if "estop" not in acts.data:
+        raise InputError(f"profile {src}: actions.estop is missing (every driver can e-stop)")
+    actions = {}
+    for name in ACTIONS:
+        a = acts.table(name)
+        if a is None:
+            continue
+        a.unknown(("table", "address", "value"))
+        table = a.str("table", choices=("coil", "holding"))
+        actions[name] = ModbusAction(
+            name, table, a.int("address", lo=0, hi=65535), a.int("value", 1, lo=0, hi=65535)
+        )
+    heartbeat = None
+    if r.table("heartbeat") is not None:
+        heartbeat = _modbus_point(r, "heartbeat", defaults)
+        if heartbeat.table not in ("holding",) or heartbeat.type not in ("uint16", "int16"):
+            raise InputError(f"profile {src}: heartbeat: must be a 16-bit holding register")
+    allpoints = list(points.values()) + ([heartbeat] if heartbeat else [])
+    _check_overlaps(src, allpoints, list(actions.values()))
+    reads = _read_blocks([points[x] for x in READ_ROLES])
+    for b in reads:
+        limit = 2000 if b.table in ("coil", "discrete") else 125
+        if b.count > limit:
+            raise InputError(
+                f"profile {src}: roles: the {b.table} points span {b.count} addresses from "
+                f"{b.address}; one read carries at most {limit}"
+            )
+    fc23 = sp.table == "holding" and len(reads) == 1 and reads[0].table == "holding"
+    return ModbusProfile(
+        source=src,
+        unit=unit,
+        points=points,
+        actions=actions,
+        masks=_masks(r),
+        heartbeat=heartbeat,
+        reads=reads,
+        fc23=fc23,
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# CAN with the lab's DBC
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CANSignal:
+    """A role on a DBC signal: ``message``, ``signal`` and the SI factor of its unit."""
+
+    role: str
+    message: str
+    signal: str
+    factor: float
+    value: float | None = None  # actions: the value written
+
+
+@dataclass(frozen=True)
+class CANProfile:
+    """A validated CAN profile (see the module docstring)."""
+
+    source: str
+    dbc: str
+    database: Any
+    roles: dict[str, CANSignal]
+    actions: dict[str, CANSignal]
+    masks: dict[int, int]
+    heartbeat: CANSignal | None
+    protocol: str = "can"
+
+    @property
+    def command(self) -> Any:
+        """The cantools message carrying the set-point."""
+        return self.database.get_message_by_name(self.roles["setpoint"].message)
+
+    @property
+    def feedback(self) -> Any:
+        """The cantools message carrying the measured values."""
+        return self.database.get_message_by_name(self.roles["position"].message)
+
+
+def _can_signal(r: _Reader, name: str, db: Any, dbc: str, action: bool = False) -> CANSignal:
+    t = r.table(name, required=True)
+    assert t is not None
+    t.unknown(("message", "signal", "units", "value") if action else ("message", "signal", "units"))
+    msg_name = t.str("message")
+    sig_name = t.str("signal")
+    try:
+        msg = db.get_message_by_name(msg_name)
+    except KeyError:
+        raise t.fail("message", f"the DBC {dbc} has no message {msg_name!r}") from None
+    try:
+        sig = msg.get_signal_by_name(sig_name)
+    except KeyError:
+        raise t.fail(
+            "signal", f"the DBC {dbc} message {msg_name} has no signal {sig_name!r}"
+        ) from None
+    if sig.scale == 0:
+        raise t.fail("signal", f"DBC signal {msg_name}.{sig_name} has scale 0")
+    unit = str(sig.unit or "")
+    factor = _units(t, unit if unit in UNITS else "")
+    value = t.float("value", 1.0) if action else None
+    return CANSignal(name, msg_name, sig_name, factor, value)
+
+
+def _load_can(r: _Reader, base: Path) -> CANProfile:
+    import cantools
+
+    src = r.source
+    dbc_rel = r.str("dbc")
+    dbc = base / dbc_rel
+    try:
+        db = cantools.database.load_file(str(dbc))
+    except (OSError, cantools.database.UnsupportedDatabaseFormatError) as exc:
+        raise InputError(f"profile {src}: dbc: cannot load {dbc}: {exc}") from None
+    roles_t = r.table("roles", required=True)
+    assert roles_t is not None
+    roles_t.unknown(ROLES)
+    missing = [x for x in ROLES if x not in roles_t.data]
+    if missing:
+        raise InputError(
+            f"profile {src}: roles.{missing[0]} is missing (the bridge needs {', '.join(ROLES)})"
+        )
+    roles = {x: _can_signal(roles_t, x, db, dbc_rel) for x in ROLES}
+    fb = roles["position"].message
+    for x in ("force", "status"):
+        if roles[x].message != fb:
+            raise InputError(
+                f"profile {src}: roles.{x}: must be in the feedback message {fb} "
+                f"(roles.position), got {roles[x].message}"
+            )
+    if roles["setpoint"].message == fb:
+        raise InputError(f"profile {src}: roles.setpoint: the command and feedback share {fb}")
+    acts = r.table("actions", required=True)
+    assert acts is not None
+    acts.unknown(ACTIONS)
+    if "estop" not in acts.data:
+        raise InputError(f"profile {src}: actions.estop is missing (every driver can e-stop)")
+    actions = {a: _can_signal(acts, a, db, dbc_rel, action=True) for a in ACTIONS if a in acts.data}
+    for a, s in actions.items():
+        if a != "estop" and s.message != roles["setpoint"].message:
+            raise InputError(
+                f"profile {src}: actions.{a}: must be a signal of the command message "
+                f"{roles['setpoint'].message}"
+            )
+    if actions["estop"].message in (roles["setpoint"].message, fb):
+        raise InputError(f"profile {src}: actions.estop: needs a message of its own")
+    hb = None
+    if r.table("heartbeat") is not None:
+        hb = _can_signal(r, "heartbeat", db, dbc_rel)
+    return CANProfile(src, str(dbc), db, roles, actions, _masks(r), hb)
+
+
+@cache
+def _load_cached(path: str) -> ModbusProfile | CANProfile:
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise InputError(f"profile {p}: cannot read: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"profile {p}: not valid TOML: {exc}") from None
+    r = _Reader(str(p), data)
+    protocol = r.str("protocol", choices=("modbus", "can"))
+    if protocol == "modbus":
+        r.unknown(("protocol", "name", "modbus", "roles", "status", "actions", "heartbeat"))
+        return _load_modbus(r)
+    r.unknown(("protocol", "name", "dbc", "roles", "status", "actions", "heartbeat"))
+    return _load_can(r, p.parent)
+
+
+def load_profile(path: str | Path) -> ModbusProfile | CANProfile:
+    """Load and validate the profile file ``path`` (cached by absolute path).
+
+    Raises
+    ------
+    InputError
+        One line naming the file and the key (module docstring).
+    """
+    return _load_cached(str(Path(path).expanduser().resolve()))

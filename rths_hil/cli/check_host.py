@@ -1,0 +1,65 @@
+"""``rths-hil check-host``: can this computer hold the loop's rate?
+
+``rths-hil check-host [CONFIG.toml] [--duration 10s] [--set k=v]...``
+
+Wakes a thread (SCHED_FIFO at ``loop.priority`` when permitted, pinned to ``loop.cpu``) every
+loop period for the given time and reports the wake-up lateness percentiles and the longest
+stall, the kernel (PREEMPT_RT or not), isolated CPUs, frequency governor, SMT and the
+real-time priority limit, then a verdict for the configuration's rate with its margin
+(:mod:`rths_hil.checkhost`). The verdict line is kept for ``rths-hil run`` to print at
+start-up. Exit codes: 0 holds, 1 marginal or cannot hold, 2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+from ..units import parse_time
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``check-host`` to the top-level parser."""
+    p = sub.add_parser(
+        "check-host",
+        help="measure this computer's wake-up timing and judge it for the loop's rate",
+        description=__doc__.splitlines()[0],
+    )
+    p.add_argument("config", nargs="?", help="TOML configuration (default: embedded NEES-711)")
+    p.add_argument("--duration", default="10s", help="measurement time (default 10s)")
+    p.add_argument(
+        "--set",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        help="override a configuration key (repeatable)",
+    )
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    """Measure and judge; return the exit code."""
+    from ..checkhost import facts_lines, host_facts, measure, save_verdict, verdict
+    from ..config import load_config
+    from ..errors import InputError
+
+    cfg = load_config(args.config, args.set)
+    duration = parse_time(args.duration, "--duration")
+    if not 0 < duration <= 3600:
+        raise InputError(f"--duration must be in (0, 3600] s, got {args.duration!r}")
+    lp = cfg["loop"]
+    if lp["cpu"] >= (os.cpu_count() or 1):
+        raise InputError(f"loop.cpu = {lp['cpu']}: this computer has no such CPU")
+    t = measure(1.0 / lp["fs"], duration, lp["priority"], lp["cpu"])
+    word, line, _ = verdict(
+        t, lp["fs"], lp["spin"], lp["overrun_threshold"], cfg["safety"]["max_overruns"]
+    )
+    for ln in facts_lines(host_facts(), t):
+        print(f"rths-hil check-host: {ln}")
+    print(
+        f"rths-hil check-host: lateness p50 {t.p50 * 1e6:.0f} µs, p99 {t.p99 * 1e6:.0f} µs, "
+        f"p99.9 {t.p999 * 1e6:.0f} µs, max {t.max * 1e3:.3f} ms"
+    )
+    print(f"rths-hil check-host: {line}")
+    save_verdict(line, word, lp["fs"])
+    return 0 if word == "holds" else 1

@@ -1,0 +1,93 @@
+"""``rths-hil commission``: check each actuator channel and its controller before a test.
+
+``rths-hil commission [CONFIG.toml] [--yes] [--confirm-hardware] [--out DIR] [--set k=v]...``
+
+Per channel: identify (position, force, status), round-trip latency at the loop rate with the
+actuator disabled, the enable/disable edge, a small ramp–hold–ramp (``commission.amplitude``,
+``commission.velocity``) with the tracking delay and gain from the FEI and the Kalman
+estimator, the e-stop (latch, hold, acknowledge, re-enable) and the controller's heartbeat
+watchdog (:mod:`rths_hil.commission`). Writes ``commission/<timestamp>/report.md`` and one PNG
+per channel. Exit codes: 0 every step passed or was skipped, 1 a step failed, 2 bad input or
+no confirmation for hardware.
+
+Against hardware (a channel with ``twin.enabled = false``) it needs ``--confirm-hardware`` (or
+``loop.confirm_hardware = true``) and asks the operator before it enables or moves an actuator
+(``--yes`` answers for twins only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``commission`` to the top-level parser."""
+    p = sub.add_parser(
+        "commission",
+        help="check each channel's controller: latency, enable, motion, e-stop, watchdog",
+        description=__doc__.splitlines()[0],
+    )
+    p.add_argument("config", nargs="?", help="TOML configuration (default: embedded NEES-711)")
+    p.add_argument("--yes", action="store_true", help="answer the prompts (twins only)")
+    p.add_argument(
+        "--confirm-hardware",
+        action="store_true",
+        help="confirm that commissioning may drive real hardware (twin.enabled = false)",
+    )
+    p.add_argument("--out", metavar="DIR", help="report directory (default commission/<time>)")
+    p.add_argument(
+        "--set",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        help="override a configuration key (repeatable)",
+    )
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    """Commission every channel; return the exit code."""
+    from ..commission import commission
+    from ..config import load_config
+    from ..errors import InputError
+    from ..hybrid.phases import hardware_channels, require_confirmation
+    from ..hybrid.plan import build_plan
+    from ..loop import new_run_dir
+
+    cfg = load_config(args.config, args.set)
+    out = Path(args.out) if args.out else new_run_dir("commission/{timestamp}")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"--out {out}: exists and is not an empty directory; choose a new one")
+    plan = build_plan(cfg, out, mode="paced")
+    hardware = bool(hardware_channels(plan))
+    require_confirmation(plan, args.confirm_hardware, "commission")
+    if hardware and args.yes:
+        raise InputError("--yes answers for twins only: on hardware the operator answers")
+    interactive = sys.stdin is not None and sys.stdin.isatty()
+    if hardware and not interactive:
+        raise InputError(
+            "commissioning hardware asks the operator before each motion: run it interactively"
+        )
+
+    def confirm(what: str) -> bool:
+        if args.yes or not interactive:
+            return True
+        print(f"rths-hil commission: {what}.", file=sys.stderr)
+        try:
+            return input("Type 'yes' to go on: ").strip().lower() == "yes"
+        except EOFError:
+            return False
+
+    reports = commission(cfg, out, confirm=confirm, plan=plan)
+    failed = [(r.name or "actuator", s) for r in reports for s in r.failed]
+    for r in reports:
+        for s in r.steps:
+            why = f": {s.reason}" if s.reason else ""
+            print(f"rths-hil commission: {r.name or 'actuator'}: {s.name}: {s.status}{why}")
+    print(
+        f"rths-hil commission: {'FAILED' if failed else 'passed'}; report in {out / 'report.md'}",
+        file=sys.stderr,
+    )
+    return 1 if failed else 0

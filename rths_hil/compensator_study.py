@@ -1,0 +1,261 @@
+"""Compensators compared on the same perturbed plants (``rths-hil study compensators``).
+
+The robustness study's machinery (:mod:`rths_hil.study`): perturbed twins are drawn once
+(:func:`rths_hil.study.plan_trials`), then every method runs on every draw, each trial in
+lockstep through the full chain (:func:`rths_hil.study.robustness_trial`: J1–J9 with the
+paper's numbering and as the RTHS benchmark's script computes them, whole-record FEI A and d,
+the online FEI extremes, trips). Outputs: ``trials.csv`` (one line per method × trial),
+``comparison.csv`` and ``comparison.md`` (median, 5th and 95th percentiles per method and
+criterion, per channel) and ``compensators_box.png`` (box plots per criterion, one colour per
+method). See ``docs/compensation.md``.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import math
+from collections.abc import Sequence
+from concurrent.futures import Executor
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import study
+from .compensators import compensator_class
+from .errors import InputError
+
+__all__ = [
+    "COMPARISON_METRICS",
+    "CompensatorComparison",
+    "compensator_study",
+    "plan_method_trials",
+    "write_comparison",
+]
+
+#: Criteria compared per method (and per channel).
+COMPARISON_METRICS: tuple[str, ...] = (
+    "fei_amplitude",
+    "fei_delay",
+    *(f"J{i}" for i in range(1, 10)),
+    *(f"bench_J{i}" for i in range(1, 10)),
+)
+#: Criteria drawn as box plots.
+BOX_METRICS: tuple[str, ...] = ("fei_amplitude", "fei_delay", "J2", "bench_J1", "bench_J2", "J4")
+
+
+def plan_method_trials(
+    cfg,
+    methods: Sequence[str],
+    perturbations: Sequence[study.Perturbation],
+    trials: int,
+    seed: int = 0,
+    duration: float | None = None,
+) -> list[tuple[str, study.TrialSpec]]:
+    """(method, trial) pairs: the same drawn plants for every method.
+
+    The method is set on every channel (``compensation.method`` at the top level and in each
+    ``[[actuators]]`` entry); every other compensation key stays as configured.
+    """
+    if not methods:
+        raise InputError("--methods: no method given")
+    for m in methods:
+        try:
+            compensator_class(m)
+        except InputError as exc:
+            raise InputError(f"--methods: {exc}") from None
+    if len(set(methods)) != len(methods):
+        raise InputError("--methods: a method is given more than once")
+    base = study._inline_twin(cfg)
+    specs = study.plan_trials(base, perturbations, trials, seed, None, duration)
+    out = []
+    for m in methods:
+        for s in specs:
+            c = copy.deepcopy(s.cfg)
+            c["compensation"]["method"] = m
+            c["compensation"]["enabled"] = True
+            c["compensation"]["adaptive"] = c["compensation"]["adaptive"] and m == "inverse"
+            for entry in c.get("actuators") or []:
+                comp = entry.setdefault("compensation", {})
+                comp["method"] = m
+                comp["enabled"] = True
+                if m != "inverse":
+                    comp["adaptive"] = False
+            out.append((m, replace(s, cfg=c)))
+    return out
+
+
+def method_trial(method: str, spec: study.TrialSpec) -> dict[str, Any]:
+    """One trial of one method: the robustness trial's row with ``method`` first."""
+    row = study.robustness_trial(spec)
+    return {"method": method, **row}
+
+
+@dataclass
+class CompensatorComparison:
+    """Outcome of :func:`compensator_study`.
+
+    Attributes
+    ----------
+    rows : list of dict
+        One per method × trial, ordered by method (as given) then trial.
+    methods : list of str
+    keys : list of str
+        The varied keys.
+    suffixes : list of str
+        Channel column suffixes (``[""]`` for one channel).
+    seed : int
+    """
+
+    rows: list[dict[str, Any]]
+    methods: list[str]
+    keys: list[str]
+    suffixes: list[str]
+    seed: int
+
+    @property
+    def columns(self) -> list[str]:
+        """``trials.csv`` columns in order."""
+        return ["method", "trial", "alpha", *self.keys, *study.trial_columns(self.suffixes)]
+
+    def summary(self) -> list[dict[str, Any]]:
+        """Per method and criterion (per channel): median, 5th and 95th percentiles over the
+        trials with a value, their count and the share of trials a safety rule stopped."""
+        out = []
+        for m in self.methods:
+            rows = [r for r in self.rows if r["method"] == m]
+            tripped = sum(r["status"] == "trip" for r in rows)
+            for metric in (c + sfx for sfx in self.suffixes for c in COMPARISON_METRICS):
+                v = np.array([r.get(metric, math.nan) for r in rows], dtype=float)
+                v = v[np.isfinite(v)]
+                p5, p50, p95 = np.percentile(v, [5, 50, 95]) if v.size else (math.nan,) * 3
+                out.append(
+                    {
+                        "method": m,
+                        "metric": metric,
+                        "median": float(p50),
+                        "p5": float(p5),
+                        "p95": float(p95),
+                        "n": int(v.size),
+                        "trials": len(rows),
+                        "share_tripped": tripped / len(rows) if rows else math.nan,
+                    }
+                )
+        return out
+
+
+def compensator_study(
+    cfg,
+    methods: Sequence[str],
+    perturbations: Sequence[study.Perturbation] | None = None,
+    trials: int = 100,
+    *,
+    seed: int = 0,
+    duration: float | None = None,
+    executor: Executor | None = None,
+    progress: bool = True,
+) -> CompensatorComparison:
+    """Every method on the same ``trials`` perturbed plants (see the module docstring)."""
+    base = study._inline_twin(cfg)
+    perts = list(perturbations) if perturbations is not None else study.default_perturbations(base)
+    cases = plan_method_trials(base, list(methods), perts, trials, seed, duration)
+    rows = study._run_cases(method_trial, cases, executor, progress, "trials")
+    return CompensatorComparison(
+        rows, list(methods), [p.key for p in perts], study.channel_suffixes(base), int(seed)
+    )
+
+
+def _md_table(res: CompensatorComparison) -> str:
+    summ = res.summary()
+    lines = []
+    for sfx in res.suffixes:
+        if sfx:
+            lines += [f"### Channel {sfx[1:]}", ""]
+        head = ["criterion", *(f"{m} median" for m in res.methods)]
+        head += [f"{m} 95 %" for m in res.methods]
+        lines.append("| " + " | ".join(head) + " |")
+        lines.append("|" + "---|" * len(head))
+        for metric in COMPARISON_METRICS:
+            cells = [f"`{metric}`"]
+            by = {r["method"]: r for r in summ if r["metric"] == metric + sfx}
+            scale = 1e3 if metric == "fei_delay" else 1.0
+            cells += [f"{scale * by[m]['median']:.4g}" for m in res.methods]
+            cells += [f"{scale * by[m]['p95']:.4g}" for m in res.methods]
+            lines.append("| " + " | ".join(cells) + " |")
+        lines.append("")
+    trip = {r["method"]: r["share_tripped"] for r in summ}
+    n = {r["method"]: r["trials"] for r in summ}
+    lines.append(
+        "Trials stopped by a safety rule: "
+        + ", ".join(f"{m} {100 * trip[m]:.1f} % of {n[m]}" for m in res.methods)
+        + ". `fei_delay` in ms; J1 (paper) in s, `bench_J1` in ms (as the benchmark's script)."
+    )
+    return "\n".join(lines)
+
+
+def write_comparison(
+    out_dir: str | Path, res: CompensatorComparison, plot: bool = True
+) -> list[str]:
+    """Write trials.csv, comparison.csv, comparison.md and (``plot``) compensators_box.png."""
+    out = Path(out_dir)
+    cols = res.columns
+    with (out / "trials.csv").open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(cols)
+        for r in res.rows:
+            w.writerow([study._exact(r.get(c, math.nan)) for c in cols])
+    summ = res.summary()
+    scols = ["method", "metric", "median", "p5", "p95", "n", "trials", "share_tripped"]
+    with (out / "comparison.csv").open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(scols)
+        for r in summ:
+            w.writerow([study._exact(r[c]) for c in scols])
+    n = len(res.rows) // max(1, len(res.methods))
+    md = [
+        "# Compensators on the same perturbed plants",
+        "",
+        f"{n} perturbed plants (seed {res.seed}; varied: {', '.join(res.keys) or 'none'}), "
+        f"every method on each: median and 95th percentile of each criterion.",
+        "",
+        _md_table(res),
+        "",
+    ]
+    (out / "comparison.md").write_text("\n".join(md), encoding="utf-8")
+    written = ["trials.csv", "comparison.csv", "comparison.md"]
+    if plot:
+        written.append(_plot(out, res).name)
+    return written
+
+
+def _plot(out: Path, res: CompensatorComparison) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [(m, sfx) for sfx in res.suffixes for m in BOX_METRICS]
+    ncol = len(BOX_METRICS)
+    nrow = len(res.suffixes)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(3.0 * ncol, 3.2 * nrow), squeeze=False)
+    for ax, (metric, sfx) in zip(axes.ravel(), panels, strict=True):
+        scale = 1e3 if metric == "fei_delay" else 1.0
+        data = []
+        for m in res.methods:
+            v = np.array([r.get(metric + sfx, math.nan) for r in res.rows if r["method"] == m])
+            data.append(scale * v[np.isfinite(v)])
+        box = ax.boxplot(data, patch_artist=True, showfliers=True)
+        for i, patch in enumerate(box["boxes"]):
+            patch.set_facecolor(f"C{i}")
+            patch.set_alpha(0.6)
+        ax.set_xticks(range(1, len(res.methods) + 1), res.methods, rotation=30, fontsize=8)
+        unit = " (ms)" if metric == "fei_delay" else ""
+        ax.set_title(f"{metric}{unit}{' ' + sfx[1:] if sfx else ''}", fontsize=9)
+        ax.grid(True, axis="y", alpha=0.3)
+    fig.tight_layout()
+    path = out / "compensators_box.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

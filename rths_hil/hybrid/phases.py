@@ -1,0 +1,527 @@
+"""Start and end of a test on an actuator: from where it is, back to a disabled controller.
+
+A test does not begin at rest on a real rig: the actuator sits where a previous test, the
+operator's jog or the specimen's installation left it. Commanding the structure's first target
+(usually 0) at step 0 would make it jump there at the servo's full speed — a load spike on the
+specimen before the test has begun. And at the end of a completed test the controller must be
+handed back disabled, not left enabled until its own heartbeat watchdog latches an e-stop.
+
+Start (:meth:`Phases.start`, after each controller is armed)
+    The arming reply tells where each actuator is (position, force, status). The test is
+    refused (:class:`~rths_hil.errors.InputError`, exit 2) when a position is outside
+    ``safety.displacement_limit``, not readable, or the controller reports a fault. Then, with
+    ``start.mode = "ramp"`` (the default), every actuator moves from where it is to its first
+    command along a cosine ramp ``x(s) = a + (b − a)·(1 − cos πs)/2``, ``s ∈ [0, 1]``, whose
+    duration is ``max(start.ramp_time, π·|b − a| / (2·v))`` with ``v = min(start.velocity,
+    safety.velocity_limit / 2)`` (the cosine's peak velocity is ``π·|b − a| / (2·T)``), and holds
+    there ``start.hold`` seconds; no ramp when every actuator is within ``start.tolerance`` of
+    its first command (a twin at rest: the run is then exactly the one without this phase).
+    With ``start.mode = "offset"`` the test runs about where the actuator is: each command
+    sent is the loop's command plus the start position, each measured displacement the loop
+    sees is the measurement minus it (so the record's command and measured columns are about
+    the start position, and the displacement limit applies to them).
+End (:meth:`Phases.end`; completed run, operator stop, Ctrl-C, SIGTERM, SIGHUP)
+    Each actuator ramps from its last command to ``end.rest_position`` (``end.rest =
+    "position"``) or holds there (``"hold"``, the default), is commanded there for ``end.hold``
+    seconds with the heartbeat going, and is then disabled with the protocol's own command
+    (``enable = False``: the controller holds, reports neither ``ENABLED`` nor
+    ``ESTOP_ACTIVE``, and its heartbeat watchdog no longer runs). A trip does not come here: it
+    e-stops at once.
+
+Both phases step like the loop: one command per channel per period (paced) or per reply
+(lockstep), replies read, the heartbeat sent, and each channel's safety monitor checks the
+commands, the feedback (watchdog, sequence, controller status, limits) at every step; a trip
+ends the phase and the runner e-stops every channel. Their steps are not rows of the record
+(the record is the test); they are events: ``start_position`` (per channel), ``start_ramp``
+and ``end_ramp`` (from/to positions, times, steps, peak velocity, final measured positions),
+``handback`` (per channel: position, force, status, disabled, latched). Start-phase steps are
+numbered ``-m … -1`` for the safety monitors and events (the loop's step 0 follows), end-phase
+steps continue after the last loop step. On the wire the sequence numbers run on without a gap:
+the loop's step ``k`` goes out as ``k + m`` (:class:`Link`).
+
+Real hardware (a channel without a twin) is only driven after the operator's confirmation
+(:func:`require_confirmation`), and never in lockstep unless its profile says the controller
+advances one step per command (``driver.stepped``; :func:`preflight`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from rths_hil.drivers.base import Feedback, Status
+
+from ..errors import InputError
+from ..safety import Trip
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..recorder import Recorder
+    from .channel import Channel
+    from .plan import TestPlan
+    from .runner import Runner, RunResult
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "Link",
+    "Phases",
+    "cosine_ramp",
+    "hardware_channels",
+    "preflight",
+    "ramp_duration",
+    "require_confirmation",
+]
+
+_ENABLED = int(Status.ENABLED)
+_ESTOP = int(Status.ESTOP_ACTIVE)
+_FAULT = int(Status.FAULT)
+
+
+# ----------------------------------------------------------------------------------------------
+# hardware: confirmation and lockstep
+
+
+def hardware_channels(plan: TestPlan) -> list[str]:
+    """Names of the channels that drive real hardware (no twin configured); ``""`` = unnamed."""
+    return [cp.name for cp in plan.channels if not cp.twin_enabled]
+
+
+def _channel_label(name: str) -> str:
+    return f"actuators.{name}" if name else "the actuator"
+
+
+def preflight(plan: TestPlan) -> None:
+    """Refuse a lockstep run against hardware whose controller is not stepped by our commands.
+
+    Lockstep is virtual time: it sends the next command as soon as a reply comes. A real
+    controller runs on its own clock, so the test would run several times faster than the
+    structure's time on the specimen. Allowed only when the channel's ``driver.stepped`` says
+    the controller advances one step per command (a simulator, a stepped test rig).
+    """
+    if plan.mode != "lockstep":
+        return
+    for cp in plan.channels:
+        if not cp.twin_enabled and not cp.cfg["driver"]["stepped"]:
+            where = cp.cfg.source + (f": actuators.{cp.name}" if cp.name else "")
+            raise InputError(
+                f"{where}: lockstep against real hardware (twin.enabled = false) runs faster "
+                "than the controller's clock; use paced mode, or set driver.stepped = true if "
+                "this controller advances one step per command"
+            )
+
+
+def require_confirmation(plan: TestPlan, confirmed: bool, command: str) -> None:
+    """Refuse to drive hardware without ``--confirm-hardware`` or ``loop.confirm_hardware``.
+
+    Raises
+    ------
+    InputError
+        Some channel has no twin and neither the flag nor the configuration confirms it.
+    """
+    hw = hardware_channels(plan)
+    if not hw or confirmed or plan.cfg["loop"]["confirm_hardware"]:
+        return
+    names = ", ".join(_channel_label(n) for n in hw)
+    raise InputError(
+        f"{plan.cfg.source}: {names} drives real hardware (twin.enabled = false): "
+        f"pass --confirm-hardware to `rths-hil {command}` (or set loop.confirm_hardware = true)"
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# ramps
+
+
+def ramp_duration(distance: float, velocity: float, minimum: float) -> float:
+    """Duration of a cosine ramp over ``distance`` (m) whose peak velocity is ≤ ``velocity``.
+
+    The cosine ramp ``x(s) = a + Δ·(1 − cos πs)/2`` over ``T`` seconds peaks at
+    ``π·|Δ| / (2·T)``, so ``T = max(minimum, π·|Δ| / (2·velocity))``.
+    """
+    return max(float(minimum), math.pi * abs(distance) / (2.0 * velocity))
+
+
+def cosine_ramp(a: float, b: float, steps: int) -> np.ndarray:
+    """``steps + 1`` points from ``a`` to ``b`` (both included) along a cosine ramp."""
+    if steps <= 0:
+        return np.array([float(b)])
+    s = np.arange(steps + 1) / steps
+    x = a + (b - a) * 0.5 * (1.0 - np.cos(np.pi * s))
+    x[0], x[-1] = a, b
+    return x
+
+
+def _ramp_velocity(chans: list[Channel], velocity: float) -> float:
+    """The ramps' peak velocity: ``velocity``, at most half of any channel's velocity limit."""
+    v = float(velocity)
+    for ch in chans:
+        lim = ch.monitor.vel_limit
+        if lim != math.inf:
+            v = min(v, 0.5 * lim)
+    return v
+
+
+# ----------------------------------------------------------------------------------------------
+# the loop's view of a controller
+
+
+class Link:
+    """A channel's send/receive as the loop sees them: sequence shift and position offset.
+
+    ``send(k, c, enable)`` sends sequence ``k + shift`` and displacement ``c + offset``;
+    ``receive`` gives the feedback with ``seq − shift`` and ``displacement − offset``. Installed
+    on a channel (its ``send``/``receive``) only when a start ramp or an offset needs it, so a
+    run without either calls the driver directly.
+    """
+
+    __slots__ = ("offset", "raw_receive", "raw_send", "shift")
+
+    def __init__(
+        self,
+        raw_send: Callable[..., None],
+        raw_receive: Callable[[float], Feedback | None],
+        shift: int = 0,
+        offset: float = 0.0,
+    ) -> None:
+        self.raw_send = raw_send
+        self.raw_receive = raw_receive
+        self.shift = int(shift)
+        self.offset = float(offset)
+
+    def send(self, k: int, c: float, enable: bool = True) -> None:
+        """Send the loop's command ``c`` of step ``k``."""
+        self.raw_send(k + self.shift, c + self.offset, enable)
+
+    def receive(self, timeout: float) -> Feedback | None:
+        """The feedback in the loop's numbering and coordinates (or ``None``)."""
+        fb = self.raw_receive(timeout)
+        if fb is not None:
+            fb.seq -= self.shift
+            fb.displacement -= self.offset
+        return fb
+
+
+@dataclass
+class _Where:
+    """A channel at the start: where the actuator is and what step 0 commands."""
+
+    position: float
+    force: float
+    status: int | None
+    first: float  # the loop's step-0 command (loop coordinates)
+    offset: float = 0.0
+
+
+# ----------------------------------------------------------------------------------------------
+# the phases
+
+
+class Phases:
+    """The start and end phases of one run (module docstring).
+
+    Parameters
+    ----------
+    runner : Runner
+        The runner whose channels are open and armed.
+    rec : Recorder
+        The run's recorder (events).
+    """
+
+    def __init__(self, runner: Runner, rec: Recorder) -> None:
+        self.runner = runner
+        self.plan = runner.plan
+        self.rec = rec
+        self.chans = runner.channels
+        cfg = self.plan.cfg
+        self.start_cfg = cfg["start"]
+        self.end_cfg = cfg["end"]
+        self.dt = self.plan.dt
+        self.paced = self.plan.mode == "paced"
+        self.raw = [(ch.send, ch.receive) for ch in self.chans]
+        self.links: list[Link] | None = None
+        self.shift = 0  # sequence number of the loop's step 0
+        self.offsets = [0.0] * len(self.chans)
+        self.where: list[_Where] = []
+        self.handback_ok: bool | None = None
+        self.sent = [0.0] * len(self.chans)  # the last absolute command sent to each channel
+
+    # ------------------------------------------------------------------------------------------
+    def _first_commands(self) -> list[float]:
+        """Each channel's command at the loop's step 0 (without stepping anything)."""
+        st = self.plan.structure
+        out = []
+        if hasattr(st, "attach"):  # an external model gives its first target only when it runs
+            xs = None
+        else:
+            xs = st.reset()
+        for ch in self.chans:
+            if xs is None:
+                x = 0.0
+            elif ch.dof >= 0:
+                x = float(xs[ch.dof])
+            else:
+                x = float(sum(r * v for r, v in zip(ch.row, xs, strict=False)))
+            ch.comp.reset(x)
+            out.append(float(ch.comp.step(x)))
+            ch.comp.reset(x)
+        return out
+
+    def _locate(self, armed: list[Feedback | None]) -> list[_Where]:
+        """Where each actuator is (the arming reply); refuse an unsafe start."""
+        firsts = self._first_commands()
+        where = []
+        for ch, fb, first in zip(self.chans, armed, firsts, strict=True):
+            label = self.plan.cfg.source + ": " + _channel_label(ch.name)
+            if fb is None:
+                if ch.twin is None:
+                    raise InputError(
+                        f"{label}: the controller did not answer the arming command, so where "
+                        "the actuator is cannot be read; refusing to start"
+                    )
+                # a twin that does not answer (an injected fault) sits at its rest position;
+                # the loop's watchdog deals with the silence
+                home = float(getattr(ch.twin.controller, "home", 0.0))
+                where.append(_Where(home, math.nan, None, first))
+                continue
+            pos, force, status = float(fb.displacement), float(fb.force), int(fb.status)
+            if status & _FAULT:
+                raise InputError(
+                    f"{label}: the controller reports a fault (status 0x{status:02x}) at the "
+                    "start; clear it on the controller before starting"
+                )
+            if not math.isfinite(pos):
+                raise InputError(
+                    f"{label}: the actuator position is not readable (status 0x{status:02x}); "
+                    "refusing to start"
+                )
+            lim = ch.monitor.disp_limit
+            if not -lim <= pos <= lim:
+                raise InputError(
+                    f"{label}: the actuator is at {pos * 1e3:+.3f} mm, outside the displacement "
+                    f"limit ±{lim * 1e3:.3f} mm; bring it back within the limit on the "
+                    "controller before starting"
+                )
+            where.append(_Where(pos, force, status, first))
+        return where
+
+    # ------------------------------------------------------------------------------------------
+    def start(self, armed: list[Feedback | None]) -> Trip | None:
+        """Read where each actuator is, refuse an unsafe start, ramp (or offset) to step 0.
+
+        Returns the trip that stopped the start ramp, or ``None`` (the loop may start).
+
+        Raises
+        ------
+        InputError
+            An actuator outside the displacement limit, unreadable, or a controller fault.
+        """
+        rec = self.rec
+        self.where = where = self._locate(armed)
+        offset_mode = self.start_cfg["mode"] == "offset"
+        for ch, w in zip(self.chans, where, strict=True):
+            if offset_mode and w.status is not None:
+                w.offset = w.position
+            rec.event(
+                "start_position", 0.0, 0, channel=ch.name, position=w.position,
+                force=w.force, status=w.status, first_command=w.first, offset=w.offset,
+                mode=self.start_cfg["mode"],
+            )  # fmt: skip
+        self.offsets = [w.offset for w in where]
+        self.sent = [w.position for w in where]
+        # absolute commands: from where each actuator is to its step-0 command
+        a = np.array([w.position for w in where])
+        b = np.array([w.first + w.offset for w in where])
+        tol = self.start_cfg["tolerance"]
+        trip = None
+        if np.any(np.abs(b - a) > tol):
+            v = _ramp_velocity(self.chans, self.start_cfg["velocity"])
+            dist = float(np.max(np.abs(b - a)))
+            duration = ramp_duration(dist, v, self.start_cfg["ramp_time"])
+            n_ramp = max(1, math.ceil(duration / self.dt))
+            n_hold = round(self.start_cfg["hold"] / self.dt)
+            paths = [
+                np.concatenate([cosine_ramp(ai, bi, n_ramp), np.full(n_hold, bi)])
+                for ai, bi in zip(a, b, strict=True)
+            ]
+            m = len(paths[0])
+            k0 = -m
+            t_start = k0 * self.dt
+            peak = [float(np.max(np.abs(np.diff(p)))) / self.dt for p in paths]
+            trip, meas = self._drive(paths, seq0=0, k0=k0)
+            # reset the feedback watchdogs: the loop's lead-in is not a missing reply
+            for ch in self.chans:
+                wd = ch.monitor.watchdog
+                if wd is not None:
+                    wd.reset()
+            rec.event(
+                "start_ramp", t_start, k0, channels=[ch.name for ch in self.chans],
+                start=a.tolist(), end=b.tolist(), duration=n_ramp * self.dt,
+                hold=n_hold * self.dt, steps=m, peak_velocity=peak, velocity_limit=v,
+                measured_end=meas, completed=trip is None and self.runner.stop_signal is None,
+            )  # fmt: skip
+            self.shift = m
+        if self.shift or any(self.offsets):
+            self._link()
+        return trip
+
+    def _link(self) -> None:
+        """Put a :class:`Link` between each channel and its driver (shift and offset)."""
+        self.links = []
+        for ch, (send, recv), off in zip(self.chans, self.raw, self.offsets, strict=True):
+            link = Link(send, recv, self.shift, off)
+            ch.send, ch.receive = link.send, link.receive
+            self.links.append(link)
+
+    # ------------------------------------------------------------------------------------------
+    def end(self, result: RunResult) -> Trip | None:
+        """Ramp to the rest position (or hold), keep commanding, then disable each controller.
+
+        Called after a completed run or an operator stop. Returns a trip if a safety rule fired
+        on the way (then the runner e-stops), else ``None``; records ``end_ramp`` and
+        ``handback`` events and sets :attr:`handback_ok`.
+        """
+        rec = self.rec
+        dt = self.dt
+        k0 = result.steps
+        seq0 = k0 + self.shift
+        # absolute last commands (what each controller is holding now)
+        if k0 > 0:
+            last = np.array(
+                [ch.last_command + off for ch, off in zip(self.chans, self.offsets, strict=True)]
+            )
+        else:  # stopped before step 0: the last command of the start ramp, or where it was
+            last = np.array(self.sent)
+        self.sent = last.tolist()
+        if self.end_cfg["rest"] == "position":
+            rest = np.full(len(self.chans), float(self.end_cfg["rest_position"]))
+        else:
+            rest = last.copy()
+        v = _ramp_velocity(self.chans, self.start_cfg["velocity"])
+        dist = float(np.max(np.abs(rest - last))) if len(last) else 0.0
+        n_ramp = 0
+        if dist > 0.0:
+            n_ramp = max(1, math.ceil(ramp_duration(dist, v, 0.0) / dt))
+        n_hold = round(self.end_cfg["hold"] / dt)
+        paths = [
+            np.concatenate([cosine_ramp(ai, bi, n_ramp)[1:], np.full(n_hold, bi)])
+            for ai, bi in zip(last, rest, strict=True)
+        ]
+        m = len(paths[0])
+        trip, meas = None, [math.nan] * len(self.chans)
+        if m:
+            trip, meas = self._drive(paths, seq0=seq0, k0=k0)
+        rec.event(
+            "end_ramp", k0 * dt, k0, channels=[ch.name for ch in self.chans], start=last.tolist(),
+            end=rest.tolist(), rest=self.end_cfg["rest"], duration=n_ramp * dt,
+            hold=n_hold * dt, steps=m, measured_end=meas, completed=trip is None,
+        )  # fmt: skip
+        seq = seq0 + m
+        if trip is None:
+            self.handback_ok = self._disable(seq, k0 + m, rest)
+            seq += 1
+        # the loop's numbering for whatever is sent next (an e-stop's confirmation poll)
+        self.shift = seq - k0
+        self._link()
+        return trip
+
+    def _disable(self, seq: int, k: int, rest: np.ndarray) -> bool:
+        """One ``enable=False`` command per channel; True when each replied disabled, unlatched."""
+        ok_all = True
+        for ch, (send, recv), x in zip(self.chans, self.raw, rest, strict=True):
+            fb = None
+            try:
+                send(seq, float(x), False)
+                fb = recv(max(self.plan.timeout, 0.2))
+            except InputError:
+                fb = None
+            status = None if fb is None else int(fb.status)
+            disabled = status is not None and not status & _ENABLED
+            latched = status is not None and bool(status & _ESTOP)
+            ok = disabled and not latched
+            ok_all = ok_all and ok
+            self.rec.event(
+                "handback", k * self.dt, k, channel=ch.name, replied=fb is not None,
+                position=None if fb is None else fb.displacement,
+                force=None if fb is None else fb.force, status=status, disabled=disabled,
+                latched=latched,
+            )  # fmt: skip
+            if not ok:
+                log.warning(
+                    "%s: the controller did not confirm the hand-back (status %s)",
+                    _channel_label(ch.name),
+                    "no reply" if status is None else f"0x{status:02x}",
+                )
+        return ok_all
+
+    # ------------------------------------------------------------------------------------------
+    def _drive(
+        self, paths: list[np.ndarray], seq0: int, k0: int
+    ) -> tuple[Trip | None, list[float]]:
+        """Step absolute command paths (one per channel) as the loop steps; the safety checks.
+
+        Sequence ``seq0 + i`` and safety step ``k0 + i`` for the path's ``i``-th command. Paced:
+        one step per period (sleep, then spin to the deadline); lockstep: the next command when
+        the replies are in. Returns the first trip (or ``None``) and each channel's last
+        measured displacement (absolute).
+        """
+        runner = self.runner
+        plan = self.plan
+        chans = self.chans
+        dt = self.dt
+        paced = self.paced
+        timeout = plan.timeout
+        hb = plan.heartbeat_steps
+        spin = plan.spin
+        perf = time.perf_counter
+        m = len(paths[0])
+        meas_abs = [math.nan] * len(chans)
+        sent = self.sent
+        links = list(zip(chans, self.raw, paths, self.offsets, strict=True))
+        t0 = perf() + (dt if paced else 0.0)
+        for i in range(m):
+            k = k0 + i
+            t = k * dt
+            if runner.stop_signal is not None and k < 0:
+                # a stop during the start ramp: the loop sees it at once and ends the test
+                return None, meas_abs
+            if paced:
+                deadline = t0 + i * dt
+                gap = deadline - perf() - spin
+                if gap > 0:
+                    time.sleep(gap)
+                while perf() < deadline:
+                    pass
+            for j, (ch, (send, _), p, off) in enumerate(links):
+                c = float(p[i])
+                v = (c - sent[j]) / dt
+                trip = ch.monitor.check_command(t, k, c - off, v, c - off)
+                if trip is not None:
+                    return runner.safety._fire(trip, ch, t, k), meas_abs
+                send(seq0 + i, c, True)
+                sent[j] = c
+            for j, (ch, (_, recv), p, off) in enumerate(links):
+                fb = recv(timeout)
+                ch.t_rx = perf()
+                c = float(p[i])
+                if fb is None:
+                    trip = ch.monitor.check_feedback(
+                        t, k, False, seq0 + i, -1, 0, c - off, math.nan, math.nan
+                    )
+                else:
+                    meas_abs[j] = fb.displacement
+                    trip = ch.monitor.check_feedback(
+                        t, k, True, seq0 + i, fb.seq, fb.status, c - off,
+                        fb.displacement - off, fb.force,
+                    )  # fmt: skip
+                if trip is not None:
+                    return runner.safety._fire(trip, ch, t, k), meas_abs
+            if hb and i % hb == 0:
+                for ch in chans:
+                    ch.heartbeat()
+        return None, meas_abs

@@ -1,0 +1,472 @@
+"""CANopen twin endpoint: a CiA 402 servo drive or CiA 408 hydraulic axis, a ``canopen`` LocalNode.
+
+The node's object dictionary is one of the EDS files shipped in ``sim_backends/eds``
+(``cia402_twin.eds``, ``cia408_twin.eds``) or a lab's own. The ``canopen`` library serves SDO
+(:class:`canopen.sdo.SdoServer`: the driver reads 0x1000/0x1018 and maps the PDOs by SDO into
+the node's data store), NMT (:class:`canopen.nmt.NmtSlave`, which also produces the heartbeat
+set in 0x1017), EMCY (:class:`canopen.emcy.EmcyProducer`) and the PDO maps; this module adds
+what a device does with them:
+
+* NMT start (pre-operational → operational): the PDO maps are read from the node's own object
+  dictionary (what the driver wrote), the plant is put back at rest (a new run) and the SYNC
+  count restarts at 0.
+* RPDO1 (control word + set-point) is stored; on each SYNC the control word is applied to the
+  device FSA (402: the transitions of CiA 402 incl. quick stop and fault reset; 408: D/H/M and
+  the reset edge), then — in OPERATION ENABLED with mode 8 (402) or ACTIVE with device mode 1
+  (408) — the plant is stepped once towards the set-point (:class:`TwinController`, step ``n`` =
+  the SYNC count), else it holds; TPDO1 (status word + actual position) and TPDO2 (force) are
+  sent. Frame faults (drop, delay, corrupt = one byte short, duplicate) apply to the TPDOs.
+* Controller-side watchdog = heartbeat consumer (0x1016: the bridge's heartbeat, or
+  ``heartbeat_timeout`` from the twin's configuration): while operating, a heartbeat of node
+  ``bridge_node_id`` must come within the consumer time; when none does the twin holds, enters
+  FAULT (402) / FAULT HOLD (408) and sends EMCY 0x8130 (heartbeat error); only a fault reset
+  (arming) leaves it. A runaway fault (``runaway_from``) does the same with EMCY 0x8611
+  (following error).
+* SDO reads of the status word, actual position, force, following error 0x60F4 and mode display
+  0x6061 are answered from the device's live state.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+import time
+from importlib import resources
+from typing import Any
+
+import can
+import canopen
+from rths_hil.drivers.base import INVALID_S32, Status
+from rths_hil.drivers.canopen import BRIDGE_NODE_ID, load_od, parse_object
+from rths_hil.drivers.canopen.profiles import PROFILES, SW408
+
+from rths_hil.errors import InputError
+
+from .base import TwinController, TwinEndpoint
+
+__all__ = ["EMCY_FOLLOWING_ERROR", "EMCY_HEARTBEAT", "CANopenTwin", "default_eds"]
+
+log = logging.getLogger(__name__)
+
+#: EMCY error codes the twin sends (CiA 301 / CiA 402).
+EMCY_HEARTBEAT = 0x8130
+EMCY_FOLLOWING_ERROR = 0x8611
+_S32 = (-(2**31) + 1, 2**31 - 1)
+# CiA 402 status words of the states (State402.SW_MASK values, + voltage enabled / remote)
+_SW402 = {
+    "NOT READY TO SWITCH ON": 0x0000,
+    "SWITCH ON DISABLED": 0x0240,
+    "READY TO SWITCH ON": 0x0231,
+    "SWITCHED ON": 0x0233,
+    "OPERATION ENABLED": 0x0237,
+    "QUICK STOP ACTIVE": 0x0217,
+    "FAULT REACTION ACTIVE": 0x020F,
+    "FAULT": 0x0208,
+}
+
+
+def default_eds(profile: str) -> str:
+    """Path of the shipped EDS of the twin of ``profile`` (``cia402`` or ``cia408``)."""
+    return os.fspath(resources.files("rths_hil.sim_backends") / "eds" / f"{profile}_twin.eds")
+
+
+class CANopenTwin(TwinEndpoint):
+    """A CANopen device (CiA 402 or 408) around a :class:`TwinController` (module docstring).
+
+    Parameters
+    ----------
+    controller : TwinController
+    interface, channel, bitrate, bus_options
+        The python-can bus (``virtual`` by default).
+    eds : str, optional
+        EDS of the node (default: the shipped one of ``device_profile``).
+    node_id, device_profile, counts_per_m, force_object, newtons_per_count, bridge_node_id
+        As the driver's keys (:mod:`rths_hil.drivers.canopen`).
+    **driver_keys
+        Other driver settings, handed on in :attr:`connection`.
+    """
+
+    name = "canopen"
+
+    @classmethod
+    def connection_from_args(cls, args: Any) -> dict[str, Any]:
+        """``--interface`` (not ``virtual``: it cannot leave the process), ``--channel``
+        (default ``vcan0``) and ``--bitrate``; the shipped CiA 402 EDS, node 1."""
+        if args.interface == "virtual":
+            raise InputError(
+                "--interface virtual: python-can's virtual bus only reaches buses inside the same "
+                "process; use --interface socketcan --channel vcan0 (or the lab's interface), or "
+                "start the twin in-process with sim_backends.twin.start_twin"
+            )
+        conn: dict[str, Any] = {"interface": args.interface, "channel": args.channel or "vcan0"}
+        if args.bitrate is not None:
+            conn["bitrate"] = args.bitrate
+        return conn
+
+    def __init__(
+        self,
+        controller: TwinController,
+        interface: str = "virtual",
+        channel: str = "rths-canopen",
+        bitrate: int | None = None,
+        bus_options: dict[str, Any] | None = None,
+        eds: str | None = None,
+        node_id: int = 1,
+        device_profile: str = "cia402",
+        counts_per_m: float = 1e7,
+        force_object: str = "0x2100",
+        newtons_per_count: float = 0.01,
+        bridge_node_id: int = BRIDGE_NODE_ID,
+        **driver_keys: Any,
+    ) -> None:
+        super().__init__(controller)
+        if device_profile not in PROFILES:
+            raise InputError(
+                f"canopen: device_profile {device_profile!r} is not known (known: "
+                f"{', '.join(PROFILES)})"
+            )
+        self.profile = PROFILES[device_profile]
+        self.interface, self.channel, self.bitrate = str(interface), str(channel), bitrate
+        self.bus_options = dict(bus_options or {})
+        self.eds = os.fspath(eds) if eds else default_eds(device_profile)
+        for key, v in (("node_id", node_id), ("bridge_node_id", bridge_node_id)):
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 127:
+                raise InputError(f"canopen: {key} must be an integer 1..127, got {v!r}")
+        self.node_id = int(node_id)
+        self.od = load_od(self.eds, self.node_id)
+        self.counts_per_m = float(counts_per_m)
+        self.newtons_per_count = float(newtons_per_count)
+        self.force_object = (
+            parse_object(force_object, "force_object") if str(force_object).strip() else None
+        )
+        self.bridge_node_id = int(bridge_node_id)
+        self.driver_keys = dict(driver_keys)
+        self.connection_keys = {
+            "interface": self.interface, "channel": self.channel, "eds": self.eds,
+            "node_id": self.node_id, "device_profile": device_profile, "counts_per_m": counts_per_m,
+            "force_object": force_object, "newtons_per_count": newtons_per_count,
+            "bridge_node_id": self.bridge_node_id, **self.driver_keys,
+        }  # fmt: skip
+        if bitrate is not None:
+            self.connection_keys["bitrate"] = bitrate
+        if self.bus_options:
+            self.connection_keys["bus_options"] = dict(self.bus_options)
+        self.bus: can.BusABC | None = None
+        self.network: canopen.Network | None = None
+        self.node: canopen.LocalNode | None = None
+        self.state = "SWITCH ON DISABLED" if self.profile.number == 402 else "INIT"
+        #: every FSA state entered, in order (for tests and logs)
+        self.history: list[str] = [self.state]
+        self.mode = 0
+        self.n = 0
+        self.target = 0
+        self._cw = 0
+        self._rpdo: Any = None
+        self._tpdo: list[Any] = []
+        self._rx: list[tuple[tuple[int, int], int, struct.Struct]] = []
+        self._tx: list[tuple[int, int, list[tuple[tuple[int, int], int, struct.Struct]]]] = []
+        self._nmt_state = ""
+        self._hb_watch = False
+
+    # -- transport ------------------------------------------------------------------------------
+    def _setup(self) -> None:
+        kwargs = dict(self.bus_options)
+        if self.bitrate is not None:
+            kwargs["bitrate"] = self.bitrate
+        try:
+            self.bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            raise InputError(
+                f"canopen twin: cannot open {self.interface!r} {self.channel!r}: {exc}"
+            ) from None
+        net = self.network = canopen.Network(self.bus)
+        node = self.node = canopen.LocalNode(self.node_id, self.od)
+        net.add_node(node)
+        node.add_write_callback(self._on_write)
+        node.add_read_callback(self._on_read)
+        net.subscribe(0, self._on_nmt)
+        net.subscribe(0x80, self._on_sync)
+        net.subscribe(0x700 + self.bridge_node_id, self._on_bridge_heartbeat)
+        node.nmt.state = "PRE-OPERATIONAL"
+        self._nmt_state = node.nmt.state
+        self.connection = dict(self.connection_keys)
+        self.where = (
+            f"CANopen {self.profile.name} node {self.node_id} on {self.interface} {self.channel}"
+        )
+
+    def _teardown(self) -> None:
+        node, self.node = self.node, None
+        if node is not None:
+            node.nmt.stop_heartbeat()
+        bus, self.bus = self.bus, None
+        self.network = None
+        if bus is not None:
+            try:
+                bus.shutdown()
+            except (can.CanError, OSError):  # pragma: no cover
+                pass
+
+    def _serve_once(self, timeout: float) -> None:
+        self._check_faults()
+        bus = self.bus
+        if bus is None:
+            return
+        msg = bus.recv(timeout)
+        if msg is None or self._gone:
+            return
+        if msg.is_error_frame or msg.is_remote_frame:
+            self.controller.stats.malformed += 1
+            return
+        assert self.network is not None
+        self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+
+    def _go_away(self) -> None:
+        self._gone = True
+        if self.node is not None:
+            self.node.nmt.stop_heartbeat()
+
+    # -- NMT, heartbeat, SDO -------------------------------------------------------------------
+    @staticmethod
+    def _layout(pdo_map: Any) -> list[tuple[tuple[int, int], int, struct.Struct]]:
+        """(object, byte offset, little-endian struct) of each entry of a PDO map the library
+        read from the node's dictionary (whole-byte integers: the driver maps only those)."""
+        out = []
+        for var in pdo_map.map:
+            fmt = var.od.STRUCT_TYPES[var.od.data_type].format.lstrip("<")
+            out.append(((var.index, var.subindex), var.offset // 8, struct.Struct("<" + fmt)))
+        return out
+
+    def _on_nmt(self, can_id: int, data: bytes, ts: float) -> None:
+        node = self.node
+        assert node is not None
+        state = node.nmt.state
+        if state == "OPERATIONAL" and self._nmt_state != "OPERATIONAL":
+            node.rpdo.read(from_od=False)
+            node.tpdo.read(from_od=False)
+            self._rpdo = node.rpdo[1]
+            self._tpdo = [m for m in (node.tpdo[1], node.tpdo[2]) if m.enabled and m.map]
+            self._rx = self._layout(self._rpdo)
+            self._tx = [(m.cob_id, len(m.data), self._layout(m)) for m in self._tpdo]
+            ctl = self.controller
+            with ctl.lock:
+                ctl._arm()  # a new session: plant at rest, sequence count restarted
+            self.n = 0
+            self._hb_watch = True
+        elif state != "OPERATIONAL":
+            self._hb_watch = False
+        self._nmt_state = state
+
+    def _on_bridge_heartbeat(self, can_id: int, data: bytes, ts: float) -> None:
+        self.controller.heartbeat()
+
+    def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+        if index == self.profile.control[0]:
+            self._apply(int.from_bytes(data, "little"))
+        elif index == 0x6060:
+            self.mode = int.from_bytes(data, "little", signed=True)
+        elif index == 0x6042 and self.profile.number == 408:
+            self.mode = int.from_bytes(data, "little", signed=True)
+        elif index == 0x1016 and subindex == 1:
+            v = int.from_bytes(data, "little")
+            node_id, ms = (v >> 16) & 0x7F, v & 0xFFFF
+            net = self.network
+            if net is not None and node_id and node_id != self.bridge_node_id:
+                net.unsubscribe(0x700 + self.bridge_node_id, self._on_bridge_heartbeat)
+                self.bridge_node_id = node_id
+                net.subscribe(0x700 + node_id, self._on_bridge_heartbeat)
+            self.controller.heartbeat_timeout = ms / 1000.0 if ms else None
+
+    def _on_read(self, index: int, subindex: int, od: Any) -> int | None:
+        p = self.profile
+        ctl = self.controller
+        if (index, subindex) == p.status:
+            return self.statusword()
+        if (index, subindex) == p.actual:
+            return self._counts(ctl.displacement)
+        if self.force_object is not None and (index, subindex) == self.force_object:
+            return self._force_counts(ctl.force)
+        if index == 0x60F4 and p.number == 402:
+            return self.target - self._counts(ctl.displacement)
+        if index == 0x6061 and p.number == 402:
+            return self.mode
+        return None
+
+    # -- device FSA --------------------------------------------------------------------------
+    def statusword(self) -> int:
+        """The status word of the current state."""
+        if self.profile.number == 402:
+            return _SW402[self.state]
+        return SW408[self.state]
+
+    def _enter(self, state: str) -> None:
+        if state != self.state:
+            log.debug("canopen twin node %d: %s → %s", self.node_id, self.state, state)
+            self.state = state
+            self.history.append(state)
+        ctl = self.controller
+        with ctl.lock:
+            if state not in ("OPERATION ENABLED", "ACTIVE"):
+                ctl.enabled = False
+
+    def _fault(self, code: int) -> None:
+        if self.profile.is_fault(self.state):
+            return
+        self._enter("FAULT" if self.profile.number == 402 else (
+            "FAULT DISABLED" if self.state in ("DISABLED", "INIT") else "FAULT HOLD"))  # fmt: skip
+        if self.node is not None:
+            try:
+                self.node.emcy.send(code, 0x01 | (0x10 if code == EMCY_HEARTBEAT else 0x80))
+            except (can.CanError, OSError, RuntimeError):  # pragma: no cover - bus gone
+                pass
+
+    def _clear_latches(self) -> None:
+        ctl = self.controller
+        with ctl.lock:
+            ctl.estop_latched = False
+            ctl.watchdog_tripped = False
+            ctl._last_heartbeat = time.monotonic()
+        if self.node is not None:
+            try:
+                self.node.emcy.reset()
+            except (can.CanError, OSError, RuntimeError):  # pragma: no cover
+                pass
+
+    def _apply(self, cw: int) -> None:
+        """Apply control word ``cw`` to the device FSA."""
+        prev, self._cw = self._cw, cw
+        if self.profile.number == 408:
+            self._apply408(cw, prev)
+            return
+        s = self.state
+        if s in ("FAULT", "FAULT REACTION ACTIVE"):
+            if cw & 0x80 and not prev & 0x80:  # fault reset, rising edge (transition 15)
+                self._clear_latches()
+                self._enter("SWITCH ON DISABLED")
+            return
+        if not cw & 0x02:  # disable voltage (7, 9, 10, 12)
+            if s == "QUICK STOP ACTIVE":
+                self._clear_latches()
+            self._enter("SWITCH ON DISABLED")
+        elif cw & 0x06 == 0x02:  # quick stop (11; 7, 10 from the not-operating states)
+            if s == "OPERATION ENABLED":
+                self.controller.estop()
+                self._enter("QUICK STOP ACTIVE")
+            elif s in ("READY TO SWITCH ON", "SWITCHED ON"):
+                self._enter("SWITCH ON DISABLED")
+        elif cw & 0x87 == 0x06:  # shutdown (2, 6, 8)
+            if s in ("SWITCH ON DISABLED", "SWITCHED ON", "OPERATION ENABLED"):
+                self._enter("READY TO SWITCH ON")
+        elif cw & 0x8F == 0x07:  # switch on (3) / disable operation (5)
+            if s in ("READY TO SWITCH ON", "OPERATION ENABLED"):
+                self._enter("SWITCHED ON")
+        elif cw & 0x8F == 0x0F:  # enable operation (4; 3+4; 16 with quick stop option 5..8)
+            if s in ("SWITCHED ON", "READY TO SWITCH ON"):
+                self._enter("OPERATION ENABLED")
+            elif s == "QUICK STOP ACTIVE":
+                self._clear_latches()
+                self._enter("OPERATION ENABLED")
+
+    def _apply408(self, cw: int, prev: int) -> None:
+        s = self.state
+        want = {0: "INIT", 1: "DISABLED", 3: "HOLD", 7: "ACTIVE"}.get(cw & 0x07, "DISABLED")
+        if s.startswith("FAULT"):
+            if cw & 0x08 and not prev & 0x08:  # reset fault, rising edge (TR10/TR11)
+                self._clear_latches()
+                self._enter(want)
+            return
+        self._enter(want)
+
+    def _check_faults(self) -> None:
+        ctl = self.controller
+        if not self._hb_watch or ctl.heartbeat_timeout is None:
+            return
+        if ctl.watchdog_tripped and not self.profile.is_fault(self.state):
+            log.warning(
+                "canopen twin node %d: bridge heartbeat lost → fault, EMCY 0x8130", self.node_id
+            )
+            self._fault(EMCY_HEARTBEAT)
+
+    # -- the step ------------------------------------------------------------------------------
+    def _following(self) -> bool:
+        if self.profile.number == 402:
+            return self.state == "OPERATION ENABLED" and self.mode == 8
+        return self.state == "ACTIVE" and self.mode == 1
+
+    def _on_sync(self, can_id: int, data: bytes, ts: float) -> None:
+        if self._nmt_state != "OPERATIONAL" or self._rpdo is None or self._gone:
+            return
+        self._check_faults()
+        rp = self._rpdo
+        if rp.is_received:
+            rp.is_received = False
+            data = rp.data
+            values = {}
+            try:  # the RPDO as the library mapped it (rp.map), unpacked in one pass
+                for key, off, st in self._rx:
+                    values[key] = st.unpack_from(data, off)[0]
+                cw = values[self.profile.control]
+                self.target = values[self.profile.setpoint]
+            except (KeyError, struct.error):
+                self.controller.stats.malformed += 1
+                cw = self._cw
+            self._apply(cw)
+        n = self.n
+        self.n += 1
+        ctl = self.controller
+        if self._following():
+            hb = ctl._last_heartbeat  # the consumer watches heartbeats only (CiA 301)
+            reply = ctl.command(n, self.target / self.counts_per_m, True)
+            if hb is not None:
+                ctl._last_heartbeat = hb
+            if reply is not None and reply[3] & Status.FAULT:
+                self._fault(EMCY_FOLLOWING_ERROR)
+        else:
+            ctl.stats.commands += 1
+            reply = (n, ctl.displacement, ctl.force, 0)
+        self.emit(reply)
+
+    def _counts(self, disp: float) -> int:
+        if disp != disp:
+            return INVALID_S32
+        c = round(disp * self.counts_per_m)
+        return min(max(c, _S32[0]), _S32[1])
+
+    def _force_counts(self, force: float) -> int:
+        if force != force:
+            return INVALID_S32
+        c = round(force / self.newtons_per_count)
+        return min(max(c, _S32[0]), _S32[1])
+
+    def _encode(self, seq: int, displacement: float, force: float, status: int) -> list[Any]:
+        frames = []
+        p = self.profile
+        values = {
+            p.status: self.statusword(),
+            p.actual: self._counts(displacement),
+        }
+        if self.force_object is not None:
+            values[self.force_object] = self._force_counts(force)
+        for cob, size, layout in self._tx:
+            buf = bytearray(size)
+            for key, off, st in layout:
+                v = values.get(key)
+                if v is None:
+                    v = self._on_read(key[0], key[1], None)
+                st.pack_into(buf, off, 0 if v is None else v)
+            frames.append(can.Message(arbitration_id=cob, data=buf, is_extended_id=False))
+        return frames
+
+    def _corrupt(self, frame: can.Message) -> can.Message:
+        return can.Message(
+            arbitration_id=frame.arbitration_id, data=frame.data[:-1], is_extended_id=False
+        )
+
+    def _write(self, frame: can.Message) -> None:
+        bus = self.bus
+        if bus is None:
+            return
+        try:
+            bus.send(frame)
+        except (can.CanError, OSError):  # pragma: no cover - bus gone
+            pass

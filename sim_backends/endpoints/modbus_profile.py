@@ -1,0 +1,297 @@
+"""Modbus TCP twin for a profile: a controller with the lab's own register map.
+
+The twin loads the same profile as the driver (:mod:`rths_hil.drivers.profile`) and serves its
+map on a Modbus TCP server bound to 127.0.0.1: the set-point, position, force and status
+points, the action coils or registers and the heartbeat register. Any other address is
+answered with the Modbus exception ILLEGAL DATA ADDRESS (addresses between the points of one
+read block read as 0), as a real controller does, so a driver
+started with a profile that does not match is refused by its start-up check. Requests are
+decoded and responses built by pymodbus (``FramerSocket``, ``DecodePDU``, its PDU classes);
+values are converted by pymodbus's ``convert_to_registers`` / ``convert_from_registers``.
+
+Controller behaviour (the :class:`~.base.TwinController` of every twin): each write of the
+set-point is one command — one plant step while enabled, a hold while disabled; the
+``enable`` / ``disable`` actions set the enable state; ``acknowledge`` starts a new run (as the
+built-in twins' arming command: the latch cleared, the plant at rest, the step count from 0);
+``estop`` latches the e-stop; a heartbeat write or a set-point write feeds the controller-side
+watchdog. After each command the position, force and status points show the new values; the
+status word is refreshed on every read (a watchdog latch is visible at once). Frame faults of
+a fault plan (drop, corrupt, delay) do not apply to a profile twin; measurement faults do.
+"""
+
+from __future__ import annotations
+
+import select
+import socket
+from typing import Any
+
+from pymodbus.constants import ExcCodes
+from pymodbus.framer import FramerSocket
+from pymodbus.pdu import DecodePDU, ExceptionResponse
+from pymodbus.pdu.bit_message import (
+    ReadCoilsResponse,
+    ReadDiscreteInputsResponse,
+    WriteSingleCoilResponse,
+)
+from pymodbus.pdu.register_message import (
+    ReadHoldingRegistersResponse,
+    ReadInputRegistersResponse,
+    ReadWriteMultipleRegistersResponse,
+    WriteMultipleRegistersResponse,
+    WriteSingleRegisterResponse,
+)
+from rths_hil.drivers.profile import ModbusProfile, load_profile, word_from_status
+
+from rths_hil.errors import InputError
+
+from .base import TwinController, TwinEndpoint, listen
+
+__all__ = ["ModbusProfileTwin"]
+
+_READ_TABLE = {3: "holding", 4: "input", 1: "coil", 2: "discrete"}
+_READ_RESP = {
+    3: ReadHoldingRegistersResponse,
+    4: ReadInputRegistersResponse,
+    1: ReadCoilsResponse,
+    2: ReadDiscreteInputsResponse,
+}
+
+
+class ModbusProfileTwin(TwinEndpoint):
+    """Modbus TCP server speaking ``profile`` (see the module docstring)."""
+
+    name = "modbus"
+
+    def __init__(
+        self,
+        controller: TwinController,
+        profile: str,
+        transport: str = "tcp",
+        host: str = "127.0.0.1",
+        port: int = 0,
+        allow_remote: bool = False,
+        device_id: int | None = None,
+    ) -> None:
+        super().__init__(controller)
+        prof = load_profile(profile)
+        if not isinstance(prof, ModbusProfile):
+            raise InputError(f"modbus twin: profile {profile} is not a Modbus profile")
+        if transport != "tcp":
+            raise InputError(f"modbus twin: a profile is served over tcp, not {transport!r}")
+        self.profile_path = str(profile)
+        self.profile = prof
+        self.host, self.port, self.allow_remote = str(host), int(port), bool(allow_remote)
+        self.device_id = prof.unit if device_id is None else int(device_id)
+        self.tables: dict[str, dict[int, int]] = {t: {} for t in _READ_TABLE.values()}
+        for p in list(prof.points.values()) + ([prof.heartbeat] if prof.heartbeat else []):
+            for a in range(p.address, p.end):
+                self.tables[p.table][a] = 0
+        for b in prof.reads:  # the gaps inside a read block read as 0
+            for a in range(b.address, b.address + b.count):
+                self.tables[b.table].setdefault(a, 0)
+        for act in prof.actions.values():
+            self.tables[act.table].setdefault(act.address, 0)
+        self._framer = FramerSocket(DecodePDU(True))
+        self._listener: socket.socket | None = None
+        self._conns: dict[int, list[Any]] = {}  # fd → [socket, buffer]
+        self._enable = False
+        self._k = 0
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    def _setup(self) -> None:
+        self._listener = listen(self.host, self.port, self.allow_remote, "modbus twin")
+        port = self._listener.getsockname()[1]
+        self.connection = {
+            "transport": "tcp",
+            "host": self.host,
+            "port": port,
+            "device_id": self.device_id,
+            "profile": self.profile_path,
+        }
+        self.where = f"modbus tcp {self.host}:{port} unit {self.device_id} ({self.profile_path})"
+        self._publish(0.0, 0.0, self.controller.status())
+
+    def _teardown(self) -> None:
+        for sock, _ in list(self._conns.values()):
+            sock.close()
+        self._conns.clear()
+        if self._listener is not None:
+            self._listener.close()
+            self._listener = None
+
+    def _go_away(self) -> None:
+        super()._go_away()
+        self._teardown()
+
+    # -- serving --------------------------------------------------------------------------------
+    def _serve_once(self, timeout: float) -> None:
+        if self._listener is None:
+            self._stop.wait(timeout)
+            return
+        rlist: list[Any] = [self._listener, *self._conns]
+        for item in select.select(rlist, (), (), timeout)[0]:
+            if item is self._listener:
+                sock, _ = self._listener.accept()
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                self._conns[sock.fileno()] = [sock, b""]
+                continue
+            entry = self._conns.get(item)
+            if entry is None:
+                continue
+            try:
+                data = entry[0].recv(4096)
+            except OSError:
+                data = b""
+            if not data:
+                entry[0].close()
+                del self._conns[item]
+                continue
+            entry[1] += data
+            self._process(entry)
+
+    def _process(self, entry: list[Any]) -> None:
+        """Answer every complete request in the buffer; the responses go out in one write
+        (a pipelined write + read is answered in one TCP segment)."""
+        framer = self._framer
+        self._out: list[bytes] = []
+        while entry[1]:
+            used, dev_id, tid, pdu_bytes = framer.decode(entry[1])
+            if not used:
+                return
+            entry[1] = entry[1][used:]
+            if dev_id != self.device_id or not pdu_bytes:
+                self.controller.stats.malformed += 1
+                continue
+            pdu = framer.decoder.decode(pdu_bytes)
+            if pdu is None:
+                self.controller.stats.malformed += 1
+                self._reply(entry[0], ExceptionResponse(pdu_bytes[0] & 0x7F, 1), tid)
+                continue
+            self._reply(entry[0], self._dispatch(pdu), tid)
+        if self._out:
+            try:
+                entry[0].sendall(b"".join(self._out))
+            except OSError:  # pragma: no cover - client gone
+                pass
+
+    def _reply(self, sock: socket.socket, pdu: Any, tid: int) -> None:
+        if pdu is None:
+            return
+        pdu.dev_id, pdu.transaction_id = self.device_id, tid
+        self._out.append(self._framer.buildFrame(pdu))
+
+    def _mapped(self, table: str, address: int, count: int) -> bool:
+        t = self.tables[table]
+        return all(a in t for a in range(address, address + count))
+
+    def _read(self, fc: int, address: int, count: int) -> Any:
+        table = _READ_TABLE[fc]
+        if not self._mapped(table, address, count):
+            return ExceptionResponse(fc, ExcCodes.ILLEGAL_ADDRESS)
+        self._refresh_status()
+        values = [self.tables[table][a] for a in range(address, address + count)]
+        if fc in (1, 2):
+            return _READ_RESP[fc](bits=[bool(v) for v in values])
+        return _READ_RESP[fc](registers=values)
+
+    def _dispatch(self, pdu: Any) -> Any:
+        fc = pdu.function_code
+        if fc in _READ_TABLE:
+            return self._read(fc, pdu.address, pdu.count)
+        if fc == 5:  # write single coil
+            if not self._mapped("coil", pdu.address, 1):
+                return ExceptionResponse(fc, ExcCodes.ILLEGAL_ADDRESS)
+            value = 1 if pdu.bits[0] else 0
+            self.tables["coil"][pdu.address] = value
+            self._act("coil", pdu.address, value)
+            return WriteSingleCoilResponse(address=pdu.address, bits=[bool(value)])
+        if fc in (6, 16, 23):
+            if fc == 23:
+                address, regs = pdu.write_address, list(pdu.write_registers)
+            else:
+                address, regs = pdu.address, list(pdu.registers)
+            if not self._mapped("holding", address, len(regs)):
+                return ExceptionResponse(fc, ExcCodes.ILLEGAL_ADDRESS)
+            if fc == 23 and not self._mapped("holding", pdu.read_address, pdu.read_count):
+                return ExceptionResponse(fc, ExcCodes.ILLEGAL_ADDRESS)
+            self._write_holding(address, regs)
+            if fc == 23:
+                self._refresh_status()
+                t = self.tables["holding"]
+                a, n = pdu.read_address, pdu.read_count
+                return ReadWriteMultipleRegistersResponse(registers=[t[x] for x in range(a, a + n)])
+            if fc == 6:
+                return WriteSingleRegisterResponse(address=address, registers=regs)
+            return WriteMultipleRegistersResponse(address=address, count=len(regs))
+        return ExceptionResponse(fc, ExcCodes.ILLEGAL_FUNCTION)
+
+    def _write_holding(self, address: int, regs: list[int]) -> None:
+        t = self.tables["holding"]
+        for i, r in enumerate(regs):
+            t[address + i] = r
+        prof = self.profile
+        for i, r in enumerate(regs):
+            self._act("holding", address + i, r)
+        hb = prof.heartbeat
+        if hb is not None and address <= hb.address < address + len(regs):
+            self.controller.heartbeat()
+        sp = prof.points["setpoint"]
+        if address <= sp.address and sp.end <= address + len(regs):
+            x = sp.from_registers([t[a] for a in range(sp.address, sp.end)])
+            reply = self.controller.command(self._k, x, self._enable)
+            self._k += 1
+            if reply is not None:
+                self.emit(reply)
+
+    def _act(self, table: str, address: int, value: int) -> None:
+        ctl = self.controller
+        for name, act in self.profile.actions.items():
+            if act.table != table or act.address != address or act.value != value:
+                continue
+            if name == "estop":
+                ctl.estop()
+            elif name == "enable":
+                self._enable = True
+            elif name == "disable":
+                self._enable = False
+            elif name == "acknowledge":
+                self._enable = False
+                self._k = 0
+                reply = ctl.command(0, ctl.displacement, False)  # a new run (arming)
+                self._k = 1
+                if reply is not None:
+                    self._publish(*reply[1:])
+
+    # -- feedback -------------------------------------------------------------------------------
+    def _publish(self, displacement: float, force: float, status: int) -> None:
+        t = self.tables
+        pts = self.profile.points
+        for role, value in (("position", displacement), ("force", force)):
+            p = pts[role]
+            try:
+                regs = p.to_registers(value)
+            except (InputError, ValueError):
+                continue  # not representable (NaN in an integer point): keep the old value
+            for i, r in enumerate(regs):
+                t[p.table][p.address + i] = r
+        self._set_status(status)
+
+    def _set_status(self, status: int) -> None:
+        p = self.profile.points["status"]
+        word = word_from_status(status, self.profile.masks)
+        si = (word * p.scale + p.offset) * p.factor  # the point's raw value is the word
+        for i, r in enumerate(p.to_registers(si)):
+            self.tables[p.table][p.address + i] = r
+
+    def _refresh_status(self) -> None:
+        self._set_status(self.controller.status())
+
+    def _encode(self, seq: int, displacement: float, force: float, status: int) -> list[Any]:
+        self._publish(displacement, force, status)
+        return []
+
+    def _corrupt(self, frame: Any) -> Any:  # pragma: no cover - no frames of its own
+        return frame
+
+    def _write(self, frame: Any) -> None:  # pragma: no cover - no frames of its own
+        pass

@@ -1,0 +1,289 @@
+"""CANopen driver and twin (CiA 402 / CiA 408 through the ``canopen`` library, virtual bus).
+
+The twin is a ``canopen`` LocalNode with the shipped EDS; the driver a RemoteNode. Checked: the
+SDO identity check at start-up (pass and each refusal in one line), the device FSA walked by the
+driver as the twin reports it (status words and the bridge's flags), a lockstep run that tracks
+(FEI amplitude within 1 %, as over the CAN twin), an EMCY that trips the loop naming its code,
+the twin's heartbeat consumer latching when the bridge falls silent, bad EDS / profile / PDO
+input refused in one line with exit 2, the link budget against frame sizes worked by hand, and
+frame faults (drop, corrupt, delay) counted by the driver.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from canopen.profiles.p402 import State402
+from rths_hil.drivers.base import Status
+from rths_hil.drivers.canopen import CANopenDriver, axes_that_fit, link_load
+from rths_hil.drivers.registry import create_driver
+from rths_hil.sim_backends.endpoints.canopen_twin import EMCY_FOLLOWING_ERROR, default_eds
+from rths_hil.sim_backends.faults import Faults
+from rths_hil.sim_backends.twin import default_plant, start_twin
+
+from rths_hil.config import load_config
+from rths_hil.errors import InputError
+from rths_hil.linkbudget import can_frame_bits
+from rths_hil.linkbudget import link_load as budget
+from rths_hil.loop import RTHSLoop
+from rths_hil.recorder import read_run
+
+ROOT = Path(__file__).resolve().parents[1]
+ENABLED, ESTOP, FAULT = int(Status.ENABLED), int(Status.ESTOP_ACTIVE), int(Status.FAULT)
+
+
+def _open(twin, **extra):
+    drv = create_driver("canopen", **{**twin.connection, **extra})
+    drv.open()
+    return drv
+
+
+@pytest.mark.parametrize("profile", ["cia402", "cia408"])
+def test_identity_check_passes_and_refuses(profile):
+    number = int(profile[3:])
+    with start_twin("canopen", default_plant(), device_profile=profile) as twin:
+        code = int(str(number), 16)  # the shipped EDS's product code: 0x402 / 0x408
+        drv = _open(twin, product_code=code, vendor_id=0)
+        try:  # read by SDO from the twin's object dictionary
+            assert drv.identity["device_type"] & 0xFFFF == number
+            assert drv.identity["product_code"] == code
+        finally:
+            drv.close()
+
+
+def test_identity_check_refuses_wrong_product_and_wrong_profile():
+    with start_twin("canopen", default_plant(), device_profile="cia402") as twin:
+        with pytest.raises(InputError, match=r"product_code is 0x00000402.*expects 0x00000999"):
+            _open(twin, product_code=0x999)
+        # the 408 driver on a 402 device: device type names the profile it found
+        with pytest.raises(
+            InputError, match=r"device type 0x00020192 \(profile 402\), not CiA 408"
+        ):
+            _open(twin, device_profile="cia408", eds=default_eds("cia408"))
+
+
+def test_cia402_state_machine_on_the_twin():
+    with start_twin("canopen", default_plant(), device_profile="cia402") as twin:
+        drv = _open(twin)
+        armed = drv.arm(1.0)
+        assert armed is not None and armed.status == 0
+        assert twin.history == ["SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON"]
+        assert twin.mode == 8  # cyclic synchronous position, written at start-up
+        fb = None
+        for k in range(50):
+            drv.send(k, 0.0, True)
+            fb = drv.receive(1.0)
+            assert fb is not None and fb.seq == k
+        assert twin.state == "OPERATION ENABLED" and fb.status == ENABLED
+        assert twin.statusword() & 0x6F == State402.SW_MASK["OPERATION ENABLED"][1]
+        # quick stop: latched, repeated while enable=True, acknowledged by enable=False
+        drv.estop()
+        drv.send(50, 0.0, True)
+        fb = drv.receive(1.0)
+        assert twin.state == "QUICK STOP ACTIVE" and fb.status == ESTOP
+        drv.send(51, 0.0, False)
+        fb = drv.receive(1.0)
+        assert twin.state == "SWITCH ON DISABLED" and fb.status == 0
+        for k in range(52, 56):  # enable again: shutdown → switch on → enable operation
+            drv.send(k, 0.0, True)
+            fb = drv.receive(1.0)
+        assert fb.status == ENABLED
+        drv.close()  # the protocol's own disable: shutdown, then disable voltage
+        assert twin.history[-7:] == [
+            "QUICK STOP ACTIVE", "SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON",
+            "OPERATION ENABLED", "READY TO SWITCH ON", "SWITCH ON DISABLED",
+        ]  # fmt: skip
+        assert twin.node.nmt.state == "STOPPED"
+
+
+def test_cia408_state_machine_on_the_twin():
+    with start_twin("canopen", default_plant(), device_profile="cia408") as twin:
+        drv = _open(twin)
+        assert drv.arm(1.0) is not None and twin.state == "HOLD"
+        assert twin.mode == 1  # device mode 0x6042: set-point via the bus
+        for k in range(20):
+            drv.send(k, 0.0, True)
+            fb = drv.receive(1.0)
+        assert twin.state == "ACTIVE" and fb.status == ENABLED
+        assert twin.statusword() & 0x0F == 0b1111
+        drv.estop()  # HOLD, latched by the driver
+        drv.send(20, 0.0, True)
+        assert drv.receive(1.0).status == ESTOP and twin.state == "HOLD"
+        drv.send(21, 0.0, False)
+        assert drv.receive(1.0).status == 0 and twin.state == "HOLD"
+        drv.close()
+        assert twin.history == ["INIT", "HOLD", "ACTIVE", "HOLD", "DISABLED"]
+
+
+def _run(tmp_path, profile, *overrides, name="run"):
+    cfg = load_config(
+        ROOT / "examples" / "controllers" / f"{profile}.toml",
+        ["loop.mode=lockstep", "loop.console=0", "output.plot=false", *overrides],
+    )
+    loop = RTHSLoop(cfg, tmp_path / name)
+    result = loop.run()
+    return loop, result, read_run(tmp_path / name)
+
+
+@pytest.mark.parametrize("profile", ["cia402", "cia408"])
+def test_lockstep_run_tracks(tmp_path, profile):
+    _, res, run = _run(tmp_path, profile, "loop.duration=6")
+    assert res.status == "completed", res.trip
+    rec = run.record
+    assert len(rec) == 6 * 1024
+    fei = rec["fei_amplitude"][~np.isnan(rec["fei_amplitude"])]
+    assert fei.size > 500
+    assert np.abs(fei[-200:] - 1.0).max() < 0.01
+    # one SYNC per step of the record (the runner's start and end phases may add a few)
+    assert 0 <= res.driver_stats["syncs"] - len(rec) <= 4
+    assert res.driver_stats["received"] >= len(rec) - 2
+
+
+def test_emcy_trips_the_loop_naming_the_code(tmp_path):
+    at = 1024
+    _, res, _ = _run(
+        tmp_path, "cia402", f"twin.faults=runaway_from={at}; runaway_rate=0.5", "loop.duration=3"
+    )
+    assert res.status == "trip" and res.trip.rule == "controller"
+    assert "FAULT" in res.trip.reason
+    assert f"EMCY 0x{EMCY_FOLLOWING_ERROR:04X}" in res.trip.reason
+    assert abs(res.trip.step - at) <= 2
+    assert any(s.startswith("0x8611") for s in res.driver_stats["emcy"])
+
+
+def test_twin_latches_when_the_bridge_heartbeat_stops():
+    # 0.25 s: a bridge descheduled for tens of ms on a loaded 2-core machine is not a dead one
+    timeout = 0.25
+    with start_twin(
+        "canopen", default_plant(), device_profile="cia402", heartbeat_timeout=timeout
+    ) as twin:
+        drv = _open(twin, heartbeat_period=0.02)
+        drv.arm(1.0)
+        for k in range(30):
+            drv.send(k, 0.0, True)
+            assert drv.receive(1.0) is not None
+            time.sleep(0.002)
+        assert twin.state == "OPERATION ENABLED"
+        t0 = time.monotonic()  # the bridge falls silent: no heartbeat, no SYNC
+        while twin.state != "FAULT" and time.monotonic() - t0 < 2.0:
+            time.sleep(0.005)
+        latency = time.monotonic() - t0
+        assert twin.state == "FAULT"
+        assert latency < timeout + 0.25  # the consumer time plus its poll, on a loaded machine
+        assert twin.controller.watchdog_tripped
+        drv.send(30, 0.0, True)  # the next reply reports it; the EMCY names the code
+        fb = drv.receive(1.0)
+        assert fb.status & FAULT and fb.status & int(Status.WATCHDOG)
+        assert "0x8130" in drv.fault_text()
+        assert drv.arm(1.0) is not None and twin.state == "SWITCHED ON"  # reset at arming
+        drv.close()
+
+
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ("device_profile=cia999", "device_profile 'cia999' is not known"),
+        ("eds=missing.eds", "eds: no such file"),
+        ("force_object=0x2999", "has no object 0x2999:00 (force_object)"),
+        ("node_id=0", "node_id must be an integer 1..127"),
+        ("counts_per_m=0", "counts_per_m must be a positive number"),
+    ],
+)
+def test_bad_connection_is_one_line_exit_2(tmp_path, setting, message):
+    cfg = ROOT / "examples" / "controllers" / "cia402.toml"
+    sets = ["--set", f"driver.connection.{setting}", "--set", f"output.dir={tmp_path}/r"]
+    cmd = [sys.executable, "-m", "rths_hil", "run", str(cfg), "--lockstep", "--duration", "0.5"]
+    cmd += sets
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    err = [x for x in proc.stderr.splitlines() if "error" in x]
+    assert len(err) == 1 and message in err[0], proc.stderr
+
+
+def test_eds_whose_pdo_does_not_fit_is_refused(tmp_path):
+    eds = Path(default_eds("cia402")).read_text()
+    # the target position as a 64-bit integer: control word + target = 80 bits > 8 bytes
+    head = "[607A]\nParameterName=Target position\nObjectType=0x7\nDataType="
+    eds = eds.replace(head + "0x0004", head + "0x0015")
+    (tmp_path / "big.eds").write_text(eds)
+    with pytest.raises(InputError, match=r"RPDO1 does not fit in 8 bytes: .* = 80 bits"):
+        CANopenDriver(eds=str(tmp_path / "big.eds"))
+
+
+def test_link_budget_counts_sync_pdos_and_heartbeats():
+    # one axis at 1024 Hz: SYNC (0 bytes) + RPDO (6) + TPDO1 (6) + TPDO2 (4), heartbeats 1 byte
+    per_step = can_frame_bits(0) + 2 * can_frame_bits(6) + can_frame_bits(4)
+    hb = 2 * can_frame_bits(1) * 10.0  # the bridge's and the device's, 10 Hz each
+    ld = budget(
+        "canopen", {"bitrate": 1_000_000, "interface": "socketcan"}, 1, 1024, heartbeat_hz=10.0
+    )
+    assert ld.load == pytest.approx((per_step * 1024 + hb) / 1e6)
+    two = link_load({"bitrate": 1_000_000, "interface": "socketcan"}, 2, 1024, heartbeat_hz=10.0)
+    assert two.load == pytest.approx(
+        ((can_frame_bits(0) + 2 * (per_step - can_frame_bits(0))) * 1024 + 2 * hb) / 1e6
+    )
+    assert axes_that_fit(1024) == 2 and two.load < 0.8
+    assert axes_that_fit(512) == 4
+
+
+@pytest.mark.parametrize(
+    "faults, counter",
+    [("drop=40", "timeouts"), ("corrupt=40", "malformed"), ("delay=40:0.3", "timeouts")],
+)
+def test_frame_faults_are_counted(faults, counter):
+    with start_twin("canopen", default_plant(), faults=Faults.parse(faults)) as twin:
+        drv = _open(twin)
+        drv.arm(1.0)
+        missed = []
+        for k in range(60):
+            drv.send(k, 0.0, True)
+            if drv.receive(0.1) is None:
+                missed.append(k)
+        drv.close()
+        assert missed and missed[0] == 40
+        assert getattr(drv.stats, counter) >= 1
+        assert drv.stats.received >= 60 - 3
+
+
+def test_pdo_bytes_equal_the_canopen_library_encoding():
+    """The driver's RPDO packing and the twin's TPDO packing (structs compiled from the maps)
+    give the bytes the library's own PdoVariable encoding gives."""
+    with start_twin("canopen", default_plant()) as twin:
+        drv = _open(twin)
+        drv.arm(1.0)
+        for k in range(5):
+            drv.send(k, 0.0, True)
+            drv.receive(1.0)
+        rp = drv.node.rpdo[1]
+        for word, counts in ((0x000F, 12345), (0x0002, -(2**31) + 1), (0x0006, 2**31 - 1)):
+            rp[0x6040].raw, rp[0x607A].raw = word, counts
+            assert drv.rpdo_layout.fmt.pack(word, counts) == bytes(rp.data)
+        frames = twin._encode(7, -0.0123456, 4567.89, 0)
+        values = {0x6041: twin.statusword(), 0x6064: -123456, 0x2100: 456789}
+        for m, frame in zip(twin._tpdo, frames, strict=True):
+            for var in m.map:
+                var.raw = values[var.index]
+            assert bytes(frame.data) == bytes(m.data)
+            assert frame.arbitration_id == m.cob_id
+        drv.close()
+
+
+def test_one_canopen_axis_per_bus():
+    """Each driver produces the bus's SYNC: two axes on one named bus are refused in one line;
+    twins without a named channel each get a bus of their own."""
+    same = {"interface": "socketcan", "channel": "can0"}
+    with pytest.raises(
+        InputError, match=r"'x' and 'y' are CANopen axes on one bus \(socketcan:can0\)"
+    ):
+        CANopenDriver.check_sharing([(0, "x", {**same, "node_id": 1}, False),
+                                     (1, "y", {**same, "node_id": 2}, False)])  # fmt: skip
+    CANopenDriver.check_sharing([(0, "x", {}, True), (1, "y", {}, True)])
+    CANopenDriver.check_sharing(
+        [(0, "x", same, False), (1, "y", {"interface": "socketcan", "channel": "can1"}, False)]
+    )
