@@ -1685,7 +1685,7 @@ def schema_markdown() -> str:
         "is allocated the run estimates what it needs and refuses, naming the figure, a duration",
         "whose per-step arrays (32 bytes a step) exceed half the available memory, a record",
         "(rows × row size) larger than the free disk space of `output.dir`, and a",
-        "`fei.exact_hop` longer than the run (`rths_hil/resources.py`).",
+        "`fei.exact_hop` longer than both the run and the record (`rths_hil/resources.py`).",
         "",
     ]
     for section, keys in SCHEMA.items():
