@@ -1,7 +1,5 @@
 """``python -m rths_hil`` is the same as ``rths-hil``."""
 
-import sys
+from .cli import entry
 
-from .cli import main
-
-sys.exit(main())
+entry()

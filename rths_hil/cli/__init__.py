@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import re
 import signal
 import sys
@@ -92,6 +93,27 @@ def build_parser(
     return parser
 
 
+_interrupted = False
+
+
+def entry() -> None:
+    """The ``rths-hil`` console script and ``python -m rths_hil``: :func:`main`, then exit.
+
+    After a Ctrl-C that :func:`main` caught (exit 130, one line), the interpreter may still
+    remember the KeyboardInterrupt from code it ran while importing (CPython then ends the
+    process by SIGINT, not with 130): the streams are flushed and the process exits 130 at once.
+    """
+    code = main()
+    if _interrupted:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+    sys.exit(code)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``rths-hil`` console script."""
     # Ctrl-C while the sub-commands are imported (the first second of every command): let the
@@ -124,6 +146,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"rths-hil {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        global _interrupted
+        _interrupted = True
         print(f"rths-hil {args.command}: interrupted", file=sys.stderr)
         return 130
     except OSError as exc:
