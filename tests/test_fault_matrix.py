@@ -73,7 +73,7 @@ PACED = {
     "disconnect": ("watchdog", 0.25),
     "stuck": ("stuck", 0.1),
     "runaway": ("controller", 0.03),
-    "nan": ("nan", 0.03),
+    "nan_paced": ("nan", 0.03),
 }
 FAULTS = {
     "drop": f"drop={AT}",
@@ -86,6 +86,9 @@ FAULTS = {
     "stuck": f"stuck_from={AT}",
     "runaway": f"runaway_from={AT}; runaway_rate=0.05",
     "nan": f"nan={AT}",
+    # paced: a reply that comes after its step's wait is never delivered, so one NaN reply can
+    # go unseen on a slow transport (CANopen's four frames a step): ten in a row
+    "nan_paced": "nan=" + ",".join(str(AT + i) for i in range(10)),
 }
 
 
