@@ -2,7 +2,7 @@
 
 Prints, measured in one run on this machine:
 
-0. the machine's floor: an empty paced loop (:func:`rths_hil.loop.paced_floor`, the loop's
+0. the machine's floor: an empty paced loop (:func:`rths_hil.hybrid.paced_floor`, the loop's
    own wait code with no work) with and without SCHED_FIFO, and the hypervisor steal;
 1. the step-path breakdown: cost per call of each piece the loop calls once per step, in
    isolation (median over repeated batches), and the whole loop without a transport (an
@@ -13,7 +13,7 @@ Prints, measured in one run on this machine:
    p50/p99/p99.9/max and the overrun count (goals: ≤ 0.01 % of steps for CAN and serial,
    ≤ 0.1 % for Modbus TCP at 1024 Hz, ≤ 0.1 % at 4096 Hz over CAN), each run between two
    empty-loop floors at the same rate and scheduling, with the steal during each, and the
-   overruns attributed (:func:`rths_hil.loop.attribute_overruns`) to the machine (the wait
+   overruns attributed (:func:`rths_hil.hybrid.attribute_overruns`) to the machine (the wait
    returned late although the loop was ready) or to the loop's work, each with its catch-up;
 5. (``--profile DRIVER@FS`` only) the per-phase cost of one paced run: every per-step call
    timed, p50/p99/p99.9/max.
@@ -47,17 +47,16 @@ from rths_hil.sim_backends.twin import default_plant, start_twin
 from rths_hil.compensation import InverseCompensator
 from rths_hil.config import load_config
 from rths_hil.estimation import DelayGainEstimator
-from rths_hil.hybrid.runner import Runner
-from rths_hil.loop import (
+from rths_hil.hybrid import (
     WORK,
     WORK_BACKLOG,
     RTHSLoop,
-    _ExactFEI,
-    _StreamingFEI,
     attribute_overruns,
     count_causes,
     paced_floor,
 )
+from rths_hil.hybrid.evaluators import ExactFEI, StreamingFEI
+from rths_hil.hybrid.runner import Runner
 from rths_hil.recorder import COLUMNS, Recorder
 from rths_hil.safety import SafetyMonitor, StuckRule, WatchdogRule
 from rths_hil.structure import BoucWenParams, CRStepper
@@ -116,8 +115,8 @@ class DirectRunner(Runner):
 
     def open_channel(self, ch, stack):
         ch.bind(DirectDriver(ch.plan.plant))
-        if ch.stream is not None and ch.plan.exact_hop > 0:
-            ch.exact = _ExactFEI(self.plan.fs, ch.plan.window_s, ch.plan.exact_hop, False)
+        if ch.stream_fei is not None and ch.plan.exact_hop > 0:
+            ch.exact_fei = ExactFEI(self.plan.fs, ch.plan.window_s, ch.plan.exact_hop, False)
 
 
 class DirectLoop(RTHSLoop):
@@ -160,7 +159,7 @@ def breakdown() -> None:
         mon.check_command(0.0, 1, x[0], 0.01, x[0])
 
     rows.append(("safety: check_feedback + check_command", per_call(safety)))
-    sf = _StreamingFEI(FS, 3 / 0.77)
+    sf = StreamingFEI(FS, 3 / 0.77)
     ph = [0.0]
 
     def stream():
@@ -170,7 +169,7 @@ def breakdown() -> None:
     for _ in range(5000):
         stream()
     rows.append(("streaming FEI push (one window per sample)", per_call(stream)))
-    ex = _ExactFEI(FS, 3 / 0.77, 256, background=False)
+    ex = ExactFEI(FS, 3 / 0.77, 256, background=False)
 
     def exact():
         ph[0] += 0.0047
@@ -312,7 +311,7 @@ def pct(x: int, n: int) -> str:
 
 
 def floor_case(fs: float, duration: float, priority: int) -> dict:
-    """One empty paced loop (:func:`rths_hil.loop.paced_floor`): overrun share and steal."""
+    """One empty paced loop (:func:`rths_hil.hybrid.paced_floor`): overrun share and steal."""
     st0 = steal_ticks()
     lat, ready = paced_floor(fs, duration, spin=3e-4, priority=priority)
     steal = steal_s(st0)
@@ -379,7 +378,7 @@ def paced(
         f"each between two {floor_s:g} s empty-loop floors (same rate and scheduling)"
     )
     print(
-        "Overrun = command left > ½ period after its deadline. Cause (rths_hil.loop."
+        "Overrun = command left > ½ period after its deadline. Cause (rths_hil.hybrid."
         "attribute_overruns): machine = the wait returned late although the loop was ready in "
         "time (an empty loop suffers the same); work = the previous step's work ran past the "
         "threshold (includes stalls that hit during the work); +b = catch-up steps after one."
@@ -461,7 +460,7 @@ class ProfiledRunner(Runner):
         w = ph.wrap
         ch.send = w("driver send", ch.send)
         ch.receive = w("driver receive (+ inline twin pump)", ch.receive)
-        ch.comp_step = w("compensation", ch.comp_step)
+        ch.compensate = w("compensation", ch.compensate)
         ch.evaluate = w("evaluators (streaming + exact FEI, Kalman)", ch.evaluate)
 
     def _loop(self, rec):
@@ -582,7 +581,8 @@ def run_channels(n: int, mode: str, duration: float, extra=()):
 
 _BASELINE_SNIPPET = (
     "import sys, tempfile; from pathlib import Path; from rths_hil.config import load_config;"
-    " from rths_hil.loop import RTHSLoop; cfg = load_config(None, ['loop.console=0',"
+    "\ntry:\n from rths_hil.hybrid import RTHSLoop\nexcept ImportError:\n"
+    " from rths_hil.loop import RTHSLoop\ncfg = load_config(None, ['loop.console=0',"
     " 'output.plot=false']); d = tempfile.mkdtemp();"
     " r = RTHSLoop(cfg, Path(d) / 'r', mode='lockstep', duration=float(sys.argv[1])).run();"
     " print(r.steps_per_second)"
@@ -595,9 +595,10 @@ _BASELINE_SNIPPET = (
 #: see time spent inside numpy or numba kernels.
 _OPCODES_SNIPPET = (
     "import sys, tempfile; from pathlib import Path; from rths_hil.config import load_config;"
-    " import rths_hil.loop as L\n"
+    "\ntry:\n from rths_hil.hybrid import RTHSLoop\nexcept ImportError:\n"
+    " from rths_hil.loop import RTHSLoop\n"
     "try:\n from rths_hil.hybrid.runner import Runner as C\n"
-    "except ImportError:\n C = L.RTHSLoop\n"
+    "except ImportError:\n C = RTHSLoop\n"
     "n = [0]\n"
     "def local(f, e, a):\n if e == 'opcode': n[0] += 1\n return local\n"
     "def tracer(f, e, a):\n f.f_trace_opcodes = True\n return local\n"
@@ -606,7 +607,7 @@ _OPCODES_SNIPPET = (
     " finally: sys.settrace(None)\n"
     "C._loop = traced\n"
     "cfg = load_config(None, ['loop.console=0', 'output.plot=false'])\n"
-    "r = L.RTHSLoop(cfg, Path(tempfile.mkdtemp()) / 'r', mode='lockstep',"
+    "r = RTHSLoop(cfg, Path(tempfile.mkdtemp()) / 'r', mode='lockstep',"
     " duration=float(sys.argv[1])).run()\n"
     "print(n[0] / r.steps)\n"
 )

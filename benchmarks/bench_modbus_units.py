@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import write_results  # noqa: E402
 
 from rths_hil.config import load_config  # noqa: E402
-from rths_hil.loop import RTHSLoop  # noqa: E402
+from rths_hil.hybrid import RTHSLoop  # noqa: E402
 
 EXAMPLE = ROOT / "examples" / "modbus_units.toml"
 

@@ -54,7 +54,7 @@ import numpy as np
 
 from rths_hil.cli.run import _keep_off
 from rths_hil.config import load_config
-from rths_hil.loop import RTHSLoop
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import read_run
 
 GOALS = (

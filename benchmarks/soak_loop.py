@@ -39,7 +39,7 @@ from _results import markdown_table, write_results
 
 from rths_hil.config import load_config
 from rths_hil.groundmotion import default_record
-from rths_hil.loop import RTHSLoop
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.report import plot_report, summarize
 from rths_hil.units import G
 
@@ -132,7 +132,7 @@ def main() -> int:
     def live(status: dict) -> None:
         samples.append((status["t"], rss_mb()))
         if args.wall_limit and time.perf_counter() - t0 > args.wall_limit and holder:
-            holder[0]._stop_signal = "wall-limit"  # the loop's own operator-stop path
+            holder[0].runner.stop_signal = "wall-limit"  # the loop's own operator-stop path
         if len(samples) % 12 == 0:
             print(
                 f"  t = {status['t']:7.0f} s, {status['rate']:6.0f} steps/s, "

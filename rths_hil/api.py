@@ -35,7 +35,7 @@ from .config import (
 from .errors import InputError
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .hybrid.runner import RunResult
+    from .hybrid.result import RunResult
     from .recorder import RunData
 
 log = logging.getLogger(__name__)
@@ -164,7 +164,7 @@ def run(
         ``status`` (completed, trip, operator_stop), ``steps``, ``trip``, ``run_dir`` …; a
         safety trip is a result, not an exception.
     """
-    from .loop import RTHSLoop
+    from .hybrid import RTHSLoop
     from .units import parse_time
 
     cfg = configure(config, overrides, **sections)

@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .hybrid.columns import single_channel_columns
 
 __all__ = [
     "COLUMNS",
@@ -82,31 +83,10 @@ class RecordWriteError(RuntimeError):
     """
 
 
-#: The record's columns: (name, numpy dtype, unit, description), in file order.
-COLUMNS: tuple[tuple[str, str, str, str], ...] = (
-    ("time", "<f8", "s", "loop time of the step (k·Δt)"),
-    ("step", "<i8", "-", "step index k"),
-    ("ground_accel", "<f8", "m/s²", "ground acceleration applied at this step"),
-    ("target", "<f8", "m", "target (calculated) displacement from the structure stepper"),
-    ("command", "<f8", "m", "command sent to the actuator (after compensation)"),
-    ("measured", "<f8", "m", "measured actuator displacement (held when no reply)"),
-    ("force", "<f8", "N", "measured restoring force of the experimental substructure"),
-    ("velocity", "<f8", "m/s", "velocity of the structure (integrator state)"),
-    ("restoring_force", "<f8", "N", "numerical substructure restoring force (Bouc-Wen)"),
-    ("alpha", "<f8", "-", "compensation α of this step's command (1 + lead·fs)"),
-    ("fei_amplitude", "<f8", "-", "online FEI amplitude A (streaming, window ending here)"),
-    ("fei_delay", "<f8", "s", "online FEI equivalent delay d (streaming)"),
-    ("fei_f_eq", "<f8", "Hz", "online FEI equivalent frequency (streaming)"),
-    ("fei_valid", "|b1", "-", "the streaming window ending here is valid"),
-    ("fei_exact_amplitude", "<f8", "-", "exact online FEI A, latest completed window (held)"),
-    ("fei_exact_delay", "<f8", "s", "exact online FEI d, latest completed window (held)"),
-    ("fei_exact_valid", "|b1", "-", "the latest exact window is valid"),
-    ("kf_gain", "<f8", "-", "Kalman estimate of the actuator gain"),
-    ("kf_delay", "<f8", "s", "Kalman estimate of the actuator delay"),
-    ("lateness", "<f8", "s", "paced mode: send time minus deadline (0 in lockstep)"),
-    ("feedback_ok", "|b1", "-", "a reply with the right sequence number arrived in time"),
-    ("seq", "<i8", "-", "sequence number sent with the command"),
-)
+#: The columns of a single-channel record up to ``seq``: (name, numpy dtype, unit,
+#: description), in file order; the default of :class:`Recorder`. Defined with every other
+#: column in :data:`rths_hil.hybrid.columns.TABLE`.
+COLUMNS: tuple[tuple[str, str, str, str], ...] = single_channel_columns()
 
 _STRUCT_CODES = {"<f8": "d", "<i8": "q", "|b1": "?"}
 _MAGIC = b"\x93NUMPY\x01\x00"
@@ -208,7 +188,7 @@ class Recorder:
         More metadata keys.
     columns : sequence of (name, dtype, unit, description)
         The record's columns (default :data:`COLUMNS`, a single-channel test; the runner
-        passes its plan's, :func:`rths_hil.hybrid.plan.record_columns`).
+        passes its plan's, :func:`rths_hil.hybrid.columns.specs`).
 
     Notes
     -----
@@ -321,7 +301,7 @@ class Recorder:
 
     # -- step path -------------------------------------------------------------------------
     def _append(self, *values) -> None:
-        """Append one row (one value per column of :data:`COLUMNS`, in order)."""
+        """Append one row (one value per column of :attr:`columns`, in order)."""
         off = self._off
         self._pack(self._chunk, off, *values)
         off += self._rowsize

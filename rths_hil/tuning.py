@@ -250,7 +250,7 @@ def evaluate_trial(
 
 def _record_pga(cfg: Config) -> float:
     """PGA (m/s²) the configuration's record is run at."""
-    from .loop import build_ground_motion
+    from .hybrid import build_ground_motion
 
     g = cfg["ground_motion"]
     if g["pga"] > 0:
@@ -341,7 +341,7 @@ class LoopTrials:
 
     def __call__(self, alpha: float, factor: float, index: int) -> Trial:
         """Run trial ``index`` with α and amplitude factor; return its evaluation."""
-        from .loop import RTHSLoop
+        from .hybrid import RTHSLoop
         from .recorder import read_run
 
         run_dir = self.out_dir / f"{self.prefix}-{index:02d}"

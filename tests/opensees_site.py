@@ -84,7 +84,7 @@ def hybrid(
     client's floor displacements (None if it wrote none) and its finished process.
     """
     from rths_hil.config import load_config
-    from rths_hil.loop import RTHSLoop
+    from rths_hil.hybrid import RTHSLoop
 
     cfg = load_config(config, ["openfresco.port=0", "output.plot=false", *overrides])
     loop = RTHSLoop(cfg, tmp / name)

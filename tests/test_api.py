@@ -102,7 +102,7 @@ def test_api_run_equals_the_command_line_run(tmp_path):
         np.testing.assert_array_equal(a.record[name], b.record[name])
     assert (tmp_path / "api" / "summary.json").is_file()
     # the old entry point with --set strings still runs
-    from rths_hil.loop import run as loop_run
+    from rths_hil.hybrid import run as loop_run
 
     r = loop_run(None, ["compensation.alpha=20", "loop.console=0"], mode="lockstep",
                  duration=0.5, run_dir=tmp_path / "old")  # fmt: skip

@@ -218,7 +218,7 @@ def test_directory_with_old_events_is_not_reused(tmp_path, capsys):
     )
     assert (d / "events.jsonl").read_text() == old  # nothing appended
     # the default pattern skips such a directory instead
-    from rths_hil.loop import new_run_dir
+    from rths_hil.hybrid import new_run_dir
 
     assert new_run_dir(str(d)) == tmp_path / "old-1"
 

@@ -28,9 +28,9 @@ from rths_hil.sim_backends.twin import default_plant, start_twin
 
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.linkbudget import can_frame_bits
 from rths_hil.linkbudget import link_load as budget
-from rths_hil.loop import RTHSLoop
 from rths_hil.recorder import read_run
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -21,7 +21,7 @@ import pytest
 from rths_hil.cli import main as cli
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
-from rths_hil.loop import RTHSLoop
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import COLUMNS, read_run
 
 ROOT = Path(__file__).resolve().parents[1]

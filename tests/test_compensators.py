@@ -280,7 +280,7 @@ def test_builtin_compensators_load_without_metadata():
 
 
 def test_lab_compensator_from_an_entry_point_runs_in_the_loop(lab_package, tmp_path):
-    from rths_hil.loop import RTHSLoop
+    from rths_hil.hybrid import RTHSLoop
     from rths_hil.recorder import read_run
 
     assert available()["scaled"] == "mylab_comp:ScaledLead"

@@ -17,7 +17,7 @@ import pytest
 
 from rths_hil.config import load_config
 from rths_hil.fei import fei
-from rths_hil.loop import RTHSLoop
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import read_run
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -26,7 +26,7 @@ import pytest
 from _procs import ServedTwin, toml_table
 
 from rths_hil.config import load_config
-from rths_hil.loop import RTHSLoop
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import read_run
 
 FS = 1024

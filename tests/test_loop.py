@@ -12,7 +12,7 @@ from rths_hil import groundmotion
 from rths_hil.compensation import InverseCompensator
 from rths_hil.config import load_config
 from rths_hil.fei import fei
-from rths_hil.loop import RTHSLoop
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import read_run
 from rths_hil.structure import BoucWenParams, CRStepper
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from rths_hil.config import load_config
-from rths_hil.loop import RTHSLoop
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import read_run
 
 FS = 1024.0

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from rths_hil.config import load_config
-from rths_hil.loop import (
+from rths_hil.hybrid import (
     CAUSES,
     MACHINE,
     MACHINE_BACKLOG,
@@ -191,7 +191,7 @@ def test_consecutive_overruns_trip_where_the_record_says(tmp_path):
 
 @pytest.mark.parametrize("n", [1, 2, 3, 100, 511, 2048])
 def test_console_p99_is_numpys_percentile(n):
-    from rths_hil.loop import _p99
+    from rths_hil.hybrid.timing import p99 as _p99
 
     x = np.random.default_rng(n).exponential(1e-5, n)
     assert _p99(x) == pytest.approx(np.percentile(x, 99), rel=1e-12, abs=0)

@@ -20,7 +20,7 @@ import pytest
 
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
-from rths_hil.loop import RTHSLoop
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.metrics import j2_nrms
 from rths_hil.openfresco import protocol as P
 from rths_hil.openfresco.server import Mailbox, Target

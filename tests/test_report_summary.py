@@ -90,7 +90,7 @@ def test_report_panels_units_and_trip_label(tmp_path):
     import matplotlib.pyplot as plt
 
     from rths_hil.config import load_config
-    from rths_hil.loop import RTHSLoop
+    from rths_hil.hybrid import RTHSLoop
     from rths_hil.recorder import read_run
     from rths_hil.report import plot_report
 

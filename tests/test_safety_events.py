@@ -122,7 +122,7 @@ def test_lockstep_is_deterministic_with_a_sub_millisecond_feedback_timeout(tmp_p
     paced feedback_timeout says; before, 2–4 replies missed the 0.7 ms and runs differed.
     """
     from rths_hil.config import load_config
-    from rths_hil.loop import RTHSLoop
+    from rths_hil.hybrid import RTHSLoop
 
     cfg = load_config(ROOT / "examples" / "modbus.toml", ["loop.console=0", "output.plot=false"])
     records = []

@@ -31,8 +31,8 @@ from rths_hil.sim_backends.twin import default_plant
 
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.hybrid.phases import cosine_ramp, ramp_duration
-from rths_hil.loop import RTHSLoop
 from rths_hil.recorder import read_run
 
 MM = 1e-3

@@ -16,7 +16,7 @@ from scipy.optimize import brentq
 from rths_hil.cli import main as cli
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
-from rths_hil.loop import build_ground_motion
+from rths_hil.hybrid import build_ground_motion
 from rths_hil.recorder import read_run
 from rths_hil.tuning import (
     LoopTrials,

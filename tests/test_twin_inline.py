@@ -12,7 +12,7 @@ from rths_hil.sim_backends.twin import default_plant, start_twin
 
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
-from rths_hil.loop import RTHSLoop
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import read_run
 
 COLUMNS = ("target", "command", "measured", "force", "fei_amplitude", "fei_delay", "kf_delay")

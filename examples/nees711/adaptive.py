@@ -25,7 +25,7 @@ import numpy as np
 
 from rths_hil.config import load_config
 from rths_hil.fei import fei
-from rths_hil.loop import RTHSLoop
+from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import read_run
 from rths_hil.tuning import LoopTrials, sweep, tune
 

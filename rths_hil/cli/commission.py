@@ -52,9 +52,9 @@ def main(args: argparse.Namespace) -> int:
     from ..commission import commission
     from ..config import load_config
     from ..errors import InputError
+    from ..hybrid import new_run_dir
     from ..hybrid.phases import hardware_channels, require_confirmation
     from ..hybrid.plan import build_plan
-    from ..loop import new_run_dir
 
     cfg = load_config(args.config, args.set)
     out = Path(args.out) if args.out else new_run_dir("commission/{timestamp}")

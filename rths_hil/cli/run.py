@@ -120,9 +120,9 @@ def _tolerant_console() -> None:
 def main(args: argparse.Namespace) -> int:
     """Run the test; return the exit code."""
     from ..errors import InputError
+    from ..hybrid import RTHSLoop, new_run_dir
     from ..hybrid.phases import preflight, require_confirmation
     from ..linkbudget import format_loads
-    from ..loop import RTHSLoop, new_run_dir
     from ..report import LiveLine, format_summary, plot_report, summarize
 
     cfg = load_config(args.config, args.set)

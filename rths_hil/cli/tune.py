@@ -131,7 +131,7 @@ def _confirm(n_trials: int, pga: float, scale: float, cfg, flag: bool) -> None:
 def main(args: argparse.Namespace) -> int:
     """Run the tuning (or the sweep); return the exit code."""
     from ..config import load_config
-    from ..loop import new_run_dir
+    from ..hybrid import new_run_dir
     from ..tuning import (
         LoopTrials,
         format_table,

@@ -1,19 +1,81 @@
-"""The hybrid test as stages: plan (config → stages), channels, runner, timing.
+"""The real-time hybrid simulation loop: plan (config → stages), channels, runner, record.
 
-Where to look:
+``from rths_hil.hybrid import RTHSLoop, run`` is the loop's entry point (the documented one for
+scripts is :func:`rths_hil.run`, ``docs/api.md``). Where to look:
 
+``rthsloop.py``
+    :class:`RTHSLoop` (a configured test, ready to run) and :func:`run`; the step order and
+    the modes in its docstring.
 ``plan.py``
     configuration → :class:`~rths_hil.hybrid.plan.TestPlan`: structure, one channel per
     actuator, record columns; every validation and "which model / which driver" decision.
 ``structures.py``
-    the structure stage interface (SDOF CR stepper, MDOF models, an external site's client).
+    the structure stage interface (SDOF CR stepper, MDOF models, an external site's client)
+    and what a stage may use of the running test.
 ``channel.py``
-    one actuator: driver ⇄ twin, compensator, evaluators, safety rules, its state.
+    one actuator: driver ⇄ twin, compensator, evaluators, safety rules, and its state named
+    after the record's columns (``target``, ``command``, ``measured``, ``force`` …).
+``columns.py``
+    the record's columns, once: name, dtype, unit, description, what fills each; the
+    per-channel column-name rule (:func:`~rths_hil.hybrid.columns.column_name`).
 ``runner.py``
     the step: send every channel → receive every channel → structure → compensate →
     evaluators → safety (one call per phase) → record (by column name); e-stop of all.
+``rules.py``
+    the safety rules of every channel, asked once per phase of a step.
+``record.py``
+    the recorder with the run's metadata, and one row per step by column name.
+``result.py``
+    :class:`~rths_hil.hybrid.result.RunResult`, what a run did.
+``phases.py``
+    from where the actuators are to step 0 (start ramp), and back to rest at the end.
 ``evaluators.py``
     streaming and exact online FEI on the step path.
 ``timing.py``
     pacing, the machine's floor and overrun attribution.
+
+The names below are imported on first use (the submodules import the recorder, which imports
+:mod:`.columns` of this package).
 """
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+#: public name -> submodule that defines it
+_EXPORTS = {
+    "RTHSLoop": "rthsloop",
+    "run": "rthsloop",
+    "RunResult": "result",
+    "Runner": "runner",
+    "TestPlan": "plan",
+    "build_plan": "plan",
+    "build_ground_motion": "plan",
+    "choose_plant": "plan",
+    "new_run_dir": "plan",
+    "CAUSES": "timing",
+    "MACHINE": "timing",
+    "MACHINE_BACKLOG": "timing",
+    "ON_TIME": "timing",
+    "WORK": "timing",
+    "WORK_BACKLOG": "timing",
+    "attribute_overruns": "timing",
+    "count_causes": "timing",
+    "paced_floor": "timing",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -1,11 +1,11 @@
 """One actuator channel at run time: its driver (and twin), compensator, evaluators and rules.
 
 A :class:`Channel` is built from a :class:`~rths_hil.hybrid.plan.ChannelPlan` and opened by the
-runner. It holds the channel's state of the current step as plain float attributes (the runner
-reads and writes them; the record's per-channel columns name them, see
-:data:`rths_hil.hybrid.plan.CHANNEL_COLUMNS_A`), and does the per-channel work that needs no
-other channel: sending, receiving (serving an inline twin first), the evaluators and the
-e-stop with its confirmation poll.
+runner. It holds the channel's state of the current step as plain attributes named after the
+record's columns (:func:`rths_hil.hybrid.columns.channel_columns`: ``target``, ``command``,
+``measured``, ``force`` … are read by name into each row), and does the per-channel work that
+needs no other channel: sending, receiving (serving an inline twin first), the evaluators and
+the e-stop with its confirmation poll.
 """
 
 from __future__ import annotations
@@ -36,6 +36,9 @@ _ESTOP = int(Status.ESTOP_ACTIVE)
 class Channel:
     """An actuator channel of a running test (see the module docstring).
 
+    The step's state has the names of the record's channel columns (the trial values the
+    structure asks for, the values the controller measured, the evaluators' estimates).
+
     Attributes
     ----------
     name, suffix : str
@@ -48,74 +51,94 @@ class Channel:
         Open driver (after :meth:`open`).
     twin : TwinEndpoint or None
         The running twin endpoint, kept after the run for inspection.
-    x_t, c, meas, force, v, r, alpha : float
-        This step's target, command, measured displacement, measured force, velocity and
-        numerical restoring force along the actuator, and compensation α.
-    ok : bool
+    target, command : float
+        This step's trial displacement from the structure (T·u, m) and the command sent for
+        it after compensation (m).
+    target_next, command_next : float
+        The same for the next step, computed before its deadline.
+    measured, force : float
+        The controller's reply: measured displacement (m, held without a reply) and force (N).
+    velocity, restoring_force : float
+        Velocity (m/s) and numerical restoring force (N) of the structure along the actuator.
+    alpha : float
+        Compensation α of this step's command.
+    fei_amplitude, fei_delay, fei_f_eq, fei_valid : float, float, float, bool
+        Latest streaming FEI window (the FEI paper's A, d and f_eq).
+    fei_exact_amplitude, fei_exact_delay, fei_exact_valid, fei_exact_step
+        Latest exact FEI window and the step it ended at (-1: none yet).
+    kf_gain, kf_delay : float
+        Kalman estimates of the actuator's gain and delay (s).
+    feedback_ok : bool
         A reply with the right sequence number arrived in time this step.
-    fb_time : float
+    feedback_time : float
         Time from the step's first send to this channel's reply (s; NaN without a reply).
+    reply_seq, reply_status : int
+        Sequence number and controller status word of this step's reply (-1, 0 without one).
+    missed_replies : int
+        Steps without a reply so far.
+    estop_confirmed : bool or None
+        After :meth:`confirm_estop`: whether the controller reported the e-stop latched.
     """
 
     # slots: the runner reads and writes these attributes every step; slot access is
     # measurably faster than an instance dict of this size
     __slots__ = (
         "_estop_status",
-        "a_ex",
-        "a_fei",
         "adaptive",
         "alpha",
-        "c",
-        "c_next",
-        "comp",
-        "comp_observe",
-        "comp_step",
-        "d_ex",
-        "d_fei",
+        "command",
+        "command_next",
+        "compensate",
+        "compensator",
+        "compensator_observe",
         "dof",
         "driver",
         "estop_confirmed",
-        "ex_step",
-        "exact",
-        "f_fei",
-        "fb_time",
+        "exact_fei",
+        "feedback_ok",
+        "feedback_time",
+        "fei_amplitude",
+        "fei_delay",
+        "fei_exact_amplitude",
+        "fei_exact_delay",
+        "fei_exact_step",
+        "fei_exact_valid",
+        "fei_f_eq",
         "fei_new",
-        "fei_target",
+        "fei_on_target",
+        "fei_valid",
         "force",
         "fs",
         "heartbeat",
-        "kal_every",
-        "kal_new",
-        "kal_target",
         "kalman",
-        "kf_d",
-        "kf_g",
+        "kalman_every",
+        "kalman_new",
+        "kalman_on_target",
+        "kf_delay",
+        "kf_gain",
         "last_command",
-        "meas",
-        "missed",
+        "measured",
+        "missed_replies",
         "monitor",
         "name",
-        "ok",
-        "pk_disp",
-        "pk_force",
-        "pk_vel",
+        "peak_displacement",
+        "peak_force",
+        "peak_velocity",
         "plan",
-        "r",
         "receive",
+        "reply_clock",
+        "reply_seq",
+        "reply_status",
+        "restoring_force",
         "row",
         "send",
-        "seq_rx",
-        "status",
-        "stream",
+        "stream_fei",
         "suffix",
-        "t_rx",
+        "target",
+        "target_next",
         "twin",
-        "v",
-        "v_ex",
-        "v_fei",
-        "warm",
-        "x_next",
-        "x_t",
+        "velocity",
+        "warmup_steps",
     )
 
     def __init__(self, plan: ChannelPlan, fs: float) -> None:
@@ -125,53 +148,56 @@ class Channel:
         self.row = plan.row.tolist()
         self.dof = plan.dof
         self.fs = fs
-        self.comp = plan.compensator
-        self.comp_step = plan.compensator.step
+        self.compensator = plan.compensator
+        self.compensate = plan.compensator.step
         # a compensator that learns from the replies (ats, model feedback) observes each one
         observe = type(plan.compensator).observe
-        self.comp_observe = None if observe is Compensator.observe else plan.compensator.observe
+        self.compensator_observe = (
+            None if observe is Compensator.observe else plan.compensator.observe
+        )
         self.adaptive = plan.adaptive
         self.kalman = plan.kalman
         self.monitor = plan.monitor
-        self.stream = StreamingFEI(fs, plan.window_s) if plan.fei_enabled else None
-        self.exact: ExactFEI | None = None
+        self.stream_fei = StreamingFEI(fs, plan.window_s) if plan.fei_enabled else None
+        self.exact_fei: ExactFEI | None = None
         self.twin: Any = None
         self.driver: Driver | None = None
-        self.fei_target = plan.fei_pair == "target"
-        self.kal_target = plan.kalman_pair == "target"
-        self.kal_every = plan.kalman_every
-        self.warm = plan.warmup_steps
+        self.fei_on_target = plan.fei_pair == "target"
+        self.kalman_on_target = plan.kalman_pair == "target"
+        self.kalman_every = plan.kalman_every
+        self.warmup_steps = plan.warmup_steps
         nan = math.nan
         # state of the current step
-        self.x_t = self.c = self.x_next = self.c_next = 0.0
-        self.meas = self.force = self.v = self.r = 0.0
-        self.alpha = self.comp.alpha
-        self.ok = False
-        self.fb_time = nan
-        self.seq_rx = -1
-        self.status = 0
-        self.a_fei = self.d_fei = self.f_fei = nan
-        self.v_fei = False
-        self.a_ex = self.d_ex = nan
-        self.v_ex = False
-        self.ex_step = -1
-        self.kf_g = self.kf_d = nan
+        self.target = self.command = self.target_next = self.command_next = 0.0
+        self.measured = self.force = self.velocity = self.restoring_force = 0.0
+        self.alpha = self.compensator.alpha
+        self.feedback_ok = False
+        self.feedback_time = nan
+        self.reply_seq = -1
+        self.reply_status = 0
+        self.fei_amplitude = self.fei_delay = self.fei_f_eq = nan
+        self.fei_valid = False
+        self.fei_exact_amplitude = self.fei_exact_delay = nan
+        self.fei_exact_valid = False
+        self.fei_exact_step = -1
+        self.kf_gain = self.kf_delay = nan
         self.fei_new = False
-        self.kal_new = False
-        self.missed = 0
-        self.pk_disp = self.pk_vel = self.pk_force = 0.0
+        self.kalman_new = False
+        self.missed_replies = 0
+        self.peak_displacement = self.peak_velocity = self.peak_force = 0.0
         self.last_command = 0.0
         self.estop_confirmed: bool | None = None
+        self._estop_status: int | None = None
         self.send = self.receive = self.heartbeat = None
         # the time this channel's receive returned (perf_counter): its watchdog measures the
         # time between its own replies, not the time other channels' waits took
-        self.t_rx = 0.0
+        self.reply_clock = 0.0
         wd = plan.monitor.watchdog
         if wd is not None and getattr(wd, "timeout", None) is not None:
             wd.clock = self._rx_clock
 
     def _rx_clock(self) -> float:
-        return self.t_rx
+        return self.reply_clock
 
     # ------------------------------------------------------------------------------------------
     # opening
@@ -214,9 +240,9 @@ class Channel:
         stack.callback(driver.close)
         stack.callback(driver.stop_reader)  # before close: a reader thread stops first
         self.bind(driver)
-        if self.stream is not None and plan.exact_hop > 0:
-            self.exact = ExactFEI(self.fs, plan.window_s, plan.exact_hop, background_exact)
-            stack.callback(self.exact.close)
+        if self.stream_fei is not None and plan.exact_hop > 0:
+            self.exact_fei = ExactFEI(self.fs, plan.window_s, plan.exact_hop, background_exact)
+            stack.callback(self.exact_fei.close)
 
     def bind(self, driver: Driver) -> None:
         """Use ``driver`` (open) for this channel; bind its hot-path methods."""
@@ -254,7 +280,7 @@ class Channel:
         The streaming FEI kernel is numba-compiled on its first call (hundreds of ms) and the
         exact FEI's FFT plans are built on first use; neither may happen at a deadline.
         """
-        if self.stream is None:
+        if self.stream_fei is None:
             return
         tmp = StreamingFEI(self.fs, self.plan.window_s)
         for i in range(4):
@@ -262,7 +288,7 @@ class Channel:
         hop = self.plan.exact_hop
         if hop > 0:
             ex = OnlineFEI(self.fs, self.plan.window_s, hop=hop, method="exact")
-            t = np.arange(self.stream.N + hop) / self.fs
+            t = np.arange(self.stream_fei.N + hop) / self.fs
             ex.update(np.sin(6.0 * t), np.sin(6.0 * t - 0.1))
 
     # ------------------------------------------------------------------------------------------
@@ -271,41 +297,63 @@ class Channel:
     def evaluate(self, k: int) -> None:
         """Streaming FEI (every sample), exact FEI (every hop), Kalman; adaptive α.
 
-        Sets :attr:`fei_new` / :attr:`kal_new` when a new estimate is there for the rules.
+        Sets :attr:`fei_new` / :attr:`kalman_new` when a new estimate is there for the rules.
         """
-        meas = self.meas
-        if self.comp_observe is not None and self.ok:
-            self.comp_observe(self.x_t, self.c, meas)
-        stream = self.stream
+        meas = self.measured
+        if self.compensator_observe is not None and self.feedback_ok:
+            self.compensator_observe(self.target, self.command, meas)
+        stream = self.stream_fei
         self.fei_new = False
         if stream is not None:
-            x = self.x_t if self.fei_target else self.c
+            x = self.target if self.fei_on_target else self.command
             if stream.push(x, meas):
                 latest = stream.latest
-                self.a_fei, self.d_fei, self.f_fei, self.v_fei = latest
+                self.fei_amplitude, self.fei_delay, self.fei_f_eq, self.fei_valid = latest
                 if self.adaptive is not None:
                     self.adaptive.update(latest[1], latest[3])
-                self.fei_new = k >= self.warm
-            ex = self.exact
+                self.fei_new = k >= self.warmup_steps
+            ex = self.exact_fei
             if ex is not None:
                 ex.push(x, meas)
-                if ex.end_step != self.ex_step:  # a new exact window came back
-                    self.a_ex, self.d_ex, _, self.v_ex = ex.latest
-                    self.ex_step = ex.end_step
+                if ex.end_step != self.fei_exact_step:  # a new exact window came back
+                    a, d, _, valid = ex.latest
+                    self.fei_exact_amplitude, self.fei_exact_delay, self.fei_exact_valid = (
+                        a,
+                        d,
+                        valid,
+                    )
+                    self.fei_exact_step = ex.end_step
         kal = self.kalman
         if kal is not None:
-            u = self.x_t if self.kal_target else self.c
-            if self.kal_every == 1:
-                self.kf_g, self.kf_d = kal.update(u, meas)
+            u = self.target if self.kalman_on_target else self.command
+            if self.kalman_every == 1:
+                self.kf_gain, self.kf_delay = kal.update(u, meas)
                 new = True
             else:
                 kal.push(u, meas)
                 kal.predict()
-                new = k % self.kal_every == 0
+                new = k % self.kalman_every == 0
                 if new:
                     kal.correct()
-                    self.kf_g, self.kf_d = kal.gain, kal.delay
-            self.kal_new = new and k >= self.warm
+                    self.kf_gain, self.kf_delay = kal.gain, kal.delay
+            self.kalman_new = new and k >= self.warmup_steps
+
+    def keepalive(self) -> None:
+        """Heartbeat while no command is due (the controller's watchdog); serve an inline twin.
+
+        For a structure that makes the loop wait (an external analysis): the actuator holds.
+        """
+        if self.heartbeat is not None:
+            self.heartbeat()
+        twin = self.twin
+        if twin is not None and getattr(twin, "inline", False):
+            twin.pump()
+
+    def restart_watchdog(self) -> None:
+        """Restart the feedback watchdog's clock after a wait in which no reply was due."""
+        wd = self.monitor.watchdog
+        if wd is not None and hasattr(wd, "reset"):
+            wd.reset()
 
     # ------------------------------------------------------------------------------------------
     # stopping
@@ -317,6 +365,11 @@ class Channel:
         if self.twin is not None and getattr(self.twin, "inline", False):
             with contextlib.suppress(Exception):
                 self.twin.pump()
+
+    @property
+    def estop_status(self) -> int | None:
+        """Status word of the reply to :meth:`confirm_estop`'s poll (None: no reply or no poll)."""
+        return self._estop_status
 
     def confirm_estop(self, seq: int) -> bool:
         """One status poll: does the controller report the e-stop latched?

@@ -64,7 +64,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..recorder import Recorder
     from .channel import Channel
     from .plan import TestPlan
-    from .runner import Runner, RunResult
+    from .result import RunResult
+    from .runner import Runner
 
 log = logging.getLogger(__name__)
 
@@ -256,7 +257,7 @@ class Phases:
         """Each channel's command at the loop's step 0 (without stepping anything)."""
         st = self.plan.structure
         out = []
-        if hasattr(st, "attach"):  # an external model gives its first target only when it runs
+        if st.external:  # an external analysis gives its first target only when it runs
             xs = None
         else:
             xs = st.reset()
@@ -267,9 +268,9 @@ class Phases:
                 x = float(xs[ch.dof])
             else:
                 x = float(sum(r * v for r, v in zip(ch.row, xs, strict=False)))
-            ch.comp.reset(x)
-            out.append(float(ch.comp.step(x)))
-            ch.comp.reset(x)
+            ch.compensator.reset(x)
+            out.append(float(ch.compensator.step(x)))
+            ch.compensator.reset(x)
         return out
 
     def _locate(self, armed: list[Feedback | None]) -> list[_Where]:
@@ -507,7 +508,7 @@ class Phases:
                 sent[j] = c
             for j, (ch, (_, recv), p, off) in enumerate(links):
                 fb = recv(timeout)
-                ch.t_rx = perf()
+                ch.reply_clock = perf()
                 c = float(p[i])
                 if fb is None:
                     trip = ch.monitor.check_feedback(

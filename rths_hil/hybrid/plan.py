@@ -26,7 +26,6 @@ from .. import groundmotion
 from ..compensation import AdaptiveAlpha, Compensator
 from ..config import ChannelConfig, Config, structure_dofs
 from ..errors import InputError
-from ..recorder import COLUMNS
 from ..resources import check_disk, check_memory
 from ..safety import (
     ControllerRule,
@@ -39,6 +38,7 @@ from ..safety import (
 )
 from ..structure import BoucWenParams, CRStepper
 from ..units import parse_window
+from . import columns
 from .structures import MDOFStage, SDOFStage, StructureStage
 
 log = logging.getLogger(__name__)
@@ -212,82 +212,17 @@ def build_structure(
 # record columns
 
 
-#: Per-channel columns before ``lateness``: (name, source attribute on a runner channel).
-CHANNEL_COLUMNS_A = (
-    ("target", "x_t"),
-    ("command", "c"),
-    ("measured", "meas"),
-    ("force", "force"),
-    ("velocity", "v"),
-    ("restoring_force", "r"),
-    ("alpha", "alpha"),
-    ("fei_amplitude", "a_fei"),
-    ("fei_delay", "d_fei"),
-    ("fei_f_eq", "f_fei"),
-    ("fei_valid", "v_fei"),
-    ("fei_exact_amplitude", "a_ex"),
-    ("fei_exact_delay", "d_ex"),
-    ("fei_exact_valid", "v_ex"),
-    ("kf_gain", "kf_g"),
-    ("kf_delay", "kf_d"),
-)
-#: Per-channel column between ``lateness`` and ``seq``.
-CHANNEL_COLUMNS_B = (("feedback_ok", "ok"),)
-#: Per-channel columns after ``seq`` (new with channels; also in a single-channel record).
-CHANNEL_COLUMNS_C = (
-    ("feedback_time", "fb_time", "<f8", "s", "time from the step's first send to this reply"),
-    (
-        "fei_exact_step",
-        "ex_step",
-        "<i8",
-        "-",
-        "step at which the window of the held exact FEI value ended (-1: none yet)",
-    ),
-)
-_BASE = {name: (code, unit, desc) for name, code, unit, desc in COLUMNS}
-_CH_DESC = {
-    "velocity": "velocity of the structure along the actuator (T·v)",
-    "restoring_force": "numerical restoring force along the actuator (T·r)",
-}
-
-
-def record_columns(suffixes: list[str], n_dof: int) -> list[tuple[str, str, str, str]]:
+def record_columns(
+    channels: list[str], n_dof: int, structure: StructureStage | None = None
+) -> list[tuple[str, str, str, str]]:
     """The record's columns (name, dtype, unit, description), in file order.
 
-    One channel (suffix ``""``) on an SDOF: today's :data:`rths_hil.recorder.COLUMNS`, then
-    ``feedback_time`` and ``fei_exact_step``. Several channels: each per-channel column once per
-    channel with ``_<name>``, plus ``skew``; more than one DOF: ``u_1 … u_n``.
+    The table of :mod:`rths_hil.hybrid.columns` laid out for ``channels`` (their names;
+    ``[""]`` for one channel) on ``n_dof`` DOFs, then the structure stage's own columns.
     """
-    multi = len(suffixes) > 1 or suffixes != [""]
-    cols: list[tuple[str, str, str, str]] = []
-
-    def base(name: str) -> tuple[str, str, str, str]:
-        code, unit, desc = _BASE[name]
-        return (name, code, unit, desc)
-
-    cols += [base("time"), base("step"), base("ground_accel")]
-    for sfx in suffixes:
-        for name, _ in CHANNEL_COLUMNS_A:
-            code, unit, desc = _BASE[name]
-            if multi:
-                desc = _CH_DESC.get(name, desc)
-            cols.append((name + sfx, code, unit, desc))
-    cols.append(base("lateness"))
-    for sfx in suffixes:
-        for name, _ in CHANNEL_COLUMNS_B:
-            code, unit, desc = _BASE[name]
-            cols.append((name + sfx, code, unit, desc))
-    cols.append(base("seq"))
-    for sfx in suffixes:
-        for name, _, code, unit, desc in CHANNEL_COLUMNS_C:
-            cols.append((name + sfx, code, unit, desc))
-    if len(suffixes) > 1:
-        cols.append(
-            ("skew", "<f8", "s", "latest minus earliest reply time of the step over the channels")
-        )
-    if n_dof > 1:
-        for i in range(n_dof):
-            cols.append((f"u_{i + 1}", "<f8", "m", f"displacement of DOF {i + 1} (target)"))
+    cols = columns.specs(channels, n_dof)
+    if structure is not None:
+        cols += [(col[0], col[2], col[3], col[4]) for col in structure.record_columns]
     return cols
 
 
@@ -375,7 +310,7 @@ class TestPlan:
     @property
     def transform(self) -> np.ndarray:
         """T: one row per channel (channels × DOFs)."""
-        return np.array([c.row for c in self.channels])
+        return np.array([ch.row for ch in self.channels])
 
 
 def _window(ch_cfg: Config, fn1: float) -> float:
@@ -478,29 +413,30 @@ def _plan_channel(
             raise InputError(f"{where}: twin.faults: {exc}") from None
     inline = bool(tw["inline"] and tw["enabled"] and dcls.inline_twin(conn))
 
-    c = cfg["compensation"]  # in time units (delay, delay_rate, …): the same at any loop.fs
+    # in time units (delay, delay_rate, …): the same at any loop.fs
+    comp_cfg = cfg["compensation"]
     from ..compensators import build_compensator
 
     try:
-        comp = build_compensator(c, fs)
+        comp = build_compensator(comp_cfg, fs)
     except InputError as exc:
         raise InputError(f"{where}: compensation: {exc}") from None
     fe = cfg["fei"]
     adaptive = None
-    if c["adaptive"] and c["enabled"]:
-        if c["method"] != "inverse":
+    if comp_cfg["adaptive"] and comp_cfg["enabled"]:
+        if comp_cfg["method"] != "inverse":
             raise InputError(
                 f"{where}: compensation.adaptive adapts the inverse method's α; method "
-                f"{c['method']!r} does not take it (ats adapts on its own)"
+                f"{comp_cfg['method']!r} does not take it (ats adapts on its own)"
             )
         adaptive = AdaptiveAlpha(
             comp,
             dt,
             fe["pair"],
-            c["time_constant"],
-            c["delay_rate"] * fs,
-            1.0 + c["delay_min"] * fs,
-            1.0 + c["delay_max"] * fs,
+            comp_cfg["time_constant"],
+            comp_cfg["delay_rate"] * fs,
+            1.0 + comp_cfg["delay_min"] * fs,
+            1.0 + comp_cfg["delay_max"] * fs,
         )
     try:
         window_s = _window(cfg, fn1)
@@ -515,7 +451,9 @@ def _plan_channel(
 
         opts = dict(kc["options"])
         if kc["pair"] == "command":
-            opts.setdefault("delay0", min((comp.alpha - 1.0) * dt, 0.09) if c["enabled"] else 0.0)
+            opts.setdefault(
+                "delay0", min((comp.alpha - 1.0) * dt, 0.09) if comp_cfg["enabled"] else 0.0
+            )
         try:
             kalman = DelayGainEstimator(fs, **opts)
         except (TypeError, InputError) as exc:
@@ -557,7 +495,7 @@ def _plan_channel(
     )
     return ChannelPlan(
         name=cc.name,
-        suffix=f"_{cc.name}" if n_chan > 1 else "",
+        suffix=columns.channel_suffix(cc.name if n_chan > 1 else None),
         row=row,
         dof=dof,
         cfg=cfg,
@@ -698,10 +636,8 @@ def build_plan(
     _check_shared_links(cfg, channels)
     links = link_loads(cfg, channels, fs)
     sf = cfg["safety"]
-    columns = record_columns([c.suffix for c in channels], n_dof) + [
-        (c[0], c[2], c[3], c[4]) for c in getattr(structure, "record_columns", ())
-    ]
-    row_bytes = sum(np.dtype(c[1]).itemsize for c in columns)
+    cols = record_columns([ch.name for ch in channels], n_dof, structure)
+    row_bytes = sum(np.dtype(col[1]).itemsize for col in cols)
     check_disk(n * row_bytes, run_dir, f"the record of {dur or n / fs:g} s at {fs:g} Hz")
     return TestPlan(
         cfg=cfg,
@@ -715,7 +651,7 @@ def build_plan(
         structure=structure,
         fn1=fn1,
         channels=channels,
-        columns=columns,
+        columns=cols,
         # paced: at most 0.8 period; lockstep waits for every reply, up to the wall-clock bound
         # that trips the watchdog
         timeout=(lp["feedback_timeout"] or 0.8 * dt) if mode == "paced" else lp["lockstep_timeout"],

@@ -16,12 +16,14 @@ recorder, and steps. Each step ``k``::
 The CR integration is explicit in displacement (Chen & Ricles 2008): the targets of step k+1
 depend only on the state of step k, so every command of step k+1 is ready before its deadline.
 
-Safety is called once per phase (:class:`Safety`); a fired rule comes back as a
-:class:`~rths_hil.safety.Trip` naming the channel, the rule and the values, and the runner then
+Safety is called once per phase (:class:`~rths_hil.hybrid.rules.Safety`); a fired rule comes
+back as a :class:`~rths_hil.safety.Trip` naming the channel, the rule and the values, and the runner then
 e-stops **every** channel through its driver (each twin or controller latches and holds),
 confirms each latch with one status poll, records the events and returns; the CLI exits with 3.
 
-Modes, pacing and the overrun policy are those of ``docs/loop.md`` (:mod:`.timing`).
+Modes, pacing and the overrun policy are those of ``docs/loop.md`` (:mod:`.timing`). What the
+run returns is a :class:`~rths_hil.hybrid.result.RunResult`; the record's files and rows are
+made in :mod:`.record`.
 """
 
 from __future__ import annotations
@@ -37,9 +39,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from operator import attrgetter
-from pathlib import Path
 
 import numpy as np
 
@@ -48,12 +47,16 @@ from ..recorder import Recorder, RecordWriteError
 from ..safety import OverrunRule, StallRule, Trip
 from .channel import Channel
 from .phases import Phases, preflight
-from .plan import CHANNEL_COLUMNS_A, CHANNEL_COLUMNS_B, CHANNEL_COLUMNS_C, TestPlan
-from .timing import CAUSES, LEAD_IN, MIN_SLEEP, attribute_overruns, count_causes, p99
+from .plan import TestPlan
+from .record import StepValues, open_recorder, row_writer
+from .result import RunResult
+from .rules import Safety
+from .structures import StageContext
+from .timing import LEAD_IN, MIN_SLEEP, p99
 
 log = logging.getLogger(__name__)
 
-__all__ = ["STOP_SIGNALS", "RunResult", "Runner", "Safety"]
+__all__ = ["STOP_SIGNALS", "Runner"]
 
 #: Signals that end a run through the operator-stop path (the same as Ctrl-C): every signal
 #: whose default action terminates the process and that a terminal, a session manager or an
@@ -63,234 +66,6 @@ STOP_SIGNALS = tuple(
     for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2")
     if hasattr(signal, name)
 )
-
-
-# ----------------------------------------------------------------------------------------------
-# results
-
-
-@dataclass
-class RunResult:
-    """What a run did.
-
-    Attributes
-    ----------
-    status : {"completed", "trip", "operator_stop"}
-    steps : int
-        Steps executed (rows recorded).
-    planned_steps : int
-        Steps the configuration asked for.
-    trip : Trip or None
-        The safety trip (``status == "trip"``) or the operator stop; ``trip.channel`` names
-        the channel whose rule fired.
-    run_dir : Path
-        Where the record is.
-    mode : str
-        ``paced`` or ``lockstep``.
-    fs : float
-        Loop rate (Hz).
-    wall_time : float
-        Wall-clock duration of the stepping (s).
-    lateness : ndarray
-        Per-step lateness (s); zeros in lockstep.
-    overruns : int
-        Paced steps later than the overrun threshold.
-    missed_replies : int
-        Steps without a matching reply (summed over the channels).
-    estop_confirmed : bool or None
-        Whether every controller reported the e-stop latched (None when no e-stop was sent).
-    driver_stats, twin_stats : dict
-        Counters of the driver and (if any) the twin; with several channels, one dict per
-        channel name.
-    final_alpha : float
-        α at the end (first channel; differs from the configured one with adaptive
-        compensation).
-    ready : ndarray
-        Paced: per-step time at which the loop was ready to wait for the deadline (previous
-        step's work done) minus the deadline (s; < 0: it waited); empty in lockstep.
-    overrun_threshold : float
-        Lateness above which a paced step is an overrun (s); NaN in lockstep.
-    work : ndarray
-        Per-step time of the loop's own work (s): from the last reply to the end of the step's
-        record (structure, compensation, evaluators, safety, recorder).
-    channels : list of str
-        Channel names.
-    stalls : list of tuple
-        Paced: each stall of the bridge itself as ``(step, length in s)``
-        (:class:`~rths_hil.safety.StallRule`).
-    handback : bool or None
-        After a completed run or an operator stop: whether every controller confirmed it was
-        disabled and not latched (:mod:`.phases`); None when the run ended in an e-stop.
-    start_steps : int
-        Steps of the start ramp before step 0 (0: the actuators were already at the first
-        command, or offset mode).
-    """
-
-    status: str
-    steps: int
-    planned_steps: int
-    trip: Trip | None
-    run_dir: Path
-    mode: str
-    fs: float
-    wall_time: float
-    lateness: np.ndarray
-    overruns: int
-    missed_replies: int
-    estop_confirmed: bool | None
-    driver_stats: dict = field(default_factory=dict)
-    twin_stats: dict = field(default_factory=dict)
-    final_alpha: float = math.nan
-    ready: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    overrun_threshold: float = math.nan
-    work: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    channels: list = field(default_factory=list)
-    stalls: list = field(default_factory=list)
-    handback: bool | None = None
-    start_steps: int = 0
-
-    @property
-    def exit_code(self) -> int:
-        """0 completed, 3 safety trip, 130 operator stop."""
-        return {"completed": 0, "trip": 3, "operator_stop": 130}[self.status]
-
-    @property
-    def steps_per_second(self) -> float:
-        """Steps per wall-clock second."""
-        return self.steps / self.wall_time if self.wall_time > 0 else math.nan
-
-    def overrun_causes(self) -> dict[str, int]:
-        """Overruns per cause (:func:`~rths_hil.hybrid.timing.attribute_overruns`).
-
-        Keys ``machine``, ``machine_backlog``, ``work``, ``work_backlog``; they add up to
-        :attr:`overruns`. All zero in lockstep.
-        """
-        if self.mode != "paced" or self.ready.size != self.steps:
-            return {name: 0 for name in CAUSES[1:]}
-        cause = attribute_overruns(self.lateness[: self.steps], self.ready, self.overrun_threshold)
-        return count_causes(cause)
-
-    def lateness_stats(self) -> dict[str, float]:
-        """p50, p99, p99.9 and max lateness (s) and the overrun count."""
-        lat = self.lateness[: self.steps]
-        if lat.size == 0:
-            return {
-                "p50": math.nan,
-                "p99": math.nan,
-                "p99.9": math.nan,
-                "max": math.nan,
-                "overruns": 0,
-            }
-        p50, p99_, p999 = np.percentile(lat, [50, 99, 99.9])
-        return {
-            "p50": float(p50),
-            "p99": float(p99_),
-            "p99.9": float(p999),
-            "max": float(lat.max()),
-            "overruns": int(self.overruns),
-        }
-
-
-# ----------------------------------------------------------------------------------------------
-# safety, one call per phase
-
-
-class Safety:
-    """The safety rules of every channel, asked once per phase of a step.
-
-    Each channel has its own :class:`~rths_hil.safety.SafetyMonitor` (its limits, watchdog,
-    sequence, stuck sensor, FEI and Kalman rules); the overrun rule belongs to the loop. Every
-    method returns the first fired :class:`~rths_hil.safety.Trip` (stamped with time, step and
-    channel) or ``None``.
-    """
-
-    def __init__(self, channels: list[Channel], overrun: OverrunRule | None) -> None:
-        self.channels = channels
-        self.overrun = overrun
-        self.tripped: Trip | None = None
-        if len(channels) == 1:  # the same checks without the loop over channels (≈ 0.5 µs)
-            self._ch = channels[0]
-            self._check_feedback = channels[0].monitor.check_feedback
-            self._check_command = channels[0].monitor.check_command
-            self.feedback = self._feedback_one
-            self.command = self._command_one
-
-    def _feedback_one(self, t: float, k: int) -> Trip | None:
-        ch = self._ch
-        trip = self._check_feedback(t, k, ch.ok, k, ch.seq_rx, ch.status, ch.c, ch.meas, ch.force)
-        return None if trip is None else self._fire(trip, ch, t, k)
-
-    def _command_one(self, t: float, k: int) -> Trip | None:
-        ch = self._ch
-        trip = self._check_command(t, k, ch.x_next, ch.v, ch.c_next)
-        return None if trip is None else self._fire(trip, ch, t, k)
-
-    def _fire(self, trip: Trip, ch: Channel | None, t: float, k: int) -> Trip:
-        trip = trip.at(t, k) if trip.step < 0 else trip
-        why = getattr(ch.driver, "fault_text", None) if ch is not None else None
-        if trip.rule == "controller" and why is not None and why():  # e.g. a CANopen EMCY code
-            trip = Trip(trip.rule, f"{trip.reason}; {why()}", trip.time, trip.step, trip.values)
-        self.tripped = trip.on(ch.name) if ch is not None else trip
-        return self.tripped
-
-    @property
-    def rules(self) -> dict[str, list[str]] | list[str]:
-        """Active rules (per channel when there are several)."""
-        extra = ["overrun"] if self.overrun is not None else []
-        if len(self.channels) == 1:
-            return self.channels[0].monitor.rules + extra
-        out = {ch.name: ch.monitor.rules for ch in self.channels}
-        if extra:
-            out[""] = extra
-        return out
-
-    def command(self, t: float, k: int) -> Trip | None:
-        """Before sending: each channel's next target, its velocity and its command."""
-        for ch in self.channels:
-            trip = ch.monitor.check_command(t, k, ch.x_next, ch.v, ch.c_next)
-            if trip is not None:
-                return self._fire(trip, ch, t, k)
-        return None
-
-    def feedback(self, t: float, k: int) -> Trip | None:
-        """After the replies: watchdog, sequence, controller status, NaN, limits, stuck."""
-        for ch in self.channels:
-            trip = ch.monitor.check_feedback(
-                t, k, ch.ok, k, ch.seq_rx, ch.status, ch.c, ch.meas, ch.force
-            )
-            if trip is not None:
-                return self._fire(trip, ch, t, k)
-        return None
-
-    def evaluators(self, t: float, k: int) -> Trip | None:
-        """New FEI windows and Kalman estimates of each channel."""
-        for ch in self.channels:
-            if ch.fei_new:
-                trip = ch.monitor.check_fei(t, k, ch.a_fei, ch.d_fei, ch.v_fei)
-                if trip is not None:
-                    return self._fire(trip, ch, t, k)
-            if ch.kal_new:
-                trip = ch.monitor.check_kalman(t, k, ch.kf_g, ch.kf_d)
-                if trip is not None:
-                    return self._fire(trip, ch, t, k)
-        return None
-
-    def timing(self, t: float, k: int, over: bool, lateness: float) -> Trip | None:
-        """A paced step's overrun flag and lateness (the loop's rule, no channel)."""
-        rule = self.overrun
-        if rule is None:
-            return None
-        trip = rule.check(over, lateness)
-        return None if trip is None else self._fire(trip, None, t, k)
-
-    def margin(self) -> tuple[str, str, float]:
-        """The channel nearest to a limit: ``(channel, quantity, unused fraction)``."""
-        best = ("", "none", math.inf)
-        for ch in self.channels:
-            q, m = ch.monitor.margin(ch.pk_disp, ch.pk_vel, ch.pk_force)
-            if m < best[2]:
-                best = (ch.name, q, m)
-        return best
 
 
 # ----------------------------------------------------------------------------------------------
@@ -364,7 +139,6 @@ class Runner:
     def run(self) -> RunResult:
         """Run the test; return a :class:`RunResult` (never raises on a safety trip)."""
         plan = self.plan
-        cfg = plan.cfg
         preflight(plan)
         with contextlib.ExitStack() as stack:
             self._install_signals(stack)
@@ -377,40 +151,7 @@ class Runner:
             stack.callback(plan.structure.close)
             first = self.channels[0]
             multi = len(self.channels) > 1
-            rec = Recorder(
-                plan.run_dir,
-                plan.fs,
-                config=cfg.as_dict(),
-                flush_interval=cfg["output"]["flush_interval"],
-                columns=plan.columns,
-                extra_meta={
-                    "config_source": cfg.source,
-                    "mode": plan.mode,
-                    "planned_steps": plan.n_steps,
-                    "ground_motion": {
-                        "name": plan.ground_motion.name,
-                        "source": plan.ground_motion.source,
-                        "pga": plan.ground_motion.pga,
-                    },
-                    "driver": first.plan.driver_name,
-                    "twin": first.twin.connection if first.twin is not None else None,
-                    "window_s": first.plan.window_s,
-                    "fei_pair": first.plan.fei_pair,
-                    "n_dof": plan.n_dof,
-                    "channels": [
-                        {
-                            "name": ch.name,
-                            "suffix": ch.suffix,
-                            "transform": ch.row,
-                            "driver": ch.plan.driver_name,
-                            "twin": ch.twin.connection if ch.twin is not None else None,
-                            "window_s": ch.plan.window_s,
-                            "fei_pair": ch.plan.fei_pair,
-                        }
-                        for ch in self.channels
-                    ],
-                },
-            )
+            rec = open_recorder(plan, self.channels)
             stack.callback(rec.close)
             for ch in self.channels:
                 ch.warm_up()
@@ -489,14 +230,14 @@ class Runner:
                 lateness=ls,
                 overrun_causes=result.overrun_causes(),
                 missed_replies=result.missed_replies,
-                stalls=_stall_summary(result.stalls),
+                stalls=result.stall_summary(),
                 estop_confirmed=result.estop_confirmed,
                 driver_stats=result.driver_stats,
                 twin_stats=result.twin_stats,
                 final_alpha=result.final_alpha,
                 handback=result.handback,
                 start_steps=result.start_steps,
-                exact_windows=first.exact.windows if first.exact is not None else 0,
+                exact_windows=first.exact_fei.windows if first.exact_fei is not None else 0,
             )
         self.result = result
         return result
@@ -523,7 +264,7 @@ class Runner:
             overruns=0,
             missed_replies=0,
             estop_confirmed=None,
-            final_alpha=self.channels[0].comp.alpha,
+            final_alpha=self.channels[0].compensator.alpha,
             overrun_threshold=plan.overrun_threshold if plan.mode == "paced" else math.nan,
             work=np.zeros(0),
             channels=[ch.name for ch in self.channels],
@@ -545,12 +286,40 @@ class Runner:
                 result.steps - 1,
                 channel=ch.name,
                 confirmed=ok,
-                status=ch._estop_status,
+                status=ch.estop_status,
             )
         return confirmed
 
     # ------------------------------------------------------------------------------------------
+    def _start_state(self) -> tuple[list[float], Trip | None]:
+        """The state of step 0: the DOF targets, each channel's target and first command.
+
+        The structure stage gets the running test first (an OpenSees site waits for its
+        client in ``reset``); the commands of step 0 are checked before any is sent.
+        """
+        st = self.plan.structure
+        st.attach(
+            StageContext(
+                self.plan.run_dir,
+                sorted(self.channels, key=lambda ch: ch.dof),
+                lambda: self.stop_signal is not None,
+            )
+        )
+        xs = st.reset()
+        for ch in self.channels:
+            ch.target = xs[ch.dof] if ch.dof >= 0 else _dot(ch.row, xs)
+            ch.compensator.reset(ch.target)
+            ch.alpha = ch.compensator.alpha
+            ch.command = ch.compensate(ch.target)
+            ch.target_next, ch.command_next = ch.target, ch.command
+            ch.velocity = st.v[ch.dof] if ch.dof >= 0 else _dot(ch.row, st.v)
+        trip = self.safety.command(0.0, 0)
+        for ch in self.channels:
+            ch.last_command = ch.command
+        return xs, trip
+
     def _loop(self, rec: Recorder) -> RunResult:
+        """Step from 0 until the end, a trip or an operator stop (the step; ``docs/loop.md``)."""
         plan = self.plan
         n = plan.n_steps
         dt = plan.dt
@@ -559,25 +328,18 @@ class Runner:
         # hour at 4096 Hz is 118 MB; a list would be 32 B per sample)
         ag = memoryview(np.ascontiguousarray(plan.ag, dtype=float))
         chans = self.channels
-        n_ch = len(chans)
-        multi = n_ch > 1
+        multi = len(chans) > 1
         safety = self.safety
         st = plan.structure
         n_dof = st.n_dof
         st_step = st.step
-        st_v, st_r = st, st  # read .v / .r after each commit
-        unit = all(ch.dof >= 0 for ch in chans)
-        dofs = [ch.dof for ch in chans]
-
-        write_row = _row_writer(rec, chans, multi, n_dof, st)
-        if rec.dtype.names != tuple(c[0] for c in plan.columns):  # pragma: no cover
-            raise AssertionError("record columns differ from the plan's")
+        row = StepValues()  # the loop's columns of the row being written
+        write_row = row_writer(rec, chans, st, row)
 
         check_feedback = safety.feedback
         check_command = safety.command
         check_evaluators = safety.evaluators
         check_timing = safety.timing
-        warm_min = min(ch.warm for ch in chans)
         timeout = plan.timeout
         spin = plan.spin
         min_sleep = MIN_SLEEP * dt
@@ -590,9 +352,7 @@ class Runner:
         perf = time.perf_counter
         sleep = time.sleep
         nan = math.nan
-        del warm_min
 
-        # lateness in a C double array: the console's p99 reads it as an ndarray without a copy
         # paced: lateness in a C double array (the console's p99 reads it as an ndarray without
         # a copy); lockstep: none (zero by definition, see the result below)
         lat_list = array.array("d", [0.0]) * n if paced else None  # no n-byte temporary
@@ -602,26 +362,13 @@ class Runner:
         console = plan.console_interval if self.live is not None else 0.0
         next_console = math.inf
 
-        # state of step 0 (an external structure, e.g. an OpenSees site, first gets the runner)
-        if hasattr(st, "attach"):
-            st.attach(self)
-        xs = st.reset()
-        for ch in chans:
-            ch.x_t = xs[ch.dof] if ch.dof >= 0 else _dot(ch.row, xs)
-            ch.comp.reset(ch.x_t)
-            ch.alpha = ch.comp.alpha
-            ch.c = ch.comp_step(ch.x_t)
-            ch.x_next, ch.c_next = ch.x_t, ch.c
-            ch.v = st.v[ch.dof] if ch.dof >= 0 else _dot(ch.row, st.v)
-        trip = check_command(0.0, 0)
-        for ch in chans:
-            ch.last_command = ch.c
+        xs, trip = self._start_state()
         overruns = 0
         missed = 0
         status = "completed"
         k = 0
         lat = 0.0
-        skew = nan
+        row.skew = nan
         was_over = False
         old_switch = sys.getswitchinterval()
         gc_was = gc.isenabled()
@@ -673,12 +420,12 @@ class Runner:
                             now = self._catch_up_spacing(now, prev_send)
                             lat = now - deadline
                     for ch in chans:
-                        ch.send(k, ch.c, True)
+                        ch.send(k, ch.command, True)
                     prev_send = now
                     lat_list[k] = lat
                 else:
                     for ch in chans:
-                        ch.send(k, ch.c, True)
+                        ch.send(k, ch.command, True)
                     now = perf()
                 # ---- every channel's reply --------------------------------------------------
                 t_lim = now + timeout
@@ -686,29 +433,29 @@ class Runner:
                 for ch in chans:
                     rem = t_lim - perf() if multi else timeout
                     fb = ch.receive(rem if rem > 0.0 else 0.0)
-                    t = ch.t_rx = perf()
+                    t = ch.reply_clock = perf()
                     t -= now
                     if fb is not None:
-                        ch.ok = True
-                        ch.meas = fb.displacement
+                        ch.feedback_ok = True
+                        ch.measured = fb.displacement
                         ch.force = fb.force
-                        ch.seq_rx = fb.seq
-                        ch.status = fb.status
-                        ch.fb_time = t
+                        ch.reply_seq = fb.seq
+                        ch.reply_status = fb.status
+                        ch.feedback_time = t
                         if t > t_last:
                             t_last = t
                         if t_first == 0.0 or t < t_first:
                             t_first = t
                     else:
-                        ch.ok = False
-                        ch.seq_rx = -1
-                        ch.status = 0
-                        ch.fb_time = nan
-                        ch.missed += 1
+                        ch.feedback_ok = False
+                        ch.reply_seq = -1
+                        ch.reply_status = 0
+                        ch.feedback_time = nan
+                        ch.missed_replies += 1
                         missed += 1
                 t_work = perf()
                 if multi:
-                    skew = t_last - t_first if t_first > 0.0 else nan
+                    row.skew = t_last - t_first if t_first > 0.0 else nan
                 trip = check_feedback(tk, k)
                 if hb_steps and k % hb_steps == 0:
                     for ch in chans:
@@ -726,28 +473,28 @@ class Runner:
                                 for i, r in enumerate(ch.row):
                                     f[i] += r * ch.force
                         x_next = st_step(k, ag[k], f)
-                    v_d, r_d = st_v.v, st_r.r
+                    v_d, r_d = st.v, st.r
                     for ch in chans:
                         d = ch.dof
                         if d >= 0:
-                            ch.x_next = x_next[d]
-                            ch.v = v_d[d]
-                            ch.r = r_d[d]
+                            ch.target_next = x_next[d]
+                            ch.velocity = v_d[d]
+                            ch.restoring_force = r_d[d]
                         else:
-                            ch.x_next = _dot(ch.row, x_next)
-                            ch.v = _dot(ch.row, v_d)
-                            ch.r = _dot(ch.row, r_d)
-                        ch.alpha = ch.comp.alpha
-                        ch.c_next = ch.comp_step(ch.x_next)
+                            ch.target_next = _dot(ch.row, x_next)
+                            ch.velocity = _dot(ch.row, v_d)
+                            ch.restoring_force = _dot(ch.row, r_d)
+                        ch.alpha = ch.compensator.alpha
+                        ch.command_next = ch.compensate(ch.target_next)
                     trip = check_command(tk, k)
                     if st.finished and trip is None:
-                        trip = getattr(st, "trip", None)  # an external structure's fault
+                        trip = st.trip  # an external structure's fault
                         if trip is None:
                             n = k + 1  # the structure ends the test after this step
                 else:
                     x_next = xs
                     for ch in chans:
-                        ch.x_next, ch.c_next = ch.x_t, ch.c
+                        ch.target_next, ch.command_next = ch.target, ch.command
                 # ---- evaluators -------------------------------------------------------------
                 for ch in chans:
                     ch.evaluate(k)
@@ -761,28 +508,33 @@ class Runner:
                     if (over or was_over) and trip is None:
                         trip = check_timing(tk, k, over, lat)
                     was_over = over
-                # ---- record row k (columns by name, see plan.record_columns) ----------------
-                write_row(tk, k, ag[k], lat, skew, xs)
+                # ---- record row k (every column by name, see .record) -------------------------
+                row.time = tk
+                row.step = k
+                row.ground_accel = ag[k]
+                row.lateness = lat
+                row.dofs = xs
+                write_row()
                 for ch in chans:
                     if console:  # peaks, for the console's safety margin only
-                        a = ch.x_t
+                        a = ch.target
                         if a < 0:
                             a = -a
-                        if a > ch.pk_disp:
-                            ch.pk_disp = a
-                        a = ch.v
+                        if a > ch.peak_displacement:
+                            ch.peak_displacement = a
+                        a = ch.velocity
                         if a < 0:
                             a = -a
-                        if a > ch.pk_vel:
-                            ch.pk_vel = a
+                        if a > ch.peak_velocity:
+                            ch.peak_velocity = a
                         a = ch.force
                         if a < 0:
                             a = -a
-                        if a > ch.pk_force:
-                            ch.pk_force = a
-                    ch.last_command = ch.c
-                    ch.x_t = ch.x_next
-                    ch.c = ch.c_next
+                        if a > ch.peak_force:
+                            ch.peak_force = a
+                    ch.last_command = ch.command
+                    ch.target = ch.target_next
+                    ch.command = ch.command_next
                 xs = x_next
                 work_list[k] = perf() - t_work
                 k += 1
@@ -799,7 +551,7 @@ class Runner:
             wall = perf() - t_start
             trip = Trip("record", str(exc), values={"rows_on_disk": rec.rows}).at(k * dt, k)
             for ch in chans:
-                ch.last_command = ch.c
+                ch.last_command = ch.command
             k += 1  # step k was sent and answered; only its row is lost
         except BaseException:
             for ch in chans:
@@ -810,7 +562,6 @@ class Runner:
             sys.setswitchinterval(old_switch)
             if gc_was:
                 gc.enable()
-        del unit, dofs
         if trip is not None and status != "operator_stop":
             status = "trip"
             rec.event("trip", **{k2: v2 for k2, v2 in trip.as_event().items() if k2 != "kind"})
@@ -830,7 +581,7 @@ class Runner:
             overruns=overruns,
             missed_replies=missed,
             estop_confirmed=None,
-            final_alpha=chans[0].comp.alpha,
+            final_alpha=chans[0].compensator.alpha,
             ready=ready,
             overrun_threshold=thr if paced else math.nan,
             work=np.frombuffer(work_list, dtype=float)[:k],
@@ -867,7 +618,7 @@ class Runner:
         (log.warning if length >= 0.01 or trip is not None else log.info)(
             "the bridge stalled for %.1f ms before step %d (%s)", length * 1e3, k, action
         )
-        return None if trip is None else self.safety._fire(trip, None, tk, k)
+        return None if trip is None else self.safety.fire(trip, None, tk, k)
 
     def _catch_up_spacing(self, now: float, prev_send: float) -> float:
         """Catch-up after a stall: wait until no channel's command moves faster (in wall-clock
@@ -876,7 +627,7 @@ class Runner:
         for ch in self.channels:
             lim = ch.monitor.vel_limit
             if lim != math.inf:
-                need = max(need, abs(ch.c - ch.last_command) / lim)
+                need = max(need, abs(ch.command - ch.last_command) / lim)
         perf = time.perf_counter
         while now < prev_send + need:
             now = perf()
@@ -887,7 +638,10 @@ class Runner:
         name, quantity, margin = self.safety.margin()
         ch = next((c for c in self.channels if c.name == name), self.channels[0])
         if len(self.channels) > 1 and margin == math.inf:  # no limits: the largest |FEI delay|
-            ch = max(self.channels, key=lambda c: abs(c.d_fei) if c.d_fei == c.d_fei else -1.0)
+            ch = max(
+                self.channels,
+                key=lambda c: abs(c.fei_delay) if c.fei_delay == c.fei_delay else -1.0,
+            )
         return {
             "t": tk,
             "k": k,
@@ -896,77 +650,16 @@ class Runner:
             "p99_lateness": p99(recent) if paced and recent.size else 0.0,
             "overruns": overruns,
             "channel": ch.name,
-            "amplitude": ch.a_fei,
-            "delay": ch.d_fei,
-            "valid": ch.v_fei,
-            "peak_displacement": ch.pk_disp,
+            "amplitude": ch.fei_amplitude,
+            "delay": ch.fei_delay,
+            "valid": ch.fei_valid,
+            "peak_displacement": ch.peak_displacement,
             "margin": (quantity, margin),
-            "alpha": ch.comp.alpha,
-            "compensation": ch.comp.enabled,
+            "alpha": ch.compensator.alpha,
+            "compensation": ch.compensator.enabled,
             "open_ended": self.plan.cfg["structure"]["kind"] == "openfresco",
             "mode": self.plan.mode,
         }
-
-
-def _row_writer(rec: Recorder, chans: list[Channel], multi: bool, n_dof: int, st=None):
-    """``write(t, k, ag, lateness, skew, dofs)``: one record row, each column read by name.
-
-    The plan's column list (:func:`rths_hil.hybrid.plan.record_columns`) names each channel
-    column after a :class:`Channel` attribute (:data:`~rths_hil.hybrid.plan.CHANNEL_COLUMNS_A`
-    …); an :func:`operator.attrgetter` per group reads them in column order. One channel on
-    one DOF gets a writer without an intermediate list (≈ 1 µs less per step). A structure
-    stage's own ``record_columns`` (the plan appends them last) are read from ``st`` into the
-    same row; a stage without them costs nothing.
-    """
-    append = rec.append
-    extra = [c[1] for c in getattr(st, "record_columns", ())]
-    if extra:
-        get_x = attrgetter(*extra, *extra[:1])  # ≥ 2 names: a tuple; one too many if one
-        nx = len(extra)
-        rec_append = rec.append
-
-        def append(*row):
-            rec_append(*row, *get_x(st)[:nx])
-
-    get_a = attrgetter(*(a for _, a in CHANNEL_COLUMNS_A))
-    get_b = attrgetter(*(a for _, a in CHANNEL_COLUMNS_B), "ok")  # ≥ 2 names: a tuple
-    nb = len(CHANNEL_COLUMNS_B)
-    get_c = attrgetter(*(c[1] for c in CHANNEL_COLUMNS_C))
-    if not multi and n_dof == 1:
-        (ch,) = chans
-
-        def write(t, k, ag, lat, skew, dofs):
-            append(t, k, ag, *get_a(ch), lat, *get_b(ch)[:nb], k, *get_c(ch))
-
-        return write
-
-    def write_many(t, k, ag, lat, skew, dofs):
-        row = [t, k, ag]
-        for ch in chans:
-            row += get_a(ch)
-        row.append(lat)
-        for ch in chans:
-            row += get_b(ch)[:nb]
-        row.append(k)
-        for ch in chans:
-            row += get_c(ch)
-        if multi:
-            row.append(skew)
-        if n_dof > 1:
-            row += dofs
-        append(*row)
-
-    return write_many
-
-
-def _stall_summary(stalls: list) -> dict:
-    """Count, longest and total of a run's stalls (s), for the end event and the summary."""
-    lengths = [s for _, s in stalls]
-    return {
-        "count": len(lengths),
-        "longest": max(lengths, default=0.0),
-        "total": sum(lengths),
-    }
 
 
 def _dot(row: list[float], x) -> float:
@@ -976,9 +669,3 @@ def _dot(row: list[float], x) -> float:
         if r:
             s += r * v
     return s
-
-
-def check_input(plan: TestPlan) -> None:  # pragma: no cover - kept for symmetry
-    """Nothing to check at run time that the plan has not checked."""
-    if not plan.channels:
-        raise InputError("a test needs at least one channel")

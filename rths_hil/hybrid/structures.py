@@ -21,13 +21,20 @@ The interface (:class:`StructureStage`)::
                                      of the last committed step (lists of n floats)
     stage.finished                   True when the structure ends the test early (an external
                                      analysis that stopped); the runner then stops, completed
+    stage.trip                       a Trip when the stage ended the test by a fault
+                                     (``finished`` too): the runner e-stops every channel
     stage.close()                    release what the stage holds (sockets, processes)
-    stage.record_columns             optional: extra record columns the stage keeps up to
-                                     date, ``(name, attribute, dtype, unit, description)``
-                                     each; the plan appends them to the record and the
-                                     runner writes ``getattr(stage, attribute)`` into every
-                                     row after ``step`` (the OpenSees site's ``of_kind``,
-                                     ``of_latency``)
+    stage.record_columns             the stage's own record columns (``()`` for none),
+                                     ``(name, attribute, dtype, unit, description)`` each;
+                                     the plan appends them to the record and the runner
+                                     writes the stage's ``attribute`` into every row after
+                                     ``step`` (the OpenSees site's ``of_kind``, ``of_latency``)
+    stage.external                   the targets come from an external analysis: nothing is
+                                     known of them before the run starts
+    stage.attach(context)            called once before ``reset``: what the stage may use of
+                                     the running test (:class:`StageContext`: the channels'
+                                     measured displacements and keep-alive, the operator
+                                     stop, the run directory)
 
 Explicit integration is what makes the loop work: the targets of step k+1 are known before
 the force of step k+1 is measured (Chen & Ricles 2008), so every command leaves at its deadline
@@ -37,10 +44,35 @@ with no computation in front of it.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from typing import Protocol, runtime_checkable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
 
-__all__ = ["MDOFStage", "SDOFStage", "StructureStage"]
+from ..safety import Trip
+
+__all__ = ["MDOFStage", "SDOFStage", "StageContext", "StructureStage"]
+
+
+@dataclass
+class StageContext:
+    """What a structure stage may use of the running test (:meth:`StructureStage.attach`).
+
+    Attributes
+    ----------
+    run_dir : Path
+        The run directory (a stage may write its own summary there).
+    channels : list of Channel
+        The actuator channels (:class:`rths_hil.hybrid.channel.Channel`), in DOF order: their
+        ``measured`` displacement of the current step, :meth:`keepalive` and
+        :meth:`restart_watchdog` while the loop waits for an external analysis.
+    stop_requested : callable
+        True once the operator asked to stop (Ctrl-C, SIGTERM).
+    """
+
+    run_dir: Path
+    channels: list[Any]
+    stop_requested: Callable[[], bool]
 
 
 @runtime_checkable
@@ -51,6 +83,13 @@ class StructureStage(Protocol):
     v: list[float]
     r: list[float]
     finished: bool
+    trip: Trip | None
+    external: bool
+    record_columns: tuple[tuple[str, str, str, str, str], ...]
+
+    def attach(self, context: StageContext) -> None:
+        """What the stage may use of the running test, before :meth:`reset`."""
+        ...
 
     def reset(self) -> list[float]:
         """DOF displacements of step 0."""
@@ -75,6 +114,9 @@ class SDOFStage:
     """
 
     n_dof = 1
+    trip = None
+    external = False
+    record_columns = ()
 
     def __init__(self, stepper) -> None:
         self.stepper = stepper
@@ -82,6 +124,9 @@ class SDOFStage:
         self.v = [0.0]
         self.r = [0.0]
         self.finished = False
+
+    def attach(self, context: StageContext) -> None:
+        pass
 
     def reset(self) -> list[float]:
         st = self.stepper
@@ -113,6 +158,10 @@ class MDOFStage:
         ``restoring_force``.
     """
 
+    trip = None
+    external = False
+    record_columns = ()
+
     def __init__(self, stepper) -> None:
         self.stepper = stepper
         self._step = stepper.step
@@ -120,6 +169,9 @@ class MDOFStage:
         self.v = [0.0] * self.n_dof
         self.r = [0.0] * self.n_dof
         self.finished = False
+
+    def attach(self, context: StageContext) -> None:
+        pass
 
     def _state(self) -> None:
         st = self.stepper

@@ -27,11 +27,13 @@ from __future__ import annotations
 import json
 import logging
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..hybrid.structures import StageContext
 from ..safety import Trip
 from .site import ExperimentalSite
 from .timing import IDLE, KINDS, SiteFault
@@ -39,6 +41,10 @@ from .timing import IDLE, KINDS, SiteFault
 log = logging.getLogger(__name__)
 
 __all__ = ["SiteStage"]
+
+
+def _never() -> bool:
+    return False
 
 
 _KIND_CODES = ", ".join(f"{i} {name}" for i, name in KINDS.items())
@@ -57,8 +63,8 @@ class SiteStage:
         Number of actuator channels.
     """
 
-    #: The stage's record columns (:mod:`rths_hil.hybrid.structures`): name, attribute,
-    #: dtype, unit, description.
+    #: The stage's record columns (:class:`rths_hil.hybrid.structures.StructureStage`): name,
+    #: attribute, dtype, unit, description.
     record_columns = (
         ("of_kind", "kind", "<i8", "-", f"how the row's target was made ({_KIND_CODES})"),
         (
@@ -71,6 +77,9 @@ class SiteStage:
         ),
     )
 
+    #: the targets come from OpenSees: nothing is known of them before the run starts
+    external = True
+
     def __init__(self, options, dt: float, n_dof: int = 1) -> None:
         self.site = ExperimentalSite(options, dt, n_dof)
         self.dt = float(dt)
@@ -79,8 +88,9 @@ class SiteStage:
         self.r = [math.nan] * self.n_dof
         self.finished = False
         self.trip: Trip | None = None
-        self.runner: Any = None
         self.run_dir: Path | None = None
+        self._chans: list = []  # the runner's channels, in DOF order
+        self._stop: Callable[[], bool] = _never
         self._x = [0.0] * self.n_dof
         self.kind = IDLE  # of_kind of the row being written: how its target was made
         self.latency = math.nan  # of_latency: OpenSees' latency of a trial new in this step
@@ -103,19 +113,17 @@ class SiteStage:
         """The OpenSeesPy and Tcl ``genericClient`` lines for this site."""
         return self.site.paste_lines()
 
-    def attach(self, runner: Any) -> None:
-        """The runner this stage serves (its channels' measurements, its stop flag, run dir)."""
-        self.runner = runner
-        self.run_dir = Path(runner.plan.run_dir)
-        chans = runner.channels
-        order = sorted(range(len(chans)), key=lambda i: chans[i].dof)
-        self._chans = [chans[i] for i in order]
+    def attach(self, context: StageContext) -> None:
+        """The test this stage serves: its channels (measurements, keep-alive), the operator
+        stop and the run directory."""
+        self.run_dir = Path(context.run_dir)
+        self._chans = list(context.channels)
+        self._stop = context.stop_requested
 
     def reset(self) -> list[float]:
         """Wait for the client and its ID; the targets of step 0 (rest)."""
         self.listen()
-        runner = self.runner
-        stop = (lambda: runner.stop_signal is not None) if runner is not None else (lambda: False)
+        stop = self._stop
         ses = self.site.accept(stop)
         log.info("openfresco: client connected, ID %s", ses.as_tuple())
         tm = self.site.timing
@@ -133,13 +141,9 @@ class SiteStage:
         The controllers' own watchdogs (the twins' heartbeat timeout, a real controller's) are
         fed by the heartbeat; an in-process twin is served so that it sees it.
         """
-        for ch in getattr(self, "_chans", ()):
+        for ch in self._chans:
             try:
-                if ch.heartbeat is not None:
-                    ch.heartbeat()
-                twin = ch.twin
-                if twin is not None and getattr(twin, "inline", False):
-                    twin.pump()
+                ch.keepalive()
             except Exception as exc:  # the next step's command and reply will tell
                 log.warning("openfresco: heartbeat while waiting for OpenSees failed: %s", exc)
 
@@ -149,10 +153,8 @@ class SiteStage:
         The loop sent no command while it waited (virtual time stood still), so no reply was
         due: the wait is not controller silence. The next command's reply is checked as usual.
         """
-        for ch in getattr(self, "_chans", ()):
-            wd = getattr(getattr(ch, "monitor", None), "watchdog", None)
-            if wd is not None and hasattr(wd, "reset"):
-                wd.reset()
+        for ch in self._chans:
+            ch.restart_watchdog()
 
     # -- stepping -----------------------------------------------------------------------------
     def step(self, k: int, ag: float, force) -> list[float]:
@@ -165,8 +167,8 @@ class SiteStage:
         self.latency = math.nan
         if self.finished:
             return self._x
-        chans = getattr(self, "_chans", None)
-        disp = [ch.meas for ch in chans] if chans else self._x
+        chans = self._chans
+        disp = [ch.measured for ch in chans] if chans else self._x
         tm = self.site.timing
         n_kinds = len(tm.kinds) if tm is not None else 0
         n_targets = len(tm.targets) if tm is not None else 0
