@@ -17,9 +17,10 @@ The CR integration is explicit in displacement (Chen & Ricles 2008): the targets
 depend only on the state of step k, so every command of step k+1 is ready before its deadline.
 
 Safety is called once per phase (:class:`~rths_hil.hybrid.rules.Safety`); a fired rule comes
-back as a :class:`~rths_hil.safety.Trip` naming the channel, the rule and the values, and the runner then
-e-stops **every** channel through its driver (each twin or controller latches and holds),
-confirms each latch with one status poll, records the events and returns; the CLI exits with 3.
+back as a :class:`~rths_hil.safety.Trip` naming the channel, the rule and the values, and the
+runner then e-stops **every** channel through its driver (each twin or controller latches and
+holds), confirms each latch with one status poll, records the events and returns; the CLI exits
+with 3.
 
 Modes, pacing and the overrun policy are those of ``docs/loop.md`` (:mod:`.timing`). What the
 run returns is a :class:`~rths_hil.hybrid.result.RunResult`; the record's files and rows are
