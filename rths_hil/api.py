@@ -153,7 +153,7 @@ def run(
     duration : float or str, optional
         Simulated seconds (``10``, ``"10 s"``, ``"500ms"``; 0 = the whole record).
     plant, live
-        As :class:`rths_hil.loop.RTHSLoop` (a twin plant for what-ifs; a status callback).
+        As :class:`rths_hil.hybrid.RTHSLoop` (a twin plant for what-ifs; a status callback).
     summary, report : bool
         Write ``summary.json`` (default) and ``report.png`` (off by default) as the command
         line does.

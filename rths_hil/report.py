@@ -23,6 +23,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from .hybrid.columns import channel_suffix
 from .metrics import overlap_peak_lag
 from .recorder import RECORD_FILE, RunData, read_npy_header, read_run
 
@@ -61,7 +62,7 @@ def format_live(s: dict[str, Any]) -> str:
 
 
 class LiveLine:
-    """A callable for :class:`rths_hil.loop.RTHSLoop` ``live=``: prints the status line.
+    """A callable for :class:`rths_hil.hybrid.RTHSLoop` ``live=``: prints the status line.
 
     On a terminal the line is rewritten in place (carriage return); otherwise (logs, CI) every
     ``every``-th status is printed on its own line.
@@ -96,7 +97,11 @@ class LiveLine:
 def channel_suffixes(run: RunData) -> list[tuple[str, str]]:
     """(name, column suffix) of each channel of a run (one unnamed channel for older runs)."""
     chans = run.meta.get("channels") or []
-    out = [(c.get("name", ""), c.get("suffix", "")) for c in chans]
+    multi = len(chans) > 1
+    out = [
+        (c.get("name", ""), c.get("suffix", channel_suffix(c.get("name") if multi else None)))
+        for c in chans
+    ]
     return out or [("", "")]
 
 

@@ -44,7 +44,7 @@ Rules (names as they appear in events and on the console):
     Not a rule of the monitor: the recorder could not write (disk full, file-size limit); the
     loop stops with an e-stop and keeps the rows already on disk (:mod:`rths_hil.recorder`).
 ``operator``
-    Not a rule: the operator stop (Ctrl-C) uses the same path (see :mod:`rths_hil.loop`).
+    Not a rule: the operator stop (Ctrl-C) uses the same path (see :mod:`rths_hil.hybrid`).
 """
 
 from __future__ import annotations
@@ -634,7 +634,7 @@ class SafetyMonitor:
 
     Notes
     -----
-    Call order in a step (see :mod:`rths_hil.loop`): :meth:`check_command` before the command is
+    Call order in a step (see :mod:`rths_hil.hybrid`): :meth:`check_command` before the command is
     sent, :meth:`check_feedback` when the reply (or its absence) is known, :meth:`check_fei` and
     :meth:`check_kalman` with the estimates, :meth:`check_overrun` in paced mode. Each returns
     the first :class:`Trip` (stamped with time and step) or ``None``; after a trip the monitor

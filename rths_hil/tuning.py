@@ -35,7 +35,7 @@ Sweep (:func:`sweep`)
     (:func:`zero_crossing`); the amplitude factor recommended there is ``a / A(α₀)`` with ``A``
     interpolated the same way.
 Trials (:class:`LoopTrials`)
-    Each trial is a run of the real-time loop (:class:`rths_hil.loop.RTHSLoop`) with the
+    Each trial is a run of the real-time loop (:class:`rths_hil.hybrid.RTHSLoop`) with the
     trial's α and ``a``, adaptive compensation off, for ``duration`` seconds of the record:
     in lockstep against the configured twin (online evaluators off for speed: the trial is
     evaluated offline over its whole length, and nothing is at risk), or — only after the

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..hybrid.columns import channel_columns, column_name
 from ..recorder import EVENTS_FILE, META_FILE, RECORD_FILE, read_npy_header
 
 __all__ = [
@@ -45,25 +46,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Columns a multi-channel record carries once per actuator channel, as ``<name>_<channel>``.
-CHANNEL_COLUMNS = (
-    "target",
-    "command",
-    "measured",
-    "force",
-    "alpha",
-    "fei_amplitude",
-    "fei_delay",
-    "fei_f_eq",
-    "fei_valid",
-    "fei_exact_amplitude",
-    "fei_exact_delay",
-    "fei_exact_valid",
-    "kf_gain",
-    "kf_delay",
-    "feedback_ok",
-    "seq",
-)
+#: Columns a multi-channel record carries once per actuator channel, as ``<name>_<channel>``
+#: (:func:`rths_hil.hybrid.columns.column_name`).
+CHANNEL_COLUMNS = tuple(c.name for c in channel_columns())
 
 
 def find_channels(names: tuple[str, ...] | list[str]) -> list[str]:
@@ -82,15 +67,16 @@ def find_channels(names: tuple[str, ...] | list[str]) -> list[str]:
     for n in names:
         if n.startswith("target_"):
             ch = n[len("target_") :]
-            if ch and f"measured_{ch}" in have:
+            if ch and column_name("measured", ch) in have:
                 out.append(ch)
     return out
 
 
 def channel_column(names, base: str, channel: str) -> str | None:
     """The column holding ``base`` for ``channel`` (``base_channel``, else a shared ``base``)."""
-    if channel and f"{base}_{channel}" in names:
-        return f"{base}_{channel}"
+    name = column_name(base, channel)
+    if channel and name in names:
+        return name
     if base in names:
         return base
     return None
