@@ -228,9 +228,9 @@ def test_catch_up_spacing_waits_for_the_slowest_channel():
     from rths_hil.hybrid.runner import Runner
 
     chans = [
-        NS(c=1e-3, last_command=0.0, monitor=NS(vel_limit=1.0)),  # 1 mm at 1 m/s: 1 ms
-        NS(c=2e-3, last_command=1e-3, monitor=NS(vel_limit=0.5)),  # 1 mm at 0.5 m/s: 2 ms
-        NS(c=1.0, last_command=0.0, monitor=NS(vel_limit=math.inf)),
+        NS(command=1e-3, last_command=0.0, monitor=NS(vel_limit=1.0)),  # 1 mm at 1 m/s: 1 ms
+        NS(command=2e-3, last_command=1e-3, monitor=NS(vel_limit=0.5)),  # 1 mm at 0.5 m/s: 2 ms
+        NS(command=1.0, last_command=0.0, monitor=NS(vel_limit=math.inf)),
     ]
     t = time.perf_counter()
     sent = Runner._catch_up_spacing(NS(channels=chans), t, t)
