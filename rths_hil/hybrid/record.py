@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from operator import attrgetter
+from types import SimpleNamespace
 from typing import Any
 
 from ..recorder import Recorder
@@ -92,14 +93,6 @@ def open_recorder(plan: TestPlan, channels: list[Channel]) -> Recorder:
     )
 
 
-def _getter(names: list[str]) -> Callable[[Any], tuple]:
-    """A function returning the attributes ``names`` of an object as a tuple."""
-    if len(names) == 1:
-        name = names[0]
-        return lambda obj: (getattr(obj, name),)
-    return attrgetter(*names)
-
-
 def row_writer(
     rec: Recorder, channels: list[Channel], stage: Any, values: StepValues
 ) -> Callable[[], None]:
@@ -107,40 +100,46 @@ def row_writer(
 
     The columns are :func:`rths_hil.hybrid.columns.layout` of ``channels`` on the stage's
     DOFs, then the stage's own :attr:`~rths_hil.hybrid.structures.StructureStage.record_columns`
-    (the order of :attr:`TestPlan.columns <rths_hil.hybrid.plan.TestPlan>`). Consecutive columns
-    of one object are read with one :func:`operator.attrgetter`.
+    (the order of :attr:`TestPlan.columns <rths_hil.hybrid.plan.TestPlan>`). Each column is
+    read by a dotted name from one namespace, ``loop.<step value>``, ``ch<i>.<attribute>`` or
+    ``stage.<attribute>``; one :func:`operator.attrgetter` reads the row up to the DOF columns
+    (one C call, no Python work per column). The DOF displacements ``u_1 … u_n`` (several DOFs
+    only) are the list :attr:`StepValues.dofs`; the stage's columns follow them.
     """
-    by_name = {ch.name: ch for ch in channels}
+    index = {ch.name: i for i, ch in enumerate(channels)}
     single = len(channels) == 1
-    # (object, attribute) of every column, in file order
-    sources: list[tuple[Any, str]] = []
+    names: list[str] = []  # the dotted source of every column before u_1 … u_n
+    n_dofs = 0
     for col, ch, dof in layout([ch.name for ch in channels], stage.n_dof):
         if dof >= 0:
-            if dof == 0:
-                sources.append((values, "dofs"))  # u_1 … u_n: the whole list, once
+            n_dofs += 1
+        elif n_dofs:
+            raise AssertionError("the DOF columns are not the table's last")  # pragma: no cover
         elif ch is None:
-            sources.append((values, col.attribute))
+            names.append(f"loop.{col.attribute}")
         else:
-            sources.append((channels[0] if single else by_name[ch], col.attribute))
-    sources += [(stage, c[1]) for c in stage.record_columns]
-    if sum(stage.n_dof if a == "dofs" else 1 for _, a in sources) != len(rec.columns):
+            names.append(f"ch{0 if single else index[ch]}.{col.attribute}")
+    extra = [f"stage.{c[1]}" for c in stage.record_columns]
+    if len(names) + n_dofs + len(extra) != len(rec.columns):
         raise AssertionError("record columns differ from the plan's")  # pragma: no cover
-    # consecutive columns of one object: one getter
-    runs: list[tuple[list[str], Any]] = []
-    for obj, attr in sources:
-        if runs and runs[-1][1] is obj and attr != "dofs" and runs[-1][0] != ["dofs"]:
-            runs[-1][0].append(attr)
-        else:
-            runs.append(([attr], obj))
-    parts = [
-        (attrgetter("dofs") if names == ["dofs"] else _getter(names), obj) for names, obj in runs
-    ]
+    sources = SimpleNamespace(loop=values, stage=stage)
+    for i, ch in enumerate(channels):
+        setattr(sources, f"ch{i}", ch)
+    head = attrgetter(*names)  # ≥ 3 names: returns a tuple
     append = rec.append
+    if not n_dofs and not extra:
 
-    def write() -> None:
-        row: list = []
-        for get, obj in parts:
-            row += get(obj)
+        def write() -> None:
+            append(*head(sources))
+
+        return write
+    tail = [attrgetter(name) for name in extra]
+
+    def write_dofs_and_stage() -> None:
+        row = list(head(sources))
+        if n_dofs:
+            row += values.dofs
+        row += [get(sources) for get in tail]
         append(*row)
 
-    return write
+    return write_dofs_and_stage
