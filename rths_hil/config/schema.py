@@ -25,7 +25,7 @@ Errors
     naming the file (or the ``--set`` argument) and the key path, e.g.
     ``run.toml: loop.fs: must be ≤ 100000 Hz, got 1e+06``.
 
-``docs/config.md`` is generated from :data:`SCHEMA` by :func:`schema_markdown`.
+``docs/config.md`` is generated from :data:`SCHEMA` by :func:`rths_hil.config.schema_markdown`.
 """
 
 from __future__ import annotations
