@@ -579,6 +579,8 @@ def run_channels(n: int, mode: str, duration: float, extra=()):
         return RTHSLoop(cfg, Path(d) / "r", mode=mode, duration=duration).run()
 
 
+#: One lockstep run of the default configuration, printing its steps/s (a revision from before
+#: the loop moved to ``rths_hil.hybrid`` imports it from ``rths_hil.loop``).
 _BASELINE_SNIPPET = (
     "import sys, tempfile; from pathlib import Path; from rths_hil.config import load_config;"
     "\ntry:\n from rths_hil.hybrid import RTHSLoop\nexcept ImportError:\n"
