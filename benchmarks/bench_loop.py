@@ -579,15 +579,23 @@ def run_channels(n: int, mode: str, duration: float, extra=()):
         return RTHSLoop(cfg, Path(d) / "r", mode=mode, duration=duration).run()
 
 
-#: One lockstep run of the default configuration, printing its steps/s (a revision from before
-#: the loop moved to ``rths_hil.hybrid`` imports it from ``rths_hil.loop``).
+#: One lockstep run of the default configuration, printing its steps/s and the loop thread's
+#: CPU time per step in µs (``time.thread_time`` around the step loop: on a shared machine the
+#: time the thread was not running does not count). A revision from before the loop moved to
+#: ``rths_hil.hybrid`` imports it from ``rths_hil.loop``.
 _BASELINE_SNIPPET = (
-    "import sys, tempfile; from pathlib import Path; from rths_hil.config import load_config;"
+    "import sys, tempfile, time; from pathlib import Path; from rths_hil.config import load_config"
     "\ntry:\n from rths_hil.hybrid import RTHSLoop\nexcept ImportError:\n"
-    " from rths_hil.loop import RTHSLoop\ncfg = load_config(None, ['loop.console=0',"
-    " 'output.plot=false']); d = tempfile.mkdtemp();"
-    " r = RTHSLoop(cfg, Path(d) / 'r', mode='lockstep', duration=float(sys.argv[1])).run();"
-    " print(r.steps_per_second)"
+    " from rths_hil.loop import RTHSLoop\n"
+    "try:\n from rths_hil.hybrid.runner import Runner as C\n"
+    "except ImportError:\n C = RTHSLoop\n"
+    "cpu = [0.0]\norig = C._loop\n"
+    "def timed(self, *a):\n t0 = time.thread_time()\n try: return orig(self, *a)\n"
+    " finally: cpu[0] = time.thread_time() - t0\n"
+    "C._loop = timed\n"
+    "cfg = load_config(None, ['loop.console=0', 'output.plot=false']); d = tempfile.mkdtemp()\n"
+    "r = RTHSLoop(cfg, Path(d) / 'r', mode='lockstep', duration=float(sys.argv[1])).run()\n"
+    "print(r.steps_per_second, cpu[0] / r.steps * 1e6)\n"
 )
 
 
@@ -634,9 +642,9 @@ def one_channel_vs_baseline(
             capture_output=True,
         )
         try:
-            new, old = [], []
+            new, old, cpu_new, cpu_old = [], [], [], []
             for _ in range(rounds):
-                for tree, out in ((root, new), (wt, old)):
+                for tree, out, cpu_out in ((root, new, cpu_new), (wt, old, cpu_old)):
                     env = dict(os.environ, PYTHONPATH=str(tree))
                     r = subprocess.run(
                         [*pin, sys.executable, "-c", _BASELINE_SNIPPET, str(duration)],
@@ -646,7 +654,9 @@ def one_channel_vs_baseline(
                         text=True,
                         check=True,
                     )
-                    out.append(float(r.stdout.strip().splitlines()[-1]))
+                    rate, cpu_us = r.stdout.strip().splitlines()[-1].split()
+                    out.append(float(rate))
+                    cpu_out.append(float(cpu_us))
             ops = []
             for tree in (root, wt):  # deterministic: one traced run each
                 env = dict(os.environ, PYTHONPATH=str(tree))
@@ -666,10 +676,13 @@ def one_channel_vs_baseline(
             )
     ratios = [a / b for a, b in zip(new, old, strict=True)]
     med = statistics.median(ratios)
+    cpu_med = statistics.median(a / b for a, b in zip(cpu_new, cpu_old, strict=True))
     row = (
         f"| 1 channel (default config) vs `{rev}` | {statistics.median(new):.0f} vs "
         f"{statistics.median(old):.0f} steps/s | median ratio {med:.3f} (range "
         f"{min(ratios):.2f}–{max(ratios):.2f}) over {rounds} alternations (goal ≥ 0.95); "
+        f"loop CPU time per step {statistics.median(cpu_new):.1f} vs "
+        f"{statistics.median(cpu_old):.1f} µs (median ratio {cpu_med:.3f}); "
         f"Python bytecodes per step {ops[0]:.0f} vs {ops[1]:.0f} ({ops[0] / ops[1]:.3f}) |"
     )
     return ratios, row

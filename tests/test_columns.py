@@ -9,7 +9,7 @@ import pytest
 
 from rths_hil.hybrid.channel import Channel
 from rths_hil.hybrid.columns import TABLE, channel_columns, column_name, layout, specs
-from rths_hil.hybrid.record import StepValues, row_writer
+from rths_hil.hybrid.record import row_writer
 from rths_hil.recorder import COLUMNS, Recorder, read_run
 from rths_hil.watch.source import find_channels
 
@@ -66,11 +66,10 @@ def test_row_writer_reads_each_column_by_name(tmp_path, channels, n_dof):
     stage = SimpleNamespace(
         n_dof=n_dof, record_columns=(("of_kind", "kind", "<i8", "-", "stage column"),), kind=7
     )
-    values = StepValues()
-    values.time, values.step, values.ground_accel = 0.25, 3, -1.5
-    values.lateness, values.skew, values.dofs = 1e-4, 2e-5, [10.0 * (i + 1) for i in range(n_dof)]
+    dofs = [10.0 * (i + 1) for i in range(n_dof)]
     with Recorder(tmp_path / "r", 1024.0, columns=cols) as rec:
-        row_writer(rec, chans, stage, values)()
+        write = row_writer(rec, chans, stage)
+        write(0.25, 3, -1.5, 1e-4, 2e-5, dofs)
     row = read_run(tmp_path / "r").record[0]
     assert row["time"] == 0.25 and row["step"] == 3 and row["seq"] == 3
     assert row["ground_accel"] == -1.5 and row["lateness"] == 1e-4
@@ -81,4 +80,15 @@ def test_row_writer_reads_each_column_by_name(tmp_path, channels, n_dof):
             assert row[column_name(col.name, sfx_name)] == getattr(ch, col.name), col.name
     if n_dof > 1:
         assert row["skew"] == 2e-5
-        np.testing.assert_array_equal([row[f"u_{i + 1}"] for i in range(n_dof)], values.dofs)
+        np.testing.assert_array_equal([row[f"u_{i + 1}"] for i in range(n_dof)], dofs)
+    assert "ch0.target" in write.source and "of_kind" not in write.source
+
+
+def test_a_stage_column_that_is_no_attribute_name_is_refused(tmp_path):
+    from rths_hil.errors import InputError
+
+    stage = SimpleNamespace(n_dof=1, record_columns=(("bad", "kind; x", "<i8", "-", "d"),))
+    cols = [*specs([""], 1), ("bad", "<i8", "-", "d")]
+    with Recorder(tmp_path / "r", 1024.0, columns=cols) as rec:
+        with pytest.raises(InputError, match="not an attribute name"):
+            row_writer(rec, [SimpleNamespace(name="")], stage)

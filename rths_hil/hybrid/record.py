@@ -3,54 +3,23 @@
 :func:`open_recorder` creates the run directory's files (:class:`rths_hil.recorder.Recorder`)
 with the plan's columns and what a reader needs to interpret them (channels, their suffixes
 and transforms, drivers, twins). :func:`row_writer` fills each row from the column table
-(:mod:`rths_hil.hybrid.columns`): a loop column from the step's :class:`StepValues`, a channel
+(:mod:`rths_hil.hybrid.columns`): a loop column from the step's value of its name, a channel
 column from the :class:`~rths_hil.hybrid.channel.Channel` attribute of its name, a structure
 stage's column from the stage's attribute.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from operator import attrgetter
-from types import SimpleNamespace
+from collections.abc import Callable
 from typing import Any
 
+from ..errors import InputError
 from ..recorder import Recorder
 from .channel import Channel
 from .columns import layout
 from .plan import TestPlan
 
-__all__ = ["StepValues", "open_recorder", "row_writer"]
-
-
-class StepValues:
-    """The loop's values of the row being written (the ``loop`` columns of the table).
-
-    Attributes
-    ----------
-    time : float
-        Loop time k·Δt (s).
-    step : int
-        Step index k (also the sequence number sent with the step's commands).
-    ground_accel : float
-        Ground acceleration of step k (m/s²).
-    lateness : float
-        Send time minus deadline (s; 0 in lockstep).
-    skew : float
-        Latest minus earliest reply time over the channels (s; several channels only).
-    dofs : list of float
-        DOF displacements of step k (several DOFs only: ``u_1 … u_n``).
-    """
-
-    __slots__ = ("dofs", "ground_accel", "lateness", "skew", "step", "time")
-
-    def __init__(self) -> None:
-        self.time = 0.0
-        self.step = 0
-        self.ground_accel = 0.0
-        self.lateness = 0.0
-        self.skew = 0.0
-        self.dofs: Sequence[float] = ()
+__all__ = ["ROW_ARGUMENTS", "open_recorder", "row_writer"]
 
 
 def open_recorder(plan: TestPlan, channels: list[Channel]) -> Recorder:
@@ -93,53 +62,53 @@ def open_recorder(plan: TestPlan, channels: list[Channel]) -> Recorder:
     )
 
 
-def row_writer(
-    rec: Recorder, channels: list[Channel], stage: Any, values: StepValues
-) -> Callable[[], None]:
-    """``write()``: append the row of the current step to ``rec``, every column by name.
+#: The loop's values of a row, the parameters of the writer :func:`row_writer` returns: every
+#: ``loop`` column of :data:`rths_hil.hybrid.columns.TABLE` takes its value from the parameter
+#: of its :attr:`~rths_hil.hybrid.columns.Column.attribute`, ``u_1 … u_n`` from ``dofs``.
+ROW_ARGUMENTS = ("time", "step", "ground_accel", "lateness", "skew", "dofs")
 
-    The columns are :func:`rths_hil.hybrid.columns.layout` of ``channels`` on the stage's
-    DOFs, then the stage's own :attr:`~rths_hil.hybrid.structures.StructureStage.record_columns`
-    (the order of :attr:`TestPlan.columns <rths_hil.hybrid.plan.TestPlan>`). Each column is
-    read by a dotted name from one namespace, ``loop.<step value>``, ``ch<i>.<attribute>`` or
-    ``stage.<attribute>``; one :func:`operator.attrgetter` reads the row up to the DOF columns
-    (one C call, no Python work per column). The DOF displacements ``u_1 … u_n`` (several DOFs
-    only) are the list :attr:`StepValues.dofs`; the stage's columns follow them.
+
+def row_writer(rec: Recorder, channels: list[Channel], stage: Any) -> Callable[..., None]:
+    """``write(time, step, ground_accel, lateness, skew, dofs)``: append the step's row.
+
+    Every column is named in the writer's code: a loop column is the parameter of its name
+    (``seq`` is ``step``: the sequence number sent with step k is k), a channel column the
+    :class:`~rths_hil.hybrid.channel.Channel` attribute of its name (``ch0.target``,
+    ``ch1.measured`` …), a structure stage's column the stage's attribute (``stage.kind``); the
+    DOF displacements ``u_1 … u_n`` (several DOFs only) are ``dofs``. The columns are
+    :func:`rths_hil.hybrid.columns.layout` of ``channels`` on the stage's DOFs, then the stage's
+    own :attr:`~rths_hil.hybrid.structures.StructureStage.record_columns` (the order of
+    :attr:`TestPlan.columns <rths_hil.hybrid.plan.TestPlan>`).
+
+    The writer is compiled once per run from that list of names, as
+    :func:`collections.namedtuple` compiles its class, so that a row costs one call with one
+    attribute read per column and no intermediate tuples (the step's budget is a few tens of
+    µs). Its source is the writer's ``source`` attribute.
     """
     index = {ch.name: i for i, ch in enumerate(channels)}
     single = len(channels) == 1
-    names: list[str] = []  # the dotted source of every column before u_1 … u_n
-    n_dofs = 0
+    values: list[str] = []
     for col, ch, dof in layout([ch.name for ch in channels], stage.n_dof):
         if dof >= 0:
-            n_dofs += 1
-        elif n_dofs:
-            raise AssertionError("the DOF columns are not the table's last")  # pragma: no cover
+            if dof == 0:
+                values.append("*dofs")
         elif ch is None:
-            names.append(f"loop.{col.attribute}")
+            if col.attribute not in ROW_ARGUMENTS:  # pragma: no cover - a new loop column
+                raise AssertionError(f"loop column {col.name}: no row argument {col.attribute}")
+            values.append(col.attribute)
         else:
-            names.append(f"ch{0 if single else index[ch]}.{col.attribute}")
-    extra = [f"stage.{c[1]}" for c in stage.record_columns]
-    if len(names) + n_dofs + len(extra) != len(rec.columns):
-        raise AssertionError("record columns differ from the plan's")  # pragma: no cover
-    sources = SimpleNamespace(loop=values, stage=stage)
-    for i, ch in enumerate(channels):
-        setattr(sources, f"ch{i}", ch)
-    head = attrgetter(*names)  # ≥ 3 names: returns a tuple
-    append = rec.append
-    if not n_dofs and not extra:
-
-        def write() -> None:
-            append(*head(sources))
-
-        return write
-    tail = [attrgetter(name) for name in extra]
-
-    def write_dofs_and_stage() -> None:
-        row = list(head(sources))
-        if n_dofs:
-            row += values.dofs
-        row += [get(sources) for get in tail]
-        append(*row)
-
-    return write_dofs_and_stage
+            values.append(f"ch{0 if single else index[ch]}.{col.attribute}")
+    for c in stage.record_columns:
+        if not str(c[1]).isidentifier():
+            raise InputError(f"structure stage column {c[0]}: {c[1]!r} is not an attribute name")
+        values.append(f"stage.{c[1]}")
+    n = sum(stage.n_dof if v == "*dofs" else 1 for v in values)
+    if n != len(rec.columns):  # pragma: no cover
+        raise AssertionError("record columns differ from the plan's")
+    source = f"def write({', '.join(ROW_ARGUMENTS)}):\n    append({', '.join(values)})\n"
+    namespace: dict[str, Any] = {"append": rec.append, "stage": stage}
+    namespace.update({f"ch{i}": ch for i, ch in enumerate(channels)})
+    exec(compile(source, "<record row>", "exec"), namespace)  # names from the column table
+    write = namespace["write"]
+    write.source = source
+    return write

@@ -49,7 +49,7 @@ from ..safety import OverrunRule, StallRule, Trip
 from .channel import Channel
 from .phases import Phases, preflight
 from .plan import TestPlan
-from .record import StepValues, open_recorder, row_writer
+from .record import open_recorder, row_writer
 from .result import RunResult
 from .rules import Safety
 from .structures import StageContext
@@ -334,8 +334,7 @@ class Runner:
         st = plan.structure
         n_dof = st.n_dof
         st_step = st.step
-        row = StepValues()  # the loop's columns of the row being written
-        write_row = row_writer(rec, chans, st, row)
+        write_row = row_writer(rec, chans, st)  # (time, step, ground_accel, lateness, skew, dofs)
 
         check_feedback = safety.feedback
         check_command = safety.command
@@ -369,7 +368,7 @@ class Runner:
         status = "completed"
         k = 0
         lat = 0.0
-        row.skew = nan
+        skew = nan
         was_over = False
         old_switch = sys.getswitchinterval()
         gc_was = gc.isenabled()
@@ -456,7 +455,7 @@ class Runner:
                         missed += 1
                 t_work = perf()
                 if multi:
-                    row.skew = t_last - t_first if t_first > 0.0 else nan
+                    skew = t_last - t_first if t_first > 0.0 else nan
                 trip = check_feedback(tk, k)
                 if hb_steps and k % hb_steps == 0:
                     for ch in chans:
@@ -509,13 +508,8 @@ class Runner:
                     if (over or was_over) and trip is None:
                         trip = check_timing(tk, k, over, lat)
                     was_over = over
-                # ---- record row k (every column by name, see .record) -------------------------
-                row.time = tk
-                row.step = k
-                row.ground_accel = ag[k]
-                row.lateness = lat
-                row.dofs = xs
-                write_row()
+                # ---- record row k (every column by name, see .record.row_writer) -------------
+                write_row(tk, k, ag[k], lat, skew, xs)
                 for ch in chans:
                     if console:  # peaks, for the console's safety margin only
                         a = ch.target
