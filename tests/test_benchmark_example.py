@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rths_hil.sim_backends.models import benchmark_transfer_function
 from scipy import linalg
 
 from rths_hil import mdof, study
@@ -17,7 +18,6 @@ from rths_hil.compensator_study import compensator_study, floors_trial
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.groundmotion import load
-from rths_hil.sim_backends.models import benchmark_transfer_function
 
 ROOT = Path(__file__).resolve().parents[1]
 HERE = ROOT / "examples" / "benchmark"
@@ -227,7 +227,10 @@ def test_short_lockstep_runs_of_the_example(tmp_path):
         rec = read_run(tmp_path / method).record
         assert {"u_1", "u_2", "u_3"} <= set(rec.dtype.names)
         np.testing.assert_array_equal(rec["u_1"], rec["target"])  # the actuator is on DOF 1
-        out[method] = (fei(rec["target"], rec["measured"], 1024.0), j2_nrms(rec["target"], rec["measured"]))
+        out[method] = (
+            fei(rec["target"], rec["measured"], 1024.0),
+            j2_nrms(rec["target"], rec["measured"]),
+        )
     # the plant's own inverse (model) tracks within 1 % and 1 ms, and better than the fixed
     # inverse compensation, whose lead over-amplifies the plant at the first mode
     (f_inv, j2_inv), (f_mod, j2_mod) = out["inverse"], out["model"]
