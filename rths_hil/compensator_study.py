@@ -110,9 +110,10 @@ def _floors_case(cfg) -> bool:
 
 #: Reference responses of the drawn plants already run in this process, by trial key: the
 #: reference (ideal actuator) does not depend on the compensator, so the methods of one draw
-#: share it. Bounded: the oldest entries go first.
+#: share it. Bounded (128 entries, 256 MB): the oldest entries go first.
 _REFERENCES: dict[tuple[str, float | None], np.ndarray] = {}
 _REFERENCES_MAX = 128
+_REFERENCES_BYTES = 256e6
 
 
 def _reference_floors(cfg, n: int, tmp: str, key: tuple[str, float | None]) -> np.ndarray:
@@ -124,9 +125,12 @@ def _reference_floors(cfg, n: int, tmp: str, key: tuple[str, float | None]) -> n
         study.reference_by_loop(cfg, n, tmp)  # writes <tmp>/reference
         rec = read_run(Path(tmp) / "reference").record
         ref = _floor_columns(rec)
-        while len(_REFERENCES) >= _REFERENCES_MAX:
-            _REFERENCES.pop(next(iter(_REFERENCES)))
         _REFERENCES[key] = ref
+        while len(_REFERENCES) > 1 and (
+            len(_REFERENCES) > _REFERENCES_MAX
+            or sum(r.nbytes for r in _REFERENCES.values()) > _REFERENCES_BYTES
+        ):
+            _REFERENCES.pop(next(iter(_REFERENCES)))
     return ref[:n]
 
 
