@@ -136,6 +136,47 @@ def plot(rows: list[dict], methods: list[str], path: Path) -> list[str]:
     return keep
 
 
+#: The benchmark's three records at its eq_intensity = 0.4: (file, 0.4 × PGA in m/s²).
+RECORDS = {
+    "El Centro": ("el_centro.csv", 0.4 * 3.134930197183131),
+    "Kobe": ("kobe.csv", 0.4 * 6.329845418788505),
+    "Morgan Hill": ("morgan_hill.csv", 0.4 * 2.3891714901346512),
+}
+
+
+def nominal_records(workers: int) -> str:
+    """Every method on the nominal plant under each of the three records, the whole record:
+    the benchmark script's J1, J2, J4, J6, J7 and the FEI A, d (Markdown table)."""
+    from rths_hil import study
+    from rths_hil.config import load_config
+
+    out = []
+    for label, (record, pga) in RECORDS.items():
+        cfg = load_config(
+            str(EXAMPLE), [f"ground_motion.record={record}", f"ground_motion.pga={pga!r}"]
+        )
+        ex = study.make_executor(workers)
+        try:
+            res = cs.compensator_study(
+                cfg, METHODS, [], trials=1, duration=None, executor=ex, progress=False
+            )
+        finally:
+            ex.shutdown()
+        for r in res.rows:
+            cells = [label, f"`{r['method']}`"]
+            if r["status"] != "completed":
+                cells += ["–"] * 7 + [f"trip at {r['trip_time']:.2f} s ({r['trip_rule']})"]
+            else:
+                cells += [f"{r['bench_J1']:g}", f"{r['bench_J2']:.2f}", f"{r['bench_J4']:.2f}"]
+                cells += [f"{r['bench_J6']:.2f}", f"{r['bench_J7']:.2f}"]
+                cells += [f"{r['fei_amplitude']:.4f}", f"{1e3 * r['fei_delay']:+.3f}", "completed"]
+            out.append(cells)
+            print(cells, flush=True)
+    head = ["record", "method", "J1 (ms)", "J2 (%)", "J4 (%)", "J6 (%)", "J7 (%)", "FEI A"]
+    head += ["FEI d (ms)", "end"]
+    return markdown_table(head, out)
+
+
 def run_study(trials: int, duration: float, workers: int, out: Path) -> float:
     """Run the study as ``rths-hil study compensators`` does; return the wall time (s)."""
     from rths_hil import study
@@ -171,6 +212,11 @@ def main(argv: list[str] | None = None) -> None:
         "--wall", type=float, default=None, help="with --from: the study's wall time (s)"
     )
     ap.add_argument("--plot", type=Path, default=None, help="also write the box plots to this PNG")
+    ap.add_argument(
+        "--no-records",
+        action="store_true",
+        help="skip the nominal plant under the three records (about 2 minutes)",
+    )
     args = ap.parse_args(argv)
     wall = math.nan
     if args.source is None:
@@ -180,7 +226,14 @@ def main(argv: list[str] | None = None) -> None:
     else:
         rows, methods = read_trials(args.source / "trials.csv")
     n = len(rows) // max(1, len(methods))
-    text = table(rows, methods) + "\n\n" + verdict(rows, methods)
+    text = f"### {n} perturbed plants, El Centro\n\n"
+    text += table(rows, methods) + "\n\n" + verdict(rows, methods)
+    if not args.no_records:
+        text += (
+            "\n\n### Nominal plant, the three records (whole record, 40 %)\n\n"
+            "The benchmark script's criteria (J6, J7: floors 2 and 3).\n\n"
+            + nominal_records(args.workers)
+        )
     if args.wall is not None:
         wall = float(args.wall)
     timing = f" Wall time {wall / 60:.0f} min." if math.isfinite(wall) else ""
