@@ -71,6 +71,7 @@ import queue
 import struct
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -81,7 +82,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from rths_hil.errors import InputError
 
-from ..base import Driver, DriverStats, Feedback, Status, check_command
+from ..base import Driver, DriverStats, Feedback, LinkDown, Status
 from ..can import TIMEOUT_HONOURED, virtual_rx_queue
 from .profiles import PROFILES, Profile
 
@@ -112,6 +113,7 @@ _FAULT = int(Status.FAULT)
 _S32 = (-(2**31), 2**31 - 1)
 _BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
 _SDO_ERRORS = (SdoAbortedError, SdoCommunicationError)
+_perf = time.perf_counter
 
 
 @dataclass(slots=True)
@@ -207,6 +209,13 @@ class CANopenDriver(Driver):
     """Lockstep actuator driver over CANopen (see the module docstring)."""
 
     name: ClassVar[str] = "canopen"
+    #: the bus is read with the time left (virtual queue / SocketCAN) or waited for on an event
+    #: the library's notifier thread sets
+    honours_deadline: ClassVar[bool] = True
+    #: the feedback carries the step of its SYNC (a TPDO set belongs to the SYNC before it)
+    echoes_seq: ClassVar[bool] = True
+    #: positions are INTEGER32 counts of ``counts_per_m``, checked in :meth:`_send_raw`
+    command_lsb: ClassVar[float | None] = None
     stats: CANopenStats
 
     def __init__(
@@ -314,7 +323,8 @@ class CANopenDriver(Driver):
         self._hb_id = 0x700 + bridge_node_id
         self.network: canopen.Network | None = None
         self.node: canopen.RemoteNode | None = None
-        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._q: deque[Feedback] = deque()  # decoded feedback (appended by _on_tpdo)
+        self._wake = threading.Event()  # set by _on_tpdo (the notifier thread's hand-off)
         self._lock = threading.Lock()
         self._part: dict[int, bytes] = {}
         self._step = -1  # the step the last SYNC belongs to
@@ -585,7 +595,8 @@ class CANopenDriver(Driver):
             self._delivered_sync = step
         fb = self._decode(step, part)
         if fb is not None:
-            self._q.put(fb)
+            self._q.append(fb)
+            self._wake.set()
 
     def _decode(self, step: int, part: dict[int, bytes]) -> Feedback | None:
         t1 = part.get(self._tpdo_ids[0], b"")
@@ -666,8 +677,7 @@ class CANopenDriver(Driver):
             return
         self.stats.syncs += 1
 
-    def send(self, seq: int, displacement: float, enable: bool = True) -> None:
-        check_command(seq, displacement, lsb=None)
+    def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
         counts = round(displacement * self.counts_per_m)
         if not _S32[0] < counts <= _S32[1]:
             raise InputError(
@@ -692,52 +702,48 @@ class CANopenDriver(Driver):
         if self._direct and self.network is not None and self.network.notifier is None:
             while self._pump(0.0):  # frames of older steps are theirs, not this step's
                 pass
-        while True:  # a feedback left from an older step: it will never be delivered
-            try:
-                self._q.get_nowait()
-            except queue.Empty:
-                break
+        q = self._q
+        while q:  # a feedback left from an older step: it will never be delivered
+            q.popleft()
             self.stats.late += 1
-        self._last_sent = seq
         self._last_counts = counts
-        self.stats.sent += 1
         self._rpdo_and_sync(seq, word, counts)
         now = time.monotonic()
         if self.heartbeat_period and now - self._hb_last_sent >= self.heartbeat_period:
             self.heartbeat()
 
-    def receive(self, timeout: float) -> Feedback | None:
-        stats = self.stats
-        deadline = time.perf_counter() + timeout
+    def _recv_internal(self, deadline: float) -> Feedback | None:
+        """The TPDO set of the last SYNC, decoded by the library's dispatch (``_on_tpdo``).
+
+        Frames are read from the bus in this thread and handed to ``Network.notify`` (virtual
+        and SocketCAN buses; other interfaces are read by the library's notifier thread and
+        waited for on :attr:`_wake`). Raises :class:`LinkDown` when the controller's heartbeat
+        has stopped for ``controller_heartbeat_timeout`` (counted ``heartbeat_lost``).
+        """
         q = self._q
-        while True:
-            direct = self._direct and self.network is not None and self.network.notifier is None
-            try:
-                fb = q.get_nowait()
-            except queue.Empty:
-                if direct and self._pump(0.0):  # what already arrived, heartbeats included
-                    continue
-                if self.controller_heartbeat and self._hb_seen is not None:
-                    if time.monotonic() - self._hb_seen > self.controller_heartbeat_timeout:
-                        stats.heartbeat_lost += 1
-                        stats.timeouts += 1
-                        return None
-                remaining = deadline - time.perf_counter()
-                if remaining <= 0:
-                    stats.timeouts += 1
-                    return None
-                if direct:
-                    self._pump(remaining)
-                    continue
-                try:
-                    fb = q.get(True, remaining)
-                except queue.Empty:
-                    continue
-            if self._classify(fb.seq):
-                stats.received += 1
-                if fb.displacement != fb.displacement or fb.force != fb.force:
-                    stats.invalid_values += 1
-                return fb
+        if q:
+            return q.popleft()
+        net = self.network
+        direct = self._direct and net is not None and net.notifier is None
+        if direct:
+            while self._pump(0.0):  # what already arrived, heartbeats included
+                if q:
+                    return q.popleft()
+        if self.controller_heartbeat and self._hb_seen is not None:
+            if time.monotonic() - self._hb_seen > self.controller_heartbeat_timeout:
+                self.stats.heartbeat_lost += 1
+                raise LinkDown(f"canopen node {self.node_id}: controller heartbeat lost")
+        remaining = deadline - _perf()
+        if remaining <= 0.0:
+            return None
+        if direct:
+            self._pump(remaining)
+        else:
+            wake = self._wake
+            wake.clear()
+            if not q:
+                wake.wait(remaining)
+        return q.popleft() if q else None
 
     def estop(self) -> None:
         self.stats.estops += 1
@@ -798,8 +804,7 @@ class CANopenDriver(Driver):
             self._step = -1
             self._delivered_sync = -2
             self._part = {}
-        while not self._q.empty():
-            self._q.get_nowait()
+        self._q.clear()
         self.heartbeat()  # the device's heartbeat consumer counts from here
         return Feedback(0, pos, force, flags)
 
