@@ -524,7 +524,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", choices=sorted(TRANSPORTS), action="append")
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--profile-steps", type=int, default=4000, help="steps per profile-driver mode")
+    ap.add_argument(
+        "--profile-only",
+        action="store_true",
+        help="only the profile table (loop work per step); prints it, writes no results file",
+    )
     args = ap.parse_args(argv)
+    if args.profile_only:
+        for label, r in profile_work(args.profile_steps, args.rounds).items():
+            print(f"{label:26s} work {r['work_us']:7.1f} µs/step ({r['vs_can']:.2f}× CAN), "
+                  f"round trip {r['round_trip_us']:7.1f} µs")  # fmt: skip
+        return 0
     results = {}
     rows: list[list[object]] = []
     print(f"{'transport':15s} {'mode':9s} {'median µs':>10s} {'p99 µs':>8s} {'max µs':>8s}")

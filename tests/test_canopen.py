@@ -251,26 +251,39 @@ def test_frame_faults_are_counted(faults, counter):
         assert drv.stats.received >= 60 - 3
 
 
-def test_pdo_bytes_equal_the_canopen_library_encoding():
-    """The driver's RPDO packing and the twin's TPDO packing (structs compiled from the maps)
-    give the bytes the library's own PdoVariable encoding gives."""
+def test_pdo_bytes_follow_the_cia301_little_endian_layout():
+    """The driver's RPDO and the twin's TPDOs, encoded through the library's PDO maps, are the
+    CiA 301 layout written independently with struct: the mapped objects in order,
+    little-endian (RPDO1 UNSIGNED16 control word + INTEGER32 target; TPDO1 UNSIGNED16 status
+    word + INTEGER32 position; TPDO2 INTEGER32 force); the driver decodes TPDOs built so."""
+    import struct
+
     with start_twin("canopen", default_plant()) as twin:
         drv = _open(twin)
         drv.arm(1.0)
         for k in range(5):
             drv.send(k, 0.0, True)
             drv.receive(1.0)
-        rp = drv.node.rpdo[1]
         for word, counts in ((0x000F, 12345), (0x0002, -(2**31) + 1), (0x0006, 2**31 - 1)):
-            rp[0x6040].raw, rp[0x607A].raw = word, counts
-            assert drv.rpdo_layout.fmt.pack(word, counts) == bytes(rp.data)
+            drv._rpdo_and_sync(5, word, counts)
+            assert bytes(drv._rpdo_msg.data) == struct.pack("<Hi", word, counts)
+            assert drv._rpdo_msg.arbitration_id == 0x201
         frames = twin._encode(7, -0.0123456, 4567.89, 0)
-        values = {0x6041: twin.statusword(), 0x6064: -123456, 0x2100: 456789}
-        for m, frame in zip(twin._tpdo, frames, strict=True):
-            for var in m.map:
-                var.raw = values[var.index]
-            assert bytes(frame.data) == bytes(m.data)
-            assert frame.arbitration_id == m.cob_id
+        assert [f.arbitration_id for f in frames] == [0x181, 0x281]
+        assert bytes(frames[0].data) == struct.pack("<Hi", twin.statusword(), -123456)
+        assert bytes(frames[1].data) == struct.pack("<i", 456789)
+        # the driver's decoding (its TPDO callback) of TPDOs packed by struct
+        drv._q.clear()
+        drv._step, drv._delivered_sync, drv._part = 9, -2, {}
+        for m, data in ((drv.node.tpdo[1], struct.pack("<Hi", 0x0237, -7654321)),
+                        (drv.node.tpdo[2], struct.pack("<i", -31415))):  # fmt: skip
+            m.data = bytearray(data)
+            drv._on_tpdo(m)
+        fb = drv._q.pop()
+        assert fb.seq == 9
+        assert fb.displacement == pytest.approx(-0.7654321, abs=1e-12)
+        assert fb.force == pytest.approx(-314.15, abs=1e-9)
+        assert fb.status == ENABLED
         drv.close()
 
 

@@ -160,38 +160,85 @@ def test_scale_offset_and_units(tmp_path) -> None:
     assert fo.from_registers(regs) == pytest.approx(13_000.0)
 
 
-@pytest.mark.parametrize("byte_order", ["big_endian", "little_endian"])
-def test_compiled_can_messages_agree_with_cantools(byte_order) -> None:
-    """The profile driver's shift-and-mask codec against cantools, on random raw values of
-    every signal of the example DBC (Motorola) and of the same DBC in Intel byte order."""
-    import cantools
-    from rths_hil.drivers.can.profile import CompiledMessage
+def _signal_bits(sig) -> list[int]:
+    """Wire bit numbers (8 · byte + bit, bit 0 the least significant of its byte) of ``sig``,
+    least significant first, walked one bit at a time from the DBC definition: Intel signals
+    count up from the start bit; Motorola signals start at their most significant bit and walk
+    down each byte, then on to bit 7 of the next byte (the DBC's sawtooth numbering)."""
+    if sig.byte_order == "little_endian":
+        return [sig.start + i for i in range(sig.length)]
+    msb_first, b = [], sig.start
+    for _ in range(sig.length):
+        msb_first.append(b)
+        b = b - 1 if b % 8 else b + 15
+    return msb_first[::-1]
 
-    db = cantools.database.load_file(str(EXAMPLES / "lab_axis.dbc"))
-    rng = np.random.default_rng(7)
-    for m in db.messages:
-        if byte_order == "little_endian":
-            starts = {s.name: s.start for s in m.signals}
+
+def _ref_encode(message, values: dict[str, float]) -> bytes:
+    """Brute-force reference encoder: raw = round((phys − offset) / scale), set bit by bit."""
+    bits = [0] * (8 * message.length)
+    for sig in message.signals:
+        raw = round((values[sig.name] - sig.offset) / sig.scale) & ((1 << sig.length) - 1)
+        for i, pos in enumerate(_signal_bits(sig)):
+            bits[pos] = (raw >> i) & 1
+    return bytes(sum(bits[8 * k + j] << j for j in range(8)) for k in range(message.length))
+
+
+def _ref_decode(message, data: bytes) -> dict[str, float]:
+    """Brute-force reference decoder (two's complement for signed signals)."""
+    out = {}
+    for sig in message.signals:
+        raw = sum(((data[p // 8] >> (p % 8)) & 1) << i for i, p in enumerate(_signal_bits(sig)))
+        if sig.is_signed and raw >> (sig.length - 1):
+            raw -= 1 << sig.length
+        out[sig.name] = raw * sig.scale + sig.offset
+    return out
+
+
+@pytest.mark.parametrize("byte_order", ["big_endian", "little_endian"])
+def test_can_profile_driver_codec_agrees_with_a_bitwise_reference(tmp_path, byte_order) -> None:
+    """The profile driver's command encoding and feedback decoding (cantools) against a
+    bit-by-bit reference written from the DBC definition, on random raw values of every signal
+    of the example DBC (Motorola) and of the same DBC in Intel byte order."""
+    import cantools
+    from rths_hil.drivers.can.profile import CANProfileDriver
+
+    profile = CAN_DBC
+    if byte_order == "little_endian":
+        db = cantools.database.load_file(str(EXAMPLES / "lab_axis.dbc"))
+        for m in db.messages:
             pos = 0
             for s in m.signals:  # repack as Intel signals, in the DBC's order
                 s.byte_order, s.start = "little_endian", pos
                 pos += s.length
-            assert pos <= 8 * m.length, starts
+            assert pos <= 8 * m.length
             m.refresh()
-        c = CompiledMessage(m)
-        assert c.compiled
-        for _ in range(300):
-            v = {}
-            for s in m.signals:
-                lo = -(1 << (s.length - 1)) if s.is_signed else 0
-                hi = (1 << (s.length - 1)) - 1 if s.is_signed else (1 << s.length) - 1
-                v[s.name] = int(rng.integers(lo, hi, endpoint=True)) * s.scale + s.offset
-            data = m.encode(v, strict=False)
-            assert c.encode(v) == data
-            ref = m.decode(data, decode_choices=False)
-            got = c.decode(data)
-            for k, x in ref.items():
-                assert got[k] == pytest.approx(x, rel=1e-12, abs=1e-12), k
+        (tmp_path / "lab_axis.dbc").write_text(db.as_dbc_string())
+        profile = tmp_path / "can_dbc.toml"
+        profile.write_text(CAN_DBC.read_text())
+    drv = CANProfileDriver(str(profile))
+    cmd, fb = drv._cmd, drv._fb
+    assert {s.byte_order for s in cmd.signals + fb.signals} == {byte_order}
+    rng = np.random.default_rng(7)
+
+    def draw(message):
+        v = {}
+        for s in message.signals:
+            lo = -(1 << (s.length - 1)) if s.is_signed else 0
+            hi = (1 << (s.length - 1)) - 1 if s.is_signed else (1 << s.length) - 1
+            v[s.name] = int(rng.integers(lo, hi, endpoint=True)) * s.scale + s.offset
+        return v
+
+    for _ in range(300):
+        v = draw(cmd)
+        assert drv._encode(v) == _ref_encode(cmd, v)
+        v = draw(fb)
+        data = _ref_encode(fb, v)
+        got = drv._decode(data)
+        ref = _ref_decode(fb, data)
+        for k, x in ref.items():
+            assert got[k] == pytest.approx(x, rel=1e-12, abs=1e-12), k
+            assert x == pytest.approx(v[k], rel=1e-12, abs=1e-9), k
 
 
 # ------------------------------------------------------------------------------------------

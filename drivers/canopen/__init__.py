@@ -77,13 +77,14 @@ from typing import Any, ClassVar
 
 import can
 import canopen
-from canopen.objectdictionary import ODArray, ODRecord, ODVariable
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable, ObjectDictionaryError
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from rths_hil.errors import InputError
 
 from ..base import Driver, DriverStats, Feedback, LinkDown, Status
 from ..can import TIMEOUT_HONOURED, virtual_rx_queue
+from ..can.codec import Frame
 from .profiles import PROFILES, Profile
 
 __all__ = [
@@ -326,7 +327,13 @@ class CANopenDriver(Driver):
         self._q: deque[Feedback] = deque()  # decoded feedback (appended by _on_tpdo)
         self._wake = threading.Event()  # set by _on_tpdo (the notifier thread's hand-off)
         self._lock = threading.Lock()
-        self._part: dict[int, bytes] = {}
+        self._part: dict[int, tuple[int, ...] | None] = {}
+        # the library's PDO variables of the mapped objects (set when the PDOs are mapped)
+        self._rpdo_map: Any = None
+        self._rpdo_cw: Any = None
+        self._rpdo_sp: Any = None
+        self._tpdo_vars: dict[int, tuple[Any, ...]] = {}
+        self._tpdo_len: dict[int, int] = {}
         self._step = -1  # the step the last SYNC belongs to
         self._delivered_sync = -2
         self._state = "NOT READY TO SWITCH ON" if p.number == 402 else "NOT READY"
@@ -343,11 +350,10 @@ class CANopenDriver(Driver):
         # SDO phases (no notifier thread hand-off per frame); others keep the library's notifier
         self._direct = self.interface in TIMEOUT_HONOURED
         self._rxq: queue.Queue | None = None
-        self._rpdo_msg = can.Message(
-            arbitration_id=self._rpdo_id, data=bytearray(self.rpdo_layout.fmt.size),
-            is_extended_id=False,
-        )  # fmt: skip
-        self._sync_msg = can.Message(arbitration_id=SYNC_ID, data=b"", is_extended_id=False)
+        # the two frames of every step, built once and rewritten in place (Frame: a can.Message
+        # that the virtual bus copies cheaply, drivers.can.codec)
+        self._rpdo_msg = Frame.blank(self._rpdo_id, self.rpdo_layout.fmt.size)
+        self._sync_msg = Frame.blank(SYNC_ID, 0)
 
     # ------------------------------------------------------------------------------------------
     # what the class knows: its link and who may share it
@@ -566,9 +572,16 @@ class CANopenDriver(Driver):
             if variables and pdo.cob_id != {"RPDO1": self._rpdo_id, "TPDO1": self._tpdo_ids[0],
                                              "TPDO2": self._tpdo_ids[1]}[name]:  # fmt: skip
                 self._retarget(name, pdo.cob_id)
-        node.tpdo[1].add_callback(self._on_tpdo)
-        if self._tpdo2_vars:
-            node.tpdo[2].add_callback(self._on_tpdo)
+        rp = self._rpdo_map = node.rpdo[1]
+        by_obj = {(v.index, v.subindex): v for v in rp.map}
+        self._rpdo_cw = by_obj[self.profile.control]
+        self._rpdo_sp = by_obj[self.profile.setpoint]
+        self._tpdo_vars, self._tpdo_len = {}, {}
+        for pdo, variables in ((node.tpdo[1], self._tpdo1_vars), (node.tpdo[2], self._tpdo2_vars)):
+            if variables:
+                self._tpdo_vars[pdo.cob_id] = tuple(pdo.map)
+                self._tpdo_len[pdo.cob_id] = sum(v.length for v in pdo.map) // 8
+                pdo.add_callback(self._on_tpdo)
 
     def _retarget(self, name: str, cob: int) -> None:
         if name == "RPDO1":
@@ -581,15 +594,23 @@ class CANopenDriver(Driver):
     # ------------------------------------------------------------------------------------------
     # callbacks (the canopen library's notifier thread)
     def _on_tpdo(self, pdo_map: Any) -> None:
+        """A TPDO arrived (the library's ``PdoMap.on_message``): its values, decoded by the
+        library's PDO variables (``Variable.get_data`` → ``ODVariable.decode_raw``, what
+        ``Variable.raw`` returns), are filed for the step of the last SYNC."""
         cob = pdo_map.cob_id
-        data = bytes(pdo_map.data)
+        values: tuple[int, ...] | None = None
+        if len(pdo_map.data) == self._tpdo_len.get(cob, -1):
+            try:
+                values = tuple(v.od.decode_raw(v.get_data()) for v in self._tpdo_vars[cob])
+            except (ObjectDictionaryError, struct.error):
+                values = None
         with self._lock:
             step = self._step
             if step == self._delivered_sync:
                 self.stats.duplicates += 1
                 return
-            self._part[cob] = data
-            if len(self._part) < (2 if self._tpdo2_vars else 1):
+            self._part[cob] = values
+            if len(self._part) < len(self._tpdo_vars):
                 return
             part, self._part = self._part, {}
             self._delivered_sync = step
@@ -598,20 +619,16 @@ class CANopenDriver(Driver):
             self._q.append(fb)
             self._wake.set()
 
-    def _decode(self, step: int, part: dict[int, bytes]) -> Feedback | None:
-        t1 = part.get(self._tpdo_ids[0], b"")
-        lay = self.tpdo1_layout
-        if len(t1) != lay.fmt.size:
+    def _decode(self, step: int, part: dict[int, tuple[int, ...] | None]) -> Feedback | None:
+        t1 = part.get(self._tpdo_ids[0])
+        t2 = part.get(self._tpdo_ids[1]) if self._tpdo2_vars else ()
+        if t1 is None or t2 is None:
             self.stats.count_malformed("bad_length")
             return None
-        sw, pos = lay.fmt.unpack(t1)
+        sw, pos = t1  # TPDO1 maps status word, actual position (checked when mapped)
         force = math.nan
-        if self.tpdo2_layout is not None:
-            t2 = part.get(self._tpdo_ids[1], b"")
-            if len(t2) != self.tpdo2_layout.fmt.size:
-                self.stats.count_malformed("bad_length")
-                return None
-            (fc,) = self.tpdo2_layout.fmt.unpack(t2)
+        if t2:
+            fc = t2[0]
             force = math.nan if fc == _S32[0] else fc * self.newtons_per_count
         self._state = state = self.profile.state(sw)
         status = self.profile.flags(state, self._latched)
@@ -665,9 +682,13 @@ class CANopenDriver(Driver):
         if bus is None:
             self.stats.send_errors += 1
             return
-        # the two frames of every step, built once (python-can copies a frame per receiver)
+        # the RPDO through the library's PDO map: each variable encoded by its object
+        # (``ODVariable.encode_raw`` → ``Variable.set_data``, what ``Variable.raw = v`` does)
+        cw, sp = self._rpdo_cw, self._rpdo_sp
+        cw.set_data(cw.od.encode_raw(word))
+        sp.set_data(sp.od.encode_raw(counts))
         self._rpdo_msg.arbitration_id = self._rpdo_id
-        self._rpdo_msg.data[:] = self.rpdo_layout.fmt.pack(word, counts)
+        self._rpdo_msg.data[:] = self._rpdo_map.data
         try:
             with net.send_lock:  # type: ignore[union-attr]
                 bus.send(self._rpdo_msg)
