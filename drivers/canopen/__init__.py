@@ -77,7 +77,7 @@ from typing import Any, ClassVar
 
 import can
 import canopen
-from canopen.objectdictionary import ODArray, ODRecord, ODVariable, ObjectDictionaryError
+from canopen.objectdictionary import ObjectDictionaryError, ODArray, ODRecord, ODVariable
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from rths_hil.errors import InputError
