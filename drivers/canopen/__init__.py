@@ -327,12 +327,14 @@ class CANopenDriver(Driver):
         self._q: deque[Feedback] = deque()  # decoded feedback (appended by _on_tpdo)
         self._wake = threading.Event()  # set by _on_tpdo (the notifier thread's hand-off)
         self._lock = threading.Lock()
-        self._part: dict[int, tuple[int, ...] | None] = {}
+        self._part: dict[int, list[int] | None] = {}
+        self._states: dict[int, str] = {}
         # the library's PDO variables of the mapped objects (set when the PDOs are mapped)
         self._rpdo_map: Any = None
         self._rpdo_cw: Any = None
         self._rpdo_sp: Any = None
         self._tpdo_vars: dict[int, tuple[Any, ...]] = {}
+        self._tpdo_maps: dict[int, Any] = {}  # read in the caller's thread: straight to the map
         self._tpdo_len: dict[int, int] = {}
         self._step = -1  # the step the last SYNC belongs to
         self._delivered_sync = -2
@@ -457,11 +459,8 @@ class CANopenDriver(Driver):
             notifier.stop(1.0)
 
     def _pump(self, timeout: float) -> bool:
-        """Read one frame (waiting up to ``timeout``) and hand it to the library; False if none."""
-        net = self.network
-        bus = None if net is None else net.bus
-        if bus is None:
-            return False
+        """Read one frame (waiting up to ``timeout``) and hand it on (:meth:`_handle`); False if
+        none came."""
         q = self._rxq
         if q is not None:  # python-can's virtual bus: its receive queue (drivers.can)
             frames = q.queue
@@ -475,6 +474,10 @@ class CANopenDriver(Driver):
                 except queue.Empty:
                     return False
         else:
+            net = self.network
+            bus = None if net is None else net.bus
+            if bus is None:
+                return False
             try:
                 msg = bus.recv(timeout)
             except (can.CanError, OSError):
@@ -482,14 +485,40 @@ class CANopenDriver(Driver):
                 return False
             if msg is None:
                 return False
+        self._handle(msg)
+        return True
+
+    def _drain(self) -> None:
+        """Hand on every frame already received, without waiting."""
+        q = self._rxq
+        if q is not None:
+            frames = q.queue
+            while frames:
+                self._handle(frames.popleft())
+        else:
+            while self._pump(0.0):
+                pass
+
+    def _handle(self, msg: can.Message) -> None:
+        """One frame: a TPDO of this axis into its PDO map (as ``PdoMap.on_message`` does, then
+        :meth:`_on_tpdo`); anything else to the library's dispatch (``Network.notify``: EMCY,
+        heartbeats, SDO)."""
         if msg.is_error_frame or msg.is_remote_frame:
             self.stats.count_malformed("bad_frame")
-            return True
+            return
+        m = self._tpdo_maps.get(msg.arbitration_id)
+        if m is not None:
+            m.data = msg.data
+            m.timestamp = msg.timestamp
+            self._on_tpdo(m)
+            return
+        net = self.network
+        if net is None:
+            return
         try:
-            net.notify(msg.arbitration_id, msg.data, msg.timestamp)  # type: ignore[union-attr]
+            net.notify(msg.arbitration_id, msg.data, msg.timestamp)
         except Exception as exc:  # a callback's error must not end the run (as MessageListener)
             log.error("canopen: frame 0x%03X: %s", msg.arbitration_id, exc)
-        return True
 
     def _start_up(self) -> None:
         node = self.node
@@ -574,13 +603,16 @@ class CANopenDriver(Driver):
                 self._retarget(name, pdo.cob_id)
         rp = self._rpdo_map = node.rpdo[1]
         by_obj = {(v.index, v.subindex): v for v in rp.map}
-        self._rpdo_cw = by_obj[self.profile.control]
-        self._rpdo_sp = by_obj[self.profile.setpoint]
-        self._tpdo_vars, self._tpdo_len = {}, {}
+        self._rpdo_cw, self._rpdo_sp = (
+            (v.od, v.offset // 8, (v.offset + v.length) // 8)
+            for v in (by_obj[self.profile.control], by_obj[self.profile.setpoint])
+        )
+        self._tpdo_vars, self._tpdo_len, self._tpdo_maps = {}, {}, {}
         for pdo, variables in ((node.tpdo[1], self._tpdo1_vars), (node.tpdo[2], self._tpdo2_vars)):
             if variables:
                 self._tpdo_vars[pdo.cob_id] = tuple(pdo.map)
                 self._tpdo_len[pdo.cob_id] = sum(v.length for v in pdo.map) // 8
+                self._tpdo_maps[pdo.cob_id] = pdo
                 pdo.add_callback(self._on_tpdo)
 
     def _retarget(self, name: str, cob: int) -> None:
@@ -598,10 +630,10 @@ class CANopenDriver(Driver):
         library's PDO variables (``Variable.get_data`` → ``ODVariable.decode_raw``, what
         ``Variable.raw`` returns), are filed for the step of the last SYNC."""
         cob = pdo_map.cob_id
-        values: tuple[int, ...] | None = None
+        values: list[int] | None = None
         if len(pdo_map.data) == self._tpdo_len.get(cob, -1):
             try:
-                values = tuple(v.od.decode_raw(v.get_data()) for v in self._tpdo_vars[cob])
+                values = [v.od.decode_raw(v.get_data()) for v in self._tpdo_vars[cob]]
             except (ObjectDictionaryError, struct.error):
                 values = None
         with self._lock:
@@ -617,9 +649,11 @@ class CANopenDriver(Driver):
         fb = self._decode(step, part)
         if fb is not None:
             self._q.append(fb)
-            self._wake.set()
+            net = self.network
+            if net is None or net.notifier is not None:  # a thread may wait for it
+                self._wake.set()
 
-    def _decode(self, step: int, part: dict[int, tuple[int, ...] | None]) -> Feedback | None:
+    def _decode(self, step: int, part: dict[int, list[int] | None]) -> Feedback | None:
         t1 = part.get(self._tpdo_ids[0])
         t2 = part.get(self._tpdo_ids[1]) if self._tpdo2_vars else ()
         if t1 is None or t2 is None:
@@ -630,7 +664,10 @@ class CANopenDriver(Driver):
         if t2:
             fc = t2[0]
             force = math.nan if fc == _S32[0] else fc * self.newtons_per_count
-        self._state = state = self.profile.state(sw)
+        state = self._states.get(sw)
+        if state is None:  # the FSA state of a status word, looked up once
+            state = self._states[sw] = self.profile.state(sw)
+        self._state = state
         status = self.profile.flags(state, self._latched)
         code = self._emcy_code
         if code:
@@ -683,12 +720,12 @@ class CANopenDriver(Driver):
             self.stats.send_errors += 1
             return
         # the RPDO through the library's PDO map: each variable encoded by its object
-        # (``ODVariable.encode_raw`` → ``Variable.set_data``, what ``Variable.raw = v`` does)
-        cw, sp = self._rpdo_cw, self._rpdo_sp
-        cw.set_data(cw.od.encode_raw(word))
-        sp.set_data(sp.od.encode_raw(counts))
+        # (``ODVariable.encode_raw``, what ``Variable.raw = v`` does) at the byte offset of the
+        # library's mapping (whole-byte objects only, :class:`Layout`)
+        data = self._rpdo_msg.data
+        for od, a, b, v in ((*self._rpdo_cw, word), (*self._rpdo_sp, counts)):
+            data[a:b] = od.encode_raw(v)
         self._rpdo_msg.arbitration_id = self._rpdo_id
-        self._rpdo_msg.data[:] = self._rpdo_map.data
         try:
             with net.send_lock:  # type: ignore[union-attr]
                 bus.send(self._rpdo_msg)
@@ -720,9 +757,9 @@ class CANopenDriver(Driver):
             word = self.profile.cyclic_word(self._state, False, False)
         else:
             word = self.profile.cyclic_word(self._state, enable, self._latched)
-        if self._direct and self.network is not None and self.network.notifier is None:
-            while self._pump(0.0):  # frames of older steps are theirs, not this step's
-                pass
+        net = self.network
+        if self._direct and net is not None and net.notifier is None:
+            self._drain()  # frames of older steps are theirs, not this step's
         q = self._q
         while q:  # a feedback left from an older step: it will never be delivered
             q.popleft()
@@ -747,9 +784,9 @@ class CANopenDriver(Driver):
         net = self.network
         direct = self._direct and net is not None and net.notifier is None
         if direct:
-            while self._pump(0.0):  # what already arrived, heartbeats included
-                if q:
-                    return q.popleft()
+            self._drain()  # what already arrived, heartbeats included
+            if q:
+                return q.popleft()
         if self.controller_heartbeat and self._hb_seen is not None:
             if time.monotonic() - self._hb_seen > self.controller_heartbeat_timeout:
                 self.stats.heartbeat_lost += 1
@@ -758,7 +795,8 @@ class CANopenDriver(Driver):
         if remaining <= 0.0:
             return None
         if direct:
-            self._pump(remaining)
+            if self._pump(remaining):
+                self._drain()  # the rest of the TPDO set, when it came together
         else:
             wake = self._wake
             wake.clear()
