@@ -281,6 +281,10 @@ class ModbusPoint:
         )
         return self._swap(regs)
 
+    def si(self, raw: float) -> float:
+        """The SI value of the point's raw value (value in ``units`` = raw · scale + offset)."""
+        return (raw * self.scale + self.offset) * self.factor
+
     def from_registers(self, regs: list[int]) -> float:
         """The SI value of the point's registers (or coil value)."""
         if self.type == "bool":
