@@ -354,6 +354,20 @@ class ModbusProfile:
     protocol: str = "modbus"
     units_doc: dict[str, str] = field(default_factory=dict)
 
+    def rtu_frames(self) -> list[tuple[int, int]]:
+        """(request, response) bytes on an RTU line, CRC included, of each transaction of
+        one step: FC 23 (``13 + 2w``, ``5 + 2r``), or FC 16 (``9 + 2w``, 8) and one read per
+        block (8, ``5 + 2n`` registers or ``5 + ⌈n/8⌉`` bits), Modbus application protocol
+        V1.1b3 §6.3–6.17, RTU framing (address + CRC) of the serial line guide V1.02 §2.5."""
+        w = self.points["setpoint"].count
+        if self.fc23:
+            return [(13 + 2 * w, 5 + 2 * self.reads[0].count)]
+        out = [(9 + 2 * w, 8)]
+        for b in self.reads:
+            n = b.count
+            out.append((8, 5 + (2 * n if b.table in ("holding", "input") else -(-n // 8))))
+        return out
+
 
 def _modbus_point(r: _Reader, role: str, defaults: dict[str, str]) -> ModbusPoint:
     p = r.table(role, required=True)

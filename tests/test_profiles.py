@@ -261,6 +261,56 @@ def test_modbus_map_lockstep_matches_the_builtin_map(tmp_path) -> None:
     np.testing.assert_allclose(lab["force"], ours["force"], rtol=0, atol=0.3)
 
 
+def test_modbus_map_over_rtu_lockstep_matches_tcp(tmp_path) -> None:
+    """The same profile over Modbus RTU (the twin an RTU slave on a pseudo-terminal, the
+    driver's requests one at a time on the line, frames checked by their CRC): the default
+    test's record equals the one over Modbus TCP — the same plant, the same registers."""
+    tcp = _lockstep(tmp_path, "tcp", str(EXAMPLES / "modbus_map_run.toml"))
+    rtu = _lockstep(
+        tmp_path,
+        "rtu",
+        str(EXAMPLES / "modbus_map_run.toml"),
+        "--set",
+        'driver.connection={transport="rtu", baudrate=3000000}',  # a pty: any rate
+    )
+    assert read_run(tmp_path / "rtu").meta["twin"]["transport"] == "rtu"  # served on a pty
+    assert bool(np.all(rtu["feedback_ok"]))
+    assert np.ptp(rtu["measured"]) > 5e-3
+    np.testing.assert_array_equal(rtu["measured"], tcp["measured"])
+    np.testing.assert_array_equal(rtu["force"], tcp["force"])
+
+
+def test_modbus_rtu_profile_driver_against_its_twin() -> None:
+    """Over RTU: a write echo answers the write, a read the read (no transaction id), the
+    e-stop goes out at once and its echo is told from the step's answers, a frame with a bad
+    CRC is counted and dropped."""
+    twin = start_twin("modbus", default_plant(), transport="rtu", profile=str(MODBUS_MAP))
+    try:
+        assert twin.connection["transport"] == "rtu"
+        assert twin.connection["device"].startswith("/dev/")
+        with create_driver("modbus", **twin.connection) as drv:
+            assert type(drv).__name__ == "ModbusProfileDriver"
+            assert drv.arm(1.0) is not None
+            for k in range(30):
+                drv.send(k, 0.001, True)
+                fb = drv.receive(1.0)
+                assert fb is not None and fb.seq == k and fb.status & 0x01
+            drv.estop()
+            drv.send(30, 0.001, True)
+            fb = drv.receive(1.0)
+            assert fb is not None and fb.seq == 30 and fb.status & 0x02  # ESTOP_ACTIVE
+            assert drv.stats.timeouts == 0 and drv.stats.late == 0
+            # a response with a broken CRC: counted, dropped, the next step still answered
+            drv._buf = bytes([1, 4, 2, 0, 0, 0xDE, 0xAD])
+            assert drv._parse_one() == (-1, b"")
+            assert drv.stats.malformed_reasons.get("bad_crc") == 1
+            drv.send(31, 0.001, False)
+            fb = drv.receive(1.0)
+            assert fb is not None and fb.seq == 31
+    finally:
+        twin.stop()
+
+
 def test_can_dbc_lockstep_matches_the_builtin_dbc(tmp_path) -> None:
     """Motorola signals at the built-in DBC's resolutions (0.1 µm, 0.5 N): the same record."""
     ours = _lockstep(tmp_path, "builtin", "--set", "driver.name=can")
@@ -376,3 +426,18 @@ def test_link_budget_counts_the_profile_dbc_extended_frames() -> None:
     ours = link_load("can", conn, 2, 1024.0)
     assert lab.load == pytest.approx(2 * (160 + 160) * 1024 / 1e6)
     assert ours.load == pytest.approx(2 * (135 + 135) * 1024 / 1e6)
+
+
+def test_link_budget_counts_the_profile_rtu_transactions() -> None:
+    """The example map over RTU at 115 200 baud 8E1 (11 bits a character): FC 16 of a float32
+    (13-byte request, 8-byte echo) and FC 4 of input registers 200–210 (8-byte request,
+    5 + 22-byte response), each frame followed by 3.5 characters of silence, per step."""
+    from rths_hil.linkbudget import link_load
+
+    conn = {"transport": "rtu", "device": "/dev/ttyUSB0", "profile": str(MODBUS_MAP)}
+    t = (13 + 8 + 8 + 27 + 4 * 3.5) * 11 / 115200
+    ld = link_load("modbus", conn, 1, 100.0)
+    assert ld.load == pytest.approx(100.0 * t)
+    assert "(profile)" in ld.detail
+    builtin = link_load("modbus", {k: v for k, v in conn.items() if k != "profile"}, 1, 100.0)
+    assert builtin.load == pytest.approx(100.0 * (21 + 19 + 7) * 11 / 115200)
