@@ -99,6 +99,7 @@ class CANProfileDriver(Driver):
         self._force = (r["force"].signal, r["force"].factor)
         self._status = r["status"].signal
         self._masks = prof.masks
+        self._flags: dict[int, int] = {}
         self._fb_id, self._fb_ext = fb.frame_id, bool(fb.is_extended_frame)
         # one command frame, reused: send() rewrites its payload in place (codec.Frame copies
         # cheaply on the virtual bus)
@@ -109,7 +110,9 @@ class CANProfileDriver(Driver):
             data=bytearray(cmd.length),
         )
         self._cmd_data = self._cmd_frame.data
-        self._decode = partial(fb.decode, decode_choices=False, scaling=True)
+        self._decode = partial(
+            fb.decode if fb.is_container else fb.decode_simple, decode_choices=False, scaling=True
+        )
         self._encode = partial(cmd.encode, scaling=True, padding=False, strict=False)
         est = prof.actions["estop"]
         emsg = prof.database.get_message_by_name(est.message)
@@ -251,9 +254,10 @@ class CANProfileDriver(Driver):
         word = int(v[self._status])  # type: ignore[arg-type]
         d = float(v[ps]) * pf  # type: ignore[arg-type]
         f = float(v[fs]) * ff  # type: ignore[arg-type]
-        return Feedback(
-            -1, d if math.isfinite(d) else math.nan, f, status_from_word(word, self._masks)
-        )
+        flags = self._flags.get(word)
+        if flags is None:  # the bridge's flags of a status word, looked up once per word
+            flags = self._flags[word] = status_from_word(word, self._masks)
+        return Feedback(-1, d if math.isfinite(d) else math.nan, f, flags)
 
     def _recv_internal(self, deadline: float) -> Feedback | None:
         box = self._box
