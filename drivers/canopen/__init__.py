@@ -206,6 +206,197 @@ class Layout:
         return cls(struct.Struct(fmt), bits)
 
 
+class CANopenBus:
+    """One CANopen bus of the bridge: a python-can bus and its :class:`canopen.Network`,
+    shared by every axis (driver) on the same interface and channel.
+
+    The bus is the SYNC producer: :meth:`sync` sends one SYNC for the RPDOs every axis has
+    written since the last one, so several axes on one bus share one SYNC per step (each axis
+    its own node id, RPDO and TPDOs). Frames are read once (:meth:`pump`, :meth:`drain`): a
+    TPDO goes into the PDO map of the axis that mapped it, anything else to the library's
+    dispatch (``Network.notify``: EMCY, heartbeats, SDO). The bridge's heartbeat is one per bus.
+    The library's notifier thread runs only while an axis is in an SDO phase (open, arming,
+    close) on buses read from the caller's thread (:data:`~..can.TIMEOUT_HONOURED`); on others
+    it always runs.
+    """
+
+    _open: ClassVar[dict[tuple[str, str], CANopenBus]] = {}
+    _registry_lock: ClassVar[threading.Lock] = threading.Lock()
+
+    def __init__(self, key: tuple[str, str], network: canopen.Network, direct: bool) -> None:
+        self.key = key
+        self.network = network
+        self.direct = direct
+        self.rxq: queue.Queue | None = virtual_rx_queue(network.bus) if direct else None
+        self.axes: dict[int, CANopenDriver] = {}
+        self.tpdo: dict[int, tuple[CANopenDriver, Any]] = {}
+        self.sync_msg = Frame.blank(SYNC_ID, 0)
+        #: SYNC frames sent on this bus
+        self.syncs = 0
+        self._listening = 0
+        self._hb_last = -math.inf
+
+    @classmethod
+    def join(cls, drv: CANopenDriver) -> CANopenBus:
+        """The bus of ``drv``'s interface and channel, opened by the first axis on it."""
+        key = (drv.interface, drv.channel)
+        with cls._registry_lock:
+            bus = cls._open.get(key)
+            if bus is None:
+                net = canopen.Network()
+                net.NOTIFIER_CYCLE = 0.05  # how long close() may wait for the notifier thread
+                kwargs = dict(drv.bus_options)
+                if drv.bitrate is not None:
+                    kwargs["bitrate"] = drv.bitrate
+                try:
+                    net.connect(interface=drv.interface, channel=drv.channel, **kwargs)
+                except _BUS_ERRORS as exc:
+                    raise InputError(
+                        f"canopen: cannot open interface {drv.interface!r} channel "
+                        f"{drv.channel!r}: {exc}"
+                    ) from None
+                bus = cls(key, net, drv.interface in TIMEOUT_HONOURED)
+                if bus.direct and net.notifier is not None:  # read from the caller's thread
+                    notifier, net.notifier = net.notifier, None
+                    notifier.stop(1.0)
+                cls._open[key] = bus
+            elif drv.node_id in bus.axes:
+                raise InputError(
+                    f"canopen: node {drv.node_id} is already open on {drv.interface} "
+                    f"{drv.channel} (each axis on a bus needs its own node_id)"
+                )
+            bus.axes[drv.node_id] = drv
+        return bus
+
+    def release(self, drv: CANopenDriver) -> None:
+        """``drv`` leaves the bus; the last axis closes it."""
+        with self._registry_lock:
+            if self.axes.get(drv.node_id) is drv:
+                del self.axes[drv.node_id]
+            for cob in [c for c, (d, _) in self.tpdo.items() if d is drv]:
+                del self.tpdo[cob]
+            if self.axes:
+                return
+            if self._open.get(self.key) is self:
+                del self._open[self.key]
+        self.rxq = None
+        try:
+            self.network.disconnect()
+        except (*_BUS_ERRORS, RuntimeError):  # pragma: no cover - already gone
+            pass
+
+    def listen(self, on: bool) -> None:
+        """Run the library's notifier thread (an SDO phase of an axis) or stop it when no axis
+        needs it any more (frames are then read from the caller's thread)."""
+        net = self.network
+        if not self.direct or net.bus is None:
+            return
+        self._listening = max(0, self._listening + (1 if on else -1))
+        if self._listening and net.notifier is None:
+            net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
+        elif not self._listening and net.notifier is not None:
+            notifier, net.notifier = net.notifier, None
+            notifier.stop(1.0)
+
+    @property
+    def reading(self) -> bool:
+        """Frames are read from the caller's thread (no notifier thread runs)."""
+        return self.direct and self.network.notifier is None
+
+    def pump(self, timeout: float) -> bool:
+        """Read one frame (waiting up to ``timeout``) and hand it on (:meth:`handle`); False if
+        none came."""
+        q = self.rxq
+        if q is not None:  # python-can's virtual bus: its receive queue (drivers.can)
+            frames = q.queue
+            if frames:
+                msg = frames.popleft()
+            elif timeout <= 0:
+                return False
+            else:
+                try:
+                    msg = q.get(True, timeout)
+                except queue.Empty:
+                    return False
+        else:
+            bus = self.network.bus
+            if bus is None:
+                return False
+            try:
+                msg = bus.recv(timeout)
+            except (can.CanError, OSError):
+                for drv in list(self.axes.values()):
+                    drv.stats.disconnects += 1
+                return False
+            if msg is None:
+                return False
+        self.handle(msg)
+        return True
+
+    def drain(self) -> None:
+        """Hand on every frame already received, without waiting."""
+        q = self.rxq
+        if q is not None:
+            frames = q.queue
+            while frames:
+                self.handle(frames.popleft())
+        else:
+            while self.pump(0.0):
+                pass
+
+    def handle(self, msg: can.Message) -> None:
+        """One frame: a TPDO into the PDO map of its axis (as ``PdoMap.on_message`` does, then
+        the axis's ``_on_tpdo``); anything else to the library's dispatch."""
+        if msg.is_error_frame or msg.is_remote_frame:
+            for drv in self.axes.values():
+                drv.stats.count_malformed("bad_frame")
+                break
+            return
+        owner = self.tpdo.get(msg.arbitration_id)
+        if owner is not None:
+            drv, m = owner
+            m.data = msg.data
+            m.timestamp = msg.timestamp
+            drv._on_tpdo(m)
+            return
+        try:
+            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+        except Exception as exc:  # a callback's error must not end the run (as MessageListener)
+            log.error("canopen: frame 0x%03X: %s", msg.arbitration_id, exc)
+
+    def send(self, msg: can.Message) -> bool:
+        """Write one frame; False (nothing raised) when the bus is gone."""
+        net = self.network
+        bus = net.bus
+        if bus is None:
+            return False
+        try:
+            with net.send_lock:
+                bus.send(msg)
+        except (can.CanError, OSError):
+            return False
+        return True
+
+    def sync(self) -> bool:
+        """Send one SYNC: every axis whose RPDO waits for it takes it as its step's clock."""
+        if not self.send(self.sync_msg):
+            return False
+        self.syncs += 1
+        for drv in self.axes.values():
+            if drv._awaiting is not None:
+                drv._synced()
+        return True
+
+    def heartbeat(self, msg: can.Message) -> bool:
+        """The bridge's heartbeat: one per bus (a second axis asking within 1 ms is served by
+        the same frame)."""
+        now = time.monotonic()
+        if now - self._hb_last < 1e-3:
+            return True
+        self._hb_last = now
+        return self.send(msg)
+
+
 class CANopenDriver(Driver):
     """Lockstep actuator driver over CANopen (see the module docstring)."""
 
@@ -348,14 +539,14 @@ class CANopenDriver(Driver):
         self._actual_at_arm: float | None = None
         self._first_enable = True
         self._opened = False
-        # interfaces whose recv honours its timeout are read from the loop's thread between the
-        # SDO phases (no notifier thread hand-off per frame); others keep the library's notifier
-        self._direct = self.interface in TIMEOUT_HONOURED
-        self._rxq: queue.Queue | None = None
-        # the two frames of every step, built once and rewritten in place (Frame: a can.Message
-        # that the virtual bus copies cheaply, drivers.can.codec)
+        self._bus: CANopenBus | None = None
+        self._awaiting: int | None = None  # the step of an RPDO sent and not yet SYNCed
+        # the RPDO of every step, built once and rewritten in place (Frame: a can.Message that
+        # the virtual bus copies cheaply, drivers.can.codec); the SYNC is the bus's
         self._rpdo_msg = Frame.blank(self._rpdo_id, self.rpdo_layout.fmt.size)
-        self._sync_msg = Frame.blank(SYNC_ID, 0)
+        self._hb_msg = Frame(
+            arbitration_id=self._hb_id, is_extended_id=False, dlc=1, data=bytes((NMT_OPERATIONAL,))
+        )
 
     # ------------------------------------------------------------------------------------------
     # what the class knows: its link and who may share it
@@ -379,18 +570,31 @@ class CANopenDriver(Driver):
 
     @classmethod
     def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
-        """One CANopen axis per bus: each driver produces the bus's SYNC (the step clock)."""
-        seen: dict[str, str] = {}
+        """Several axes may share a bus (one SYNC per step for all, :class:`CANopenBus`), each
+        with its own node id and the bus's settings (bit rate, the bridge's node id)."""
+        seen: dict[str, dict[str, Any]] = {}
         for _, name, conn, twin in channels:
-            if twin and not (conn or {}).get("channel"):
+            c = conn or {}
+            if twin and not c.get("channel"):
                 continue  # each twin gets a bus of its own
-            key = cls.link_key(conn)
-            if key in seen:
+            key = cls.link_key(c)
+            where = key.split(" ", 1)[1]
+            first = seen.setdefault(key, {"name": name, "nodes": {}, "conn": c})
+            node = c.get("node_id", 1)
+            other = first["nodes"].get(node)
+            if other is not None:
                 raise InputError(
-                    f"actuators: channels {seen[key]!r} and {name!r} are CANopen axes on one bus "
-                    f"({key.split(' ', 1)[1]}): one axis per bus (each driver produces its SYNC)"
+                    f"actuators: channels {other!r} and {name!r} are both CANopen node {node} on "
+                    f"bus {where}: give each axis its own driver.connection.node_id"
                 )
-            seen[key] = name
+            first["nodes"][node] = name
+            for k, default in (("bitrate", None), ("bridge_node_id", BRIDGE_NODE_ID)):
+                if c.get(k, default) != first["conn"].get(k, default):
+                    raise InputError(
+                        f"actuators: channels {first['name']!r} and {name!r} share CANopen bus "
+                        f"{where} but differ in driver.connection.{k} "
+                        f"({first['conn'].get(k, default)} vs {c.get(k, default)})"
+                    )
 
     # ------------------------------------------------------------------------------------------
     # start-up
@@ -422,103 +626,26 @@ class CANopenDriver(Driver):
     def open(self) -> None:
         if self._opened:
             return
-        net = canopen.Network()
-        net.NOTIFIER_CYCLE = 0.05  # how long close() may wait for the notifier thread
-        kwargs = dict(self.bus_options)
-        if self.bitrate is not None:
-            kwargs["bitrate"] = self.bitrate
-        try:
-            net.connect(interface=self.interface, channel=self.channel, **kwargs)
-        except _BUS_ERRORS as exc:
-            raise InputError(
-                f"canopen: cannot open interface {self.interface!r} channel {self.channel!r}: {exc}"
-            ) from None
-        self.network = net
+        bus = self._bus = CANopenBus.join(self)
+        net = self.network = bus.network
         node = canopen.RemoteNode(self.node_id, self.od)
         node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout
         net.add_node(node)
         self.node = node
         self._opened = True
+        bus.listen(True)
         try:
             self._start_up()
         except BaseException:
+            bus.listen(False)
             self._shutdown_network()
             raise
-        self._listen(False)
-        self._rxq = virtual_rx_queue(net.bus) if self._direct else None
+        bus.listen(False)
 
     def _listen(self, on: bool) -> None:
         """Run the library's notifier thread (SDO phases) or read from the caller's thread."""
-        net = self.network
-        if not self._direct or net is None or net.bus is None:
-            return
-        if on and net.notifier is None:
-            net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
-        elif not on and net.notifier is not None:
-            notifier, net.notifier = net.notifier, None
-            notifier.stop(1.0)
-
-    def _pump(self, timeout: float) -> bool:
-        """Read one frame (waiting up to ``timeout``) and hand it on (:meth:`_handle`); False if
-        none came."""
-        q = self._rxq
-        if q is not None:  # python-can's virtual bus: its receive queue (drivers.can)
-            frames = q.queue
-            if frames:
-                msg = frames.popleft()
-            elif timeout <= 0:
-                return False
-            else:
-                try:
-                    msg = q.get(True, timeout)
-                except queue.Empty:
-                    return False
-        else:
-            net = self.network
-            bus = None if net is None else net.bus
-            if bus is None:
-                return False
-            try:
-                msg = bus.recv(timeout)
-            except (can.CanError, OSError):
-                self.stats.disconnects += 1
-                return False
-            if msg is None:
-                return False
-        self._handle(msg)
-        return True
-
-    def _drain(self) -> None:
-        """Hand on every frame already received, without waiting."""
-        q = self._rxq
-        if q is not None:
-            frames = q.queue
-            while frames:
-                self._handle(frames.popleft())
-        else:
-            while self._pump(0.0):
-                pass
-
-    def _handle(self, msg: can.Message) -> None:
-        """One frame: a TPDO of this axis into its PDO map (as ``PdoMap.on_message`` does, then
-        :meth:`_on_tpdo`); anything else to the library's dispatch (``Network.notify``: EMCY,
-        heartbeats, SDO)."""
-        if msg.is_error_frame or msg.is_remote_frame:
-            self.stats.count_malformed("bad_frame")
-            return
-        m = self._tpdo_maps.get(msg.arbitration_id)
-        if m is not None:
-            m.data = msg.data
-            m.timestamp = msg.timestamp
-            self._on_tpdo(m)
-            return
-        net = self.network
-        if net is None:
-            return
-        try:
-            net.notify(msg.arbitration_id, msg.data, msg.timestamp)
-        except Exception as exc:  # a callback's error must not end the run (as MessageListener)
-            log.error("canopen: frame 0x%03X: %s", msg.arbitration_id, exc)
+        if self._bus is not None:
+            self._bus.listen(on)
 
     def _start_up(self) -> None:
         node = self.node
@@ -613,6 +740,8 @@ class CANopenDriver(Driver):
                 self._tpdo_vars[pdo.cob_id] = tuple(pdo.map)
                 self._tpdo_len[pdo.cob_id] = sum(v.length for v in pdo.map) // 8
                 self._tpdo_maps[pdo.cob_id] = pdo
+                if self._bus is not None:
+                    self._bus.tpdo[pdo.cob_id] = (self, pdo)
                 pdo.add_callback(self._on_tpdo)
 
     def _retarget(self, name: str, cob: int) -> None:
@@ -649,8 +778,8 @@ class CANopenDriver(Driver):
         fb = self._decode(step, part)
         if fb is not None:
             self._q.append(fb)
-            net = self.network
-            if net is None or net.notifier is not None:  # a thread may wait for it
+            bus = self._bus
+            if bus is None or not bus.reading:  # a thread may wait for it
                 self._wake.set()
 
     def _decode(self, step: int, part: dict[int, list[int] | None]) -> Feedback | None:
@@ -700,22 +829,9 @@ class CANopenDriver(Driver):
 
     # ------------------------------------------------------------------------------------------
     # per step
-    def _send(self, cob: int, data: bytes) -> None:
-        net = self.network
-        if net is None:
-            self.stats.send_errors += 1
-            return
-        try:
-            net.send_message(cob, data)
-        except (can.CanError, OSError, RuntimeError):
-            self.stats.send_errors += 1
-
-    def _rpdo_and_sync(self, step: int, word: int, counts: int) -> None:
-        with self._lock:
-            self._step = step
-            self._part = {}
-        net = self.network
-        bus = None if net is None else net.bus
+    def _rpdo(self, step: int, word: int, counts: int) -> None:
+        """Write the RPDO of ``step``; the bus's next SYNC applies it (:meth:`_synced`)."""
+        bus = self._bus
         if bus is None:
             self.stats.send_errors += 1
             return
@@ -726,13 +842,17 @@ class CANopenDriver(Driver):
         for od, a, b, v in ((*self._rpdo_cw, word), (*self._rpdo_sp, counts)):
             data[a:b] = od.encode_raw(v)
         self._rpdo_msg.arbitration_id = self._rpdo_id
-        try:
-            with net.send_lock:  # type: ignore[union-attr]
-                bus.send(self._rpdo_msg)
-                bus.send(self._sync_msg)
-        except (can.CanError, OSError):
+        if not bus.send(self._rpdo_msg):
             self.stats.send_errors += 1
             return
+        self._awaiting = step
+
+    def _synced(self) -> None:
+        """The bus sent the SYNC after this axis's RPDO: the TPDOs that follow are its step's."""
+        with self._lock:
+            self._step = self._awaiting  # type: ignore[assignment]
+            self._part = {}
+        self._awaiting = None
         self.stats.syncs += 1
 
     def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
@@ -757,15 +877,18 @@ class CANopenDriver(Driver):
             word = self.profile.cyclic_word(self._state, False, False)
         else:
             word = self.profile.cyclic_word(self._state, enable, self._latched)
-        net = self.network
-        if self._direct and net is not None and net.notifier is None:
-            self._drain()  # frames of older steps are theirs, not this step's
+        bus = self._bus
+        if bus is not None:
+            if self._awaiting is not None:  # the last RPDO was never SYNCed (no receive)
+                bus.sync()
+            if bus.reading:
+                bus.drain()  # frames of older steps are theirs, not this step's
         q = self._q
         while q:  # a feedback left from an older step: it will never be delivered
             q.popleft()
             self.stats.late += 1
         self._last_counts = counts
-        self._rpdo_and_sync(seq, word, counts)
+        self._rpdo(seq, word, counts)
         now = time.monotonic()
         if self.heartbeat_period and now - self._hb_last_sent >= self.heartbeat_period:
             self.heartbeat()
@@ -778,13 +901,18 @@ class CANopenDriver(Driver):
         waited for on :attr:`_wake`). Raises :class:`LinkDown` when the controller's heartbeat
         has stopped for ``controller_heartbeat_timeout`` (counted ``heartbeat_lost``).
         """
+        bus = self._bus
+        if bus is None:
+            raise LinkDown(f"canopen node {self.node_id}: closed")
+        if self._awaiting is not None:  # the step's SYNC: after every axis's RPDO on the bus
+            if not bus.sync():
+                self.stats.send_errors += 1
         q = self._q
         if q:
             return q.popleft()
-        net = self.network
-        direct = self._direct and net is not None and net.notifier is None
+        direct = bus.reading
         if direct:
-            self._drain()  # what already arrived, heartbeats included
+            bus.drain()  # what already arrived, heartbeats included
             if q:
                 return q.popleft()
         if self.controller_heartbeat and self._hb_seen is not None:
@@ -795,8 +923,8 @@ class CANopenDriver(Driver):
         if remaining <= 0.0:
             return None
         if direct:
-            if self._pump(remaining):
-                self._drain()  # the rest of the TPDO set, when it came together
+            if bus.pump(remaining):
+                bus.drain()  # the rest of the TPDO set, when it came together
         else:
             wake = self._wake
             wake.clear()
@@ -808,11 +936,15 @@ class CANopenDriver(Driver):
         self.stats.estops += 1
         self._latched = True
         step = max(self._last_sent, 0)
-        self._rpdo_and_sync(step, self.profile.estop_word(), self._last_counts)
+        self._rpdo(step, self.profile.estop_word(), self._last_counts)
+        if self._bus is not None:
+            self._bus.sync()  # at once: a synchronous RPDO acts at the next SYNC
 
     def heartbeat(self) -> None:
         self._hb_last_sent = time.monotonic()
-        self._send(self._hb_id, bytes((NMT_OPERATIONAL,)))
+        bus = self._bus
+        if bus is None or not bus.heartbeat(self._hb_msg):
+            self.stats.send_errors += 1
 
     def arm(self, timeout: float, receive: Any = None) -> Feedback | None:
         """Reset a fault and bring the device to holding by SDO (see the module docstring).
@@ -863,6 +995,7 @@ class CANopenDriver(Driver):
             self._step = -1
             self._delivered_sync = -2
             self._part = {}
+        self._awaiting = None
         self._q.clear()
         self.heartbeat()  # the device's heartbeat consumer counts from here
         return Feedback(0, pos, force, flags)
@@ -887,15 +1020,26 @@ class CANopenDriver(Driver):
         self._shutdown_network()
 
     def _shutdown_network(self) -> None:
+        bus, self._bus = self._bus, None
         net, self.network = self.network, None
-        self._rxq = None
-        self.node = None
+        node, self.node = self.node, None
         self._opened = False
-        if net is not None:
-            try:
-                net.disconnect()
-            except (*_BUS_ERRORS, RuntimeError):  # pragma: no cover - already gone
-                pass
+        self._awaiting = None
+        if (
+            net is not None
+            and node is not None
+            and bus is not None
+            and bus.axes.keys() - {self.node_id}
+        ):  # other axes stay on the network: this node leaves its dispatch
+            for pdo in (node.tpdo[1], node.tpdo[2]):
+                for cb in [
+                    cb for cb in net.subscribers.get(pdo.cob_id, ()) if cb == pdo.on_message
+                ]:
+                    net.unsubscribe(pdo.cob_id, cb)
+            node.remove_network()
+            net.nodes.pop(self.node_id, None)
+        if bus is not None:
+            bus.release(self)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -914,10 +1058,10 @@ def step_frames(connection: dict[str, Any] | None = None) -> dict[str, int]:
 def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat_hz: float = 0.0):
     """The CANopen link's load (:class:`rths_hil.linkbudget.LinkLoad`) of ``channels`` axes.
 
-    Per step: one SYNC for the bus plus, per axis, RPDO1, TPDO1 and TPDO2; per second, per
-    axis, the bridge's heartbeat (``heartbeat_hz``, at least ``1/heartbeat_period``) and the
-    device's (``1/controller_heartbeat``). Frame bits with worst-case stuffing
-    (:func:`rths_hil.linkbudget.can_frame_bits`).
+    Per step: one SYNC for the bus (shared by its axes, :class:`CANopenBus`) plus, per axis,
+    RPDO1, TPDO1 and TPDO2; per second the bridge's heartbeat, one per bus (``heartbeat_hz``, at
+    least ``1/heartbeat_period``), and each device's (``1/controller_heartbeat``). Frame bits
+    with worst-case stuffing (:func:`rths_hil.linkbudget.can_frame_bits`).
     """
     from rths_hil.linkbudget import LinkLoad, can_frame_bits, link_key
 
@@ -930,13 +1074,13 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
     hb_dev = 1.0 / ctrl if ctrl else 0.0
     b_hb = can_frame_bits(1)
     name = link_key("canopen", c)
-    per_second_bits = channels * b_hb * (hb_bridge + hb_dev)
+    per_second_bits = b_hb * (hb_bridge + channels * hb_dev)  # the bridge's: one per bus
     detail = (
         f"SYNC {b_sync} + {channels} × (RPDO {can_frame_bits(n['rpdo'])} + TPDO "
         f"{can_frame_bits(n['tpdo1'])}"
         + (f" + TPDO {can_frame_bits(n['tpdo2'])}" if n["tpdo2"] else "")
-        + f") bits at {fs:g} Hz + heartbeats {channels} × {b_hb} bits at "
-        f"{hb_bridge + hb_dev:g} Hz"
+        + f") bits at {fs:g} Hz + heartbeats of {b_hb} bits: the bridge's at {hb_bridge:g} Hz, "
+        f"{channels} × the device's at {hb_dev:g} Hz"
     )
     base = {"channels": channels, "fs": fs}
     bitrate = c.get("bitrate")
