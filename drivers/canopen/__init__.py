@@ -23,12 +23,18 @@ consumer 0x1016 (``device_watchdog``: the bridge's heartbeat, node ``bridge_node
 then NMT operational. A PDO longer than 8 bytes, an EDS without one of the objects, a wrong
 device type or identity is refused with one line (:class:`~rths_hil.errors.InputError`, exit 2).
 
-**Each step** (:meth:`send`): RPDO1 with the control word and the set-point, then one SYNC. The
-SYNC is the step clock: the device applies the RPDO received before it and answers with its
+**Each step** (the base class's contract: :meth:`~..base.Driver.send` →
+:meth:`CANopenDriver._send_raw`, :meth:`~..base.Driver.receive` →
+:meth:`CANopenDriver._recv_internal`): RPDO1 with the control word and the set-point, then one
+SYNC, sent by the bus (:class:`CANopenBus`) when the first axis on it waits for its step's
+feedback — after every axis's RPDO, so several axes on one bus share one SYNC per step. The
+SYNC is the step clock: the devices apply the RPDO received before it and answer with their
 TPDOs. The feedback of step ``k`` is the TPDO set received after SYNC ``k`` (TPDOs carry no
 sequence number: a TPDO that comes after the next SYNC is taken for the next step's, see
-``docs/canopen.md``). Positions are counts on the wire (``counts_per_m``), forces counts of
-``newtons_per_count``.
+``docs/canopen.md``). The RPDO is encoded and the TPDOs decoded by the library's PDO variables
+(the objects' ``encode_raw`` / ``decode_raw`` at the offsets of the library's PDO maps).
+Positions are counts on the wire (``counts_per_m``), forces counts of ``newtons_per_count``.
+The base class owns the receive deadline, the timeouts, the sequence rules and the counters.
 
 **State machine.** The control word of each step follows the device's last reported state one
 transition at a time (402: shutdown → switch on → enable operation; 408: active), so the run's
@@ -49,8 +55,9 @@ with NMT stop.
 ``WATCHDOG`` for 0x8130, heartbeat / life-guard error) until the next arming; the code is logged,
 counted in the driver's stats (``emcy``) and named by :meth:`fault_text`, which the loop adds to
 its controller trip. The controller's heartbeat (``controller_heartbeat``): when none came for
-``controller_heartbeat_timeout`` (1 s), :meth:`receive` returns nothing (counted
-``heartbeat_lost``), so the loop's watchdog — which counts time — trips.
+``controller_heartbeat_timeout`` (1 s), :meth:`_recv_internal` raises
+:class:`~..base.LinkDown` (counted ``heartbeat_lost``): the receive returns nothing, so the loop's
+watchdog — which counts time — trips.
 
 Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1–127),
 ``device_profile`` (``cia402`` / ``cia408``), ``interface``, ``channel``, ``bitrate``,
@@ -338,8 +345,9 @@ class CANopenBus:
         q = self.rxq
         if q is not None:
             frames = q.queue
+            handle = self.handle
             while frames:
-                self.handle(frames.popleft())
+                handle(frames.popleft())
         else:
             while self.pump(0.0):
                 pass
@@ -520,6 +528,7 @@ class CANopenDriver(Driver):
         self._lock = threading.Lock()
         self._part: dict[int, list[int] | None] = {}
         self._states: dict[int, str] = {}
+        self._flags: dict[tuple[str, bool], int] = {}
         # the library's PDO variables of the mapped objects (set when the PDOs are mapped)
         self._rpdo_map: Any = None
         self._rpdo_cw: Any = None
@@ -527,6 +536,7 @@ class CANopenDriver(Driver):
         self._tpdo_vars: dict[int, tuple[Any, ...]] = {}
         self._tpdo_maps: dict[int, Any] = {}  # read in the caller's thread: straight to the map
         self._tpdo_len: dict[int, int] = {}
+        self._tpdo_decode: dict[int, tuple[int, tuple[tuple[Any, Any], ...]]] = {}
         self._step = -1  # the step the last SYNC belongs to
         self._delivered_sync = -2
         self._state = "NOT READY TO SWITCH ON" if p.number == 402 else "NOT READY"
@@ -540,6 +550,7 @@ class CANopenDriver(Driver):
         self._first_enable = True
         self._opened = False
         self._bus: CANopenBus | None = None
+        self._cw_sent = -1  # the control word in the RPDO frame
         self._awaiting: int | None = None  # the step of an RPDO sent and not yet SYNCed
         # the RPDO of every step, built once and rewritten in place (Frame: a can.Message that
         # the virtual bus copies cheaply, drivers.can.codec); the SYNC is the bus's
@@ -735,10 +746,15 @@ class CANopenDriver(Driver):
             for v in (by_obj[self.profile.control], by_obj[self.profile.setpoint])
         )
         self._tpdo_vars, self._tpdo_len, self._tpdo_maps = {}, {}, {}
+        self._tpdo_decode = {}
         for pdo, variables in ((node.tpdo[1], self._tpdo1_vars), (node.tpdo[2], self._tpdo2_vars)):
             if variables:
                 self._tpdo_vars[pdo.cob_id] = tuple(pdo.map)
                 self._tpdo_len[pdo.cob_id] = sum(v.length for v in pdo.map) // 8
+                self._tpdo_decode[pdo.cob_id] = (
+                    self._tpdo_len[pdo.cob_id],
+                    tuple((v, v.od) for v in pdo.map),
+                )
                 self._tpdo_maps[pdo.cob_id] = pdo
                 if self._bus is not None:
                     self._bus.tpdo[pdo.cob_id] = (self, pdo)
@@ -760,9 +776,10 @@ class CANopenDriver(Driver):
         ``Variable.raw`` returns), are filed for the step of the last SYNC."""
         cob = pdo_map.cob_id
         values: list[int] | None = None
-        if len(pdo_map.data) == self._tpdo_len.get(cob, -1):
+        size, variables = self._tpdo_decode.get(cob, (-1, ()))
+        if len(pdo_map.data) == size:
             try:
-                values = [v.od.decode_raw(v.get_data()) for v in self._tpdo_vars[cob]]
+                values = [od.decode_raw(v.get_data()) for v, od in variables]
             except (ObjectDictionaryError, struct.error):
                 values = None
         with self._lock:
@@ -797,7 +814,10 @@ class CANopenDriver(Driver):
         if state is None:  # the FSA state of a status word, looked up once
             state = self._states[sw] = self.profile.state(sw)
         self._state = state
-        status = self.profile.flags(state, self._latched)
+        key = (state, self._latched)
+        status = self._flags.get(key)
+        if status is None:
+            status = self._flags[key] = self.profile.flags(state, self._latched)
         code = self._emcy_code
         if code:
             status |= _FAULT | (_WATCHDOG if code == EMCY_HEARTBEAT else 0)
@@ -839,8 +859,12 @@ class CANopenDriver(Driver):
         # (``ODVariable.encode_raw``, what ``Variable.raw = v`` does) at the byte offset of the
         # library's mapping (whole-byte objects only, :class:`Layout`)
         data = self._rpdo_msg.data
-        for od, a, b, v in ((*self._rpdo_cw, word), (*self._rpdo_sp, counts)):
-            data[a:b] = od.encode_raw(v)
+        od, a, b = self._rpdo_cw
+        if word != self._cw_sent:  # the control word changes at transitions only
+            data[a:b] = od.encode_raw(word)
+            self._cw_sent = word
+        od, a, b = self._rpdo_sp
+        data[a:b] = od.encode_raw(counts)
         self._rpdo_msg.arbitration_id = self._rpdo_id
         if not bus.send(self._rpdo_msg):
             self.stats.send_errors += 1
