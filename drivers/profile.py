@@ -301,6 +301,8 @@ class ModbusPoint:
         """The integer of a status word (no scale)."""
         if self.type == "bool":
             return 1 if regs[0] else 0
+        if self.type == "uint16" and self.byte_order == "big":
+            return int(regs[0])  # the register pymodbus decoded is the unsigned 16-bit value
         return int(
             ModbusClientMixin.convert_from_registers(
                 self._swap(regs),
