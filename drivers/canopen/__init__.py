@@ -529,6 +529,7 @@ class CANopenDriver(Driver):
         self._part: dict[int, list[int] | None] = {}
         self._states: dict[int, str] = {}
         self._flags: dict[tuple[str, bool], int] = {}
+        self._words: dict[tuple[str, bool, bool], int] = {}
         # the library's PDO variables of the mapped objects (set when the PDOs are mapped)
         self._rpdo_map: Any = None
         self._rpdo_cw: Any = None
@@ -536,7 +537,7 @@ class CANopenDriver(Driver):
         self._tpdo_vars: dict[int, tuple[Any, ...]] = {}
         self._tpdo_maps: dict[int, Any] = {}  # read in the caller's thread: straight to the map
         self._tpdo_len: dict[int, int] = {}
-        self._tpdo_decode: dict[int, tuple[int, tuple[tuple[Any, Any], ...]]] = {}
+        self._tpdo_decode: dict[int, tuple[int, tuple[tuple[Any, int, int], ...]]] = {}
         self._step = -1  # the step the last SYNC belongs to
         self._delivered_sync = -2
         self._state = "NOT READY TO SWITCH ON" if p.number == 402 else "NOT READY"
@@ -753,7 +754,7 @@ class CANopenDriver(Driver):
                 self._tpdo_len[pdo.cob_id] = sum(v.length for v in pdo.map) // 8
                 self._tpdo_decode[pdo.cob_id] = (
                     self._tpdo_len[pdo.cob_id],
-                    tuple((v, v.od) for v in pdo.map),
+                    tuple((v.od, v.offset // 8, (v.offset + v.length) // 8) for v in pdo.map),
                 )
                 self._tpdo_maps[pdo.cob_id] = pdo
                 if self._bus is not None:
@@ -771,15 +772,17 @@ class CANopenDriver(Driver):
     # ------------------------------------------------------------------------------------------
     # callbacks (the canopen library's notifier thread)
     def _on_tpdo(self, pdo_map: Any) -> None:
-        """A TPDO arrived (the library's ``PdoMap.on_message``): its values, decoded by the
-        library's PDO variables (``Variable.get_data`` → ``ODVariable.decode_raw``, what
-        ``Variable.raw`` returns), are filed for the step of the last SYNC."""
+        """A TPDO arrived (into the library's PDO map, by ``PdoMap.on_message`` or the bus):
+        its values, decoded by the mapped objects (``ODVariable.decode_raw`` of the bytes at the
+        offsets of the library's mapping, what ``Variable.raw`` returns for whole-byte objects),
+        are filed for the step of the last SYNC."""
         cob = pdo_map.cob_id
+        data = pdo_map.data
         values: list[int] | None = None
-        size, variables = self._tpdo_decode.get(cob, (-1, ()))
-        if len(pdo_map.data) == size:
+        size, fields = self._tpdo_decode.get(cob, (-1, ()))
+        if len(data) == size:
             try:
-                values = [od.decode_raw(v.get_data()) for v, od in variables]
+                values = [od.decode_raw(data[a:b]) for od, a, b in fields]
             except (ObjectDictionaryError, struct.error):
                 values = None
         with self._lock:
@@ -898,9 +901,12 @@ class CANopenDriver(Driver):
             self._first_enable = False
         if not enable and self._latched:
             self._latched = False  # acknowledged: the word below releases the device
-            word = self.profile.cyclic_word(self._state, False, False)
+            key = (self._state, False, False)
         else:
-            word = self.profile.cyclic_word(self._state, enable, self._latched)
+            key = (self._state, enable, self._latched)
+        word = self._words.get(key)
+        if word is None:  # the FSA's control word for (state, enable, latched), once
+            word = self._words[key] = self.profile.cyclic_word(*key)
         bus = self._bus
         if bus is not None:
             if self._awaiting is not None:  # the last RPDO was never SYNCed (no receive)
