@@ -702,6 +702,7 @@ class CANopenDriver(Driver):
         node.nmt.add_heartbeat_callback(self._on_heartbeat)
         node.nmt.send_command(0x01)  # operational
         self._hb_seen = time.monotonic()
+        self.heartbeat()  # the device's consumer counts from here (and the other axes' on the bus)
 
     def _map_pdos(self) -> None:
         node = self.node
