@@ -360,7 +360,8 @@ class ModbusProfile:
         """(request, response) bytes on an RTU line, CRC included, of each transaction of
         one step: FC 23 (``13 + 2w``, ``5 + 2r``), or FC 16 (``9 + 2w``, 8) and one read per
         block (8, ``5 + 2n`` registers or ``5 + ⌈n/8⌉`` bits), Modbus application protocol
-        V1.1b3 §6.3–6.17, RTU framing (address + CRC) of the serial line guide V1.02 §2.5."""
+        V1.1b3 §6.1–6.17, RTU framing (address + CRC) of the serial line guide V1.02 §2.5.1.1
+        (docs/references.md)."""
         w = self.points["setpoint"].count
         if self.fc23:
             return [(13 + 2 * w, 5 + 2 * self.reads[0].count)]
