@@ -347,3 +347,26 @@ def test_two_axes_with_one_node_id_are_refused(tmp_path):
     assert proc.returncode == 2, proc.stderr
     err = [x for x in proc.stderr.splitlines() if "error" in x]
     assert len(err) == 1 and "both CANopen node 1 on bus virtual:rths-canopen-two-axes" in err[0]
+
+
+def test_two_axes_a_fault_on_one_stops_both(tmp_path):
+    """A runaway on node 2 (EMCY 0x8611) trips the loop naming that node; both axes on the
+    bus are e-stopped: the healthy one confirms its quick stop, the faulty one holds in FAULT."""
+    at = 1500
+    cfg = load_config(
+        TWO_AXES,
+        ["loop.console=0", "output.plot=false",
+         f"actuators.storey3.twin.faults=runaway_from={at}; runaway_rate=0.5"],
+    )  # fmt: skip
+    loop = RTHSLoop(cfg, tmp_path / "fault", mode="lockstep", duration=4.0)
+    res = loop.run()
+    assert res.status == "trip" and res.trip.rule == "controller", res.trip
+    assert "canopen node 2" in res.trip.reason and "EMCY 0x8611" in res.trip.reason
+    assert abs(res.trip.step - at) <= 3
+    events = read_run(tmp_path / "fault").events
+    stops = {e["channel"]: e for e in events if e["kind"] == "estop"}
+    assert set(stops) == {"storey1", "storey3"}
+    assert stops["storey1"]["confirmed"]  # the healthy axis latched its quick stop
+    a, b = loop.channels  # the latches are left as they are after an e-stop
+    assert a.twin.state == "QUICK STOP ACTIVE" and a.twin.history[-2] == "OPERATION ENABLED"
+    assert b.twin.state == "FAULT"  # the faulty axis holds in FAULT (its quick stop ignored)
