@@ -306,7 +306,7 @@ def _parallel_sweep(runner, grid: list[float], factor: float, scheduler: str, on
     """
     import copy
 
-    from ..study import open_executor
+    from ..studies import open_executor
     from ..tuning import sweep
 
     remote = copy.copy(runner)
