@@ -147,7 +147,7 @@ RECORDS = {
 def nominal_records(workers: int) -> str:
     """Every method on the nominal plant under each of the three records, the whole record:
     the benchmark script's J1, J2, J4, J6, J7 and the FEI A, d (Markdown table)."""
-    from rths_hil import study
+    from rths_hil import studies as study
     from rths_hil.config import load_config
 
     out = []
@@ -179,7 +179,7 @@ def nominal_records(workers: int) -> str:
 
 def run_study(trials: int, duration: float, workers: int, out: Path) -> float:
     """Run the study as ``rths-hil study compensators`` does; return the wall time (s)."""
-    from rths_hil import study
+    from rths_hil import studies as study
     from rths_hil.config import load_config
 
     cfg = load_config(str(EXAMPLE), [])

@@ -26,6 +26,7 @@ import numpy as np
 from . import studies as study
 from .compensators import compensator_class
 from .errors import InputError
+from .studies import robustness as rob
 
 __all__ = [
     "COMPARISON_METRICS",
@@ -93,7 +94,7 @@ def method_trial(method: str, spec: study.TrialSpec) -> dict[str, Any]:
 
     A structure of several DOFs tested by one actuator on DOF 1 (the RTHS benchmark's
     partition) runs :func:`floors_trial`, which adds the upper floors' J5/J6/J8/J9 (paper) and
-    J6–J9 (benchmark script); anything else runs :func:`rths_hil.study.robustness_trial`.
+    J6–J9 (benchmark script); anything else runs :func:`rths_hil.studies.robustness_trial`.
     """
     row = floors_trial(spec) if _floors_case(spec.cfg) else study.robustness_trial(spec)
     return {"method": method, **row}
@@ -156,8 +157,8 @@ def _floor_columns(rec: np.ndarray) -> np.ndarray:
 def floors_trial(spec: study.TrialSpec) -> dict[str, Any]:
     """One lockstep trial of a one-actuator MDOF test, J1–J9 over all (≤ 3) floors.
 
-    The row has the columns of :func:`rths_hil.study.robustness_trial` (one channel). The
-    reference (:func:`rths_hil.study.reference_by_loop`: the same test with an ideal
+    The row has the columns of :func:`rths_hil.studies.robustness_trial` (one channel). The
+    reference (:func:`rths_hil.studies.reference_by_loop`: the same test with an ideal
     actuator) gives every floor, so the upper floors' criteria are computed too: the paper's
     J5, J6, J8, J9 and the benchmark script's J6–J9 (Silva et al. 2020,
     :func:`rths_hil.metrics.criteria` and :func:`rths_hil.metrics.benchmark_criteria` with the
@@ -171,10 +172,10 @@ def floors_trial(spec: study.TrialSpec) -> dict[str, Any]:
     from .metrics import benchmark_criteria, criteria
     from .recorder import read_run
 
-    study._sweep_dead_scratch()
+    rob._sweep_dead_scratch()
     key = _reference_key(spec)
-    scratch = tempfile.TemporaryDirectory(prefix=f"{study._SCRATCH_PREFIX}{os.getpid()}-")
-    with study._TRIAL_LOCK, scratch as tmp:
+    scratch = tempfile.TemporaryDirectory(prefix=f"{rob._SCRATCH_PREFIX}{os.getpid()}-")
+    with rob._TRIAL_LOCK, scratch as tmp:
         cfg = copy.deepcopy(spec.cfg)
         if spec.record is not None:
             path = Path(tmp) / Path(spec.record[0]).name
@@ -185,7 +186,7 @@ def floors_trial(spec: study.TrialSpec) -> dict[str, Any]:
             rec = read_run(Path(tmp) / "run").record
             reference = _reference_floors(cfg, res.planned_steps, tmp, key)
         except InputError as exc:  # e.g. a drawn plant that is unstable
-            return study._invalid_row(spec, str(exc))
+            return rob._invalid_row(spec, str(exc))
     fs = float(cfg["loop"]["fs"])
     comp = cfg["actuators"][0].get("compensation", {})
     alpha = comp.get("alpha", cfg["compensation"]["alpha"])
@@ -210,8 +211,8 @@ def floors_trial(spec: study.TrialSpec) -> dict[str, Any]:
     row["fei_delay"] = whole.delay if whole is not None else nan
     row["fei_f_eq"] = whole.f_eq if whole is not None else nan
     valid = np.asarray(rec["fei_valid"], dtype=bool)
-    a_lo, a_hi = study._extremes(np.asarray(rec["fei_amplitude"], dtype=float), valid)
-    d_lo, d_hi = study._extremes(np.asarray(rec["fei_delay"], dtype=float), valid)
+    a_lo, a_hi = rob._extremes(np.asarray(rec["fei_amplitude"], dtype=float), valid)
+    d_lo, d_hi = rob._extremes(np.asarray(rec["fei_delay"], dtype=float), valid)
     row["mwo_amplitude_min"], row["mwo_amplitude_max"] = a_lo, a_hi
     row["mwo_delay_min"], row["mwo_delay_max"] = d_lo, d_hi
     ok = n >= study.BENCHMARK_MIN_STEPS

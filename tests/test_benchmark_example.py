@@ -13,7 +13,8 @@ import pytest
 from rths_hil.sim_backends.models import benchmark_transfer_function
 from scipy import linalg
 
-from rths_hil import mdof, study
+from rths_hil import mdof
+from rths_hil import studies as study
 from rths_hil.compensator_study import compensator_study, floors_trial
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
@@ -186,7 +187,7 @@ def test_ideal_actuator_with_the_partition_reproduces_the_reference_structure(da
     same ground motion: NRMS per floor ≤ 1 % (the loop measures the specimen's force from
     backward differences and integrates explicitly)."""
     cfg = load_config(str(CONFIG), ["loop.duration=8", "loop.console=0", "output.plot=false"])
-    cfg = study._inline_twin(cfg)
+    cfg = study.inline_twin(cfg)
     n = 8 * 1024
     study.reference_by_loop(cfg, n, tmp_path)
     from rths_hil.recorder import read_run
@@ -274,7 +275,7 @@ def test_three_trial_study_runs_every_method_with_all_floors(small_study):
 def test_floors_trial_equals_the_robustness_trial_on_floor_one(small_study):
     """floors_trial adds floors 2 and 3; floor 1's criteria are those of robustness_trial."""
     cfg = load_config(str(CONFIG), [])
-    base = study._inline_twin(cfg)
+    base = study.inline_twin(cfg)
     perts = study.default_perturbations(base)
     spec = study.plan_trials(base, perts, 1, 7, None, 7.0)[0]
     a = floors_trial(spec)
