@@ -168,7 +168,7 @@ def floors_trial(spec: study.TrialSpec) -> dict[str, Any]:
     import tempfile
 
     from .fei import fei
-    from .loop import run
+    from .hybrid import run
     from .metrics import benchmark_criteria, criteria
     from .recorder import read_run
 

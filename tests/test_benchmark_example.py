@@ -207,7 +207,7 @@ def test_ideal_actuator_with_the_partition_reproduces_the_reference_structure(da
 
 def test_short_lockstep_runs_of_the_example(tmp_path):
     from rths_hil.fei import fei
-    from rths_hil.loop import RTHSLoop
+    from rths_hil.hybrid import RTHSLoop
     from rths_hil.metrics import j2_nrms
     from rths_hil.recorder import read_run
 
