@@ -26,7 +26,9 @@ inputs), ``word_order`` and ``byte_order`` (``big`` or ``little``, defaults from
 are converted by pymodbus (``convert_to_registers`` / ``convert_from_registers``); a
 ``byte_order = "little"`` swaps the two bytes of each register. Actions are a ``table``
 (``coil`` or ``holding``), an ``address`` and the ``value`` written. ``[modbus] unit`` is the
-unit id.
+unit id; ``[modbus] pipeline`` (default true) sends a step's Modbus TCP requests in one socket
+write, their responses matched by transaction id (false: one request at a time; RTU is always
+one at a time).
 
 ``protocol = "can"``: ``dbc`` (path, relative to the profile) and, for each role, the DBC
 ``message`` and ``signal``; byte order (Intel or Motorola), sign, scale and offset come from
@@ -343,6 +345,10 @@ class ModbusProfile:
         registers and every read role is in one block of holding registers (≤ 125).
     reads : tuple of ReadBlock
         The read requests per step otherwise (one per table, contiguous span ≤ 125 / 2000).
+    pipeline : bool
+        Modbus TCP: the step's requests go out in one socket write, their responses matched by
+        transaction id (``[modbus] pipeline``, default true). False: one request at a time,
+        the next written when the previous one is answered. RTU is always one at a time.
     """
 
     source: str
@@ -353,6 +359,7 @@ class ModbusProfile:
     heartbeat: ModbusPoint | None
     reads: tuple[ReadBlock, ...]
     fc23: bool
+    pipeline: bool = True
     protocol: str = "modbus"
     units_doc: dict[str, str] = field(default_factory=dict)
 
@@ -434,9 +441,13 @@ def _load_modbus(r: _Reader) -> ModbusProfile:
     mb = r.table("modbus")
     defaults = {"word_order": "big", "byte_order": "big"}
     unit = 1
+    pipeline = True
     if mb is not None:
-        mb.unknown(("unit", "word_order", "byte_order"))
+        mb.unknown(("unit", "word_order", "byte_order", "pipeline"))
         unit = mb.int("unit", 1, lo=0, hi=255)
+        pipeline = mb.data.get("pipeline", True)
+        if not isinstance(pipeline, bool):
+            raise mb.fail("pipeline", f"must be true or false, got {pipeline!r}")
         defaults = {
             "word_order": mb.str("word_order", "big", ("big", "little")),
             "byte_order": mb.str("byte_order", "big", ("big", "little")),
@@ -495,6 +506,7 @@ def _load_modbus(r: _Reader) -> ModbusProfile:
         heartbeat=heartbeat,
         reads=reads,
         fc23=fc23,
+        pipeline=pipeline,
     )
 
 
