@@ -44,7 +44,7 @@ from scipy.signal import lfilter
 from rths_hil.errors import InputError
 
 from .delay import ORDER, lagrange_taps
-from .models import FirstOrderServo, _first_order_coeffs
+from .first_order import FirstOrderServo, first_order_coeffs
 
 _MM = 1e-3
 
@@ -617,7 +617,7 @@ class ServoLag(Effect):
 
     Physical origin: finite bandwidth of the position loop (``T = A/(kp·kq)``); acts as an
     extra delay ≈ ``T`` with amplitude ``1/sqrt(1 + (ωT)²)``. Realistic 2-20 ms. Same
-    discretisation as :class:`~sim_backends.models.FirstOrderServo` (first-order hold), step and
+    discretisation as :class:`~rths_hil.sim_backends.first_order.FirstOrderServo` (first-order hold), step and
     :func:`scipy.signal.lfilter` paths identical to the last bit.
     """
 
@@ -860,7 +860,7 @@ class ForceFeedback(Effect):
         self.static_gain = p["actuator_stiffness"] / total
         self.time_constant = p["specimen_damping"] / total
         if self.time_constant > 0:
-            b, a = _first_order_coeffs(self.static_gain, self.time_constant, self.dt)
+            b, a = first_order_coeffs(self.static_gain, self.time_constant, self.dt)
         else:
             b, a = np.array([self.static_gain, 0.0]), np.array([1.0, 0.0])
         self.b, self.a = b, a

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -59,6 +60,7 @@ __all__ = [
     "EffectSpec",
     "ModelSpec",
     "SpecimenSpec",
+    "build_plant",
     "dump_model",
     "load_model",
     "load_plant",
@@ -319,6 +321,46 @@ def load_plant(source: str | Path | Mapping[str, Any] | ModelSpec, dt: float) ->
     """Load a model file (or dict, or spec) and build its :class:`TwinPlant` at step ``dt``."""
     spec = source if isinstance(source, ModelSpec) else load_model(source)
     return spec.build(dt)
+
+
+def build_plant(
+    twin: Mapping[str, Any] | str | os.PathLike[str], dt: float, base_dir: str | None = None
+) -> TwinPlant:
+    """Build a twin's plant from a configuration's ``[twin]`` section (or a model file).
+
+    Parameters
+    ----------
+    twin : mapping or str
+        Either a path to a model file (TOML), or a mapping with the model file's tables:
+        ``actuator`` (required: ``model``, ``delay``, ``gain``, the model's parameters,
+        ``effects``), ``specimen`` and ``sensor`` (optional), or a ``[twin]`` section with a
+        ``model`` key naming a model file (then the other tables are ignored). Empty tables
+        count as absent.
+    dt : float
+        Step of the plant (s).
+    base_dir : str, optional
+        Directory a relative model-file path is resolved against.
+
+    Returns
+    -------
+    sim_backends.plant.TwinPlant
+
+    Raises
+    ------
+    InputError
+        Unknown model or effect, a bad parameter, or an unreadable model file; the message
+        names the key.
+    """
+    if isinstance(twin, str | os.PathLike):
+        path = os.fspath(twin)
+        if base_dir is not None and not os.path.isabs(path):
+            path = os.path.join(base_dir, path)
+        return load_plant(path, dt)
+    model = twin.get("model")
+    if isinstance(model, str) and model:
+        return build_plant(model, dt, base_dir)
+    spec = {k: dict(twin[k]) for k in ("actuator", "specimen", "sensor") if twin.get(k)}
+    return load_plant(spec, dt)
 
 
 def _toml_value(value: Any) -> str:

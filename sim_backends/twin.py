@@ -15,6 +15,7 @@ from __future__ import annotations
 import uuid
 from typing import Any
 
+from rths_hil.drivers.profile import is_builtin
 from rths_hil.errors import InputError
 
 from .base import Plant
@@ -86,8 +87,6 @@ def start_twin(
         Unknown driver name or endpoint setting, or a transport that cannot be opened.
     """
     cls, entry = twin_class(driver_name)
-    from rths_hil.drivers.profile import is_builtin
-
     profile = connection.pop("profile", None)
     if not is_builtin(profile):
         cls = cls.profile_twin()

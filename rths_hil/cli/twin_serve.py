@@ -151,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
 
     def plant():
         if args.model:
-            from rths_hil.sim_backends.registry import build_plant
+            from rths_hil.sim_backends.modelfile import build_plant
 
             return build_plant(args.model, dt)
         return default_plant(dt=dt)

@@ -49,6 +49,7 @@ from rths_hil.errors import InputError
 
 from ..base import Plant
 from ..faults import Faults
+from ..registry import twin_class
 
 log = logging.getLogger(__name__)
 
@@ -348,8 +349,6 @@ class TwinEndpoint(ABC):
         Default: ``--transport`` among :attr:`transports` (the registry's entry for a built-in
         twin) and, for ``tcp``, ``--host``, ``--port`` and ``--allow-remote``.
         """
-        from ..registry import twin_class
-
         _, entry = twin_class(args.driver)
         conn: dict[str, Any] = {}
         allowed = entry.transports

@@ -43,6 +43,7 @@ from rths_hil.drivers.can.codec import Frame, load
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
+from .can_profile import CANProfileTwin
 from .nullmodem import NullModem
 
 log = logging.getLogger(__name__)
@@ -76,8 +77,6 @@ class CANTwin(TwinEndpoint):
     @classmethod
     def profile_twin(cls) -> type[TwinEndpoint]:
         """A lab's own DBC: :class:`~.can_profile.CANProfileTwin`."""
-        from .can_profile import CANProfileTwin
-
         return CANProfileTwin
 
     @classmethod

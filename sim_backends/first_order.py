@@ -1,0 +1,80 @@
+"""The first-order servo lag ``1 / (T s + 1)`` with a first-order hold.
+
+:func:`first_order_coeffs` gives the discrete filter (used by :class:`FirstOrderServo`, by the
+``servo_lag`` effect and by the force-feedback effect's pressure lag); the discretisation is
+:func:`scipy.signal.cont2discrete` with ``method="foh"``: exact for a command that is linear
+between samples, no half-sample delay.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import signal
+
+from rths_hil.errors import InputError
+
+from .base import ActuatorModel, check_dt
+
+__all__ = ["FirstOrderServo", "first_order_coeffs"]
+
+
+def first_order_coeffs(
+    gain: float, time_constant: float, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Discrete ``(b, a)`` of ``gain / (T s + 1)`` with a first-order hold (``a[0] = 1``)."""
+    num, den, _ = signal.cont2discrete(([gain], [time_constant, 1.0]), dt, method="foh")
+    b = np.atleast_1d(np.squeeze(num)).astype(float)
+    a = np.asarray(den, dtype=float)
+    b, a = b / a[0], a / a[0]
+    if len(b) < 2:
+        b = np.concatenate([b, np.zeros(2 - len(b))])
+    return b[:2], a[:2]
+
+
+class FirstOrderServo(ActuatorModel):
+    """First-order servo lag ``G(s) = 1 / (T s + 1)`` discretised with a first-order hold.
+
+    The lag is the dominant dynamics of a servo-hydraulic actuator under proportional control:
+    the closed position loop has a pole at ``kp·kq/A`` (valve flow gain over piston area), i.e.
+    ``T = A / (kp kq)``, typically 2-20 ms. At low frequency it behaves as a delay of ``T``
+    (phase ``-atan(ωT) ≈ -ωT``) with amplitude ``1/sqrt(1 + ω²T²)``.
+
+    Parameters
+    ----------
+    time_constant : float
+        ``T`` in seconds (> 0).
+    dt : float
+        Step in seconds.
+
+    Notes
+    -----
+    The step path is the transposed direct form II recursion that :func:`scipy.signal.lfilter`
+    uses, so :meth:`step` and :meth:`simulate` agree to the last bit.
+    """
+
+    def __init__(self, time_constant: float, dt: float) -> None:
+        self.dt = check_dt(dt)
+        t = float(time_constant)
+        if not math.isfinite(t) or t <= 0:
+            raise InputError(f"time_constant: must be > 0 s, got {time_constant!r}")
+        self.time_constant = t
+        b, a = first_order_coeffs(1.0, t, self.dt)
+        self.b = b
+        self.a = a
+        self._b0, self._b1 = float(b[0]), float(b[1])
+        self._a1 = float(a[1])
+        self._z = 0.0
+
+    def reset(self) -> None:
+        self._z = 0.0
+
+    def step(self, command: float) -> float:
+        y = self._b0 * command + self._z
+        self._z = self._b1 * command - self._a1 * y
+        return y
+
+    def simulate(self, command: np.ndarray) -> np.ndarray:
+        self.reset()
+        return signal.lfilter(self.b, self.a, np.asarray(command, dtype=float))
