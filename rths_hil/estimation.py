@@ -14,12 +14,11 @@ with a random-walk process model ``x[k+1] = x[k] + w[k]``, ``w ~ N(0, Q)``,
 
 where ``u(t_k − D·dt)`` is the third-order Lagrange interpolation of the input history at the
 fractional delay ``D = τ·fs + M`` samples (the interpolator of :mod:`rths_hil.sim_backends.delay`).
-An
-extended Kalman filter (filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` equations)
-linearises it with the Jacobian ``H = [u(t−τ), g·∂u(t−τ)/∂τ, 1]``, the derivative taken
-analytically on the Lagrange polynomial. ``M`` is a small look-ahead (the measurement is held
-``M`` samples) so that negative delays — a measured signal leading its target after
-over-compensation, the FEI paper's Section 5 — can be tracked too; estimates are then ``M·dt`` old.
+An extended Kalman filter (filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` equations)
+linearises it with the Jacobian ``H = [u(t−τ), g·∂u(t−τ)/∂τ, 1]``, the derivative taken analytically
+on the Lagrange polynomial. ``M`` is a small look-ahead (the measurement is held ``M`` samples) so
+that negative delays — a measured signal leading its target after over-compensation, the FEI paper's
+Section 5 — can be tracked too; estimates are then ``M·dt`` old.
 
 Why not the linear regression: ``y ≈ g·u − g·τ·u̇`` (:class:`LinearDelayGainKF`) is linear in
 ``θ = [g, −gτ]`` but is the first term of a Taylor series. On a sinusoid of angular frequency

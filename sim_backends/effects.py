@@ -615,9 +615,9 @@ class VelocityLimit(Effect):
 class ServoLag(Effect):
     """First-order servo lag ``1/(T s + 1)`` on top of the model, ``T = time_constant``.
 
-    Physical origin: finite bandwidth of the position loop (``T = A/(kp·kq)``); acts as an
-    extra delay ≈ ``T`` with amplitude ``1/sqrt(1 + (ωT)²)``. Realistic 2-20 ms. Same
-    discretisation as :class:`~rths_hil.sim_backends.first_order.FirstOrderServo` (first-order hold), step and
+    Physical origin: finite bandwidth of the position loop (``T = A/(kp·kq)``); acts as an extra
+    delay ≈ ``T`` with amplitude ``1/sqrt(1 + (ωT)²)``. Realistic 2-20 ms. Same discretisation as
+    :class:`~rths_hil.sim_backends.first_order.FirstOrderServo` (first-order hold), step and
     :func:`scipy.signal.lfilter` paths identical to the last bit.
     """
 

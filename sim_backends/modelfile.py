@@ -9,7 +9,7 @@ Format (all values SI; times and lengths may also be strings with units, ``"12ms
     time_constant = 0.008      # the model's parameters, in the same table
 
     [[actuator.effects]]       # optional, applied in order after the model
-    kind = "backlash"          # a catalogue name (sim_backends.effects.EFFECTS)
+    kind = "backlash"          # a catalogue name (rths_hil.sim_backends.effects.EFFECTS)
     width = 2e-4               # that effect's parameters
 
     [specimen]                 # optional; default: the benchmark's spring-dashpot
@@ -121,7 +121,7 @@ class ModelSpec:
     source: str = "model"
 
     def build(self, dt: float) -> TwinPlant:
-        """Build the :class:`~sim_backends.plant.TwinPlant` at step ``dt`` (s)."""
+        """Build the :class:`~rths_hil.sim_backends.plant.TwinPlant` at step ``dt`` (s)."""
         a = self.actuator
         actuator = make_model(a.model, dt, delay=a.delay, gain=a.gain, **a.params)
         effects = [make_effect(e.kind, dt, **e.params) for e in a.effects]
@@ -343,7 +343,7 @@ def build_plant(
 
     Returns
     -------
-    sim_backends.plant.TwinPlant
+    rths_hil.sim_backends.plant.TwinPlant
 
     Raises
     ------

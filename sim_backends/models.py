@@ -1,6 +1,6 @@
 """Actuator models: what displacement a servo-hydraulic actuator achieves for a command.
 
-Three families, all :class:`~sim_backends.base.ActuatorModel` subclasses stepped at ``dt``:
+Three families, all :class:`~rths_hil.sim_backends.base.ActuatorModel` subclasses stepped at ``dt``:
 
 * :class:`DelayGain` — the FEI paper's block model (Fig. 4.1): a fractional transport delay followed
   by a gain (re-exported from :mod:`rths_hil.sim_backends.delay`).
@@ -19,12 +19,12 @@ registered name (:func:`make_model`, :data:`rths_hil.sim_backends.registry.MODEL
 
 :class:`Series` chains models (the model file's ``model`` dynamics followed by the ``delay`` and
 ``gain`` of the FEI paper's Fig. 4.1). Continuous models are discretised with
-:func:`scipy.signal.cont2discrete` using a first-order (triangle) hold: exact for a command that
-is linear between samples, with no frequency warping and no half-sample delay (a zero-order hold
-would add ``dt/2`` of delay, Tustin would warp the benchmark's 67 Hz mode). The per-sample
-:meth:`~sim_backends.base.ActuatorModel.step` of a state-space model is a matrix-vector product
-into preallocated arrays (no allocation per step); :meth:`simulate` runs the same discrete system
-as second-order sections (:func:`scipy.signal.sosfilt`) and agrees with the step path to
+:func:`scipy.signal.cont2discrete` using a first-order (triangle) hold: exact for a command that is
+linear between samples, with no frequency warping and no half-sample delay (a zero-order hold would
+add ``dt/2`` of delay, Tustin would warp the benchmark's 67 Hz mode). The per-sample
+:meth:`~rths_hil.sim_backends.base.ActuatorModel.step` of a state-space model is a matrix-vector
+product into preallocated arrays (no allocation per step); :meth:`simulate` runs the same discrete
+system as second-order sections (:func:`scipy.signal.sosfilt`) and agrees with the step path to
 round-off.
 """
 

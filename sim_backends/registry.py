@@ -62,7 +62,8 @@ class TwinEntry:
     Attributes
     ----------
     target : str
-        ``"module:Class"`` of the :class:`~sim_backends.endpoints.base.TwinEndpoint` subclass.
+        ``"module:Class"`` of the :class:`~rths_hil.sim_backends.endpoints.base.TwinEndpoint`
+        subclass.
     seq_bits : int or None
         Width of the sequence counter the protocol's frames carry (the controller checks and
         echoes it); ``None`` when the protocol has none.
@@ -106,7 +107,7 @@ class ModelEntry:
     Attributes
     ----------
     target : str
-        ``"module:Class"`` of the :class:`~sim_backends.base.ActuatorModel`, built as
+        ``"module:Class"`` of the :class:`~rths_hil.sim_backends.base.ActuatorModel`, built as
         ``Class(dt=dt, **params)``; empty for the bare delay and gain.
     params : dict
         Parameter name → (default, or ``None`` when required; SI unit).
@@ -201,7 +202,8 @@ def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
         raise InputError(f"twin entry point {driver_name!r} = {target!r}: {exc}") from None
     if not (isinstance(cls, type) and issubclass(cls, _load(TWIN_ENDPOINT))):
         raise InputError(
-            f"twin entry point {target!r} is not a sim_backends.endpoints.base.TwinEndpoint"
+            f"twin entry point {target!r} is not a "
+            "rths_hil.sim_backends.endpoints.base.TwinEndpoint"
         )
     entry = TwinEntry(
         target,

@@ -1,7 +1,7 @@
 """Start a virtual servo-hydraulic twin: a plant behind a real protocol endpoint.
 
->>> from sim_backends.twin import start_twin, default_plant
->>> from drivers.registry import create_driver
+>>> from rths_hil.sim_backends.twin import start_twin, default_plant
+>>> from rths_hil.drivers.registry import create_driver
 >>> with start_twin("modbus", default_plant()) as twin:            # doctest: +SKIP
 ...     with create_driver("modbus", **twin.connection) as drv:
 ...         drv.send(0, 0.001); fb = drv.receive(0.1)
@@ -16,6 +16,7 @@ import uuid
 from typing import Any
 
 from rths_hil.drivers.profile import is_builtin
+
 from rths_hil.errors import InputError
 
 from .base import Plant

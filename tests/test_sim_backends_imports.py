@@ -14,8 +14,7 @@ import pytest
 import rths_hil.sim_backends as sim_backends
 
 MODULES = sorted(
-    m.name
-    for m in pkgutil.walk_packages(sim_backends.__path__, prefix="rths_hil.sim_backends.")
+    m.name for m in pkgutil.walk_packages(sim_backends.__path__, prefix="rths_hil.sim_backends.")
 )
 
 

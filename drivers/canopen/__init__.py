@@ -54,12 +54,10 @@ its controller trip. The controller's heartbeat (``controller_heartbeat``): when
 
 Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1–127),
 ``device_profile`` (``cia402`` / ``cia408``), ``interface``, ``channel``, ``bitrate``,
-``bus_options``,
-``counts_per_m``, ``force_object``, ``newtons_per_count``, ``bridge_node_id``,
+``bus_options``, ``counts_per_m``, ``force_object``, ``newtons_per_count``, ``bridge_node_id``,
 ``heartbeat_period``, ``controller_heartbeat``, ``controller_heartbeat_timeout``,
-``device_watchdog``, ``start_tolerance``,
-``sdo_timeout``, ``vendor_id``, ``product_code``, ``configure_pdo`` (documented in
-``docs/canopen.md``).
+``device_watchdog``, ``start_tolerance``, ``sdo_timeout``, ``vendor_id``, ``product_code``,
+``configure_pdo`` (documented in ``docs/canopen.md``).
 """
 
 from __future__ import annotations
@@ -447,7 +445,7 @@ class CANopenDriver(Driver):
         if bus is None:
             return False
         q = self._rxq
-        if q is not None:  # python-can's virtual bus: its receive queue (drivers.can)
+        if q is not None:  # python-can's virtual bus: its receive queue (rths_hil.drivers.can)
             frames = q.queue
             if frames:
                 msg = frames.popleft()

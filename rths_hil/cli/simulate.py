@@ -3,9 +3,8 @@
 An SDOF structure (linear or Bouc-Wen, CR integration) under a ground motion gives the target
 displacement; the actuator block model (fractional transport delay + gain,
 :class:`rths_hil.sim_backends.delay.DelayGain`) gives the measured one. The record CSV has the
-columns
-``time,target,measured,ground_accel,force`` (s, m, m, m/s², N) and is what ``rths-hil evaluate``
-reads. See ``docs/simulation.md``.
+columns ``time,target,measured,ground_accel,force`` (s, m, m, m/s², N) and is what ``rths-hil
+evaluate`` reads. See ``docs/simulation.md``.
 """
 
 from __future__ import annotations

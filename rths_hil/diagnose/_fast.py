@@ -3,10 +3,9 @@
 The diagnosis simulates candidate effects hundreds of times per record, so:
 
 * ``velocity_limit`` — :class:`rths_hil.sim_backends.effects.VelocityLimit` has no closed form and
-its
-  vectorised path loops in Python over every stretch where the limit is active (most of the
-  record for the small limits a fit tries); here the same recursion is compiled with numba,
-  with the same comparisons in the same order as its ``step``: equal bit for bit.
+  its vectorised path loops in Python over every stretch where the limit is active (most of the
+  record for the small limits a fit tries); here the same recursion is compiled with numba, with the
+  same comparisons in the same order as its ``step``: equal bit for bit.
 * ``backlash`` — the catalogue's exact prefix scan costs a dozen numpy passes; the plain
   recursion ``y[k] = clip(y[k-1], x[k] − w/2, x[k] + w/2)`` compiled is one, with the same
   min/max: equal bit for bit.
@@ -16,15 +15,13 @@ its
   ``H(z) = K (b0 + b1 z⁻¹)/(1 − p z⁻¹)``, ``b0 = 1 − c``, ``b1 = c − p`` (from
   ``H(z) = (z − 1)²/(z dt) · Z{G(s)/s²}``), equal to the catalogue's to round-off.
 
-* ``time_varying_delay`` — the catalogue gathers 4 Lagrange taps per sample with numpy
-  (a dozen temporary arrays); compiled, the same formula (``τ[k] = D + a·sin(2πk dt/P)`` in
-  samples, ``n0 = max(⌊τ⌋ − 1, 0)``, taps of :func:`rths_hil.sim_backends.delay.lagrange_taps`) is
-  one
-  pass, equal to round-off.
+* ``time_varying_delay`` — the catalogue gathers 4 Lagrange taps per sample with numpy (a dozen
+  temporary arrays); compiled, the same formula (``τ[k] = D + a·sin(2πk dt/P)`` in samples, ``n0 =
+  max(⌊τ⌋ − 1, 0)``, taps of :func:`rths_hil.sim_backends.delay.lagrange_taps`) is one pass, equal
+  to round-off.
 * the transport delay — :func:`rths_hil.sim_backends.delay.fractional_delay` runs its FIR (``n0``
-zeros
-  and 4 Lagrange taps) through :func:`scipy.signal.lfilter`; here the shift is a slice and the 4
-  taps are 4 vector operations (equal to round-off).
+  zeros and 4 Lagrange taps) through :func:`scipy.signal.lfilter`; here the shift is a slice and the
+  4 taps are 4 vector operations (equal to round-off).
 
 Every other effect goes through the catalogue itself.
 """

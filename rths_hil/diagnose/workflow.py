@@ -668,10 +668,9 @@ def diagnose(
         Measured specimen force (N): localisation by force and the ``force_feedback``
         candidate's specimen.
     model : ModelSpec, optional
-        The base model (a model file, :func:`rths_hil.sim_backends.modelfile.load_model`). Default:
-        a
-        delay + gain model fitted to the record (:func:`rths_hil.estimation.calibrate`, no
-        offset, so that an offset stays a candidate); its delay and gain are then nuisance
+        The base model (a model file, :func:`rths_hil.sim_backends.modelfile.load_model`).
+        Default: a delay + gain model fitted to the record (:func:`rths_hil.estimation.calibrate`,
+        no offset, so that an offset stays a candidate); its delay and gain are then nuisance
         parameters, re-fitted with every candidate.
     max_effects : int
         Stop after this many named effects.

@@ -28,7 +28,7 @@ real-time loop relies on):
   initial position holds still, commanding 0 moves the actuator there through its dynamics.
 
 :class:`TwinEndpoint` runs the protocol side in a daemon thread and applies the frame faults of a
-:class:`~sim_backends.faults.Faults` plan.
+:class:`~rths_hil.sim_backends.faults.Faults` plan.
 """
 
 from __future__ import annotations
@@ -241,7 +241,7 @@ class TwinController:
         return (0, self.displacement, self.force, status)
 
     def status(self) -> int:
-        """Current :class:`~drivers.base.Status` flags (without per-sample flags)."""
+        """Current :class:`~rths_hil.drivers.base.Status` flags (without per-sample flags)."""
         s = _ENABLED if self.enabled else 0  # plain ints: an IntFlag "|" builds an enum member
         if self.estop_latched:
             s |= _ESTOP_ACTIVE
