@@ -17,7 +17,7 @@ Rules (names as they appear in events and on the console):
     velocity (backward difference over the steps since the previous reply); force on the
     measured specimen force.
 ``fei``
-    :class:`FEIRule` (issue 2): ``consecutive`` valid online FEI windows with
+    :class:`FEIRule`: ``consecutive`` valid online FEI windows with
     ``|A − 1| > amplitude_tol`` or ``|d| > delay_tol`` (the FEI paper's Eq. 2.2, 2.5). Invalid
     windows neither trip nor reset the count.
 ``kalman``
@@ -194,7 +194,7 @@ class LimitRule:
 
 
 class FEIRule:
-    """E-stop on the online FEI: ``consecutive`` valid windows out of tolerance (issue 2).
+    """E-stop on the online FEI: ``consecutive`` valid windows out of tolerance.
 
     A valid window is out of tolerance when ``|A − 1| > amplitude_tol`` or
     ``|d| > delay_tol`` (A and d per the FEI paper's Eq. 2.2 and 2.5). ``consecutive`` such windows

@@ -1,4 +1,4 @@
-"""Several actuators in one test: channels on an MDOF structure (issue 13).
+"""Several actuators in one test: channels on an MDOF structure.
 
 End to end in lockstep through the real drivers and twins (CAN nodes on one virtual bus, CAN +
 Modbus TCP), the structure wiring against the offline MDOF integrator, a fault on one channel

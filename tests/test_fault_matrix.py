@@ -1,4 +1,4 @@
-"""The fault matrix: driver × fault → the rule that must trip and how soon (issue 12).
+"""The fault matrix: driver × fault → the rule that must trip and how soon.
 
 Every built-in fault of :mod:`rths_hil.sim_backends.faults` on every driver, in lockstep (the bound
 is in steps after the faulty one) and paced at 1024 Hz (the bound is wall-clock time from the

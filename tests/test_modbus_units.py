@@ -1,4 +1,4 @@
-"""Several Modbus units on one TCP connection (issue 13): real twins, real drivers, 127.0.0.1.
+"""Several Modbus units on one TCP connection: real twins, real drivers, 127.0.0.1.
 
 ``examples/modbus_units.toml`` is ``two_actuators.toml`` with both actuators over Modbus TCP,
 units 1 and 2 of one server: lockstep end to end (each channel's FEI delay against its twin's
