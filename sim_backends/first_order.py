@@ -1,8 +1,8 @@
 """The first-order servo lag ``1 / (T s + 1)`` with a first-order hold.
 
-:func:`first_order_coeffs` gives the discrete filter (used by :class:`FirstOrderServo`, by the
-``servo_lag`` effect and by the force-feedback effect's pressure lag); the discretisation is
-:func:`scipy.signal.cont2discrete` with ``method="foh"``: exact for a command that is linear
+:func:`first_order_coeffs` gives the discrete filter (used by :class:`FirstOrderServo`, the
+``servo_lag`` and ``force_feedback`` effects and the diagnosis): the closed form of
+:func:`scipy.signal.cont2discrete` with ``method="foh"``, exact for a command that is linear
 between samples, no half-sample delay.
 """
 
@@ -23,14 +23,16 @@ __all__ = ["FirstOrderServo", "first_order_coeffs"]
 def first_order_coeffs(
     gain: float, time_constant: float, dt: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Discrete ``(b, a)`` of ``gain / (T s + 1)`` with a first-order hold (``a[0] = 1``)."""
-    num, den, _ = signal.cont2discrete(([gain], [time_constant, 1.0]), dt, method="foh")
-    b = np.atleast_1d(np.squeeze(num)).astype(float)
-    a = np.asarray(den, dtype=float)
-    b, a = b / a[0], a / a[0]
-    if len(b) < 2:
-        b = np.concatenate([b, np.zeros(2 - len(b))])
-    return b[:2], a[:2]
+    """Discrete ``(b, a)`` of ``gain / (T s + 1)`` with a first-order hold (``a[0] = 1``).
+
+    Closed form of :func:`scipy.signal.cont2discrete` with ``method="foh"`` (equal to it to
+    round-off): with ``p = exp(−dt/T)`` and ``c = (T/dt)(1 − p)``,
+    ``H(z) = gain·(b0 + b1 z⁻¹)/(1 − p z⁻¹)``, ``b0 = 1 − c``, ``b1 = c − p`` (from
+    ``H(z) = (z − 1)²/(z dt) · Z{G(s)/s²}``).
+    """
+    p = math.exp(-dt / time_constant)
+    c = (time_constant / dt) * -math.expm1(-dt / time_constant)
+    return np.array([gain * (1.0 - c), gain * (c - p)]), np.array([1.0, -p])
 
 
 class FirstOrderServo(ActuatorModel):
