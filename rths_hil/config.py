@@ -1066,13 +1066,6 @@ class Config(dict):
     source: str = "<embedded default>"
     base_dir: Path = Path(".")
 
-    def get_path(self, dotted: str) -> Any:
-        """Value of ``section.key`` (or deeper into a table)."""
-        node: Any = self
-        for part in dotted.split("."):
-            node = node[part]
-        return node
-
     @property
     def window_s(self) -> float:
         """The FEI window in seconds (natural periods resolved with ``structure.fn``)."""

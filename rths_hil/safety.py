@@ -634,9 +634,10 @@ class SafetyMonitor:
 
     Notes
     -----
-    Call order in a step (see :mod:`rths_hil.loop`): :meth:`check_command` before the command is
-    sent, :meth:`check_feedback` when the reply (or its absence) is known, :meth:`check_fei` and
-    :meth:`check_kalman` with the estimates, :meth:`check_overrun` in paced mode. Each returns
+    Call order in a step (see :mod:`rths_hil.hybrid.runner`): :meth:`check_command` before the
+    command is sent, :meth:`check_feedback` when the reply (or its absence) is known,
+    :meth:`check_fei` and :meth:`check_kalman` with the estimates. Overruns belong to the whole
+    loop, not to a channel: the runner keeps one :class:`OverrunRule` for all channels. Each returns
     the first :class:`Trip` (stamped with time and step) or ``None``; after a trip the monitor
     keeps returning it.
     """
@@ -807,17 +808,6 @@ class SafetyMonitor:
         rule = self.kalman
         if rule is not None:
             trip = rule.check(gain, delay)
-            if trip is not None:
-                return self._fire(trip, t, k)
-        return None
-
-    def check_overrun(self, t: float, k: int, overrun: bool, lateness: float) -> Trip | None:
-        """A paced step's overrun flag and lateness (s)."""
-        if self.tripped is not None:
-            return self.tripped
-        rule = self.overrun
-        if rule is not None:
-            trip = rule.check(overrun, lateness)
             if trip is not None:
                 return self._fire(trip, t, k)
         return None
