@@ -60,6 +60,7 @@ import numpy as np
 from rths_hil.drivers.base import Status
 
 from .errors import InputError
+from .units import positive_number
 
 __all__ = [
     "ControllerRule",
@@ -137,16 +138,6 @@ def _jsonable(v):
     return v
 
 
-def _positive(name: str, value: float, allow_zero: bool = False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
-        raise InputError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {value!r}")
-    return v
-
-
 def _count(name: str, value: int, minimum: int = 1) -> int:
     if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
         raise InputError(f"{name} must be an integer >= {minimum}, got {value!r}")
@@ -178,7 +169,7 @@ class LimitRule:
 
     def __init__(self, rule: str, limit: float, unit: str) -> None:
         self.rule = rule
-        self.limit = _positive(f"{rule} limit", limit)
+        self.limit = positive_number(limit, f"{rule} limit")
         self.unit = unit
 
     def check(self, quantity: str, value: float) -> Trip | None:
@@ -215,8 +206,8 @@ class FEIRule:
 
     def __init__(self, amplitude_tol: float, delay_tol: float, consecutive: int = 1) -> None:
         self.rule = "fei"
-        self.amplitude_tol = _positive("FEI amplitude tolerance", amplitude_tol)
-        self.delay_tol = _positive("FEI delay tolerance", delay_tol)
+        self.amplitude_tol = positive_number(amplitude_tol, "FEI amplitude tolerance")
+        self.delay_tol = positive_number(delay_tol, "FEI delay tolerance")
         self.consecutive = _count("FEI consecutive windows", consecutive)
         self.count = 0
         self.tripped: Trip | None = None
@@ -298,7 +289,7 @@ class KalmanRule:
             )
         self.gain_min = float(gain_min)
         self.gain_max = float(gain_max)
-        self.delay_max = _positive("Kalman delay limit", delay_max)
+        self.delay_max = positive_number(delay_max, "Kalman delay limit")
 
     def check(self, gain: float, delay: float) -> Trip | None:
         """Trip when the gain leaves its range or the delay exceeds its limit."""
@@ -362,7 +353,7 @@ class WatchdogRule:
     ) -> None:
         self.rule = "watchdog"
         self.missed = _count("watchdog missed replies", missed, minimum=0)
-        self.timeout = None if timeout is None else _positive("watchdog timeout", timeout)
+        self.timeout = None if timeout is None else positive_number(timeout, "watchdog timeout")
         if self.missed == 0 and self.timeout is None:
             raise InputError("watchdog: give a timeout (s) or a number of missed replies")
         self.clock = clock
@@ -451,8 +442,8 @@ class StallRule:
 
     def __init__(self, max_stall: float, min_stall: float) -> None:
         self.rule = "stall"
-        self.max_stall = _positive("max_stall", max_stall)
-        self.min_stall = _positive("min_stall", min_stall)
+        self.max_stall = positive_number(max_stall, "max_stall")
+        self.min_stall = positive_number(min_stall, "min_stall")
         self.count = 0
         self.longest = 0.0
         self.total = 0.0
@@ -582,7 +573,7 @@ class StuckRule:
     def __init__(self, steps: int, motion: float) -> None:
         self.rule = "stuck"
         self.steps = _count("stuck-sensor steps", steps, minimum=2)
-        self.motion = _positive("stuck-sensor motion", motion)
+        self.motion = positive_number(motion, "stuck-sensor motion")
         self.count = 0
         self.moved = 0.0
         self.last = math.nan
@@ -656,7 +647,7 @@ class SafetyMonitor:
         stuck: StuckRule | None = None,
         controller: ControllerRule | None = None,
     ) -> None:
-        self.dt = _positive("time step", dt)
+        self.dt = positive_number(dt, "time step")
         inf = math.inf
         self._disp = (
             LimitRule("displacement", displacement_limit, "m") if displacement_limit else None

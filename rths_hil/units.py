@@ -162,13 +162,17 @@ def parse_range(text: str, what: str = "range", max_points: int = 1000) -> list[
         raise InputError(f"cannot read {what} {text!r}: use start:stop:step or a,b,c") from None
 
 
-def positive_number(value: Any, what: str) -> float:
-    """``value`` as a finite float > 0, or one :class:`~rths_hil.errors.InputError` line naming
-    ``what``."""
+def positive_number(value: Any, what: str, allow_zero: bool = False) -> float:
+    """``value`` as a finite float > 0 (≥ 0 with ``allow_zero``), or one
+    :class:`~rths_hil.errors.InputError` line naming ``what``.
+
+    The one check of a positive number in the package (limits, tolerances, steps, rates).
+    """
     try:
         v = float(value)
     except (TypeError, ValueError):
         raise InputError(f"{what} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise InputError(f"{what} must be a finite number > 0, got {value!r}")
+    if not (math.isfinite(v) and (v > 0 or (allow_zero and v == 0))):
+        bound = "≥ 0" if allow_zero else "> 0"
+        raise InputError(f"{what} must be a finite number {bound}, got {value!r}")
     return v

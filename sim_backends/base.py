@@ -9,22 +9,18 @@ measured displacement *and* the measured specimen force for each command. Units 
 
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from rths_hil.errors import InputError
+from rths_hil.units import positive_number
 
 
 def check_dt(dt: float) -> float:
     """``dt`` as a float, or :class:`~rths_hil.errors.InputError` unless it is a positive number of
-    seconds."""
-    dt = float(dt)
-    if not math.isfinite(dt) or dt <= 0:
-        raise InputError(f"dt: must be a positive number of seconds, got {dt!r}")
-    return dt
+    seconds (:func:`rths_hil.units.positive_number`)."""
+    return positive_number(dt, "dt (s)")
 
 
 class ActuatorModel(ABC):
