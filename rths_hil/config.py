@@ -40,9 +40,9 @@ from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 from typing import Any
 
-import tomli_w
-
-from .errors import InputError, check_regular_file
+from .errors import InputError
+from .formats import read_toml
+from .formats import toml_value as _toml_value
 from .units import (
     parse_accel,
     parse_force,
@@ -1546,17 +1546,7 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
     cfg = default_config()
     if path is not None:
         p = Path(path)
-        check_regular_file(p, "a configuration", max_bytes=MAX_CONFIG_BYTES)
-        try:
-            text = p.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise InputError(f"{path}: cannot read config ({exc.strerror})") from None
-        except UnicodeDecodeError:
-            raise InputError(f"{path}: not a UTF-8 text file") from None
-        try:
-            data = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise InputError(f"{path}: TOML syntax error: {exc}") from None
+        data = read_toml(p, "config", str(path), max_bytes=MAX_CONFIG_BYTES)
         cfg.source = str(path)
         cfg.base_dir = p.resolve().parent
         _merge(cfg, data, str(path))
@@ -1600,26 +1590,6 @@ def apply_overrides(cfg: Config, overrides: Iterable[str], where: str | None = N
 
 # --------------------------------------------------------------------------------------------
 # rendering
-
-
-def _toml_key(k: str) -> str:
-    """``k`` as a TOML key: bare when it may be, else quoted by ``tomli_w``."""
-    return tomli_w.dumps({k: 0}).rstrip("\n").rsplit(" = ", 1)[0]
-
-
-def _toml_value(v: Any) -> str:
-    """One value as TOML text, written by ``tomli_w`` (strings with newlines, quotes or control
-    characters escaped as TOML requires; tables inline, as the one-key-a-line layout needs)."""
-    if isinstance(v, dict):
-        return (
-            "{" + ", ".join(f"{_toml_key(str(k))} = {_toml_value(x)}" for k, x in v.items()) + "}"
-        )
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, float) and math.isnan(v):
-        return "nan"
-    text = tomli_w.dumps({"v": v})  # 'v = <value>\n'
-    return text[len("v = ") :].rstrip("\n")
 
 
 def to_toml(cfg: Mapping[str, Mapping[str, Any]], comments: bool = True) -> str:

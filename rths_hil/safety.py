@@ -60,6 +60,7 @@ import numpy as np
 from rths_hil.drivers.base import Status
 
 from .errors import InputError
+from .formats import json_safe
 from .units import positive_number
 
 __all__ = [
@@ -125,17 +126,8 @@ class Trip:
             "time": self.time,
             "step": self.step,
             "channel": self.channel,
-            "values": {k: _jsonable(v) for k, v in self.values.items()},
+            "values": json_safe(dict(self.values), "name"),
         }
-
-
-def _jsonable(v):
-    if isinstance(v, float | np.floating):
-        v = float(v)
-        return v if math.isfinite(v) else repr(v)
-    if isinstance(v, np.integer):
-        return int(v)
-    return v
 
 
 def _count(name: str, value: int, minimum: int = 1) -> int:

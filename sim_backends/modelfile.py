@@ -37,16 +37,15 @@ the file and the key path, e.g. ``twin.toml: actuator.effects[1].kind: unknown e
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rths_hil.errors import InputError, check_regular_file
+from rths_hil.errors import InputError
+from rths_hil.formats import read_toml, toml_key, toml_value
 from rths_hil.units import parse_force, parse_length, parse_time, parse_velocity
 
 from .effects import EFFECTS, make_effect, validate_params
@@ -204,17 +203,7 @@ def load_model(source: str | Path | Mapping[str, Any], name: str | None = None) 
         data = source
     else:
         name = str(source) if name is None else name
-        check_regular_file(source, "a model file", max_bytes=1 << 20)
-        try:
-            text = Path(source).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise InputError(f"{name}: cannot read model file ({exc.strerror})") from None
-        except UnicodeDecodeError:
-            raise InputError(f"{name}: not a UTF-8 text file") from None
-        try:
-            data = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise InputError(f"{name}: invalid TOML: {exc}") from None
+        data = read_toml(source, "model file", name)
     p = f"{name}: " if name else ""
     _unknown(data, ("actuator", "specimen", "sensor"), p)
     if "actuator" not in data:
@@ -363,27 +352,6 @@ def build_plant(
     return load_plant(spec, dt)
 
 
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "nan"
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        text = repr(float(value))  # np.float64 is a float whose repr is "np.float64(…)"
-        return text if any(c in text for c in ".en") else text + ".0"
-    if isinstance(value, str):
-        return json.dumps(value)
-    raise TypeError(f"cannot write {type(value).__name__} to TOML")
-
-
-def _key(key: str) -> str:
-    return key if key.replace("_", "").replace("-", "").isalnum() else json.dumps(key)
-
-
 def model_to_toml(spec: ModelSpec | Mapping[str, Any], header: str = "") -> str:
     """Format a model spec as TOML text (``header`` becomes leading ``#`` comment lines)."""
     if not isinstance(spec, ModelSpec):
@@ -395,14 +363,14 @@ def model_to_toml(spec: ModelSpec | Mapping[str, Any], header: str = "") -> str:
     act = dict(data["actuator"])
     effects = act.pop("effects", [])
     lines.append("[actuator]")
-    lines += [f"{_key(k)} = {_toml_value(v)}" for k, v in act.items()]
+    lines += [f"{toml_key(k)} = {toml_value(v)}" for k, v in act.items()]
     for eff in effects:
         lines += ["", "[[actuator.effects]]"]
-        lines += [f"{_key(k)} = {_toml_value(v)}" for k, v in eff.items()]
+        lines += [f"{toml_key(k)} = {toml_value(v)}" for k, v in eff.items()]
     for table in ("specimen", "sensor"):
         if table in data:
             lines += ["", f"[{table}]"]
-            lines += [f"{_key(k)} = {_toml_value(v)}" for k, v in data[table].items()]
+            lines += [f"{toml_key(k)} = {toml_value(v)}" for k, v in data[table].items()]
     return "\n".join(lines) + "\n"
 
 

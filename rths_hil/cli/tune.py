@@ -22,12 +22,12 @@ stopped by a safety rule, 130 operator stop.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
 
 from ..errors import InputError
+from ..formats import json_text
 from ..units import parse_fraction, parse_range, parse_time
 
 
@@ -243,7 +243,7 @@ def main(args: argparse.Namespace) -> int:
             )
         if not args.no_plot:
             plot_sweep(res, out / "sweep.png", tol_d, tol_a)
-        (out / "summary.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+        (out / "summary.json").write_text(json_text(summary), encoding="utf-8")
         if res.found:
             print(
                 f"recommended α = {res.alpha:.2f} (zero crossing of d(α)), amplitude factor "
@@ -279,7 +279,7 @@ def main(args: argparse.Namespace) -> int:
         )
     if not args.no_plot and res.trials:
         plot_tuning(res, out / "tuning.png")
-    (out / "summary.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+    (out / "summary.json").write_text(json_text(summary), encoding="utf-8")
     if not quiet:
         print(f"rths-hil tune: {res.reason}", file=sys.stderr)
     if res.best:
