@@ -21,8 +21,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..config import load_config, to_toml
+from ..config import to_toml
 from ..units import parse_time
+from .options import add_config_arguments, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -32,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run an RTHS test through a driver (default: NEES-711 setup on a CAN twin)",
         description=__doc__.splitlines()[0],
     )
-    p.add_argument("config", nargs="?", help="TOML configuration (default: embedded NEES-711)")
+    add_config_arguments(p, "loop.fs=2048")
     p.add_argument(
         "--lockstep",
         action="store_true",
@@ -43,13 +44,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--duration", metavar="S", help="simulated time to run, e.g. 10 or 10s (0 = whole record)"
     )
     p.add_argument("--out", metavar="DIR", help="run directory (default: output.dir)")
-    p.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        default=[],
-        help="override a configuration key, e.g. --set loop.fs=2048 (repeatable)",
-    )
     p.add_argument(
         "--show-config",
         action="store_true",
@@ -125,7 +119,7 @@ def main(args: argparse.Namespace) -> int:
     from ..loop import RTHSLoop, new_run_dir
     from ..report import LiveLine, format_summary, plot_report, summarize
 
-    cfg = load_config(args.config, args.set)
+    cfg = config_from_args(args)
     if args.show_config:
         sys.stdout.write(to_toml(cfg))
         return 0

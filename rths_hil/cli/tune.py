@@ -29,6 +29,7 @@ from pathlib import Path
 from ..errors import InputError
 from ..formats import json_text
 from ..units import parse_fraction, parse_range, parse_time
+from .options import add_config_arguments, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,14 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="tune inverse compensation (α, amplitude factor) from trial tests or an α sweep",
         description=__doc__.splitlines()[0],
     )
-    p.add_argument("config", nargs="?", help="TOML configuration (default: embedded NEES-711)")
-    p.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        default=[],
-        help="override a configuration key, e.g. --set compensation.alpha=15 (repeatable)",
-    )
+    add_config_arguments(p, "compensation.alpha=15")
     p.add_argument(
         "--tolerance-delay", default="1ms", metavar="T", help="tolerance on |d| (default 1ms)"
     )
@@ -130,7 +124,6 @@ def _confirm(n_trials: int, pga: float, scale: float, cfg, flag: bool) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run the tuning (or the sweep); return the exit code."""
-    from ..config import load_config
     from ..loop import new_run_dir
     from ..tuning import (
         LoopTrials,
@@ -143,7 +136,7 @@ def main(args: argparse.Namespace) -> int:
         write_tuned_config,
     )
 
-    cfg = load_config(args.config, args.set)
+    cfg = config_from_args(args)
     tol_d = parse_time(args.tolerance_delay, "--tolerance-delay")
     tol_a = parse_fraction(args.tolerance_amplitude, "--tolerance-amplitude")
     if not (math.isfinite(tol_d) and tol_d > 0):
