@@ -26,9 +26,12 @@ class InputError(ValueError):
 
 
 def require(extra: str, what: str) -> None:
-    """Raise :class:`InputError` naming ``pip install 'rths-hil[extra]'`` when the module of
-    the extra ``extra`` (:data:`EXTRAS`) cannot be imported; ``what`` is the feature asked
-    for (``"rths-hil watch"``). Only looks the module up (no import: start-up stays fast)."""
+    """Raise :class:`InputError` naming ``pip install 'rths-hil[extra]'`` when it is missing.
+
+    The module of the extra ``extra`` (:data:`EXTRAS`) cannot be imported; ``what`` is the
+    feature asked for (``"rths-hil watch"``). Only looks the module up (no import: start-up
+    stays fast).
+    """
     module = EXTRAS[extra][0]
     try:
         found = importlib.util.find_spec(module) is not None

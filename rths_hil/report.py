@@ -30,7 +30,7 @@ from .recorder import RECORD_FILE, RunData, read_npy_header, read_run
 __all__ = ["LiveLine", "format_live", "format_summary", "plot_report", "summarize"]
 
 
-def _fmt(v: float, scale: float = 1.0, spec: str = ".3f", signed: bool = False) -> str:
+def _fmt(v: float | None, scale: float = 1.0, spec: str = ".3f", signed: bool = False) -> str:
     if v is None or not math.isfinite(v):
         return "—"
     return format(v * scale, ("+" if signed else "") + spec)

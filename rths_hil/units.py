@@ -76,8 +76,10 @@ def parse_force(text: str | float, what: str = "force") -> float:
 
 
 def parse_velocity(text: str | float, what: str = "velocity") -> float:
-    """Parse a velocity such as ``0.2``, ``200mm/s`` or ``8 in/s`` (a length unit per second)
-    into m/s."""
+    """Parse a velocity such as ``0.2``, ``200mm/s`` or ``8 in/s`` into m/s.
+
+    A unit is a length unit per second.
+    """
     if isinstance(text, int | float):
         return float(text)
     value, unit = _split(text, what)
@@ -158,8 +160,9 @@ def parse_range(text: str, what: str = "range", max_points: int = 1000) -> list[
 
 
 def positive_number(value: Any, what: str, allow_zero: bool = False) -> float:
-    """``value`` as a finite float > 0 (≥ 0 with ``allow_zero``), or one
-    :class:`~rths_hil.errors.InputError` line naming ``what``.
+    """``value`` as a finite float > 0 (≥ 0 with ``allow_zero``), or an input error.
+
+    The :class:`~rths_hil.errors.InputError` is one line naming ``what``.
 
     The one check of a positive number in the package (limits, tolerances, steps, rates).
     """

@@ -18,8 +18,10 @@ from rths_hil.units import positive_number
 
 
 def check_dt(dt: float) -> float:
-    """``dt`` as a float, or :class:`~rths_hil.errors.InputError` unless it is a positive number of
-    seconds (:func:`rths_hil.units.positive_number`)."""
+    """``dt`` as a float, or an input error unless it is a positive number of seconds.
+
+    The check is :func:`rths_hil.units.positive_number`.
+    """
     return positive_number(dt, "dt (s)")
 
 

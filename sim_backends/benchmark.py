@@ -85,9 +85,11 @@ class StateSpaceModel(ActuatorModel):
         self.sos = signal.zpk2sos(z, p, k)
 
     def reset(self) -> None:
+        """Return to rest (zero state, empty delay lines)."""
         self._xu[:] = 0.0
 
     def step(self, command: float) -> float:
+        """Advance one step: the achieved displacement (m) for ``command`` (m)."""
         xu = self._xu
         n = self.order
         xu[n] = command
@@ -97,6 +99,7 @@ class StateSpaceModel(ActuatorModel):
         return y
 
     def simulate(self, command: np.ndarray) -> np.ndarray:
+        """The achieved displacement (m) for a whole command history (m), from rest."""
         self.reset()
         return signal.sosfilt(self.sos, np.asarray(command, dtype=float))
 

@@ -172,8 +172,7 @@ class FractionalDelay:
 
 
 class DelayGain(ActuatorModel):
-    """The FEI paper's Fig. 4.1: measured = gain · command delayed by ``delay`` seconds
-    (fractional).
+    """The FEI paper's Fig. 4.1: measured = gain · command delayed by ``delay`` s (fractional).
 
     Parameters
     ----------
@@ -192,11 +191,14 @@ class DelayGain(ActuatorModel):
         self._line = FractionalDelay(self.delay, 1.0 / self.dt)
 
     def reset(self) -> None:
+        """Return to rest (zero state, empty delay lines)."""
         self._line.reset()
 
     def step(self, command: float) -> float:
+        """Advance one step: the achieved displacement (m) for ``command`` (m)."""
         return self.gain * self._line.step(command)
 
     def simulate(self, command: np.ndarray) -> np.ndarray:
+        """The achieved displacement (m) for a whole command history (m), from rest."""
         self.reset()
         return self.gain * fractional_delay(command, self.delay, 1.0 / self.dt)

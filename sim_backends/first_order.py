@@ -70,13 +70,16 @@ class FirstOrderServo(ActuatorModel):
         self._z = 0.0
 
     def reset(self) -> None:
+        """Return to rest (zero state, empty delay lines)."""
         self._z = 0.0
 
     def step(self, command: float) -> float:
+        """Advance one step: the achieved displacement (m) for ``command`` (m)."""
         y = self._b0 * command + self._z
         self._z = self._b1 * command - self._a1 * y
         return y
 
     def simulate(self, command: np.ndarray) -> np.ndarray:
+        """The achieved displacement (m) for a whole command history (m), from rest."""
         self.reset()
         return signal.lfilter(self.b, self.a, np.asarray(command, dtype=float))

@@ -148,8 +148,10 @@ class ModelSpec:
 
 
 def _number(value: Any, where: str, unit: str = "") -> float:
-    """A finite float from a TOML value; ``unit`` 's', 'm', 'N' or 'm/s' also accepts strings
-    with units (:mod:`rths_hil.units`)."""
+    """A finite float from a TOML value.
+
+    With ``unit`` 's', 'm', 'N' or 'm/s' a string with units is read too (:mod:`rths_hil.units`).
+    """
     parsers = {"s": parse_time, "m": parse_length, "N": parse_force, "m/s": parse_velocity}
     if isinstance(value, str) and unit in parsers:
         parse = parsers[unit]

@@ -70,12 +70,15 @@ class Identity(ActuatorModel):
         self.dt = check_dt(dt)
 
     def reset(self) -> None:
+        """Return to rest (zero state, empty delay lines)."""
         pass
 
     def step(self, command: float) -> float:
+        """Advance one step: the achieved displacement (m) for ``command`` (m)."""
         return float(command)
 
     def simulate(self, command: np.ndarray) -> np.ndarray:
+        """The achieved displacement (m) for a whole command history (m), from rest."""
         return np.array(command, dtype=float)
 
 
@@ -92,16 +95,19 @@ class Series(ActuatorModel):
         self.dt = models[0].dt
 
     def reset(self) -> None:
+        """Return to rest (zero state, empty delay lines)."""
         for m in self.models:
             m.reset()
 
     def step(self, command: float) -> float:
+        """Advance one step: the achieved displacement (m) for ``command`` (m)."""
         x = command
         for m in self.models:
             x = m.step(x)
         return x
 
     def simulate(self, command: np.ndarray) -> np.ndarray:
+        """The achieved displacement (m) for a whole command history (m), from rest."""
         x = np.asarray(command, dtype=float)
         for m in self.models:
             x = m.simulate(x)

@@ -168,8 +168,10 @@ TWIN_ENDPOINT = "rths_hil.sim_backends.endpoints.base:TwinEndpoint"
 
 
 def available_twins() -> dict[str, str]:
-    """Every driver name a twin exists for → its ``module:Class`` (entry points included; an
-    entry point with a built-in name replaces the built-in twin)."""
+    """Every driver name a twin exists for → its ``module:Class``.
+
+    Entry points are included; an entry point with a built-in name replaces the built-in twin.
+    """
     found = {name: e.target for name, e in TWINS.items()}
     for ep in entry_points(group=TWIN_ENTRY_POINT_GROUP):
         found[ep.name] = ep.value

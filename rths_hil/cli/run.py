@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 from ..config import to_toml
 from ..units import parse_time
@@ -146,7 +147,7 @@ def main(args: argparse.Namespace) -> int:
     watcher = None
     if args.watch:
         watcher = _start_watcher(run_dir, args.watch_port, cfg["loop"]["cpu"])
-    site = loop.structure if hasattr(loop.structure, "paste_lines") else None
+    site: Any = loop.structure if hasattr(loop.structure, "paste_lines") else None
     if not args.quiet:
         span = f"{loop.n_steps / loop.fs:.1f} s"
         drivers = ", ".join(dict.fromkeys(ch.driver_name for ch in loop.plan.channels))
@@ -180,7 +181,7 @@ def main(args: argparse.Namespace) -> int:
         if watcher is not None:
             _stop_watcher(watcher, run_dir)
     del loop  # the run's arrays (ground motion, lateness) are not needed for the summary
-    result.lateness = result.ready = None
+    result.lateness = result.ready = None  # type: ignore[assignment]
     try:
         summary = summarize(run_dir)
         if cfg["output"]["plot"] and not args.no_plot and result.steps > 1:
@@ -193,7 +194,7 @@ def main(args: argparse.Namespace) -> int:
         )
     if not args.quiet and summary is not None:
         print(format_summary(summary))
-    if result.status == "trip":
+    if result.status == "trip" and result.trip is not None:
         t = result.trip
         print(
             f"rths-hil run: e-stop: {t.rule}: {t.reason} at t = {t.time:.4f} s (step {t.step}); "

@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ..groundmotion import default_record, resolve
     from ..records import write_record
-    from ..structure import simulate_sdof
+    from ..structure import SDOFResponse, simulate_sdof
 
     fn = _number(args.fn, "fn")
     if fn <= 0:
@@ -126,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
         method=args.method,
         full=True,
     )
+    assert isinstance(resp, SDOFResponse)  # full=True
     measured = DelayGain(delay=delay, gain=gain, dt=1.0 / fs).simulate(resp.x)
     out = Path(args.out)
     if not out.parent.is_dir():

@@ -300,7 +300,7 @@ def _parallel_sweep(runner, grid: list[float], factor: float, scheduler: str, on
     import copy
 
     from ..study import open_executor
-    from ..tuning import sweep
+    from ..tuning import Trial, sweep
 
     remote = copy.copy(runner)
     remote.on_trial = None  # printing happens here, not on the workers
@@ -308,7 +308,7 @@ def _parallel_sweep(runner, grid: list[float], factor: float, scheduler: str, on
     with open_executor(scheduler, 2) as ex:
         futures = {i: ex.submit(remote, a, factor, i) for i, a in enumerate(grid, 1)}
 
-        def run_trial(alpha: float, fac: float, index: int):
+        def run_trial(alpha: float, factor: float, index: int) -> Trial:
             trial = futures[index].result()
             on_trial(trial)
             return trial
