@@ -22,11 +22,12 @@ import time
 
 import numpy as np
 import pytest
-from _procs import ServedTwin, toml_table
 
 from rths_hil.config import load_config
 from rths_hil.loop import RTHSLoop
 from rths_hil.recorder import read_run
+from tests.helpers.loop import run_loop
+from tests.helpers.procs import ServedTwin, toml_table
 
 FS = 1024
 AT = 300  # the faulty step (≈ 0.29 s into the run)
@@ -96,10 +97,8 @@ def _iso(s: str) -> float:
 
 
 def _run(tmp_path, name, mode, *overrides, duration=None):
-    cfg = load_config(None, [*BASE, f"loop.mode={mode}", *overrides])
-    loop = RTHSLoop(cfg, tmp_path / name, duration=duration)
-    res = loop.run()
-    return loop, res, read_run(tmp_path / name)
+    r = run_loop(tmp_path / name, None, *BASE, f"loop.mode={mode}", *overrides, duration=duration)
+    return r.loop, r.result, r.run
 
 
 def _time_to_trip(run, at: int) -> float:
