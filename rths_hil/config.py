@@ -465,7 +465,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "str",
             "",
             unit="-",
-            doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' (sim_backends.faults)",
+            doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' "
+            "(rths_hil.sim_backends.faults)",
         ),
         "initial_position": Key(
             "float",
@@ -1085,7 +1086,7 @@ class Config(dict):
         """The test's channels, each with its sections resolved (see :func:`resolve_channel`).
 
         No ``[[actuators]]`` entry: one unnamed channel on DOF 1 with the top-level sections
-        (today's single-actuator test).
+        (the single-actuator test).
         """
         entries = self.get("actuators") or [{"name": ""}]
         return [resolve_channel(self, e) for e in entries]
