@@ -42,7 +42,7 @@ def _load() -> str:
 
 def _warm(spec) -> float:
     """Run one trial (imports, numba cache, FFT plans); return its wall time."""
-    from rths_hil.study import robustness_trial
+    from rths_hil.studies import robustness_trial
 
     t = time.perf_counter()
     robustness_trial(spec)
@@ -51,7 +51,7 @@ def _warm(spec) -> float:
 
 def _timed(spec) -> float:
     """Run one trial; return the CPU seconds the worker process spent on it."""
-    from rths_hil.study import robustness_trial
+    from rths_hil.studies import robustness_trial
 
     t = time.process_time()
     robustness_trial(spec)
@@ -60,11 +60,11 @@ def _timed(spec) -> float:
 
 def throughput(trials: int, seconds: float) -> list[list[object]]:
     """Trials per second in-process and on 1 and 2 Dask workers (same trials)."""
-    from rths_hil import study
+    from rths_hil import studies as study
     from rths_hil.config import load_config
 
     cfg = load_config(EXAMPLE)
-    base = study._inline_twin(cfg)
+    base = study.inline_twin(cfg)
     perts = study.default_perturbations(base)
     specs = study.plan_trials(base, perts, trials, seed=1, duration=seconds)
     warm = study.plan_trials(base, perts, 2, seed=99, duration=seconds)

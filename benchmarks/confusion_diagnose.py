@@ -268,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     rows = []
     if args.scheduler:
-        from rths_hil.study import open_executor
+        from rths_hil.studies import open_executor
 
         with open_executor(args.scheduler, max(2, args.jobs)) as ex:
             for i, r in enumerate(ex.map(run_case, jobs), 1):

@@ -26,11 +26,11 @@ from typing import TYPE_CHECKING, Any
 
 from .config import (
     Config,
-    _merge,
-    _toml_value,
     apply_overrides,
     default_config,
     load_config,
+    merge,
+    toml_value,
 )
 from .errors import InputError
 
@@ -78,7 +78,7 @@ def _item(key: str, value: Any) -> str:
     if isinstance(value, Path):
         value = str(value)
     try:
-        return f"{key}={_toml_value(value)}"
+        return f"{key}={toml_value(value)}"
     except TypeError:
         raise InputError(f"{key}: {value!r} is not a configuration value") from None
 
@@ -121,7 +121,7 @@ def configure(
         base = default_config()
         base.base_dir = Path.cwd()
         base.source = "<dict>"
-        _merge(base, dict(config), "<dict>")
+        merge(base, dict(config), "<dict>")
     else:
         raise InputError(
             f"config: expected a TOML path, a dict or a Config, got {type(config).__name__}"

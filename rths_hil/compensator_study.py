@@ -1,8 +1,8 @@
 """Compensators compared on the same perturbed plants (``rths-hil study compensators``).
 
-The robustness study's machinery (:mod:`rths_hil.study`): perturbed twins are drawn once
-(:func:`rths_hil.study.plan_trials`), then every method runs on every draw, each trial in
-lockstep through the full chain (:func:`rths_hil.study.robustness_trial`: J1–J9 with the
+The robustness study's machinery (:mod:`rths_hil.studies`): perturbed twins are drawn once
+(:func:`rths_hil.studies.plan_trials`), then every method runs on every draw, each trial in
+lockstep through the full chain (:func:`rths_hil.studies.robustness_trial`: J1–J9 with the
 paper's numbering and as the RTHS benchmark's script computes them, whole-record FEI A and d,
 the online FEI extremes, trips). Outputs: ``trials.csv`` (one line per method × trial),
 ``comparison.csv`` and ``comparison.md`` (median, 5th and 95th percentiles per method and
@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from . import study
+from . import studies as study
 from .compensators import compensator_class
 from .errors import InputError
 
@@ -68,7 +68,7 @@ def plan_method_trials(
             raise InputError(f"--methods: {exc}") from None
     if len(set(methods)) != len(methods):
         raise InputError("--methods: a method is given more than once")
-    base = study._inline_twin(cfg)
+    base = study.inline_twin(cfg)
     specs = study.plan_trials(base, perturbations, trials, seed, None, duration)
     out = []
     for m in methods:
@@ -158,10 +158,10 @@ def compensator_study(
     progress: bool = True,
 ) -> CompensatorComparison:
     """Every method on the same ``trials`` perturbed plants (see the module docstring)."""
-    base = study._inline_twin(cfg)
+    base = study.inline_twin(cfg)
     perts = list(perturbations) if perturbations is not None else study.default_perturbations(base)
     cases = plan_method_trials(base, list(methods), perts, trials, seed, duration)
-    rows = study._run_cases(method_trial, cases, executor, progress, "trials")
+    rows = study.run_cases(method_trial, cases, executor, progress, "trials")
     return CompensatorComparison(
         rows, list(methods), [p.key for p in perts], study.channel_suffixes(base), int(seed)
     )
@@ -205,14 +205,14 @@ def write_comparison(
         w = csv.writer(fh)
         w.writerow(cols)
         for r in res.rows:
-            w.writerow([study._exact(r.get(c, math.nan)) for c in cols])
+            w.writerow([study.exact_text(r.get(c, math.nan)) for c in cols])
     summ = res.summary()
     scols = ["method", "metric", "median", "p5", "p95", "n", "trials", "share_tripped"]
     with (out / "comparison.csv").open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(scols)
         for r in summ:
-            w.writerow([study._exact(r[c]) for c in scols])
+            w.writerow([study.exact_text(r[c]) for c in scols])
     n = len(res.rows) // max(1, len(res.methods))
     md = [
         "# Compensators on the same perturbed plants",

@@ -424,7 +424,7 @@ def _fei_lean(rec: _Rows, ref: str, fs: float, meas: str = "measured"):
     """
     import scipy.fft as sfft
 
-    from .fei import ABS_FLOOR, ZERO_VARIANCE_RTOL, FEIResult, _finish, fft_length
+    from .fei.batch import ABS_FLOOR, ZERO_VARIANCE_RTOL, FEIResult, _finish, fft_length
 
     n = len(rec)
     M = fft_length(n)

@@ -23,6 +23,8 @@ G = 9.80665
 """Standard gravity in m/s²."""
 
 _NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+NUMBER = _NUM
+"""The number syntax every reader of a value with a unit accepts (a regular expression)."""
 _TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6, "min": 60.0}
 _LENGTH_UNITS = {
     "m": 1.0,

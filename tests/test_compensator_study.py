@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rths_hil import study
+from rths_hil import studies as study
 from rths_hil.cli import main
 from rths_hil.compensator_study import compensator_study, write_comparison
 from rths_hil.config import load_config

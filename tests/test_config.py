@@ -215,3 +215,36 @@ def test_example_configs_load():
     for p in examples:
         cfg = load_config(p)
         assert cfg["driver"]["name"] in {"can", "modbus", "serial"}
+
+
+def test_coercion_is_public_and_reads_units():
+    from rths_hil.config import SCHEMA, coerce
+
+    assert coerce(SCHEMA["loop"]["fs"], "2kHz", "loop.fs") == 2000.0
+    assert coerce(SCHEMA["fei"]["window"], " 3T ", "fei.window") == "3T"
+    assert coerce(SCHEMA["safety"]["fei_delay_tol"], "15ms", "safety.fei_delay_tol") == 0.015
+    with pytest.raises(InputError, match=r"^loop\.fs: cannot read '2 kHz x'"):
+        coerce(SCHEMA["loop"]["fs"], "2 kHz x", "loop.fs")
+    with pytest.raises(InputError, match=r"^loop\.fs: expected a number in Hz, got true"):
+        coerce(SCHEMA["loop"]["fs"], True, "loop.fs")
+
+
+def test_fei_window_of_fewer_than_8_samples_one_rule_for_config_and_plan():
+    from rths_hil.hybrid.plan import build_plan
+
+    # structure.fn: 3 T = 3.9 s; at 2 Hz that is 7.8 samples
+    with pytest.raises(InputError, match=r"fei\.window: '3T' is fewer than 8 samples at 2 Hz"):
+        load_config(None, ["loop.fs=2", "structure.fn=0.77", "fei.window='3T'"])
+    # a shear building's own first mode (√(1e7/1e3)/2π = 15.9 Hz) resolves "1T" in the plan:
+    # 1/15.9 s at 64 Hz is 4 samples, while structure.fn (0.77 Hz) would give 83
+    sets = [
+        "structure.kind='shear_building'",
+        "structure.masses=[1e3]",
+        "structure.stiffnesses=[1e7]",
+        "structure.bouc_wen=false",
+        "loop.fs=64",
+        "fei.window='1T'",
+    ]
+    cfg = load_config(None, sets)
+    with pytest.raises(InputError, match=r"fei\.window: '1T' is fewer than 8 samples at 64 Hz"):
+        build_plan(cfg, duration=0.5)

@@ -1,6 +1,6 @@
 """The compiled FEI kernels' logic, run as plain Python (``NUMBA_DISABLE_JIT=1``, subprocess).
 
-The kernels of :mod:`rths_hil.fei_sliding` and :mod:`rths_hil.fei_streaming` are
+The kernels of :mod:`rths_hil.fei.sliding` and :mod:`rths_hil.fei.streaming` are
 ``numba.njit`` loops; under the JIT neither coverage nor a debugger sees their lines. Here a
 subprocess runs the same functions as Python on small cases and checks them against a direct
 DFT (sliding DFTs, low band), against ``moving_fei`` (streaming with every bin in the exact band)
@@ -19,8 +19,8 @@ import numpy as np
 from test_fei_sliding import brute_lowband, brute_sums, random_walk_pair
 
 from rths_hil import fei as F
-from rths_hil.fei_sliding import LB_RESYNC_WINDOWS, LowBandSums, SlidingSums
-from rths_hil.fei_streaming import StreamingFEI
+from rths_hil.fei.sliding import LB_RESYNC_WINDOWS, LowBandSums, SlidingSums
+from rths_hil.fei.streaming import StreamingFEI
 
 FS = 64.0
 # streaming cases: (N, exact_band, samples) — all bins exact; a partial band; no exact band.
@@ -47,8 +47,8 @@ CHILD = textwrap.dedent(
     import numpy as np
 
     assert numba.config.DISABLE_JIT, "the kernels must run as Python here"
-    from rths_hil.fei_sliding import LowBandSums, SlidingSums
-    from rths_hil.fei_streaming import StreamingFEI
+    from rths_hil.fei.sliding import LowBandSums, SlidingSums
+    from rths_hil.fei.streaming import StreamingFEI
     from test_fei_kernels_python import (
         FS, STREAM_CASES, lowband_case, sliding_case, stream_signals,
     )

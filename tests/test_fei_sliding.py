@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rths_hil import fei as F
-from rths_hil.fei_sliding import SlidingSums
+from rths_hil.fei.sliding import SlidingSums
 
 
 def brute_sums(x: np.ndarray, y: np.ndarray, end: int, N: int) -> tuple[float, float, complex]:
@@ -130,7 +130,7 @@ def brute_lowband(x, y, end, N, K0):
 
 @pytest.mark.parametrize("N, K0", [(100, 7), (101, 7), (128, 10), (203, 13), (300, 20)])
 def test_lowband_sums_match_direct_dft_over_many_resyncs(N, K0):
-    from rths_hil.fei_sliding import LB_RESYNC_WINDOWS, LowBandSums
+    from rths_hil.fei.sliding import LB_RESYNC_WINDOWS, LowBandSums
 
     period = LB_RESYNC_WINDOWS * N
     L = 3 * period + 11  # three resynchronisations

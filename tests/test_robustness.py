@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rths_hil import study
+from rths_hil import studies as study
 from rths_hil.cli import main
 from rths_hil.config import load_config
 
@@ -43,7 +43,7 @@ def test_reference_response_equals_the_loop_with_an_ideal_transfer_system(tmp_pa
     from rths_hil.recorder import read_run
 
     # the serial transport carries float64 (the CAN frames quantise displacement and force)
-    cfg = study._inline_twin(
+    cfg = study.inline_twin(
         load_config(EXAMPLE, [*SETS, "driver.name=serial", "driver.connection={}"])
     )
     cfg["compensation"]["enabled"] = False
@@ -101,7 +101,7 @@ def test_same_seed_same_trials_serially_and_on_a_local_cluster(cluster, tmp_path
     out = capsys.readouterr().out
     assert "wrote trials.csv" in out
     cluster = (tmp_path / "cluster" / "trials.csv").read_bytes()
-    base = study._inline_twin(_cfg())
+    base = study.inline_twin(_cfg())
     perts = [study.parse_vary(v, base) for v in vary]
     serial = _serial_csv(tmp_path / "serial.csv", [15, 29], 3, perts)
     assert cluster == serial
@@ -129,7 +129,7 @@ def test_same_seed_same_trials_serially_and_on_a_local_cluster(cluster, tmp_path
 
 
 def test_killed_worker_trial_is_rerun_and_the_study_completes(cluster, tmp_path):
-    base = study._inline_twin(_cfg())
+    base = study.inline_twin(_cfg())
     perts = [study.parse_vary("twin.actuator.time_constant=20ms:32ms", base)]
     ex = cluster[0]
     client = ex._client
@@ -235,7 +235,7 @@ def test_bad_vary_is_one_line_and_exit_2(vary, message, tmp_path, capsys):
 
 
 def test_default_perturbations_are_the_benchmarks_spreads():
-    base = study._inline_twin(_cfg())
+    base = study.inline_twin(_cfg())
     perts = {p.key: p for p in study.default_perturbations(base)}
     tc = perts["twin.actuator.time_constant"]
     assert tc.dist == "normal"
@@ -243,7 +243,7 @@ def test_default_perturbations_are_the_benchmarks_spreads():
     assert 0.25 * (tc.high - tc.low) == pytest.approx(0.034 * 0.0262)
     k = perts["twin.specimen.stiffness"]
     assert 0.25 * (k.high - k.low) == pytest.approx(50e3)  # F1_input_file.m: 50e3·randn
-    bench = study._inline_twin(load_config(EXAMPLE, [*SETS, 'twin.actuator={model="benchmark"}']))
+    bench = study.inline_twin(load_config(EXAMPLE, [*SETS, 'twin.actuator={model="benchmark"}']))
     b = {p.key: p for p in study.default_perturbations(bench)}
     assert 0.25 * (b["twin.actuator.a3"].high - b["twin.actuator.a3"].low) == pytest.approx(1.3)
     draws = b["twin.actuator.a3"].draw(np.random.default_rng(0), 5000)
@@ -261,7 +261,7 @@ def test_scratch_of_a_dead_worker_is_swept_and_a_live_ones_kept(tmp_path):
         d_other = tmp_path / "rths-trial-notapid"
         for d in (d_dead, d_live, d_other):
             (d / "run").mkdir(parents=True)
-        assert study._sweep_dead_scratch(str(tmp_path)) == 1
+        assert study.robustness._sweep_dead_scratch(str(tmp_path)) == 1
         assert not d_dead.exists() and d_live.exists() and d_other.exists()
     finally:
         live.kill()
@@ -277,7 +277,7 @@ TWO_SETS = ["fei.window=1.0", "actuators.storey3.fei.window=1.0", "safety.warmup
 def test_reference_by_loop_equals_the_sdof_reference(tmp_path):
     """Two independent references agree: the loop with ideal twins, and the direct CR
     integration with the specimen (serial driver: float64 on the wire)."""
-    cfg = study._inline_twin(
+    cfg = study.inline_twin(
         load_config(EXAMPLE, [*SETS, "driver.name=serial", "driver.connection={}"])
     )
     cfg["twin"]["specimen"]["stiffness"] = 1.4e6
@@ -306,7 +306,7 @@ def test_two_actuators_study_per_channel_columns_serially_and_on_a_local_cluster
     assert main(args) == 0
     out = capsys.readouterr().out
     assert "storey1" in out and "storey3" in out
-    base = study._inline_twin(load_config(TWO, sets))
+    base = study.inline_twin(load_config(TWO, sets))
     perts = [study.parse_vary(v, base) for v in vary]
     res = study.robustness_study(
         base, perts, 3, seed=3, duration=6.0, executor=study.SerialExecutor(), progress=False

@@ -9,7 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from rths_hil import study
+from rths_hil import studies as study
 from rths_hil.cli import main
 from rths_hil.errors import InputError
 from rths_hil.fei import MovingFEIResult

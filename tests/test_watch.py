@@ -156,7 +156,7 @@ def test_latest_picks_the_newest_run(tmp_path, monkeypatch):
 
 
 def test_channel_limits_come_from_its_actuators_entry():
-    from rths_hil.watch.app import channel_config
+    from rths_hil.watch.shaping import channel_config
 
     cfg = {
         "safety": {"displacement_limit": 0.05, "force_limit": 1e5},
@@ -243,14 +243,14 @@ def test_a_stale_pid_in_meta_never_signals_a_stranger(tmp_path, monkeypatch):
 
 
 def test_envelope_keeps_each_buckets_extremes_in_order():
-    from rths_hil.watch.app import _envelope
+    from rths_hil.watch.shaping import envelope
 
     rng = np.random.default_rng(1)
     for _ in range(200):
         m, n = int(rng.integers(1, 9)), int(rng.integers(0, 80))
         x = rng.normal(size=n)
         x[rng.random(n) < 0.2] = np.nan
-        e = _envelope(x, m).reshape(-1, 2)
+        e = envelope(x, m).reshape(-1, 2)
         assert len(e) == n // m
         for i, (first, second) in enumerate(e):
             b = x[i * m : (i + 1) * m]
@@ -262,7 +262,7 @@ def test_envelope_keeps_each_buckets_extremes_in_order():
 
 
 def test_invalid_spans_read_in_pieces_match_a_whole_read():
-    from rths_hil.watch.app import _Invalid
+    from rths_hil.watch.shaping import InvalidSpans
 
     def whole(valid: np.ndarray, gap: int) -> list[list[int]]:
         spans: list[list[int]] = []
@@ -287,15 +287,15 @@ def test_invalid_spans_read_in_pieces_match_a_whole_read():
     for _ in range(300):
         gap = int(rng.integers(1, 6))
         valid = np.repeat(rng.random(80) < 0.6, rng.integers(1, 5, size=80))
-        tr, a = _Invalid(gap), 0
+        tr, a = InvalidSpans(gap), 0
         while a < valid.size:
             b = min(valid.size, a + int(rng.integers(1, 25)))
             tr.update(valid[a:b], a)
             a = b
         assert tr.spans == whole(valid, gap)
     # columns: an open span reaches far right; one that ended before the window is left out
-    tr = _Invalid(1)
+    tr = InvalidSpans(1)
     tr.update(np.array([1, 0, 0, 1, 1, 1, 0, 0], dtype=bool), 0)
     cols = tr.columns(0.0, 2.0, 0.0)
-    assert cols["l"] == [0.25, 2.75] and cols["r"] == [1.25, 3.0 + _Invalid.OPEN]
-    assert tr.columns(0.0, 2.0, 2.0) == {"l": [2.75], "r": [3.0 + _Invalid.OPEN]}
+    assert cols["l"] == [0.25, 2.75] and cols["r"] == [1.25, 3.0 + InvalidSpans.OPEN]
+    assert tr.columns(0.0, 2.0, 2.0) == {"l": [2.75], "r": [3.0 + InvalidSpans.OPEN]}

@@ -271,7 +271,7 @@ def _outdir(text: str) -> Path:
 
 def run_window_size(args: argparse.Namespace) -> int:
     """``study window-size``."""
-    from .. import study
+    from .. import studies as study
 
     c = _common(args)
     fns = _fns(args.fn)
@@ -328,7 +328,7 @@ _WINDOW_T = re.compile(r"^\s*([0-9.eE+-]+)\s*T\s*$")
 
 def run_accuracy(args: argparse.Namespace) -> int:
     """``study accuracy``."""
-    from .. import study
+    from .. import studies as study
 
     c = _common(args)
     fns = _fns(args.fn)
@@ -386,11 +386,11 @@ def run_robustness(args: argparse.Namespace) -> int:
     import sys
     import time
 
-    from .. import study
+    from .. import studies as study
     from ..config import load_config
 
     cfg = load_config(args.config, args.set)
-    base = study._inline_twin(cfg)
+    base = study.inline_twin(cfg)
     if args.trials < 1:
         raise InputError(f"--trials must be ≥ 1, got {args.trials}")
     check_count(args.trials, MAX_TRIALS, "--trials", "each trial is a whole lockstep run")
@@ -511,11 +511,11 @@ def run_compensators(args: argparse.Namespace) -> int:
     import time
 
     from .. import compensator_study as cs
-    from .. import study
+    from .. import studies as study
     from ..config import load_config
 
     cfg = load_config(args.config, args.set)
-    base = study._inline_twin(cfg)
+    base = study.inline_twin(cfg)
     if args.trials < 1:
         raise InputError(f"--trials must be ≥ 1, got {args.trials}")
     if args.workers < 1:

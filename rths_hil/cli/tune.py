@@ -299,7 +299,7 @@ def _parallel_sweep(runner, grid: list[float], factor: float, scheduler: str, on
     """
     import copy
 
-    from ..study import open_executor
+    from ..studies import open_executor
     from ..tuning import Trial, sweep
 
     remote = copy.copy(runner)

@@ -24,7 +24,7 @@ import numpy as np
 
 from .. import groundmotion
 from ..compensation import AdaptiveAlpha, Compensator
-from ..config import ChannelConfig, Config, structure_dofs
+from ..config import ChannelConfig, Config, check_window_samples, structure_dofs
 from ..errors import InputError
 from ..recorder import COLUMNS
 from ..resources import check_disk, check_memory
@@ -506,8 +506,7 @@ def _plan_channel(
         window_s = _window(cfg, fn1)
     except InputError as exc:
         raise InputError(f"{where}: fei.window: {exc}") from None
-    if not window_s * fs >= 8:
-        raise InputError(f"{where}: fei.window: fewer than 8 samples at {fs:g} Hz")
+    check_window_samples(cfg["fei"]["window"], window_s, fs, where)  # "nT" with the model's fn1
     kc = cfg["kalman"]
     kalman = None
     if kc["enabled"]:

@@ -45,14 +45,10 @@ import numpy as np
 from bokeh.document import Document
 from bokeh.layouts import column, row
 from bokeh.models import (
-    BoxAnnotation,
     Button,
     ColumnDataSource,
     CustomJS,
     Div,
-    FactorRange,
-    Legend,
-    LinearAxis,
     Range1d,
     Slider,
     Span,
@@ -60,6 +56,8 @@ from bokeh.models import (
 )
 from bokeh.plotting import figure
 
+from .figures import ChannelView
+from .shaping import actuator_label, block_max, channel_config, channel_values, finite_or, stride
 from .source import RunFollower, RunState, channel_column
 
 __all__ = [
@@ -81,20 +79,8 @@ TICK_S = 0.03  # s between two checks whether a refresh is due
 IN_FLIGHT = 2  # refreshes sent and not yet applied by the browser, at most
 WINDOW_S = 10.0  # s of record in the detailed plots
 WINDOW_POINTS = 600  # at most this many points per line in the detailed plots
-OVERVIEW_BUCKETS = 500  # buckets (about one pixel each) of the whole-test plot
 CONFIRM_S = 10.0  # s the stop confirmation stays open
 
-#: Columns of the 10 s displacement plot's source, and of the FEI plots' source (delays in ms).
-WINDOW_COLUMNS = ("t", "target", "command", "measured")
-FEI_COLUMNS = ("t", "a", "d", "a_ex", "d_ex", "kf_g", "kf_d")
-
-COLORS = {
-    "target": "#1f77b4",
-    "command": "#2ca02c",
-    "measured": "#d62728",
-    "exact": "#9467bd",
-    "kalman": "#ff7f0e",
-}
 _BANNER = {
     "missing": ("#6b7280", "WAITING"),
     "empty": ("#6b7280", "WAITING"),
@@ -150,605 +136,6 @@ class WatchContext:
             self.notify(line)
 
 
-# ----------------------------------------------------------------------------------------------
-# data helpers
-
-
-def _stride(n_rows: int, points: int) -> int:
-    return max(1, math.ceil(n_rows / points))
-
-
-def _col(rec: np.ndarray, names, base: str, ch: str, idx) -> np.ndarray:
-    name = channel_column(names, base, ch)
-    if name is None:
-        return np.full(len(idx) if not isinstance(idx, slice) else 0, np.nan)
-    return np.asarray(rec[name][idx], dtype=float)
-
-
-def _block_max(x: np.ndarray, m: int) -> np.ndarray:
-    """Max of each block of ``m`` samples (the last block may be short)."""
-    if m == 1 or x.size == 0:
-        return x
-    n = x.size // m * m
-    out = x[:n].reshape(-1, m).max(axis=1)
-    if n < x.size:
-        out = np.append(out, x[n:].max())
-    return out
-
-
-def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Start and end indices (end exclusive) of the runs of True in ``mask``."""
-    if mask.size == 0:
-        return np.zeros(0, int), np.zeros(0, int)
-    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return np.flatnonzero(d == 1), np.flatnonzero(d == -1)
-
-
-def _tail_run(mask: np.ndarray) -> int:
-    """Length of the run of True at the end of ``mask``."""
-    if mask.size == 0 or not mask[-1]:
-        return 0
-    false = np.flatnonzero(~mask)
-    return int(mask.size - (false[-1] + 1 if false.size else 0))
-
-
-def _num(x, default: float = 0.0) -> float:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return default
-    return v if math.isfinite(v) else default
-
-
-def _envelope(x: np.ndarray, m: int) -> np.ndarray:
-    """Minimum and maximum of each block of ``m`` samples, in the order they occur.
-
-    Returns ``2 · (x.size // m)`` values: per block, its extreme that comes first, then the
-    other. Drawn as a line through two points per block of about one pixel, this is the
-    signal's envelope at that resolution: no peak is lost to decimation (unlike a stride).
-    NaN samples are ignored; a block of NaN gives NaN.
-    """
-    nb = x.size // m
-    b = x[: nb * m].reshape(nb, m)
-    nan = np.isnan(b)
-    lo = np.where(nan, np.inf, b)
-    hi = np.where(nan, -np.inf, b)
-    i_lo, i_hi = lo.argmin(axis=1), hi.argmax(axis=1)
-    r = np.arange(nb)
-    v_lo, v_hi = lo[r, i_lo], hi[r, i_hi]
-    empty = nan.all(axis=1)
-    v_lo[empty] = np.nan
-    v_hi[empty] = np.nan
-    lo_first = i_lo <= i_hi
-    out = np.empty((nb, 2))
-    out[:, 0] = np.where(lo_first, v_lo, v_hi)
-    out[:, 1] = np.where(lo_first, v_hi, v_lo)
-    return out.ravel()
-
-
-def _fit(rng: Range1d, lo: float, hi: float, min_span: float) -> None:
-    """Move a value axis only when the data leaves it or uses less than a third of it.
-
-    A value axis that follows the data at every refresh moves its ticks and labels at every
-    refresh; this one changes a few times in a test, and then with 15 % of room on each side.
-    """
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        return
-    span = max(hi - lo, min_span)
-    start, end = rng.start, rng.end
-    if lo >= start and hi <= end and span >= (end - start) / 3:
-        return
-    mid = 0.5 * (lo + hi)
-    rng.start = min(lo, mid - 0.5 * span) - 0.15 * span
-    rng.end = max(hi, mid + 0.5 * span) + 0.15 * span
-
-
-class _Invalid:
-    """The spans of loop time where a channel's FEI is invalid, found incrementally.
-
-    Spans closer than ``gap`` samples are one span (the plot cannot show the gap); a span still
-    open at the newest row reaches far to the right (``r = +1e6 s``), so that the greyed area
-    follows the data without a change of the source at every refresh.
-    """
-
-    OPEN = 1e6  # s added to the start of a span still open
-
-    def __init__(self, gap: int) -> None:
-        self.gap = max(1, gap)
-        self.upto = 0  # rows read
-        self.spans: list[list[int]] = []  # [first row, end row (exclusive) or -1 while open]
-
-    def update(self, valid: np.ndarray, a: int) -> None:
-        """Read the validity of rows ``a, a + 1, …`` (``a`` = :attr:`upto`)."""
-        inv = ~np.asarray(valid, dtype=bool)
-        end = a + inv.size
-        if self.spans and self.spans[-1][1] == -1 and inv.size and not inv[0]:
-            self.spans[-1][1] = a  # the span open at the last read ended there
-        s, e = _runs(inv)
-        for s_i, e_i in zip((s + a).tolist(), (e + a).tolist(), strict=True):
-            last = self.spans[-1] if self.spans else None
-            if last is not None and (last[1] == -1 or s_i - last[1] < self.gap):
-                last[1] = e_i  # continues the open span, or joins one that ended a moment ago
-            else:
-                self.spans.append([s_i, e_i])
-        if self.spans and self.spans[-1][1] == end:
-            self.spans[-1][1] = -1  # still invalid at the newest row
-        self.upto = end
-
-    def columns(self, t0: float, fs: float, t_from: float) -> dict:
-        """The spans ending after loop time ``t_from`` as the strip source's columns."""
-        half = 0.5 / fs
-        left, right = [], []
-        for s, e in self.spans:
-            r = t0 + (e - 1) / fs + half if e != -1 else t0 + s / fs + self.OPEN
-            if r >= t_from:
-                left.append(t0 + s / fs - half)
-                right.append(r)
-        return {"l": left, "r": right}
-
-
-# ----------------------------------------------------------------------------------------------
-# the document
-
-
-def channel_config(cfg: dict, ch: str) -> dict:
-    """The configuration one channel ran with: its ``[[actuators]]`` entry over the top level."""
-    out = dict(cfg)
-    for entry in cfg.get("actuators") or []:
-        if isinstance(entry, dict) and entry.get("name") == ch and ch:
-            for section, table in entry.items():
-                if isinstance(table, dict):
-                    out[section] = {**(cfg.get(section) or {}), **table}
-    return out
-
-
-def _consecutive(flag: np.ndarray, carry: int) -> np.ndarray:
-    """Length of the run of True ending at each sample (``carry``: the run before the first)."""
-    n = flag.size
-    pos = np.arange(1, n + 1)
-    last_false = np.maximum.accumulate(np.where(flag, 0, pos))
-    count = pos - last_false
-    return np.where(last_false == 0, count + carry, count)
-
-
-class _Limits:
-    """Share of each safety limit in use for one channel, updated incrementally.
-
-    For each limit of ``[safety]`` (the loop's rules, :mod:`rths_hil.safety`): ``now`` is the
-    share over the latest refresh period (the latest value for the FEI and Kalman estimates,
-    the current run for consecutive counts), ``peak`` the largest share so far. 1 = the limit.
-    """
-
-    def __init__(self, ch: str, safety: dict, cfg: dict, paced: bool) -> None:
-        self.ch = ch
-        self.safety = safety
-        self.cfg = cfg
-        self.paced = paced
-        fs = _num(cfg.get("loop", {}).get("fs"), 1.0) if cfg else 1.0
-        lp = (cfg.get("loop", {}) or {}) if cfg else {}
-        self.thr = _num(lp.get("overrun_threshold"), 0.5) / fs
-        # the wall-clock feedback watchdog of a paced run (rths_hil.safety.WatchdogRule):
-        # ``watchdog_timeout``, or ``watchdog_missed`` periods; a missed reply waited
-        # ``loop.feedback_timeout`` (0: 0.8 periods)
-        wd_missed = _num(safety.get("watchdog_missed"), 0.0)
-        self.wd_timeout = _num(safety.get("watchdog_timeout"), 0.0) or wd_missed / fs
-        self.fb_wait = _num(lp.get("feedback_timeout"), 0.0) or 0.8 / fs
-        self.reset()
-
-    def reset(self) -> None:
-        self.upto = 0
-        self.peak: dict[str, float] = {}
-        self.last: dict[str, float] = {}
-        self.carry: dict[str, int] = {}
-        self.last_ok = math.nan  # when the latest good reply arrived (s, loop clock)
-
-    def _shares(self, rec, names, a: int, b: int, carry: bool = True) -> dict[str, np.ndarray]:
-        """Share of each limit at each row of ``[a, b)`` (``carry``: continue from the rows
-        before ``a``, and remember where ``b`` ends; otherwise start afresh at ``a``)."""
-        sf, ch = self.safety, self.ch
-        out: dict[str, np.ndarray] = {}
-
-        def col(base: str) -> np.ndarray | None:
-            name = channel_column(names, base, ch)
-            return None if name is None else np.asarray(rec[name][a:b], dtype=float)
-
-        for label, bases, key in (
-            ("displacement", ("target", "command", "measured"), "displacement_limit"),
-            ("velocity", ("velocity",), "velocity_limit"),
-            ("force", ("force",), "force_limit"),
-        ):
-            lim = _num(sf.get(key))
-            cols = [c for c in (col(x) for x in bases) if c is not None]
-            if lim > 0 and cols:
-                out[label] = np.max(np.abs(np.vstack(cols)), axis=0) / lim
-        for label, base, key, ref in (
-            ("FEI |A−1|", "fei_amplitude", "fei_amplitude_tol", 1.0),
-            ("FEI |d|", "fei_delay", "fei_delay_tol", 0.0),
-        ):
-            tol, x = _num(sf.get(key)), col(base)
-            if tol > 0 and x is not None:
-                out[label] = np.abs(x - ref) / tol
-        g = col("kf_gain")
-        if (self.cfg.get("kalman", {}) or {}).get("enabled", True) and g is not None:
-            gmin, gmax = _num(sf.get("kf_gain_min"), 0.5), _num(sf.get("kf_gain_max"), 1.5)
-            ref = 1.0 if gmin < 1.0 < gmax else 0.5 * (gmin + gmax)
-            up, down = max(gmax - ref, 1e-12), max(ref - gmin, 1e-12)
-            out["Kalman gain"] = np.where(g >= ref, (g - ref) / up, (ref - g) / down)
-            dmax, d = _num(sf.get("kf_delay_max")), col("kf_delay")
-            if dmax > 0 and d is not None:
-                out["Kalman delay"] = np.abs(d) / dmax
-        ok = channel_column(names, "feedback_ok", ch)
-        wd = _num(sf.get("watchdog_missed"))
-        if ok is not None and wd > 0:
-            miss = ~np.asarray(rec[ok][a:b], dtype=bool)
-            run = _consecutive(miss, self.carry.get("missed replies", 0))
-            out["missed replies"] = run / wd
-        fbt = channel_column(names, "feedback_time", ch)
-        if self.paced and self.wd_timeout > 0 and ok is not None and fbt is not None:
-            out["feedback watchdog"] = self._watchdog(rec, names, ok, fbt, a, b, carry)
-        mo = _num(sf.get("max_overruns"))
-        if self.paced and mo > 0 and "lateness" in names:
-            over = np.asarray(rec["lateness"][a:b], dtype=float) > self.thr
-            run = _consecutive(over, self.carry.get("overruns", 0))
-            out["overruns"] = run / mo
-        return out
-
-    def _watchdog(self, rec, names, ok: str, fbt: str, a: int, b: int, carry: bool):
-        """Share of the wall-clock watchdog's timeout at each row: the time from the latest
-        good reply before the row to the row's reply (or to the end of its wait when it had
-        none), over ``watchdog_timeout``. Reply times come from the record: the step's loop
-        time plus its lateness plus ``feedback_time``."""
-        t = np.asarray(rec["time"][a:b], dtype=float)
-        t = t + np.asarray(rec["lateness"][a:b], dtype=float) if "lateness" in names else t
-        good = np.asarray(rec[ok][a:b], dtype=bool)
-        fb = np.asarray(rec[fbt][a:b], dtype=float)
-        arrive = t + np.where(good & np.isfinite(fb), fb, self.fb_wait)
-        idx = np.arange(t.size)
-        last = np.maximum.accumulate(np.where(good, idx, -1))  # latest good row ≤ i
-        before = np.r_[-1, last[:-1]]  # latest good row < i
-        start = self.last_ok if carry else math.nan
-        prev = np.where(before >= 0, arrive[np.maximum(before, 0)], start)
-        if carry and good.any():
-            self.last_ok = float(arrive[last[-1]])
-        return (arrive - prev) / self.wd_timeout
-
-    def update(self, rec, names, k_end: int, now_rows: int) -> dict:
-        """Shares up to row ``k_end`` as the bar chart's columns."""
-        if k_end < self.upto:
-            self.reset()
-        a = self.upto
-        if k_end > a:
-            for label, x in self._shares(rec, names, a, k_end).items():
-                fin = x[np.isfinite(x)]
-                if fin.size:
-                    self.peak[label] = max(self.peak.get(label, 0.0), float(fin.max()))
-                    self.last[label] = float(fin[-1])
-                if label in ("missed replies", "overruns"):
-                    scale = _num(
-                        self.safety.get("watchdog_missed" if label[0] == "m" else "max_overruns"), 1
-                    )
-                    self.carry[label] = round(float(x[-1]) * scale)
-            self.upto = k_end
-        recent = self._shares(rec, names, max(0, k_end - now_rows), k_end, carry=False)
-        labels, now_v, peak_v = [], [], []
-        for label in self.peak:
-            x = recent.get(label, np.zeros(0))
-            x = x[np.isfinite(x)]
-            if label in ("displacement", "velocity", "force", "feedback watchdog"):
-                now = float(x.max()) if x.size else 0.0
-            else:
-                now = self.last.get(label, 0.0)
-            labels.append(label)
-            now_v.append(min(now, 1.1))
-            peak_v.append(min(self.peak[label], 1.1))
-        colors = ["#16a34a" if u < 0.7 else "#f59e0b" if u < 0.9 else "#dc2626" for u in now_v]
-        return {"limit": labels, "used": now_v, "peak": peak_v, "color": colors}
-
-
-def _actuator_label(ch: str, meta: dict) -> str:
-    """The heading of a channel's plots: the actuator's name, or "Actuator" for the one
-    unnamed actuator of a single-channel test."""
-    if not ch:
-        chans = meta.get("channels") or []
-        ch = str(chans[0].get("name") or "") if len(chans) == 1 else ""
-    return f"Actuator {ch}" if ch else "Actuator"
-
-
-class _ChannelView:
-    """The plots of one actuator channel and what the browser already holds of them."""
-
-    def __init__(
-        self,
-        ch: str,
-        label: str,
-        safety: dict,
-        cfg: dict,
-        paced: bool,
-        x_range: Range1d,
-        fei_range: Range1d,
-        overview_range: Range1d,
-        fs: float,
-        gap: int,
-    ) -> None:
-        self.ch = ch
-        self.fs = fs
-        sfx = "_" + ch if ch else ""
-        w = 560
-        tools = "pan,wheel_zoom,box_zoom,reset,save"
-        # the 10 s window (streamed), the force–displacement loop and the whole test (slow)
-        self.win = ColumnDataSource(data={k: [] for k in WINDOW_COLUMNS}, name=f"window{sfx}")
-        self.fei = ColumnDataSource(data={k: [] for k in FEI_COLUMNS}, name=f"fei{sfx}")
-        self.fd = ColumnDataSource(data={"measured": [], "force": []}, name=f"loop{sfx}")
-        self.ovw = ColumnDataSource(
-            data={"t": [], "target": [], "measured": []}, name=f"overview{sfx}"
-        )
-        self.invalid = ColumnDataSource(data={"l": [], "r": []}, name=f"invalid{sfx}")
-        self.bars = ColumnDataSource(
-            data={"limit": [], "used": [], "peak": [], "color": []}, name=f"bars{sfx}"
-        )
-        self.title = Div(
-            text=f"<h2 style='margin:8px 0 0 0'>{html.escape(label)}</h2>",
-            name=f"title{sfx}",
-        )
-        self.invalid_tracker = _Invalid(gap)
-        self.ovw_bucket = 0  # rows per bucket of the whole-test plot (0: not started)
-        self.ovw_upto = 0  # rows of the record already in it
-        self.ovw_whole = -1  # rows of the ended run when it was drawn whole
-
-        # value axes set by the refresh (see _fit): an automatic range moves at every refresh
-        self.y_disp = Range1d(-1.0, 1.0)  # mm
-        p = figure(
-            title="displacement: last 10 s",
-            height=260,
-            width=w,
-            x_range=x_range,
-            y_range=self.y_disp,
-            tools=tools,
-            x_axis_label="time (s)",
-            y_axis_label="mm",
-        )
-        for key in ("target", "command", "measured"):
-            p.line("t", key, source=self.win, color=COLORS[key], legend_label=key, line_width=1.6)
-        p.legend.location = "top_left"
-        p.legend.click_policy = "hide"
-        self.disp = p
-
-        q = figure(
-            title="displacement: whole test (min/max per pixel)",
-            height=260,
-            width=w,
-            x_range=overview_range,
-            tools=tools,
-            x_axis_label="time (s)",
-            y_axis_label="mm",
-        )
-        q.line("t", "target", source=self.ovw, color=COLORS["target"], legend_label="target")
-        q.line("t", "measured", source=self.ovw, color=COLORS["measured"], legend_label="measured")
-        q.legend.location = "top_left"
-        self.window_box = BoxAnnotation(left=0, right=0, fill_color="#fbbf24", fill_alpha=0.25)
-        q.add_layout(self.window_box)
-        self.overview = q
-
-        a_tol = _num(safety.get("fei_amplitude_tol"))
-        d_tol = _num(safety.get("fei_delay_tol"))
-        self.y_a = Range1d(0.9, 1.1)
-        self.y_d = Range1d(-5.0, 5.0)
-        pa = figure(
-            title="FEI amplitude A, measured vs target (1 = perfect)",
-            name=f"fei_a{sfx}",
-            height=220,
-            width=w,
-            x_range=fei_range,
-            y_range=self.y_a,
-            tools=tools,
-            x_axis_label="time (s)",
-        )
-        pd = figure(
-            title="FEI delay d, measured vs target (ms, > 0: measured lags)",
-            name=f"fei_d{sfx}",
-            height=220,
-            width=w,
-            x_range=fei_range,
-            y_range=self.y_d,
-            tools=tools,
-            x_axis_label="time (s)",
-        )
-        for fig, key, ex, tol, label in (
-            (pa, "a", "a_ex", a_tol, "A"),
-            (pd, "d", "d_ex", d_tol * 1e3, "d"),
-        ):
-            fig.vstrip(x0="l", x1="r", source=self.invalid, fill_color="#9ca3af", fill_alpha=0.35)
-            lines = [
-                fig.line("t", key, source=self.fei, color=COLORS["measured"], line_width=1.6),
-                fig.line("t", ex, source=self.fei, color=COLORS["exact"], line_dash="dashed"),
-            ]
-            fig.add_layout(
-                Legend(
-                    items=[
-                        (f"{label} streaming", [lines[0]]),
-                        (f"{label} exact", [lines[1]]),
-                    ],
-                    location="top_left",
-                    orientation="horizontal",
-                    background_fill_alpha=0.6,
-                )
-            )
-            if tol > 0:  # the band, its edges dotted (one renderer: each costs a repaint)
-                ref = 1.0 if key == "a" else 0.0
-                fig.add_layout(
-                    BoxAnnotation(
-                        bottom=ref - tol,
-                        top=ref + tol,
-                        fill_color="#22c55e",
-                        fill_alpha=0.12,
-                        line_color="#16a34a",
-                        line_dash="dotted",
-                        line_alpha=1.0,
-                    )
-                )
-        self.fei_a, self.fei_d = pa, pd
-
-        # the Kalman estimates compare measured with *command* (the actuator's own lag, about
-        # the servo lag plus the transport delay): their own plot, delay on the left axis with
-        # its own band (|delay| ≤ safety.kf_delay_max), gain on the right axis
-        kd_max = _num(safety.get("kf_delay_max")) * 1e3
-        self.y_kd = Range1d(0.0, 30.0)
-        self.y_kg = Range1d(0.9, 1.1)
-        pk = figure(
-            title="Kalman estimates of the actuator, measured vs command: delay (ms), gain",
-            height=220,
-            width=w,
-            x_range=fei_range,
-            y_range=self.y_kd,
-            tools=tools,
-            x_axis_label="time (s)",
-            y_axis_label="delay (ms)",
-            name=f"kalman{sfx}",
-        )
-        pk.extra_y_ranges = {"gain": self.y_kg}
-        pk.add_layout(LinearAxis(y_range_name="gain", axis_label="gain"), "right")
-        kl = [
-            pk.line("t", "kf_d", source=self.fei, color=COLORS["kalman"], line_width=1.6),
-            pk.line("t", "kf_g", source=self.fei, color="#0891b2", y_range_name="gain"),
-        ]
-        pk.add_layout(
-            Legend(
-                items=[("delay", [kl[0]]), ("gain", [kl[1]])],
-                location="top_left",
-                orientation="horizontal",
-                background_fill_alpha=0.6,
-            )
-        )
-        if kd_max > 0:
-            pk.add_layout(
-                BoxAnnotation(
-                    bottom=-kd_max,
-                    top=kd_max,
-                    fill_color="#f97316",
-                    fill_alpha=0.08,
-                    line_color="#ea580c",
-                    line_dash="dotted",
-                    line_alpha=1.0,
-                )
-            )
-        self.kalman = pk
-
-        pf = figure(
-            title="force–displacement (last 10 s)",
-            name=f"fd{sfx}",
-            height=260,
-            width=w,
-            tools=tools,
-            x_axis_label="measured displacement (mm)",
-            y_axis_label="force (kN)",
-        )
-        pf.line("measured", "force", source=self.fd, color="#374151")
-        self.loop = pf
-
-        factors = [
-            "displacement",
-            "velocity",
-            "force",
-            "FEI |A−1|",
-            "FEI |d|",
-            "Kalman gain",
-            "Kalman delay",
-            "missed replies",
-            "feedback watchdog",
-            "overruns",
-        ]
-        pb = figure(
-            title="share of each safety limit in use (bar: now, ◆: peak)",
-            height=260,
-            width=w,
-            y_range=FactorRange(factors=factors[::-1]),
-            x_range=(0, 1.1),
-            tools="",
-            toolbar_location=None,
-        )
-        pb.hbar(y="limit", right="used", height=0.6, color="color", source=self.bars)
-        pb.scatter("peak", "limit", marker="diamond", size=10, color="#111827", source=self.bars)
-        pb.add_layout(Span(location=1.0, dimension="height", line_color="#b91c1c", line_width=2))
-        self.margin = pb
-        self.limits = _Limits(ch, safety, cfg, paced)
-        self.layout = column(self.title, row(p, q), row(pa, pd), row(pk, pf), row(pb))
-
-    # -- data ----------------------------------------------------------------------------------
-    def window_data(self, rec: np.ndarray, names, idx: slice, group: str = "win") -> dict:
-        """The columns of the 10 s plots' source ``group`` (``win``, ``fei``) at rows ``idx``."""
-        ch = self.ch
-        t = np.asarray(rec["time"][idx], dtype=float)
-        if group == "win":
-            return {  # displacements in mm (the record stays in m)
-                "t": t,
-                "target": _col(rec, names, "target", ch, idx) * 1e3,
-                "command": _col(rec, names, "command", ch, idx) * 1e3,
-                "measured": _col(rec, names, "measured", ch, idx) * 1e3,
-            }
-        return {
-            "t": t,
-            "a": _col(rec, names, "fei_amplitude", ch, idx),
-            "d": _col(rec, names, "fei_delay", ch, idx) * 1e3,
-            "a_ex": _col(rec, names, "fei_exact_amplitude", ch, idx),
-            "d_ex": _col(rec, names, "fei_exact_delay", ch, idx) * 1e3,
-            "kf_g": _col(rec, names, "kf_gain", ch, idx),
-            "kf_d": _col(rec, names, "kf_delay", ch, idx) * 1e3,
-        }
-
-    def fit_axes(self, group: str) -> None:
-        """Value axes of the 10 s plots of ``group`` around the data they hold."""
-
-        def span(data, *keys: str) -> tuple[float, float]:
-            x = np.concatenate([np.asarray(data[k], dtype=float) for k in keys])
-            x = x[np.isfinite(x)]
-            return (float(x.min()), float(x.max())) if x.size else (math.nan, math.nan)
-
-        if group == "win":
-            _fit(self.y_disp, *span(self.win.data, "target", "command", "measured"), 0.1)
-        else:
-            _fit(self.y_a, *span(self.fei.data, "a", "a_ex"), 0.02)
-            _fit(self.y_d, *span(self.fei.data, "d", "d_ex"), 1.0)
-            _fit(self.y_kd, *span(self.fei.data, "kf_d"), 1.0)
-            _fit(self.y_kg, *span(self.fei.data, "kf_g"), 0.02)
-
-    def overview_update(self, rec: np.ndarray, names, rows: int, planned: int, final: bool):
-        """Extend the whole-test plot with the buckets completed since the last call.
-
-        Buckets of ``(planned or rows) / OVERVIEW_BUCKETS`` rows (about one pixel), each drawn
-        as its minimum and maximum (:func:`_envelope`); when the run outgrows the planned
-        length the buckets double and the plot is rebuilt. ``final``: the run has ended, the
-        last, incomplete bucket is drawn too (replacing the source).
-        """
-        if final and rows == self.ovw_whole:
-            return
-        want = max(1, math.ceil(max(rows, planned) / OVERVIEW_BUCKETS))
-        rebuild = final or self.ovw_bucket == 0 or want > 2 * self.ovw_bucket
-        if self.ovw_bucket == 0 or want > 2 * self.ovw_bucket:
-            self.ovw_bucket = want
-        if rebuild:
-            self.ovw_upto = 0
-        if final:
-            self.ovw_whole = rows
-        m = self.ovw_bucket
-        a = self.ovw_upto
-        b = rows if final else a + (rows - a) // m * m
-        if b <= a and not rebuild:
-            return
-        t = np.asarray(rec["time"][a:b:m], dtype=float)
-        ends = np.minimum(np.arange(a, b, m) + m, b)
-        half = 0.5 * (ends - np.arange(a, b, m)) / self.fs
-        data = {"t": np.column_stack([t, t + half]).ravel()}
-        for key in ("target", "measured"):
-            x = _col(rec, names, key, self.ch, slice(a, b)) * 1e3  # mm
-            pad = (-x.size) % m  # the last, incomplete bucket (final only): NaN-padded
-            data[key] = _envelope(np.append(x, np.full(pad, np.nan)), m)
-        self.ovw_upto = b
-        if rebuild:
-            self.ovw.data = data
-        else:
-            self.ovw.stream(data)
-
-
 class _Page:
     """One session's document and its refresh."""
 
@@ -757,7 +144,7 @@ class _Page:
         self.ctx = ctx
         self.follow = True
         self.channels: list[str] | None = None
-        self.views: list[_ChannelView] = []
+        self.views: list[ChannelView] = []
         self.n_events = -1
         self.stop_sent = False
         self.confirm_until = 0.0
@@ -939,14 +326,14 @@ class _Page:
         self.channels = chans
         f = self.ctx.follower
         meta, fs = f.meta, f.fs()
-        gap = _stride(round(WINDOW_S * fs), WINDOW_POINTS)
+        gap = stride(round(WINDOW_S * fs), WINDOW_POINTS)
         self.views = []
         for ch in chans:
             cfg = channel_config(meta.get("config", {}) or {}, ch)
             self.views.append(
-                _ChannelView(
+                ChannelView(
                     ch,
-                    _actuator_label(ch, meta),
+                    actuator_label(ch, meta),
                     cfg.get("safety", {}) or {},
                     cfg,
                     meta.get("mode") == "paced",
@@ -1027,7 +414,7 @@ class _Page:
         if slow:
             self._slow_at = now
         n_win = round(WINDOW_S * fs)
-        m = _stride(n_win, WINDOW_POINTS)  # the window's stride: fixed for the run
+        m = stride(n_win, WINDOW_POINTS)  # the window's stride: fixed for the run
         k0 = max(0, k_end - n_win)
         first = k0 + (-k0) % m  # stride aligned to the step index: a point never moves
         t_from = max(t_end - WINDOW_S, t_first)
@@ -1054,7 +441,7 @@ class _Page:
                     v.invalid.data = spans
         self.overview_range.start = t_first
         self.overview_range.end = max(t_first + f.planned_duration(), t_last)
-        thr = _num((cfg.get("loop", {}) or {}).get("overrun_threshold"), 0.5) / fs
+        thr = finite_or((cfg.get("loop", {}) or {}).get("overrun_threshold"), 0.5) / fs
         self.thr_span.location = thr * 1e3
         if slow:
             self._slow(st, f, rec, names, fs, (first, k_end, m), t_from, t_end, thr)
@@ -1087,7 +474,7 @@ class _Page:
         """The panels refreshed once per SLOW_S: lateness, counts, overview, loop, bars."""
         first, k_end, m = rows
         # lateness: the maximum over each stride block, so that no overrun is hidden
-        lat = _block_max(np.asarray(rec["lateness"][first:k_end], dtype=float), m) * 1e3
+        lat = block_max(np.asarray(rec["lateness"][first:k_end], dtype=float), m) * 1e3
         t = np.asarray(rec["time"][first:k_end:m], dtype=float)
         self.lat_src.data = {"t": t, "lat": lat[: t.size]}
         self.lat_range.start = t_from
@@ -1098,8 +485,8 @@ class _Page:
         idx = slice(first, k_end, m)
         for v in self.views:
             v.fd.data = {
-                "measured": _col(rec, names, "measured", v.ch, idx) * 1e3,  # mm
-                "force": _col(rec, names, "force", v.ch, idx) * 1e-3,  # kN
+                "measured": channel_values(rec, names, "measured", v.ch, idx) * 1e3,  # mm
+                "force": channel_values(rec, names, "force", v.ch, idx) * 1e-3,  # kN
             }
             v.overview_update(rec, names, f.rows, planned, final=st.finished)
             v.window_box.left = t_end - WINDOW_S
@@ -1113,7 +500,7 @@ class _Page:
         self.n_events = len(events)
         times, kinds, details = [], [], []
         for e in events:
-            times.append(f"{_num(e.get('time'), math.nan):.3f}")
+            times.append(f"{finite_or(e.get('time'), math.nan):.3f}")
             kinds.append(str(e.get("kind", "?")))
             skip = {"kind", "time", "step", "wall_time"}
             if e.get("kind") == "end":
@@ -1156,7 +543,7 @@ class _Page:
         dur = f.planned_duration()
         parts = [
             html.escape(str(f.run_dir)),
-            f"{meta.get('mode', '?')} at {_num(meta.get('fs')):g} Hz",
+            f"{meta.get('mode', '?')} at {finite_or(meta.get('fs')):g} Hz",
             f"driver {html.escape(str(meta.get('driver', '?')))}",
         ]
         if dur:
@@ -1175,7 +562,7 @@ class _Page:
             parts.append(f"{n_ovr} overruns")
         w0 = f.wall_t0()
         if st.live and w0 is not None:
-            lag = time.time() - (w0 + t_last + _num(f.record["lateness"][-1]))
+            lag = time.time() - (w0 + t_last + finite_or(f.record["lateness"][-1]))
             parts.append(f"{lag:.2f} s behind")
         return "lateness, ms · " + " · ".join(parts)
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..hybrid.columns import column_name
 from ..recorder import EVENTS_FILE, META_FILE, RECORD_FILE, read_npy_header
 
 __all__ = [
@@ -82,15 +83,16 @@ def find_channels(names: tuple[str, ...] | list[str]) -> list[str]:
     for n in names:
         if n.startswith("target_"):
             ch = n[len("target_") :]
-            if ch and f"measured_{ch}" in have:
+            if ch and column_name("measured", ch) in have:
                 out.append(ch)
     return out
 
 
 def channel_column(names, base: str, channel: str) -> str | None:
     """The column holding ``base`` for ``channel`` (``base_channel``, else a shared ``base``)."""
-    if channel and f"{base}_{channel}" in names:
-        return f"{base}_{channel}"
+    own = column_name(base, channel)
+    if channel and own in names:
+        return own
     if base in names:
         return base
     return None

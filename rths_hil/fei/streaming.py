@@ -25,7 +25,7 @@ varying against the signal (Bedrosian's theorem),
   was built by additions only over exactly the current window (no O(N) step, no spikes).
 * Exact parts: ``Re S`` and ``E`` over all bins by Parseval from Hann- and Hann²-weighted
   sliding sums of the raw samples, and ``E, F, S`` over the bins below ``exact_band`` cycles
-  per window by sliding DFTs (:mod:`rths_hil.fei_sliding`, low band); the analytic signals
+  per window by sliding DFTs (:mod:`rths_hil.fei.sliding`, low band); the analytic signals
   supply only the rest of ``Im S`` and ``F`` (``docs/fei.md``).
 
 Both signals pass through identical filters, so their relative phase is untouched; the common
@@ -54,7 +54,7 @@ import numpy as np
 from scipy.signal import butter
 from scipy.special import ellipj, ellipk
 
-from .fei_sliding import (
+from .sliding import (
     LB_CONST_ROWS,
     LB_RESYNC_WINDOWS,
     lowband_constants,
@@ -66,7 +66,7 @@ from .fei_sliding import (
 #: Target worst-case phase-difference error of the Hilbert pair (degrees).
 MAX_PHASE_ERROR_DEG = 0.01
 #: Width of the exact low band in cycles per window: bins below ``EXACT_BAND / t_w`` are
-#: evaluated exactly by sliding DFTs (:mod:`rths_hil.fei_sliding`); only the rest of the
+#: evaluated exactly by sliding DFTs (:mod:`rths_hil.fei.sliding`); only the rest of the
 #: quadrature part comes from the analytic signals. Where the window's spectrum sits near DC
 #: (windows of 2–3 natural periods) the analytic signal of the windowed signal differs from the
 #: windowed analytic signal (Bedrosian), and that low band decides the delay; docs/fei.md.
@@ -163,7 +163,7 @@ _NST = _HPS + 8
 # output) of the four chains (x I, x Q, y I, y Q); the ring (N, _NRING) of per-sample
 # quantities; the phasor table (P, 2); the sliding sums (_NACC); the row of the last pushed
 # window (6) and its work column (_NWORK + 2); the low band's states (4, 6, K0) and constants
-# (LB_CONST_ROWS, K0) (:mod:`rths_hil.fei_sliding`).
+# (LB_CONST_ROWS, K0) (:mod:`rths_hil.fei.sliding`).
 #
 # Sliding sums: each real quantity q has Σ q and Σ q e^{jΩt'}, Σ q e^{j2Ωt'} over the window,
 # stored (5, 8): component c (Σq, Re/Im m = 1, Re/Im m = 2) of quantity i at 8c + i; running

@@ -27,7 +27,7 @@ equal the per-window FFT evaluation (:func:`rths_hil.fei.moving_fei`) to round-o
 
 :class:`rths_hil.fei.OnlineFEI` uses :class:`SlidingSums` for small hops, where one FFT pair per
 window costs more. The second half of the module, the *low band* (:class:`LowBandSums`), is the
-streaming evaluator's exact part (:mod:`rths_hil.fei_streaming`).
+streaming evaluator's exact part (:mod:`rths_hil.fei.streaming`).
 
 The kernels are plain ``numba.njit`` loops. ``fastmath`` is limited to ``contract`` (a multiply
 and an add may become one fused multiply-add: one rounding less, never a value that is not a
@@ -268,7 +268,7 @@ class SlidingSums:
 
 # ---------------------------------------------------------------------------------------------
 # Low band: sliding DFTs for the first K0 bins only, with an O(1), spike-free
-# resynchronisation (the streaming evaluator's exact low band, :mod:`rths_hil.fei_streaming`).
+# resynchronisation (the streaming evaluator's exact low band, :mod:`rths_hil.fei.streaming`).
 #
 # The three Hann terms are taken as three frequencies of the *raw* signal rather than as
 # modulated signals at one frequency: e^{±jΩi} e^{−jθ_k i} = e^{−j(θ_k ∓ Ω) i}, so with

@@ -1,678 +1,51 @@
-"""The FEI paper's computational study (Section 4) and robustness studies on perturbed twins.
+"""Robustness study (``docs/studies.md``): perturbed twins in lockstep through the full chain.
 
-Set-up (the FEI paper's Fig. 4.1): an SDOF structure (mass, 2 % damping, linear or Bouc-Wen per Eq.
-4.1–4.2) is driven by a recorded ground motion sampled at 1024 Hz and integrated with the CR
-algorithm; its displacement is the *target*. The actuator is a transport delay τ (fractional, not
-rounded to samples) followed by a gain k_p: *measured* = k_p · target(t − τ). The moving-window FEI
-(:func:`rths_hil.fei.moving_fei`) of the pair should return A = k_p and d = τ in every window.
-
-Window-size study (the FEI paper's Fig. 4.2)
----------------------------------
-For each record and natural frequency fn (period Tn), windows ``t_w = Tn·(1 + 0.1 j)``, j = 0, 1,
-…, are tried in turn; the answer is the first one that satisfies the :class:`WindowCriterion`:
-
-* **error** of a window: ``|d − τ| / τ`` (relative delay error);
-* **windows that count**: every full window (the first ends at t = t_w; there are no partial
-  windows) that the FEI marks valid *and* whose target level is at least ``min_level`` times the
-  largest window level of the record (default 0.1: the strong-motion part; the quiet lead-in
-  before the first arrivals, where a relative floor on a running peak lets noise-level windows
-  through, and the decayed tail are left out). ``min_level = 0`` counts every valid window;
-* **statistic** over the counted windows: ``"max"`` (every window within tolerance) or a
-  percentile ``"pNN"`` (default ``"p95"``: 95 % of the windows within tolerance);
-* the window passes when the statistic is ≤ ``tolerance`` (default 1 %, the FEI paper: 0.01 ms of
-  1 ms).
-
-If no window up to ``max_periods``·Tn (and half the record) passes, t_w is NaN.
-
-Speed-ups that do not change the answer (checked against hop = 8 samples without decimation:
-statistics within 0.1 percentage point): both signals are decimated to the largest power-of-two
-factor (≤ 8) that keeps ``fs/decimate ≥ 64·fn``, and windows are evaluated every ``N/64`` samples
-instead of every sample (the FEI of overlapping windows varies smoothly with the end time).
-
-Accuracy study (the FEI paper's Table 4.1, Fig. 4.6)
------------------------------------------
-For each fn, linear and Bouc-Wen structures, gain 1.1 and delay 5 ms, window 3·Tn, hop 1 (the
-the FEI paper's MWO, Eq. 7): the maximum over the counted windows (same selection as above) of the
-amplitude error ``|A − k_p|/k_p`` and the delay error ``|d − τ|/τ``, in %.
-
-Robustness study (``docs/studies.md``)
---------------------------------------
 :func:`robustness_study` draws perturbed twins (:class:`Perturbation`, :func:`parse_vary`,
 benchmark-style :func:`default_perturbations`), runs each in lockstep through
 :func:`rths_hil.loop.run` (:func:`robustness_trial`) and evaluates it against the reference
 structure (:func:`reference_response`) with J1–J9 as the RTHS benchmark's paper and evaluation
 script define them (:mod:`rths_hil.metrics`), the whole-record FEI and the MWO extremes.
 
-All studies run their cases through an executor (default
-``concurrent.futures.ProcessPoolExecutor(max_workers=2)``); any
-:class:`concurrent.futures.Executor` can be passed, e.g. a Dask one from :func:`open_executor`
-(a ``LocalCluster`` on 127.0.0.1 or a lab's scheduler). Progress goes to stderr through tqdm.
+Trials run through an executor (:mod:`rths_hil.studies.executors`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import copy
+import csv
 import logging
 import math
-import re
-import sys
+import os
+import shutil
+import tempfile
 import threading
-from collections.abc import Iterator, Sequence
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass, field
+from collections.abc import Sequence
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .fei import MovingFEIResult, moving_fei
-from .groundmotion import GroundMotion
-from .structure import BoucWenParams, simulate_sdof
+from rths_hil.sim_backends.modelfile import load_model
+from rths_hil.sim_backends.models import BENCHMARK_NOMINAL
+from rths_hil.sim_backends.registry import MODEL_ALIASES, MODELS
+from rths_hil.sim_backends.specimen import SPECIMEN_DEFAULTS, KelvinVoigt
+
+from ..config import SCHEMA, Config, coerce, cross_check, resolve_channel, set_compensation
+from ..errors import InputError
+from ..fei import fei
+from ..hybrid.columns import channel_suffix, column_name
+from ..loop import build_ground_motion, run
+from ..metrics import benchmark_criteria, criteria
+from ..plotting import save_figure
+from ..recorder import read_run
+from ..structure import BoucWenParams, CRStepper
+from ..units import parse_accel, parse_force, parse_length, parse_time, parse_velocity
+from .executors import run_cases
+from .paper import format_value
 
 log = logging.getLogger(__name__)
-
-_STAT_RE = re.compile(r"^(max|p(\d+(?:\.\d+)?))$")
-
-
-@dataclass(frozen=True)
-class WindowCriterion:
-    """Which windows count and how their delay errors are summarised (see module docstring).
-
-    Attributes
-    ----------
-    tolerance : float
-        Largest admissible statistic of the relative delay error (0.01 = 1 %).
-    statistic : str
-        ``"max"`` or ``"pNN"`` (NN-th percentile, e.g. ``"p95"``).
-    min_level : float
-        Count a valid window only if its target level is ≥ ``min_level`` × the record's largest
-        window level (0 counts every valid window).
-    """
-
-    tolerance: float = 0.01
-    statistic: str = "p95"
-    min_level: float = 0.1
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.tolerance) and self.tolerance > 0):
-            raise InputError(f"criterion tolerance must be > 0, got {self.tolerance!r}")
-        m = _STAT_RE.match(str(self.statistic))
-        if not m or (m.group(2) is not None and not 0 < float(m.group(2)) <= 100):
-            raise InputError(
-                f"statistic must be 'max' or 'pNN' with 0 < NN ≤ 100, got {self.statistic!r}"
-            )
-        if not (0.0 <= self.min_level < 1.0):
-            raise InputError(f"min_level must lie in [0, 1), got {self.min_level!r}")
-
-    def counted(self, res: MovingFEIResult) -> np.ndarray:
-        """Boolean mask of the windows that count."""
-        if len(res) == 0 or not np.any(res.valid):
-            return np.zeros(len(res), dtype=bool)
-        peak = float(np.max(res.level))
-        return res.valid & (res.level >= self.min_level * peak)
-
-    def summarize(self, errors: np.ndarray) -> float:
-        """The statistic of ``errors`` (NaN if empty)."""
-        if errors.size == 0:
-            return math.nan
-        if self.statistic == "max":
-            return float(np.max(errors))
-        return float(np.percentile(errors, float(self.statistic[1:])))
-
-    def delay_error(self, res: MovingFEIResult, delay: float) -> tuple[float, int]:
-        """(statistic of |d − τ|/τ over the counted windows, number of counted windows)."""
-        mask = self.counted(res)
-        err = np.abs(res.delay[mask] - delay) / abs(delay)
-        return self.summarize(err), int(mask.sum())
-
-
-def auto_decimation(fs: float, fn: float, max_factor: int = 8) -> int:
-    """Largest power of two ≤ ``max_factor`` with ``fs/q ≥ 64·fn`` (1 if none)."""
-    q = 1
-    while q * 2 <= max_factor and fs / (q * 2) >= 64.0 * fn:
-        q *= 2
-    return q
-
-
-def _actuator(target: np.ndarray, fs: float, gain: float, delay: float) -> np.ndarray:
-    from rths_hil.sim_backends.delay import DelayGain
-
-    return DelayGain(delay=delay, gain=gain, dt=1.0 / fs).simulate(target)
-
-
-def _check_common(fn: float, zeta: float, gain: float, delay: float) -> None:
-    if not (math.isfinite(fn) and fn > 0):
-        raise InputError(f"natural frequency must be > 0 Hz, got {fn!r}")
-    if not (math.isfinite(zeta) and zeta >= 0):
-        raise InputError(f"damping ratio must be ≥ 0, got {zeta!r}")
-    if not (math.isfinite(gain) and gain > 0):
-        raise InputError(f"actuator gain must be > 0, got {gain!r}")
-    if not (math.isfinite(delay) and delay > 0):
-        raise InputError(
-            f"actuator delay must be > 0 s (the error is relative to it), got {delay!r}"
-        )
-
-
-# --------------------------------------------------------------------------------------------
-# window-size study (Fig. 4.2)
-
-
-@dataclass
-class WindowSizeResult:
-    """Outcome of the window search for one record and one natural frequency.
-
-    Attributes
-    ----------
-    record : str
-        Ground-motion name.
-    fn_hz, tn_s : float
-        Natural frequency and period.
-    structure : str
-        ``"linear"`` or ``"bouc-wen"``.
-    window_s, window_periods : float
-        Smallest passing window (s and multiples of Tn); NaN if none up to the cap.
-    delay_error_pct : float
-        The criterion's statistic (%) at the chosen window (at the largest tried if none passed).
-    amplitude_error_pct : float
-        Same statistic of ``|A − k_p|/k_p`` (%), for information.
-    n_windows : int
-        Windows counted at the chosen window.
-    tried : int
-        Number of window sizes evaluated.
-    """
-
-    record: str
-    fn_hz: float
-    tn_s: float
-    structure: str
-    window_s: float
-    window_periods: float
-    delay_error_pct: float
-    amplitude_error_pct: float
-    n_windows: int
-    tried: int
-
-
-def window_size_for(
-    gm: GroundMotion,
-    fn: float,
-    *,
-    zeta: float = 0.02,
-    gain: float = 1.0,
-    delay: float = 1e-3,
-    criterion: WindowCriterion | None = None,
-    bouc_wen: BoucWenParams | bool | None = None,
-    start_periods: float = 1.0,
-    step_periods: float = 0.1,
-    max_periods: float = 10.0,
-    decimate: int | None = None,
-    hop: int | None = None,
-) -> WindowSizeResult:
-    """Smallest moving window meeting ``criterion`` for one record and fn (FEI paper, Fig. 4.2).
-
-    Parameters
-    ----------
-    gm : GroundMotion
-        Ground motion, already at the simulation rate (the FEI paper: 1024 Hz) and scale.
-    fn : float
-        Natural frequency (Hz).
-    zeta, gain, delay : float
-        Damping ratio, actuator gain k_p and delay τ (s) (the FEI paper: 0.02, 1, 1 ms).
-    criterion : WindowCriterion, optional
-        Default: 1 % on the 95th percentile of strong-motion windows.
-    bouc_wen : BoucWenParams or bool, optional
-        Bouc-Wen structure (``True``: the FEI paper's parameters) instead of linear.
-    start_periods, step_periods, max_periods : float
-        Window sizes tried: ``Tn·(start + j·step)`` up to ``max_periods·Tn`` (and at most half
-        the record).
-    decimate, hop : int, optional
-        FEI decimation and hop; ``None`` chooses them as described in the module docstring.
-    """
-    _check_common(fn, zeta, gain, delay)
-    crit = criterion or WindowCriterion()
-    fs = gm.fs
-    target = simulate_sdof(gm.accel, fs, fn, zeta, bouc_wen=bouc_wen)
-    measured = _actuator(target, fs, gain, delay)
-    q = auto_decimation(fs, fn) if decimate is None else int(decimate)
-    tn = 1.0 / fn
-    limit = min(max_periods * tn, 0.5 * gm.duration)
-    structure = "bouc-wen" if bouc_wen else "linear"
-    j, tried = 0, 0
-    last = (math.nan, math.nan, 0)
-    while True:
-        periods = round(start_periods + j * step_periods, 10)
-        tw = periods * tn
-        if tw > limit + 1e-12:
-            break
-        n_dec = round(tw * fs / q)
-        h = max(1, n_dec // 64) if hop is None else int(hop)
-        res = moving_fei(target, measured, fs, tw, hop=h, decimate=q)
-        tried += 1
-        err, count = crit.delay_error(res, delay)
-        mask = crit.counted(res)
-        amp_err = crit.summarize(np.abs(res.amplitude[mask] - gain) / gain)
-        last = (err, amp_err, count)
-        if count > 0 and err <= crit.tolerance:
-            return WindowSizeResult(
-                gm.name, fn, tn, structure, tw, periods, 100 * err, 100 * amp_err, count, tried
-            )
-        j += 1
-    return WindowSizeResult(
-        gm.name, fn, tn, structure, math.nan, math.nan, 100 * last[0], 100 * last[1], last[2], tried
-    )
-
-
-class SerialExecutor(Executor):
-    """Runs each task in the calling process at submit time (for tests and ``--workers 1``)."""
-
-    def submit(self, fn, /, *args, **kwargs) -> Future:
-        fut: Future = Future()
-        try:
-            fut.set_result(fn(*args, **kwargs))
-        except Exception as exc:  # delivered through the future, like a pool
-            fut.set_exception(exc)
-        return fut
-
-
-def make_executor(workers: int) -> Executor:
-    """``SerialExecutor`` for 1 worker, else ``ProcessPoolExecutor(max_workers=workers)``."""
-    if int(workers) != workers or workers < 1:
-        raise InputError(f"workers must be a positive integer, got {workers!r}")
-    return SerialExecutor() if workers == 1 else ProcessPoolExecutor(max_workers=int(workers))
-
-
-def _default_executor() -> Executor:
-    return ProcessPoolExecutor(max_workers=2)
-
-
-def _run_cases(
-    func,
-    cases: Sequence[tuple],
-    executor: Executor | None,
-    progress: bool,
-    desc: str,
-    on_result=None,
-):
-    """Submit ``func(*case)`` for each case; return results in case order.
-
-    ``on_result(index, result)`` is called as each case completes (in completion order).
-    """
-    from tqdm import tqdm
-
-    own = executor is None
-    ex = _default_executor() if own else executor
-    results: list = [None] * len(cases)
-    try:
-        futures = {ex.submit(func, *case): i for i, case in enumerate(cases)}
-        bar = tqdm(total=len(cases), desc=desc, file=sys.stderr, disable=not progress, unit="case")
-        with bar:
-            for fut in as_completed(futures):
-                results[futures[fut]] = fut.result()
-                if on_result is not None:
-                    on_result(futures[fut], results[futures[fut]])
-                bar.update(1)
-    finally:
-        if own:
-            ex.shutdown(wait=True, cancel_futures=True)
-    return results
-
-
-def _ws_case(gm: GroundMotion, fn: float, kwargs: dict) -> WindowSizeResult:
-    return window_size_for(gm, fn, **kwargs)
-
-
-def window_size_study(
-    records: Sequence[GroundMotion],
-    fns: Sequence[float],
-    *,
-    executor: Executor | None = None,
-    progress: bool = True,
-    **kwargs,
-) -> list[WindowSizeResult]:
-    """Run :func:`window_size_for` for every record × fn (the FEI paper's Fig. 4.2), in parallel.
-
-    Parameters
-    ----------
-    records : sequence of GroundMotion
-        At the simulation rate and scale.
-    fns : sequence of float
-        Natural frequencies (Hz) (the FEI paper: 0.2 … 5.1 Hz by 0.1).
-    executor : concurrent.futures.Executor, optional
-        Default: a ``ProcessPoolExecutor(max_workers=2)`` created and shut down here.
-    progress : bool
-        Show a tqdm progress bar on stderr.
-    **kwargs
-        Passed to :func:`window_size_for`.
-
-    Returns
-    -------
-    list of WindowSizeResult
-        Record-major order.
-    """
-    if not records:
-        raise InputError("window-size study: give at least one ground motion")
-    for fn in fns:
-        _check_common(
-            fn, kwargs.get("zeta", 0.02), kwargs.get("gain", 1.0), kwargs.get("delay", 1e-3)
-        )
-        for gm in records:
-            if fn >= gm.fs / 2:
-                raise InputError(f"natural frequency {fn:g} Hz is above the Nyquist frequency")
-    cases = [(gm, float(fn), kwargs) for gm in records for fn in fns]
-    return _run_cases(_ws_case, cases, executor, progress, "window-size")
-
-
-# --------------------------------------------------------------------------------------------
-# accuracy study (Table 4.1, Fig. 4.6)
-
-
-@dataclass
-class AccuracyResult:
-    """One row of the FEI paper's Table 4.1 plus the time histories for Fig. 4.6.
-
-    Attributes
-    ----------
-    fn_hz : float
-    structure : str
-        ``"linear"`` or ``"bouc-wen"``.
-    window_s : float
-    max_err_amplitude_pct, max_err_delay_pct : float
-        Maximum over the counted windows of ``|A − k_p|/k_p`` and ``|d − τ|/τ`` (%).
-    peak_displacement_m : float
-        Peak |target| (m), to show whether the structure yielded.
-    t_end, amplitude, delay : ndarray
-        Moving-FEI histories (NaN where a window is invalid).
-    counted : ndarray of bool
-        Windows included in the maxima.
-    """
-
-    fn_hz: float
-    structure: str
-    window_s: float
-    max_err_amplitude_pct: float
-    max_err_delay_pct: float
-    peak_displacement_m: float
-    t_end: np.ndarray = field(repr=False)
-    amplitude: np.ndarray = field(repr=False)
-    delay: np.ndarray = field(repr=False)
-    counted: np.ndarray = field(repr=False)
-
-    def row(self) -> dict[str, float | str]:
-        """The CSV row (columns of :data:`ACCURACY_COLUMNS`)."""
-        d = asdict(self)
-        return {k: d[k] for k in ACCURACY_COLUMNS}
-
-
-ACCURACY_COLUMNS = (
-    "fn_hz",
-    "structure",
-    "window_s",
-    "max_err_amplitude_pct",
-    "max_err_delay_pct",
-    "peak_displacement_m",
-)
-
-
-def accuracy_case(
-    gm: GroundMotion,
-    fn: float,
-    *,
-    bouc_wen: BoucWenParams | bool | None = None,
-    zeta: float = 0.02,
-    gain: float = 1.1,
-    delay: float = 5e-3,
-    window_s: float | None = None,
-    hop: int = 1,
-    min_level: float = 0.1,
-) -> AccuracyResult:
-    """Maximum FEI errors for one structure (FEI paper, Table 4.1); ``window_s``: default 3·Tn."""
-    _check_common(fn, zeta, gain, delay)
-    tw = 3.0 / fn if window_s is None else float(window_s)
-    if not (math.isfinite(tw) and tw > 0):
-        raise InputError(f"window must be > 0 s, got {window_s!r}")
-    if tw > gm.duration:
-        raise InputError(
-            f"window of {tw:g} s is longer than the record {gm.name!r} ({gm.duration:g} s)"
-        )
-    fs = gm.fs
-    target = simulate_sdof(gm.accel, fs, fn, zeta, bouc_wen=bouc_wen)
-    measured = _actuator(target, fs, gain, delay)
-    res = moving_fei(target, measured, fs, tw, hop=hop)
-    mask = WindowCriterion(statistic="max", min_level=min_level).counted(res)
-    a_err = np.abs(res.amplitude[mask] - gain) / gain
-    d_err = np.abs(res.delay[mask] - delay) / delay
-    return AccuracyResult(
-        fn,
-        "bouc-wen" if bouc_wen else "linear",
-        tw,
-        100 * float(np.max(a_err)) if a_err.size else math.nan,
-        100 * float(np.max(d_err)) if d_err.size else math.nan,
-        float(np.max(np.abs(target))),
-        res.t_end,
-        res.amplitude,
-        res.delay,
-        mask,
-    )
-
-
-def _acc_case(gm: GroundMotion, fn: float, bw: bool, kwargs: dict) -> AccuracyResult:
-    return accuracy_case(gm, fn, bouc_wen=bw or None, **kwargs)
-
-
-def accuracy_study(
-    gm: GroundMotion,
-    fns: Sequence[float] = (0.5, 0.7, 1.0),
-    *,
-    window_periods: float | None = 3.0,
-    window_s: float | None = None,
-    executor: Executor | None = None,
-    progress: bool = True,
-    **kwargs,
-) -> list[AccuracyResult]:
-    """The FEI paper's Table 4.1: linear and Bouc-Wen SDOF for each fn, rows ordered by fn then
-    structure.
-
-    The window is ``window_periods``·Tn unless ``window_s`` (s, same for every fn) is given.
-    Other keyword arguments go to :func:`accuracy_case` (gain, delay, zeta, hop, min_level).
-    """
-    cases = []
-    for fn in fns:
-        if not (math.isfinite(fn) and fn > 0):
-            raise InputError(f"natural frequency must be > 0 Hz, got {fn!r}")
-        tw = window_s if window_s is not None else window_periods / fn
-        if tw > gm.duration:
-            raise InputError(
-                f"window of {tw:g} s (fn = {fn:g} Hz) is longer than the record ({gm.duration:g} s)"
-            )
-        for bw in (False, True):
-            cases.append((gm, float(fn), bw, {**kwargs, "window_s": tw}))
-    return _run_cases(_acc_case, cases, executor, progress, "accuracy")
-
-
-# --------------------------------------------------------------------------------------------
-# output
-
-
-def write_window_size_csv(path: str | Path, rows: Sequence[WindowSizeResult]) -> None:
-    """CSV with one line per record × fn (columns = :class:`WindowSizeResult` fields)."""
-    import csv
-
-    names = list(WindowSizeResult.__dataclass_fields__)
-    with Path(path).open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(names)
-        for r in rows:
-            w.writerow([_fmt(getattr(r, n)) for n in names])
-
-
-def write_accuracy_csv(path: str | Path, rows: Sequence[AccuracyResult]) -> None:
-    """CSV with the columns of :data:`ACCURACY_COLUMNS` (the FEI paper's Table 4.1)."""
-    import csv
-
-    with Path(path).open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(ACCURACY_COLUMNS)
-        for r in rows:
-            w.writerow([_fmt(v) for v in r.row().values()])
-
-
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return "nan" if math.isnan(v) else f"{v:.6g}"
-    return str(v)
-
-
-def plot_window_size(path: str | Path, rows: Sequence[WindowSizeResult]) -> None:
-    """Fig. 4.2-style PNG: t_w against fn (a) and against Tn (b), one line per record."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
-    keys = sorted({(r.record, r.structure) for r in rows})
-    for rec, st in keys:
-        sel = sorted(
-            (r for r in rows if r.record == rec and r.structure == st), key=lambda r: r.fn_hz
-        )
-        fn = np.array([r.fn_hz for r in sel])
-        tw = np.array([r.window_s for r in sel])
-        label = rec if len({k[1] for k in keys}) == 1 else f"{rec} ({st})"
-        ax1.plot(fn, tw, marker="o", ms=3, label=label)
-        ax2.plot(1 / fn, tw, marker="o", ms=3, label=label)
-    tn = np.linspace(0.19, 5.1, 50)
-    for c, ls in ((2, ":"), (3, "--")):
-        ax2.plot(tn, c * tn, "k", ls=ls, lw=0.8, label=f"{c}·Tn")
-    ax1.set_xlabel("natural frequency fn (Hz)")
-    ax1.set_ylabel("window size t_w (s)")
-    ax1.set_title("(a) t_w against fn")
-    ax2.set_xlabel("natural period Tn (s)")
-    ax2.set_ylabel("window size t_w (s)")
-    ax2.set_title("(b) t_w against Tn")
-    for ax in (ax1, ax2):
-        ax.grid(True, alpha=0.3)
-    ax2.legend(fontsize=7)
-    fig.tight_layout()
-    from .plotting import save_figure
-
-    save_figure(fig, path, 120)
-    plt.close(fig)
-
-
-def plot_accuracy(
-    path: str | Path, rows: Sequence[AccuracyResult], gain: float, delay: float
-) -> None:
-    """Fig. 4.6-style PNG: A(t) and d(t) for the linear (a, b) and Bouc-Wen (c, d) structures."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 2, figsize=(11, 6.5), sharex=True)
-    for col, st in enumerate(("linear", "bouc-wen")):
-        for r in (r for r in rows if r.structure == st):
-            axes[0, col].plot(r.t_end, r.amplitude, lw=0.8, label=f"{r.fn_hz:g} Hz")
-            axes[1, col].plot(r.t_end, 1e3 * r.delay, lw=0.8, label=f"{r.fn_hz:g} Hz")
-        axes[0, col].axhline(gain, color="k", lw=0.6, ls="--")
-        axes[1, col].axhline(1e3 * delay, color="k", lw=0.6, ls="--")
-        axes[0, col].set_ylabel("A")
-        axes[1, col].set_ylabel("d (ms)")
-        axes[1, col].set_xlabel("window end time (s)")
-        axes[0, col].set_ylim(gain * 0.97, gain * 1.03)
-        axes[1, col].set_ylim(0.7e3 * delay, 1.3e3 * delay)
-    titles = ("(a) A, linear", "(c) A, Bouc-Wen", "(b) d, linear", "(d) d, Bouc-Wen")
-    for ax, title in zip(axes.flat, (titles[0], titles[1], titles[2], titles[3]), strict=True):
-        ax.set_title(title)
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    from .plotting import save_figure
-
-    save_figure(fig, path, 120)
-    plt.close(fig)
-
-
-# --------------------------------------------------------------------------------------------
-# executors: local processes, a local Dask cluster or a lab's Dask scheduler
-
-
-@contextlib.contextmanager
-def open_executor(scheduler: str | None = None, workers: int = 2) -> Iterator[Executor]:
-    """An executor for the studies, closed (with its cluster) on exit.
-
-    Parameters
-    ----------
-    scheduler : str, optional
-        ``None``: :func:`make_executor` (in-process for 1 worker, else a process pool).
-        ``"local"``: a ``dask.distributed.LocalCluster`` of ``workers`` single-threaded worker
-        processes, scheduler and workers bound to 127.0.0.1 over TCP. Anything else is the
-        address of a running Dask scheduler (``tcp://host:8786``; ``host:8786`` means TCP),
-        e.g. a lab's cluster started with ``dask scheduler`` and ``dask worker --nthreads 1``.
-    workers : int
-        Worker processes of a local pool or cluster (ignored with an address).
-
-    Yields
-    ------
-    concurrent.futures.Executor
-        For Dask, ``Client.get_executor(pure=False)``: every submitted task runs, and a task
-        whose worker dies is rerun on another one (the scheduler's ``allowed-failures``).
-    """
-    if scheduler is None:
-        ex = make_executor(workers)
-        try:
-            yield ex
-        finally:
-            ex.shutdown(wait=True, cancel_futures=True)
-        return
-    if int(workers) != workers or workers < 1:
-        raise InputError(f"workers must be a positive integer, got {workers!r}")
-    from .errors import require
-
-    require("studies", "a Dask scheduler (--scheduler, study robustness)")
-    from distributed import Client, LocalCluster
-
-    if logging.getLogger().getEffectiveLevel() > logging.INFO:
-        logging.getLogger("distributed").setLevel(logging.WARNING)  # no start/stop chatter
-    cluster = None
-    if scheduler == "local":
-        cluster = LocalCluster(
-            n_workers=int(workers),
-            threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
-            protocol="tcp",
-            dashboard_address=None,
-        )
-        client = Client(cluster)
-        client.wait_for_workers(int(workers))
-    else:
-        address = scheduler if "://" in scheduler else f"tcp://{scheduler}"
-        if not _ADDRESS_RE.match(address):
-            raise InputError(
-                f"--scheduler {scheduler!r}: expected 'local' or a scheduler address "
-                "such as tcp://host:8786"
-            )
-        try:
-            client = Client(address, timeout=10)
-        except (OSError, TimeoutError) as exc:
-            raise InputError(
-                f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc})"
-            ) from None
-        n = len(client.scheduler_info().get("workers", {}))
-        log.info("Dask scheduler %s with %d worker(s)", address, n)
-        if n == 0:
-            log.warning("the Dask scheduler at %s has no workers yet; tasks will wait", address)
-    try:
-        yield client.get_executor(pure=False)
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-
-
-_ADDRESS_RE = re.compile(r"^(tcp|tls|inproc|ucx|ws|wss)://[^\s/:]+(:\d+)?/?$")
 
 
 # --------------------------------------------------------------------------------------------
@@ -769,18 +142,24 @@ def _channel_names(cfg) -> list[str]:
     return [a["name"] for a in (cfg.get("actuators") or [])]
 
 
+def _record_channels(cfg) -> list[str | None]:
+    """The channels as the record names them: ``[None]`` for one channel (unsuffixed columns),
+    else the channel names (docs/channels.md)."""
+    names = _channel_names(cfg)
+    return list(names) if len(names) > 1 else [None]
+
+
 def channel_suffixes(cfg) -> list[str]:
     """Record-column suffixes of the channels: ``[""]`` for one channel, else ``_<name>``
-    (as the loop names them, docs/channels.md)."""
-    names = _channel_names(cfg)
-    return [f"_{n}" for n in names] if len(names) > 1 else [""]
+    (:func:`rths_hil.hybrid.columns.channel_suffix`)."""
+    return [channel_suffix(ch) for ch in _record_channels(cfg)]
 
 
 def _set_value(cfg, key: str, value: float) -> None:
     """Set ``key`` (a checked path) to ``value`` in a Config, in place.
 
     ``twin.*`` sets the top-level twin and, in a configuration with ``[[actuators]]`` (whose
-    twins :func:`_inline_twin` made explicit), every channel's twin;
+    twins :func:`inline_twin` made explicit), every channel's twin;
     ``actuators.NAME.twin.*`` sets one channel's twin.
     """
     parts = key.split(".")
@@ -793,18 +172,13 @@ def _set_value(cfg, key: str, value: float) -> None:
         entry = next(a for a in cfg["actuators"] if a["name"] == parts[1])
         entry["twin"][parts[3]][parts[4]] = float(value)
     elif parts[0] == "compensation":  # α and delay (and the other pairs) kept together
-        from .config import set_compensation
-
         set_compensation(cfg["compensation"], parts[1], value, cfg["loop"]["fs"])
     else:
         cfg[parts[0]][parts[1]] = float(value)
 
 
-def _inline_twin(cfg):
+def inline_twin(cfg):
     """A copy of ``cfg`` whose twin is given by inline tables (a ``twin.model`` file is read)."""
-    from rths_hil.sim_backends.modelfile import load_model
-
-    from .config import Config, resolve_channel
 
     out = copy.deepcopy(cfg)
     if not isinstance(out, Config):
@@ -854,7 +228,6 @@ def _inline_twin(cfg):
 def _twin_spec(cfg, channel: str | None = None):
     """The validated :class:`~sim_backends.modelfile.ModelSpec` of an inline-twin Config
     (of channel ``channel``'s twin when given)."""
-    from rths_hil.sim_backends.modelfile import load_model
 
     tw = cfg["twin"]
     if channel is not None:
@@ -868,7 +241,6 @@ def _twin_spec(cfg, channel: str | None = None):
 
 
 def _twin_keys(tw: dict, prefix: str) -> list[str]:
-    from rths_hil.sim_backends.registry import MODEL_ALIASES, MODELS
 
     model = tw["actuator"].get("model", "delay_gain")
     model = MODEL_ALIASES.get(model, model)
@@ -880,7 +252,6 @@ def _twin_keys(tw: dict, prefix: str) -> list[str]:
 
 
 def _varyable_keys(cfg) -> list[str]:
-    from .config import SCHEMA
 
     chans = cfg.get("actuators") or []
     if chans:
@@ -909,8 +280,6 @@ def parse_vary(text: str, cfg) -> Perturbation:
     InputError
         One line naming the ``--vary`` argument and what is wrong.
     """
-    from .config import SCHEMA
-    from .units import parse_time
 
     where = f"--vary {text}"
     key, sep, rng_text = text.partition("=")
@@ -941,16 +310,10 @@ def parse_vary(text: str, cfg) -> Perturbation:
             if unit == "s":
                 v = parse_time(p, key)
             elif unit == "m":
-                from .units import parse_length
-
                 v = parse_length(p, key)
             elif unit == "m/s²":
-                from .units import parse_accel
-
                 v = parse_accel(p, key)
             elif unit in ("N", "m/s"):
-                from .units import parse_force, parse_velocity
-
                 v = (parse_force if unit == "N" else parse_velocity)(p, key)
             else:
                 v = float(p)
@@ -975,19 +338,18 @@ def parse_vary(text: str, cfg) -> Perturbation:
 
 def _check_values(cfg, values: dict[str, float], where: str) -> None:
     """Raise InputError when ``values`` make an invalid configuration or twin."""
-    from .config import SCHEMA, _coerce, _cross_check
 
     trial = copy.deepcopy(cfg)
     for key, v in values.items():
         parts = key.split(".")
         if _twin_key(key) is None:
             try:
-                _coerce(SCHEMA[parts[0]][parts[1]], v, key)
+                coerce(SCHEMA[parts[0]][parts[1]], v, key)
             except InputError as exc:
                 raise InputError(f"{where}: {exc}") from None
         _set_value(trial, key, v)
     try:
-        _cross_check(trial)
+        cross_check(trial)
         for name in _channel_names(trial) or [None]:
             _twin_spec(trial, name).build(1.0 / float(trial["loop"]["fs"]))
     except InputError as exc:
@@ -1033,8 +395,6 @@ def default_perturbations(cfg) -> list[Perturbation]:
 
     k = spec.specimen.stiffness if spec.specimen is not None else None
     if model == "benchmark":
-        from rths_hil.sim_backends.models import BENCHMARK_NOMINAL
-
         p = {**BENCHMARK_NOMINAL, **spec.actuator.params}
         for name, sigma in (("a3", 1.3), ("beta1", 3.3), ("beta2", 3.3e3)):
             normal(f"twin.actuator.{name}", p[name], sigma)
@@ -1102,9 +462,6 @@ def _sweep_dead_scratch(tmp: str | None = None) -> int:
     A worker killed during a trial (SIGKILL, out of memory) cannot remove its scratch
     directory; the next trial on this machine does. Returns how many were removed.
     """
-    import os
-    import shutil
-    import tempfile
 
     root = Path(tmp or tempfile.gettempdir())
     removed = 0
@@ -1142,10 +499,6 @@ def reference_response(cfg, n: int | None = None) -> np.ndarray:
     n : int, optional
         Steps (default: as the loop, from ``loop.duration`` or the record).
     """
-    from rths_hil.sim_backends.specimen import SPECIMEN_DEFAULTS, KelvinVoigt
-
-    from .loop import build_ground_motion
-    from .structure import CRStepper
 
     fs = float(cfg["loop"]["fs"])
     dt = 1.0 / fs
@@ -1190,8 +543,6 @@ def reference_by_loop(cfg, n: int, tmp: str | Path) -> dict[str, np.ndarray]:
     Eqs. 15 and 18). Returns ``{suffix: target}`` for the suffixes of
     :func:`channel_suffixes`.
     """
-    from .loop import run
-    from .recorder import read_run
 
     ideal = copy.deepcopy(cfg)
     perfect = {"model": "delay_gain", "delay": 0.0, "gain": 1.0}
@@ -1206,7 +557,10 @@ def reference_by_loop(cfg, n: int, tmp: str | Path) -> dict[str, np.ndarray]:
     run_dir = Path(tmp) / "reference"
     run(ideal, run_dir=run_dir, mode="lockstep", duration=n / float(ideal["loop"]["fs"]))
     rec = read_run(run_dir).record
-    return {sfx: np.asarray(rec["target" + sfx], dtype=float) for sfx in channel_suffixes(cfg)}
+    return {
+        channel_suffix(ch): np.asarray(rec[column_name("target", ch)], dtype=float)
+        for ch in _record_channels(cfg)
+    }
 
 
 def _extremes(values: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
@@ -1224,13 +578,6 @@ def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
     (:func:`rths_hil.metrics.criteria`, J1 in s) and as the benchmark's script computes them
     (:func:`rths_hil.metrics.benchmark_criteria`, ``bench_J1`` in ms), and the peaks.
     """
-    import os
-    import tempfile
-
-    from .fei import fei
-    from .loop import run
-    from .metrics import benchmark_criteria, criteria
-    from .recorder import read_run
 
     _sweep_dead_scratch()
     scratch = tempfile.TemporaryDirectory(prefix=f"{_SCRATCH_PREFIX}{os.getpid()}-")
@@ -1264,25 +611,26 @@ def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
         trip_reason=trip.reason if trip is not None else "",
     )
     if sfx_all != [""]:
-        from .config import resolve_channel
-
         row["trip_channel"] = trip.channel if trip is not None else ""
         for sfx, entry in zip(sfx_all, cfg["actuators"], strict=True):
             comp = resolve_channel(cfg, entry).config["compensation"]
             row["alpha" + sfx] = float(comp["alpha"]) if comp["enabled"] else 1.0
     nan = math.nan
-    for sfx in sfx_all:
-        target = np.asarray(rec["target" + sfx], dtype=float)
-        measured = np.asarray(rec["measured" + sfx], dtype=float)
+    for ch in _record_channels(cfg):
+        sfx = channel_suffix(ch)
+        target = np.asarray(rec[column_name("target", ch)], dtype=float)
+        measured = np.asarray(rec[column_name("measured", ch)], dtype=float)
         n = target.size
         reference = references[sfx][:n]
         whole = fei(target, measured, fs) if n >= 8 else None
         row["fei_amplitude" + sfx] = whole.amplitude if whole is not None else nan
         row["fei_delay" + sfx] = whole.delay if whole is not None else nan
         row["fei_f_eq" + sfx] = whole.f_eq if whole is not None else nan
-        valid = np.asarray(rec["fei_valid" + sfx], dtype=bool)
-        a_lo, a_hi = _extremes(np.asarray(rec["fei_amplitude" + sfx], dtype=float), valid)
-        d_lo, d_hi = _extremes(np.asarray(rec["fei_delay" + sfx], dtype=float), valid)
+        valid = np.asarray(rec[column_name("fei_valid", ch)], dtype=bool)
+        a_lo, a_hi = _extremes(
+            np.asarray(rec[column_name("fei_amplitude", ch)], dtype=float), valid
+        )
+        d_lo, d_hi = _extremes(np.asarray(rec[column_name("fei_delay", ch)], dtype=float), valid)
         row["mwo_amplitude_min" + sfx], row["mwo_amplitude_max" + sfx] = a_lo, a_hi
         row["mwo_delay_min" + sfx], row["mwo_delay_max" + sfx] = d_lo, d_hi
         ok = n >= BENCHMARK_MIN_STEPS
@@ -1294,7 +642,7 @@ def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
             row[f"bench_J{i}{sfx}"] = float(bench.get(f"J{i}", nan))
         row["peak_target" + sfx] = float(np.max(np.abs(target))) if n else nan
         row["peak_reference" + sfx] = float(np.max(np.abs(reference))) if n else nan
-        row["peak_force" + sfx] = float(np.max(np.abs(rec["force" + sfx]))) if n else nan
+        row["peak_force" + sfx] = float(np.max(np.abs(rec[column_name("force", ch)]))) if n else nan
     return row
 
 
@@ -1439,7 +787,7 @@ def plan_trials(
     if int(trials) != trials or trials < 1:
         raise InputError(f"trials must be a positive integer, got {trials!r}")
     trials = int(trials)
-    base = _inline_twin(cfg)
+    base = inline_twin(cfg)
     keys = [p.key for p in perturbations]
     dup = sorted({k for k in keys if keys.count(k) > 1})
     if dup:
@@ -1470,7 +818,6 @@ def plan_trials(
             for k, v in values.items():
                 _set_value(c, k, v)
             fs = c["loop"]["fs"]
-            from .config import set_compensation
 
             set_compensation(c["compensation"], "alpha", a, fs)
             if alphas:
@@ -1526,10 +873,10 @@ def robustness_study(
     on_row : callable, optional
         Called with each trial's row as it completes (e.g. to keep them on an interrupt).
     """
-    base = _inline_twin(cfg)
+    base = inline_twin(cfg)
     perts = list(perturbations) if perturbations is not None else default_perturbations(base)
     specs = plan_trials(base, perts, trials, seed, alphas, duration)
-    rows = _run_cases(
+    rows = run_cases(
         robustness_trial,
         [(s,) for s in specs],
         executor,
@@ -1545,17 +892,17 @@ def robustness_study(
 
 def write_trials_csv(path: str | Path, result: RobustnessResult) -> None:
     """``trials.csv``: one line per trial × α, full-precision numbers (``repr``)."""
-    import csv
 
     cols = result.columns
     with Path(path).open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(cols)
         for r in result.rows:
-            w.writerow([_exact(r[c]) for c in cols])
+            w.writerow([exact_text(r[c]) for c in cols])
 
 
-def _exact(v) -> str:
+def exact_text(v) -> str:
+    """A CSV cell that reads back exactly (floats by ``repr``, NaN as ``nan``)."""
     if isinstance(v, float):
         return "nan" if math.isnan(v) else repr(v)
     return str(v)
@@ -1563,7 +910,6 @@ def _exact(v) -> str:
 
 def write_summary(path_csv: str | Path, result: RobustnessResult) -> None:
     """``summary.csv``: α, metric, median, p5, p95, n, trials, share_tripped."""
-    import csv
 
     rows = result.summary()
     cols = ["alpha", "metric", "median", "p5", "p95", "n", "trials", "share_tripped"]
@@ -1571,7 +917,7 @@ def write_summary(path_csv: str | Path, result: RobustnessResult) -> None:
         w = csv.writer(fh)
         w.writerow(cols)
         for r in rows:
-            w.writerow([_fmt(r[c]) if isinstance(r[c], float) else r[c] for c in cols])
+            w.writerow([format_value(r[c]) if isinstance(r[c], float) else r[c] for c in cols])
 
 
 def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]:
@@ -1604,7 +950,6 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
     fig.suptitle(f"{n} perturbed twins: " + ", ".join(p.key for p in result.perturbations))
     fig.tight_layout()
     paths.append(out / "robustness_hist.png")
-    from .plotting import save_figure
 
     save_figure(fig, paths[-1], 120)
     plt.close(fig)
@@ -1640,7 +985,6 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
         fig.suptitle("robustness against α over the same perturbed twins")
         fig.tight_layout()
         paths.append(out / "robustness_alpha.png")
-        from .plotting import save_figure
 
         save_figure(fig, paths[-1], 120)
         plt.close(fig)

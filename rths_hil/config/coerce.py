@@ -1,0 +1,173 @@
+"""Coercion of one configuration value to its key's type, unit and range.
+
+Numbers with units are read by :mod:`rths_hil.units` (same number syntax); a value that fails
+raises :class:`~rths_hil.errors.InputError` naming the key path.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import math
+import re
+from collections.abc import Iterable
+from typing import Any
+
+from ..errors import InputError
+from ..units import (
+    NUMBER,
+    parse_accel,
+    parse_force,
+    parse_fraction,
+    parse_length,
+    parse_time,
+    parse_velocity,
+    parse_window,
+)
+from .schema import Key
+
+__all__ = ["check_range", "coerce", "describe", "quantity", "unknown_key"]
+
+_NUM_RE = re.compile(rf"\s*({NUMBER})\s*(\S*)\s*")
+_PREFIX = {"": 1.0, "k": 1e3, "M": 1e6}
+
+
+def describe(v: Any) -> str:
+    """A value as a message shows it (strings quoted and cut to one line, TOML words)."""
+    if isinstance(v, str):
+        if len(v) > 60:  # a message stays one readable line
+            return f"{v[:40]!r}… ({len(v)} characters)"
+        return repr(v)
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, dict):
+        return "a table"
+    if isinstance(v, list):
+        return "an array"
+    return repr(v)
+
+
+def quantity(value: Any, unit: str, path: str) -> float:
+    """Read a float in ``unit`` from a number or a string with a unit."""
+    if isinstance(value, bool) or not isinstance(value, int | float | str):
+        raise InputError(f"{path}: expected a number in {unit}, got {describe(value)}")
+    if isinstance(value, int | float):
+        return float(value)
+    try:
+        if unit == "s":
+            return parse_time(value, path)
+        if unit == "m":
+            return parse_length(value, path)
+        if unit == "N":
+            return parse_force(value, path)
+        if unit == "m/s":
+            return parse_velocity(value, path)
+        if unit == "m/s²":
+            return parse_accel(value, path)
+        if unit == "-":
+            return parse_fraction(value, path)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    m = _NUM_RE.fullmatch(value)
+    if m:
+        num, u = float(m.group(1)), m.group(2)
+        if u in ("", unit):
+            return num
+        for p, f in _PREFIX.items():
+            if p and u == p + unit:
+                return num * f
+    raise InputError(f"{path}: cannot read {value!r} as a quantity in {unit}")
+
+
+def check_range(key: Key, v: float, path: str) -> None:
+    """Raise unless ``v`` is finite and within ``key``'s range (``path`` names the key)."""
+    if not math.isfinite(v):
+        raise InputError(f"{path}: must be a finite number, got {v!r}")
+    unit = "" if key.unit in ("-", "steps", "windows") else f" {key.unit}"
+    if key.lo is not None and (v < key.lo or (key.lo_open and v == key.lo)):
+        op = ">" if key.lo_open else "≥"
+        raise InputError(f"{path}: must be {op} {key.lo:g}{unit}, got {v:g}")
+    if key.hi is not None and (v > key.hi or (key.hi_open and v == key.hi)):
+        op = "<" if key.hi_open else "≤"
+        raise InputError(f"{path}: must be {op} {key.hi:g}{unit}, got {v:g}")
+
+
+def coerce(key: Key, value: Any, path: str) -> Any:
+    """``value`` as ``key`` takes it: type checked, units read to SI, range checked.
+
+    Parameters
+    ----------
+    key : Key
+        The schema entry (:data:`rths_hil.config.SCHEMA`).
+    value : Any
+        As read from TOML or ``--set``.
+    path : str
+        Key path for messages (``loop.fs``, ``actuators[0].fei.window``).
+
+    Returns
+    -------
+    Any
+        The value in SI units (a float, int, bool, str, list of floats or a copied table; an
+        ``"nT"`` window stays a string until ``structure.fn`` resolves it).
+
+    Raises
+    ------
+    InputError
+        Wrong type, unit or range, naming ``path``.
+    """
+    kind = key.kind
+    if kind == "float":
+        v = quantity(value, key.unit, path)
+        check_range(key, v, path)
+        return v
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"{path}: expected an integer, got {describe(value)}")
+        check_range(key, value, path)
+        return int(value)
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise InputError(f"{path}: expected true or false, got {describe(value)}")
+        return value
+    if kind == "str":
+        if not isinstance(value, str):
+            raise InputError(f"{path}: expected a string, got {describe(value)}")
+        return value
+    if kind == "choice":
+        if not isinstance(value, str) or value not in key.choices:
+            raise InputError(
+                f"{path}: must be one of {', '.join(key.choices)}, got {describe(value)}"
+            )
+        return value
+    if kind == "window":
+        if isinstance(value, str) and value.strip().endswith("T"):
+            try:
+                parse_window(value, 1.0)  # syntax check; resolved with structure.fn later
+            except InputError as exc:
+                raise InputError(f"{path}: {exc}") from None
+            return value.strip()
+        v = quantity(value, "s", path)
+        check_range(key, v, path)
+        return v
+    if kind == "array":
+        if not isinstance(value, list):
+            raise InputError(f"{path}: expected an array of numbers, got {describe(value)}")
+        out = []
+        for i, item in enumerate(value):
+            v = quantity(item, key.unit, f"{path}[{i}]")
+            check_range(key, v, f"{path}[{i}]")
+            out.append(v)
+        return out
+    if kind == "table":
+        if not isinstance(value, dict):
+            raise InputError(f"{path}: expected a table, got {describe(value)}")
+        return copy.deepcopy(value)
+    raise AssertionError(kind)  # pragma: no cover
+
+
+def unknown_key(path: str, name: str, known: Iterable[str]) -> InputError:
+    """The error for an unknown key ``name`` at ``path``: the closest known key, then all."""
+    known = list(known)
+    close = difflib.get_close_matches(name, known, n=1, cutoff=0.5)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return InputError(f"{path}: unknown key{hint}; known keys: {', '.join(known)}")

@@ -1,0 +1,314 @@
+"""Reading a configuration: TOML files over the defaults, ``[[actuators]]`` entries and
+``--set`` overrides."""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+import tomllib
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputError
+from ..formats import read_toml
+from .checks import cross_check
+from .coerce import coerce, describe, unknown_key
+from .model import Config, default_config
+from .schema import (
+    CHANNEL_KEYS,
+    CHANNEL_SECTIONS,
+    SCHEMA,
+    STEP_KEYS,
+    STEP_PAIR,
+    derive_steps,
+    steps_to_time,
+)
+
+__all__ = [
+    "MAX_CONFIG_BYTES",
+    "apply_overrides",
+    "load_config",
+    "merge",
+    "parse_override",
+]
+
+_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}\Z")
+
+
+def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:
+    """Validate one ``[[actuators]]`` entry (its own keys, not the cross-channel rules)."""
+    path = f"actuators[{i}]"
+    if not isinstance(entry, dict):
+        raise InputError(f"{where}: {path}: expected a table [[actuators]], got {describe(entry)}")
+    out: dict[str, Any] = {}
+    for key, value in entry.items():
+        kp = f"{path}.{key}"
+        if key == "name":
+            if not isinstance(value, str) or not _NAME_RE.match(value):
+                raise InputError(
+                    f"{where}: {kp}: expected a name of 1 to 32 letters, digits and _ starting "
+                    f"with a letter, got {describe(value)}"
+                )
+            out["name"] = value
+        elif key == "dof":
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise InputError(
+                    f"{where}: {kp}: expected a storey/DOF number ≥ 1, got {describe(value)}"
+                )
+            out["dof"] = value
+        elif key == "transform":
+            if (
+                not isinstance(value, list)
+                or not value
+                or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+                or not all(math.isfinite(v) for v in value)
+            ):
+                raise InputError(
+                    f"{where}: {kp}: expected a non-empty array of finite numbers (a row of T), "
+                    f"got {describe(value)}"
+                )
+            out["transform"] = [float(v) for v in value]
+        elif key in CHANNEL_SECTIONS:
+            if not isinstance(value, dict):
+                raise InputError(f"{where}: {kp}: expected a table, got {describe(value)}")
+            keys = SCHEMA[key]
+            sec: dict[str, Any] = {}
+            for name, v in value.items():
+                if name not in keys:
+                    raise InputError(f"{where}: {unknown_key(f'{kp}.{name}', name, keys)}")
+                try:
+                    sec[name] = coerce(keys[name], v, f"{kp}.{name}")
+                except InputError as exc:
+                    raise InputError(f"{where}: {exc}") from None
+            out[key] = sec
+        else:
+            raise InputError(
+                f"{where}: {unknown_key(kp, key, (*CHANNEL_KEYS, *CHANNEL_SECTIONS))} "
+                "(an actuator sets name, dof or transform and the sections it overrides)"
+            )
+    if "name" not in out:
+        raise InputError(f"{where}: {path}.name: every [[actuators]] entry needs a name")
+    if "dof" in out and "transform" in out:
+        raise InputError(f"{where}: {path}.transform: give dof or transform, not both")
+    return out
+
+
+def merge(cfg: Config, data: Mapping[str, Any], where: str) -> None:
+    """Merge ``data`` (a parsed TOML document) into ``cfg`` key by key, coercing each value.
+
+    The step keys of this source (``compensation.alpha``, …) are read at this source's
+    ``loop.fs``. ``where`` names the source in messages. Cross-key rules are not checked here
+    (:func:`rths_hil.config.cross_check`).
+    """
+    for section, table in data.items():
+        if section == "actuators":
+            if not isinstance(table, list):
+                raise InputError(
+                    f"{where}: actuators: expected an array of tables [[actuators]], "
+                    f"got {describe(table)}"
+                )
+            cfg["actuators"] = [_actuator(e, i, where) for i, e in enumerate(table)]
+            continue
+        if section not in SCHEMA:
+            raise InputError(f"{where}: {unknown_key(section, section, SCHEMA)}")
+        if not isinstance(table, dict):
+            raise InputError(
+                f"{where}: {section}: expected a table [{section}], got {describe(table)}"
+            )
+        keys = SCHEMA[section]
+        for name, value in table.items():
+            path = f"{section}.{name}"
+            if name not in keys:
+                raise InputError(f"{where}: {unknown_key(path, name, keys)}")
+            try:
+                cfg[section][name] = coerce(keys[name], value, path)
+            except InputError as exc:
+                raise InputError(f"{where}: {exc}") from None
+    # α and the other step keys of this source are read at this source's loop rate
+    fs = cfg["loop"]["fs"]
+    comp = data.get("compensation")
+    if isinstance(comp, dict):
+        steps_to_time(cfg["compensation"], {k: cfg["compensation"][k] for k in comp}, fs, where)
+    for entry in cfg.get("actuators") or []:
+        own = entry.get("compensation")
+        if own:
+            steps_to_time(own, own, fs, f"{where}: actuators.{entry['name']}")
+            for sk in STEP_KEYS:
+                own.pop(sk, None)
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """Split ``section.key=value`` into the key path and the value (TOML, else a string).
+
+    Raises
+    ------
+    InputError
+        No ``=`` or an empty key.
+    """
+    name, sep, raw = text.partition("=")
+    name = name.strip()
+    if not sep or not name:
+        raise InputError(f"--set {text}: expected section.key=value")
+    parts = name.split(".")
+    if any(not p for p in parts) or len(parts) < 2:
+        raise InputError(f"--set {text}: expected section.key=value")
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return parts, value
+
+
+def _apply_channel_override(cfg: Config, parts: list[str], value: Any, where: str) -> None:
+    """``--set actuators.NAME.key=value`` or ``--set actuators.NAME.section.key=value``."""
+    chans = cfg.get("actuators") or []
+    names = [c["name"] for c in chans]
+    if len(parts) < 3:
+        raise InputError(f"{where}: expected actuators.NAME.key=value")
+    name = parts[1]
+    if name not in names:
+        known = ", ".join(names) if names else "none: the configuration has no [[actuators]]"
+        raise InputError(f"{where}: actuators.{name}: no channel of that name (channels: {known})")
+    i = names.index(name)
+    entry = dict(chans[i])
+    key = parts[2]
+    if key in ("dof", "transform"):
+        if len(parts) != 3:
+            raise InputError(f"{where}: actuators.{name}.{key} is not a table")
+        entry[key] = value
+        entry.pop("transform" if key == "dof" else "dof", None)
+    elif key in CHANNEL_SECTIONS:
+        if len(parts) < 4:
+            raise InputError(f"{where}: expected actuators.{name}.{key}.KEY=value")
+        sec = copy.deepcopy(entry.get(key, {}))
+        kname = parts[3]
+        if kname not in SCHEMA[key]:
+            raise InputError(
+                f"{where}: {unknown_key(f'actuators.{name}.{key}.{kname}', kname, SCHEMA[key])}"
+            )
+        if len(parts) > 4:
+            if SCHEMA[key][kname].kind != "table":
+                raise InputError(f"{where}: actuators.{name}.{key}.{kname} is not a table")
+            node = sec.setdefault(kname, copy.deepcopy(cfg[key][kname]))
+            for p in parts[4:-1]:
+                node = node.setdefault(p, {})
+                if not isinstance(node, dict):
+                    raise InputError(f"{where}: {'.'.join(parts[:-1])} is not a table")
+            node[parts[-1]] = value
+        else:
+            sec[kname] = value
+        entry[key] = sec
+    else:
+        known = (*CHANNEL_KEYS[1:], *CHANNEL_SECTIONS)
+        raise InputError(f"{where}: {unknown_key(f'actuators.{name}.{key}', key, known)}")
+    chans[i] = _actuator(entry, i, where)
+
+
+def _apply_override(cfg: Config, text: str, where: str | None = None) -> None:
+    parts, value = parse_override(text)
+    where = where or f"--set {text}"
+    section, name = parts[0], parts[1]
+    if section == "actuators":
+        _apply_channel_override(cfg, parts, value, where)
+        return
+    if section in CHANNEL_SECTIONS and len(parts) == 2:
+        # a top-level --set applies to every channel: the channels' own values give way
+        # (driver.connection is merged key by key: the channels keep their node / unit id)
+        if (section, name) != ("driver", "connection"):
+            names = [name]
+            if section == "compensation" and name in STEP_PAIR:
+                names = [STEP_PAIR[name], STEP_KEYS[STEP_PAIR[name]][0]]  # α and delay alike
+            for entry in cfg.get("actuators") or []:
+                for n in names:
+                    entry.get(section, {}).pop(n, None)
+    if section not in SCHEMA:
+        raise InputError(f"{where}: {unknown_key(section, section, SCHEMA)}")
+    keys = SCHEMA[section]
+    if name not in keys:
+        raise InputError(f"{where}: {unknown_key(section + '.' + name, name, keys)}")
+    key = keys[name]
+    if len(parts) > 2:
+        if key.kind != "table":
+            raise InputError(f"{where}: {section}.{name} is not a table")
+        node = cfg[section][name]
+        for p in parts[2:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise InputError(f"{where}: {'.'.join(parts[:-1])} is not a table")
+        node[parts[-1]] = value
+        return
+    try:
+        cfg[section][name] = coerce(key, value, f"{section}.{name}")
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
+
+
+#: Largest configuration file read (bytes): a real one is a few kB.
+MAX_CONFIG_BYTES = 1 << 20
+
+
+def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
+    """Read a configuration file over the defaults, then apply ``--set`` overrides.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        TOML file. ``None`` gives the embedded default.
+    overrides : iterable of str
+        ``section.key=value`` items, applied in order.
+
+    Returns
+    -------
+    Config
+
+    Raises
+    ------
+    InputError
+        Unreadable file, TOML syntax error, unknown key, wrong type, unit or range — naming
+        the file (or ``--set`` item) and the key path.
+    """
+    cfg = default_config()
+    if path is not None:
+        p = Path(path)
+        data = read_toml(p, "config", str(path), max_bytes=MAX_CONFIG_BYTES)
+        cfg.source = str(path)
+        cfg.base_dir = p.resolve().parent
+        merge(cfg, data, str(path))
+    else:
+        cfg.base_dir = Path.cwd()
+    return apply_overrides(cfg, overrides)
+
+
+def apply_overrides(cfg: Config, overrides: Iterable[str], where: str | None = None) -> Config:
+    """Apply ``section.key=value`` items to ``cfg`` in place as ``--set`` does (α read at the
+    final loop rate), then cross-check; ``where`` labels errors (default ``--set ITEM``)."""
+    overrides = list(overrides)
+    # (channel name or None, step key) → the key of the pair the last --set gave
+    last: dict[tuple[str | None, str], str] = {}
+    for item in overrides:
+        _apply_override(cfg, item, where)
+        parts = parse_override(item)[0]
+        if parts[0] == "compensation" and len(parts) == 2 and parts[1] in STEP_PAIR:
+            sk = STEP_PAIR[parts[1]]
+            last = {k: v for k, v in last.items() if k[1] != sk}  # the channels' gave way
+            last[(None, sk)] = parts[1]
+        elif parts[0] == "actuators" and len(parts) == 4 and parts[2] == "compensation":
+            if parts[3] in STEP_PAIR:
+                last[(parts[1], STEP_PAIR[parts[3]])] = parts[3]
+    # a --set α is read at the final loop rate; the time keys carry over a change of rate
+    fs = cfg["loop"]["fs"]
+    for (chan, sk), key in last.items():
+        tk, off = STEP_KEYS[sk]
+        if chan is None:
+            sec = cfg["compensation"]
+        else:
+            sec = next(e for e in cfg["actuators"] if e["name"] == chan)["compensation"]
+        if key == sk:
+            sec[tk] = (sec[sk] - off) / fs
+        if chan is not None:
+            sec.pop(sk, None)
+    derive_steps(cfg["compensation"], fs)
+    cross_check(cfg, " (with --set overrides)" if overrides else "")
+    return cfg
