@@ -54,10 +54,10 @@ def lagrange_slopes(f: Any) -> tuple[Any, Any, Any, Any]:
     )
 
 
-#: :func:`lagrange_weights` compiled with numba, for use inside ``numba.njit`` kernels.
-lagrange_weights_jit = numba.njit(cache=True, nogil=True)(lagrange_weights)
-#: :func:`lagrange_slopes` compiled with numba, for use inside ``numba.njit`` kernels.
-lagrange_slopes_jit = numba.njit(cache=True, nogil=True)(lagrange_slopes)
+#: :func:`lagrange_weights` compiled with numba, inlined into the njit kernels calling it.
+lagrange_weights_jit = numba.njit(cache=True, nogil=True, inline="always")(lagrange_weights)
+#: :func:`lagrange_slopes` compiled with numba, inlined into the njit kernels calling it.
+lagrange_slopes_jit = numba.njit(cache=True, nogil=True, inline="always")(lagrange_slopes)
 
 
 def lagrange_split(delay_samples: float) -> tuple[int, float]:
