@@ -354,12 +354,17 @@ def build_plant(
     return load_plant(spec, dt)
 
 
+def _comment_text(line: str) -> str:
+    r"""``line`` as TOML comment text: control characters (not allowed there) as ``\xNN``."""
+    return "".join(c if c == "\t" or c.isprintable() else f"\\x{ord(c):02x}" for c in line)
+
+
 def model_to_toml(spec: ModelSpec | Mapping[str, Any], header: str = "") -> str:
     """Format a model spec as TOML text (``header`` becomes leading ``#`` comment lines)."""
     if not isinstance(spec, ModelSpec):
         spec = load_model(spec)
     data = spec.to_dict()
-    lines = [f"# {line}".rstrip() for line in header.splitlines()]
+    lines = [f"# {_comment_text(line)}".rstrip() for line in header.splitlines()]
     if lines:
         lines.append("")
     act = dict(data["actuator"])
