@@ -41,9 +41,7 @@ def _load(target: str) -> type[Driver]:
     module, _, attr = target.partition(":")
     obj = getattr(importlib.import_module(module), attr)
     if not (inspect.isclass(obj) and issubclass(obj, Driver)):
-        raise InputError(
-            f"driver entry point {target!r} is not a rths_hil.drivers.base.Driver subclass"
-        )
+        raise InputError(f"driver entry point {target!r} is not a drivers.base.Driver subclass")
     return obj
 
 
