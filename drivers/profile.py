@@ -281,6 +281,10 @@ class ModbusPoint:
         )
         return self._swap(regs)
 
+    def si(self, raw: float) -> float:
+        """The SI value of the point's raw value (value in ``units`` = raw · scale + offset)."""
+        return (raw * self.scale + self.offset) * self.factor
+
     def from_registers(self, regs: list[int]) -> float:
         """The SI value of the point's registers (or coil value)."""
         if self.type == "bool":
@@ -297,6 +301,8 @@ class ModbusPoint:
         """The integer of a status word (no scale)."""
         if self.type == "bool":
             return 1 if regs[0] else 0
+        if self.type == "uint16" and self.byte_order == "big":
+            return int(regs[0])  # the register pymodbus decoded is the unsigned 16-bit value
         return int(
             ModbusClientMixin.convert_from_registers(
                 self._swap(regs),
@@ -349,6 +355,21 @@ class ModbusProfile:
     fc23: bool
     protocol: str = "modbus"
     units_doc: dict[str, str] = field(default_factory=dict)
+
+    def rtu_frames(self) -> list[tuple[int, int]]:
+        """(request, response) bytes on an RTU line, CRC included, of each transaction of
+        one step: FC 23 (``13 + 2w``, ``5 + 2r``), or FC 16 (``9 + 2w``, 8) and one read per
+        block (8, ``5 + 2n`` registers or ``5 + ⌈n/8⌉`` bits), Modbus application protocol
+        V1.1b3 §6.1–6.17, RTU framing (address + CRC) of the serial line guide V1.02 §2.5.1.1
+        (docs/references.md)."""
+        w = self.points["setpoint"].count
+        if self.fc23:
+            return [(13 + 2 * w, 5 + 2 * self.reads[0].count)]
+        out = [(9 + 2 * w, 8)]
+        for b in self.reads:
+            n = b.count
+            out.append((8, 5 + (2 * n if b.table in ("holding", "input") else -(-n // 8))))
+        return out
 
 
 def _modbus_point(r: _Reader, role: str, defaults: dict[str, str]) -> ModbusPoint:

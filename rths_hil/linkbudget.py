@@ -561,6 +561,17 @@ def modbus_load(
             f"{ch} × FC 23 ({req} + {resp} bytes + 2 × 3.5 characters of {bpc:g} bits "
             f"= {t * 1e3:.2f} ms) at {fs:g} Hz"
         )
+        profile = c.get("profile")
+        if profile not in (None, "", "rths-hil"):  # a controller profile: its transactions
+            from rths_hil.drivers.profile import load_profile
+
+            pairs = load_profile(profile).rtu_frames()  # type: ignore[union-attr]
+            t = sum(rtu_transaction_time(baud, parity, stop, frame_bytes=fb) for fb in pairs)
+            frames = (
+                f"{ch} × ({' + '.join(f'{a} + {b}' for a, b in pairs)} bytes + "
+                f"{2 * len(pairs)} × 3.5 characters of {bpc:g} bits = {t * 1e3:.2f} ms) at "
+                f"{fs:g} Hz (profile)"
+            )
         if why is not None:
             return LinkLoad(name, None, f"{why}; {frames}", kind="modbus-rtu", **base)
         return LinkLoad(

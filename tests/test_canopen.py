@@ -26,9 +26,12 @@ from rths_hil.sim_backends.endpoints.canopen_twin import EMCY_FOLLOWING_ERROR, d
 from rths_hil.sim_backends.faults import Faults
 from rths_hil.sim_backends.twin import default_plant, start_twin
 
+from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.linkbudget import can_frame_bits
 from rths_hil.linkbudget import link_load as budget
+from rths_hil.loop import RTHSLoop
+from rths_hil.recorder import read_run
 from tests.helpers.loop import run_loop
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -219,8 +222,9 @@ def test_link_budget_counts_sync_pdos_and_heartbeats():
     )
     assert ld.load == pytest.approx((per_step * 1024 + hb) / 1e6)
     two = link_load({"bitrate": 1_000_000, "interface": "socketcan"}, 2, 1024, heartbeat_hz=10.0)
+    # one SYNC and one bridge heartbeat for the bus, the PDOs and device heartbeats per axis
     assert two.load == pytest.approx(
-        ((can_frame_bits(0) + 2 * (per_step - can_frame_bits(0))) * 1024 + 2 * hb) / 1e6
+        ((can_frame_bits(0) + 2 * (per_step - can_frame_bits(0))) * 1024 + 3 * hb / 2) / 1e6
     )
     assert axes_that_fit(1024) == 2 and two.load < 0.8
     assert axes_that_fit(512) == 4
@@ -245,39 +249,121 @@ def test_frame_faults_are_counted(faults, counter):
         assert drv.stats.received >= 60 - 3
 
 
-def test_pdo_bytes_equal_the_canopen_library_encoding():
-    """The driver's RPDO packing and the twin's TPDO packing (structs compiled from the maps)
-    give the bytes the library's own PdoVariable encoding gives."""
+def test_pdo_bytes_follow_the_cia301_little_endian_layout():
+    """The driver's RPDO and the twin's TPDOs, encoded through the library's PDO maps, are the
+    CiA 301 layout written independently with struct: the mapped objects in order,
+    little-endian (RPDO1 UNSIGNED16 control word + INTEGER32 target; TPDO1 UNSIGNED16 status
+    word + INTEGER32 position; TPDO2 INTEGER32 force); the driver decodes TPDOs built so."""
+    import struct
+
     with start_twin("canopen", default_plant()) as twin:
         drv = _open(twin)
         drv.arm(1.0)
         for k in range(5):
             drv.send(k, 0.0, True)
             drv.receive(1.0)
-        rp = drv.node.rpdo[1]
         for word, counts in ((0x000F, 12345), (0x0002, -(2**31) + 1), (0x0006, 2**31 - 1)):
-            rp[0x6040].raw, rp[0x607A].raw = word, counts
-            assert drv.rpdo_layout.fmt.pack(word, counts) == bytes(rp.data)
+            drv._rpdo(5, word, counts)
+            drv._bus.sync()
+            assert bytes(drv._rpdo_msg.data) == struct.pack("<Hi", word, counts)
+            assert drv._rpdo_msg.arbitration_id == 0x201
         frames = twin._encode(7, -0.0123456, 4567.89, 0)
-        values = {0x6041: twin.statusword(), 0x6064: -123456, 0x2100: 456789}
-        for m, frame in zip(twin._tpdo, frames, strict=True):
-            for var in m.map:
-                var.raw = values[var.index]
-            assert bytes(frame.data) == bytes(m.data)
-            assert frame.arbitration_id == m.cob_id
+        assert [f.arbitration_id for f in frames] == [0x181, 0x281]
+        assert bytes(frames[0].data) == struct.pack("<Hi", twin.statusword(), -123456)
+        assert bytes(frames[1].data) == struct.pack("<i", 456789)
+        # the driver's decoding (its TPDO callback) of TPDOs packed by struct
+        drv._q.clear()
+        drv._step, drv._delivered_sync, drv._part = 9, -2, {}
+        for m, data in ((drv.node.tpdo[1], struct.pack("<Hi", 0x0237, -7654321)),
+                        (drv.node.tpdo[2], struct.pack("<i", -31415))):  # fmt: skip
+            m.data = bytearray(data)
+            drv._on_tpdo(m)
+        fb = drv._q.pop()
+        assert fb.seq == 9
+        assert fb.displacement == pytest.approx(-0.7654321, abs=1e-12)
+        assert fb.force == pytest.approx(-314.15, abs=1e-9)
+        assert fb.status == ENABLED
         drv.close()
 
 
-def test_one_canopen_axis_per_bus():
-    """Each driver produces the bus's SYNC: two axes on one named bus are refused in one line;
-    twins without a named channel each get a bus of their own."""
+def test_canopen_bus_sharing_rules():
+    """Several axes may share a bus (one SYNC for all), each with its own node id and the
+    bus's bit rate; a repeated node id or a differing bit rate is refused in one line; twins
+    without a named channel each get a bus of their own."""
     same = {"interface": "socketcan", "channel": "can0"}
+    CANopenDriver.check_sharing([(0, "x", {**same, "node_id": 1}, False),
+                                 (1, "y", {**same, "node_id": 2}, False)])  # fmt: skip
     with pytest.raises(
-        InputError, match=r"'x' and 'y' are CANopen axes on one bus \(socketcan:can0\)"
+        InputError, match=r"'x' and 'y' are both CANopen node 3 on bus socketcan:can0"
     ):
-        CANopenDriver.check_sharing([(0, "x", {**same, "node_id": 1}, False),
-                                     (1, "y", {**same, "node_id": 2}, False)])  # fmt: skip
+        CANopenDriver.check_sharing([(0, "x", {**same, "node_id": 3}, False),
+                                     (1, "y", {**same, "node_id": 3}, False)])  # fmt: skip
+    with pytest.raises(InputError, match=r"differ in driver.connection.bitrate"):
+        CANopenDriver.check_sharing(
+            [(0, "x", {**same, "node_id": 1, "bitrate": 1_000_000}, False),
+             (1, "y", {**same, "node_id": 2, "bitrate": 500_000}, False)]
+        )  # fmt: skip
     CANopenDriver.check_sharing([(0, "x", {}, True), (1, "y", {}, True)])
-    CANopenDriver.check_sharing(
-        [(0, "x", same, False), (1, "y", {"interface": "socketcan", "channel": "can1"}, False)]
+
+
+TWO_AXES = ROOT / "examples" / "controllers" / "cia402_two_axes.toml"
+
+
+def test_two_axes_on_one_bus_share_one_sync_per_step(tmp_path):
+    """Two CiA 402 axes (nodes 1 and 2) on one bus: one SYNC per step clocks both (each twin
+    counts one SYNC per step, not two), each axis gets its own TPDOs (the 10 ms and 20 ms
+    actuators show their own delays without compensation), the run completes in lockstep."""
+    cfg = load_config(
+        TWO_AXES, ["loop.console=0", "output.plot=false", "compensation.enabled=false"]
     )
+    loop = RTHSLoop(cfg, tmp_path / "two", mode="lockstep", duration=8.0)
+    res = loop.run()
+    assert res.status == "completed", res.trip
+    assert res.steps == 8 * 1024 and res.missed_replies == 0
+    a, b = loop.channels
+    assert [c.driver.node_id for c in loop.channels] == [1, 2]
+    assert (a.driver.interface, a.driver.channel) == ("virtual", "rths-canopen-two-axes")
+    assert (b.driver.interface, b.driver.channel) == (a.driver.interface, a.driver.channel)
+    for ch in loop.channels:
+        # SYNCs seen by each device since it went operational: one per step (+ start/end)
+        assert 0 <= ch.twin.n - res.steps <= 6, (ch.twin.n, res.steps)
+        assert 0 <= ch.driver.stats.syncs - res.steps <= 6
+        assert ch.driver.stats.malformed == 0
+    rec = read_run(tmp_path / "two").record
+    for sfx, delay in (("_storey1", 0.010), ("_storey3", 0.020)):
+        v = rec["fei_valid" + sfx]
+        assert v.sum() > 1000
+        assert abs(float(np.median(rec["fei_delay" + sfx][v])) - delay) < 1.5e-3
+
+
+def test_two_axes_with_one_node_id_are_refused(tmp_path):
+    cmd = [sys.executable, "-m", "rths_hil", "run", str(TWO_AXES), "--lockstep", "--duration",
+           "0.5", "--set", "actuators.storey3.driver.connection.node_id=1",
+           "--set", f"output.dir={tmp_path}/r"]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    err = [x for x in proc.stderr.splitlines() if "error" in x]
+    assert len(err) == 1 and "both CANopen node 1 on bus virtual:rths-canopen-two-axes" in err[0]
+
+
+def test_two_axes_a_fault_on_one_stops_both(tmp_path):
+    """A runaway on node 2 (EMCY 0x8611) trips the loop naming that node; both axes on the
+    bus are e-stopped: the healthy one confirms its quick stop, the faulty one holds in FAULT."""
+    at = 1500
+    cfg = load_config(
+        TWO_AXES,
+        ["loop.console=0", "output.plot=false",
+         f"actuators.storey3.twin.faults=runaway_from={at}; runaway_rate=0.5"],
+    )  # fmt: skip
+    loop = RTHSLoop(cfg, tmp_path / "fault", mode="lockstep", duration=4.0)
+    res = loop.run()
+    assert res.status == "trip" and res.trip.rule == "controller", res.trip
+    assert "canopen node 2" in res.trip.reason and "EMCY 0x8611" in res.trip.reason
+    assert abs(res.trip.step - at) <= 3
+    events = read_run(tmp_path / "fault").events
+    stops = {e["channel"]: e for e in events if e["kind"] == "estop"}
+    assert set(stops) == {"storey1", "storey3"}
+    assert stops["storey1"]["confirmed"]  # the healthy axis latched its quick stop
+    a, b = loop.channels  # the latches are left as they are after an e-stop
+    assert a.twin.state == "QUICK STOP ACTIVE" and a.twin.history[-2] == "OPERATION ENABLED"
+    assert b.twin.state == "FAULT"  # the faulty axis holds in FAULT (its quick stop ignored)

@@ -3,9 +3,10 @@
 The profile names, for each role, a DBC message and signal; cantools encodes the command and
 decodes the feedback with the DBC's byte order (Intel or Motorola), sign, scale and offset, and
 the profile's (or the DBC's) unit converts to SI. Standard and extended identifiers come from
-the DBC. The hot path packs and unpacks with :class:`CompiledMessage` (the DBC compiled once by
-cantools into shifts and masks, checked against cantools by the tests); the e-stop and heartbeat
-frames are encoded by cantools. Per step the driver sends one command frame: the set-point
+the DBC. Every frame is encoded and decoded by cantools (``Message.encode`` with ``scaling``
+and without its range check, which the driver does for the set-point itself;
+``Message.decode`` without choices): the standard comes through its library. The e-stop
+frame is encoded once. Per step the driver sends one command frame: the set-point
 signal, the enable signal (``actions.enable`` / ``actions.disable``) and, with the enable flag
 off, the acknowledge signal; the e-stop is a frame of its own (``actions.estop``), the
 heartbeat a counter signal.
@@ -25,9 +26,11 @@ import math
 import queue
 import time
 from collections import deque
+from functools import partial
 from typing import Any, ClassVar
 
 import can
+from cantools.database.errors import Error as CantoolsError
 
 from rths_hil.errors import InputError
 
@@ -36,80 +39,9 @@ from ..profile import CANProfile, load_profile, status_from_word
 from . import SharedBus, release_bus, shared_bus
 from .codec import Frame
 
-__all__ = ["CANProfileDriver", "CompiledMessage"]
+__all__ = ["CANProfileDriver"]
 
 _perf = time.perf_counter
-
-
-class CompiledMessage:
-    """A cantools message compiled to shifts and masks for the hot path (Intel and Motorola).
-
-    The frame is read as one integer twice — big-endian for Motorola signals, little-endian for
-    Intel ones. An Intel signal with start bit ``s`` and length ``n`` is ``(v_le >> s) & mask``.
-    A Motorola signal's DBC start bit is its most significant bit in the DBC's sawtooth
-    numbering; counted from the first bit on the wire (bit 7 of byte 0) its position is
-    ``p = 8 · (s // 8) + 7 − s mod 8``, its least significant bit ``p + n − 1``, so it is
-    ``(v_be >> (8 L − p − n)) & mask`` for a frame of ``L`` bytes. Physical = raw · scale +
-    offset (cantools's definition). ``tests/test_profiles.py`` checks encode and decode against
-    cantools on random values. Messages with float or multiplexed signals fall back to cantools.
-    """
-
-    def __init__(self, message: Any) -> None:
-        self.message = message
-        self.length = int(message.length)
-        self.compiled = all(
-            not s.is_float and not s.is_multiplexer and not s.multiplexer_ids
-            for s in message.signals
-        )
-        nbits = 8 * self.length
-        self.fields: dict[str, tuple[bool, int, int, int, float, float]] = {}
-        for sig in message.signals:
-            n = int(sig.length)
-            if sig.byte_order == "big_endian":
-                pos = 8 * (sig.start // 8) + 7 - sig.start % 8
-                shift = nbits - pos - n
-                big = True
-            else:
-                shift, big = int(sig.start), False
-            sign = 1 << (n - 1) if sig.is_signed else 0
-            self.fields[sig.name] = (
-                big,
-                shift,
-                (1 << n) - 1,
-                sign,
-                float(sig.scale),
-                float(sig.offset),
-            )
-
-    def encode(self, values: dict[str, float]) -> bytes:
-        """The frame payload of ``values`` (physical, every signal given)."""
-        if not self.compiled:
-            return self.message.encode(values, strict=False)
-        vb = vl = 0
-        for name, (big, shift, mask, _sign, scale, offset) in self.fields.items():
-            raw = round((values[name] - offset) / scale) & mask
-            if big:
-                vb |= raw << shift
-            else:
-                vl |= raw << shift
-        n = self.length
-        if vl:
-            vb |= int.from_bytes(vl.to_bytes(n, "little"), "big")
-        return vb.to_bytes(n, "big")
-
-    def decode(self, data: bytes | bytearray) -> dict[str, float]:
-        """Physical values of every signal of a payload of :attr:`length` bytes."""
-        if not self.compiled:
-            return self.message.decode(data, decode_choices=False)  # type: ignore[return-value]
-        vb = int.from_bytes(data, "big")
-        vl = int.from_bytes(data, "little")
-        out = {}
-        for name, (big, shift, mask, sign, scale, offset) in self.fields.items():
-            raw = ((vb if big else vl) >> shift) & mask
-            if raw & sign:
-                raw -= sign << 1
-            out[name] = raw * scale + offset
-        return out
 
 
 class CANProfileDriver(Driver):
@@ -167,6 +99,7 @@ class CANProfileDriver(Driver):
         self._force = (r["force"].signal, r["force"].factor)
         self._status = r["status"].signal
         self._masks = prof.masks
+        self._flags: dict[int, int] = {}
         self._fb_id, self._fb_ext = fb.frame_id, bool(fb.is_extended_frame)
         # one command frame, reused: send() rewrites its payload in place (codec.Frame copies
         # cheaply on the virtual bus)
@@ -177,8 +110,10 @@ class CANProfileDriver(Driver):
             data=bytearray(cmd.length),
         )
         self._cmd_data = self._cmd_frame.data
-        self._decode = CompiledMessage(fb).decode
-        self._encode = CompiledMessage(cmd).encode
+        self._decode = partial(
+            fb.decode if fb.is_container else fb.decode_simple, decode_choices=False, scaling=True
+        )
+        self._encode = partial(cmd.encode, scaling=True, padding=False, strict=False)
         est = prof.actions["estop"]
         emsg = prof.database.get_message_by_name(est.message)
         self._estop_frame = can.Message(
@@ -311,7 +246,7 @@ class CANProfileDriver(Driver):
             return None
         try:
             v = self._decode(msg.data)
-        except (ValueError, KeyError):
+        except (ValueError, KeyError, CantoolsError):
             self.stats.count_malformed("bad_frame")
             return None
         ps, pf = self._pos
@@ -319,9 +254,10 @@ class CANProfileDriver(Driver):
         word = int(v[self._status])  # type: ignore[arg-type]
         d = float(v[ps]) * pf  # type: ignore[arg-type]
         f = float(v[fs]) * ff  # type: ignore[arg-type]
-        return Feedback(
-            -1, d if math.isfinite(d) else math.nan, f, status_from_word(word, self._masks)
-        )
+        flags = self._flags.get(word)
+        if flags is None:  # the bridge's flags of a status word, looked up once per word
+            flags = self._flags[word] = status_from_word(word, self._masks)
+        return Feedback(-1, d if math.isfinite(d) else math.nan, f, flags)
 
     def _recv_internal(self, deadline: float) -> Feedback | None:
         box = self._box

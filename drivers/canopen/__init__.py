@@ -23,12 +23,18 @@ consumer 0x1016 (``device_watchdog``: the bridge's heartbeat, node ``bridge_node
 then NMT operational. A PDO longer than 8 bytes, an EDS without one of the objects, a wrong
 device type or identity is refused with one line (:class:`~rths_hil.errors.InputError`, exit 2).
 
-**Each step** (:meth:`send`): RPDO1 with the control word and the set-point, then one SYNC. The
-SYNC is the step clock: the device applies the RPDO received before it and answers with its
+**Each step** (the base class's contract: :meth:`~..base.Driver.send` →
+:meth:`CANopenDriver._send_raw`, :meth:`~..base.Driver.receive` →
+:meth:`CANopenDriver._recv_internal`): RPDO1 with the control word and the set-point, then one
+SYNC, sent by the bus (:class:`CANopenBus`) when the first axis on it waits for its step's
+feedback — after every axis's RPDO, so several axes on one bus share one SYNC per step. The
+SYNC is the step clock: the devices apply the RPDO received before it and answer with their
 TPDOs. The feedback of step ``k`` is the TPDO set received after SYNC ``k`` (TPDOs carry no
 sequence number: a TPDO that comes after the next SYNC is taken for the next step's, see
-``docs/canopen.md``). Positions are counts on the wire (``counts_per_m``), forces counts of
-``newtons_per_count``.
+``docs/canopen.md``). The RPDO is encoded and the TPDOs decoded by the library's PDO variables
+(the objects' ``encode_raw`` / ``decode_raw`` at the offsets of the library's PDO maps).
+Positions are counts on the wire (``counts_per_m``), forces counts of ``newtons_per_count``.
+The base class owns the receive deadline, the timeouts, the sequence rules and the counters.
 
 **State machine.** The control word of each step follows the device's last reported state one
 transition at a time (402: shutdown → switch on → enable operation; 408: active), so the run's
@@ -49,8 +55,9 @@ with NMT stop.
 ``WATCHDOG`` for 0x8130, heartbeat / life-guard error) until the next arming; the code is logged,
 counted in the driver's stats (``emcy``) and named by :meth:`fault_text`, which the loop adds to
 its controller trip. The controller's heartbeat (``controller_heartbeat``): when none came for
-``controller_heartbeat_timeout`` (1 s), :meth:`receive` returns nothing (counted
-``heartbeat_lost``), so the loop's watchdog — which counts time — trips.
+``controller_heartbeat_timeout`` (1 s), :meth:`_recv_internal` raises
+:class:`~..base.LinkDown` (counted ``heartbeat_lost``): the receive returns nothing, so the loop's
+watchdog — which counts time — trips.
 
 Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1–127),
 ``device_profile`` (``cia402`` / ``cia408``), ``interface``, ``channel``, ``bitrate``,
@@ -69,18 +76,20 @@ import queue
 import struct
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import can
 import canopen
-from canopen.objectdictionary import ODArray, ODRecord, ODVariable
+from canopen.objectdictionary import ObjectDictionaryError, ODArray, ODRecord, ODVariable
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from rths_hil.errors import InputError
 
-from ..base import Driver, DriverStats, Feedback, Status, check_command
+from ..base import Driver, DriverStats, Feedback, LinkDown, Status
 from ..can import TIMEOUT_HONOURED, virtual_rx_queue
+from ..can.codec import Frame
 from .profiles import PROFILES, Profile
 
 __all__ = [
@@ -110,6 +119,7 @@ _FAULT = int(Status.FAULT)
 _S32 = (-(2**31), 2**31 - 1)
 _BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
 _SDO_ERRORS = (SdoAbortedError, SdoCommunicationError)
+_perf = time.perf_counter
 
 
 @dataclass(slots=True)
@@ -201,10 +211,209 @@ class Layout:
         return cls(struct.Struct(fmt), bits)
 
 
+class CANopenBus:
+    """One CANopen bus of the bridge: a python-can bus and its :class:`canopen.Network`,
+    shared by every axis (driver) on the same interface and channel.
+
+    The bus is the SYNC producer: :meth:`sync` sends one SYNC for the RPDOs every axis has
+    written since the last one, so several axes on one bus share one SYNC per step (each axis
+    its own node id, RPDO and TPDOs). Frames are read once (:meth:`pump`, :meth:`drain`): a
+    TPDO goes into the PDO map of the axis that mapped it, anything else to the library's
+    dispatch (``Network.notify``: EMCY, heartbeats, SDO). The bridge's heartbeat is one per bus.
+    The library's notifier thread runs only while an axis is in an SDO phase (open, arming,
+    close) on buses read from the caller's thread (:data:`~..can.TIMEOUT_HONOURED`); on others
+    it always runs.
+    """
+
+    _open: ClassVar[dict[tuple[str, str], CANopenBus]] = {}
+    _registry_lock: ClassVar[threading.Lock] = threading.Lock()
+
+    def __init__(self, key: tuple[str, str], network: canopen.Network, direct: bool) -> None:
+        self.key = key
+        self.network = network
+        self.direct = direct
+        self.rxq: queue.Queue | None = virtual_rx_queue(network.bus) if direct else None
+        self.axes: dict[int, CANopenDriver] = {}
+        self.tpdo: dict[int, tuple[CANopenDriver, Any]] = {}
+        self.sync_msg = Frame.blank(SYNC_ID, 0)
+        #: SYNC frames sent on this bus
+        self.syncs = 0
+        self._listening = 0
+        self._hb_last = -math.inf
+
+    @classmethod
+    def join(cls, drv: CANopenDriver) -> CANopenBus:
+        """The bus of ``drv``'s interface and channel, opened by the first axis on it."""
+        key = (drv.interface, drv.channel)
+        with cls._registry_lock:
+            bus = cls._open.get(key)
+            if bus is None:
+                net = canopen.Network()
+                net.NOTIFIER_CYCLE = 0.05  # how long close() may wait for the notifier thread
+                kwargs = dict(drv.bus_options)
+                if drv.bitrate is not None:
+                    kwargs["bitrate"] = drv.bitrate
+                try:
+                    net.connect(interface=drv.interface, channel=drv.channel, **kwargs)
+                except _BUS_ERRORS as exc:
+                    raise InputError(
+                        f"canopen: cannot open interface {drv.interface!r} channel "
+                        f"{drv.channel!r}: {exc}"
+                    ) from None
+                bus = cls(key, net, drv.interface in TIMEOUT_HONOURED)
+                if bus.direct and net.notifier is not None:  # read from the caller's thread
+                    notifier, net.notifier = net.notifier, None
+                    notifier.stop(1.0)
+                cls._open[key] = bus
+            elif drv.node_id in bus.axes:
+                raise InputError(
+                    f"canopen: node {drv.node_id} is already open on {drv.interface} "
+                    f"{drv.channel} (each axis on a bus needs its own node_id)"
+                )
+            bus.axes[drv.node_id] = drv
+        return bus
+
+    def release(self, drv: CANopenDriver) -> None:
+        """``drv`` leaves the bus; the last axis closes it."""
+        with self._registry_lock:
+            if self.axes.get(drv.node_id) is drv:
+                del self.axes[drv.node_id]
+            for cob in [c for c, (d, _) in self.tpdo.items() if d is drv]:
+                del self.tpdo[cob]
+            if self.axes:
+                return
+            if self._open.get(self.key) is self:
+                del self._open[self.key]
+        self.rxq = None
+        try:
+            self.network.disconnect()
+        except (*_BUS_ERRORS, RuntimeError):  # pragma: no cover - already gone
+            pass
+
+    def listen(self, on: bool) -> None:
+        """Run the library's notifier thread (an SDO phase of an axis) or stop it when no axis
+        needs it any more (frames are then read from the caller's thread)."""
+        net = self.network
+        if not self.direct or net.bus is None:
+            return
+        self._listening = max(0, self._listening + (1 if on else -1))
+        if self._listening and net.notifier is None:
+            net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
+        elif not self._listening and net.notifier is not None:
+            notifier, net.notifier = net.notifier, None
+            notifier.stop(1.0)
+
+    @property
+    def reading(self) -> bool:
+        """Frames are read from the caller's thread (no notifier thread runs)."""
+        return self.direct and self.network.notifier is None
+
+    def pump(self, timeout: float) -> bool:
+        """Read one frame (waiting up to ``timeout``) and hand it on (:meth:`handle`); False if
+        none came."""
+        q = self.rxq
+        if q is not None:  # python-can's virtual bus: its receive queue (rths_hil.drivers.can)
+            frames = q.queue
+            if frames:
+                msg = frames.popleft()
+            elif timeout <= 0:
+                return False
+            else:
+                try:
+                    msg = q.get(True, timeout)
+                except queue.Empty:
+                    return False
+        else:
+            bus = self.network.bus
+            if bus is None:
+                return False
+            try:
+                msg = bus.recv(timeout)
+            except (can.CanError, OSError):
+                for drv in list(self.axes.values()):
+                    drv.stats.disconnects += 1
+                return False
+            if msg is None:
+                return False
+        self.handle(msg)
+        return True
+
+    def drain(self) -> None:
+        """Hand on every frame already received, without waiting."""
+        q = self.rxq
+        if q is not None:
+            frames = q.queue
+            handle = self.handle
+            while frames:
+                handle(frames.popleft())
+        else:
+            while self.pump(0.0):
+                pass
+
+    def handle(self, msg: can.Message) -> None:
+        """One frame: a TPDO into the PDO map of its axis (as ``PdoMap.on_message`` does, then
+        the axis's ``_on_tpdo``); anything else to the library's dispatch."""
+        if msg.is_error_frame or msg.is_remote_frame:
+            for drv in self.axes.values():
+                drv.stats.count_malformed("bad_frame")
+                break
+            return
+        owner = self.tpdo.get(msg.arbitration_id)
+        if owner is not None:
+            drv, m = owner
+            m.data = msg.data
+            m.timestamp = msg.timestamp
+            drv._on_tpdo(m)
+            return
+        try:
+            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+        except Exception as exc:  # a callback's error must not end the run (as MessageListener)
+            log.error("canopen: frame 0x%03X: %s", msg.arbitration_id, exc)
+
+    def send(self, msg: can.Message) -> bool:
+        """Write one frame; False (nothing raised) when the bus is gone."""
+        net = self.network
+        bus = net.bus
+        if bus is None:
+            return False
+        try:
+            with net.send_lock:
+                bus.send(msg)
+        except (can.CanError, OSError):
+            return False
+        return True
+
+    def sync(self) -> bool:
+        """Send one SYNC: every axis whose RPDO waits for it takes it as its step's clock."""
+        if not self.send(self.sync_msg):
+            return False
+        self.syncs += 1
+        for drv in self.axes.values():
+            if drv._awaiting is not None:
+                drv._synced()
+        return True
+
+    def heartbeat(self, msg: can.Message) -> bool:
+        """The bridge's heartbeat: one per bus (a second axis asking within 1 ms is served by
+        the same frame)."""
+        now = time.monotonic()
+        if now - self._hb_last < 1e-3:
+            return True
+        self._hb_last = now
+        return self.send(msg)
+
+
 class CANopenDriver(Driver):
     """Lockstep actuator driver over CANopen (see the module docstring)."""
 
     name: ClassVar[str] = "canopen"
+    #: the bus is read with the time left (virtual queue / SocketCAN) or waited for on an event
+    #: the library's notifier thread sets
+    honours_deadline: ClassVar[bool] = True
+    #: the feedback carries the step of its SYNC (a TPDO set belongs to the SYNC before it)
+    echoes_seq: ClassVar[bool] = True
+    #: positions are INTEGER32 counts of ``counts_per_m``, checked in :meth:`_send_raw`
+    command_lsb: ClassVar[float | None] = None
     stats: CANopenStats
 
     def __init__(
@@ -312,9 +521,21 @@ class CANopenDriver(Driver):
         self._hb_id = 0x700 + bridge_node_id
         self.network: canopen.Network | None = None
         self.node: canopen.RemoteNode | None = None
-        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._q: deque[Feedback] = deque()  # decoded feedback (appended by _on_tpdo)
+        self._wake = threading.Event()  # set by _on_tpdo (the notifier thread's hand-off)
         self._lock = threading.Lock()
-        self._part: dict[int, bytes] = {}
+        self._part: dict[int, list[int] | None] = {}
+        self._states: dict[int, str] = {}
+        self._flags: dict[tuple[str, bool], int] = {}
+        self._words: dict[tuple[str, bool, bool], int] = {}
+        # the library's PDO variables of the mapped objects (set when the PDOs are mapped)
+        self._rpdo_map: Any = None
+        self._rpdo_cw: Any = None
+        self._rpdo_sp: Any = None
+        self._tpdo_vars: dict[int, tuple[Any, ...]] = {}
+        self._tpdo_maps: dict[int, Any] = {}  # read in the caller's thread: straight to the map
+        self._tpdo_len: dict[int, int] = {}
+        self._tpdo_decode: dict[int, tuple[int, tuple[tuple[Any, int, int], ...]]] = {}
         self._step = -1  # the step the last SYNC belongs to
         self._delivered_sync = -2
         self._state = "NOT READY TO SWITCH ON" if p.number == 402 else "NOT READY"
@@ -327,15 +548,15 @@ class CANopenDriver(Driver):
         self._actual_at_arm: float | None = None
         self._first_enable = True
         self._opened = False
-        # interfaces whose recv honours its timeout are read from the loop's thread between the
-        # SDO phases (no notifier thread hand-off per frame); others keep the library's notifier
-        self._direct = self.interface in TIMEOUT_HONOURED
-        self._rxq: queue.Queue | None = None
-        self._rpdo_msg = can.Message(
-            arbitration_id=self._rpdo_id, data=bytearray(self.rpdo_layout.fmt.size),
-            is_extended_id=False,
-        )  # fmt: skip
-        self._sync_msg = can.Message(arbitration_id=SYNC_ID, data=b"", is_extended_id=False)
+        self._bus: CANopenBus | None = None
+        self._cw_sent = -1  # the control word in the RPDO frame
+        self._awaiting: int | None = None  # the step of an RPDO sent and not yet SYNCed
+        # the RPDO of every step, built once and rewritten in place (Frame: a can.Message that
+        # the virtual bus copies cheaply, drivers.can.codec); the SYNC is the bus's
+        self._rpdo_msg = Frame.blank(self._rpdo_id, self.rpdo_layout.fmt.size)
+        self._hb_msg = Frame(
+            arbitration_id=self._hb_id, is_extended_id=False, dlc=1, data=bytes((NMT_OPERATIONAL,))
+        )
 
     # ------------------------------------------------------------------------------------------
     # what the class knows: its link and who may share it
@@ -359,18 +580,31 @@ class CANopenDriver(Driver):
 
     @classmethod
     def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
-        """One CANopen axis per bus: each driver produces the bus's SYNC (the step clock)."""
-        seen: dict[str, str] = {}
+        """Several axes may share a bus (one SYNC per step for all, :class:`CANopenBus`), each
+        with its own node id and the bus's settings (bit rate, the bridge's node id)."""
+        seen: dict[str, dict[str, Any]] = {}
         for _, name, conn, twin in channels:
-            if twin and not (conn or {}).get("channel"):
+            c = conn or {}
+            if twin and not c.get("channel"):
                 continue  # each twin gets a bus of its own
-            key = cls.link_key(conn)
-            if key in seen:
+            key = cls.link_key(c)
+            where = key.split(" ", 1)[1]
+            first = seen.setdefault(key, {"name": name, "nodes": {}, "conn": c})
+            node = c.get("node_id", 1)
+            other = first["nodes"].get(node)
+            if other is not None:
                 raise InputError(
-                    f"actuators: channels {seen[key]!r} and {name!r} are CANopen axes on one bus "
-                    f"({key.split(' ', 1)[1]}): one axis per bus (each driver produces its SYNC)"
+                    f"actuators: channels {other!r} and {name!r} are both CANopen node {node} on "
+                    f"bus {where}: give each axis its own driver.connection.node_id"
                 )
-            seen[key] = name
+            first["nodes"][node] = name
+            for k, default in (("bitrate", None), ("bridge_node_id", BRIDGE_NODE_ID)):
+                if c.get(k, default) != first["conn"].get(k, default):
+                    raise InputError(
+                        f"actuators: channels {first['name']!r} and {name!r} share CANopen bus "
+                        f"{where} but differ in driver.connection.{k} "
+                        f"({first['conn'].get(k, default)} vs {c.get(k, default)})"
+                    )
 
     # ------------------------------------------------------------------------------------------
     # start-up
@@ -402,76 +636,26 @@ class CANopenDriver(Driver):
     def open(self) -> None:
         if self._opened:
             return
-        net = canopen.Network()
-        net.NOTIFIER_CYCLE = 0.05  # how long close() may wait for the notifier thread
-        kwargs = dict(self.bus_options)
-        if self.bitrate is not None:
-            kwargs["bitrate"] = self.bitrate
-        try:
-            net.connect(interface=self.interface, channel=self.channel, **kwargs)
-        except _BUS_ERRORS as exc:
-            raise InputError(
-                f"canopen: cannot open interface {self.interface!r} channel {self.channel!r}: {exc}"
-            ) from None
-        self.network = net
+        bus = self._bus = CANopenBus.join(self)
+        net = self.network = bus.network
         node = canopen.RemoteNode(self.node_id, self.od)
         node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout
         net.add_node(node)
         self.node = node
         self._opened = True
+        bus.listen(True)
         try:
             self._start_up()
         except BaseException:
+            bus.listen(False)
             self._shutdown_network()
             raise
-        self._listen(False)
-        self._rxq = virtual_rx_queue(net.bus) if self._direct else None
+        bus.listen(False)
 
     def _listen(self, on: bool) -> None:
         """Run the library's notifier thread (SDO phases) or read from the caller's thread."""
-        net = self.network
-        if not self._direct or net is None or net.bus is None:
-            return
-        if on and net.notifier is None:
-            net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
-        elif not on and net.notifier is not None:
-            notifier, net.notifier = net.notifier, None
-            notifier.stop(1.0)
-
-    def _pump(self, timeout: float) -> bool:
-        """Read one frame (waiting up to ``timeout``) and hand it to the library; False if none."""
-        net = self.network
-        bus = None if net is None else net.bus
-        if bus is None:
-            return False
-        q = self._rxq
-        if q is not None:  # python-can's virtual bus: its receive queue (rths_hil.drivers.can)
-            frames = q.queue
-            if frames:
-                msg = frames.popleft()
-            elif timeout <= 0:
-                return False
-            else:
-                try:
-                    msg = q.get(True, timeout)
-                except queue.Empty:
-                    return False
-        else:
-            try:
-                msg = bus.recv(timeout)
-            except (can.CanError, OSError):
-                self.stats.disconnects += 1
-                return False
-            if msg is None:
-                return False
-        if msg.is_error_frame or msg.is_remote_frame:
-            self.stats.count_malformed("bad_frame")
-            return True
-        try:
-            net.notify(msg.arbitration_id, msg.data, msg.timestamp)  # type: ignore[union-attr]
-        except Exception as exc:  # a callback's error must not end the run (as MessageListener)
-            log.error("canopen: frame 0x%03X: %s", msg.arbitration_id, exc)
-        return True
+        if self._bus is not None:
+            self._bus.listen(on)
 
     def _start_up(self) -> None:
         node = self.node
@@ -516,6 +700,7 @@ class CANopenDriver(Driver):
         node.nmt.add_heartbeat_callback(self._on_heartbeat)
         node.nmt.send_command(0x01)  # operational
         self._hb_seen = time.monotonic()
+        self.heartbeat()  # the device's consumer counts from here (and the other axes' on the bus)
 
     def _map_pdos(self) -> None:
         node = self.node
@@ -554,9 +739,26 @@ class CANopenDriver(Driver):
             if variables and pdo.cob_id != {"RPDO1": self._rpdo_id, "TPDO1": self._tpdo_ids[0],
                                              "TPDO2": self._tpdo_ids[1]}[name]:  # fmt: skip
                 self._retarget(name, pdo.cob_id)
-        node.tpdo[1].add_callback(self._on_tpdo)
-        if self._tpdo2_vars:
-            node.tpdo[2].add_callback(self._on_tpdo)
+        rp = self._rpdo_map = node.rpdo[1]
+        by_obj = {(v.index, v.subindex): v for v in rp.map}
+        self._rpdo_cw, self._rpdo_sp = (
+            (v.od, v.offset // 8, (v.offset + v.length) // 8)
+            for v in (by_obj[self.profile.control], by_obj[self.profile.setpoint])
+        )
+        self._tpdo_vars, self._tpdo_len, self._tpdo_maps = {}, {}, {}
+        self._tpdo_decode = {}
+        for pdo, variables in ((node.tpdo[1], self._tpdo1_vars), (node.tpdo[2], self._tpdo2_vars)):
+            if variables:
+                self._tpdo_vars[pdo.cob_id] = tuple(pdo.map)
+                self._tpdo_len[pdo.cob_id] = sum(v.length for v in pdo.map) // 8
+                self._tpdo_decode[pdo.cob_id] = (
+                    self._tpdo_len[pdo.cob_id],
+                    tuple((v.od, v.offset // 8, (v.offset + v.length) // 8) for v in pdo.map),
+                )
+                self._tpdo_maps[pdo.cob_id] = pdo
+                if self._bus is not None:
+                    self._bus.tpdo[pdo.cob_id] = (self, pdo)
+                pdo.add_callback(self._on_tpdo)
 
     def _retarget(self, name: str, cob: int) -> None:
         if name == "RPDO1":
@@ -569,39 +771,55 @@ class CANopenDriver(Driver):
     # ------------------------------------------------------------------------------------------
     # callbacks (the canopen library's notifier thread)
     def _on_tpdo(self, pdo_map: Any) -> None:
+        """A TPDO arrived (into the library's PDO map, by ``PdoMap.on_message`` or the bus):
+        its values, decoded by the mapped objects (``ODVariable.decode_raw`` of the bytes at the
+        offsets of the library's mapping, what ``Variable.raw`` returns for whole-byte objects),
+        are filed for the step of the last SYNC."""
         cob = pdo_map.cob_id
-        data = bytes(pdo_map.data)
+        data = pdo_map.data
+        values: list[int] | None = None
+        size, fields = self._tpdo_decode.get(cob, (-1, ()))
+        if len(data) == size:
+            try:
+                values = [od.decode_raw(data[a:b]) for od, a, b in fields]
+            except (ObjectDictionaryError, struct.error):
+                values = None
         with self._lock:
             step = self._step
             if step == self._delivered_sync:
                 self.stats.duplicates += 1
                 return
-            self._part[cob] = data
-            if len(self._part) < (2 if self._tpdo2_vars else 1):
+            self._part[cob] = values
+            if len(self._part) < len(self._tpdo_vars):
                 return
             part, self._part = self._part, {}
             self._delivered_sync = step
         fb = self._decode(step, part)
         if fb is not None:
-            self._q.put(fb)
+            self._q.append(fb)
+            bus = self._bus
+            if bus is None or not bus.reading:  # a thread may wait for it
+                self._wake.set()
 
-    def _decode(self, step: int, part: dict[int, bytes]) -> Feedback | None:
-        t1 = part.get(self._tpdo_ids[0], b"")
-        lay = self.tpdo1_layout
-        if len(t1) != lay.fmt.size:
+    def _decode(self, step: int, part: dict[int, list[int] | None]) -> Feedback | None:
+        t1 = part.get(self._tpdo_ids[0])
+        t2 = part.get(self._tpdo_ids[1]) if self._tpdo2_vars else ()
+        if t1 is None or t2 is None:
             self.stats.count_malformed("bad_length")
             return None
-        sw, pos = lay.fmt.unpack(t1)
+        sw, pos = t1  # TPDO1 maps status word, actual position (checked when mapped)
         force = math.nan
-        if self.tpdo2_layout is not None:
-            t2 = part.get(self._tpdo_ids[1], b"")
-            if len(t2) != self.tpdo2_layout.fmt.size:
-                self.stats.count_malformed("bad_length")
-                return None
-            (fc,) = self.tpdo2_layout.fmt.unpack(t2)
+        if t2:
+            fc = t2[0]
             force = math.nan if fc == _S32[0] else fc * self.newtons_per_count
-        self._state = state = self.profile.state(sw)
-        status = self.profile.flags(state, self._latched)
+        state = self._states.get(sw)
+        if state is None:  # the FSA state of a status word, looked up once
+            state = self._states[sw] = self.profile.state(sw)
+        self._state = state
+        key = (state, self._latched)
+        status = self._flags.get(key)
+        if status is None:
+            status = self._flags[key] = self.profile.flags(state, self._latched)
         code = self._emcy_code
         if code:
             status |= _FAULT | (_WATCHDOG if code == EMCY_HEARTBEAT else 0)
@@ -633,39 +851,37 @@ class CANopenDriver(Driver):
 
     # ------------------------------------------------------------------------------------------
     # per step
-    def _send(self, cob: int, data: bytes) -> None:
-        net = self.network
-        if net is None:
-            self.stats.send_errors += 1
-            return
-        try:
-            net.send_message(cob, data)
-        except (can.CanError, OSError, RuntimeError):
-            self.stats.send_errors += 1
-
-    def _rpdo_and_sync(self, step: int, word: int, counts: int) -> None:
-        with self._lock:
-            self._step = step
-            self._part = {}
-        net = self.network
-        bus = None if net is None else net.bus
+    def _rpdo(self, step: int, word: int, counts: int) -> None:
+        """Write the RPDO of ``step``; the bus's next SYNC applies it (:meth:`_synced`)."""
+        bus = self._bus
         if bus is None:
             self.stats.send_errors += 1
             return
-        # the two frames of every step, built once (python-can copies a frame per receiver)
+        # the RPDO through the library's PDO map: each variable encoded by its object
+        # (``ODVariable.encode_raw``, what ``Variable.raw = v`` does) at the byte offset of the
+        # library's mapping (whole-byte objects only, :class:`Layout`)
+        data = self._rpdo_msg.data
+        od, a, b = self._rpdo_cw
+        if word != self._cw_sent:  # the control word changes at transitions only
+            data[a:b] = od.encode_raw(word)
+            self._cw_sent = word
+        od, a, b = self._rpdo_sp
+        data[a:b] = od.encode_raw(counts)
         self._rpdo_msg.arbitration_id = self._rpdo_id
-        self._rpdo_msg.data[:] = self.rpdo_layout.fmt.pack(word, counts)
-        try:
-            with net.send_lock:  # type: ignore[union-attr]
-                bus.send(self._rpdo_msg)
-                bus.send(self._sync_msg)
-        except (can.CanError, OSError):
+        if not bus.send(self._rpdo_msg):
             self.stats.send_errors += 1
             return
+        self._awaiting = step
+
+    def _synced(self) -> None:
+        """The bus sent the SYNC after this axis's RPDO: the TPDOs that follow are its step's."""
+        with self._lock:
+            self._step = self._awaiting  # type: ignore[assignment]
+            self._part = {}
+        self._awaiting = None
         self.stats.syncs += 1
 
-    def send(self, seq: int, displacement: float, enable: bool = True) -> None:
-        check_command(seq, displacement, lsb=None)
+    def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
         counts = round(displacement * self.counts_per_m)
         if not _S32[0] < counts <= _S32[1]:
             raise InputError(
@@ -684,68 +900,80 @@ class CANopenDriver(Driver):
             self._first_enable = False
         if not enable and self._latched:
             self._latched = False  # acknowledged: the word below releases the device
-            word = self.profile.cyclic_word(self._state, False, False)
+            key = (self._state, False, False)
         else:
-            word = self.profile.cyclic_word(self._state, enable, self._latched)
-        if self._direct and self.network is not None and self.network.notifier is None:
-            while self._pump(0.0):  # frames of older steps are theirs, not this step's
-                pass
-        while True:  # a feedback left from an older step: it will never be delivered
-            try:
-                self._q.get_nowait()
-            except queue.Empty:
-                break
+            key = (self._state, enable, self._latched)
+        word = self._words.get(key)
+        if word is None:  # the FSA's control word for (state, enable, latched), once
+            word = self._words[key] = self.profile.cyclic_word(*key)
+        bus = self._bus
+        if bus is not None:
+            if self._awaiting is not None:  # the last RPDO was never SYNCed (no receive)
+                bus.sync()
+            if bus.reading:
+                bus.drain()  # frames of older steps are theirs, not this step's
+        q = self._q
+        while q:  # a feedback left from an older step: it will never be delivered
+            q.popleft()
             self.stats.late += 1
-        self._last_sent = seq
         self._last_counts = counts
-        self.stats.sent += 1
-        self._rpdo_and_sync(seq, word, counts)
+        self._rpdo(seq, word, counts)
         now = time.monotonic()
         if self.heartbeat_period and now - self._hb_last_sent >= self.heartbeat_period:
             self.heartbeat()
 
-    def receive(self, timeout: float) -> Feedback | None:
-        stats = self.stats
-        deadline = time.perf_counter() + timeout
+    def _recv_internal(self, deadline: float) -> Feedback | None:
+        """The TPDO set of the last SYNC, decoded by the library's dispatch (``_on_tpdo``).
+
+        Frames are read from the bus in this thread and handed to ``Network.notify`` (virtual
+        and SocketCAN buses; other interfaces are read by the library's notifier thread and
+        waited for on :attr:`_wake`). Raises :class:`LinkDown` when the controller's heartbeat
+        has stopped for ``controller_heartbeat_timeout`` (counted ``heartbeat_lost``).
+        """
+        bus = self._bus
+        if bus is None:
+            raise LinkDown(f"canopen node {self.node_id}: closed")
+        if self._awaiting is not None:  # the step's SYNC: after every axis's RPDO on the bus
+            if not bus.sync():
+                self.stats.send_errors += 1
         q = self._q
-        while True:
-            direct = self._direct and self.network is not None and self.network.notifier is None
-            try:
-                fb = q.get_nowait()
-            except queue.Empty:
-                if direct and self._pump(0.0):  # what already arrived, heartbeats included
-                    continue
-                if self.controller_heartbeat and self._hb_seen is not None:
-                    if time.monotonic() - self._hb_seen > self.controller_heartbeat_timeout:
-                        stats.heartbeat_lost += 1
-                        stats.timeouts += 1
-                        return None
-                remaining = deadline - time.perf_counter()
-                if remaining <= 0:
-                    stats.timeouts += 1
-                    return None
-                if direct:
-                    self._pump(remaining)
-                    continue
-                try:
-                    fb = q.get(True, remaining)
-                except queue.Empty:
-                    continue
-            if self._classify(fb.seq):
-                stats.received += 1
-                if fb.displacement != fb.displacement or fb.force != fb.force:
-                    stats.invalid_values += 1
-                return fb
+        if q:
+            return q.popleft()
+        direct = bus.reading
+        if direct:
+            bus.drain()  # what already arrived, heartbeats included
+            if q:
+                return q.popleft()
+        if self.controller_heartbeat and self._hb_seen is not None:
+            if time.monotonic() - self._hb_seen > self.controller_heartbeat_timeout:
+                self.stats.heartbeat_lost += 1
+                raise LinkDown(f"canopen node {self.node_id}: controller heartbeat lost")
+        remaining = deadline - _perf()
+        if remaining <= 0.0:
+            return None
+        if direct:
+            if bus.pump(remaining):
+                bus.drain()  # the rest of the TPDO set, when it came together
+        else:
+            wake = self._wake
+            wake.clear()
+            if not q:
+                wake.wait(remaining)
+        return q.popleft() if q else None
 
     def estop(self) -> None:
         self.stats.estops += 1
         self._latched = True
         step = max(self._last_sent, 0)
-        self._rpdo_and_sync(step, self.profile.estop_word(), self._last_counts)
+        self._rpdo(step, self.profile.estop_word(), self._last_counts)
+        if self._bus is not None:
+            self._bus.sync()  # at once: a synchronous RPDO acts at the next SYNC
 
     def heartbeat(self) -> None:
         self._hb_last_sent = time.monotonic()
-        self._send(self._hb_id, bytes((NMT_OPERATIONAL,)))
+        bus = self._bus
+        if bus is None or not bus.heartbeat(self._hb_msg):
+            self.stats.send_errors += 1
 
     def arm(self, timeout: float, receive: Any = None) -> Feedback | None:
         """Reset a fault and bring the device to holding by SDO (see the module docstring).
@@ -796,8 +1024,8 @@ class CANopenDriver(Driver):
             self._step = -1
             self._delivered_sync = -2
             self._part = {}
-        while not self._q.empty():
-            self._q.get_nowait()
+        self._awaiting = None
+        self._q.clear()
         self.heartbeat()  # the device's heartbeat consumer counts from here
         return Feedback(0, pos, force, flags)
 
@@ -821,15 +1049,26 @@ class CANopenDriver(Driver):
         self._shutdown_network()
 
     def _shutdown_network(self) -> None:
+        bus, self._bus = self._bus, None
         net, self.network = self.network, None
-        self._rxq = None
-        self.node = None
+        node, self.node = self.node, None
         self._opened = False
-        if net is not None:
-            try:
-                net.disconnect()
-            except (*_BUS_ERRORS, RuntimeError):  # pragma: no cover - already gone
-                pass
+        self._awaiting = None
+        if (
+            net is not None
+            and node is not None
+            and bus is not None
+            and bus.axes.keys() - {self.node_id}
+        ):  # other axes stay on the network: this node leaves its dispatch
+            for pdo in (node.tpdo[1], node.tpdo[2]):
+                for cb in [
+                    cb for cb in net.subscribers.get(pdo.cob_id, ()) if cb == pdo.on_message
+                ]:
+                    net.unsubscribe(pdo.cob_id, cb)
+            node.remove_network()
+            net.nodes.pop(self.node_id, None)
+        if bus is not None:
+            bus.release(self)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -848,10 +1087,10 @@ def step_frames(connection: dict[str, Any] | None = None) -> dict[str, int]:
 def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat_hz: float = 0.0):
     """The CANopen link's load (:class:`rths_hil.linkbudget.LinkLoad`) of ``channels`` axes.
 
-    Per step: one SYNC for the bus plus, per axis, RPDO1, TPDO1 and TPDO2; per second, per
-    axis, the bridge's heartbeat (``heartbeat_hz``, at least ``1/heartbeat_period``) and the
-    device's (``1/controller_heartbeat``). Frame bits with worst-case stuffing
-    (:func:`rths_hil.linkbudget.can_frame_bits`).
+    Per step: one SYNC for the bus (shared by its axes, :class:`CANopenBus`) plus, per axis,
+    RPDO1, TPDO1 and TPDO2; per second the bridge's heartbeat, one per bus (``heartbeat_hz``, at
+    least ``1/heartbeat_period``), and each device's (``1/controller_heartbeat``). Frame bits
+    with worst-case stuffing (:func:`rths_hil.linkbudget.can_frame_bits`).
     """
     from rths_hil.linkbudget import LinkLoad, can_frame_bits, link_key
 
@@ -864,13 +1103,13 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
     hb_dev = 1.0 / ctrl if ctrl else 0.0
     b_hb = can_frame_bits(1)
     name = link_key("canopen", c)
-    per_second_bits = channels * b_hb * (hb_bridge + hb_dev)
+    per_second_bits = b_hb * (hb_bridge + channels * hb_dev)  # the bridge's: one per bus
     detail = (
         f"SYNC {b_sync} + {channels} × (RPDO {can_frame_bits(n['rpdo'])} + TPDO "
         f"{can_frame_bits(n['tpdo1'])}"
         + (f" + TPDO {can_frame_bits(n['tpdo2'])}" if n["tpdo2"] else "")
-        + f") bits at {fs:g} Hz + heartbeats {channels} × {b_hb} bits at "
-        f"{hb_bridge + hb_dev:g} Hz"
+        + f") bits at {fs:g} Hz + heartbeats of {b_hb} bits: the bridge's at {hb_bridge:g} Hz, "
+        f"{channels} × the device's at {hb_dev:g} Hz"
     )
     base = {"channels": channels, "fs": fs}
     bitrate = c.get("bitrate")

@@ -37,7 +37,9 @@ from typing import Any
 
 import can
 import canopen
+from canopen.objectdictionary import ObjectDictionaryError
 from rths_hil.drivers.base import INVALID_S32, Status
+from rths_hil.drivers.can.codec import Frame
 from rths_hil.drivers.canopen import BRIDGE_NODE_ID, load_od, parse_object
 from rths_hil.drivers.canopen.profiles import PROFILES, SW408
 
@@ -164,8 +166,7 @@ class CANopenTwin(TwinEndpoint):
         self._cw = 0
         self._rpdo: Any = None
         self._tpdo: list[Any] = []
-        self._rx: list[tuple[tuple[int, int], int, struct.Struct]] = []
-        self._tx: list[tuple[int, int, list[tuple[tuple[int, int], int, struct.Struct]]]] = []
+        self._rx: dict[tuple[int, int], Any] = {}  # the RPDO's PDO variables by object
         self._nmt_state = ""
         self._hb_watch = False
 
@@ -227,16 +228,6 @@ class CANopenTwin(TwinEndpoint):
             self.node.nmt.stop_heartbeat()
 
     # -- NMT, heartbeat, SDO -------------------------------------------------------------------
-    @staticmethod
-    def _layout(pdo_map: Any) -> list[tuple[tuple[int, int], int, struct.Struct]]:
-        """(object, byte offset, little-endian struct) of each entry of a PDO map the library
-        read from the node's dictionary (whole-byte integers: the driver maps only those)."""
-        out = []
-        for var in pdo_map.map:
-            fmt = var.od.STRUCT_TYPES[var.od.data_type].format.lstrip("<")
-            out.append(((var.index, var.subindex), var.offset // 8, struct.Struct("<" + fmt)))
-        return out
-
     def _on_nmt(self, can_id: int, data: bytes, ts: float) -> None:
         node = self.node
         assert node is not None
@@ -246,8 +237,7 @@ class CANopenTwin(TwinEndpoint):
             node.tpdo.read(from_od=False)
             self._rpdo = node.rpdo[1]
             self._tpdo = [m for m in (node.tpdo[1], node.tpdo[2]) if m.enabled and m.map]
-            self._rx = self._layout(self._rpdo)
-            self._tx = [(m.cob_id, len(m.data), self._layout(m)) for m in self._tpdo]
+            self._rx = {(v.index, v.subindex): v for v in self._rpdo.map}
             ctl = self.controller
             with ctl.lock:
                 ctl._arm()  # a new session: plant at rest, sequence count restarted
@@ -400,14 +390,10 @@ class CANopenTwin(TwinEndpoint):
         rp = self._rpdo
         if rp.is_received:
             rp.is_received = False
-            data = rp.data
-            values = {}
-            try:  # the RPDO as the library mapped it (rp.map), unpacked in one pass
-                for key, off, st in self._rx:
-                    values[key] = st.unpack_from(data, off)[0]
-                cw = values[self.profile.control]
-                self.target = values[self.profile.setpoint]
-            except (KeyError, struct.error):
+            try:  # the RPDO as the library mapped it (rp.map), decoded by its PDO variables
+                cw = self._rx[self.profile.control].raw
+                self.target = self._rx[self.profile.setpoint].raw
+            except (KeyError, ObjectDictionaryError, struct.error):
                 self.controller.stats.malformed += 1
                 cw = self._cw
             self._apply(cw)
@@ -447,14 +433,15 @@ class CANopenTwin(TwinEndpoint):
         }
         if self.force_object is not None:
             values[self.force_object] = self._force_counts(force)
-        for cob, size, layout in self._tx:
-            buf = bytearray(size)
-            for key, off, st in layout:
+        for m in self._tpdo:  # each TPDO through the library's map: Variable.raw, map.data
+            for var in m.map:
+                key = (var.index, var.subindex)
                 v = values.get(key)
                 if v is None:
                     v = self._on_read(key[0], key[1], None)
-                st.pack_into(buf, off, 0 if v is None else v)
-            frames.append(can.Message(arbitration_id=cob, data=buf, is_extended_id=False))
+                var.raw = 0 if v is None else v
+            frames.append(Frame(arbitration_id=m.cob_id, data=bytearray(m.data),
+                                is_extended_id=False, dlc=len(m.data)))  # fmt: skip
         return frames
 
     def _corrupt(self, frame: can.Message) -> can.Message:

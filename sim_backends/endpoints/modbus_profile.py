@@ -1,13 +1,15 @@
-"""Modbus TCP twin for a profile: a controller with the lab's own register map.
+"""Modbus twin (TCP or RTU) for a profile: a controller with the lab's own register map.
 
 The twin loads the same profile as the driver (:mod:`rths_hil.drivers.profile`) and serves its
-map on a Modbus TCP server bound to 127.0.0.1: the set-point, position, force and status
-points, the action coils or registers and the heartbeat register. Any other address is
+map on a Modbus TCP server bound to 127.0.0.1, or as an RTU slave on a serial line (``transport
+= "rtu"``: a pseudo-terminal pair of its own, or ``device``): the set-point, position, force and
+status points, the action coils or registers and the heartbeat register. Any other address is
 answered with the Modbus exception ILLEGAL DATA ADDRESS (addresses between the points of one
-read block read as 0), as a real controller does, so a driver
-started with a profile that does not match is refused by its start-up check. Requests are
-decoded and responses built by pymodbus (``FramerSocket``, ``DecodePDU``, its PDU classes);
-values are converted by pymodbus's ``convert_to_registers`` / ``convert_from_registers``.
+read block read as 0), as a real controller does, so a driver started with a profile that does
+not match is refused by its start-up check. Requests are decoded and responses built by pymodbus
+(``FramerSocket`` / ``FramerRTU``, ``DecodePDU``, its PDU classes; an RTU request is cut by the
+size its PDU class computes and checked by its CRC); values are converted by pymodbus's
+``convert_to_registers`` / ``convert_from_registers``.
 
 Controller behaviour (the :class:`~.base.TwinController` of every twin): each write of the
 set-point is one command — one plant step while enabled, a hold while disabled; the
@@ -21,12 +23,14 @@ a fault plan (drop, corrupt, delay) do not apply to a profile twin; measurement 
 
 from __future__ import annotations
 
+import os
 import select
 import socket
+import tty
 from typing import Any
 
 from pymodbus.constants import ExcCodes
-from pymodbus.framer import FramerSocket
+from pymodbus.framer import FramerRTU, FramerSocket
 from pymodbus.pdu import DecodePDU, ExceptionResponse
 from pymodbus.pdu.bit_message import (
     ReadCoilsResponse,
@@ -58,7 +62,7 @@ _READ_RESP = {
 
 
 class ModbusProfileTwin(TwinEndpoint):
-    """Modbus TCP server speaking ``profile`` (see the module docstring)."""
+    """Modbus TCP server or RTU slave speaking ``profile`` (see the module docstring)."""
 
     name = "modbus"
 
@@ -71,13 +75,19 @@ class ModbusProfileTwin(TwinEndpoint):
         port: int = 0,
         allow_remote: bool = False,
         device_id: int | None = None,
+        device: str | None = None,
+        baudrate: int = 115200,
     ) -> None:
         super().__init__(controller)
         prof = load_profile(profile)
         if not isinstance(prof, ModbusProfile):
             raise InputError(f"modbus twin: profile {profile} is not a Modbus profile")
-        if transport != "tcp":
-            raise InputError(f"modbus twin: a profile is served over tcp, not {transport!r}")
+        if transport not in ("tcp", "rtu"):
+            raise InputError(f"modbus twin: transport must be 'tcp' or 'rtu', got {transport!r}")
+        self.transport = transport
+        self.device, self.baudrate = device, int(baudrate)
+        self._slave: int | None = None
+        self._serial: Any = None
         self.profile_path = str(profile)
         self.profile = prof
         self.host, self.port, self.allow_remote = str(host), int(port), bool(allow_remote)
@@ -91,7 +101,7 @@ class ModbusProfileTwin(TwinEndpoint):
                 self.tables[b.table].setdefault(a, 0)
         for act in prof.actions.values():
             self.tables[act.table].setdefault(act.address, 0)
-        self._framer = FramerSocket(DecodePDU(True))
+        self._framer: Any = (FramerRTU if transport == "rtu" else FramerSocket)(DecodePDU(True))
         self._listener: socket.socket | None = None
         self._conns: dict[int, list[Any]] = {}  # fd → [socket, buffer]
         self._enable = False
@@ -99,6 +109,9 @@ class ModbusProfileTwin(TwinEndpoint):
 
     # -- lifecycle ------------------------------------------------------------------------------
     def _setup(self) -> None:
+        if self.transport == "rtu":
+            self._setup_rtu()
+            return
         self._listener = listen(self.host, self.port, self.allow_remote, "modbus twin")
         port = self._listener.getsockname()[1]
         self.connection = {
@@ -111,10 +124,47 @@ class ModbusProfileTwin(TwinEndpoint):
         self.where = f"modbus tcp {self.host}:{port} unit {self.device_id} ({self.profile_path})"
         self._publish(0.0, 0.0, self.controller.status())
 
+    def _setup_rtu(self) -> None:
+        """An RTU slave on a pseudo-terminal pair of its own (the driver opens the other end)
+        or on ``device``."""
+        if self.device is None:
+            master, slave = os.openpty()
+            tty.setraw(master)
+            tty.setraw(slave)
+            self._slave = slave
+            self._conns = {master: [None, b""]}
+            path = os.ttyname(slave)
+        else:
+            import serial
+
+            try:
+                self._serial = serial.serial_for_url(self.device, baudrate=self.baudrate, timeout=0)
+            except (serial.SerialException, OSError, ValueError) as exc:
+                raise InputError(f"modbus twin: cannot open {self.device!r}: {exc}") from None
+            self._conns = {self._serial.fd: [None, b""]}
+            path = self.device
+        self.connection = {
+            "transport": "rtu",
+            "device": path,
+            "device_id": self.device_id,
+            "profile": self.profile_path,
+        }
+        self.where = f"modbus rtu {path} unit {self.device_id} ({self.profile_path})"
+        self._publish(0.0, 0.0, self.controller.status())
+
     def _teardown(self) -> None:
-        for sock, _ in list(self._conns.values()):
-            sock.close()
+        for fd, (sock, _) in list(self._conns.items()):
+            if sock is not None:
+                sock.close()
+            elif self._serial is None:
+                os.close(fd)
         self._conns.clear()
+        if self._slave is not None:
+            os.close(self._slave)
+            self._slave = None
+        if self._serial is not None:
+            self._serial.close()
+            self._serial = None
         if self._listener is not None:
             self._listener.close()
             self._listener = None
@@ -125,6 +175,9 @@ class ModbusProfileTwin(TwinEndpoint):
 
     # -- serving --------------------------------------------------------------------------------
     def _serve_once(self, timeout: float) -> None:
+        if self.transport == "rtu":
+            self._serve_rtu(timeout)
+            return
         if self._listener is None:
             self._stop.wait(timeout)
             return
@@ -148,6 +201,55 @@ class ModbusProfileTwin(TwinEndpoint):
                 continue
             entry[1] += data
             self._process(entry)
+
+    def _serve_rtu(self, timeout: float) -> None:
+        if not self._conns:
+            self._stop.wait(timeout)
+            return
+        ((fd, entry),) = self._conns.items()
+        if not select.select((fd,), (), (), timeout)[0]:
+            if entry[1]:  # the line fell idle: an incomplete RTU frame is garbage
+                self.controller.stats.malformed += 1
+                entry[1] = b""
+            return
+        try:
+            data = os.read(fd, 4096)
+        except OSError:
+            data = b""
+        if not data:
+            self._stop.wait(timeout)  # nobody on the other end (yet)
+            return
+        entry[1] += data
+        framer = self._framer
+        self._out = []
+        while len(entry[1]) >= 4:
+            buf = entry[1]
+            cls = framer.decoder.lookupPduClass(buf)
+            if cls is None:
+                self.controller.stats.malformed += 1
+                entry[1] = buf[1:]  # hunt for the next frame start
+                continue
+            size = cls.calculateRtuFrameSize(buf)
+            if not size or len(buf) < size:
+                break
+            frame, entry[1] = buf[:size], buf[size:]
+            _, dev_id, _, pdu_bytes = framer.decode(frame)  # checks the CRC
+            if not pdu_bytes:
+                self.controller.stats.malformed += 1
+                continue
+            if dev_id not in (self.device_id, 0):
+                continue  # another slave's request
+            pdu = framer.decoder.decode(pdu_bytes)
+            if pdu is None:
+                self.controller.stats.malformed += 1
+                self._reply(None, ExceptionResponse(pdu_bytes[0] & 0x7F, 1), 0)
+                continue
+            self._reply(None, self._dispatch(pdu), 0)
+        if self._out:
+            try:
+                os.write(fd, b"".join(self._out))
+            except OSError:  # pragma: no cover - line gone
+                pass
 
     def _process(self, entry: list[Any]) -> None:
         """Answer every complete request in the buffer; the responses go out in one write
@@ -174,7 +276,7 @@ class ModbusProfileTwin(TwinEndpoint):
             except OSError:  # pragma: no cover - client gone
                 pass
 
-    def _reply(self, sock: socket.socket, pdu: Any, tid: int) -> None:
+    def _reply(self, sock: socket.socket | None, pdu: Any, tid: int) -> None:
         if pdu is None:
             return
         pdu.dev_id, pdu.transaction_id = self.device_id, tid
