@@ -577,6 +577,14 @@ SCHEMA: dict[str, dict[str, Key]] = {
             unit="-",
             doc="ats: maximum rate of change of a0 (1/s), a1 (s/s), a2 (s²/s)",
         ),
+        "model_delay": Key(
+            "float",
+            -1.0,
+            unit="s",
+            doc="model: transport delay τ of the actuator model; negative: compensation.delay "
+            "(a rational model that holds the whole plant takes 0 while another method keeps "
+            "delay)",
+        ),
         "model_time_constant": Key(
             "float",
             0.0,
