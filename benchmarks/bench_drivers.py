@@ -14,7 +14,7 @@ the machine's load:
     ``driver.send(k, x)`` + ``driver.receive(timeout)`` against the same twin.
 
 Driver overhead = driver vs raw→twin (what our encode/decode/bookkeeping adds); stack overhead =
-driver vs raw (driver and twin). Goals (issue 4): driver overhead ≤ 30 %; p99 ≤ 300 µs for Modbus
+driver vs raw (driver and twin). Goals: driver overhead ≤ 30 %; p99 ≤ 300 µs for Modbus
 TCP and ≤ 150 µs for CAN virtual and serial. The garbage collector is disabled inside the timed
 blocks, as the real-time loop does. Usage::
 
@@ -460,7 +460,7 @@ def measure(name: str, steps: int, rounds: int) -> dict[str, dict[str, float]]:
 
 
 CONTROLLERS = Path(__file__).resolve().parents[1] / "examples" / "controllers"
-#: The profile drivers beside today's drivers: label → (driver, twin/driver settings).
+#: The profile drivers beside the built-in drivers: label → (driver, twin/driver settings).
 PROFILE_MODES: dict[str, tuple[str, dict]] = {
     "can (built-in)": ("can", {}),
     "can profile (own DBC)": ("can", {"profile": str(CONTROLLERS / "can_dbc.toml")}),

@@ -47,7 +47,6 @@ out-of-range registers, a missing role, scale 0, a DBC without the named message
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -56,6 +55,7 @@ from typing import Any
 from pymodbus.client.mixin import ModbusClientMixin
 
 from rths_hil.errors import InputError
+from rths_hil.formats import read_toml
 
 from .base import Status
 
@@ -623,12 +623,7 @@ def _load_can(r: _Reader, base: Path) -> CANProfile:
 @cache
 def _load_cached(path: str) -> ModbusProfile | CANProfile:
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InputError(f"profile {p}: cannot read: {exc.strerror or exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"profile {p}: not valid TOML: {exc}") from None
+    data = read_toml(p, "profile", f"profile {p}")
     r = _Reader(str(p), data)
     protocol = r.str("protocol", choices=("modbus", "can"))
     if protocol == "modbus":

@@ -26,11 +26,13 @@ import numpy as np
 from . import studies as study
 from .compensators import compensator_class
 from .errors import InputError
+from .studies import robustness as rob
 
 __all__ = [
     "COMPARISON_METRICS",
     "CompensatorComparison",
     "compensator_study",
+    "floors_trial",
     "plan_method_trials",
     "write_comparison",
 ]
@@ -88,9 +90,142 @@ def plan_method_trials(
 
 
 def method_trial(method: str, spec: study.TrialSpec) -> dict[str, Any]:
-    """One trial of one method: the robustness trial's row with ``method`` first."""
-    row = study.robustness_trial(spec)
+    """One trial of one method: the robustness trial's row with ``method`` first.
+
+    A structure of several DOFs tested by one actuator on DOF 1 (the RTHS benchmark's
+    partition) runs :func:`floors_trial`, which adds the upper floors' J5/J6/J8/J9 (paper) and
+    J6–J9 (benchmark script); anything else runs :func:`rths_hil.studies.robustness_trial`.
+    """
+    row = floors_trial(spec) if _floors_case(spec.cfg) else study.robustness_trial(spec)
     return {"method": method, **row}
+
+
+def _floors_case(cfg) -> bool:
+    """One ``[[actuators]]`` entry on DOF 1 of a numerical structure given by matrices."""
+    chans = cfg.get("actuators") or []
+    if len(chans) != 1 or cfg["structure"]["kind"] not in ("matrices", "shear_building"):
+        return False
+    entry = chans[0]
+    return "transform" not in entry and int(entry.get("dof", 1)) == 1
+
+
+#: Reference responses of the drawn plants already run in this process, by trial key: the
+#: reference (ideal actuator) does not depend on the compensator, so the methods of one draw
+#: share it. Bounded (128 entries, 256 MB): the oldest entries go first.
+_REFERENCES: dict[tuple[str, float | None], np.ndarray] = {}
+_REFERENCES_MAX = 128
+_REFERENCES_BYTES = 256e6
+
+
+def _reference_floors(cfg, n: int, tmp: str, key: tuple[str, float | None]) -> np.ndarray:
+    """(n, floors ≤ 3) displacements of the reference: the same test with an ideal actuator."""
+    from .recorder import read_run
+
+    ref = _REFERENCES.get(key)
+    if ref is None or ref.shape[0] < n:
+        study.reference_by_loop(cfg, n, tmp)  # writes <tmp>/reference
+        rec = read_run(Path(tmp) / "reference").record
+        ref = _floor_columns(rec)
+        _REFERENCES[key] = ref
+        while len(_REFERENCES) > 1 and (
+            len(_REFERENCES) > _REFERENCES_MAX
+            or sum(r.nbytes for r in _REFERENCES.values()) > _REFERENCES_BYTES
+        ):
+            _REFERENCES.pop(next(iter(_REFERENCES)))
+    return ref[:n]
+
+
+def _reference_key(spec: study.TrialSpec) -> tuple[str, float | None]:
+    """What the reference depends on: the trial's configuration without its compensation."""
+    import hashlib
+    import json
+
+    c = copy.deepcopy(dict(spec.cfg))
+    c.pop("compensation", None)
+    for entry in c.get("actuators") or []:
+        entry.pop("compensation", None)
+    text = json.dumps(c, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest(), spec.duration
+
+
+def _floor_columns(rec: np.ndarray) -> np.ndarray:
+    """``u_1 … u_3`` of a record (floors above three are not judged by J1–J9)."""
+    names = [f"u_{i}" for i in (1, 2, 3) if f"u_{i}" in rec.dtype.names]
+    return np.column_stack([np.asarray(rec[c], dtype=float) for c in names])
+
+
+def floors_trial(spec: study.TrialSpec) -> dict[str, Any]:
+    """One lockstep trial of a one-actuator MDOF test, J1–J9 over all (≤ 3) floors.
+
+    The row has the columns of :func:`rths_hil.studies.robustness_trial` (one channel). The
+    reference (:func:`rths_hil.studies.reference_by_loop`: the same test with an ideal
+    actuator) gives every floor, so the upper floors' criteria are computed too: the paper's
+    J5, J6, J8, J9 and the benchmark script's J6–J9 (Silva et al. 2020,
+    :func:`rths_hil.metrics.criteria` and :func:`rths_hil.metrics.benchmark_criteria` with the
+    numerical floors ``u_1 … u_3``; ``u_1`` is the actuator's target).
+    """
+    import os
+    import tempfile
+
+    from .fei import fei
+    from .loop import run
+    from .metrics import benchmark_criteria, criteria
+    from .recorder import read_run
+
+    rob._sweep_dead_scratch()
+    key = _reference_key(spec)
+    scratch = tempfile.TemporaryDirectory(prefix=f"{rob._SCRATCH_PREFIX}{os.getpid()}-")
+    with rob._TRIAL_LOCK, scratch as tmp:
+        cfg = copy.deepcopy(spec.cfg)
+        if spec.record is not None:
+            path = Path(tmp) / Path(spec.record[0]).name
+            path.write_bytes(spec.record[1])
+            cfg["ground_motion"]["record"] = str(path)
+        try:
+            res = run(cfg, run_dir=Path(tmp) / "run", mode="lockstep", duration=spec.duration)
+            rec = read_run(Path(tmp) / "run").record
+            reference = _reference_floors(cfg, res.planned_steps, tmp, key)
+        except InputError as exc:  # e.g. a drawn plant that is unstable
+            return rob._invalid_row(spec, str(exc))
+    fs = float(cfg["loop"]["fs"])
+    comp = cfg["actuators"][0].get("compensation", {})
+    alpha = comp.get("alpha", cfg["compensation"]["alpha"])
+    row: dict[str, Any] = {"trial": spec.index, "alpha": float(alpha)}
+    row.update({k: float(v) for k, v in spec.values.items()})
+    trip = res.trip
+    row.update(
+        status=res.status,
+        steps=int(res.steps),
+        trip_rule=trip.rule if trip is not None else "",
+        trip_time=float(trip.time) if trip is not None else math.nan,
+        trip_reason=trip.reason if trip is not None else "",
+    )
+    target = np.asarray(rec["target"], dtype=float)
+    measured = np.asarray(rec["measured"], dtype=float)
+    n = target.size
+    floors = _floor_columns(rec)[:n]
+    ref = reference[:n]
+    nan = math.nan
+    whole = fei(target, measured, fs) if n >= 8 else None
+    row["fei_amplitude"] = whole.amplitude if whole is not None else nan
+    row["fei_delay"] = whole.delay if whole is not None else nan
+    row["fei_f_eq"] = whole.f_eq if whole is not None else nan
+    valid = np.asarray(rec["fei_valid"], dtype=bool)
+    a_lo, a_hi = rob._extremes(np.asarray(rec["fei_amplitude"], dtype=float), valid)
+    d_lo, d_hi = rob._extremes(np.asarray(rec["fei_delay"], dtype=float), valid)
+    row["mwo_amplitude_min"], row["mwo_amplitude_max"] = a_lo, a_hi
+    row["mwo_delay_min"], row["mwo_delay_max"] = d_lo, d_hi
+    ok = n >= study.BENCHMARK_MIN_STEPS
+    num = np.column_stack([target, floors[:, 1:]])  # column 0: the actuator's target
+    paper = criteria(num, measured, fs, ref) if ok else {}
+    bench = benchmark_criteria(num, measured, fs, ref) if ok else {}
+    for i in range(1, 10):
+        row[f"J{i}"] = float(paper.get(f"J{i}", nan))
+        row[f"bench_J{i}"] = float(bench.get(f"J{i}", nan))
+    row["peak_target"] = float(np.max(np.abs(target))) if n else nan
+    row["peak_reference"] = float(np.max(np.abs(ref[:, 0]))) if n else nan
+    row["peak_force"] = float(np.max(np.abs(rec["force"]))) if n else nan
+    return row
 
 
 @dataclass

@@ -13,6 +13,9 @@ acting on element deformations ``d = D·u`` (storey drifts of a shear building) 
 * :class:`MDOFModel` holds M, C, K, ι and the Bouc-Wen elements; :func:`shear_building`,
   :func:`from_matrices`, :func:`load_npz` and :func:`load_csv` build it, checking shapes,
   symmetry and definiteness (one-line :class:`~rths_hil.errors.InputError` naming the file/key).
+* :func:`partition` takes a physical specimen (mass, damping, stiffness along an actuator)
+  out of a reference structure and returns the numerical substructure, as the RTHS benchmark
+  partitions its frame (Silva et al. 2020).
 * Damping: Rayleigh ``C = a0·M + a1·K`` from damping ratios on modes 1 and 2
   (:func:`rayleigh_coefficients`, Chopra 2012 Eq. 11.4.9) or given (a0, a1); or modal damping
   ``C = M·Φ·diag(2ζ_i·ω_i)·Φᵀ·M`` with mass-normalised modes (Chopra 2012 Eq. 11.5.8).
@@ -27,6 +30,9 @@ References
 ----------
 C. Chen, J. M. Ricles, "Development of direct integration algorithms for structural dynamics
 using discrete control theory", J. Eng. Mech. 134(8), 676–683, 2008.
+C. E. Silva, D. Gomez, A. Maghareh, S. J. Dyke, B. F. Spencer Jr., "Benchmark control problem
+for real-time hybrid simulation", Mech. Syst. Signal Process. 135, 106381, 2020 (the partition of
+a reference structure into numerical and physical substructures).
 C. Chen, J. M. Ricles, T. M. Marullo, O. Mercan, "Real-time hybrid testing using the
 unconditionally stable explicit CR integration algorithm", Earthquake Eng. Struct. Dyn. 38(1),
 23–44, 2009 (the CR algorithm in a hybrid test, α including the specimen's stiffness).
@@ -62,6 +68,7 @@ __all__ = [
     "from_matrices",
     "load_csv",
     "load_npz",
+    "partition",
     "rayleigh_coefficients",
     "shear_building",
     "simulate_mdof",
@@ -465,6 +472,71 @@ def from_matrices(
     return MDOFModel(M=Mm, C=Cm, K=Km, influence=iota, name=name)
 
 
+def partition(
+    reference: MDOFModel,
+    transform: int | Sequence[float] | np.ndarray,
+    *,
+    mass: float = 0.0,
+    damping: float = 0.0,
+    stiffness: float = 0.0,
+    name: str | None = None,
+) -> MDOFModel:
+    """The numerical substructure left when a physical specimen is taken out of ``reference``.
+
+    The specimen (mass ``m_e``, damping ``c_e``, stiffness ``k_e``) acts along the actuator
+    row ``t`` (a DOF number, 1-based, or a vector of n entries; the specimen's displacement is
+    ``t·u``). The reference structure's equation of motion is split as in the RTHS benchmark
+    (Silva et al. 2020, the partitioning of its reference structure)::
+
+        M_N = M − m_e·tᵀt,   C_N = C − c_e·tᵀt,   K_N = K − k_e·tᵀt
+        M_N·ü + C_N·u̇ + K_N·u + tᵀ·f_e = −M·ι·a_g,    f_e = m_e·(t·ü) + c_e·(t·u̇) + k_e·(t·u)
+
+    so the numerical substructure keeps the ground-motion load of the whole structure: its
+    influence vector is ``ι_N = M_N⁻¹·M·ι`` (load ``−M_N·ι_N·a_g = −M·ι·a_g``), and the
+    specimen's measured force ``f_e`` holds only its relative inertia. With an ideal actuator
+    the two together are the reference structure again.
+
+    Parameters
+    ----------
+    reference : MDOFModel
+        The whole structure (linear).
+    transform : int or array_like
+        DOF the specimen acts on (1 … n) or its actuator row ``t``.
+    mass, damping, stiffness : float
+        The specimen's ``m_e`` (kg), ``c_e`` (N·s/m) and ``k_e`` (N/m), each ≥ 0.
+    name : str, optional
+        Name of the result (default: the reference's, with "numerical").
+
+    Raises
+    ------
+    InputError
+        A non-linear reference, a bad row, or a remainder that is not a structure (M_N or K_N
+        not positive definite, C_N not positive semi-definite).
+    """
+    if not reference.linear:
+        raise InputError("partition: the reference structure must be linear")
+    n = reference.n
+    if isinstance(transform, int | np.integer):
+        if not 1 <= int(transform) <= n:
+            raise InputError(f"partition: DOF {transform} is out of range 1..{n}")
+        t = np.zeros(n)
+        t[int(transform) - 1] = 1.0
+    else:
+        t = _as_vector(transform, n, "partition: transform")
+    values = {"mass": mass, "damping": damping, "stiffness": stiffness}
+    for key, v in values.items():
+        if not (math.isfinite(float(v)) and float(v) >= 0):
+            raise InputError(f"partition: specimen {key} must be a finite number ≥ 0, got {v!r}")
+    tt = np.outer(t, t)
+    MN = reference.M - float(mass) * tt
+    CN = reference.C - float(damping) * tt
+    KN = reference.K - float(stiffness) * tt
+    label = name or f"{reference.name or 'reference'} (numerical)"
+    model = from_matrices(MN, KN, CN, name=label)  # checks M_N, K_N, C_N
+    iota = np.linalg.solve(model.M, reference.M @ reference.influence)
+    return MDOFModel(M=model.M, C=model.C, K=model.K, influence=iota, name=label)
+
+
 _NPZ_KEYS = ("M", "K", "C", "influence")
 
 
@@ -472,7 +544,8 @@ def load_npz(path: str | Path, **damping: Any) -> MDOFModel:
     """Load ``M``, ``K`` and optionally ``C`` and ``influence`` from a NumPy ``.npz`` file.
 
     Keys are matched case-insensitively. ``damping`` takes :func:`from_matrices`'s
-    ``modal_damping``, ``zeta`` or ``rayleigh`` when the file has no ``C``.
+    ``modal_damping``, ``zeta`` or ``rayleigh`` when the file has no ``C``; a file's ``C``
+    is used as it is and ``damping`` is then ignored.
     """
     p = Path(path)
     try:
@@ -496,6 +569,8 @@ def load_npz(path: str | Path, **damping: Any) -> MDOFModel:
     for key in ("M", "K"):
         if key not in found:
             raise InputError(f"{p}: no array {key!r} (found: {', '.join(arrays) or 'none'})")
+    if "C" in found:
+        damping = {}  # the file's C is the damping (a configuration's default ζ does not apply)
     return from_matrices(
         found["M"],
         found["K"],

@@ -32,6 +32,7 @@ from rths_hil.linkbudget import can_frame_bits
 from rths_hil.linkbudget import link_load as budget
 from rths_hil.loop import RTHSLoop
 from rths_hil.recorder import read_run
+from tests.helpers.loop import run_loop
 
 ROOT = Path(__file__).resolve().parents[1]
 ENABLED, ESTOP, FAULT = int(Status.ENABLED), int(Status.ESTOP_ACTIVE), int(Status.FAULT)
@@ -121,13 +122,9 @@ def test_cia408_state_machine_on_the_twin():
 
 
 def _run(tmp_path, profile, *overrides, name="run"):
-    cfg = load_config(
-        ROOT / "examples" / "controllers" / f"{profile}.toml",
-        ["loop.mode=lockstep", "loop.console=0", "output.plot=false", *overrides],
-    )
-    loop = RTHSLoop(cfg, tmp_path / name)
-    result = loop.run()
-    return loop, result, read_run(tmp_path / name)
+    path = ROOT / "examples" / "controllers" / f"{profile}.toml"
+    r = run_loop(tmp_path / name, path, "loop.mode=lockstep", *overrides)
+    return r.loop, r.result, r.run
 
 
 @pytest.mark.parametrize("profile", ["cia402", "cia408"])

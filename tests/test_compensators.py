@@ -215,6 +215,22 @@ def test_model_rational_transfer_function_and_feedback():
         ModelCompensator(FS, 0.0, num=[-1.0, 1.0], den=[0.01, 1.0, 1.0])
 
 
+def test_model_delay_key_overrides_delay_for_the_model_only():
+    """model_delay ≥ 0 is the model's τ; the default (−1) takes compensation.delay."""
+    wn = 2 * np.pi * 15
+    sets = ["compensation.delay=20ms", f"compensation.model_num=[{wn**2}]"]
+    sets += [f"compensation.model_den=[1, {1.4 * wn}, {wn**2}]"]
+    cfg = load_config(None, sets)
+    comp = cfg["compensation"]
+    assert comp["model_delay"] == -1.0
+    own = ModelCompensator.from_config({**comp, "model_delay": 0.0}, FS)
+    shared = ModelCompensator.from_config(comp, FS)
+    ref0 = ModelCompensator(FS, 0.0, num=[wn**2], den=[1, 1.4 * wn, wn**2])
+    ref20 = ModelCompensator(FS, 0.02, num=[wn**2], den=[1, 1.4 * wn, wn**2])
+    assert own.sos == ref0.sos and shared.sos == ref20.sos
+    assert own.lead == pytest.approx(ref20.lead - 0.02)
+
+
 # ---------------------------------------------------------------------------------------------
 # registry and configuration
 

@@ -61,12 +61,10 @@ watchdog — which counts time — trips.
 
 Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1–127),
 ``device_profile`` (``cia402`` / ``cia408``), ``interface``, ``channel``, ``bitrate``,
-``bus_options``,
-``counts_per_m``, ``force_object``, ``newtons_per_count``, ``bridge_node_id``,
+``bus_options``, ``counts_per_m``, ``force_object``, ``newtons_per_count``, ``bridge_node_id``,
 ``heartbeat_period``, ``controller_heartbeat``, ``controller_heartbeat_timeout``,
-``device_watchdog``, ``start_tolerance``,
-``sdo_timeout``, ``vendor_id``, ``product_code``, ``configure_pdo`` (documented in
-``docs/canopen.md``).
+``device_watchdog``, ``start_tolerance``, ``sdo_timeout``, ``vendor_id``, ``product_code``,
+``configure_pdo`` (documented in ``docs/canopen.md``).
 """
 
 from __future__ import annotations
@@ -317,7 +315,7 @@ class CANopenBus:
         """Read one frame (waiting up to ``timeout``) and hand it on (:meth:`handle`); False if
         none came."""
         q = self.rxq
-        if q is not None:  # python-can's virtual bus: its receive queue (drivers.can)
+        if q is not None:  # python-can's virtual bus: its receive queue (rths_hil.drivers.can)
             frames = q.queue
             if frames:
                 msg = frames.popleft()

@@ -26,6 +26,21 @@ acceleration) and to the command: the same linear filter on both sides leaves th
 unbiased and removes the sensor noise. Initial values: ``a0 = amplitude``, ``a1 = delay``,
 ``a2 = delay²/2`` (the authors' rule).
 
+What is verified, and against what. The paper itself was not available here, so no equation
+numbers of it are cited. The authors' parameter file for their Simulink implementation ("Adaptive
+Time Series (ATS) Compensator by Yunbyeong Chae, Old Dominion University", redistributed in
+public repositories, e.g. with the openHySim package's ``rthstools/simulink`` examples) confirms
+the settings above: a 1 s moving window, a skipping number of 16 samples between updates, a
+0.01 in threshold, the bounds ``a0 ∈ [0.7, 1.3]``, ``a1 ∈ [0, 0.08]``, ``a2 ∈ [0, 0.0032]``
+(its comment refers them to Table 1 of the paper), the maximum rates of change ``[2, 0.05,
+0.001]``, the 6th-order 20 Hz Butterworth, and the initial values ``a0 ≈ 1``, ``a1`` ≈ the
+expected delay, ``a2 = a1²/2``; that file also names ``a0`` the amplitude factor and ``a1`` the
+delay; it runs at 1024 or 2048 Hz with the same 16 samples, so the default ``ats_interval`` of
+1/64 s is its figure at 1024 Hz, kept in time at other rates. Not verified against the paper's
+text: the form of the law ``x_c = a0·x_t + a1·ẋ_t + a2·ẍ_t``, its identification from
+(command, measured) pairs by least squares over the window, the filtering of both sides and the
+finite differences — they are this implementation's reading of the method.
+
 Per step the work is O(1): the filters and the target differences every step; every
 ``ats_interval`` a new row enters the window and the 3×3 normal equations are rebuilt over the
 window's ``q`` rows (64 by default, a fixed cost amortised over the interval) and solved in

@@ -7,8 +7,9 @@ target passed through the inverse of an identified actuator model, made proper b
 plus a proportional correction of the tracking error.
 
 Actuator model: ``G(s) = g·e^(−sτ)·R(s)`` with ``R(s) = 1/(T s + 1)`` (``model_time_constant``
-T, ``model_gain`` g, transport delay τ = ``delay``; the first-order servo plus delay that
-``rths-hil twin calibrate`` fits), or ``R(s) = num(s)/den(s)`` from ``model_num`` and
+T, ``model_gain`` g, transport delay τ = ``model_delay``, or ``delay`` while ``model_delay``
+is negative (the default); the first-order servo plus delay that ``rths-hil twin calibrate``
+fits), or ``R(s) = num(s)/den(s)`` from ``model_num`` and
 ``model_den`` (highest power of s first; ``num`` must have its zeros in the left half-plane, or
 the inverse would be unstable). The feedforward is
 
@@ -109,6 +110,7 @@ class ModelCompensator(Compensator):
     KEYS = (
         "delay",
         "amplitude",
+        "model_delay",
         "model_time_constant",
         "model_gain",
         "model_num",
@@ -120,10 +122,14 @@ class ModelCompensator(Compensator):
 
     @classmethod
     def from_config(cls, c: Mapping[str, Any], fs: float) -> ModelCompensator:
-        """The ``delay``, ``amplitude`` and ``model_*`` keys of the compensation section."""
+        """The ``delay``, ``amplitude`` and ``model_*`` keys of the compensation section.
+
+        The model's transport delay is ``model_delay`` when it is ≥ 0, else ``delay``.
+        """
+        tau = c.get("model_delay", -1.0)
         return cls(
             fs,
-            c["delay"],
+            tau if tau >= 0 else c["delay"],
             time_constant=c["model_time_constant"],
             gain=c["model_gain"],
             num=c["model_num"],

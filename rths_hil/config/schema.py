@@ -451,7 +451,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "str",
             "",
             unit="-",
-            doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' (sim_backends.faults)",
+            doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' "
+            "(rths_hil.sim_backends.faults)",
         ),
         "initial_position": Key(
             "float",
@@ -575,6 +576,14 @@ SCHEMA: dict[str, dict[str, Key]] = {
             [2.0, 0.05, 0.001],
             unit="-",
             doc="ats: maximum rate of change of a0 (1/s), a1 (s/s), a2 (s²/s)",
+        ),
+        "model_delay": Key(
+            "float",
+            -1.0,
+            unit="s",
+            doc="model: transport delay τ of the actuator model; negative: compensation.delay "
+            "(a rational model that holds the whole plant takes 0 while another method keeps "
+            "delay)",
         ),
         "model_time_constant": Key(
             "float",
