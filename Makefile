@@ -21,10 +21,15 @@ $(SYSDEPS): scripts/system-deps.sh | $(STAMP)
 	bash scripts/system-deps.sh
 	@touch $(SYSDEPS)
 
-test: $(STAMP) $(SYSDEPS)
+test: $(STAMP) $(SYSDEPS) lint
+	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q --doctest-modules --pyargs rths_hil rths_hil.drivers rths_hil.sim_backends
+
+# ruff (style, imports, complexity, numpydoc on the public API) and mypy on rths_hil.
+lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	$(BIN)/mypy
 
 format: $(STAMP)
 	$(BIN)/ruff format .

@@ -1,4 +1,4 @@
-"""Streaming vs exact FEI agreement envelope (issue 2): SDOF responses to the bundled records.
+"""Streaming vs exact FEI agreement envelope: SDOF responses to the bundled records.
 
 For every bundled record, fn ∈ {0.5, 1, 2} Hz (2 % damping), gain ∈ {0.9, 1.1},
 delay ∈ {5, 15, 30} ms and window ∈ {2, 3, 5, 8} natural periods, the streaming evaluator

@@ -14,7 +14,7 @@ the machine's load:
     ``driver.send(k, x)`` + ``driver.receive(timeout)`` against the same twin.
 
 Driver overhead = driver vs raw→twin (what our encode/decode/bookkeeping adds); stack overhead =
-driver vs raw (driver and twin). Goals (issue 4): driver overhead ≤ 30 %; p99 ≤ 300 µs for Modbus
+driver vs raw (driver and twin). Goals: driver overhead ≤ 30 %; p99 ≤ 300 µs for Modbus
 TCP and ≤ 150 µs for CAN virtual and serial. The garbage collector is disabled inside the timed
 blocks, as the real-time loop does. Usage::
 
@@ -32,6 +32,7 @@ import os
 import select
 import socket
 import sys
+import tempfile
 import threading
 import time
 import tty
@@ -459,7 +460,7 @@ def measure(name: str, steps: int, rounds: int) -> dict[str, dict[str, float]]:
 
 
 CONTROLLERS = Path(__file__).resolve().parents[1] / "examples" / "controllers"
-#: The profile drivers beside today's drivers: label → (driver, twin/driver settings).
+#: The profile drivers beside the built-in drivers: label → (driver, twin/driver settings).
 PROFILE_MODES: dict[str, tuple[str, dict]] = {
     "can (built-in)": ("can", {}),
     "can profile (own DBC)": ("can", {"profile": str(CONTROLLERS / "can_dbc.toml")}),
@@ -468,6 +469,8 @@ PROFILE_MODES: dict[str, tuple[str, dict]] = {
         "modbus",
         {"port": 0, "profile": str(CONTROLLERS / "modbus_map.toml")},
     ),
+    # the same map with [modbus] pipeline = false: FC 16 and FC 4 one at a time
+    "modbus profile, one at a time": ("modbus", {"port": 0, "profile": "<one-at-a-time>"}),
     "canopen CiA 402": ("canopen", {"device_profile": "cia402"}),
     "canopen CiA 408": ("canopen", {"device_profile": "cia408"}),
 }
@@ -485,9 +488,19 @@ def profile_work(steps: int, rounds: int) -> dict[str, dict[str, float]]:
     the machine's load between rounds cancels).
     """
     live = {}
+    tmp = tempfile.TemporaryDirectory()
+    one_at_a_time = Path(tmp.name) / "modbus_map_one_at_a_time.toml"
+    one_at_a_time.write_text(
+        (CONTROLLERS / "modbus_map.toml")
+        .read_text()
+        .replace("unit = 1\n", "unit = 1\npipeline = false\n")
+    )
     try:
         for label, (name, conn) in PROFILE_MODES.items():
-            twin = start_twin(name, default_plant(), **dict(conn))
+            conn = dict(conn)
+            if conn.get("profile") == "<one-at-a-time>":
+                conn["profile"] = str(one_at_a_time)
+            twin = start_twin(name, default_plant(), **conn)
             drv = create_driver(name, **twin.connection)
             drv.open()
             drv.arm(1.0)
@@ -512,6 +525,7 @@ def profile_work(steps: int, rounds: int) -> dict[str, dict[str, float]]:
         for twin, drv, *_ in live.values():
             drv.close()
             twin.stop()
+        tmp.cleanup()
     ref = np.asarray(live["can (built-in)"][3])
     out = {}
     for label, (_, _, _, cpu, wall) in live.items():

@@ -1,4 +1,4 @@
-"""Benchmark of the real-time loop (issue 5).
+"""Benchmark of the real-time loop.
 
 Prints, measured in one run on this machine:
 
@@ -537,7 +537,7 @@ def profile(name: str, fs: float, duration: float, priority: int, lock: str | No
 
 
 # ----------------------------------------------------------------------------------------------
-# 6. channels (issue 13)
+# 6. channels
 
 
 def channels_config(n: int, extra=()) -> list[str]:
@@ -626,7 +626,7 @@ _OPCODES_SNIPPET = (
 def one_channel_vs_baseline(
     rev: str, rounds: int, duration: float, cpu: int | None = None
 ) -> tuple[list, str]:
-    """Lockstep steps/s of today's default single-actuator test: this tree vs ``rev``.
+    """Lockstep steps/s of the default single-actuator test: this tree vs ``rev``.
 
     ``rev`` is checked out in a temporary git worktree; the two run alternately in fresh
     processes (``rounds`` each) so that both see the same machine load. With ``cpu`` both are

@@ -29,12 +29,12 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import opensees_site as S  # noqa: E402
 from _results import write_results  # noqa: E402
 
+import tests.helpers.opensees_site as S  # noqa: E402
 from rths_hil.metrics import j2_nrms  # noqa: E402
 from rths_hil.openfresco.timing import KINDS  # noqa: E402
 from rths_hil.recorder import read_run  # noqa: E402

@@ -1,6 +1,6 @@
 """Cost of one integrator step (SDOF and MDOF) and of a 60 s record at 1024 Hz.
 
-Goal (issue 3): ≤ 20 µs per CR step of an SDOF with Bouc-Wen, i.e. ≤ 2 % of a 1024 Hz step.
+Goal: ≤ 20 µs per CR step of an SDOF with Bouc-Wen, i.e. ≤ 2 % of a 1024 Hz step.
 MDOF (rths_hil.mdof.MDOFCRStepper, shear buildings of n = 1, 3 and 10 storeys, linear and
 Bouc-Wen): µs per step with a specimen force vector, as a ratio to the SDOF CRStepper step
 measured in the same run.

@@ -1,4 +1,4 @@
-"""Benchmark of the robustness study on Dask (issue 17).
+"""Benchmark of the robustness study on Dask.
 
 Measured in one run on this machine:
 

@@ -402,8 +402,10 @@ class Driver(ABC):
                 return None
 
     def _accept(self, fb: Feedback | None) -> Feedback | None:
-        """Apply the sequence rules and the counters to one decoded feedback (what
-        :meth:`receive` does with each); ``fb`` if it is delivered, else ``None``."""
+        """Apply the sequence rules and the counters to one decoded feedback.
+
+        This is what :meth:`receive` does with each; ``fb`` if it is delivered, else ``None``.
+        """
         if fb is None:
             return None
         ok = self._classify(fb.seq) if self.echoes_seq else self._match(fb)
@@ -576,8 +578,10 @@ class Driver(ABC):
 
     @classmethod
     def own_link(cls, connection: dict[str, Any]) -> bool:
-        """True when a channel with a twin gets a link of its own (no bus, port or device
-        named in ``connection``: the twin opens a fresh one)."""
+        """True when a channel with a twin gets a link of its own.
+
+        No bus, port or device is named in ``connection``: the twin opens a fresh one.
+        """
         c = connection or {}
         return not (c.get("channel") or c.get("port") or c.get("url"))
 

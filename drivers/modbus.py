@@ -10,7 +10,7 @@ addr    name         meaning                                                    
 1       CONTROL      bit 0 enable (1 follow, 0 hold / acknowledge an e-stop)     —
 2–3     COMMAND      commanded displacement, signed 32 bit                       1e-7 m
 16      FB_SEQ       SEQ of the command this feedback answers                    1
-17      STATUS       status flags (drivers.base.Status)                          —
+17      STATUS       status flags (rths_hil.drivers.base.Status)                 —
 18–19   DISPLACEMENT measured displacement, signed 32 bit, 0x80000000 = invalid  1e-7 m
 20–21   FORCE        measured force, signed 32 bit, 0x80000000 = invalid         0.01 N
 22      FB_CRC       CRC-16/CCITT-FALSE of registers 16–21 (12 bytes, big-end.)  —
@@ -270,7 +270,7 @@ class ModbusDriver(Driver):
         # MBAP length, unit id, function code and byte count of a good FC 23 response
         self._resp_head = struct.pack(">HHBBB", 0, _TCP_RESP.size - 6, self.device_id, FC_RW, 14)
 
-    # -- what this driver knows about its links and its twin (drivers.base.Driver) ------------
+    # -- what this driver knows about its links and its twin (rths_hil.drivers.base.Driver) --------
     @classmethod
     def link_key(cls, connection: dict[str, Any]) -> str:
         from rths_hil.linkbudget import modbus_link_key

@@ -7,11 +7,16 @@ one read per table (FC 3 holding, FC 4 input, FC 1 coils, FC 2 discrete inputs).
 (enable, disable, acknowledge) are written when the bridge's enable flag changes; the e-stop
 action is written at once.
 
-**Modbus TCP.** The step's requests are pipelined in one TCP write. A controller answers Modbus
-TCP requests with the request's transaction id, so the step travels in it:
-``tid = (seq mod 4096) · 16 + slot`` (slot 0 the write or FC 23, 1… the reads, 13 the start-up
-check, 14 the heartbeat, 15 the actions), and a feedback is delivered once every read of its
-step has come back.
+**Modbus TCP.** A controller answers Modbus TCP requests with the request's transaction id, so
+the step travels in it: ``tid = (seq mod 4096) · 16 + slot`` (slot 0 the write or FC 23, 1…
+the reads, 13 the start-up check, 14 the heartbeat, 15 the actions), and a feedback is
+delivered once every read of its step has come back. With the profile's ``[modbus] pipeline``
+(the default) the step's requests go out in ONE socket write and the responses are matched by
+their transaction ids: the MBAP header's transaction identifier pairs a response with its
+request, so several transactions may be outstanding on one connection (MODBUS Messaging on
+TCP/IP Implementation Guide V1.0b, the MBAP header; docs/references.md). Without it, one
+request at a time as on RTU (the next written when the previous one is answered), for a server
+that serves one transaction at a time.
 
 **Modbus RTU** (a serial line: ``device``, ``baudrate``, ``parity``, ``stopbits``). RTU is
 half-duplex and carries no transaction id: the driver keeps the step's requests in a queue,
@@ -156,6 +161,8 @@ class ModbusProfileDriver(Driver):
         self.profile = prof
         self.transport = transport
         self._rtu = transport == "rtu"
+        #: one request on the wire at a time (RTU always; TCP when the profile says so)
+        self._serial = self._rtu or not prof.pipeline
         self.host, self.port = str(host), int(port)
         self.device = device
         self.baudrate, self.parity, self.stopbits = int(baudrate), str(parity), int(stopbits)
@@ -268,11 +275,12 @@ class ModbusProfileDriver(Driver):
             self.close()
 
     def _submit(self, requests: list[tuple[int, int, bytes]]) -> None:
-        """Send ``(tid, function code, frame)`` requests: TCP all at once (pipelined); RTU
-        one at a time (the next when the previous one is answered)."""
+        """Send ``(tid, function code, frame)`` requests: TCP pipelined all at once in one
+        write; RTU (and TCP with ``pipeline = false``) one at a time (the next when the
+        previous one is answered)."""
         if not requests:
             return
-        if not self._rtu:
+        if not self._serial:
             self._write(b"".join(r[2] for r in requests))
             return
         idle = not self._pending
@@ -375,6 +383,11 @@ class ModbusProfileDriver(Driver):
         if dev_id != self.unit or not pdu_bytes:
             self.stats.count_malformed("unknown_id")
             return (-1, b"")
+        pending = self._pending
+        if pending and pending[0][0] == tid:  # one at a time: the next request goes out
+            pending.popleft()
+            if pending:
+                self._write(pending[0][2])
         return tid, pdu_bytes
 
     # -- commands -------------------------------------------------------------------------------
@@ -395,7 +408,8 @@ class ModbusProfileDriver(Driver):
             # RTU: the last step's requests were not all answered (it timed out): drop them
             self.stats.late += len(pending)
             pending.clear()
-            self._buf = b""
+            if self._rtu:  # (a TCP stream keeps its framing: a late answer is told by its id)
+                self._buf = b""
         if enable != self._enabled:
             acts = self.profile.actions
             if enable:

@@ -26,7 +26,9 @@ inputs), ``word_order`` and ``byte_order`` (``big`` or ``little``, defaults from
 are converted by pymodbus (``convert_to_registers`` / ``convert_from_registers``); a
 ``byte_order = "little"`` swaps the two bytes of each register. Actions are a ``table``
 (``coil`` or ``holding``), an ``address`` and the ``value`` written. ``[modbus] unit`` is the
-unit id.
+unit id; ``[modbus] pipeline`` (default true) sends a step's Modbus TCP requests in one socket
+write, their responses matched by transaction id (false: one request at a time; RTU is always
+one at a time).
 
 ``protocol = "can"``: ``dbc`` (path, relative to the profile) and, for each role, the DBC
 ``message`` and ``signal``; byte order (Intel or Motorola), sign, scale and offset come from
@@ -45,7 +47,6 @@ out-of-range registers, a missing role, scale 0, a DBC without the named message
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -54,6 +55,7 @@ from typing import Any
 from pymodbus.client.mixin import ModbusClientMixin
 
 from rths_hil.errors import InputError
+from rths_hil.formats import read_toml
 
 from .base import Status
 
@@ -343,6 +345,10 @@ class ModbusProfile:
         registers and every read role is in one block of holding registers (≤ 125).
     reads : tuple of ReadBlock
         The read requests per step otherwise (one per table, contiguous span ≤ 125 / 2000).
+    pipeline : bool
+        Modbus TCP: the step's requests go out in one socket write, their responses matched by
+        transaction id (``[modbus] pipeline``, default true). False: one request at a time,
+        the next written when the previous one is answered. RTU is always one at a time.
     """
 
     source: str
@@ -353,6 +359,7 @@ class ModbusProfile:
     heartbeat: ModbusPoint | None
     reads: tuple[ReadBlock, ...]
     fc23: bool
+    pipeline: bool = True
     protocol: str = "modbus"
     units_doc: dict[str, str] = field(default_factory=dict)
 
@@ -434,9 +441,13 @@ def _load_modbus(r: _Reader) -> ModbusProfile:
     mb = r.table("modbus")
     defaults = {"word_order": "big", "byte_order": "big"}
     unit = 1
+    pipeline = True
     if mb is not None:
-        mb.unknown(("unit", "word_order", "byte_order"))
+        mb.unknown(("unit", "word_order", "byte_order", "pipeline"))
         unit = mb.int("unit", 1, lo=0, hi=255)
+        pipeline = mb.data.get("pipeline", True)
+        if not isinstance(pipeline, bool):
+            raise mb.fail("pipeline", f"must be true or false, got {pipeline!r}")
         defaults = {
             "word_order": mb.str("word_order", "big", ("big", "little")),
             "byte_order": mb.str("byte_order", "big", ("big", "little")),
@@ -495,6 +506,7 @@ def _load_modbus(r: _Reader) -> ModbusProfile:
         heartbeat=heartbeat,
         reads=reads,
         fc23=fc23,
+        pipeline=pipeline,
     )
 
 
@@ -611,12 +623,7 @@ def _load_can(r: _Reader, base: Path) -> CANProfile:
 @cache
 def _load_cached(path: str) -> ModbusProfile | CANProfile:
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InputError(f"profile {p}: cannot read: {exc.strerror or exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"profile {p}: not valid TOML: {exc}") from None
+    data = read_toml(p, "profile", f"profile {p}")
     r = _Reader(str(p), data)
     protocol = r.str("protocol", choices=("modbus", "can"))
     if protocol == "modbus":

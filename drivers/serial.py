@@ -112,7 +112,7 @@ class SerialDriver(Driver):
         self._buf = b""
         self._hb = 0
 
-    # -- what this driver knows about its links and its twin (drivers.base.Driver) ------------
+    # -- what this driver knows about its links and its twin (rths_hil.drivers.base.Driver) --------
     @classmethod
     def link_key(cls, connection: dict[str, Any]) -> str:
         from rths_hil.linkbudget import serial_link_key

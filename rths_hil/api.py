@@ -46,8 +46,10 @@ Overrides = Mapping[str, Any] | Iterable[str] | None
 
 
 def _override_items(overrides: Overrides, sections: Mapping[str, Any]) -> list[str]:
-    """``section.key=value`` items (the ``--set`` form) from a dict of dotted keys, strings,
-    and ``section={key: value}`` keyword arguments, in that order."""
+    """``section.key=value`` items (the ``--set`` form) from overrides of any form.
+
+    A dict of dotted keys, strings, and ``section={key: value}`` keyword arguments, in that order.
+    """
     items: list[str] = []
     if overrides is None:
         pass
@@ -237,8 +239,10 @@ class Run:
         return format_summary(self.summary())
 
     def plot(self, path: str | Path | None = None):
-        """The report figure (:func:`rths_hil.report.plot_report`): returned for a notebook,
-        or saved to ``path`` (then its path is returned)."""
+        """The report figure (:func:`rths_hil.report.plot_report`).
+
+        Returned for a notebook, or saved to ``path`` (then its path is returned).
+        """
         from .report import plot_report
 
         if path is None:

@@ -2,7 +2,6 @@
 
 * :class:`InputError` — bad input (configuration, record file, frame, CLI argument). The CLI
   prints its message as one line and exits with code 2.
-* :class:`SafetyTrip` — a safety rule tripped and the e-stop was sent. Exit code 3.
 
 :func:`require` checks that an optional dependency (an *extra* of the package: ``hdf5``,
 ``studies``, ``live``, ``opensees``) is installed, and otherwise raises an :class:`InputError`
@@ -26,19 +25,13 @@ class InputError(ValueError):
     """Bad user input. The message must say what is wrong and where (file, row, key path)."""
 
 
-class SafetyTrip(RuntimeError):
-    """A safety rule tripped during a run; carries the rule name and its reason."""
-
-    def __init__(self, rule: str, reason: str) -> None:
-        super().__init__(f"{rule}: {reason}")
-        self.rule = rule
-        self.reason = reason
-
-
 def require(extra: str, what: str) -> None:
-    """Raise :class:`InputError` naming ``pip install 'rths-hil[extra]'`` when the module of
-    the extra ``extra`` (:data:`EXTRAS`) cannot be imported; ``what`` is the feature asked
-    for (``"rths-hil watch"``). Only looks the module up (no import: start-up stays fast)."""
+    """Raise :class:`InputError` naming ``pip install 'rths-hil[extra]'`` when it is missing.
+
+    The module of the extra ``extra`` (:data:`EXTRAS`) cannot be imported; ``what`` is the
+    feature asked for (``"rths-hil watch"``). Only looks the module up (no import: start-up
+    stays fast).
+    """
     module = EXTRAS[extra][0]
     try:
         found = importlib.util.find_spec(module) is not None

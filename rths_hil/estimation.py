@@ -14,12 +14,11 @@ with a random-walk process model ``x[k+1] = x[k] + w[k]``, ``w ~ N(0, Q)``,
 
 where ``u(t_k − D·dt)`` is the third-order Lagrange interpolation of the input history at the
 fractional delay ``D = τ·fs + M`` samples (the interpolator of :mod:`rths_hil.sim_backends.delay`).
-An
-extended Kalman filter (filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` equations)
-linearises it with the Jacobian ``H = [u(t−τ), g·∂u(t−τ)/∂τ, 1]``, the derivative taken
-analytically on the Lagrange polynomial. ``M`` is a small look-ahead (the measurement is held
-``M`` samples) so that negative delays — a measured signal leading its target after
-over-compensation, the FEI paper's Section 5 — can be tracked too; estimates are then ``M·dt`` old.
+An extended Kalman filter (filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` equations)
+linearises it with the Jacobian ``H = [u(t−τ), g·∂u(t−τ)/∂τ, 1]``, the derivative taken analytically
+on the Lagrange polynomial. ``M`` is a small look-ahead (the measurement is held ``M`` samples) so
+that negative delays — a measured signal leading its target after over-compensation, the FEI paper's
+Section 5 — can be tracked too; estimates are then ``M·dt`` old.
 
 Why not the linear regression: ``y ≈ g·u − g·τ·u̇`` (:class:`LinearDelayGainKF`) is linear in
 ``θ = [g, −gτ]`` but is the first term of a Taylor series. On a sinusoid of angular frequency
@@ -55,10 +54,10 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
 from scipy import optimize, signal
 
-from rths_hil.sim_backends.delay import fractional_delay
+from rths_hil.sim_backends.delay import fractional_delay, lagrange_slopes_jit, lagrange_weights_jit
 from rths_hil.sim_backends.effects import Offset
+from rths_hil.sim_backends.first_order import FirstOrderServo
 from rths_hil.sim_backends.modelfile import ActuatorSpec, EffectSpec, ModelSpec
-from rths_hil.sim_backends.models import FirstOrderServo
 from rths_hil.sim_backends.plant import Sensor
 
 from .errors import InputError
@@ -71,21 +70,6 @@ __all__ = [
     "LinearDelayGainKF",
     "calibrate",
 ]
-
-
-@numba.njit(cache=True, nogil=True)
-def _lagrange(f):  # pragma: no cover - numba
-    """Taps of the 4-point Lagrange interpolator at position ``f`` and their derivatives d/df."""
-    f1, f2, f3 = f - 1.0, f - 2.0, f - 3.0
-    h0 = -f1 * f2 * f3 / 6.0
-    h1 = f * f2 * f3 / 2.0
-    h2 = -f * f1 * f3 / 2.0
-    h3 = f * f1 * f2 / 6.0
-    d0 = -(f2 * f3 + f1 * f3 + f1 * f2) / 6.0
-    d1 = (f2 * f3 + f * f3 + f * f2) / 2.0
-    d2 = -(f1 * f3 + f * f3 + f * f1) / 2.0
-    d3 = (f1 * f2 + f * f2 + f * f1) / 6.0
-    return h0, h1, h2, h3, d0, d1, d2, d3
 
 
 # Layout of the estimator's arrays, shared by the kernels below:
@@ -129,7 +113,8 @@ def _ekf_interp(u, st, tau, fs):  # pragma: no cover - numba
         n0 = 0
     if st[1] < n0 + 4:
         return False, 0.0, 0.0
-    h0, h1, h2, h3, d0, d1, d2, d3 = _lagrange(d - n0)
+    h0, h1, h2, h3 = lagrange_weights_jit(d - n0)
+    d0, d1, d2, d3 = lagrange_slopes_jit(d - n0)
     size = u.size
     b = st[0] - 1 - n0  # newest sample, n0 back
     u0 = u[b % size]

@@ -64,8 +64,12 @@ loads is the link's.
 
 Links without a rate — the python-can ``virtual`` bus, pseudo-terminals (so the served CAN
 twin's ``slcan``/``serial`` pair), ``loop://`` and TCP to the loopback interface — report "no
-limit". A CAN bus whose interface sets the bit rate
-itself (no ``bitrate`` in the connection) reports its bits per step and "bit rate unknown".
+limit". A Modbus RTU or serial connection that names no ``device`` / ``url`` is a twin's: the
+twin opens a pseudo-terminal pair of its own (the drivers refuse a serial line without a device),
+so its baud rate is not checked against the twin; a real serial port (``device`` or ``url``
+given, with or without a twin on it) is checked at its baud rate. A CAN bus whose interface
+sets the bit rate itself (no ``bitrate`` in the connection) reports its bits per step and "bit
+rate unknown".
 
 References
 ----------
@@ -356,8 +360,18 @@ def _is_loopback(host: str) -> bool:
     return h in ("localhost", "::1", "ip6-localhost") or h.startswith("127.")
 
 
-def _serial_rate_kind(device: str) -> str | None:
-    """``None`` for a real UART; otherwise why the device has no rate limit."""
+#: Why a serial link without a device has no rate: only a twin serves one (its own pty).
+TWIN_PTY = (
+    "no device: the twin's own pseudo-terminal, which has no line rate (a real serial port, "
+    "given as device or url, is checked at its baud rate)"
+)
+
+
+def _serial_rate_kind(device: str | None) -> str | None:
+    """``None`` for a real UART; otherwise why the device has no rate limit (``device`` None:
+    the twin's own pseudo-terminal, :data:`TWIN_PTY`)."""
+    if device is None:
+        return TWIN_PTY
     d = str(device)
     if "://" in d:
         scheme = d.split("://", 1)[0].lower()
@@ -413,13 +427,13 @@ def modbus_link_key(connection: dict[str, Any]) -> str:
     """Modbus TCP: host and port; RTU: the serial device."""
     c = connection
     if c.get("transport", "tcp") == "rtu":
-        return f"modbus rtu {c.get('device')}"
+        return f"modbus rtu {c.get('device') or 'twin pty'}"
     return f"modbus tcp {c.get('host', '127.0.0.1')}:{c.get('port', 502)}"
 
 
 def serial_link_key(connection: dict[str, Any]) -> str:
     """Serial: the port or URL."""
-    return f"serial {connection.get('url')}"
+    return f"serial {connection.get('url') or 'twin pty'}"
 
 
 _positive = positive_number  # one checker for the package (rths_hil.units)
@@ -550,8 +564,7 @@ def modbus_load(
     base = {"channels": ch, "fs": fs}
     name = modbus_link_key(c)
     if c.get("transport", "tcp") == "rtu":
-        device = str(c.get("device"))
-        why = _serial_rate_kind(device)
+        why = _serial_rate_kind(c.get("device"))
         req, resp = modbus_rtu_frame_bytes()
         baud = _positive(c.get("baudrate", 115200), f"{name}: baudrate")
         parity, stop = c.get("parity", "E"), c.get("stopbits", 1)
@@ -620,8 +633,7 @@ def serial_load(
     hb = float(heartbeat_hz)
     base = {"channels": ch, "fs": fs}
     name = serial_link_key(c)
-    url = str(c.get("url"))
-    why = _serial_rate_kind(url)
+    why = _serial_rate_kind(c.get("url"))
     n_cmd, n_fb = serial_frame_bytes()
     n_hb = cobs_frame_bytes(4)
     baud = _positive(c.get("baudrate", 921600), f"{name}: baudrate")

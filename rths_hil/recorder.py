@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .formats import json_safe
 from .hybrid.columns import single_channel_columns
 
 __all__ = [
@@ -140,31 +141,10 @@ def _now_iso() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="microseconds")
 
 
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    return repr(obj)
-
-
-def _clean(obj):
-    """Replace non-finite floats (not valid JSON) by their repr, recursively."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else repr(obj)
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_clean(v) for v in obj]
-    return obj
-
-
 def _write_json_atomic(path: Path, data: dict) -> None:
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(_clean(data), fh, indent=2, default=_json_default, allow_nan=False)
+        json.dump(json_safe(data, "name"), fh, indent=2, default=repr, allow_nan=False)
         fh.write("\n")
         fh.flush()
         os.fsync(fh.fileno())
@@ -355,7 +335,7 @@ class Recorder:
     def event(self, kind: str, time: float = math.nan, step: int = -1, **fields) -> dict:
         """Append an event line to ``events.jsonl`` and flush it to the OS immediately."""
         ev = {"kind": kind, "time": time, "step": step, **fields, "wall_time": _now_iso()}
-        line = json.dumps(_clean(ev), default=_json_default, allow_nan=False) + "\n"
+        line = json.dumps(json_safe(ev, "name"), default=repr, allow_nan=False) + "\n"
         try:
             self._events.write(line)
             self._events.flush()

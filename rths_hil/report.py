@@ -23,6 +23,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from .formats import json_text
 from .hybrid.columns import channel_suffix
 from .metrics import overlap_peak_lag
 from .recorder import RECORD_FILE, RunData, read_npy_header, read_run
@@ -30,7 +31,7 @@ from .recorder import RECORD_FILE, RunData, read_npy_header, read_run
 __all__ = ["LiveLine", "format_live", "format_summary", "plot_report", "summarize"]
 
 
-def _fmt(v: float, scale: float = 1.0, spec: str = ".3f", signed: bool = False) -> str:
+def _fmt(v: float | None, scale: float = 1.0, spec: str = ".3f", signed: bool = False) -> str:
     if v is None or not math.isfinite(v):
         return "—"
     return format(v * scale, ("+" if signed else "") + spec)
@@ -239,7 +240,7 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
             out[key] = end[key]
     if write:
         p = Path(run_dir) / "summary.json"
-        p.write_text(json.dumps(_clean(out), indent=2, allow_nan=False) + "\n")
+        p.write_text(json_text(out))
     return out
 
 
@@ -528,16 +529,6 @@ def _metrics_lean(
     ey = np.where(lags >= 0, ty - hy[pos], ty - tly[neg])
     out["j1_delay"] = overlap_peak_lag(R, lags, ex, ey, fs)
     return {k2: out[k2] for k2 in ("j1_delay", "j2_nrms", "j3_peak", "tracking_indicator")}
-
-
-def _clean(obj):
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_clean(v) for v in obj]
-    return obj
 
 
 def _metrics(target: np.ndarray, measured: np.ndarray, fs: float) -> dict[str, float]:

@@ -17,7 +17,7 @@ Rules (names as they appear in events and on the console):
     velocity (backward difference over the steps since the previous reply); force on the
     measured specimen force.
 ``fei``
-    :class:`FEIRule` (issue 2): ``consecutive`` valid online FEI windows with
+    :class:`FEIRule`: ``consecutive`` valid online FEI windows with
     ``|A − 1| > amplitude_tol`` or ``|d| > delay_tol`` (the FEI paper's Eq. 2.2, 2.5). Invalid
     windows neither trip nor reset the count.
 ``kalman``
@@ -60,6 +60,8 @@ import numpy as np
 from rths_hil.drivers.base import Status
 
 from .errors import InputError
+from .formats import json_safe
+from .units import positive_number
 
 __all__ = [
     "ControllerRule",
@@ -124,27 +126,8 @@ class Trip:
             "time": self.time,
             "step": self.step,
             "channel": self.channel,
-            "values": {k: _jsonable(v) for k, v in self.values.items()},
+            "values": json_safe(dict(self.values), "name"),
         }
-
-
-def _jsonable(v):
-    if isinstance(v, float | np.floating):
-        v = float(v)
-        return v if math.isfinite(v) else repr(v)
-    if isinstance(v, np.integer):
-        return int(v)
-    return v
-
-
-def _positive(name: str, value: float, allow_zero: bool = False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
-        raise InputError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {value!r}")
-    return v
 
 
 def _count(name: str, value: int, minimum: int = 1) -> int:
@@ -178,7 +161,7 @@ class LimitRule:
 
     def __init__(self, rule: str, limit: float, unit: str) -> None:
         self.rule = rule
-        self.limit = _positive(f"{rule} limit", limit)
+        self.limit = positive_number(limit, f"{rule} limit")
         self.unit = unit
 
     def check(self, quantity: str, value: float) -> Trip | None:
@@ -194,7 +177,7 @@ class LimitRule:
 
 
 class FEIRule:
-    """E-stop on the online FEI: ``consecutive`` valid windows out of tolerance (issue 2).
+    """E-stop on the online FEI: ``consecutive`` valid windows out of tolerance.
 
     A valid window is out of tolerance when ``|A − 1| > amplitude_tol`` or
     ``|d| > delay_tol`` (A and d per the FEI paper's Eq. 2.2 and 2.5). ``consecutive`` such windows
@@ -215,8 +198,8 @@ class FEIRule:
 
     def __init__(self, amplitude_tol: float, delay_tol: float, consecutive: int = 1) -> None:
         self.rule = "fei"
-        self.amplitude_tol = _positive("FEI amplitude tolerance", amplitude_tol)
-        self.delay_tol = _positive("FEI delay tolerance", delay_tol)
+        self.amplitude_tol = positive_number(amplitude_tol, "FEI amplitude tolerance")
+        self.delay_tol = positive_number(delay_tol, "FEI delay tolerance")
         self.consecutive = _count("FEI consecutive windows", consecutive)
         self.count = 0
         self.tripped: Trip | None = None
@@ -298,7 +281,7 @@ class KalmanRule:
             )
         self.gain_min = float(gain_min)
         self.gain_max = float(gain_max)
-        self.delay_max = _positive("Kalman delay limit", delay_max)
+        self.delay_max = positive_number(delay_max, "Kalman delay limit")
 
     def check(self, gain: float, delay: float) -> Trip | None:
         """Trip when the gain leaves its range or the delay exceeds its limit."""
@@ -362,7 +345,7 @@ class WatchdogRule:
     ) -> None:
         self.rule = "watchdog"
         self.missed = _count("watchdog missed replies", missed, minimum=0)
-        self.timeout = None if timeout is None else _positive("watchdog timeout", timeout)
+        self.timeout = None if timeout is None else positive_number(timeout, "watchdog timeout")
         if self.missed == 0 and self.timeout is None:
             raise InputError("watchdog: give a timeout (s) or a number of missed replies")
         self.clock = clock
@@ -451,8 +434,8 @@ class StallRule:
 
     def __init__(self, max_stall: float, min_stall: float) -> None:
         self.rule = "stall"
-        self.max_stall = _positive("max_stall", max_stall)
-        self.min_stall = _positive("min_stall", min_stall)
+        self.max_stall = positive_number(max_stall, "max_stall")
+        self.min_stall = positive_number(min_stall, "min_stall")
         self.count = 0
         self.longest = 0.0
         self.total = 0.0
@@ -582,7 +565,7 @@ class StuckRule:
     def __init__(self, steps: int, motion: float) -> None:
         self.rule = "stuck"
         self.steps = _count("stuck-sensor steps", steps, minimum=2)
-        self.motion = _positive("stuck-sensor motion", motion)
+        self.motion = positive_number(motion, "stuck-sensor motion")
         self.count = 0
         self.moved = 0.0
         self.last = math.nan
@@ -634,9 +617,10 @@ class SafetyMonitor:
 
     Notes
     -----
-    Call order in a step (see :mod:`rths_hil.hybrid`): :meth:`check_command` before the command is
-    sent, :meth:`check_feedback` when the reply (or its absence) is known, :meth:`check_fei` and
-    :meth:`check_kalman` with the estimates, :meth:`check_overrun` in paced mode. Each returns
+    Call order in a step (see :mod:`rths_hil.hybrid.runner`): :meth:`check_command` before the
+    command is sent, :meth:`check_feedback` when the reply (or its absence) is known,
+    :meth:`check_fei` and :meth:`check_kalman` with the estimates. Overruns belong to the whole
+    loop, not to a channel: the runner keeps one :class:`OverrunRule` for all channels. Each returns
     the first :class:`Trip` (stamped with time and step) or ``None``; after a trip the monitor
     keeps returning it.
     """
@@ -655,7 +639,7 @@ class SafetyMonitor:
         stuck: StuckRule | None = None,
         controller: ControllerRule | None = None,
     ) -> None:
-        self.dt = _positive("time step", dt)
+        self.dt = positive_number(dt, "time step")
         inf = math.inf
         self._disp = (
             LimitRule("displacement", displacement_limit, "m") if displacement_limit else None
@@ -807,17 +791,6 @@ class SafetyMonitor:
         rule = self.kalman
         if rule is not None:
             trip = rule.check(gain, delay)
-            if trip is not None:
-                return self._fire(trip, t, k)
-        return None
-
-    def check_overrun(self, t: float, k: int, overrun: bool, lateness: float) -> Trip | None:
-        """A paced step's overrun flag and lateness (s)."""
-        if self.tripped is not None:
-            return self.tripped
-        rule = self.overrun
-        if rule is not None:
-            trip = rule.check(overrun, lateness)
             if trip is not None:
                 return self._fire(trip, t, k)
         return None

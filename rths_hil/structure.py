@@ -37,18 +37,12 @@ from typing import Literal
 import numpy as np
 
 from .errors import InputError
+from .units import positive_number
 
 log = logging.getLogger(__name__)
 
 #: The FEI paper's analytical-substructure stiffness k_a = 11.765 kN/mm, in N/m (Section 4).
 K_A_PAPER = 1.1765e7
-
-
-def _positive(value: float, what: str) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and v > 0):
-        raise InputError(f"{what} must be a finite number > 0, got {value!r}")
-    return v
 
 
 @dataclass(frozen=True)
@@ -77,9 +71,9 @@ class BoucWenParams:
     q: float = 2.0
 
     def __post_init__(self) -> None:
-        _positive(self.x_y, "Bouc-Wen x_y")
-        _positive(self.k_a, "Bouc-Wen k_a")
-        _positive(self.q, "Bouc-Wen q")
+        positive_number(self.x_y, "Bouc-Wen x_y")
+        positive_number(self.k_a, "Bouc-Wen k_a")
+        positive_number(self.q, "Bouc-Wen q")
         if not (0.0 <= self.eta <= 1.0):
             raise InputError(f"Bouc-Wen eta must lie in [0, 1], got {self.eta}")
         if not (self.beta + self.gamma > 0 and math.isfinite(self.beta + self.gamma)):
@@ -221,9 +215,9 @@ def _make_restoring(
     else:
         bw_params, tie = bouc_wen, False
     if k is not None:
-        k0 = _positive(k, "stiffness k (N/m)")
+        k0 = positive_number(k, "stiffness k (N/m)")
     elif fn is not None:
-        k0 = mass * (2.0 * math.pi * _positive(fn, "natural frequency fn (Hz)")) ** 2
+        k0 = mass * (2.0 * math.pi * positive_number(fn, "natural frequency fn (Hz)")) ** 2
     elif bw_params is not None:
         k0 = bw_params.k_a
     else:
@@ -256,14 +250,14 @@ class _SDOFStepper:
         fn: float | None = None,
         bouc_wen: BoucWenParams | BoucWen | bool | None = None,
     ) -> None:
-        self.mass = _positive(mass, "mass (kg)")
+        self.mass = positive_number(mass, "mass (kg)")
         z = float(zeta)
         if not (math.isfinite(z) and z >= 0):
             raise InputError(f"damping ratio zeta must be ≥ 0, got {zeta!r}")
         self.zeta = z
         if dt is None:
             raise InputError("give the time step dt (s)")
-        self.dt = _positive(dt, "time step dt (s)")
+        self.dt = positive_number(dt, "time step dt (s)")
         self.k, self.bouc_wen = _make_restoring(self.mass, k, fn, bouc_wen)
         self.omega = math.sqrt(self.k / self.mass)
         self.c = 2.0 * self.zeta * self.omega * self.mass
@@ -600,11 +594,11 @@ def simulate_sdof(
     acc = np.asarray(ag, dtype=float)
     if acc.ndim != 1 or acc.size < 2:
         raise InputError("ground acceleration must be a 1-D array of ≥ 2 samples")
-    fs = _positive(fs, "sampling rate fs (Hz)")
-    fn = _positive(fn, "natural frequency fn (Hz)")
+    fs = positive_number(fs, "sampling rate fs (Hz)")
+    fn = positive_number(fn, "natural frequency fn (Hz)")
     if k is None:
         k = bouc_wen.k_a if isinstance(bouc_wen, BoucWenParams) else K_A_PAPER
-    k = _positive(k, "stiffness k (N/m)")
+    k = positive_number(k, "stiffness k (N/m)")
     if fn >= fs / 2:
         raise InputError(
             f"natural frequency {fn:g} Hz is above the Nyquist frequency {fs / 2:g} Hz"

@@ -1,4 +1,4 @@
-"""Tuning of the inverse compensation from short trial tests (issue 6).
+"""Tuning of the inverse compensation from short trial tests.
 
 Inverse compensation (Chen & Ricles 2009; :mod:`rths_hil.compensation`) sends
 ``x_c[k] = a·(α·x_t[k] − (α − 1)·x_t[k−1])``. It is the backward-Euler inverse of a first-order

@@ -49,42 +49,39 @@ def _split(text: str, what: str) -> tuple[float, str]:
     return float(m.group(1)), m.group(2)
 
 
+def _scaled(
+    text: str | float, what: str, units: dict[str, float], default: str, names: str
+) -> float:
+    """``text`` (a number, or a number and one of ``units``) times its unit's scale."""
+    if isinstance(text, int | float):
+        return float(text) * units[default]
+    value, unit = _split(text, what)
+    unit = unit or default
+    if unit not in units:
+        raise InputError(f"cannot read {what} {text!r}: unknown unit {unit!r} (use {names})")
+    return value * units[unit]
+
+
 def parse_time(text: str | float, what: str = "time", default_unit: str = "s") -> float:
     """Parse a duration such as ``5ms``, ``0.005``, ``3s`` into seconds."""
-    if isinstance(text, int | float):
-        return float(text) * _TIME_UNITS[default_unit]
-    value, unit = _split(text, what)
-    unit = unit or default_unit
-    if unit not in _TIME_UNITS:
-        raise InputError(f"cannot read {what} {text!r}: unknown unit {unit!r} (use s or ms)")
-    return value * _TIME_UNITS[unit]
+    return _scaled(text, what, _TIME_UNITS, default_unit, "s or ms")
 
 
 def parse_length(text: str | float, what: str = "length") -> float:
     """Parse a length such as ``10mm`` or ``0.01`` (metres) into metres."""
-    if isinstance(text, int | float):
-        return float(text)
-    value, unit = _split(text, what)
-    unit = unit or "m"
-    if unit not in _LENGTH_UNITS:
-        raise InputError(f"cannot read {what} {text!r}: unknown unit {unit!r} (use {_LENGTHS})")
-    return value * _LENGTH_UNITS[unit]
+    return _scaled(text, what, _LENGTH_UNITS, "m", _LENGTHS)
 
 
 def parse_force(text: str | float, what: str = "force") -> float:
     """Parse a force such as ``100kN``, ``20 kip`` or ``1e5`` (newtons) into newtons."""
-    if isinstance(text, int | float):
-        return float(text)
-    value, unit = _split(text, what)
-    unit = unit or "N"
-    if unit not in _FORCE_UNITS:
-        raise InputError(f"cannot read {what} {text!r}: unknown unit {unit!r} (use {_FORCES})")
-    return value * _FORCE_UNITS[unit]
+    return _scaled(text, what, _FORCE_UNITS, "N", _FORCES)
 
 
 def parse_velocity(text: str | float, what: str = "velocity") -> float:
-    """Parse a velocity such as ``0.2``, ``200mm/s`` or ``8 in/s`` (a length unit per second)
-    into m/s."""
+    """Parse a velocity such as ``0.2``, ``200mm/s`` or ``8 in/s`` into m/s.
+
+    A unit is a length unit per second.
+    """
     if isinstance(text, int | float):
         return float(text)
     value, unit = _split(text, what)
@@ -164,13 +161,18 @@ def parse_range(text: str, what: str = "range", max_points: int = 1000) -> list[
         raise InputError(f"cannot read {what} {text!r}: use start:stop:step or a,b,c") from None
 
 
-def positive_number(value: Any, what: str) -> float:
-    """``value`` as a finite float > 0, or one :class:`~rths_hil.errors.InputError` line naming
-    ``what``."""
+def positive_number(value: Any, what: str, allow_zero: bool = False) -> float:
+    """``value`` as a finite float > 0 (≥ 0 with ``allow_zero``), or an input error.
+
+    The :class:`~rths_hil.errors.InputError` is one line naming ``what``.
+
+    The one check of a positive number in the package (limits, tolerances, steps, rates).
+    """
     try:
         v = float(value)
     except (TypeError, ValueError):
         raise InputError(f"{what} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise InputError(f"{what} must be a finite number > 0, got {value!r}")
+    if not (math.isfinite(v) and (v > 0 or (allow_zero and v == 0))):
+        bound = "≥ 0" if allow_zero else "> 0"
+        raise InputError(f"{what} must be a finite number {bound}, got {value!r}")
     return v

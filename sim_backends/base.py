@@ -14,6 +14,16 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from rths_hil.units import positive_number
+
+
+def check_dt(dt: float) -> float:
+    """``dt`` as a float, or an input error unless it is a positive number of seconds.
+
+    The check is :func:`rths_hil.units.positive_number`.
+    """
+    return positive_number(dt, "dt (s)")
+
 
 class ActuatorModel(ABC):
     """A discrete-time single-input single-output actuator model stepped at ``dt``.

@@ -7,6 +7,10 @@ sample), and the fractional part is realised by a causal third-order Lagrange in
 
     h[j] = prod_{k != j} (D' - k) / (j - k),   j = 0 … 3.
 
+:func:`lagrange_weights` is that formula multiplied out; it is the one implementation of the
+taps in the package (the effects, the delay estimator and the diagnosis call it, or its numba
+compilation :data:`lagrange_weights_jit` inside their kernels).
+
 For D' in [1, 2) the interpolator is centred, and its error on a sinusoid of normalised frequency
 ω = 2π f / fs is O(ω⁴): 1e-8 relative at 1 Hz and 1024 Hz. The streaming
 :class:`FractionalDelay` and the offline :func:`fractional_delay` compute the same FIR and agree
@@ -15,12 +19,51 @@ to round-off.
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
+import numba
 import numpy as np
-from scipy.signal import lfilter
 
 from .base import ActuatorModel
 
 ORDER = 3
+
+
+def lagrange_weights(f: Any) -> tuple[Any, Any, Any, Any]:
+    """Taps ``h[0..3]`` of the third-order Lagrange interpolator at fractional delay ``f``.
+
+    ``h[j] = prod_{k != j} (f - k) / (j - k)`` (Laakso et al. 1996, Eq. 42), multiplied out.
+    ``f`` is a float or an array (the taps are then arrays of its shape); the same arithmetic
+    runs compiled as :data:`lagrange_weights_jit`.
+    """
+    f1, f2, f3 = f - 1.0, f - 2.0, f - 3.0
+    f12 = f1 * f2
+    f03 = f * f3
+    return (-f12 * f3 / 6.0, f03 * f2 / 2.0, -f03 * f1 / 2.0, f * f12 / 6.0)
+
+
+def lagrange_slopes(f: Any) -> tuple[Any, Any, Any, Any]:
+    """Derivatives ``dh[j]/df`` of the taps of :func:`lagrange_weights`."""
+    f1, f2, f3 = f - 1.0, f - 2.0, f - 3.0
+    return (
+        -(f2 * f3 + f1 * f3 + f1 * f2) / 6.0,
+        (f2 * f3 + f * f3 + f * f2) / 2.0,
+        -(f1 * f3 + f * f3 + f * f1) / 2.0,
+        (f1 * f2 + f * f2 + f * f1) / 6.0,
+    )
+
+
+#: :func:`lagrange_weights` compiled with numba, inlined into the njit kernels calling it.
+lagrange_weights_jit = numba.njit(cache=True, nogil=True, inline="always")(lagrange_weights)
+#: :func:`lagrange_slopes` compiled with numba, inlined into the njit kernels calling it.
+lagrange_slopes_jit = numba.njit(cache=True, nogil=True, inline="always")(lagrange_slopes)
+
+
+def lagrange_split(delay_samples: float) -> tuple[int, float]:
+    """``(n0, f)``: whole samples of shift ``n0 = max(floor(D) - 1, 0)`` and ``f = D - n0``."""
+    n0 = max(math.floor(delay_samples) - 1, 0)
+    return n0, delay_samples - n0
 
 
 def lagrange_taps(delay_samples: float) -> tuple[int, np.ndarray]:
@@ -42,14 +85,8 @@ def lagrange_taps(delay_samples: float) -> tuple[int, np.ndarray]:
         raise ValueError(
             f"delay must be a finite non-negative number of samples, got {delay_samples}"
         )
-    n0 = max(int(np.floor(delay_samples)) - 1, 0)
-    frac = delay_samples - n0
-    taps = np.ones(ORDER + 1)
-    for j in range(ORDER + 1):
-        for k in range(ORDER + 1):
-            if k != j:
-                taps[j] *= (frac - k) / (j - k)
-    return n0, taps
+    n0, frac = lagrange_split(float(delay_samples))
+    return n0, np.array(lagrange_weights(frac))
 
 
 def fractional_delay(x: np.ndarray, delay_s: float, fs: float) -> np.ndarray:
@@ -63,11 +100,21 @@ def fractional_delay(x: np.ndarray, delay_s: float, fs: float) -> np.ndarray:
         Delay in seconds, ≥ 0.
     fs : float
         Sampling rate in Hz.
+
+    Notes
+    -----
+    The shift is a slice and the 4 taps are 4 vector operations, summed in the order of
+    :meth:`FractionalDelay.step`.
     """
     x = np.asarray(x, dtype=float)
+    n = x.shape[0]
     n0, taps = lagrange_taps(delay_s * fs)
-    b = np.concatenate([np.zeros(n0), taps])
-    return lfilter(b, [1.0], x)
+    out = np.zeros(n)
+    for j, h in enumerate(taps.tolist()):
+        s = n0 + j
+        if s < n and h != 0.0:
+            out[s:] += h * x[: n - s]
+    return out
 
 
 class FractionalDelay:
@@ -125,8 +172,7 @@ class FractionalDelay:
 
 
 class DelayGain(ActuatorModel):
-    """The FEI paper's Fig. 4.1: measured = gain · command delayed by ``delay`` seconds
-    (fractional).
+    """The FEI paper's Fig. 4.1: measured = gain · command delayed by ``delay`` s (fractional).
 
     Parameters
     ----------
@@ -145,11 +191,14 @@ class DelayGain(ActuatorModel):
         self._line = FractionalDelay(self.delay, 1.0 / self.dt)
 
     def reset(self) -> None:
+        """Return to rest (zero state, empty delay lines)."""
         self._line.reset()
 
     def step(self, command: float) -> float:
+        """Advance one step: the achieved displacement (m) for ``command`` (m)."""
         return self.gain * self._line.step(command)
 
     def simulate(self, command: np.ndarray) -> np.ndarray:
+        """The achieved displacement (m) for a whole command history (m), from rest."""
         self.reset()
         return self.gain * fractional_delay(command, self.delay, 1.0 / self.dt)

@@ -43,8 +43,8 @@ from scipy.signal import lfilter
 
 from rths_hil.errors import InputError
 
-from .delay import ORDER, lagrange_taps
-from .models import FirstOrderServo, _first_order_coeffs
+from .delay import ORDER, lagrange_split, lagrange_taps, lagrange_weights
+from .first_order import FirstOrderServo, first_order_coeffs
 
 _MM = 1e-3
 
@@ -615,9 +615,9 @@ class VelocityLimit(Effect):
 class ServoLag(Effect):
     """First-order servo lag ``1/(T s + 1)`` on top of the model, ``T = time_constant``.
 
-    Physical origin: finite bandwidth of the position loop (``T = A/(kp·kq)``); acts as an
-    extra delay ≈ ``T`` with amplitude ``1/sqrt(1 + (ωT)²)``. Realistic 2-20 ms. Same
-    discretisation as :class:`~sim_backends.models.FirstOrderServo` (first-order hold), step and
+    Physical origin: finite bandwidth of the position loop (``T = A/(kp·kq)``); acts as an extra
+    delay ≈ ``T`` with amplitude ``1/sqrt(1 + (ωT)²)``. Realistic 2-20 ms. Same discretisation as
+    :class:`~rths_hil.sim_backends.first_order.FirstOrderServo` (first-order hold), step and
     :func:`scipy.signal.lfilter` paths identical to the last bit.
     """
 
@@ -720,9 +720,6 @@ class TimeVaryingDelay(Effect):
         self._pos = 0
         self._k = 0
 
-    def _delays(self, k: np.ndarray) -> np.ndarray:
-        return self._d0 + self._d1 * np.sin(self._w * k)
-
     def step(self, x: float) -> float:
         buf = self._buf
         size = self._size
@@ -731,7 +728,8 @@ class TimeVaryingDelay(Effect):
         self._pos = (newest + 1) % size
         d = self._d0 + self._d1 * math.sin(self._w * self._k)
         self._k += 1
-        n0, taps = _taps_scalar(d)
+        n0, f = lagrange_split(d)
+        taps = lagrange_weights(f)
         base = newest - n0
         return (
             taps[0] * buf[base % size]
@@ -746,7 +744,9 @@ class TimeVaryingDelay(Effect):
         n = len(x)
         k = np.arange(n, dtype=float)
         d = self._d0 + self._d1 * np.sin(self._w * k)
-        n0, taps = _taps_vector(d)
+        n0f = np.maximum(np.floor(d) - 1.0, 0.0)
+        taps = lagrange_weights(d - n0f)
+        n0 = n0f.astype(np.intp)
         padded = np.concatenate([np.zeros(self._size), x])
         idx = np.arange(n) + self._size - n0
         out = (
@@ -762,29 +762,6 @@ class TimeVaryingDelay(Effect):
             self._buf[self._pos] = v
             self._pos = (self._pos + 1) % self._size
         return out
-
-
-def _taps_scalar(d: float) -> tuple[int, tuple[float, float, float, float]]:
-    """Lagrange taps as in :func:`rths_hil.sim_backends.delay.lagrange_taps`, scalar and
-    allocation-light.
-    """
-    n0 = max(math.floor(d) - 1, 0)
-    f = d - n0
-    f1, f2, f3 = f - 1.0, f - 2.0, f - 3.0
-    f12 = f1 * f2
-    f03 = f * f3
-    return n0, (-f12 * f3 / 6.0, f03 * f2 / 2.0, -f03 * f1 / 2.0, f * f12 / 6.0)
-
-
-def _taps_vector(d: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-    """Vectorised :func:`_taps_scalar` (same arithmetic, same order)."""
-    n0 = np.maximum(np.floor(d) - 1.0, 0.0)
-    f = d - n0
-    f1, f2, f3 = f - 1.0, f - 2.0, f - 3.0
-    f12 = f1 * f2
-    f03 = f * f3
-    taps = (-f12 * f3 / 6.0, f03 * f2 / 2.0, -f03 * f1 / 2.0, f * f12 / 6.0)
-    return n0.astype(np.intp), taps
 
 
 class ForceFeedback(Effect):
@@ -860,7 +837,7 @@ class ForceFeedback(Effect):
         self.static_gain = p["actuator_stiffness"] / total
         self.time_constant = p["specimen_damping"] / total
         if self.time_constant > 0:
-            b, a = _first_order_coeffs(self.static_gain, self.time_constant, self.dt)
+            b, a = first_order_coeffs(self.static_gain, self.time_constant, self.dt)
         else:
             b, a = np.array([self.static_gain, 0.0]), np.array([1.0, 0.0])
         self.b, self.a = b, a

@@ -1,10 +1,9 @@
 """Fault injection for twins: what a real bus and a real controller can do to the bridge.
 
 A :class:`Faults` plan is given to a twin endpoint (:mod:`rths_hil.sim_backends.endpoints`); the
-endpoint
-applies it to the command it receives and to the feedback it sends. Faults are keyed by the
-command sequence number ``k`` so that tests are deterministic; optional probabilities (seeded)
-add random frame faults for soak runs.
+endpoint applies it to the command it receives and to the feedback it sends. Faults are keyed by the
+command sequence number ``k`` so that tests are deterministic; optional probabilities (seeded) add
+random frame faults for soak runs.
 
 Frame faults (applied to the feedback frame(s) of step ``k``)
     ``drop`` (never sent), ``delay`` (sent after a pause; the endpoint does nothing else

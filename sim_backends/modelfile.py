@@ -9,7 +9,7 @@ Format (all values SI; times and lengths may also be strings with units, ``"12ms
     time_constant = 0.008      # the model's parameters, in the same table
 
     [[actuator.effects]]       # optional, applied in order after the model
-    kind = "backlash"          # a catalogue name (sim_backends.effects.EFFECTS)
+    kind = "backlash"          # a catalogue name (rths_hil.sim_backends.effects.EFFECTS)
     width = 2e-4               # that effect's parameters
 
     [specimen]                 # optional; default: the benchmark's spring-dashpot
@@ -37,15 +37,15 @@ the file and the key path, e.g. ``twin.toml: actuator.effects[1].kind: unknown e
 
 from __future__ import annotations
 
-import json
 import math
-import tomllib
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rths_hil.errors import InputError, check_regular_file
+from rths_hil.errors import InputError
+from rths_hil.formats import read_toml, toml_key, toml_value
 from rths_hil.units import parse_force, parse_length, parse_time, parse_velocity
 
 from .effects import EFFECTS, make_effect, validate_params
@@ -59,6 +59,7 @@ __all__ = [
     "EffectSpec",
     "ModelSpec",
     "SpecimenSpec",
+    "build_plant",
     "dump_model",
     "load_model",
     "load_plant",
@@ -119,7 +120,7 @@ class ModelSpec:
     source: str = "model"
 
     def build(self, dt: float) -> TwinPlant:
-        """Build the :class:`~sim_backends.plant.TwinPlant` at step ``dt`` (s)."""
+        """Build the :class:`~rths_hil.sim_backends.plant.TwinPlant` at step ``dt`` (s)."""
         a = self.actuator
         actuator = make_model(a.model, dt, delay=a.delay, gain=a.gain, **a.params)
         effects = [make_effect(e.kind, dt, **e.params) for e in a.effects]
@@ -147,8 +148,10 @@ class ModelSpec:
 
 
 def _number(value: Any, where: str, unit: str = "") -> float:
-    """A finite float from a TOML value; ``unit`` 's', 'm', 'N' or 'm/s' also accepts strings
-    with units (:mod:`rths_hil.units`)."""
+    """A finite float from a TOML value.
+
+    With ``unit`` 's', 'm', 'N' or 'm/s' a string with units is read too (:mod:`rths_hil.units`).
+    """
     parsers = {"s": parse_time, "m": parse_length, "N": parse_force, "m/s": parse_velocity}
     if isinstance(value, str) and unit in parsers:
         parse = parsers[unit]
@@ -202,17 +205,7 @@ def load_model(source: str | Path | Mapping[str, Any], name: str | None = None) 
         data = source
     else:
         name = str(source) if name is None else name
-        check_regular_file(source, "a model file", max_bytes=1 << 20)
-        try:
-            text = Path(source).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise InputError(f"{name}: cannot read model file ({exc.strerror})") from None
-        except UnicodeDecodeError:
-            raise InputError(f"{name}: not a UTF-8 text file") from None
-        try:
-            data = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise InputError(f"{name}: invalid TOML: {exc}") from None
+        data = read_toml(source, "model file", name)
     p = f"{name}: " if name else ""
     _unknown(data, ("actuator", "specimen", "sensor"), p)
     if "actuator" not in data:
@@ -321,25 +314,49 @@ def load_plant(source: str | Path | Mapping[str, Any] | ModelSpec, dt: float) ->
     return spec.build(dt)
 
 
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "nan"
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        text = repr(float(value))  # np.float64 is a float whose repr is "np.float64(…)"
-        return text if any(c in text for c in ".en") else text + ".0"
-    if isinstance(value, str):
-        return json.dumps(value)
-    raise TypeError(f"cannot write {type(value).__name__} to TOML")
+def build_plant(
+    twin: Mapping[str, Any] | str | os.PathLike[str], dt: float, base_dir: str | None = None
+) -> TwinPlant:
+    """Build a twin's plant from a configuration's ``[twin]`` section (or a model file).
+
+    Parameters
+    ----------
+    twin : mapping or str
+        Either a path to a model file (TOML), or a mapping with the model file's tables:
+        ``actuator`` (required: ``model``, ``delay``, ``gain``, the model's parameters,
+        ``effects``), ``specimen`` and ``sensor`` (optional), or a ``[twin]`` section with a
+        ``model`` key naming a model file (then the other tables are ignored). Empty tables
+        count as absent.
+    dt : float
+        Step of the plant (s).
+    base_dir : str, optional
+        Directory a relative model-file path is resolved against.
+
+    Returns
+    -------
+    rths_hil.sim_backends.plant.TwinPlant
+
+    Raises
+    ------
+    InputError
+        Unknown model or effect, a bad parameter, or an unreadable model file; the message
+        names the key.
+    """
+    if isinstance(twin, str | os.PathLike):
+        path = os.fspath(twin)
+        if base_dir is not None and not os.path.isabs(path):
+            path = os.path.join(base_dir, path)
+        return load_plant(path, dt)
+    model = twin.get("model")
+    if isinstance(model, str) and model:
+        return build_plant(model, dt, base_dir)
+    spec = {k: dict(twin[k]) for k in ("actuator", "specimen", "sensor") if twin.get(k)}
+    return load_plant(spec, dt)
 
 
-def _key(key: str) -> str:
-    return key if key.replace("_", "").replace("-", "").isalnum() else json.dumps(key)
+def _comment_text(line: str) -> str:
+    r"""``line`` as TOML comment text: control characters (not allowed there) as ``\xNN``."""
+    return "".join(c if c == "\t" or c.isprintable() else f"\\x{ord(c):02x}" for c in line)
 
 
 def model_to_toml(spec: ModelSpec | Mapping[str, Any], header: str = "") -> str:
@@ -347,20 +364,20 @@ def model_to_toml(spec: ModelSpec | Mapping[str, Any], header: str = "") -> str:
     if not isinstance(spec, ModelSpec):
         spec = load_model(spec)
     data = spec.to_dict()
-    lines = [f"# {line}".rstrip() for line in header.splitlines()]
+    lines = [f"# {_comment_text(line)}".rstrip() for line in header.splitlines()]
     if lines:
         lines.append("")
     act = dict(data["actuator"])
     effects = act.pop("effects", [])
     lines.append("[actuator]")
-    lines += [f"{_key(k)} = {_toml_value(v)}" for k, v in act.items()]
+    lines += [f"{toml_key(k)} = {toml_value(v)}" for k, v in act.items()]
     for eff in effects:
         lines += ["", "[[actuator.effects]]"]
-        lines += [f"{_key(k)} = {_toml_value(v)}" for k, v in eff.items()]
+        lines += [f"{toml_key(k)} = {toml_value(v)}" for k, v in eff.items()]
     for table in ("specimen", "sensor"):
         if table in data:
             lines += ["", f"[{table}]"]
-            lines += [f"{_key(k)} = {_toml_value(v)}" for k, v in data[table].items()]
+            lines += [f"{toml_key(k)} = {toml_value(v)}" for k, v in data[table].items()]
     return "\n".join(lines) + "\n"
 
 

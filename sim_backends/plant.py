@@ -1,11 +1,9 @@
 """The twin plant: actuator model → effects → specimen → sensors.
 
-:class:`TwinPlant` is the one plant of the twins: every protocol endpoint (CAN, Modbus, serial
-twin) drives one, through the :class:`rths_hil.sim_backends.base.Plant` protocol it satisfies (a
-model
+:class:`TwinPlant` is the one plant of the twins: every protocol endpoint (CAN, Modbus, serial twin)
+drives one, through the :class:`rths_hil.sim_backends.base.Plant` protocol it satisfies (a model
 file, a configuration's ``[twin]`` section and :func:`rths_hil.sim_backends.twin.default_plant` all
-build
-it). One step::
+build it). One step::
 
     x_a = actuator.step(command)          # achieved displacement of the model (m)
     x   = effects.step(x_a)               # catalogue effects, in order (m)

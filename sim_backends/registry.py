@@ -14,11 +14,15 @@ only when asked for):
   (:func:`available_twins`, :func:`twin_class`). The driver registry beside it is
   :data:`rths_hil.drivers.registry.BUILTIN` with the ``rths_hil.drivers`` group.
 * :data:`MODELS` — actuator model name (a model file's ``actuator.model``) → the
-  :class:`~sim_backends.base.ActuatorModel` in front of the transport delay and gain of the
-  FEI paper's Fig. 4.1, with its parameters. :func:`build_plant` and the model file ask it.
+  :class:`~rths_hil.sim_backends.base.ActuatorModel` in front of the transport delay and gain of
+  the FEI paper's Fig. 4.1, with its parameters.
+  :func:`rths_hil.sim_backends.models.make_model` and the model file ask it.
 * :data:`rths_hil.sim_backends.effects.EFFECTS` — effect kind →
-:class:`~sim_backends.effects.Effect`
-  subclass (each class carries everything the twin and the diagnosis know about it).
+  :class:`~rths_hil.sim_backends.effects.Effect` subclass (each class carries everything the twin
+  and the diagnosis know about it).
+
+This module holds tables and lookups only: it builds nothing (a plant is built by
+:func:`rths_hil.sim_backends.modelfile.build_plant`) and imports no module that imports it.
 
 Adding one of them touches one module (the class) and one line here (or in ``EFFECTS``); see
 docs/models.md, "Adding a twin model or an effect", and docs/protocols.md, "Adding a driver".
@@ -27,17 +31,16 @@ docs/models.md, "Adding a twin model or an effect", and docs/protocols.md, "Addi
 from __future__ import annotations
 
 import importlib
-import os
+import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from importlib.metadata import entry_points
+from typing import Any
 
 from rths_hil.errors import InputError
 
+from .benchmark import BENCHMARK_NOMINAL, BenchmarkServo
 from .effects import EFFECTS
-
-if TYPE_CHECKING:
-    from .plant import TwinPlant
 
 __all__ = [
     "EFFECTS",
@@ -46,7 +49,8 @@ __all__ = [
     "ModelEntry",
     "TwinEntry",
     "available_twins",
-    "build_plant",
+    "model_class",
+    "model_entry",
     "twin_class",
 ]
 
@@ -58,7 +62,8 @@ class TwinEntry:
     Attributes
     ----------
     target : str
-        ``"module:Class"`` of the :class:`~sim_backends.endpoints.base.TwinEndpoint` subclass.
+        ``"module:Class"`` of the :class:`~rths_hil.sim_backends.endpoints.base.TwinEndpoint`
+        subclass.
     seq_bits : int or None
         Width of the sequence counter the protocol's frames carry (the controller checks and
         echoes it); ``None`` when the protocol has none.
@@ -102,7 +107,7 @@ class ModelEntry:
     Attributes
     ----------
     target : str
-        ``"module:Class"`` of the :class:`~sim_backends.base.ActuatorModel`, built as
+        ``"module:Class"`` of the :class:`~rths_hil.sim_backends.base.ActuatorModel`, built as
         ``Class(dt=dt, **params)``; empty for the bare delay and gain.
     params : dict
         Parameter name → (default, or ``None`` when required; SI unit).
@@ -122,10 +127,6 @@ class ModelEntry:
 
 def _benchmark_params() -> dict[str, tuple[float | None, str]]:
     """``BenchmarkServo.PARAMS`` with their defaults (Table 2, or the constructor's own)."""
-    import inspect
-
-    from .models import BENCHMARK_NOMINAL, BenchmarkServo
-
     own = inspect.signature(BenchmarkServo.__init__).parameters
     return {
         k: (BENCHMARK_NOMINAL[k] if k in BENCHMARK_NOMINAL else own[k].default, "")
@@ -137,12 +138,12 @@ def _benchmark_params() -> dict[str, tuple[float | None, str]]:
 MODELS: dict[str, ModelEntry] = {
     "delay_gain": ModelEntry("", {}, "transport delay and gain only (the FEI paper, Fig. 4.1)"),
     "servo_lag": ModelEntry(
-        "rths_hil.sim_backends.models:FirstOrderServo",
+        "rths_hil.sim_backends.first_order:FirstOrderServo",
         {"time_constant": (None, "s")},
         "first-order servo lag 1/(T s + 1)",
     ),
     "benchmark": ModelEntry(
-        "rths_hil.sim_backends.models:BenchmarkServo",
+        "rths_hil.sim_backends.benchmark:BenchmarkServo",
         _benchmark_params(),
         "servo-hydraulic plant of the RTHS benchmark (Silva et al. 2020)",
         uses_specimen=True,
@@ -161,12 +162,16 @@ def _load(target: str) -> Any:
 #: Entry-point group of twins shipped by other packages (name = the driver's name).
 TWIN_ENTRY_POINT_GROUP = "rths_hil.twins"
 
+#: The base class every twin endpoint derives from (loaded like the entries: the endpoints
+#: import this registry).
+TWIN_ENDPOINT = "rths_hil.sim_backends.endpoints.base:TwinEndpoint"
+
 
 def available_twins() -> dict[str, str]:
-    """Every driver name a twin exists for → its ``module:Class`` (entry points included; an
-    entry point with a built-in name replaces the built-in twin)."""
-    from importlib.metadata import entry_points
+    """Every driver name a twin exists for → its ``module:Class``.
 
+    Entry points are included; an entry point with a built-in name replaces the built-in twin.
+    """
     found = {name: e.target for name, e in TWINS.items()}
     for ep in entry_points(group=TWIN_ENTRY_POINT_GROUP):
         found[ep.name] = ep.value
@@ -184,8 +189,6 @@ def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
     InputError
         No twin speaks that driver's protocol, or the entry point is not a TwinEndpoint.
     """
-    from .endpoints.base import TwinEndpoint
-
     targets = available_twins()
     target = targets.get(driver_name)
     if target is None:
@@ -199,9 +202,10 @@ def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
         cls = _load(target)
     except (ImportError, AttributeError) as exc:
         raise InputError(f"twin entry point {driver_name!r} = {target!r}: {exc}") from None
-    if not (isinstance(cls, type) and issubclass(cls, TwinEndpoint)):
+    if not (isinstance(cls, type) and issubclass(cls, _load(TWIN_ENDPOINT))):
         raise InputError(
-            f"twin entry point {target!r} is not a sim_backends.endpoints.base.TwinEndpoint"
+            f"twin entry point {target!r} is not a "
+            "rths_hil.sim_backends.endpoints.base.TwinEndpoint"
         )
     entry = TwinEntry(
         target,
@@ -230,45 +234,3 @@ def model_class(name: str) -> type | None:
     """The actuator model class registered under ``name`` (``None`` for ``delay_gain``)."""
     _, entry = model_entry(name)
     return _load(entry.target) if entry.target else None
-
-
-def build_plant(
-    twin: Mapping[str, Any] | str | os.PathLike[str], dt: float, base_dir: str | None = None
-) -> TwinPlant:
-    """Build a twin's plant from a configuration's ``[twin]`` section (or a model file).
-
-    Parameters
-    ----------
-    twin : mapping or str
-        Either a path to a model file (TOML), or a mapping with the model file's tables:
-        ``actuator`` (required: ``model``, ``delay``, ``gain``, the model's parameters,
-        ``effects``), ``specimen`` and ``sensor`` (optional), or a ``[twin]`` section with a
-        ``model`` key naming a model file (then the other tables are ignored). Empty tables
-        count as absent.
-    dt : float
-        Step of the plant (s).
-    base_dir : str, optional
-        Directory a relative model-file path is resolved against.
-
-    Returns
-    -------
-    sim_backends.plant.TwinPlant
-
-    Raises
-    ------
-    InputError
-        Unknown model or effect, a bad parameter, or an unreadable model file; the message
-        names the key.
-    """
-    from .modelfile import load_plant
-
-    if isinstance(twin, str | os.PathLike):
-        path = os.fspath(twin)
-        if base_dir is not None and not os.path.isabs(path):
-            path = os.path.join(base_dir, path)
-        return load_plant(path, dt)
-    model = twin.get("model")
-    if isinstance(model, str) and model:
-        return build_plant(model, dt, base_dir)
-    spec = {k: dict(twin[k]) for k in ("actuator", "specimen", "sensor") if twin.get(k)}
-    return load_plant(spec, dt)

@@ -1,7 +1,7 @@
 """Start a virtual servo-hydraulic twin: a plant behind a real protocol endpoint.
 
->>> from sim_backends.twin import start_twin, default_plant
->>> from drivers.registry import create_driver
+>>> from rths_hil.sim_backends.twin import start_twin, default_plant
+>>> from rths_hil.drivers.registry import create_driver
 >>> with start_twin("modbus", default_plant()) as twin:            # doctest: +SKIP
 ...     with create_driver("modbus", **twin.connection) as drv:
 ...         drv.send(0, 0.001); fb = drv.receive(0.1)
@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import uuid
 from typing import Any
+
+from rths_hil.drivers.profile import is_builtin
 
 from rths_hil.errors import InputError
 
@@ -86,8 +88,6 @@ def start_twin(
         Unknown driver name or endpoint setting, or a transport that cannot be opened.
     """
     cls, entry = twin_class(driver_name)
-    from rths_hil.drivers.profile import is_builtin
-
     profile = connection.pop("profile", None)
     if not is_builtin(profile):
         cls = cls.profile_twin()

@@ -1,6 +1,6 @@
 """Bad input gets one clear line and exit 2; a trip at step 0 exits 3; nothing leaves a traceback.
 
-Each case is a bad input a safety reviewer tried (issue 12): run through the real CLI entry
+Each case is a bad input a safety reviewer tried: run through the real CLI entry
 point, it must return 2 with exactly one line on stderr that names what is wrong.
 """
 

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from rths_hil.sim_backends.modelfile import load_model, load_plant
 from scipy import signal
-from twin_signals import FS, sdof_response
 
 from rths_hil.cli import main
 from rths_hil.errors import InputError
 from rths_hil.estimation import calibrate
 from rths_hil.records import read_record, write_record
+from tests.helpers.twin_signals import FS, sdof_response
 
 
 def _twin_record(model: dict, u: np.ndarray) -> np.ndarray:

@@ -32,6 +32,7 @@ from rths_hil.hybrid import RTHSLoop
 from rths_hil.linkbudget import can_frame_bits
 from rths_hil.linkbudget import link_load as budget
 from rths_hil.recorder import read_run
+from tests.helpers.loop import run_loop
 
 ROOT = Path(__file__).resolve().parents[1]
 ENABLED, ESTOP, FAULT = int(Status.ENABLED), int(Status.ESTOP_ACTIVE), int(Status.FAULT)
@@ -121,13 +122,9 @@ def test_cia408_state_machine_on_the_twin():
 
 
 def _run(tmp_path, profile, *overrides, name="run"):
-    cfg = load_config(
-        ROOT / "examples" / "controllers" / f"{profile}.toml",
-        ["loop.mode=lockstep", "loop.console=0", "output.plot=false", *overrides],
-    )
-    loop = RTHSLoop(cfg, tmp_path / name)
-    result = loop.run()
-    return loop, result, read_run(tmp_path / name)
+    path = ROOT / "examples" / "controllers" / f"{profile}.toml"
+    r = run_loop(tmp_path / name, path, "loop.mode=lockstep", *overrides)
+    return r.loop, r.result, r.run
 
 
 @pytest.mark.parametrize("profile", ["cia402", "cia408"])
@@ -370,3 +367,46 @@ def test_two_axes_a_fault_on_one_stops_both(tmp_path):
     a, b = loop.channels  # the latches are left as they are after an e-stop
     assert a.twin.state == "QUICK STOP ACTIVE" and a.twin.history[-2] == "OPERATION ENABLED"
     assert b.twin.state == "FAULT"  # the faulty axis holds in FAULT (its quick stop ignored)
+
+
+def test_bridge_heartbeat_goes_on_after_an_estop_until_the_nodes_are_closed():
+    """Two axes on one bus, each device's heartbeat consumer 0.25 s. While the loop steps the
+    bridge's heartbeat goes with its steps (a loop that stops stepping lets the consumer run
+    out: the test above). After an e-stop the loop stops on purpose and the bridge closes the
+    nodes one after the other: the heartbeat goes on (the library's periodic task) until the
+    last node is closed, so neither device adds a heartbeat fault (EMCY 0x8130) to the e-stop,
+    however long the closing takes; arming again hands the heartbeat back to the steps."""
+    timeout, period = 0.25, 0.05
+    ch = {"channel": "rths-canopen-hb-hold", "heartbeat_timeout": timeout}
+    with (
+        start_twin("canopen", default_plant(), node_id=1, **ch) as t1,
+        start_twin("canopen", default_plant(), node_id=2, **ch) as t2,
+    ):
+        d1, d2 = _open(t1, heartbeat_period=period), _open(t2, heartbeat_period=period)
+        assert d1._bus is d2._bus  # one bus, one heartbeat producer
+        for d in (d1, d2):
+            assert d.arm(1.0) is not None
+        for k in range(30):
+            for d in (d1, d2):
+                d.send(k, 0.0, True)
+            for d in (d1, d2):
+                assert d.receive(1.0) is not None
+            time.sleep(0.002)
+        assert t1.state == t2.state == "OPERATION ENABLED"
+        d1.estop()
+        d2.estop()
+        n0 = t1.controller.stats.heartbeats
+        time.sleep(4 * timeout)  # e.g. the e-stop confirmed, the record closed
+        d2.close()  # node 2 first: node 1 waits longer
+        time.sleep(4 * timeout)
+        for twin in (t1, t2):
+            assert twin.state == "QUICK STOP ACTIVE", twin.history
+            assert not twin.controller.watchdog_tripped
+        assert "0x8130" not in d1.fault_text()
+        # ≈ 8 · timeout / period heartbeats in the wait (half of them on a loaded machine)
+        assert t1.controller.stats.heartbeats - n0 >= 0.5 * 8 * timeout / period
+        assert d1.arm(1.0) is not None and t1.state == "SWITCHED ON"  # a new run
+        n1 = t1.controller.stats.heartbeats
+        time.sleep(4 * period)
+        assert t1.controller.stats.heartbeats - n1 <= 1  # (the arming one) the steps produce it
+        d1.close()

@@ -1,4 +1,4 @@
-"""Several actuators in one test: channels on an MDOF structure (issue 13).
+"""Several actuators in one test: channels on an MDOF structure.
 
 End to end in lockstep through the real drivers and twins (CAN nodes on one virtual bus, CAN +
 Modbus TCP), the structure wiring against the offline MDOF integrator, a fault on one channel
@@ -23,6 +23,7 @@ from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import COLUMNS, read_run
+from tests.helpers.loop import run_loop
 
 ROOT = Path(__file__).resolve().parents[1]
 TWO = ROOT / "examples" / "two_actuators.toml"
@@ -30,10 +31,9 @@ MIXED = ROOT / "examples" / "mixed_drivers.toml"
 
 
 def _run(tmp_path, path, name, overrides=(), duration=10.0, **kw):
-    cfg = load_config(path, ["loop.console=0", "output.plot=false", *overrides])
-    loop = RTHSLoop(cfg, tmp_path / name, mode=kw.pop("mode", "lockstep"), duration=duration, **kw)
-    res = loop.run()
-    return loop, res, read_run(tmp_path / name)
+    mode = kw.pop("mode", "lockstep")
+    r = run_loop(tmp_path / name, path, *overrides, mode=mode, duration=duration, **kw)
+    return r.loop, r.result, r.run
 
 
 def _median_delay(rec, sfx: str) -> float:

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _procs import ROOT
 
 from rths_hil.checkhost import Timing, host_facts, measure, verdict
+from tests.helpers.procs import ROOT
 
 FS = 1024.0
 P = 1.0 / FS

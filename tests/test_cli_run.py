@@ -71,7 +71,7 @@ def test_lockstep_run_writes_the_run_directory_and_summary(tmp_path, capsys):
     assert "FEI measured vs target" in captured.out and "J1 =" in captured.out
     assert "e-stop: none" in captured.out
     assert len(read_run(out).record) == 5 * 1024
-    # the link budget at start-up (issue 13): one line per link, on the console
+    # the link budget at start-up: one line per link, on the console
     link = [ln for ln in captured.err.splitlines() if ln.startswith("rths-hil run: link ")]
     assert len(link) == 1 and "can virtual" in link[0] and "no limit" in link[0], captured.err
 

@@ -14,10 +14,10 @@ import subprocess
 import sys
 
 import pytest
-from _procs import ROOT, ServedTwin, toml_table
 
 from rths_hil.commission import commission
 from rths_hil.config import load_config
+from tests.helpers.procs import ROOT, ServedTwin, toml_table
 
 # the latency window is 1 s at 1024 Hz: commands 1 … 1024 after the arming command
 LATENCY_SEQS = ",".join(str(k) for k in range(1, 1025))

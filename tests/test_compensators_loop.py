@@ -15,19 +15,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rths_hil.config import load_config
 from rths_hil.fei import fei
-from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import read_run
+from tests.helpers.loop import run_loop
 
 ROOT = Path(__file__).resolve().parents[1]
 TWO = ROOT / "examples" / "two_actuators.toml"
 
 
 def _run(tmp_path, path, *sets, plant=None, name="run"):
-    cfg = load_config(path, ["loop.mode=lockstep", "loop.console=0", "output.plot=false", *sets])
-    res = RTHSLoop(cfg, tmp_path / name, plant=plant).run()
-    return cfg, res, read_run(tmp_path / name).record
+    r = run_loop(tmp_path / name, path, "loop.mode=lockstep", *sets, plant=plant)
+    return r.loop.cfg, r.result, r.run.record
 
 
 def _whole(rec, fs, sfx=""):

@@ -20,11 +20,11 @@ import time
 
 import numpy as np
 import pytest
-from _procs import LATCH_LINE, ServedTwin, bridge_cmd, kill9, start_bridge, wait_rows
 from rths_hil.drivers.base import Status
 from rths_hil.drivers.registry import create_driver
 
 from rths_hil.recorder import read_run
+from tests.helpers.procs import LATCH_LINE, ServedTwin, bridge_cmd, kill9, start_bridge, wait_rows
 
 # The twins' watchdog in these tests (s). Served twins: 0.25 s, so that a lockstep bridge
 # descheduled for tens of ms on a loaded 2-core machine is not taken for a dead one; in-process

@@ -224,7 +224,7 @@ def test_generated_records_hide_the_drawn_effect():
 
 def test_model_file_round_trip_with_numpy_floats(tmp_path):
     """Fitted parameters are often numpy scalars; the model file must still be valid TOML
-    (fix in sim_backends.modelfile: ``repr(np.float64(x))`` is ``np.float64(x)`` in numpy 2)."""
+    (rths_hil.sim_backends.modelfile: ``repr(np.float64(x))`` is ``np.float64(x)`` in numpy 2)."""
     spec = ModelSpec(
         ActuatorSpec(
             delay=np.float64(0.0123),

@@ -6,7 +6,7 @@ Modbus TCP on 127.0.0.1 and Modbus RTU over an os.openpty pseudo-terminal pair, 
 protocol over an os.openpty pair and over a TCP socket (pyserial socket://).
 
 The expected feedback is computed independently of the twin's streaming code: the offline
-Lagrange fractional delay (``fractional_delay``, an lfilter FIR) of the command as quantised by
+Lagrange fractional delay (``fractional_delay``, a 4-tap FIR) of the command as quantised by
 the bus, times the gain, and a linear spring for the force; the bus's fixed-point resolution is
 the tolerance.
 """

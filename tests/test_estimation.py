@@ -8,10 +8,10 @@ from rths_hil.sim_backends.delay import fractional_delay
 from rths_hil.sim_backends.modelfile import load_plant
 from rths_hil.sim_backends.models import benchmark_transfer_function
 from scipy import signal
-from twin_signals import FS, sdof_response
 
 from rths_hil.errors import InputError
 from rths_hil.estimation import DelayGainEstimator, LinearDelayGainKF
+from tests.helpers.twin_signals import FS, sdof_response
 
 SENSOR = {"displacement_noise": 2e-5, "displacement_resolution": 1e-6}  # 20 µm rms, 1 µm steps
 

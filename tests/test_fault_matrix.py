@@ -1,14 +1,13 @@
-"""The fault matrix: driver × fault → the rule that must trip and how soon (issue 12).
+"""The fault matrix: driver × fault → the rule that must trip and how soon.
 
 Every built-in fault of :mod:`rths_hil.sim_backends.faults` on every driver, in lockstep (the bound
-is in
-steps after the faulty one) and paced at 1024 Hz (the bound is wall-clock time from the fault's
-deadline to the trip, read from the run's own events: ``clock`` gives the wall time of deadline
-0, the ``trip`` event its ISO 8601 wall time). Process faults use ``rths-hil twin serve`` as its
-own process (Modbus TCP, serial over a pseudo-terminal, CAN through python-can's ``serial``
-interface on the twin's pseudo-terminal pair): the twin killed with SIGKILL and the twin
-stopped for 1 s (SIGSTOP … SIGCONT). The bridge killed is
-``tests/test_controller_watchdog.py``. Each run prints one matrix row (``pytest -s``).
+is in steps after the faulty one) and paced at 1024 Hz (the bound is wall-clock time from the
+fault's deadline to the trip, read from the run's own events: ``clock`` gives the wall time of
+deadline 0, the ``trip`` event its ISO 8601 wall time). Process faults use ``rths-hil twin serve``
+as its own process (Modbus TCP, serial over a pseudo-terminal, CAN through python-can's ``serial``
+interface on the twin's pseudo-terminal pair): the twin killed with SIGKILL and the twin stopped for
+1 s (SIGSTOP … SIGCONT). The bridge killed is ``tests/test_controller_watchdog.py``. Each run prints
+one matrix row (``pytest -s``).
 
 Faults that must not trip (a duplicated reply; a reply delayed less than the lockstep bound)
 must leave the run complete — and, in lockstep, bit-identical to the run without the fault.
@@ -23,11 +22,12 @@ import time
 
 import numpy as np
 import pytest
-from _procs import ServedTwin, toml_table
 
 from rths_hil.config import load_config
 from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import read_run
+from tests.helpers.loop import run_loop
+from tests.helpers.procs import ServedTwin, toml_table
 
 FS = 1024
 AT = 300  # the faulty step (≈ 0.29 s into the run)
@@ -97,10 +97,8 @@ def _iso(s: str) -> float:
 
 
 def _run(tmp_path, name, mode, *overrides, duration=None):
-    cfg = load_config(None, [*BASE, f"loop.mode={mode}", *overrides])
-    loop = RTHSLoop(cfg, tmp_path / name, duration=duration)
-    res = loop.run()
-    return loop, res, read_run(tmp_path / name)
+    r = run_loop(tmp_path / name, None, *BASE, f"loop.mode={mode}", *overrides, duration=duration)
+    return r.loop, r.result, r.run
 
 
 def _time_to_trip(run, at: int) -> float:

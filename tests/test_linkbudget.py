@@ -353,3 +353,50 @@ def test_modbus_rtu_units_on_one_line_sum_their_transactions():
     assert "230400 baud" in msg and "Modbus TCP" in msg
     # units on one TCP connection to the loopback: no limit, whatever their number
     assert link_load("modbus", {"host": "127.0.0.1", "port": 1502}, 8, FS).load is None
+
+
+# -- a twin's own pseudo-terminal has no line rate; a real serial port is checked ----------------
+def test_twin_pty_is_not_refused_on_a_line_rate_it_does_not_have():
+    """Modbus RTU and serial without a device: the twin opens its own pseudo-terminal pair, so
+    115 200 baud at 1024 Hz (460 % of a real line) is not refused; the same settings on a real
+    serial port are refused with the hand-worked load (rtu_transaction_time · 1024)."""
+    twin = link_load("modbus", {"transport": "rtu", "baudrate": 115200}, 1, FS)
+    assert twin.load is None and not twin.limited
+    assert "twin's own pseudo-terminal" in twin.summary() and "no limit" in twin.summary()
+    assert "real serial port" in twin.summary() and twin.link == "modbus rtu twin pty"
+    check_links([twin])
+    ser = link_load("serial", {"baudrate": 9600}, 1, FS)
+    assert ser.load is None and "twin's own pseudo-terminal" in ser.detail
+    check_links([ser])
+    real = link_load(
+        "modbus", {"transport": "rtu", "baudrate": 115200, "device": "/dev/ttyS0"}, 1, FS
+    )
+    assert real.load == pytest.approx(rtu_transaction_time(115200) * FS)
+    with pytest.raises(InputError, match=r"modbus rtu /dev/ttyS0 is 460 % loaded"):
+        check_links([real])
+    real_ser = link_load("serial", {"url": "/dev/ttyS0", "baudrate": 9600}, 1, FS)
+    assert real_ser.load is not None and real_ser.load > 1.0
+    with pytest.raises(InputError, match=r"serial /dev/ttyS0"):
+        check_links([real_ser])
+
+
+def test_builtin_modbus_rtu_with_its_twin_runs_at_115200_baud(tmp_path, capsys):
+    """``rths-hil run`` with the built-in Modbus RTU driver and its twin at 115 200 baud and
+    1024 Hz runs (lockstep) over the twin's pseudo-terminal; the same run on a named serial
+    port is refused with one line, exit 2."""
+    from rths_hil.cli import main
+    from rths_hil.recorder import read_run
+
+    cfg = os.path.join(os.path.dirname(__file__), "..", "examples", "modbus.toml")
+    out = tmp_path / "rtu"
+    conn = 'driver.connection={transport="rtu", baudrate=115200}'
+    args = ["run", cfg, "--lockstep", "--duration", "0.5", "--out", str(out), "--set", conn]
+    assert main(args) == 0
+    run = read_run(out)
+    assert run.meta["twin"]["transport"] == "rtu"
+    assert len(run.record) == 512 and bool(run.record["feedback_ok"].all())
+    capsys.readouterr()
+    real = 'driver.connection={transport="rtu", baudrate=115200, device="/dev/ttyS0"}'
+    assert main([*args[:-1], real, "--set", "twin.enabled=false"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "modbus rtu /dev/ttyS0 is 460 % loaded" in err[0]

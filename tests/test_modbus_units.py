@@ -1,4 +1,4 @@
-"""Several Modbus units on one TCP connection (issue 13): real twins, real drivers, 127.0.0.1.
+"""Several Modbus units on one TCP connection: real twins, real drivers, 127.0.0.1.
 
 ``examples/modbus_units.toml`` is ``two_actuators.toml`` with both actuators over Modbus TCP,
 units 1 and 2 of one server: lockstep end to end (each channel's FEI delay against its twin's
@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _procs import ServedTwin
 from pymodbus.client import ModbusTcpClient
 from rths_hil.drivers.base import Status
 from rths_hil.drivers.registry import create_driver
@@ -25,7 +24,8 @@ from rths_hil.cli import main as cli
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import read_run
+from tests.helpers.loop import run_loop
+from tests.helpers.procs import ServedTwin
 
 ROOT = Path(__file__).resolve().parents[1]
 UNITS = ROOT / "examples" / "modbus_units.toml"
@@ -38,11 +38,9 @@ def _free_port() -> int:
 
 
 def _run(tmp_path, name, overrides=(), duration=10.0, **kw):
-    over = ["loop.console=0", "output.plot=false", f"driver.connection.port={_free_port()}"]
-    cfg = load_config(UNITS, [*over, *overrides])
-    loop = RTHSLoop(cfg, tmp_path / name, mode="lockstep", duration=duration, **kw)
-    res = loop.run()
-    return loop, res, read_run(tmp_path / name)
+    port = f"driver.connection.port={_free_port()}"
+    r = run_loop(tmp_path / name, UNITS, port, *overrides, mode="lockstep", duration=duration, **kw)
+    return r.loop, r.result, r.run
 
 
 def _median_delay(rec, sfx: str) -> float:

@@ -15,9 +15,9 @@ import threading
 import time
 
 import numpy as np
-import opensees_site as S
 import pytest
 
+import tests.helpers.opensees_site as S
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.hybrid import RTHSLoop

@@ -475,3 +475,55 @@ def test_all_holding_map_runs_one_fc23_per_step(tmp_path, transport) -> None:
     split = run(MODBUS_MAP)
     assert fc23 == split
     assert max(abs(d) for d, _, _ in fc23) > 1e-4 and all(s & 0x01 for _, _, s in fc23[2:])
+
+
+@pytest.mark.parametrize("fc23", [False, True])
+def test_modbus_tcp_pipelined_equals_one_at_a_time(tmp_path, fc23) -> None:
+    """``[modbus] pipeline``: the step's requests in one socket write, responses matched by
+    transaction id, against its twin gives the same feedback, sample for sample, as one request
+    at a time (the next written when the previous one is answered); the example map (FC 16 +
+    FC 4, two transactions) and an all-holding map (one FC 23). The socket writes are counted:
+    one a step pipelined, one per transaction otherwise."""
+    text = MODBUS_MAP.read_text()
+    if fc23:
+        text = text.replace('table = "input"', 'table = "holding"')
+    piped, serial_ = tmp_path / "piped.toml", tmp_path / "serial.toml"
+    piped.write_text(text)
+    serial_.write_text(text.replace("unit = 1\n", "unit = 1\npipeline = false\n"))
+    assert load_profile(piped).pipeline and not load_profile(serial_).pipeline
+    per_step = 1 if fc23 else 2
+
+    def run(profile: Path) -> tuple[list[tuple[int, float, float, int]], list[int]]:
+        twin = start_twin("modbus", default_plant(), profile=str(profile), port=0)
+        try:
+            with create_driver("modbus", **twin.connection) as drv:
+                assert drv.arm(1.0) is not None
+                writes: list[int] = []
+                real_write = drv._write
+                drv._write = lambda data: (writes.append(len(data)), real_write(data))[1]
+                out = []
+                for k in range(60):
+                    n0 = len(writes)
+                    drv.send(k, 0.002 * np.sin(k / 7), k >= 2)
+                    fb = drv.receive(1.0)
+                    assert fb is not None and fb.seq == k
+                    writes[n0:] = [len(writes) - n0]  # socket writes of this step
+                    out.append((fb.seq, fb.displacement, fb.force, fb.status))
+                assert drv.stats.malformed == 0 and drv.stats.late == 0
+                return out, writes
+        finally:
+            twin.stop()
+
+    a, wa = run(piped)
+    b, wb = run(serial_)
+    assert a == b
+    assert max(abs(d) for _, d, _, _ in a) > 1e-4 and all(s & 0x01 for *_, s in a[4:])
+    assert wa[3:] == [1] * 57  # (steps 0–2 also write the enable actions)
+    assert wb[3:] == [per_step] * 57
+
+
+def test_modbus_pipeline_must_be_a_bool(tmp_path) -> None:
+    p = tmp_path / "bad.toml"
+    p.write_text(MODBUS_MAP.read_text().replace("unit = 1\n", 'unit = 1\npipeline = "yes"\n'))
+    with pytest.raises(InputError, match=r"modbus\.pipeline: must be true or false"):
+        load_profile(p)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from rths_hil.sim_backends.effects import EFFECT_ORDER, EFFECTS, Effect
 from rths_hil.sim_backends.endpoints.base import TwinEndpoint
-from rths_hil.sim_backends.modelfile import load_model, load_plant
+from rths_hil.sim_backends.modelfile import build_plant, load_model, load_plant
 from rths_hil.sim_backends.models import BenchmarkServo, FirstOrderServo, Series, make_model
 from rths_hil.sim_backends.plant import TwinPlant
-from rths_hil.sim_backends.registry import MODELS, TWINS, build_plant, model_class, twin_class
+from rths_hil.sim_backends.registry import MODELS, TWINS, model_class, twin_class
 from rths_hil.sim_backends.twin import default_plant
 
 from rths_hil.diagnose.candidates import _METHODS, CANDIDATES, REFITS, delta_bic

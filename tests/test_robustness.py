@@ -1,4 +1,4 @@
-"""Robustness studies (issue 17): perturbed twins in lockstep, on a real Dask cluster.
+"""Robustness studies: perturbed twins in lockstep, on a real Dask cluster.
 
 The cluster tests start a ``distributed.LocalCluster`` of two worker processes over TCP on
 127.0.0.1 and run short trials (2 s of the NEES-711 example each) through the same code path

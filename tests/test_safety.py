@@ -1,4 +1,4 @@
-"""Safety rules: FEIRule (issue 2), limits, watchdog, sequence, overrun, stuck, NaN, monitor."""
+"""Safety rules: FEIRule, limits, watchdog, sequence, overrun, stuck, NaN, monitor."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Safety events that used to crash or mislead (issue 12): disk full, Ctrl-C during start-up,
+"""Safety events that used to crash or mislead: disk full, Ctrl-C during start-up,
 a receive that ignores its timeout, lockstep results that depended on the machine's speed."""
 
 from __future__ import annotations

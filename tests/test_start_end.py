@@ -26,14 +26,13 @@ import time
 
 import numpy as np
 import pytest
-from _procs import LATCH_LINE, ROOT, ServedTwin, bridge_cmd, toml_table, wait_rows
 from rths_hil.sim_backends.twin import default_plant
 
-from rths_hil.config import load_config
 from rths_hil.errors import InputError
-from rths_hil.hybrid import RTHSLoop
 from rths_hil.hybrid.phases import cosine_ramp, ramp_duration
 from rths_hil.recorder import read_run
+from tests.helpers.loop import run_loop
+from tests.helpers.procs import LATCH_LINE, ROOT, ServedTwin, bridge_cmd, toml_table, wait_rows
 
 MM = 1e-3
 LSB = 1e-7  # CAN/Modbus displacement resolution (m)
@@ -64,11 +63,9 @@ class RecordingPlant:
 
 
 def _run(tmp_path, over, mode="lockstep", name="run"):
-    cfg = load_config(None, [*BASE, *over])
     plant = RecordingPlant(default_plant(delay=0.005, dt=1 / 1024))
-    loop = RTHSLoop(cfg, tmp_path / name, plant=plant, mode=mode)
-    res = loop.run()
-    return loop, res, plant, read_run(tmp_path / name)
+    r = run_loop(tmp_path / name, None, *BASE, *over, plant=plant, mode=mode)
+    return r.loop, r.result, plant, r.run
 
 
 def _twin_last(loop) -> float:

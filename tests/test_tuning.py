@@ -1,4 +1,4 @@
-"""Tuning of the inverse compensation (issue 6): closed forms, the iteration, trials through the
+"""Tuning of the inverse compensation: closed forms, the iteration, trials through the
 loop on twins of known delay and gain, the sweep's zero crossing, and the ``tune`` CLI
 (including the hardware path's refusal without confirmation)."""
 

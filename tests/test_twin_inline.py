@@ -10,29 +10,16 @@ import numpy as np
 import pytest
 from rths_hil.sim_backends.twin import default_plant, start_twin
 
-from rths_hil.config import load_config
 from rths_hil.errors import InputError
-from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import read_run
+from tests.helpers.loop import run_loop
 
 COLUMNS = ("target", "command", "measured", "force", "fei_amplitude", "fei_delay", "kf_delay")
 
 
 def _run(tmp_path, name, inline, *extra):
-    cfg = load_config(
-        None,
-        [
-            "loop.mode=lockstep",
-            "loop.console=0",
-            "loop.duration=4",
-            "output.plot=false",
-            f"twin.inline={'true' if inline else 'false'}",
-            *extra,
-        ],
-    )
-    loop = RTHSLoop(cfg, tmp_path / name)
-    result = loop.run()
-    return loop, result, read_run(tmp_path / name)
+    inline_set = f"twin.inline={'true' if inline else 'false'}"
+    r = run_loop(tmp_path / name, None, "loop.mode=lockstep", "loop.duration=4", inline_set, *extra)
+    return r.loop, r.result, r.run
 
 
 @pytest.mark.parametrize("extra", [(), ("safety.displacement_limit=0.004",)])

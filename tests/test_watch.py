@@ -15,11 +15,11 @@ import time
 
 import numpy as np
 import pytest
-from watch_records import AMPLITUDE, _recorder, columns_for, row_values, write_run
 
 from rths_hil.cli import main
 from rths_hil.recorder import Recorder, header_row_count, read_run
 from rths_hil.watch.source import RunFollower, find_channels, find_writer
+from tests.helpers.watch_records import AMPLITUDE, _recorder, columns_for, row_values, write_run
 
 
 def _one_line(err: str) -> str:

@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
-from watch_records import write_run
 
 from rths_hil.recorder import header_row_count, read_run
 from rths_hil.watch.browser import Browser, chromium_path
+from tests.helpers.watch_records import write_run
 
 FS = 256
 # the run must not stop for reasons this test does not inject (a loaded CI machine is late)

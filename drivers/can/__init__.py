@@ -264,7 +264,7 @@ class CANDriver(Driver):
         self._reader: can.BufferedReader | None = None
         self._hb = 0
 
-    # -- what this driver knows about its links and its twin (drivers.base.Driver) ------------
+    # -- what this driver knows about its links and its twin (rths_hil.drivers.base.Driver) --------
     @classmethod
     def link_key(cls, connection: dict[str, Any]) -> str:
         from rths_hil.linkbudget import can_link_key

@@ -61,12 +61,10 @@ watchdog — which counts time — trips.
 
 Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1–127),
 ``device_profile`` (``cia402`` / ``cia408``), ``interface``, ``channel``, ``bitrate``,
-``bus_options``,
-``counts_per_m``, ``force_object``, ``newtons_per_count``, ``bridge_node_id``,
+``bus_options``, ``counts_per_m``, ``force_object``, ``newtons_per_count``, ``bridge_node_id``,
 ``heartbeat_period``, ``controller_heartbeat``, ``controller_heartbeat_timeout``,
-``device_watchdog``, ``start_tolerance``,
-``sdo_timeout``, ``vendor_id``, ``product_code``, ``configure_pdo`` (documented in
-``docs/canopen.md``).
+``device_watchdog``, ``start_tolerance``, ``sdo_timeout``, ``vendor_id``, ``product_code``,
+``configure_pdo`` (documented in ``docs/canopen.md``).
 """
 
 from __future__ import annotations
@@ -242,6 +240,8 @@ class CANopenBus:
         self.syncs = 0
         self._listening = 0
         self._hb_last = -math.inf
+        #: after an e-stop: the library's periodic heartbeat task (:meth:`hold_heartbeat`)
+        self._hb_task: Any = None
 
     @classmethod
     def join(cls, drv: CANopenDriver) -> CANopenBus:
@@ -286,6 +286,7 @@ class CANopenBus:
                 return
             if self._open.get(self.key) is self:
                 del self._open[self.key]
+        self.release_heartbeat()
         self.rxq = None
         try:
             self.network.disconnect()
@@ -314,7 +315,7 @@ class CANopenBus:
         """Read one frame (waiting up to ``timeout``) and hand it on (:meth:`handle`); False if
         none came."""
         q = self.rxq
-        if q is not None:  # python-can's virtual bus: its receive queue (drivers.can)
+        if q is not None:  # python-can's virtual bus: its receive queue (rths_hil.drivers.can)
             frames = q.queue
             if frames:
                 msg = frames.popleft()
@@ -394,6 +395,33 @@ class CANopenBus:
             if drv._awaiting is not None:
                 drv._synced()
         return True
+
+    def hold_heartbeat(self, msg: can.Message, period: float) -> None:
+        """After an e-stop: the bridge's heartbeat every ``period`` from the library's periodic
+        task (``Network.send_periodic``, python-can's cyclic send) until the bus closes or an
+        axis is armed again (:meth:`release_heartbeat`).
+
+        While the loop runs the heartbeat goes with its steps, so a device's consumer (0x1016)
+        also notices a hung loop. After an e-stop the loop no longer steps, but the bridge is
+        alive and keeps every node operational and latched until it closes them one after the
+        other (each close: NMT stop); without a producer a device closed last would see its
+        consumer time run out and add a heartbeat fault (EMCY 0x8130) the bridge did not have.
+        """
+        if self._hb_task is not None or period <= 0.0 or self.network.bus is None:
+            return
+        try:
+            self._hb_task = self.network.send_periodic(msg.arbitration_id, bytes(msg.data), period)
+        except (*_BUS_ERRORS, RuntimeError) as exc:  # pragma: no cover - bus gone
+            log.warning("canopen: cannot keep the bridge's heartbeat after the e-stop: %s", exc)
+
+    def release_heartbeat(self) -> None:
+        """Stop the heartbeat of :meth:`hold_heartbeat` (the loop's steps produce it again)."""
+        task, self._hb_task = self._hb_task, None
+        if task is not None:
+            try:
+                task.stop()
+            except (*_BUS_ERRORS, RuntimeError):  # pragma: no cover - bus gone
+                pass
 
     def heartbeat(self, msg: can.Message) -> bool:
         """The bridge's heartbeat: one per bus (a second axis asking within 1 ms is served by
@@ -968,8 +996,12 @@ class CANopenDriver(Driver):
         self._latched = True
         step = max(self._last_sent, 0)
         self._rpdo(step, self.profile.estop_word(), self._last_counts)
-        if self._bus is not None:
-            self._bus.sync()  # at once: a synchronous RPDO acts at the next SYNC
+        bus = self._bus
+        if bus is not None:
+            bus.sync()  # at once: a synchronous RPDO acts at the next SYNC
+            self.heartbeat()
+            # the loop stops stepping: the heartbeat goes on until the nodes are closed
+            bus.hold_heartbeat(self._hb_msg, self.heartbeat_period or 0.1)
 
     def heartbeat(self) -> None:
         self._hb_last_sent = time.monotonic()
@@ -984,6 +1016,8 @@ class CANopenDriver(Driver):
         SDO), or ``None`` when it does not answer within ``timeout``.
         """
         p = self.profile
+        if self._bus is not None:
+            self._bus.release_heartbeat()  # a new run: the loop's steps produce it
         self._listen(True)
         try:
             sw = self._sdo_read(*p.status)

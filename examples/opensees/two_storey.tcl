@@ -4,7 +4,7 @@
 #   OpenSees two_storey.tcl
 #
 # SI units (m, N, kg, s). Ground motion: one acceleration per line (m/s²), step 0.01 s, e.g.
-# the bridge's bundled El Centro record written by tests/opensees_site.py:write_accel.
+# the bridge's bundled El Centro record written by tests/helpers/opensees_site.py:write_accel.
 
 wipe
 model basic -ndm 1 -ndf 1

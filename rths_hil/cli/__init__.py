@@ -16,6 +16,7 @@ import re
 import signal
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from .. import __version__
 from ..errors import InputError
@@ -55,7 +56,7 @@ class _Parser(argparse.ArgumentParser):
     def format_usage(self) -> str:
         return plain(super().format_usage())
 
-    def error(self, message: str) -> None:  # pragma: no cover - exercised via CLI tests
+    def error(self, message: str) -> NoReturn:  # pragma: no cover - exercised via CLI tests
         if message.endswith("expected one argument"):
             # "--window -3s": argparse takes a value starting with "-" for an option
             message += " (a value starting with '-' is written as --option=-value)"

@@ -16,6 +16,7 @@ import argparse
 import os
 
 from ..units import parse_time
+from .options import add_config_arguments, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,25 +26,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="measure this computer's wake-up timing and judge it for the loop's rate",
         description=__doc__.splitlines()[0],
     )
-    p.add_argument("config", nargs="?", help="TOML configuration (default: embedded NEES-711)")
+    add_config_arguments(p)
     p.add_argument("--duration", default="10s", help="measurement time (default 10s)")
-    p.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        default=[],
-        help="override a configuration key (repeatable)",
-    )
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
     """Measure and judge; return the exit code."""
     from ..checkhost import facts_lines, host_facts, measure, save_verdict, verdict
-    from ..config import load_config
     from ..errors import InputError
 
-    cfg = load_config(args.config, args.set)
+    cfg = config_from_args(args)
     duration = parse_time(args.duration, "--duration")
     if not 0 < duration <= 3600:
         raise InputError(f"--duration must be in (0, 3600] s, got {args.duration!r}")

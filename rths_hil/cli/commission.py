@@ -21,6 +21,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from .options import add_config_arguments
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``commission`` to the top-level parser."""
@@ -29,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="check each channel's controller: latency, enable, motion, e-stop, watchdog",
         description=__doc__.splitlines()[0],
     )
-    p.add_argument("config", nargs="?", help="TOML configuration (default: embedded NEES-711)")
+    add_config_arguments(p)
     p.add_argument("--yes", action="store_true", help="answer the prompts (twins only)")
     p.add_argument(
         "--confirm-hardware",
@@ -37,13 +39,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="confirm that commissioning may drive real hardware (twin.enabled = false)",
     )
     p.add_argument("--out", metavar="DIR", help="report directory (default commission/<time>)")
-    p.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        default=[],
-        help="override a configuration key (repeatable)",
-    )
     p.set_defaults(func=main)
 
 

@@ -20,9 +20,11 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
-from ..config import load_config, to_toml
+from ..config import to_toml
 from ..units import parse_time
+from .options import add_config_arguments, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -32,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run an RTHS test through a driver (default: NEES-711 setup on a CAN twin)",
         description=__doc__.splitlines()[0],
     )
-    p.add_argument("config", nargs="?", help="TOML configuration (default: embedded NEES-711)")
+    add_config_arguments(p, "loop.fs=2048")
     p.add_argument(
         "--lockstep",
         action="store_true",
@@ -43,13 +45,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--duration", metavar="S", help="simulated time to run, e.g. 10 or 10s (0 = whole record)"
     )
     p.add_argument("--out", metavar="DIR", help="run directory (default: output.dir)")
-    p.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        default=[],
-        help="override a configuration key, e.g. --set loop.fs=2048 (repeatable)",
-    )
     p.add_argument(
         "--show-config",
         action="store_true",
@@ -125,7 +120,7 @@ def main(args: argparse.Namespace) -> int:
     from ..linkbudget import format_loads
     from ..report import LiveLine, format_summary, plot_report, summarize
 
-    cfg = load_config(args.config, args.set)
+    cfg = config_from_args(args)
     if args.show_config:
         sys.stdout.write(to_toml(cfg))
         return 0
@@ -152,7 +147,7 @@ def main(args: argparse.Namespace) -> int:
     watcher = None
     if args.watch:
         watcher = _start_watcher(run_dir, args.watch_port, cfg["loop"]["cpu"])
-    site = loop.structure if hasattr(loop.structure, "paste_lines") else None
+    site: Any = loop.structure if hasattr(loop.structure, "paste_lines") else None
     if not args.quiet:
         span = f"{loop.n_steps / loop.fs:.1f} s"
         drivers = ", ".join(dict.fromkeys(ch.driver_name for ch in loop.plan.channels))
@@ -186,7 +181,7 @@ def main(args: argparse.Namespace) -> int:
         if watcher is not None:
             _stop_watcher(watcher, run_dir)
     del loop  # the run's arrays (ground motion, lateness) are not needed for the summary
-    result.lateness = result.ready = None
+    result.lateness = result.ready = None  # type: ignore[assignment]
     try:
         summary = summarize(run_dir)
         if cfg["output"]["plot"] and not args.no_plot and result.steps > 1:
@@ -199,7 +194,7 @@ def main(args: argparse.Namespace) -> int:
         )
     if not args.quiet and summary is not None:
         print(format_summary(summary))
-    if result.status == "trip":
+    if result.status == "trip" and result.trip is not None:
         t = result.trip
         print(
             f"rths-hil run: e-stop: {t.rule}: {t.reason} at t = {t.time:.4f} s (step {t.step}); "

@@ -3,9 +3,8 @@
 An SDOF structure (linear or Bouc-Wen, CR integration) under a ground motion gives the target
 displacement; the actuator block model (fractional transport delay + gain,
 :class:`rths_hil.sim_backends.delay.DelayGain`) gives the measured one. The record CSV has the
-columns
-``time,target,measured,ground_accel,force`` (s, m, m, m/s², N) and is what ``rths-hil evaluate``
-reads. See ``docs/simulation.md``.
+columns ``time,target,measured,ground_accel,force`` (s, m, m, m/s², N) and is what ``rths-hil
+evaluate`` reads. See ``docs/simulation.md``.
 """
 
 from __future__ import annotations
@@ -88,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ..groundmotion import default_record, resolve
     from ..records import write_record
-    from ..structure import simulate_sdof
+    from ..structure import SDOFResponse, simulate_sdof
 
     fn = _number(args.fn, "fn")
     if fn <= 0:
@@ -127,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
         method=args.method,
         full=True,
     )
+    assert isinstance(resp, SDOFResponse)  # full=True
     measured = DelayGain(delay=delay, gain=gain, dt=1.0 / fs).simulate(resp.x)
     out = Path(args.out)
     if not out.parent.is_dir():

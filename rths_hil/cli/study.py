@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..resources import MAX_TRIALS, check_count, check_memory, max_workers
-from ..units import parse_accel, parse_fraction, parse_range, parse_time
+from ..units import parse_accel, parse_fraction, parse_range, parse_time, positive_number
 
 
 def _check_workers(workers: int) -> None:
@@ -213,16 +213,6 @@ def _no_study(parser: argparse.ArgumentParser) -> int:
     return 2
 
 
-def _positive(text: str, what: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise InputError(f"{what}: not a number: {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise InputError(f"{what} must be > 0, got {text!r}")
-    return v
-
-
 def _fns(text: str) -> list[float]:
     fns = parse_range(text, "--fn")
     if not fns:
@@ -246,10 +236,10 @@ def _common(args: argparse.Namespace) -> dict:
     _check_workers(args.workers)
     return {
         "zeta": zeta,
-        "gain": _positive(args.gain, "--gain"),
+        "gain": positive_number(args.gain, "--gain"),
         "delay": delay,
         "min_level": min_level,
-        "fs": _positive(args.fs, "--fs"),
+        "fs": positive_number(args.fs, "--fs"),
         "pga": None if args.pga is None else parse_accel(args.pga, "--pga"),
     }
 
@@ -290,7 +280,7 @@ def run_window_size(args: argparse.Namespace) -> int:
         statistic=args.statistic,
         min_level=c["min_level"],
     )
-    max_periods = _positive(args.max_periods, "--max-periods")
+    max_periods = positive_number(args.max_periods, "--max-periods")
     if max_periods < 1:
         raise InputError(f"--max-periods must be ≥ 1, got {args.max_periods}")
     for f in fns:
@@ -344,7 +334,7 @@ def run_accuracy(args: argparse.Namespace) -> int:
     fns = _fns(args.fn)
     m = _WINDOW_T.match(args.window)
     if m:
-        periods = _positive(m.group(1), "--window")
+        periods = positive_number(m.group(1), "--window")
         window_s = None
     else:
         periods = None

@@ -22,13 +22,14 @@ stopped by a safety rule, 130 operator stop.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
 
 from ..errors import InputError
+from ..formats import json_text
 from ..units import parse_fraction, parse_range, parse_time
+from .options import add_config_arguments, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,14 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="tune inverse compensation (α, amplitude factor) from trial tests or an α sweep",
         description=__doc__.splitlines()[0],
     )
-    p.add_argument("config", nargs="?", help="TOML configuration (default: embedded NEES-711)")
-    p.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        default=[],
-        help="override a configuration key, e.g. --set compensation.alpha=15 (repeatable)",
-    )
+    add_config_arguments(p, "compensation.alpha=15")
     p.add_argument(
         "--tolerance-delay", default="1ms", metavar="T", help="tolerance on |d| (default 1ms)"
     )
@@ -130,7 +124,6 @@ def _confirm(n_trials: int, pga: float, scale: float, cfg, flag: bool) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run the tuning (or the sweep); return the exit code."""
-    from ..config import load_config
     from ..hybrid import new_run_dir
     from ..tuning import (
         LoopTrials,
@@ -143,7 +136,7 @@ def main(args: argparse.Namespace) -> int:
         write_tuned_config,
     )
 
-    cfg = load_config(args.config, args.set)
+    cfg = config_from_args(args)
     tol_d = parse_time(args.tolerance_delay, "--tolerance-delay")
     tol_a = parse_fraction(args.tolerance_amplitude, "--tolerance-amplitude")
     if not (math.isfinite(tol_d) and tol_d > 0):
@@ -243,7 +236,7 @@ def main(args: argparse.Namespace) -> int:
             )
         if not args.no_plot:
             plot_sweep(res, out / "sweep.png", tol_d, tol_a)
-        (out / "summary.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+        (out / "summary.json").write_text(json_text(summary), encoding="utf-8")
         if res.found:
             print(
                 f"recommended α = {res.alpha:.2f} (zero crossing of d(α)), amplitude factor "
@@ -279,7 +272,7 @@ def main(args: argparse.Namespace) -> int:
         )
     if not args.no_plot and res.trials:
         plot_tuning(res, out / "tuning.png")
-    (out / "summary.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+    (out / "summary.json").write_text(json_text(summary), encoding="utf-8")
     if not quiet:
         print(f"rths-hil tune: {res.reason}", file=sys.stderr)
     if res.best:
@@ -307,7 +300,7 @@ def _parallel_sweep(runner, grid: list[float], factor: float, scheduler: str, on
     import copy
 
     from ..studies import open_executor
-    from ..tuning import sweep
+    from ..tuning import Trial, sweep
 
     remote = copy.copy(runner)
     remote.on_trial = None  # printing happens here, not on the workers
@@ -315,7 +308,7 @@ def _parallel_sweep(runner, grid: list[float], factor: float, scheduler: str, on
     with open_executor(scheduler, 2) as ex:
         futures = {i: ex.submit(remote, a, factor, i) for i, a in enumerate(grid, 1)}
 
-        def run_trial(alpha: float, fac: float, index: int):
+        def run_trial(alpha: float, factor: float, index: int) -> Trial:
             trial = futures[index].result()
             on_trial(trial)
             return trial

@@ -26,10 +26,13 @@ import os
 import signal
 import sys
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import InputError
 from ..units import parse_length, parse_time
+
+if TYPE_CHECKING:
+    from rths_hil.sim_backends.endpoints.base import TwinEndpoint
 
 DEFAULT_DT = 1.0 / 1024.0
 
@@ -97,7 +100,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _endpoint(args: argparse.Namespace) -> type:
+def _endpoint(args: argparse.Namespace) -> type[TwinEndpoint]:
     """The twin endpoint class of ``--driver`` (built-in or from an entry point)."""
     from rths_hil.sim_backends.registry import twin_class
 
@@ -151,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
 
     def plant():
         if args.model:
-            from rths_hil.sim_backends.registry import build_plant
+            from rths_hil.sim_backends.modelfile import build_plant
 
             return build_plant(args.model, dt)
         return default_plant(dt=dt)
@@ -159,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
     hb = parse_time(args.heartbeat_timeout, "--heartbeat-timeout")
     if not hb >= 0:
         raise InputError(f"--heartbeat-timeout {args.heartbeat_timeout}: must be >= 0 s")
-    hb = hb or None
+    heartbeat_timeout: float | None = hb or None
     home = parse_length(args.initial_position, "--initial-position")
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -176,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
                     args.driver,
                     plant(),
                     faults=Faults.parse(args.faults) if args.faults else None,
-                    heartbeat_timeout=hb,
+                    heartbeat_timeout=heartbeat_timeout,
                     initial_position=home,
                     **conn,
                 )

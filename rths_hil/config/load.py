@@ -11,7 +11,8 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from ..errors import InputError, check_regular_file
+from ..errors import InputError
+from ..formats import read_toml
 from .checks import cross_check
 from .coerce import coerce, describe, unknown_key
 from .model import Config, default_config
@@ -271,17 +272,7 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
     cfg = default_config()
     if path is not None:
         p = Path(path)
-        check_regular_file(p, "a configuration", max_bytes=MAX_CONFIG_BYTES)
-        try:
-            text = p.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise InputError(f"{path}: cannot read config ({exc.strerror})") from None
-        except UnicodeDecodeError:
-            raise InputError(f"{path}: not a UTF-8 text file") from None
-        try:
-            data = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise InputError(f"{path}: TOML syntax error: {exc}") from None
+        data = read_toml(p, "config", str(path), max_bytes=MAX_CONFIG_BYTES)
         cfg.source = str(path)
         cfg.base_dir = p.resolve().parent
         merge(cfg, data, str(path))

@@ -40,13 +40,6 @@ class Config(dict):
     source: str = "<embedded default>"
     base_dir: Path = Path(".")
 
-    def get_path(self, dotted: str) -> Any:
-        """Value of ``section.key`` (or deeper into a table)."""
-        node: Any = self
-        for part in dotted.split("."):
-            node = node[part]
-        return node
-
     @property
     def window_s(self) -> float:
         """The FEI window in seconds (natural periods resolved with ``structure.fn``)."""
@@ -66,7 +59,7 @@ class Config(dict):
         """The test's channels, each with its sections resolved (see :func:`resolve_channel`).
 
         No ``[[actuators]]`` entry: one unnamed channel on DOF 1 with the top-level sections
-        (today's single-actuator test).
+        (the single-actuator test).
         """
         entries = self.get("actuators") or [{"name": ""}]
         return [resolve_channel(self, e) for e in entries]

@@ -2,33 +2,13 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import Any
 
-import tomli_w
-
+from ..formats import toml_value
 from .schema import CHANNEL_KEYS, CHANNEL_SECTIONS, SCHEMA
 
 __all__ = ["schema_markdown", "to_toml", "toml_value"]
-
-
-def _toml_key(k: str) -> str:
-    """``k`` as a TOML key: bare when it may be, else quoted by ``tomli_w``."""
-    return tomli_w.dumps({k: 0}).rstrip("\n").rsplit(" = ", 1)[0]
-
-
-def toml_value(v: Any) -> str:
-    """One value as TOML text, written by ``tomli_w`` (strings with newlines, quotes or control
-    characters escaped as TOML requires; tables inline, as the one-key-a-line layout needs)."""
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{_toml_key(str(k))} = {toml_value(x)}" for k, x in v.items()) + "}"
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(toml_value(x) for x in v) + "]"
-    if isinstance(v, float) and math.isnan(v):
-        return "nan"
-    text = tomli_w.dumps({"v": v})  # 'v = <value>\n'
-    return text[len("v = ") :].rstrip("\n")
 
 
 def to_toml(cfg: Mapping[str, Mapping[str, Any]], comments: bool = True) -> str:

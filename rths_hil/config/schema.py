@@ -451,7 +451,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "str",
             "",
             unit="-",
-            doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' (sim_backends.faults)",
+            doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' "
+            "(rths_hil.sim_backends.faults)",
         ),
         "initial_position": Key(
             "float",

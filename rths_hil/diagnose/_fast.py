@@ -3,28 +3,19 @@
 The diagnosis simulates candidate effects hundreds of times per record, so:
 
 * ``velocity_limit`` — :class:`rths_hil.sim_backends.effects.VelocityLimit` has no closed form and
-its
-  vectorised path loops in Python over every stretch where the limit is active (most of the
-  record for the small limits a fit tries); here the same recursion is compiled with numba,
-  with the same comparisons in the same order as its ``step``: equal bit for bit.
+  its vectorised path loops in Python over every stretch where the limit is active (most of the
+  record for the small limits a fit tries); here the same recursion is compiled with numba, with the
+  same comparisons in the same order as its ``step``: equal bit for bit.
 * ``backlash`` — the catalogue's exact prefix scan costs a dozen numpy passes; the plain
   recursion ``y[k] = clip(y[k-1], x[k] − w/2, x[k] + w/2)`` compiled is one, with the same
   min/max: equal bit for bit.
-* ``servo_lag`` and ``force_feedback`` — the catalogue discretises ``K/(T s + 1)`` with a
-  first-order hold through :func:`scipy.signal.cont2discrete` (a matrix exponential per
-  construction); its closed form is, with ``p = exp(−dt/T)`` and ``c = (T/dt)(1 − p)``,
-  ``H(z) = K (b0 + b1 z⁻¹)/(1 − p z⁻¹)``, ``b0 = 1 − c``, ``b1 = c − p`` (from
-  ``H(z) = (z − 1)²/(z dt) · Z{G(s)/s²}``), equal to the catalogue's to round-off.
-
-* ``time_varying_delay`` — the catalogue gathers 4 Lagrange taps per sample with numpy
-  (a dozen temporary arrays); compiled, the same formula (``τ[k] = D + a·sin(2πk dt/P)`` in
-  samples, ``n0 = max(⌊τ⌋ − 1, 0)``, taps of :func:`rths_hil.sim_backends.delay.lagrange_taps`) is
-  one
+* ``time_varying_delay`` — the catalogue gathers 4 Lagrange taps per sample with numpy (a dozen
+  temporary arrays); compiled, the same formula (``τ[k] = D + a·sin(2πk dt/P)`` in samples,
+  ``n0 = max(⌊τ⌋ − 1, 0)``, taps of :func:`rths_hil.sim_backends.delay.lagrange_weights`) is one
   pass, equal to round-off.
-* the transport delay — :func:`rths_hil.sim_backends.delay.fractional_delay` runs its FIR (``n0``
-zeros
-  and 4 Lagrange taps) through :func:`scipy.signal.lfilter`; here the shift is a slice and the 4
-  taps are 4 vector operations (equal to round-off).
+
+``servo_lag``, ``force_feedback`` (:func:`first_order`) and the transport delay
+(:func:`rths_hil.sim_backends.delay.fractional_delay`) use the catalogue's own filters.
 
 Every other effect goes through the catalogue itself.
 """
@@ -37,8 +28,9 @@ import numba
 import numpy as np
 from scipy.signal import lfilter
 
-from rths_hil.sim_backends.delay import lagrange_taps
+from rths_hil.sim_backends.delay import fractional_delay, lagrange_weights_jit
 from rths_hil.sim_backends.effects import make_effect, validate_params
+from rths_hil.sim_backends.first_order import first_order_coeffs
 from rths_hil.sim_backends.modelfile import EffectSpec
 
 __all__ = [
@@ -90,13 +82,7 @@ def _tvd(x: np.ndarray, d0: float, d1: float, w: float) -> np.ndarray:  # pragma
     for k in range(n):
         d = d0 + d1 * math.sin(w * k)
         n0 = max(math.floor(d) - 1.0, 0.0)
-        f = d - n0
-        f1 = f - 1.0
-        f2 = f - 2.0
-        f3 = f - 3.0
-        f12 = f1 * f2
-        f03 = f * f3
-        taps = (-f12 * f3 / 6.0, f03 * f2 / 2.0, -f03 * f1 / 2.0, f * f12 / 6.0)
+        taps = lagrange_weights_jit(d - n0)
         i = k - int(n0)
         acc = 0.0
         for j in range(4):
@@ -131,28 +117,12 @@ def velocity_limit(x: np.ndarray, limit: float, dt: float) -> np.ndarray:
     return _velocity_limit(np.ascontiguousarray(x, dtype=float), float(limit * dt))
 
 
-def fractional_delay(x: np.ndarray, delay_s: float, fs: float) -> np.ndarray:
-    """``x`` delayed by ``delay_s`` (Lagrange, as
-    :func:`rths_hil.sim_backends.delay.fractional_delay`).
-    """
-    x = np.asarray(x, dtype=float)
-    n = x.shape[0]
-    n0, taps = lagrange_taps(delay_s * fs)
-    out = np.zeros(n)
-    for j, h in enumerate(taps.tolist()):
-        s = n0 + j
-        if s < n and h != 0.0:
-            out[s:] += h * x[: n - s]
-    return out
-
-
 def first_order(x: np.ndarray, gain: float, time_constant: float, dt: float) -> np.ndarray:
-    """``gain/(T s + 1)`` with a first-order hold, from rest (closed-form coefficients)."""
+    """``gain/(T s + 1)`` with a first-order hold, from rest (:func:`first_order_coeffs`)."""
     if time_constant <= 0:
         return gain * np.asarray(x, dtype=float)
-    p = math.exp(-dt / time_constant)
-    c = (time_constant / dt) * -math.expm1(-dt / time_constant)
-    return lfilter([gain * (1.0 - c), gain * (c - p)], [1.0, -p], np.asarray(x, dtype=float))
+    b, a = first_order_coeffs(gain, time_constant, dt)
+    return lfilter(b, a, np.asarray(x, dtype=float))
 
 
 def simulate_effect(kind: str, params: dict[str, float], x: np.ndarray, dt: float) -> np.ndarray:

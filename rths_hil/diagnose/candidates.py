@@ -1,11 +1,10 @@
 """Candidate explanations of a discrepancy: each catalogue effect, a delay and a gain re-fit.
 
-Every candidate is the current model with one change, fitted to the record by least squares
-(the sum of squared residuals ``RSS = Σ (measured − predicted)²``). A new catalogue effect is
-inserted at its place in the physical chain (each effect class's ``CHAIN``,
-:data:`rths_hil.sim_backends.effects.EFFECT_ORDER`: actuator dynamics, valve flow limit, stops,
-play of
-the load train, then the transducer's zero and drift); ``delay`` and ``gain`` re-fit the
+Every candidate is the current model with one change, fitted to the record by least squares (the sum
+of squared residuals ``RSS = Σ (measured − predicted)²``). A new catalogue effect is inserted at its
+place in the physical chain (each effect class's ``CHAIN``,
+:data:`rths_hil.sim_backends.effects.EFFECT_ORDER`: actuator dynamics, valve flow limit, stops, play
+of the load train, then the transducer's zero and drift); ``delay`` and ``gain`` re-fit the
 actuator's own parameters.
 
 What to fit and over which range is on each effect's class
@@ -297,7 +296,7 @@ def specimen_from_record(data: Data, spec: ModelSpec) -> tuple[float, float, str
         sos = signal.butter(4, min(20.0, 0.4 * data.fs), fs=data.fs, output="sos")
         y = signal.sosfiltfilt(sos, data.measured)
         f = signal.sosfiltfilt(sos, data.force)
-        # backward difference, as the twin's Kelvin-Voigt specimen (sim_backends.specimen)
+        # backward difference, as the twin's Kelvin-Voigt specimen (rths_hil.sim_backends.specimen)
         v = np.concatenate([[0.0], np.diff(y)]) / data.dt
         a = np.column_stack([y, v, np.ones(data.n)])
         (k_s, c_s, _), *_ = np.linalg.lstsq(a, f, rcond=None)

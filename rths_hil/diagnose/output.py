@@ -2,37 +2,17 @@
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from rths_hil.sim_backends.modelfile import dump_model
 
 from ..errors import InputError
+from ..formats import json_text
 from .workflow import Diagnosis
 
 __all__ = ["plot_diagnosis", "summary_lines", "write_outputs"]
-
-
-def _clean(value: Any) -> Any:
-    """JSON-safe copy: numpy scalars to Python, non-finite floats to None."""
-    if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_clean(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return [_clean(v) for v in value.tolist()]
-    if isinstance(value, np.bool_ | bool):
-        return bool(value)
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, float | np.floating):
-        v = float(value)
-        return v if math.isfinite(v) else None
-    return value
 
 
 def _fmt_params(params: dict[str, float]) -> str:
@@ -238,7 +218,7 @@ def write_outputs(
         report["plot"] = str(paths["plot"])
     paths["report"] = out / "report.json"
     try:
-        paths["report"].write_text(json.dumps(_clean(report), indent=2) + "\n", encoding="utf-8")
+        paths["report"].write_text(json_text(report), encoding="utf-8")
     except OSError as exc:
         raise InputError(f"{paths['report']}: cannot write ({exc.strerror})") from None
     return paths

@@ -1,14 +1,12 @@
 """Records with hidden effects, for testing the diagnosis workflow and measuring its confusion.
 
 A case is an RTHS-like record: the command is the displacement response of a linear SDOF structure
-(the FEI paper's Section 4: 2-5 % damping, CR integration,
-:func:`rths_hil.structure.simulate_sdof`) to the strong-motion part of a bundled ground motion; the
-measured displacement and force come from a twin (:class:`rths_hil.sim_backends.plant.TwinPlant`)
-whose
-actuator is the FEI paper's delay + gain block (Fig. 4.1) followed by one or more *hidden*
-catalogue effects of random size drawn from :data:`rths_hil.sim_backends.effects.EFFECT_RANGES`, a
-Kelvin-Voigt specimen and sensor noise. The diagnosis receives only the record and the *base* model
-(the twin without the hidden effects).
+(the FEI paper's Section 4: 2-5 % damping, CR integration, :func:`rths_hil.structure.simulate_sdof`)
+to the strong-motion part of a bundled ground motion; the measured displacement and force come from
+a twin (:class:`rths_hil.sim_backends.plant.TwinPlant`) whose actuator is the FEI paper's delay +
+gain block (Fig. 4.1) followed by one or more *hidden* catalogue effects of random size drawn from
+:data:`rths_hil.sim_backends.effects.EFFECT_RANGES`, a Kelvin-Voigt specimen and sensor noise. The
+diagnosis receives only the record and the *base* model (the twin without the hidden effects).
 
 Two effects are only visible when the drive reaches them, so the drive is scaled to reach them
 (an unreached limit leaves no trace in the record and the right answer is then ``none``):

@@ -133,6 +133,18 @@ class Gap:
         }
 
 
+def _gaps(before: Gap, after: Gap) -> dict[str, Any]:
+    """The twin-vs-measurement gap before and after (J2, J3 and the FEI) for ``report.json``."""
+    return {
+        "gap_before": before.j2,
+        "gap_after": after.j2,
+        "j3_before": before.j3,
+        "j3_after": after.j3,
+        "fei_before": {"amplitude": before.fei_amplitude, "delay_s": before.fei_delay},
+        "fei_after": {"amplitude": after.fei_amplitude, "delay_s": after.fei_delay},
+    }
+
+
 @dataclass
 class Step:
     """One named effect (or re-fit) and what it changed.
@@ -182,15 +194,7 @@ class Step:
             "delta_bic": self.delta_bic,
             "alternatives": self.alternatives,
             "where": self.where,
-            "gap_before": self.before.j2,
-            "gap_after": self.after.j2,
-            "j3_before": self.before.j3,
-            "j3_after": self.after.j3,
-            "fei_before": {
-                "amplitude": self.before.fei_amplitude,
-                "delay_s": self.before.fei_delay,
-            },
-            "fei_after": {"amplitude": self.after.fei_amplitude, "delay_s": self.after.fei_delay},
+            **_gaps(self.before, self.after),
             "candidates": self.candidates,
         }
 
@@ -260,15 +264,7 @@ class Diagnosis:
         return {
             "answer": self.answer,
             "effects": [s.to_json() for s in self.steps],
-            "gap_before": self.before.j2,
-            "gap_after": self.after.j2,
-            "j3_before": self.before.j3,
-            "j3_after": self.after.j3,
-            "fei_before": {
-                "amplitude": self.before.fei_amplitude,
-                "delay_s": self.before.fei_delay,
-            },
-            "fei_after": {"amplitude": self.after.fei_amplitude, "delay_s": self.after.fei_delay},
+            **_gaps(self.before, self.after),
             "model": model_path,
             "base_model": self.base_source,
             "criterion": {
@@ -668,10 +664,9 @@ def diagnose(
         Measured specimen force (N): localisation by force and the ``force_feedback``
         candidate's specimen.
     model : ModelSpec, optional
-        The base model (a model file, :func:`rths_hil.sim_backends.modelfile.load_model`). Default:
-        a
-        delay + gain model fitted to the record (:func:`rths_hil.estimation.calibrate`, no
-        offset, so that an offset stays a candidate); its delay and gain are then nuisance
+        The base model (a model file, :func:`rths_hil.sim_backends.modelfile.load_model`).
+        Default: a delay + gain model fitted to the record (:func:`rths_hil.estimation.calibrate`,
+        no offset, so that an offset stays a candidate); its delay and gain are then nuisance
         parameters, re-fitted with every candidate.
     max_effects : int
         Stop after this many named effects.

@@ -487,7 +487,7 @@ def moving_fei(
         Window length t_w (s); ``N = round(window_s · fs)`` samples (after decimation:
         ``round(window_s · fs / decimate)``).
     hop : int
-        Samples (of the decimated signal) between consecutive window ends. ``hop = 1`` is the
+        Samples (of the decimated signal) between consecutive window ends. ``hop = 1`` is
         the FEI paper's MWO with ``OL = N − 1`` (the FEI paper's Eq. 7); ``hop = N`` gives MW
         without overlap.
     method : {"exact", "streaming"}

@@ -100,10 +100,10 @@ def choose_plant(cfg: Config, dt: float):
     """The twin's plant of a channel (``cfg`` is the channel's resolved configuration).
 
     ``twin.model`` (a model file) or the ``twin.actuator`` / ``specimen`` / ``sensor`` tables,
-    built by the twin registry (:func:`rths_hil.sim_backends.registry.build_plant`). This is the one
-    place the loop chooses a twin.
+    built by :func:`rths_hil.sim_backends.modelfile.build_plant`. This is the one place the loop
+    chooses a twin.
     """
-    from rths_hil.sim_backends.registry import build_plant
+    from rths_hil.sim_backends.modelfile import build_plant
 
     tw = cfg["twin"]
     try:

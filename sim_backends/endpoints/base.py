@@ -28,7 +28,7 @@ real-time loop relies on):
   initial position holds still, commanding 0 moves the actuator there through its dynamics.
 
 :class:`TwinEndpoint` runs the protocol side in a daemon thread and applies the frame faults of a
-:class:`~sim_backends.faults.Faults` plan.
+:class:`~rths_hil.sim_backends.faults.Faults` plan.
 """
 
 from __future__ import annotations
@@ -49,6 +49,7 @@ from rths_hil.errors import InputError
 
 from ..base import Plant
 from ..faults import Faults
+from ..registry import twin_class
 
 log = logging.getLogger(__name__)
 
@@ -240,7 +241,7 @@ class TwinController:
         return (0, self.displacement, self.force, status)
 
     def status(self) -> int:
-        """Current :class:`~drivers.base.Status` flags (without per-sample flags)."""
+        """Current :class:`~rths_hil.drivers.base.Status` flags (without per-sample flags)."""
         s = _ENABLED if self.enabled else 0  # plain ints: an IntFlag "|" builds an enum member
         if self.estop_latched:
             s |= _ESTOP_ACTIVE
@@ -348,8 +349,6 @@ class TwinEndpoint(ABC):
         Default: ``--transport`` among :attr:`transports` (the registry's entry for a built-in
         twin) and, for ``tcp``, ``--host``, ``--port`` and ``--allow-remote``.
         """
-        from ..registry import twin_class
-
         _, entry = twin_class(args.driver)
         conn: dict[str, Any] = {}
         allowed = entry.transports

@@ -20,14 +20,14 @@ all.
 
 **As its own process** (``rths-hil twin serve --driver can --interface serial`` or ``slcan``):
 python-can's serial-line interfaces over a virtual null-modem cable of two pseudo-terminals
-(:class:`~sim_backends.endpoints.nullmodem.NullModem`). The twin opens one end with python-can and
-hands the bridge the other (``connection = {"interface": "serial", "channel": "/dev/pts/N"}``);
-both sides use python-can's framing, and nothing leaves the machine. ``slcan`` is the ASCII
-protocol of USB–CAN adapters (Lawicel, CANable): 22 characters per 8-byte frame, parsed by
+(:class:`~rths_hil.sim_backends.endpoints.nullmodem.NullModem`). The twin opens one end with
+python-can and hands the bridge the other (``connection = {"interface": "serial", "channel":
+"/dev/pts/N"}``); both sides use python-can's framing, and nothing leaves the machine. ``slcan`` is
+the ASCII protocol of USB–CAN adapters (Lawicel, CANable): 22 characters per 8-byte frame, parsed by
 python-can one byte at a time (≈ 0.8 ms round trip here, enough for paced runs up to ≈ 512 Hz);
-``serial`` is python-can's binary framing (19 bytes per frame, ≈ 0.3 ms round trip: paced
-1024 Hz). ``channel="pty"`` (their default) asks for the cable; any other channel is a serial
-device opened as it is.
+``serial`` is python-can's binary framing (19 bytes per frame, ≈ 0.3 ms round trip: paced 1024 Hz).
+``channel="pty"`` (their default) asks for the cable; any other channel is a serial device opened as
+it is.
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ from rths_hil.drivers.can.codec import Frame, load
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
+from .can_profile import CANProfileTwin
 from .nullmodem import NullModem
 
 log = logging.getLogger(__name__)
@@ -50,7 +51,7 @@ log = logging.getLogger(__name__)
 __all__ = ["PTY_CHANNEL", "PTY_INTERFACES", "CANTwin"]
 
 #: ``channel`` of a twin on a serial-line interface that asks for a new null-modem pair of
-#: pseudo-terminals (:class:`~sim_backends.endpoints.nullmodem.NullModem`).
+#: pseudo-terminals (:class:`~rths_hil.sim_backends.endpoints.nullmodem.NullModem`).
 PTY_CHANNEL = "pty"
 #: python-can interfaces over a serial line that the twin serves on a null-modem cable, with
 #: the python-can options of the bridge's end and of the twin's end. ``slcan`` waits 2 s after
@@ -76,8 +77,6 @@ class CANTwin(TwinEndpoint):
     @classmethod
     def profile_twin(cls) -> type[TwinEndpoint]:
         """A lab's own DBC: :class:`~.can_profile.CANProfileTwin`."""
-        from .can_profile import CANProfileTwin
-
         return CANProfileTwin
 
     @classmethod
@@ -90,7 +89,7 @@ class CANTwin(TwinEndpoint):
                 "--interface virtual: python-can's virtual bus only reaches buses inside the same "
                 "process; use --interface serial or slcan (a pseudo-terminal pair on this "
                 "machine), --interface socketcan --channel vcan0 (or the lab's interface), or "
-                "start the twin in-process with sim_backends.twin.start_twin"
+                "start the twin in-process with rths_hil.sim_backends.twin.start_twin"
             )
         channel = args.channel
         if channel is None:

@@ -99,7 +99,7 @@ class CANopenTwin(TwinEndpoint):
             raise InputError(
                 "--interface virtual: python-can's virtual bus only reaches buses inside the same "
                 "process; use --interface socketcan --channel vcan0 (or the lab's interface), or "
-                "start the twin in-process with sim_backends.twin.start_twin"
+                "start the twin in-process with rths_hil.sim_backends.twin.start_twin"
             )
         conn: dict[str, Any] = {"interface": args.interface, "channel": args.channel or "vcan0"}
         if args.bitrate is not None:

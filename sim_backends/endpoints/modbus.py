@@ -40,6 +40,7 @@ import time
 import tty
 from typing import Any, ClassVar
 
+import serial
 from pymodbus.constants import ExcCodes
 from pymodbus.framer import FramerRTU, FramerSocket
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
@@ -62,6 +63,7 @@ from rths_hil.errors import InputError
 
 from ..faults import Faults
 from .base import TwinController, TwinEndpoint, listen
+from .modbus_profile import ModbusProfileTwin
 
 __all__ = ["ModbusServer", "ModbusTwin"]
 
@@ -155,8 +157,6 @@ class ModbusServer:
             self.slave = slave
             self.conns = [_Conn(master)]
             return
-        import serial
-
         try:
             self.serial = serial.serial_for_url(device, baudrate=baudrate, timeout=0)
         except (serial.SerialException, OSError, ValueError) as exc:
@@ -321,8 +321,6 @@ class ModbusTwin(TwinEndpoint):
     @classmethod
     def profile_twin(cls) -> type[TwinEndpoint]:
         """A lab's own register map: :class:`~.modbus_profile.ModbusProfileTwin`."""
-        from .modbus_profile import ModbusProfileTwin
-
         return ModbusProfileTwin
 
     @classmethod

@@ -17,6 +17,7 @@ import tty
 from typing import Any
 
 from rths_hil.drivers.serial import (
+    _CRC,
     COMMAND,
     ESTOP_KEY,
     FEEDBACK,
@@ -24,6 +25,8 @@ from rths_hil.drivers.serial import (
     T_ESTOP,
     T_FEEDBACK,
     T_HEARTBEAT,
+    _cobs_encode,
+    _crc,
     decode_frame,
 )
 from rths_hil.drivers.serial import encode_frame as _encode_frame
@@ -159,8 +162,6 @@ class SerialTwin(TwinEndpoint):
         # Flip a bit inside the CRC-protected body, keeping the COBS structure intact.
         body, _ = decode_frame(frame[:-1])
         assert body is not None
-        from rths_hil.drivers.serial import _CRC, _cobs_encode, _crc
-
         raw = body + _CRC.pack(_crc(body, 0xFFFF))
         return _cobs_encode(Faults.flip_bit(raw, 8, 0)) + b"\x00"
 

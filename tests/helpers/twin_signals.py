@@ -15,7 +15,7 @@ from scipy import signal
 
 FS = 1024.0
 G = 9.80665
-DATA = Path(__file__).resolve().parents[1] / "rths_hil" / "data" / "ground_motions"
+DATA = Path(__file__).resolve().parents[2] / "rths_hil" / "data" / "ground_motions"
 
 
 @functools.lru_cache(maxsize=16)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from rths_hil.recorder import header_row_count
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 LATCH_LINE = "e-stop latched"
 
 

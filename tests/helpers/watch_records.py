@@ -1,6 +1,6 @@
 """Synthetic run directories written through the real :class:`rths_hil.recorder.Recorder`.
 
-A single-channel record has today's columns (:data:`rths_hil.recorder.COLUMNS`); a
+A single-channel record has the columns (:data:`rths_hil.recorder.COLUMNS`); a
 multi-channel record suffixes each per-channel column with ``_<channel>`` and adds ``u_1 …
 u_n`` (the layout of multi-actuator tests). The signals are known sines, so a test can check
 what the watcher reads and shows against what was written.
@@ -23,7 +23,7 @@ AMPLITUDE = {"": 0.004, "left": 0.004, "right": 0.002}
 
 
 def columns_for(channels: list[str], n_dof: int = 1) -> list[tuple[str, str, str, str]]:
-    """Record columns for ``channels`` (``[""]``: today's single-channel columns)."""
+    """Record columns for ``channels`` (``[""]``: the single-channel columns)."""
     if channels == [""]:
         return list(COLUMNS)
     per = [c for c in COLUMNS if c[0] in CHANNEL_COLUMNS and c[0] != "seq"]

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "opensees" / "two_storey.py"
 SITE = ROOT / "examples" / "opensees" / "site.toml"
 SITE_RT = ROOT / "examples" / "opensees" / "site_realtime.toml"
