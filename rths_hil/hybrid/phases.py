@@ -503,7 +503,7 @@ class Phases:
                 v = (c - sent[j]) / dt
                 trip = ch.monitor.check_command(t, k, c - off, v, c - off)
                 if trip is not None:
-                    return runner.safety._fire(trip, ch, t, k), meas_abs
+                    return runner.safety.fire(trip, ch, t, k), meas_abs
                 send(seq0 + i, c, True)
                 sent[j] = c
             for j, (ch, (_, recv), p, off) in enumerate(links):
@@ -521,7 +521,7 @@ class Phases:
                         fb.displacement - off, fb.force,
                     )  # fmt: skip
                 if trip is not None:
-                    return runner.safety._fire(trip, ch, t, k), meas_abs
+                    return runner.safety.fire(trip, ch, t, k), meas_abs
             if hb and i % hb == 0:
                 for ch in chans:
                     ch.heartbeat()

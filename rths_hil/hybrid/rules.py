@@ -33,8 +33,8 @@ class Safety:
             self._ch = channels[0]
             self._check_feedback = channels[0].monitor.check_feedback
             self._check_command = channels[0].monitor.check_command
-            self.feedback = self._feedback_one
-            self.command = self._command_one
+            self.feedback = self._feedback_one  # type: ignore[method-assign]
+            self.command = self._command_one  # type: ignore[method-assign]
 
     def _feedback_one(self, t: float, k: int) -> Trip | None:
         ch = self._ch
