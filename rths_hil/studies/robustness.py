@@ -490,7 +490,7 @@ def reference_response(cfg, n: int | None = None) -> np.ndarray:
     the twin would measure without noise) through an actuator that achieves every command
     exactly and no compensation: what the hybrid test would give with perfect tracking, the
     ``x_r`` of Silva et al. (2020) Eqs. 15 and 18 for an SDOF structure. Equal to a lockstep
-    run of :func:`rths_hil.hybrid.run` with such a plant (``tests/test_robustness.py``).
+    run of :func:`rths_hil.hybrid.run` with such a plant (``tests/studies/test_robustness.py``).
 
     Parameters
     ----------

@@ -4,7 +4,7 @@ Decimation that never moves a point (:func:`stride`, :func:`block_max`, :func:`e
 spans where a channel's FEI is invalid (:class:`InvalidSpans`), the share of each safety limit in
 use (:class:`LimitShares`), the value-axis rule (:func:`fit_range`) and the configuration a
 channel ran with (:func:`channel_config`). The figures (:mod:`rths_hil.watch.figures`) draw
-what these return; ``tests/test_watch_shaping.py`` checks them against direct computations.
+what these return; ``tests/watch/test_watch_shaping.py`` checks them against direct computations.
 """
 
 from __future__ import annotations

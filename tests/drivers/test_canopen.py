@@ -1,0 +1,412 @@
+"""CANopen driver and twin (CiA 402 / CiA 408 through the ``canopen`` library, virtual bus).
+
+The twin is a ``canopen`` LocalNode with the shipped EDS; the driver a RemoteNode. Checked: the
+SDO identity check at start-up (pass and each refusal in one line), the device FSA walked by the
+driver as the twin reports it (status words and the bridge's flags), a lockstep run that tracks
+(FEI amplitude within 1 %, as over the CAN twin), an EMCY that trips the loop naming its code,
+the twin's heartbeat consumer latching when the bridge falls silent, bad EDS / profile / PDO
+input refused in one line with exit 2, the link budget against frame sizes worked by hand, and
+frame faults (drop, corrupt, delay) counted by the driver.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from canopen.profiles.p402 import State402
+from rths_hil.drivers.base import Status
+from rths_hil.drivers.canopen import CANopenDriver, axes_that_fit, link_load
+from rths_hil.drivers.registry import create_driver
+from rths_hil.sim_backends.endpoints.canopen_twin import EMCY_FOLLOWING_ERROR, default_eds
+from rths_hil.sim_backends.faults import Faults
+from rths_hil.sim_backends.twin import default_plant, start_twin
+
+from rths_hil.config import load_config
+from rths_hil.errors import InputError
+from rths_hil.hybrid import RTHSLoop
+from rths_hil.linkbudget import can_frame_bits
+from rths_hil.linkbudget import link_load as budget
+from rths_hil.recorder import read_run
+from tests.helpers.loop import run_loop
+
+ROOT = Path(__file__).resolve().parents[2]
+ENABLED, ESTOP, FAULT = int(Status.ENABLED), int(Status.ESTOP_ACTIVE), int(Status.FAULT)
+
+
+def _open(twin, **extra):
+    drv = create_driver("canopen", **{**twin.connection, **extra})
+    drv.open()
+    return drv
+
+
+@pytest.mark.parametrize("profile", ["cia402", "cia408"])
+def test_identity_check_passes_and_refuses(profile):
+    number = int(profile[3:])
+    with start_twin("canopen", default_plant(), device_profile=profile) as twin:
+        code = int(str(number), 16)  # the shipped EDS's product code: 0x402 / 0x408
+        drv = _open(twin, product_code=code, vendor_id=0)
+        try:  # read by SDO from the twin's object dictionary
+            assert drv.identity["device_type"] & 0xFFFF == number
+            assert drv.identity["product_code"] == code
+        finally:
+            drv.close()
+
+
+def test_identity_check_refuses_wrong_product_and_wrong_profile():
+    with start_twin("canopen", default_plant(), device_profile="cia402") as twin:
+        with pytest.raises(InputError, match=r"product_code is 0x00000402.*expects 0x00000999"):
+            _open(twin, product_code=0x999)
+        # the 408 driver on a 402 device: device type names the profile it found
+        with pytest.raises(
+            InputError, match=r"device type 0x00020192 \(profile 402\), not CiA 408"
+        ):
+            _open(twin, device_profile="cia408", eds=default_eds("cia408"))
+
+
+def test_cia402_state_machine_on_the_twin():
+    with start_twin("canopen", default_plant(), device_profile="cia402") as twin:
+        drv = _open(twin)
+        armed = drv.arm(1.0)
+        assert armed is not None and armed.status == 0
+        assert twin.history == ["SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON"]
+        assert twin.mode == 8  # cyclic synchronous position, written at start-up
+        fb = None
+        for k in range(50):
+            drv.send(k, 0.0, True)
+            fb = drv.receive(1.0)
+            assert fb is not None and fb.seq == k
+        assert twin.state == "OPERATION ENABLED" and fb.status == ENABLED
+        assert twin.statusword() & 0x6F == State402.SW_MASK["OPERATION ENABLED"][1]
+        # quick stop: latched, repeated while enable=True, acknowledged by enable=False
+        drv.estop()
+        drv.send(50, 0.0, True)
+        fb = drv.receive(1.0)
+        assert twin.state == "QUICK STOP ACTIVE" and fb.status == ESTOP
+        drv.send(51, 0.0, False)
+        fb = drv.receive(1.0)
+        assert twin.state == "SWITCH ON DISABLED" and fb.status == 0
+        for k in range(52, 56):  # enable again: shutdown → switch on → enable operation
+            drv.send(k, 0.0, True)
+            fb = drv.receive(1.0)
+        assert fb.status == ENABLED
+        drv.close()  # the protocol's own disable: shutdown, then disable voltage
+        assert twin.history[-7:] == [
+            "QUICK STOP ACTIVE", "SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON",
+            "OPERATION ENABLED", "READY TO SWITCH ON", "SWITCH ON DISABLED",
+        ]  # fmt: skip
+        assert twin.node.nmt.state == "STOPPED"
+
+
+def test_cia408_state_machine_on_the_twin():
+    with start_twin("canopen", default_plant(), device_profile="cia408") as twin:
+        drv = _open(twin)
+        assert drv.arm(1.0) is not None and twin.state == "HOLD"
+        assert twin.mode == 1  # device mode 0x6042: set-point via the bus
+        for k in range(20):
+            drv.send(k, 0.0, True)
+            fb = drv.receive(1.0)
+        assert twin.state == "ACTIVE" and fb.status == ENABLED
+        assert twin.statusword() & 0x0F == 0b1111
+        drv.estop()  # HOLD, latched by the driver
+        drv.send(20, 0.0, True)
+        assert drv.receive(1.0).status == ESTOP and twin.state == "HOLD"
+        drv.send(21, 0.0, False)
+        assert drv.receive(1.0).status == 0 and twin.state == "HOLD"
+        drv.close()
+        assert twin.history == ["INIT", "HOLD", "ACTIVE", "HOLD", "DISABLED"]
+
+
+def _run(tmp_path, profile, *overrides, name="run"):
+    path = ROOT / "examples" / "controllers" / f"{profile}.toml"
+    r = run_loop(tmp_path / name, path, "loop.mode=lockstep", *overrides)
+    return r.loop, r.result, r.run
+
+
+@pytest.mark.parametrize("profile", ["cia402", "cia408"])
+def test_lockstep_run_tracks(tmp_path, profile):
+    _, res, run = _run(tmp_path, profile, "loop.duration=6")
+    assert res.status == "completed", res.trip
+    rec = run.record
+    assert len(rec) == 6 * 1024
+    fei = rec["fei_amplitude"][~np.isnan(rec["fei_amplitude"])]
+    assert fei.size > 500
+    assert np.abs(fei[-200:] - 1.0).max() < 0.01
+    # one SYNC per step of the record (the runner's start and end phases may add a few)
+    assert 0 <= res.driver_stats["syncs"] - len(rec) <= 4
+    assert res.driver_stats["received"] >= len(rec) - 2
+
+
+def test_emcy_trips_the_loop_naming_the_code(tmp_path):
+    at = 1024
+    _, res, _ = _run(
+        tmp_path, "cia402", f"twin.faults=runaway_from={at}; runaway_rate=0.5", "loop.duration=3"
+    )
+    assert res.status == "trip" and res.trip.rule == "controller"
+    assert "FAULT" in res.trip.reason
+    assert f"EMCY 0x{EMCY_FOLLOWING_ERROR:04X}" in res.trip.reason
+    assert abs(res.trip.step - at) <= 2
+    assert any(s.startswith("0x8611") for s in res.driver_stats["emcy"])
+
+
+def test_twin_latches_when_the_bridge_heartbeat_stops():
+    # 0.25 s: a bridge descheduled for tens of ms on a loaded 2-core machine is not a dead one
+    timeout = 0.25
+    with start_twin(
+        "canopen", default_plant(), device_profile="cia402", heartbeat_timeout=timeout
+    ) as twin:
+        drv = _open(twin, heartbeat_period=0.02)
+        drv.arm(1.0)
+        for k in range(30):
+            drv.send(k, 0.0, True)
+            assert drv.receive(1.0) is not None
+            time.sleep(0.002)
+        assert twin.state == "OPERATION ENABLED"
+        t0 = time.monotonic()  # the bridge falls silent: no heartbeat, no SYNC
+        while twin.state != "FAULT" and time.monotonic() - t0 < 2.0:
+            time.sleep(0.005)
+        latency = time.monotonic() - t0
+        assert twin.state == "FAULT"
+        assert latency < timeout + 0.25  # the consumer time plus its poll, on a loaded machine
+        assert twin.controller.watchdog_tripped
+        drv.send(30, 0.0, True)  # the next reply reports it; the EMCY names the code
+        fb = drv.receive(1.0)
+        assert fb.status & FAULT and fb.status & int(Status.WATCHDOG)
+        assert "0x8130" in drv.fault_text()
+        assert drv.arm(1.0) is not None and twin.state == "SWITCHED ON"  # reset at arming
+        drv.close()
+
+
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ("device_profile=cia999", "device_profile 'cia999' is not known"),
+        ("eds=missing.eds", "eds: no such file"),
+        ("force_object=0x2999", "has no object 0x2999:00 (force_object)"),
+        ("node_id=0", "node_id must be an integer 1..127"),
+        ("counts_per_m=0", "counts_per_m must be a positive number"),
+    ],
+)
+def test_bad_connection_is_one_line_exit_2(tmp_path, setting, message):
+    cfg = ROOT / "examples" / "controllers" / "cia402.toml"
+    sets = ["--set", f"driver.connection.{setting}", "--set", f"output.dir={tmp_path}/r"]
+    cmd = [sys.executable, "-m", "rths_hil", "run", str(cfg), "--lockstep", "--duration", "0.5"]
+    cmd += sets
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    err = [x for x in proc.stderr.splitlines() if "error" in x]
+    assert len(err) == 1 and message in err[0], proc.stderr
+
+
+def test_eds_whose_pdo_does_not_fit_is_refused(tmp_path):
+    eds = Path(default_eds("cia402")).read_text()
+    # the target position as a 64-bit integer: control word + target = 80 bits > 8 bytes
+    head = "[607A]\nParameterName=Target position\nObjectType=0x7\nDataType="
+    eds = eds.replace(head + "0x0004", head + "0x0015")
+    (tmp_path / "big.eds").write_text(eds)
+    with pytest.raises(InputError, match=r"RPDO1 does not fit in 8 bytes: .* = 80 bits"):
+        CANopenDriver(eds=str(tmp_path / "big.eds"))
+
+
+def test_link_budget_counts_sync_pdos_and_heartbeats():
+    # one axis at 1024 Hz: SYNC (0 bytes) + RPDO (6) + TPDO1 (6) + TPDO2 (4), heartbeats 1 byte
+    per_step = can_frame_bits(0) + 2 * can_frame_bits(6) + can_frame_bits(4)
+    hb = 2 * can_frame_bits(1) * 10.0  # the bridge's and the device's, 10 Hz each
+    ld = budget(
+        "canopen", {"bitrate": 1_000_000, "interface": "socketcan"}, 1, 1024, heartbeat_hz=10.0
+    )
+    assert ld.load == pytest.approx((per_step * 1024 + hb) / 1e6)
+    two = link_load({"bitrate": 1_000_000, "interface": "socketcan"}, 2, 1024, heartbeat_hz=10.0)
+    # one SYNC and one bridge heartbeat for the bus, the PDOs and device heartbeats per axis
+    assert two.load == pytest.approx(
+        ((can_frame_bits(0) + 2 * (per_step - can_frame_bits(0))) * 1024 + 3 * hb / 2) / 1e6
+    )
+    assert axes_that_fit(1024) == 2 and two.load < 0.8
+    assert axes_that_fit(512) == 4
+
+
+@pytest.mark.parametrize(
+    "faults, counter",
+    [("drop=40", "timeouts"), ("corrupt=40", "malformed"), ("delay=40:0.3", "timeouts")],
+)
+def test_frame_faults_are_counted(faults, counter):
+    with start_twin("canopen", default_plant(), faults=Faults.parse(faults)) as twin:
+        drv = _open(twin)
+        drv.arm(1.0)
+        missed = []
+        for k in range(60):
+            drv.send(k, 0.0, True)
+            if drv.receive(0.1) is None:
+                missed.append(k)
+        drv.close()
+        assert missed and missed[0] == 40
+        assert getattr(drv.stats, counter) >= 1
+        assert drv.stats.received >= 60 - 3
+
+
+def test_pdo_bytes_follow_the_cia301_little_endian_layout():
+    """The driver's RPDO and the twin's TPDOs, encoded through the library's PDO maps, are the
+    CiA 301 layout written independently with struct: the mapped objects in order,
+    little-endian (RPDO1 UNSIGNED16 control word + INTEGER32 target; TPDO1 UNSIGNED16 status
+    word + INTEGER32 position; TPDO2 INTEGER32 force); the driver decodes TPDOs built so."""
+    import struct
+
+    with start_twin("canopen", default_plant()) as twin:
+        drv = _open(twin)
+        drv.arm(1.0)
+        for k in range(5):
+            drv.send(k, 0.0, True)
+            drv.receive(1.0)
+        for word, counts in ((0x000F, 12345), (0x0002, -(2**31) + 1), (0x0006, 2**31 - 1)):
+            drv._rpdo(5, word, counts)
+            drv._bus.sync()
+            assert bytes(drv._rpdo_msg.data) == struct.pack("<Hi", word, counts)
+            assert drv._rpdo_msg.arbitration_id == 0x201
+        frames = twin._encode(7, -0.0123456, 4567.89, 0)
+        assert [f.arbitration_id for f in frames] == [0x181, 0x281]
+        assert bytes(frames[0].data) == struct.pack("<Hi", twin.statusword(), -123456)
+        assert bytes(frames[1].data) == struct.pack("<i", 456789)
+        # the driver's decoding (its TPDO callback) of TPDOs packed by struct
+        drv._q.clear()
+        drv._step, drv._delivered_sync, drv._part = 9, -2, {}
+        for m, data in ((drv.node.tpdo[1], struct.pack("<Hi", 0x0237, -7654321)),
+                        (drv.node.tpdo[2], struct.pack("<i", -31415))):  # fmt: skip
+            m.data = bytearray(data)
+            drv._on_tpdo(m)
+        fb = drv._q.pop()
+        assert fb.seq == 9
+        assert fb.displacement == pytest.approx(-0.7654321, abs=1e-12)
+        assert fb.force == pytest.approx(-314.15, abs=1e-9)
+        assert fb.status == ENABLED
+        drv.close()
+
+
+def test_canopen_bus_sharing_rules():
+    """Several axes may share a bus (one SYNC for all), each with its own node id and the
+    bus's bit rate; a repeated node id or a differing bit rate is refused in one line; twins
+    without a named channel each get a bus of their own."""
+    same = {"interface": "socketcan", "channel": "can0"}
+    CANopenDriver.check_sharing([(0, "x", {**same, "node_id": 1}, False),
+                                 (1, "y", {**same, "node_id": 2}, False)])  # fmt: skip
+    with pytest.raises(
+        InputError, match=r"'x' and 'y' are both CANopen node 3 on bus socketcan:can0"
+    ):
+        CANopenDriver.check_sharing([(0, "x", {**same, "node_id": 3}, False),
+                                     (1, "y", {**same, "node_id": 3}, False)])  # fmt: skip
+    with pytest.raises(InputError, match=r"differ in driver.connection.bitrate"):
+        CANopenDriver.check_sharing(
+            [(0, "x", {**same, "node_id": 1, "bitrate": 1_000_000}, False),
+             (1, "y", {**same, "node_id": 2, "bitrate": 500_000}, False)]
+        )  # fmt: skip
+    CANopenDriver.check_sharing([(0, "x", {}, True), (1, "y", {}, True)])
+
+
+TWO_AXES = ROOT / "examples" / "controllers" / "cia402_two_axes.toml"
+
+
+def test_two_axes_on_one_bus_share_one_sync_per_step(tmp_path):
+    """Two CiA 402 axes (nodes 1 and 2) on one bus: one SYNC per step clocks both (each twin
+    counts one SYNC per step, not two), each axis gets its own TPDOs (the 10 ms and 20 ms
+    actuators show their own delays without compensation), the run completes in lockstep."""
+    cfg = load_config(
+        TWO_AXES, ["loop.console=0", "output.plot=false", "compensation.enabled=false"]
+    )
+    loop = RTHSLoop(cfg, tmp_path / "two", mode="lockstep", duration=8.0)
+    res = loop.run()
+    assert res.status == "completed", res.trip
+    assert res.steps == 8 * 1024 and res.missed_replies == 0
+    a, b = loop.channels
+    assert [c.driver.node_id for c in loop.channels] == [1, 2]
+    assert (a.driver.interface, a.driver.channel) == ("virtual", "rths-canopen-two-axes")
+    assert (b.driver.interface, b.driver.channel) == (a.driver.interface, a.driver.channel)
+    for ch in loop.channels:
+        # SYNCs seen by each device since it went operational: one per step (+ start/end)
+        assert 0 <= ch.twin.n - res.steps <= 6, (ch.twin.n, res.steps)
+        assert 0 <= ch.driver.stats.syncs - res.steps <= 6
+        assert ch.driver.stats.malformed == 0
+    rec = read_run(tmp_path / "two").record
+    for sfx, delay in (("_storey1", 0.010), ("_storey3", 0.020)):
+        v = rec["fei_valid" + sfx]
+        assert v.sum() > 1000
+        assert abs(float(np.median(rec["fei_delay" + sfx][v])) - delay) < 1.5e-3
+
+
+def test_two_axes_with_one_node_id_are_refused(tmp_path):
+    cmd = [sys.executable, "-m", "rths_hil", "run", str(TWO_AXES), "--lockstep", "--duration",
+           "0.5", "--set", "actuators.storey3.driver.connection.node_id=1",
+           "--set", f"output.dir={tmp_path}/r"]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    err = [x for x in proc.stderr.splitlines() if "error" in x]
+    assert len(err) == 1 and "both CANopen node 1 on bus virtual:rths-canopen-two-axes" in err[0]
+
+
+def test_two_axes_a_fault_on_one_stops_both(tmp_path):
+    """A runaway on node 2 (EMCY 0x8611) trips the loop naming that node; both axes on the
+    bus are e-stopped: the healthy one confirms its quick stop, the faulty one holds in FAULT."""
+    at = 1500
+    cfg = load_config(
+        TWO_AXES,
+        ["loop.console=0", "output.plot=false",
+         f"actuators.storey3.twin.faults=runaway_from={at}; runaway_rate=0.5"],
+    )  # fmt: skip
+    loop = RTHSLoop(cfg, tmp_path / "fault", mode="lockstep", duration=4.0)
+    res = loop.run()
+    assert res.status == "trip" and res.trip.rule == "controller", res.trip
+    assert "canopen node 2" in res.trip.reason and "EMCY 0x8611" in res.trip.reason
+    assert abs(res.trip.step - at) <= 3
+    events = read_run(tmp_path / "fault").events
+    stops = {e["channel"]: e for e in events if e["kind"] == "estop"}
+    assert set(stops) == {"storey1", "storey3"}
+    assert stops["storey1"]["confirmed"]  # the healthy axis latched its quick stop
+    a, b = loop.channels  # the latches are left as they are after an e-stop
+    assert a.twin.state == "QUICK STOP ACTIVE" and a.twin.history[-2] == "OPERATION ENABLED"
+    assert b.twin.state == "FAULT"  # the faulty axis holds in FAULT (its quick stop ignored)
+
+
+def test_bridge_heartbeat_goes_on_after_an_estop_until_the_nodes_are_closed():
+    """Two axes on one bus, each device's heartbeat consumer 0.25 s. While the loop steps the
+    bridge's heartbeat goes with its steps (a loop that stops stepping lets the consumer run
+    out: the test above). After an e-stop the loop stops on purpose and the bridge closes the
+    nodes one after the other: the heartbeat goes on (the library's periodic task) until the
+    last node is closed, so neither device adds a heartbeat fault (EMCY 0x8130) to the e-stop,
+    however long the closing takes; arming again hands the heartbeat back to the steps."""
+    timeout, period = 0.25, 0.05
+    ch = {"channel": "rths-canopen-hb-hold", "heartbeat_timeout": timeout}
+    with (
+        start_twin("canopen", default_plant(), node_id=1, **ch) as t1,
+        start_twin("canopen", default_plant(), node_id=2, **ch) as t2,
+    ):
+        d1, d2 = _open(t1, heartbeat_period=period), _open(t2, heartbeat_period=period)
+        assert d1._bus is d2._bus  # one bus, one heartbeat producer
+        for d in (d1, d2):
+            assert d.arm(1.0) is not None
+        for k in range(30):
+            for d in (d1, d2):
+                d.send(k, 0.0, True)
+            for d in (d1, d2):
+                assert d.receive(1.0) is not None
+            time.sleep(0.002)
+        assert t1.state == t2.state == "OPERATION ENABLED"
+        d1.estop()
+        d2.estop()
+        n0 = t1.controller.stats.heartbeats
+        time.sleep(4 * timeout)  # e.g. the e-stop confirmed, the record closed
+        d2.close()  # node 2 first: node 1 waits longer
+        time.sleep(4 * timeout)
+        for twin in (t1, t2):
+            assert twin.state == "QUICK STOP ACTIVE", twin.history
+            assert not twin.controller.watchdog_tripped
+        assert "0x8130" not in d1.fault_text()
+        # ≈ 8 · timeout / period heartbeats in the wait (half of them on a loaded machine)
+        assert t1.controller.stats.heartbeats - n0 >= 0.5 * 8 * timeout / period
+        assert d1.arm(1.0) is not None and t1.state == "SWITCHED ON"  # a new run
+        n1 = t1.controller.stats.heartbeats
+        time.sleep(4 * period)
+        assert t1.controller.stats.heartbeats - n1 <= 1  # (the arming one) the steps produce it
+        d1.close()

@@ -1,0 +1,148 @@
+"""The worked example of docs/protocols.md, "Adding a driver": a lab's driver and its twin in a
+package of their own (``examples/lab_driver``), installed for the test (its entry points read
+from its ``pyproject.toml``), run by ``rths-hil run`` in lockstep and paced; and a driver that
+blocks past its receive deadline cannot hold the loop's watchdog past its limit."""
+
+from __future__ import annotations
+
+import importlib
+import shutil
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rths_hil.cli import main
+from rths_hil.recorder import read_run
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "lab_driver"
+QUIET = ["--set", "loop.console=0", "-q"]
+
+# A lab driver whose receive blocks 0.4 s from step STALL_AT on (a hung vendor library): the
+# class does not declare honours_deadline, so the base class reads it through a reader thread.
+_BLOCKING = """
+import time
+from mylab_udp import UDPDriver
+
+STALL_AT = 1024
+STALL = 0.4
+SENT = {}
+ESTOPS = []
+
+
+class BlockingDriver(UDPDriver):
+    name = "mylab_block"
+    honours_deadline = False
+
+    def _send_raw(self, seq, displacement, enable):
+        SENT[seq] = time.perf_counter()
+        super()._send_raw(seq, displacement, enable)
+
+    def _recv_internal(self, deadline):
+        if self._last_sent >= STALL_AT and not getattr(self, "_stalled", False):
+            self._stalled = True
+            time.sleep(STALL)  # far past any deadline
+        return super()._recv_internal(deadline)
+
+    def estop(self):
+        ESTOPS.append(time.perf_counter())
+        super().estop()
+"""
+
+
+@pytest.fixture
+def lab_package(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """``examples/lab_driver`` as an installed distribution: its package and a dist-info
+    with the entry points its pyproject.toml declares (what ``pip install`` writes)."""
+    site = tmp_path / "site"
+    shutil.copytree(EXAMPLE / "mylab_udp", site / "mylab_udp")
+    project = tomllib.loads((EXAMPLE / "pyproject.toml").read_text())["project"]
+    groups = {g: dict(eps) for g, eps in project["entry-points"].items()}
+    groups["rths_hil.drivers"]["mylab_block"] = "mylab_block:BlockingDriver"
+    groups["rths_hil.twins"]["mylab_block"] = "mylab_udp:UDPTwin"
+    (site / "mylab_block.py").write_text(_BLOCKING)
+    info = site / f"{project['name'].replace('-', '_')}-{project['version']}.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(
+        f"Metadata-Version: 2.1\nName: {project['name']}\nVersion: {project['version']}\n"
+    )
+    (info / "entry_points.txt").write_text(
+        "".join(
+            f"[{g}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()) + "\n"
+            for g, eps in groups.items()
+        )
+    )
+    monkeypatch.syspath_prepend(str(site))
+    importlib.invalidate_caches()
+    yield site
+    for mod in ("mylab_udp", "mylab_block"):
+        sys.modules.pop(mod, None)
+
+
+def test_registries_find_the_lab_driver_and_its_twin(lab_package: Path) -> None:
+    from rths_hil.drivers.registry import driver_class
+    from rths_hil.sim_backends.registry import available_twins, twin_class
+
+    assert driver_class("mylab").__name__ == "UDPDriver"
+    assert available_twins()["mylab"] == "mylab_udp:UDPTwin"
+    cls, entry = twin_class("mylab")
+    assert cls.__name__ == "UDPTwin" and entry.seq_bits is None
+
+
+def test_lab_driver_lockstep_equals_the_serial_driver(lab_package: Path, tmp_path: Path) -> None:
+    """Lockstep is virtual time: the same plant behind two protocols that both carry IEEE-754
+    doubles gives the same record, sample for sample."""
+    runs = {}
+    for name, conn in (("mylab", "{}"), ("serial", '{transport="pty"}')):
+        out = tmp_path / name
+        args = ["run", "--lockstep", "--duration", "3", "--out", str(out), *QUIET]
+        args += ["--set", f"driver.name={name}", "--set", f"driver.connection={conn}"]
+        assert main(args) == 0, name
+        runs[name] = read_run(out).record
+    a, b = runs["mylab"], runs["serial"]
+    assert len(a) == 3 * 1024 and bool(np.all(a["feedback_ok"]))
+    for col in ("command", "measured", "force"):
+        np.testing.assert_array_equal(a[col], b[col], err_msg=col)
+    assert np.ptp(a["measured"]) > 1e-3  # the twin moved
+
+
+def test_lab_driver_paced_run_completes(lab_package: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "paced"
+    args = ["run", "--paced", "--duration", "2", "--out", str(out), "--set", "loop.console=0"]
+    args += ["--set", "driver.name=mylab", "--set", "driver.connection={}"]
+    code = main(args)
+    err = capsys.readouterr().err
+    assert code == 0, err
+    rec = read_run(out).record
+    # paced on a shared machine: a reply may miss its 0.8-period deadline now and then
+    assert len(rec) == 2048 and rec["feedback_ok"].mean() > 0.9
+    link = [ln for ln in err.splitlines() if "link mylab udp" in ln]
+    assert link and "UDP loopback" in link[0]
+
+
+def test_a_blocking_driver_cannot_hold_the_watchdog(lab_package: Path, tmp_path: Path) -> None:
+    """Its receive blocks 0.4 s; the watchdog (safety.watchdog_timeout) still trips within its
+    limit plus one period of the deadline of the first unanswered step (wall time,
+    perf_counter)."""
+    import mylab_block
+
+    out = tmp_path / "block"
+    args = ["run", "--paced", "--duration", "3", "--out", str(out), *QUIET]
+    args += ["--set", "driver.name=mylab_block", "--set", "driver.connection={}"]
+    assert main(args) == 3  # a safety trip
+    run = read_run(out)
+    trips = [e for e in run.events if e.get("kind") == "trip"]
+    assert trips and trips[0]["rule"] == "watchdog", trips
+    ok = run.record["feedback_ok"]
+    missed = np.flatnonzero(~ok.astype(bool))
+    # the first step the blocked call leaves unanswered (a loaded machine may miss one earlier)
+    first_miss = int(missed[missed >= mylab_block.STALL_AT][0])
+    from rths_hil.config import default_config
+
+    dt = 1.0 / 1024.0
+    limit = default_config()["safety"]["watchdog_timeout"]  # the default test's limit
+    waited = mylab_block.ESTOPS[0] - mylab_block.SENT[first_miss]
+    assert 0.0 < waited <= limit + dt, (waited, limit + dt)
+    assert waited < mylab_block.STALL / 2  # nowhere near the blocked call's 0.4 s

@@ -1,0 +1,241 @@
+"""The fault matrix: driver × fault → the rule that must trip and how soon.
+
+Every built-in fault of :mod:`rths_hil.sim_backends.faults` on every driver, in lockstep (the bound
+is in steps after the faulty one) and paced at 1024 Hz (the bound is wall-clock time from the
+fault's deadline to the trip, read from the run's own events: ``clock`` gives the wall time of
+deadline 0, the ``trip`` event its ISO 8601 wall time). Process faults use ``rths-hil twin serve``
+as its own process (Modbus TCP, serial over a pseudo-terminal, CAN through python-can's ``serial``
+interface on the twin's pseudo-terminal pair): the twin killed with SIGKILL and the twin stopped for
+1 s (SIGSTOP … SIGCONT). The bridge killed is ``tests/sim_backends/test_controller_watchdog.py``. Each run prints
+one matrix row (``pytest -s``).
+
+Faults that must not trip (a duplicated reply; a reply delayed less than the lockstep bound)
+must leave the run complete — and, in lockstep, bit-identical to the run without the fault.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from rths_hil.config import load_config
+from rths_hil.hybrid import RTHSLoop
+from rths_hil.recorder import read_run
+from tests.helpers.loop import run_loop
+from tests.helpers.procs import ServedTwin, toml_table
+
+FS = 1024
+AT = 300  # the faulty step (≈ 0.29 s into the run)
+DRIVERS = ("can", "modbus", "serial", "canopen")
+BASE = [
+    f"loop.fs={FS}",
+    "loop.console=0",
+    "output.plot=false",
+    "fei.enabled=false",  # the rules under test are the transport's and the sensor's
+    "kalman.enabled=false",
+    "twin.sensor={}",
+    "safety.force_limit=0",
+    "safety.velocity_limit=0",
+    "safety.stuck_motion=1e-6",  # the record is quiet at the fault: any command motion counts
+]
+# loop.lockstep_timeout in these runs (s; the default is 5 s): generous enough for a reply of a
+# twin thread starved for most of a second on a loaded 2-core machine (measured: 0.92 s)
+LOCKSTEP_LIMIT = 1.5
+
+# fault → (expected rule or None, bound in steps after AT) in lockstep
+LOCKSTEP = {
+    "drop": ("watchdog", 0),  # the reply never comes: the wall-clock bound trips this step
+    "corrupt": ("watchdog", 0),  # rejected by the driver's checks: as if never sent
+    "duplicate": (None, None),  # the copy is counted and skipped
+    "delay_short": (None, None),  # 50 ms < the bound: waited for, nothing changes
+    "delay_long": ("watchdog", 0),  # 2 s > the bound
+    # a closed transport answers at once: the default 20 ms of silence in virtual time is
+    # ceil(0.02 · 1024) = 21 missed steps
+    "disconnect": ("watchdog", 20),
+    "stuck": ("stuck", 50),  # 50 identical values while the command moves
+    "runaway": ("controller", 0),  # the controller flags FAULT with the first runaway reply
+    "nan": ("nan", 0),
+}
+# Paced runs use a 0.2 s watchdog (safety.watchdog_timeout) and no step count: at the
+# default 20 ms the in-process twins' threads, which share the interpreter with a spinning
+# loop, and a twin process competing for the second core, miss 20 ms, now and then even
+# 100 ms, on this 2-core VM.
+PACED_WATCHDOG = ["safety.watchdog_timeout=0.2", "safety.watchdog_missed=1000000"]
+# fault → (expected rule or None, bound in s from the fault's deadline to the trip) when paced
+PACED = {
+    "drop": (None, None),  # one missed reply: well within the watchdog
+    "delay_paced": ("watchdog", 0.45),  # 0.4 s late: a missed reply, trips at the 0.2 s limit
+    "disconnect": ("watchdog", 0.25),
+    "stuck": ("stuck", 0.1),
+    "runaway": ("controller", 0.03),
+    "nan_paced": ("nan", 0.03),
+}
+FAULTS = {
+    "drop": f"drop={AT}",
+    "corrupt": f"corrupt={AT}",
+    "duplicate": f"duplicate={AT}",
+    "delay_short": f"delay={AT}:0.05",
+    "delay_long": f"delay={AT}:2.0",
+    "delay_paced": f"delay={AT}:0.4",
+    "disconnect": f"disconnect_from={AT}",
+    "stuck": f"stuck_from={AT}",
+    "runaway": f"runaway_from={AT}; runaway_rate=0.05",
+    "nan": f"nan={AT}",
+    # paced: a reply that comes after its step's wait is never delivered, so one NaN reply can
+    # go unseen on a slow transport (CANopen's four frames a step): ten in a row
+    "nan_paced": "nan=" + ",".join(str(AT + i) for i in range(10)),
+}
+
+
+def _iso(s: str) -> float:
+    return dt.datetime.fromisoformat(s).timestamp()
+
+
+def _run(tmp_path, name, mode, *overrides, duration=None):
+    r = run_loop(tmp_path / name, None, *BASE, f"loop.mode={mode}", *overrides, duration=duration)
+    return r.loop, r.result, r.run
+
+
+def _time_to_trip(run, at: int) -> float:
+    """Wall-clock seconds from step ``at``'s deadline to the trip event (the time base of step
+    ``at``: the last ``clock`` event at or before it — a stall of the bridge slips it)."""
+    clocks = [e for e in run.events if e["kind"] == "clock" and e["step"] <= at]
+    wall_t0 = clocks[-1]["wall_t0"]
+    trip = next(e for e in run.events if e["kind"] == "trip")
+    return _iso(trip["wall_time"]) - (wall_t0 + at / FS)
+
+
+def _report(driver, fault, mode, res, value):
+    rule = res.trip.rule if res.trip else "none"
+    print(f"\nMATRIX | {driver} | {fault} | {mode} | {rule} | {value}")
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """Fault-free lockstep runs, one per driver (the bit-identical reference)."""
+    out = {}
+    for driver in DRIVERS:
+        _, res, run = _run(
+            tmp_path_factory.mktemp("ref"),
+            "ref",
+            "lockstep",
+            f"driver.name={driver}",
+            f"loop.lockstep_timeout={LOCKSTEP_LIMIT}",
+            duration=0.5,
+        )
+        assert res.status == "completed"
+        out[driver] = run.record
+    return out
+
+
+@pytest.mark.parametrize("fault", LOCKSTEP)
+@pytest.mark.parametrize("driver", DRIVERS)
+def test_lockstep(tmp_path, reference, driver, fault):
+    rule, bound = LOCKSTEP[fault]
+    _, res, run = _run(
+        tmp_path,
+        "run",
+        "lockstep",
+        f"driver.name={driver}",
+        f"twin.faults={FAULTS[fault]}",
+        f"loop.lockstep_timeout={LOCKSTEP_LIMIT}",
+        duration=0.5,
+    )
+    if rule is None:
+        _report(driver, fault, "lockstep", res, "completed")
+        assert res.status == "completed", res.trip
+        ref = reference[driver]
+        for col in ("target", "command", "measured", "force"):  # deterministic: unchanged
+            np.testing.assert_array_equal(run.record[col], ref[col])
+        if fault == "duplicate":
+            assert res.driver_stats["duplicates"] >= 1
+        return
+    assert res.status == "trip", f"{driver} {fault}: no trip"
+    steps = res.trip.step - AT
+    _report(driver, fault, "lockstep", res, f"{steps} steps")
+    assert res.trip.rule == rule, res.trip
+    assert 0 <= steps <= bound, (steps, res.trip)
+    assert run.record["feedback_ok"][:AT].all()  # nothing before the fault
+
+
+@pytest.mark.parametrize("fault", PACED)
+@pytest.mark.parametrize("driver", DRIVERS)
+def test_paced(tmp_path, driver, fault):
+    rule, bound = PACED[fault]
+    _, res, run = _run(
+        tmp_path,
+        "run",
+        "paced",
+        f"driver.name={driver}",
+        f"twin.faults={FAULTS[fault]}",
+        "safety.max_overruns=1000000",  # the rules under test only (the VM's stalls aside)
+        *PACED_WATCHDOG,
+        duration=0.5,
+    )
+    if rule is None:
+        _report(driver, fault, "paced", res, "completed")
+        assert res.status == "completed", res.trip
+        assert res.missed_replies >= 1
+        return
+    assert res.status == "trip", f"{driver} {fault}: no trip"
+    assert res.trip.step >= AT, res.trip  # not before the fault
+    t = _time_to_trip(run, AT)
+    _report(driver, fault, "paced", res, f"{t * 1e3:.1f} ms")
+    assert res.trip.rule == rule, res.trip
+    assert 0 <= t <= bound, (t, res.trip)
+
+
+# driver → ``twin serve`` options for the process faults (serial: a pty by default)
+SERVED = {"can": ["--interface", "serial"], "modbus": [], "serial": []}
+
+
+@pytest.mark.parametrize("driver", sorted(SERVED))
+@pytest.mark.parametrize("fault", ["twin_killed", "twin_stopped_1s"])
+def test_paced_twin_process(tmp_path, driver, fault):
+    """The twin as its own process, killed or stopped for 1 s while a paced run steps."""
+    twin = ServedTwin("--driver", driver, *SERVED[driver], "--heartbeat-timeout", "0")
+    try:
+        cfg = load_config(
+            None,
+            [
+                *BASE,
+                "loop.mode=paced",
+                "twin.enabled=false",
+                f"driver.name={driver}",
+                f"driver.connection={toml_table(twin.connection)}",
+                "safety.max_overruns=1000000",
+                *PACED_WATCHDOG,
+            ],
+        )
+        loop = RTHSLoop(cfg, tmp_path / "run", duration=30.0)
+        t_fault = []
+
+        def live(status):  # the console callback, every 0.1 s of the run
+            if status["t"] >= 0.3 and not t_fault:
+                t_fault.append(time.time())
+                if fault == "twin_killed":
+                    os.kill(twin.proc.pid, signal.SIGKILL)
+                else:
+                    os.kill(twin.proc.pid, signal.SIGSTOP)
+
+        loop.live = live
+        loop.console_interval = 0.1
+        res = loop.run()
+        assert t_fault, res.trip  # the run reached the fault
+        if fault == "twin_stopped_1s":
+            time.sleep(max(0.0, t_fault[0] + 1.0 - time.time()))
+            os.kill(twin.proc.pid, signal.SIGCONT)
+    finally:
+        twin.stop()
+    run = read_run(tmp_path / "run")
+    assert res.status == "trip"
+    trip = next(e for e in run.events if e["kind"] == "trip")
+    t = _iso(trip["wall_time"]) - t_fault[0]
+    _report(driver, fault, "paced", res, f"{t * 1e3:.1f} ms")
+    assert res.trip.rule == "watchdog", res.trip
+    assert 0 <= t <= 0.3, t
