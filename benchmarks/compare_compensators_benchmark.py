@@ -11,7 +11,7 @@ median and the 95th percentile of J1–J9 as the benchmark's evaluation script c
 safety rule stopped. Deterministic (lockstep, seeded draws and noise): the figures are the same
 on every machine; only the run time differs.
 
-Goal (issue 24): ``ats`` or ``model`` better than fixed ``inverse`` on the benchmark script's J2
+Goal: ``ats`` or ``model`` better than fixed ``inverse`` on the benchmark script's J2
 median.
 
 Usage::

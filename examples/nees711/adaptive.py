@@ -32,7 +32,7 @@ from rths_hil.tuning import LoopTrials, sweep, tune
 HERE = Path(__file__).resolve().parent
 CONFIG = HERE / "nees711.toml"
 DOCS = HERE.parent.parent / "docs"
-BAND = 1.5  # ± band around the balanced α (issue 6's acceptance band)
+BAND = 1.5  # ± band around the balanced α (the acceptance band)
 TIME_CONSTANTS = (2.0, 6.0, 12.0)
 
 

@@ -7,7 +7,7 @@ rounded to samples) followed by a gain k_p: *measured* = k_p · target(t − τ)
 (:func:`rths_hil.fei.moving_fei`) of the pair should return A = k_p and d = τ in every window.
 
 Window-size study (the FEI paper's Fig. 4.2)
----------------------------------
+--------------------------------------------
 For each record and natural frequency fn (period Tn), windows ``t_w = Tn·(1 + 0.1 j)``, j = 0, 1,
 …, are tried in turn; the answer is the first one that satisfies the :class:`WindowCriterion`:
 
@@ -30,9 +30,9 @@ factor (≤ 8) that keeps ``fs/decimate ≥ 64·fn``, and windows are evaluated 
 instead of every sample (the FEI of overlapping windows varies smoothly with the end time).
 
 Accuracy study (the FEI paper's Table 4.1, Fig. 4.6)
------------------------------------------
+----------------------------------------------------
 For each fn, linear and Bouc-Wen structures, gain 1.1 and delay 5 ms, window 3·Tn, hop 1 (the
-the FEI paper's MWO, Eq. 7): the maximum over the counted windows (same selection as above) of the
+FEI paper's MWO, Eq. 7): the maximum over the counted windows (same selection as above) of the
 amplitude error ``|A − k_p|/k_p`` and the delay error ``|d − τ|/τ``, in %.
 
 Both studies run their cases through an executor (:mod:`rths_hil.studies.executors`).

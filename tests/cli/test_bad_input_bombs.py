@@ -1,4 +1,4 @@
-"""Resource bombs (issue 25, item 7): refused in one line, exit 2, before anything is allocated.
+"""Resource bombs: refused in one line, exit 2, before anything is allocated.
 
 Each refusal names the figure (memory, count) it was refused for. The memory figures are
 checked against the arithmetic of the estimate (steps × bytes a step), so a wrong estimate or

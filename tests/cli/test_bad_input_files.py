@@ -1,4 +1,4 @@
-"""File-system errors and races (issue 25, items 5, 8, 9): one line, exit 2, no traceback."""
+"""File-system errors and races: one line, exit 2, no traceback."""
 
 from __future__ import annotations
 

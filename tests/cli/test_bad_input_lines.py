@@ -1,4 +1,4 @@
-"""Bad frames and devices on a twin's line (issue 25, items 6 and 8)."""
+"""Bad frames and devices on a twin's line."""
 
 from __future__ import annotations
 

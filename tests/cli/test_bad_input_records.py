@@ -1,4 +1,4 @@
-"""Records and run directories under bad or unusual input (issue 25, items 4-6).
+"""Records and run directories under bad or unusual input.
 
 Every case runs the real CLI entry point and expects exit 2 with exactly one line on stderr
 naming what is wrong (or, for the 20-channel record, that it reads back end to end).

@@ -1,4 +1,4 @@
-"""Non-physical structures, NaN rows and configuration round trips (issue 25, items 10-11)."""
+"""Non-physical structures, NaN rows and configuration round trips."""
 
 from __future__ import annotations
 

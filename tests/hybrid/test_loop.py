@@ -142,7 +142,7 @@ def test_record_columns_events_and_meta(tmp_path):
     n_win = round(3 / 0.77 * FS)
     assert not rec["fei_valid"][: n_win - 1].any()
     assert np.isnan(rec["fei_amplitude"][: n_win - 1]).all()
-    # the exact cross-check agrees with the streaming estimate (issue 2: 1 %, 0.5 ms)
+    # the exact cross-check agrees with the streaming estimate (within 1 %, 0.5 ms)
     ev = rec["fei_exact_valid"]
     assert ev.any()
     last = np.flatnonzero(ev)[-1]

@@ -1,4 +1,4 @@
-"""Start and end of a test on an actuator that is not at rest (issue 23, rths_hil.hybrid.phases).
+"""Start and end of a test on an actuator that is not at rest (rths_hil.hybrid.phases).
 
 What reaches the actuator is observed at the twin's plant (every command it is stepped with,
 after the CAN/Modbus frames and the controller), not taken from the bridge's own bookkeeping:

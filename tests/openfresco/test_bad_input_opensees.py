@@ -1,4 +1,4 @@
-"""The OpenSees site under a hostile raw client (issue 25, item 3).
+"""The OpenSees site under a hostile raw client.
 
 Each client is a raw socket speaking the genericClient protocol (as in test_openfresco.py):
 no ID, NaN/Inf action codes, absurd trial times, trials with uneven time steps, a slow

@@ -1,4 +1,4 @@
-"""The chunked summary of long records equals the in-memory one (issue 12, memory).
+"""The chunked summary of long records equals the in-memory one (memory).
 
 ``summarize`` evaluates records longer than ``lean_rows`` rows in chunks (whole-record FEI from
 chunked spectral sums, J1–J3 and TI from running sums, J1's correlation block by block). Here
