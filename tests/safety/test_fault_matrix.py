@@ -6,8 +6,8 @@ fault's deadline to the trip, read from the run's own events: ``clock`` gives th
 deadline 0, the ``trip`` event its ISO 8601 wall time). Process faults use ``rths-hil twin serve``
 as its own process (Modbus TCP, serial over a pseudo-terminal, CAN through python-can's ``serial``
 interface on the twin's pseudo-terminal pair): the twin killed with SIGKILL and the twin stopped for
-1 s (SIGSTOP … SIGCONT). The bridge killed is ``tests/sim_backends/test_controller_watchdog.py``. Each run prints
-one matrix row (``pytest -s``).
+1 s (SIGSTOP … SIGCONT). The bridge killed is
+``tests/sim_backends/test_controller_watchdog.py``. Each run prints one matrix row (``pytest -s``).
 
 Faults that must not trip (a duplicated reply; a reply delayed less than the lockstep bound)
 must leave the run complete — and, in lockstep, bit-identical to the run without the fault.

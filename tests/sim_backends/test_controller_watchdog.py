@@ -5,7 +5,8 @@ another; the bridge is killed with SIGKILL in the middle of a run, so it sends n
 no e-stop, no close. The twin must latch within its watchdog timeout (measured from the kill to
 the twin's log line), report it over its own protocol (Modbus: coil 0 and register 17 read
 with a plain pymodbus client; serial and CAN: the status of the next reply), hold its position,
-and accept a new run afterwards (the new run arms it and starts its sequence afresh). CAN crosses processes over python-can's serial-line interfaces (``serial``
+and accept a new run afterwards (the new run arms it and starts its sequence afresh). CAN
+crosses processes over python-can's serial-line interfaces (``serial``
 and ``slcan``) on the served twin's null-modem pair of pseudo-terminals, with a paced bridge
 (python-can's virtual bus reaches only buses in the same process, and SocketCAN is not
 available here). The in-process twins, threaded, are checked the same way with a bridge that
