@@ -183,7 +183,7 @@ def _watched(
     return res, out["samples"], out["cpu"], server_cpu
 
 
-def main() -> None:
+def main() -> None:  # noqa: C901
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=15.0, help="loop time of each run (s)")
     ap.add_argument(

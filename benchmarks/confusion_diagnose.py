@@ -132,7 +132,7 @@ def run_case(job: tuple) -> dict:
     }
 
 
-def jobs_for(args: argparse.Namespace) -> list[tuple]:
+def jobs_for(args: argparse.Namespace) -> list[tuple]:  # noqa: C901
     rng = np.random.default_rng(args.seed)
     out = []
     sets = args.sets.split(",")

@@ -449,7 +449,7 @@ class ModbusProfileDriver(Driver):
         self._submit([(SLOT_HEARTBEAT, pdu.function_code, self._frame(pdu, SLOT_HEARTBEAT))])
 
     # -- feedback -------------------------------------------------------------------------------
-    def _take(self, tid: int, pdu_bytes: bytes) -> Feedback | None:
+    def _take(self, tid: int, pdu_bytes: bytes) -> Feedback | None:  # noqa: C901
         """File one response; the feedback when its step's last read came back."""
         if tid < 0:
             return None

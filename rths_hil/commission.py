@@ -179,7 +179,7 @@ def _pct(a: np.ndarray, q: float) -> float:
 # ----------------------------------------------------------------------------------------------
 
 
-def _channel(
+def _channel(  # noqa: C901
     ch: Any,
     plan: Any,
     link_time: float | None,

@@ -245,7 +245,7 @@ def _parse_at2(path: Path, name: str) -> tuple[float, np.ndarray]:
 # CSV
 
 
-def _parse_csv(
+def _parse_csv(  # noqa: C901
     path: Path, name: str, column: str | None, units: str | None
 ) -> tuple[float, np.ndarray]:
     try:

@@ -67,7 +67,7 @@ class Record:
         return ["time", *self.columns]
 
 
-def read_record(
+def read_record(  # noqa: C901
     path: str | Path,
     required: Sequence[str] = ("time", "target", "measured"),
     optional: Sequence[str] | None = None,

@@ -659,7 +659,7 @@ def _format_channel(s: dict[str, Any], short: bool = False) -> list[str]:
     return lines
 
 
-def plot_report(
+def plot_report(  # noqa: C901
     run_dir: str | Path,
     path: str | Path | None = None,
     max_points: int = 20_000,

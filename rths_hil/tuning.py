@@ -455,7 +455,7 @@ def _ms(x: float) -> str:
     return f"{1e3 * x:+.2f} ms"
 
 
-def tune(
+def tune(  # noqa: C901
     run_trial: TrialRunner,
     alpha0: float,
     dt: float,

@@ -180,7 +180,7 @@ def _unknown(table: Mapping[str, Any], known: Any, where: str) -> None:
             raise InputError(f"{where}{key}: unknown key (known: {', '.join(known)})")
 
 
-def load_model(source: str | Path | Mapping[str, Any], name: str | None = None) -> ModelSpec:
+def load_model(source: str | Path | Mapping[str, Any], name: str | None = None) -> ModelSpec:  # noqa: C901
     """Read and validate a model file (path) or an already-parsed dict.
 
     Parameters

@@ -122,7 +122,7 @@ def _confirm(n_trials: int, pga: float, scale: float, cfg, flag: bool) -> None:
     )
 
 
-def main(args: argparse.Namespace) -> int:
+def main(args: argparse.Namespace) -> int:  # noqa: C901
     """Run the tuning (or the sweep); return the exit code."""
     from ..hybrid import new_run_dir
     from ..tuning import (

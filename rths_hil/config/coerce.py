@@ -92,7 +92,7 @@ def check_range(key: Key, v: float, path: str) -> None:
         raise InputError(f"{path}: must be {op} {key.hi:g}{unit}, got {v:g}")
 
 
-def coerce(key: Key, value: Any, path: str) -> Any:
+def coerce(key: Key, value: Any, path: str) -> Any:  # noqa: C901
     """``value`` as ``key`` takes it: type checked, units read to SI, range checked.
 
     Parameters

@@ -37,7 +37,7 @@ __all__ = [
 _NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}\Z")
 
 
-def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:
+def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:  # noqa: C901
     """Validate one ``[[actuators]]`` entry (its own keys, not the cross-channel rules)."""
     path = f"actuators[{i}]"
     if not isinstance(entry, dict):

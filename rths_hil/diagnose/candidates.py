@@ -562,7 +562,7 @@ def delta_bic(n: int, rss_before: float, rss_after: float, k: int) -> float:
     return n * math.log(rss_before / rss_after) - k * math.log(n)
 
 
-def polish(
+def polish(  # noqa: C901
     spec: ModelSpec,
     data: Data,
     effects: list[int],

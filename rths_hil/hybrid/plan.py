@@ -346,7 +346,7 @@ def channel_row(cc: ChannelConfig, i: int, n_dof: int, default_dof: int = 1) -> 
     return row
 
 
-def _plan_channel(
+def _plan_channel(  # noqa: C901
     cc: ChannelConfig,
     i: int,
     n_chan: int,
@@ -520,7 +520,7 @@ def _plan_channel(
     )
 
 
-def build_plan(
+def build_plan(  # noqa: C901
     cfg: Config,
     run_dir: str | Path | None = None,
     *,

@@ -258,7 +258,7 @@ class SiteServer:
     def _send(self, frame: np.ndarray) -> None:
         self._sock.sendall(frame.data)
 
-    def _serve(self) -> None:
+    def _serve(self) -> None:  # noqa: C901
         mb = self.mailbox
         ses = self.session
         m = self.mapping

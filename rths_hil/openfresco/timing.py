@@ -513,7 +513,7 @@ class PredictorCorrector(TimingMode):
         self._m = max(1, round(left)) if left >= 1.0 else max(self.k_sub, 4)
         self.t_goal = t_new
 
-    def step(self, k: int, disp: np.ndarray, force: np.ndarray) -> np.ndarray | None:
+    def step(self, k: int, disp: np.ndarray, force: np.ndarray) -> np.ndarray | None:  # noqa: C901
         if self.pending is not None and self.reply_at is not None and k >= self.reply_at:
             self._reply(k, disp, force)
             self.reply_at = None

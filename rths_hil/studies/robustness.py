@@ -267,7 +267,7 @@ def _varyable_keys(cfg) -> list[str]:
     return keys
 
 
-def parse_vary(text: str, cfg) -> Perturbation:
+def parse_vary(text: str, cfg) -> Perturbation:  # noqa: C901
     """Parse and check ``KEY=LOW:HIGH[:normal]`` against an inline-twin Config.
 
     Values may carry units where the key has one (``twin.actuator.delay=15ms:35ms``). The key

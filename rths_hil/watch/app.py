@@ -362,7 +362,7 @@ class _Page:
             self.sent_at = now
             self.tick.start = self.seq
 
-    def _refresh(self) -> None:
+    def _refresh(self) -> None:  # noqa: C901
         st = self.ctx.state()
         f = self.ctx.follower
         self._banner(st)

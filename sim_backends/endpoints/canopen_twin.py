@@ -322,7 +322,7 @@ class CANopenTwin(TwinEndpoint):
             except (can.CanError, OSError, RuntimeError):  # pragma: no cover
                 pass
 
-    def _apply(self, cw: int) -> None:
+    def _apply(self, cw: int) -> None:  # noqa: C901
         """Apply control word ``cw`` to the device FSA."""
         prev, self._cw = self._cw, cw
         if self.profile.number == 408:
