@@ -641,6 +641,12 @@ def one_channel_vs_baseline(
             check=True,
             capture_output=True,
         )
+        # drivers/ and sim_backends/ install as rths_hil.drivers and rths_hil.sim_backends
+        # (package-dir): link them into the baseline's package so that its own copies are
+        # imported, not this tree's through the editable install
+        for sub in ("drivers", "sim_backends"):
+            if (wt / sub).is_dir() and not (wt / "rths_hil" / sub).exists():
+                (wt / "rths_hil" / sub).symlink_to(wt / sub, target_is_directory=True)
         try:
             new, old, cpu_new, cpu_old = [], [], [], []
             for _ in range(rounds):
