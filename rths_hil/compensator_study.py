@@ -263,21 +263,7 @@ class CompensatorComparison:
             rows = [r for r in self.rows if r["method"] == m]
             tripped = sum(r["status"] == "trip" for r in rows)
             for metric in (c + sfx for sfx in self.suffixes for c in COMPARISON_METRICS):
-                v = np.array([r.get(metric, math.nan) for r in rows], dtype=float)
-                v = v[np.isfinite(v)]
-                p5, p50, p95 = np.percentile(v, [5, 50, 95]) if v.size else (math.nan,) * 3
-                out.append(
-                    {
-                        "method": m,
-                        "metric": metric,
-                        "median": float(p50),
-                        "p5": float(p5),
-                        "p95": float(p95),
-                        "n": int(v.size),
-                        "trials": len(rows),
-                        "share_tripped": tripped / len(rows) if rows else math.nan,
-                    }
-                )
+                out.append({"method": m, **study.metric_summary(rows, metric, tripped)})
         return out
 
 

@@ -700,22 +700,27 @@ class RobustnessResult:
             rows = self.by_alpha(alpha)
             tripped = sum(r["status"] == "trip" for r in rows)
             for m in (m + sfx for sfx in self.suffixes for m in SUMMARY_METRICS):
-                v = np.array([r[m] for r in rows], dtype=float)
-                v = v[np.isfinite(v)]
-                p5, p50, p95 = np.percentile(v, [5, 50, 95]) if v.size else (math.nan,) * 3
-                out.append(
-                    {
-                        "alpha": alpha,
-                        "metric": m,
-                        "median": float(p50),
-                        "p5": float(p5),
-                        "p95": float(p95),
-                        "n": int(v.size),
-                        "trials": len(rows),
-                        "share_tripped": tripped / len(rows) if rows else math.nan,
-                    }
-                )
+                out.append({"alpha": alpha, **metric_summary(rows, m, tripped)})
         return out
+
+
+def metric_summary(rows: Sequence[dict], metric: str, tripped: int) -> dict:
+    """Median, 5th and 95th percentiles of ``metric`` over the trials ``rows`` (finite values).
+
+    Also the number of finite values ``n``, of ``trials`` and the share of tripped trials.
+    """
+    v = np.array([r.get(metric, math.nan) for r in rows], dtype=float)
+    v = v[np.isfinite(v)]
+    p5, p50, p95 = np.percentile(v, [5, 50, 95]) if v.size else (math.nan,) * 3
+    return {
+        "metric": metric,
+        "median": float(p50),
+        "p5": float(p5),
+        "p95": float(p95),
+        "n": int(v.size),
+        "trials": len(rows),
+        "share_tripped": tripped / len(rows) if rows else math.nan,
+    }
 
 
 #: Trial columns after the varied keys (see :func:`robustness_trial`).
