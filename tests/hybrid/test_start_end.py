@@ -31,6 +31,7 @@ from rths_hil.sim_backends.twin import default_plant
 from rths_hil.errors import InputError
 from rths_hil.hybrid.phases import cosine_ramp, ramp_duration
 from rths_hil.recorder import read_run
+from tests.helpers.cli import one_line_exit_2
 from tests.helpers.loop import run_loop
 from tests.helpers.procs import LATCH_LINE, ROOT, ServedTwin, bridge_cmd, toml_table, wait_rows
 
@@ -316,33 +317,28 @@ def _hw_cmd(conn, out, *extra):
     ]  # fmt: skip
 
 
-def test_hardware_needs_confirmation_and_lockstep_needs_stepped(tmp_path):
+def test_hardware_needs_confirmation_and_lockstep_needs_stepped(tmp_path, capsys):
+    """The two refusals are checked in-process (the same ``main``, exit 2, one line); the run
+    that is allowed goes through a real ``rths-hil run`` process against the served twin."""
     twin = ServedTwin("--driver", "modbus", "--heartbeat-timeout", "0")
     try:
         conn = twin.connection
-        runs = {
-            "unconfirmed": _hw_cmd(conn, tmp_path / "a", "--paced"),
-            "lockstep": _hw_cmd(conn, tmp_path / "b", "--confirm-hardware", "--lockstep"),
-            "stepped": _hw_cmd(
-                conn,
-                tmp_path / "c",
-                "--lockstep",
-                "--set=driver.stepped=true",
-                "--set=loop.confirm_hardware=true",
-            ),
-        }
-        res = {
-            k: subprocess.run(c, capture_output=True, text=True, timeout=120, cwd=ROOT)
-            for k, c in runs.items()
-        }
+        unconfirmed = _hw_cmd(conn, tmp_path / "a", "--paced")[3:]
+        one_line_exit_2(unconfirmed, capsys, "--confirm-hardware")
+        assert not (tmp_path / "a").exists()
+        lockstep = _hw_cmd(conn, tmp_path / "b", "--confirm-hardware", "--lockstep")[3:]
+        one_line_exit_2(lockstep, capsys, "driver.stepped")
+        stepped = _hw_cmd(
+            conn,
+            tmp_path / "c",
+            "--lockstep",
+            "--set=driver.stepped=true",
+            "--set=loop.confirm_hardware=true",
+        )
+        res = subprocess.run(stepped, capture_output=True, text=True, timeout=120, cwd=ROOT)
     finally:
         twin.stop()
-    err = res["unconfirmed"].stderr.strip().splitlines()
-    assert res["unconfirmed"].returncode == 2 and len(err) == 1
-    assert "--confirm-hardware" in err[0] and not (tmp_path / "a").exists()
-    err = res["lockstep"].stderr.strip().splitlines()
-    assert res["lockstep"].returncode == 2 and len(err) == 1 and "driver.stepped" in err[0]
-    assert res["stepped"].returncode == 0, res["stepped"].stderr
+    assert res.returncode == 0, res.stderr
     assert json.loads((tmp_path / "c" / "meta.json").read_text())["mode"] == "lockstep"
 
 

@@ -1,7 +1,7 @@
 """The wheel installs one top-level package, ``rths_hil``, and works outside the repository.
 
 Builds the wheel from this checkout, installs it with its dependencies into a fresh virtual
-environment in a temporary directory (pip's cache makes this quick after the first time), and
+environment (without pip of its own) in a temporary directory (pip's cache makes this quick after the first time), and
 from a working directory outside the repository — so neither ``drivers/`` nor
 ``sim_backends/`` of the checkout can be imported by accident — runs a short lockstep test over
 each built-in driver with its twin. The environment has the core dependencies only: a feature
@@ -35,9 +35,15 @@ def installed(tmp_path_factory):
     )
     (wheel,) = dist.glob("rths_hil-*.whl")
     env_dir = work / "venv"
-    venv.EnvBuilder(with_pip=True).create(env_dir)
+    # no pip of its own (ensurepip is the slow part of making a venv): this environment's pip
+    # installs into it (pip --python); the wheel's dependencies are still resolved for it
+    venv.EnvBuilder(with_pip=False).create(env_dir)
     python = env_dir / "bin" / "python"
-    subprocess.run([python, "-m", "pip", "install", "--quiet", str(wheel)], check=True, cwd=work)
+    subprocess.run(
+        [sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet", str(wheel)],
+        check=True,
+        cwd=work,
+    )
     return wheel, env_dir, work
 
 
