@@ -41,7 +41,7 @@ k_specimen = 1.0e6
 pga = 0.2
 [loop]
 fs = 256
-duration = "1s"
+duration = "0.5s"
 [driver]
 name = "can"
 connection = {{ interface = "virtual", channel = "rths-many" }}
@@ -77,7 +77,7 @@ def test_twenty_channel_record_reads_back_end_to_end(run20, capsys):
     h = read_npy_header(run20 / RECORD_FILE)
     assert h.offset > 10_000  # numpy's np.load refuses this header without max_header_size
     run = read_run(run20)
-    assert len(run.record) == 256 == h.rows
+    assert len(run.record) == 128 == h.rows
     names = run.record.dtype.names
     assert all(f"measured_ch{i}" in names for i in range(1, 21))
     # the twins track: each channel's measured displacement follows its target
@@ -98,7 +98,7 @@ def test_twenty_channel_record_reads_back_end_to_end(run20, capsys):
 
     f = RunFollower(run20)
     state = f.poll()
-    assert state.phase == "completed" and state.rows == 256
+    assert state.phase == "completed" and state.rows == 128
     assert len(f.channels) == 20
 
 
