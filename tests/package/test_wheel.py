@@ -4,8 +4,9 @@ Builds the wheel from this checkout, installs it with its dependencies into a fr
 environment (without pip of its own) in a temporary directory (pip's cache makes this quick
 after the first time), and from a working directory outside the repository — so neither
 ``drivers/`` nor ``sim_backends/`` of the checkout can be imported by accident — runs a short
-lockstep test over each built-in driver with its twin. The environment has the core dependencies only: a feature
-of an extra that is not installed says which one in one line (exit 2).
+lockstep test over each built-in driver with its twin. The environment has the core
+dependencies only: a feature of an extra that is not installed says which one in one line
+(exit 2).
 """
 
 from __future__ import annotations
