@@ -40,10 +40,11 @@ LATCHED = int(Status.ESTOP_ACTIVE | Status.WATCHDOG)
 
 
 def _second_run(driver, connection, out):
-    """A new lockstep run against the same twin: must arm it and complete."""
+    """A new lockstep run against the same twin: must arm it and complete (0.25 s: 256 steps,
+    each on a reply)."""
     import subprocess
 
-    cmd = bridge_cmd(driver, connection, out, "--lockstep", "--duration", "1")
+    cmd = bridge_cmd(driver, connection, out, "--lockstep", "--duration", "0.25")
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     events = [json.loads(x) for x in (out / "events.jsonl").read_text().splitlines()]
@@ -132,7 +133,7 @@ def test_can_twin_latches_when_the_bridge_is_killed(can_twin, tmp_path):
     # a second run against the same twin arms it (sequence afresh) and completes
     arm, rec = _second_run("can", conn, tmp_path / "run2")
     assert arm["replied"] and arm["status"] & LATCHED == LATCHED  # latched until armed
-    assert rec["feedback_ok"].all() and len(rec) == 1024
+    assert rec["feedback_ok"].all() and len(rec) == 256
 
 
 def test_modbus_twin_latches_when_the_bridge_is_killed(modbus_twin, tmp_path):
@@ -164,7 +165,7 @@ def test_modbus_twin_latches_when_the_bridge_is_killed(modbus_twin, tmp_path):
     # a second run against the same twin arms it (sequence afresh) and completes
     arm, rec = _second_run("modbus", conn, tmp_path / "run2")
     assert arm["replied"] and arm["status"] & LATCHED == LATCHED  # latched until armed
-    assert rec["feedback_ok"].all() and len(rec) == 1024
+    assert rec["feedback_ok"].all() and len(rec) == 256
 
 
 def test_serial_twin_latches_when_the_bridge_is_killed(serial_twin, tmp_path):
