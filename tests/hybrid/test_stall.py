@@ -147,7 +147,8 @@ def _events(out: Path, kind: str) -> list[dict]:
 
 def test_a_40_ms_freeze_of_the_bridge_completes_with_a_stall_event(tmp_path):
     out = tmp_path / "run"
-    proc = _start(out)
+    # frozen after 1 s; the 1.5 s left hold the ≥ 100 steps after the stall checked below
+    proc = _start(out, duration="2.5")
     _wait_rows(out / "record.npy", proc)
     _freeze(proc, 0.04)
     _, err = proc.communicate(timeout=60)
@@ -200,7 +201,7 @@ def test_catch_up_after_a_stall_keeps_the_command_within_the_velocity_limit(tmp_
         "--set", "loop.after_stall=catch_up",
         "--set", f"safety.velocity_limit={vlim}",
         "--set", "safety.max_overruns=100000",
-        duration="6",
+        duration="4.5",  # frozen after 3 s; the catch-up (≈ 60 steps) ends well before the end
     )  # fmt: skip
     _wait_rows(out / "record.npy", proc, rows=3 * 1024)  # strong motion: the command moves
     _freeze(proc, 0.06)
