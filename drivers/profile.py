@@ -257,6 +257,26 @@ class ModbusPoint:
             return [((r & 0xFF) << 8) | (r >> 8) for r in regs]
         return regs
 
+    def raw_value(self, si: float) -> float | int:
+        """The raw value of the SI value ``si``: ``raw = (si / factor − offset) / scale``,
+        rounded to the nearest integer for an integer type (the inverse of :meth:`si`).
+
+        Raises
+        ------
+        InputError
+            The value does not fit the point's integer type.
+        """
+        value = (si / self.factor - self.offset) / self.scale
+        if self.type in _INT_RANGE:
+            raw = round(value)
+            lo, hi = _INT_RANGE[self.type]
+            if not lo <= raw <= hi:
+                raise InputError(
+                    f"{self.role}: {si} is out of the {self.type} range of the profile's map"
+                )
+            return raw
+        return value
+
     def to_registers(self, si: float) -> list[int]:
         """Registers (or one coil value) for the SI value ``si``.
 
@@ -265,17 +285,9 @@ class ModbusPoint:
         InputError
             The value does not fit the point's integer type.
         """
-        value = (si / self.factor - self.offset) / self.scale
         if self.type == "bool":
-            return [1 if value else 0]
-        if self.type in _INT_RANGE:
-            raw = round(value)
-            lo, hi = _INT_RANGE[self.type]
-            if not lo <= raw <= hi:
-                raise InputError(
-                    f"{self.role}: {si} is out of the {self.type} range of the profile's map"
-                )
-            value = raw
+            return [1 if (si / self.factor - self.offset) / self.scale else 0]
+        value = self.raw_value(si)
         regs = ModbusClientMixin.convert_to_registers(
             value,
             self.dtype,
