@@ -214,8 +214,6 @@ class BlockLayout:
         """Decode a read response PDU into ``out``; ``None``, or the reason it is refused:
         ``bad_frame`` (pymodbus's response class would not decode it) or ``bad_length``
         (fewer items than the block)."""
-        if len(pdu) < 2:
-            return "bad_frame"
         if self.bits:
             if 8 * (len(pdu) - 2) < self.block.count:  # pymodbus unpacks every byte after
                 return "bad_length"  # the byte count: 8 bits each
@@ -223,6 +221,8 @@ class BlockLayout:
                 bit = 1 if pdu[i] & mask else 0
                 out[role] = bit if role == "status" else (bit * scale + offset) * factor
             return None
+        if len(pdu) < 2:  # no byte count (pymodbus raises)
+            return "bad_frame"
         n = pdu[1]  # the byte count
         if n >= len(pdu) - 1:  # more bytes announced than came (pymodbus raises)
             return "bad_frame"
