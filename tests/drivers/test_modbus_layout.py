@@ -78,7 +78,7 @@ def test_request_bytes_equal_pymodbus_encoding(typ, fc, transport) -> None:
         sp = point("setpoint", typ, 100, wo, bo, scale, offset, factor)
         n = sp.count
 
-        def pdu():
+        def pdu(n: int = n):
             if fc == 23:
                 return ReadWriteMultipleRegistersRequest(
                     read_address=200, read_count=7, write_address=100, write_registers=[0] * n
@@ -164,7 +164,7 @@ def test_block_decoding_equals_pymodbus_decoding(typ) -> None:
                 -1.0,
                 1e3,
                 "input",
-            ),  # fmt: skip
+            ),
             point("status", "uint16" if typ == "float32" else typ, 230, wo, bo2, table="input"),
         )
         block = ReadBlock("input", 200, 230 + pts[2].count - 200, pts)
