@@ -51,7 +51,7 @@ from rths_hil.errors import InputError
 
 from .profile import ModbusPoint, ReadBlock
 
-__all__ = ["TID", "BlockLayout", "PointLayout", "RequestTemplate", "rtu_crc"]
+__all__ = ["TID", "BlockLayout", "PointLayout", "RequestTemplate", "StepReply", "rtu_crc"]
 
 #: The MBAP transaction identifier: bytes 0–1 of a Modbus TCP frame, big-endian.
 TID = struct.Struct(">H")
@@ -206,6 +206,8 @@ class BlockLayout:
                 self.native_points.append((p.role, *scaling))
             else:
                 self.other_points.append((p.role, lay, 2 + 2 * k, *scaling))
+        if 2 * block.count > at:  # to the block's end (bytes after the last struct point)
+            fmt += f"{2 * block.count - at}x"
         self.struct = struct.Struct(fmt)  # e.g. ">ff12xH": float32, float32, 6 gaps, uint16
         self.fmt = fmt
         self._check(source)
@@ -228,15 +230,20 @@ class BlockLayout:
             return "bad_frame"
         if n // 2 < self.block.count:  # registers = byte count // 2
             return "bad_length"
-        raws = self.struct.unpack_from(pdu, 2)
+        self.values_from(pdu, 0, out)
+        return None
+
+    def values_from(self, buf: bytes, at: int, out: dict[str, float]) -> None:
+        """The register block's values from the response PDU at ``buf[at:]`` (its function
+        code at ``at``), its byte count and length already checked."""
+        raws = self.struct.unpack_from(buf, at + 2)
         for (role, scale, offset, factor), raw in zip(self.native_points, raws, strict=True):
             # value in units = raw · scale + offset; SI = that · factor (ModbusPoint.si); the
             # status word is the raw integer (ValueError for a NaN in a float status point)
             out[role] = int(raw) if role == "status" else (raw * scale + offset) * factor
-        for role, lay, at, scale, offset, factor in self.other_points:
-            raw = lay.unpack_from(pdu, at)
+        for role, lay, off, scale, offset, factor in self.other_points:
+            raw = lay.unpack_from(buf, at + off)
             out[role] = int(raw) if role == "status" else (raw * scale + offset) * factor
-        return None
 
     def _check(self, source: str) -> None:
         """Decode a response pymodbus built for probe values; refuse on a disagreement."""
@@ -291,9 +298,19 @@ class RequestTemplate:
         The value's layout.
     source : str
         The profile's path, for the refusal.
+    follow : list of bytes, optional
+        Modbus TCP: frames sent after it in the same write (the step's reads, built by
+        pymodbus), their transaction ids ``tid + 1``, ``tid + 2``, … patched per step.
     """
 
-    def __init__(self, framer: Any, pdu: Any, layout: PointLayout, source: str = "") -> None:
+    def __init__(
+        self,
+        framer: Any,
+        pdu: Any,
+        layout: PointLayout,
+        source: str = "",
+        follow: list[bytes] = (),  # type: ignore[assignment]
+    ) -> None:
         self.framer, self.pdu, self.layout = framer, pdu, layout
         self.rtu = isinstance(framer, FramerRTU)
         self.field = "write_registers" if hasattr(pdu, "write_registers") else "registers"
@@ -306,9 +323,11 @@ class RequestTemplate:
             raise _refuse(layout.point, source, "the value's bytes not found in its request")
         #: byte offset of the value in the frame
         self.offset = diff[0]
-        self.frame = bytearray(a)
         self.function_code = pdu.function_code
         self._check(source)
+        #: the frame(s): the request, then ``follow``; the MBAP transaction id of each at
+        self.frame = bytearray(a + b"".join(follow))
+        self.tids = [len(a) + sum(len(f) for f in follow[:i]) for i in range(len(follow))]
 
     def _build(self, regs: list[int], tid: int) -> bytes:
         setattr(self.pdu, self.field, regs)
@@ -323,9 +342,13 @@ class RequestTemplate:
             _CRC.pack_into(f, len(f) - 2, _compute_crc(f[:-2]))
         else:
             TID.pack_into(f, 0, tid)  # MBAP transaction identifier
+            for i, at in enumerate(self.tids, start=1):
+                TID.pack_into(f, at, tid + i)  # the following frames': tid + 1, tid + 2, …
         return bytes(f)
 
     def _check(self, source: str) -> None:
+        self.frame = bytearray(self._build([0] * (self.layout.n // 2), 0))
+        self.tids = []
         p = self.layout.point
         for k, raw in enumerate(PROBES[p.type]):
             tid = (0x1234 + 4099 * k) & 0xFFFF
@@ -339,6 +362,65 @@ class RequestTemplate:
             ref = self._build(regs, tid)
             if mine != ref:
                 raise _refuse(p, source, f"the request is {mine.hex()}, pymodbus {ref.hex()}")
+
+
+class StepReply:
+    """A Modbus TCP step's whole reply, as pymodbus's response frames build it: the bytes
+    every reply of the step has (MBAP header, function code, byte count, a write's echo) with
+    the transaction ids of the step, and where each read block's data sits.
+
+    :meth:`match` takes the reply off the head of a buffer in one pass (the fast path; a reply
+    that differs in any predictable byte is left to the general parser, which counts it).
+
+    Parameters
+    ----------
+    framer : FramerSocket
+        pymodbus's Modbus TCP framer.
+    unit : int
+        The unit id.
+    transactions : list
+        The step's transactions in order: ``(pymodbus response PDU, BlockLayout or None)``;
+        the response built with zero data, a write's echo with ``None``.
+    """
+
+    def __init__(self, framer: Any, unit: int, transactions: list[tuple[Any, Any]]) -> None:
+        expect = b""
+        self.tids: list[int] = []  # offset of each transaction's id in the reply
+        self.segments: list[tuple[int, int]] = []  # (start, end) of the predictable bytes
+        self.blocks: list[tuple[BlockLayout, int]] = []  # (layout, offset of its fc byte)
+        for pdu, block in transactions:
+            pdu.dev_id, pdu.transaction_id = unit, 0
+            frame = bytes(framer.buildFrame(pdu))
+            at = len(expect)
+            self.tids.append(at)
+            head = len(frame) if block is None else 9  # MBAP (7) + function code + byte count
+            if self.segments and self.segments[-1][1] == at:
+                self.segments[-1] = (self.segments[-1][0], at + head)  # adjacent: one compare
+            else:
+                self.segments.append((at, at + head))
+            if block is not None:
+                self.blocks.append((block, at + 7))
+            expect += frame
+        self.expect = bytearray(expect)
+        self.size = len(expect)
+
+    def expect_step(self, tid: int) -> None:
+        """The reply of the step whose first transaction id is ``tid`` (then ``tid + 1``, …)."""
+        for i, at in enumerate(self.tids):
+            TID.pack_into(self.expect, at, tid + i)
+
+    def match(self, buf: bytes, out: dict[str, float]) -> int:
+        """The reply's size if ``buf`` starts with the expected step's reply (its values in
+        ``out``), else 0."""
+        if len(buf) < self.size:
+            return 0
+        e = self.expect
+        for a, b in self.segments:
+            if buf[a:b] != e[a:b]:
+                return 0
+        for block, at in self.blocks:
+            block.values_from(buf, at, out)
+        return self.size
 
 
 def rtu_crc(frame: bytes | bytearray) -> bytes:

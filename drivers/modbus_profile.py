@@ -62,16 +62,20 @@ from pymodbus.pdu.bit_message import (
 )
 from pymodbus.pdu.register_message import (
     ReadHoldingRegistersRequest,
+    ReadHoldingRegistersResponse,
     ReadInputRegistersRequest,
+    ReadInputRegistersResponse,
     ReadWriteMultipleRegistersRequest,
+    ReadWriteMultipleRegistersResponse,
     WriteMultipleRegistersRequest,
+    WriteMultipleRegistersResponse,
     WriteSingleRegisterRequest,
 )
 
 from rths_hil.errors import InputError
 
 from .base import Driver, Feedback, LinkDown, extend_seq
-from .modbus_layout import BlockLayout, PointLayout, RequestTemplate
+from .modbus_layout import BlockLayout, PointLayout, RequestTemplate, StepReply
 from .profile import ModbusAction, ModbusProfile, load_profile, status_from_word
 
 __all__ = ["ModbusProfileDriver"]
@@ -160,6 +164,7 @@ class ModbusProfileDriver(Driver):
         self._template: RequestTemplate | None = None
         self._blocks: list[BlockLayout] = []
         self._block_fc: list[int] = []  # the function code answering each block
+        self._reply: StepReply | None = None  # pipelined TCP: the step's whole reply
         #: the step's decoded values so far (role → SI value, ``status`` → the status word),
         #: the blocks they came from and the step (mod 4096) they belong to
         self._parts: dict[str, float] = {}
@@ -215,10 +220,6 @@ class ModbusProfileDriver(Driver):
             sock.setblocking(False)
             self._sock, self._fd = sock, sock.fileno()
         self._buf = b""
-        self._read_frames = [
-            self._frame(_READS[b.table](address=b.address, count=b.count), i)
-            for i, b in enumerate(self._reads, start=1)
-        ]  # built by pymodbus once; per step only the transaction id changes (TCP)
         try:
             self._check_map()
         except InputError:
@@ -228,13 +229,39 @@ class ModbusProfileDriver(Driver):
     def _compile(self) -> None:
         """pymodbus's generic work, once: the step's request template and the read blocks'
         decoders, each checked against pymodbus (:mod:`.modbus_layout`)."""
-        src = self.profile.source
-        self._template = RequestTemplate(self._framer, self._step_pdu, PointLayout(self._sp, src))
+        prof, src = self.profile, self.profile.source
         self._blocks = [BlockLayout(b, src) for b in self._reads]
-        if self.profile.fc23:
+        if prof.fc23:
             self._block_fc = [23]
         else:
             self._block_fc = [_READ_FC[b.table] for b in self._reads]
+            self._read_frames = [
+                self._frame(_READS[b.table](address=b.address, count=b.count), i)
+                for i, b in enumerate(self._reads, start=1)
+            ]  # built by pymodbus once; per step only the transaction id changes (TCP)
+        # pipelined TCP: the step's requests in one template (the reads follow the write)
+        follow = [] if self._serial else self._read_frames
+        sp = PointLayout(self._sp, src)
+        self._template = RequestTemplate(self._framer, self._step_pdu, sp, src, follow)
+        if self._serial or any(b.bits for b in self._blocks):
+            return
+        # pipelined TCP: the step's whole reply, as pymodbus builds its response frames
+        if prof.fc23:
+            n = self._reads[0].count
+            replies: list[tuple[Any, Any]] = [
+                (ReadWriteMultipleRegistersResponse(registers=[0] * n), self._blocks[0])
+            ]
+        else:
+            echo = WriteMultipleRegistersResponse(address=self._sp.address, count=self._sp.count)
+            replies = [(echo, None)]
+            for b, lay in zip(self._reads, self._blocks, strict=True):
+                cls = (
+                    ReadHoldingRegistersResponse
+                    if b.table == "holding"
+                    else ReadInputRegistersResponse
+                )
+                replies.append((cls(registers=[0] * b.count), lay))
+        self._reply = StepReply(self._framer, self.unit, replies)
 
     def close(self) -> None:
         sock, self._sock = self._sock, None
@@ -417,8 +444,13 @@ class ModbusProfileDriver(Driver):
         if tpl is None:  # not opened: nothing goes out (counted as the closed link)
             self.stats.send_errors += 1
             return
+        if self._reply is not None:  # pipelined TCP: FC 16 + reads (or FC 23) in one write
+            self._reply.expect_step(base)
+            frames = tpl.build(raw, base)  # transaction ids base, base + 1, …
+            self._write(b"".join([r[2] for r in out]) + frames if out else frames)
+            return
         out.append((base, tpl.function_code, tpl.build(raw, base)))  # FC 16 or FC 23
-        if not self.profile.fc23:
+        if not self.profile.fc23 and self._serial:
             for i, frame in enumerate(self._read_frames, start=1):
                 if self._rtu:
                     out.append((base | i, frame[1], frame))
@@ -489,8 +521,29 @@ class ModbusProfileDriver(Driver):
             flags = self._flags[word] = status_from_word(word, self._masks)
         return flags
 
+    def _whole_reply(self) -> Feedback | None:
+        """Pipelined TCP: the step's whole reply at the head of the buffer, in one pass
+        (:class:`.modbus_layout.StepReply`); anything else is left to :meth:`_parse_one`."""
+        reply = self._reply
+        if reply is None or len(self._buf) < reply.size:
+            return None
+        values: dict[str, float] = {}
+        try:
+            used = reply.match(self._buf, values)
+        except (ValueError, OverflowError):  # a NaN or ∞ in a float status point
+            return None  # (the general path counts it)
+        if not used:
+            return None
+        self._buf = self._buf[used:]
+        return Feedback(
+            self._last_sent, values["position"], values["force"], self._status_of(values["status"])
+        )
+
     def _recv_internal(self, deadline: float) -> Feedback | None:
         while True:
+            fb = self._whole_reply()
+            if fb is not None:
+                return fb
             got = self._parse_one()
             if got is None:
                 break
