@@ -365,12 +365,17 @@ class RequestTemplate:
 
 
 class StepReply:
-    """A Modbus TCP step's whole reply, as pymodbus's response frames build it: the bytes
-    every reply of the step has (MBAP header, function code, byte count, a write's echo) with
-    the transaction ids of the step, and where each read block's data sits.
+    """A pipelined Modbus TCP step's whole reply as one ``struct`` (the fast path).
 
-    :meth:`match` takes the reply off the head of a buffer in one pass (the fast path; a reply
-    that differs in any predictable byte is left to the general parser, which counts it).
+    The reply of a step is the responses of its transactions, in order, each as pymodbus's
+    response class and framer build it: a write's echo (all predictable but the transaction
+    id), a read's MBAP header, function code and byte count, then the block's registers. One
+    format covers it all, e.g. ``">H10sH7sff12xH"`` for the example map: FC 16 echo (id, 10
+    bytes), FC 4 response (id, 7 bytes), position and force (float32), 6 unmapped registers,
+    the status word (uint16). :meth:`match` unpacks it once and checks every transaction id and
+    every predictable byte; a reply that differs anywhere is left to the general parser (which
+    counts what is wrong with it). Made only when the read points are all in Modbus's own order
+    (:attr:`PointLayout.native`); other maps take the general path.
 
     Parameters
     ----------
@@ -380,47 +385,66 @@ class StepReply:
         The unit id.
     transactions : list
         The step's transactions in order: ``(pymodbus response PDU, BlockLayout or None)``;
-        the response built with zero data, a write's echo with ``None``.
+        a read's response built with zero registers, a write's echo with ``None``.
     """
 
     def __init__(self, framer: Any, unit: int, transactions: list[tuple[Any, Any]]) -> None:
-        expect = b""
-        self.tids: list[int] = []  # offset of each transaction's id in the reply
-        self.segments: list[tuple[int, int]] = []  # (start, end) of the predictable bytes
-        self.blocks: list[tuple[BlockLayout, int]] = []  # (layout, offset of its fc byte)
+        fmt, fields = ">", 0  # the struct, and how many values it unpacks to so far
+        tids: list[int] = []  # the fields of the transaction ids
+        heads: list[int] = []  # the fields of the predictable bytes
+        consts: list[bytes] = []  # … and what they must be
+        raw_at: dict[str, int] = {}  # role → the field of its raw value
+        self.scaling: dict[str, tuple[float, float, float]] = {}  # role → scale, offset, factor
         for pdu, block in transactions:
             pdu.dev_id, pdu.transaction_id = unit, 0
             frame = bytes(framer.buildFrame(pdu))
-            at = len(expect)
-            self.tids.append(at)
             head = len(frame) if block is None else 9  # MBAP (7) + function code + byte count
-            if self.segments and self.segments[-1][1] == at:
-                self.segments[-1] = (self.segments[-1][0], at + head)  # adjacent: one compare
-            else:
-                self.segments.append((at, at + head))
-            if block is not None:
-                self.blocks.append((block, at + 7))
-            expect += frame
-        self.expect = bytearray(expect)
-        self.size = len(expect)
+            fmt += f"H{head - 2}s"  # transaction id, then the predictable bytes
+            tids.append(fields)
+            heads.append(fields + 1)
+            consts.append(frame[2:head])
+            fields += 2
+            if block is None:
+                continue
+            if block.bits or block.other_points:
+                raise ValueError("StepReply: only register blocks in Modbus's own order")
+            fmt += block.fmt[1:]  # the block's registers, e.g. "ff12xH"
+            for i, (role, *scaling) in enumerate(block.native_points):
+                raw_at[role] = fields + i
+                self.scaling[role] = tuple(scaling)  # type: ignore[assignment]
+            fields += len(block.native_points)
+        self.struct = struct.Struct(fmt)
+        self.fmt = fmt
+        self.size = self.struct.size
+        self.n = len(tids)
+        self.consts = tuple(consts)
+        self._tids = _getter(tids)
+        self._heads = _getter(heads)
+        self._raws = operator.itemgetter(raw_at["position"], raw_at["force"], raw_at["status"])
+        ps, po, pf = self.scaling["position"]
+        fs, fo, ff = self.scaling["force"]
+        self._scaling = (ps, po, pf, fs, fo, ff)
 
-    def expect_step(self, tid: int) -> None:
-        """The reply of the step whose first transaction id is ``tid`` (then ``tid + 1``, …)."""
-        for i, at in enumerate(self.tids):
-            TID.pack_into(self.expect, at, tid + i)
-
-    def match(self, buf: bytes, out: dict[str, float]) -> int:
-        """The reply's size if ``buf`` starts with the expected step's reply (its values in
-        ``out``), else 0."""
+    def match(self, buf: bytes, tid: int) -> tuple[float, float, int] | None:
+        """(position, force in SI, the status word) if ``buf`` starts with the reply of the
+        step whose first transaction id is ``tid`` (then ``tid + 1``, …), else ``None``."""
         if len(buf) < self.size:
-            return 0
-        e = self.expect
-        for a, b in self.segments:
-            if buf[a:b] != e[a:b]:
-                return 0
-        for block, at in self.blocks:
-            block.values_from(buf, at, out)
-        return self.size
+            return None
+        vals = self.struct.unpack_from(buf)
+        if self._tids(vals) != tuple(range(tid, tid + self.n)) or self._heads(vals) != self.consts:
+            return None
+        pos, force, word = self._raws(vals)
+        ps, po, pf, fs, fo, ff = self._scaling
+        # value in units = raw · scale + offset; SI = that · factor (ModbusPoint.si)
+        return (pos * ps + po) * pf, (force * fs + fo) * ff, int(word)
+
+
+def _getter(fields: list[int]) -> Any:
+    """``itemgetter`` that always returns a tuple (also of one field)."""
+    if len(fields) == 1:
+        (k,) = fields
+        return lambda vals: (vals[k],)
+    return operator.itemgetter(*fields)
 
 
 def rtu_crc(frame: bytes | bytearray) -> bytes:

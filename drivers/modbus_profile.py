@@ -243,8 +243,8 @@ class ModbusProfileDriver(Driver):
         follow = [] if self._serial else self._read_frames
         sp = PointLayout(self._sp, src)
         self._template = RequestTemplate(self._framer, self._step_pdu, sp, src, follow)
-        if self._serial or any(b.bits for b in self._blocks):
-            return
+        if self._serial or any(b.bits or b.other_points for b in self._blocks):
+            return  # (the general path: one response at a time)
         # pipelined TCP: the step's whole reply, as pymodbus builds its response frames
         if prof.fc23:
             n = self._reads[0].count
@@ -445,7 +445,6 @@ class ModbusProfileDriver(Driver):
             self.stats.send_errors += 1
             return
         if self._reply is not None:  # pipelined TCP: FC 16 + reads (or FC 23) in one write
-            self._reply.expect_step(base)
             frames = tpl.build(raw, base)  # transaction ids base, base + 1, …
             self._write(b"".join([r[2] for r in out]) + frames if out else frames)
             return
@@ -527,17 +526,15 @@ class ModbusProfileDriver(Driver):
         reply = self._reply
         if reply is None or len(self._buf) < reply.size:
             return None
-        values: dict[str, float] = {}
+        last = self._last_sent
         try:
-            used = reply.match(self._buf, values)
+            got = reply.match(self._buf, (last & 0x0FFF) << 4)
         except (ValueError, OverflowError):  # a NaN or ∞ in a float status point
             return None  # (the general path counts it)
-        if not used:
+        if got is None:
             return None
-        self._buf = self._buf[used:]
-        return Feedback(
-            self._last_sent, values["position"], values["force"], self._status_of(values["status"])
-        )
+        self._buf = self._buf[reply.size :]
+        return Feedback(last, got[0], got[1], self._status_of(got[2]))
 
     def _recv_internal(self, deadline: float) -> Feedback | None:
         while True:
