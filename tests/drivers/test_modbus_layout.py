@@ -339,3 +339,99 @@ def test_driver_with_mixed_orders_reads_what_its_twin_holds(tmp_path, transport)
             assert moved > 1e-4 and drv.stats.malformed == 0
     finally:
         twin.stop()
+
+
+# ------------------------------------------------------------------------------------------
+# the pipelined step's whole reply (StepReply, the fast path)
+# ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("two_blocks", [False, True])
+def test_step_reply_reads_pymodbus_frames_and_refuses_any_other_byte(two_blocks) -> None:
+    """The reply of a step (FC 16 echo, then one FC 4 read, or FC 3 + FC 4 reads) built by
+    pymodbus's response classes and framer with random values: ``match`` gives what the
+    generic decoding gives; a change of any byte outside the registers (a transaction id, a
+    header, the echo), another step's id or a short buffer gives ``None``."""
+    from pymodbus.pdu.register_message import WriteMultipleRegistersResponse
+    from rths_hil.drivers.modbus_layout import StepReply
+
+    rng = np.random.default_rng(11 + two_blocks)
+    pos = point("position", "float32", 200, table="input", scale=0.5, offset=1.0, factor=1e-3)
+    force = point("force", "int32", 202, table="input", scale=0.01, factor=1e3)
+    status = point("status", "uint16", 50 if two_blocks else 210,
+                   table="holding" if two_blocks else "input")  # fmt: skip
+    if two_blocks:
+        blocks = [ReadBlock("input", 200, 4, (pos, force)), ReadBlock("holding", 50, 1, (status,))]
+    else:
+        blocks = [ReadBlock("input", 200, 11, (pos, force, status))]
+    lays = [BlockLayout(b) for b in blocks]
+    framer = FramerSocket(DecodePDU(False))
+    echo = WriteMultipleRegistersResponse(address=100, count=2)
+    txs = [(echo, None)] + [(RESPONSES[b.table](registers=[0] * b.count), lay)
+                            for b, lay in zip(blocks, lays, strict=True)]  # fmt: skip
+    reply = StepReply(framer, 5, txs)
+    if not two_blocks:
+        assert reply.fmt == ">H10sH7sfi12xH"  # 204–209 unmapped: 12 bytes
+    for _ in range(50):
+        tid = int(rng.integers(0, 0x1000)) << 4
+        frames, want = [], {}
+        for i in range(len(txs)):
+            if i == 0:
+                resp = WriteMultipleRegistersResponse(address=100, count=2)
+            else:
+                b = blocks[i - 1]
+                regs = [int(r) for r in rng.integers(0, 0x10000, size=b.count)]
+                for p in b.points:
+                    (raw,) = random_raw(rng, p.type, 1)
+                    k = p.address - b.address
+                    regs[k : k + p.count] = ModbusClientMixin.convert_to_registers(raw, p.dtype)
+                resp = RESPONSES[b.table](registers=regs)
+                pdu_bytes = bytes([resp.function_code]) + resp.encode()
+                want.update(reference_decode(b, pdu_bytes))
+            resp.dev_id, resp.transaction_id = 5, tid + i
+            frames.append(framer.buildFrame(resp))
+        buf = b"".join(frames)
+        assert reply.match(buf + b"\x00\x07", tid) == (
+            want["position"], want["force"], want["status"])  # fmt: skip
+        assert reply.match(buf, tid + 16) is None and reply.match(buf[:-1], tid) is None
+        data = {range(at + 2, at + 2 + 2 * lay.block.count) for lay, at in
+                zip(lays, [len(frames[0]) + 7, len(frames[0]) + len(frames[1]) + 7][: len(lays)],
+                    strict=True)}  # fmt: skip
+        in_data = {i for r in data for i in r}
+        for i in range(len(buf)):
+            if i in in_data:
+                continue
+            bad = bytearray(buf)
+            bad[i] ^= 1 << int(rng.integers(0, 8))
+            assert reply.match(bytes(bad), tid) is None, i
+
+
+def test_driver_fast_path_leaves_other_replies_to_the_general_parser() -> None:
+    """The example map pipelined over TCP takes its step replies in one pass; a reply that is
+    not the expected one (here an exception to the read, built by pymodbus, ahead of the real
+    reply) is parsed and counted as before, and the real reply behind it still delivered."""
+    from pathlib import Path
+
+    from pymodbus.pdu import ExceptionResponse
+    from pymodbus.pdu.register_message import WriteMultipleRegistersResponse
+
+    prof = Path(__file__).resolve().parents[2] / "examples" / "controllers" / "modbus_map.toml"
+    twin = start_twin("modbus", default_plant(), profile=str(prof), port=0)
+    try:
+        with create_driver("modbus", **twin.connection) as drv:
+            assert drv._reply is not None and drv._reply.fmt == ">H10sH7sff12xH"
+            assert drv.arm(1.0) is not None
+            for k in range(5):
+                drv.send(k, 0.001, True)
+                assert drv.receive(1.0) is not None
+            framer = FramerSocket(DecodePDU(False))
+            base = (5 & 0xFFF) << 4
+            echo = WriteMultipleRegistersResponse(address=100, count=2)
+            exc = ExceptionResponse(4, 2)
+            for pdu, tid in ((echo, base), (exc, base + 1)):
+                pdu.dev_id, pdu.transaction_id = 1, tid
+            drv.send(5, 0.001, True)
+            drv._buf = framer.buildFrame(echo) + framer.buildFrame(exc)
+            fb = drv.receive(1.0)
+            assert fb is not None and fb.seq == 5
+            assert drv.stats.malformed_reasons == {"modbus_exception": 1}
+    finally:
+        twin.stop()
