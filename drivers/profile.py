@@ -24,7 +24,9 @@ inputs), ``word_order`` and ``byte_order`` (``big`` or ``little``, defaults from
 ``[modbus]``), ``scale`` and ``offset`` (value in ``units`` = raw · scale + offset) and
 ``units`` (``m``, ``mm``, ``um``, ``in``, ``N``, ``kN``, ``lbf``; SI when omitted). Registers
 are converted by pymodbus (``convert_to_registers`` / ``convert_from_registers``); a
-``byte_order = "little"`` swaps the two bytes of each register. Actions are a ``table``
+``byte_order = "little"`` swaps the two bytes of each register. The Modbus profile driver and
+twin precompile these conversions into ``struct`` layouts checked against pymodbus when they
+open (:mod:`.modbus_layout`). Actions are a ``table``
 (``coil`` or ``holding``), an ``address`` and the ``value`` written. ``[modbus] unit`` is the
 unit id; ``[modbus] pipeline`` (default true) sends a step's Modbus TCP requests in one socket
 write, their responses matched by transaction id (false: one request at a time; RTU is always
