@@ -24,7 +24,11 @@ that the step then applies to a ``bytearray`` template:
   a byte offset and a bit mask each.
 * :class:`RequestTemplate` — one request frame built by pymodbus's PDU class and framer, and
   where its value bytes sit (found by building it twice); per step the value, the transaction
-  id (Modbus TCP) and the CRC (RTU, by pymodbus's ``FramerRTU.compute_CRC``) are patched in.
+  id (Modbus TCP) and the CRC (RTU, by pymodbus's ``FramerRTU.compute_CRC``) are patched in;
+  pipelined Modbus TCP appends the step's read requests to the same template.
+* :class:`StepReply` — pipelined Modbus TCP: a step's whole reply (the responses of its
+  transactions as pymodbus's response classes and framer build them) as one ``struct``,
+  checked byte for byte outside the registers and read in one pass.
 
 Every layout is checked against pymodbus when it is made: test values through the layout give
 the bytes pymodbus gives (``convert_to_registers``, ``buildFrame``) and decode to the values it
@@ -37,6 +41,7 @@ from __future__ import annotations
 import math
 import operator
 import struct
+from collections.abc import Sequence
 from typing import Any
 
 from pymodbus.client.mixin import ModbusClientMixin
@@ -101,7 +106,7 @@ class PointLayout:
         The profile's path, for the refusal.
     """
 
-    __slots__ = ("_get", "fmt", "n", "perm", "point", "struct")
+    __slots__ = ("_get", "_put", "fmt", "n", "perm", "point", "struct")
 
     def __init__(self, point: ModbusPoint, source: str = "") -> None:
         c, regs = point.dtype.value  # pymodbus's struct character and registers per value
@@ -120,7 +125,11 @@ class PointLayout:
         else:
             self.fmt, self.perm = ">" + c, perm
         self.struct = struct.Struct(self.fmt)
-        self._get = operator.itemgetter(*perm)
+        self._get = operator.itemgetter(*perm)  # packed bytes → wire bytes
+        inverse = [0] * self.n
+        for i, k in enumerate(perm):
+            inverse[k] = i  # packed byte k is wire byte i
+        self._put = operator.itemgetter(*inverse)  # wire bytes → packed bytes
         self._check(source)
 
     @property
@@ -144,12 +153,7 @@ class PointLayout:
         """The raw value of the wire bytes at ``offset``."""
         if self.perm is None:
             return self.struct.unpack_from(data, offset)[0]
-        b = data[offset : offset + self.n]
-        # the inverse permutation: packed byte perm[i] = wire byte i
-        inv = bytearray(self.n)
-        for i, p in enumerate(self.perm):
-            inv[p] = b[i]
-        return self.struct.unpack(inv)[0]
+        return self.struct.unpack(bytes(self._put(data[offset : offset + self.n])))[0]
 
     def _check(self, source: str) -> None:
         """Refuse unless every probe value gives pymodbus's bytes and decodes to its value."""
@@ -309,7 +313,7 @@ class RequestTemplate:
         pdu: Any,
         layout: PointLayout,
         source: str = "",
-        follow: list[bytes] = (),  # type: ignore[assignment]
+        follow: Sequence[bytes] = (),
     ) -> None:
         self.framer, self.pdu, self.layout = framer, pdu, layout
         self.rtu = isinstance(framer, FramerRTU)
