@@ -7,10 +7,9 @@ SYSDEPS := $(VENV)/.system-deps
 
 .PHONY: run test lint format bench clean
 
-# One pip run: the venv's own pip (>= 21.3) installs the project editable (PEP 660); upgrading
-# pip first would cost a second index look-up and install for nothing the project needs.
 $(STAMP): pyproject.toml
 	@$(PYTHON) -m venv $(VENV) || { echo "error: '$(PYTHON) -m venv' failed; on Debian install python3-venv"; exit 1; }
+	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	@touch $(STAMP)
 
