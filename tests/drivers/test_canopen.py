@@ -273,7 +273,8 @@ def test_pdo_bytes_follow_the_cia301_little_endian_layout():
         assert bytes(frames[1].data) == struct.pack("<i", 456789)
         # the driver's decoding (its TPDO callback) of TPDOs packed by struct
         drv._q.clear()
-        drv._step, drv._delivered_sync, drv._part = 9, -2, {}
+        drv._delivered_sync, drv._awaiting = -2, 9
+        drv._synced()  # the SYNC of step 9
         for m, data in ((drv.node.tpdo[1], struct.pack("<Hi", 0x0237, -7654321)),
                         (drv.node.tpdo[2], struct.pack("<i", -31415))):  # fmt: skip
             m.data = bytearray(data)
