@@ -238,7 +238,13 @@ class Layout:
                 pdo_map.data = bytearray(size)
                 for var, value in zip(variables, values, strict=True):
                     var.raw = value
-                ours = self.fmt.pack(*values)
+                try:
+                    ours = self.fmt.pack(*values)
+                except struct.error as exc:
+                    raise InputError(
+                        f"canopen: {name}: the driver cannot pack {values} ({exc}), the canopen "
+                        f"library's encoding is {bytes(pdo_map.data).hex()}"
+                    ) from None
                 if bytes(pdo_map.data) != ours:
                     raise InputError(
                         f"canopen: {name}: the driver's packing of {values} is {ours.hex()}, "
