@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import os
+import queue
 import random
 import struct
 import time
@@ -40,6 +41,7 @@ import can
 import canopen
 from canopen.objectdictionary import ObjectDictionaryError
 from rths_hil.drivers.base import INVALID_S32, Status
+from rths_hil.drivers.can import virtual_rx_queue
 from rths_hil.drivers.can.codec import Frame
 from rths_hil.drivers.canopen import BRIDGE_NODE_ID, Layout, load_od, parse_object
 from rths_hil.drivers.canopen.profiles import PROFILES, SW408
@@ -171,6 +173,7 @@ class CANopenTwin(TwinEndpoint):
         # the maps packed and unpacked by precompiled structs checked against the library's
         # encoding (Layout.check) when the node starts; None: through the library's variables
         self._fast: tuple[Any, ...] | None = None
+        self._rxq: queue.Queue | None = None
         self._nmt_state = ""
         self._hb_watch = False
 
@@ -185,6 +188,7 @@ class CANopenTwin(TwinEndpoint):
             raise InputError(
                 f"canopen twin: cannot open {self.interface!r} {self.channel!r}: {exc}"
             ) from None
+        self._rxq = virtual_rx_queue(self.bus)
         net = self.network = canopen.Network(self.bus)
         node = self.node = canopen.LocalNode(self.node_id, self.od)
         net.add_node(node)
@@ -205,6 +209,7 @@ class CANopenTwin(TwinEndpoint):
         if node is not None:
             node.nmt.stop_heartbeat()
         bus, self.bus = self.bus, None
+        self._rxq = None
         self.network = None
         if bus is not None:
             try:
@@ -217,7 +222,14 @@ class CANopenTwin(TwinEndpoint):
         bus = self.bus
         if bus is None:
             return
-        msg = bus.recv(timeout)
+        q = self._rxq
+        if q is not None:  # python-can's virtual bus: its receive queue (virtual_rx_queue)
+            try:
+                msg = q.get(True, timeout) if timeout > 0 else q.get_nowait()
+            except queue.Empty:
+                return
+        else:
+            msg = bus.recv(timeout)
         if msg is None or self._gone:
             return
         if msg.is_error_frame or msg.is_remote_frame:
