@@ -31,8 +31,9 @@ feedback — after every axis's RPDO, so several axes on one bus share one SYNC 
 SYNC is the step clock: the devices apply the RPDO received before it and answer with their
 TPDOs. The feedback of step ``k`` is the TPDO set received after SYNC ``k`` (TPDOs carry no
 sequence number: a TPDO that comes after the next SYNC is taken for the next step's, see
-``docs/canopen.md``). The RPDO is encoded and the TPDOs decoded by the library's PDO variables
-(the objects' ``encode_raw`` / ``decode_raw`` at the offsets of the library's PDO maps).
+``docs/canopen.md``). The RPDO is packed and the TPDOs unpacked by one precompiled ``struct``
+each (:class:`Layout`), checked at start-up against the library's encoding and decoding of its
+PDO maps (:meth:`Layout.check`; the library stays the authority on the mapping).
 Positions are counts on the wire (``counts_per_m``), forces counts of ``newtons_per_count``.
 The base class owns the receive deadline, the timeouts, the sequence rules and the counters.
 
