@@ -45,6 +45,8 @@ def run(example: str, extra: list[str], duration: float, out: Path) -> dict:
     cli = "import sys; from rths_hil.cli import main; sys.exit(main(sys.argv[1:]))"
     cmd = [sys.executable, "-c", cli, "run", str(ROOT / example), "--paced",
            "--duration", f"{duration:g}", "--out", str(out), "--no-plot", "-q", *extra]  # fmt: skip
+    if out.exists():
+        raise RuntimeError(f"{out} exists: each run needs its own directory")
     p = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     path = out / "summary.json"
     if not path.is_file():
@@ -61,8 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="bench-canopen-paced-"))
     acc: dict[str, list[dict]] = {k: [] for k in MODES}
     for r in range(args.rounds):
-        for label, (example, extra) in MODES.items():
-            s = run(example, extra, args.duration, tmp / f"{len(acc[label])}-{r}-{label[:6]}")
+        for m, (label, (example, extra)) in enumerate(MODES.items()):
+            s = run(example, extra, args.duration, tmp / f"mode{m}-round{r}")
             acc[label].append(s)
             oc = s["overrun_causes"]
             print(f"{label:34s} round {r}: {s['status']}, {s['steps']} steps, work {oc['work']} "
@@ -79,7 +81,11 @@ def main(argv: list[str] | None = None) -> int:
         verdict = ""
         if label.startswith("canopen"):
             verdict = f"≤ {GOAL * 100:g} %: {'met' if share <= GOAL else 'NOT met'}"
-        per_run = ", ".join(str(s["overrun_causes"]["work"]) for s in runs)
+        per_run = ", ".join(
+            str(s["overrun_causes"]["work"])
+            + ("" if s["status"] == "completed" else f" ({s['status']})")
+            for s in runs
+        )
         rows.append([label, len(runs), steps, f"{work} (+{work_b})", f"{100 * share:.3f} %",
                      per_run, mach, missed, verdict])  # fmt: skip
     two = []
