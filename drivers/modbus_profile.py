@@ -175,6 +175,7 @@ class ModbusProfileDriver(Driver):
         self._fd: int | None = None
         self._buf = b""
         self._enabled: bool | None = None
+        self._estop_sent = False
         self._hb = 0
         self._sp = prof.points["setpoint"]
         self._reads = prof.reads
@@ -410,12 +411,13 @@ class ModbusProfileDriver(Driver):
             pending.clear()
             if self._rtu:  # (a TCP stream keeps its framing: a late answer is told by its id)
                 self._buf = b""
-        if enable != self._enabled:
-            acts = self.profile.actions
-            if enable:
-                out += self._action(acts.get("enable"))
-            else:
-                out += self._action(acts.get("disable")) + self._action(acts.get("acknowledge"))
+        acts = self.profile.actions
+        if not enable and (seq == 0 or self._estop_sent):
+            # the arming command (a new run) or the first disable after our e-stop: acknowledge
+            out += self._action(acts.get("disable")) + self._action(acts.get("acknowledge"))
+            self._enabled, self._estop_sent = False, False
+        elif enable != self._enabled:  # (the hand-back at a normal end only disables)
+            out += self._action(acts.get("enable" if enable else "disable"))
             self._enabled = enable
         base = (seq & 0x0FFF) << 4
         pdu = self._step_pdu
@@ -435,6 +437,7 @@ class ModbusProfileDriver(Driver):
 
     def estop(self) -> None:
         self.stats.estops += 1
+        self._estop_sent = True  # the next disable acknowledges it
         ((tid, fc, frame),) = self._action(self.profile.actions["estop"])
         if self._rtu:  # written now: answered after the request on the line, if any
             self._pending.insert(1 if self._pending else 0, (tid, fc, b""))

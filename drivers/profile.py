@@ -9,7 +9,9 @@ role                      meaning
 ``roles.position``        measured actuator displacement (read every step)
 ``roles.force``           measured specimen force (read every step)
 ``roles.status``          the controller's status word; ``[status]`` gives the bit masks
-                          ``enabled``, ``estop``, ``fault``, ``watchdog``
+                          ``enabled``, ``estop``, ``fault``, ``watchdog`` and
+                          ``sensor_invalid`` (the sample's measurement is not valid: the
+                          driver delivers its displacement as NaN)
 ``actions.estop``         what latches the controller's e-stop (required)
 ``actions.enable``,       what enables / disables (holds) the controller; written when the
 ``actions.disable``       bridge's enable flag changes
@@ -110,6 +112,7 @@ STATUS_BITS: dict[str, int] = {
     "estop": int(Status.ESTOP_ACTIVE),
     "fault": int(Status.FAULT),
     "watchdog": int(Status.WATCHDOG),
+    "sensor_invalid": int(Status.SENSOR_INVALID),
 }
 _DT = ModbusClientMixin.DATATYPE
 _INT_RANGE = {

@@ -17,8 +17,19 @@ set-point is one command — one plant step while enabled, a hold while disabled
 built-in twins' arming command: the latch cleared, the plant at rest, the step count from 0);
 ``estop`` latches the e-stop; a heartbeat write or a set-point write feeds the controller-side
 watchdog. After each command the position, force and status points show the new values; the
-status word is refreshed on every read (a watchdog latch is visible at once). Frame faults of
-a fault plan (drop, corrupt, delay) do not apply to a profile twin; measurement faults do.
+status word is refreshed on every read (a watchdog latch is visible at once). The map carries
+no sequence number: the twin counts set-point writes from the acknowledge (the disabled write
+that follows it is the arming command, the next one the run's step 0), so a fault plan's step
+numbers are the bridge's.
+
+Faults: the frame faults of step ``k`` (drop, corrupt, duplicate, delay) apply to the responses
+to the reads of the feedback after the set-point write of step ``k`` — with FC 23 its one
+response — as they would to a controller's answer: dropped, sent twice, held back (the twin
+does nothing else meanwhile), or damaged where the driver must notice (TCP: the unit id of the
+MBAP header, which TCP's own checksum would otherwise protect; RTU: a data bit under the CRC).
+Measurement faults change the published values; a ``nan`` sets the status word's
+``sensor_invalid`` bit (when the profile maps one) and, in an integer point that cannot carry
+NaN, leaves the last value; ``disconnect_from`` closes the connection.
 """
 
 from __future__ import annotations
@@ -44,15 +55,19 @@ from pymodbus.pdu.register_message import (
     WriteMultipleRegistersResponse,
     WriteSingleRegisterResponse,
 )
+from rths_hil.drivers.base import Status
 from rths_hil.drivers.profile import ModbusProfile, load_profile, word_from_status
 
 from rths_hil.errors import InputError
 
+from ..faults import Faults
 from .base import TwinController, TwinEndpoint, listen
 
 __all__ = ["ModbusProfileTwin"]
 
 _READ_TABLE = {3: "holding", 4: "input", 1: "coil", 2: "discrete"}
+_SAMPLE_FLAGS = int(Status.SENSOR_INVALID | Status.SEQ_GAP)
+_FEEDBACK_FC = frozenset((1, 2, 3, 4, 23))  # the responses that carry a step's feedback
 _READ_RESP = {
     3: ReadHoldingRegistersResponse,
     4: ReadInputRegistersResponse,
@@ -106,6 +121,9 @@ class ModbusProfileTwin(TwinEndpoint):
         self._conns: dict[int, list[Any]] = {}  # fd → [socket, buffer]
         self._enable = False
         self._k = 0
+        # the frame faults of the current step (copies, corrupt), applied to its read responses
+        self._plan: tuple[int, bool] | None = None
+        self._sample_flags = 0  # per-sample status flags of the last published feedback
 
     # -- lifecycle ------------------------------------------------------------------------------
     def _setup(self) -> None:
@@ -280,7 +298,16 @@ class ModbusProfileTwin(TwinEndpoint):
         if pdu is None:
             return
         pdu.dev_id, pdu.transaction_id = self.device_id, tid
-        self._out.append(self._framer.buildFrame(pdu))
+        frame = self._framer.buildFrame(pdu)
+        plan = self._plan
+        if plan is None or pdu.function_code not in _FEEDBACK_FC:
+            self._out.append(frame)
+            return
+        copies, corrupt = plan  # a response carrying the step's feedback
+        if corrupt:
+            frame = self._corrupt(frame)
+        self._out.extend([frame] * copies)
+        self.controller.stats.replies += copies
 
     def _mapped(self, table: str, address: int, count: int) -> bool:
         t = self.tables[table]
@@ -341,9 +368,9 @@ class ModbusProfileTwin(TwinEndpoint):
         if address <= sp.address and sp.end <= address + len(regs):
             x = sp.from_registers([t[a] for a in range(sp.address, sp.end)])
             reply = self.controller.command(self._k, x, self._enable)
-            self._k += 1
-            if reply is not None:
-                self.emit(reply)
+            if self._enable or self._k:  # (the disabled write at 0 is the arming command)
+                self._k += 1
+            self.emit(reply)
 
     def _act(self, table: str, address: int, value: int) -> None:
         ctl = self.controller
@@ -358,9 +385,9 @@ class ModbusProfileTwin(TwinEndpoint):
                 self._enable = False
             elif name == "acknowledge":
                 self._enable = False
-                self._k = 0
-                reply = ctl.command(0, ctl.displacement, False)  # a new run (arming)
-                self._k = 1
+                self._k = 0  # a new run (arming): the count restarts
+                self._plan = None
+                reply = ctl.command(0, ctl.displacement, False)
                 if reply is not None:
                     self._publish(*reply[1:])
 
@@ -376,6 +403,7 @@ class ModbusProfileTwin(TwinEndpoint):
                 continue  # not representable (NaN in an integer point): keep the old value
             for i, r in enumerate(regs):
                 t[p.table][p.address + i] = r
+        self._sample_flags = status & _SAMPLE_FLAGS
         self._set_status(status)
 
     def _set_status(self, status: int) -> None:
@@ -386,14 +414,39 @@ class ModbusProfileTwin(TwinEndpoint):
             self.tables[p.table][p.address + i] = r
 
     def _refresh_status(self) -> None:
-        self._set_status(self.controller.status())
+        # the controller's state now, with the flags of the last sample (sensor invalid)
+        self._set_status(self.controller.status() | self._sample_flags)
+
+    def emit(self, reply: tuple[int, float, float, int] | None) -> None:
+        """Publish the values of one command's feedback and plan the step's frame faults.
+
+        A register map has no feedback frame of its own: the values are published to the
+        tables, and the frame faults apply to the responses to the step's reads (:meth:`_reply`).
+        """
+        if reply is None:
+            self._plan = (0, False)  # a lost command: its step's reads go unanswered
+            return
+        if self._gone:
+            return
+        seq = reply[0]
+        faults = self.faults
+        if faults.disconnected(seq):
+            self._go_away()
+            return
+        self._publish(*reply[1:])
+        copies, pause, corrupt = faults.reply_plan(seq)
+        self._plan = (copies, corrupt)
+        if pause:  # a stalled controller: the step's reads are answered after the pause
+            self._stop.wait(pause)
 
     def _encode(self, seq: int, displacement: float, force: float, status: int) -> list[Any]:
-        self._publish(displacement, force, status)
+        self._publish(displacement, force, status)  # (emit publishes; kept for the interface)
         return []
 
-    def _corrupt(self, frame: Any) -> Any:  # pragma: no cover - no frames of its own
-        return frame
+    def _corrupt(self, frame: bytes) -> bytes:
+        # TCP: the unit id of the MBAP header (TCP's checksum guards the rest of a segment);
+        # RTU: a bit of the first data byte, caught by the CRC
+        return Faults.flip_bit(frame, 6 if self.transport == "tcp" else 3)
 
-    def _write(self, frame: Any) -> None:  # pragma: no cover - no frames of its own
+    def _write(self, frame: Any) -> None:  # pragma: no cover - responses go out in _process
         pass
