@@ -8,8 +8,11 @@ answered with the Modbus exception ILLEGAL DATA ADDRESS (addresses between the p
 read block read as 0), as a real controller does, so a driver started with a profile that does
 not match is refused by its start-up check. Requests are decoded and responses built by pymodbus
 (``FramerSocket`` / ``FramerRTU``, ``DecodePDU``, its PDU classes; an RTU request is cut by the
-size its PDU class computes and checked by its CRC); values are converted by pymodbus's
-``convert_to_registers`` / ``convert_from_registers``.
+size its PDU class computes and checked by its CRC). Values are converted by the precompiled
+``struct`` layouts of :mod:`rths_hil.drivers.modbus_layout` (made once, each checked against
+pymodbus's ``convert_to_registers`` / ``convert_from_registers``), a status word's registers
+and which mapped spans a request touches are worked out once and remembered, so that a step
+costs the twin's thread little beside pymodbus's request decoding and response framing.
 
 Controller behaviour (the :class:`~.base.TwinController` of every twin): each write of the
 set-point is one command — one plant step while enabled, a hold while disabled; the
@@ -37,6 +40,7 @@ from __future__ import annotations
 import os
 import select
 import socket
+import struct
 import tty
 from typing import Any
 
@@ -56,7 +60,8 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterResponse,
 )
 from rths_hil.drivers.base import Status
-from rths_hil.drivers.profile import ModbusProfile, load_profile, word_from_status
+from rths_hil.drivers.modbus_layout import PointLayout
+from rths_hil.drivers.profile import ModbusPoint, ModbusProfile, load_profile, word_from_status
 
 from rths_hil.errors import InputError
 
@@ -117,6 +122,19 @@ class ModbusProfileTwin(TwinEndpoint):
         for act in prof.actions.values():
             self.tables[act.table].setdefault(act.address, 0)
         self._framer: Any = (FramerRTU if transport == "rtu" else FramerSocket)(DecodePDU(True))
+        # made once: each register point's layout (checked against pymodbus) and the struct of
+        # its registers as they go on the wire, high byte first: ">HH" for two registers
+        self._layouts: dict[str, tuple[PointLayout, struct.Struct]] = {
+            p.role: (PointLayout(p, self.profile_path), struct.Struct(f">{p.count}H"))
+            for p in prof.points.values()
+            if p.type != "bool"
+        }
+        #: (table, address, value) → the actions it performs, in the profile's order
+        self._actions: dict[tuple[str, int, int], list[str]] = {}
+        for n, a in prof.actions.items():
+            self._actions.setdefault((a.table, a.address, a.value), []).append(n)
+        self._status_regs: dict[int, list[int]] = {}  # status word → its registers
+        self._spans: dict[tuple[str, int, int], bool] = {}  # (table, address, count) → mapped
         self._listener: socket.socket | None = None
         self._conns: dict[int, list[Any]] = {}  # fd → [socket, buffer]
         self._enable = False
@@ -310,8 +328,25 @@ class ModbusProfileTwin(TwinEndpoint):
         self.controller.stats.replies += copies
 
     def _mapped(self, table: str, address: int, count: int) -> bool:
-        t = self.tables[table]
-        return all(a in t for a in range(address, address + count))
+        key = (table, address, count)
+        ok = self._spans.get(key)
+        if ok is None:  # (the map does not change: worked out once per span)
+            t = self.tables[table]
+            ok = self._spans[key] = all(a in t for a in range(address, address + count))
+        return ok
+
+    def _to_registers(self, p: ModbusPoint, si: float) -> list[int]:
+        """The point's registers for the SI value (:meth:`.ModbusPoint.to_registers`)."""
+        codec = self._layouts.get(p.role)
+        if codec is None:
+            return p.to_registers(si)  # a bool point
+        layout, regs = codec
+        return list(regs.unpack(layout.pack(p.raw_value(si))))
+
+    def _from_registers(self, p: ModbusPoint, values: list[int]) -> float:
+        """The point's SI value from its registers (:meth:`.ModbusPoint.from_registers`)."""
+        layout, regs = self._layouts[p.role]
+        return p.si(layout.unpack_from(regs.pack(*values), 0))
 
     def _read(self, fc: int, address: int, count: int) -> Any:
         table = _READ_TABLE[fc]
@@ -366,7 +401,7 @@ class ModbusProfileTwin(TwinEndpoint):
             self.controller.heartbeat()
         sp = prof.points["setpoint"]
         if address <= sp.address and sp.end <= address + len(regs):
-            x = sp.from_registers([t[a] for a in range(sp.address, sp.end)])
+            x = self._from_registers(sp, [t[a] for a in range(sp.address, sp.end)])
             reply = self.controller.command(self._k, x, self._enable)
             if self._enable or self._k:  # (the disabled write at 0 is the arming command)
                 self._k += 1
@@ -374,9 +409,7 @@ class ModbusProfileTwin(TwinEndpoint):
 
     def _act(self, table: str, address: int, value: int) -> None:
         ctl = self.controller
-        for name, act in self.profile.actions.items():
-            if act.table != table or act.address != address or act.value != value:
-                continue
+        for name in self._actions.get((table, address, value), ()):
             if name == "estop":
                 ctl.estop()
             elif name == "enable":
@@ -398,7 +431,7 @@ class ModbusProfileTwin(TwinEndpoint):
         for role, value in (("position", displacement), ("force", force)):
             p = pts[role]
             try:
-                regs = p.to_registers(value)
+                regs = self._to_registers(p, value)
             except (InputError, ValueError):
                 continue  # not representable (NaN in an integer point): keep the old value
             for i, r in enumerate(regs):
@@ -409,8 +442,11 @@ class ModbusProfileTwin(TwinEndpoint):
     def _set_status(self, status: int) -> None:
         p = self.profile.points["status"]
         word = word_from_status(status, self.profile.masks)
-        si = (word * p.scale + p.offset) * p.factor  # the point's raw value is the word
-        for i, r in enumerate(p.to_registers(si)):
+        regs = self._status_regs.get(word)
+        if regs is None:  # (once per word)
+            si = (word * p.scale + p.offset) * p.factor  # the point's raw value is the word
+            regs = self._status_regs[word] = p.to_registers(si)
+        for i, r in enumerate(regs):
             self.tables[p.table][p.address + i] = r
 
     def _refresh_status(self) -> None:
