@@ -537,6 +537,53 @@ def profile_work(steps: int, rounds: int) -> dict[str, dict[str, float]]:
     return out
 
 
+PROFILE_HEADER = [
+    "driver",
+    "loop work µs/step",
+    "vs CAN built-in",
+    "per round",
+    "round trip µs (median)",
+    "goal",
+]
+PROFILE_HEADING = "### Profile drivers: loop work per step (examples/controllers)"
+
+
+def profile_rows(prof: dict[str, dict[str, float]]) -> list[list[object]]:
+    """The profile table's rows (printed as they are made)."""
+    rows: list[list[object]] = []
+    for label, r in prof.items():
+        verdict = ""
+        if "profile" in label or label.startswith("canopen"):
+            verdict = f"≤ {PROFILE_GOAL:g}×: {'met' if r['vs_can'] <= PROFILE_GOAL else 'NOT met'}"
+        lo, hi = r["vs_can_range"]
+        print(f"{label:26s} work {r['work_us']:7.1f} µs/step ({r['vs_can']:.2f}× CAN, rounds "
+              f"{lo:.2f}–{hi:.2f}), round trip {r['round_trip_us']:7.1f} µs {verdict}")  # fmt: skip
+        rows.append(
+            [label, f"{r['work_us']:.1f}", f"{r['vs_can']:.2f}×", f"{lo:.2f}–{hi:.2f}",
+             f"{r['round_trip_us']:.1f}", verdict]
+        )  # fmt: skip
+    return rows
+
+
+def update_profile_table(rows: list[list[object]], note: str) -> None:
+    """``--profile-only``: replace the profile table of ``results/bench_drivers.md`` (from its
+    heading to the next section) and keep the rest of the file: the round-trip table, the
+    machine and the notes of the last full run; ``note`` (how this table was made) follows
+    the table. Without that file, print only."""
+    from _results import RESULTS_DIR, markdown_table
+
+    path = RESULTS_DIR / "bench_drivers.md"
+    text = path.read_text() if path.exists() else ""
+    start = text.find(PROFILE_HEADING)
+    end = text.find("\n## ", start)
+    if start < 0 or end < 0:
+        print(f"{path}: no profile table to update; run the whole benchmark to write it")
+        return
+    table = markdown_table(PROFILE_HEADER, rows)
+    path.write_text(f"{text[:start]}{PROFILE_HEADING}\n\n{table}\n\n{note}\n{text[end:]}")
+    print(f"updated the profile table of {path}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=4000, help="round trips per mode")
@@ -550,13 +597,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--profile-only",
         action="store_true",
-        help="only the profile table (loop work per step); prints it, writes no results file",
+        help="only the profile table (loop work per step): prints it and replaces it in "
+        "results/bench_drivers.md, keeping the rest of the file",
     )
     args = ap.parse_args(argv)
     if args.profile_only:
-        for label, r in profile_work(args.profile_steps, args.profile_rounds).items():
-            print(f"{label:26s} work {r['work_us']:7.1f} µs/step ({r['vs_can']:.2f}× CAN), "
-                  f"round trip {r['round_trip_us']:7.1f} µs")  # fmt: skip
+        rows = profile_rows(profile_work(args.profile_steps, args.profile_rounds))
+        update_profile_table(
+            rows,
+            "This table alone: `python benchmarks/bench_drivers.py --profile-only --profile-steps "
+            f"{args.profile_steps} --profile-rounds {args.profile_rounds}` (load average "
+            f"{os.getloadavg()[0]:.1f}, 1 min, on {os.cpu_count()} cores).",
+        )
         return 0
     results = {}
     rows: list[list[object]] = []
@@ -598,18 +650,7 @@ def main(argv: list[str] | None = None) -> int:
             )
     prof = profile_work(args.profile_steps, args.profile_rounds)
     results["profiles"] = prof
-    prof_rows = []
-    for label, r in prof.items():
-        verdict = ""
-        if "profile" in label or label.startswith("canopen"):
-            verdict = f"≤ {PROFILE_GOAL:g}×: {'met' if r['vs_can'] <= PROFILE_GOAL else 'NOT met'}"
-        lo, hi = r["vs_can_range"]
-        print(f"{label:26s} work {r['work_us']:7.1f} µs/step ({r['vs_can']:.2f}× CAN, rounds "
-              f"{lo:.2f}–{hi:.2f}), round trip {r['round_trip_us']:7.1f} µs {verdict}")  # fmt: skip
-        prof_rows.append(
-            [label, f"{r['work_us']:.1f}", f"{r['vs_can']:.2f}×", f"{lo:.2f}–{hi:.2f}",
-             f"{r['round_trip_us']:.1f}", verdict]
-        )  # fmt: skip
+    prof_rows = profile_rows(prof)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     from _results import markdown_table, write_results
@@ -623,17 +664,7 @@ def main(argv: list[str] | None = None) -> int:
         "driver vs raw→twin",
         "p99 goal",
     ]
-    prof_table = markdown_table(
-        [
-            "driver",
-            "loop work µs/step",
-            "vs CAN built-in",
-            "per round",
-            "round trip µs (median)",
-            "goal",
-        ],
-        prof_rows,
-    )
+    prof_table = markdown_table(PROFILE_HEADER, prof_rows)
     write_results(
         "bench_drivers",
         markdown_table(header, rows)

@@ -90,7 +90,8 @@ class Status(IntFlag):
         The controller reports a fault of its own (e.g. an injected runaway).
     SENSOR_INVALID
         At least one measured value in this feedback is not valid (sent as NaN / the reserved
-        raw value).
+        raw value, or a controller's own sensor bit): :meth:`Driver.receive` delivers the
+        displacement of such a sample as NaN whatever number came with it.
     WATCHDOG
         The heartbeat watchdog expired and tripped the e-stop.
     SEQ_GAP
@@ -103,6 +104,9 @@ class Status(IntFlag):
     SENSOR_INVALID = 0x08
     WATCHDOG = 0x10
     SEQ_GAP = 0x20
+
+
+_SENSOR_INVALID = int(Status.SENSOR_INVALID)  # a plain int for the receive path
 
 
 @dataclass(slots=True)
@@ -389,6 +393,8 @@ class Driver(ABC):
                     ok = self._match(fb)
                 if ok:
                     stats.received += 1
+                    if fb.status & _SENSOR_INVALID:  # the controller flags the sample invalid
+                        fb.displacement = math.nan
                     d = fb.displacement
                     f = fb.force
                     if d != d or f != f:
@@ -412,6 +418,8 @@ class Driver(ABC):
         if not ok:
             return None
         self.stats.received += 1
+        if fb.status & _SENSOR_INVALID:
+            fb.displacement = math.nan
         if fb.displacement != fb.displacement or fb.force != fb.force:
             self.stats.invalid_values += 1
         fb.age = _perf() - self._t_sent

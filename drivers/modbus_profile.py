@@ -27,13 +27,20 @@ A frame is cut by the size pymodbus's PDU class computes from its header and che
 (``FramerRTU``); garbage is dropped when the line falls idle. An e-stop goes out at once (as
 the built-in RTU driver's, :mod:`.modbus`), ahead of the queue.
 
-Requests are built by pymodbus (its request classes and framers; the request objects of the
-step are built once and only their transaction id and registers change), responses decoded by
-pymodbus's response classes; values are converted by pymodbus's ``convert_to_registers`` /
-``convert_from_registers`` (points of one type next to each other in one call). At
-:meth:`ModbusProfileDriver.open` every mapped read block and the set-point registers are read
-once: a controller that refuses one (a Modbus exception, e.g. illegal data address) is
-refused with one line naming the role.
+pymodbus is the authority for the frames and the conversions, and its generic work is done
+once, at :meth:`ModbusProfileDriver.open` (:mod:`.modbus_layout`): the step's requests are built
+by its request classes and framers, the set-point's value bytes located in them, and every
+point's wire bytes turned into a ``struct`` format (word order, byte order, type), each checked
+against pymodbus's ``convert_to_registers`` / ``convert_from_registers``, ``buildFrame`` and
+response classes for test values (a disagreement refuses the profile with one line). Per step
+the set-point's bytes, the transaction id (TCP) and the CRC (RTU, pymodbus's
+``compute_CRC``) are patched into the request template, and a response is read by one
+``struct.unpack_from`` at the precomputed offsets after its function code, byte count and
+length are checked as pymodbus's response classes check them. The read requests are built once
+(only their transaction id changes); the status word's flags are looked up once per word.
+Also at open, every mapped read block and the set-point registers are read once: a controller
+that refuses one (a Modbus exception, e.g. illegal data address) is refused with one line
+naming the role.
 """
 
 from __future__ import annotations
@@ -46,14 +53,11 @@ from collections import deque
 from typing import Any, ClassVar
 
 import serial
-from pymodbus.client.mixin import ModbusClientMixin
 from pymodbus.framer import FramerRTU, FramerSocket
 from pymodbus.pdu import DecodePDU
 from pymodbus.pdu.bit_message import (
     ReadCoilsRequest,
-    ReadCoilsResponse,
     ReadDiscreteInputsRequest,
-    ReadDiscreteInputsResponse,
     WriteSingleCoilRequest,
 )
 from pymodbus.pdu.register_message import (
@@ -64,12 +68,14 @@ from pymodbus.pdu.register_message import (
     ReadWriteMultipleRegistersRequest,
     ReadWriteMultipleRegistersResponse,
     WriteMultipleRegistersRequest,
+    WriteMultipleRegistersResponse,
     WriteSingleRegisterRequest,
 )
 
 from rths_hil.errors import InputError
 
 from .base import Driver, Feedback, LinkDown, extend_seq
+from .modbus_layout import BlockLayout, PointLayout, RequestTemplate, StepReply
 from .profile import ModbusAction, ModbusProfile, load_profile, status_from_word
 
 __all__ = ["ModbusProfileDriver"]
@@ -80,37 +86,12 @@ _READS = {
     "coil": ReadCoilsRequest,
     "discrete": ReadDiscreteInputsRequest,
 }
-#: Response classes of the read function codes (decoded in place, one object per code).
-_RESPONSES = {
-    3: ReadHoldingRegistersResponse,
-    4: ReadInputRegistersResponse,
-    1: ReadCoilsResponse,
-    2: ReadDiscreteInputsResponse,
-    23: ReadWriteMultipleRegistersResponse,
-}
-_convert = ModbusClientMixin.convert_from_registers
+#: The function code of each table's read response (and FC 23's).
+_READ_FC = {"holding": 3, "input": 4, "coil": 1, "discrete": 2}
 SLOT_CHECK = 13  # the start-up reads
 SLOT_HEARTBEAT = 14
 SLOT_ACTION = 15
 _EXC = {1: "illegal function", 2: "illegal data address", 3: "illegal data value"}
-
-
-def _groups(block: Any) -> list[tuple[int, int, Any, str, tuple[Any, ...]]]:
-    """The points of a read block as runs of one type and word order next to each other:
-    (offset in the block, registers, pymodbus DATATYPE, word order, points), so that each run
-    is converted by one ``convert_from_registers`` call."""
-    out: list[tuple[int, int, Any, str, tuple[Any, ...]]] = []
-    for p in sorted(block.points, key=lambda q: q.address):
-        if p.type == "bool" or p.byte_order != "big" or p.role == "status":
-            out.append((p.address - block.address, p.count, None, p.word_order, (p,)))
-            continue
-        if out:
-            off, n, dt, wo, pts = out[-1]
-            if dt is p.dtype and wo == p.word_order and block.address + off + n == p.address:
-                out[-1] = (off, n + p.count, dt, wo, (*pts, p))
-                continue
-        out.append((p.address - block.address, p.count, p.dtype, p.word_order, (p,)))
-    return out
 
 
 class ModbusProfileDriver(Driver):
@@ -175,17 +156,24 @@ class ModbusProfileDriver(Driver):
         self._fd: int | None = None
         self._buf = b""
         self._enabled: bool | None = None
+        self._estop_sent = False
         self._hb = 0
         self._sp = prof.points["setpoint"]
         self._reads = prof.reads
         self._n_reads = 1 if prof.fc23 else len(prof.reads)
-        self._groups = [_groups(b) for b in prof.reads]
-        self._parts: dict[int, Any] = {}
+        #: precompiled at open (modbus_layout): the step's request and each block's decoder
+        self._template: RequestTemplate | None = None
+        self._blocks: list[BlockLayout] = []
+        self._block_fc: list[int] = []  # the function code answering each block
+        self._reply: StepReply | None = None  # pipelined TCP: the step's whole reply
+        #: the step's decoded values so far (role → SI value, ``status`` → the status word),
+        #: the blocks they came from and the step (mod 4096) they belong to
+        self._parts: dict[str, float] = {}
+        self._done: set[int] = set()
         self._parts_seq = -1
         self._masks = prof.masks
         self._flags: dict[int, int] = {}
         self._status = prof.points["status"]
-        self._responses = {fc: cls() for fc, cls in _RESPONSES.items()}
         self._read_frames: list[bytes] = []
         self._pending: deque[tuple[int, int, bytes]] = deque()  # RTU: (tid, fc, frame)
         # the step's write request, built once; per step its registers and id change
@@ -208,6 +196,8 @@ class ModbusProfileDriver(Driver):
     def open(self) -> None:
         if self._fd is not None:
             return
+        if self._template is None:
+            self._compile()
         if self._rtu:
             try:
                 ser = serial.serial_for_url(
@@ -231,15 +221,48 @@ class ModbusProfileDriver(Driver):
             sock.setblocking(False)
             self._sock, self._fd = sock, sock.fileno()
         self._buf = b""
-        self._read_frames = [
-            self._frame(_READS[b.table](address=b.address, count=b.count), i)
-            for i, b in enumerate(self._reads, start=1)
-        ]  # built by pymodbus once; per step only the transaction id changes (TCP)
         try:
             self._check_map()
         except InputError:
             self.close()
             raise
+
+    def _compile(self) -> None:
+        """pymodbus's generic work, once: the step's request template and the read blocks'
+        decoders, each checked against pymodbus (:mod:`.modbus_layout`)."""
+        prof, src = self.profile, self.profile.source
+        self._blocks = [BlockLayout(b, src) for b in self._reads]
+        if prof.fc23:
+            self._block_fc = [23]
+        else:
+            self._block_fc = [_READ_FC[b.table] for b in self._reads]
+            self._read_frames = [
+                self._frame(_READS[b.table](address=b.address, count=b.count), i)
+                for i, b in enumerate(self._reads, start=1)
+            ]  # built by pymodbus once; per step only the transaction id changes (TCP)
+        # pipelined TCP: the step's requests in one template (the reads follow the write)
+        follow = [] if self._serial else self._read_frames
+        sp = PointLayout(self._sp, src)
+        self._template = RequestTemplate(self._framer, self._step_pdu, sp, src, follow)
+        if self._serial or any(b.bits or b.other_points for b in self._blocks):
+            return  # (the general path: one response at a time)
+        # pipelined TCP: the step's whole reply, as pymodbus builds its response frames
+        if prof.fc23:
+            n = self._reads[0].count
+            replies: list[tuple[Any, Any]] = [
+                (ReadWriteMultipleRegistersResponse(registers=[0] * n), self._blocks[0])
+            ]
+        else:
+            echo = WriteMultipleRegistersResponse(address=self._sp.address, count=self._sp.count)
+            replies = [(echo, None)]
+            for b, lay in zip(self._reads, self._blocks, strict=True):
+                cls = (
+                    ReadHoldingRegistersResponse
+                    if b.table == "holding"
+                    else ReadInputRegistersResponse
+                )
+                replies.append((cls(registers=[0] * b.count), lay))
+        self._reply = StepReply(self._framer, self.unit, replies)
 
     def close(self) -> None:
         sock, self._sock = self._sock, None
@@ -401,7 +424,7 @@ class ModbusProfileDriver(Driver):
         return [(SLOT_ACTION, pdu.function_code, self._frame(pdu, SLOT_ACTION))]
 
     def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
-        regs = self._sp.to_registers(displacement)  # InputError: out of the point's range
+        raw = self._sp.raw_value(displacement)  # InputError: out of the point's range
         out: list[tuple[int, int, bytes]] = []
         pending = self._pending
         if pending and any(r[0] & 15 < SLOT_CHECK for r in pending):
@@ -410,22 +433,25 @@ class ModbusProfileDriver(Driver):
             pending.clear()
             if self._rtu:  # (a TCP stream keeps its framing: a late answer is told by its id)
                 self._buf = b""
-        if enable != self._enabled:
-            acts = self.profile.actions
-            if enable:
-                out += self._action(acts.get("enable"))
-            else:
-                out += self._action(acts.get("disable")) + self._action(acts.get("acknowledge"))
+        acts = self.profile.actions
+        if not enable and (seq == 0 or self._estop_sent):
+            # the arming command (a new run) or the first disable after our e-stop: acknowledge
+            out += self._action(acts.get("disable")) + self._action(acts.get("acknowledge"))
+            self._enabled, self._estop_sent = False, False
+        elif enable != self._enabled:  # (the hand-back at a normal end only disables)
+            out += self._action(acts.get("enable" if enable else "disable"))
             self._enabled = enable
         base = (seq & 0x0FFF) << 4
-        pdu = self._step_pdu
-        if self.profile.fc23:
-            pdu.write_registers = regs
-        else:
-            pdu.registers = regs
-        pdu.transaction_id = base
-        out.append((base, pdu.function_code, self._framer.buildFrame(pdu)))
-        if not self.profile.fc23:
+        tpl = self._template
+        if tpl is None:  # not opened: nothing goes out (counted as the closed link)
+            self.stats.send_errors += 1
+            return
+        if self._reply is not None:  # pipelined TCP: FC 16 + reads (or FC 23) in one write
+            frames = tpl.build(raw, base)  # transaction ids base, base + 1, …
+            self._write(b"".join([r[2] for r in out]) + frames if out else frames)
+            return
+        out.append((base, tpl.function_code, tpl.build(raw, base)))  # FC 16 or FC 23
+        if not self.profile.fc23 and self._serial:
             for i, frame in enumerate(self._read_frames, start=1):
                 if self._rtu:
                     out.append((base | i, frame[1], frame))
@@ -435,6 +461,7 @@ class ModbusProfileDriver(Driver):
 
     def estop(self) -> None:
         self.stats.estops += 1
+        self._estop_sent = True  # the next disable acknowledges it
         ((tid, fc, frame),) = self._action(self.profile.actions["estop"])
         if self._rtu:  # written now: answered after the request on the line, if any
             self._pending.insert(1 if self._pending else 0, (tid, fc, b""))
@@ -449,7 +476,7 @@ class ModbusProfileDriver(Driver):
         self._submit([(SLOT_HEARTBEAT, pdu.function_code, self._frame(pdu, SLOT_HEARTBEAT))])
 
     # -- feedback -------------------------------------------------------------------------------
-    def _take(self, tid: int, pdu_bytes: bytes) -> Feedback | None:  # noqa: C901
+    def _take(self, tid: int, pdu_bytes: bytes) -> Feedback | None:
         """File one response; the feedback when its step's last read came back."""
         if tid < 0:
             return None
@@ -460,62 +487,34 @@ class ModbusProfileDriver(Driver):
         slot = tid & 15
         if slot >= SLOT_CHECK or (slot == 0 and not self.profile.fc23):
             return None  # a write's echo
-        resp = self._responses.get(fc)
-        if resp is None:
-            self.stats.count_malformed("bad_frame")
-            return None
-        try:
-            resp.decode(pdu_bytes[1:])  # pymodbus's response class
-        except Exception:  # pymodbus raises its own and struct errors
-            self.stats.count_malformed("bad_frame")
-            return None
         index = 0 if self.profile.fc23 else slot - 1
-        if not 0 <= index < self._n_reads:
+        if not 0 <= index < self._n_reads or fc != self._block_fc[index]:
             self.stats.count_malformed("bad_frame")
-            return None
-        block = self._reads[index]
-        data = resp.registers if fc in (3, 4, 23) else resp.bits
-        if len(data) < block.count:
-            self.stats.count_malformed("bad_length")
             return None
         seq12 = tid >> 4
         if seq12 != self._parts_seq:
             self._parts_seq = seq12
             self._parts = {}
+            self._done = set()
         parts = self._parts
-        parts[index] = data
-        if len(parts) < self._n_reads:
-            return None
-        values: dict[str, float] = {}
-        word = 0
         try:
-            for index, data in parts.items():
-                for off, n, dtype, wo, pts in self._groups[index]:
-                    regs = data[off : off + n]
-                    if dtype is None:
-                        p = pts[0]
-                        if p.role == "status":
-                            word = p.raw_from_registers(regs)
-                        else:
-                            values[p.role] = p.from_registers(regs)
-                        continue
-                    raw = _convert(regs, dtype, word_order=wo)
-                    if len(pts) == 1:
-                        values[pts[0].role] = pts[0].si(raw)
-                    else:
-                        for p, r in zip(pts, raw, strict=True):
-                            values[p.role] = p.si(r)
-            fb = Feedback(
-                extend_seq(seq12, self._last_sent, 12),
-                values["position"],
-                values["force"],
-                self._status_of(word),
-            )
-        except (ValueError, TypeError, IndexError, KeyError):
-            self.stats.count_malformed("bad_frame")
+            why = self._blocks[index].decode(pdu_bytes, parts)  # role → SI value, status word
+        except (ValueError, OverflowError):  # a NaN or ∞ in a float status point
+            why = "bad_frame"
+        if why is not None:
+            self.stats.count_malformed(why)
             return None
+        self._done.add(index)
+        if len(self._done) < self._n_reads:
+            return None
+        self._done = set()
         self._parts = {}
-        return fb
+        return Feedback(
+            extend_seq(seq12, self._last_sent, 12),
+            parts["position"],
+            parts["force"],
+            self._status_of(parts["status"]),
+        )
 
     def _status_of(self, word: int) -> int:
         """The bridge's status flags of a status word (looked up once per word)."""
@@ -524,8 +523,27 @@ class ModbusProfileDriver(Driver):
             flags = self._flags[word] = status_from_word(word, self._masks)
         return flags
 
+    def _whole_reply(self) -> Feedback | None:
+        """Pipelined TCP: the step's whole reply at the head of the buffer, in one pass
+        (:class:`.modbus_layout.StepReply`); anything else is left to :meth:`_parse_one`."""
+        reply = self._reply
+        if reply is None or len(self._buf) < reply.size:
+            return None
+        last = self._last_sent
+        try:
+            got = reply.match(self._buf, (last & 0x0FFF) << 4)
+        except (ValueError, OverflowError):  # a NaN or ∞ in a float status point
+            return None  # (the general path counts it)
+        if got is None:
+            return None
+        self._buf = self._buf[reply.size :]
+        return Feedback(last, got[0], got[1], self._status_of(got[2]))
+
     def _recv_internal(self, deadline: float) -> Feedback | None:
         while True:
+            fb = self._whole_reply()
+            if fb is not None:
+                return fb
             got = self._parse_one()
             if got is None:
                 break

@@ -9,7 +9,9 @@ role                      meaning
 ``roles.position``        measured actuator displacement (read every step)
 ``roles.force``           measured specimen force (read every step)
 ``roles.status``          the controller's status word; ``[status]`` gives the bit masks
-                          ``enabled``, ``estop``, ``fault``, ``watchdog``
+                          ``enabled``, ``estop``, ``fault``, ``watchdog`` and
+                          ``sensor_invalid`` (the sample's measurement is not valid: the
+                          driver delivers its displacement as NaN)
 ``actions.estop``         what latches the controller's e-stop (required)
 ``actions.enable``,       what enables / disables (holds) the controller; written when the
 ``actions.disable``       bridge's enable flag changes
@@ -24,7 +26,9 @@ inputs), ``word_order`` and ``byte_order`` (``big`` or ``little``, defaults from
 ``[modbus]``), ``scale`` and ``offset`` (value in ``units`` = raw · scale + offset) and
 ``units`` (``m``, ``mm``, ``um``, ``in``, ``N``, ``kN``, ``lbf``; SI when omitted). Registers
 are converted by pymodbus (``convert_to_registers`` / ``convert_from_registers``); a
-``byte_order = "little"`` swaps the two bytes of each register. Actions are a ``table``
+``byte_order = "little"`` swaps the two bytes of each register. The Modbus profile driver and
+twin precompile these conversions into ``struct`` layouts checked against pymodbus when they
+open (:mod:`.modbus_layout`). Actions are a ``table``
 (``coil`` or ``holding``), an ``address`` and the ``value`` written. ``[modbus] unit`` is the
 unit id; ``[modbus] pipeline`` (default true) sends a step's Modbus TCP requests in one socket
 write, their responses matched by transaction id (false: one request at a time; RTU is always
@@ -110,6 +114,7 @@ STATUS_BITS: dict[str, int] = {
     "estop": int(Status.ESTOP_ACTIVE),
     "fault": int(Status.FAULT),
     "watchdog": int(Status.WATCHDOG),
+    "sensor_invalid": int(Status.SENSOR_INVALID),
 }
 _DT = ModbusClientMixin.DATATYPE
 _INT_RANGE = {
@@ -257,6 +262,26 @@ class ModbusPoint:
             return [((r & 0xFF) << 8) | (r >> 8) for r in regs]
         return regs
 
+    def raw_value(self, si: float) -> float | int:
+        """The raw value of the SI value ``si``: ``raw = (si / factor − offset) / scale``,
+        rounded to the nearest integer for an integer type (the inverse of :meth:`si`).
+
+        Raises
+        ------
+        InputError
+            The value does not fit the point's integer type.
+        """
+        value = (si / self.factor - self.offset) / self.scale
+        if self.type in _INT_RANGE:
+            raw = round(value)
+            lo, hi = _INT_RANGE[self.type]
+            if not lo <= raw <= hi:
+                raise InputError(
+                    f"{self.role}: {si} is out of the {self.type} range of the profile's map"
+                )
+            return raw
+        return value
+
     def to_registers(self, si: float) -> list[int]:
         """Registers (or one coil value) for the SI value ``si``.
 
@@ -265,17 +290,9 @@ class ModbusPoint:
         InputError
             The value does not fit the point's integer type.
         """
-        value = (si / self.factor - self.offset) / self.scale
         if self.type == "bool":
-            return [1 if value else 0]
-        if self.type in _INT_RANGE:
-            raw = round(value)
-            lo, hi = _INT_RANGE[self.type]
-            if not lo <= raw <= hi:
-                raise InputError(
-                    f"{self.role}: {si} is out of the {self.type} range of the profile's map"
-                )
-            value = raw
+            return [1 if (si / self.factor - self.offset) / self.scale else 0]
+        value = self.raw_value(si)
         regs = ModbusClientMixin.convert_to_registers(
             value,
             self.dtype,

@@ -83,6 +83,7 @@ class CANProfileDriver(Driver):
         self._sp_sig, self._sp_factor = r["setpoint"].signal, r["setpoint"].factor
         sp = cmd.get_signal_by_name(self._sp_sig)
         self._sp_range = (sp.minimum, sp.maximum)
+        self._estop_sent = False  # an e-stop sent and not yet acknowledged
         # the command's signals: every one 0 (or its DBC initial value) unless a role sets it
         self._values: dict[str, float] = {
             s.name: float(s.raw_initial or 0) * s.scale + s.offset for s in cmd.signals
@@ -186,13 +187,15 @@ class CANProfileDriver(Driver):
         if enable:
             if self._on is not None:
                 values[self._on[0]] = self._on[1]
-            if self._ack is not None:
-                values[self._ack[0]] = 0
-        else:
-            if self._off is not None:
-                values[self._off[0]] = self._off[1]
-            if self._ack is not None:
-                values[self._ack[0]] = self._ack[1]
+        elif self._off is not None:
+            values[self._off[0]] = self._off[1]
+        if self._ack is not None:
+            # the arming command (a new run) or the first disable after our e-stop acknowledges;
+            # the hand-back at a normal end only disables
+            ack = not enable and (seq == 0 or self._estop_sent)
+            values[self._ack[0]] = self._ack[1] if ack else 0
+            if ack:
+                self._estop_sent = False
         self._cmd_data[:] = self._encode(values)
         self._drain_stale()
         self._send_frame(self._cmd_frame)
@@ -212,6 +215,7 @@ class CANProfileDriver(Driver):
 
     def estop(self) -> None:
         self.stats.estops += 1
+        self._estop_sent = True  # the next disable acknowledges it
         self._send_frame(self._estop_frame)
 
     def heartbeat(self) -> None:

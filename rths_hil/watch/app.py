@@ -491,6 +491,7 @@ class _Page:
             v.overview_update(rec, names, f.rows, planned, final=st.finished)
             v.window_box.left = t_end - WINDOW_S
             v.window_box.right = t_end
+            v.limits.note_stalls(f.events)
             v.bars.data = v.limits.update(rec, names, k_end, max(1, round(REFRESH_S * fs)))
         self.lat_plot.title.text = self._progress(st, float(rec["time"][-1]), self._n_ovr)
 

@@ -205,6 +205,11 @@ class LimitShares:
         wd_missed = finite_or(safety.get("watchdog_missed"), 0.0)
         self.wd_timeout = finite_or(safety.get("watchdog_timeout"), 0.0) or wd_missed / fs
         self.fb_wait = finite_or(lp.get("feedback_timeout"), 0.0) or 0.8 / fs
+        # the bridge's stalls (the loop's ``stall`` events): step before which each happened
+        # and the stall time up to and including it (s), ascending by step
+        self.stall_steps = np.zeros(0, dtype=np.int64)
+        self.stall_total = np.zeros(1)
+        self._n_events = -1  # events seen by note_stalls
         self.reset()
 
     def reset(self) -> None:
@@ -213,6 +218,22 @@ class LimitShares:
         self.last: dict[str, float] = {}
         self.carry: dict[str, int] = {}
         self.last_ok = math.nan  # when the latest good reply arrived (s, loop clock)
+        self.last_ok_stalled = 0.0  # the bridge's stall time before that reply's row (s)
+
+    def note_stalls(self, events: list[dict]) -> None:
+        """Take the run's ``stall`` events: the feedback watchdog does not count that time
+        (:class:`rths_hil.safety.WatchdogRule`: a stall of the bridge is not controller
+        silence)."""
+        if len(events) == self._n_events:
+            return
+        self._n_events = len(events)
+        st = sorted(
+            (int(e["step"]), finite_or(e.get("length"), 0.0))
+            for e in events
+            if e.get("kind") == "stall" and isinstance(e.get("step"), int)
+        )
+        self.stall_steps = np.array([k for k, _ in st], dtype=np.int64)
+        self.stall_total = np.r_[0.0, np.cumsum([x for _, x in st])]
 
     def _shares(self, rec, names, a: int, b: int, carry: bool = True) -> dict[str, np.ndarray]:
         """Share of each limit at each row of ``[a, b)`` (``carry``: continue from the rows
@@ -271,8 +292,9 @@ class LimitShares:
     def _watchdog(self, rec, names, ok: str, fbt: str, a: int, b: int, carry: bool):
         """Share of the wall-clock watchdog's timeout at each row: the time from the latest
         good reply before the row to the row's reply (or to the end of its wait when it had
-        none), over ``watchdog_timeout``. Reply times come from the record: the step's loop
-        time plus its lateness plus ``feedback_time``."""
+        none), less the bridge's own stalls in between (:meth:`note_stalls`), over
+        ``watchdog_timeout``. Reply times come from the record: the step's loop time plus its
+        lateness plus ``feedback_time``."""
         t = np.asarray(rec["time"][a:b], dtype=float)
         t = t + np.asarray(rec["lateness"][a:b], dtype=float) if "lateness" in names else t
         good = np.asarray(rec[ok][a:b], dtype=bool)
@@ -283,9 +305,14 @@ class LimitShares:
         before = np.r_[-1, last[:-1]]  # latest good row < i
         start = self.last_ok if carry else math.nan
         prev = np.where(before >= 0, arrive[np.maximum(before, 0)], start)
+        # stall time of the bridge before each row: the stalls before steps a .. a + i
+        stalled = self.stall_total[np.searchsorted(self.stall_steps, idx + a, side="right")]
+        start_stalled = self.last_ok_stalled if carry else 0.0
+        prev_stalled = np.where(before >= 0, stalled[np.maximum(before, 0)], start_stalled)
         if carry and good.any():
             self.last_ok = float(arrive[last[-1]])
-        return (arrive - prev) / self.wd_timeout
+            self.last_ok_stalled = float(stalled[last[-1]])
+        return (arrive - prev - (stalled - prev_stalled)) / self.wd_timeout
 
     def update(self, rec, names, k_end: int, now_rows: int) -> dict:
         """Shares up to row ``k_end`` as the bar chart's columns."""

@@ -9,7 +9,9 @@ with it at ``actions.disable``'s value holds; the acknowledge signal at its valu
 the enable flag off) starts a new run as the built-in twins' arming command does (latch
 cleared, plant at rest, step count from 0); the e-stop frame latches; a command or a heartbeat
 frame feeds the controller-side watchdog. Frame faults of a fault plan (drop, corrupt, delay,
-duplicate) apply to the feedback frames.
+duplicate) apply to the feedback frames; a ``nan`` fault sets the status word's
+``sensor_invalid`` bit (when the profile maps one) and repeats the last position, as an
+integer signal cannot carry NaN.
 """
 
 from __future__ import annotations
@@ -79,6 +81,7 @@ class CANProfileTwin(TwinEndpoint):
         self._share: SharedBus | None = None
         self._bus: can.BusABC | None = None
         self._k = 0
+        self._last: dict[str, float] = {}  # the last value sent of each feedback signal
 
     def _setup(self) -> None:
         kwargs = dict(self.bus_options)
@@ -126,8 +129,8 @@ class CANProfileTwin(TwinEndpoint):
                 x = float(v[self._sp[0]]) * self._sp[1]  # type: ignore[arg-type]
                 enable = self._enable is None or v[self._enable[0]] == self._enable[1]
                 if self._ack is not None and not enable and v[self._ack[0]] == self._ack[1]:
-                    reply = ctl.command(0, x, False)  # a new run: arm
-                    self._k = 1
+                    reply = ctl.command(0, x, False)  # a new run: arm; the run's step 0 next
+                    self._k = 0
                 else:
                     reply = ctl.command(self._k, x, bool(enable))
                     self._k += 1
@@ -146,8 +149,8 @@ class CANProfileTwin(TwinEndpoint):
             ctl.stats.malformed += 1
 
     def _clamp(self, name: str, value: float) -> float:
-        if not math.isfinite(value):
-            return 0.0
+        if not math.isfinite(value):  # not representable in an integer signal: the last value
+            return self._last.get(name, 0.0)
         lo, hi = self._fb_limits[name]
         if lo is not None and value < lo:
             return float(lo)
@@ -158,8 +161,8 @@ class CANProfileTwin(TwinEndpoint):
     def _encode(self, seq: int, displacement: float, force: float, status: int) -> list[Any]:
         (ps, pf), (fs, ff) = self._fbsig["position"], self._fbsig["force"]
         values = {s.name: 0.0 for s in self._fb.signals}
-        values[ps] = self._clamp(ps, displacement / pf)
-        values[fs] = self._clamp(fs, force / ff)
+        values[ps] = self._last[ps] = self._clamp(ps, displacement / pf)
+        values[fs] = self._last[fs] = self._clamp(fs, force / ff)
         values[self._status_sig] = word_from_status(status, self.profile.masks)
         data = self._fb.encode(values, strict=False)
         return [

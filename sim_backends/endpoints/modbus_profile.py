@@ -8,8 +8,11 @@ answered with the Modbus exception ILLEGAL DATA ADDRESS (addresses between the p
 read block read as 0), as a real controller does, so a driver started with a profile that does
 not match is refused by its start-up check. Requests are decoded and responses built by pymodbus
 (``FramerSocket`` / ``FramerRTU``, ``DecodePDU``, its PDU classes; an RTU request is cut by the
-size its PDU class computes and checked by its CRC); values are converted by pymodbus's
-``convert_to_registers`` / ``convert_from_registers``.
+size its PDU class computes and checked by its CRC). Values are converted by the precompiled
+``struct`` layouts of :mod:`rths_hil.drivers.modbus_layout` (made once, each checked against
+pymodbus's ``convert_to_registers`` / ``convert_from_registers``), a status word's registers
+and which mapped spans a request touches are worked out once and remembered, so that a step
+costs the twin's thread little beside pymodbus's request decoding and response framing.
 
 Controller behaviour (the :class:`~.base.TwinController` of every twin): each write of the
 set-point is one command — one plant step while enabled, a hold while disabled; the
@@ -17,8 +20,19 @@ set-point is one command — one plant step while enabled, a hold while disabled
 built-in twins' arming command: the latch cleared, the plant at rest, the step count from 0);
 ``estop`` latches the e-stop; a heartbeat write or a set-point write feeds the controller-side
 watchdog. After each command the position, force and status points show the new values; the
-status word is refreshed on every read (a watchdog latch is visible at once). Frame faults of
-a fault plan (drop, corrupt, delay) do not apply to a profile twin; measurement faults do.
+status word is refreshed on every read (a watchdog latch is visible at once). The map carries
+no sequence number: the twin counts set-point writes from the acknowledge (the disabled write
+that follows it is the arming command, the next one the run's step 0), so a fault plan's step
+numbers are the bridge's.
+
+Faults: the frame faults of step ``k`` (drop, corrupt, duplicate, delay) apply to the responses
+to the reads of the feedback after the set-point write of step ``k`` — with FC 23 its one
+response — as they would to a controller's answer: dropped, sent twice, held back (the twin
+does nothing else meanwhile), or damaged where the driver must notice (TCP: the unit id of the
+MBAP header, which TCP's own checksum would otherwise protect; RTU: a data bit under the CRC).
+Measurement faults change the published values; a ``nan`` sets the status word's
+``sensor_invalid`` bit (when the profile maps one) and, in an integer point that cannot carry
+NaN, leaves the last value; ``disconnect_from`` closes the connection.
 """
 
 from __future__ import annotations
@@ -26,6 +40,7 @@ from __future__ import annotations
 import os
 import select
 import socket
+import struct
 import tty
 from typing import Any
 
@@ -44,15 +59,20 @@ from pymodbus.pdu.register_message import (
     WriteMultipleRegistersResponse,
     WriteSingleRegisterResponse,
 )
-from rths_hil.drivers.profile import ModbusProfile, load_profile, word_from_status
+from rths_hil.drivers.base import Status
+from rths_hil.drivers.modbus_layout import PointLayout
+from rths_hil.drivers.profile import ModbusPoint, ModbusProfile, load_profile, word_from_status
 
 from rths_hil.errors import InputError
 
+from ..faults import Faults
 from .base import TwinController, TwinEndpoint, listen
 
 __all__ = ["ModbusProfileTwin"]
 
 _READ_TABLE = {3: "holding", 4: "input", 1: "coil", 2: "discrete"}
+_SAMPLE_FLAGS = int(Status.SENSOR_INVALID | Status.SEQ_GAP)
+_FEEDBACK_FC = frozenset((1, 2, 3, 4, 23))  # the responses that carry a step's feedback
 _READ_RESP = {
     3: ReadHoldingRegistersResponse,
     4: ReadInputRegistersResponse,
@@ -102,10 +122,26 @@ class ModbusProfileTwin(TwinEndpoint):
         for act in prof.actions.values():
             self.tables[act.table].setdefault(act.address, 0)
         self._framer: Any = (FramerRTU if transport == "rtu" else FramerSocket)(DecodePDU(True))
+        # made once: each register point's layout (checked against pymodbus) and the struct of
+        # its registers as they go on the wire, high byte first: ">HH" for two registers
+        self._layouts: dict[str, tuple[PointLayout, struct.Struct]] = {
+            p.role: (PointLayout(p, self.profile_path), struct.Struct(f">{p.count}H"))
+            for p in prof.points.values()
+            if p.type != "bool"
+        }
+        #: (table, address, value) → the actions it performs, in the profile's order
+        self._actions: dict[tuple[str, int, int], list[str]] = {}
+        for n, a in prof.actions.items():
+            self._actions.setdefault((a.table, a.address, a.value), []).append(n)
+        self._status_regs: dict[int, list[int]] = {}  # status word → its registers
+        self._spans: dict[tuple[str, int, int], bool] = {}  # (table, address, count) → mapped
         self._listener: socket.socket | None = None
         self._conns: dict[int, list[Any]] = {}  # fd → [socket, buffer]
         self._enable = False
         self._k = 0
+        # the frame faults of the current step (copies, corrupt), applied to its read responses
+        self._plan: tuple[int, bool] | None = None
+        self._sample_flags = 0  # per-sample status flags of the last published feedback
 
     # -- lifecycle ------------------------------------------------------------------------------
     def _setup(self) -> None:
@@ -280,11 +316,37 @@ class ModbusProfileTwin(TwinEndpoint):
         if pdu is None:
             return
         pdu.dev_id, pdu.transaction_id = self.device_id, tid
-        self._out.append(self._framer.buildFrame(pdu))
+        frame = self._framer.buildFrame(pdu)
+        plan = self._plan
+        if plan is None or pdu.function_code not in _FEEDBACK_FC:
+            self._out.append(frame)
+            return
+        copies, corrupt = plan  # a response carrying the step's feedback
+        if corrupt:
+            frame = self._corrupt(frame)
+        self._out.extend([frame] * copies)
+        self.controller.stats.replies += copies
 
     def _mapped(self, table: str, address: int, count: int) -> bool:
-        t = self.tables[table]
-        return all(a in t for a in range(address, address + count))
+        key = (table, address, count)
+        ok = self._spans.get(key)
+        if ok is None:  # (the map does not change: worked out once per span)
+            t = self.tables[table]
+            ok = self._spans[key] = all(a in t for a in range(address, address + count))
+        return ok
+
+    def _to_registers(self, p: ModbusPoint, si: float) -> list[int]:
+        """The point's registers for the SI value (:meth:`.ModbusPoint.to_registers`)."""
+        codec = self._layouts.get(p.role)
+        if codec is None:
+            return p.to_registers(si)  # a bool point
+        layout, regs = codec
+        return list(regs.unpack(layout.pack(p.raw_value(si))))
+
+    def _from_registers(self, p: ModbusPoint, values: list[int]) -> float:
+        """The point's SI value from its registers (:meth:`.ModbusPoint.from_registers`)."""
+        layout, regs = self._layouts[p.role]
+        return p.si(layout.unpack_from(regs.pack(*values), 0))
 
     def _read(self, fc: int, address: int, count: int) -> Any:
         table = _READ_TABLE[fc]
@@ -339,17 +401,15 @@ class ModbusProfileTwin(TwinEndpoint):
             self.controller.heartbeat()
         sp = prof.points["setpoint"]
         if address <= sp.address and sp.end <= address + len(regs):
-            x = sp.from_registers([t[a] for a in range(sp.address, sp.end)])
+            x = self._from_registers(sp, [t[a] for a in range(sp.address, sp.end)])
             reply = self.controller.command(self._k, x, self._enable)
-            self._k += 1
-            if reply is not None:
-                self.emit(reply)
+            if self._enable or self._k:  # (the disabled write at 0 is the arming command)
+                self._k += 1
+            self.emit(reply)
 
     def _act(self, table: str, address: int, value: int) -> None:
         ctl = self.controller
-        for name, act in self.profile.actions.items():
-            if act.table != table or act.address != address or act.value != value:
-                continue
+        for name in self._actions.get((table, address, value), ()):
             if name == "estop":
                 ctl.estop()
             elif name == "enable":
@@ -358,9 +418,9 @@ class ModbusProfileTwin(TwinEndpoint):
                 self._enable = False
             elif name == "acknowledge":
                 self._enable = False
-                self._k = 0
-                reply = ctl.command(0, ctl.displacement, False)  # a new run (arming)
-                self._k = 1
+                self._k = 0  # a new run (arming): the count restarts
+                self._plan = None
+                reply = ctl.command(0, ctl.displacement, False)
                 if reply is not None:
                     self._publish(*reply[1:])
 
@@ -371,29 +431,58 @@ class ModbusProfileTwin(TwinEndpoint):
         for role, value in (("position", displacement), ("force", force)):
             p = pts[role]
             try:
-                regs = p.to_registers(value)
+                regs = self._to_registers(p, value)
             except (InputError, ValueError):
                 continue  # not representable (NaN in an integer point): keep the old value
             for i, r in enumerate(regs):
                 t[p.table][p.address + i] = r
+        self._sample_flags = status & _SAMPLE_FLAGS
         self._set_status(status)
 
     def _set_status(self, status: int) -> None:
         p = self.profile.points["status"]
         word = word_from_status(status, self.profile.masks)
-        si = (word * p.scale + p.offset) * p.factor  # the point's raw value is the word
-        for i, r in enumerate(p.to_registers(si)):
+        regs = self._status_regs.get(word)
+        if regs is None:  # (once per word)
+            si = (word * p.scale + p.offset) * p.factor  # the point's raw value is the word
+            regs = self._status_regs[word] = p.to_registers(si)
+        for i, r in enumerate(regs):
             self.tables[p.table][p.address + i] = r
 
     def _refresh_status(self) -> None:
-        self._set_status(self.controller.status())
+        # the controller's state now, with the flags of the last sample (sensor invalid)
+        self._set_status(self.controller.status() | self._sample_flags)
+
+    def emit(self, reply: tuple[int, float, float, int] | None) -> None:
+        """Publish the values of one command's feedback and plan the step's frame faults.
+
+        A register map has no feedback frame of its own: the values are published to the
+        tables, and the frame faults apply to the responses to the step's reads (:meth:`_reply`).
+        """
+        if reply is None:
+            self._plan = (0, False)  # a lost command: its step's reads go unanswered
+            return
+        if self._gone:
+            return
+        seq = reply[0]
+        faults = self.faults
+        if faults.disconnected(seq):
+            self._go_away()
+            return
+        self._publish(*reply[1:])
+        copies, pause, corrupt = faults.reply_plan(seq)
+        self._plan = (copies, corrupt)
+        if pause:  # a stalled controller: the step's reads are answered after the pause
+            self._stop.wait(pause)
 
     def _encode(self, seq: int, displacement: float, force: float, status: int) -> list[Any]:
-        self._publish(displacement, force, status)
+        self._publish(displacement, force, status)  # (emit publishes; kept for the interface)
         return []
 
-    def _corrupt(self, frame: Any) -> Any:  # pragma: no cover - no frames of its own
-        return frame
+    def _corrupt(self, frame: bytes) -> bytes:
+        # TCP: the unit id of the MBAP header (TCP's checksum guards the rest of a segment);
+        # RTU: a bit of the first data byte, caught by the CRC
+        return Faults.flip_bit(frame, 6 if self.transport == "tcp" else 3)
 
-    def _write(self, frame: Any) -> None:  # pragma: no cover - no frames of its own
+    def _write(self, frame: Any) -> None:  # pragma: no cover - responses go out in _process
         pass

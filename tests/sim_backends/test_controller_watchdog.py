@@ -24,7 +24,15 @@ from rths_hil.drivers.base import Status
 from rths_hil.drivers.registry import create_driver
 
 from rths_hil.recorder import read_run
-from tests.helpers.procs import LATCH_LINE, ServedTwin, bridge_cmd, kill9, start_bridge, wait_rows
+from tests.helpers.procs import (
+    LATCH_LINE,
+    ROOT,
+    ServedTwin,
+    bridge_cmd,
+    kill9,
+    start_bridge,
+    wait_rows,
+)
 
 # The twins' watchdog in these tests (s). Served twins: 0.25 s, so that a lockstep bridge
 # descheduled for tens of ms on a loaded 2-core machine is not taken for a dead one; in-process
@@ -39,11 +47,11 @@ ROWS = 1000
 LATCHED = int(Status.ESTOP_ACTIVE | Status.WATCHDOG)
 
 
-def _second_run(driver, connection, out):
+def _second_run(driver, connection, out, *extra):
     """A new lockstep run against the same twin: must arm it and complete."""
     import subprocess
 
-    cmd = bridge_cmd(driver, connection, out, "--lockstep", "--duration", "1")
+    cmd = bridge_cmd(driver, connection, out, "--lockstep", "--duration", "1", *extra)
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     events = [json.loads(x) for x in (out / "events.jsonl").read_text().splitlines()]
@@ -55,6 +63,19 @@ def _second_run(driver, connection, out):
 def modbus_twin():
     twin = ServedTwin(
         "--driver", "modbus", "--heartbeat-timeout", f"{TIMEOUT * 1e3:g}ms"
+    )  # fmt: skip
+    yield twin
+    twin.stop()
+
+
+MAP = ROOT / "examples" / "controllers" / "modbus_map.toml"
+DBC = ROOT / "examples" / "controllers" / "can_dbc.toml"
+
+
+@pytest.fixture()
+def modbus_map_twin():
+    twin = ServedTwin(
+        "--driver", "modbus", "--profile", str(MAP), "--heartbeat-timeout", f"{TIMEOUT * 1e3:g}ms"
     )  # fmt: skip
     yield twin
     twin.stop()
@@ -167,6 +188,46 @@ def test_modbus_twin_latches_when_the_bridge_is_killed(modbus_twin, tmp_path):
     assert rec["feedback_ok"].all() and len(rec) == 1024
 
 
+def test_modbus_map_twin_latches_when_the_bridge_is_killed(modbus_map_twin, tmp_path):
+    """The lab's own register map: the latch is read as the map's status word says it."""
+    from pymodbus.client import ModbusTcpClient
+    from rths_hil.drivers.profile import load_profile
+
+    prof = load_profile(MAP)
+    conn = modbus_map_twin.connection
+    profile = [f"--set=driver.profile={MAP}"]
+    bridge = start_bridge(bridge_cmd("modbus", conn, tmp_path / "run1", "--lockstep", *profile))
+    wait_rows(tmp_path / "run1", ROWS, bridge)
+    t_kill = kill9(bridge)
+    t_latch = modbus_map_twin.first(LATCH_LINE, after=t_kill - 1.0)
+    assert t_latch is not None, modbus_map_twin.lines
+    dt_ms = (t_latch - t_kill) * 1e3
+    print(f"\nMATRIX | modbus-map | bridge_killed | lockstep | twin latch | {dt_ms:.0f} ms")
+    assert 0.0 < t_latch - t_kill <= TIMEOUT + SLACK, t_latch - t_kill
+    # what a plain Modbus client sees at the map's addresses: the status word latched, not
+    # enabled, and the position and force input registers held
+    pos, st = prof.points["position"], prof.points["status"]
+    client = ModbusTcpClient(conn["host"], port=conn["port"])
+    assert client.connect()
+    try:
+        unit = conn["device_id"]
+        r1 = client.read_input_registers(pos.address, count=st.end - pos.address, device_id=unit)
+        time.sleep(0.3)
+        r2 = client.read_input_registers(pos.address, count=st.end - pos.address, device_id=unit)
+    finally:
+        client.close()
+    word = r1.registers[st.address - pos.address]
+    masks = prof.masks
+    assert word & masks[int(Status.ESTOP_ACTIVE)] and word & masks[int(Status.WATCHDOG)]
+    assert not word & masks[int(Status.ENABLED)]
+    assert r1.registers == r2.registers  # holding: position and force unchanged
+    # a second run against the same twin acknowledges and arms it, and completes (the map's
+    # status is read after the acknowledge was written: the latch shows cleared)
+    arm, rec = _second_run("modbus", conn, tmp_path / "run2", *profile)
+    assert arm["replied"] and arm["status"] & LATCHED == 0
+    assert rec["feedback_ok"].all() and len(rec) == 1024
+
+
 def test_serial_twin_latches_when_the_bridge_is_killed(serial_twin, tmp_path):
     conn = serial_twin.connection
     bridge = start_bridge(bridge_cmd("serial", conn, tmp_path / "run1", "--lockstep"))
@@ -188,12 +249,18 @@ def test_serial_twin_latches_when_the_bridge_is_killed(serial_twin, tmp_path):
     assert fb1.displacement == fb2.displacement  # holds, ignores the 5 mm command
 
 
-@pytest.mark.parametrize("driver", ["can", "modbus", "serial"])
-def test_in_process_twin_latches_when_commands_stop(driver):
-    """The in-process twins (threaded) hold and latch the same way when the bridge falls silent."""
+@pytest.mark.parametrize(
+    "driver, profile",
+    [("can", None), ("modbus", None), ("serial", None), ("modbus", MAP), ("can", DBC)],
+    ids=["can", "modbus", "serial", "modbus-map", "can-dbc"],
+)
+def test_in_process_twin_latches_when_commands_stop(driver, profile):
+    """The in-process twins (threaded) hold and latch the same way when the bridge falls silent
+    — the built-in protocols and the controller profiles."""
     from rths_hil.sim_backends.twin import default_plant, start_twin
 
-    with start_twin(driver, default_plant(), heartbeat_timeout=TIMEOUT_IN) as twin:
+    extra = {} if profile is None else {"profile": str(profile)}
+    with start_twin(driver, default_plant(), heartbeat_timeout=TIMEOUT_IN, **extra) as twin:
         with create_driver(driver, **twin.connection) as drv:
             assert drv.arm(1.0) is not None
             for k in range(200):
@@ -210,8 +277,11 @@ def test_in_process_twin_latches_when_commands_stop(driver):
             fb = drv.receive(1.0)
             assert fb is not None and fb.status & LATCHED == LATCHED
             assert abs(fb.displacement - twin.controller.displacement) <= 1e-7  # held (LSB)
-            # re-armed by a new run: enabled again, sequence from 0
-            assert drv.arm(1.0).status & LATCHED == LATCHED
+            # re-armed by a new run: enabled again, sequence from 0 (a register map is read
+            # after its acknowledge was written: the latch shows cleared already)
+            armed = drv.arm(1.0)
+            assert armed is not None
+            assert armed.status & LATCHED == (0 if profile == MAP else LATCHED)
             drv.send(0, 0.0, True)
             fb = drv.receive(1.0)
             assert fb is not None and fb.seq == 0 and fb.status & Status.ENABLED

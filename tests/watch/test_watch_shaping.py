@@ -139,3 +139,51 @@ def test_channel_values_missing_column_is_nan_and_labels():
     assert finite_or("x", 2.0) == 2.0 and finite_or(math.inf) == 0.0 and finite_or("3") == 3.0
     assert actuator_label("", {"channels": [{"name": "east"}]}) == "Actuator east"
     assert actuator_label("", {}) == "Actuator" and actuator_label("w", {}) == "Actuator w"
+
+
+def test_watchdog_bar_discounts_the_bridges_stalls_like_the_rule():
+    """The feedback watchdog's bar is the silence the loop's rule measures: the time since the
+    latest good reply less the bridge's own stalls (``stall`` events), here checked against
+    :class:`rths_hil.safety.WatchdogRule` fed the same reply times and stalls."""
+    from rths_hil.safety import WatchdogRule
+
+    fs, n, fb_wait = 1000.0, 400, 0.8 / 1000.0
+    names = ["time", "lateness", "feedback_ok", "feedback_time"]
+    rec = np.zeros(n, dtype=[(nm, bool if nm == "feedback_ok" else float) for nm in names])
+    rec["time"] = np.arange(n) / fs
+    stalls = {100: 0.04, 101: 0.01, 250: 0.02}  # step → length (s): the bridge did not run
+    rec["lateness"] = np.cumsum([stalls.get(k, 0.0) for k in range(n)])
+    ok = RNG.random(n) > 0.3
+    ok[95:140] = False  # silence across the stalls
+    rec["feedback_ok"] = ok
+    rec["feedback_time"] = np.where(ok, 3e-4 + 1e-4 * RNG.random(n), np.nan)
+    arrive = rec["time"] + rec["lateness"] + np.where(ok, rec["feedback_time"], fb_wait)
+    events = [{"kind": "stall", "step": k, "length": x} for k, x in stalls.items()]
+
+    # the rule, with a tiny timeout so that every missed step reports the silence it counts
+    now = iter(arrive)
+    rule = WatchdogRule(0, timeout=1e-12, clock=lambda: next(now))
+    want = np.full(n, np.nan)
+    for k in range(n):
+        if k in stalls:  # between the previous step's reply and this step's send
+            end = arrive[k - 1] + 1e-5 + stalls[k]
+            rule.stalled(end - stalls[k], end)
+        trip = rule.check(bool(ok[k]))
+        if trip is not None:
+            want[k] = trip.values["elapsed"]
+
+    safety = {"watchdog_timeout": 0.05, "watchdog_missed": 0}
+    cfg = {"loop": {"fs": fs}, "kalman": {"enabled": False}, "safety": safety}
+    for pieces in ((n,), (50, 99, 100, 101, 260, n)):
+        shares = LimitShares("", safety, cfg, paced=True)
+        shares.note_stalls(events)
+        bounds = zip((0, *pieces[:-1]), pieces, strict=True)
+        got = np.concatenate(
+            [shares._shares(rec, names, a, b)["feedback watchdog"] for a, b in bounds]
+        )
+        miss = ~ok & np.isfinite(want)
+        np.testing.assert_allclose(got[miss] * 0.05, want[miss], rtol=0, atol=1e-9)
+        assert got[miss].max() < 1.0  # 45 missed replies across 70 ms of stalls: no alarm
+    # without the stall events the bar would have counted the stalls as silence
+    blind = LimitShares("", safety, cfg, paced=True)._shares(rec, names, 0, n)["feedback watchdog"]
+    assert blind[139] * 0.05 - want[139] == pytest.approx(0.05, abs=1e-9)  # steps 100, 101
