@@ -660,8 +660,9 @@ def _run_in(tree: Path, args: list[str], pin: list[str] | None = None) -> list[f
             cwd=cwd,
             capture_output=True,
             text=True,
-            check=True,
         )
+    if r.returncode:
+        raise RuntimeError(f"a run in {tree} failed:\n{r.stderr[-2000:]}")
     return [float(v) for v in r.stdout.strip().splitlines()[-1].split()]
 
 
@@ -707,7 +708,8 @@ def one_channel_vs_baseline(
 #: :func:`_channels_toml` (their source is put before it): steps/s, the loop thread's CPU time
 #: per step in µs (``time.thread_time`` around the step loop; lockstep serves the twins inline,
 #: in that thread), Python bytecodes per step (``trace`` as the last argument: a traced run),
-#: overruns, work-caused overruns (paced) and steps.
+#: overruns, work-caused overruns (paced), steps and 1 if the run completed (a paced run may
+#: trip on a stall of a loaded machine).
 _CHANNELS_SNIPPET = (
     "import sys, tempfile, time; from pathlib import Path; from rths_hil.config import load_config"
     "\ntry:\n from rths_hil.hybrid import RTHSLoop, attribute_overruns, WORK, WORK_BACKLOG\n"
@@ -727,13 +729,13 @@ _CHANNELS_SNIPPET = (
     "extra = ('fei.exact_hop=256',) if mode == 'paced' else ()\n"
     "cfg = load_config(p, channels_config(n, extra))\n"
     "r = RTHSLoop(cfg, d / 'r', mode=mode, duration=dur).run()\n"
-    "assert r.status == 'completed', r.trip\n"
+    "assert r.status == 'completed' or mode == 'paced', r.trip\n"
     "work = 0\n"
     "if mode == 'paced':\n"
     " c = attribute_overruns(r.lateness, r.ready, r.overrun_threshold)\n"
     " work = int(((c == WORK) | (c == WORK_BACKLOG)).sum())\n"
     "print(r.steps_per_second, cpu[0] / r.steps * 1e6, ops[0] / r.steps, r.overruns, work,"
-    " r.steps)\n"
+    " r.steps, int(r.status == 'completed'))\n"
 )
 
 
@@ -785,7 +787,8 @@ def channels_vs_baseline(
             f"{statistics.median(r[1] for r in rs):.1f}, {min(r[1] for r in rs):.1f} | "
             f"{ops[t]:.0f} | {', '.join(f'{int(p[3])}' for p in paced[t])} of "
             f"{int(paced[t][0][5]) if paced[t] else 0} | "
-            f"{', '.join(f'{int(p[4])} = {100 * p[4] / max(p[5], 1):.3f} %' for p in paced[t])} |"
+            f"{', '.join(f'{int(p[4])} = {100 * p[4] / max(p[5], 1):.3f} %' for p in paced[t])}"
+            f"{'' if all(p[6] for p in paced[t]) else ' (a run tripped)'} |"
         )
     return lines
 
