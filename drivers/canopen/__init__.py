@@ -31,8 +31,9 @@ feedback — after every axis's RPDO, so several axes on one bus share one SYNC 
 SYNC is the step clock: the devices apply the RPDO received before it and answer with their
 TPDOs. The feedback of step ``k`` is the TPDO set received after SYNC ``k`` (TPDOs carry no
 sequence number: a TPDO that comes after the next SYNC is taken for the next step's, see
-``docs/canopen.md``). The RPDO is encoded and the TPDOs decoded by the library's PDO variables
-(the objects' ``encode_raw`` / ``decode_raw`` at the offsets of the library's PDO maps).
+``docs/canopen.md``). The RPDO is packed and the TPDOs unpacked by one precompiled ``struct``
+each (:class:`Layout`), checked at start-up against the library's encoding and decoding of its
+PDO maps (:meth:`Layout.check`; the library stays the authority on the mapping).
 Positions are counts on the wire (``counts_per_m``), forces counts of ``newtons_per_count``.
 The base class owns the receive deadline, the timeouts, the sequence rules and the counters.
 
@@ -73,6 +74,7 @@ import logging
 import math
 import os
 import queue
+import random
 import struct
 import threading
 import time
@@ -82,7 +84,7 @@ from typing import Any, ClassVar
 
 import can
 import canopen
-from canopen.objectdictionary import ObjectDictionaryError, ODArray, ODRecord, ODVariable
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from rths_hil.errors import InputError
@@ -120,6 +122,8 @@ _S32 = (-(2**31), 2**31 - 1)
 _BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
 _SDO_ERRORS = (SdoAbortedError, SdoCommunicationError)
 _perf = time.perf_counter
+#: a TPDO of the current SYNC that has not come yet
+_MISSING = object()
 
 
 @dataclass(slots=True)
@@ -210,6 +214,77 @@ class Layout:
             fmt += st.format.lstrip("<")
         return cls(struct.Struct(fmt), bits)
 
+    def check(self, pdo_map: Any, name: str, rng: random.Random, rounds: int = 8) -> None:
+        """Refuse (one line) unless this layout packs and unpacks exactly as the library does.
+
+        ``pdo_map`` is the library's PDO map (``canopen.pdo.PdoMap``) of the objects this
+        layout was built from. For ``rounds`` sets of values (each object's extremes, 0, 1 and
+        random values of its type) the bytes of :attr:`fmt` must equal the map's data after
+        ``PdoVariable.raw = value`` for each mapped object (``ODVariable.encode_raw`` at the
+        library's offsets), and for as many random payloads :attr:`fmt` must unpack the values
+        ``PdoVariable.raw`` decodes. The map's data is restored afterwards. This is what lets
+        the step pack and unpack a PDO with one precompiled ``struct`` call while the library
+        stays the authority on the mapping and the encoding.
+        """
+        variables = list(pdo_map.map)
+        size = self.fmt.size
+        if sum(v.length for v in variables) != 8 * size:
+            raise InputError(f"canopen: {name}: the library maps {len(variables)} objects that "
+                             f"are not the {size} bytes the driver packs")  # fmt: skip
+        samples = [_sample_values(v.od, rng, rounds) for v in variables]
+        saved = pdo_map.data
+        try:
+            for j in range(rounds):
+                values = [col[j] for col in samples]
+                pdo_map.data = bytearray(size)
+                for var, value in zip(variables, values, strict=True):
+                    var.raw = value
+                try:
+                    ours = self.fmt.pack(*values)
+                except struct.error as exc:
+                    raise InputError(
+                        f"canopen: {name}: the driver cannot pack {values} ({exc}), the canopen "
+                        f"library's encoding is {bytes(pdo_map.data).hex()}"
+                    ) from None
+                if bytes(pdo_map.data) != ours:
+                    raise InputError(
+                        f"canopen: {name}: the driver's packing of {values} is {ours.hex()}, "
+                        f"the canopen library's is {bytes(pdo_map.data).hex()}"
+                    )
+                payload = bytes(rng.getrandbits(8) for _ in range(size))
+                pdo_map.data = bytearray(payload)
+                lib = [var.raw for var in variables]
+                mine = list(self.fmt.unpack(payload))
+                if any(a != b and (a == a or b == b) for a, b in zip(lib, mine, strict=True)):
+                    raise InputError(
+                        f"canopen: {name}: the driver unpacks {payload.hex()} as {mine}, the "
+                        f"canopen library as {lib}"
+                    )
+        finally:
+            pdo_map.data = saved
+
+
+def _sample_values(var: ODVariable, rng: random.Random, n: int) -> list[Any]:
+    """``n`` values of ``var``'s type: its extremes, 0, 1, then random ones (floats for REAL)."""
+    st = var.STRUCT_TYPES[var.data_type]
+    code = st.format[-1]
+    if code in "fd":
+        base = [0.0, 1.5, -2.25]
+        draw = lambda: st.unpack(st.pack(rng.uniform(-1e9, 1e9)))[0]  # noqa: E731
+    elif code == "?":
+        base = [False, True]
+        draw = lambda: rng.random() < 0.5  # noqa: E731
+    else:
+        bits = 8 * st.size
+        lo, hi = ((-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if code.islower()
+                  else (0, (1 << bits) - 1))  # fmt: skip
+        base = [lo, hi, 0, 1]
+        draw = lambda: rng.randint(lo, hi)  # noqa: E731
+    out = base[:n]
+    while len(out) < n:
+        out.append(draw())
+    return out
+
 
 class CANopenBus:
     """One CANopen bus of the bridge: a python-can bus and its :class:`canopen.Network`,
@@ -234,7 +309,10 @@ class CANopenBus:
         self.direct = direct
         self.rxq: queue.Queue | None = virtual_rx_queue(network.bus) if direct else None
         self.axes: dict[int, CANopenDriver] = {}
-        self.tpdo: dict[int, tuple[CANopenDriver, Any]] = {}
+        #: TPDO COB-ID → (axis, the library's PDO map, slot, size, precompiled unpack)
+        self.tpdo: dict[int, tuple[CANopenDriver, Any, int, int, Any]] = {}
+        #: frames are read from the caller's thread (no notifier thread runs), see :meth:`listen`
+        self.reading = direct
         self.sync_msg = Frame.blank(SYNC_ID, 0)
         #: SYNC frames sent on this bus
         self.syncs = 0
@@ -266,6 +344,7 @@ class CANopenBus:
                 if bus.direct and net.notifier is not None:  # read from the caller's thread
                     notifier, net.notifier = net.notifier, None
                     notifier.stop(1.0)
+                bus.reading = bus.direct and net.notifier is None
                 cls._open[key] = bus
             elif drv.node_id in bus.axes:
                 raise InputError(
@@ -280,7 +359,7 @@ class CANopenBus:
         with self._registry_lock:
             if self.axes.get(drv.node_id) is drv:
                 del self.axes[drv.node_id]
-            for cob in [c for c, (d, _) in self.tpdo.items() if d is drv]:
+            for cob in [c for c, t in self.tpdo.items() if t[0] is drv]:
                 del self.tpdo[cob]
             if self.axes:
                 return
@@ -301,15 +380,12 @@ class CANopenBus:
             return
         self._listening = max(0, self._listening + (1 if on else -1))
         if self._listening and net.notifier is None:
+            self.reading = False
             net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
         elif not self._listening and net.notifier is not None:
             notifier, net.notifier = net.notifier, None
             notifier.stop(1.0)
-
-    @property
-    def reading(self) -> bool:
-        """Frames are read from the caller's thread (no notifier thread runs)."""
-        return self.direct and self.network.notifier is None
+            self.reading = True
 
     def pump(self, timeout: float) -> bool:
         """Read one frame (waiting up to ``timeout``) and hand it on (:meth:`handle`); False if
@@ -354,8 +430,9 @@ class CANopenBus:
                 pass
 
     def handle(self, msg: can.Message) -> None:
-        """One frame: a TPDO into the PDO map of its axis (as ``PdoMap.on_message`` does, then
-        the axis's ``_on_tpdo``); anything else to the library's dispatch."""
+        """One frame: a TPDO into the PDO map of its axis (as ``PdoMap.on_message`` does) and
+        its values, unpacked by the axis's precompiled layout, to the axis (``_tpdo_in``);
+        anything else to the library's dispatch (EMCY, heartbeats, SDO)."""
         if msg.is_error_frame or msg.is_remote_frame:
             for drv in self.axes.values():
                 drv.stats.count_malformed("bad_frame")
@@ -363,10 +440,10 @@ class CANopenBus:
             return
         owner = self.tpdo.get(msg.arbitration_id)
         if owner is not None:
-            drv, m = owner
-            m.data = msg.data
+            drv, m, slot, size, unpack = owner
+            data = m.data = msg.data
             m.timestamp = msg.timestamp
-            drv._on_tpdo(m)
+            drv._tpdo_in(slot, unpack(data) if len(data) == size else None)
             return
         try:
             self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
@@ -554,18 +631,20 @@ class CANopenDriver(Driver):
         self._q: deque[Feedback] = deque()  # decoded feedback (appended by _on_tpdo)
         self._wake = threading.Event()  # set by _on_tpdo (the notifier thread's hand-off)
         self._lock = threading.Lock()
-        self._part: dict[int, list[int] | None] = {}
+        # the TPDO values of the current SYNC: one slot per TPDO (TPDO1, TPDO2), _MISSING until
+        # it came, None when malformed, () for a TPDO2 that is not mapped; reset at every SYNC
+        self._blank: tuple[Any, ...] = (_MISSING, _MISSING if f_obj is not None else ())
+        self._part: list[Any] = list(self._blank)
+        self._have = 0  # TPDOs of the current SYNC received
+        self._n_tpdo = 2 if f_obj is not None else 1
         self._states: dict[int, str] = {}
         self._flags: dict[tuple[str, bool], int] = {}
         self._words: dict[tuple[str, bool, bool], int] = {}
-        # the library's PDO variables of the mapped objects (set when the PDOs are mapped)
+        # the library's PDO maps and the precompiled packing checked against them (_map_pdos)
         self._rpdo_map: Any = None
-        self._rpdo_cw: Any = None
-        self._rpdo_sp: Any = None
-        self._tpdo_vars: dict[int, tuple[Any, ...]] = {}
-        self._tpdo_maps: dict[int, Any] = {}  # read in the caller's thread: straight to the map
-        self._tpdo_len: dict[int, int] = {}
-        self._tpdo_decode: dict[int, tuple[int, tuple[tuple[Any, int, int], ...]]] = {}
+        self._rpdo_pack: Any = None
+        self._tpdo_maps: dict[int, Any] = {}
+        self._tpdo_decode: dict[int, tuple[int, int, Any]] = {}  # cob → (slot, size, unpack)
         self._step = -1  # the step the last SYNC belongs to
         self._delivered_sync = -2
         self._state = "NOT READY TO SWITCH ON" if p.number == 402 else "NOT READY"
@@ -579,11 +658,11 @@ class CANopenDriver(Driver):
         self._first_enable = True
         self._opened = False
         self._bus: CANopenBus | None = None
-        self._cw_sent = -1  # the control word in the RPDO frame
         self._awaiting: int | None = None  # the step of an RPDO sent and not yet SYNCed
         # the RPDO of every step, built once and rewritten in place (Frame: a can.Message that
         # the virtual bus copies cheaply, drivers.can.codec); the SYNC is the bus's
         self._rpdo_msg = Frame.blank(self._rpdo_id, self.rpdo_layout.fmt.size)
+        self._rpdo_data = self._rpdo_msg.data
         self._hb_msg = Frame(
             arbitration_id=self._hb_id, is_extended_id=False, dlc=1, data=bytes((NMT_OPERATIONAL,))
         )
@@ -769,25 +848,25 @@ class CANopenDriver(Driver):
             if variables and pdo.cob_id != {"RPDO1": self._rpdo_id, "TPDO1": self._tpdo_ids[0],
                                              "TPDO2": self._tpdo_ids[1]}[name]:  # fmt: skip
                 self._retarget(name, pdo.cob_id)
+        # each step packs the RPDO and unpacks the TPDOs with one precompiled struct of the
+        # mapped objects (Layout), checked here against the library's own encoding and decoding
+        # of its maps; the maps above (control word first, checked) fix the argument order
+        rng = random.Random(0x1A0 + self.node_id)
         rp = self._rpdo_map = node.rpdo[1]
-        by_obj = {(v.index, v.subindex): v for v in rp.map}
-        self._rpdo_cw, self._rpdo_sp = (
-            (v.od, v.offset // 8, (v.offset + v.length) // 8)
-            for v in (by_obj[self.profile.control], by_obj[self.profile.setpoint])
-        )
-        self._tpdo_vars, self._tpdo_len, self._tpdo_maps = {}, {}, {}
-        self._tpdo_decode = {}
-        for pdo, variables in ((node.tpdo[1], self._tpdo1_vars), (node.tpdo[2], self._tpdo2_vars)):
-            if variables:
-                self._tpdo_vars[pdo.cob_id] = tuple(pdo.map)
-                self._tpdo_len[pdo.cob_id] = sum(v.length for v in pdo.map) // 8
-                self._tpdo_decode[pdo.cob_id] = (
-                    self._tpdo_len[pdo.cob_id],
-                    tuple((v.od, v.offset // 8, (v.offset + v.length) // 8) for v in pdo.map),
-                )
+        self.rpdo_layout.check(rp, "RPDO1", rng)
+        self._rpdo_pack = self.rpdo_layout.fmt.pack_into
+        self._rpdo_msg.arbitration_id = self._rpdo_id
+        self._tpdo_maps, self._tpdo_decode = {}, {}
+        for slot, (pdo, layout, name) in enumerate(
+            ((node.tpdo[1], self.tpdo1_layout, "TPDO1"), (node.tpdo[2], self.tpdo2_layout, "TPDO2"))
+        ):
+            if layout is not None:
+                layout.check(pdo, name, rng)
+                unpack = layout.fmt.unpack
+                self._tpdo_decode[pdo.cob_id] = (slot, layout.fmt.size, unpack)
                 self._tpdo_maps[pdo.cob_id] = pdo
                 if self._bus is not None:
-                    self._bus.tpdo[pdo.cob_id] = (self, pdo)
+                    self._bus.tpdo[pdo.cob_id] = (self, pdo, slot, layout.fmt.size, unpack)
                 pdo.add_callback(self._on_tpdo)
 
     def _retarget(self, name: str, cob: int) -> None:
@@ -801,46 +880,46 @@ class CANopenDriver(Driver):
     # ------------------------------------------------------------------------------------------
     # callbacks (the canopen library's notifier thread)
     def _on_tpdo(self, pdo_map: Any) -> None:
-        """A TPDO arrived (into the library's PDO map, by ``PdoMap.on_message`` or the bus):
-        its values, decoded by the mapped objects (``ODVariable.decode_raw`` of the bytes at the
-        offsets of the library's mapping, what ``Variable.raw`` returns for whole-byte objects),
-        are filed for the step of the last SYNC."""
-        cob = pdo_map.cob_id
+        """A TPDO arrived into the library's PDO map (``PdoMap.on_message`` of the notifier
+        thread, or a test): its values to :meth:`_tpdo_in`."""
+        slot, size, unpack = self._tpdo_decode[pdo_map.cob_id]
         data = pdo_map.data
-        values: list[int] | None = None
-        size, fields = self._tpdo_decode.get(cob, (-1, ()))
-        if len(data) == size:
-            try:
-                values = [od.decode_raw(data[a:b]) for od, a, b in fields]
-            except (ObjectDictionaryError, struct.error):
-                values = None
+        self._tpdo_in(slot, unpack(data) if len(data) == size else None)
+
+    def _tpdo_in(self, slot: int, values: tuple[int, ...] | None) -> None:
+        """The values of TPDO ``slot`` (0: TPDO1, 1: TPDO2; ``None`` when its length was wrong),
+        unpacked by the layout checked against the library's decoding (:meth:`Layout.check`),
+        are filed for the step of the last SYNC; the set complete, its feedback is queued."""
         with self._lock:
             step = self._step
             if step == self._delivered_sync:
                 self.stats.duplicates += 1
                 return
-            self._part[cob] = values
-            if len(self._part) < len(self._tpdo_vars):
+            part = self._part
+            if part[slot] is _MISSING:
+                self._have += 1
+            part[slot] = values
+            if self._have < self._n_tpdo:
                 return
-            part, self._part = self._part, {}
+            t1, t2 = part
+            part[:] = self._blank
+            self._have = 0
             self._delivered_sync = step
-        fb = self._decode(step, part)
+        fb = self._decode(step, t1, t2)
         if fb is not None:
             self._q.append(fb)
             bus = self._bus
             if bus is None or not bus.reading:  # a thread may wait for it
                 self._wake.set()
 
-    def _decode(self, step: int, part: dict[int, list[int] | None]) -> Feedback | None:
-        t1 = part.get(self._tpdo_ids[0])
-        t2 = part.get(self._tpdo_ids[1]) if self._tpdo2_vars else ()
+    def _decode(self, step: int, t1: Any, t2: Any) -> Feedback | None:
         if t1 is None or t2 is None:
             self.stats.count_malformed("bad_length")
             return None
         sw, pos = t1  # TPDO1 maps status word, actual position (checked when mapped)
         force = math.nan
         if t2:
-            fc = t2[0]
+            (fc,) = t2
             force = math.nan if fc == _S32[0] else fc * self.newtons_per_count
         state = self._states.get(sw)
         if state is None:  # the FSA state of a status word, looked up once
@@ -887,17 +966,9 @@ class CANopenDriver(Driver):
         if bus is None:
             self.stats.send_errors += 1
             return
-        # the RPDO through the library's PDO map: each variable encoded by its object
-        # (``ODVariable.encode_raw``, what ``Variable.raw = v`` does) at the byte offset of the
-        # library's mapping (whole-byte objects only, :class:`Layout`)
-        data = self._rpdo_msg.data
-        od, a, b = self._rpdo_cw
-        if word != self._cw_sent:  # the control word changes at transitions only
-            data[a:b] = od.encode_raw(word)
-            self._cw_sent = word
-        od, a, b = self._rpdo_sp
-        data[a:b] = od.encode_raw(counts)
-        self._rpdo_msg.arbitration_id = self._rpdo_id
+        # the mapped objects (control word, set-point) packed by the precompiled layout that
+        # _map_pdos checked against the library's encoding of its RPDO map (Layout.check)
+        self._rpdo_pack(self._rpdo_data, 0, word, counts)
         if not bus.send(self._rpdo_msg):
             self.stats.send_errors += 1
             return
@@ -907,7 +978,8 @@ class CANopenDriver(Driver):
         """The bus sent the SYNC after this axis's RPDO: the TPDOs that follow are its step's."""
         with self._lock:
             self._step = self._awaiting  # type: ignore[assignment]
-            self._part = {}
+            self._part[:] = self._blank
+            self._have = 0
         self._awaiting = None
         self.stats.syncs += 1
 
@@ -1059,7 +1131,8 @@ class CANopenDriver(Driver):
         with self._lock:
             self._step = -1
             self._delivered_sync = -2
-            self._part = {}
+            self._part[:] = self._blank
+            self._have = 0
         self._awaiting = None
         self._q.clear()
         self.heartbeat()  # the device's heartbeat consumer counts from here

@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import logging
 import os
+import queue
+import random
 import struct
 import time
 from importlib import resources
@@ -39,8 +41,9 @@ import can
 import canopen
 from canopen.objectdictionary import ObjectDictionaryError
 from rths_hil.drivers.base import INVALID_S32, Status
+from rths_hil.drivers.can import virtual_rx_queue
 from rths_hil.drivers.can.codec import Frame
-from rths_hil.drivers.canopen import BRIDGE_NODE_ID, load_od, parse_object
+from rths_hil.drivers.canopen import BRIDGE_NODE_ID, Layout, load_od, parse_object
 from rths_hil.drivers.canopen.profiles import PROFILES, SW408
 
 from rths_hil.errors import InputError
@@ -167,6 +170,10 @@ class CANopenTwin(TwinEndpoint):
         self._rpdo: Any = None
         self._tpdo: list[Any] = []
         self._rx: dict[tuple[int, int], Any] = {}  # the RPDO's PDO variables by object
+        # the maps packed and unpacked by precompiled structs checked against the library's
+        # encoding (Layout.check) when the node starts; None: through the library's variables
+        self._fast: tuple[Any, ...] | None = None
+        self._rxq: queue.Queue | None = None
         self._nmt_state = ""
         self._hb_watch = False
 
@@ -181,6 +188,7 @@ class CANopenTwin(TwinEndpoint):
             raise InputError(
                 f"canopen twin: cannot open {self.interface!r} {self.channel!r}: {exc}"
             ) from None
+        self._rxq = virtual_rx_queue(self.bus)
         net = self.network = canopen.Network(self.bus)
         node = self.node = canopen.LocalNode(self.node_id, self.od)
         net.add_node(node)
@@ -201,6 +209,7 @@ class CANopenTwin(TwinEndpoint):
         if node is not None:
             node.nmt.stop_heartbeat()
         bus, self.bus = self.bus, None
+        self._rxq = None
         self.network = None
         if bus is not None:
             try:
@@ -213,12 +222,31 @@ class CANopenTwin(TwinEndpoint):
         bus = self.bus
         if bus is None:
             return
-        msg = bus.recv(timeout)
+        q = self._rxq
+        if q is not None:  # python-can's virtual bus: its receive queue (virtual_rx_queue)
+            try:
+                msg = q.get(True, timeout) if timeout > 0 else q.get_nowait()
+            except queue.Empty:
+                return
+        else:
+            msg = bus.recv(timeout)
         if msg is None or self._gone:
             return
         if msg.is_error_frame or msg.is_remote_frame:
             self.controller.stats.malformed += 1
             return
+        fast = self._fast
+        if fast is not None:  # the step's own frames without the library's dispatch
+            cob = msg.arbitration_id
+            if cob == 0x80 and not msg.is_extended_id:
+                self._on_sync(cob, msg.data, msg.timestamp)
+                return
+            if cob == fast[0] and not msg.is_extended_id:  # as PdoMap.on_message stores it
+                rp = self._rpdo
+                rp.data = msg.data
+                rp.timestamp = msg.timestamp
+                rp.is_received = True
+                return
         assert self.network is not None
         self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
 
@@ -238,6 +266,7 @@ class CANopenTwin(TwinEndpoint):
             self._rpdo = node.rpdo[1]
             self._tpdo = [m for m in (node.tpdo[1], node.tpdo[2]) if m.enabled and m.map]
             self._rx = {(v.index, v.subindex): v for v in self._rpdo.map}
+            self._fast = self._compile()
             ctl = self.controller
             with ctl.lock:
                 ctl._arm()  # a new session: plant at rest, sequence count restarted
@@ -246,6 +275,33 @@ class CANopenTwin(TwinEndpoint):
         elif state != "OPERATIONAL":
             self._hb_watch = False
         self._nmt_state = state
+
+    def _compile(self) -> tuple[Any, ...] | None:
+        """The RPDO's unpacking and each TPDO's packing as one ``struct`` each (the driver's
+        :class:`~rths_hil.drivers.canopen.Layout`), checked against the library's encoding and
+        decoding of the maps; ``None`` (the library's variables each step) for a map that has
+        no such layout (bit fields, more than 8 bytes) or lacks the control word or set-point."""
+        rp = self._rpdo
+        p = self.profile
+        rng = random.Random(0x7A1 + self.node_id)
+        try:
+            keys = [(v.index, v.subindex) for v in rp.map]
+            if p.control not in keys or p.setpoint not in keys:
+                return None
+            rx = Layout.of([v.od for v in rp.map], "RPDO1")
+            rx.check(rp, "RPDO1", rng)
+            tx = []
+            for m in self._tpdo:
+                layout = Layout.of([v.od for v in m.map], f"TPDO 0x{m.cob_id:03X}")
+                layout.check(m, f"TPDO 0x{m.cob_id:03X}", rng)
+                tx.append((m.cob_id, layout.fmt.size, layout.fmt.pack,
+                           tuple((v.index, v.subindex) for v in m.map)))  # fmt: skip
+        except (InputError, ValueError, KeyError) as exc:
+            log.info("canopen twin node %d: PDOs through the library's variables: %s",
+                     self.node_id, exc)  # fmt: skip
+            return None
+        return (rp.cob_id, rx.fmt.size, rx.fmt.unpack, keys.index(p.control),
+                keys.index(p.setpoint), tx)  # fmt: skip
 
     def _on_bridge_heartbeat(self, can_id: int, data: bytes, ts: float) -> None:
         self.controller.heartbeat()
@@ -390,12 +446,24 @@ class CANopenTwin(TwinEndpoint):
         rp = self._rpdo
         if rp.is_received:
             rp.is_received = False
-            try:  # the RPDO as the library mapped it (rp.map), decoded by its PDO variables
-                cw = self._rx[self.profile.control].raw
-                self.target = self._rx[self.profile.setpoint].raw
-            except (KeyError, ObjectDictionaryError, struct.error):
-                self.controller.stats.malformed += 1
-                cw = self._cw
+            fast = self._fast
+            if fast is not None:  # the layout checked against the library's decoding
+                _, size, unpack, i_cw, i_sp, _ = fast
+                data = rp.data
+                if len(data) == size:
+                    values = unpack(data)
+                    cw = values[i_cw]
+                    self.target = values[i_sp]
+                else:
+                    self.controller.stats.malformed += 1
+                    cw = self._cw
+            else:
+                try:  # the RPDO as the library mapped it (rp.map), decoded by its PDO variables
+                    cw = self._rx[self.profile.control].raw
+                    self.target = self._rx[self.profile.setpoint].raw
+                except (KeyError, ObjectDictionaryError, struct.error):
+                    self.controller.stats.malformed += 1
+                    cw = self._cw
             self._apply(cw)
         n = self.n
         self.n += 1
@@ -433,6 +501,18 @@ class CANopenTwin(TwinEndpoint):
         }
         if self.force_object is not None:
             values[self.force_object] = self._force_counts(force)
+        fast = self._fast
+        if fast is not None:  # each TPDO by the layout checked against the library's encoding
+            for cob, size, pack, keys in fast[5]:
+                row = []
+                for key in keys:
+                    v = values.get(key)
+                    if v is None:
+                        v = self._on_read(key[0], key[1], None)
+                    row.append(0 if v is None else v)
+                frames.append(Frame(arbitration_id=cob, data=bytearray(pack(*row)),
+                                    is_extended_id=False, dlc=size))  # fmt: skip
+            return frames
         for m in self._tpdo:  # each TPDO through the library's map: Variable.raw, map.data
             for var in m.map:
                 key = (var.index, var.subindex)

@@ -273,7 +273,8 @@ def test_pdo_bytes_follow_the_cia301_little_endian_layout():
         assert bytes(frames[1].data) == struct.pack("<i", 456789)
         # the driver's decoding (its TPDO callback) of TPDOs packed by struct
         drv._q.clear()
-        drv._step, drv._delivered_sync, drv._part = 9, -2, {}
+        drv._delivered_sync, drv._awaiting = -2, 9
+        drv._synced()  # the SYNC of step 9
         for m, data in ((drv.node.tpdo[1], struct.pack("<Hi", 0x0237, -7654321)),
                         (drv.node.tpdo[2], struct.pack("<i", -31415))):  # fmt: skip
             m.data = bytearray(data)
@@ -410,3 +411,48 @@ def test_bridge_heartbeat_goes_on_after_an_estop_until_the_nodes_are_closed():
         time.sleep(4 * period)
         assert t1.controller.stats.heartbeats - n1 <= 1  # (the arming one) the steps produce it
         d1.close()
+
+
+def test_a_late_device_on_a_shared_bus_costs_its_own_step_only():
+    """Two axes on one bus; node 2's device answers one SYNC 0.45 s late (its thread held), the
+    receive waits 0.3 s. Node 2 misses that step only; its late TPDOs, arriving after the next
+    SYNC, are that step's feedback by the documented rule (a TPDO after the next SYNC is the
+    next step's) and its own answer to that SYNC is then counted twice as a duplicate; every
+    later step of both axes is delivered, node 1 never misses, and neither axis files a TPDO
+    for the other (the values of each follow its own set-point)."""
+    ch = {"channel": "rths-canopen-late-device"}
+    with (
+        start_twin("canopen", default_plant(), node_id=1, **ch) as t1,
+        start_twin("canopen", default_plant(), node_id=2, **ch) as t2,
+    ):
+        d1, d2 = _open(t1), _open(t2)
+        for d in (d1, d2):
+            assert d.arm(1.0) is not None
+        slow_sync, orig = 12, t2._on_sync
+
+        def late_sync(cob, data, ts):
+            if t2.n == slow_sync:
+                time.sleep(0.45)
+            orig(cob, data, ts)
+
+        t2._on_sync = late_sync
+        missed: dict[int, list[int]] = {1: [], 2: []}
+        last: dict[int, float] = {}
+        for k in range(80):
+            d1.send(k, 0.0, True)
+            d2.send(k, -0.0005 if k >= 5 else 0.0, True)
+            for i, d in ((1, d1), (2, d2)):
+                fb = d.receive(0.3)
+                if fb is None:
+                    missed[i].append(k)
+                else:
+                    assert fb.seq == k
+                    last[i] = fb.displacement
+        assert missed[1] == []
+        assert len(missed[2]) == 1 and missed[2][0] in (slow_sync, slow_sync + 1), missed
+        assert d2.stats.duplicates == 2 and d1.stats.duplicates == 0
+        assert d2.stats.received == 79 and d1.stats.received == 80
+        # each axis reads its own device: node 2 moved towards -0.5 mm, node 1 stayed at 0
+        assert last[2] < -1e-4 and abs(last[1]) < 1e-5
+        for d in (d1, d2):
+            d.close()
