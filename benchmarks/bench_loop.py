@@ -623,16 +623,9 @@ _OPCODES_SNIPPET = (
 )
 
 
-def one_channel_vs_baseline(
-    rev: str, rounds: int, duration: float, cpu: int | None = None
-) -> tuple[list, str]:
-    """Lockstep steps/s of the default single-actuator test: this tree vs ``rev``.
-
-    ``rev`` is checked out in a temporary git worktree; the two run alternately in fresh
-    processes (``rounds`` each) so that both see the same machine load. With ``cpu`` both are
-    pinned to that CPU (``taskset``), so that neither gains from landing on a quieter core.
-    """
-    pin = ["taskset", "-c", str(cpu)] if cpu is not None else []
+@contextlib.contextmanager
+def baseline_tree(rev: str):
+    """``rev`` checked out in a temporary git worktree (removed afterwards); yields its path."""
     root = Path(__file__).resolve().parents[1]
     with tempfile.TemporaryDirectory() as tmp:
         wt = Path(tmp) / "baseline"
@@ -648,38 +641,54 @@ def one_channel_vs_baseline(
             if (wt / sub).is_dir() and not (wt / "rths_hil" / sub).exists():
                 (wt / "rths_hil" / sub).symlink_to(wt / sub, target_is_directory=True)
         try:
-            new, old, cpu_new, cpu_old = [], [], [], []
-            for _ in range(rounds):
-                for tree, out, cpu_out in ((root, new, cpu_new), (wt, old, cpu_old)):
-                    env = dict(os.environ, PYTHONPATH=str(tree))
-                    r = subprocess.run(
-                        [*pin, sys.executable, "-c", _BASELINE_SNIPPET, str(duration)],
-                        env=env,
-                        cwd=tmp,
-                        capture_output=True,
-                        text=True,
-                        check=True,
-                    )
-                    rate, cpu_us = r.stdout.strip().splitlines()[-1].split()
-                    out.append(float(rate))
-                    cpu_out.append(float(cpu_us))
-            ops = []
-            for tree in (root, wt):  # deterministic: one traced run each
-                env = dict(os.environ, PYTHONPATH=str(tree))
-                r = subprocess.run(
-                    [sys.executable, "-c", _OPCODES_SNIPPET, "2.0"],
-                    env=env,
-                    cwd=tmp,
-                    capture_output=True,
-                    text=True,
-                    check=True,
-                )
-                ops.append(float(r.stdout.strip().splitlines()[-1]))
+            yield wt
         finally:
             subprocess.run(
                 ["git", "-C", str(root), "worktree", "remove", "--force", str(wt)],
                 capture_output=True,
             )
+
+
+def _run_in(tree: Path, args: list[str], pin: list[str] | None = None) -> list[float]:
+    """Run ``args`` (``-c`` snippet and its arguments) with ``tree`` first on the path; the
+    numbers of its last output line."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    with tempfile.TemporaryDirectory() as cwd:
+        r = subprocess.run(
+            [*(pin or []), sys.executable, *args],
+            env=env,
+            cwd=cwd,
+            capture_output=True,
+            text=True,
+        )
+    if r.returncode:
+        raise RuntimeError(f"a run in {tree} failed:\n{r.stderr[-2000:]}")
+    return [float(v) for v in r.stdout.strip().splitlines()[-1].split()]
+
+
+def one_channel_vs_baseline(
+    rev: str, rounds: int, duration: float, cpu: int | None = None, wt: Path | None = None
+) -> tuple[list, str]:
+    """Lockstep steps/s of the default single-actuator test: this tree vs ``rev``.
+
+    ``rev`` is checked out in a temporary git worktree (or ``wt`` is that checkout); the two
+    run alternately in fresh processes (``rounds`` each) so that both see the same machine
+    load. With ``cpu`` both are pinned to that CPU (``taskset``), so that neither gains from
+    landing on a quieter core.
+    """
+    if wt is None:
+        with baseline_tree(rev) as tree:
+            return one_channel_vs_baseline(rev, rounds, duration, cpu, tree)
+    pin = ["taskset", "-c", str(cpu)] if cpu is not None else []
+    root = Path(__file__).resolve().parents[1]
+    new, old, cpu_new, cpu_old = [], [], [], []
+    for _ in range(rounds):
+        for tree, out, cpu_out in ((root, new, cpu_new), (wt, old, cpu_old)):
+            rate, cpu_us = _run_in(tree, ["-c", _BASELINE_SNIPPET, str(duration)], pin)
+            out.append(rate)
+            cpu_out.append(cpu_us)
+    # deterministic: one traced run each
+    ops = [_run_in(tree, ["-c", _OPCODES_SNIPPET, "2.0"])[0] for tree in (root, wt)]
     ratios = [a / b for a, b in zip(new, old, strict=True)]
     med = statistics.median(ratios)
     cpu_med = statistics.median(a / b for a, b in zip(cpu_new, cpu_old, strict=True))
@@ -692,6 +701,96 @@ def one_channel_vs_baseline(
         f"Python bytecodes per step {ops[0]:.0f} vs {ops[1]:.0f} ({ops[0] / ops[1]:.3f}) |"
     )
     return ratios, row
+
+
+#: One run of section 6's ``n``-channel test (``argv``: n, mode, duration) in whichever tree is
+#: first on the path, with the configuration of :func:`channels_config` and
+#: :func:`_channels_toml` (their source is put before it): steps/s, the loop thread's CPU time
+#: per step in µs (``time.thread_time`` around the step loop; lockstep serves the twins inline,
+#: in that thread), Python bytecodes per step (``trace`` as the last argument: a traced run),
+#: overruns, work-caused overruns (paced), steps and 1 if the run completed (a paced run may
+#: trip on a stall of a loaded machine).
+_CHANNELS_SNIPPET = (
+    "import sys, tempfile, time; from pathlib import Path; from rths_hil.config import load_config"
+    "\ntry:\n from rths_hil.hybrid import RTHSLoop, attribute_overruns, WORK, WORK_BACKLOG\n"
+    "except ImportError:\n"
+    " from rths_hil.loop import RTHSLoop, attribute_overruns, WORK, WORK_BACKLOG\n"
+    "from rths_hil.hybrid.runner import Runner as C\n"
+    "n, mode, dur = int(sys.argv[1]), sys.argv[2], float(sys.argv[3])\n"
+    "trace = sys.argv[4:] == ['trace']\n"
+    "cpu = [0.0]; ops = [0]; orig = C._loop\n"
+    "def local(f, e, a):\n if e == 'opcode': ops[0] += 1\n return local\n"
+    "def tracer(f, e, a):\n f.f_trace_opcodes = True\n return local\n"
+    "def timed(self, *a):\n t0 = time.thread_time()\n if trace: sys.settrace(tracer)\n"
+    " try: return orig(self, *a)\n"
+    " finally:\n  sys.settrace(None); cpu[0] = time.thread_time() - t0\n"
+    "C._loop = timed\n"
+    "d = Path(tempfile.mkdtemp()); p = d / 'c.toml'; p.write_text(_channels_toml(n))\n"
+    "extra = ('fei.exact_hop=256',) if mode == 'paced' else ()\n"
+    "cfg = load_config(p, channels_config(n, extra))\n"
+    "r = RTHSLoop(cfg, d / 'r', mode=mode, duration=dur).run()\n"
+    "assert r.status == 'completed' or mode == 'paced', r.trip\n"
+    "work = 0\n"
+    "if mode == 'paced':\n"
+    " c = attribute_overruns(r.lateness, r.ready, r.overrun_threshold)\n"
+    " work = int(((c == WORK) | (c == WORK_BACKLOG)).sum())\n"
+    "print(r.steps_per_second, cpu[0] / r.steps * 1e6, ops[0] / r.steps, r.overruns, work,"
+    " r.steps, int(r.status == 'completed'))\n"
+)
+
+
+def channels_vs_baseline(
+    rev: str, wt: Path, rounds: int, paced_runs: int, paced_s: float, n: int = 4
+) -> list[str]:
+    """Section 6's ``n``-channel test, this tree vs the checkout ``wt`` of ``rev``, alternated.
+
+    Lockstep (10 s simulated): steps/s and the loop thread's CPU time per step, ``rounds``
+    alternations, and Python bytecodes per step (one traced run each). Paced at 1024 Hz:
+    ``paced_runs`` alternations of ``paced_s`` s each, overruns and those caused by the work.
+    The baseline runs this script's section-6 configuration with its own package.
+    """
+    import inspect
+
+    root = Path(__file__).resolve().parents[1]
+    snippet = "\n".join(
+        [inspect.getsource(channels_config), inspect.getsource(_channels_toml), _CHANNELS_SNIPPET]
+    )
+    trees = (("this tree", root), (f"`{rev}`", wt))
+    lock = {t: [] for t, _ in trees}
+    for _ in range(rounds):
+        for t, tree in trees:
+            lock[t].append(_run_in(tree, ["-c", snippet, str(n), "lockstep", "10"]))
+    ops = {
+        t: _run_in(tree, ["-c", snippet, str(n), "lockstep", "2", "trace"])[2] for t, tree in trees
+    }
+    paced = {t: [] for t, _ in trees}
+    for _ in range(paced_runs):
+        for t, tree in trees:
+            paced[t].append(_run_in(tree, ["-c", snippet, str(n), "paced", str(paced_s)]))
+    ratio = statistics.median(
+        a[1] / b[1] for a, b in zip(lock["this tree"], lock[f"`{rev}`"], strict=True)
+    )
+    lines = [
+        "",
+        f"{n} channels, this tree vs `{rev}` in the same run (alternated; lockstep {rounds} × "
+        f"10 s simulated, paced {paced_runs} × {paced_s:g} s at 1024 Hz); median CPU time "
+        f"ratio {ratio:.3f}:",
+        "",
+        "| tree | lockstep steps/s (median) | loop CPU µs/step (median, min) | Python bytecodes "
+        "per step | paced overruns, per run | caused by the work, per run |",
+        "|---|---|---|---|---|---|",
+    ]
+    for t, _ in trees:
+        rs = lock[t]
+        lines.append(
+            f"| {t} | {statistics.median(r[0] for r in rs):.0f} | "
+            f"{statistics.median(r[1] for r in rs):.1f}, {min(r[1] for r in rs):.1f} | "
+            f"{ops[t]:.0f} | {', '.join(f'{int(p[3])}' for p in paced[t])} of "
+            f"{int(paced[t][0][5]) if paced[t] else 0} | "
+            f"{', '.join(f'{int(p[4])} = {100 * p[4] / max(p[5], 1):.3f} %' for p in paced[t])}"
+            f"{'' if all(p[6] for p in paced[t]) else ' (a run tripped)'} |"
+        )
+    return lines
 
 
 def channels(
@@ -751,11 +850,18 @@ def channels(
             )
             print(lines[-1])
     if baseline:
+        revs = [rev.strip() for rev in baseline.split(",")]
+        extra: list[str] = []
         lines += ["", "| comparison | steps/s | result |", "|---|---|---|"]
-        for rev in baseline.split(","):
-            _, row = one_channel_vs_baseline(rev.strip(), rounds, 5.0, pin)
-            lines.append(row)
-            print(row)
+        for i, rev in enumerate(revs):
+            with baseline_tree(rev) as wt:
+                _, row = one_channel_vs_baseline(rev, rounds, 5.0, pin, wt)
+                lines.append(row)
+                print(row)
+                if i == 0:  # the first baseline also with the channels, lockstep and paced
+                    extra = channels_vs_baseline(rev, wt, rounds, paced_runs, paced_s)
+                    print("\n".join(extra))
+        lines += extra
     lines += ["", f"Load average at the end: {os.getloadavg()[0]:.2f}."]
     return "\n".join(lines)
 
