@@ -201,7 +201,10 @@ def test_paced(tmp_path, driver, fault):
     t = _time_to_trip(run, AT)
     _report(driver, fault, "paced", res, f"{t * 1e3:.1f} ms")
     assert res.trip.rule == rule, res.trip
-    assert 0 <= t <= bound, (t, res.trip)
+    # (the step count above says "not before the fault"; the time is read through two clocks,
+    # the loop's perf_counter converted to wall time for ``clock`` and the trip's own wall time:
+    # a trip in the fault's own step can read tens of µs before its deadline)
+    assert -1.0 / FS <= t <= bound, (t, res.trip)
 
 
 # matrix row → ``twin serve`` options for the process faults (serial: a pty by default). A CAN
