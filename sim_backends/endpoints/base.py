@@ -470,8 +470,13 @@ class TwinEndpoint(ABC):
         if faults.disconnected(seq):
             self._go_away()
             return
+        self._send_feedback(reply, *faults.reply_plan(seq))
+
+    def _send_feedback(
+        self, reply: tuple[int, float, float, int], copies: int, pause: float, corrupt: bool
+    ) -> None:
+        """Send one feedback as ``copies`` copies after ``pause`` s, damaged if ``corrupt``."""
         frames = self._encode(*reply)
-        copies, pause, corrupt = faults.reply_plan(seq)
         if corrupt:
             frames = [self._corrupt(f) for f in frames]
         if pause:

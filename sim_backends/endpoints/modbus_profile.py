@@ -454,23 +454,20 @@ class ModbusProfileTwin(TwinEndpoint):
         self._set_status(self.controller.status() | self._sample_flags)
 
     def emit(self, reply: tuple[int, float, float, int] | None) -> None:
+        if reply is None:
+            self._plan = (0, False)  # a lost command: its step's reads go unanswered
+            return
+        super().emit(reply)
+
+    def _send_feedback(
+        self, reply: tuple[int, float, float, int], copies: int, pause: float, corrupt: bool
+    ) -> None:
         """Publish the values of one command's feedback and plan the step's frame faults.
 
         A register map has no feedback frame of its own: the values are published to the
         tables, and the frame faults apply to the responses to the step's reads (:meth:`_reply`).
         """
-        if reply is None:
-            self._plan = (0, False)  # a lost command: its step's reads go unanswered
-            return
-        if self._gone:
-            return
-        seq = reply[0]
-        faults = self.faults
-        if faults.disconnected(seq):
-            self._go_away()
-            return
         self._publish(*reply[1:])
-        copies, pause, corrupt = faults.reply_plan(seq)
         self._plan = (copies, corrupt)
         if pause:  # a stalled controller: the step's reads are answered after the pause
             self._stop.wait(pause)

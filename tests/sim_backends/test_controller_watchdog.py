@@ -157,18 +157,24 @@ def test_can_twin_latches_when_the_bridge_is_killed(can_twin, tmp_path):
     assert rec["feedback_ok"].all() and len(rec) == 256
 
 
+def _kill_bridge_and_time_latch(twin, driver, row, out, *extra):
+    """A lockstep bridge against the served ``twin``, killed with SIGKILL once stepping: the
+    twin must log its latch within its watchdog timeout (+ slack) of the kill."""
+    bridge = start_bridge(bridge_cmd(driver, twin.connection, out, "--lockstep", *extra))
+    wait_rows(out, ROWS, bridge)
+    t_kill = kill9(bridge)
+    t_latch = twin.first(LATCH_LINE, after=t_kill - 1.0)
+    assert t_latch is not None, twin.lines
+    dt_ms = (t_latch - t_kill) * 1e3
+    print(f"\nMATRIX | {row} | bridge_killed | lockstep | twin latch | {dt_ms:.0f} ms")
+    assert 0.0 < t_latch - t_kill <= TIMEOUT + SLACK, t_latch - t_kill
+
+
 def test_modbus_twin_latches_when_the_bridge_is_killed(modbus_twin, tmp_path):
     from pymodbus.client import ModbusTcpClient
 
     conn = modbus_twin.connection
-    bridge = start_bridge(bridge_cmd("modbus", conn, tmp_path / "run1", "--lockstep"))
-    wait_rows(tmp_path / "run1", ROWS, bridge)
-    t_kill = kill9(bridge)
-    t_latch = modbus_twin.first(LATCH_LINE, after=t_kill - 1.0)
-    assert t_latch is not None, modbus_twin.lines
-    dt_ms = (t_latch - t_kill) * 1e3
-    print(f"\nMATRIX | modbus | bridge_killed | lockstep | twin latch | {dt_ms:.0f} ms")
-    assert 0.0 < t_latch - t_kill <= TIMEOUT + SLACK, t_latch - t_kill
+    _kill_bridge_and_time_latch(modbus_twin, "modbus", "modbus", tmp_path / "run1")
     # what a plain Modbus client sees: coil 0 (e-stop) on, STATUS latched and not ENABLED
     client = ModbusTcpClient(conn["host"], port=conn["port"])
     assert client.connect()
@@ -197,14 +203,9 @@ def test_modbus_map_twin_latches_when_the_bridge_is_killed(modbus_map_twin, tmp_
     prof = load_profile(MAP)
     conn = modbus_map_twin.connection
     profile = [f"--set=driver.profile={MAP}"]
-    bridge = start_bridge(bridge_cmd("modbus", conn, tmp_path / "run1", "--lockstep", *profile))
-    wait_rows(tmp_path / "run1", ROWS, bridge)
-    t_kill = kill9(bridge)
-    t_latch = modbus_map_twin.first(LATCH_LINE, after=t_kill - 1.0)
-    assert t_latch is not None, modbus_map_twin.lines
-    dt_ms = (t_latch - t_kill) * 1e3
-    print(f"\nMATRIX | modbus-map | bridge_killed | lockstep | twin latch | {dt_ms:.0f} ms")
-    assert 0.0 < t_latch - t_kill <= TIMEOUT + SLACK, t_latch - t_kill
+    _kill_bridge_and_time_latch(
+        modbus_map_twin, "modbus", "modbus-map", tmp_path / "run1", *profile
+    )
     # what a plain Modbus client sees at the map's addresses: the status word latched, not
     # enabled, and the position and force input registers held
     pos, st = prof.points["position"], prof.points["status"]
@@ -231,14 +232,7 @@ def test_modbus_map_twin_latches_when_the_bridge_is_killed(modbus_map_twin, tmp_
 
 def test_serial_twin_latches_when_the_bridge_is_killed(serial_twin, tmp_path):
     conn = serial_twin.connection
-    bridge = start_bridge(bridge_cmd("serial", conn, tmp_path / "run1", "--lockstep"))
-    wait_rows(tmp_path / "run1", ROWS, bridge)
-    t_kill = kill9(bridge)
-    t_latch = serial_twin.first(LATCH_LINE, after=t_kill - 1.0)
-    assert t_latch is not None, serial_twin.lines
-    dt_ms = (t_latch - t_kill) * 1e3
-    print(f"\nMATRIX | serial | bridge_killed | lockstep | twin latch | {dt_ms:.0f} ms")
-    assert 0.0 < t_latch - t_kill <= TIMEOUT + SLACK, t_latch - t_kill
+    _kill_bridge_and_time_latch(serial_twin, "serial", "serial", tmp_path / "run1")
     # a new client's next command is answered with the latch, position held
     with create_driver("serial", **conn) as drv:
         drv.send(10**6, 0.005, True)
