@@ -151,7 +151,8 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
         ``metrics`` (J1 in s, J2 and J3 in %, TI), ``online`` (mean, min, max of the valid
         streaming A and d), ``lateness`` (p50, p99, p99.9, max in s; overruns), ``estop``,
         and from the ``end`` event when it has them ``overrun_causes`` (paced overruns by
-        cause: ``machine``, ``machine_backlog``, ``work``, ``work_backlog``), ``wall_time``,
+        cause: ``machine``, ``machine_backlog``, ``machine_in_work``, ``work``,
+        ``work_backlog``), ``wall_time``,
         ``steps_per_second``, ``missed_replies``, ``driver_stats``, ``twin_stats``,
         ``final_alpha``. With several channels the per-record figures (FEI, metrics, online,
         peak) are under ``channels`` → channel name, and ``trip`` names its ``channel``.
@@ -599,7 +600,8 @@ def format_summary(s: dict[str, Any]) -> str:
         if c:
             lines.append(
                 f"  overruns by cause: machine {c.get('machine')} "
-                f"(+{c.get('machine_backlog')} catch-up), work {c.get('work')} "
+                f"(+{c.get('machine_backlog')} catch-up), machine inside the work "
+                f"{c.get('machine_in_work', 0)}, work {c.get('work')} "
                 f"(+{c.get('work_backlog')} catch-up)"
             )
         st = s.get("stalls")

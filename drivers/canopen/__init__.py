@@ -26,8 +26,9 @@ device type or identity is refused with one line (:class:`~rths_hil.errors.Input
 **Each step** (the base class's contract: :meth:`~..base.Driver.send` →
 :meth:`CANopenDriver._send_raw`, :meth:`~..base.Driver.receive` →
 :meth:`CANopenDriver._recv_internal`): RPDO1 with the control word and the set-point, then one
-SYNC, sent by the bus (:class:`CANopenBus`) when the first axis on it waits for its step's
-feedback — after every axis's RPDO, so several axes on one bus share one SYNC per step. The
+SYNC, sent by the bus (:class:`CANopenBus`) as soon as every axis on it has written its RPDO
+(or when the first axis waits for its step's feedback, if one did not send), so several axes on
+one bus share one SYNC per step. The
 SYNC is the step clock: the devices apply the RPDO received before it and answer with their
 TPDOs. The feedback of step ``k`` is the TPDO set received after SYNC ``k`` (TPDOs carry no
 sequence number: a TPDO that comes after the next SYNC is taken for the next step's, see
@@ -670,6 +671,13 @@ class CANopenDriver(Driver):
     # ------------------------------------------------------------------------------------------
     # what the class knows: its link and who may share it
     @classmethod
+    def inline_twin(cls, connection: dict[str, Any]) -> bool:
+        """The twin on python-can's in-process ``virtual`` bus serves the steps from the loop's
+        thread (its own thread answers the SDO exchanges, see
+        :meth:`rths_hil.sim_backends.endpoints.canopen_twin.CANopenTwin.start`)."""
+        return str((connection or {}).get("interface", "virtual")) == "virtual"
+
+    @classmethod
     def link_key(cls, connection: dict[str, Any]) -> str:
         """CANopen: the python-can interface and channel of the bus."""
         c = connection or {}
@@ -973,6 +981,10 @@ class CANopenDriver(Driver):
             self.stats.send_errors += 1
             return
         self._awaiting = step
+        for drv in bus.axes.values():  # the SYNC once every axis on the bus has its RPDO out
+            if drv._awaiting is None:
+                return
+        bus.sync()
 
     def _synced(self) -> None:
         """The bus sent the SYNC after this axis's RPDO: the TPDOs that follow are its step's."""
@@ -1070,7 +1082,8 @@ class CANopenDriver(Driver):
         self._rpdo(step, self.profile.estop_word(), self._last_counts)
         bus = self._bus
         if bus is not None:
-            bus.sync()  # at once: a synchronous RPDO acts at the next SYNC
+            if self._awaiting is not None:  # at once: a synchronous RPDO acts at the next SYNC
+                bus.sync()
             self.heartbeat()
             # the loop stops stepping: the heartbeat goes on until the nodes are closed
             bus.hold_heartbeat(self._hb_msg, self.heartbeat_period or 0.1)

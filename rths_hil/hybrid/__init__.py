@@ -57,6 +57,7 @@ _EXPORTS = {
     "CAUSES": "timing",
     "MACHINE": "timing",
     "MACHINE_BACKLOG": "timing",
+    "MACHINE_IN_WORK": "timing",
     "ON_TIME": "timing",
     "WORK": "timing",
     "WORK_BACKLOG": "timing",

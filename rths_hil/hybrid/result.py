@@ -58,6 +58,12 @@ class RunResult:
     work : ndarray
         Per-step time of the loop's own work (s): from the last reply to the end of the step's
         record (structure, compensation, evaluators, safety, recorder).
+    stalled : ndarray
+        Paced: per step, the time the loop's thread was taken off the CPU inside that work
+        without blocking (s): the work's wall time minus the thread's CPU time
+        (``time.thread_time``), 0 when the thread made a voluntary context switch (waited for
+        the interpreter lock, for I/O); empty in lockstep. A preemption by another task or
+        the hypervisor, see :func:`~rths_hil.hybrid.timing.attribute_overruns`.
     channels : list of str
         Channel names.
     stalls : list of tuple
@@ -89,6 +95,7 @@ class RunResult:
     ready: np.ndarray = field(default_factory=lambda: np.zeros(0))
     overrun_threshold: float = math.nan
     work: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stalled: np.ndarray = field(default_factory=lambda: np.zeros(0))
     channels: list = field(default_factory=list)
     stalls: list = field(default_factory=list)
     handback: bool | None = None
@@ -107,12 +114,15 @@ class RunResult:
     def overrun_causes(self) -> dict[str, int]:
         """Overruns per cause (:func:`~rths_hil.hybrid.timing.attribute_overruns`).
 
-        Keys ``machine``, ``machine_backlog``, ``work``, ``work_backlog``; they add up to
-        :attr:`overruns`. All zero in lockstep.
+        Keys ``machine``, ``machine_backlog``, ``work``, ``work_backlog``,
+        ``machine_in_work``; they add up to :attr:`overruns`. All zero in lockstep.
         """
         if self.mode != "paced" or self.ready.size != self.steps:
             return {name: 0 for name in CAUSES[1:]}
-        cause = attribute_overruns(self.lateness[: self.steps], self.ready, self.overrun_threshold)
+        stalled = self.stalled if self.stalled.size == self.steps else None
+        cause = attribute_overruns(
+            self.lateness[: self.steps], self.ready, self.overrun_threshold, stalled
+        )
         return count_causes(cause)
 
     def stall_summary(self) -> dict[str, float]:

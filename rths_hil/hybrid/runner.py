@@ -35,6 +35,7 @@ import gc
 import logging
 import math
 import os
+import resource
 import signal
 import sys
 import threading
@@ -359,6 +360,13 @@ class Runner:
         lat_view = np.frombuffer(lat_list, dtype=float) if paced else np.zeros(0)
         work_list = array.array("d", [0.0]) * n
         ready_list = [0.0] * n if paced else None
+        # paced: the time the thread was taken off the CPU inside each step's work without
+        # blocking (its wall time minus the thread's CPU time; 0 after a voluntary context
+        # switch) — a preemption by the machine, not the work (timing.attribute_overruns)
+        stalled_list = array.array("d", [0.0]) * n if paced else None
+        cpu = time.thread_time
+        usage = resource.getrusage
+        THREAD = resource.RUSAGE_THREAD
         console = plan.console_interval if self.live is not None else 0.0
         next_console = math.inf
 
@@ -454,6 +462,9 @@ class Runner:
                         ch.missed_replies += 1
                         missed += 1
                 t_work = perf()
+                if paced:
+                    c_work = cpu()
+                    v_work = usage(THREAD).ru_nvcsw
                 if multi:
                     skew = t_last - t_first if t_first > 0.0 else nan
                 trip = check_feedback(tk, k)
@@ -531,7 +542,9 @@ class Runner:
                     ch.target = ch.target_next
                     ch.command = ch.command_next
                 xs = x_next
-                work_list[k] = perf() - t_work
+                w = work_list[k] = perf() - t_work
+                if paced and usage(THREAD).ru_nvcsw == v_work:  # the thread never blocked
+                    stalled_list[k] = max(0.0, w - (cpu() - c_work))
                 k += 1
                 if console > 0:
                     now = perf()
@@ -580,6 +593,7 @@ class Runner:
             ready=ready,
             overrun_threshold=thr if paced else math.nan,
             work=np.frombuffer(work_list, dtype=float)[:k],
+            stalled=np.frombuffer(stalled_list, dtype=float)[:k] if paced else np.zeros(0),
             channels=[ch.name for ch in chans],
             stalls=stalls,
         )

@@ -24,6 +24,7 @@ __all__ = [
     "CAUSES",
     "MACHINE",
     "MACHINE_BACKLOG",
+    "MACHINE_IN_WORK",
     "ON_TIME",
     "WORK",
     "WORK_BACKLOG",
@@ -42,11 +43,16 @@ MIN_SLEEP = 0.1
 
 
 #: Causes of a paced overrun, the codes :func:`attribute_overruns` returns.
-ON_TIME, MACHINE, MACHINE_BACKLOG, WORK, WORK_BACKLOG = range(5)
-CAUSES = ("on_time", "machine", "machine_backlog", "work", "work_backlog")
+ON_TIME, MACHINE, MACHINE_BACKLOG, WORK, WORK_BACKLOG, MACHINE_IN_WORK = range(6)
+CAUSES = ("on_time", "machine", "machine_backlog", "work", "work_backlog", "machine_in_work")
 
 
-def attribute_overruns(lateness: np.ndarray, ready: np.ndarray, threshold: float) -> np.ndarray:
+def attribute_overruns(
+    lateness: np.ndarray,
+    ready: np.ndarray,
+    threshold: float,
+    stalled: np.ndarray | None = None,
+) -> np.ndarray:
     """Attribute each paced overrun to the machine or to the loop's own work.
 
     Parameters
@@ -59,6 +65,11 @@ def attribute_overruns(lateness: np.ndarray, ready: np.ndarray, threshold: float
         :attr:`RunResult.ready`.
     threshold : float
         Overrun threshold (s): a step is an overrun when ``lateness > threshold``.
+    stalled : ndarray, optional
+        Per-step time the loop's thread was taken off the CPU inside the step's work without
+        blocking (s), :attr:`RunResult.stalled`: the work's wall time minus the thread's CPU
+        time, 0 when the thread blocked (a voluntary context switch: a wait for the
+        interpreter lock, I/O). Without it no overrun is :data:`MACHINE_IN_WORK`.
 
     Returns
     -------
@@ -70,13 +81,18 @@ def attribute_overruns(lateness: np.ndarray, ready: np.ndarray, threshold: float
         integration, evaluators, recorder, and whatever preempted them) ran past this step's
         threshold; :data:`MACHINE_BACKLOG` / :data:`WORK_BACKLOG` — ready late because the
         previous step was itself an overrun of that cause: the catch-up after it (steps are
-        never skipped, see the overrun policy).
+        never skipped, see the overrun policy); :data:`MACHINE_IN_WORK` — a :data:`WORK`
+        overrun that the machine caused inside the work: the thread was preempted (another
+        task, the hypervisor) and without that time the work was done within the threshold
+        (``ready[k] - stalled[k - 1] <= threshold``); its catch-up is :data:`MACHINE_BACKLOG`.
 
     Notes
     -----
-    A stall of the machine that lands inside a step's work (rather than in its wait) counts
-    as :data:`WORK`: the timestamps cannot tell it apart from slow work. Compare the counts
-    with :func:`paced_floor` on the same machine, at the same rate and scheduling.
+    ``stalled`` covers the work from the last reply to the end of the step's record (see
+    :attr:`RunResult.work`); a stall while waiting for the replies, or in a step where the
+    thread blocked at all, stays :data:`WORK` (the thread's clock cannot tell a slow
+    controller or our own threads from the machine there). Compare the counts with
+    :func:`paced_floor` on the same machine, at the same rate and scheduling.
     """
     lat = np.asarray(lateness, dtype=float)
     rdy = np.asarray(ready, dtype=float)
@@ -85,12 +101,16 @@ def attribute_overruns(lateness: np.ndarray, ready: np.ndarray, threshold: float
     over = lat > threshold
     cause = np.zeros(lat.size, dtype=np.int8)
     cause[over] = MACHINE
+    st = None if stalled is None else np.asarray(stalled, dtype=float)
+    if st is not None and st.shape != lat.shape:
+        raise ValueError("stalled must have the length of lateness")
     backlog = np.flatnonzero(over & (rdy > threshold))
     for k in backlog.tolist():  # in order: a chain inherits the cause of its first step
         if k > 0 and over[k - 1]:
-            cause[k] = (
-                MACHINE_BACKLOG if cause[k - 1] in (MACHINE, MACHINE_BACKLOG) else (WORK_BACKLOG)
-            )
+            machine = cause[k - 1] in (MACHINE, MACHINE_BACKLOG, MACHINE_IN_WORK)
+            cause[k] = MACHINE_BACKLOG if machine else WORK_BACKLOG
+        elif st is not None and k > 0 and rdy[k] - st[k - 1] <= threshold:
+            cause[k] = MACHINE_IN_WORK  # in time but for the preemption inside step k-1's work
         else:
             cause[k] = WORK
     return cause

@@ -29,10 +29,12 @@ what a device does with them:
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import random
 import struct
+import threading
 import time
 from importlib import resources
 from typing import Any
@@ -49,6 +51,8 @@ from rths_hil.drivers.canopen.profiles import PROFILES, SW408
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
+from .can import PTY_CHANNEL, PTY_INTERFACES
+from .nullmodem import NullModem
 
 __all__ = ["EMCY_FOLLOWING_ERROR", "EMCY_HEARTBEAT", "CANopenTwin", "default_eds"]
 
@@ -93,18 +97,25 @@ class CANopenTwin(TwinEndpoint):
     """
 
     name = "canopen"
+    #: inline: the endpoint's thread serves again when no pump came for this long (s)
+    handover = 0.02
 
     @classmethod
     def connection_from_args(cls, args: Any) -> dict[str, Any]:
         """``--interface`` (not ``virtual``: it cannot leave the process), ``--channel``
-        (default ``vcan0``) and ``--bitrate``; the shipped CiA 402 EDS, node 1."""
+        (default ``vcan0``; ``pty`` for the serial-line interfaces) and ``--bitrate``; the
+        shipped CiA 402 EDS, node 1 (or the device of ``--config``)."""
         if args.interface == "virtual":
             raise InputError(
                 "--interface virtual: python-can's virtual bus only reaches buses inside the same "
-                "process; use --interface socketcan --channel vcan0 (or the lab's interface), or "
-                "start the twin in-process with rths_hil.sim_backends.twin.start_twin"
+                "process; use --interface serial (a pseudo-terminal pair on this machine), "
+                "--interface socketcan --channel vcan0 (or the lab's interface), or start the "
+                "twin in-process with rths_hil.sim_backends.twin.start_twin"
             )
-        conn: dict[str, Any] = {"interface": args.interface, "channel": args.channel or "vcan0"}
+        channel = args.channel
+        if channel is None:
+            channel = PTY_CHANNEL if args.interface in PTY_INTERFACES else "vcan0"
+        conn: dict[str, Any] = {"interface": args.interface, "channel": channel}
         if args.bitrate is not None:
             conn["bitrate"] = args.bitrate
         return conn
@@ -176,15 +187,30 @@ class CANopenTwin(TwinEndpoint):
         self._rxq: queue.Queue | None = None
         self._nmt_state = ""
         self._hb_watch = False
+        self.cable: NullModem | None = None
+        #: inline: frames are handled under this lock, by the thread or the bridge's pump
+        self._serving = threading.Lock()
+        self._pumped_at = -math.inf
 
     # -- transport ------------------------------------------------------------------------------
     def _setup(self) -> None:
         kwargs = dict(self.bus_options)
         if self.bitrate is not None:
             kwargs["bitrate"] = self.bitrate
+        channel = bridge_channel = self.channel
+        if self.interface in PTY_INTERFACES and self.channel == PTY_CHANNEL:
+            try:  # a null-modem pair of pseudo-terminals (as the CAN twin's)
+                self.cable = NullModem()
+            except OSError as exc:
+                raise InputError(
+                    f"canopen twin: cannot open pseudo-terminals for {self.interface}: {exc}"
+                ) from None
+            channel, bridge_channel = self.cable.twin_path, self.cable.bridge_path
+            kwargs = {**PTY_INTERFACES[self.interface][1], **kwargs}
         try:
-            self.bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
+            self.bus = can.Bus(interface=self.interface, channel=channel, **kwargs)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
+            self._close_cable()
             raise InputError(
                 f"canopen twin: cannot open {self.interface!r} {self.channel!r}: {exc}"
             ) from None
@@ -201,8 +227,14 @@ class CANopenTwin(TwinEndpoint):
         self._nmt_state = node.nmt.state
         self.connection = dict(self.connection_keys)
         self.where = (
-            f"CANopen {self.profile.name} node {self.node_id} on {self.interface} {self.channel}"
+            f"CANopen {self.profile.name} node {self.node_id} on {self.interface} {bridge_channel}"
         )
+        if self.cable is not None:
+            self.connection["channel"] = bridge_channel
+            options = {**PTY_INTERFACES[self.interface][0], **self.bus_options}
+            if options:
+                self.connection["bus_options"] = options
+            self.where += " (pseudo-terminal null modem)"
 
     def _teardown(self) -> None:
         node, self.node = self.node, None
@@ -216,8 +248,79 @@ class CANopenTwin(TwinEndpoint):
                 bus.shutdown()
             except (can.CanError, OSError):  # pragma: no cover
                 pass
+        self._close_cable()
+
+    def _close_cable(self) -> None:
+        cable, self.cable = self.cable, None
+        if cable is not None:
+            cable.close()
+
+    # -- serving: from the endpoint's thread, or inline from the bridge's ---------------------
+    @property
+    def supports_inline(self) -> bool:  # type: ignore[override]
+        """Only python-can's in-process ``virtual`` bus delivers frames synchronously."""
+        return self.interface == "virtual"
+
+    def start(self, threaded: bool = True) -> CANopenTwin:
+        """Open the bus and serve it (:meth:`TwinEndpoint.start`).
+
+        Inline (``threaded=False``, the ``virtual`` bus) the endpoint's thread runs all the
+        same: the driver's SDO exchanges (start-up, arming, the disable sequence at close) wait
+        for answers while the loop does not step. The thread stands by while the bridge's
+        thread serves the steps (:meth:`pump`) and serves again once no pump came for
+        :attr:`handover` seconds — an SDO phase, or a bridge that stalled or stopped (the
+        heartbeat consumer then trips as on a thread).
+        """
+        if threaded or not self.supports_inline:
+            return super().start(threaded)  # type: ignore[return-value]
+        super().start(True)
+        self.inline = True
+        return self
+
+    def pump(self) -> int:
+        """Serve every frame already on the bus from the caller's thread (inline mode); the
+        endpoint's thread stands by for :attr:`handover` seconds. Return how many."""
+        self._pumped_at = time.monotonic()
+        return self._drain()
+
+    def _drain(self) -> int:
+        """Handle every frame waiting in the virtual bus's queue, in order; 0 while a delayed
+        reply is held (a stalled controller). Under :attr:`_serving`: the thread and the
+        bridge's thread never handle frames at the same time, and only take them under it."""
+        q = self._rxq
+        if q is None:
+            return 0
+        frames = q.queue  # the queue's deque: taken only under the lock, so in order
+        n = 0
+        with self._serving:
+            if self._paused():
+                return 0
+            while frames and self._held is None:
+                self._handle(frames.popleft())
+                n += 1
+        return n
 
     def _serve_once(self, timeout: float) -> None:
+        if self.inline:
+            held = self._held
+            if time.monotonic() - self._pumped_at < self.handover:
+                # the bridge's thread serves the steps: stand by, the consumer still watched
+                self._stop.wait(self.handover / 2)
+                with self._serving:
+                    self._check_faults()
+                return
+            q = self._rxq
+            assert q is not None
+            if held is not None:  # a delayed reply: until its time, the controller stalls
+                self._stop.wait(min(timeout, max(0.0, held[0] - time.monotonic())))
+            else:
+                with q.not_empty:  # wait for a frame without taking it (the pump may)
+                    if not q.queue:
+                        q.not_empty.wait(timeout)
+            with self._serving:
+                self._check_faults()
+            self._drain()
+            return
         self._check_faults()
         bus = self.bus
         if bus is None:
@@ -230,7 +333,13 @@ class CANopenTwin(TwinEndpoint):
                 return
         else:
             msg = bus.recv(timeout)
-        if msg is None or self._gone:
+        if msg is not None:
+            self._handle(msg)
+
+    def _handle(self, msg: can.Message) -> None:
+        """One frame: SYNC and the RPDO directly (precompiled layouts), anything else through
+        the library's dispatch (``Network.notify``: NMT, SDO, heartbeats)."""
+        if self._gone:
             return
         if msg.is_error_frame or msg.is_remote_frame:
             self.controller.stats.malformed += 1

@@ -153,17 +153,32 @@ def test_emcy_trips_the_loop_naming_the_code(tmp_path):
     assert any(s.startswith("0x8611") for s in res.driver_stats["emcy"])
 
 
-def test_twin_latches_when_the_bridge_heartbeat_stops():
+@pytest.mark.parametrize("inline", [False, True])
+def test_twin_latches_when_the_bridge_heartbeat_stops(inline):
+    """Served on its thread or inline (the steps pumped from this thread, the SDO exchanges by
+    the twin's thread): when the bridge falls silent the twin's thread takes over, and the
+    heartbeat consumer latches the device in FAULT with EMCY 0x8130."""
     # 0.25 s: a bridge descheduled for tens of ms on a loaded 2-core machine is not a dead one
     timeout = 0.25
-    with start_twin(
-        "canopen", default_plant(), device_profile="cia402", heartbeat_timeout=timeout
-    ) as twin:
-        drv = _open(twin, heartbeat_period=0.02)
+    twin = start_twin(
+        "canopen",
+        default_plant(),
+        device_profile="cia402",
+        heartbeat_timeout=timeout,
+        threaded=not inline,
+    )
+    with twin:
+        assert twin.inline is inline
+        drv = _open(twin, heartbeat_period=0.02)  # start-up by SDO: served by the thread
         drv.arm(1.0)
         for k in range(30):
             drv.send(k, 0.0, True)
-            assert drv.receive(1.0) is not None
+            if inline:
+                n = twin.pump()  # this step's RPDO and SYNC (+ heartbeats), answered at once
+                assert n >= 2 or k == 0  # (step 0: the thread, not yet standing by, may be first)
+                assert drv.receive(0.0) is not None  # the TPDO set is in: nothing to wait for
+            else:
+                assert drv.receive(1.0) is not None
             time.sleep(0.002)
         assert twin.state == "OPERATION ENABLED"
         t0 = time.monotonic()  # the bridge falls silent: no heartbeat, no SYNC
@@ -456,3 +471,69 @@ def test_a_late_device_on_a_shared_bus_costs_its_own_step_only():
         assert last[2] < -1e-4 and abs(last[1]) < 1e-5
         for d in (d1, d2):
             d.close()
+
+
+def test_the_sync_goes_with_the_last_axis_rpdo_on_the_bus():
+    """The bus sends the step's SYNC as soon as every axis on it has written its RPDO (not at
+    the first receive): one axis, with its RPDO; two axes, with the second one's — one SYNC a
+    step either way, and an inline twin finds the whole step on the bus when pumped."""
+    ch = {"channel": "rths-canopen-sync-rule"}
+    with (
+        start_twin("canopen", default_plant(), node_id=1, threaded=False, **ch) as t1,
+        start_twin("canopen", default_plant(), node_id=2, threaded=False, **ch) as t2,
+    ):
+        d1 = _open(t1)
+        bus = d1._bus
+        assert d1.arm(1.0) is not None
+        s0 = bus.syncs
+        d1.send(0, 0.0, False)
+        assert bus.syncs == s0 + 1  # the only axis: its RPDO, then the SYNC
+        t1.pump()
+        assert d1.receive(0.0) is not None
+        assert bus.syncs == s0 + 1  # the receive sent none
+        d2 = _open(t2)
+        assert d2._bus is bus and d2.arm(1.0) is not None
+        s1 = bus.syncs
+        d1.send(1, 0.0, False)
+        assert bus.syncs == s1  # node 2 has not written its RPDO yet
+        d2.send(0, 0.0, False)
+        assert bus.syncs == s1 + 1
+        for twin, drv in ((t1, d1), (t2, d2)):
+            twin.pump()
+            assert drv.receive(0.0) is not None
+        assert bus.syncs == s1 + 1
+        assert t1.n == 2 and t2.n == 1  # SYNCs each device stepped on since it started
+        d2.close()
+        d1.close()
+
+
+def test_an_inline_twin_serves_the_steps_on_the_loops_thread(tmp_path, monkeypatch):
+    """A paced run of the CiA 402 example as shipped (``twin.inline``): the steps' SYNCs are
+    handled on the loop's thread (no hand-off to the twin's thread per step), the SDO writes
+    of start-up, arming and close on the twin's own thread."""
+    import threading
+
+    from rths_hil.sim_backends.endpoints.canopen_twin import CANopenTwin
+
+    seen: dict[str, list[str]] = {"sync": [], "sdo": []}
+    on_sync, on_write = CANopenTwin._on_sync, CANopenTwin._on_write
+
+    def spy_sync(self, *a):
+        seen["sync"].append(threading.current_thread().name)
+        on_sync(self, *a)
+
+    def spy_write(self, *a, **kw):
+        seen["sdo"].append(threading.current_thread().name)
+        on_write(self, *a, **kw)
+
+    monkeypatch.setattr(CANopenTwin, "_on_sync", spy_sync)
+    monkeypatch.setattr(CANopenTwin, "_on_write", spy_write)
+    path = ROOT / "examples" / "controllers" / "cia402.toml"
+    r = run_loop(tmp_path / "r", path, "loop.mode=paced", "loop.duration=1")
+    assert r.result.status == "completed", r.result.trip
+    assert r.loop.channels[0].twin.inline
+    main = threading.current_thread().name
+    on_main = seen["sync"].count(main)
+    assert on_main >= r.result.steps  # every step's SYNC (+ the start and end phases')
+    assert len(seen["sync"]) - on_main <= 2  # before the first pump the thread may be first
+    assert seen["sdo"] and set(seen["sdo"]) == {"twin-canopen"}

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -12,6 +15,7 @@ from rths_hil.hybrid import (
     CAUSES,
     MACHINE,
     MACHINE_BACKLOG,
+    MACHINE_IN_WORK,
     ON_TIME,
     WORK,
     WORK_BACKLOG,
@@ -26,15 +30,16 @@ DT = 1.0 / 4096.0
 THR = 0.5 * DT
 
 
-def _simulate(work, wait_stall, spin_late=0.0):
+def _simulate(work, wait_stall, spin_late=0.0, work_stall=None):
     """An independent event model of the paced loop: deadlines k·Δt, never skipped.
 
-    Step k becomes ready when the previous step's work is done (``send[k-1] + work[k-1]``);
-    the wait ends at ``max(ready, deadline) + wait_stall[k]`` (a stall of the machine during
-    the wait) and the command leaves then. Returns (lateness, ready) as the loop records them
-    and the ground truth: the cause of each overrun chain's first step.
+    Step k becomes ready when the previous step's work is done (``send[k-1] + work[k-1]``,
+    plus ``work_stall[k-1]`` when the machine preempted the loop inside that work); the wait
+    ends at ``max(ready, deadline) + wait_stall[k]`` (a stall of the machine during the wait)
+    and the command leaves then. Returns (lateness, ready) as the loop records them.
     """
     n = len(work)
+    work_stall = np.zeros(n) if work_stall is None else work_stall
     send = np.empty(n)
     ready = np.empty(n)
     t_ready = -1.0  # the first step is ready long before its deadline
@@ -42,22 +47,27 @@ def _simulate(work, wait_stall, spin_late=0.0):
         deadline = k * DT
         ready[k] = t_ready - deadline
         send[k] = max(t_ready, deadline) + wait_stall[k] + spin_late
-        t_ready = send[k] + work[k]
+        t_ready = send[k] + work[k] + work_stall[k]
     lateness = send - np.arange(n) * DT
     return lateness, ready
 
 
-def _truth(lateness, work, wait_stall):
+def _truth(lateness, work, wait_stall, work_stall=None):
     """Causes from what the model was told: a chain starts at a step whose predecessor's work
-    ran past this step's threshold (work), otherwise at a stall in its wait (machine); the rest
-    of the chain is backlog."""
+    ran past this step's threshold (work), or did so only with the preemption inside it
+    (machine in the work), otherwise at a stall in its wait (machine); the rest of the chain
+    is backlog."""
+    work_stall = np.zeros(len(work)) if work_stall is None else work_stall
     over = lateness > THR
+    machine = (MACHINE, MACHINE_BACKLOG, MACHINE_IN_WORK)
     out = np.zeros(len(over), dtype=np.int8)
     for k in np.flatnonzero(over):
         if k > 0 and over[k - 1]:
-            out[k] = MACHINE_BACKLOG if out[k - 1] in (MACHINE, MACHINE_BACKLOG) else WORK_BACKLOG
+            out[k] = MACHINE_BACKLOG if out[k - 1] in machine else WORK_BACKLOG
         elif k > 0 and lateness[k - 1] + work[k - 1] > DT + THR:
             out[k] = WORK
+        elif k > 0 and lateness[k - 1] + work[k - 1] + work_stall[k - 1] > DT + THR:
+            out[k] = MACHINE_IN_WORK
         else:
             assert wait_stall[k] > 0
             out[k] = MACHINE
@@ -81,7 +91,26 @@ def test_a_stall_in_the_wait_is_the_machine_and_its_catch_up_is_backlog():
         "machine_backlog": len(backlog),
         "work": 0,
         "work_backlog": 0,
+        "machine_in_work": 0,
     }
+
+
+def test_a_preemption_inside_the_work_is_the_machine_only_when_the_work_alone_was_in_time():
+    n = 40
+    work = np.full(n, 0.3 * DT)
+    preempt = np.zeros(n)
+    preempt[5] = 2.0 * DT  # step 5's work is 0.3 Δt of CPU and 2 Δt off the CPU
+    work[20] = 2.0 * DT  # step 20's work is 2 Δt of CPU, and also preempted a little
+    preempt[20] = 0.2 * DT
+    lat, ready = _simulate(work, np.zeros(n), work_stall=preempt)
+    cause = attribute_overruns(lat, ready, THR, preempt)
+    assert cause[6] == MACHINE_IN_WORK and cause[21] == WORK
+    # the same run without the thread's clock: both are the work's
+    blind = attribute_overruns(lat, ready, THR)
+    assert blind[6] == WORK and blind[21] == WORK
+    assert (cause != blind).sum() == 1 + (cause == MACHINE_BACKLOG).sum()
+    with pytest.raises(ValueError, match="stalled"):
+        attribute_overruns(lat, ready, THR, preempt[:-1])
 
 
 def test_long_work_is_the_loops_own_overrun():
@@ -109,13 +138,15 @@ def test_random_runs_match_the_event_model():
     long = rng.random(n) < 0.002
     work[long] = rng.uniform(1.0, 8.0, long.sum()) * DT
     stall = np.where(rng.random(n) < 0.002, rng.uniform(0.6, 20.0, n) * DT, 0.0)
-    lat, ready = _simulate(work, stall)
-    cause = attribute_overruns(lat, ready, THR)
-    truth = _truth(lat, work, stall)
+    preempt = np.where(rng.random(n) < 0.004, rng.uniform(0.1, 10.0, n) * DT, 0.0)
+    lat, ready = _simulate(work, stall, work_stall=preempt)
+    cause = attribute_overruns(lat, ready, THR, preempt)
+    truth = _truth(lat, work, stall, preempt)
     np.testing.assert_array_equal(cause, truth)
     counts = count_causes(cause)
     assert sum(counts.values()) == int((lat > THR).sum())
-    assert counts["machine"] > 10 and counts["work"] > 10  # both kinds happened
+    assert counts["machine"] > 10 and counts["work"] > 10  # every kind happened
+    assert counts["machine_in_work"] > 10
     assert counts["machine_backlog"] > 0 and counts["work_backlog"] > 0
     assert set(counts) == set(CAUSES[1:])
 
@@ -196,3 +227,79 @@ def test_console_p99_is_numpys_percentile(n):
     x = np.random.default_rng(n).exponential(1e-5, n)
     assert _p99(x) == pytest.approx(np.percentile(x, 99), rel=1e-12, abs=0)
     assert (x == np.random.default_rng(n).exponential(1e-5, n)).all()  # not sorted in place
+
+
+_HOG = """
+import os, sys, time
+os.sched_setaffinity(0, {int(sys.argv[1])})
+os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))  # above the loop's (10)
+print("ready", flush=True)
+while os.read(0, 1):  # each byte: take the CPU for float(sys.argv[2]) s, then sleep again
+    end = time.perf_counter() + float(sys.argv[2])
+    while time.perf_counter() < end:
+        pass
+"""
+
+
+@pytest.fixture
+def same_cpu_hog():
+    """A real-time process on the loop thread's CPU that preempts it on demand: each byte
+    written to ``hog.stdin`` makes it spin 4 ms at SCHED_FIFO priority 50 (a task the
+    machine runs instead of the loop, as another process or the hypervisor would)."""
+    cpu = min(os.sched_getaffinity(0))
+    old = os.sched_getaffinity(0)
+    hog = subprocess.Popen([sys.executable, "-c", _HOG, str(cpu), "0.004"],
+                           stdin=subprocess.PIPE, stdout=subprocess.PIPE)  # fmt: skip
+    try:
+        assert hog.stdout.readline() == b"ready\n"
+        os.sched_setaffinity(0, {cpu})  # this thread (the loop's) on the hog's CPU
+        yield hog
+    finally:
+        os.sched_setaffinity(0, old)
+        hog.kill()
+        hog.wait()
+
+
+@pytest.mark.parametrize("disturbance", ["preempted", "cpu", "sleep"])
+def test_the_threads_clock_tells_a_preemption_inside_the_work_from_the_work(
+    tmp_path, monkeypatch, same_cpu_hog, disturbance
+):
+    """Three steps' work is disturbed for 4 ms after the replies: by the hog preempting the loop
+    (the machine), by the work itself spinning (CPU work) or sleeping (a voluntary wait).
+    Each time the next step is ready ≈ 3 ms late; only the preemption is the machine's."""
+    from rths_hil.hybrid.channel import Channel
+
+    at = (300, 600, 900)
+    evaluate = Channel.evaluate
+
+    def disturbed(self, k):
+        evaluate(self, k)
+        if k in at:
+            if disturbance == "preempted":
+                os.write(same_cpu_hog.stdin.fileno(), b"x")  # returns after the hog's 4 ms
+            elif disturbance == "cpu":
+                end = time.perf_counter() + 0.004
+                while time.perf_counter() < end:
+                    pass
+            else:
+                time.sleep(0.004)
+
+    monkeypatch.setattr(Channel, "evaluate", disturbed)
+    cfg = load_config(None, ["loop.duration=1", "loop.console=0", "output.plot=false",
+                             "safety.max_overruns=1000", "kalman.enabled=false"])  # fmt: skip
+    res = RTHSLoop(cfg, tmp_path / "r", mode="paced").run()
+    assert res.status == "completed", res.trip
+    thr = res.overrun_threshold
+    cause = attribute_overruns(res.lateness, res.ready, thr, res.stalled)
+    judged = [k for k in at if res.lateness[k] <= thr]  # not already late by a machine stall
+    assert len(judged) >= 2, res.lateness[list(at)]
+    for k in judged:
+        assert res.ready[k + 1] > 0.002  # the disturbance made the next step late
+        if disturbance == "preempted":
+            assert res.stalled[k] > 0.0035, res.stalled[k]
+            assert cause[k + 1] == MACHINE_IN_WORK
+        else:
+            assert res.stalled[k] < 0.002 if disturbance == "cpu" else res.stalled[k] == 0.0
+            assert cause[k + 1] == WORK
+    counts = res.overrun_causes()
+    assert sum(counts.values()) == res.overruns

@@ -32,7 +32,13 @@ def _run(path, end_fields: dict, n: int = 64, fs: float = 1024.0) -> None:
 
 
 def test_overrun_causes_reach_summary_json_and_the_printed_summary(tmp_path):
-    causes = {"machine": 3, "machine_backlog": 1, "work": 7, "work_backlog": 2}
+    causes = {
+        "machine": 3,
+        "machine_backlog": 1,
+        "work": 7,
+        "work_backlog": 2,
+        "machine_in_work": 4,
+    }
     _run(tmp_path / "r", {"lateness": {"overruns": 13}, "overrun_causes": causes})
     s = summarize(tmp_path / "r")
     assert s["overrun_causes"] == causes
@@ -42,6 +48,7 @@ def test_overrun_causes_reach_summary_json_and_the_printed_summary(tmp_path):
     text = format_summary(s)
     line = next(ln for ln in text.splitlines() if "by cause" in ln)
     assert "machine 3 (+1 catch-up)" in line and "work 7 (+2 catch-up)" in line
+    assert "machine inside the work 4" in line
 
 
 def test_a_run_recorded_before_overrun_causes_has_none(tmp_path):
