@@ -59,11 +59,11 @@ class RunResult:
         Per-step time of the loop's own work (s): from the last reply to the end of the step's
         record (structure, compensation, evaluators, safety, recorder).
     stalled : ndarray
-        Paced: per step, the time the loop's thread was taken off the CPU inside that work
-        without blocking (s): the work's wall time minus the thread's CPU time
-        (``time.thread_time``), 0 when the thread made a voluntary context switch (waited for
-        the interpreter lock, for I/O); empty in lockstep. A preemption by another task or
-        the hypervisor, see :func:`~rths_hil.hybrid.timing.attribute_overruns`.
+        Paced: per step, the time the loop's thread was taken off the CPU from the step's send
+        to the end of its record without blocking (s): that wall time minus the thread's CPU
+        time (``time.thread_time``), 0 when the thread made a voluntary context switch (waited
+        for a reply, for the interpreter lock, for I/O); empty in lockstep. A preemption by
+        another task or the hypervisor, see :func:`~rths_hil.hybrid.timing.attribute_overruns`.
     channels : list of str
         Channel names.
     stalls : list of tuple

@@ -360,9 +360,10 @@ class Runner:
         lat_view = np.frombuffer(lat_list, dtype=float) if paced else np.zeros(0)
         work_list = array.array("d", [0.0]) * n
         ready_list = [0.0] * n if paced else None
-        # paced: the time the thread was taken off the CPU inside each step's work without
-        # blocking (its wall time minus the thread's CPU time; 0 after a voluntary context
-        # switch) — a preemption by the machine, not the work (timing.attribute_overruns)
+        # paced: the time the thread was taken off the CPU inside each step (from its send to
+        # the end of its record) without blocking: the wall time minus the thread's CPU time,
+        # 0 after a voluntary context switch (a wait for a reply, the interpreter lock, I/O) —
+        # a preemption by the machine, not the work (timing.attribute_overruns)
         stalled_list = array.array("d", [0.0]) * n if paced else None
         cpu = time.thread_time
         usage = resource.getrusage
@@ -427,6 +428,8 @@ class Runner:
                         elif not slip:
                             now = self._catch_up_spacing(now, prev_send)
                             lat = now - deadline
+                    c_send = cpu()  # the step's work starts: the thread's CPU clock, its
+                    v_send = usage(THREAD).ru_nvcsw  # voluntary context switches so far
                     for ch in chans:
                         ch.send(k, ch.command, True)
                     prev_send = now
@@ -462,9 +465,6 @@ class Runner:
                         ch.missed_replies += 1
                         missed += 1
                 t_work = perf()
-                if paced:
-                    c_work = cpu()
-                    v_work = usage(THREAD).ru_nvcsw
                 if multi:
                     skew = t_last - t_first if t_first > 0.0 else nan
                 trip = check_feedback(tk, k)
@@ -542,9 +542,10 @@ class Runner:
                     ch.target = ch.target_next
                     ch.command = ch.command_next
                 xs = x_next
-                w = work_list[k] = perf() - t_work
-                if paced and usage(THREAD).ru_nvcsw == v_work:  # the thread never blocked
-                    stalled_list[k] = max(0.0, w - (cpu() - c_work))
+                t_end = perf()
+                work_list[k] = t_end - t_work
+                if paced and usage(THREAD).ru_nvcsw == v_send:  # the thread never blocked
+                    stalled_list[k] = max(0.0, t_end - prev_send - (cpu() - c_send))
                 k += 1
                 if console > 0:
                     now = perf()

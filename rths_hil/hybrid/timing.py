@@ -66,10 +66,11 @@ def attribute_overruns(
     threshold : float
         Overrun threshold (s): a step is an overrun when ``lateness > threshold``.
     stalled : ndarray, optional
-        Per-step time the loop's thread was taken off the CPU inside the step's work without
-        blocking (s), :attr:`RunResult.stalled`: the work's wall time minus the thread's CPU
-        time, 0 when the thread blocked (a voluntary context switch: a wait for the
-        interpreter lock, I/O). Without it no overrun is :data:`MACHINE_IN_WORK`.
+        Per-step time the loop's thread was taken off the CPU inside the step (send, replies,
+        work, record) without blocking (s), :attr:`RunResult.stalled`: the wall time minus the
+        thread's CPU time, 0 when the thread blocked (a voluntary context switch: a wait for a
+        reply, for the interpreter lock, for I/O). Without it no overrun is
+        :data:`MACHINE_IN_WORK`.
 
     Returns
     -------
@@ -88,11 +89,10 @@ def attribute_overruns(
 
     Notes
     -----
-    ``stalled`` covers the work from the last reply to the end of the step's record (see
-    :attr:`RunResult.work`); a stall while waiting for the replies, or in a step where the
-    thread blocked at all, stays :data:`WORK` (the thread's clock cannot tell a slow
-    controller or our own threads from the machine there). Compare the counts with
-    :func:`paced_floor` on the same machine, at the same rate and scheduling.
+    In a step where the thread blocked at all (waited for a controller's reply, for another
+    thread of the bridge, for I/O) a stall stays :data:`WORK`: the thread's clock cannot tell
+    a slow controller or the bridge's own threads from the machine there. Compare the counts
+    with :func:`paced_floor` on the same machine, at the same rate and scheduling.
     """
     lat = np.asarray(lateness, dtype=float)
     rdy = np.asarray(ready, dtype=float)
