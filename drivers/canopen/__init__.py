@@ -85,6 +85,7 @@ from typing import Any, ClassVar
 
 import can
 import canopen
+from canopen.emcy import EmcyError
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
@@ -118,6 +119,7 @@ NMT_OPERATIONAL = 0x05
 #: EMCY error code of a heartbeat / life-guard event (CiA 301).
 EMCY_HEARTBEAT = 0x8130
 _WATCHDOG = int(Status.WATCHDOG)
+_ESTOP = int(Status.ESTOP_ACTIVE)
 _FAULT = int(Status.FAULT)
 _S32 = (-(2**31), 2**31 - 1)
 _BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
@@ -287,6 +289,26 @@ def _sample_values(var: ODVariable, rng: random.Random, n: int) -> list[Any]:
     return out
 
 
+class _BusGone(can.Listener):
+    """Takes the error that ends the library's notifier thread (python-can hands it to every
+    listener with ``on_error``; without one the thread dies with a traceback): the bus is
+    gone, said once in the log and counted as a disconnect of every axis on it."""
+
+    def __init__(self, bus: CANopenBus) -> None:
+        self.bus = bus
+
+    def on_message_received(self, msg: can.Message) -> None:
+        pass
+
+    def on_error(self, exc: Exception) -> None:
+        bus = self.bus
+        if bus.gone is None:
+            bus.gone = exc
+            log.error("canopen: bus %s %s: the reader stopped: %s", *bus.key, exc)
+            for drv in list(bus.axes.values()):
+                drv.stats.disconnects += 1
+
+
 class CANopenBus:
     """One CANopen bus of the bridge: a python-can bus and its :class:`canopen.Network`,
     shared by every axis (driver) on the same interface and channel.
@@ -319,6 +341,10 @@ class CANopenBus:
         self.syncs = 0
         self._listening = 0
         self._hb_last = -math.inf
+        #: the error that stopped the library's notifier thread (the bus gone: a serial line
+        #: closed, an adapter unplugged), taken by :class:`_BusGone`; None while it reads
+        self.gone: BaseException | None = None
+        network.listeners.append(_BusGone(self))  # every notifier started on the network
         #: after an e-stop: the library's periodic heartbeat task (:meth:`hold_heartbeat`)
         self._hb_task: Any = None
 
@@ -345,6 +371,8 @@ class CANopenBus:
                 if bus.direct and net.notifier is not None:  # read from the caller's thread
                     notifier, net.notifier = net.notifier, None
                     notifier.stop(1.0)
+                elif net.notifier is not None:  # started by connect(), before the listener
+                    net.notifier.add_listener(net.listeners[-1])
                 bus.reading = bus.direct and net.notifier is None
                 cls._open[key] = bus
             elif drv.node_id in bus.axes:
@@ -465,13 +493,17 @@ class CANopenBus:
         return True
 
     def sync(self) -> bool:
-        """Send one SYNC: every axis whose RPDO waits for it takes it as its step's clock."""
-        if not self.send(self.sync_msg):
-            return False
-        self.syncs += 1
+        """Send one SYNC: every axis whose RPDO waits for it takes it as its step's clock.
+
+        The axes take the new step before the SYNC leaves: read by a notifier thread, a
+        device's answer can arrive before this thread runs again, and must not be filed under
+        the step before (where it would count as a duplicate and the step go unanswered)."""
         for drv in self.axes.values():
             if drv._awaiting is not None:
                 drv._synced()
+        if not self.send(self.sync_msg):
+            return False
+        self.syncs += 1
         return True
 
     def hold_heartbeat(self, msg: can.Message, period: float) -> None:
@@ -486,6 +518,8 @@ class CANopenBus:
         consumer time run out and add a heartbeat fault (EMCY 0x8130) the bridge did not have.
         """
         if self._hb_task is not None or period <= 0.0 or self.network.bus is None:
+            return
+        if self.gone is not None:  # nothing to keep alive (its thread would fail on the line)
             return
         try:
             self._hb_task = self.network.send_periodic(msg.arbitration_id, bytes(msg.data), period)
@@ -1069,6 +1103,8 @@ class CANopenDriver(Driver):
             if bus.pump(remaining):
                 bus.drain()  # the rest of the TPDO set, when it came together
         else:
+            if bus.gone is not None:
+                raise LinkDown(f"canopen node {self.node_id}: bus reader stopped: {bus.gone}")
             wake = self._wake
             wake.clear()
             if not q:
@@ -1094,11 +1130,30 @@ class CANopenDriver(Driver):
         if bus is None or not bus.heartbeat(self._hb_msg):
             self.stats.send_errors += 1
 
+    def _error_field(self) -> int:
+        """The newest error of the device's pre-defined error field (0x1003:1, CiA 301; its
+        low 16 bits, the EMCY error code), 0 when the EDS has none or none is recorded."""
+        assert self.node is not None
+        if 0x1003 not in self.node.object_dictionary:
+            return 0
+        try:
+            if not self._sdo_read(0x1003, 0):
+                return 0
+            return self._sdo_read(0x1003, 1) & 0xFFFF
+        except InputError as exc:
+            log.info("canopen: node %d: no error field: %s", self.node_id, exc)
+            return 0
+
     def arm(self, timeout: float, receive: Any = None) -> Feedback | None:
         """Reset a fault and bring the device to holding by SDO (see the module docstring).
 
         Returns the device's state before arming (status word, position and force read by
-        SDO), or ``None`` when it does not answer within ``timeout``.
+        SDO), or ``None`` when it does not answer within ``timeout``. A fault of the device's
+        heartbeat consumer (EMCY 0x8130, seen by this bridge or read from the pre-defined error
+        field 0x1003 where the EDS has it: the bridge before this one stopped) is reported as
+        the controller's latched watchdog (``ESTOP_ACTIVE | WATCHDOG``) that arming
+        acknowledges, as every controller's; any other fault stays ``FAULT`` (the loop refuses
+        to start on it).
         """
         p = self.profile
         if self._bus is not None:
@@ -1112,8 +1167,14 @@ class CANopenDriver(Driver):
             if self.force_object is not None:
                 force = self._sdo_read(*self.force_object) * self.newtons_per_count
             flags = p.flags(before, self._latched)
-            if self._emcy_code:
-                flags |= _FAULT | (_WATCHDOG if self._emcy_code == EMCY_HEARTBEAT else 0)
+            code = self._emcy_code or (self._error_field() if flags & _FAULT else 0)
+            if code == EMCY_HEARTBEAT:  # the device's consumer latched: a bridge that stopped
+                flags = (flags & ~_FAULT) | _ESTOP | _WATCHDOG
+            elif code:
+                flags |= _FAULT
+                desc = EmcyError(code, 0, b"", 0.0).get_desc()
+                log.warning("canopen: node %d is in %s with error 0x%04X %s", self.node_id,
+                            before, code, desc)  # fmt: skip
             deadline = time.monotonic() + max(timeout, 0.5)
             for word in p.arm_words(before):
                 self._sdo_write(p.control[0], p.control[1], word)

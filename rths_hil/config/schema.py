@@ -411,7 +411,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             True,
             unit="-",
             doc="serve a twin on python-can's in-process virtual bus from the loop thread "
-            "(same frames and controller, no thread hand-off); false: in its own thread",
+            "(same frames and controller, no thread hand-off; a CANopen twin's own thread "
+            "still answers the SDO exchanges); false: in its own thread",
         ),
         "model": Key(
             "str",

@@ -19,9 +19,9 @@ what a device does with them:
 * Controller-side watchdog = heartbeat consumer (0x1016: the bridge's heartbeat, or
   ``heartbeat_timeout`` from the twin's configuration): while operating, a heartbeat of node
   ``bridge_node_id`` must come within the consumer time; when none does the twin holds, enters
-  FAULT (402) / FAULT HOLD (408) and sends EMCY 0x8130 (heartbeat error); only a fault reset
-  (arming) leaves it. A runaway fault (``runaway_from``) does the same with EMCY 0x8611
-  (following error).
+  FAULT (402) / FAULT HOLD (408) and sends EMCY 0x8130 (heartbeat error), also kept in the
+  pre-defined error field 0x1003 where the EDS has it; only a fault reset (arming) leaves it.
+  A runaway fault (``runaway_from``) does the same with EMCY 0x8611 (following error).
 * SDO reads of the status word, actual position, force, following error 0x60F4 and mode display
   0x6061 are answered from the device's live state.
 """
@@ -472,6 +472,9 @@ class CANopenTwin(TwinEndpoint):
         self._enter("FAULT" if self.profile.number == 402 else (
             "FAULT DISABLED" if self.state in ("DISABLED", "INIT") else "FAULT HOLD"))  # fmt: skip
         if self.node is not None:
+            if 0x1003 in self.od:  # the pre-defined error field (CiA 301): the newest error
+                self.node.set_data(0x1003, 1, code.to_bytes(4, "little"), check_writable=False)
+                self.node.set_data(0x1003, 0, b"\x01", check_writable=False)
             try:
                 self.node.emcy.send(code, 0x01 | (0x10 if code == EMCY_HEARTBEAT else 0x80))
             except (can.CanError, OSError, RuntimeError):  # pragma: no cover - bus gone

@@ -537,3 +537,91 @@ def test_an_inline_twin_serves_the_steps_on_the_loops_thread(tmp_path, monkeypat
     assert on_main >= r.result.steps  # every step's SYNC (+ the start and end phases')
     assert len(seen["sync"]) - on_main <= 2  # before the first pump the thread may be first
     assert seen["sdo"] and set(seen["sdo"]) == {"twin-canopen"}
+
+
+def test_an_answer_that_comes_before_the_sync_call_returns_is_its_steps():
+    """Read by a notifier thread (every interface but virtual and SocketCAN), a device's
+    TPDOs can arrive before the thread that sent the SYNC runs again. Here they arrive inside
+    the SYNC's send (another thread files them, as the notifier would): they must be the
+    step's feedback, not a duplicate of the step before it."""
+    import threading
+
+    with start_twin("canopen", default_plant(), device_profile="cia402") as twin:
+        drv = _open(twin)
+        assert drv.arm(1.0) is not None
+        bus = drv._bus
+        send = bus.send
+        counts = [1000]
+
+        def fast_device(msg):
+            ok = send(msg)
+            if msg.arbitration_id == 0x80:  # the SYNC: TPDO1 (status word, position), TPDO2
+                counts[0] += 1
+
+                def answer():
+                    drv._tpdo_in(0, (0x0237, counts[0]))
+                    drv._tpdo_in(1, (0,))
+
+                t = threading.Thread(target=answer)
+                t.start()
+                t.join()
+            return ok
+
+        bus.send = fast_device
+        try:
+            for k in range(5):
+                drv.send(k, 0.0, False)
+                fb = drv.receive(1.0)
+                assert fb is not None and fb.seq == k
+                assert fb.displacement == counts[0] / drv.counts_per_m  # the fast answer
+        finally:
+            bus.send = send
+        drv.close()
+
+
+def _error_field(drv) -> int:
+    """0x1003:1's error code read by SDO (the driver reads the bus only in its SDO phases)."""
+    drv._listen(True)
+    try:
+        return drv._sdo_read(0x1003, 1) & 0xFFFF
+    finally:
+        drv._listen(False)
+
+
+def test_arming_tells_a_heartbeat_fault_from_a_device_fault_by_the_error_field():
+    """A new bridge finds the device in FAULT: from the pre-defined error field 0x1003 it tells
+    the heartbeat consumer's fault (the bridge before it stopped: EMCY 0x8130, reported as the
+    latched watchdog that arming acknowledges) from a fault of the device itself (a following
+    error, EMCY 0x8611: FAULT, which the loop refuses to start on)."""
+    faults = Faults.parse("runaway_from=20; runaway_rate=0.5")
+    with start_twin("canopen", default_plant(), faults=faults, heartbeat_timeout=0.25) as twin:
+        first = _open(twin)
+        assert first.arm(1.0) is not None
+        for k in range(60):
+            first.send(k, 0.0, True)
+            first.receive(0.5)
+        assert twin.state == "FAULT" and twin.history.count("FAULT") == 1
+        first._shutdown_network()  # the bridge gone without a word (no disable, no NMT stop)
+        second = _open(twin)
+        assert _error_field(second) == EMCY_FOLLOWING_ERROR
+        fb = second.arm(1.0)
+        assert fb.status & FAULT and not fb.status & int(Status.WATCHDOG)
+        assert twin.state == "SWITCHED ON"  # reset all the same: the loop refuses to start
+        second.close()
+
+    with start_twin("canopen", default_plant(), heartbeat_timeout=0.25) as twin:
+        first = _open(twin, heartbeat_period=0.02)
+        assert first.arm(1.0) is not None
+        for k in range(20):
+            first.send(k, 0.0, True)
+            assert first.receive(0.5) is not None
+        first._shutdown_network()
+        t0 = time.monotonic()
+        while twin.state != "FAULT" and time.monotonic() - t0 < 2.0:
+            time.sleep(0.01)
+        second = _open(twin)
+        assert _error_field(second) == 0x8130
+        fb = second.arm(1.0)
+        assert fb.status & ESTOP and fb.status & int(Status.WATCHDOG)
+        assert not fb.status & FAULT
+        second.close()

@@ -215,6 +215,8 @@ SERVED = {
     "modbus": ["--driver", "modbus"],
     "serial": ["--driver", "serial"],
     "modbus-map": ["--driver", "modbus", "--profile", str(CONTROLLERS / "modbus_map.toml")],
+    # python-can's serial framing over a pseudo-terminal pair (no SocketCAN here)
+    "canopen": ["--driver", "canopen", "--interface", "serial"],
 }
 
 

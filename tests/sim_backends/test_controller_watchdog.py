@@ -170,6 +170,39 @@ def _kill_bridge_and_time_latch(twin, driver, row, out, *extra):
     assert 0.0 < t_latch - t_kill <= TIMEOUT + SLACK, t_latch - t_kill
 
 
+def test_canopen_twin_latches_when_the_bridge_is_killed(tmp_path):
+    """A CiA 402 twin served as its own process over python-can's ``serial`` framing on its
+    null-modem pair of pseudo-terminals: the bridge killed, the device's heartbeat consumer
+    puts it in FAULT (EMCY 0x8130) within the consumer time; a new client reads that state by
+    SDO; a second run resets the fault at arming (reported as the latched watchdog) and
+    completes."""
+    from rths_hil.drivers.canopen import EMCY_HEARTBEAT
+
+    twin = ServedTwin(
+        "--driver", "canopen", "--interface", "serial",
+        "--heartbeat-timeout", f"{TIMEOUT * 1e3:g}ms",
+    )  # fmt: skip
+    try:
+        conn = twin.connection
+        assert conn["interface"] == "serial" and conn["channel"].startswith("/dev/pts/")
+        _kill_bridge_and_time_latch(twin, "canopen", "canopen serial", tmp_path / "run1")
+        assert twin.first(f"EMCY 0x{EMCY_HEARTBEAT:04X}", timeout=2.0) is not None, twin.lines
+        drv = create_driver("canopen", **conn)
+        drv.open()
+        try:  # the status word by SDO: FAULT (0x0008 under the CiA 402 mask 0x004F)
+            assert drv._sdo_read(0x6041, 0) & 0x004F == 0x0008
+        finally:
+            drv.close()
+        # the heartbeat fault (0x8130 in the error field 0x1003) is the controller's latched
+        # watchdog, which arming acknowledges as every controller's
+        arm, rec = _second_run("canopen", conn, tmp_path / "run2")
+        assert arm["replied"] and arm["status"] & LATCHED == LATCHED
+        assert not arm["status"] & int(Status.FAULT)
+        assert rec["feedback_ok"].all() and len(rec) == 256
+    finally:
+        twin.stop()
+
+
 def test_modbus_twin_latches_when_the_bridge_is_killed(modbus_twin, tmp_path):
     from pymodbus.client import ModbusTcpClient
 
