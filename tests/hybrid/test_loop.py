@@ -156,7 +156,7 @@ def test_record_columns_events_and_meta(tmp_path):
     assert run.events[-1]["status"] == "completed"
     # lockstep has no deadlines: no overrun of any cause
     assert run.events[-1]["overrun_causes"] == dict.fromkeys(
-        ("machine", "machine_backlog", "work", "work_backlog"), 0
+        ("machine", "machine_backlog", "work", "work_backlog", "machine_in_work"), 0
     )
     assert res.ready.size == 0
     assert run.meta["config"]["structure"]["mass"] == 503400.0
