@@ -44,27 +44,14 @@ from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
 from .can_profile import CANProfileTwin
-from .nullmodem import NullModem
+from .nullmodem import PTY_CHANNEL, PTY_INTERFACES, NullModem, serial_line
 
 log = logging.getLogger(__name__)
 
 __all__ = ["PTY_CHANNEL", "PTY_INTERFACES", "CANTwin"]
 
-#: ``channel`` of a twin on a serial-line interface that asks for a new null-modem pair of
-#: pseudo-terminals (:class:`~rths_hil.sim_backends.endpoints.nullmodem.NullModem`).
-PTY_CHANNEL = "pty"
-#: python-can interfaces over a serial line that the twin serves on a null-modem cable, with
-#: the python-can options of the bridge's end and of the twin's end. ``slcan`` waits 2 s after
-#: opening for an adapter to boot (a pseudo-terminal needs no wait); ``serial`` reads with its
-#: own 0.1 s timeout whatever ``recv`` asks (the driver reads it through a notifier thread), so
-#: the twin's end reads with 5 ms to poll its watchdog on time.
 #: What :meth:`CANTwin._recv` returns for bytes on the line that are no frame.
 _GARBLED = object()
-
-PTY_INTERFACES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
-    "slcan": ({"sleep_after_open": 0.0}, {"sleep_after_open": 0.0}),
-    "serial": ({}, {"timeout": 0.005}),
-}
 
 
 class CANTwin(TwinEndpoint):
@@ -168,16 +155,9 @@ class CANTwin(TwinEndpoint):
         kwargs = dict(self.bus_options)
         if self.bitrate is not None:
             kwargs["bitrate"] = self.bitrate
-        channel = bridge_channel = self.channel
-        if self.interface in PTY_INTERFACES and self.channel == PTY_CHANNEL:
-            try:
-                self.cable = NullModem()
-            except OSError as exc:
-                raise InputError(
-                    f"CAN twin: cannot open pseudo-terminals for {self.interface}: {exc}"
-                ) from None
-            channel, bridge_channel = self.cable.twin_path, self.cable.bridge_path
-            kwargs = {**PTY_INTERFACES[self.interface][1], **kwargs}
+        self.cable, channel, bridge_channel, kwargs, bridge_options = serial_line(
+            self.interface, self.channel, kwargs, "CAN twin"
+        )
         try:
             share = shared_bus("twin", self.interface, channel, **kwargs)
         except InputError as exc:
@@ -199,9 +179,7 @@ class CANTwin(TwinEndpoint):
             self.connection["bitrate"] = self.bitrate
         if self.dbc is not None:
             self.connection["dbc"] = self.dbc
-        options = self.bus_options
-        if self.cable is not None:
-            options = {**PTY_INTERFACES[self.interface][0], **options}
+        options = {**bridge_options, **self.bus_options}
         if options:
             self.connection["bus_options"] = dict(options)
         self.where = f"CAN interface {self.interface} channel {bridge_channel} node {self.node}"

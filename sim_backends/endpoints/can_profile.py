@@ -28,6 +28,7 @@ from rths_hil.drivers.profile import CANProfile, load_profile, word_from_status
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
+from .nullmodem import NullModem, serial_line
 
 __all__ = ["CANProfileTwin"]
 
@@ -50,8 +51,6 @@ class CANProfileTwin(TwinEndpoint):
         prof = load_profile(profile)
         if not isinstance(prof, CANProfile):
             raise InputError(f"can twin: profile {profile} is not a CAN profile")
-        if str(interface) in ("serial", "slcan"):
-            raise InputError("can twin: a profile twin is served on virtual or socketcan buses")
         self.profile_path = str(profile)
         self.profile = prof
         self.interface = str(interface)
@@ -80,6 +79,7 @@ class CANProfileTwin(TwinEndpoint):
         self._fb_limits = {s.name: (s.minimum, s.maximum) for s in self._fb.signals}
         self._share: SharedBus | None = None
         self._bus: can.BusABC | None = None
+        self.cable: NullModem | None = None
         self._k = 0
         self._last: dict[str, float] = {}  # the last value sent of each feedback signal
 
@@ -87,22 +87,41 @@ class CANProfileTwin(TwinEndpoint):
         kwargs = dict(self.bus_options)
         if self.bitrate is not None:
             kwargs["bitrate"] = self.bitrate
-        self._share = shared_bus("twin", self.interface, self.channel, **kwargs)
+        # serial or slcan with channel "pty": a null-modem pair of pseudo-terminals (serial_line)
+        self.cable, channel, bridge_channel, kwargs, bridge_options = serial_line(
+            self.interface, self.channel, kwargs, "can twin"
+        )
+        try:
+            self._share = shared_bus("twin", self.interface, channel, **kwargs)
+        except InputError:
+            self._close_cable()
+            raise
         self._bus = self._share.bus
         self.connection = {
             "interface": self.interface,
-            "channel": self.channel,
+            "channel": bridge_channel,
             "profile": self.profile_path,
         }
         if self.bitrate is not None:
             self.connection["bitrate"] = self.bitrate
-        self.where = f"can {self.interface}:{self.channel} ({self.profile_path})"
+        options = {**bridge_options, **self.bus_options}
+        if options:
+            self.connection["bus_options"] = options
+        self.where = f"can {self.interface}:{bridge_channel} ({self.profile_path})"
+        if self.cable is not None:
+            self.where += " (pseudo-terminal null modem)"
 
     def _teardown(self) -> None:
         share, self._share = self._share, None
         self._bus = None
         if share is not None:
             release_bus(share)
+        self._close_cable()
+
+    def _close_cable(self) -> None:
+        cable, self.cable = self.cable, None
+        if cable is not None:
+            cable.close()
 
     def _serve_once(self, timeout: float) -> None:
         share = self._share

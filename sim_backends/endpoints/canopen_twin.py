@@ -51,8 +51,7 @@ from rths_hil.drivers.canopen.profiles import PROFILES, SW408
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
-from .can import PTY_CHANNEL, PTY_INTERFACES
-from .nullmodem import NullModem
+from .nullmodem import PTY_CHANNEL, PTY_INTERFACES, NullModem, serial_line
 
 __all__ = ["EMCY_FOLLOWING_ERROR", "EMCY_HEARTBEAT", "CANopenTwin", "default_eds"]
 
@@ -199,16 +198,9 @@ class CANopenTwin(TwinEndpoint):
         kwargs = dict(self.bus_options)
         if self.bitrate is not None:
             kwargs["bitrate"] = self.bitrate
-        channel = bridge_channel = self.channel
-        if self.interface in PTY_INTERFACES and self.channel == PTY_CHANNEL:
-            try:  # a null-modem pair of pseudo-terminals (as the CAN twin's)
-                self.cable = NullModem()
-            except OSError as exc:
-                raise InputError(
-                    f"canopen twin: cannot open pseudo-terminals for {self.interface}: {exc}"
-                ) from None
-            channel, bridge_channel = self.cable.twin_path, self.cable.bridge_path
-            kwargs = {**PTY_INTERFACES[self.interface][1], **kwargs}
+        self.cable, channel, bridge_channel, kwargs, bridge_options = serial_line(
+            self.interface, self.channel, kwargs, "canopen twin"
+        )
         try:
             self.bus = can.Bus(interface=self.interface, channel=channel, **kwargs)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
@@ -233,7 +225,7 @@ class CANopenTwin(TwinEndpoint):
         )
         if self.cable is not None:
             self.connection["channel"] = bridge_channel
-            options = {**PTY_INTERFACES[self.interface][0], **self.bus_options}
+            options = {**bridge_options, **self.bus_options}
             if options:
                 self.connection["bus_options"] = options
             self.where += " (pseudo-terminal null modem)"

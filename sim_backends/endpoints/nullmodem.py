@@ -22,10 +22,13 @@ import os
 import select
 import threading
 import tty
+from typing import Any
+
+from rths_hil.errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["NullModem"]
+__all__ = ["PTY_CHANNEL", "PTY_INTERFACES", "NullModem", "serial_line"]
 
 
 class NullModem:
@@ -117,3 +120,43 @@ class NullModem:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+#: ``channel`` of a twin on a serial-line interface that asks for a new null-modem pair of
+#: pseudo-terminals (:class:`~rths_hil.sim_backends.endpoints.nullmodem.NullModem`).
+PTY_CHANNEL = "pty"
+#: python-can interfaces over a serial line that the twin serves on a null-modem cable, with
+#: the python-can options of the bridge's end and of the twin's end. ``slcan`` waits 2 s after
+#: opening for an adapter to boot (a pseudo-terminal needs no wait); ``serial`` reads with its
+#: own 0.1 s timeout whatever ``recv`` asks (the driver reads it through a notifier thread), so
+#: the twin's end reads with 5 ms to poll its watchdog on time.
+PTY_INTERFACES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
+    "slcan": ({"sleep_after_open": 0.0}, {"sleep_after_open": 0.0}),
+    "serial": ({}, {"timeout": 0.005}),
+}
+
+
+def serial_line(
+    interface: str, channel: str, kwargs: dict[str, Any], who: str
+) -> tuple[NullModem | None, str, str, dict[str, Any], dict[str, Any]]:
+    """The line a twin opens on a python-can ``interface`` and ``channel``.
+
+    For a serial-line interface (:data:`PTY_INTERFACES`) with ``channel = "pty"``: a new
+    null-modem cable of two pseudo-terminals. Returns the cable (``None`` otherwise), the
+    channel the twin opens, the channel the bridge opens, the twin end's python-can options
+    (``kwargs`` over the interface's own) and the options the bridge's end needs.
+
+    Raises
+    ------
+    InputError
+        The pseudo-terminals cannot be opened (``who`` names the twin).
+    """
+    if interface not in PTY_INTERFACES or channel != PTY_CHANNEL:
+        return None, channel, channel, dict(kwargs), {}
+    try:
+        cable = NullModem()
+    except OSError as exc:
+        raise InputError(f"{who}: cannot open pseudo-terminals for {interface}: {exc}") from None
+    bridge_options, twin_options = PTY_INTERFACES[interface]
+    return (cable, cable.twin_path, cable.bridge_path, {**twin_options, **kwargs},
+            dict(bridge_options))  # fmt: skip

@@ -217,6 +217,14 @@ SERVED = {
     "modbus-map": ["--driver", "modbus", "--profile", str(CONTROLLERS / "modbus_map.toml")],
     # python-can's serial framing over a pseudo-terminal pair (no SocketCAN here)
     "canopen": ["--driver", "canopen", "--interface", "serial"],
+    "can-dbc": [
+        "--driver",
+        "can",
+        "--profile",
+        str(CONTROLLERS / "can_dbc.toml"),
+        "--interface",
+        "serial",
+    ],
 }
 
 

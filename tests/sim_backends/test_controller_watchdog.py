@@ -263,6 +263,57 @@ def test_modbus_map_twin_latches_when_the_bridge_is_killed(modbus_map_twin, tmp_
     assert rec["feedback_ok"].all() and len(rec) == 256
 
 
+def test_can_dbc_twin_latches_when_the_bridge_is_killed(tmp_path):
+    """The lab's own DBC, the twin its own process over python-can's ``serial`` framing on its
+    null-modem pair of pseudo-terminals: the latch is what a plain python-can + cantools client
+    reads in the status frame, as the profile's masks say."""
+    import can
+    from rths_hil.drivers.profile import load_profile
+
+    prof = load_profile(DBC)
+    twin = ServedTwin(
+        "--driver", "can", "--profile", str(DBC), "--interface", "serial",
+        "--heartbeat-timeout", f"{TIMEOUT * 1e3:g}ms",
+    )  # fmt: skip
+    try:
+        conn = twin.connection
+        assert conn["interface"] == "serial" and conn["channel"].startswith("/dev/pts/")
+        profile = [f"--set=driver.profile={DBC}"]
+        _kill_bridge_and_time_latch(twin, "can", "can-dbc serial", tmp_path / "run1", *profile)
+        cmd, fb = prof.command, prof.feedback
+        sp, en = prof.roles["setpoint"], prof.actions["enable"]
+        pos, st = prof.roles["position"], prof.roles["status"]
+        values = {sig.name: 0 for sig in cmd.signals}
+        values[en.signal] = en.value
+        replies = []
+        with can.Bus(
+            interface="serial", channel=conn["channel"], **conn.get("bus_options", {})
+        ) as bus:
+            for mm in (5.0, 9.0):  # two enabled commands far from where it holds
+                values[sp.signal] = mm
+                bus.send(can.Message(arbitration_id=cmd.frame_id, data=cmd.encode(values),
+                                     is_extended_id=cmd.is_extended_frame))  # fmt: skip
+                end = time.monotonic() + 1.0
+                while time.monotonic() < end:
+                    msg = bus.recv(0.1)
+                    if msg is not None and msg.arbitration_id == fb.frame_id:
+                        replies.append(fb.decode(msg.data, decode_choices=False))
+                        break
+        assert len(replies) == 2, replies
+        masks = prof.masks
+        for r in replies:
+            word = int(r[st.signal])
+            assert word & masks[int(Status.ESTOP_ACTIVE)] and word & masks[int(Status.WATCHDOG)]
+            assert not word & masks[int(Status.ENABLED)]
+        assert replies[0][pos.signal] == replies[1][pos.signal]  # holds, ignores both commands
+        # a second run against the same twin acknowledges the latch at arming and completes
+        arm, rec = _second_run("can", conn, tmp_path / "run2", *profile)
+        assert arm["replied"] and arm["status"] & LATCHED == LATCHED
+        assert rec["feedback_ok"].all() and len(rec) == 256
+    finally:
+        twin.stop()
+
+
 def test_serial_twin_latches_when_the_bridge_is_killed(serial_twin, tmp_path):
     conn = serial_twin.connection
     _kill_bridge_and_time_latch(serial_twin, "serial", "serial", tmp_path / "run1")
