@@ -127,10 +127,10 @@ def main(argv: list[str] | None = None) -> int:
         "process, the modes interleaved round by round. Overruns attributed by the runner: "
         "`work` = the step's work ran past the threshold (a stall while waiting for the replies, "
         "or in a step where the loop's thread blocked, included); `machine in the work` = it did "
-        "so only because the machine preempted the loop's thread inside the work after the "
-        "replies (the thread's CPU clock; no voluntary context switch); `machine` = the loop was "
-        "ready and the wait returned late. The CANopen examples as shipped serve their twin "
-        "from the loop's thread during the steps (its own thread answers the SDO exchanges); "
+        "so only because the machine preempted the loop's thread inside the step (the thread's "
+        "CPU clock from the send to the record; no voluntary context switch); `machine` = the "
+        "loop was ready and the wait returned late. The CANopen examples as shipped serve their "
+        "twin from the loop's thread during the steps (its own thread answers the SDO exchanges); "
         "the rows 'twin on a thread' set `twin.inline = false`. Load average at the end: "
         f"{os.getloadavg()[0]:.1f} (1 min) on {os.cpu_count()} cores.",
     )
