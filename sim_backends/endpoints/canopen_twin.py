@@ -105,7 +105,7 @@ class CANopenTwin(TwinEndpoint):
     def connection_from_args(cls, args: Any) -> dict[str, Any]:
         """``--interface`` (not ``virtual``: it cannot leave the process), ``--channel``
         (default ``vcan0``; ``pty`` for the serial-line interfaces) and ``--bitrate``; the
-        shipped CiA 402 EDS, node 1 (or the device of ``--config``)."""
+        shipped CiA 402 EDS, node 1."""
         if args.interface == "virtual":
             raise InputError(
                 "--interface virtual: python-can's virtual bus only reaches buses inside the same "

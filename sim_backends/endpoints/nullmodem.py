@@ -4,8 +4,8 @@ What ``socat pty,raw,echo=0 pty,raw,echo=0`` or the ``tty0tty`` kernel module gi
 serial device paths such that bytes written to one are read from the other. A twin opens one end
 (:attr:`NullModem.twin_path`) with the same library the bridge uses on the other end
 (:attr:`NullModem.bridge_path`), so both sides speak the protocol through the library's own
-framing — the CAN twin serves python-can's ``slcan`` interface this way
-(:mod:`rths_hil.sim_backends.endpoints.can`). Nothing leaves the machine: a pseudo-terminal is a
+framing — the CAN, CAN profile and CANopen twins serve python-can's ``serial`` and ``slcan``
+interfaces this way (:func:`serial_line`). Nothing leaves the machine: a pseudo-terminal is a
 kernel object, not a network endpoint.
 
 The cable keeps a descriptor of each end open itself, so that a process closing its end (or
