@@ -44,7 +44,7 @@ from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
 from .can_profile import CANProfileTwin
-from .nullmodem import PTY_CHANNEL, PTY_INTERFACES, NullModem, serial_line
+from .nullmodem import PTY_CHANNEL, PTY_INTERFACES, NullModem, can_line_from_args, serial_line
 
 log = logging.getLogger(__name__)
 
@@ -68,23 +68,10 @@ class CANTwin(TwinEndpoint):
 
     @classmethod
     def connection_from_args(cls, args: Any) -> dict[str, Any]:
-        """``--interface``, ``--channel`` (default ``vcan0``; ``pty`` for the serial-line
-        interfaces) and ``--bitrate``; python-can's ``virtual`` bus is refused (it cannot
-        leave the process)."""
-        if args.interface == "virtual":
-            raise InputError(
-                "--interface virtual: python-can's virtual bus only reaches buses inside the same "
-                "process; use --interface serial or slcan (a pseudo-terminal pair on this "
-                "machine), --interface socketcan --channel vcan0 (or the lab's interface), or "
-                "start the twin in-process with rths_hil.sim_backends.twin.start_twin"
-            )
-        channel = args.channel
-        if channel is None:
-            channel = "pty" if args.interface in PTY_INTERFACES else "vcan0"
-        conn: dict[str, Any] = {"interface": args.interface, "channel": channel}
-        if args.bitrate is not None:
-            conn["bitrate"] = args.bitrate
-        return conn
+        """``--interface``, ``--channel`` and ``--bitrate``
+        (:func:`~.nullmodem.can_line_from_args`; python-can's ``virtual`` bus is refused: it
+        cannot leave the process)."""
+        return can_line_from_args(args, "can twin")
 
     def __init__(
         self,

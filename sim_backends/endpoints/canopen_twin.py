@@ -51,7 +51,7 @@ from rths_hil.drivers.canopen.profiles import PROFILES, SW408
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
-from .nullmodem import PTY_CHANNEL, PTY_INTERFACES, NullModem, serial_line
+from .nullmodem import NullModem, can_line_from_args, serial_line
 
 __all__ = ["EMCY_FOLLOWING_ERROR", "EMCY_HEARTBEAT", "CANopenTwin", "default_eds"]
 
@@ -103,23 +103,10 @@ class CANopenTwin(TwinEndpoint):
 
     @classmethod
     def connection_from_args(cls, args: Any) -> dict[str, Any]:
-        """``--interface`` (not ``virtual``: it cannot leave the process), ``--channel``
-        (default ``vcan0``; ``pty`` for the serial-line interfaces) and ``--bitrate``; the
-        shipped CiA 402 EDS, node 1."""
-        if args.interface == "virtual":
-            raise InputError(
-                "--interface virtual: python-can's virtual bus only reaches buses inside the same "
-                "process; use --interface serial (a pseudo-terminal pair on this machine), "
-                "--interface socketcan --channel vcan0 (or the lab's interface), or start the "
-                "twin in-process with rths_hil.sim_backends.twin.start_twin"
-            )
-        channel = args.channel
-        if channel is None:
-            channel = PTY_CHANNEL if args.interface in PTY_INTERFACES else "vcan0"
-        conn: dict[str, Any] = {"interface": args.interface, "channel": channel}
-        if args.bitrate is not None:
-            conn["bitrate"] = args.bitrate
-        return conn
+        """``--interface`` (not ``virtual``: it cannot leave the process), ``--channel`` and
+        ``--bitrate`` (:func:`~.nullmodem.can_line_from_args`); the shipped CiA 402 EDS,
+        node 1."""
+        return can_line_from_args(args, "canopen twin")
 
     def __init__(
         self,

@@ -12,6 +12,10 @@ import pytest
 
 from tests.helpers.cli import one_line_exit_2 as _one_line_exit_2
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 
 def _serve(*args: str):
     proc = subprocess.Popen(

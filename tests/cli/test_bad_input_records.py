@@ -63,12 +63,13 @@ driver = {{ connection = {{ channel = "rths-many-{i // 10}", node = {i % 10 + 1}
 
 @pytest.fixture(scope="module")
 def run20(tmp_path_factory):
-    """A completed 20-channel lockstep run (its record header is over 10 000 bytes)."""
+    """A completed 20-channel lockstep run (its record header is over 10 000 bytes); without
+    its report.png (170 plots: most of the test's time, and not what it reads back)."""
     d = tmp_path_factory.mktemp("many")
     cfg = d / "c20.toml"
     cfg.write_text(many_channel_config(20))
     out = d / "run"
-    code = main(["run", str(cfg), "--lockstep", "-q", "--out", str(out)])
+    code = main(["run", str(cfg), "--lockstep", "-q", "--no-plot", "--out", str(out)])
     assert code == 0
     return out
 

@@ -18,6 +18,10 @@ import pytest
 from rths_hil.checkhost import Timing, host_facts, measure, verdict
 from tests.helpers.procs import ROOT
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 FS = 1024.0
 P = 1.0 / FS
 SPIN, THR, MAX_OVER = 3e-4, 0.5, 100

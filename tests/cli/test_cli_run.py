@@ -11,6 +11,10 @@ from rths_hil.cli import main
 from rths_hil.config import load_config
 from rths_hil.recorder import read_run
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 QUICK = ["--lockstep", "--set", "loop.console=0"]
 
 

@@ -20,6 +20,10 @@ from rths_hil.config import load_config
 from tests.helpers.cli import one_line_exit_2
 from tests.helpers.procs import ROOT, ServedTwin, toml_table
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 # the latency window is 1 s at 1024 Hz: commands 1 … 1024 after the arming command
 LATENCY_SEQS = ",".join(str(k) for k in range(1, 1025))
 BASE = [

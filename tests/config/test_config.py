@@ -17,6 +17,10 @@ from rths_hil.config import (
 )
 from rths_hil.errors import InputError
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 ROOT = Path(__file__).resolve().parents[2]
 
 

@@ -34,6 +34,10 @@ from rths_hil.linkbudget import link_load as budget
 from rths_hil.recorder import read_run
 from tests.helpers.loop import run_loop
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 ROOT = Path(__file__).resolve().parents[2]
 ENABLED, ESTOP, FAULT = int(Status.ENABLED), int(Status.ESTOP_ACTIVE), int(Status.FAULT)
 

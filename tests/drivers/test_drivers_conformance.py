@@ -30,6 +30,10 @@ from rths_hil.sim_backends.twin import default_plant, start_twin
 
 from rths_hil.errors import InputError
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 DT = 1.0 / 1024.0
 DELAY, GAIN, STIFFNESS = 0.0033, 0.9, 2.0e5
 TIMEOUT = 0.5  # generous: the CI machine is shared

@@ -27,6 +27,10 @@ from rths_hil.hybrid import RTHSLoop
 from tests.helpers.loop import run_loop
 from tests.helpers.procs import ServedTwin
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 ROOT = Path(__file__).resolve().parents[2]
 UNITS = ROOT / "examples" / "modbus_units.toml"
 

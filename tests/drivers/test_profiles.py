@@ -25,6 +25,10 @@ from rths_hil.cli import main
 from rths_hil.errors import InputError
 from rths_hil.recorder import read_run
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples" / "controllers"
 MODBUS_MAP = EXAMPLES / "modbus_map.toml"

@@ -25,6 +25,10 @@ from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import COLUMNS, read_run
 from tests.helpers.loop import run_loop
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 ROOT = Path(__file__).resolve().parents[2]
 TWO = ROOT / "examples" / "two_actuators.toml"
 MIXED = ROOT / "examples" / "mixed_drivers.toml"

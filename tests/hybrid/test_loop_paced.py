@@ -16,6 +16,10 @@ from rths_hil.config import load_config
 from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import header_row_count, read_run
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 FS = 1024.0
 # a loaded CI machine must not stop these runs for reasons they do not test
 TOLERANT = [

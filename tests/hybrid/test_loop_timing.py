@@ -26,6 +26,10 @@ from rths_hil.hybrid import (
 )
 from rths_hil.recorder import read_run
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 DT = 1.0 / 4096.0
 THR = 0.5 * DT
 

@@ -35,6 +35,10 @@ from tests.helpers.cli import one_line_exit_2
 from tests.helpers.loop import run_loop
 from tests.helpers.procs import LATCH_LINE, ROOT, ServedTwin, bridge_cmd, toml_table, wait_rows
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 MM = 1e-3
 LSB = 1e-7  # CAN/Modbus displacement resolution (m)
 BASE = [

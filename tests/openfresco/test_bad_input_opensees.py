@@ -21,6 +21,10 @@ from rths_hil.openfresco import protocol as P
 from rths_hil.recorder import read_run
 from tests.helpers.openfresco import GENERIC_CLIENT_ID, _client, _frame, _loop, _recv
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 
 def test_client_that_connects_and_sends_no_id(tmp_path):
     loop, port = _loop(tmp_path, "noid")

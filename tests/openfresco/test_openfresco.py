@@ -38,6 +38,10 @@ from rths_hil.openfresco.timing import (
 from rths_hil.recorder import read_run
 from tests.helpers.openfresco import GENERIC_CLIENT_ID, _client, _frame, _loop, _recv
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 # ---------------------------------------------------------------------------------------------
 # protocol and mapping
 

@@ -25,6 +25,10 @@ from rths_hil.recorder import (
 )
 from tests.helpers.records import row as _row
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 NAMES = [c[0] for c in COLUMNS]
 
 

@@ -32,6 +32,10 @@ from rths_hil.recorder import read_run
 from tests.helpers.loop import run_loop
 from tests.helpers.procs import ServedTwin, toml_table
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 FS = 1024
 AT = 300  # the faulty step (≈ 0.29 s into the run)
 CONTROLLERS = Path(__file__).resolve().parents[2] / "examples" / "controllers"

@@ -12,8 +12,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from rths_hil.recorder import RECORD_FILE, header_row_count, read_run
+
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
 
 ROOT = Path(__file__).resolve().parents[2]
 

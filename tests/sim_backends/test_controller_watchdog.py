@@ -34,6 +34,10 @@ from tests.helpers.procs import (
     wait_rows,
 )
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 # The twins' watchdog in these tests (s). Served twins: 0.25 s, so that a lockstep bridge
 # descheduled for tens of ms on a loaded 2-core machine is not taken for a dead one; in-process
 # twins fed by a tight loop: 0.1 s.

@@ -31,6 +31,10 @@ from rths_hil.sim_backends.delay import fractional_delay
 from rths_hil.sim_backends.plant import TwinPlant
 from rths_hil.sim_backends.twin import default_plant, start_twin
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 DT = 1.0 / 1024.0
 DELAY, GAIN, K = 0.0042, 1.05, 3.0e5
 ROOT = Path(__file__).resolve().parents[2]

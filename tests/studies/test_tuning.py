@@ -29,6 +29,10 @@ from rths_hil.tuning import (
     zero_crossing,
 )
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 FS = 1024.0
 DT = 1.0 / FS
 # Fast settings for trials through the loop: serial transport (the fastest twin), 6 s trials

@@ -26,6 +26,10 @@ from rths_hil.recorder import header_row_count, read_run
 from rths_hil.watch.browser import Browser, chromium_path
 from tests.helpers.watch_records import write_run
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 FS = 256
 # the run must not stop for reasons this test does not inject (a loaded CI machine is late)
 PACED = [

@@ -22,6 +22,10 @@ from rths_hil.watch.shaping import (
     true_runs,
 )
 
+# against the wall clock or with other processes: run apart from the parallel tests
+# (the "timing" marker, pyproject.toml; make test)
+pytestmark = pytest.mark.timing
+
 RNG = np.random.default_rng(27)
 
 
