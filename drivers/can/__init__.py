@@ -11,11 +11,9 @@ path.
 The bus is opened through python-can from configuration: ``interface`` (default
 ``"virtual"``, in-process only), ``channel``, ``bitrate`` and any extra python-can options in
 ``bus_options``. On Linux with SocketCAN use ``interface="socketcan", channel="vcan0"``
-(or ``can0``); a USB–CAN adapter is reached through python-can's ``serial`` or ``slcan``
-interface with the serial device as ``channel``. A twin served as its own process on this
-machine (``rths-hil twin serve --driver can``) is reached over python-can's ``udp_multicast``
-interface (``channel`` = a multicast group, e.g. ``239.74.163.2``; frames in UDP datagrams on
-the loopback) or over ``serial``/``slcan`` on a pair of pseudo-terminals.
+(or ``can0``); a USB–CAN adapter or a twin served as its own process on this machine
+(``rths-hil twin serve --driver can --interface serial``) is reached through python-can's
+``serial`` or ``slcan`` interface with the serial device as ``channel``.
 
 **Several actuators on one bus.** Each controller is a CAN *node* ``n`` (``node``, 0–15): all
 its message identifiers are the DBC's plus ``n`` (``Command`` 0x100 + n, ``Feedback``
@@ -68,9 +66,7 @@ MAX_NODE = 15
 
 #: python-can interfaces whose ``recv(timeout)`` returns within the timeout (read directly);
 #: any other is read through a :class:`can.Notifier` thread (see the module docstring).
-#: ``udp_multicast`` waits in ``select`` with the time left: CAN frames in UDP datagrams of one
-#: multicast group, between processes on this machine (a twin served as its own process).
-TIMEOUT_HONOURED = frozenset({"virtual", "socketcan", "udp_multicast"})
+TIMEOUT_HONOURED = frozenset({"virtual", "socketcan"})
 
 _BUS_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
 

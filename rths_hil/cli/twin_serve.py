@@ -14,7 +14,6 @@ Examples::
     rths-hil twin serve --driver serial                          # pseudo-terminal
     rths-hil twin serve --driver serial --transport tcp --port 5000
     rths-hil twin serve --driver can --interface serial              # pseudo-terminal pair
-    rths-hil twin serve --driver canopen --interface udp_multicast   # UDP on this machine
     rths-hil twin serve --driver can --interface socketcan --channel vcan0 --model twin.toml
     rths-hil twin serve --driver modbus --port 1502 --profile examples/controllers/modbus_map.toml
 """
@@ -77,14 +76,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--interface",
         default="socketcan",
-        help="CAN: python-can interface (default socketcan; udp_multicast: UDP datagrams on this "
-        "machine; serial or slcan: a pseudo-terminal pair on this machine)",
+        help="CAN: python-can interface (default socketcan; serial or slcan: a pseudo-terminal "
+        "pair on this machine)",
     )
     p.add_argument(
         "--channel",
         default=None,
-        help="CAN: channel (default vcan0; udp_multicast: 239.74.163.2; serial, slcan: pty = a "
-        "new pseudo-terminal pair)",
+        help="CAN: channel (default vcan0; serial, slcan: pty = a new pseudo-terminal pair)",
     )
     p.add_argument("--bitrate", type=int, default=None, help="CAN: bit rate (bit/s)")
     p.add_argument("--faults", default=None, help='fault plan, e.g. "drop=5,9; p_corrupt=0.01"')

@@ -7,8 +7,8 @@ serial device paths such that bytes written to one are read from the other. A tw
 framing — the CAN, CAN profile and CANopen twins serve python-can's ``serial`` and ``slcan``
 interfaces this way (:func:`serial_line`). Nothing leaves the machine: a pseudo-terminal is a
 kernel object, not a network endpoint. :func:`can_line_from_args` is the line a CAN twin served
-as its own process opens from the command line: one of these pseudo-terminal pairs, python-can's
-``udp_multicast`` group, or the lab's interface.
+as its own process opens from the command line: one of these pseudo-terminal pairs, or the lab's
+interface.
 
 The cable keeps a descriptor of each end open itself, so that a process closing its end (or
 being killed) does not hang the pair up: the next process that opens the same path continues
@@ -33,7 +33,6 @@ log = logging.getLogger(__name__)
 __all__ = [
     "PTY_CHANNEL",
     "PTY_INTERFACES",
-    "UDP_GROUP",
     "NullModem",
     "can_line_from_args",
     "serial_line",
@@ -145,15 +144,9 @@ PTY_INTERFACES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
 }
 
 
-#: ``channel`` of a twin on python-can's ``udp_multicast`` interface when none is given: the
-#: library's own IPv4 group (CAN frames in UDP datagrams; on one machine they stay on loopback).
-UDP_GROUP = "239.74.163.2"
-
-
 def can_line_from_args(args: Any, who: str) -> dict[str, Any]:
     """The CAN line a twin served as its own process opens: ``--interface``, ``--channel``
-    (default ``pty`` for the serial-line interfaces, :data:`UDP_GROUP` for ``udp_multicast``,
-    else ``vcan0``) and ``--bitrate``.
+    (default ``pty`` for the serial-line interfaces, else ``vcan0``) and ``--bitrate``.
 
     Raises
     ------
@@ -163,14 +156,13 @@ def can_line_from_args(args: Any, who: str) -> dict[str, Any]:
     if args.interface == "virtual":
         raise InputError(
             f"{who}: --interface virtual: python-can's virtual bus only reaches buses inside the "
-            "same process; use --interface udp_multicast or serial (this machine), --interface "
-            "socketcan --channel vcan0 (or the lab's interface), or start the twin in-process "
-            "with rths_hil.sim_backends.twin.start_twin"
+            "same process; use --interface serial or slcan (a pseudo-terminal pair on this "
+            "machine), --interface socketcan --channel vcan0 (or the lab's interface), or start "
+            "the twin in-process with rths_hil.sim_backends.twin.start_twin"
         )
     channel = args.channel
     if channel is None:
-        defaults = {"udp_multicast": UDP_GROUP, **{i: PTY_CHANNEL for i in PTY_INTERFACES}}
-        channel = defaults.get(args.interface, "vcan0")
+        channel = PTY_CHANNEL if args.interface in PTY_INTERFACES else "vcan0"
     conn: dict[str, Any] = {"interface": args.interface, "channel": channel}
     if args.bitrate is not None:
         conn["bitrate"] = args.bitrate
