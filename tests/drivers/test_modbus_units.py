@@ -27,10 +27,6 @@ from rths_hil.hybrid import RTHSLoop
 from tests.helpers.loop import run_loop
 from tests.helpers.procs import ServedTwin
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
-
 ROOT = Path(__file__).resolve().parents[2]
 UNITS = ROOT / "examples" / "modbus_units.toml"
 
@@ -74,6 +70,7 @@ def test_two_units_on_one_connection_fei_delay_per_channel(tmp_path):
     assert abs(_median_delay(run.record, "_storey3") - 0.020) < 1e-3
 
 
+@pytest.mark.timing  # a wall-clock lockstep timeout
 @pytest.mark.parametrize("fault", ["stuck", "disconnect"])
 def test_a_fault_on_one_unit_stops_both(tmp_path, fault):
     over = {
@@ -132,6 +129,7 @@ def test_driver_refuses_a_unit_already_open_on_the_connection():
                 create_driver("modbus", **twin.connection).open()
 
 
+@pytest.mark.timing  # a client polling in wall-clock time
 def test_pipelined_units_on_the_wire_and_a_plain_pymodbus_client():
     """Both requests written before either reply; the server answers each unit in its own
     transaction (distinct transaction ids); a plain pymodbus client reads each unit's state."""
@@ -167,6 +165,7 @@ def test_pipelined_units_on_the_wire_and_a_plain_pymodbus_client():
     assert t1.stats.steps == t2.stats.steps == 50
 
 
+@pytest.mark.timing  # the twins' wall-clock watchdogs
 def test_each_unit_has_its_own_controller_watchdog():
     port = _free_port()
     with (
@@ -191,6 +190,7 @@ def test_each_unit_has_its_own_controller_watchdog():
         assert t2.controller.watchdog_tripped and t2.controller.estop_latched
 
 
+@pytest.mark.timing  # a served twin (another process)
 def test_twin_serve_several_units(tmp_path):
     served = ServedTwin("--driver", "modbus", "--device-id", "1", "--device-id", "2")
     try:

@@ -25,10 +25,6 @@ from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import COLUMNS, read_run
 from tests.helpers.loop import run_loop
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
-
 ROOT = Path(__file__).resolve().parents[2]
 TWO = ROOT / "examples" / "two_actuators.toml"
 MIXED = ROOT / "examples" / "mixed_drivers.toml"
@@ -148,6 +144,7 @@ def _delay_jump_plant(dt: float, k_jump: int):
     return Jump()
 
 
+@pytest.mark.timing  # a wall-clock lockstep timeout
 @pytest.mark.parametrize("fault", ["stuck", "disconnect", "delay_jump"])
 def test_a_fault_on_one_channel_stops_every_channel(tmp_path, fault):
     over: list[str] = []
@@ -184,6 +181,7 @@ def test_a_fault_on_one_channel_stops_every_channel(tmp_path, fault):
     assert [e["confirmed"] for e in estops if e["channel"] == "storey1"] == [True]
 
 
+@pytest.mark.timing  # paced, killed
 def test_kill_9_of_a_paced_two_channel_run_leaves_a_readable_record(tmp_path):
     out = tmp_path / "killed"
     code = (
@@ -282,6 +280,7 @@ def test_console_names_the_worst_channel(tmp_path):
     assert not math.isnan(last["delay"]) or last["t"] < 2.5
 
 
+@pytest.mark.timing  # paced
 def test_exact_fei_is_recorded_at_its_windows_end_step(tmp_path):
     """Issue 15 §4: in a paced run the exact cross-check comes back from a worker process some
     steps after its window ended; the record and the report place it at the window's end,

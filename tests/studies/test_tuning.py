@@ -29,10 +29,6 @@ from rths_hil.tuning import (
     zero_crossing,
 )
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
-
 FS = 1024.0
 DT = 1.0 / FS
 # Fast settings for trials through the loop: serial transport (the fastest twin), 6 s trials
@@ -344,6 +340,7 @@ def test_hardware_tuning_prompt_answered_no_runs_nothing(tmp_path, capsys, monke
     assert not out.exists()
 
 
+@pytest.mark.timing  # paced
 def test_hardware_tuning_with_confirmation_runs_paced_at_reduced_amplitude(tmp_path, capsys):
     from rths_hil.sim_backends.twin import default_plant, start_twin
 
