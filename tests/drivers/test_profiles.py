@@ -341,7 +341,10 @@ def test_examples_run_paced(tmp_path, cfg) -> None:
     relaxed = ["--set", "safety.watchdog_timeout=0.2", "--set", "safety.max_overruns=100000"]
     relaxed += ["--set", "loop.fs=512"]
     assert main([*args, "--set", "loop.console=0", *relaxed, "-q"]) == 0
-    assert read_run(out).record["feedback_ok"].mean() > 0.9
+    # most steps answered in time: a reply filed under the wrong step (one step late, or every
+    # other step) gives at most half; a loaded machine here misses 1–12 % (0.88–0.99 in six
+    # runs of the Modbus map)
+    assert read_run(out).record["feedback_ok"].mean() > 0.75
 
 
 def test_startup_check_refuses_a_map_the_controller_lacks(tmp_path) -> None:
