@@ -125,8 +125,9 @@ def test_lab_driver_paced_run_completes(lab_package: Path, tmp_path: Path, capsy
     err = capsys.readouterr().err
     assert code == 0, err
     rec = read_run(out).record
-    # paced on a shared machine: a reply may miss its 0.8-period deadline now and then
-    assert len(rec) == 2048 and rec["feedback_ok"].mean() > 0.9
+    # paced on a shared machine: a reply may miss its 0.8-period deadline now and then (the twin
+    # is a thread); a reply filed under the wrong step would leave at most half answered
+    assert len(rec) == 2048 and rec["feedback_ok"].mean() > 0.75
     link = [ln for ln in err.splitlines() if "link mylab udp" in ln]
     assert link and "UDP loopback" in link[0]
 
