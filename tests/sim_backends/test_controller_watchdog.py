@@ -347,10 +347,12 @@ def test_in_process_twin_latches_when_commands_stop(driver, profile):
         with create_driver(driver, **twin.connection) as drv:
             assert drv.arm(1.0) is not None
             for k in range(200):
+                # the twin's watchdog counts from the command's arrival: after this, before the
+                # reply is back
+                t_last = time.monotonic()
                 drv.send(k, 0.002 * np.sin(k / 50), True)
                 fb = drv.receive(1.0)
                 assert fb is not None and fb.status & Status.ENABLED
-            t_last = time.monotonic()
             while not twin.controller.watchdog_tripped and time.monotonic() - t_last < 2.0:
                 time.sleep(0.001)
             t_latch = time.monotonic() - t_last
