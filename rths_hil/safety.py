@@ -647,6 +647,10 @@ class SafetyMonitor:
         self._vel = LimitRule("velocity", velocity_limit, "m/s") if velocity_limit else None
         self._force = LimitRule("force", force_limit, "N") if force_limit else None
         self.disp_limit = self._disp.limit if self._disp else inf
+        # the band a displacement relative to the start position may take: inside the limit,
+        # and its absolute position (relative + offset) inside the limit too (set_offset)
+        self.offset = 0.0
+        self._d_lo, self._d_hi = -self.disp_limit, self.disp_limit
         self.vel_limit = self._vel.limit if self._vel else inf
         self.force_limit = self._force.limit if self._force else inf
         self.fei = fei
@@ -680,6 +684,28 @@ class SafetyMonitor:
                 names.append(r.rule)
         return names
 
+    def set_offset(self, offset: float) -> None:
+        """Displacements checked from now on are relative to ``offset`` (m), the start position
+        of ``start.mode = "offset"``: each must stay inside the limit, and so must the absolute
+        position ``value + offset`` (the actuator's stroke does not move with the test)."""
+        self.offset = float(offset)
+        lim = self.disp_limit
+        self._d_lo = max(-lim, -lim - self.offset)
+        self._d_hi = min(lim, lim - self.offset)
+
+    def _disp_trip(self, quantity: str, value: float) -> Trip:
+        """The displacement trip of ``value`` (relative), named absolute when only the
+        absolute position ``value + offset`` is outside the limit."""
+        rule = self._disp
+        assert rule is not None
+        trip = rule.check(quantity, value)
+        if trip is None:
+            absolute = value + self.offset
+            trip = rule.check(f"absolute {quantity} (start position {self.offset * 1e3:+.6g} mm)",
+                              absolute)  # fmt: skip
+        assert trip is not None
+        return trip
+
     def _fire(self, trip: Trip, t: float, k: int) -> Trip:
         self.tripped = trip.at(t, k)
         return self.tripped
@@ -697,10 +723,10 @@ class SafetyMonitor:
             return self.tripped
         if not _isfinite(target + velocity + command):
             return self._nan(t, k, ("target", "velocity", "command"), (target, velocity, command))
-        lim = self.disp_limit
-        if not (-lim <= command <= lim and -lim <= target <= lim):
-            q, v = ("command", command) if not (-lim <= command <= lim) else ("target", target)
-            return self._fire(self._disp.check(q, v), t, k)
+        lo, hi = self._d_lo, self._d_hi
+        if not (lo <= command <= hi and lo <= target <= hi):
+            q, v = ("command", command) if not (lo <= command <= hi) else ("target", target)
+            return self._fire(self._disp_trip(q, v), t, k)
         lim = self.vel_limit
         if not (-lim <= velocity <= lim):
             return self._fire(self._vel.check("velocity", velocity), t, k)
@@ -743,9 +769,8 @@ class SafetyMonitor:
             return self._fire(ctl.check(status), t, k)
         if not _isfinite(measured + force):
             return self._nan(t, k, ("measured", "force"), (measured, force))
-        lim = self.disp_limit
-        if not (-lim <= measured <= lim):
-            return self._fire(self._disp.check("measured displacement", measured), t, k)
+        if not (self._d_lo <= measured <= self._d_hi):
+            return self._fire(self._disp_trip("measured displacement", measured), t, k)
         lim = self.force_limit
         if not (-lim <= force <= lim):
             return self._fire(self._force.check("measured force", force), t, k)

@@ -11,7 +11,13 @@ from ..errors import InputError
 from .model import Config, resolve_channel
 from .schema import CHANNEL_SECTIONS
 
-__all__ = ["check_window_samples", "cross_check", "cross_check_channel", "structure_dofs"]
+__all__ = [
+    "check_motion_keys",
+    "check_window_samples",
+    "cross_check",
+    "cross_check_channel",
+    "structure_dofs",
+]
 
 
 def cross_check(cfg: Config, note: str = "") -> None:
@@ -114,3 +120,31 @@ def cross_check_channel(cfg: Config, where: str) -> None:
     check_window_samples(w, ws, lp["fs"], where)
     if c["adaptive"] and not cfg["fei"]["enabled"]:
         raise InputError(f"{where}: compensation.adaptive needs fei.enabled = true")
+    check_motion_keys(cfg, where)
+
+
+def check_motion_keys(cfg: Config, where: str) -> None:
+    """The keys of a run that name a position or a distance the actuator is driven to, against
+    the channel's displacement limit, before anything moves.
+
+    A rest position on or past the displacement limit would drive the actuator into its own
+    trip at the end of a test (and leave it e-stopped, not handed back). The start position
+    is where the actuator is, refused outside the limit when the run starts
+    (:mod:`rths_hil.hybrid.phases`); the start and end
+    ramps' speed (``start.velocity``) is capped at half the velocity limit by the loop itself
+    (documented with the key), and ``rths-hil commission`` holds its own motion against the
+    limits where the actuator is, so neither is refused here.
+    """
+    lim = cfg["safety"]["displacement_limit"]
+    if not lim:
+        return
+    checks = []
+    if cfg["end"]["rest"] == "position":
+        checks.append(("end.rest_position", cfg["end"]["rest_position"]))
+    for key, value in checks:
+        if not abs(value) < lim:
+            raise InputError(
+                f"{where}: {key}: {value * 1e3:+.6g} mm is not inside the displacement limit "
+                f"±{lim * 1e3:.6g} mm (safety.displacement_limit); the actuator would be driven "
+                "into a trip"
+            )

@@ -334,6 +334,8 @@ class Phases:
                 mode=self.start_cfg["mode"],
             )  # fmt: skip
         self.offsets = [w.offset for w in where]
+        for ch, off in zip(self.chans, self.offsets, strict=True):
+            ch.monitor.set_offset(off)  # offset mode: the absolute stroke is watched too
         self.sent = [w.position for w in where]
         # absolute commands: from where each actuator is to its step-0 command
         a = np.array([w.position for w in where])
