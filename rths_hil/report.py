@@ -31,6 +31,16 @@ from .recorder import RECORD_FILE, RunData, read_npy_header, read_run
 __all__ = ["LiveLine", "format_live", "format_summary", "plot_report", "summarize"]
 
 
+def _number(v: Any) -> float | None:
+    """A finite number from a summary or event field, else ``None``.
+
+    Events keep a non-finite float by name (``"nan"``, :func:`~rths_hil.formats.json_safe`).
+    """
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        return None
+    return float(v) if math.isfinite(v) else None
+
+
 def _fmt(v: float | None, scale: float = 1.0, spec: str = ".3f", signed: bool = False) -> str:
     if v is None or not math.isfinite(v):
         return "—"
@@ -229,7 +239,6 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
     if isinstance(wall, int | float):
         out["wall_time"] = wall
     for key in (
-        "steps_per_second",
         "missed_replies",
         "overrun_causes",
         "stalls",
@@ -239,6 +248,8 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
     ):
         if key in end:
             out[key] = end[key]
+    if "steps_per_second" in end:  # NaN (no loop step: a trip in the start ramp) -> null
+        out["steps_per_second"] = _number(end["steps_per_second"])
     if write:
         p = Path(run_dir) / "summary.json"
         p.write_text(json_text(out))
@@ -610,10 +621,11 @@ def format_summary(s: dict[str, Any]) -> str:
                 f"  stalls of the bridge itself (not the controller): {st['count']}, longest "
                 f"{st['longest'] * 1e3:.1f} ms, total {st['total'] * 1e3:.1f} ms"
             )
-    if s.get("steps_per_second"):
-        lines.append(
-            f"  {s['steps_per_second']:.0f} steps/s, missed replies {s.get('missed_replies', 0)}"
-        )
+    sps = _number(s.get("steps_per_second"))
+    if sps is not None or "missed_replies" in s:
+        # no loop step taken (a trip in the start ramp): no rate, only the missed replies
+        rate = f"{sps:.0f} steps/s" if sps is not None else "no loop steps"
+        lines.append(f"  {rate}, missed replies {s.get('missed_replies', 0)}")
     return "\n".join(lines)
 
 

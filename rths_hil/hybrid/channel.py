@@ -376,10 +376,12 @@ class Channel:
 
         A new command with ``enable=True`` is ignored by a latched controller (it holds
         position) and answered with ESTOP_ACTIVE. ``enable=False`` would acknowledge (clear)
-        the latch, so it is not used here. ``seq`` continues the sequence (no gap).
+        the latch, so it is not used here. ``seq`` continues the sequence in the loop's
+        numbering (sent through :attr:`send`: after a start ramp its :class:`Link` shifts it
+        past the ramp's sequence numbers and adds the start offset).
         """
         try:
-            self.driver.send(seq, self.last_command, True)
+            self.send(seq, self.last_command, True)
             fb = self.receive(0.2)
         except InputError:
             fb = None

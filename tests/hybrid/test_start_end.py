@@ -244,6 +244,25 @@ def test_trip_still_estops_without_a_ramp(tmp_path):
     assert len(plant.commands) == res.steps
 
 
+def test_trip_in_the_start_ramp_exits_3_with_a_summary(tmp_path, capsys):
+    """A trip before loop step 0 (a NaN reply in the start ramp): exit 3, the summary printed
+    (no steps, no rate), the e-stop confirmed by a poll numbered after the ramp's commands."""
+    from rths_hil.cli import main
+
+    out = tmp_path / "run"
+    sets = [*BASE, 'twin.initial_position="3mm"', 'twin.faults="nan=5"']
+    code = main(["run", "--lockstep", "--out", str(out), *[a for s in sets for a in ("--set", s)]])
+    cap = capsys.readouterr()
+    assert code == 3, cap.err
+    assert "Traceback" not in cap.err + cap.out
+    assert "trip after 0 steps" in cap.out and "no loop steps, missed replies 0" in cap.out
+    assert "e-stop: nan" in cap.err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "trip" and summary["steps"] == 0
+    assert summary["trip"]["rule"] == "nan" and summary["trip"]["step"] < 0  # in the ramp
+    assert summary["steps_per_second"] is None and summary["estop_confirmed"] is True
+
+
 HB = 0.25  # the served twin's heartbeat watchdog (s)
 # paced against a twin process on a loaded 2-core machine: a reply may take a few ms (the
 # loop waits up to 10 ms for it, then catches up), the bridge's feedback watchdog at 0.3 s (a
