@@ -53,7 +53,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -136,6 +136,18 @@ def _count(name: str, value: int, minimum: int = 1) -> int:
     return int(value)
 
 
+def _tolerance(value: Any, what: str) -> float:
+    """A rule's tolerance: a number > 0, or 0 / ``inf`` for "this part of the rule is off"
+    (the configuration's documented ``0 = off``), which is returned as ``inf``."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be a number, got {value!r}") from None
+    if v == 0.0 or v == math.inf:
+        return math.inf
+    return positive_number(v, what)
+
+
 class LimitRule:
     """``|value| > limit`` on one quantity (displacement, velocity, force).
 
@@ -198,8 +210,8 @@ class FEIRule:
 
     def __init__(self, amplitude_tol: float, delay_tol: float, consecutive: int = 1) -> None:
         self.rule = "fei"
-        self.amplitude_tol = positive_number(amplitude_tol, "FEI amplitude tolerance")
-        self.delay_tol = positive_number(delay_tol, "FEI delay tolerance")
+        self.amplitude_tol = _tolerance(amplitude_tol, "FEI amplitude tolerance")
+        self.delay_tol = _tolerance(delay_tol, "FEI delay tolerance")
         self.consecutive = _count("FEI consecutive windows", consecutive)
         self.count = 0
         self.tripped: Trip | None = None
@@ -281,7 +293,7 @@ class KalmanRule:
             )
         self.gain_min = float(gain_min)
         self.gain_max = float(gain_max)
-        self.delay_max = positive_number(delay_max, "Kalman delay limit")
+        self.delay_max = _tolerance(delay_max, "Kalman delay limit")
 
     def check(self, gain: float, delay: float) -> Trip | None:
         """Trip when the gain leaves its range or the delay exceeds its limit."""

@@ -111,3 +111,34 @@ def test_offset_start_near_the_limit_trips_on_the_absolute_stroke(tmp_path):
     assert trip["rule"] == "displacement" and "absolute" in trip["reason"]
     absolute = r.run.record["command"] + 45 * MM
     assert np.max(absolute) <= 50 * MM  # never commanded past the stroke limit
+
+
+# ----------------------------------------------------------------------------------------------
+# the documented "0 = off" of the rules' tolerances
+
+
+@pytest.mark.parametrize("key", ["fei_delay_tol", "fei_amplitude_tol", "kf_delay_max"])
+@pytest.mark.parametrize("value", ["0", '"0"', '"0 ms"'])
+def test_zero_switches_a_tolerance_off(tmp_path, key, value):
+    if key == "fei_amplitude_tol" and "ms" in value:
+        value = "0.0"  # a ratio has no unit
+    r = run_loop(tmp_path / "r", None, *QUICK, f"safety.{key}={value}", mode="lockstep")
+    assert r.result.status == "completed"
+    rules = r.loop.runner.channels[0].monitor
+    if key.startswith("fei"):
+        tol = rules.fei.delay_tol if key == "fei_delay_tol" else rules.fei.amplitude_tol
+    else:
+        tol = rules.kalman.delay_max
+    assert tol == float("inf")
+
+
+def test_a_tolerance_off_never_trips_on_its_own_part():
+    from rths_hil.safety import FEIRule, KalmanRule
+
+    rule = FEIRule(0.0, 0.005, consecutive=1)  # amplitude part off
+    assert rule.check(5.0, 0.001, True) is None  # A far off, d inside: no trip
+    assert rule.check(1.0, 0.010, True) is not None  # d outside: trips
+    k = KalmanRule(0.5, 1.5, 0.0)
+    assert k.check(1.0, 10.0) is None and k.check(2.0, 0.0) is not None
+    with pytest.raises(InputError, match="FEI delay tolerance must be a finite number > 0"):
+        FEIRule(0.1, -1.0)
