@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -56,7 +57,18 @@ def _override_items(overrides: Overrides, sections: Mapping[str, Any]) -> list[s
     elif isinstance(overrides, str):
         items.append(overrides)
     elif isinstance(overrides, Mapping):
-        items += [_item(str(k), v) for k, v in overrides.items()]
+        for k, v in overrides.items():
+            if not isinstance(k, str):
+                raise InputError(
+                    f"overrides: key {k!r} is of type {type(k).__name__}; expected a dotted "
+                    "key such as 'compensation.alpha'"
+                )
+            items.append(_item(k, v))
+    elif not isinstance(overrides, Iterable):
+        raise InputError(
+            f"overrides: expected a dict of dotted keys or a list of 'section.key=value' "
+            f"strings, got {type(overrides).__name__} {overrides!r}"
+        )
     else:
         for o in overrides:
             if not isinstance(o, str):
@@ -118,6 +130,12 @@ def configure(
     elif isinstance(config, Config):
         base = copy.deepcopy(config)
     elif isinstance(config, Mapping):
+        for k in config:
+            if not isinstance(k, str):
+                raise InputError(
+                    f"config: key {k!r} is of type {type(k).__name__}; a configuration dict has "
+                    "section names as keys ({'loop': {'fs': 1024}, ...})"
+                )
         base = default_config()
         base.base_dir = Path.cwd()
         base.source = "<dict>"
@@ -170,8 +188,19 @@ def run(
     from .units import parse_time
 
     cfg = configure(config, overrides, **sections)
+    if run_dir is not None and not isinstance(run_dir, str | os.PathLike):
+        raise InputError(f"run_dir: expected a path (str or Path), got {type(run_dir).__name__}")
     if isinstance(duration, str):
         duration = parse_time(duration, "duration")
+    elif duration is not None and (
+        isinstance(duration, bool) or not isinstance(duration, int | float)
+    ):
+        raise InputError(
+            f"duration: expected seconds as a number or a string such as '10 s', got "
+            f"{type(duration).__name__} {duration!r}"
+        )
+    if mode is not None and mode not in ("lockstep", "paced"):
+        raise InputError(f"mode: expected 'lockstep' or 'paced', got {mode!r}")
     result = RTHSLoop(cfg, run_dir, plant=plant, live=live, mode=mode, duration=duration).run()
     if summary or report:
         from .report import plot_report, summarize
@@ -251,7 +280,15 @@ class Run:
 
 
 def open_run(run_dir: str | Path) -> Run:
-    """Read a run directory (also of a tripped or crashed run): :class:`Run`."""
+    """Read a run directory (also of a tripped or crashed run): :class:`Run`.
+
+    Raises
+    ------
+    InputError
+        ``run_dir`` is not a path, or not a readable run directory (one line).
+    """
     from .recorder import read_run
 
+    if not isinstance(run_dir, str | os.PathLike):
+        raise InputError(f"run_dir: expected a path (str or Path), got {type(run_dir).__name__}")
     return Run(read_run(run_dir))

@@ -73,12 +73,38 @@ def test_a_config_passed_in_is_not_changed():
         ((None, {"loop.fs": object()}), {}, "is not a configuration value"),
         ((3.5,), {}, "expected a TOML path, a dict or a Config"),
         (("missing.toml",), {}, "missing.toml: cannot read config"),
+        ((None, 42), {}, "overrides: expected a dict of dotted keys"),
+        (({1: 2},), {}, "config: key 1 is of type int"),
+        ((None, {1: 2}), {}, "overrides: key 1 is of type int"),
     ],
 )
 def test_bad_input_raises_input_error_with_one_line(args, kwargs, needle):
     with pytest.raises(InputError) as exc:
         rths_hil.configure(*args, **kwargs)
     assert needle in str(exc.value) and "\n" not in str(exc.value)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "needle"),
+    [
+        ({"run_dir": 123}, "run_dir: expected a path (str or Path), got int"),
+        ({"duration": [1]}, "duration: expected seconds as a number or a string"),
+        ({"duration": True}, "duration: expected seconds"),
+        ({"mode": "fast"}, "mode: expected 'lockstep' or 'paced', got 'fast'"),
+    ],
+)
+def test_run_arguments_are_checked_before_anything_starts(tmp_path, monkeypatch, kwargs, needle):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputError) as exc:
+        rths_hil.run(None, {"output.plot": False}, **{"mode": "lockstep", **kwargs})
+    assert needle in str(exc.value) and "\n" not in str(exc.value)
+    assert not (tmp_path / "runs").exists()  # no run directory was made
+
+
+@pytest.mark.parametrize("bad", [123, None, 4.5])
+def test_open_run_names_its_argument(bad):
+    with pytest.raises(InputError, match=r"run_dir: expected a path \(str or Path\), got "):
+        rths_hil.open_run(bad)
 
 
 def test_api_run_equals_the_command_line_run(tmp_path):
