@@ -46,6 +46,8 @@ from __future__ import annotations
 import csv
 import logging
 import math
+import zipfile
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -552,15 +554,19 @@ def load_npz(path: str | Path, **damping: Any) -> MDOFModel:
         data = np.load(p, allow_pickle=False)
     except FileNotFoundError:
         raise InputError(f"{p}: no such file") from None
-    except (OSError, ValueError, EOFError):
-        raise InputError(f"{p}: not a NumPy .npz archive of arrays") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        raise InputError(
+            f"{p}: not a NumPy .npz archive of arrays (truncated or damaged?)"
+        ) from None
     if not isinstance(data, np.lib.npyio.NpzFile):
         raise InputError(f"{p}: a single array (.npy), expected an .npz archive with M and K")
     try:
         with data:
             arrays = {k: np.array(data[k]) for k in data.files}
-    except (OSError, ValueError, EOFError):
-        raise InputError(f"{p}: an array in the archive cannot be read") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error):
+        raise InputError(
+            f"{p}: an array in the archive cannot be read (truncated or damaged?)"
+        ) from None
     by_lower = {k.lower(): k for k in arrays}
     found: dict[str, np.ndarray] = {}
     for key in _NPZ_KEYS:

@@ -367,6 +367,14 @@ def test_bad_matrices_give_one_line_errors(tmp_path):
     with pytest.raises(InputError) as e:
         load_npz(tmp_path / "text.npz")
     _one_line_error(e, "text.npz", "not a NumPy .npz archive")
+    # a truncated archive (a copy cut short): every cut of a real one is refused in one line
+    np.savez_compressed(tmp_path / "whole.npz", M=M, K=K)
+    whole = (tmp_path / "whole.npz").read_bytes()
+    for cut in range(1, len(whole), max(1, len(whole) // 23)):
+        (tmp_path / "cut.npz").write_bytes(whole[:cut])
+        with pytest.raises(InputError) as e:
+            load_npz(tmp_path / "cut.npz")
+        _one_line_error(e, "cut.npz", "truncated or damaged")
 
     (tmp_path / "M.csv").write_text("1e4, 0\n0, 1e4\n")
     (tmp_path / "K.csv").write_text("4e7, -2e7\n-2e7, nan\n")
