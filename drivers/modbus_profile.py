@@ -45,6 +45,7 @@ naming the role.
 
 from __future__ import annotations
 
+import logging
 import os
 import select
 import socket
@@ -74,11 +75,13 @@ from pymodbus.pdu.register_message import (
 
 from rths_hil.errors import InputError
 
-from .base import Driver, Feedback, LinkDown, extend_seq
+from .base import Driver, Feedback, LinkDown, Status, extend_seq
 from .modbus_layout import BlockLayout, PointLayout, RequestTemplate, StepReply
 from .profile import ModbusAction, ModbusProfile, load_profile, status_from_word
 
 __all__ = ["ModbusProfileDriver"]
+
+log = logging.getLogger(__name__)
 
 _READS = {
     "holding": ReadHoldingRegistersRequest,
@@ -88,10 +91,32 @@ _READS = {
 }
 #: The function code of each table's read response (and FC 23's).
 _READ_FC = {"holding": 3, "input": 4, "coil": 1, "discrete": 2}
-SLOT_CHECK = 13  # the start-up reads
+SLOT_CHECK = 13  # the start-up reads (and the pipelining probe)
 SLOT_HEARTBEAT = 14
-SLOT_ACTION = 15
-_EXC = {1: "illegal function", 2: "illegal data address", 3: "illegal data value"}
+SLOT_ACTION = 15  # actions, the set-point written ahead of the enable, the e-stop and its poll
+_EXC = {
+    1: "illegal function",
+    2: "illegal data address",
+    3: "illegal data value",
+    4: "server device failure",
+    6: "server device busy",
+}
+#: How long the pipelining probe waits for the second answer once the first came (s).
+PROBE_WAIT = 0.1
+#: E-stop over Modbus TCP: how long it may wait for the answer outstanding on the link before
+#: writing the e-stop there (s), and how long it keeps writing and reading back (s).
+ESTOP_DRAIN = 0.05
+#: One request at a time over TCP: how long a request stays outstanding (the next ones wait
+#: for its answer) before the driver gives it up and writes the next (s).
+HEAD_GIVEUP = 0.1
+ESTOP_WINDOW = 0.5
+_FLAG_NAMES = {
+    int(Status.ENABLED): "enabled",
+    int(Status.ESTOP_ACTIVE): "e-stop",
+    int(Status.FAULT): "fault",
+    int(Status.WATCHDOG): "watchdog",
+    int(Status.SENSOR_INVALID): "sensor invalid",
+}
 
 
 class ModbusProfileDriver(Driver):
@@ -111,6 +136,21 @@ class ModbusProfileDriver(Driver):
         Unit id; the profile's ``[modbus] unit`` by default.
     connect_timeout : float
         TCP connect and start-up check timeout (s).
+    estop_timeout : float
+        How long one e-stop write waits for its answer (s); the e-stop is written again and
+        read back within 0.5 s (:meth:`estop`).
+    estop_connection : bool
+        Modbus TCP: open a second connection to the controller, idle but for the e-stop and
+        its read-back, so that the e-stop never waits behind a request outstanding on the
+        step's connection (a controller that serves one request at a time drops a request
+        that arrives while another is in progress). Without it, or when the controller does
+        not answer there, the e-stop waits for the outstanding answer (at most 50 ms).
+
+    Attributes
+    ----------
+    link_note : str or None
+        What the driver found out about the link when it opened (e.g. that the controller
+        answers one request at a time), for the run's events; ``None`` when nothing.
     """
 
     name: ClassVar[str] = "modbus"
@@ -130,6 +170,7 @@ class ModbusProfileDriver(Driver):
         device_id: int | None = None,
         connect_timeout: float = 1.0,
         estop_timeout: float = 0.1,
+        estop_connection: bool = True,
     ) -> None:
         super().__init__()
         prof = load_profile(profile)
@@ -150,6 +191,20 @@ class ModbusProfileDriver(Driver):
         self.unit = prof.unit if device_id is None else int(device_id)
         self.connect_timeout = float(connect_timeout)
         self.estop_timeout = float(estop_timeout)
+        if not isinstance(estop_connection, bool):
+            raise InputError(
+                f"modbus driver: estop_connection must be true or false, got {estop_connection!r}"
+            )
+        self.estop_connection = estop_connection
+        self.link_note: str | None = None
+        self._probed = False  # the pipelining probe ran (TCP, pipeline = true)
+        self._arming = False
+        self._esock: socket.socket | None = None  # the e-stop's own connection (TCP)
+        self._ebuf = b""
+        self._etid = 0
+        self._word: int | None = None  # the controller's last status word
+        self._head_t = 0.0  # when the request at the head of the queue was written
+        self.estop_word: int | None = None  # its status word read back after the e-stop
         self._framer: Any = (FramerRTU if self._rtu else FramerSocket)(DecodePDU(False))
         self._sock: socket.socket | None = None
         self._ser: Any = None
@@ -226,6 +281,63 @@ class ModbusProfileDriver(Driver):
         except InputError:
             self.close()
             raise
+        if not self._rtu:
+            if not self._serial and not self._probed:
+                self._probe_pipeline()
+            if self.estop_connection:
+                self._open_estop_link()
+
+    def _probe_pipeline(self) -> None:
+        """Two reads in one write: does the controller answer both? A controller that serves
+        one transaction at a time drops (or never answers) the second; then the driver sends
+        one request at a time from now on, and says so (log, :attr:`link_note`)."""
+        self._probed = True
+        b = self._reads[0]
+        req = _READS[b.table](address=b.address, count=b.count)
+        deadline = time.perf_counter() + self.connect_timeout
+        for attempt in range(3):
+            tids = [((0x100 + 2 * attempt + i) << 4) | SLOT_CHECK for i in (0, 1)]
+            self._write(b"".join(self._frame(req, t) for t in tids))
+            got: set[int] = set()
+            first = 0.0
+            while len(got) < 2:
+                until = deadline if not got else min(deadline, first + PROBE_WAIT)
+                r = self._next_pdu(until)
+                if r is None:
+                    break
+                if r[0] in tids:
+                    got.add(r[0])
+                    first = first or time.perf_counter()
+            if not got:
+                return  # no answer at all: arming will say so
+            if len(got) < 2:
+                self._serial = True
+                self._reply = None
+                self._compile()  # the step's requests one at a time
+                self.link_note = (
+                    f"the controller at {self._where()} (unit {self.unit}) answers one request "
+                    "at a time: of two requests written together it answered the first only; "
+                    "sending one request at a time (profile [modbus] pipeline = true)"
+                )
+                log.warning("modbus driver: %s", self.link_note)
+                return
+
+    def _open_estop_link(self) -> None:
+        """The e-stop's own connection (TCP); none when the controller refuses a second one."""
+        self._close_estop_link()
+        try:
+            sock = socket.create_connection((self.host, self.port), self.connect_timeout)
+        except OSError as exc:
+            log.info("modbus driver: no second connection for the e-stop (%s)", exc)
+            return
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.setblocking(False)
+        self._esock, self._ebuf = sock, b""
+
+    def _close_estop_link(self) -> None:
+        sock, self._esock = self._esock, None
+        if sock is not None:
+            sock.close()
 
     def _compile(self) -> None:
         """pymodbus's generic work, once: the step's request template and the read blocks'
@@ -265,6 +377,11 @@ class ModbusProfileDriver(Driver):
         self._reply = StepReply(self._framer, self.unit, replies)
 
     def close(self) -> None:
+        self._close_estop_link()
+        self._close_main()
+
+    def _close_main(self) -> None:
+        """Close the step's connection (a lost link; the e-stop's own stays open)."""
         sock, self._sock = self._sock, None
         ser, self._ser = self._ser, None
         self._fd = None
@@ -295,7 +412,7 @@ class ModbusProfileDriver(Driver):
         except OSError:
             self.stats.send_errors += 1
             self.stats.disconnects += 1
-            self.close()
+            self._close_main()
 
     def _submit(self, requests: list[tuple[int, int, bytes]]) -> None:
         """Send ``(tid, function code, frame)`` requests: TCP pipelined all at once in one
@@ -310,6 +427,7 @@ class ModbusProfileDriver(Driver):
         self._pending.extend(requests)
         if idle:
             self._write(self._pending[0][2])
+            self._head_t = time.perf_counter()
 
     def _check_map(self) -> None:
         """Read every mapped block once; refuse a map the controller does not have."""
@@ -411,6 +529,7 @@ class ModbusProfileDriver(Driver):
             pending.popleft()
             if pending:
                 self._write(pending[0][2])
+                self._head_t = time.perf_counter()
         return tid, pdu_bytes
 
     # -- commands -------------------------------------------------------------------------------
@@ -428,44 +547,253 @@ class ModbusProfileDriver(Driver):
         out: list[tuple[int, int, bytes]] = []
         pending = self._pending
         if pending and any(r[0] & 15 < SLOT_CHECK for r in pending):
-            # RTU: the last step's requests were not all answered (it timed out): drop them
-            self.stats.late += len(pending)
-            pending.clear()
-            if self._rtu:  # (a TCP stream keeps its framing: a late answer is told by its id)
-                self._buf = b""
-        acts = self.profile.actions
-        if not enable and (seq == 0 or self._estop_sent):
-            # the arming command (a new run) or the first disable after our e-stop: acknowledge
-            out += self._action(acts.get("disable")) + self._action(acts.get("acknowledge"))
-            self._enabled, self._estop_sent = False, False
-        elif enable != self._enabled:  # (the hand-back at a normal end only disables)
-            out += self._action(acts.get("enable" if enable else "disable"))
-            self._enabled = enable
-        base = (seq & 0x0FFF) << 4
+            # the last step's requests were not all answered (it timed out): drop them
+            self._drop_pending()
         tpl = self._template
         if tpl is None:  # not opened: nothing goes out (counted as the closed link)
             self.stats.send_errors += 1
             return
+        acts = self.profile.actions
+        base = (seq & 0x0FFF) << 4
+        if self._arming:
+            # the arming command (a new run): disable, acknowledge, read where the actuator
+            # is; no set-point (the controller would follow it once enabled)
+            out += self._action(acts.get("disable")) + self._action(acts.get("acknowledge"))
+            self._enabled, self._estop_sent = False, False
+            self._submit(out + self._reads_only(base))
+            return
+        preload: list[tuple[int, int, bytes]] = []
+        if not enable and (seq == 0 or self._estop_sent):
+            # the first disable after our e-stop (or a step 0 disabled): acknowledge
+            out += self._action(acts.get("disable")) + self._action(acts.get("acknowledge"))
+            self._enabled, self._estop_sent = False, False
+        elif enable != self._enabled:  # (the hand-back at a normal end only disables)
+            if enable and "enable" in acts:
+                # the enable edge: the set-point first, so that the controller follows this
+                # command from the edge, not what its register held
+                tid = (1 << 4) | SLOT_ACTION
+                frame = tpl.build(raw, tid)
+                if tpl.tids:  # (the pipelined template carries the reads after the write)
+                    frame = frame[: tpl.tids[0]]
+                preload = [(tid, tpl.function_code, frame)]
+            out += self._action(acts.get("enable" if enable else "disable"))
+            self._enabled = enable
+        out = preload + out
         if self._reply is not None:  # pipelined TCP: FC 16 + reads (or FC 23) in one write
             frames = tpl.build(raw, base)  # transaction ids base, base + 1, …
             self._write(b"".join([r[2] for r in out]) + frames if out else frames)
             return
         out.append((base, tpl.function_code, tpl.build(raw, base)))  # FC 16 or FC 23
         if not self.profile.fc23 and self._serial:
-            for i, frame in enumerate(self._read_frames, start=1):
-                if self._rtu:
-                    out.append((base | i, frame[1], frame))
-                else:
-                    out.append((base | i, frame[7], (base | i).to_bytes(2, "big") + frame[2:]))
+            out += self._reads_only(base)
         self._submit(out)
 
+    def _drop_pending(self) -> None:
+        """Drop the last step's unanswered requests before this step's go out.
+
+        RTU: all of them (the line is resynchronised). Modbus TCP one at a time: the request
+        on the wire stays outstanding unless it has been for ``HEAD_GIVEUP`` (a controller
+        that serves one request at a time drops one written while another is in progress, so
+        the next is written when its answer comes); the ones not yet written are dropped, but
+        for a heartbeat (the controller's watchdog counts on it).
+        """
+        pending = self._pending
+        if self._rtu or time.perf_counter() - self._head_t > HEAD_GIVEUP:
+            keep: list[tuple[int, int, bytes]] = []
+        else:
+            keep = [pending[0]]
+        hb = [r for r in list(pending)[len(keep) :] if r[0] & 15 == SLOT_HEARTBEAT]
+        dropped = [r for r in list(pending)[len(keep) :] if r[0] & 15 != SLOT_HEARTBEAT]
+        self.stats.late += len(dropped) + (1 - len(keep))
+        if any(r[0] & 15 == SLOT_ACTION and r[2] for r in dropped):
+            self._enabled = None  # an action that never went out: the next step sends it
+        pending.clear()
+        pending.extend(keep + hb)
+        if self._rtu:  # (a TCP stream keeps its framing: a late answer is told by its id)
+            self._buf = b""
+        elif not keep and pending:
+            self._write(pending[0][2])
+            self._head_t = time.perf_counter()
+
+    def _reads_only(self, base: int) -> list[tuple[int, int, bytes]]:
+        """The step's reads alone (for FC 23 maps an FC 3 of the block) with the step's ids."""
+        if self.profile.fc23:
+            b = self._reads[0]
+            req = ReadHoldingRegistersRequest(address=b.address, count=b.count)
+            return [(base, req.function_code, self._frame(req, base))]
+        out = []
+        for i, frame in enumerate(self._read_frames, start=1):
+            if self._rtu:
+                out.append((base | i, frame[1], frame))
+            else:
+                out.append((base | i, frame[7], (base | i).to_bytes(2, "big") + frame[2:]))
+        return out
+
+    def arm(self, timeout: float, receive: Any = None) -> Feedback | None:
+        """Start a new run: disable, acknowledge a latch and read where the actuator is, with
+        no set-point written (see :meth:`Driver.arm`); the run's first command writes the
+        set-point ahead of the enable."""
+        self._arming = True
+        try:
+            return super().arm(timeout, receive)
+        finally:
+            self._arming = False
+
     def estop(self) -> None:
+        """Latch the controller's e-stop (``actions.estop``), whatever is outstanding.
+
+        RTU: written at once, answered after the request on the line. Modbus TCP: written on
+        the e-stop's own connection (``estop_connection``), else on the step's connection once
+        the answer outstanding there has come (at most 50 ms: a controller that serves one
+        request at a time drops a request that arrives while another is in progress); its
+        answer awaited (``estop_timeout``) and the status word read back, and written again
+        until the status word shows the e-stop or 0.5 s have passed. :attr:`estop_word` is
+        the status word read back (``None``: no answer); the outcome is logged in the
+        controller's own terms (its status register).
+        """
         self.stats.estops += 1
         self._estop_sent = True  # the next disable acknowledges it
         ((tid, fc, frame),) = self._action(self.profile.actions["estop"])
         if self._rtu:  # written now: answered after the request on the line, if any
             self._pending.insert(1 if self._pending else 0, (tid, fc, b""))
-        self._write(frame)
+            self._write(frame)
+            return
+        self._estop_tcp()
+
+    def _estop_tcp(self) -> None:
+        mask = self._masks[int(Status.ESTOP_ACTIVE)]
+        end = time.perf_counter() + ESTOP_WINDOW
+        self.estop_word = None
+        writes, answered, refused = 0, 0, None
+        while True:
+            own = self._esock is not None
+            if not own:
+                self._drain(min(end, time.perf_counter() + ESTOP_DRAIN))
+            self._etid = (self._etid + 1) & 0xFF
+            tid = ((0xE00 | self._etid) << 4) | SLOT_ACTION
+            act = self.profile.actions["estop"]
+            ((_, _, frame),) = self._action(act)
+            frame = tid.to_bytes(2, "big") + frame[2:]
+            writes += 1
+            pdu = self._ask(frame, tid, min(end, time.perf_counter() + self.estop_timeout), own)
+            if pdu is not None:
+                answered += 1
+                if pdu[0] & 0x80:
+                    refused = pdu[1] if len(pdu) > 1 else 0
+                word = self._read_status(end, own)
+                if word is not None:
+                    self.estop_word = word
+                    if word & mask:
+                        break
+            if time.perf_counter() >= end:
+                break
+        if own:  # the step's connection: let its outstanding answer come (the confirmation poll)
+            self._drain(min(end, time.perf_counter() + ESTOP_DRAIN))
+        self._pending.clear()
+        via = "its own connection" if self._esock is not None else "the step's connection"
+        word = self.estop_word
+        where = f"modbus driver: e-stop to the controller at {self._where()} over {via}"
+        if word is not None and word & mask:
+            log.warning(
+                "%s: latched, status register %s (%d write%s)",
+                where, self.describe_word(word), writes, "s" if writes > 1 else "",
+            )  # fmt: skip
+        elif word is not None:
+            why = f", the e-stop write refused (exception {refused})" if refused else ""
+            log.error(
+                "%s: NOT latched: status register %s after %d writes in %.0f ms%s",
+                where, self.describe_word(word), writes, ESTOP_WINDOW * 1e3, why,
+            )  # fmt: skip
+        else:
+            log.error(
+                "%s: not confirmed: no status read back (%d writes, %d answered, in %.0f ms)",
+                where, writes, answered, ESTOP_WINDOW * 1e3,
+            )  # fmt: skip
+
+    def _drain(self, deadline: float) -> None:
+        """One request at a time: wait (until ``deadline``) for the answer outstanding on the
+        step's connection, sending nothing more; the requests queued behind it are dropped."""
+        pending = self._pending
+        while len(pending) > 1:
+            pending.pop()
+        while pending and self._fd is not None:
+            try:
+                if self._next_pdu(deadline) is None:
+                    break
+            except OSError:
+                self._close_main()
+                break
+
+    def _ask(self, frame: bytes, tid: int, deadline: float, own: bool) -> bytes | None:
+        """Write one request on the e-stop's own connection (``own``) or the step's, and
+        return the PDU of its answer (``None``: none before ``deadline``)."""
+        if not own:
+            if self._fd is None:
+                return None
+            self._pending.clear()
+            self._write(frame)
+            while True:
+                try:
+                    got = self._next_pdu(deadline)
+                except OSError:
+                    self._close_main()
+                    return None
+                if got is None:
+                    return None
+                if got[0] == tid:
+                    return got[1]
+        sock = self._esock
+        if sock is None:
+            return None
+        try:
+            sock.send(frame)
+            while True:
+                while len(self._ebuf) >= 8:
+                    used, dev_id, rtid, pdu = self._framer.decode(self._ebuf)
+                    if not used:
+                        break
+                    self._ebuf = self._ebuf[used:]
+                    if rtid == tid and dev_id == self.unit and pdu:
+                        return bytes(pdu)
+                remaining = deadline - time.perf_counter()
+                if remaining <= 0 or not select.select((sock,), (), (), remaining)[0]:
+                    return None
+                data = sock.recv(4096)
+                if not data:
+                    raise ConnectionResetError("closed")
+                self._ebuf += data
+        except OSError:
+            self._close_estop_link()  # the next attempt goes over the step's connection
+            return None
+
+    def _read_status(self, end: float, own: bool) -> int | None:
+        """The controller's status word, read on its own (``None``: no answer)."""
+        st = self._status
+        req = _READS[st.table](address=st.address, count=st.count)
+        self._etid = (self._etid + 1) & 0xFF
+        tid = ((0xF00 | self._etid) << 4) | SLOT_CHECK
+        pdu = self._ask(
+            self._frame(req, tid), tid, min(end, time.perf_counter() + self.estop_timeout), own
+        )
+        if pdu is None or pdu[0] & 0x80 or len(pdu) < 3:
+            return None
+        if st.table in ("coil", "discrete"):
+            return pdu[2] & 1
+        n = pdu[1] // 2
+        if n < st.count or len(pdu) < 2 + 2 * n:
+            return None
+        regs = [int.from_bytes(pdu[2 + 2 * i : 4 + 2 * i], "big") for i in range(st.count)]
+        return st.raw_from_registers(regs)
+
+    def describe_word(self, word: int) -> str:
+        """A status word in the controller's terms: ``0x00A0 (e-stop, watchdog)``."""
+        names = [_FLAG_NAMES[f] for f, m in self._masks.items() if word & m and f in _FLAG_NAMES]
+        return f"0x{word:04X} ({', '.join(names) if names else 'none of the profile bits'})"
+
+    def fault_text(self) -> str:
+        """The controller's last status register, in its own terms (for a trip's reason)."""
+        word = self._word
+        return "" if word is None else f"status register {self.describe_word(word)}"
 
     def heartbeat(self) -> None:
         hb = self.profile.heartbeat
@@ -488,7 +816,8 @@ class ModbusProfileDriver(Driver):
         if slot >= SLOT_CHECK or (slot == 0 and not self.profile.fc23):
             return None  # a write's echo
         index = 0 if self.profile.fc23 else slot - 1
-        if not 0 <= index < self._n_reads or fc != self._block_fc[index]:
+        want = self._block_fc[index] if 0 <= index < self._n_reads else -1
+        if fc != want and not (want == 23 and fc == 3):  # (FC 3: the arming read, FC 23 map)
             self.stats.count_malformed("bad_frame")
             return None
         seq12 = tid >> 4
@@ -509,11 +838,12 @@ class ModbusProfileDriver(Driver):
             return None
         self._done = set()
         self._parts = {}
+        word = self._word = int(parts["status"])
         return Feedback(
             extend_seq(seq12, self._last_sent, 12),
             parts["position"],
             parts["force"],
-            self._status_of(parts["status"]),
+            self._status_of(word),
         )
 
     def _status_of(self, word: int) -> int:
@@ -537,7 +867,8 @@ class ModbusProfileDriver(Driver):
         if got is None:
             return None
         self._buf = self._buf[reply.size :]
-        return Feedback(last, got[0], got[1], self._status_of(got[2]))
+        word = self._word = got[2]
+        return Feedback(last, got[0], got[1], self._status_of(word))
 
     def _recv_internal(self, deadline: float) -> Feedback | None:
         while True:
@@ -561,7 +892,7 @@ class ModbusProfileDriver(Driver):
                 raise ConnectionResetError("peer closed the connection")
         except (OSError, ValueError):
             self.stats.disconnects += 1
-            self.close()
+            self._close_main()
             raise LinkDown("modbus connection lost") from None
         if data:
             self._buf += data
