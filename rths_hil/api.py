@@ -256,8 +256,22 @@ class Run:
         return df.set_index("time")
 
     def summary(self) -> dict[str, Any]:
-        """The run's summary (:func:`rths_hil.report.summarize`; also writes summary.json)."""
+        """The run's summary (:func:`rths_hil.report.summarize`; also writes summary.json).
+
+        Raises
+        ------
+        InputError
+            The run has no ``meta.json`` (its mode, driver, planned length and e-stop outcome
+            are unknown: a summary would hold ``None`` for them).
+        """
+        from .recorder import META_FILE
         from .report import summarize
+
+        if not self.meta:
+            raise InputError(
+                f"{self.path / META_FILE}: missing or empty: the run's mode, driver and planned "
+                "length are unknown, so it cannot be summarised (the record is still readable)"
+            )
 
         return summarize(self.path)
 

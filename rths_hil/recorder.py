@@ -425,37 +425,82 @@ def read_run(run_dir: str | Path, mmap: bool = False) -> RunData:
     if not rec_path.is_file():
         raise InputError(f"{d}: not a run directory (no {RECORD_FILE})")
     record = read_record(rec_path, mmap=mmap)
-    meta: dict = {}
-    mp = d / META_FILE
-    if mp.is_file():
-        try:
-            meta = json.loads(mp.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise InputError(f"{mp}: unreadable metadata ({exc})") from None
-        except OSError as exc:
-            raise InputError(f"{mp}: unreadable metadata ({exc.strerror})") from None
-        if not isinstance(meta, dict):
+    mp, ep = d / META_FILE, d / EVENTS_FILE
+    for p in (mp, ep):  # there but not readable: its data would be lost silently
+        if os.path.lexists(p) and not p.is_file():
             raise InputError(
-                f"{mp}: unreadable metadata (expected a JSON object, got {type(meta).__name__})"
+                f"{p}: not a readable file ({_not_a_file(p)}); the run's "
+                f"{'metadata' if p == mp else 'events'} cannot be read"
             )
-    events: list[dict] = []
-    ep = d / EVENTS_FILE
-    if ep.is_file():
-        lines = ep.read_text(encoding="utf-8", errors="replace").splitlines()
-        for i, line in enumerate(lines):
-            if not line.strip():
-                continue
-            try:
-                ev = json.loads(line)
-            except json.JSONDecodeError:
-                if i == len(lines) - 1:
-                    log.warning("%s: ignoring a truncated last event line", ep)
-                    continue
-                raise InputError(f"{ep}:{i + 1}: malformed event line") from None
-            if not isinstance(ev, dict):
-                raise InputError(f"{ep}:{i + 1}: malformed event line (not a JSON object)")
-            events.append(ev)
+    meta = _read_meta(mp) if mp.is_file() else {}
+    events = _read_events(ep) if ep.is_file() else []
     return RunData(record=record, events=events, meta=meta, path=d)
+
+
+def _read_meta(mp: Path) -> dict:
+    """``meta.json`` as a dict, or one line saying why it cannot be read."""
+    try:
+        meta = json.loads(mp.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{mp}: unreadable metadata ({exc})") from None
+    except RecursionError:
+        raise InputError(f"{mp}: unreadable metadata (nested too deeply)") from None
+    except OSError as exc:
+        raise InputError(f"{mp}: unreadable metadata ({exc.strerror})") from None
+    if not isinstance(meta, dict):
+        raise InputError(
+            f"{mp}: unreadable metadata (expected a JSON object, got {type(meta).__name__})"
+        )
+    return meta
+
+
+def _read_events(ep: Path) -> list[dict]:
+    """The event lines of ``events.jsonl`` (a truncated last line, as a kill leaves it, is
+    skipped with a warning; any other bad line is one error naming it)."""
+    events: list[dict] = []
+    lines = ep.read_text(encoding="utf-8", errors="replace").splitlines()
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            ev = json.loads(line)
+        except RecursionError:
+            raise InputError(f"{ep}:{i + 1}: malformed event line (nested too deeply)") from None
+        except json.JSONDecodeError:
+            if i == len(lines) - 1:
+                log.warning("%s: ignoring a truncated last event line", ep)
+                continue
+            raise InputError(f"{ep}:{i + 1}: malformed event line") from None
+        if not isinstance(ev, dict):
+            raise InputError(f"{ep}:{i + 1}: malformed event line (not a JSON object)")
+        events.append(ev)
+    return events
+
+
+def _not_a_file(p: Path) -> str:
+    """Why ``p``, which exists, is not a readable regular file (for a message)."""
+    try:
+        p.stat()
+    except OSError as exc:
+        return exc.strerror or type(exc).__name__
+    return "a directory" if p.is_dir() else "not a regular file"
+
+
+def _check_described(run: RunData, names: list[str], what: str) -> None:
+    """Refuse an export that would silently lose the units or events (``meta.json`` missing or
+    not describing every exported column)."""
+    if not run.meta:
+        raise InputError(
+            f"{run.path / META_FILE}: missing or empty: {what} would have no units, "
+            "configuration or events metadata (export --csv writes the record alone)"
+        )
+    described = {c.get("name") for c in run.meta.get("columns", []) if isinstance(c, dict)}
+    missing = [n for n in names if n not in described]
+    if missing:
+        raise InputError(
+            f"{run.path / META_FILE}: no unit for column(s) {', '.join(missing[:5])}"
+            f"{' …' if len(missing) > 5 else ''} (truncated metadata?): {what} would lose them"
+        )
 
 
 def export_run(
@@ -514,6 +559,10 @@ def export_run(
                 f"{run.path}: no column(s) {', '.join(unknown)} (columns: {', '.join(names)})"
             )
         names = ["time", *[c for c in columns if c != "time"]]
+    if hdf5:
+        _check_described(run, names, "record.h5")
+    if mat:
+        _check_described(run, names, "record.mat")
     written: list[Path] = []
     if csv:
         p = dest / "record.csv"

@@ -36,10 +36,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Export; print the files written."""
+    from ..errors import InputError
     from ..recorder import export_run
 
     csv = args.csv or not (args.hdf5 or args.mat)
-    cols = [c.strip() for c in args.columns.split(",") if c.strip()] if args.columns else None
+    cols = None
+    if args.columns is not None:
+        cols = [c.strip() for c in args.columns.split(",") if c.strip()]
+        if not cols:
+            raise InputError(
+                f"--columns {args.columns!r}: no column name in it (e.g. target,command,measured)"
+            )
     for path in export_run(
         args.run_dir, csv=csv, hdf5=args.hdf5, out_dir=args.out, columns=cols, mat=args.mat
     ):

@@ -259,7 +259,7 @@ class RunFollower:
         p = self.run_dir / META_FILE
         try:
             meta = json.loads(p.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
+        except (OSError, ValueError, RecursionError):
             meta = {}
         if not isinstance(meta, dict):
             log.warning("%s: metadata is not a JSON object; ignored", p)
@@ -285,7 +285,7 @@ class RunFollower:
                 continue
             try:
                 ev = json.loads(line)
-            except ValueError:
+            except (ValueError, RecursionError):
                 ev = None
             if isinstance(ev, dict):
                 self.events.append(ev)
