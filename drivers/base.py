@@ -269,6 +269,13 @@ class Driver(ABC):
     #: Fixed-point resolution of the command on the wire (m per count) for
     #: :func:`check_command`; ``None`` for a float wire format.
     command_lsb: ClassVar[float | None] = DISPLACEMENT_LSB
+    #: The set-point and the enable flag travel together in one frame (a CAN frame, a serial
+    #: frame, the built-in Modbus FC 23 request): the position of an ``enable=False`` command is
+    #: not a set-point a controller follows. ``False`` for a protocol that writes the set-point
+    #: apart from the enable (a register map whose controller applies the set-point on write;
+    #: CiA 402's target and controlword): :meth:`arm` then reads where the actuator is first
+    #: (:meth:`poll`) and writes only that (see :meth:`arm`, "no start jump").
+    atomic_command: ClassVar[bool] = True
 
     stats: DriverStats
     # class-level defaults: a subclass that does not call Driver.__init__ still works
@@ -279,8 +286,13 @@ class Driver(ABC):
     _rx_queue: queue.Queue | None = None
     _rx_stop: threading.Event | None = None
     _last_receive = 0.0
+    _last_position = 0.0  # the last finite measured displacement delivered (m)
     _overrun_warned = False
     _threaded = True
+    #: Why the transport is down (the :class:`LinkDown` message of the last receive), or
+    #: ``None`` while it is up: set when :meth:`receive` catches :class:`LinkDown`, cleared by
+    #: the next delivered feedback. The loop trips on it at once (a dead link is not a pause).
+    link_down: str | None = None
 
     def __init__(self) -> None:
         self.stats = DriverStats()
@@ -382,8 +394,9 @@ class Driver(ABC):
         while True:
             try:
                 fb = recv(deadline)
-            except LinkDown:
+            except LinkDown as exc:
                 stats.timeouts += 1
+                self.link_down = str(exc) or type(exc).__name__
                 return None
             now = _perf()
             if fb is not None:
@@ -393,12 +406,16 @@ class Driver(ABC):
                     ok = self._match(fb)
                 if ok:
                     stats.received += 1
+                    if self.link_down is not None:
+                        self.link_down = None
                     if fb.status & _SENSOR_INVALID:  # the controller flags the sample invalid
                         fb.displacement = math.nan
                     d = fb.displacement
                     f = fb.force
                     if d != d or f != f:
                         stats.invalid_values += 1
+                    elif d - d == 0.0:
+                        self._last_position = d
                     fb.age = now - self._t_sent
                     return fb
             if now >= deadline:
@@ -418,10 +435,13 @@ class Driver(ABC):
         if not ok:
             return None
         self.stats.received += 1
+        self.link_down = None
         if fb.status & _SENSOR_INVALID:
             fb.displacement = math.nan
         if fb.displacement != fb.displacement or fb.force != fb.force:
             self.stats.invalid_values += 1
+        elif math.isfinite(fb.displacement):
+            self._last_position = fb.displacement
         fb.age = _perf() - self._t_sent
         return fb
 
@@ -461,26 +481,64 @@ class Driver(ABC):
     def heartbeat(self) -> None:  # noqa: B027 - deliberately a no-op by default
         """Send a keep-alive where the bus needs one; a no-op otherwise."""
 
+    def poll(
+        self, timeout: float, receive: Callable[[float], Feedback | None] | None = None
+    ) -> Feedback | None:
+        """Read the controller's status and where the actuator is, writing no set-point.
+
+        Needed by a driver whose :attr:`atomic_command` is false (:meth:`arm`): a status read
+        (Modbus input registers, a CiA 402 TPDO or an SDO upload). Default: ``None`` (this
+        driver cannot read without commanding).
+        """
+        return None
+
     def arm(
         self, timeout: float, receive: Callable[[float], Feedback | None] | None = None
     ) -> Feedback | None:
         """Start a new run on the controller: send the arming command, forget old sequences.
 
-        The arming command is sequence number 0 with ``enable=False`` (position 0.0 is not
-        used: the controller holds). A controller (every twin) takes it as the start of a new
-        run: it restarts its sequence count (so the run's step 0 is a new command, whatever a
-        previous run sent), acknowledges a latched e-stop or watchdog trip and holds position;
-        the run's first command (step 0, ``enable=True``) then enables it. Afterwards this
-        driver's own sequence bookkeeping is reset, so the reply to step 0 is not taken for a
-        duplicate of the arming reply.
+        The arming command is sequence number 0 with ``enable=False``. A controller (every
+        twin) takes it as the start of a new run: it restarts its sequence count (so the run's
+        step 0 is a new command, whatever a previous run sent), acknowledges a latched e-stop or
+        watchdog trip and holds position; the run's first command with ``enable=True`` then
+        enables it. Afterwards this driver's own sequence bookkeeping is reset, so the reply to
+        step 0 is not taken for a duplicate of the arming reply.
+
+        **No start jump** (the contract every driver keeps, its own ``arm`` included): arming
+        writes no set-point the actuator would follow.
+
+        * :attr:`atomic_command` true (set-point and enable in one frame): the arming command's
+          position is not followed by a disabled controller; it carries the last position this
+          driver measured (0.0 before any reply), never a target.
+        * :attr:`atomic_command` false: the driver first reads where the actuator is without
+          writing (:meth:`poll`) and the arming command writes exactly that position as the
+          set-point, still disabled; when the position cannot be read, nothing is written and
+          ``None`` is returned (the start is refused on hardware).
+
+        The runner then sends the run's first ``enable=True`` command with the position the
+        arming reply reported — the start ramp's first point, or without a ramp a step-0
+        command within ``start.tolerance`` of it (:mod:`rths_hil.hybrid.phases`) — and keeps
+        commanding and heartbeating every period from there to step 0 (``docs/loop.md``).
 
         Returns the controller's reply to the arming command (its status before the run and
-        where the actuator is: the run starts from there, :mod:`rths_hil.hybrid.phases`), or
-        ``None`` when none came within ``timeout`` seconds. ``receive`` replaces
-        :meth:`receive` (the loop passes its own, which serves an inline twin first).
+        where the actuator is: the run starts from there), or ``None`` when none came within
+        ``timeout`` seconds. ``receive`` replaces :meth:`receive` (the loop passes its own,
+        which serves an inline twin first).
         """
-        self.send(0, 0.0, False)
-        fb = (receive or self.receive)(timeout)
+        recv = receive or self.receive
+        hold = self._last_position
+        if not self.atomic_command:
+            where = self.poll(timeout, receive)
+            if where is None or not math.isfinite(where.displacement):
+                log.warning(
+                    "driver %s: where the actuator is could not be read before arming; "
+                    "nothing written",
+                    getattr(self, "name", type(self).__name__),
+                )
+                return None
+            hold = where.displacement
+        self.send(0, hold, False)
+        fb = recv(timeout)
         self._last_sent = -1
         self._last_delivered = -1
         return fb

@@ -280,6 +280,10 @@ class DelayGainEstimator:
         self._x = np.array([float(gain0), float(delay0), 0.0, 0.0])  # g, τ, b, innovation
         self._p = np.diag(p0).ravel()
         self._arrays = (self._u, self._y, self._st, self._x, self._p, self._c)
+        # held samples (a missed reply: the loop repeats the last measurement): one flag per
+        # slot of the measurement ring, and how many are set (0: the fast path)
+        self._held = bytearray(self._m + 1)
+        self._n_held = 0
         self._innovation = 0.0  # filterpy backend
         # load the kernel now on a throwaway copy, not at the loop's first sample
         _ekf_update(*(a.copy() for a in self._arrays), 0.0, 0.0)
@@ -332,9 +336,28 @@ class DelayGainEstimator:
         return self._m * self.dt
 
     # -- filterpy-style steps ---------------------------------------------------------------
-    def push(self, input_sample: float, measured_sample: float) -> None:
-        """Store one (input, measured) sample pair; call before :meth:`predict`/:meth:`correct`."""
+    def push(self, input_sample: float, measured_sample: float, fresh: bool = True) -> None:
+        """Store one (input, measured) sample pair; call before :meth:`predict`/:meth:`correct`.
+
+        ``fresh=False``: the measurement is a held one (no reply came; the loop repeats the
+        last): the input goes into the history as usual, and :meth:`correct` skips the
+        measurement update that would use this sample (``M`` samples later).
+        """
+        self._mark(fresh)
         _ekf_push(self._u, self._y, self._st, float(input_sample), float(measured_sample))
+
+    def _mark(self, fresh: bool) -> None:
+        """Flag the slot of the sample about to be pushed as fresh or held."""
+        if fresh and not self._n_held:
+            return
+        slot = int(self._st[1]) % len(self._held)
+        new = 0 if fresh else 1
+        self._n_held += new - self._held[slot]
+        self._held[slot] = new
+
+    def _z_held(self) -> bool:
+        """The measurement the next :meth:`correct` uses (``y[k−M]``) is a held one."""
+        return bool(self._n_held) and bool(self._held[int(self._st[1]) % len(self._held)])
 
     def predict(self) -> None:
         """Time update of the random-walk model: ``x`` unchanged, ``P += Q``."""
@@ -349,7 +372,12 @@ class DelayGainEstimator:
         return (value, dvalue) if ok else None
 
     def correct(self) -> bool:
-        """Measurement update with the stored samples; return False while warming up."""
+        """Measurement update with the stored samples; return False while warming up.
+
+        Also False (no update) when the measurement it would use was pushed as held.
+        """
+        if self._z_held():
+            return False
         if self.backend == "filterpy":
             if self._st[1] <= self._m:
                 return False
@@ -373,11 +401,20 @@ class DelayGainEstimator:
         return True
 
     # -- per-sample convenience -------------------------------------------------------------
-    def update(self, input_sample: float, measured_sample: float) -> tuple[float, float]:
+    def update(
+        self, input_sample: float, measured_sample: float, fresh: bool = True
+    ) -> tuple[float, float]:
         """Push one sample pair, predict, correct; return ``(gain, delay)``.
 
         The estimate refers to the measurement ``M`` samples back (:attr:`latency`).
+        ``fresh=False`` marks a held measurement (a missed reply): it is never used as a
+        measurement update (see :meth:`push`); the prediction still runs.
         """
+        if not fresh or self._n_held:
+            self.push(input_sample, measured_sample, fresh)
+            self.predict()
+            self.correct()
+            return self.gain, self.delay
         if self.backend == "filterpy":
             self.push(input_sample, measured_sample)
             self.predict()

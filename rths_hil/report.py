@@ -163,9 +163,11 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
         and from the ``end`` event when it has them ``overrun_causes`` (paced overruns by
         cause: ``machine``, ``machine_backlog``, ``machine_in_work``, ``work``,
         ``work_backlog``), ``wall_time``,
-        ``steps_per_second``, ``missed_replies``, ``driver_stats``, ``twin_stats``,
-        ``final_alpha``. With several channels the per-record figures (FEI, metrics, online,
-        peak) are under ``channels`` → channel name, and ``trip`` names its ``channel``.
+        ``steps_per_second`` (``None`` without a loop step), ``missed_replies``,
+        ``reply_gaps`` (``count``, ``missed``, ``longest`` s, ``longest_steps``; per channel
+        under ``channels``), ``driver_stats``, ``twin_stats``, ``final_alpha``. With several
+        channels the per-record figures (FEI, metrics, online, peak) are under ``channels`` →
+        channel name, and ``trip`` names its ``channel``.
 
     Notes
     -----
@@ -240,6 +242,7 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
         out["wall_time"] = wall
     for key in (
         "missed_replies",
+        "reply_gaps",
         "overrun_causes",
         "stalls",
         "driver_stats",
@@ -625,7 +628,15 @@ def format_summary(s: dict[str, Any]) -> str:
     if sps is not None or "missed_replies" in s:
         # no loop step taken (a trip in the start ramp): no rate, only the missed replies
         rate = f"{sps:.0f} steps/s" if sps is not None else "no loop steps"
-        lines.append(f"  {rate}, missed replies {s.get('missed_replies', 0)}")
+        line = f"  {rate}, missed replies {s.get('missed_replies', 0)}"
+        gaps = s.get("reply_gaps") or {}
+        if gaps.get("count"):  # held measurements, not a fault (docs/loop.md)
+            line += (
+                f" in {gaps['count']} gap{'s' if gaps['count'] != 1 else ''} (longest "
+                f"{_fmt(_number(gaps.get('longest')), 1e3, '.1f')} ms, "
+                f"{gaps.get('longest_steps')} steps; measurement held)"
+            )
+        lines.append(line)
     return "\n".join(lines)
 
 
@@ -712,7 +723,7 @@ def plot_report(  # noqa: C901
         sj = run.path / "summary.json"
         try:
             summary = json.loads(sj.read_text())
-        except (OSError, ValueError):
+        except (OSError, ValueError, RecursionError):
             summary = summarize(run.path, write=False)
     chans = channel_suffixes(run)
     multi = len(chans) > 1

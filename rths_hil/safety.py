@@ -25,7 +25,14 @@ Rules (names as they appear in events and on the console):
 ``watchdog``
     Controller silence: more than ``timeout`` seconds without a good reply while the bridge was
     running (paced runs, and the wall-clock bound of a lockstep run; stalls of the bridge itself
-    do not count), or ``missed`` consecutive steps without a matching reply (lockstep).
+    do not count), or ``missed`` consecutive steps without a matching reply (lockstep). Missed
+    replies within the limit are a degradation, not a fault: the loop holds the last good
+    measurement, records the gap (a ``reply_gap`` event) and feeds the Kalman filter no
+    held sample (``docs/loop.md``, "Missed replies").
+``link``
+    The driver found its transport closed or gone (:class:`rths_hil.drivers.base.LinkDown`: a
+    closed socket or serial line, a stopped CAN reader, a CANopen heartbeat lost): trips at
+    the first reply it costs, without waiting for the watchdog's limit. Always on.
 ``stall``
     :class:`StallRule`: the bridge itself did not run for longer than ``max_stall`` (paced).
 ``sequence``
@@ -744,6 +751,18 @@ class SafetyMonitor:
             return self._fire(self._vel.check("velocity", velocity), t, k)
         return None
 
+    def _silence(self, t: float, k: int, ok: bool, link_down: str | None) -> Trip | None:
+        """The link and the watchdog (see :meth:`check_feedback`)."""
+        if not ok and link_down is not None:
+            reason = f"the link to the controller is down ({link_down})"
+            return self._fire(Trip("link", reason), t, k)
+        wd = self.watchdog
+        if wd is not None:
+            trip = wd.check(ok)
+            if trip is not None:
+                return self._fire(trip, t, k)
+        return None
+
     def check_feedback(
         self,
         t: float,
@@ -755,22 +774,22 @@ class SafetyMonitor:
         command: float,
         measured: float,
         force: float,
+        link_down: str | None = None,
     ) -> Trip | None:
-        """After the reply: watchdog, sequence, controller status, NaN, limits, stuck sensor.
+        """After the reply: link, watchdog, sequence, controller status, NaN, limits, stuck.
 
         ``ok`` is False when no matching reply came within the timeout; then ``measured`` and
-        ``force`` are the held previous values and only the watchdog is fed. ``status`` is the
+        ``force`` are the held previous values and only the link and the watchdog are checked:
+        ``link_down`` (the driver's :attr:`~rths_hil.drivers.base.Driver.link_down`, why its
+        transport is gone, or ``None``) trips the ``link`` rule at once. ``status`` is the
         reply's :class:`rths_hil.drivers.base.Status` word.
         """
         if self.tripped is not None:
             return self.tripped
-        wd = self.watchdog
-        if wd is not None:
-            trip = wd.check(ok)
-            if trip is not None:
-                return self._fire(trip, t, k)
-        if not ok:
-            return None
+        if not ok or self.watchdog is not None:
+            trip = self._silence(t, k, ok, link_down)
+            if trip is not None or not ok:
+                return trip
         seq = self.sequence
         if seq is not None and (expected_seq != received_seq or status & _SEQ_GAP):
             trip = seq.check(expected_seq, received_seq, bool(status & _SEQ_GAP))

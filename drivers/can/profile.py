@@ -283,8 +283,14 @@ class CANProfileDriver(Driver):
         if bus is None:
             raise LinkDown("CAN bus closed")
         remaining = deadline - _perf()
-        if self._reader is not None:
+        if self._reader is not None:  # an interface that ignores the timeout: its reader
             msg = self._reader.get_message(remaining if remaining > 0.0 else 0.0)
+            if msg is None:
+                share = self._share
+                if share is not None and share.notifier and share.notifier.exception:
+                    self.stats.disconnects += 1
+                    raise LinkDown("CAN bus reader stopped")
+                return None
         else:
             try:
                 msg = bus.recv(remaining if remaining > 0.0 else 0.0)

@@ -713,10 +713,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
         ),
         "watchdog_timeout": Key(
             "float",
-            0.02,
+            0.1,
             unit="s",
             doc="controller silence that trips: time without a good reply while the bridge "
-            "ran (paced: wall clock, stalls of the bridge not counted; lockstep: virtual time)",
+            "ran (paced: wall clock, stalls of the bridge not counted; lockstep: virtual time); "
+            "shorter gaps hold the measurement and are counted, not tripped. Keep it above the "
+            "controller's own reply pauses and below its heartbeat watchdog (rths-hil "
+            "commission measures both)",
             lo=0,
             lo_open=True,
         ),

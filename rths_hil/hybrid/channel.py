@@ -75,7 +75,19 @@ class Channel:
     reply_seq, reply_status : int
         Sequence number and controller status word of this step's reply (-1, 0 without one).
     missed_replies : int
-        Steps without a reply so far.
+        Steps without a reply so far (each one a held measurement).
+    link_down : str or None
+        Set at a missed reply: why the driver's transport is gone (its
+        :attr:`~rths_hil.drivers.base.Driver.link_down`), or ``None`` (a missed reply only).
+    gap_steps, gap_start : int
+        The reply gap under way: missed replies so far and the step of the first (0, -1: none).
+    ok_clock : float
+        When the last good reply came (perf_counter s).
+    gaps, longest_gap, longest_gap_steps : int, float, int
+        Reply gaps that ended so far; the longest one's silence (s, from the good reply before
+        it to the one that ended it) and its missed replies.
+    fei_held : float
+        Share of held samples (missed replies) in the streaming FEI window ending at this step.
     estop_confirmed : bool or None
         After :meth:`confirm_estop`: whether the controller reported the e-stop latched.
     """
@@ -104,11 +116,15 @@ class Channel:
         "fei_exact_step",
         "fei_exact_valid",
         "fei_f_eq",
+        "fei_held",
         "fei_new",
         "fei_on_target",
         "fei_valid",
         "force",
         "fs",
+        "gap_start",
+        "gap_steps",
+        "gaps",
         "heartbeat",
         "kalman",
         "kalman_every",
@@ -117,10 +133,14 @@ class Channel:
         "kf_delay",
         "kf_gain",
         "last_command",
+        "link_down",
+        "longest_gap",
+        "longest_gap_steps",
         "measured",
         "missed_replies",
         "monitor",
         "name",
+        "ok_clock",
         "peak_displacement",
         "peak_force",
         "peak_velocity",
@@ -184,6 +204,14 @@ class Channel:
         self.fei_new = False
         self.kalman_new = False
         self.missed_replies = 0
+        self.link_down: str | None = None
+        self.gap_steps = 0
+        self.gap_start = -1
+        self.ok_clock = nan
+        self.gaps = 0
+        self.longest_gap = 0.0
+        self.longest_gap_steps = 0
+        self.fei_held = 0.0
         self.peak_displacement = self.peak_velocity = self.peak_force = 0.0
         self.last_command = 0.0
         self.estop_confirmed: bool | None = None
@@ -297,16 +325,22 @@ class Channel:
     def evaluate(self, k: int) -> None:
         """Streaming FEI (every sample), exact FEI (every hop), Kalman; adaptive α.
 
-        Sets :attr:`fei_new` / :attr:`kalman_new` when a new estimate is there for the rules.
+        A held measurement (no reply this step, :attr:`feedback_ok` false) is counted in the
+        streaming window's share of held samples (:attr:`fei_held`) and is no measurement
+        update of the Kalman filter. Sets :attr:`fei_new` / :attr:`kalman_new` when a new
+        estimate is there for the rules.
         """
         meas = self.measured
-        if self.compensator_observe is not None and self.feedback_ok:
+        ok = self.feedback_ok
+        if self.compensator_observe is not None and ok:
             self.compensator_observe(self.target, self.command, meas)
         stream = self.stream_fei
         self.fei_new = False
         if stream is not None:
             x = self.target if self.fei_on_target else self.command
-            if stream.push(x, meas):
+            done = stream.push(x, meas, not ok)
+            self.fei_held = stream.held / stream.N
+            if done:
                 latest = stream.latest
                 self.fei_amplitude, self.fei_delay, self.fei_f_eq, self.fei_valid = latest
                 if self.adaptive is not None:
@@ -326,11 +360,12 @@ class Channel:
         kal = self.kalman
         if kal is not None:
             u = self.target if self.kalman_on_target else self.command
+            # a held measurement (no reply) is never a measurement update of the filter
             if self.kalman_every == 1:
-                self.kf_gain, self.kf_delay = kal.update(u, meas)
+                self.kf_gain, self.kf_delay = kal.update(u, meas, ok)
                 new = True
             else:
-                kal.push(u, meas)
+                kal.push(u, meas, ok)
                 kal.predict()
                 new = k % self.kalman_every == 0
                 if new:

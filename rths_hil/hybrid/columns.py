@@ -137,6 +137,12 @@ TABLE: tuple[Column, ...] = (
     Column("fei_delay", "<f8", "s", "online FEI equivalent delay d (streaming)"),
     Column("fei_f_eq", "<f8", "Hz", "online FEI equivalent frequency (streaming)"),
     Column("fei_valid", "|b1", "-", "the streaming window ending here is valid"),
+    Column(
+        "fei_held",
+        "<f8",
+        "-",
+        "share of held measurements (missed replies) in the streaming window ending here",
+    ),
     Column("fei_exact_amplitude", "<f8", "-", "exact online FEI A, latest completed window (held)"),
     Column("fei_exact_delay", "<f8", "s", "exact online FEI d, latest completed window (held)"),
     Column("fei_exact_valid", "|b1", "-", "the latest exact window is valid"),

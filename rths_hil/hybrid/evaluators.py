@@ -20,7 +20,14 @@ import numpy as np
 
 from ..fei import OnlineFEI
 
-__all__ = ["ExactFEI", "StreamingFEI"]
+__all__ = ["MAX_HELD_SHARE", "ExactFEI", "StreamingFEI"]
+
+#: A streaming FEI window in which more than this share of the measured samples are held
+#: (missed replies: the loop repeats the last good measurement) is not valid: the FEI rule
+#: neither trips nor counts on it. Below it the window is valid and its share of held samples
+#: is recorded next to it (``fei_held``), the confidence a reader gives it. A 40 ms pause of
+#: the controller is 1 % of a 4 s window.
+MAX_HELD_SHARE = 0.1
 
 
 class StreamingFEI:
@@ -28,7 +35,8 @@ class StreamingFEI:
 
     Uses :meth:`OnlineFEI.push`, the evaluator's one-sample fast path (no result arrays per
     call; :meth:`OnlineFEI.update` with a one-sample block allocates a result of seven arrays,
-    ≈ 26 µs). :attr:`latest` holds the newest window's (amplitude, delay, f_eq, valid).
+    ≈ 26 µs). :attr:`latest` holds the newest window's (amplitude, delay, f_eq, valid);
+    :attr:`held` counts the held samples in the current window (:data:`MAX_HELD_SHARE`).
     """
 
     def __init__(self, fs: float, window_s: float) -> None:
@@ -36,12 +44,33 @@ class StreamingFEI:
         self.N = self.online.N
         self._push = self.online.push
         self.latest = (math.nan, math.nan, math.nan, False)
+        self.held = 0
+        self._ring = bytearray(self.N)  # 1: the sample in this slot of the window was held
+        self._i = 0
+        self._max_held = MAX_HELD_SHARE * self.N
 
-    def push(self, target: float, measured: float) -> bool:
-        """Push one sample pair; True when a window completed (see :attr:`latest`)."""
+    @property
+    def held_share(self) -> float:
+        """Share of held samples in the current window (0 … 1)."""
+        return self.held / self.N
+
+    def push(self, target: float, measured: float, held: bool = False) -> bool:
+        """Push one sample pair; True when a window completed (see :attr:`latest`).
+
+        ``held``: ``measured`` is the last good measurement repeated (no reply this step).
+        """
+        ring = self._ring
+        i = self._i
+        new = 1 if held else 0
+        n = self.held + new - ring[i]
+        ring[i] = new
+        self.held = n
+        self._i = i + 1 if i + 1 < self.N else 0
         res = self._push(target, measured)
         if res is None:
             return False
+        if n > self._max_held and res[3]:
+            res = (res[0], res[1], res[2], False)
         self.latest = res
         return True
 

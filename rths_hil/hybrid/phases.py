@@ -514,8 +514,9 @@ class Phases:
                 c = float(p[i])
                 if fb is None:
                     trip = ch.monitor.check_feedback(
-                        t, k, False, seq0 + i, -1, 0, c - off, math.nan, math.nan
-                    )
+                        t, k, False, seq0 + i, -1, 0, c - off, math.nan, math.nan,
+                        getattr(ch.driver, "link_down", None),
+                    )  # fmt: skip
                 else:
                     meas_abs[j] = fb.displacement
                     trip = ch.monitor.check_feedback(

@@ -48,6 +48,7 @@ class Safety:
             ch.command,
             ch.measured,
             ch.force,
+            ch.link_down,
         )
         return None if trip is None else self.fire(trip, ch, t, k)
 
@@ -85,7 +86,7 @@ class Safety:
         return None
 
     def feedback(self, t: float, k: int) -> Trip | None:
-        """After the replies: watchdog, sequence, controller status, NaN, limits, stuck."""
+        """After the replies: link, watchdog, sequence, controller status, NaN, limits, stuck."""
         for ch in self.channels:
             trip = ch.monitor.check_feedback(
                 t,
@@ -97,6 +98,7 @@ class Safety:
                 ch.command,
                 ch.measured,
                 ch.force,
+                ch.link_down,
             )
             if trip is not None:
                 return self.fire(trip, ch, t, k)

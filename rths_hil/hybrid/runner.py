@@ -232,6 +232,7 @@ class Runner:
                 lateness=ls,
                 overrun_causes=result.overrun_causes(),
                 missed_replies=result.missed_replies,
+                reply_gaps=self.reply_gaps(),
                 stalls=result.stall_summary(),
                 estop_confirmed=result.estop_confirmed,
                 driver_stats=result.driver_stats,
@@ -445,8 +446,11 @@ class Runner:
                     rem = t_lim - perf() if multi else timeout
                     fb = ch.receive(rem if rem > 0.0 else 0.0)
                     t = ch.reply_clock = perf()
-                    t -= now
                     if fb is not None:
+                        if ch.gap_steps:  # a reply ends a gap: one event (the degradation)
+                            self._gap_ended(rec, ch, t)
+                        ch.ok_clock = t
+                        t -= now
                         ch.feedback_ok = True
                         ch.measured = fb.displacement
                         ch.force = fb.force
@@ -457,13 +461,17 @@ class Runner:
                             t_last = t
                         if t_first == 0.0 or t < t_first:
                             t_first = t
-                    else:
+                    else:  # a missed reply: the measurement is held (``measured``, ``force``)
                         ch.feedback_ok = False
                         ch.reply_seq = -1
                         ch.reply_status = 0
                         ch.feedback_time = nan
                         ch.missed_replies += 1
                         missed += 1
+                        if not ch.gap_steps:
+                            ch.gap_start = k
+                        ch.gap_steps += 1
+                        ch.link_down = ch.driver.link_down  # a dead link trips at once
                 t_work = perf()
                 if multi:
                     skew = t_last - t_first if t_first > 0.0 else nan
@@ -571,6 +579,9 @@ class Runner:
             sys.setswitchinterval(old_switch)
             if gc_was:
                 gc.enable()
+        for ch in chans:  # a gap still open at the end (the trip it caused, or the last steps)
+            if ch.gap_steps:
+                self._gap_ended(rec, ch, perf(), ended=False)
         if trip is not None and status != "operator_stop":
             status = "trip"
             rec.event("trip", **{k2: v2 for k2, v2 in trip.as_event().items() if k2 != "kind"})
@@ -598,6 +609,55 @@ class Runner:
             channels=[ch.name for ch in chans],
             stalls=stalls,
         )
+
+    def _gap_ended(self, rec: Recorder, ch: Channel, now: float, ended: bool = True) -> None:
+        """A reply gap of ``ch`` ended at ``now`` (perf_counter s): one ``reply_gap`` event.
+
+        The event gives the gap's first missed step and its loop time (``start``), the missed
+        replies (``count``), the silence (``length``, s: from the good reply before the gap to
+        the one that ended it, or to the end of the loop when ``ended`` is false; NaN when no
+        reply had come before it) and the channel; the channel keeps the count and the longest.
+        """
+        k0, n = ch.gap_start, ch.gap_steps
+        length = now - ch.ok_clock
+        ch.gap_steps = 0
+        ch.gaps += 1
+        if n > ch.longest_gap_steps:
+            ch.longest_gap_steps = n
+        if length > ch.longest_gap:
+            ch.longest_gap = length
+        dt = self.plan.dt
+        rec.event(
+            "reply_gap", k0 * dt, k0, channel=ch.name, start=k0 * dt, count=n, length=length,
+            ended=ended, link_down=ch.link_down,
+        )  # fmt: skip
+
+    def reply_gaps(self) -> dict:
+        """The run's reply gaps for the ``end`` event and the summary.
+
+        ``count`` (gaps), ``missed`` (missed replies), ``longest`` (s of silence) and
+        ``longest_steps`` over the channels, and ``channels`` (the same per channel) when
+        there are several.
+        """
+
+        def one(ch: Channel) -> dict:
+            return {
+                "count": ch.gaps,
+                "missed": ch.missed_replies,
+                "longest": ch.longest_gap,
+                "longest_steps": ch.longest_gap_steps,
+            }
+
+        per = {ch.name: one(ch) for ch in self.channels}
+        out = {
+            "count": sum(v["count"] for v in per.values()),
+            "missed": sum(v["missed"] for v in per.values()),
+            "longest": max(v["longest"] for v in per.values()),
+            "longest_steps": max(v["longest_steps"] for v in per.values()),
+        }
+        if len(per) > 1:
+            out["channels"] = per
+        return out
 
     def _stall(
         self,

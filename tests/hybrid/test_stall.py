@@ -109,13 +109,14 @@ def test_lockstep_watchdog_limit_is_the_timeout_in_steps():
     from rths_hil.config import load_config
     from rths_hil.hybrid.plan import build_plan
 
-    for fs, steps in ((1024, 21), (4096, 82)):
+    # the default safety.watchdog_timeout, 0.1 s: ceil(0.1 · fs) steps of virtual time
+    for fs, steps in ((1024, 103), (4096, 410)):
         cfg = load_config(None, [f"loop.fs={fs}", "loop.duration=1"])
         plan = build_plan(cfg, Path("unused"), mode="lockstep")
         assert plan.channels[0].monitor.watchdog.missed == steps
         plan = build_plan(cfg, Path("unused"), mode="paced")
         wd = plan.channels[0].monitor.watchdog
-        assert wd.timeout == 0.02 and wd.missed == 0
+        assert wd.timeout == 0.1 and wd.missed == 0
 
 
 # ---- real paced runs, frozen from outside -------------------------------------------------------

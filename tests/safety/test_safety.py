@@ -106,8 +106,9 @@ def test_fei_rule_update_with_arrays_equals_scalar_feed():
         assert t_blocks.values == t_scalar.values
 
 
+# (a tolerance of 0 is the configuration's documented "off", not bad input)
 @pytest.mark.parametrize(
-    "args", [(0, 0.01, 1), (0.1, -1, 1), (0.1, 0.01, 0), (0.1, 0.01, 1.5), ("x", 0.01, 1)]
+    "args", [(-0.1, 0.01, 1), (0.1, -1, 1), (0.1, 0.01, 0), (0.1, 0.01, 1.5), ("x", 0.01, 1)]
 )
 def test_fei_rule_rejects_bad_arguments(args):
     with pytest.raises(InputError):
