@@ -228,6 +228,10 @@ def word_from_status(status: int, masks: dict[int, int]) -> int:
 # ------------------------------------------------------------------------------------------
 # Modbus
 # ------------------------------------------------------------------------------------------
+#: The function code that reads each table.
+_READ_FC = {"holding": 3, "input": 4, "coil": 1, "discrete": 2}
+
+
 @dataclass(frozen=True)
 class ModbusPoint:
     """One role on a Modbus table (see the module docstring)."""
@@ -379,6 +383,13 @@ class ModbusProfile:
     pipeline: bool = True
     protocol: str = "modbus"
     units_doc: dict[str, str] = field(default_factory=dict)
+
+    def step_functions(self) -> list[int]:
+        """The function code of each request of one step: 23, or 16 and one read per block
+        (3 holding, 4 input, 1 coils, 2 discrete inputs), in the order they are sent."""
+        if self.fc23:
+            return [23]
+        return [16] + [_READ_FC[b.table] for b in self.reads]
 
     def rtu_frames(self) -> list[tuple[int, int]]:
         """(request, response) bytes on an RTU line, CRC included, of each transaction of
@@ -590,15 +601,15 @@ def _can_signal(r: _Reader, name: str, db: Any, dbc: str, action: bool = False) 
 
 
 def _load_can(r: _Reader, base: Path) -> CANProfile:
-    import cantools
+    from .can.codec import load_dbc
 
     src = r.source
     dbc_rel = r.str("dbc")
     dbc = base / dbc_rel
     try:
-        db = cantools.database.load_file(str(dbc))
-    except (OSError, cantools.database.UnsupportedDatabaseFormatError) as exc:
-        raise InputError(f"profile {src}: dbc: cannot load {dbc}: {exc}") from None
+        db = load_dbc(dbc)
+    except InputError as exc:
+        raise InputError(f"profile {src}: dbc: {exc}") from None
     roles_t = r.table("roles", required=True)
     assert roles_t is not None
     roles_t.unknown(ROLES)
@@ -658,4 +669,8 @@ def load_profile(path: str | Path) -> ModbusProfile | CANProfile:
     InputError
         One line naming the file and the key (module docstring).
     """
-    return _load_cached(str(Path(path).expanduser().resolve()))
+    try:
+        absolute = Path(path).expanduser().resolve()
+    except (RuntimeError, OSError) as exc:  # a symlink loop (RuntimeError before Python 3.13)
+        raise InputError(f"profile {path}: cannot be resolved: {exc}") from None
+    return _load_cached(str(absolute))

@@ -29,11 +29,55 @@ from pathlib import Path
 import can
 import cantools
 
-from rths_hil.errors import InputError
+from rths_hil.errors import InputError, check_regular_file
 
-__all__ = ["DBC_PATH", "ActuatorCodecs", "Frame", "MessageCodec", "load"]
+__all__ = [
+    "DBC_PATH",
+    "MAX_DBC_BYTES",
+    "ActuatorCodecs",
+    "Frame",
+    "MessageCodec",
+    "load",
+    "load_dbc",
+]
 
 DBC_PATH = Path(__file__).with_name("actuator.dbc")
+#: Largest DBC file read (bytes). An axis controller's DBC is a few kB, a whole vehicle's a few
+#: MB; cantools parses about 0.25 MB/s, so this bounds the parse to seconds, not minutes.
+MAX_DBC_BYTES = 4 << 20
+
+
+def _printable(text: str, limit: int = 160) -> str:
+    """``text`` with control characters shown as escapes and cut at ``limit`` characters (a
+    garbage file's bytes must not reach the operator's terminal as they are)."""
+    out = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+    return out if len(out) <= limit else out[: limit - 1] + "…"
+
+
+def load_dbc(path: str | Path, what: str = "DBC") -> cantools.database.can.Database:
+    """Read a DBC file with cantools, refusing what cannot be one in one line.
+
+    A device (``/dev/zero``), FIFO or directory is refused before it is opened (it would be
+    read for ever), a file larger than :data:`MAX_DBC_BYTES` before it is parsed; a parse error
+    (cantools: a signal that does not fit its message, a syntax error) names the file, with
+    any control bytes of the file escaped.
+
+    Raises
+    ------
+    InputError
+        The one line naming ``what``, the path and the reason.
+    """
+    p = Path(path)
+    check_regular_file(p, f"a {what}", max_bytes=MAX_DBC_BYTES)
+    try:
+        db = cantools.database.load_file(str(p))
+    except OSError as exc:
+        raise InputError(f"cannot load {what} {p}: {exc.strerror or exc}") from None
+    except (cantools.database.errors.Error, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"cannot load {what} {p}: {_printable(str(exc))}") from None
+    if not isinstance(db, cantools.database.can.Database):
+        raise InputError(f"cannot load {what} {p}: not a CAN database")
+    return db
 
 
 class Frame(can.Message):
@@ -197,10 +241,7 @@ def load(path: str | None = None) -> ActuatorCodecs:
         signals (the message names them).
     """
     p = Path(path) if path else DBC_PATH
-    try:
-        db = cantools.database.load_file(str(p))
-    except (OSError, cantools.database.UnsupportedDatabaseFormatError) as exc:
-        raise InputError(f"cannot load DBC {p}: {exc}") from None
+    db = load_dbc(p)
     codecs = {}
     for name, signals in _NEEDED.items():
         try:

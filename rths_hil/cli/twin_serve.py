@@ -115,11 +115,13 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
 
         from rths_hil.drivers.profile import load_profile
 
-        path = str(Path(args.profile).expanduser().resolve())
         try:
+            path = str(Path(args.profile).expanduser().resolve())
             load_profile(path)
         except InputError as exc:
             raise InputError(f"--profile: {exc}") from None
+        except (RuntimeError, OSError) as exc:  # a symlink loop (RuntimeError before 3.13)
+            raise InputError(f"--profile {args.profile}: cannot be resolved: {exc}") from None
         conn["profile"] = path
     if args.device:
         if "device" not in conn:
