@@ -7,8 +7,10 @@ actuator disabled, the enable/disable edge, a small ramp–hold–ramp (``commis
 ``commission.velocity``) with the tracking delay and gain from the FEI and the Kalman
 estimator, the e-stop (latch, hold, acknowledge, re-enable) and the controller's heartbeat
 watchdog (:mod:`rths_hil.commission`). Writes ``commission/<timestamp>/report.md`` and one PNG
-per channel. Exit codes: 0 every step passed or was skipped, 1 a step failed, 2 bad input or
-no confirmation for hardware.
+per channel, and ``tuned.toml``, the identified plants as a configuration fragment for
+``include``. Exit codes: 0 every step passed or was skipped, 1 a step failed, 2 bad input or
+no confirmation for hardware, 130 operator stop (Ctrl-C, SIGTERM or SIGHUP, as ``run``: the
+step under way ends, each controller is held, disabled and handed back, the report is written).
 
 Against hardware (a channel with ``twin.enabled = false``) it needs ``--confirm-hardware`` (or
 ``loop.confirm_hardware = true``) and asks the operator before it enables or moves an actuator
@@ -44,6 +46,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Commission every channel; return the exit code."""
+    from ..stopping import OperatorStop
+
+    with OperatorStop() as stop:  # from the start: nothing is left enabled by a signal
+        return _main(args, stop)
+
+
+def _main(args: argparse.Namespace, stop) -> int:
     from ..commission import commission
     from ..config import load_config
     from ..errors import InputError
@@ -65,6 +74,11 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(
             "commissioning hardware asks the operator before each motion: run it interactively"
         )
+    if stop.stopped:
+        print(
+            f"rths-hil commission: operator stop ({stop.signal}) before any step", file=sys.stderr
+        )
+        return 130
 
     def confirm(what: str) -> bool:
         if args.yes or not interactive:
@@ -75,12 +89,25 @@ def main(args: argparse.Namespace) -> int:
         except EOFError:
             return False
 
-    reports = commission(cfg, out, confirm=confirm, plan=plan)
+    def progress(what: str) -> None:
+        print(f"rths-hil commission: {what} …", file=sys.stderr, flush=True)
+
+    reports = commission(cfg, out, confirm=confirm, plan=plan, stop=stop, progress=progress)
     failed = [(r.name or "actuator", s) for r in reports for s in r.failed]
     for r in reports:
         for s in r.steps:
             why = f": {s.reason}" if s.reason else ""
             print(f"rths-hil commission: {r.name or 'actuator'}: {s.name}: {s.status}{why}")
+    tuned = out / "tuned.toml"
+    if tuned.exists():
+        print(f"rths-hil commission: tuned fragment in {tuned}", file=sys.stderr)
+    if stop.stopped:
+        print(
+            f"rths-hil commission: operator stop ({stop.signal}); controllers handed back; "
+            f"report in {out / 'report.md'}",
+            file=sys.stderr,
+        )
+        return 130
     print(
         f"rths-hil commission: {'FAILED' if failed else 'passed'}; report in {out / 'report.md'}",
         file=sys.stderr,

@@ -28,6 +28,7 @@ from .schema import (
 
 __all__ = [
     "MAX_CONFIG_BYTES",
+    "MAX_INCLUDE_DEPTH",
     "apply_overrides",
     "load_config",
     "merge",
@@ -247,10 +248,98 @@ def _apply_override(cfg: Config, text: str, where: str | None = None) -> None:
 
 #: Largest configuration file read (bytes): a real one is a few kB.
 MAX_CONFIG_BYTES = 1 << 20
+#: Deepest chain of ``include`` (a file that includes one that includes one …).
+MAX_INCLUDE_DEPTH = 8
+
+
+def _resolved(path: Path, where: str) -> Path:
+    try:
+        return path.resolve(strict=False)
+    except (OSError, RuntimeError) as exc:  # a symlink loop
+        raise InputError(f"{where}: cannot resolve the path ({exc})") from None
+
+
+def _sources(
+    path: Path, label: str, chain: tuple[Path, ...]
+) -> list[tuple[dict[str, Any], str, bool]]:
+    """The TOML documents to merge for ``path``, in order: everything its ``include`` names
+    (recursively, each before its includer's own keys), then its own; each with its label and
+    whether it is the top file."""
+    data = read_toml(path, "config", label, max_bytes=MAX_CONFIG_BYTES)
+    me = _resolved(path, label)
+    inc = data.pop("include", [])
+    if isinstance(inc, str):
+        inc = [inc]
+    if not isinstance(inc, list) or not all(isinstance(i, str) and i.strip() for i in inc):
+        raise InputError(
+            f"{label}: include: expected an array of file paths (strings), got {describe(inc)}"
+        )
+    out: list[tuple[dict[str, Any], str, bool]] = []
+    for raw in inc:
+        p = Path(raw).expanduser()
+        if not p.is_absolute():
+            p = path.parent / p
+        where = f"{label}: include {raw!r}"
+        target = _resolved(p, where)
+        if target == me or target in chain:
+            names = " → ".join(c.name for c in (*chain, me, target))
+            raise InputError(f"{where}: an include cycle ({names})")
+        if len(chain) + 1 >= MAX_INCLUDE_DEPTH:
+            raise InputError(f"{where}: includes nested deeper than {MAX_INCLUDE_DEPTH} files")
+        if not p.exists() and not p.is_symlink():
+            raise InputError(f"{where}: no such file ({p})")
+        try:
+            sub = _sources(p, f"{where} ({p})", (*chain, me))
+        except InputError as exc:  # name the include in every message about its file
+            if str(exc).startswith(where):
+                raise
+            raise InputError(f"{where}: {exc}") from None
+        out += [(d, w, False) for d, w, _ in sub]
+    out.append((data, label, not chain))
+    return out
+
+
+def _merge_channels(cfg: Config, data: dict[str, Any], where: str) -> dict[str, Any]:
+    """A source's ``[[actuators]]`` over those an earlier source (an include) gave: entries of
+    the same name merged section by section, this source's keys winning. Returns ``data``
+    without its actuators when they were merged here."""
+    before = cfg.get("actuators") or []
+    own = data.get("actuators")
+    if not before or not isinstance(own, list):
+        return data
+    entries = [_actuator(e, i, where) for i, e in enumerate(own)]
+    names = {e["name"] for e in entries}
+    for e in before:
+        if e["name"] not in names:
+            raise InputError(
+                f"{where}: actuators: an included file sets channel {e['name']!r}, "
+                "which this file's [[actuators]] does not have"
+            )
+    old = {e["name"]: e for e in before}
+    merged = []
+    for e in entries:
+        base = copy.deepcopy(old.get(e["name"], {}))
+        for key, value in e.items():
+            if key in CHANNEL_SECTIONS and isinstance(base.get(key), dict):
+                base[key].update(value)
+            else:
+                base[key] = value
+        if "dof" in e:
+            base.pop("transform", None)
+        elif "transform" in e:
+            base.pop("dof", None)
+        merged.append(base)
+    cfg["actuators"] = merged
+    return {k: v for k, v in data.items() if k != "actuators"}
 
 
 def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
     """Read a configuration file over the defaults, then apply ``--set`` overrides.
+
+    A top-level ``include = ["a.toml", …]`` (paths relative to the including file) merges
+    those files first, in order, then the file's own keys over them (``docs/config.md``);
+    an included file may include others. Channels (``[[actuators]]``) of the same name are
+    merged section by section.
 
     Parameters
     ----------
@@ -267,15 +356,17 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
     ------
     InputError
         Unreadable file, TOML syntax error, unknown key, wrong type, unit or range — naming
-        the file (or ``--set`` item) and the key path.
+        the file (or ``--set`` item) and the key path; a missing included file or an include
+        cycle.
     """
     cfg = default_config()
     if path is not None:
         p = Path(path)
-        data = read_toml(p, "config", str(path), max_bytes=MAX_CONFIG_BYTES)
+        sources = _sources(p, str(path), ())
         cfg.source = str(path)
-        cfg.base_dir = p.resolve().parent
-        merge(cfg, data, str(path))
+        cfg.base_dir = _resolved(p, str(path)).parent
+        for data, where, _ in sources:
+            merge(cfg, _merge_channels(cfg, data, where), where)
     else:
         cfg.base_dir = Path.cwd()
     return apply_overrides(cfg, overrides)

@@ -252,3 +252,80 @@ def test_fei_window_of_fewer_than_8_samples_one_rule_for_config_and_plan():
     cfg = load_config(None, sets)
     with pytest.raises(InputError, match=r"fei\.window: '1T' is fewer than 8 samples at 64 Hz"):
         build_plan(cfg, duration=0.5)
+
+
+# ----------------------------------------------------------------------------------------------
+# include
+
+
+def test_include_merges_before_the_files_own_keys(tmp_path):
+    (tmp_path / "frag").mkdir()
+    (tmp_path / "frag" / "tuned.toml").write_text(
+        'include = ["base.toml"]\n[compensation]\nmethod = "model"\ndelay = "12 ms"\n'
+        "model_time_constant = 0.008\n[safety]\nwatchdog_timeout = 0.04\n"
+    )
+    # relative to the including file: frag/base.toml, merged before frag/tuned.toml's keys
+    (tmp_path / "frag" / "base.toml").write_text("[compensation]\ndelay = 0.5\norder = 3\n")
+    top = _write(tmp_path, 'include = ["frag/tuned.toml"]\n[safety]\nwatchdog_timeout = 0.03\n')
+    cfg = load_config(top)
+    c = cfg["compensation"]
+    assert (c["method"], c["delay"], c["model_time_constant"], c["order"]) == (
+        "model", pytest.approx(0.012), 0.008, 3,
+    )  # fmt: skip
+    assert c["alpha"] == pytest.approx(1 + 0.012 * cfg["loop"]["fs"])
+    assert cfg["safety"]["watchdog_timeout"] == 0.03  # the file's own key wins
+    # a --set still wins over both
+    cfg = load_config(top, ["compensation.delay=0.02"])
+    assert cfg["compensation"]["delay"] == pytest.approx(0.02)
+
+
+def test_include_merges_channels_by_name(tmp_path):
+    (tmp_path / "tuned.toml").write_text(
+        '[[actuators]]\nname = "a1"\ncompensation = { method = "model", delay = 0.01 }\n'
+        "safety = { watchdog_timeout = 0.05 }\n"
+    )
+    top = _write(
+        tmp_path,
+        'include = ["tuned.toml"]\n[structure]\nkind = "shear_building"\n'
+        "masses = [2e5, 2e5]\nstiffnesses = [1e8, 1e8]\n"
+        '[[actuators]]\nname = "a1"\ndof = 1\ncompensation = { amplitude = 1.01 }\n'
+        '[[actuators]]\nname = "a2"\ndof = 2\n',
+    )
+    cfg = load_config(top)
+    a1, a2 = cfg["actuators"]
+    assert a1["compensation"] == {"method": "model", "delay": 0.01, "amplitude": 1.01}
+    assert a1["safety"] == {"watchdog_timeout": 0.05} and a1["dof"] == 1
+    assert "compensation" not in a2
+
+
+@pytest.mark.parametrize(
+    ("files", "top", "needle"),
+    [
+        ({"a.toml": 'include = ["run.toml"]\n'}, 'include = ["a.toml"]\n', "include cycle"),
+        ({}, 'include = ["run.toml"]\n', "include cycle"),
+        ({}, 'include = ["missing.toml"]\n', "no such file"),
+        ({}, "include = [1]\n", "include: expected an array of file paths"),
+        ({}, 'include = ["."]\n', "include '.'"),
+        (
+            {"t.toml": '[[actuators]]\nname = "zz"\n'},
+            'include = ["t.toml"]\n[[actuators]]\nname = "a1"\n',
+            "'zz'",
+        ),
+        ({"bad.toml": "[compensation]\ndelay = -1\n"}, 'include = ["bad.toml"]\n', "bad.toml"),
+    ],
+)
+def test_include_refusals_are_one_line_naming_the_include(tmp_path, capsys, files, top, needle):
+    from tests.helpers.cli import one_line_exit_2
+
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    cfg = _write(tmp_path, top)
+    err = one_line_exit_2(["run", str(cfg), "--lockstep", "--duration", "0.1"], capsys, needle)
+    assert str(cfg) in err
+
+
+def test_include_through_a_symlink_loop_is_refused(tmp_path):
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    top = _write(tmp_path, 'include = ["loop"]\n')
+    with pytest.raises(InputError, match="include 'loop'"):
+        load_config(top)
