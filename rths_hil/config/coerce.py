@@ -79,6 +79,14 @@ def quantity(value: Any, unit: str, path: str) -> float:
     raise InputError(f"{path}: cannot read {value!r} as a quantity in {unit}")
 
 
+def _bare(value: Any) -> bool:
+    """A number given without a unit (``25`` or ``"25"``)."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return True
+    m = _NUM_RE.fullmatch(value) if isinstance(value, str) else None
+    return bool(m) and not m.group(2)
+
+
 def check_range(key: Key, v: float, path: str) -> None:
     """Raise unless ``v`` is finite and within ``key``'s range (``path`` names the key)."""
     if not math.isfinite(v):
@@ -118,7 +126,14 @@ def coerce(key: Key, value: Any, path: str) -> Any:  # noqa: C901
     kind = key.kind
     if kind == "float":
         v = quantity(value, key.unit, path)
-        check_range(key, v, path)
+        try:
+            check_range(key, v, path)
+        except InputError as exc:
+            if key.unit == "s" and key.hi is not None and v > key.hi and _bare(value):
+                raise InputError(
+                    f'{exc} (a bare number is in seconds: write e.g. "{value} ms" for milliseconds)'
+                ) from None
+            raise
         return v
     if kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):

@@ -478,6 +478,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
             doc="delay to compensate (inverse: α = 1 + delay·fs; polynomial: extrapolation "
             "horizon; ats: initial a1; model: the model's transport delay)",
             lo=0,
+            hi=1.0,
         ),
         "alpha": Key(
             "float",
@@ -518,9 +519,11 @@ SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
             lo_open=True,
         ),
-        "delay_min": Key("float", 0.0, unit="s", doc="adaptive: lower bound of delay", lo=0),
+        "delay_min": Key(
+            "float", 0.0, unit="s", doc="adaptive: lower bound of delay", lo=0, hi=1.0
+        ),
         "delay_max": Key(
-            "float", 0.0966796875, unit="s", doc="adaptive: upper bound of delay", lo=0
+            "float", 0.0966796875, unit="s", doc="adaptive: upper bound of delay", lo=0, hi=1.0
         ),
         "alpha_min": Key(
             "float", 1.0, unit="steps", doc="adaptive: lower bound of α (1 + delay_min·fs)", lo=1
@@ -585,6 +588,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
             doc="model: transport delay τ of the actuator model; negative: compensation.delay "
             "(a rational model that holds the whole plant takes 0 while another method keeps "
             "delay)",
+            hi=1.0,
         ),
         "model_time_constant": Key(
             "float",
