@@ -81,10 +81,22 @@ def check_disk(nbytes: float, path: str | Path, what: str) -> None:
     p = Path(path).absolute()
     while not p.exists() and p != p.parent:
         p = p.parent
+    if not p.is_dir():
+        return  # a file where a directory must be: the writer names it ("Not a directory")
     try:
+        vfs = os.statvfs(p)
         free = shutil.disk_usage(p).free
     except OSError:
         return  # the writer reports the path itself
+    if vfs.f_flag & os.ST_RDONLY:
+        raise InputError(f"{what} cannot be written under {p}: a read-only file system")
+    if vfs.f_blocks == 0:
+        raise InputError(
+            f"{what} cannot be written under {p}: a virtual file system with no room for "
+            "files (such as /proc or /sys); choose another output directory"
+        )
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise InputError(f"{what} cannot be written under {p}: permission denied")
     if not nbytes <= free:
         raise InputError(
             f"{what} needs {format_bytes(nbytes)} of disk; {p} has {format_bytes(free)} free: "
