@@ -49,6 +49,7 @@ import logging
 import os
 import select
 import socket
+import threading
 import time
 from collections import deque
 from typing import Any, ClassVar
@@ -204,6 +205,7 @@ class ModbusProfileDriver(Driver):
         self._etid = 0
         self._word: int | None = None  # the controller's last status word
         self._head_t = 0.0  # when the request at the head of the queue was written
+        self._lock = threading.RLock()
         self.estop_word: int | None = None  # its status word read back after the e-stop
         self._framer: Any = (FramerRTU if self._rtu else FramerSocket)(DecodePDU(False))
         self._sock: socket.socket | None = None
@@ -543,6 +545,10 @@ class ModbusProfileDriver(Driver):
         return [(SLOT_ACTION, pdu.function_code, self._frame(pdu, SLOT_ACTION))]
 
     def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
+        with self._lock:
+            self._send_locked(seq, displacement, enable)
+
+    def _send_locked(self, seq: int, displacement: float, enable: bool) -> None:
         raw = self._sp.raw_value(displacement)  # InputError: out of the point's range
         out: list[tuple[int, int, bytes]] = []
         pending = self._pending
@@ -654,11 +660,12 @@ class ModbusProfileDriver(Driver):
         self.stats.estops += 1
         self._estop_sent = True  # the next disable acknowledges it
         ((tid, fc, frame),) = self._action(self.profile.actions["estop"])
-        if self._rtu:  # written now: answered after the request on the line, if any
-            self._pending.insert(1 if self._pending else 0, (tid, fc, b""))
-            self._write(frame)
-            return
-        self._estop_tcp()
+        with self._lock:
+            if self._rtu:  # written now: answered after the request on the line, if any
+                self._pending.insert(1 if self._pending else 0, (tid, fc, b""))
+                self._write(frame)
+                return
+            self._estop_tcp()
 
     def _estop_tcp(self) -> None:
         mask = self._masks[int(Status.ESTOP_ACTIVE)]
@@ -801,7 +808,8 @@ class ModbusProfileDriver(Driver):
             return
         self._hb = (self._hb + 1) & 0x7FFF
         pdu = WriteSingleRegisterRequest(address=hb.address, registers=hb.to_registers(self._hb))
-        self._submit([(SLOT_HEARTBEAT, pdu.function_code, self._frame(pdu, SLOT_HEARTBEAT))])
+        with self._lock:
+            self._submit([(SLOT_HEARTBEAT, pdu.function_code, self._frame(pdu, SLOT_HEARTBEAT))])
 
     # -- feedback -------------------------------------------------------------------------------
     def _take(self, tid: int, pdu_bytes: bytes) -> Feedback | None:
@@ -871,32 +879,39 @@ class ModbusProfileDriver(Driver):
         return Feedback(last, got[0], got[1], self._status_of(word))
 
     def _recv_internal(self, deadline: float) -> Feedback | None:
-        while True:
-            fb = self._whole_reply()
-            if fb is not None:
-                return fb
-            got = self._parse_one()
-            if got is None:
-                break
-            fb = self._take(*got)
-            if fb is not None:
-                return fb
-        fd = self._fd
+        # (the lock: a reader thread may call this while the loop's thread sends, see
+        # Driver.receive; the step's queue and the buffer are shared)
+        with self._lock:
+            while True:
+                fb = self._whole_reply()
+                if fb is not None:
+                    return fb
+                got = self._parse_one()
+                if got is None:
+                    break
+                fb = self._take(*got)
+                if fb is not None:
+                    return fb
+            fd = self._fd
         if fd is None:
             raise LinkDown("modbus connection closed")
         remaining = deadline - time.perf_counter()
         try:
             ready = select.select((fd,), (), (), remaining if remaining > 0.0 else 0.0)[0]
-            data = os.read(fd, 4096) if ready else b""
-            if ready and not data:
-                raise ConnectionResetError("peer closed the connection")
+            with self._lock:
+                try:
+                    data = os.read(fd, 4096) if ready and fd == self._fd else b""
+                except BlockingIOError:  # read by the other thread meanwhile
+                    data, ready = b"", []
+                if ready and not data:
+                    raise ConnectionResetError("peer closed the connection")
+                if data:
+                    self._buf += data
+                elif remaining <= 0 and self._rtu and self._buf:
+                    self.stats.count_malformed("bad_length")  # an idle line ends an RTU frame
+                    self._buf = b""
         except (OSError, ValueError):
             self.stats.disconnects += 1
             self._close_main()
             raise LinkDown("modbus connection lost") from None
-        if data:
-            self._buf += data
-        elif remaining <= 0 and self._rtu and self._buf:
-            self.stats.count_malformed("bad_length")  # an idle line ends an RTU frame
-            self._buf = b""
         return None

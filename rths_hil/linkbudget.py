@@ -598,19 +598,29 @@ def modbus_load(
         )
     host = str(c.get("host", "127.0.0.1"))
     req, resp = 25, 23  # MBAP header (7) + FC 23 PDU
+    fcs, sizes, n = "FC 23", f"{req} + {resp}", 1
+    profile = c.get("profile")
+    if profile not in (None, "", "rths-hil"):  # a controller profile: its requests
+        from rths_hil.drivers.profile import load_profile
+
+        prof = load_profile(profile)
+        pairs = [(a + 4, b + 4) for a, b in prof.rtu_frames()]  # MBAP (7) for address + CRC
+        fcs = " + ".join(f"FC {f}" for f in prof.step_functions())  # type: ignore[union-attr]
+        sizes = " + ".join(f"{a} + {b}" for a, b in pairs)
+        req, resp, n = sum(a for a, _ in pairs), sum(b for _, b in pairs), len(pairs)
     if _is_loopback(host):
         return LinkLoad(
             name,
             None,
-            f"TCP loopback; {ch} × FC 23 ({req} + {resp} bytes) at {fs:g} Hz",
+            f"TCP loopback; {ch} × {fcs} ({sizes} bytes) at {fs:g} Hz",
             kind="modbus-tcp",
             **base,
         )
-    bits = 8 * (req + resp + 2 * TCP_SEGMENT_OVERHEAD)
+    bits = 8 * (req + resp + 2 * n * TCP_SEGMENT_OVERHEAD)
     return LinkLoad(
         name,
         ch * bits * fs / ETHERNET_BITRATE,
-        f"{ch} × FC 23 in TCP/IP/Ethernet ({bits} bits) at {fs:g} Hz of an assumed "
+        f"{ch} × {fcs} in TCP/IP/Ethernet ({bits} bits) at {fs:g} Hz of an assumed "
         f"{_rate_text(ETHERNET_BITRATE)} Ethernet",
         kind="modbus-tcp",
         rate=ETHERNET_BITRATE,

@@ -52,7 +52,8 @@ Behaviour
   where it is; enabled it holds the last set-point when commands stop.
 
 ``--state-json FILE`` writes the controller's state and its history (latches, enable edges,
-e-stop writes, dropped and served requests) when it stops (SIGTERM, SIGINT).
+e-stop writes, dropped and served requests; times in s from its start, and ``monotonic``: the
+host's CLOCK_MONOTONIC, shared by every process) when it stops (SIGTERM, SIGINT).
 """
 
 from __future__ import annotations
@@ -173,7 +174,7 @@ class Axis:
         self.queue.clear()
         self.latch |= bits
         self.history["latches"].append(
-            {"t": t - self.t0, "cause": cause, "status": self.status(), "position": self.y}
+            {"t": t - self.t0, "monotonic": t, "cause": cause, "status": self.status()}
         )
 
     # -- registers ---------------------------------------------------------------------------
@@ -211,7 +212,12 @@ class Axis:
             self.queue = [(now + DELAY, self.setpoint)]
             self.wd_deadline = now + WATCHDOG_TIME
             self.history["enable_edges"].append(
-                {"t": now - self.t0, "position": self.y, "setpoint": self.setpoint}
+                {
+                    "t": now - self.t0,
+                    "monotonic": now,
+                    "position": self.y,
+                    "setpoint": self.setpoint,
+                }
             )
         elif not on and self.enabled:
             self.enabled = False

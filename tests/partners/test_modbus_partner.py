@@ -1,0 +1,256 @@
+"""The bridge against a Modbus TCP servo controller written independently of it
+(``modbus_servo.py``: its own register map, one transaction at a time, pauses of its own, its
+own plant in real time), through a profile written from the docs (``modbus_servo.toml``).
+
+What the bridge did to the controller is read from the controller itself: over a Modbus
+connection of the test's own (pymodbus's client) and from the controller's history at exit.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from rths_hil.drivers.registry import create_driver
+from rths_hil.sim_backends.twin import default_plant, start_twin
+
+from rths_hil.api import open_run
+from tests.partners.modbus_fixtures import PROFILE
+
+pytestmark = pytest.mark.timing
+
+ROOT = Path(__file__).resolve().parents[2]
+READY, ENABLED, FAULT, WATCHDOG, ESTOP = 0x01, 0x02, 0x08, 0x20, 0x80
+
+
+def run_bridge(partner, out: Path, *sets: str, duration: float = 1.0) -> subprocess.Popen:
+    """``rths-hil run`` (paced) against the partner in its own process, as a lab runs it."""
+    cmd = [
+        sys.executable, "-m", "rths_hil", "run", "--no-plot", "--confirm-hardware",
+        "--out", str(out), "--duration", str(duration),
+        "--set", "twin.enabled=false", "--set", "driver.name=modbus",
+        "--set", f'driver.profile="{PROFILE}"',
+        "--set", f'driver.connection={{host="127.0.0.1", port={partner.port}}}',
+        "--set", "loop.console=0",
+    ]  # fmt: skip
+    for s in sets:
+        cmd += ["--set", s]
+    return subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT
+    )
+
+
+def finish(proc: subprocess.Popen, timeout: float = 60.0) -> tuple[int, str]:
+    out, err = proc.communicate(timeout=timeout)
+    return proc.returncode, out + err
+
+
+def events(out: Path, kind: str) -> list[dict]:
+    lines = (out / "events.jsonl").read_text().splitlines()
+    return [e for e in map(json.loads, lines) if e["kind"] == kind]
+
+
+# ------------------------------------------------------------------------------------------
+# item 2: the docs' default profile (pipelined) with a one-at-a-time server
+# ------------------------------------------------------------------------------------------
+def test_pipelining_is_probed_at_open_and_falls_back_to_one_at_a_time(modbus_servo, caplog):
+    """The partner drops the second of two requests written together: the driver finds out
+    when it opens, sends one request at a time, says so, and arms; the project's own twin of
+    the same profile answers pipelined requests, and there the driver keeps pipelining."""
+    partner = modbus_servo(pause_rate=0)
+    with caplog.at_level(logging.WARNING):
+        drv = create_driver("modbus", profile=str(PROFILE), **partner.connection)
+        with drv:
+            assert drv.link_note is not None and "one request at a time" in drv.link_note
+            fb = drv.arm(0.5)
+            assert fb is not None and fb.displacement == 0.0
+    assert any("answers one request at a time" in r.getMessage() for r in caplog.records)
+    assert partner.stop()["dropped"] >= 1  # the probe's second request
+
+    twin = start_twin("modbus", default_plant(), profile=str(PROFILE), port=0)
+    try:
+        with create_driver("modbus", **twin.connection) as drv:
+            assert drv.link_note is None and drv._reply is not None  # still pipelined
+            assert drv.arm(0.5) is not None
+    finally:
+        twin.stop()
+
+
+# ------------------------------------------------------------------------------------------
+# item 3: the e-stop reaches the controller whatever is outstanding
+# ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("own_connection", [True, False])
+def test_estop_reaches_a_busy_controller_and_is_read_back(modbus_servo, own_connection):
+    """Every request makes the partner's network stack pause 20–40 ms: a step's request is
+    in progress when the e-stop is sent, and a request written on that connection meanwhile
+    would be dropped. The e-stop goes over its own connection (or waits for the outstanding
+    answer), is read back, and the controller's status, read by the test, is 0x80: the
+    e-stop latched, not its watchdog (0xA0)."""
+    partner = modbus_servo(pause_rate=1e6)  # a pause before every request
+    drv = create_driver(
+        "modbus", profile=str(PROFILE), estop_connection=own_connection, **partner.connection
+    )
+    with drv:
+        assert drv.arm(1.0) is not None
+        drv.send(0, 0.0, True)  # the set-point, the enable coil, the read: one at a time
+        assert drv.receive(0.5) is not None
+        drv.heartbeat()
+        drv.send(1, 0.0, True)  # its set-point write is in the partner's pause now
+        time.sleep(0.002)
+        t0 = time.monotonic()
+        drv.estop()
+        took = time.monotonic() - t0
+        assert drv.estop_word == ESTOP, hex(drv.estop_word or 0)
+        assert partner.status() == ESTOP
+        # the poll the runner confirms with goes to an idle controller
+        drv.send(2, 0.0, True)
+        fb = drv.receive(0.5)
+        assert fb is not None and fb.status & 0x02  # the bridge's ESTOP_ACTIVE flag
+    state = partner.stop()
+    assert [x["cause"] for x in state["latches"]] == ["estop"]
+    assert took < 0.3
+
+
+def test_trip_mid_run_estops_the_controller_not_its_watchdog(modbus_servo, tmp_path):
+    """A paced run with the docs' default profile trips mid-run (a displacement limit the
+    test reaches) while the partner pauses now and then: its status, read by the test over
+    its own connection, is the e-stop (0x80), latched within a few ms of the trip, and the
+    run's e-stop is confirmed."""
+    partner = modbus_servo(pause_rate=8)
+    out = tmp_path / "trip"
+    proc = run_bridge(partner, out, "safety.displacement_limit=0.15mm", "loop.fs=512", duration=2.0)
+    rc, text = finish(proc)
+    assert rc == 3, text
+    assert partner.status() == ESTOP
+    state = partner.stop()
+    assert [x["cause"] for x in state["latches"]] == ["estop"], state["latches"]
+    s = open_run(out).summary()
+    assert s["status"] == "trip" and s["estop_confirmed"] is True
+    assert "e-stop to the controller" in text and "latched, status register 0x0080" in text
+
+
+# ------------------------------------------------------------------------------------------
+# item 4: no start jump
+# ------------------------------------------------------------------------------------------
+def test_no_motion_at_the_enable_edge_from_plus_5_mm(modbus_servo, tmp_path):
+    """The partner powers up at +5 mm with its set-point register at 0.0 (it follows the
+    register from the enable edge). Polled at 1 kHz over the test's own connection until
+    0.2 s after it reports ENABLED, the axis moves at most 0.1 mm in the 50 ms after the
+    enable edge; the set-point it holds at the edge is where the axis was (written before the
+    enable), and arming wrote none."""
+    partner = modbus_servo(position=0.005, pause_rate=0)
+    samples: list[tuple[float, float]] = []
+    stop = threading.Event()
+
+    def poll() -> None:
+        client = ModbusPoller(partner)
+        nxt = time.monotonic()
+        enabled_at = None
+        while not stop.is_set():
+            t0 = time.monotonic()
+            got = client.read()
+            if got is not None:
+                samples.append(((t0 + time.monotonic()) / 2, got[0]))
+                if got[1] & ENABLED and enabled_at is None:
+                    enabled_at = t0
+            if enabled_at is not None and t0 > enabled_at + 0.2:
+                return  # (the partner serves the bridge alone from here)
+            nxt += 0.001
+            time.sleep(max(0.0, nxt - time.monotonic()))
+
+    t = threading.Thread(target=poll, daemon=True)
+    t.start()
+    out = tmp_path / "jump"
+    sets = ('start.mode="offset"', "end.hold=0", "loop.fs=256")
+    proc = run_bridge(partner, out, *sets, duration=0.2)
+    rc, text = finish(proc)
+    stop.set()
+    t.join(2)
+    assert rc == 0, text
+    state = partner.stop()
+    (edge,) = state["enable_edges"]
+    assert edge["setpoint"] == pytest.approx(0.005, abs=1e-6)  # written before the enable
+    t_edge = edge["monotonic"]
+    window = [(ts - t_edge, p) for ts, p in samples if t_edge <= ts <= t_edge + 0.050]
+    # the poll saw the whole window (at 1 kHz when the machine lets it; the axis's 8 ms lag
+    # and 12 ms delay keep any motion visible for longer than the poll's gaps)
+    assert len(window) >= 15 and window[0][0] < 0.01 and window[-1][0] > 0.04, window
+    moved = max(abs(p - 0.005) for _, p in window)
+    assert moved <= 1e-4, f"{moved * 1e3:.3f} mm"
+    assert state["setpoint_writes"] > 0 and all(a["t"] < edge["t"] for a in state["ack_writes"])
+
+
+class ModbusPoller:
+    """The test's own connection reading the partner's position and status: the FC 4 request
+    built once by pymodbus (its framer), its answer decoded by pymodbus, on a plain socket (a
+    poll at 1 kHz costs the test little)."""
+
+    def __init__(self, partner) -> None:
+        from pymodbus.framer import FramerSocket
+        from pymodbus.pdu import DecodePDU
+        from pymodbus.pdu.register_message import ReadInputRegistersRequest
+
+        self.framer = FramerSocket(DecodePDU(False))
+        req = ReadInputRegistersRequest(address=2048, count=5, dev_id=1, transaction_id=7)
+        self.frame = self.framer.buildFrame(req)
+        self.sock = socket.create_connection(("127.0.0.1", partner.port), 1.0)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.sock.settimeout(0.1)
+
+    def read(self) -> tuple[float, int] | None:
+        """(position m, status register), or None for a dropped request."""
+        try:
+            self.sock.sendall(self.frame)
+            data = self.sock.recv(256)
+        except TimeoutError:
+            return None
+        used, _, _, pdu_bytes = self.framer.decode(data)
+        if not used or not pdu_bytes:
+            return None
+        regs = self.framer.decoder.decode(pdu_bytes).registers
+        pos = struct.unpack(">f", struct.pack(">HH", *regs[:2]))[0] * 1e-3
+        return pos, regs[4]
+
+
+# ------------------------------------------------------------------------------------------
+# item 8: the controller's own terms; the paced hand-back
+# ------------------------------------------------------------------------------------------
+def test_watchdog_trip_names_the_status_register_and_the_link_its_requests(modbus_servo, tmp_path):
+    """Without heartbeats the partner's own watchdog latches 200 ms after the enable: the
+    trip reason gives its status register as the controller has it (0x00A0: watchdog and
+    e-stop), and the link-budget line names the requests this profile sends (FC 16 + FC 4)."""
+    partner = modbus_servo(pause_rate=0)
+    out = tmp_path / "wd"
+    proc = run_bridge(partner, out, "loop.heartbeat=0", "loop.fs=512", duration=1.0)
+    rc, text = finish(proc)
+    assert rc == 3, text
+    (trip,) = events(out, "trip")
+    assert "status register 0x00A0 (e-stop, watchdog)" in trip["reason"], trip
+    assert "FC 16 + FC 4" in text and "FC 23" not in text, text
+    assert partner.status() == WATCHDOG | ESTOP
+
+
+def test_paced_512_hz_default_profile_completes_and_hands_back_disabled(modbus_servo, tmp_path):
+    """The docs' default profile (pipeline = true), paced at 512 Hz against the partner with
+    its pauses: the run completes and the controller is handed back disabled, not latched
+    (status 0x01, READY only, read over the test's own connection)."""
+    partner = modbus_servo(pause_rate=2)
+    out = tmp_path / "paced"
+    proc = run_bridge(partner, out, "loop.fs=512", duration=2.0)
+    rc, text = finish(proc)
+    assert rc == 0, text
+    assert "answers one request at a time" in text
+    assert partner.status() == READY
+    s = open_run(out).summary()
+    assert s["status"] == "completed" and s["steps"] == 1024
+    (hb,) = events(out, "handback")
+    assert hb["disabled"] and not hb["latched"]
+    assert partner.stop()["latches"] == []
