@@ -91,6 +91,15 @@ class Faults:
                 raise InputError(f"fault {name}={p}: a probability must be within [0, 1]")
         if any(v < 0 or not math.isfinite(v) for v in self.delay.values()):
             raise InputError("fault delay: pauses must be finite and >= 0 s")
+        if not math.isfinite(self.runaway_rate):
+            raise InputError(
+                f"fault runaway_rate={self.runaway_rate}: must be a finite speed (m/s)"
+            )
+        if self.estop_ignored not in (0, 1):
+            raise InputError(
+                f"fault estop_ignored={self.estop_ignored}: must be 0 (the controller latches "
+                "an e-stop) or 1 (it does not)"
+            )
         self._rng = random.Random(self.seed)
         self._stuck_value: float | None = None
 

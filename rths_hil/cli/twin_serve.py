@@ -37,6 +37,17 @@ if TYPE_CHECKING:
 DEFAULT_DT = 1.0 / 1024.0
 
 
+def _bitrate(text: str) -> int:
+    """A CAN bit rate: a positive integer (bit/s), at most 8 Mbit/s (CAN FD's data phase)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of bit/s") from None
+    if not 0 < v <= 8_000_000:
+        raise argparse.ArgumentTypeError(f"{v} bit/s is not a CAN bit rate (1 … 8 000 000)")
+    return v
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``serve`` to the ``twin`` sub-command group."""
     from rths_hil.sim_backends.registry import available_twins
@@ -84,7 +95,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="CAN: channel (default vcan0; serial, slcan: pty = a new pseudo-terminal pair)",
     )
-    p.add_argument("--bitrate", type=int, default=None, help="CAN: bit rate (bit/s)")
+    p.add_argument("--bitrate", type=_bitrate, default=None, help="CAN: bit rate (bit/s)")
     p.add_argument("--faults", default=None, help='fault plan, e.g. "drop=5,9; p_corrupt=0.01"')
     p.add_argument(
         "--heartbeat-timeout",
