@@ -119,6 +119,7 @@ def main(args: argparse.Namespace) -> int:  # noqa: C901
     from ..hybrid.phases import preflight, require_confirmation
     from ..linkbudget import format_loads
     from ..report import LiveLine, format_summary, plot_report, summarize
+    from ..stopping import OperatorStop
 
     cfg = config_from_args(args)
     if args.show_config:
@@ -182,10 +183,13 @@ def main(args: argparse.Namespace) -> int:  # noqa: C901
             _stop_watcher(watcher, run_dir)
     del loop  # the run's arrays (ground motion, lateness) are not needed for the summary
     result.lateness = result.ready = None  # type: ignore[assignment]
+    # the controllers are handed back: a stop signal now lets the summary and the report be
+    # written (they are the test's result), then the command exits 130
     try:
-        summary = summarize(run_dir)
-        if cfg["output"]["plot"] and not args.no_plot and result.steps > 1:
-            plot_report(run_dir, summary=summary)
+        with OperatorStop() as stop:
+            summary = summarize(run_dir)
+            if cfg["output"]["plot"] and not args.no_plot and result.steps > 1:
+                plot_report(run_dir, summary=summary)
     except OSError as exc:  # e.g. the disk filled up: the record and events are what is kept
         summary = None
         print(
@@ -207,6 +211,13 @@ def main(args: argparse.Namespace) -> int:  # noqa: C901
             f"{run_dir}",
             file=sys.stderr,
         )
+    if stop.signal is not None and result.exit_code == 0:
+        print(
+            f"rths-hil run: {stop.signal} while the summary and report were written; both are "
+            f"in {run_dir}",
+            file=sys.stderr,
+        )
+        return 130
     return result.exit_code
 
 

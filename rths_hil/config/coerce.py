@@ -84,7 +84,7 @@ def _bare(value: Any) -> bool:
     if isinstance(value, int | float) and not isinstance(value, bool):
         return True
     m = _NUM_RE.fullmatch(value) if isinstance(value, str) else None
-    return bool(m) and not m.group(2)
+    return m is not None and not m.group(2)
 
 
 def check_range(key: Key, v: float, path: str) -> None:
