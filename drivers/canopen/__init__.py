@@ -87,6 +87,7 @@ import can
 import canopen
 from canopen.emcy import EmcyError
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
+from canopen.objectdictionary.datatypes import INTEGER32
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from rths_hil.errors import InputError
@@ -118,6 +119,12 @@ SYNC_ID = 0x80
 NMT_OPERATIONAL = 0x05
 #: EMCY error code of a heartbeat / life-guard event (CiA 301).
 EMCY_HEARTBEAT = 0x8130
+#: the measured force of the project's twins (manufacturer-specific INTEGER32)
+FORCE_OBJECT = (0x2100, 0)
+#: CiA 402 torque actual value (INTEGER16, per mille of the motor rated torque 0x6076)
+TORQUE_ACTUAL = (0x6077, 0)
+#: CiA 402 motor rated torque (UNSIGNED32, mN·m; mN for a linear motor)
+RATED_TORQUE = (0x6076, 0)
 _WATCHDOG = int(Status.WATCHDOG)
 _ESTOP = int(Status.ESTOP_ACTIVE)
 _FAULT = int(Status.FAULT)
@@ -558,7 +565,7 @@ class CANopenDriver(Driver):
     command_lsb: ClassVar[float | None] = None
     stats: CANopenStats
 
-    def __init__(
+    def __init__(  # noqa: C901 - the connection keys, checked one by one
         self,
         eds: str | None = None,
         node_id: int = 1,
@@ -568,8 +575,9 @@ class CANopenDriver(Driver):
         bitrate: int | None = None,
         bus_options: dict[str, Any] | None = None,
         counts_per_m: float = 1e7,
-        force_object: str = "0x2100",
-        newtons_per_count: float = 0.01,
+        force_object: str | None = None,
+        newtons_per_count: float | None = None,
+        force_per_torque: float = 1.0,
         bridge_node_id: int = BRIDGE_NODE_ID,
         heartbeat_period: float = 0.1,
         controller_heartbeat: float = 0.1,
@@ -594,7 +602,11 @@ class CANopenDriver(Driver):
                 raise InputError(f"canopen: {key} must be an integer 1..127, got {v!r}")
         if node_id == bridge_node_id:
             raise InputError(f"canopen: node_id and bridge_node_id are both {node_id}")
-        for key, v in (("counts_per_m", counts_per_m), ("newtons_per_count", newtons_per_count)):
+        for key, v in (
+            ("counts_per_m", counts_per_m),
+            ("newtons_per_count", 0.01 if newtons_per_count is None else newtons_per_count),
+            ("force_per_torque", force_per_torque),
+        ):
             if (
                 isinstance(v, bool)
                 or not isinstance(v, int | float)
@@ -626,7 +638,10 @@ class CANopenDriver(Driver):
         self.bitrate = None if bitrate is None else int(bitrate)
         self.bus_options = dict(bus_options or {})
         self.counts_per_m = float(counts_per_m)
-        self.newtons_per_count = float(newtons_per_count)
+        #: the force scale given (None: 0.01 N per count, or from 0x6076 for the torque actual)
+        self._newtons_given = None if newtons_per_count is None else float(newtons_per_count)
+        self.newtons_per_count = 0.01 if newtons_per_count is None else float(newtons_per_count)
+        self.force_per_torque = float(force_per_torque)
         self.heartbeat_period = float(heartbeat_period)
         self.controller_heartbeat = float(controller_heartbeat)
         self.controller_heartbeat_timeout = float(controller_heartbeat_timeout)
@@ -634,11 +649,26 @@ class CANopenDriver(Driver):
         self.start_tolerance = float(start_tolerance)
         self.sdo_timeout = float(sdo_timeout) or 0.5
         self.vendor_id, self.product_code = vendor_id, product_code
-        self.configure_pdo = bool(configure_pdo)
+        if not isinstance(configure_pdo, bool):
+            raise InputError(
+                f"canopen: configure_pdo must be true or false (a TOML boolean), got "
+                f"{configure_pdo!r}"
+            )
+        self.configure_pdo = configure_pdo
         self.od = load_od(self.eds, node_id)
         p = self.profile
-        f_obj = parse_object(force_object, "force_object") if str(force_object).strip() else None
+        if force_object is None:  # the twins' 0x2100 where the EDS has it, else torque actual
+            cands = [o for o in (FORCE_OBJECT, TORQUE_ACTUAL) if o[0] in self.od]
+        elif str(force_object).strip():
+            cands = [parse_object(force_object, "force_object")]
+        else:
+            cands = []
+        #: objects that may carry the measured force, in order of preference (``force_object``)
+        self._force_candidates = cands
+        f_obj = cands[0] if cands else None
+        #: the force object of the driver's own mapping; after start-up the one a TPDO carries
         self.force_object = f_obj
+        self._force_nan: int | None = _S32[0]  # the "no valid value" of an INTEGER32 force
         v = {
             "control": _variable(self.od, p.control, self.eds, "control word"),
             "status": _variable(self.od, p.status, self.eds, "status word"),
@@ -655,6 +685,13 @@ class CANopenDriver(Driver):
         self._tpdo2_vars = (
             [_variable(self.od, f_obj, self.eds, "force_object")] if f_obj is not None else []
         )
+        for var in (*self._rpdo_vars, *self._tpdo1_vars, *self._tpdo2_vars):
+            if not var.pdo_mappable and self.configure_pdo:
+                raise InputError(
+                    f"canopen: eds {self.eds!r}: 0x{var.index:04X}:{var.subindex:02X} "
+                    f"({var.name}) is not PDO-mappable (PDOMapping=0), the driver cannot map it "
+                    "(configure_pdo = false takes the mapping the device has)"
+                )
         self.rpdo_layout = Layout.of(self._rpdo_vars, "RPDO1")
         self.tpdo1_layout = Layout.of(self._tpdo1_vars, "TPDO1")
         self.tpdo2_layout = Layout.of(self._tpdo2_vars, "TPDO2") if self._tpdo2_vars else None
@@ -666,18 +703,28 @@ class CANopenDriver(Driver):
         self._q: deque[Feedback] = deque()  # decoded feedback (appended by _on_tpdo)
         self._wake = threading.Event()  # set by _on_tpdo (the notifier thread's hand-off)
         self._lock = threading.Lock()
-        # the TPDO values of the current SYNC: one slot per TPDO (TPDO1, TPDO2), _MISSING until
-        # it came, None when malformed, () for a TPDO2 that is not mapped; reset at every SYNC
-        self._blank: tuple[Any, ...] = (_MISSING, _MISSING if f_obj is not None else ())
+        # the TPDO values of the current SYNC: one slot per TPDO used (in PDO number order),
+        # _MISSING until it came, None when malformed; reset at every SYNC. Until _map_pdos
+        # reads the device's mapping: the driver's own (TPDO1 = status word + position,
+        # TPDO2 = force)
+        self._n_tpdo = 2 if f_obj is not None else 1
+        self._blank: tuple[Any, ...] = (_MISSING,) * self._n_tpdo
         self._part: list[Any] = list(self._blank)
         self._have = 0  # TPDOs of the current SYNC received
-        self._n_tpdo = 2 if f_obj is not None else 1
+        #: (slot, position) in the TPDO values of the status word, the actual position and
+        #: the force (None: not mapped)
+        self._at: tuple[tuple[int, int] | None, ...] = (
+            (0, 0),
+            (0, 1),
+            (1, 0) if f_obj is not None else None,
+        )
+        #: the PDOs used, as the device maps them (``"TPDO1": "COB-ID 0x185: 0x6041:00 + …"``)
+        self.mapping: dict[str, str] = {}
         self._states: dict[int, str] = {}
         self._flags: dict[tuple[str, bool], int] = {}
         self._words: dict[tuple[str, bool, bool], int] = {}
         # the library's PDO maps and the precompiled packing checked against them (_map_pdos)
         self._rpdo_map: Any = None
-        self._rpdo_pack: Any = None
         self._tpdo_maps: dict[int, Any] = {}
         self._tpdo_decode: dict[int, tuple[int, int, Any]] = {}  # cob → (slot, size, unpack)
         self._step = -1  # the step the last SYNC belongs to
@@ -698,6 +745,10 @@ class CANopenDriver(Driver):
         # the virtual bus copies cheaply, drivers.can.codec); the SYNC is the bus's
         self._rpdo_msg = Frame.blank(self._rpdo_id, self.rpdo_layout.fmt.size)
         self._rpdo_data = self._rpdo_msg.data
+        #: each RPDO of a step: its frame and ``pack(word, counts)`` (set by _map_pdos)
+        self._rpdo_out: list[tuple[Frame, Any]] = []
+        #: the bridge wrote the device's heartbeat consumer 0x1016:01 (cleared at close)
+        self._consumer_set = False
         self._hb_msg = Frame(
             arbitration_id=self._hb_id, is_extended_id=False, dlc=1, data=bytes((NMT_OPERATIONAL,))
         )
@@ -843,6 +894,7 @@ class CANopenDriver(Driver):
         if self.device_watchdog is not None:
             ms = max(1, round(self.device_watchdog * 1000))
             self._sdo_write(0x1016, 1, (self.bridge_node_id << 16) | min(ms, 0xFFFF))
+            self._consumer_set = True
         try:
             self._map_pdos()
         except _SDO_ERRORS as exc:
@@ -853,15 +905,176 @@ class CANopenDriver(Driver):
         self._hb_seen = time.monotonic()
         self.heartbeat()  # the device's consumer counts from here (and the other axes' on the bus)
 
-    def _map_pdos(self) -> None:
+    def _map_pdos(self) -> None:  # noqa: C901 - one pass over the mapping, in order
+        """Set the driver's PDO mapping (``configure_pdo``) or take the device's, read it back,
+        find the objects in it and precompile the packing.
+
+        With ``configure_pdo = true`` the driver's own mapping is written by SDO (RPDO1 =
+        control word + set-point; TPDO1 = status word + actual position; TPDO2 = the force, or
+        the force at the end of TPDO1 when the device has no TPDO2), unless the EDS has the
+        mapping objects read-only (a fixed mapping); a device that refuses a write with an SDO
+        abort keeps its own mapping (the COB-ID of the PDO being written is restored). Either
+        way the mapping is then **read back from the device** (0x1400…, 0x1600…, 0x1800…,
+        0x1A00… by SDO): what the device holds is what the bridge packs and unpacks. The
+        control word and the set-point must be in RPDOs, the status word and the actual
+        position in TPDOs; the force comes from whichever TPDO carries one of the force objects
+        (``force_object``), else it is NaN. What is missing is refused in one line.
+        """
         node = self.node
         assert node is not None
+        fixed = ""
         if self.configure_pdo:
-            for pdo, cob, variables in (
-                (node.rpdo[1], self._rpdo_id, self._rpdo_vars),
-                (node.tpdo[1], self._tpdo_ids[0], self._tpdo1_vars),
-                (node.tpdo[2], self._tpdo_ids[1], self._tpdo2_vars),
-            ):
+            fixed = self._fixed_in_eds() or self._write_mapping()
+            if fixed:
+                log.warning(
+                    "canopen: node %d keeps its own PDO mapping (%s): the bridge uses it",
+                    self.node_id, fixed,
+                )  # fmt: skip
+        maps = {"RPDO": dict(node.rpdo.map), "TPDO": dict(node.tpdo.map)}
+        for kind, pdos in maps.items():
+            for no, pdo in list(pdos.items()):
+                try:
+                    pdo.read()  # the device's mapping, by SDO
+                except SdoAbortedError as exc:  # listed in the EDS, not in the device
+                    log.info("canopen: node %d: %s%d not read: %s", self.node_id, kind, no, exc)
+                    del pdos[no]
+        p = self.profile
+        where = {
+            "control": self._locate(maps["RPDO"], p.control),
+            "setpoint": self._locate(maps["RPDO"], p.setpoint),
+            "status": self._locate(maps["TPDO"], p.status),
+            "actual": self._locate(maps["TPDO"], p.actual),
+        }
+        names = {"control": "control word", "setpoint": "position set-point",
+                 "status": "status word", "actual": "actual position"}  # fmt: skip
+        for key, at in where.items():
+            if at is None:
+                kind = "RPDO" if key in ("control", "setpoint") else "TPDO"
+                obj = getattr(p, key)
+                held = "; ".join(
+                    f"{kind}{no} maps {self._describe(m)}"
+                    for no, m in sorted(maps[kind].items()) if m.enabled and len(m.map)
+                ) or f"no {kind} is enabled"  # fmt: skip
+                raise InputError(
+                    f"canopen: node {self.node_id}: no {kind} carries the {names[key]} "
+                    f"0x{obj[0]:04X}:{obj[1]:02X} ({held}"
+                    + (f"; the mapping is the device's own: {fixed}" if fixed else "")
+                    + ")"
+                )
+        force_at = None
+        for obj in self._force_candidates:
+            force_at = self._locate(maps["TPDO"], obj)
+            if force_at is not None:
+                self.force_object = obj
+                break
+        else:
+            if self._force_candidates:
+                log.warning(
+                    "canopen: node %d maps no force object (%s) in a TPDO: no force (NaN)",
+                    self.node_id,
+                    ", ".join(f"0x{i:04X}:{s:02X}" for i, s in self._force_candidates),
+                )
+            self.force_object = None
+        if self.force_object is not None:
+            self._force_scale_from_device()
+        # the PDOs used: sent on every SYNC (TPDO) and enabled, set so when the driver may
+        used_r = sorted({where["control"][0], where["setpoint"][0]})
+        used_t = sorted({where["status"][0], where["actual"][0]}
+                        | ({force_at[0]} if force_at else set()))  # fmt: skip
+        for kind, nos in (("RPDO", used_r), ("TPDO", used_t)):
+            for no in nos:
+                self._make_usable(kind, no, maps[kind][no], fixed)
+        # each step packs the RPDOs and unpacks the TPDOs with one precompiled struct of their
+        # mapped objects (Layout), checked here against the library's own encoding and
+        # decoding of its maps
+        rng = random.Random(0x1A0 + self.node_id)
+        self._rpdo_out = []
+        for no in used_r:
+            pdo = maps["RPDO"][no]
+            self._rpdo_out.append(self._rpdo_packer(no, pdo, rng))
+        self._rpdo_msg, self._rpdo_map = self._rpdo_out[0][0], maps["RPDO"][used_r[0]]
+        self._rpdo_data = self._rpdo_msg.data
+        self._rpdo_id = self._rpdo_msg.arbitration_id
+        self._tpdo_maps, self._tpdo_decode = {}, {}
+        slots = {no: slot for slot, no in enumerate(used_t)}
+        self._at = tuple(
+            (slots[at[0]], at[1]) if at else None
+            for at in (where["status"], where["actual"], force_at)
+        )
+        self._tpdo_ids = tuple(maps["TPDO"][no].cob_id for no in used_t)
+        for no in used_t:
+            pdo = maps["TPDO"][no]
+            layout = Layout.of([v.od for v in pdo.map], f"TPDO{no}")
+            layout.check(pdo, f"TPDO{no}", rng)
+            unpack = layout.fmt.unpack
+            self._tpdo_decode[pdo.cob_id] = (slots[no], layout.fmt.size, unpack)
+            self._tpdo_maps[pdo.cob_id] = pdo
+            if self._bus is not None:
+                self._bus.tpdo[pdo.cob_id] = (self, pdo, slots[no], layout.fmt.size, unpack)
+            pdo.add_callback(self._on_tpdo)
+        self._n_tpdo = len(used_t)
+        self._blank = (_MISSING,) * self._n_tpdo
+        self._part = list(self._blank)
+        self._have = 0
+        self.mapping = {
+            **{f"RPDO{no}": self._describe(maps["RPDO"][no]) for no in used_r},
+            **{f"TPDO{no}": self._describe(maps["TPDO"][no]) for no in used_t},
+        }
+        log.info("canopen: node %d PDOs %s", self.node_id, self.mapping)
+
+    @staticmethod
+    def _describe(pdo: Any) -> str:
+        objs = " + ".join(f"0x{v.index:04X}:{v.subindex:02X}" for v in pdo.map)
+        return f"COB-ID 0x{pdo.cob_id:03X}: {objs}"
+
+    @staticmethod
+    def _locate(pdos: dict[int, Any], obj: tuple[int, int]) -> tuple[int, int] | None:
+        """(PDO number, position in it) of ``obj``: an enabled PDO first, else a disabled one."""
+        for no, pdo in sorted(pdos.items(), key=lambda kv: (not kv[1].enabled, kv[0])):
+            for i, var in enumerate(pdo.map):
+                if (var.index, var.subindex) == obj:
+                    return no, i
+        return None
+
+    def _wanted(self) -> list[tuple[str, Any, int, list[ODVariable]]]:
+        """The driver's own mapping: (name, the library's PDO map, COB-ID, objects)."""
+        node = self.node
+        assert node is not None
+        r, t = node.rpdo.map, node.tpdo.map
+        for kind, maps in (("RPDO1", r), ("TPDO1", t)):
+            if 1 not in maps:
+                com = 0x1400 if kind[0] == "R" else 0x1800
+                raise InputError(
+                    f"canopen: eds {self.eds!r} has no {kind} (0x{com:04X}): the driver cannot "
+                    "map its PDOs (configure_pdo = false takes the device's)"
+                )
+        t1 = list(self._tpdo1_vars)
+        out = [("RPDO1", r[1], self._rpdo_id, self._rpdo_vars)]
+        if 2 in t:
+            out += [("TPDO1", t[1], 0x180 + self.node_id, t1),
+                    ("TPDO2", t[2], 0x280 + self.node_id, self._tpdo2_vars)]  # fmt: skip
+        else:  # no TPDO2: the force at the end of TPDO1 when it fits
+            if sum(len(v) for v in t1 + self._tpdo2_vars) <= 64:
+                t1 += self._tpdo2_vars
+            out.append(("TPDO1", t[1], 0x180 + self.node_id, t1))
+        return out
+
+    def _fixed_in_eds(self) -> str:
+        """Why the EDS says the mapping cannot be written (its entries read-only), or ``""``."""
+        for name, pdo, _, variables in self._wanted():
+            od = pdo.map_array.od
+            entries = [od[i] for i in range(len(variables) + 1) if i in od.subindices]
+            if len(entries) < len(variables) + 1 or not all(e.writable for e in entries):
+                return f"0x{od.index:04X} ({name} mapping) is read-only in the EDS"
+        return ""
+
+    def _write_mapping(self) -> str:
+        """Write the driver's mapping by SDO; ``""``, or the refusal that stopped it (the PDO
+        being written keeps its COB-ID)."""
+        for name, pdo, cob, variables in self._wanted():
+            orig: int | None = None
+            try:
+                orig = int(pdo.com_record[1].raw)
                 pdo.clear()
                 for var in variables:
                     pdo.add_variable(var.index, var.subindex)
@@ -870,54 +1083,100 @@ class CANopenDriver(Driver):
                 pdo.enabled = bool(variables)
                 pdo.rtr_allowed = False
                 pdo.save()
-        else:
-            for pdo in (node.rpdo[1], node.tpdo[1], node.tpdo[2]):
-                pdo.read()
-        # what the device now holds must be what this driver packs and unpacks
-        for pdo, variables, name in (
-            (node.rpdo[1], self._rpdo_vars, "RPDO1"),
-            (node.tpdo[1], self._tpdo1_vars, "TPDO1"),
-            (node.tpdo[2], self._tpdo2_vars, "TPDO2"),
-        ):
-            got = [(v.index, v.subindex, v.length) for v in pdo.map]
-            want = [(v.index, v.subindex, len(v)) for v in variables]
-            if got != want:
-                raise InputError(
-                    f"canopen: node {self.node_id}: {name} maps "
-                    f"{', '.join(f'0x{i:04X}:{s:02X}' for i, s, _ in got) or 'nothing'}; the "
-                    f"profile needs {', '.join(f'0x{i:04X}:{s:02X}' for i, s, _ in want)}"
-                )
-            if variables and pdo.cob_id != {"RPDO1": self._rpdo_id, "TPDO1": self._tpdo_ids[0],
-                                             "TPDO2": self._tpdo_ids[1]}[name]:  # fmt: skip
-                self._retarget(name, pdo.cob_id)
-        # each step packs the RPDO and unpacks the TPDOs with one precompiled struct of the
-        # mapped objects (Layout), checked here against the library's own encoding and decoding
-        # of its maps; the maps above (control word first, checked) fix the argument order
-        rng = random.Random(0x1A0 + self.node_id)
-        rp = self._rpdo_map = node.rpdo[1]
-        self.rpdo_layout.check(rp, "RPDO1", rng)
-        self._rpdo_pack = self.rpdo_layout.fmt.pack_into
-        self._rpdo_msg.arbitration_id = self._rpdo_id
-        self._tpdo_maps, self._tpdo_decode = {}, {}
-        for slot, (pdo, layout, name) in enumerate(
-            ((node.tpdo[1], self.tpdo1_layout, "TPDO1"), (node.tpdo[2], self.tpdo2_layout, "TPDO2"))
-        ):
-            if layout is not None:
-                layout.check(pdo, name, rng)
-                unpack = layout.fmt.unpack
-                self._tpdo_decode[pdo.cob_id] = (slot, layout.fmt.size, unpack)
-                self._tpdo_maps[pdo.cob_id] = pdo
-                if self._bus is not None:
-                    self._bus.tpdo[pdo.cob_id] = (self, pdo, slot, layout.fmt.size, unpack)
-                pdo.add_callback(self._on_tpdo)
+            except SdoAbortedError as exc:
+                if orig is not None:
+                    try:
+                        pdo.com_record[1].raw = orig
+                    except _SDO_ERRORS as again:
+                        log.warning("canopen: node %d: %s COB-ID not restored: %s",
+                                    self.node_id, name, again)  # fmt: skip
+                return f"the device refused the {name} mapping by SDO: {exc}"
+        return ""
 
-    def _retarget(self, name: str, cob: int) -> None:
-        if name == "RPDO1":
-            self._rpdo_id = cob
-        elif name == "TPDO1":
-            self._tpdo_ids = (cob, self._tpdo_ids[1])
-        else:
-            self._tpdo_ids = (self._tpdo_ids[0], cob)
+    def _make_usable(self, kind: str, no: int, pdo: Any, fixed: str) -> None:
+        """A PDO the bridge needs: enabled, and a TPDO sent on every SYNC (transmission type
+        1); set so by SDO when ``configure_pdo``, else refused in one line."""
+        ok_type = pdo.trans_type == 1 if kind == "TPDO" else (pdo.trans_type or 0) <= 240 or (
+            pdo.trans_type >= 254)  # fmt: skip
+        if pdo.enabled and ok_type:
+            return
+        what = (f"{kind}{no} of node {self.node_id} (COB-ID 0x{pdo.cob_id:03X}, transmission "
+                f"type {pdo.trans_type}{', disabled' if not pdo.enabled else ''})")  # fmt: skip
+        if not self.configure_pdo:
+            raise InputError(
+                f"canopen: {what} is not usable: the bridge needs it enabled"
+                + (" and sent on every SYNC (type 1)" if kind == "TPDO" else "")
+                + " (configure_pdo = true lets the driver set it)"
+            )
+        try:
+            if not ok_type:
+                pdo.com_record[2].raw = 1
+                pdo.trans_type = 1
+            if not pdo.enabled:
+                pdo.com_record[1].raw = pdo.cob_id | (0 if pdo.rtr_allowed else 1 << 30)
+                pdo.enabled = True
+                pdo.subscribe()
+        except SdoAbortedError as exc:
+            raise InputError(
+                f"canopen: {what}: setting it to enabled, type 1 failed: {exc}"
+            ) from None
+
+    def _rpdo_packer(self, no: int, pdo: Any, rng: random.Random) -> tuple[Frame, Any]:
+        """The frame of RPDO ``no`` and ``pack(word, counts)`` filling it: the control word and
+        the set-point where the device maps them, any other mapped object with the value read
+        from the device at start-up (so it holds)."""
+        layout = Layout.of([v.od for v in pdo.map], f"RPDO{no}")
+        layout.check(pdo, f"RPDO{no}", rng)
+        msg = Frame.blank(pdo.cob_id, layout.fmt.size)
+        data, pack_into = msg.data, layout.fmt.pack_into
+        keys = [(v.index, v.subindex) for v in pdo.map]
+        p = self.profile
+        if keys == [p.control, p.setpoint]:
+            return msg, lambda w, c: pack_into(data, 0, w, c)
+        values: list[Any] = []
+        for index, sub in keys:
+            if (index, sub) in (p.control, p.setpoint) or index < 0x1000:  # dummy entries: 0
+                values.append(0)
+            else:
+                values.append(self._sdo_read(index, sub))
+        i_w = keys.index(p.control) if p.control in keys else None
+        i_c = keys.index(p.setpoint) if p.setpoint in keys else None
+
+        def pack(w: int, c: int) -> None:
+            if i_w is not None:
+                values[i_w] = w
+            if i_c is not None:
+                values[i_c] = c
+            pack_into(data, 0, *values)
+
+        return msg, pack
+
+    def _force_scale_from_device(self) -> None:
+        """The force scale: ``newtons_per_count`` as given (0.01), or for the torque actual
+        0x6077 (per mille of the rated torque) the rated torque 0x6076 read by SDO (mN·m; a
+        linear motor's rated force in mN) × ``force_per_torque`` (N per N·m) / 10⁶."""
+        assert self.force_object is not None
+        var = _variable(self.od, self.force_object, self.eds, "force_object")
+        self._force_nan = _S32[0] if var.data_type == INTEGER32 else None
+        if self.force_object != TORQUE_ACTUAL or self._newtons_given is not None:
+            return
+        if RATED_TORQUE[0] not in self.od:
+            raise InputError(
+                f"canopen: node {self.node_id} maps the torque actual 0x6077 but its EDS has no "
+                "0x6076 (rated torque) to scale it: give driver.connection.newtons_per_count"
+            )
+        rated = self._sdo_read(*RATED_TORQUE)
+        if rated <= 0:
+            raise InputError(
+                f"canopen: node {self.node_id}: rated torque 0x6076 is {rated}: the torque "
+                "actual 0x6077 cannot be scaled; give driver.connection.newtons_per_count"
+            )
+        self.newtons_per_count = rated / 1e6 * self.force_per_torque
+        log.info(
+            "canopen: node %d force from the torque actual 0x6077: %g N per per-mille "
+            "(0x6076 = %d, force_per_torque %g)",
+            self.node_id, self.newtons_per_count, rated, self.force_per_torque,
+        )  # fmt: skip
 
     # ------------------------------------------------------------------------------------------
     # callbacks (the canopen library's notifier thread)
@@ -943,26 +1202,30 @@ class CANopenDriver(Driver):
             part[slot] = values
             if self._have < self._n_tpdo:
                 return
-            t1, t2 = part
+            parts = tuple(part)
             part[:] = self._blank
             self._have = 0
             self._delivered_sync = step
-        fb = self._decode(step, t1, t2)
+        fb = self._decode(step, parts)
         if fb is not None:
             self._q.append(fb)
             bus = self._bus
             if bus is None or not bus.reading:  # a thread may wait for it
                 self._wake.set()
 
-    def _decode(self, step: int, t1: Any, t2: Any) -> Feedback | None:
-        if t1 is None or t2 is None:
+    def _decode(self, step: int, parts: tuple[Any, ...]) -> Feedback | None:
+        """The feedback of one SYNC's TPDO values (``parts``: one tuple per TPDO used, in the
+        order of :attr:`_at`'s slots; ``None`` for a TPDO of the wrong length)."""
+        if None in parts:
             self.stats.count_malformed("bad_length")
             return None
-        sw, pos = t1  # TPDO1 maps status word, actual position (checked when mapped)
+        (s_sw, i_sw), (s_pos, i_pos), at_f = self._at  # type: ignore[misc]
+        sw = parts[s_sw][i_sw]
+        pos = parts[s_pos][i_pos]
         force = math.nan
-        if t2:
-            (fc,) = t2
-            force = math.nan if fc == _S32[0] else fc * self.newtons_per_count
+        if at_f is not None:
+            fc = parts[at_f[0]][at_f[1]]
+            force = math.nan if fc == self._force_nan else fc * self.newtons_per_count
         state = self._states.get(sw)
         if state is None:  # the FSA state of a status word, looked up once
             state = self._states[sw] = self.profile.state(sw)
@@ -1010,10 +1273,11 @@ class CANopenDriver(Driver):
             return
         # the mapped objects (control word, set-point) packed by the precompiled layout that
         # _map_pdos checked against the library's encoding of its RPDO map (Layout.check)
-        self._rpdo_pack(self._rpdo_data, 0, word, counts)
-        if not bus.send(self._rpdo_msg):
-            self.stats.send_errors += 1
-            return
+        for msg, pack in self._rpdo_out:
+            pack(word, counts)
+            if not bus.send(msg):
+                self.stats.send_errors += 1
+                return
         self._awaiting = step
         for drv in bus.axes.values():  # the SYNC once every axis on the bus has its RPDO out
             if drv._awaiting is None:
@@ -1165,7 +1429,8 @@ class CANopenDriver(Driver):
             pos = self._sdo_read(*p.actual) / self.counts_per_m
             force = math.nan
             if self.force_object is not None:
-                force = self._sdo_read(*self.force_object) * self.newtons_per_count
+                fc = self._sdo_read(*self.force_object)
+                force = math.nan if fc == self._force_nan else fc * self.newtons_per_count
             flags = p.flags(before, self._latched)
             code = self._emcy_code or (self._error_field() if flags & _FAULT else 0)
             if code == EMCY_HEARTBEAT:  # the device's consumer latched: a bridge that stopped
@@ -1226,6 +1491,9 @@ class CANopenDriver(Driver):
                     for word in p.disable_words(state):
                         self._sdo_write(p.control[0], p.control[1], word)
                     self._state = p.state(self._sdo_read(*p.status))
+                if self._consumer_set:  # the bridge's heartbeat stops: its consumer too
+                    self._sdo_write(0x1016, 1, 0)
+                    self._consumer_set = False
                 self.node.nmt.send_command(0x02)  # NMT stop
         except (InputError, *_BUS_ERRORS, RuntimeError) as exc:
             log.warning("canopen: handing node %d back disabled failed: %s", self.node_id, exc)
@@ -1243,7 +1511,7 @@ class CANopenDriver(Driver):
             and bus is not None
             and bus.axes.keys() - {self.node_id}
         ):  # other axes stay on the network: this node leaves its dispatch
-            for pdo in (node.tpdo[1], node.tpdo[2]):
+            for pdo in node.tpdo.map.values():
                 for cb in [
                     cb for cb in net.subscribers.get(pdo.cob_id, ()) if cb == pdo.on_message
                 ]:
