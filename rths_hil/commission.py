@@ -283,6 +283,18 @@ class _Controller:
         self.run(path, enable, lambda i, f, r: out.append(f), check)
         return out
 
+    def idle_while(self, work: Callable[[], Any]) -> Any:
+        """``work()`` in a thread while this one keeps commanding ``x`` disabled, the heartbeat
+        going (a drive's heartbeat consumer watches even while disabled); its result."""
+        import concurrent.futures
+
+        x = self.x
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            fut = pool.submit(work)
+            while not fut.done():
+                self.hold(x, 0.05, False, check=False)
+            return fut.result()
+
     def silent(self, seconds: float) -> float:
         """Send nothing for ``seconds`` (the operator stop still ends it); the time spent."""
         t0 = time.perf_counter()
@@ -547,11 +559,14 @@ def _motion(ctl: _Controller, rep: ChannelReport, plan: Any, x0: float) -> None:
     from .estimation import DelayGainEstimator
     from .fei import fei
 
-    r = fei(path, filled, plan.fs)
-    est = DelayGainEstimator(fs=plan.fs)
-    g = d = math.nan
-    for u, y in zip(path.tolist(), filled.tolist(), strict=True):
-        g, d = est.update(u, y)
+    def evaluate() -> tuple[Any, float, float]:
+        est = DelayGainEstimator(fs=plan.fs)
+        g = d = math.nan
+        for u, y in zip(path.tolist(), filled.tolist(), strict=True):
+            g, d = est.update(u, y)
+        return fei(path, filled, plan.fs), g, d
+
+    r, g, d = ctl.idle_while(evaluate)
     hold_err = abs(filled[hold_end - 1] - (x0 + amp))
     figs.update(
         fei_amplitude=r.amplitude,
@@ -589,7 +604,7 @@ def _plant(ctl: _Controller, rep: ChannelReport, plan: Any, x0: float) -> None:
         rep.steps.append(StepResult("plant", "failed", "too many replies missed", figs))
         return
     max_time = 0.2
-    fit = identify_plant(path, meas, plan.fs, max_time=max_time)
+    fit = ctl.idle_while(lambda: identify_plant(path, meas, plan.fs, max_time=max_time))
     rep.plant = fit
     figs.update(
         delay_ms=fit.delay * 1e3,
@@ -660,7 +675,7 @@ def _watchdog(ctl: _Controller, rep: ChannelReport, com: dict, x0: float) -> Non
     # acknowledged as a run does it: the arming command (a profile's acknowledge action, a
     # drive's fault reset), then disabled
     armed = ctl.arm()
-    after = _last(ctl.hold(x0, 3 * ctl.dt, False, check=False))
+    after = _last(ctl.hold(x0, 3 * ctl.dt, False, check=False)) or ctl.poll(x0, False)
     st2 = None if after is None else int(after.status)
     figs = {
         "timeout_s": timeout,

@@ -31,6 +31,7 @@ from rths_hil.commission import commission
 from rths_hil.config import load_config
 from tests.helpers.cli import one_line_exit_2
 from tests.helpers.procs import ROOT, ServedTwin, toml_table
+from tests.partners.modbus_fixtures import PROFILE, modbus_servo  # noqa: F401 (fixture)
 
 # against the wall clock or with other processes: run apart from the parallel tests
 # (the "timing" marker, pyproject.toml; make test)
@@ -234,6 +235,49 @@ def test_hardware_commission_leaves_the_controller_disabled_after_its_watchdog_s
     time.sleep(2 * HB)
     status, _ = _modbus_state(served.connection)
     assert status & 0x13 == 0, hex(status)
+
+
+@pytest.mark.parametrize(("example", "inline"), [("cia402", "true"), ("cia408", "false")])
+def test_canopen_examples_pass_their_estop_and_watchdog_steps(tmp_path, example, inline):
+    """The CiA 402 / 408 examples on their own twins: the e-stop, the drive's heartbeat
+    consumer (a fault 0x8130 reported as the latched watchdog) and the hand-back. The bus's
+    own heartbeat that the driver keeps after its e-stop stops at the next arming; the
+    computations between steps run while the drive still gets its heartbeat."""
+    cfg = load_config(
+        ROOT / "examples" / "controllers" / f"{example}.toml",
+        [*BASE, "commission.latency_time=0.3", f"twin.inline={inline}"],
+    )
+    (rep,) = commission(cfg, tmp_path / "c")
+    steps = {s.name: s for s in rep.steps}
+    for name in ("identify", "enable", "motion", "estop", "watchdog", "hand-back"):
+        assert steps[name].status == "passed", (name, steps[name])
+    assert "WATCHDOG" in steps["watchdog"].figures["status"]
+    assert steps["hand-back"].figures["status"] == "0"
+
+
+def test_modbus_partner_is_handed_back_ready_after_the_watchdog_step(modbus_servo):  # noqa: F811
+    """The conformance partner (one transaction at a time, its 200 ms heartbeat-change
+    watchdog): its watchdog latches in the watchdog step (0xA0), the hand-back acknowledges it
+    and the partner, read over the test's own connection, is READY (0x01) only."""
+    partner = modbus_servo(pause_rate=0)
+    cfg = load_config(None, [
+        *BASE, "commission.latency_time=0.3", "loop.fs=512", "twin.enabled=false",
+        "driver.name=modbus", f'driver.profile="{PROFILE}"', "loop.confirm_hardware=true",
+        f'driver.connection={{host="127.0.0.1", port={partner.port}}}',
+        "commission.watchdog_timeout=0.2",
+    ])  # fmt: skip
+    tmp = partner.state_file.parent
+    (rep,) = commission(cfg, tmp / "c")
+    steps = {s.name: s for s in rep.steps}
+    # a loaded machine may stall a motion step past the partner's watchdog: that step fails,
+    # the watchdog step and the hand-back are the point
+    assert steps["watchdog"].status == "passed", steps["watchdog"]
+    assert steps["hand-back"].status == "passed", steps["hand-back"]
+    assert partner.status() == 0x01  # READY: disabled, no latch
+    final = partner.stop()
+    assert final["status"] == 0x01
+    assert "watchdog" in [latch["cause"] for latch in final["latches"]]
+    assert final["ack_writes"]
 
 
 # ----------------------------------------------------------------------------------------------
