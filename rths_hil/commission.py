@@ -79,7 +79,7 @@ from typing import Any
 
 import numpy as np
 
-from rths_hil.drivers.base import Feedback, Status
+from rths_hil.drivers.base import Feedback, LinkDown, Status
 
 from .config import Config
 from .errors import InputError
@@ -744,14 +744,21 @@ def _channel(
     label = rep.name or "actuator"
     why_skipped = ""
     x0: float | None = None
+    current = "identify"
+
+    def start(name: str, text: str = "") -> None:
+        nonlocal current
+        current = name
+        progress(f"{label}: {text or name}")
+
     try:
         stop.check()
-        progress(f"{label}: identify")
+        start("identify")
         x0 = _identify(ctl, rep, amp, ch.monitor.disp_limit)
         if x0 is None:
             why_skipped = "identify failed"
             return rep
-        progress(f"{label}: latency ({com['latency_time']:g} s, disabled)")
+        start("latency", f"latency ({com['latency_time']:g} s, disabled)")
         _latency(ctl, rep, max(1, round(com["latency_time"] * plan.fs)), x0, link_time)
         if not confirm(
             f"{label}: enable the controller and move the actuator by {amp * 1e3:g} mm at "
@@ -760,18 +767,23 @@ def _channel(
             why_skipped = "not confirmed by the operator"
             return rep
         tol = 2e-5 + 0.05 * amp
-        progress(f"{label}: enable")
+        start("enable")
         _enable(ctl, rep, x0, tol)
-        progress(f"{label}: motion")
+        start("motion")
         _motion(ctl, rep, plan, x0)
-        progress(f"{label}: plant")
+        start("plant")
         _plant(ctl, rep, plan, x0)
-        progress(f"{label}: estop")
+        start("estop")
         _estop(ctl, rep, x0, amp)
-        progress(f"{label}: watchdog")
+        start("watchdog")
         _watchdog(ctl, rep, com, x0)
     except Stopped as exc:
         why_skipped = f"operator stop ({exc})"
+    except (InputError, LinkDown, OSError, ValueError) as exc:  # the step fails, not the run
+        log.warning("%s: %s: %s", label, current, exc)
+        if rep.step(current) is None:
+            rep.steps.append(StepResult(current, "failed", f"error: {exc}"))
+        why_skipped = f"{current} ended with an error"
     finally:
         done = {s.name for s in rep.steps}
         for name in STEPS[:-1]:
@@ -783,7 +795,13 @@ def _channel(
                 rep.steps.append(StepResult(name, "skipped", why_skipped or "not reached"))
         if x0 is not None or ctl.enabled:
             progress(f"{label}: hand-back")
-            _hand_back(ctl, rep, x0 if x0 is not None else ctl.x, plan.cfg["end"]["hold"])
+            try:
+                _hand_back(ctl, rep, x0 if x0 is not None else ctl.x, plan.cfg["end"]["hold"])
+            except (InputError, LinkDown, OSError) as exc:
+                with contextlib.suppress(Exception):
+                    ctl.drv.estop()
+                why = f"error: {exc}; the controller was e-stopped"
+                rep.steps.append(StepResult("hand-back", "failed", why))
         else:
             rep.steps.append(StepResult("hand-back", "skipped", why_skipped or "not armed"))
         rep.steps.sort(key=lambda s: STEPS.index(s.name))
