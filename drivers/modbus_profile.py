@@ -16,7 +16,22 @@ their transaction ids: the MBAP header's transaction identifier pairs a response
 request, so several transactions may be outstanding on one connection (MODBUS Messaging on
 TCP/IP Implementation Guide V1.0b, the MBAP header; docs/references.md). Without it, one
 request at a time as on RTU (the next written when the previous one is answered), for a server
-that serves one transaction at a time.
+that serves one transaction at a time. Whether the server answers pipelined requests is checked
+when the driver opens (two reads in one write): a server that answers the first only (it
+serves one transaction at a time and drops a request that arrives while another is in
+progress) is sent one request at a time from then on, with a warning (:attr:`link_note`). One
+at a time, a request is not written over an outstanding one (given up after ``HEAD_GIVEUP``).
+
+**Arming and the enable edge.** Arming writes the disable and acknowledge actions and reads
+the measured values, no set-point (a controller that follows its set-point register once
+enabled would move to it); on the enable edge the set-point goes out before the enable
+action, so the controller follows the command from the edge.
+
+**E-stop** (Modbus TCP): over a second connection of its own, idle but for the e-stop (else on
+the step's connection after the outstanding answer, at most ``ESTOP_DRAIN``), its answer
+awaited, the status word read back, and written again until the status word shows the e-stop
+or ``ESTOP_WINDOW`` has passed (:meth:`ModbusProfileDriver.estop`). Messages give the
+controller's status register as it has it (:meth:`ModbusProfileDriver.fault_text`).
 
 **Modbus RTU** (a serial line: ``device``, ``baudrate``, ``parity``, ``stopbits``). RTU is
 half-duplex and carries no transaction id: the driver keeps the step's requests in a queue,

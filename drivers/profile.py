@@ -184,10 +184,19 @@ class _Reader:
             raise self.fail(extra[0], f"unknown key (known: {', '.join(known)})")
 
 
-def _units(r: _Reader, default: str = "") -> float:
+#: What each unit measures; a role takes only its own kind.
+_UNIT_KIND = {"m": "length", "mm": "length", "um": "length", "µm": "length", "in": "length"}
+_UNIT_KIND.update({"N": "force", "kN": "force", "lbf": "force"})
+_ROLE_KIND = {"setpoint": "length", "position": "length", "force": "force"}
+
+
+def _units(r: _Reader, default: str = "", role: str = "") -> float:
     u = r.str("units", default)
     if u not in UNITS:
         raise r.fail("units", f"unknown unit {u!r} (known: {', '.join(k for k in UNITS if k)})")
+    want, kind = _ROLE_KIND.get(role), _UNIT_KIND.get(u)
+    if want is not None and kind is not None and kind != want:
+        raise r.fail("units", f"{u!r} is a {kind} unit; the {role} is a {want}")
     return UNITS[u]
 
 
@@ -204,7 +213,33 @@ def _masks(r: _Reader) -> dict[int, int]:
     for need in ("enabled", "estop"):
         if need not in st.data:
             raise InputError(f"profile {r.source}: status.{need} (bit mask) is missing")
+    enabled = out[int(Status.ENABLED)]
+    for name, flag in STATUS_BITS.items():
+        if name != "enabled" and flag in out and out[flag] & enabled:
+            raise st.fail(
+                name,
+                f"0x{out[flag]:X} shares bits with status.enabled (0x{enabled:X}): the "
+                "controller could never be enabled without reporting it",
+            )
     return out
+
+
+def _check_masks(source: str, masks: dict[int, int], point: ModbusPoint) -> None:
+    """Every status mask must be a bit the status point can carry."""
+    if point.type in ("float32", "float64"):
+        raise InputError(
+            f"profile {source}: roles.status: a {point.type} carries no status bits (use an "
+            "integer type, or a coil or discrete input)"
+        )
+    top = {"bool": 0x1, "int16": 0x7FFF, "uint16": 0xFFFF, "int32": 0x7FFFFFFF}
+    hi = top.get(point.type, 0xFFFFFFFF)
+    names = {flag: name for name, flag in STATUS_BITS.items()}
+    for flag, mask in masks.items():
+        if mask > hi:
+            raise InputError(
+                f"profile {source}: status.{names[flag]}: 0x{mask:X} is not a bit of the "
+                f"{point.table} {point.type} status point (bits up to 0x{hi:X})"
+            )
 
 
 def status_from_word(word: int, masks: dict[int, int]) -> int:
@@ -384,6 +419,20 @@ class ModbusProfile:
     protocol: str = "modbus"
     units_doc: dict[str, str] = field(default_factory=dict)
 
+    def check_setpoint_range(self, limit: float) -> None:
+        """Refuse a set-point point that cannot carry every command within ±``limit`` m
+        (``safety.displacement_limit``; 0 = off): one line, before anything moves."""
+        sp = self.points["setpoint"]
+        if limit <= 0 or sp.type not in _INT_RANGE:
+            return
+        lo, hi = sorted(sp.si(v) for v in _INT_RANGE[sp.type])
+        if lo > -limit or hi < limit:
+            raise InputError(
+                f"profile {self.source}: roles.setpoint: a {sp.type} with scale {sp.scale:g} "
+                f"carries {lo * 1e3:g}…{hi * 1e3:g} mm, not the displacement limit "
+                f"±{limit * 1e3:g} mm (safety.displacement_limit)"
+            )
+
     def step_functions(self) -> list[int]:
         """The function code of each request of one step: 23, or 16 and one read per block
         (3 holding, 4 input, 1 coils, 2 discrete inputs), in the order they are sent."""
@@ -435,7 +484,7 @@ def _modbus_point(r: _Reader, role: str, defaults: dict[str, str]) -> ModbusPoin
         byte_order=p.str("byte_order", defaults["byte_order"], ("big", "little")),
         scale=scale,
         offset=p.float("offset", 0.0),
-        factor=_units(p),
+        factor=_units(p, role=role),
     )
 
 
@@ -506,8 +555,9 @@ def _load_modbus(r: _Reader) -> ModbusProfile:
             continue
         a.unknown(("table", "address", "value"))
         table = a.str("table", choices=("coil", "holding"))
+        hi = 1 if table == "coil" else 65535  # a coil is 0 or 1 (FC 5 writes ON or OFF)
         actions[name] = ModbusAction(
-            name, table, a.int("address", lo=0, hi=65535), a.int("value", 1, lo=0, hi=65535)
+            name, table, a.int("address", lo=0, hi=65535), a.int("value", 1, lo=0, hi=hi)
         )
     heartbeat = None
     if r.table("heartbeat") is not None:
@@ -525,12 +575,14 @@ def _load_modbus(r: _Reader) -> ModbusProfile:
                 f"{b.address}; one read carries at most {limit}"
             )
     fc23 = sp.table == "holding" and len(reads) == 1 and reads[0].table == "holding"
+    masks = _masks(r)
+    _check_masks(src, masks, points["status"])
     return ModbusProfile(
         source=src,
         unit=unit,
         points=points,
         actions=actions,
-        masks=_masks(r),
+        masks=masks,
         heartbeat=heartbeat,
         reads=reads,
         fc23=fc23,
@@ -565,6 +617,28 @@ class CANProfile:
     heartbeat: CANSignal | None
     protocol: str = "can"
 
+    def check_setpoint_range(self, limit: float) -> None:
+        """Refuse a set-point signal that cannot carry every command within ±``limit`` m
+        (``safety.displacement_limit``; 0 = off): one line, before anything moves."""
+        sp = self.roles["setpoint"]
+        if limit <= 0:
+            return
+        sig = self.command.get_signal_by_name(sp.signal)
+        n = int(sig.length)
+        raw = (-(2 ** (n - 1)), 2 ** (n - 1) - 1) if sig.is_signed else (0, 2**n - 1)
+        ends = [(r * sig.scale + sig.offset) * sp.factor for r in raw]
+        if sig.minimum is not None:
+            ends[0] = max(min(ends), float(sig.minimum) * sp.factor)
+        if sig.maximum is not None:
+            ends[1] = min(max(ends), float(sig.maximum) * sp.factor)
+        lo, hi = min(ends), max(ends)
+        if lo > -limit or hi < limit:
+            raise InputError(
+                f"profile {self.source}: roles.setpoint: the DBC signal {sp.message}."
+                f"{sp.signal} carries {lo * 1e3:g}…{hi * 1e3:g} mm, not the displacement "
+                f"limit ±{limit * 1e3:g} mm (safety.displacement_limit)"
+            )
+
     @property
     def command(self) -> Any:
         """The cantools message carrying the set-point."""
@@ -595,7 +669,7 @@ def _can_signal(r: _Reader, name: str, db: Any, dbc: str, action: bool = False) 
     if sig.scale == 0:
         raise t.fail("signal", f"DBC signal {msg_name}.{sig_name} has scale 0")
     unit = str(sig.unit or "")
-    factor = _units(t, unit if unit in UNITS else "")
+    factor = _units(t, unit if unit in UNITS else "", role=name)
     value = t.float("value", 1.0) if action else None
     return CANSignal(name, msg_name, sig_name, factor, value)
 

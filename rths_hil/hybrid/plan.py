@@ -400,6 +400,10 @@ def _plan_channel(  # noqa: C901
                 f"{where}: driver.profile: {path} is a {prof.protocol} profile; driver "
                 f"{name!r} takes {speaks}"
             )
+        try:  # every command within the displacement limit must fit the set-point's field
+            prof.check_setpoint_range(float(cfg["safety"]["displacement_limit"]))
+        except InputError as exc:
+            raise InputError(f"{where}: driver.profile: {exc}") from None
         conn["profile"] = str(path)
     if tw["enabled"] and plant is None:
         plant = choose_plant(cfg, dt)

@@ -63,7 +63,7 @@ from rths_hil.errors import InputError
 
 from ..faults import Faults
 from .base import TwinController, TwinEndpoint, listen
-from .modbus_profile import ModbusProfileTwin
+from .modbus_profile import ModbusProfileTwin, illegal_data_value
 
 __all__ = ["ModbusServer", "ModbusTwin"]
 
@@ -273,6 +273,11 @@ class ModbusServer:
                 continue
             if unit._gone:
                 continue  # this unit fell silent (disconnect fault)
+            if illegal_data_value(pdu_bytes):
+                unit.controller.stats.malformed += 1
+                exc = ExceptionResponse(pdu_bytes[0], ExcCodes.ILLEGAL_VALUE)
+                self.send(conn, exc, dev_id, tid)
+                continue
             pdu = framer.decoder.decode(pdu_bytes)
             if pdu is None:
                 unit.controller.stats.malformed += 1

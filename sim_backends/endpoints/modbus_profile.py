@@ -68,11 +68,41 @@ from rths_hil.errors import InputError
 from ..faults import Faults
 from .base import TwinController, TwinEndpoint, listen
 
-__all__ = ["ModbusProfileTwin"]
+__all__ = ["ModbusProfileTwin", "illegal_data_value"]
 
 _READ_TABLE = {3: "holding", 4: "input", 1: "coil", 2: "discrete"}
 _SAMPLE_FLAGS = int(Status.SENSOR_INVALID | Status.SEQ_GAP)
 _FEEDBACK_FC = frozenset((1, 2, 3, 4, 23))  # the responses that carry a step's feedback
+
+#: Quantity limits of the requests (MODBUS Application Protocol V1.1b3, §6.1–6.17).
+_QTY = {1: 2000, 2: 2000, 3: 125, 4: 125, 15: 1968, 16: 123}
+
+
+def illegal_data_value(pdu: bytes) -> bool:
+    """A request whose fields the Modbus application protocol answers with exception 03
+    (ILLEGAL DATA VALUE) — checked on the raw PDU, which pymodbus's request classes decode
+    without these checks: a quantity out of 1…the function's limit, a byte count that is not
+    the quantity's, data bytes that are not the byte count's, and an FC 5 output value other
+    than 0x0000 or 0xFF00 (V1.1b3 §6.1–6.17)."""
+    fc = pdu[0] if pdu else 0
+    try:
+        if fc == 5:
+            return len(pdu) != 5 or struct.unpack_from(">H", pdu, 3)[0] not in (0, 0xFF00)
+        if fc in (1, 2, 3, 4):
+            return len(pdu) != 5 or not 1 <= struct.unpack_from(">H", pdu, 3)[0] <= _QTY[fc]
+        if fc in (15, 16):
+            qty, nbytes = struct.unpack_from(">HB", pdu, 3)
+            want = 2 * qty if fc == 16 else -(-qty // 8)
+            return not 1 <= qty <= _QTY[fc] or nbytes != want or len(pdu) != 6 + nbytes
+        if fc == 23:
+            rq, _, wq, nbytes = struct.unpack_from(">HHHB", pdu, 3)
+            bad_q = not (1 <= rq <= 125 and 1 <= wq <= 121)
+            return bad_q or nbytes != 2 * wq or len(pdu) != 10 + nbytes
+    except struct.error:
+        return True
+    return False
+
+
 _READ_RESP = {
     3: ReadHoldingRegistersResponse,
     4: ReadInputRegistersResponse,
@@ -275,6 +305,10 @@ class ModbusProfileTwin(TwinEndpoint):
                 continue
             if dev_id not in (self.device_id, 0):
                 continue  # another slave's request
+            if illegal_data_value(pdu_bytes):
+                self.controller.stats.malformed += 1
+                self._reply(None, ExceptionResponse(pdu_bytes[0], ExcCodes.ILLEGAL_VALUE), 0)
+                continue
             pdu = framer.decoder.decode(pdu_bytes)
             if pdu is None:
                 self.controller.stats.malformed += 1
@@ -299,6 +333,11 @@ class ModbusProfileTwin(TwinEndpoint):
             entry[1] = entry[1][used:]
             if dev_id != self.device_id or not pdu_bytes:
                 self.controller.stats.malformed += 1
+                continue
+            if illegal_data_value(pdu_bytes):
+                self.controller.stats.malformed += 1
+                exc = ExceptionResponse(pdu_bytes[0], ExcCodes.ILLEGAL_VALUE)
+                self._reply(entry[0], exc, tid)
                 continue
             pdu = framer.decoder.decode(pdu_bytes)
             if pdu is None:

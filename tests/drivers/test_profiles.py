@@ -78,6 +78,32 @@ def _variant(tmp_path: Path, src: Path, old: str, new: str, name: str = "p.toml"
         ),
         (CAN_DBC, 'message = "AxisEStop"', 'message = "EStop"', ["actions.estop.message", "EStop"]),
         (CAN_DBC, 'dbc = "lab_axis.dbc"', 'dbc = "missing.dbc"', ["dbc", "missing.dbc"]),
+        # values that do not fit their field (issue 37)
+        (MODBUS_MAP, "enabled = 0x0100", "enabled = 0x10000", ["status.enabled", "uint16"]),
+        (
+            MODBUS_MAP,
+            "estop = 0x0001",
+            "estop = 0x0100",
+            ["status.estop", "shares bits with status.enabled"],
+        ),
+        (
+            MODBUS_MAP,
+            'type = "uint16"\n\n[status]',
+            'type = "float32"\n\n[status]',
+            ["roles.status", "float32 carries no status bits"],
+        ),
+        (
+            MODBUS_MAP,
+            "address = 1\nvalue = 1",
+            "address = 1\nvalue = 2",
+            ["actions.estop.value", "out of range 0..1"],
+        ),
+        (
+            MODBUS_MAP,
+            'address = 200               # registers 200–201\ntype = "float32"\nunits = "mm"',
+            'address = 200\ntype = "float32"\nunits = "kN"',
+            ["roles.position.units", "'kN' is a force unit"],
+        ),
     ],
 )
 def test_bad_profiles_are_refused_with_one_line(tmp_path, src, old, new, needles) -> None:
@@ -106,6 +132,24 @@ def test_bad_profile_through_run_exits_2(tmp_path, capsys) -> None:
     assert code == 2
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(lines) == 1 and "driver.profile" in lines[0] and "int12" in lines[0], lines
+
+
+@pytest.mark.parametrize(
+    ("new", "needle"),
+    [
+        ('type = "int16"\nunits = "mm"\nscale = 0.0001', "int16 with scale 0.0001"),
+        ('type = "uint16"\nunits = "mm"\nscale = 0.01', "uint16 with scale 0.01"),
+    ],
+)
+def test_setpoint_range_must_cover_the_displacement_limit(tmp_path, capsys, new, needle) -> None:
+    """A set-point field that cannot carry ±safety.displacement_limit (50 mm) is refused
+    before anything opens: one line, exit 2 (an int16 of 0.1 µm carries ±3.3 mm; a uint16
+    no negative command)."""
+    p = _variant(tmp_path, MODBUS_MAP, 'type = "float32"\nunits = "mm"', new)
+    code = main(["run", *QUICK, "--set", "driver.name=modbus", "--set", f'driver.profile="{p}"'])
+    assert code == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and needle in lines[0] and "±50 mm" in lines[0], lines
 
 
 def test_profile_protocol_must_match_the_driver(capsys) -> None:
