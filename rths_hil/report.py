@@ -54,7 +54,7 @@ def format_live(s: dict[str, Any]) -> str:
     (``displacement limit 77 % left``: the peak so far is 23 % of ``safety.max_displacement``).
     The progress percentage is left out when the run has no planned end (``open_ended``: an
     OpenSees site runs until the client ends; ``n`` is then only the cap), α when compensation
-    is off (``compensation`` False).
+    is off (``compensation`` False), the missed replies (``missed``) while there are none.
     """
     name, frac = s.get("margin", ("none", math.inf))
     if s.get("channel"):  # several channels: the one nearest a limit
@@ -63,9 +63,12 @@ def format_live(s: dict[str, Any]) -> str:
     lat = f"p99 late {s['p99_lateness'] * 1e3:.3f} ms" if s.get("mode") == "paced" else "lockstep"
     prog = "" if s.get("open_ended") else f" ({100.0 * s['k'] / s['n']:3.0f} %)"
     alpha = f" | α {s['alpha']:.2f}" if s.get("compensation", True) else " | compensation off"
+    # missed replies (held measurements, not a fault) once there are any
+    missed = f" | missed {s['missed']}" if s.get("missed") else ""
     return (
         f"t {s['t']:7.2f} s{prog} | {s['rate']:7.0f} steps/s | {lat}"
-        f" | overruns {s['overruns']} | {('[' + s['channel'] + '] ') if s.get('channel') else ''}"
+        f" | overruns {s['overruns']}{missed}"
+        f" | {('[' + s['channel'] + '] ') if s.get('channel') else ''}"
         f"A {_fmt(s['amplitude'], spec='.4f')}"
         f" d {_fmt(s['delay'], 1e3, '.2f', True)} ms | peak {s['peak_displacement'] * 1e3:.2f} mm"
         f" | margin: {margin}{alpha}"

@@ -59,6 +59,7 @@ from rths_hil.drivers.base import Feedback, Status
 
 from ..errors import InputError
 from ..safety import Trip
+from .timing import first_deadline
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..recorder import Recorder
@@ -133,6 +134,15 @@ def require_confirmation(plan: TestPlan, confirmed: bool, command: str) -> None:
         f"{plan.cfg.source}: {names} drives real hardware (twin.enabled = false): "
         f"pass --confirm-hardware to `rths-hil {command}` (or set loop.confirm_hardware = true)"
     )
+
+
+def _wait_until(deadline: float, spin: float) -> None:
+    """Sleep until ``spin`` before ``deadline`` (perf_counter s), then busy-wait to it."""
+    gap = deadline - time.perf_counter() - spin
+    if gap > 0:
+        time.sleep(gap)
+    while time.perf_counter() < deadline:
+        pass
 
 
 # ----------------------------------------------------------------------------------------------
@@ -251,10 +261,17 @@ class Phases:
         self.where: list[_Where] = []
         self.handback_ok: bool | None = None
         self.sent = [0.0] * len(self.chans)  # the last absolute command sent to each channel
+        #: paced: the deadline after the last step a phase sent (the next phase's grid), or
+        #: ``None`` (no step sent yet, or lockstep)
+        self.next_deadline: float | None = None
 
     # ------------------------------------------------------------------------------------------
-    def _first_commands(self) -> list[float]:
-        """Each channel's command at the loop's step 0 (without stepping anything)."""
+    def first_commands(self) -> list[float]:
+        """Each channel's command at the loop's step 0 (without stepping anything).
+
+        Called before the controllers are armed (the runner computes the loop's own state of
+        step 0 right after it), so nothing of it sits between arming and the start ramp.
+        """
         st = self.plan.structure
         out = []
         if st.external:  # an external analysis gives its first target only when it runs
@@ -273,9 +290,8 @@ class Phases:
             ch.compensator.reset(x)
         return out
 
-    def _locate(self, armed: list[Feedback | None]) -> list[_Where]:
+    def _locate(self, armed: list[Feedback | None], firsts: list[float]) -> list[_Where]:
         """Where each actuator is (the arming reply); refuse an unsafe start."""
-        firsts = self._first_commands()
         where = []
         for ch, fb, first in zip(self.chans, armed, firsts, strict=True):
             label = self.plan.cfg.source + ": " + _channel_label(ch.name)
@@ -312,10 +328,12 @@ class Phases:
         return where
 
     # ------------------------------------------------------------------------------------------
-    def start(self, armed: list[Feedback | None]) -> Trip | None:
+    def start(self, armed: list[Feedback | None], firsts: list[float] | None = None) -> Trip | None:
         """Read where each actuator is, refuse an unsafe start, ramp (or offset) to step 0.
 
-        Returns the trip that stopped the start ramp, or ``None`` (the loop may start).
+        ``firsts``: :meth:`first_commands`, computed before arming (computed here when not
+        given). Returns the trip that stopped the start ramp, or ``None`` (the loop may start;
+        paced, :attr:`next_deadline` is where its grid continues the ramp's).
 
         Raises
         ------
@@ -323,7 +341,9 @@ class Phases:
             An actuator outside the displacement limit, unreadable, or a controller fault.
         """
         rec = self.rec
-        self.where = where = self._locate(armed)
+        if firsts is None:
+            firsts = self.first_commands()
+        self.where = where = self._locate(armed, firsts)
         offset_mode = self.start_cfg["mode"] == "offset"
         for ch, w in zip(self.chans, where, strict=True):
             if offset_mode and w.status is not None:
@@ -382,12 +402,13 @@ class Phases:
             self.links.append(link)
 
     # ------------------------------------------------------------------------------------------
-    def end(self, result: RunResult) -> Trip | None:
+    def end(self, result: RunResult, t_first: float | None = None) -> Trip | None:
         """Ramp to the rest position (or hold), keep commanding, then disable each controller.
 
-        Called after a completed run or an operator stop. Returns a trip if a safety rule fired
-        on the way (then the runner e-stops), else ``None``; records ``end_ramp`` and
-        ``handback`` events and sets :attr:`handback_ok`.
+        Called after a completed run or an operator stop. ``t_first`` (paced): the loop's next
+        deadline, which the end phase's grid continues (no silent gap before the hand-back).
+        Returns a trip if a safety rule fired on the way (then the runner e-stops), else
+        ``None``; records ``end_ramp`` and ``handback`` events and sets :attr:`handback_ok`.
         """
         rec = self.rec
         dt = self.dt
@@ -418,7 +439,9 @@ class Phases:
         m = len(paths[0])
         trip, meas = None, [math.nan] * len(self.chans)
         if m:
-            trip, meas = self._drive(paths, seq0=seq0, k0=k0)
+            trip, meas = self._drive(paths, seq0=seq0, k0=k0, t_first=t_first)
+        elif self.paced and t_first is not None:  # disable on the loop's grid
+            _wait_until(first_deadline(dt, t_first), self.plan.spin)
         rec.event(
             "end_ramp", k0 * dt, k0, channels=[ch.name for ch in self.chans], start=last.tolist(),
             end=rest.tolist(), rest=self.end_cfg["rest"], duration=n_ramp * dt,
@@ -464,14 +487,16 @@ class Phases:
 
     # ------------------------------------------------------------------------------------------
     def _drive(
-        self, paths: list[np.ndarray], seq0: int, k0: int
+        self, paths: list[np.ndarray], seq0: int, k0: int, t_first: float | None = None
     ) -> tuple[Trip | None, list[float]]:
         """Step absolute command paths (one per channel) as the loop steps; the safety checks.
 
         Sequence ``seq0 + i`` and safety step ``k0 + i`` for the path's ``i``-th command. Paced:
-        one step per period (sleep, then spin to the deadline); lockstep: the next command when
-        the replies are in. Returns the first trip (or ``None``) and each channel's last
-        measured displacement (absolute).
+        one step per period (sleep, then spin to the deadline), the first at ``t_first`` (the
+        previous phase's next deadline) or a moment from now (:func:`.timing.first_deadline`),
+        and :attr:`next_deadline` set after each; lockstep: the next command when the replies
+        are in. Returns the first trip (or ``None``) and each channel's last measured
+        displacement (absolute).
         """
         runner = self.runner
         plan = self.plan
@@ -486,7 +511,7 @@ class Phases:
         meas_abs = [math.nan] * len(chans)
         sent = self.sent
         links = list(zip(chans, self.raw, paths, self.offsets, strict=True))
-        t0 = perf() + (dt if paced else 0.0)
+        t0 = first_deadline(dt, t_first) if paced else perf()
         for i in range(m):
             k = k0 + i
             t = k * dt
@@ -494,12 +519,8 @@ class Phases:
                 # a stop during the start ramp: the loop sees it at once and ends the test
                 return None, meas_abs
             if paced:
-                deadline = t0 + i * dt
-                gap = deadline - perf() - spin
-                if gap > 0:
-                    time.sleep(gap)
-                while perf() < deadline:
-                    pass
+                _wait_until(t0 + i * dt, spin)
+                self.next_deadline = t0 + (i + 1) * dt
             for j, (ch, (send, _), p, off) in enumerate(links):
                 c = float(p[i])
                 v = (c - sent[j]) / dt

@@ -54,7 +54,7 @@ from .record import open_recorder, row_writer
 from .result import RunResult
 from .rules import Safety
 from .structures import StageContext
-from .timing import LEAD_IN, MIN_SLEEP, p99
+from .timing import MIN_SLEEP, first_deadline, p99
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +97,8 @@ class Runner:
         self.stall = StallRule(plan.max_stall, max(2e-3, 2.0 * plan.dt)) if paced else None
         self.result: RunResult | None = None
         self.stop_signal: str | None = None
+        #: paced: the deadline after the loop's last step (the end phase continues the grid)
+        self.next_deadline: float | None = None
 
     # ------------------------------------------------------------------------------------------
     def open_channel(self, ch: Channel, stack: contextlib.ExitStack) -> None:
@@ -167,6 +169,14 @@ class Runner:
                 rules=self.safety.rules,
                 channels=[ch.name for ch in self.channels],
             )
+            # Everything that takes time is done before any controller is armed: from the
+            # arming command to the hand-back every controller gets a command (and its
+            # heartbeat) every period, with no silent gap between the phases (docs/loop.md)
+            phases = Phases(self, rec)
+            firsts = phases.first_commands()  # the loop's step-0 commands ...
+            start = self._start_state()  # ... and the loop's state of step 0 (in this order)
+            bufs = self._buffers()
+            self._quiet_interpreter(stack)
             # a new run on each controller: restart its sequence count, acknowledge a latch
             replies = []
             for ch in self.channels:
@@ -177,9 +187,8 @@ class Runner:
                     status=None if armed is None else int(armed.status),
                 )  # fmt: skip
             # from where each actuator is to step 0 (a ramp, or an offset), see .phases
-            phases = Phases(self, rec)
             try:
-                trip0 = phases.start(replies)
+                trip0 = phases.start(replies, firsts)
             except InputError as exc:
                 rec.event("refused", 0.0, 0, reason=str(exc))
                 raise
@@ -187,7 +196,7 @@ class Runner:
                 self._estop_on_error(rec, 0)
                 raise
             if trip0 is None:
-                result = self._loop(rec)
+                result = self._loop(rec, start, bufs, phases.next_deadline)
             else:
                 result = self._not_started(trip0)
                 rec.event("trip", **{k: v for k, v in trip0.as_event().items() if k != "kind"})
@@ -195,7 +204,7 @@ class Runner:
             if result.status in ("completed", "operator_stop"):
                 # back to rest (or hold) and hand the controllers back disabled
                 try:
-                    trip1 = phases.end(result)
+                    trip1 = phases.end(result, self.next_deadline)
                 except BaseException:
                     self._estop_on_error(rec, result.steps)
                     raise
@@ -244,6 +253,39 @@ class Runner:
             )
         self.result = result
         return result
+
+    def _quiet_interpreter(self, stack: contextlib.ExitStack) -> None:
+        """From arming to the end: the cyclic GC paused (collected once now, before arming)
+        and, paced, a 100 µs thread switch interval (the in-process twins and the exact-FEI
+        worker hand the interpreter back quickly); restored when the run ends."""
+        old_switch = sys.getswitchinterval()
+        gc_was = gc.isenabled()
+        if self.plan.mode == "paced":
+            sys.setswitchinterval(1e-4)
+        gc.collect()
+        gc.disable()
+        stack.callback(sys.setswitchinterval, old_switch)
+        if gc_was:
+            stack.callback(gc.enable)
+
+    def _buffers(self) -> tuple:
+        """The loop's per-step arrays, allocated before the controllers are armed.
+
+        ``(lateness, lateness view, work, ready, stalled)``; paced: lateness in a C double
+        array (the console's p99 reads it as an ndarray without a copy), ``ready`` and
+        ``stalled`` (the time the thread was taken off the CPU inside each step from its send
+        to the end of its record without blocking: the wall time minus the thread's CPU time,
+        0 after a voluntary context switch — a preemption by the machine, not the work,
+        :func:`~.timing.attribute_overruns`); lockstep: none of these but ``work``.
+        """
+        n = self.plan.n_steps
+        paced = self.plan.mode == "paced"
+        lat_list = array.array("d", [0.0]) * n if paced else None  # no n-byte temporary
+        lat_view = np.frombuffer(lat_list, dtype=float) if paced else np.zeros(0)
+        work_list = array.array("d", [0.0]) * n
+        ready_list = [0.0] * n if paced else None
+        stalled_list = array.array("d", [0.0]) * n if paced else None
+        return lat_list, lat_view, work_list, ready_list, stalled_list
 
     def _estop_on_error(self, rec: Recorder, k: int) -> None:
         """An exception (a second Ctrl-C) in a start or end phase: e-stop every channel."""
@@ -321,8 +363,18 @@ class Runner:
             ch.last_command = ch.command
         return xs, trip
 
-    def _loop(self, rec: Recorder) -> RunResult:  # noqa: C901
-        """Step from 0 until the end, a trip or an operator stop (the step; ``docs/loop.md``)."""
+    def _loop(  # noqa: C901
+        self,
+        rec: Recorder,
+        start: tuple[list[float], Trip | None],
+        bufs: tuple,
+        t_first: float | None = None,
+    ) -> RunResult:
+        """Step from 0 until the end, a trip or an operator stop (the step; ``docs/loop.md``).
+
+        ``start``: :meth:`_start_state`'s result; ``bufs``: :meth:`_buffers`'; ``t_first``
+        (paced): the next deadline of the start phase, which the loop's grid continues.
+        """
         plan = self.plan
         n = plan.n_steps
         dt = plan.dt
@@ -355,24 +407,16 @@ class Runner:
         sleep = time.sleep
         nan = math.nan
 
-        # paced: lateness in a C double array (the console's p99 reads it as an ndarray without
-        # a copy); lockstep: none (zero by definition, see the result below)
-        lat_list = array.array("d", [0.0]) * n if paced else None  # no n-byte temporary
-        lat_view = np.frombuffer(lat_list, dtype=float) if paced else np.zeros(0)
-        work_list = array.array("d", [0.0]) * n
-        ready_list = [0.0] * n if paced else None
-        # paced: the time the thread was taken off the CPU inside each step (from its send to
-        # the end of its record) without blocking: the wall time minus the thread's CPU time,
-        # 0 after a voluntary context switch (a wait for a reply, the interpreter lock, I/O) —
-        # a preemption by the machine, not the work (timing.attribute_overruns)
-        stalled_list = array.array("d", [0.0]) * n if paced else None
+        # lateness (paced; lockstep: zero by definition, see the result below), work, ready and
+        # stalled (paced), allocated before arming (:meth:`_buffers`)
+        lat_list, lat_view, work_list, ready_list, stalled_list = bufs
         cpu = time.thread_time
         usage = resource.getrusage
         THREAD = resource.RUSAGE_THREAD
         console = plan.console_interval if self.live is not None else 0.0
         next_console = math.inf
 
-        xs, trip = self._start_state()
+        xs, trip = start
         overruns = 0
         missed = 0
         status = "completed"
@@ -380,14 +424,9 @@ class Runner:
         lat = 0.0
         skew = nan
         was_over = False
-        old_switch = sys.getswitchinterval()
-        gc_was = gc.isenabled()
-        if paced:
-            sys.setswitchinterval(1e-4)
-        gc.collect()
-        gc.disable()
         t_start = perf()
-        t0 = t_start + (LEAD_IN if paced else 0.0)
+        # paced: on the start ramp's grid when it ran, else a moment from now (first_deadline)
+        t0 = first_deadline(dt, t_first) if paced else t_start
         prev_send = t0 - dt  # the previous step's send (perf_counter): stalls are gaps from it
         # wall-clock time of deadline 0: row k was sent at wall_t0 + k·Δt + lateness[k]
         rec.event("clock", 0.0, 0, wall_t0=time.time() + (t0 - perf()))
@@ -575,10 +614,8 @@ class Runner:
                 ch.estop()
             rec.event("error", k * dt, k, error=repr(sys.exc_info()[1]))
             raise
-        finally:
-            sys.setswitchinterval(old_switch)
-            if gc_was:
-                gc.enable()
+        # paced: the end phase continues this grid (no silent gap before the hand-back)
+        self.next_deadline = t0 + k * dt if paced else None
         for ch in chans:  # a gap still open at the end (the trip it caused, or the last steps)
             if ch.gap_steps:
                 self._gap_ended(rec, ch, perf(), ended=False)
@@ -719,6 +756,7 @@ class Runner:
             "rate": rate,
             "p99_lateness": p99(recent) if paced and recent.size else 0.0,
             "overruns": overruns,
+            "missed": sum(c.missed_replies for c in self.channels),
             "channel": ch.name,
             "amplitude": ch.fei_amplitude,
             "delay": ch.fei_delay,

@@ -30,10 +30,31 @@ __all__ = [
     "WORK_BACKLOG",
     "attribute_overruns",
     "count_causes",
+    "first_deadline",
     "paced_floor",
 ]
 
-LEAD_IN = 0.1  # s between the start of a paced run and its first deadline
+LEAD_IN = 0.1  # s between the start of paced_floor's stepping and its first deadline
+#: Paced: from the end of a phase's set-up to its first deadline, at least (s). A phase that
+#: follows another one without set-up (the loop after the start ramp, the end after the loop)
+#: continues the previous one's grid instead: the controllers get a command every period from
+#: arming to the hand-back (``docs/loop.md``, "No silent gap").
+PHASE_LEAD = 0.002
+
+
+def first_deadline(dt: float, after: float | None = None) -> float:
+    """The first deadline (perf_counter s) of a paced phase of period ``dt``.
+
+    ``after``: the next deadline of the phase before it (its grid continues), used when it is
+    not already more than a period past; otherwise one period, at least :data:`PHASE_LEAD`,
+    from now.
+    """
+    now = time.perf_counter()
+    if after is not None and after > now - dt:
+        return max(after, now)
+    return now + max(dt, PHASE_LEAD)
+
+
 # Paced: when the work leaves less than ``spin`` before the deadline, still sleep this fraction
 # of a period if there is room for it (and as much again to spin). A SCHED_FIFO thread that
 # never sleeps exhausts the kernel's RT bandwidth (sched_rt_runtime_us = 95 %; on Linux ≥ 6.12
