@@ -1,0 +1,195 @@
+"""The bridge against a CiA 402 drive written independently of it (``cia402_drive.py``: a
+vendor EDS with a fixed PDO mapping — RPDO1 = controlword + target, TPDO1 = statusword +
+position actual + torque actual, no TPDO2 — position in µm, force as torque actual in per mille
+of 0x6076, its own plant in real time), over python-can's ``serial`` and ``slcan`` interfaces on
+a null-modem pair of pseudo-terminals, with configurations written from ``docs/canopen.md``.
+
+What the bridge did to the drive is read from the drive itself: by SDO with a plain
+``canopen.RemoteNode`` after the run, and from the drive's own history at exit (its state file).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rths_hil.drivers.registry import create_driver
+
+from tests.partners.canopen_fixtures import EDS
+
+pytestmark = pytest.mark.timing
+
+ROOT = Path(__file__).resolve().parents[2]
+K_SPECIMEN = 1e6  # N/m, the partner's specimen
+TORQUE_LSB = 5000.0 / 1000.0  # N per per mille: 0x6076 = 5 000 000 mN (its rated force)
+SOD, QSA = 0x40, 0x07  # statusword & 0x6F: SWITCH ON DISABLED, QUICK STOP ACTIVE
+
+
+def write_config(tmp: Path, drive, fs: int = 256, **extra) -> Path:
+    """A lab's configuration from docs/canopen.md: the vendor's EDS, its node id, its position
+    unit, the torque actual as the force."""
+    cfg = tmp / "lab.toml"
+    cfg.write_text(
+        f"""[loop]
+fs = {fs}
+[driver]
+name = "canopen"
+connection = {drive.toml_connection(**extra)}
+[twin]
+enabled = false
+"""
+    )
+    return cfg
+
+
+def rths_run(cfg: Path, out: Path, *args: str, timeout: float = 60.0):
+    cmd = [sys.executable, "-m", "rths_hil", "run", str(cfg), "--no-plot",
+           "--confirm-hardware", "--out", str(out), "--set", "loop.console=0", *args]  # fmt: skip
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+
+
+def statusword_and_errors(drive) -> tuple[int, int]:
+    """Statusword 0x6041 and the number of errors in 0x1003, read by the test's own SDO client."""
+    sw, n_err = drive.sdo_read((0x6041, 0), (0x1003, 0))
+    return sw, n_err
+
+
+def tracking(out: Path) -> tuple[float, float, np.ndarray]:
+    """(best lag s, amplitude ratio measured / target at that lag, record) of a run."""
+    rec = np.load(out / "record.npy")
+    fs = 1.0 / float(np.median(np.diff(rec["time"])))
+    tgt, meas = rec["target"], rec["measured"]
+    ok = np.isfinite(meas)
+    best = (-1.0, 0, 0.0)
+    for lag in range(0, int(0.06 * fs)):
+        a, b = tgt[: len(tgt) - lag], meas[lag:]
+        m = ok[lag:]
+        if m.sum() < 0.5 * len(tgt):
+            continue
+        c = float(np.corrcoef(a[m], b[m])[0, 1])
+        if c > best[0]:
+            ratio = float(np.std(b[m]) / np.std(a[m]))
+            best = (c, lag, ratio)
+    assert best[0] > 0.98, f"measured does not follow the target (best correlation {best[0]:.3f})"
+    return best[1] / fs, best[2], rec
+
+
+@pytest.mark.parametrize("interface", ["serial", "slcan"])
+def test_paced_run_against_a_fixed_mapping_drive(cia402_drive, tmp_path, interface):
+    """``rths-hil run`` (paced, 256 Hz, 2 s) with the docs' keys: the drive's fixed mapping is
+    read and used (no KeyError), the run completes and tracks, the force is the torque actual
+    scaled by the drive's 0x6076, and the drive is handed back in SWITCH ON DISABLED, no error."""
+    drive = cia402_drive(interface)
+    cfg = write_config(tmp_path, drive, force_object="0x6077")
+    out = tmp_path / "run"
+    r = rths_run(cfg, out, "--duration", "2")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr
+    assert "keeps its own PDO mapping" in r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "completed" and summary["steps"] == 512
+    lag, ratio, rec = tracking(out)
+    assert lag < 0.04  # the drive's 12 ms + 8 ms, less what the compensator predicts
+    assert 0.9 < ratio < 1.1  # counts_per_m = 1e6 read from its manual; gain 0.98
+    # force: the torque actual (per mille of 0x6076) of the drive's own specimen force at the
+    # sampled position (same TPDO, same instant): within half a per mille and 1 µm
+    m = np.isfinite(rec["measured"]) & np.isfinite(rec["force"])
+    assert m.sum() > 400 and np.ptp(rec["force"][m]) > 500.0
+    err = np.abs(rec["force"][m] - K_SPECIMEN * rec["measured"][m])
+    assert err.max() <= TORQUE_LSB / 2 + K_SPECIMEN * 1e-6 + 1e-6, err.max()
+    sw, n_err = statusword_and_errors(drive)
+    assert sw & 0x6F == SOD, hex(sw)
+    assert n_err == 0
+    final = drive.stop()
+    assert final["state"] == "SWITCH ON DISABLED" and final["emcy"] == []
+    assert final["syncs"] >= 512 and final["tpdos"] >= 500
+
+
+def test_start_from_a_non_zero_position_does_not_jump(cia402_drive, tmp_path):
+    """The drive starts at +5 mm: within 50 ms of its enable edge it moves ≤ 0.1 mm (measured
+    by the drive's own 1 kHz cycle)."""
+    drive = cia402_drive("serial", position=0.005)
+    cfg = write_config(tmp_path, drive, force_object="0x6077")
+    out = tmp_path / "run"
+    r = rths_run(cfg, out, "--duration", "0.5")
+    assert r.returncode == 0, r.stderr[-2000:]
+    final = drive.stop()
+    edges = final["enable_edges"]
+    assert edges
+    assert abs(edges[0]["x"] - 0.005) < 1e-9
+    assert edges[0]["max_dev_50ms"] <= 1e-4, (edges[0], r.stderr[-1500:])
+
+
+def test_estop_reaches_the_drive_and_refused_mapping_writes_do_not_crash(cia402_drive, tmp_path):
+    """A lab EDS that says the mapping is writable: the drive refuses the writes with an SDO
+    abort, the driver takes the drive's own mapping; the e-stop puts the drive into QUICK STOP
+    ACTIVE (read back by SDO after the bridge let go), and the latch stays at close."""
+    drive = cia402_drive("serial")
+    eds = tmp_path / "lab_copy.eds"
+    text = EDS.read_text()
+    for idx in ("1600", "1A00"):
+        text = text.replace(f"[{idx}sub0]\nParameterName=Number of mapped objects\n"
+                            "ObjectType=0x7\nDataType=0x0005\nAccessType=ro",
+                            f"[{idx}sub0]\nParameterName=Number of mapped objects\n"
+                            "ObjectType=0x7\nDataType=0x0005\nAccessType=rw")  # fmt: skip
+    text = text.replace("AccessType=ro\nDefaultValue=0x60", "AccessType=rw\nDefaultValue=0x60")
+    eds.write_text(text)
+    conn = {**drive.connection, "eds": str(eds), "force_object": "0x6077"}
+    drv = create_driver("canopen", **conn)
+    with drv:
+        assert drv.mapping["TPDO1"].endswith("0x6041:00 + 0x6064:00 + 0x6077:00")
+        assert "TPDO2" not in drv.mapping
+        fb = drv.arm(1.0)
+        assert fb is not None
+        for k in range(60):
+            drv.send(k, 0.0, True)
+            got = drv.receive(0.2)
+        assert got is not None and got.status & 0x01  # ENABLED
+        drv.estop()
+        for k in range(60, 70):  # the loop's steps after an e-stop: the latch repeated
+            drv.send(k, 0.0, True)
+            got = drv.receive(0.2)
+        assert got is not None and got.status & 0x02  # ESTOP_ACTIVE, from the drive's state
+    sw, n_err = statusword_and_errors(drive)
+    assert sw & 0x6F == QSA, hex(sw)
+    assert n_err == 0
+    final = drive.stop()
+    assert ["OPERATION ENABLED", "QUICK STOP ACTIVE"] in final["transitions"]
+
+
+def test_a_drive_without_a_needed_object_is_refused_in_one_line(cia402_drive, tmp_path):
+    """A drive whose fixed TPDO1 carries no position actual (statusword + torque only): one
+    line naming what is missing and what the drive maps, exit 2, nothing moved; a drive that
+    maps no force (statusword + position) runs with force NaN."""
+    no_pos = tmp_path / "no_position.eds"
+    text = EDS.read_text()
+    no_pos.write_text(
+        text.replace("DefaultValue=3\nPDOMapping=0\n\n[1A00sub1]", "DefaultValue=2\nPDOMapping=0"
+                     "\n\n[1A00sub1]").replace("DefaultValue=0x60640020", "DefaultValue=0x60770010")
+    )  # fmt: skip
+    drive = cia402_drive("serial", eds=no_pos)
+    cfg = write_config(tmp_path, drive, eds=str(no_pos))
+    r = rths_run(cfg, tmp_path / "run", "--duration", "0.5")
+    err = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr
+    assert "no TPDO carries the actual position 0x6064:00" in err
+    assert "TPDO1 maps COB-ID 0x185: 0x6041:00 + 0x6077:00" in err
+    assert drive.stop()["enable_edges"] == []
+
+    no_force = tmp_path / "no_force.eds"
+    no_force.write_text(text.replace("DefaultValue=3\nPDOMapping=0\n\n[1A00sub1]",
+                                     "DefaultValue=2\nPDOMapping=0\n\n[1A00sub1]"))  # fmt: skip
+    drive = cia402_drive("serial", eds=no_force)
+    conn = {**drive.connection, "eds": str(no_force)}
+    with create_driver("canopen", **conn) as drv:
+        assert drv.force_object is None
+        fb = drv.arm(1.0)
+        assert fb is not None and np.isnan(fb.force)
+        drv.send(0, 0.0, False)
+        got = drv.receive(0.2)
+        assert got is not None and np.isnan(got.force) and got.displacement == 0.0
