@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import multiprocessing
 import re
+import signal
 import sys
 from collections.abc import Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
@@ -38,11 +40,30 @@ def make_executor(workers: int) -> Executor:
     """``SerialExecutor`` for 1 worker, else ``ProcessPoolExecutor(max_workers=workers)``."""
     if int(workers) != workers or workers < 1:
         raise InputError(f"workers must be a positive integer, got {workers!r}")
-    return SerialExecutor() if workers == 1 else ProcessPoolExecutor(max_workers=int(workers))
+    if workers == 1:
+        return SerialExecutor()
+    return ProcessPoolExecutor(max_workers=int(workers), initializer=_worker_signals)
 
 
 def _default_executor() -> Executor:
-    return ProcessPoolExecutor(max_workers=2)
+    return ProcessPoolExecutor(max_workers=2, initializer=_worker_signals)
+
+
+def _worker_signals() -> None:
+    """In a pool's worker: Ctrl-C in the terminal reaches the whole process group; the study's
+    own process stops the work (:func:`stop_pool`), so the workers do not take it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def stop_pool(ex: Executor) -> None:
+    """After an operator stop: cancel what has not started and end a process pool's workers
+    at once (the trials under way are lost; those finished were delivered)."""
+    ex.shutdown(wait=False, cancel_futures=True)
+    if isinstance(ex, ProcessPoolExecutor):
+        for child in multiprocessing.active_children():
+            child.terminate()
+        for child in multiprocessing.active_children():
+            child.join(5)
 
 
 def run_cases(
@@ -59,8 +80,17 @@ def run_cases(
     """
 
     own = executor is None
-    ex = _default_executor() if own else executor
+    ex: Executor = _default_executor() if executor is None else executor
     results: list = [None] * len(cases)
+    if isinstance(ex, SerialExecutor):  # one at a time here: each delivered as it finishes
+        with tqdm(total=len(cases), desc=desc, file=sys.stderr, disable=not progress) as bar:
+            for i, case in enumerate(cases):
+                results[i] = func(*case)
+                if on_result is not None:
+                    on_result(i, results[i])
+                bar.update(1)
+        return results
+    stopped = False
     try:
         futures = {ex.submit(func, *case): i for i, case in enumerate(cases)}
         bar = tqdm(total=len(cases), desc=desc, file=sys.stderr, disable=not progress, unit="case")
@@ -70,8 +100,12 @@ def run_cases(
                 if on_result is not None:
                     on_result(futures[fut], results[futures[fut]])
                 bar.update(1)
+    except KeyboardInterrupt:  # an operator stop (rths_hil.stopping.interrupting)
+        stopped = True
+        stop_pool(ex)
+        raise
     finally:
-        if own:
+        if own and not stopped:
             ex.shutdown(wait=True, cancel_futures=True)
     return results
 
@@ -105,6 +139,9 @@ def open_executor(scheduler: str | None = None, workers: int = 2) -> Iterator[Ex
         ex = make_executor(workers)
         try:
             yield ex
+        except KeyboardInterrupt:
+            stop_pool(ex)
+            raise
         finally:
             ex.shutdown(wait=True, cancel_futures=True)
         return
@@ -132,9 +169,10 @@ def open_executor(scheduler: str | None = None, workers: int = 2) -> Iterator[Ex
         address = scheduler if "://" in scheduler else f"tcp://{scheduler}"
         if not _ADDRESS_RE.match(address):
             raise InputError(
-                f"--scheduler {scheduler!r}: expected 'local' or a scheduler address "
-                "such as tcp://host:8786"
+                f"--scheduler {scheduler!r}: expected 'local' or a scheduler address with its "
+                "port, such as tcp://host:8786"
             )
+        _probe_scheduler(address, scheduler)
         try:
             client = Client(address, timeout=10)
         except (OSError, TimeoutError) as exc:
@@ -153,4 +191,30 @@ def open_executor(scheduler: str | None = None, workers: int = 2) -> Iterator[Ex
             cluster.close()
 
 
-_ADDRESS_RE = re.compile(r"^(tcp|tls|inproc|ucx|ws|wss)://[^\s/:]+(:\d+)?/?$")
+_ADDRESS_RE = re.compile(r"^(tcp|tls|inproc|ucx|ws|wss)://[^\s/:]+:\d+/?$")
+#: How long a scheduler address has to answer distributed's connection handshake (s).
+HANDSHAKE_TIMEOUT = 15.0
+
+
+def _probe_scheduler(address: str, given: str) -> None:
+    """Refuse an address where no Dask scheduler answers distributed's own handshake in
+    :data:`HANDSHAKE_TIMEOUT` seconds. ``Client(address, timeout=...)`` bounds the TCP connect
+    but not the handshake that follows it: a port where something else listens and keeps the
+    connection open (a web server, a twin) would hold it for ever."""
+    import asyncio
+
+    from distributed.comm import connect
+
+    async def probe() -> None:
+        comm = await asyncio.wait_for(connect(address, timeout=10), HANDSHAKE_TIMEOUT)
+        await comm.close()
+
+    try:
+        asyncio.run(probe())
+    except TimeoutError:
+        raise InputError(
+            f"--scheduler {given}: no Dask scheduler answered at {address} within "
+            f"{HANDSHAKE_TIMEOUT:g} s (something else listens there?)"
+        ) from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"--scheduler {given}: cannot reach the Dask scheduler ({exc})") from None
