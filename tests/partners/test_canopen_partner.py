@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -193,3 +194,28 @@ def test_a_drive_without_a_needed_object_is_refused_in_one_line(cia402_drive, tm
         drv.send(0, 0.0, False)
         got = drv.receive(0.2)
         assert got is not None and np.isnan(got.force) and got.displacement == 0.0
+
+
+@pytest.mark.slow
+def test_commission_against_the_drive_hands_it_back_disabled(cia402_drive, tmp_path):
+    """``commission`` (in-process, 256 Hz) against the drive: no traceback, its hand-back step
+    passes, and the drive is left in SWITCH ON DISABLED, not latched; no fault is added after
+    the bridge let go although the drive's heartbeat consumer (``device_watchdog``) was set:
+    the bridge clears it at close (without that the drive faults with EMCY 0x8130 once the
+    consumer time has run out after the last heartbeat)."""
+    from rths_hil.commission import commission
+    from rths_hil.config import load_config
+
+    drive = cia402_drive("serial")
+    cfg = write_config(tmp_path, drive, force_object="0x6077", device_watchdog=0.5)
+    reports = commission(load_config(str(cfg), ["loop.confirm_hardware=true"]), tmp_path / "c")
+    steps = {s.name: s for r in reports for s in r.steps}
+    assert steps["hand-back"].status == "passed", steps["hand-back"].reason
+    sw, n_err = statusword_and_errors(drive)
+    time.sleep(1.0)
+    sw2, n_err2 = statusword_and_errors(drive)
+    assert sw & 0x6F == SOD and sw2 & 0x6F == SOD, (hex(sw), hex(sw2))
+    assert n_err2 == n_err
+    final = drive.stop()
+    assert final["state"] == "SWITCH ON DISABLED"
+    assert len(final["emcy"]) == n_err
