@@ -39,6 +39,7 @@ import platform
 import resource
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,7 +48,18 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HostFacts", "Timing", "cache_path", "host_facts", "measure", "verdict"]
+__all__ = [
+    "MIN_DURATION",
+    "HostFacts",
+    "Timing",
+    "cache_path",
+    "host_facts",
+    "measure",
+    "verdict",
+]
+
+#: Shortest measurement that gives a verdict (s): a second of wake-ups at the loop's rate.
+MIN_DURATION = 1.0
 
 
 @dataclass
@@ -125,7 +137,13 @@ def host_facts() -> HostFacts:
     )
 
 
-def measure(period: float, duration: float, priority: int = 0, cpu: int = -1) -> Timing:
+def measure(
+    period: float,
+    duration: float,
+    priority: int = 0,
+    cpu: int = -1,
+    stop: Callable[[], bool] | None = None,
+) -> Timing:
     """Wake a thread every ``period`` s for ``duration`` s; record each wake-up's lateness.
 
     Parameters
@@ -139,10 +157,13 @@ def measure(period: float, duration: float, priority: int = 0, cpu: int = -1) ->
         the normal scheduler, reported in :attr:`Timing.fifo`.
     cpu : int
         CPU to pin the thread to (-1: any).
+    stop : callable, optional
+        Asked at every wake-up; True ends the measurement early (an operator stop): the
+        :class:`Timing` then holds the wake-ups measured so far.
     """
     n = max(1, round(duration / period))
     lat = np.empty(n)
-    state = {"fifo": False}
+    state: dict[str, Any] = {"fifo": False, "done": n}
 
     def body() -> None:
         if priority > 0:
@@ -157,6 +178,9 @@ def measure(period: float, duration: float, priority: int = 0, cpu: int = -1) ->
         sleep = time.sleep
         t0 = perf() + 0.05
         for i in range(n):
+            if stop is not None and stop():
+                state["done"] = i
+                return
             deadline = t0 + i * period
             gap = deadline - perf()
             if gap > 0:
@@ -165,8 +189,12 @@ def measure(period: float, duration: float, priority: int = 0, cpu: int = -1) ->
 
     th = threading.Thread(target=body, name="rths-check-host", daemon=True)
     th.start()
-    th.join()
-    lat = np.maximum(lat, 0.0)
+    while th.is_alive():  # the main thread stays free for the signal handlers
+        th.join(0.1)
+    n = max(1, int(state["done"]))
+    if state["done"] == 0:
+        lat[0] = 0.0
+    lat = np.maximum(lat[:n], 0.0)
     p50, p99, p999 = np.percentile(lat, [50, 99, 99.9])
     return Timing(
         period=period,

@@ -15,7 +15,7 @@ from __future__ import annotations
 import copy
 import csv
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -277,12 +277,24 @@ def compensator_study(
     duration: float | None = None,
     executor: Executor | None = None,
     progress: bool = True,
+    on_row: Callable[[dict[str, Any]], None] | None = None,
 ) -> CompensatorComparison:
-    """Every method on the same ``trials`` perturbed plants (see the module docstring)."""
+    """Every method on the same ``trials`` perturbed plants (see the module docstring).
+
+    ``on_row`` is called with each trial's row as it completes (e.g. to keep them on an
+    operator stop).
+    """
     base = study.inline_twin(cfg)
     perts = list(perturbations) if perturbations is not None else study.default_perturbations(base)
     cases = plan_method_trials(base, list(methods), perts, trials, seed, duration)
-    rows = study.run_cases(method_trial, cases, executor, progress, "trials")
+    rows = study.run_cases(
+        method_trial,
+        cases,
+        executor,
+        progress,
+        "trials",
+        None if on_row is None else (lambda _i, row: on_row(row)),
+    )
     return CompensatorComparison(
         rows, list(methods), [p.key for p in perts], study.channel_suffixes(base), int(seed)
     )
@@ -316,17 +328,22 @@ def _md_table(res: CompensatorComparison) -> str:
     return "\n".join(lines)
 
 
+def write_trials(path: str | Path, res: CompensatorComparison) -> None:
+    """One line per method × trial, full-precision numbers (``trials.csv``)."""
+    cols = res.columns
+    with Path(path).open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(cols)
+        for r in res.rows:
+            w.writerow([study.exact_text(r.get(c, math.nan)) for c in cols])
+
+
 def write_comparison(
     out_dir: str | Path, res: CompensatorComparison, plot: bool = True
 ) -> list[str]:
     """Write trials.csv, comparison.csv, comparison.md and (``plot``) compensators_box.png."""
     out = Path(out_dir)
-    cols = res.columns
-    with (out / "trials.csv").open("w", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh)
-        w.writerow(cols)
-        for r in res.rows:
-            w.writerow([study.exact_text(r.get(c, math.nan)) for c in cols])
+    write_trials(out / "trials.csv", res)
     summ = res.summary()
     scols = ["method", "metric", "median", "p5", "p95", "n", "trials", "share_tripped"]
     with (out / "comparison.csv").open("w", newline="", encoding="utf-8") as fh:

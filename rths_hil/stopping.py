@@ -11,11 +11,13 @@ the step it is in safely and keeps what it has done), a second one raises
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
+from collections.abc import Iterator
 from types import FrameType, TracebackType
 
-__all__ = ["OperatorStop", "Stopped"]
+__all__ = ["OperatorStop", "Stopped", "interrupting"]
 
 
 class Stopped(Exception):
@@ -69,3 +71,26 @@ class OperatorStop:
         """Raise :class:`Stopped` when a stop signal came."""
         if self.signal is not None:
             raise Stopped(self.signal)
+
+
+@contextlib.contextmanager
+def interrupting() -> Iterator[list[str]]:
+    """Every stop signal raises :class:`KeyboardInterrupt`, as Ctrl-C does (main thread only);
+    yields a list that receives the signal's name."""
+    from .hybrid.runner import STOP_SIGNALS
+
+    got: list[str] = []
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        got.append(signal.Signals(signum).name)
+        raise KeyboardInterrupt
+
+    old = []
+    if threading.current_thread() is threading.main_thread():
+        for sig in STOP_SIGNALS:
+            old.append((sig, signal.signal(sig, handler)))
+    try:
+        yield got
+    finally:
+        for sig, h in reversed(old):
+            signal.signal(sig, h)

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..resources import MAX_TRIALS, check_count, check_memory, max_workers
+from ..stopping import interrupting
 from ..units import parse_accel, parse_fraction, parse_range, parse_time, positive_number
 
 
@@ -93,7 +94,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     ws.add_argument("--bouc-wen", action="store_true", help="Bouc-Wen structure (Eq. 4.1-4.2)")
     ws.add_argument("--max-periods", default="10", help="largest window tried, in Tn (default 10)")
     common(ws, "1", "1ms")
-    ws.set_defaults(func=run_window_size)
+    ws.set_defaults(func=_stoppable(run_window_size))
 
     acc = st.add_parser(
         "accuracy",
@@ -107,7 +108,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     acc.add_argument("--window", default="3T", help="window: 3T (periods) or seconds (3s)")
     acc.add_argument("--hop", type=int, default=1, help="samples between windows (default 1)")
     common(acc, "1.1", "5ms")
-    acc.set_defaults(func=run_accuracy)
+    acc.set_defaults(func=_stoppable(run_accuracy))
 
     rb = st.add_parser(
         "robustness",
@@ -206,6 +207,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     cp.add_argument("--out", required=True, help="output directory (created if missing)")
     cp.set_defaults(func=run_compensators)
     parser.set_defaults(func=lambda args: _no_study(parser))
+
+
+def _stoppable(run):
+    """``run(args)`` with SIGTERM and SIGHUP taken as Ctrl-C (exit 130, not 143 or 129)."""
+
+    def wrapped(args: argparse.Namespace) -> int:
+        with interrupting():
+            return run(args)
+
+    wrapped.__doc__ = run.__doc__
+    return wrapped
+
+
+def _signal(got: list[str]) -> str:
+    """The stop signal's name (Ctrl-C when it came as a KeyboardInterrupt of its own)."""
+    return got[0] if got else "SIGINT"
 
 
 def _no_study(parser: argparse.ArgumentParser) -> int:
@@ -432,8 +449,9 @@ def run_robustness(args: argparse.Namespace) -> int:
     )
     t0 = time.perf_counter()
     done: list[dict] = []
+    got: list[str] = []
     try:
-        with study.open_executor(args.scheduler, args.workers) as ex:
+        with interrupting() as got, study.open_executor(args.scheduler, args.workers) as ex:
             res = study.robustness_study(
                 base,
                 perts,
@@ -458,8 +476,8 @@ def run_robustness(args: argparse.Namespace) -> int:
         )
         study.write_trials_csv(out / "trials.partial.csv", partial)
         print(
-            f"rths-hil study robustness: interrupted; the {len(done)} of {len(specs)} runs "
-            f"that finished are in {out / 'trials.partial.csv'}",
+            f"rths-hil study robustness: operator stop ({_signal(got)}); the {len(done)} of "
+            f"{len(specs)} runs that finished are in {out / 'trials.partial.csv'}",
             file=sys.stderr,
         )
         return 130
@@ -541,17 +559,33 @@ def run_compensators(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     t0 = time.perf_counter()
-    with study.open_executor(args.scheduler, args.workers) as ex:
-        res = cs.compensator_study(
-            base,
-            methods,
-            perts,
-            args.trials,
-            seed=args.seed,
-            duration=duration,
-            executor=ex,
-            progress=not args.no_progress,
+    done: list[dict] = []
+    got: list[str] = []
+    try:
+        with interrupting() as got, study.open_executor(args.scheduler, args.workers) as ex:
+            res = cs.compensator_study(
+                base,
+                methods,
+                perts,
+                args.trials,
+                seed=args.seed,
+                duration=duration,
+                executor=ex,
+                progress=not args.no_progress,
+                on_row=done.append,
+            )
+    except KeyboardInterrupt:
+        done.sort(key=lambda r: (methods.index(r["method"]), r["trial"]))
+        partial = cs.CompensatorComparison(
+            done, methods, [p.key for p in perts], study.channel_suffixes(base), args.seed
         )
+        cs.write_trials(out / "trials.partial.csv", partial)
+        print(
+            f"rths-hil study compensators: operator stop ({_signal(got)}); the {len(done)} of "
+            f"{len(cases)} runs that finished are in {out / 'trials.partial.csv'}",
+            file=sys.stderr,
+        )
+        return 130
     wall = time.perf_counter() - t0
     written = cs.write_comparison(out, res, plot=not args.no_plot)
     summ = {(r["method"], r["metric"]): r for r in res.summary()}

@@ -7,6 +7,7 @@ import json
 import os
 import platform
 import resource
+import signal
 import subprocess
 import sys
 import time
@@ -86,7 +87,7 @@ def test_cli_verdict_is_cached_and_shown_by_run(tmp_path):
     env = dict(os.environ, RTHS_HIL_CACHE=str(tmp_path / "cache"))
     cmd = [sys.executable, "-m", "rths_hil"]
     proc = subprocess.run(
-        [*cmd, "check-host", "--duration", "0.5s"],
+        [*cmd, "check-host", "--duration", "1s"],
         capture_output=True, text=True, timeout=60, cwd=ROOT, env=env,
     )  # fmt: skip
     assert proc.returncode in (0, 1), proc.stderr
@@ -104,7 +105,12 @@ def test_cli_verdict_is_cached_and_shown_by_run(tmp_path):
 
 @pytest.mark.parametrize(
     ("args", "text"),
-    [(["--duration", "0"], "--duration"), (["--set", "loop.cpu=999"], "loop.cpu = 999")],
+    [
+        (["--duration", "0"], "--duration"),
+        (["--duration", "1e-9"], "--duration"),  # one wake-up: no verdict (nor a cached one)
+        (["--duration", "0.001s"], "--duration"),
+        (["--set", "loop.cpu=999"], "loop.cpu = 999"),
+    ],
 )
 def test_cli_bad_input(tmp_path, args, text):
     env = dict(os.environ, RTHS_HIL_CACHE=str(tmp_path / "cache"))
@@ -114,3 +120,24 @@ def test_cli_bad_input(tmp_path, args, text):
     )  # fmt: skip
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and text in lines[0], proc.stderr
+    assert not (tmp_path / "cache" / "check-host.json").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_operator_stop_ends_the_measurement_with_130_and_keeps_no_verdict(tmp_path, sig):
+    env = dict(os.environ, RTHS_HIL_CACHE=str(tmp_path / "cache"))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rths_hil", "check-host", "--duration", "60s"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
+    )  # fmt: skip
+    assert "measuring" in proc.stderr.readline()  # started, the stop signals caught
+    time.sleep(1.0)
+    t = time.monotonic()
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert time.monotonic() - t < 10.0  # not the 60 s asked for
+    assert f"operator stop ({sig.name})" in err
+    assert "lateness p50" in out  # what was measured is printed …
+    assert "host holds" not in out and "host marginal" not in out  # … but no verdict
+    assert not (tmp_path / "cache" / "check-host.json").exists()
