@@ -221,6 +221,7 @@ class ModbusProfileDriver(Driver):
         self._word: int | None = None  # the controller's last status word
         self._head_t = 0.0  # when the request at the head of the queue was written
         self._lock = threading.RLock()
+        self._given_up: deque[int] = deque(maxlen=8)  # ids of requests given up (TCP)
         self.estop_word: int | None = None  # its status word read back after the e-stop
         self._framer: Any = (FramerRTU if self._rtu else FramerSocket)(DecodePDU(False))
         self._sock: socket.socket | None = None
@@ -541,13 +542,23 @@ class ModbusProfileDriver(Driver):
         if dev_id != self.unit or not pdu_bytes:
             self.stats.count_malformed("unknown_id")
             return (-1, b"")
-        pending = self._pending
-        if pending and pending[0][0] == tid:  # one at a time: the next request goes out
-            pending.popleft()
-            if pending:
-                self._write(pending[0][2])
-                self._head_t = time.perf_counter()
+        self._answered(tid)
         return tid, pdu_bytes
+
+    def _answered(self, tid: int) -> None:
+        """TCP one at a time: the answer to ``tid`` came; the next request goes out."""
+        pending = self._pending
+        if pending and pending[0][0] == tid:
+            pending.popleft()
+        elif tid in self._given_up:
+            # the late answer to a request given up: the controller was still serving it when
+            # the one now outstanding arrived, and dropped that one: write it again
+            self._given_up.remove(tid)
+        else:
+            return
+        if pending:
+            self._write(pending[0][2])
+            self._head_t = time.perf_counter()
 
     # -- commands -------------------------------------------------------------------------------
     def _action(self, action: ModbusAction | None) -> list[tuple[int, int, bytes]]:
@@ -621,6 +632,8 @@ class ModbusProfileDriver(Driver):
         pending = self._pending
         if self._rtu or time.perf_counter() - self._head_t > HEAD_GIVEUP:
             keep: list[tuple[int, int, bytes]] = []
+            if not self._rtu:
+                self._given_up.append(pending[0][0])
         else:
             keep = [pending[0]]
         hb = [r for r in list(pending)[len(keep) :] if r[0] & 15 == SLOT_HEARTBEAT]

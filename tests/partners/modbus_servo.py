@@ -16,7 +16,8 @@ address    name         meaning
 1024–1025  SETPOINT     position set-point, IEEE-754 float32, millimetres, high word first;
                         applied when written (FC 16 of both registers; a partial write is
                         refused with exception 03). Followed only while enabled; power-up 0.0.
-1030       HEARTBEAT    any uint16; each CHANGE of its value restarts the 200 ms watchdog
+1030       HEARTBEAT    any uint16; each CHANGE of its value restarts the watchdog (200 ms,
+                        a parameter: ``--watchdog``)
 =========  ===========  ======================================================================
 
 Input registers (FC 4)
@@ -97,7 +98,9 @@ def regs_f32(regs: list[int]) -> float:
 class Axis:
     """The controller's state machine and its plant, advanced exactly in real time."""
 
-    def __init__(self, position: float, stroke: float, pause_rate: float, seed: int) -> None:
+    def __init__(
+        self, position: float, stroke: float, pause_rate: float, seed: int, watchdog: float
+    ) -> None:
         self.t0 = time.monotonic()
         self.t = self.t0
         self.y = position  # m
@@ -108,6 +111,7 @@ class Axis:
         self.enabled = False
         self.latch = 0  # status bits of a latch (0: none)
         self.stroke = stroke
+        self.watchdog = watchdog
         self.hb: int | None = None
         self.wd_deadline = math.inf
         self.rng = random.Random(seed)
@@ -201,7 +205,7 @@ class Axis:
             self.hb = value
             self.history["heartbeat_changes"] += 1
             if self.enabled:
-                self.wd_deadline = now + WATCHDOG_TIME
+                self.wd_deadline = now + self.watchdog
 
     def write_enable(self, on: bool) -> None:
         now = time.monotonic()
@@ -210,7 +214,7 @@ class Axis:
             self.enabled = True
             self.y_edge = self.u = self.y  # the delay line holds until the set-point arrives
             self.queue = [(now + DELAY, self.setpoint)]
-            self.wd_deadline = now + WATCHDOG_TIME
+            self.wd_deadline = now + self.watchdog
             self.history["enable_edges"].append(
                 {
                     "t": now - self.t0,
@@ -368,7 +372,7 @@ def make_device(axis: Axis) -> SimDevice:
 
 
 async def serve(args: argparse.Namespace) -> int:
-    axis = Axis(args.position, args.stroke, args.pause_rate, args.seed)
+    axis = Axis(args.position, args.stroke, args.pause_rate, args.seed, args.watchdog)
     server = ServoServer(axis, make_device(axis), ("127.0.0.1", args.port))
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -393,6 +397,9 @@ def main(argv: list[str] | None = None) -> int:
         "--pause-rate", type=float, default=0.5, help="network stack pauses per second (0: none)"
     )
     p.add_argument("--seed", type=int, default=1, help="seed of the pause times")
+    p.add_argument(
+        "--watchdog", type=float, default=WATCHDOG_TIME, help="heartbeat watchdog time (s)"
+    )
     p.add_argument("--state-json", help="write the state and history here when stopped")
     args = p.parse_args(argv)
     return asyncio.run(serve(args))

@@ -124,9 +124,12 @@ def test_trip_mid_run_estops_the_controller_not_its_watchdog(modbus_servo, tmp_p
     test reaches) while the partner pauses now and then: its status, read by the test over
     its own connection, is the e-stop (0x80), latched within a few ms of the trip, and the
     run's e-stop is confirmed."""
-    partner = modbus_servo(pause_rate=8)
+    # its watchdog at 1 s (a parameter of the controller): a stall of this loaded machine
+    # must not latch it before the trip; the e-stop is under test here
+    partner = modbus_servo(pause_rate=8, watchdog=1.0)
     out = tmp_path / "trip"
     sets = ("safety.displacement_limit=0.15mm", "loop.fs=512", "loop.heartbeat=0.05")
+    sets += ("safety.watchdog_timeout=0.25",)  # (a starved process is not the trip here)
     proc = run_bridge(partner, out, *sets, duration=2.0)
     rc, text = finish(proc)
     assert rc == 3, text
@@ -181,9 +184,10 @@ def test_no_motion_at_the_enable_edge_from_plus_5_mm(modbus_servo, tmp_path):
     assert edge["setpoint"] == pytest.approx(0.005, abs=1e-6)  # written before the enable
     t_edge = edge["monotonic"]
     window = [(ts - t_edge, p) for ts, p in samples if t_edge <= ts <= t_edge + 0.050]
-    # the poll saw the whole window (at 1 kHz when the machine lets it; the axis's 8 ms lag
-    # and 12 ms delay keep any motion visible for longer than the poll's gaps)
-    assert len(window) >= 15 and window[0][0] < 0.01 and window[-1][0] > 0.04, window
+    # the poll saw the window (at 1 kHz when this loaded machine lets it: 8 to 50 samples
+    # here); a jump towards the register's 0.0 would be 3 mm off after 20 ms (12 ms delay,
+    # 8 ms lag), so samples late in the window are what must be there
+    assert len(window) >= 5 and window[-1][0] > 0.035, window
     moved = max(abs(p - 0.005) for _, p in window)
     assert moved <= 1e-4, f"{moved * 1e3:.3f} mm"
     assert state["setpoint_writes"] > 0 and all(a["t"] < edge["t"] for a in state["ack_writes"])
@@ -246,8 +250,10 @@ def test_paced_512_hz_default_profile_completes_and_hands_back_disabled(modbus_s
     partner = modbus_servo(pause_rate=2)
     out = tmp_path / "paced"
     # a heartbeat every 50 ms for a 200 ms watchdog: a stall of this loaded machine (100 ms
-    # seen here) does not latch it (docs/profiles.md)
-    proc = run_bridge(partner, out, "loop.fs=512", "loop.heartbeat=0.05", duration=2.0)
+    # seen here) does not latch it (docs/profiles.md); the bridge's reply watchdog at 250 ms
+    # for the same reason (a partner process starved of the CPU for 100 ms was seen here)
+    sets = ("loop.fs=512", "loop.heartbeat=0.05", "safety.watchdog_timeout=0.25")
+    proc = run_bridge(partner, out, *sets, duration=2.0)
     rc, text = finish(proc)
     assert rc == 0, text
     assert "answers one request at a time" in text
