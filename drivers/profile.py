@@ -428,7 +428,7 @@ class ModbusProfile:
         lo, hi = sorted(sp.si(v) for v in _INT_RANGE[sp.type])
         if lo > -limit or hi < limit:
             raise InputError(
-                f"profile {self.source}: roles.setpoint: a {sp.type} with scale {sp.scale:g} "
+                f"profile {self.source}: roles.setpoint: {sp.type} with scale {sp.scale:g} "
                 f"carries {lo * 1e3:g}…{hi * 1e3:g} mm, not the displacement limit "
                 f"±{limit * 1e3:g} mm (safety.displacement_limit)"
             )
