@@ -131,7 +131,9 @@ class StabilityIndicator:
         Viscous damping coefficient of the numerical structure along the actuator ``c_a``
         (N·s/m, > 0; :func:`damping_along`).
     min_velocity : float, optional
-        Lowest RMS structure velocity over the window (m/s) for a valid ratio.
+        Lowest RMS structure velocity over the window (m/s) for a valid ratio. The ratio is
+        valid once the window's RMS velocity has stayed above it for a whole window (not on the
+        first cycles of motion from rest, when the window holds a fraction of a cycle).
 
     Examples
     --------
@@ -153,6 +155,8 @@ class StabilityIndicator:
         "_lam",
         "_min_b",
         "_n",
+        "_settle",
+        "_settled",
         "_v2",
         "_xe",
         "damping",
@@ -181,6 +185,9 @@ class StabilityIndicator:
         self._c = self.damping * self._dt
         # the window's dissipation at an RMS velocity of min_velocity, in steady state
         self._min_b = self.damping * self.min_velocity**2 * self._dt / (1.0 - self._lam)
+        # a window is valid once the structure has moved for a whole window (not on the
+        # first cycles of motion from rest, when it holds a fraction of a cycle)
+        self._settle = max(1, round(self.window * self.fs))
         self.reset()
 
     def reset(self) -> None:
@@ -188,6 +195,7 @@ class StabilityIndicator:
         self._a = 0.0  # windowed injected energy (J)
         self._b = 0.0  # windowed dissipated energy (J)
         self._n = 0
+        self._settled = 0
         self._f = self._xe = self._v2 = 0.0
         self.injected = 0.0
         self.dissipated = 0.0
@@ -218,7 +226,11 @@ class StabilityIndicator:
             self.dissipated += dd
             self._a = a = self._lam * self._a + de
             self._b = b = self._lam * self._b + dd
-            if b > self._min_b and b > 0.0:
+            if b > self._min_b:
+                self._settled += 1
+            else:
+                self._settled = 0
+            if self._settled >= self._settle:
                 self.valid = True
                 self.ratio = a / b
             else:
@@ -251,7 +263,7 @@ class StabilityResult:
         Windowed ``S`` at every sample (NaN where not valid), as :class:`StabilityIndicator`
         gives it online.
     valid : ndarray of bool
-        The window's RMS velocity is at least ``min_velocity``.
+        The window's RMS velocity has been at least ``min_velocity`` for a whole window.
     injected, dissipated : ndarray
         Cumulative injected and dissipated energy (J) up to each sample.
     """
@@ -332,11 +344,20 @@ def stability_indicator(
     a = lfilter([1.0], [1.0, -lam], de)
     b = lfilter([1.0], [1.0, -lam], dd)
     min_b = damping * min_velocity**2 * dt / (1.0 - lam)
-    valid = (b > min_b) & (b > 0.0)
-    valid[:1] = False
+    moving = b > min_b
+    moving[:1] = False
+    valid = _held_for(moving, max(1, round(window * fs)))
     ratio = np.full(n, math.nan)
     np.divide(a, b, out=ratio, where=valid)
     return StabilityResult(ratio=ratio, valid=valid, injected=inj, dissipated=np.cumsum(dd))
+
+
+def _held_for(flag: np.ndarray, n: int) -> np.ndarray:
+    """True where ``flag`` has been true for the last ``n`` samples in a row (this one too)."""
+    # length of the run of True ending at each sample
+    idx = np.arange(len(flag))
+    last_false = np.maximum.accumulate(np.where(flag, -1, idx))
+    return (idx - last_false) >= n
 
 
 def damping_along(C: np.ndarray, K: np.ndarray, M: np.ndarray, row: np.ndarray) -> float:
