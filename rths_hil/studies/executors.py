@@ -58,6 +58,10 @@ def _worker_signals() -> None:
 def stop_pool(ex: Executor) -> None:
     """After an operator stop: cancel what has not started and end a process pool's workers
     at once (the trials under way are lost; those finished were delivered)."""
+    if not isinstance(ex, ProcessPoolExecutor):  # a Dask executor cancels what runs
+        with contextlib.suppress(Exception):
+            ex.shutdown(wait=False)
+        return
     ex.shutdown(wait=False, cancel_futures=True)
     if isinstance(ex, ProcessPoolExecutor):
         for child in multiprocessing.active_children():
@@ -183,8 +187,12 @@ def open_executor(scheduler: str | None = None, workers: int = 2) -> Iterator[Ex
         log.info("Dask scheduler %s with %d worker(s)", address, n)
         if n == 0:
             log.warning("the Dask scheduler at %s has no workers yet; tasks will wait", address)
+    ex = client.get_executor(pure=False)
     try:
-        yield client.get_executor(pure=False)
+        yield ex
+    except KeyboardInterrupt:
+        stop_pool(ex)
+        raise
     finally:
         client.close()
         if cluster is not None:
