@@ -67,6 +67,7 @@ import socket
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import serial
@@ -663,7 +664,9 @@ class ModbusProfileDriver(Driver):
                 out.append((base | i, frame[7], (base | i).to_bytes(2, "big") + frame[2:]))
         return out
 
-    def arm(self, timeout: float, receive: Any = None) -> Feedback | None:
+    def arm(
+        self, timeout: float, receive: Callable[[float], Feedback | None] | None = None
+    ) -> Feedback | None:
         """Start a new run: disable, acknowledge a latch and read where the actuator is, with
         no set-point written (see :meth:`Driver.arm`); the run's first command writes the
         set-point ahead of the enable."""
