@@ -91,6 +91,7 @@ from canopen.objectdictionary.datatypes import INTEGER32
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from rths_hil.errors import InputError
+from rths_hil.units import parse_length, parse_time
 
 from ..base import Driver, DriverStats, Feedback, LinkDown, Status
 from ..can import TIMEOUT_HONOURED, virtual_rx_queue
@@ -169,6 +170,44 @@ def parse_object(text: Any, what: str) -> tuple[int, int]:
         ) from None
 
 
+def _quantity(key: str, value: Any, unit: str) -> Any:
+    """A time (s) or length (m) key given as a string with its unit (``"0.1 s"``, ``"1mm"``)
+    read to SI; anything else as it is (checked by the caller)."""
+    if isinstance(value, str):
+        return (parse_time if unit == "s" else parse_length)(value, f"canopen: {key}")
+    return value
+
+
+def _identity(key: str, value: Any) -> int | None:
+    """``vendor_id`` / ``product_code``: an integer, or a string such as ``"0x0000A3C7"``."""
+    if value is None:
+        return None
+    if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0xFFFFFFFF:
+        return value
+    if isinstance(value, str):
+        try:
+            v = int(value.strip(), 0)
+        except ValueError:
+            v = -1
+        if 0 <= v <= 0xFFFFFFFF:
+            return v
+    raise InputError(
+        f"canopen: {key} must be an UNSIGNED32 like 0x0000A3C7 (0x1018), got {value!r}"
+    )
+
+
+def _check_bitrate(bitrate: Any) -> None:
+    """``bitrate``: None (the interface's) or a positive whole number of bit/s."""
+    if bitrate is None:
+        return
+    if (
+        isinstance(bitrate, bool)
+        or not isinstance(bitrate, int | float)
+        or not (math.isfinite(bitrate) and bitrate > 0 and float(bitrate).is_integer())
+    ):
+        raise InputError(f"canopen: bitrate must be a positive integer (bit/s), got {bitrate!r}")
+
+
 def load_od(eds: str | os.PathLike[str], node_id: int) -> canopen.ObjectDictionary:
     """The object dictionary of an EDS file; one line when it cannot be read."""
     path = os.fspath(eds)
@@ -188,6 +227,8 @@ def _variable(
         entry = od[index]
         if isinstance(entry, ODRecord | ODArray):
             entry = entry[sub]
+        elif sub:  # a VAR has only sub-index 0
+            raise KeyError(sub)
     except KeyError:
         raise InputError(
             f"canopen: eds {path!r} has no object 0x{index:04X}:{sub:02X} ({what})"
@@ -613,6 +654,20 @@ class CANopenDriver(Driver):
                 or not (math.isfinite(v) and v > 0)
             ):
                 raise InputError(f"canopen: {key} must be a positive number, got {v!r}")
+        if counts_per_m is not None and isinstance(counts_per_m, int | float):
+            if not isinstance(counts_per_m, bool) and counts_per_m > 1e12:
+                raise InputError(
+                    f"canopen: counts_per_m must be ≤ 1e12 (1 pm per count; INTEGER32 then "
+                    f"spans ±2.1 mm), got {counts_per_m!r}"
+                )
+        heartbeat_period = _quantity("heartbeat_period", heartbeat_period, "s")
+        controller_heartbeat = _quantity("controller_heartbeat", controller_heartbeat, "s")
+        controller_heartbeat_timeout = _quantity(
+            "controller_heartbeat_timeout", controller_heartbeat_timeout, "s"
+        )
+        start_tolerance = _quantity("start_tolerance", start_tolerance, "m")
+        sdo_timeout = _quantity("sdo_timeout", sdo_timeout, "s")
+        device_watchdog = _quantity("device_watchdog", device_watchdog, "s")
         for key, v in (
             ("heartbeat_period", heartbeat_period),
             ("controller_heartbeat", controller_heartbeat),
@@ -629,6 +684,12 @@ class CANopenDriver(Driver):
                 raise InputError(f"canopen: {key} must be a number ≥ 0 (s), got {v!r}")
         if controller_heartbeat * 1000 > 65535:
             raise InputError("canopen: controller_heartbeat must be ≤ 65.535 s (0x1017 in ms)")
+        if device_watchdog is not None and device_watchdog * 1000 > 65535:
+            raise InputError(
+                f"canopen: device_watchdog must be ≤ 65.535 s (0x1016 holds 16 bits of ms), "
+                f"got {device_watchdog!r}"
+            )
+        _check_bitrate(bitrate)
         if eds is None:
             raise InputError("canopen: eds: give the controller's EDS file (driver.connection.eds)")
         self.eds = os.fspath(eds)
@@ -648,7 +709,8 @@ class CANopenDriver(Driver):
         self.device_watchdog = None if not device_watchdog else float(device_watchdog)
         self.start_tolerance = float(start_tolerance)
         self.sdo_timeout = float(sdo_timeout) or 0.5
-        self.vendor_id, self.product_code = vendor_id, product_code
+        self.vendor_id = _identity("vendor_id", vendor_id)
+        self.product_code = _identity("product_code", product_code)
         if not isinstance(configure_pdo, bool):
             raise InputError(
                 f"canopen: configure_pdo must be true or false (a TOML boolean), got "
@@ -675,8 +737,13 @@ class CANopenDriver(Driver):
             "setpoint": _variable(self.od, p.setpoint, self.eds, "position set-point"),
             "actual": _variable(self.od, p.actual, self.eds, "actual position"),
         }
-        for obj, what in ((0x1000, "device type"), (0x1018, "identity")):
-            if obj not in self.od:
+        for obj, what, needed in (
+            (0x1000, "device type", True),
+            (0x1018, "identity", True),
+            (0x1017, "producer heartbeat time, for controller_heartbeat", controller_heartbeat),
+            (0x1016, "consumer heartbeat time, for device_watchdog", self.device_watchdog),
+        ):
+            if needed and obj not in self.od:
                 raise InputError(f"canopen: eds {self.eds!r} has no object 0x{obj:04X} ({what})")
         if p.mode is not None:
             _variable(self.od, p.mode[:2], self.eds, "mode")
@@ -685,6 +752,19 @@ class CANopenDriver(Driver):
         self._tpdo2_vars = (
             [_variable(self.od, f_obj, self.eds, "force_object")] if f_obj is not None else []
         )
+        for obj in cands:
+            fv = _variable(self.od, obj, self.eds, "force_object")
+            own = {p.control: "control word", p.status: "status word",
+                   p.setpoint: "position set-point", p.actual: "actual position"}  # fmt: skip
+            code = (
+                fv.STRUCT_TYPES[fv.data_type].format[-1] if fv.data_type in fv.STRUCT_TYPES else ""
+            )
+            if obj in own or not code or not code.islower() or code in "fd?":
+                why = f"the profile's {own[obj]}" if obj in own else "not a signed integer"
+                raise InputError(
+                    f"canopen: force_object 0x{obj[0]:04X}:{obj[1]:02X} ({fv.name}) is {why}: "
+                    "give the object that carries the measured force"
+                )
         for var in (*self._rpdo_vars, *self._tpdo1_vars, *self._tpdo2_vars):
             if not var.pdo_mappable and self.configure_pdo:
                 raise InputError(
@@ -1546,6 +1626,14 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
     from rths_hil.linkbudget import LinkLoad, can_frame_bits, link_key
 
     c = dict(connection or {})
+    for key in ("heartbeat_period", "controller_heartbeat"):  # as the driver takes them
+        if key in c:
+            v = _quantity(key, c[key], "s")
+            if isinstance(v, bool) or not isinstance(v, int | float) or not v >= 0:
+                raise InputError(f"canopen: {key} must be a number ≥ 0 (s), got {c[key]!r}")
+            c[key] = v
+    bitrate = c.get("bitrate")
+    _check_bitrate(bitrate)
     n = step_frames(c)
     per_axis = sum(can_frame_bits(n[k]) for k in ("rpdo", "tpdo1", "tpdo2") if n[k] or k != "tpdo2")
     b_sync = can_frame_bits(0)
@@ -1563,7 +1651,6 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
         f"{channels} × the device's at {hb_dev:g} Hz"
     )
     base = {"channels": channels, "fs": fs}
-    bitrate = c.get("bitrate")
     interface = str(c.get("interface", "virtual"))
     bits_s = (b_sync + channels * per_axis) * fs + per_second_bits
     if bitrate is None:

@@ -1,0 +1,118 @@
+"""CANopen connection keys of the wrong type or out of range: one line naming the key, exit 2,
+through ``rths-hil run`` as a lab runs it (the drive's EDS, no twin), before any bus is opened."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from rths_hil.drivers.canopen import CANopenDriver
+
+from rths_hil.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+VENDOR_EDS = ROOT / "tests" / "partners" / "vendor_cia402.eds"
+
+
+def lab_config(tmp_path: Path, eds: Path = VENDOR_EDS) -> Path:
+    cfg = tmp_path / "lab.toml"
+    cfg.write_text(
+        f"""[driver]
+name = "canopen"
+[driver.connection]
+eds = "{eds}"
+node_id = 5
+counts_per_m = 1e6
+interface = "virtual"
+channel = "bad-keys"
+[twin]
+enabled = false
+[output]
+dir = "{tmp_path}/run"
+"""
+    )
+    return cfg
+
+
+def one_error_line_exit_2(argv: list[str], capsys, *needles: str) -> None:
+    """``rths-hil ARGV`` in-process: exit 2, no traceback, one error line holding every needle
+    (the run's own start lines before it are information)."""
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err
+    lines = [x for x in err.splitlines() if "error" in x]
+    assert len(lines) == 1, err
+    for needle in needles:
+        assert needle in lines[0], err
+
+
+@pytest.mark.parametrize(
+    "setting, needles",
+    [
+        ('counts_per_m="abc"', ["counts_per_m must be a positive number", "'abc'"]),
+        ("counts_per_m=1e300", ["counts_per_m must be ≤ 1e12"]),
+        ('vendor_id="abc"', ["vendor_id must be an UNSIGNED32", "'abc'"]),
+        ('force_object="0x6040"', ["force_object 0x6040:00", "control word"]),
+        ('force_object="0x6064:3"', ["no object 0x6064:03 (force_object)"]),
+        ('heartbeat_period="0.1 parsec"', ["heartbeat_period"]),
+        ('configure_pdo="false"', ["configure_pdo must be true or false", "'false'"]),
+        ("bitrate=-1", ["bitrate must be a positive integer", "-1"]),
+        ("device_watchdog=1e9", ["device_watchdog must be ≤ 65.535 s"]),
+    ],
+)
+def test_bad_key_is_one_line_exit_2(tmp_path, capsys, setting, needles):
+    cfg = lab_config(tmp_path)
+    argv = ["run", str(cfg), "--confirm-hardware", "--no-plot", "--duration", "0.1"]
+    one_error_line_exit_2([*argv, "--set", f"driver.connection.{setting}"], capsys, *needles)
+
+
+@pytest.mark.parametrize(
+    "cut, needle",
+    [
+        ("[1017]", "has no object 0x1017 (producer heartbeat time, for controller_heartbeat)"),
+        ("[6064]", "has no object 0x6064:00 (actual position)"),
+    ],
+)
+def test_eds_without_a_needed_object_is_one_line_exit_2(tmp_path, capsys, cut, needle):
+    text = VENDOR_EDS.read_text()
+    a = text.index(cut)
+    b = text.index("\n[", a + 1)
+    eds = tmp_path / "cut.eds"
+    eds.write_text(text[:a] + text[b + 1 :])
+    cfg = lab_config(tmp_path, eds)
+    argv = ["run", str(cfg), "--confirm-hardware", "--no-plot", "--duration", "0.1"]
+    one_error_line_exit_2(argv, capsys, needle)
+
+
+def test_eds_saying_position_is_not_pdo_mappable_is_refused_when_mapping(tmp_path):
+    text = VENDOR_EDS.read_text()
+    a = text.index("[6064]")
+    b = text.index("PDOMapping=1", a)
+    eds = tmp_path / "nomap.eds"
+    eds.write_text(text[:b] + "PDOMapping=0" + text[b + len("PDOMapping=1") :])
+    with pytest.raises(Exception, match=r"0x6064:00 .* is not PDO-mappable"):
+        CANopenDriver(eds=str(eds), node_id=5)
+    # taken as the device has it: the device's own mapping decides
+    assert CANopenDriver(eds=str(eds), node_id=5, configure_pdo=False).configure_pdo is False
+
+
+def test_times_and_lengths_take_their_units():
+    drv = CANopenDriver(
+        eds=str(VENDOR_EDS), node_id=5, heartbeat_period="0.1 s", controller_heartbeat="50ms",
+        device_watchdog="0.5 s", start_tolerance="2 mm", vendor_id="0x0000A3C7",
+    )  # fmt: skip
+    assert drv.heartbeat_period == pytest.approx(0.1)
+    assert drv.controller_heartbeat == pytest.approx(0.05)
+    assert drv.device_watchdog == pytest.approx(0.5)
+    assert drv.start_tolerance == pytest.approx(0.002)
+    assert drv.vendor_id == 0xA3C7
+
+
+def test_the_link_budget_takes_the_units_as_the_driver():
+    from rths_hil.drivers.canopen import link_load
+
+    base = {"bitrate": 1_000_000, "interface": "socketcan"}
+    a = link_load({**base, "heartbeat_period": "100 ms", "controller_heartbeat": "0.05 s"}, 1, 1024)
+    b = link_load({**base, "heartbeat_period": 0.1, "controller_heartbeat": 0.05}, 1, 1024)
+    assert a.load == b.load
