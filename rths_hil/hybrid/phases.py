@@ -30,11 +30,17 @@ End (:meth:`Phases.end`; completed run, operator stop, Ctrl-C, SIGTERM, SIGHUP)
 
 Both phases step like the loop: one command per channel per period (paced) or per reply
 (lockstep), replies read, the heartbeat sent, and each channel's safety monitor checks the
-commands, the feedback (watchdog, sequence, controller status, limits) at every step; a trip
-ends the phase and the runner e-stops every channel. Their steps are not rows of the record
-(the record is the test); they are events: ``start_position`` (per channel), ``start_ramp``
-and ``end_ramp`` (from/to positions, times, steps, peak velocity, final measured positions),
-``handback`` (per channel: position, force, status, disabled, latched). Start-phase steps are
+commands, the feedback (link, watchdog, sequence, controller status, limits) at every step; a
+trip ends the phase and the runner e-stops every channel. Paced, the start ramp begins a period
+after arming, the loop's step 0 continues its grid and the end phase the loop's
+(:attr:`Phases.next_deadline`, :func:`.timing.first_deadline`): from arming to the hand-back
+no controller waits more than a period for its next command (the runner does its set-up
+before arming). The first command that enables a controller is where its actuator is (the
+ramp's first point; :meth:`rths_hil.drivers.base.Driver.arm` writes nothing it would follow).
+Their steps are not rows of the record (the record is the test); they are events:
+``start_position`` (per channel), ``start_ramp`` and ``end_ramp`` (from/to positions, times,
+steps, peak velocity, final measured positions), ``handback`` (per channel: position, force,
+status, disabled, latched). Start-phase steps are
 numbered ``-m … -1`` for the safety monitors and events (the loop's step 0 follows), end-phase
 steps continue after the last loop step. On the wire the sequence numbers run on without a gap:
 the loop's step ``k`` goes out as ``k + m`` (:class:`Link`).

@@ -40,10 +40,11 @@ uses the force measured at the displacement it imposed (no extra step of lag).
 Modes
 -----
 ``paced``
-    Wall clock. The first deadline is 0.1 s after the start, deadline ``k`` is
-    ``t0 + k·Δt`` (an absolute grid: no drift). The loop sleeps until ``spin`` before the
-    deadline (at least 0.1 Δt when 0.2 Δt remain: a SCHED_FIFO thread that never sleeps is
-    stopped ≈ 50 ms a second by the kernel's RT bandwidth limit), then busy-waits, then sends;
+    Wall clock. Deadline ``k`` is ``t0 + k·Δt`` (an absolute grid: no drift); ``t0``
+    continues the start ramp's grid, or is one period (at least 2 ms) away when no ramp ran.
+    The loop sleeps until ``spin`` before the deadline (at least 0.1 Δt when 0.2 Δt remain: a
+    SCHED_FIFO thread that never sleeps is stopped ≈ 50 ms a second by the kernel's RT
+    bandwidth limit), then busy-waits, then sends;
     ``lateness[k] = t_send − deadline`` is recorded, and ``ready[k]`` (when the previous step's
     work was done, minus the deadline) attributes each overrun to the machine or to the work
     (:func:`attribute_overruns`, measured against :func:`paced_floor`).
