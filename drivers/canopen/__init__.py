@@ -10,18 +10,26 @@ by SDO and check them against the profile (the low 16 bits of 0x1000 must be 402
 ``vendor_id`` / ``product_code`` when given); NMT pre-operational; write the profile's mode
 object (402: 0x6060 = 8, cyclic synchronous position; 408: 0x6042 = 1, set-point via bus), the
 device's heartbeat producer time 0x1017 (``controller_heartbeat``) and, when given, its heartbeat
-consumer 0x1016 (``device_watchdog``: the bridge's heartbeat, node ``bridge_node_id``); map by SDO
-(``configure_pdo = true``, the default) or read from the device:
+consumer 0x1016 (``device_watchdog``: the bridge's heartbeat, node ``bridge_node_id``); the PDO
+mapping (:meth:`CANopenDriver._map_pdos`): with ``configure_pdo = true`` (the default) the
+driver's own is written by SDO —
 
 * RPDO1 (COB-ID 0x200 + node, synchronous): control word 0x6040 + position set-point
   (402: target position 0x607A; 408: axis position set-point 0x6600:01), 6 bytes;
 * TPDO1 (0x180 + node, every SYNC): status word 0x6041 + actual position (402: 0x6064;
   408: 0x6601:01), 6 bytes;
-* TPDO2 (0x280 + node, every SYNC): the measured force (``force_object``, default 0x2100,
-  manufacturer-specific INTEGER32 of the project's twins; ``""`` for none), 4 bytes;
+* TPDO2 (0x280 + node, every SYNC): the measured force (``force_object``: 0x2100, the
+  manufacturer-specific INTEGER32 of the project's twins, where the EDS has it, else the torque
+  actual 0x6077; ``""`` for none) —
 
-then NMT operational. A PDO longer than 8 bytes, an EDS without one of the objects, a wrong
-device type or identity is refused with one line (:class:`~rths_hil.errors.InputError`, exit 2).
+unless the EDS has the mapping objects read-only (a fixed mapping) or the device refuses the
+writes with an SDO abort; then, and with ``configure_pdo = false``, the device's own mapping is
+used. Either way the mapping is read back from the device by SDO and the objects are taken from
+whichever PDO carries them; the torque actual (per mille of the rated torque 0x6076, read by
+SDO) is scaled to N by ``force_per_torque``; a device that maps no force gives NaN. Then NMT
+operational. A PDO longer than 8 bytes, an EDS without one of the objects, a device mapping no
+control word / set-point / status word / actual position, a wrong device type or identity is
+refused with one line (:class:`~rths_hil.errors.InputError`, exit 2).
 
 **Each step** (the base class's contract: :meth:`~..base.Driver.send` →
 :meth:`CANopenDriver._send_raw`, :meth:`~..base.Driver.receive` →
@@ -48,8 +56,9 @@ it every step until a command with ``enable=False`` acknowledges it (402: disabl
 SWITCH ON DISABLED). :meth:`arm` resets a fault (402 fault reset 0x0080, 408 bit 3, each a
 rising edge) and brings the device to holding (402 SWITCHED ON, 408 HOLD) by SDO. At a normal
 end :meth:`close` hands the device back disabled by its own sequence (402 shutdown → disable
-voltage: SWITCH ON DISABLED; 408 DISABLED), after an e-stop it leaves the latch, and always ends
-with NMT stop.
+voltage: SWITCH ON DISABLED; 408 DISABLED), after an e-stop it leaves the latch; it clears the
+device's heartbeat consumer 0x1016:01 when it set it (the bridge's heartbeat stops), and always
+ends with NMT stop.
 
 **Status.** 402 OPERATION ENABLED → ``ENABLED``, QUICK STOP ACTIVE → ``ESTOP_ACTIVE``, FAULT
 (REACTION ACTIVE) → ``FAULT``; 408 ACTIVE → ``ENABLED``, HOLD after the e-stop →
@@ -63,7 +72,8 @@ watchdog — which counts time — trips.
 
 Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1–127),
 ``device_profile`` (``cia402`` / ``cia408``), ``interface``, ``channel``, ``bitrate``,
-``bus_options``, ``counts_per_m``, ``force_object``, ``newtons_per_count``, ``bridge_node_id``,
+``bus_options``, ``counts_per_m``, ``force_object``, ``newtons_per_count``, ``force_per_torque``,
+``bridge_node_id``,
 ``heartbeat_period``, ``controller_heartbeat``, ``controller_heartbeat_timeout``,
 ``device_watchdog``, ``start_tolerance``, ``sdo_timeout``, ``vendor_id``, ``product_code``,
 ``configure_pdo`` (documented in ``docs/canopen.md``).
@@ -747,6 +757,14 @@ class CANopenDriver(Driver):
                 raise InputError(f"canopen: eds {self.eds!r} has no object 0x{obj:04X} ({what})")
         if p.mode is not None:
             _variable(self.od, p.mode[:2], self.eds, "mode")
+        for key in ("control", "setpoint"):  # written by SDO (arming, hand-back) and by RPDO
+            if not v[key].writable:
+                raise InputError(
+                    f"canopen: eds {self.eds!r}: 0x{v[key].index:04X}:{v[key].subindex:02X} "
+                    f"({v[key].name}, the {key.replace('setpoint', 'position set-point')}"
+                    f"{' word' if key == 'control' else ''}) is read-only: the bridge cannot "
+                    "command the device"
+                )
         self._rpdo_vars = [v["control"], v["setpoint"]]
         self._tpdo1_vars = [v["status"], v["actual"]]
         self._tpdo2_vars = (

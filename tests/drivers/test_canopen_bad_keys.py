@@ -116,3 +116,15 @@ def test_the_link_budget_takes_the_units_as_the_driver():
     a = link_load({**base, "heartbeat_period": "100 ms", "controller_heartbeat": "0.05 s"}, 1, 1024)
     b = link_load({**base, "heartbeat_period": 0.1, "controller_heartbeat": 0.05}, 1, 1024)
     assert a.load == b.load
+
+
+def test_eds_with_a_read_only_controlword_is_refused(tmp_path):
+    text = VENDOR_EDS.read_text()
+    a = text.index("[6040]")
+    b = text.index("AccessType=rww", a)
+    eds = tmp_path / "ro.eds"
+    eds.write_text(text[:b] + "AccessType=ro" + text[b + len("AccessType=rww") :])
+    with pytest.raises(
+        Exception, match=r"0x6040:00 \(Controlword, the control word\) is read-only"
+    ):
+        CANopenDriver(eds=str(eds), node_id=5)
