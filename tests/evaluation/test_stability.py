@@ -266,5 +266,16 @@ def test_damping_along_sdof_and_shear_building():
     zeta1 = beta * w1 / 2
     expected = 2 * zeta1 * w1 * float(phi @ Mm @ phi)  # c* = 2 ζ ω m*
     assert damping_along(Cm, Km, Mm, [0.0, 1.0]) == pytest.approx(expected, rel=1e-9)
+    # a specimen of stiffness ks at the first storey: the coupled structure's mode, referred
+    # to the first storey (where the actuator is)
+    ks = 3e6
+    Kc = Km + np.diag([ks, 0.0])
+    lam, vec = np.linalg.eig(np.linalg.solve(Mm, Kc))
+    phi = vec[:, np.argmin(lam)]
+    phi = phi / phi[0]
+    expected = float(phi @ Cm @ phi)
+    got = damping_along(Cm, Km, Mm, [1.0, 0.0], k_specimen=ks)
+    assert got == pytest.approx(expected, rel=1e-9)
+    assert got != pytest.approx(damping_along(Cm, Km, Mm, [1.0, 0.0]), rel=0.01)
     with pytest.raises(ValueError, match="fundamental mode"):
         damping_along(np.eye(2), np.eye(2), np.eye(2) * [1, 2], [0.0, 0.0])
