@@ -30,7 +30,9 @@ skipped with the reason:
     velocity at most ``commission.velocity``), and a least-squares fit of the delayed
     first-order model ``g·e^(−sτ)/(T s + 1)`` to it (:func:`identify_plant`): the channel's
     delay τ, lag T and gain g as the loop sees them (the link's own latency is part of τ).
-    Fails when the model explains less than 90 % of the motion or a value sits at its bound.
+    Fails when the model explains less than 90 % of the motion or a value sits at its bound;
+    a chirp during which the controller latched (its watchdog, when the computer stalled) is
+    acknowledged by arming and run once more.
 ``estop``
     Enabled at the held position, e-stop through the driver; for 0.2 s commands towards half
     the amplitude must be ignored (status ``ESTOP_ACTIVE``, position held within 20 µm); an
@@ -125,6 +127,11 @@ MOVING = ("enable", "motion", "plant", "estop", "watchdog")
 MAX_LATENCY_TIME = 600.0
 #: Length of the identification chirp (s).
 CHIRP_TIME = 4.0
+#: A command of the chirp that left this much late (s) starts a stall: the samples after it are
+#: not fitted.
+STALL = 0.005
+#: … for this long (s): several time constants of a servo-hydraulic actuator.
+STALL_MASK = 0.1
 #: ``safety.watchdog_timeout`` of the tuned fragment = this × the longest reply gap measured …
 GAP_MARGIN = 2.0
 #: … and at least this (s).
@@ -216,6 +223,8 @@ class _Controller:
         self.stop = stop
         self.seq = 0
         self.last: Feedback | None = None
+        #: how late each command of the last :meth:`run` left (s)
+        self.lateness = np.zeros(0)
         #: the last command sent: position and enable flag (what the controller is doing)
         self.x = math.nan
         self.enabled = False
@@ -261,6 +270,7 @@ class _Controller:
         """One command of ``path`` per period (sleep, then spin to the deadline)."""
         perf = time.perf_counter
         t0 = perf() + self.dt
+        self.lateness = late = np.zeros(len(path))
         for i, x in enumerate(path):
             if check:
                 self.stop.check()
@@ -268,8 +278,9 @@ class _Controller:
             gap = deadline - perf() - 3e-4
             if gap > 0:
                 time.sleep(gap)
-            while perf() < deadline:
+            while (now := perf()) < deadline:
                 pass
+            late[i] = now - deadline
             fb, rtt = self.exchange(float(x), enable)
             if self.hb and i % self.hb == 0:
                 self.drv.heartbeat()
@@ -364,7 +375,11 @@ def _first_order(u: np.ndarray, lag: float, fs: float) -> np.ndarray:
 
 
 def identify_plant(
-    command: np.ndarray, measured: np.ndarray, fs: float, max_time: float = 0.2
+    command: np.ndarray,
+    measured: np.ndarray,
+    fs: float,
+    max_time: float = 0.2,
+    valid: np.ndarray | None = None,
 ) -> PlantFit:
     """Fit ``y = offset + g·(1/(T s + 1))·e^(−sτ)·u`` to a command/measured pair (least squares).
 
@@ -372,7 +387,7 @@ def identify_plant(
     from a grid of 5 ms over ``[0, max_time]²`` refined by
     :func:`scipy.optimize.least_squares` within ``[0, 2·max_time]``. The delay is fractional
     (linear interpolation of the command), the lag discretised with the bilinear transform.
-    NaN samples (missed replies) are left out.
+    NaN samples (missed replies) and those ``valid`` marks False are left out.
 
     Parameters
     ----------
@@ -382,6 +397,9 @@ def identify_plant(
         Step rate (Hz).
     max_time : float
         Upper end of the grid for τ and T (s).
+    valid : ndarray of bool, optional
+        The samples to fit (e.g. not those after a stall of the commanding computer, when
+        the controller saw other command times than the model assumes).
 
     Returns
     -------
@@ -392,6 +410,8 @@ def identify_plant(
     u = np.asarray(command, dtype=float)
     y = np.asarray(measured, dtype=float)
     ok = np.isfinite(y) & np.isfinite(u)
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool)
     if u.size < 16 or ok.sum() < 16:
         raise ValueError("too few samples to identify the plant")
     t = np.arange(u.size) / fs
@@ -590,21 +610,53 @@ def _motion(ctl: _Controller, rep: ChannelReport, plan: Any, x0: float) -> None:
 def _plant(ctl: _Controller, rep: ChannelReport, plan: Any, x0: float) -> None:
     com = plan.cfg["commission"]
     path = plant_path(x0, com["amplitude"], com["velocity"], plan.fs)
-    meas = np.full(path.size, np.nan)
+    figs: dict[str, Any] = {"chirp_s": CHIRP_TIME}
+    for attempt in (1, 2):
+        meas = np.full(path.size, np.nan)
+        latched: list[int] = []
 
-    def on_step(i, f, r):
-        meas[i] = f.displacement if f is not None else np.nan
+        def on_step(i, f, r, meas=meas, latched=latched):
+            if f is not None:
+                meas[i] = f.displacement
+                if f.status & _LATCHED:
+                    latched.append(int(f.status))
 
-    rep.chirp = (path, meas)
-    ctl.run(path, True, on_step)
-    ctl.exchange(x0, False)
+        rep.chirp = (path, meas)
+        ctl.run(path, True, on_step)
+        ctl.exchange(x0, False)
+        if not latched:
+            break
+        # the controller latched under the chirp (its watchdog, when this computer stalled
+        # past it): acknowledged by arming, and the chirp once more
+        figs[f"latched_attempt_{attempt}"] = _status_names(latched[0])
+        ctl.arm()
     ok = np.isfinite(meas)
-    figs: dict[str, Any] = {"chirp_s": CHIRP_TIME, "missed": int((~ok).sum())}
+    figs["missed"] = int((~ok).sum())
+    if latched:
+        why = f"the controller latched during the chirp (status {_status_names(latched[0])})"
+        rep.steps.append(StepResult("plant", "failed", why, figs))
+        return
     if ok.sum() < 0.9 * path.size:
         rep.steps.append(StepResult("plant", "failed", "too many replies missed", figs))
         return
     max_time = 0.2
-    fit = ctl.idle_while(lambda: identify_plant(path, meas, plan.fs, max_time=max_time))
+    # a command that left late (this computer stalled): a controller in real time held the
+    # one before longer than the model assumes; the samples up to STALL_MASK after it are
+    # left out (a twin steps its plant per command: its timing is the commands')
+    valid = np.ones(path.size, dtype=bool)
+    if rep.target == "hardware":
+        stalled = np.flatnonzero(ctl.lateness > max(STALL, 2.0 / plan.fs))
+        for i in stalled:
+            valid[i : i + round(STALL_MASK * plan.fs)] = False
+        figs["stalled_commands"] = int(stalled.size)
+        figs["fitted_share"] = float(valid.mean())
+    if valid.mean() < 0.3:
+        why = "this computer stalled too often under the chirp to fit a model (check-host)"
+        rep.steps.append(StepResult("plant", "failed", why, figs))
+        return
+    fit = ctl.idle_while(
+        lambda: identify_plant(path, meas, plan.fs, max_time=max_time, valid=valid)
+    )
     rep.plant = fit
     figs.update(
         delay_ms=fit.delay * 1e3,
