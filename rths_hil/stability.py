@@ -103,7 +103,7 @@ __all__ = [
 
 #: Default lowest RMS structure velocity along the actuator (m/s) over the window for a valid
 #: ratio: below it the structure is at rest and both energies are of the order of the noise.
-DEFAULT_MIN_VELOCITY = 1e-3
+DEFAULT_MIN_VELOCITY = 2e-4
 
 
 def _check_scalar(name: str, value: float, *, positive: bool = True) -> float:
