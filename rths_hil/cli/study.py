@@ -434,6 +434,7 @@ def run_robustness(args: argparse.Namespace) -> int:
             f"--duration {duration:g} s at {fs:g} Hz on {min(args.workers, args.trials)} workers",
         )
     specs = study.plan_trials(base, perts, args.trials, args.seed, alphas, duration)
+    study.preflight(base, duration)
     out = _outdir(args.out)
     if (out / "trials.csv").exists():
         raise InputError(f"--out {out}: already holds a study (trials.csv); choose a new one")
@@ -549,6 +550,7 @@ def run_compensators(args: argparse.Namespace) -> int:
         if not (math.isfinite(duration) and duration > 0):
             raise InputError(f"--duration must be > 0 s, got {args.duration!r}")
     cases = cs.plan_method_trials(base, methods, perts, args.trials, args.seed, duration)
+    study.preflight(base, duration)
     out = _outdir(args.out)
     if (out / "trials.csv").exists():
         raise InputError(f"--out {out}: already holds a study (trials.csv); choose a new one")

@@ -568,6 +568,20 @@ def _extremes(values: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
     return (float(v.min()), float(v.max())) if v.size else (math.nan, math.nan)
 
 
+def preflight(cfg: Config, duration: float | None = None) -> None:
+    """Refuse a study whose unperturbed configuration a run would refuse, before any trial.
+
+    A trial that a run refuses (a drawn plant that is unstable) is a row of the study
+    (``status = invalid``); a structure file, record or key that no trial can use (a missing,
+    empty or garbage record, NaN in the matrices) would make every row one, so it is refused
+    here in one line (:class:`InputError`) by the plan a run builds (no I/O is written).
+    """
+    from ..hybrid.plan import build_plan
+
+    with tempfile.TemporaryDirectory(prefix=_SCRATCH_PREFIX) as tmp:
+        build_plan(cfg, Path(tmp) / "run", mode="lockstep", duration=duration)
+
+
 def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
     """Run one perturbed trial in lockstep through :func:`rths_hil.hybrid.run`; return its row.
 
