@@ -19,7 +19,10 @@ coil 0  ESTOP        write ON (FC 5) = e-stop; reads back the latched state     
 
 Per step the driver sends one FC 23 request that writes registers 0–3 and reads 16–22; the
 controller performs the write first (as FC 23 specifies), steps once and answers with the new
-feedback. E-stop is a Write Single Coil (FC 5) on coil 0, sent at once without waiting.
+feedback. E-stop is a Write Single Coil (FC 5) on coil 0: over Modbus TCP on a second
+connection of the driver's own (idle but for the e-stop, so nothing outstanding on the step's
+link delays it), read back (FC 1 on coil 0) and written again until it reads latched or 0.5 s
+have passed; over RTU (or without that connection) on the line at once.
 
 The hot path packs the request and unpacks the response with precompiled ``struct`` layouts (a
 few µs) instead of pymodbus's client stack; the tests check byte for byte that these frames are
@@ -45,6 +48,7 @@ per unit, not a round trip per unit. RTU lines are not shared (one driver per se
 from __future__ import annotations
 
 import binascii
+import logging
 import math
 import os
 import select
@@ -80,6 +84,8 @@ __all__ = [
     "feedback_crc",
 ]
 
+log = logging.getLogger(__name__)
+
 #: Register addresses by name (see the module docstring).
 REG = {
     "SEQ": 0,
@@ -96,6 +102,9 @@ READ_ADDRESS, READ_COUNT = 16, 7
 COIL_ESTOP = 0
 FC_RW = 23
 FC_WRITE_COIL = 5
+FC_READ_COILS = 1
+#: How long :meth:`ModbusDriver.estop` keeps writing and reading back over its own connection.
+ESTOP_WINDOW = 0.5
 
 # MBAP + PDU of the FC 23 request and response (big-endian, Modbus byte order).
 _TCP_REQ = struct.Struct(">HHHBBHHHHBHHi")
@@ -109,6 +118,28 @@ _rtu_crc = FramerRTU.compute_CRC
 
 #: Highest Modbus unit id a controller can have (1–247; 0 is broadcast, 248–255 reserved).
 MAX_UNIT = 247
+
+
+def _await_tcp(
+    sock: socket.socket, buf: bytes, tid: int, deadline: float
+) -> tuple[bytes | None, bytes]:
+    """The PDU of the Modbus TCP response ``tid`` on ``sock`` before ``deadline`` (``None``:
+    none), and the bytes read past it. Raises OSError when the connection is gone."""
+    while True:
+        while len(buf) >= 8:
+            end = 6 + ((buf[4] << 8) | buf[5])
+            if len(buf) < end:
+                break
+            frame, buf = buf[:end], buf[end:]
+            if (frame[0] << 8) | frame[1] == tid:
+                return frame[7:], buf
+        remaining = deadline - time.perf_counter()
+        if remaining <= 0 or not select.select((sock,), (), (), remaining)[0]:
+            return None, buf
+        data = sock.recv(4096)
+        if not data:
+            raise ConnectionResetError("closed")
+        buf += data
 
 
 def feedback_crc(block12: bytes) -> int:
@@ -144,6 +175,8 @@ class Link:
         self.fd: int | None = None
         self.buf = b""
         self.units: dict[int, ModbusDriver] = {}
+        #: TCP: the e-stop's own connection, shared by the units (ModbusDriver.estop)
+        self.esock: socket.socket | None = None
 
     @classmethod
     def get(cls, driver: ModbusDriver) -> Link:
@@ -206,6 +239,9 @@ class Link:
             if self.key is not None and self._shared.get(self.key) is self:
                 del self._shared[self.key]
         self.disconnect()
+        esock, self.esock = self.esock, None
+        if esock is not None:
+            esock.close()
 
 
 class ModbusDriver(Driver):
@@ -227,7 +263,18 @@ class ModbusDriver(Driver):
     connect_timeout : float
         TCP connect timeout (s).
     estop_timeout : float
-        RTU: how long :meth:`estop` waits for the coil write echo (s).
+        How long :meth:`estop` waits for the coil write's answer (s).
+    estop_connection : bool
+        Modbus TCP: a second connection of this driver's own, idle but for the e-stop, which
+        goes out there at once (whatever is outstanding on the shared link), is read back
+        (coil 0, FC 1) and written again until the controller reports it latched or 0.5 s
+        have passed (:meth:`estop`). Without it (or when it cannot be opened) the e-stop is
+        written on the link, unconfirmed until the loop's status poll.
+
+    Attributes
+    ----------
+    estop_latched : bool or None
+        After :meth:`estop` over its own connection: coil 0 read back (``None``: no answer).
     """
 
     name: ClassVar[str] = "modbus"
@@ -246,8 +293,13 @@ class ModbusDriver(Driver):
         stopbits: int = 1,
         connect_timeout: float = 1.0,
         estop_timeout: float = 0.1,
+        estop_connection: bool = True,
     ) -> None:
         super().__init__()
+        if not isinstance(estop_connection, bool):
+            raise InputError(
+                f"modbus driver: estop_connection must be true or false, got {estop_connection!r}"
+            )
         if transport not in ("tcp", "rtu"):
             raise InputError(f"modbus driver: transport must be 'tcp' or 'rtu', got {transport!r}")
         if transport == "rtu" and not device:
@@ -261,6 +313,8 @@ class ModbusDriver(Driver):
         self.baudrate, self.parity, self.stopbits = int(baudrate), str(parity), int(stopbits)
         self.connect_timeout = float(connect_timeout)
         self.estop_timeout = float(estop_timeout)
+        self.estop_connection = estop_connection
+        self.estop_latched: bool | None = None
         self._coil_ack = False
         self._stash: Feedback | None = None
         self._link: Link | None = None
@@ -378,6 +432,17 @@ class ModbusDriver(Driver):
             return
         self._inbox.clear()
         self._link = Link.get(self)
+        link = self._link
+        if not self._rtu and self.estop_connection and link.esock is None:
+            try:  # one for the link: the units on it share it, as they share the link
+                link.esock = self._open_socket()[0]
+            except InputError as exc:
+                log.info("modbus driver: no second connection for the e-stop (%s)", exc)
+
+    @property
+    def _esock(self) -> socket.socket | None:
+        link = self._link
+        return None if link is None or not self.estop_connection else link.esock
 
     def close(self) -> None:
         link, self._link = self._link, None
@@ -429,6 +494,8 @@ class ModbusDriver(Driver):
         kept for the next :meth:`receive`.
         """
         self.stats.estops += 1
+        if self._esock is not None and self._estop_own():
+            return
         pdu = struct.pack(">BHH", FC_WRITE_COIL, COIL_ESTOP, 0xFF00)
         if self._rtu:
             body = bytes((self.device_id,)) + pdu
@@ -447,6 +514,44 @@ class ModbusDriver(Driver):
                     break
                 if fb is not None:
                     self._stash = fb  # a feedback, not yet classified: for the next receive
+
+    def _estop_own(self) -> bool:
+        """The e-stop over its own connection: write coil 0 ON, read it back, again until it
+        reads latched or ``ESTOP_WINDOW`` has passed. False: the connection is gone (the
+        caller writes the e-stop on the link instead)."""
+        sock = self._esock
+        assert sock is not None
+        end = time.perf_counter() + ESTOP_WINDOW
+        write = struct.pack(">BHH", FC_WRITE_COIL, COIL_ESTOP, 0xFF00)
+        read = struct.pack(">BHH", FC_READ_COILS, COIL_ESTOP, 1)
+        buf = b""
+        self.estop_latched = None
+        writes = 0
+        try:
+            while time.perf_counter() < end:
+                writes += 1
+                for tid, pdu in ((0xFFFE ^ self._tid_x, write), (0xFFFD ^ self._tid_x, read)):
+                    sock.send(struct.pack(">HHHB", tid, 0, len(pdu) + 1, self.device_id) + pdu)
+                    until = min(end, time.perf_counter() + self.estop_timeout)
+                    got, buf = _await_tcp(sock, buf, tid, until)
+                    if got is None:
+                        break
+                    if pdu is read and got[:2] == bytes((FC_READ_COILS, 1)) and len(got) > 2:
+                        self.estop_latched = bool(got[2] & 1)
+                if self.estop_latched:
+                    break
+        except OSError:
+            sock.close()
+            if self._link is not None:
+                self._link.esock = None
+            return False
+        where = f"modbus driver: e-stop to unit {self.device_id} at {self.host}:{self.port}"
+        if self.estop_latched:
+            log.warning("%s over its own connection: latched (coil 0 reads ON)", where)
+        else:
+            state = "no answer" if self.estop_latched is None else "coil 0 reads OFF"
+            log.error("%s: NOT confirmed after %d writes in 500 ms (%s)", where, writes, state)
+        return True
 
     # -- feedback -------------------------------------------------------------------------------
     def _recv_internal(self, deadline: float) -> Feedback | None:

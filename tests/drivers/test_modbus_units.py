@@ -53,8 +53,9 @@ def test_two_units_on_one_connection_fei_delay_per_channel(tmp_path):
     loop, res, run = _run(tmp_path, "on")
     assert res.status == "completed" and res.steps == 10240 and res.missed_replies == 0
     a, b = loop.channels
-    # one server, one TCP connection: the two drivers shared it
-    assert a.twin.server is b.twin.server and a.twin.server.accepted == 1
+    # one server, one TCP connection for the steps and one for the e-stop: the two drivers
+    # shared them
+    assert a.twin.server is b.twin.server and a.twin.server.accepted == 2
     assert [c.driver.device_id for c in loop.channels] == [1, 2]
     for ch in loop.channels:
         assert ch.twin.stats.steps == res.steps and ch.driver.stats.malformed == 0
@@ -163,6 +164,27 @@ def test_pipelined_units_on_the_wire_and_a_plain_pymodbus_client():
             assert client.read_holding_registers(16, count=1, device_id=1).registers == [49]
             assert client.read_coils(0, count=1, device_id=9).isError()  # no such unit
     assert t1.stats.steps == t2.stats.steps == 50
+
+
+def test_estop_over_its_own_connection_is_read_back(caplog):
+    """The e-stop goes over the driver's own second connection while a step's request is
+    outstanding on the link, and is read back (coil 0); a plain pymodbus client sees the
+    latch. Without that connection it is written on the link, not read back."""
+    for own in (True, False):
+        with start_twin("modbus", default_plant(delay=0.0), port=_free_port()) as twin:
+            drv = create_driver("modbus", estop_connection=own, **twin.connection)
+            with drv, caplog.at_level("WARNING"):
+                assert drv.arm(1.0) is not None
+                drv.send(0, 0.0, True)  # outstanding
+                drv.estop()
+                assert drv.estop_latched is (True if own else None)
+                assert drv.receive(1.0) is not None  # the step's reply still arrives
+                time.sleep(0.05)
+                assert twin.controller.estop_latched
+            c = twin.connection
+            with ModbusTcpClient("127.0.0.1", port=c["port"]) as client:
+                assert client.read_coils(0, count=1, device_id=1).bits[0]
+    assert sum("latched (coil 0 reads ON)" in r.getMessage() for r in caplog.records) == 1
 
 
 @pytest.mark.timing  # the twins' wall-clock watchdogs
