@@ -130,6 +130,8 @@ SYNC_ID = 0x80
 NMT_OPERATIONAL = 0x05
 #: EMCY error code of a heartbeat / life-guard event (CiA 301).
 EMCY_HEARTBEAT = 0x8130
+#: longest wait after an e-stop for the device to report it before the next command (s)
+ESTOP_SETTLE = 0.1
 #: the measured force of the project's twins (manufacturer-specific INTEGER32)
 FORCE_OBJECT = (0x2100, 0)
 #: CiA 402 torque actual value (INTEGER16, per mille of the motor rated torque 0x6076)
@@ -829,6 +831,7 @@ class CANopenDriver(Driver):
         self._delivered_sync = -2
         self._state = "NOT READY TO SWITCH ON" if p.number == 402 else "NOT READY"
         self._latched = False
+        self._estop_seen = False  # the device reported the e-stop state since the e-stop
         self._emcy_code = 0
         self._emcy_text = ""
         self._hb_seen: float | None = None
@@ -1332,6 +1335,8 @@ class CANopenDriver(Driver):
         status = self._flags.get(key)
         if status is None:
             status = self._flags[key] = self.profile.flags(state, self._latched)
+        if self._latched and status & _ESTOP:
+            self._estop_seen = True  # the device reports the e-stop state (_settle_estop)
         code = self._emcy_code
         if code:
             status |= _FAULT | (_WATCHDOG if code == EMCY_HEARTBEAT else 0)
@@ -1408,6 +1413,8 @@ class CANopenDriver(Driver):
                 )
         if enable:
             self._first_enable = False
+        if self._latched and not self._estop_seen and enable:
+            self._settle_estop(ESTOP_SETTLE)
         if not enable and self._latched:
             self._latched = False  # acknowledged: the word below releases the device
             key = (self._state, False, False)
@@ -1476,6 +1483,7 @@ class CANopenDriver(Driver):
     def estop(self) -> None:
         self.stats.estops += 1
         self._latched = True
+        self._estop_seen = False
         step = max(self._last_sent, 0)
         self._rpdo(step, self.profile.estop_word(), self._last_counts)
         bus = self._bus
@@ -1485,6 +1493,34 @@ class CANopenDriver(Driver):
             self.heartbeat()
             # the loop stops stepping: the heartbeat goes on until the nodes are closed
             bus.hold_heartbeat(self._hb_msg, self.heartbeat_period or 0.1)
+
+    def _settle_estop(self, limit: float) -> None:
+        """After the e-stop, before the next command (the loop's confirmation poll): wait up to
+        ``limit`` for the device to report the e-stop state (402 QUICK STOP ACTIVE, 408 HOLD
+        after the e-stop), then drop what came before it. TPDOs carry no step: on a link whose
+        answers lag a few SYNCs behind (a serial line, a loaded adapter), the next answer may
+        still be one the device sent before it applied the e-stop, and the poll would read
+        that (OPERATION ENABLED) as "not confirmed"."""
+        bus = self._bus
+        end = _perf() + limit
+        while bus is not None and not self._estop_seen:
+            remaining = end - _perf()
+            if remaining <= 0.0:
+                break
+            if bus.reading:
+                if bus.pump(min(remaining, 0.01)):
+                    bus.drain()
+            else:
+                self._wake.clear()
+                if not self._estop_seen:
+                    self._wake.wait(min(remaining, 0.01))
+        if self._estop_seen:
+            self._q.clear()
+        else:
+            log.warning(
+                "canopen: node %d did not report the e-stop state within %.0f ms (state %s)",
+                self.node_id, limit * 1e3, self._state,
+            )  # fmt: skip
 
     def heartbeat(self) -> None:
         self._hb_last_sent = time.monotonic()

@@ -26,6 +26,8 @@ from the project's driver or twins (it imports nothing of the project). Its "man
   delay, 8 ms first-order lag, gain 0.98 on the motion from where it was enabled, on a specimen
   of 1e6 N/m; the torque actual is the specimen force in per mille of 0x6076. Outside OPERATION
   ENABLED (and when commands stop) the axis holds where it is.
+* ``--answer-delay`` holds each TPDO back that long (in order): a link whose answers trail the
+  SYNCs, as a loaded adapter's do.
 
 Run::
 
@@ -155,6 +157,7 @@ class Drive:
         self.tpdos = 0
         self.rpdo_data: bytes | None = None
         self.rpdo_cob: int | None = None
+        self.lagged: deque[tuple[float, int, bytes]] = deque()  # TPDOs held (--answer-delay)
         self.hb_consumer: tuple[int, float] | None = None  # (producer node, time s)
         self.hb_seen: float | None = None
         self.edges: list[dict[str, Any]] = []
@@ -351,6 +354,10 @@ class Drive:
                 (0x6064, 0): self.counts(),
                 (0x6077, 0): self.torque(),
             }.get(key, 0)
+        if self.args.answer_delay > 0:  # a link whose answers trail (a loaded adapter)
+            self.lagged.append((time.monotonic() + self.args.answer_delay, tp.cob_id,
+                                bytes(tp.data)))  # fmt: skip
+            return
         self.network.send_message(tp.cob_id, bytes(tp.data))
         self.tpdos += 1
 
@@ -395,6 +402,10 @@ class Drive:
                 nxt = time.monotonic()
             now = time.monotonic()
             with self.lock:
+                lag = self.lagged
+                while lag and lag[0][0] <= now:
+                    _, cob, data = lag.popleft()
+                    self.network.send_message(cob, data)
                 self.plant.advance(now)
                 for e in self.edges:
                     if now - e["t"] <= 0.05:
@@ -430,10 +441,12 @@ class Drive:
     def run(self) -> None:
         a = self.args
         kwargs: dict[str, Any] = {}
-        if a.interface == "slcan":
-            kwargs["sleep_after_open"] = 0.0
-        if a.interface == "serial":
+        if a.interface in ("slcan", "serial"):
+            # the port's read timeout: python-can's readers poll the line this often when it is
+            # quiet (slcan's default 1 ms would wake this process 1000 times a second)
             kwargs["timeout"] = 0.005
+        if a.interface == "slcan":
+            kwargs["sleep_after_open"] = 0.0  # a pseudo-terminal: no adapter to wait for
         if a.bitrate:
             kwargs["bitrate"] = a.bitrate
         self.network.connect(interface=a.interface, channel=a.channel, **kwargs)
@@ -477,6 +490,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tau", type=float, default=0.008)
     ap.add_argument("--gain", type=float, default=0.98)
     ap.add_argument("--stiffness", type=float, default=1e6, help="specimen, N/m")
+    ap.add_argument(
+        "--answer-delay", type=float, default=0.0,
+        help="send each TPDO this many seconds late, in order (a link that lags)",
+    )  # fmt: skip
     ap.add_argument("--log", default="WARNING")
     args = ap.parse_args(argv)
     logging.basicConfig(level=args.log, stream=sys.stderr)

@@ -219,3 +219,23 @@ def test_commission_against_the_drive_hands_it_back_disabled(cia402_drive, tmp_p
     final = drive.stop()
     assert final["state"] == "SWITCH ON DISABLED"
     assert len(final["emcy"]) == n_err
+
+
+def test_the_estop_poll_reads_the_drive_state_after_the_estop_on_a_lagging_link(cia402_drive):
+    """The drive's answers trail its SYNCs by 20 ms (a loaded link) while the bridge steps every
+    2 ms, so about ten answers are in flight: the loop's confirmation poll after the e-stop (one
+    command, one reply within 0.2 s) must read the drive's QUICK STOP ACTIVE, not an answer the
+    drive sent before it applied the e-stop (OPERATION ENABLED)."""
+    drive = cia402_drive("serial", answer_delay=0.02)
+    with create_driver("canopen", **drive.connection) as drv:
+        drv.arm(1.0)
+        got = None
+        for k in range(100):
+            drv.send(k, 0.0, True)
+            got = drv.receive(0.002) or got
+        assert got is not None and got.status & 0x01  # ENABLED
+        drv.estop()
+        drv.send(100, 0.0, True)  # the confirmation poll (rths_hil.hybrid.channel.confirm_estop)
+        fb = drv.receive(0.2)
+        assert fb is not None and fb.status & 0x02, fb  # ESTOP_ACTIVE
+    assert drive.sdo_read((0x6041, 0))[0] & 0x6F == QSA
