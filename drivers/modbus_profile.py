@@ -700,11 +700,17 @@ class ModbusProfileDriver(Driver):
 
     def _estop_tcp(self) -> None:
         mask = self._masks[int(Status.ESTOP_ACTIVE)]
-        end = time.perf_counter() + ESTOP_WINDOW
+        t0 = time.perf_counter()
+        end = t0 + ESTOP_WINDOW
         self.estop_word = None
         writes, answered, refused = 0, 0, None
+        own_silent = False  # no answer on the e-stop's own connection: the step's next
         while True:
-            own = self._esock is not None
+            own = self._esock is not None and not own_silent
+            if not own and self._fd is None:
+                if self._esock is None:
+                    break  # no connection left to the controller
+                own = True
             if not own:
                 self._drain(min(end, time.perf_counter() + ESTOP_DRAIN))
             self._etid = (self._etid + 1) & 0xFF
@@ -714,6 +720,7 @@ class ModbusProfileDriver(Driver):
             frame = tid.to_bytes(2, "big") + frame[2:]
             writes += 1
             pdu = self._ask(frame, tid, min(end, time.perf_counter() + self.estop_timeout), own)
+            own_silent = own and pdu is None
             if pdu is not None:
                 answered += 1
                 if pdu[0] & 0x80:
@@ -728,24 +735,25 @@ class ModbusProfileDriver(Driver):
         if own:  # the step's connection: let its outstanding answer come (the confirmation poll)
             self._drain(min(end, time.perf_counter() + ESTOP_DRAIN))
         self._pending.clear()
-        via = "its own connection" if self._esock is not None else "the step's connection"
+        via = "its own connection" if own else "the step's connection"
         word = self.estop_word
         where = f"modbus driver: e-stop to the controller at {self._where()} over {via}"
+        ms = (time.perf_counter() - t0) * 1e3
         if word is not None and word & mask:
             log.warning(
-                "%s: latched, status register %s (%d write%s)",
-                where, self.describe_word(word), writes, "s" if writes > 1 else "",
+                "%s: latched, status register %s (%d write%s, %.0f ms)",
+                where, self.describe_word(word), writes, "s" if writes > 1 else "", ms,
             )  # fmt: skip
         elif word is not None:
             why = f", the e-stop write refused (exception {refused})" if refused else ""
             log.error(
                 "%s: NOT latched: status register %s after %d writes in %.0f ms%s",
-                where, self.describe_word(word), writes, ESTOP_WINDOW * 1e3, why,
+                where, self.describe_word(word), writes, ms, why,
             )  # fmt: skip
         else:
             log.error(
                 "%s: not confirmed: no status read back (%d writes, %d answered, in %.0f ms)",
-                where, writes, answered, ESTOP_WINDOW * 1e3,
+                where, writes, answered, ms,
             )  # fmt: skip
 
     def _drain(self, deadline: float) -> None:

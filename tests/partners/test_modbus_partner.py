@@ -119,6 +119,25 @@ def test_estop_reaches_a_busy_controller_and_is_read_back(modbus_servo, own_conn
     assert took < 0.3
 
 
+def test_estop_to_a_killed_controller_ends_at_once_unconfirmed(modbus_servo, caplog):
+    """The controller's process killed: the e-stop finds both connections closed, says it is
+    not confirmed and returns (no 0.5 s of retries into closed sockets)."""
+    partner = modbus_servo(pause_rate=0)
+    drv = create_driver("modbus", profile=str(PROFILE), **partner.connection)
+    with drv, caplog.at_level(logging.WARNING):
+        assert drv.arm(1.0) is not None
+        partner.proc.kill()
+        partner.proc.wait()
+        time.sleep(0.05)
+        drv.send(0, 0.0, True)
+        drv.receive(0.05)
+        t0 = time.monotonic()
+        drv.estop()
+        took = time.monotonic() - t0
+    assert drv.estop_word is None and took < 0.3, took
+    assert any("not confirmed: no status read back" in r.getMessage() for r in caplog.records)
+
+
 def test_trip_mid_run_estops_the_controller_not_its_watchdog(modbus_servo, tmp_path):
     """A paced run with the docs' default profile trips mid-run (a displacement limit the
     test reaches) while the partner pauses now and then: its status, read by the test over
