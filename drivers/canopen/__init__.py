@@ -223,8 +223,10 @@ def _check_bitrate(bitrate: Any) -> None:
 def load_od(eds: str | os.PathLike[str], node_id: int) -> canopen.ObjectDictionary:
     """The object dictionary of an EDS file; one line when it cannot be read."""
     path = os.fspath(eds)
-    if not os.path.isfile(path):
+    if not os.path.exists(path):
         raise InputError(f"canopen: eds: no such file {path!r}")
+    if not os.path.isfile(path):
+        raise InputError(f"canopen: eds {path!r} is not a regular file (an EDS text file)")
     try:
         return canopen.import_od(path, node_id)
     except Exception as exc:  # the EDS parser raises anything from configparser to KeyError

@@ -9,6 +9,7 @@ import pytest
 from rths_hil.drivers.canopen import CANopenDriver
 
 from rths_hil.cli import main
+from rths_hil.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[2]
 VENDOR_EDS = ROOT / "tests" / "partners" / "vendor_cia402.eds"
@@ -91,7 +92,7 @@ def test_eds_saying_position_is_not_pdo_mappable_is_refused_when_mapping(tmp_pat
     b = text.index("PDOMapping=1", a)
     eds = tmp_path / "nomap.eds"
     eds.write_text(text[:b] + "PDOMapping=0" + text[b + len("PDOMapping=1") :])
-    with pytest.raises(Exception, match=r"0x6064:00 .* is not PDO-mappable"):
+    with pytest.raises(InputError, match=r"0x6064:00 .* is not PDO-mappable"):
         CANopenDriver(eds=str(eds), node_id=5)
     # taken as the device has it: the device's own mapping decides
     assert CANopenDriver(eds=str(eds), node_id=5, configure_pdo=False).configure_pdo is False
@@ -128,3 +129,12 @@ def test_eds_with_a_read_only_controlword_is_refused(tmp_path):
         Exception, match=r"0x6040:00 \(Controlword, the control word\) is read-only"
     ):
         CANopenDriver(eds=str(eds), node_id=5)
+
+
+@pytest.mark.parametrize(
+    "eds, message",
+    [("/dev/zero", "is not a regular file"), ("/nonexistent/x.eds", "no such file")],
+)
+def test_an_eds_path_that_is_no_file_is_named_as_such(eds, message):
+    with pytest.raises(InputError, match=message):
+        CANopenDriver(eds=eds, node_id=5)
