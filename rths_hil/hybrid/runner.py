@@ -399,6 +399,7 @@ class Runner:
         min_sleep = MIN_SLEEP * dt
         thr = plan.overrun_threshold
         hb_steps = plan.heartbeat_steps
+        hb_next = 0  # the step of the next heartbeat (every hb_steps; at once after a stall)
         stall_rule = self.stall
         min_stall = stall_rule.min_stall if stall_rule is not None else math.inf
         slip = plan.after_stall == "slip"
@@ -462,6 +463,10 @@ class Runner:
                             trip = self._stall(rec, tk, k, prev_send + dt, now, lat, stalls)
                             if trip is not None:
                                 break  # step k is not sent: every channel is e-stopped
+                            # the controllers' heartbeat watchdogs heard nothing during the
+                            # stall: their heartbeat goes with this step, not up to a period
+                            # of loop.heartbeat later
+                            hb_next = k
                             if slip:  # shift the time base: step k is on time from here
                                 t0 += lat
                                 rec.event("clock", tk, k, wall_t0=time.time() - tk, slip=lat)
@@ -515,7 +520,8 @@ class Runner:
                 if multi:
                     skew = t_last - t_first if t_first > 0.0 else nan
                 trip = check_feedback(tk, k)
-                if hb_steps and k % hb_steps == 0:
+                if hb_steps and k >= hb_next:
+                    hb_next = k + hb_steps
                     for ch in chans:
                         ch.heartbeat()
                 # ---- structure: commit step k with the measured forces, next targets ---------

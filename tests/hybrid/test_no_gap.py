@@ -22,7 +22,10 @@ import numpy as np
 import pytest
 from rths_hil.sim_backends.endpoints.base import TwinController
 
-from tests.helpers.loop import run_loop
+from rths_hil.config import load_config
+from rths_hil.hybrid import RTHSLoop
+from rths_hil.recorder import read_run
+from tests.helpers.loop import QUIET, run_loop
 
 pytestmark = pytest.mark.timing
 
@@ -106,3 +109,33 @@ def test_no_jump_and_no_silent_gap_from_arming_to_the_handback(tmp_path, arrival
     # a few periods: three at 512 Hz (5.9 ms) plus what a loaded machine may take from a
     # paced loop now and then (the phases' boundaries used to leave 100-200 ms)
     assert gap <= 3.0 / FS + 0.010, f"{gap * 1e3:.1f} ms before arrival {at}: {arrivals[at]}"
+
+
+def test_heartbeat_goes_out_with_the_first_step_after_a_stall(tmp_path, arrivals):
+    """A stall of the bridge (here the console callback, on the loop's thread, sleeping 60 ms)
+    is silence for a controller whose watchdog only the heartbeat feeds: the heartbeat goes
+    with the first step after it, not up to ``loop.heartbeat`` (0.1 s) later."""
+    # no start ramp (straight to the loop), the twin at rest
+    # (the serial protocol has heartbeat frames; the built-in Modbus map has none)
+    sets = [*QUIET, *BASE, "driver.name=serial", "start.tolerance=1", "twin.initial_position=0"]
+    cfg = load_config(None, sets)
+    loop = RTHSLoop(cfg, tmp_path / "run", mode="paced", duration=0.8)
+    slept: list[float] = []
+
+    def live(status):  # every 0.1 s of the run, on the loop's thread
+        if status["t"] >= 0.3 and not slept:
+            slept.append(time.monotonic())
+            time.sleep(0.060)
+
+    loop.live = live
+    loop.console_interval = 0.1
+    res = loop.run()
+    assert res.status == "completed", res.trip
+    (stall,) = [e for e in read_run(tmp_path / "run").events if e["kind"] == "stall"]
+    assert 0.05 <= stall["length"] < 0.2
+    # the controller's side: the first command after the stall, and the next heartbeat
+    t_wake = slept[0] + 0.060
+    after = [e for e in arrivals if e[0] >= t_wake]
+    first_cmd = next(e for e in after if e[1] == "command")
+    first_hb = next(e for e in after if e[1] == "heartbeat")
+    assert first_hb[0] - first_cmd[0] <= 2.0 / FS + 0.005, (first_hb, first_cmd)
