@@ -60,7 +60,7 @@ signal e-stops every channel at once.
 **Tuned fragment.** When every channel's ``plant`` step passed, ``tuned.toml`` beside the
 report (:func:`tuned_fragment`) sets each channel's compensation to the ``model`` method with
 the identified τ, T, g and ``safety.watchdog_timeout`` to :data:`GAP_MARGIN` × the longest
-reply gap of the latency step (at least :data:`MIN_WATCHDOG` and three periods), kept at most
+reply gap of the latency step (at least the key's default and three periods), kept at most
 half the controller's own watchdog when it is known; a test configuration takes it with
 ``include = ["…/tuned.toml"]`` (``docs/config.md``).
 
@@ -94,7 +94,6 @@ __all__ = [
     "CHIRP_TIME",
     "GAP_MARGIN",
     "MAX_LATENCY_TIME",
-    "MIN_WATCHDOG",
     "ChannelReport",
     "PlantFit",
     "StepResult",
@@ -132,10 +131,9 @@ CHIRP_TIME = 4.0
 STALL = 0.005
 #: … for this long (s): several time constants of a servo-hydraulic actuator.
 STALL_MASK = 0.1
-#: ``safety.watchdog_timeout`` of the tuned fragment = this × the longest reply gap measured …
+#: ``safety.watchdog_timeout`` of the tuned fragment = this × the longest reply gap measured
+#: (at least the key's default).
 GAP_MARGIN = 2.0
-#: … and at least this (s).
-MIN_WATCHDOG = 0.02
 
 
 @dataclass
@@ -964,12 +962,16 @@ def _link_times(plan: Any) -> list[float | None]:
 
 def _watchdog_timeout(rep: ChannelReport, fs: float) -> tuple[float, str]:
     """The fragment's ``safety.watchdog_timeout`` for a channel and how it was chosen."""
-    floor = MIN_WATCHDOG
+    from .config import SCHEMA
+
+    # never tighter than the default: a short latency window does not see every pause of a
+    # controller's network stack, nor every stall of this computer
+    floor = float(SCHEMA["safety"]["watchdog_timeout"].default)
     gap = rep.reply_gap if math.isfinite(rep.reply_gap) else 0.0
     value = max(GAP_MARGIN * gap, floor, 3.0 / fs)
     how = (
-        f"{GAP_MARGIN:g} × the longest reply gap ({gap * 1e3:.2f} ms), at least "
-        f"{floor * 1e3:g} ms and 3 periods"
+        f"{GAP_MARGIN:g} × the longest reply gap ({gap * 1e3:.2f} ms), at least the "
+        f"default {floor * 1e3:g} ms and 3 periods"
     )
     wd = rep.controller_watchdog
     if wd and value > 0.5 * wd:
