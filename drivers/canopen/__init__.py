@@ -1665,10 +1665,77 @@ def step_frames(connection: dict[str, Any] | None = None) -> dict[str, int]:
 
     RPDO1 (control word + set-point), TPDO1 (status word + actual position), TPDO2 (force, absent
     when ``force_object = ""``) and the SYNC without a counter (0 bytes); heartbeats are 1 byte.
+    With an EDS whose PDO mapping is fixed (its mapping objects read-only, the mapping in their
+    defaults) the frames are those of that mapping: the RPDO with the control word, the TPDO
+    with the status word ("tpdo1") and any other TPDO with the position or the force ("tpdo2").
     """
     c = dict(connection or {})
+    fixed = _fixed_eds_frames(c)
+    if fixed is not None:
+        return {**fixed, "sync": 0, "heartbeat": 1}
     f = c.get("force_object", "0x2100")
-    return {"rpdo": 6, "tpdo1": 6, "tpdo2": 4 if str(f).strip() else 0, "sync": 0, "heartbeat": 1}
+    return {"rpdo": 6, "tpdo1": 6, "tpdo2": _force_bytes(c) if str(f).strip() else 0, "sync": 0,
+            "heartbeat": 1}  # fmt: skip
+
+
+def _force_bytes(c: dict[str, Any]) -> int:
+    """Bytes of the force object in the EDS (4, an INTEGER32, when it cannot be told)."""
+    eds, f = c.get("eds"), c.get("force_object")
+    if f is None or not isinstance(eds, str) or not os.path.isfile(eds):
+        return 4
+    try:
+        od = canopen.import_od(eds, int(c.get("node_id", 1)))
+        return len(_variable(od, parse_object(f, "force_object"), eds, "force_object")) // 8
+    except Exception:  # refused by the driver with its own message
+        return 4
+
+
+def _fixed_eds_frames(c: dict[str, Any]) -> dict[str, int] | None:
+    """Data bytes of the PDOs of a fixed mapping read from the EDS (:func:`step_frames`), or
+    None (no EDS, a mapping the driver may write, or one that does not carry the profile's
+    objects: the driver's own mapping is counted)."""
+    eds = c.get("eds")
+    profile = PROFILES.get(str(c.get("device_profile", "cia402")))
+    if not isinstance(eds, str) or profile is None or not os.path.isfile(eds):
+        return None
+    try:
+        od = canopen.import_od(eds, int(c.get("node_id", 1)))
+        maps: dict[str, list[list[tuple[int, int, int]]]] = {"R": [], "T": []}
+        for kind, base in (("R", 0x1600), ("T", 0x1A00)):
+            for no in range(512):
+                rec = od.get(base + no)
+                if rec is None:
+                    continue
+                if not isinstance(rec, ODRecord | ODArray) or any(
+                    rec[i].writable for i in rec.subindices
+                ):
+                    return None
+                n = int(rec[0].default or 0)
+                entries = [int(rec[i].default or 0) for i in range(1, n + 1)]
+                maps[kind].append([(e >> 16, (e >> 8) & 0xFF, e & 0xFF) for e in entries])
+    except Exception:  # an EDS the driver will refuse with its own message
+        return None
+    f = c.get("force_object")
+    forces = [(0x2100, 0), TORQUE_ACTUAL] if f is None else []
+    if f is not None and str(f).strip():
+        try:
+            forces = [parse_object(f, "force_object")]
+        except InputError:
+            return None
+
+    def size(objs: list[tuple[int, int, int]]) -> int:
+        return sum(bits for _, _, bits in objs) // 8
+
+    def carrying(kind: str, obj: tuple[int, int]) -> list[tuple[int, int, int]] | None:
+        return next((m for m in maps[kind] if any((i, s) == obj for i, s, _ in m)), None)
+
+    rpdo, tpdo1 = carrying("R", profile.control), carrying("T", profile.status)
+    if rpdo is None or tpdo1 is None:
+        return None
+    others = [carrying("T", profile.actual), *(carrying("T", o) for o in forces)]
+    extra = {id(m): m for m in others if m is not None and m is not tpdo1}
+    return {"rpdo": size(rpdo), "tpdo1": size(tpdo1),
+            "tpdo2": sum(size(m) for m in extra.values())}  # fmt: skip
 
 
 def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat_hz: float = 0.0):

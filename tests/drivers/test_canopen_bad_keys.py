@@ -138,3 +138,18 @@ def test_eds_with_a_read_only_controlword_is_refused(tmp_path):
 def test_an_eds_path_that_is_no_file_is_named_as_such(eds, message):
     with pytest.raises(InputError, match=message):
         CANopenDriver(eds=eds, node_id=5)
+
+
+def test_the_link_budget_counts_a_fixed_mapping_from_the_eds(tmp_path):
+    """The vendor EDS fixes RPDO1 = controlword (16) + target (32) and TPDO1 = statusword (16)
+    + position (32) + torque (16) bits, no TPDO2: 6 and 8 bytes, one TPDO per step. The same
+    EDS with the mapping writable: the driver's own mapping (6 + 6 + the torque's 2 bytes)."""
+    from rths_hil.drivers.canopen import step_frames
+
+    got = step_frames({"eds": str(VENDOR_EDS), "node_id": 5})
+    assert (got["rpdo"], got["tpdo1"], got["tpdo2"]) == (6, 8, 0)
+    text = VENDOR_EDS.read_text().replace("AccessType=ro\nDefaultValue=0x60", "AccessType=rw\n"
+                                          "DefaultValue=0x60")  # fmt: skip
+    (tmp_path / "rw.eds").write_text(text)
+    got = step_frames({"eds": str(tmp_path / "rw.eds"), "node_id": 5, "force_object": "0x6077"})
+    assert (got["rpdo"], got["tpdo1"], got["tpdo2"]) == (6, 6, 2)
