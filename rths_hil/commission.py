@@ -122,6 +122,7 @@ STEPS = (
 )
 #: Steps that move or enable the actuator (the operator confirms each on hardware).
 MOVING = ("enable", "motion", "plant", "estop", "watchdog")
+_NO_LIMITS = "the protocol carries no limits to read back"
 #: Longest latency window (s): at 4096 Hz 600 s of round trips are 20 MB of figures.
 MAX_LATENCY_TIME = 600.0
 #: Length of the identification chirp (s).
@@ -795,6 +796,7 @@ def _channel(
     why_skipped = ""
     x0: float | None = None
     current = "identify"
+    aborted = False
 
     def start(name: str, text: str = "") -> None:
         nonlocal current
@@ -834,27 +836,29 @@ def _channel(
         if rep.step(current) is None:
             rep.steps.append(StepResult(current, "failed", f"error: {exc}"))
         why_skipped = f"{current} ended with an error"
+    except BaseException:  # a second signal: commission() e-stops every channel at once
+        aborted = True
+        raise
     finally:
-        done = {s.name for s in rep.steps}
-        for name in STEPS[:-1]:
-            if name == "limits":
-                rep.steps.append(
-                    StepResult("limits", "skipped", "the protocol carries no limits to read back")
-                )
-            elif name not in done:
-                rep.steps.append(StepResult(name, "skipped", why_skipped or "not reached"))
-        if x0 is not None or ctl.enabled:
-            progress(f"{label}: hand-back")
-            try:
-                _hand_back(ctl, rep, x0 if x0 is not None else ctl.x, plan.cfg["end"]["hold"])
-            except (InputError, LinkDown, OSError) as exc:
-                with contextlib.suppress(Exception):
-                    ctl.drv.estop()
-                why = f"error: {exc}; the controller was e-stopped"
-                rep.steps.append(StepResult("hand-back", "failed", why))
-        else:
-            rep.steps.append(StepResult("hand-back", "skipped", why_skipped or "not armed"))
-        rep.steps.sort(key=lambda s: STEPS.index(s.name))
+        if not aborted:  # (after a second signal: no hand-back, the e-stop)
+            done = {s.name for s in rep.steps}
+            for name in STEPS[:-1]:
+                if name == "limits":
+                    rep.steps.append(StepResult("limits", "skipped", _NO_LIMITS))
+                elif name not in done:
+                    rep.steps.append(StepResult(name, "skipped", why_skipped or "not reached"))
+            if x0 is not None or ctl.enabled:
+                progress(f"{label}: hand-back")
+                try:
+                    _hand_back(ctl, rep, x0 if x0 is not None else ctl.x, plan.cfg["end"]["hold"])
+                except (InputError, LinkDown, OSError) as exc:
+                    with contextlib.suppress(Exception):
+                        ctl.drv.estop()
+                    why = f"error: {exc}; the controller was e-stopped"
+                    rep.steps.append(StepResult("hand-back", "failed", why))
+            else:
+                rep.steps.append(StepResult("hand-back", "skipped", why_skipped or "not armed"))
+            rep.steps.sort(key=lambda s: STEPS.index(s.name))
     return rep
 
 

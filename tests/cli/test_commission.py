@@ -219,6 +219,27 @@ def test_operator_stop_mid_motion_hands_the_controller_back(served, tmp_path, si
     assert "| hand-back | passed |" in (tmp_path / "c" / "report.md").read_text()
 
 
+def test_a_second_signal_gives_up_at_once_and_leaves_nothing_enabled(served, tmp_path):
+    proc, master = _hardware_commission(served, tmp_path / "c")
+    try:
+        for line in proc.stderr:
+            if "actuator: motion" in line:
+                break
+        time.sleep(0.35)
+        proc.send_signal(signal.SIGTERM)
+        time.sleep(0.002)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        os.close(master)
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    # handed back (the first signal) or e-stopped (the second one came first): never enabled
+    assert _modbus_state(served.connection)[0] & 0x01 == 0
+
+
 def test_hardware_commission_leaves_the_controller_disabled_after_its_watchdog_step(
     served, tmp_path
 ):
