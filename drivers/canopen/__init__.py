@@ -1419,7 +1419,10 @@ class CANopenDriver(Driver):
             self._settle_estop(ESTOP_SETTLE)
         if not enable and self._latched:
             self._latched = False  # acknowledged: the word below releases the device
-            key = (self._state, False, False)
+            # 402: disable voltage, the acknowledgement of QUICK STOP ACTIVE (transition 12),
+            # whatever state the last answer reported: on a link whose answers lag, that may be
+            # the state before the quick stop (and from any other state it disables too)
+            key = ("QUICK STOP ACTIVE" if self.profile.number == 402 else self._state, False, False)
         else:
             key = (self._state, enable, self._latched)
         word = self._words.get(key)

@@ -161,7 +161,9 @@ class Drive:
         self.hb_consumer: tuple[int, float] | None = None  # (producer node, time s)
         self.hb_seen: float | None = None
         self.edges: list[dict[str, Any]] = []
-        self.transitions: list[tuple[str, str]] = []
+        #: (from, to, what caused it: "rpdo", "sdo" or "drive")
+        self.transitions: list[tuple[str, str, str]] = []
+        self.via = "drive"
         self.stop = threading.Event()
 
     # -- object dictionary ------------------------------------------------------------------
@@ -193,6 +195,7 @@ class Drive:
         value = od.decode_raw(data)
         with self.lock:
             if index == 0x6040:
+                self.via = "sdo"
                 self.cw_in(value, time.monotonic())
             elif index == 0x607A:
                 self.target = value
@@ -239,7 +242,7 @@ class Drive:
         old = self.state
         if new == old:
             return
-        self.transitions.append((old, new))
+        self.transitions.append((old, new, self.via))
         self.state = new
         self.update_plant(now)
 
@@ -299,6 +302,7 @@ class Drive:
         """Enter FAULT (through FAULT REACTION ACTIVE: the axis holds), record and send EMCY."""
         if self.state in ("FAULT", "FAULT REACTION ACTIVE"):
             return
+        self.via = "drive"
         self.go("FAULT REACTION ACTIVE", now)
         self.go("FAULT", now)
         self.errors.insert(0, code)
@@ -330,6 +334,7 @@ class Drive:
         if (0x607A, 0) in values:
             self.target = values[(0x607A, 0)]
         if (0x6040, 0) in values:
+            self.via = "rpdo"
             self.cw_in(values[(0x6040, 0)], now)
         if self.state == "OPERATION ENABLED":
             self.plant.command(self.target / self.args.counts_per_m, now)

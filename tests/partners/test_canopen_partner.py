@@ -117,7 +117,9 @@ def test_start_from_a_non_zero_position_does_not_jump(cia402_drive, tmp_path):
     cfg = write_config(tmp_path, drive, force_object="0x6077")
     out = tmp_path / "run"
     r = rths_run(cfg, out, "--duration", "0.5")
-    assert r.returncode == 0, r.stderr[-2000:]
+    # the claim is the motion at the enable edge, measured by the drive; a loaded machine may
+    # still trip the run later (exit 3, its record kept), which the paced-run test covers
+    assert r.returncode in (0, 3) and "Traceback" not in r.stderr, r.stderr[-2000:]
     final = drive.stop()
     edges = final["enable_edges"]
     assert edges
@@ -159,7 +161,7 @@ def test_estop_reaches_the_drive_and_refused_mapping_writes_do_not_crash(cia402_
     assert sw & 0x6F == QSA, hex(sw)
     assert n_err == 0
     final = drive.stop()
-    assert ["OPERATION ENABLED", "QUICK STOP ACTIVE"] in final["transitions"]
+    assert ["OPERATION ENABLED", "QUICK STOP ACTIVE", "rpdo"] in final["transitions"]
 
 
 def test_a_drive_without_a_needed_object_is_refused_in_one_line(cia402_drive, tmp_path):
@@ -225,7 +227,8 @@ def test_the_estop_poll_reads_the_drive_state_after_the_estop_on_a_lagging_link(
     """The drive's answers trail its SYNCs by 20 ms (a loaded link) while the bridge steps every
     2 ms, so about ten answers are in flight: the loop's confirmation poll after the e-stop (one
     command, one reply within 0.2 s) must read the drive's QUICK STOP ACTIVE, not an answer the
-    drive sent before it applied the e-stop (OPERATION ENABLED)."""
+    drive sent before it applied the e-stop (OPERATION ENABLED); and one acknowledgement
+    releases the latch though the answers still say OPERATION ENABLED."""
     drive = cia402_drive("serial", answer_delay=0.02)
     with create_driver("canopen", **drive.connection) as drv:
         drv.arm(1.0)
@@ -238,4 +241,20 @@ def test_the_estop_poll_reads_the_drive_state_after_the_estop_on_a_lagging_link(
         drv.send(100, 0.0, True)  # the confirmation poll (rths_hil.hybrid.channel.confirm_estop)
         fb = drv.receive(0.2)
         assert fb is not None and fb.status & 0x02, fb  # ESTOP_ACTIVE
-    assert drive.sdo_read((0x6041, 0))[0] & 0x6F == QSA
+        assert drive.stop()["state"] == "QUICK STOP ACTIVE"
+    drive = cia402_drive("serial", answer_delay=0.02)
+    with create_driver("canopen", **drive.connection) as drv:
+        drv.arm(1.0)
+        for k in range(100):
+            drv.send(k, 0.0, True)
+            drv.receive(0.002)
+        drv.estop()
+        # one acknowledgement (enable=False) while the answers in flight still say OPERATION
+        # ENABLED: it is the standard's acknowledgement of QUICK STOP ACTIVE (disable voltage,
+        # transition 12), not "disable operation" (0x0007), which QUICK STOP ACTIVE ignores
+        time.sleep(0.003)
+        drv.send(100, 0.0, False)
+        drv.receive(0.05)
+        time.sleep(0.5)  # the drive's own process may lag on a loaded machine
+        final = drive.stop()  # before the driver's own hand-back at close
+    assert ["QUICK STOP ACTIVE", "SWITCH ON DISABLED", "rpdo"] in final["transitions"], final
