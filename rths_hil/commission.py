@@ -606,10 +606,10 @@ def _motion(ctl: _Controller, rep: ChannelReport, plan: Any, x0: float) -> None:
         rep.steps.append(StepResult("motion", "passed", "", figs))
 
 
-def _plant(ctl: _Controller, rep: ChannelReport, plan: Any, x0: float) -> None:
+def _plant(ctl: _Controller, rep: ChannelReport, plan: Any, x0: float, chirp_time: float) -> None:
     com = plan.cfg["commission"]
-    path = plant_path(x0, com["amplitude"], com["velocity"], plan.fs)
-    figs: dict[str, Any] = {"chirp_s": CHIRP_TIME}
+    path = plant_path(x0, com["amplitude"], com["velocity"], plan.fs, chirp_time)
+    figs: dict[str, Any] = {"chirp_s": chirp_time}
     for attempt in (1, 2):
         meas = np.full(path.size, np.nan)
         latched: list[int] = []
@@ -784,6 +784,7 @@ def _channel(
     confirm: Callable[[str], bool],
     stop: OperatorStop,
     progress: Callable[[str], None],
+    chirp_time: float = CHIRP_TIME,
 ) -> ChannelReport:
     com = plan.cfg["commission"]
     rep = ChannelReport(ch.name, ch.plan.driver_name, "twin" if ch.twin is not None else "hardware")
@@ -824,7 +825,7 @@ def _channel(
         start("motion")
         _motion(ctl, rep, plan, x0)
         start("plant")
-        _plant(ctl, rep, plan, x0)
+        _plant(ctl, rep, plan, x0, chirp_time)
         start("estop")
         _estop(ctl, rep, x0, amp)
         start("watchdog")
@@ -875,6 +876,7 @@ def commission(
     plan: Any = None,
     stop: OperatorStop | None = None,
     progress: Callable[[str], None] | None = None,
+    chirp_time: float = CHIRP_TIME,
 ) -> list[ChannelReport]:
     """Commission every channel of ``cfg`` (module docstring); write the report into ``out``.
 
@@ -892,6 +894,8 @@ def commission(
         them from its start). After a stop the channels not reached are skipped.
     progress : callable, optional
         Called with ``"<channel>: <step>"`` as each step starts.
+    chirp_time : float
+        Length of the identification chirp (s); shorter is a quicker, coarser fit.
 
     Returns
     -------
@@ -935,7 +939,7 @@ def commission(
                     rep.steps = [StepResult(name, "skipped", why) for name in STEPS]
                     reports.append(rep)
                     continue
-                reports.append(_channel(ch, plan, load, confirm, stop, say))
+                reports.append(_channel(ch, plan, load, confirm, stop, say, chirp_time))
         except BaseException:  # a second signal, a driver's error: e-stop every channel
             for ch in chans:
                 with contextlib.suppress(Exception):
