@@ -370,3 +370,31 @@ def test_identify_plant_recovers_a_continuous_plant_and_ignores_masked_samples()
     valid[2000:2400] = False
     fit = identify_plant(u, spoiled, fs, valid=valid)
     assert abs(fit.delay - 0.012) < 3e-4 and abs(fit.lag - 0.008) < 3e-4, fit
+
+
+def test_two_channel_fragment_is_merged_by_channel_name(tmp_path):
+    """``examples/two_actuators.toml`` (pure delays of 10 and 20 ms, gain 1): one
+    ``[[actuators]]`` entry per channel in ``tuned.toml``; a copy of the example without its
+    own α, including the fragment, gets each channel's identified plant."""
+    src = (ROOT / "examples" / "two_actuators.toml").read_text()
+    own = "\n".join(ln for ln in src.splitlines() if not ln.startswith("compensation = { alpha"))
+    cfg_path = tmp_path / "two.toml"
+    cfg_path.write_text(own)
+    cfg = load_config(cfg_path, [*BASE, "commission.latency_time=0.3"])
+    reports = commission(cfg, tmp_path / "c", chirp_time=2.0)
+    fits = {r.name: r.plant for r in reports}
+    assert set(fits) == {"storey1", "storey3"}
+    for name, delay in (("storey1", 0.010), ("storey3", 0.020)):
+        p = fits[name]
+        assert abs(p.delay + p.lag - delay) < 1e-3 and p.lag < 1e-3, (name, p)
+        assert abs(p.gain - 1.0) < 0.01
+    frag = tomllib.loads((tmp_path / "c" / "tuned.toml").read_text())
+    assert [e["name"] for e in frag["actuators"]] == ["storey1", "storey3"]
+    cfg_path.write_text('include = ["c/tuned.toml"]\n' + own)
+    merged = {e["name"]: e for e in load_config(cfg_path)["actuators"]}
+    for name in ("storey1", "storey3"):
+        comp = merged[name]["compensation"]
+        assert comp["method"] == "model"
+        assert comp["delay"] == pytest.approx(fits[name].delay, abs=1e-6)
+        assert merged[name]["safety"]["displacement_limit"] > 0  # the file's own keys kept
+        assert "watchdog_timeout" in merged[name]["safety"]  # and the fragment's
