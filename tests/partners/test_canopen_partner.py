@@ -42,6 +42,10 @@ name = "canopen"
 connection = {drive.toml_connection(**extra)}
 [twin]
 enabled = false
+[safety]
+# two python processes on a pseudo-terminal pair of a loaded 2-core machine: the drive's answers
+# pause for 100 ms and more now and then (held, counted); a dead link still trips at 0.3 s
+watchdog_timeout = 0.3
 """
     )
     return cfg
