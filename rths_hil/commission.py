@@ -7,7 +7,9 @@ skipped with the reason:
 ``identify``
     Open the driver, arm the controller, read position, force and status (the arming reply);
     the position must be readable, within ``safety.displacement_limit``, and the controller
-    must report no fault. The driver, its profile and the twin or hardware are reported.
+    must report no fault. The driver, its profile and the twin or hardware are reported, and
+    what the driver found out about the link when it opened (``link_note``: a Modbus server
+    that answers one request at a time, to which the driver then sends one at a time).
 ``latency``
     Round trips at the loop rate for ``commission.latency_time`` seconds with the actuator
     **disabled** (commands with ``enable = False`` at the held position): histogram, p50, p99,
@@ -466,6 +468,9 @@ def _identify(ctl: _Controller, rep: ChannelReport, amp: float, lim: float) -> f
         "controller": rep.target,
         "identity": getattr(ctl.drv, "identity", None) or "not readable over this protocol",
     }
+    note = getattr(ctl.drv, "link_note", None)  # e.g. a Modbus server that answers one
+    if isinstance(note, str) and note:  # request at a time: the driver fell back
+        figs["link"] = note
     why = ""
     if fb is None:
         why = "no reply to the arming command"
