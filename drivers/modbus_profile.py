@@ -123,10 +123,10 @@ PROBE_WAIT = 0.1
 #: E-stop over Modbus TCP: how long it may wait for the answer outstanding on the link before
 #: writing the e-stop there (s), and how long it keeps writing and reading back (s).
 ESTOP_DRAIN = 0.05
+ESTOP_WINDOW = 0.5
 #: One request at a time over TCP: how long a request stays outstanding (the next ones wait
 #: for its answer) before the driver gives it up and writes the next (s).
 HEAD_GIVEUP = 0.1
-ESTOP_WINDOW = 0.5
 _FLAG_NAMES = {
     int(Status.ENABLED): "enabled",
     int(Status.ESTOP_ACTIVE): "e-stop",
@@ -631,22 +631,27 @@ class ModbusProfileDriver(Driver):
         for a heartbeat (the controller's watchdog counts on it).
         """
         pending = self._pending
-        if self._rtu or time.perf_counter() - self._head_t > HEAD_GIVEUP:
-            keep: list[tuple[int, int, bytes]] = []
-            if not self._rtu:
-                self._given_up.append(pending[0][0])
-        else:
-            keep = [pending[0]]
-        hb = [r for r in list(pending)[len(keep) :] if r[0] & 15 == SLOT_HEARTBEAT]
-        dropped = [r for r in list(pending)[len(keep) :] if r[0] & 15 != SLOT_HEARTBEAT]
-        self.stats.late += len(dropped) + (1 - len(keep))
+        if self._rtu:  # the line is resynchronised: nothing of the last step is kept
+            self.stats.late += len(pending)
+            if any(r[0] & 15 == SLOT_ACTION and r[2] for r in list(pending)[1:]):
+                self._enabled = None  # an action that never went out: the next step sends it
+            pending.clear()
+            self._buf = b""
+            return
+        head, rest = pending[0], list(pending)[1:]
+        stale = time.perf_counter() - self._head_t > HEAD_GIVEUP
+        hb = [r for r in rest if r[0] & 15 == SLOT_HEARTBEAT]
+        dropped = [r for r in rest if r[0] & 15 != SLOT_HEARTBEAT]
+        self.stats.late += len(dropped) + (1 if stale else 0)
         if any(r[0] & 15 == SLOT_ACTION and r[2] for r in dropped):
             self._enabled = None  # an action that never went out: the next step sends it
         pending.clear()
-        pending.extend(keep + hb)
-        if self._rtu:  # (a TCP stream keeps its framing: a late answer is told by its id)
-            self._buf = b""
-        elif not keep and pending:
+        if stale:
+            self._given_up.append(head[0])
+        else:
+            pending.append(head)
+        pending.extend(hb)
+        if stale and pending:
             self._write(pending[0][2])
             self._head_t = time.perf_counter()
 
@@ -917,40 +922,50 @@ class ModbusProfileDriver(Driver):
         word = self._word = got[2]
         return Feedback(last, got[0], got[1], self._status_of(word))
 
+    def _parse_buffer(self) -> Feedback | None:
+        """The responses in the buffer, filed; the feedback once a step's last one came."""
+        while True:
+            fb = self._whole_reply()
+            if fb is not None:
+                return fb
+            got = self._parse_one()
+            if got is None:
+                return None
+            fb = self._take(*got)
+            if fb is not None:
+                return fb
+
     def _recv_internal(self, deadline: float) -> Feedback | None:
         # (the lock: a reader thread may call this while the loop's thread sends, see
-        # Driver.receive; the step's queue and the buffer are shared)
-        with self._lock:
-            while True:
-                fb = self._whole_reply()
-                if fb is not None:
-                    return fb
-                got = self._parse_one()
-                if got is None:
-                    break
-                fb = self._take(*got)
-                if fb is not None:
-                    return fb
-            fd = self._fd
-        if fd is None:
-            raise LinkDown("modbus connection closed")
-        remaining = deadline - time.perf_counter()
-        try:
-            ready = select.select((fd,), (), (), remaining if remaining > 0.0 else 0.0)[0]
+        # Driver.receive; the step's queue and the buffer are shared). Waits until a feedback
+        # is complete or the deadline: a step's answers come one at a time.
+        while True:
             with self._lock:
-                try:
-                    data = os.read(fd, 4096) if ready and fd == self._fd else b""
-                except BlockingIOError:  # read by the other thread meanwhile
-                    data, ready = b"", []
-                if ready and not data:
-                    raise ConnectionResetError("peer closed the connection")
-                if data:
-                    self._buf += data
-                elif remaining <= 0 and self._rtu and self._buf:
-                    self.stats.count_malformed("bad_length")  # an idle line ends an RTU frame
-                    self._buf = b""
-        except (OSError, ValueError):
-            self.stats.disconnects += 1
-            self._close_main()
-            raise LinkDown("modbus connection lost") from None
-        return None
+                fb = self._parse_buffer()
+                if fb is not None:
+                    return fb
+                fd = self._fd
+            if fd is None:
+                raise LinkDown("modbus connection closed")
+            remaining = deadline - time.perf_counter()
+            try:
+                ready = select.select((fd,), (), (), remaining if remaining > 0.0 else 0.0)[0]
+                with self._lock:
+                    try:
+                        data = os.read(fd, 4096) if ready and fd == self._fd else b""
+                    except BlockingIOError:  # read by the other thread meanwhile
+                        data, ready = b"", []
+                    if ready and not data:
+                        raise ConnectionResetError("peer closed the connection")
+                    if data:
+                        self._buf += data
+                    elif remaining <= 0 and self._rtu and self._buf:
+                        self.stats.count_malformed("bad_length")  # an idle line ends a frame
+                        self._buf = b""
+            except (OSError, ValueError):
+                self.stats.disconnects += 1
+                self._close_main()
+                raise LinkDown("modbus connection lost") from None
+            if remaining <= 0:
+                with self._lock:
+                    return self._parse_buffer()
