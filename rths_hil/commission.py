@@ -37,7 +37,8 @@ skipped with the reason:
     acknowledged by arming and run once more.
 ``estop``
     Enabled at the held position, e-stop through the driver; for 0.2 s commands towards half
-    the amplitude must be ignored (status ``ESTOP_ACTIVE``, position held within 20 µm); an
+    the amplitude must be ignored (status ``ESTOP_ACTIVE`` in every reply after the first
+    :data:`ESTOP_GRACE`, position held within 20 µm); an
     ``enable = False`` command must acknowledge it and an ``enable = True`` command re-enable.
     The controller is then armed again (a new run: whatever the driver kept going after its
     e-stop, e.g. a CANopen bus's heartbeat, stops).
@@ -129,6 +130,9 @@ _NO_LIMITS = "the protocol carries no limits to read back"
 MAX_LATENCY_TIME = 600.0
 #: Length of the identification chirp (s).
 CHIRP_TIME = 4.0
+#: The e-stop step's replies of the first this many seconds may predate the latch (a lagging
+#: link); every later one must show it.
+ESTOP_GRACE = 0.02
 #: A command of the chirp that left this much late (s) starts a stall: the samples after it are
 #: not fitted.
 STALL = 0.005
@@ -685,7 +689,12 @@ def _estop(ctl: _Controller, rep: ChannelReport, x0: float, amp: float) -> None:
     ctl.drv.estop()
     during = ctl.hold(x0 + 0.5 * amp, 0.2, True)
     answered = [f for f in during if f is not None]  # a reply lost on a loaded link is no vote
-    latched = bool(answered) and all(f.status & _ESTOP for f in answered)
+    # the answers of the first ESTOP_GRACE may have left the controller before the e-stop
+    # reached it (a lagging link); from then on every one must show the latch
+    grace = round(ESTOP_GRACE / ctl.dt)
+    settled = [f for f in during[grace:] if f is not None]
+    latched = bool(settled) and all(f.status & _ESTOP for f in settled)
+    first = next((i for i, f in enumerate(during) if f is not None and f.status & _ESTOP), None)
     moved = max((abs(f.displacement - held_at) for f in answered), default=math.inf)
     ack, _ = ctl.exchange(held_at, False)
     re_on = ctl.hold(held_at, 0.1, True)
@@ -697,6 +706,7 @@ def _estop(ctl: _Controller, rep: ChannelReport, x0: float, amp: float) -> None:
     ctl.arm()
     figs = {
         "latched": bool(latched),
+        "latched_after_ms": None if first is None else first * ctl.dt * 1e3,
         "moved_um": moved * 1e6,
         "acknowledged": ack is not None and not ack.status & _ESTOP,
         "re_enabled": re_ok,
