@@ -496,6 +496,24 @@ def test_link_budget_counts_the_profile_rtu_transactions() -> None:
     assert builtin.load == pytest.approx(100.0 * (21 + 19 + 7) * 11 / 115200)
 
 
+def test_link_budget_names_the_profile_tcp_requests() -> None:
+    """Over Modbus TCP the link line names the requests the profile sends each step: the
+    example map's FC 16 of a float32 (MBAP 7 + PDU 10 bytes, echo 7 + 5) and FC 4 of input
+    registers 200–210 (7 + 5, response 7 + 2 + 22), each in a TCP segment of its own on an
+    Ethernet (90 bytes of overhead, rths_hil.linkbudget); the all-holding map one FC 23."""
+    from rths_hil.linkbudget import link_load
+
+    conn = {"transport": "tcp", "host": "10.0.0.5", "profile": str(MODBUS_MAP)}
+    ld = link_load("modbus", conn, 1, 1000.0)
+    assert "1 × FC 16 + FC 4 in TCP/IP/Ethernet" in ld.detail and "FC 23" not in ld.detail
+    bits = 8 * (17 + 12 + 12 + 31 + 4 * 90)
+    assert ld.load == pytest.approx(1000.0 * bits / 100e6)
+    loop = link_load("modbus", {**conn, "host": "127.0.0.1"}, 1, 1000.0)
+    assert loop.load is None and "FC 16 + FC 4 (17 + 12 + 12 + 31 bytes)" in loop.detail
+    builtin = link_load("modbus", {"transport": "tcp", "host": "10.0.0.5"}, 1, 1000.0)
+    assert "FC 23" in builtin.detail
+
+
 @pytest.mark.parametrize("transport", ["tcp", "rtu"])
 def test_all_holding_map_runs_one_fc23_per_step(tmp_path, transport) -> None:
     """The measured values moved to holding registers: one Read/Write Multiple Registers
