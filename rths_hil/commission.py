@@ -696,7 +696,9 @@ def _estop(ctl: _Controller, rep: ChannelReport, x0: float, amp: float) -> None:
     latched = bool(settled) and all(f.status & _ESTOP for f in settled)
     first = next((i for i, f in enumerate(during) if f is not None and f.status & _ESTOP), None)
     moved = max((abs(f.displacement - held_at) for f in answered), default=math.inf)
-    ack, _ = ctl.exchange(held_at, False)
+    # acknowledged by enable = False: the last answer of ESTOP_GRACE of such commands (the
+    # first may be lost or predate it on a lagging link)
+    ack = _last(ctl.hold(held_at, ESTOP_GRACE, False)) or ctl.poll(held_at, False)
     re_on = ctl.hold(held_at, 0.1, True)
     last_re = _last(re_on)
     re_ok = last_re is not None and bool(last_re.status & _ENABLED)
