@@ -5,8 +5,9 @@
 Per channel: identify (position, force, status), round-trip latency at the loop rate with the
 actuator disabled, the enable/disable edge, a small ramp–hold–ramp (``commission.amplitude``,
 ``commission.velocity``) with the tracking delay and gain from the FEI and the Kalman
-estimator, the e-stop (latch, hold, acknowledge, re-enable) and the controller's heartbeat
-watchdog (:mod:`rths_hil.commission`). Writes ``commission/<timestamp>/report.md`` and one PNG
+estimator, a chirp fitted with the delayed first-order model (the channel's delay, lag and
+gain), the e-stop (latch, hold, acknowledge, re-enable), the controller's heartbeat watchdog
+and the hand-back (disabled, not latched, read back) (:mod:`rths_hil.commission`). Writes ``commission/<timestamp>/report.md`` and one PNG
 per channel, and ``tuned.toml``, the identified plants as a configuration fragment for
 ``include``. Exit codes: 0 every step passed or was skipped, 1 a step failed, 2 bad input or
 no confirmation for hardware, 130 operator stop (Ctrl-C, SIGTERM or SIGHUP, as ``run``: the
@@ -30,7 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add ``commission`` to the top-level parser."""
     p = sub.add_parser(
         "commission",
-        help="check each channel's controller: latency, enable, motion, e-stop, watchdog",
+        help="check each channel's controller (latency, enable, motion, e-stop, watchdog) "
+        "and identify its plant for the compensation",
         description=__doc__.splitlines()[0],
     )
     add_config_arguments(p)
