@@ -7,11 +7,12 @@ actuator disabled, the enable/disable edge, a small ramp–hold–ramp (``commis
 ``commission.velocity``) with the tracking delay and gain from the FEI and the Kalman
 estimator, a chirp fitted with the delayed first-order model (the channel's delay, lag and
 gain), the e-stop (latch, hold, acknowledge, re-enable), the controller's heartbeat watchdog
-and the hand-back (disabled, not latched, read back) (:mod:`rths_hil.commission`). Writes ``commission/<timestamp>/report.md`` and one PNG
-per channel, and ``tuned.toml``, the identified plants as a configuration fragment for
-``include``. Exit codes: 0 every step passed or was skipped, 1 a step failed, 2 bad input or
-no confirmation for hardware, 130 operator stop (Ctrl-C, SIGTERM or SIGHUP, as ``run``: the
-step under way ends, each controller is held, disabled and handed back, the report is written).
+and the hand-back (disabled, not latched, read back) (:mod:`rths_hil.commission`). Writes
+``commission/<timestamp>/report.md`` and one PNG per channel, and ``tuned.toml``, the
+identified plants as a configuration fragment for ``include``. Exit codes: 0 every step
+passed or was skipped, 1 a step failed, 2 bad input or no confirmation for hardware, 130
+operator stop (Ctrl-C, SIGTERM or SIGHUP, as ``run``: the step under way ends, each
+controller is held, disabled and handed back, the report is written).
 
 Against hardware (a channel with ``twin.enabled = false``) it needs ``--confirm-hardware`` (or
 ``loop.confirm_hardware = true``) and asks the operator before it enables or moves an actuator
