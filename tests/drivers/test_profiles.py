@@ -468,6 +468,20 @@ def test_twin_serve_profile_subprocess() -> None:
         assert proc.wait(timeout=10) == 0
 
 
+def test_twin_serve_refuses_a_profile_value_that_does_not_fit(tmp_path) -> None:
+    """A served twin refuses, when it starts, the profile the run refuses (a status mask
+    beyond its uint16 word): one line naming the key, exit 2, nothing served."""
+    p = _variant(tmp_path, MODBUS_MAP, "enabled = 0x0100", "enabled = 0x10000")
+    proc = subprocess.run(
+        [sys.executable, "-m", "rths_hil", "twin", "serve", "--driver", "modbus",
+         "--profile", str(p)],
+        capture_output=True, text=True, cwd=ROOT, timeout=60,
+    )  # fmt: skip
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode == 2 and len(lines) == 1 and "status.enabled" in lines[0], lines
+    assert "listening" not in proc.stdout
+
+
 def test_link_budget_counts_the_profile_dbc_extended_frames() -> None:
     """Two axes of the example DBC (8-byte command and status frames with 29-bit identifiers)
     at 1024 Hz on 1 Mbit/s: (54 + 64 + 13 + ⌊(54 + 64 − 1)/4⌋) = 160 bits per frame at worst
