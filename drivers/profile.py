@@ -719,7 +719,55 @@ def _load_can(r: _Reader, base: Path) -> CANProfile:
     hb = None
     if r.table("heartbeat") is not None:
         hb = _can_signal(r, "heartbeat", db, dbc_rel)
-    return CANProfile(src, str(dbc), db, roles, actions, _masks(r), hb)
+    masks = _masks(r)
+    _check_can_fields(src, db, roles, actions, masks, hb)
+    return CANProfile(src, str(dbc), db, roles, actions, masks, hb)
+
+
+def _raw_range(sig: Any) -> tuple[int, int]:
+    """The raw integers a DBC signal carries (its bit length and sign)."""
+    n = int(sig.length)
+    return (-(2 ** (n - 1)), 2 ** (n - 1) - 1) if sig.is_signed else (0, 2**n - 1)
+
+
+def _check_can_fields(
+    src: str,
+    db: Any,
+    roles: dict[str, CANSignal],
+    actions: dict[str, CANSignal],
+    masks: dict[int, int],
+    hb: CANSignal | None,
+) -> None:
+    """Values that must fit their DBC signals: the status masks in the status signal, each
+    action's value in its signal, a heartbeat counter of more than one bit."""
+
+    def signal(s: CANSignal) -> Any:
+        return db.get_message_by_name(s.message).get_signal_by_name(s.signal)
+
+    st = roles["status"]
+    lo, hi = _raw_range(signal(st))
+    names = {flag: name for name, flag in STATUS_BITS.items()}
+    for flag, mask in masks.items():
+        if mask > max(hi, 0):
+            raise InputError(
+                f"profile {src}: status.{names[flag]}: 0x{mask:X} is not a bit of the DBC "
+                f"signal {st.message}.{st.signal} ({signal(st).length} bits)"
+            )
+    for name, a in actions.items():
+        sig = signal(a)
+        lo, hi = _raw_range(sig)
+        raw = ((a.value or 0.0) - sig.offset) / sig.scale
+        if not lo <= raw <= hi:
+            raise InputError(
+                f"profile {src}: actions.{name}.value: {a.value:g} does not fit the DBC signal "
+                f"{a.message}.{a.signal} ({sig.length} bits, "
+                f"{lo * sig.scale + sig.offset:g}…{hi * sig.scale + sig.offset:g})"
+            )
+    if hb is not None and int(signal(hb).length) < 2:
+        raise InputError(
+            f"profile {src}: heartbeat: the DBC signal {hb.message}.{hb.signal} has 1 bit; a "
+            "counter the controller sees change needs more"
+        )
 
 
 @cache

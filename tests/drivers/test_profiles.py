@@ -104,6 +104,21 @@ def _variant(tmp_path: Path, src: Path, old: str, new: str, name: str = "p.toml"
             'address = 200\ntype = "float32"\nunits = "kN"',
             ["roles.position.units", "'kN' is a force unit"],
         ),
+        (CAN_DBC, "enabled = 0x01", "enabled = 0x100", ["status.enabled", "StatusWord (8 bits)"]),
+        (
+            CAN_DBC,
+            'signal = "EnableCmd"\nvalue = 1',
+            'signal = "EnableCmd"\nvalue = 2',
+            ["actions.enable.value", "EnableCmd (1 bits"],
+        ),
+        (CAN_DBC, "value = 0xA5", "value = 300", ["actions.estop.value", "EStopCode"]),
+        (CAN_DBC, "value = 0xA5", "value = -1", ["actions.estop.value", "EStopCode"]),
+        (
+            CAN_DBC,
+            'message = "BridgeAlive"\nsignal = "AliveCounter"',
+            'message = "AxisCommand"\nsignal = "AckCmd"',
+            ["heartbeat", "AckCmd has 1 bit"],
+        ),
     ],
 )
 def test_bad_profiles_are_refused_with_one_line(tmp_path, src, old, new, needles) -> None:
