@@ -125,8 +125,11 @@ PROBE_WAIT = 0.1
 ESTOP_DRAIN = 0.05
 ESTOP_WINDOW = 0.5
 #: One request at a time over TCP: how long a request stays outstanding (the next ones wait
-#: for its answer) before the driver gives it up and writes the next (s).
-HEAD_GIVEUP = 0.1
+#: for its answer) before the driver gives it up and writes the next (s). Longer than a
+#: controller's own pauses (20–40 ms), and well inside the loop's reply watchdog
+#: (``safety.watchdog_timeout``, 0.1 s by default), so that one request the controller lost
+#: costs a reply gap, not a trip.
+HEAD_GIVEUP = 0.05
 _FLAG_NAMES = {
     int(Status.ENABLED): "enabled",
     int(Status.ESTOP_ACTIVE): "e-stop",
