@@ -185,6 +185,7 @@ class Runner:
                 rec.event(
                     "arm", 0.0, 0, channel=ch.name, replied=armed is not None,
                     status=None if armed is None else int(armed.status),
+                    link=getattr(ch.driver, "link_note", None),
                 )  # fmt: skip
             # from where each actuator is to step 0 (a ramp, or an offset), see .phases
             try:

@@ -278,6 +278,8 @@ def test_paced_512_hz_default_profile_completes_and_hands_back_disabled(modbus_s
     rc, text = finish(proc)
     assert rc == 0, text
     assert "answers one request at a time" in text
+    (arm,) = events(out, "arm")  # the fallback is in the record, not only on the terminal
+    assert "one request at a time" in arm["link"]
     assert partner.status() == READY
     s = open_run(out).summary()
     assert s["status"] == "completed" and s["steps"] == 1024
