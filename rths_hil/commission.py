@@ -62,9 +62,9 @@ signal e-stops every channel at once.
 
 **Tuned fragment.** When every channel's ``plant`` step passed, ``tuned.toml`` beside the
 report (:func:`tuned_fragment`) sets each channel's compensation to the ``model`` method with
-the identified τ, T, g and ``safety.watchdog_timeout`` to :data:`GAP_MARGIN` × the longest
-reply gap of the latency step (at least the key's default and three periods), kept at most
-half the controller's own watchdog when it is known; a test configuration takes it with
+the identified τ, T, g and ``safety.watchdog_timeout`` to :data:`WATCHDOG_SHARE` of the
+controller's own watchdog when it is known, else :data:`GAP_MARGIN` × the longest reply gap of
+the latency step (at least the key's default); a test configuration takes it with
 ``include = ["…/tuned.toml"]`` (``docs/config.md``).
 
 The report (``report.md``, one PNG per channel with the latency histogram, the motion and the
@@ -97,6 +97,7 @@ __all__ = [
     "CHIRP_TIME",
     "GAP_MARGIN",
     "MAX_LATENCY_TIME",
+    "WATCHDOG_SHARE",
     "ChannelReport",
     "PlantFit",
     "StepResult",
@@ -138,8 +139,10 @@ ESTOP_GRACE = 0.02
 STALL = 0.005
 #: … for this long (s): several time constants of a servo-hydraulic actuator.
 STALL_MASK = 0.1
-#: ``safety.watchdog_timeout`` of the tuned fragment = this × the longest reply gap measured
-#: (at least the key's default).
+#: ``safety.watchdog_timeout`` of the tuned fragment: this share of the controller's own
+#: watchdog when it is known …
+WATCHDOG_SHARE = 0.75
+#: … else this × the longest reply gap measured (at least the key's default).
 GAP_MARGIN = 2.0
 
 
@@ -986,22 +989,36 @@ def _link_times(plan: Any) -> list[float | None]:
 
 
 def _watchdog_timeout(rep: ChannelReport, fs: float) -> tuple[float, str]:
-    """The fragment's ``safety.watchdog_timeout`` for a channel and how it was chosen."""
+    """The fragment's ``safety.watchdog_timeout`` for a channel and how it was chosen.
+
+    The controller's own watchdog known: :data:`WATCHDOG_SHARE` of it — the bridge bears the
+    controller's and the link's pauses (a driver's give-up on a dropped request included) up
+    to shortly before the controller would latch by itself. Unknown: :data:`GAP_MARGIN` × the
+    longest reply gap, never tighter than the key's default (a latency window of a few
+    seconds does not see every pause of a controller's network stack nor every stall of this
+    computer). At least three periods.
+    """
     from .config import SCHEMA
 
-    # never tighter than the default: a short latency window does not see every pause of a
-    # controller's network stack, nor every stall of this computer
-    floor = float(SCHEMA["safety"]["watchdog_timeout"].default)
     gap = rep.reply_gap if math.isfinite(rep.reply_gap) else 0.0
-    value = max(GAP_MARGIN * gap, floor, 3.0 / fs)
-    how = (
-        f"{GAP_MARGIN:g} × the longest reply gap ({gap * 1e3:.2f} ms), at least the "
-        f"default {floor * 1e3:g} ms and 3 periods"
-    )
+    lower = max(GAP_MARGIN * gap, 3.0 / fs)
     wd = rep.controller_watchdog
-    if wd and value > 0.5 * wd:
-        value = 0.5 * wd
-        how += f"; capped at half the controller's watchdog ({wd:g} s)"
+    if wd:
+        value = WATCHDOG_SHARE * wd
+        how = f"{WATCHDOG_SHARE:g} × the controller's watchdog ({wd:g} s)"
+        if lower > value:
+            how += (
+                f"; the longest reply gap ({gap * 1e3:.2f} ms) × {GAP_MARGIN:g} is longer: "
+                "the link's pauses come close to the controller's watchdog"
+            )
+            log.warning("%s: %s", rep.name or "actuator", how)
+        return round(value, 4), how
+    floor = float(SCHEMA["safety"]["watchdog_timeout"].default)
+    value = max(lower, floor)
+    how = (
+        f"{GAP_MARGIN:g} × the longest reply gap ({gap * 1e3:.2f} ms), at least the default "
+        f"{floor * 1e3:g} ms and 3 periods (the controller's watchdog unknown)"
+    )
     return round(value, 4), how
 
 

@@ -324,7 +324,7 @@ def test_identified_plant_fragment_tracks_when_included(tmp_path):
     tuned = tmp_path / "c" / "tuned.toml"
     frag = tomllib.loads(tuned.read_text())
     assert frag["compensation"]["method"] == "model"
-    assert 0.1 <= frag["safety"]["watchdog_timeout"] <= 0.25  # default … half the twin's 0.5 s
+    assert frag["safety"]["watchdog_timeout"] == 0.375  # 0.75 × the twin's 0.5 s watchdog
     cfg = tmp_path / "test.toml"
     cfg.write_text(
         f'include = ["c/tuned.toml"]\n[twin]\nactuator = {toml_table(PLANT)}\n', encoding="utf-8"
