@@ -400,3 +400,42 @@ def test_two_channel_fragment_is_merged_by_channel_name(tmp_path):
         assert comp["delay"] == pytest.approx(fits[name].delay, abs=1e-6)
         assert merged[name]["safety"]["displacement_limit"] > 0  # the file's own keys kept
         assert "watchdog_timeout" in merged[name]["safety"]  # and the fragment's
+
+
+def test_modbus_partner_fragment_tracks_the_first_test(modbus_servo, tmp_path):  # noqa: F811
+    """Issue 33 item 10 against the conformance partner (its own plant: 12 ms delay, 8 ms lag,
+    gain 0.98 in real time): commissioning identifies it, and the first test including the
+    fragment — the embedded NEES 711 test, paced at 512 Hz — tracks within |A − 1| ≤ 1 %,
+    |d| ≤ 1 ms, the partner never latched by its watchdog."""
+    partner = modbus_servo(pause_rate=0)
+    conn = f'driver.connection={{host="127.0.0.1", port={partner.port}}}'
+    rig = [
+        "loop.fs=512", "twin.enabled=false", "driver.name=modbus", f'driver.profile="{PROFILE}"',
+        "loop.confirm_hardware=true", conn,
+    ]  # fmt: skip
+    commissioning = [
+        "loop.feedback_timeout=0.01", "commission.latency_time=0.5",
+        "commission.watchdog_timeout=0.2", "commission.watchdog_test=false",
+    ]  # fmt: skip
+    cfg = load_config(None, [*rig, *commissioning])
+    (rep,) = commission(cfg, tmp_path / "c")
+    plant = rep.step("plant")
+    if plant.status == "failed" and "latched during the chirp" in plant.reason:
+        pytest.skip(f"this computer stalled past the partner's watchdog: {plant.reason}")
+    assert plant.status == "passed", plant
+    p = rep.plant
+    # its own plant, the link's latency in the delay (a few ms at most)
+    assert 0.0115 < p.delay < 0.016 and abs(p.lag - 0.008) < 1.5e-3, p
+    assert abs(p.gain - 0.98) < 0.01
+    test = tmp_path / "test.toml"
+    test.write_text('include = ["c/tuned.toml"]\n')
+    run = subprocess.run(
+        [sys.executable, "-m", "rths_hil", "run", str(test), "--paced", "--duration", "8",
+         "--no-plot", "-q", "--confirm-hardware", "--out", str(tmp_path / "run"),
+         *[f"--set={s}" for s in rig]],
+        capture_output=True, text=True, timeout=180, cwd=ROOT,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    fei = json.loads((tmp_path / "run" / "summary.json").read_text())["fei_target"]
+    assert abs(fei["amplitude"] - 1.0) <= 0.01 and abs(fei["delay"]) <= 1e-3, fei
+    assert [x for x in partner.stop()["latches"] if x["cause"] == "watchdog"] == []
