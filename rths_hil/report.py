@@ -65,12 +65,16 @@ def format_live(s: dict[str, Any]) -> str:
     alpha = f" | α {s['alpha']:.2f}" if s.get("compensation", True) else " | compensation off"
     # missed replies (held measurements, not a fault) once there are any
     missed = f" | missed {s['missed']}" if s.get("missed") else ""
+    # the stability indicator beside the FEI, once it has a valid window
+    stab = _number(s.get("stability"))
+    stab_text = f" S {stab:.2f}" if stab is not None else ""
     return (
         f"t {s['t']:7.2f} s{prog} | {s['rate']:7.0f} steps/s | {lat}"
         f" | overruns {s['overruns']}{missed}"
         f" | {('[' + s['channel'] + '] ') if s.get('channel') else ''}"
         f"A {_fmt(s['amplitude'], spec='.4f')}"
-        f" d {_fmt(s['delay'], 1e3, '.2f', True)} ms | peak {s['peak_displacement'] * 1e3:.2f} mm"
+        f" d {_fmt(s['delay'], 1e3, '.2f', True)} ms{stab_text}"
+        f" | peak {s['peak_displacement'] * 1e3:.2f} mm"
         f" | margin: {margin}{alpha}"
     )
 
@@ -221,13 +225,22 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
         out["too_short"] = short
     if n >= 16:
         chans = channel_suffixes(run)
+        warnings = _events(run, "stability")
+        energy = end.get("stability") or {}
         with _Rows(run.path / RECORD_FILE) as src:
             if len(chans) == 1:
                 out.update(_record_figures(src, fs, lean_rows, chans[0][1]))
+                stab = _stability_figures(src, chans[0][1], chans[0][0], energy, warnings)
+                if stab:
+                    out["stability"] = stab
             else:  # several channels: the same figures per channel
                 out["channels"] = {
                     name: _record_figures(src, fs, lean_rows, sfx) for name, sfx in chans
                 }
+                for name, sfx in chans:
+                    stab = _stability_figures(src, sfx, name, energy, warnings)
+                    if stab:
+                        out["channels"][name]["stability"] = stab
     if out["mode"] == "paced" and n:
         lat = np.array(rec["lateness"], dtype=float)
         p50, p99, p999 = np.percentile(lat, [50, 99, 99.9])
@@ -391,6 +404,45 @@ def _record_figures(rec: _Rows, fs: float, lean_rows: int, sfx: str = "") -> dic
         }
     out["peak"] = pk
     return out
+
+
+def _stability_figures(
+    rec: _Rows, sfx: str, name: str, energy: dict, warnings: list[dict]
+) -> dict[str, Any] | None:
+    """The stability indicator of a channel over the run, or None (no ``stability`` column).
+
+    ``peak`` and ``mean`` of the valid windowed S, ``valid`` (their share of the rows),
+    ``whole_run`` (all the injected over all the dissipated energy, from the ``end`` event),
+    ``injected`` and ``dissipated`` (J), ``warn`` and ``limit`` (the levels), ``warnings``
+    (``stability`` events) and ``first_warning`` (its time, s).
+    """
+    col = "stability" + sfx
+    if col not in (rec.dtype.names or ()):
+        return None
+    cnt = 0
+    total = 0.0
+    peak = -math.inf
+    for c in _chunks(rec, (col,)):
+        s = c[col]
+        ok = np.isfinite(s)
+        if ok.any():
+            cnt += int(ok.sum())
+            total += float(s[ok].sum())
+            peak = max(peak, float(s[ok].max()))
+    mine = [e for e in warnings if (e.get("channel") or "") == (name or "")]
+    e = energy.get(name or "") or {}
+    return {
+        "peak": peak if cnt else None,
+        "mean": total / cnt if cnt else None,
+        "valid": cnt / len(rec) if len(rec) else 0.0,
+        "whole_run": _number(e.get("ratio")),
+        "injected": _number(e.get("injected")),
+        "dissipated": _number(e.get("dissipated")),
+        "warn": _number(e.get("warn")),
+        "limit": _number(e.get("limit")),
+        "warnings": len(mine),
+        "first_warning": _number(mine[0].get("time")) if mine else None,
+    }
 
 
 _CHUNK = 1 << 18  # rows per chunk of a chunked pass (≈ 2 MB per float column)
@@ -678,6 +730,28 @@ def _format_channel(s: dict[str, Any], short: bool = False) -> list[str]:
             f"{o['delay']['mean'] * 1e3:+.2f} ms [{o['delay']['min'] * 1e3:+.2f}, "
             f"{o['delay']['max'] * 1e3:+.2f}]"
         )
+    st = s.get("stability")
+    if st:
+        if st.get("peak") is None:
+            text = "no valid window (the structure hardly moved)"
+        else:
+            text = (
+                f"peak {st['peak']:.3g}, mean {_fmt(st.get('mean'), spec='.3g')}, "
+                f"whole run {_fmt(st.get('whole_run'), spec='.3g')}"
+            )
+        levels = (
+            f" (warn {st['warn']:g}, limit {st['limit']:g})"
+            if st.get("warn") is not None and st.get("limit") is not None
+            else ""
+        )
+        first = st.get("first_warning")
+        warned = (
+            f"; {st['warnings']} warning{'s' if st['warnings'] != 1 else ''}, the first at "
+            f"t = {first:.2f} s"
+            if st.get("warnings") and first is not None
+            else ""
+        )
+        lines.append(f"  stability S: {text}{levels}{warned}")
     if s.get("peak"):
         p = s["peak"]
         lines.append(
@@ -739,10 +813,12 @@ def plot_report(  # noqa: C901
         for _, sfx in chans
     }
     with _Rows(run.path / RECORD_FILE) as src:
+        has_stab = {sfx: "stability" + sfx in (src.dtype.names or ()) for _, sfx in chans}
         cols = (
             "lateness",
             "ground_accel",
             *(c + sfx for _, sfx in chans for c in per_channel),
+            *("stability" + sfx for _, sfx in chans if has_stab[sfx]),
             *derived,
         )
         env = _envelopes(src, cols, max_points, derived)
@@ -827,8 +903,16 @@ def plot_report(  # noqa: C901
             ax.legend(loc="upper right", fontsize=8)
         axes[k].set_title(
             f"{head}online FEI, measured vs {pair} (cf. the FEI paper's Fig. 5.2); "
-            "grey: invalid windows"
+            "grey: invalid windows" + ("; green: stability indicator S" if has_stab[sfx] else "")
         )
+        if has_stab[sfx]:  # beside the FEI: S on the right axis of the A panel
+            ax2 = axes[k].twinx()
+            ax2.plot(t, env["stability" + sfx], lw=0.9, color="C2", label="stability S")
+            stb = (summary.get("channels", {}).get(name) if multi else summary) or {}
+            lev = (stb.get("stability") or {}).get("warn")
+            if lev is not None:
+                ax2.axhline(lev, color="C2", lw=0.6, ls=":")
+            ax2.set_ylabel("S", color="C2")
     ax = axes[n_time - 1]
     sfx = chans[0][1]
     if paced:

@@ -22,6 +22,10 @@ Rules (names as they appear in events and on the console):
     windows neither trip nor reset the count.
 ``kalman``
     Kalman gain outside ``[gain_min, gain_max]`` or ``|delay| > delay_max``.
+``stability``
+    :class:`StabilityRule`: the energy stability indicator ``S`` of a channel
+    (:mod:`rths_hil.stability`) above ``limit`` (``safety.stability = "trip"``). Its warning
+    level is not a trip: each upward crossing is a ``stability`` event.
 ``watchdog``
     Controller silence: more than ``timeout`` seconds without a good reply while the bridge was
     running (paced runs, and the wall-clock bound of a lockstep run; stalls of the bridge itself
@@ -78,6 +82,7 @@ __all__ = [
     "OverrunRule",
     "SafetyMonitor",
     "SequenceRule",
+    "StabilityRule",
     "StallRule",
     "StuckRule",
     "Trip",
@@ -276,6 +281,67 @@ class FEIRule:
             trip = check(ai, di, vi)
             if trip is not None:
                 return trip
+        return None
+
+
+class StabilityRule:
+    """The energy stability indicator's rule: a warning at ``warn``, a trip above ``limit``.
+
+    Fed the channel's windowed ratio ``S`` every step (NaN: not valid, ignored). An upward
+    crossing of ``warn`` sets :attr:`warning` (the ratio; the caller records it as an event
+    and clears it); the rule is re-armed when ``S`` falls below ``0.9·warn``. With ``trip``
+    a valid ``S`` above ``limit`` returns a :class:`Trip` whose reason names the channel and
+    the figure.
+
+    Parameters
+    ----------
+    warn, limit : float
+        Warning and trip levels of ``S`` (> 0, ``limit ≥ warn``).
+    trip : bool
+        Trip above ``limit`` (``safety.stability = "trip"``); else only warn.
+    channel : str
+        The channel's name, for the reason (``""``: the actuator).
+    """
+
+    __slots__ = ("armed", "channel", "limit", "rule", "trip", "tripped", "warn", "warning")
+
+    def __init__(self, warn: float, limit: float, trip: bool, channel: str = "") -> None:
+        self.rule = "stability"
+        self.warn = _tolerance(warn, "stability warning level")
+        self.limit = _tolerance(limit, "stability limit")
+        if self.limit < self.warn:
+            raise InputError(
+                f"safety.stability_limit ({self.limit:g}) is below safety.stability_warn "
+                f"({self.warn:g})"
+            )
+        self.trip = bool(trip)
+        self.channel = channel
+        self.armed = True
+        self.warning: float | None = None
+        self.tripped: Trip | None = None
+
+    def check(self, ratio: float, injected: float = math.nan) -> Trip | None:
+        """Feed one step's ``S`` (and the energy injected so far, J, for the reason)."""
+        if self.tripped is not None:
+            return self.tripped
+        if ratio != ratio:  # not valid
+            return None
+        if self.armed:
+            if ratio > self.warn:
+                self.armed = False
+                self.warning = ratio
+        elif ratio < 0.9 * self.warn:
+            self.armed = True
+        if self.trip and ratio > self.limit:
+            who = f"channel {self.channel}" if self.channel else "the actuator"
+            self.tripped = Trip(
+                self.rule,
+                f"stability indicator S = {ratio:.3g} on {who} above the limit "
+                f"{self.limit:g}: the interface injects {ratio:.3g} times the energy the "
+                "structure's damping dissipates",
+                values={"ratio": float(ratio), "limit": self.limit, "injected": float(injected)},
+            )
+            return self.tripped
         return None
 
 
@@ -633,6 +699,8 @@ class SafetyMonitor:
     sequence : SequenceRule or None
     overrun : OverrunRule or None
     stuck : StuckRule or None
+    controller : ControllerRule or None
+    stability : StabilityRule or None
 
     Notes
     -----
@@ -657,6 +725,7 @@ class SafetyMonitor:
         overrun: OverrunRule | None = None,
         stuck: StuckRule | None = None,
         controller: ControllerRule | None = None,
+        stability: StabilityRule | None = None,
     ) -> None:
         self.dt = positive_number(dt, "time step")
         inf = math.inf
@@ -679,6 +748,7 @@ class SafetyMonitor:
         self.overrun = overrun
         self.stuck = stuck
         self.controller = controller
+        self.stability = stability
         self.tripped: Trip | None = None
         self._prev_meas = math.nan
         self._prev_k = -1
@@ -701,6 +771,8 @@ class SafetyMonitor:
         ):
             if r is not None:
                 names.append(r.rule)
+        if self.stability is not None and self.stability.trip:  # a warning is no rule
+            names.append(self.stability.rule)
         return names
 
     def set_offset(self, offset: float) -> None:
@@ -834,6 +906,19 @@ class SafetyMonitor:
         rule = self.fei
         if rule is not None:
             trip = rule.check(amplitude, delay, valid)
+            if trip is not None:
+                return self._fire(trip, t, k)
+        return None
+
+    def check_stability(
+        self, t: float, k: int, ratio: float, injected: float = math.nan
+    ) -> Trip | None:
+        """The channel's energy stability indicator ``S`` of this step (NaN: not valid)."""
+        if self.tripped is not None:
+            return self.tripped
+        rule = self.stability
+        if rule is not None:
+            trip = rule.check(ratio, injected)
             if trip is not None:
                 return self._fire(trip, t, k)
         return None

@@ -764,7 +764,63 @@ SCHEMA: dict[str, dict[str, Key]] = {
             lo_open=True,
         ),
         "warmup": Key(
-            "float", 0.0, unit="s", doc="FEI and Kalman rules start after this loop time", lo=0
+            "float",
+            0.0,
+            unit="s",
+            doc="FEI, Kalman and stability rules start after this loop time",
+            lo=0,
+        ),
+        "stability": Key(
+            "choice",
+            "warn",
+            unit="-",
+            doc="energy stability indicator S (docs/stability.md): off, warn (a stability "
+            "event when S crosses stability_warn) or trip (also the e-stop above "
+            "stability_limit)",
+            choices=("off", "warn", "trip"),
+        ),
+        "stability_warn": Key(
+            "float",
+            1.0,
+            unit="-",
+            doc="S (energy the tracking error injects over what the structure's damping "
+            "dissipates) above which a stability event is recorded; 1 is the linear stability "
+            "boundary",
+            lo=0,
+            lo_open=True,
+        ),
+        "stability_limit": Key(
+            "float",
+            1.5,
+            unit="-",
+            doc="S above which stability = 'trip' stops the test (at least stability_warn)",
+            lo=0,
+            lo_open=True,
+        ),
+        "stability_window": Key(
+            "window",
+            "3T",
+            unit="s",
+            doc="time constant of the indicator's exponential window, in s or natural periods "
+            "('3T' = 3/fn)",
+            lo=0,
+            lo_open=True,
+        ),
+        "stability_min_velocity": Key(
+            "float",
+            2e-4,
+            unit="m/s",
+            doc="RMS structure velocity over the window below which S is not valid (at rest)",
+            lo=0,
+        ),
+        "stability_damping": Key(
+            "float",
+            0.0,
+            unit="N·s/m",
+            doc="viscous damping of the structure along the actuator c_a (0 = from the "
+            "structure: SDOF c, several DOFs the coupled fundamental mode's; needed for "
+            "structure.kind = openfresco)",
+            lo=0,
         ),
     },
     # structure.kind = "openfresco": OpenSees (genericClient) or OpenFresco (GenericTCP) sends

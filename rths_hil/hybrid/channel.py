@@ -23,6 +23,7 @@ from rths_hil.drivers.base import Driver, Status
 from ..compensation import Compensator
 from ..errors import InputError
 from ..fei import OnlineFEI
+from ..stability import StabilityIndicator
 from .evaluators import ExactFEI, StreamingFEI
 from .plan import ChannelPlan
 
@@ -88,6 +89,11 @@ class Channel:
         it to the one that ended it) and its missed replies.
     fei_held : float
         Share of held samples (missed replies) in the streaming FEI window ending at this step.
+    stability : float
+        The energy stability indicator S of the window ending at this step (NaN: not valid;
+        :mod:`rths_hil.stability`).
+    stability_ind : StabilityIndicator or None
+        Its online evaluator (None: ``safety.stability = "off"``).
     estop_confirmed : bool or None
         After :meth:`confirm_estop`: whether the controller reported the e-stop latched.
     """
@@ -152,6 +158,8 @@ class Channel:
         "restoring_force",
         "row",
         "send",
+        "stability",
+        "stability_ind",
         "stream_fei",
         "suffix",
         "target",
@@ -212,6 +220,14 @@ class Channel:
         self.longest_gap = 0.0
         self.longest_gap_steps = 0
         self.fei_held = 0.0
+        self.stability = nan
+        self.stability_ind = (
+            StabilityIndicator(
+                fs, plan.stability_window, plan.stability_damping, plan.stability_min_velocity
+            )
+            if plan.stability_damping > 0 and plan.monitor.stability is not None
+            else None
+        )
         self.peak_displacement = self.peak_velocity = self.peak_force = 0.0
         self.last_command = 0.0
         self.estop_confirmed: bool | None = None
@@ -323,7 +339,7 @@ class Channel:
     # per step
 
     def evaluate(self, k: int) -> None:
-        """Streaming FEI (every sample), exact FEI (every hop), Kalman; adaptive α.
+        """Streaming FEI (every sample), exact FEI (every hop), Kalman, stability; adaptive α.
 
         A held measurement (no reply this step, :attr:`feedback_ok` false) is counted in the
         streaming window's share of held samples (:attr:`fei_held`) and is no measurement
@@ -372,6 +388,9 @@ class Channel:
                     kal.correct()
                     self.kf_gain, self.kf_delay = kal.gain, kal.delay
             self.kalman_new = new and k >= self.warmup_steps
+        ind = self.stability_ind
+        if ind is not None:  # the interface's energy balance of this step (O(1))
+            self.stability = ind.push(self.target, meas, self.force, self.velocity)
 
     def keepalive(self) -> None:
         """Heartbeat while no command is due (the controller's watchdog); serve an inline twin.

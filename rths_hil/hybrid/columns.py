@@ -159,6 +159,13 @@ TABLE: tuple[Column, ...] = (
         "step at which the window of the held exact FEI value ended (-1: none yet)",
     ),
     Column(
+        "stability",
+        "<f8",
+        "-",
+        "energy stability indicator S: energy the tracking error injected over the energy the "
+        "structure's damping dissipated, in the window ending here (NaN: not valid)",
+    ),
+    Column(
         "skew",
         "<f8",
         "s",
@@ -219,7 +226,7 @@ def single_channel_columns() -> tuple[Spec, ...]:
     """The columns every single-channel record begins with, up to ``seq``.
 
     What :class:`rths_hil.recorder.Recorder` writes by default (:data:`rths_hil.recorder.COLUMNS`);
-    a run adds ``feedback_time`` and ``fei_exact_step`` after them.
+    a run adds ``feedback_time``, ``fei_exact_step`` and ``stability`` after them.
     """
     cols = specs([""], 1)
     end = [c[0] for c in cols].index("seq") + 1

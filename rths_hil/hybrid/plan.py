@@ -33,6 +33,7 @@ from ..safety import (
     KalmanRule,
     SafetyMonitor,
     SequenceRule,
+    StabilityRule,
     StuckRule,
     WatchdogRule,
 )
@@ -271,6 +272,11 @@ class ChannelPlan:
     kalman_every: int
     monitor: SafetyMonitor
     warmup_steps: int
+    #: the energy stability indicator (:mod:`rths_hil.stability`): window (s), damping along
+    #: the actuator (N·s/m; 0: no indicator) and lowest RMS velocity (m/s)
+    stability_window: float = 0.0
+    stability_damping: float = 0.0
+    stability_min_velocity: float = 0.0
 
 
 @dataclass
@@ -355,6 +361,7 @@ def _plan_channel(  # noqa: C901
     fn1: float,
     plant,
     mode: str,
+    c_along: float | None = None,
 ) -> ChannelPlan:
     cfg = cc.config
     dt = 1.0 / fs
@@ -496,6 +503,30 @@ def _plan_channel(  # noqa: C901
         stuck=StuckRule(sf["stuck_steps"], sf["stuck_motion"]) if sf["stuck_steps"] else None,
         controller=ControllerRule() if sf["controller_status"] else None,
     )
+    stab_window = stab_damping = 0.0
+    if sf["stability"] != "off":
+        w = sf["stability_window"]
+        try:
+            stab_window = parse_window(w, fn1) if isinstance(w, str) else float(w)
+        except InputError as exc:
+            raise InputError(f"{where}: safety.stability_window: {exc}") from None
+        stab_damping = sf["stability_damping"] or c_along or 0.0
+        if not stab_damping:
+            why = (
+                f"{where}: safety.stability: the damping of the structure along the actuator is "
+                "not known here (structure.kind = openfresco, or the actuator does not move in "
+                "the fundamental mode); give safety.stability_damping (N·s/m)"
+            )
+            if sf["stability"] == "trip":
+                raise InputError(why)
+            log.warning("%s; the stability indicator is off", why)
+        else:
+            try:
+                monitor.stability = StabilityRule(
+                    sf["stability_warn"], sf["stability_limit"], sf["stability"] == "trip", cc.name
+                )
+            except InputError as exc:
+                raise InputError(f"{where}: {exc}") from None
     return ChannelPlan(
         name=cc.name,
         suffix=columns.channel_suffix(cc.name if n_chan > 1 else None),
@@ -521,7 +552,41 @@ def _plan_channel(  # noqa: C901
         kalman_every=kc["every"],
         monitor=monitor,
         warmup_steps=round(sf["warmup"] * fs),
+        stability_window=stab_window,
+        stability_damping=stab_damping,
+        stability_min_velocity=sf["stability_min_velocity"],
     )
+
+
+def damping_along_rows(
+    cfg: Config, structure: StructureStage, model: Any, rows: list[np.ndarray]
+) -> list[float | None]:
+    """Each actuator's viscous damping along it, ``c_a`` (N·s/m; None: not known here).
+
+    SDOF: the structure's ``c`` over the square of the transform (``v_a = row·v``); several
+    DOFs: the coupled structure's fundamental mode (``K`` stiffened by
+    ``structure.k_specimen`` along every actuator) referred to the actuator
+    (:func:`rths_hil.stability.damping_along`); an OpenSees site: None.
+    """
+    kind = cfg["structure"]["kind"]
+    if kind == "openfresco":
+        return [None] * len(rows)
+    if kind == "sdof":
+        c = float(structure.stepper.c)  # type: ignore[attr-defined]
+        return [c / float(r[0]) ** 2 for r in rows]
+    from ..stability import damping_along
+
+    ks = float(cfg["structure"]["k_specimen"])
+    K = np.array(model.K, dtype=float)
+    for r in rows:
+        K = K + ks * np.outer(r, r)
+    out: list[float | None] = []
+    for r in rows:
+        try:
+            out.append(damping_along(model.C, K, model.M, r))
+        except ValueError:  # the actuator does not move in the fundamental mode
+            out.append(None)
+    return out
 
 
 def build_plan(  # noqa: C901
@@ -604,8 +669,11 @@ def build_plan(  # noqa: C901
             plants = {chans_cfg[0].name: plant}
         else:
             raise InputError("plant=: several channels: pass {channel name: plant}")
+    c_along = damping_along_rows(cfg, structure, model, rows)
     channels = [
-        _plan_channel(cc, i, len(chans_cfg), rows[i], fs, fn1, plants.get(cc.name), mode)
+        _plan_channel(
+            cc, i, len(chans_cfg), rows[i], fs, fn1, plants.get(cc.name), mode, c_along[i]
+        )
         for i, cc in enumerate(chans_cfg)
     ]
     for i, ch in enumerate(channels):

@@ -29,6 +29,9 @@ class Safety:
         self.channels = channels
         self.overrun = overrun
         self.tripped: Trip | None = None
+        #: events for the record from the rules that warn (the stability indicator's
+        #: crossings of its warning level): the runner writes and clears them each step
+        self.events: list[dict] = []
         if len(channels) == 1:  # the same checks without the loop over channels (≈ 0.5 µs)
             self._ch = channels[0]
             self._check_feedback = channels[0].monitor.check_feedback
@@ -105,8 +108,29 @@ class Safety:
         return None
 
     def evaluators(self, t: float, k: int) -> Trip | None:
-        """New FEI windows and Kalman estimates of each channel."""
+        """New FEI windows and Kalman estimates, and the stability indicator, of each channel.
+
+        A crossing of the stability warning level is appended to :attr:`events`.
+        """
         for ch in self.channels:
+            ind = ch.stability_ind
+            if ind is not None and k >= ch.warmup_steps:
+                mon = ch.monitor
+                trip = mon.check_stability(t, k, ch.stability, ind.injected)
+                rule = mon.stability
+                if rule is not None and rule.warning is not None:
+                    self.events.append(
+                        {
+                            "channel": ch.name,
+                            "ratio": rule.warning,
+                            "level": rule.warn,
+                            "injected": ind.injected,
+                            "dissipated": ind.dissipated,
+                        }
+                    )
+                    rule.warning = None
+                if trip is not None:
+                    return self.fire(trip, ch, t, k)
             if ch.fei_new:
                 trip = ch.monitor.check_fei(t, k, ch.fei_amplitude, ch.fei_delay, ch.fei_valid)
                 if trip is not None:

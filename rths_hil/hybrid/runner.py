@@ -251,6 +251,7 @@ class Runner:
                 handback=result.handback,
                 start_steps=result.start_steps,
                 exact_windows=first.exact_fei.windows if first.exact_fei is not None else 0,
+                stability=self.stability_energy(),
             )
         self.result = result
         return result
@@ -565,6 +566,10 @@ class Runner:
                     ch.evaluate(k)
                 if trip is None:
                     trip = check_evaluators(tk, k)
+                if safety.events:  # the stability indicator's warnings
+                    for ev in safety.events:
+                        rec.event("stability", tk, k, **ev)
+                    safety.events.clear()
                 if paced:
                     over = lat > thr
                     if over:
@@ -747,6 +752,28 @@ class Runner:
             now = perf()
         return now
 
+    def stability_energy(self) -> dict:
+        """Per channel with the stability indicator: the energy the tracking error injected
+        and the structure's damping dissipated over the run (J), their ratio, the damping
+        along the actuator (N·s/m), the window (s) and the levels."""
+        out = {}
+        for ch in self.channels:
+            ind = ch.stability_ind
+            rule = ch.monitor.stability
+            if ind is None or rule is None:
+                continue
+            out[ch.name] = {
+                "injected": ind.injected,
+                "dissipated": ind.dissipated,
+                "ratio": ind.total_ratio,
+                "damping": ind.damping,
+                "window": ind.window,
+                "warn": rule.warn,
+                "limit": rule.limit,
+                "trip": rule.trip,
+            }
+        return out
+
     def _status(self, tk, k, n, rate, recent, overruns, paced) -> dict:
         """The console's status dict: the worst channel (nearest a limit) and its FEI."""
         name, quantity, margin = self.safety.margin()
@@ -768,6 +795,7 @@ class Runner:
             "amplitude": ch.fei_amplitude,
             "delay": ch.fei_delay,
             "valid": ch.fei_valid,
+            "stability": ch.stability,
             "peak_displacement": ch.peak_displacement,
             "margin": (quantity, margin),
             "alpha": ch.compensator.alpha,

@@ -261,6 +261,11 @@ class LimitShares:
             tol, x = finite_or(sf.get(key)), col(base)
             if tol > 0 and x is not None:
                 out[label] = np.abs(x - ref) / tol
+        # the energy stability indicator S beside the FEI, as a share of its limit (warning
+        # or trip level: the rule's, docs/stability.md); below 0 (energy taken out) is none
+        s, lim = col("stability"), finite_or(sf.get("stability_limit"))
+        if s is not None and lim > 0 and sf.get("stability", "off") != "off":
+            out["stability S"] = np.maximum(s, 0.0) / lim
         g = col("kf_gain")
         if (self.cfg.get("kalman", {}) or {}).get("enabled", True) and g is not None:
             gmin, gmax = (

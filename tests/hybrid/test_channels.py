@@ -87,7 +87,7 @@ def test_single_actuator_record_keeps_todays_columns(tmp_path):
     RTHSLoop(cfg, tmp_path / "r", mode="lockstep", duration=0.2).run()
     names = read_run(tmp_path / "r").record.dtype.names
     assert names[: len(COLUMNS)] == tuple(c[0] for c in COLUMNS)
-    assert names[len(COLUMNS) :] == ("feedback_time", "fei_exact_step")
+    assert names[len(COLUMNS) :] == ("feedback_time", "fei_exact_step", "stability")
 
 
 def test_structure_targets_equal_the_offline_mdof_integration(tmp_path):

@@ -40,7 +40,7 @@ def test_file_order_of_two_channels_on_three_dofs():
 def test_single_channel_names_are_plain_and_start_with_the_recorder_default():
     names = [s[0] for s in specs(["only"], 1)]
     assert names[: len(COLUMNS)] == [c[0] for c in COLUMNS]
-    assert names[len(COLUMNS) :] == ["feedback_time", "fei_exact_step"]
+    assert names[len(COLUMNS) :] == ["feedback_time", "fei_exact_step", "stability"]
     assert column_name("measured", None) == "measured" == column_name("measured", "")
     assert column_name("measured", "left") == "measured_left"
 
