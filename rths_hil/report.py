@@ -907,7 +907,9 @@ def plot_report(  # noqa: C901
         )
         if has_stab[sfx]:  # beside the FEI: S on the right axis of the A panel
             ax2 = axes[k].twinx()
-            ax2.plot(t, env["stability" + sfx], lw=0.9, color="C2", label="stability S")
+            ys = env["stability" + sfx]
+            few = int(np.isfinite(ys).sum()) < 50  # a trip soon after the first valid window
+            ax2.plot(t, ys, lw=0.9, color="C2", marker="o" if few else None, ms=3)
             stb = (summary.get("channels", {}).get(name) if multi else summary) or {}
             lev = (stb.get("stability") or {}).get("warn")
             if lev is not None:
