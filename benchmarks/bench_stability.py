@@ -25,7 +25,9 @@ Lead = time of the displacement limit − time of the rule. Goal: on every trial
 (reaches the displacement limit) the indicator's limit fires before the displacement limit,
 with a median lead ≥ 1 s; no stability trip on the nominal trials.
 
-Usage: ``python benchmarks/bench_stability.py [--trials 14] [--duration 20] [--workers 2]``
+Usage: ``python benchmarks/bench_stability.py [--trials 14] [--duration 20] [--workers 2]``;
+``--figure docs/img/stability_case.png`` draws the reproducible case and its bounded sibling
+(displacement and S against time) for ``docs/stability.md`` instead
 (about 3 minutes on two workers of a busy 2-core machine; deterministic: lockstep, seeded
 draws and sensor noise).
 """
@@ -178,6 +180,73 @@ def run_trial(args: tuple[str, int, dict, float]) -> dict:
         }
 
 
+def figure(path: Path, duration: float = 12.0) -> Path:
+    """The reproducible case and its bounded sibling: displacement and S against time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import rths_hil
+    from rths_hil.plotting import save_figure
+
+    fig, (ax, bx) = plt.subplots(2, 1, figsize=(9, 6), sharex=True, constrained_layout=True)
+    for i, (trial, color) in enumerate(zip(FIXED["default"], ("C3", "C0"), strict=True)):
+        label = f"{trial['stiffness'] / 1e6:g} MN/m"
+        cfg = rths_hil.configure(None, _overrides("default", trial))
+        with tempfile.TemporaryDirectory(prefix="bench-stab-") as tmp:
+            res = rths_hil.run(
+                cfg, mode="lockstep", duration=duration, run_dir=Path(tmp) / "r", summary=False
+            )
+            rec = rths_hil.open_run(res.run_dir).record
+        t = rec["time"]
+        ax.plot(t, rec["target"] * 1e3, lw=0.8, color=color, label=label)
+        bx.plot(t, rec["stability"], lw=1.2, color=color, label=label)
+        limit = float(cfg["safety"]["stability_limit"])
+        hit = np.flatnonzero(rec["stability"] > limit)
+        if len(hit):
+            bx.axvline(t[hit[0]], color=color, lw=0.8, ls=":")
+            ax.axvline(t[hit[0]], color=color, lw=0.8, ls=":")
+        if res.trip is not None and res.trip.rule == "displacement":
+            ax.axvline(res.trip.time, color=color, lw=1.2)
+            ax.annotate(
+                f"displacement limit {res.trip.time:.2f} s",
+                (res.trip.time, 45),
+                xytext=(-4, 0),
+                textcoords="offset points",
+                ha="right",
+                fontsize=8,
+                color=color,
+            )
+        if len(hit):
+            bx.annotate(
+                f"S > {limit:g} at {t[hit[0]]:.2f} s",
+                (t[hit[0]], limit),
+                xytext=(4, 4 + 12 * i),
+                textcoords="offset points",
+                fontsize=8,
+                color=color,
+            )
+    lim = 0.05
+    ax.axhline(lim * 1e3, color="0.4", lw=0.6, ls="--")
+    ax.axhline(-lim * 1e3, color="0.4", lw=0.6, ls="--")
+    ax.set_ylabel("target (mm)")
+    ax.set_title(
+        "default test, no compensation, nearly elastic specimen: the runaway and its bounded "
+        "sibling"
+    )
+    ax.legend(loc="upper left", fontsize=8)
+    bx.axhline(1.0, color="0.4", lw=0.6, ls="--")
+    bx.axhline(1.5, color="0.2", lw=0.8)
+    bx.set_ylabel("stability indicator S")
+    bx.set_xlabel("time (s)")
+    bx.set_title("S (valid after a whole 3.9 s window of motion); dashed: warning, solid: limit")
+    bx.legend(loc="upper left", fontsize=8)
+    save_figure(fig, path, 90)
+    plt.close(fig)
+    return path
+
+
 def _ms(x: float) -> str:
     return "—" if math.isnan(x) else f"{x * 1e3:.1f}"
 
@@ -193,7 +262,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--no-write", action="store_true", help="print only")
+    ap.add_argument("--figure", type=Path, help="write the reproducible case's figure and stop")
     args = ap.parse_args(argv)
+    if args.figure:
+        print(f"wrote {figure(args.figure)}")
+        return 0
 
     jobs = [
         (ex, i, tr, args.duration)
