@@ -82,6 +82,7 @@ UNITS: dict[str, float] = {
     "": 1.0,
     "-": 1.0,
     "m": 1.0,
+    "cm": 1e-2,
     "mm": 1e-3,
     "um": 1e-6,
     "µm": 1e-6,
@@ -185,7 +186,8 @@ class _Reader:
 
 
 #: What each unit measures; a role takes only its own kind.
-_UNIT_KIND = {"m": "length", "mm": "length", "um": "length", "µm": "length", "in": "length"}
+_UNIT_KIND = {"m": "length", "cm": "length", "mm": "length", "um": "length", "µm": "length"}
+_UNIT_KIND["in"] = "length"
 _UNIT_KIND.update({"N": "force", "kN": "force", "lbf": "force"})
 _ROLE_KIND = {"setpoint": "length", "position": "length", "force": "force"}
 
@@ -668,8 +670,17 @@ def _can_signal(r: _Reader, name: str, db: Any, dbc: str, action: bool = False) 
         ) from None
     if sig.scale == 0:
         raise t.fail("signal", f"DBC signal {msg_name}.{sig_name} has scale 0")
-    unit = str(sig.unit or "")
-    factor = _units(t, unit if unit in UNITS else "", role=name)
+    unit = str(sig.unit or "").strip()
+    if "units" not in t.data and unit not in UNITS:
+        # the DBC names a unit the bridge cannot convert: taken as SI it could be off by any
+        # factor (a "cm" signal read as metres is 100 times off)
+        raise t.fail(
+            "signal",
+            f"the DBC {dbc} gives {msg_name}.{sig_name} the unit {unit!r}, which the bridge "
+            f"does not convert (known: {', '.join(k for k in UNITS if k)}); give its units "
+            "in the profile",
+        )
+    factor = _units(t, unit, role=name)
     value = t.float("value", 1.0) if action else None
     return CANSignal(name, msg_name, sig_name, factor, value)
 
@@ -719,6 +730,12 @@ def _load_can(r: _Reader, base: Path) -> CANProfile:
     hb = None
     if r.table("heartbeat") is not None:
         hb = _can_signal(r, "heartbeat", db, dbc_rel)
+        if hb.message in (actions["estop"].message, fb):
+            what = "the e-stop's" if hb.message == actions["estop"].message else "the feedback"
+            raise InputError(
+                f"profile {src}: heartbeat.message: {hb.message} is {what} message: every "
+                "heartbeat would be sent as one; give the heartbeat a message of its own"
+            )
     masks = _masks(r)
     _check_can_fields(src, db, roles, actions, masks, hb)
     return CANProfile(src, str(dbc), db, roles, actions, masks, hb)

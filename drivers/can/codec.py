@@ -77,6 +77,15 @@ def load_dbc(path: str | Path, what: str = "DBC") -> cantools.database.can.Datab
         raise InputError(f"cannot load {what} {p}: {_printable(str(exc))}") from None
     if not isinstance(db, cantools.database.can.Database):
         raise InputError(f"cannot load {what} {p}: not a CAN database")
+    seen: dict[tuple[int, bool], str] = {}
+    for m in db.messages:  # cantools only warns, and decodes frames of that id as the last one
+        key = (m.frame_id, m.is_extended_frame)
+        if key in seen:
+            raise InputError(
+                f"cannot load {what} {p}: messages {seen[key]} and {m.name} share the frame id "
+                f"0x{m.frame_id:X}: a received frame could not be told apart"
+            )
+        seen[key] = m.name
     return db
 
 

@@ -101,3 +101,44 @@ def test_a_profile_path_in_a_symlink_loop(lab, capsys):
     )  # fmt: skip
     with pytest.raises(InputError):
         load_dbc(lab / "ploop.toml")
+
+
+# ----------------------------------------------------------------------------------------------
+# DBC contents a profile cannot work with
+
+
+def _edit_dbc(lab: Path, old: str, new: str) -> None:
+    dbc = lab / "lab_axis.dbc"
+    text = dbc.read_text()
+    assert old in text
+    dbc.write_text(text.replace(old, new, 1))
+
+
+def test_a_dbc_unit_the_bridge_does_not_convert(lab, capsys):
+    _edit_dbc(lab, '[-200000|200000] "mm" Axis', '[-200000|200000] "furlong" Axis')
+    _both(lab, capsys, "roles.setpoint.signal", "the unit 'furlong'", "give its units")
+
+
+def test_a_dbc_in_centimetres_is_converted_not_taken_as_metres(lab):
+    from rths_hil.drivers.profile import load_profile
+
+    mm = load_profile(lab / "can_dbc.toml").roles["setpoint"].factor
+    _edit_dbc(lab, '[-200000|200000] "mm" Axis', '[-200000|200000] "cm" Axis')
+    prof = lab / "can_dbc.toml"
+    prof.write_text(prof.read_text() + "\n")  # a new path for the profile cache
+    cm = load_profile(prof.rename(lab / "cm.toml")).roles["setpoint"].factor
+    assert mm == pytest.approx(1e-3) and cm == pytest.approx(1e-2)
+
+
+def test_two_messages_on_one_frame_id(lab, capsys):
+    _edit_dbc(lab, "BO_ 1793 BridgeAlive", "BO_ 32 BridgeAlive")
+    _both(lab, capsys, "messages AxisEStop and BridgeAlive share the frame id 0x20")
+
+
+def test_a_heartbeat_on_the_estop_message(lab, capsys):
+    prof = lab / "can_dbc.toml"
+    text = prof.read_text()
+    old = '[heartbeat]\nmessage = "BridgeAlive"\nsignal = "AliveCounter"'
+    assert old in text
+    prof.write_text(text.replace(old, '[heartbeat]\nmessage = "AxisEStop"\nsignal = "EStopCode"'))
+    _both(lab, capsys, "heartbeat.message: AxisEStop is the e-stop's message")
