@@ -551,8 +551,12 @@ def _enable(ctl: _Controller, rep: ChannelReport, x0: float, tol: float) -> None
         why = "the controller did not report ENABLED"
     elif abs(last_on.displacement - x0) > tol:
         why = "the actuator moved when enabled in place"
-    elif off is None or off.status & _ENABLED:
-        why = "the controller did not disable"
+    elif off is None:
+        why = "no reply to the disabling commands (replies missed, not a controller that stays on)"
+    elif off.status & _ENABLED:
+        why = (
+            f"the controller still reports ENABLED after the disable ({_status_names(off.status)})"
+        )
     rep.steps.append(StepResult("enable", "failed" if why else "passed", why, figs))
 
 
