@@ -22,11 +22,12 @@ $(SYSDEPS): scripts/system-deps.sh | $(STAMP)
 	@touch $(SYSDEPS)
 
 # Tests that run the loop against the wall clock or with other processes (marker "timing") run
-# one at a time after the others, which share the cores (pytest-xdist, one file per worker).
+# one at a time after the others, which share the cores (pytest-xdist, one file per worker);
+# the slowest of them are listed at the end (they set the length of the run).
 # Exit 5 = PYTEST_ARGS selected none of one kind.
 test: $(STAMP) $(SYSDEPS) lint
 	$(BIN)/python -m pytest -q -m "not timing" -n auto --dist loadfile $(PYTEST_ARGS) || test $$? -eq 5
-	$(BIN)/python -m pytest -q -m timing $(PYTEST_ARGS) || test $$? -eq 5
+	$(BIN)/python -m pytest -q -m timing --durations=25 $(PYTEST_ARGS) || test $$? -eq 5
 	$(BIN)/python -m pytest -q --doctest-modules --pyargs rths_hil rths_hil.drivers rths_hil.sim_backends
 
 # ruff (style, imports, complexity, numpydoc on the public API) and mypy on rths_hil.
