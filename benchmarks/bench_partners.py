@@ -182,8 +182,18 @@ def commission(label: str, tmp: Path) -> tuple[Path | None, str]:
     finally:
         partner.stop()
     tuned = sorted(out.rglob("tuned.toml"))
-    note = (p.stdout + p.stderr).strip().splitlines()
-    return (tuned[-1] if tuned else None), (note[-1] if note else f"exit {p.returncode}")
+    lines = (p.stdout + p.stderr).strip().splitlines()
+    verdict = lines[-1].split(";")[0].replace("rths-hil commission: ", "") if lines else ""
+    verdict = verdict or f"exit {p.returncode}"
+    failed = [ln.split(": ", 2)[-1] for ln in lines if ": failed" in ln]
+    if failed:
+        verdict += " (" + "; ".join(failed) + ")"
+    identified = ""
+    if tuned:  # the fragment's own summary line: "# actuator: delay …, lag …, gain … (fit …)"
+        for ln in tuned[-1].read_text().splitlines():
+            if ln.startswith("# ") and "delay" in ln and "gain" in ln:
+                identified = ln[2:].split(";")[0]
+    return (tuned[-1] if tuned else None), f"{verdict} | {identified or '–'}"
 
 
 def paced_run(label: str, tuned: Path | None, fs: int, duration: float, tmp: Path) -> dict:
@@ -263,7 +273,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{label}: raw round trip p50 {_ms(rt_p50)} ms, p99 {_ms(rt_p99)} ms", flush=True)
         tuned, note = commission(label, tmp / "c")
         tuned_text = tuned.read_text() if tuned is not None else ""
-        tuned_rows.append([label, "tuned.toml" if tuned else "none", note.replace("|", "/")])
+        verdict, identified = note.split(" | ", 1)
+        tuned_rows.append([label, verdict.replace("|", "/"), identified.replace("|", "/")])
         print(f"{label}: commission: {note}", flush=True)
         for fs in rates:
             results = []
@@ -298,8 +309,8 @@ def main(argv: list[str] | None = None) -> int:
     table += markdown_table(
         ["partner", "answered", "sent", "p50 (ms)", "p99 (ms)", "max (ms)"], rtt_rows
     )
-    table += "\n\n### Commissioning (512 Hz)\n\n" + markdown_table(
-        ["partner", "fragment", "last line"], tuned_rows
+    table += "\n\n### Commissioning (512 Hz; the plant of 12 ms, 8 ms, 0.98)\n\n" + markdown_table(
+        ["partner", "verdict", "identified (tuned.toml)"], tuned_rows
     )
     table += "\n\n### Paced runs of the default test with the fragment included\n\n"
     table += markdown_table(

@@ -540,7 +540,9 @@ def _latency(ctl: _Controller, rep: ChannelReport, n: int, x0: float, link_time:
 def _enable(ctl: _Controller, rep: ChannelReport, x0: float, tol: float) -> None:
     on = ctl.hold(x0, 0.2, True)
     last_on = _last(on)
-    off = _last(ctl.hold(x0, 3 * ctl.dt, False))
+    # disabled for at least 50 ms: a controller served one request at a time answers the
+    # disabling step's requests over several periods
+    off = _last(ctl.hold(x0, max(3 * ctl.dt, 0.05), False))
     figs = {
         "enabled_status": _status_names(None if last_on is None else last_on.status),
         "disabled_status": _status_names(None if off is None else off.status),
