@@ -1,9 +1,9 @@
-"""The operator-stop signals outside the test loop: ``commission``, ``check-host``, the studies.
+"""The operator-stop signals: the test loop, ``commission``, ``check-host``, the studies.
 
 ``rths-hil run`` ends a test on Ctrl-C, SIGTERM or SIGHUP (every signal of
 :data:`rths_hil.hybrid.runner.STOP_SIGNALS`) by its operator-stop path: the loop sees a flag at
 its next step, holds, disables and hands the controllers back, and the command exits 130. The
-other commands that drive a controller or run for long take the same path through
+loop and the other commands that drive a controller or run for long take that path through
 :class:`OperatorStop`: the first signal sets :attr:`OperatorStop.signal` (the command finishes
 the step it is in safely and keeps what it has done), a second one raises
 :class:`KeyboardInterrupt` at once (the command's own error path: e-stop, exit 130).

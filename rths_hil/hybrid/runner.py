@@ -38,7 +38,6 @@ import os
 import resource
 import signal
 import sys
-import threading
 import time
 from collections.abc import Callable
 
@@ -47,6 +46,7 @@ import numpy as np
 from ..errors import InputError
 from ..recorder import Recorder, RecordWriteError
 from ..safety import OverrunRule, StallRule, Trip
+from ..stopping import OperatorStop
 from .channel import Channel
 from .phases import Phases, preflight
 from .plan import TestPlan
@@ -96,7 +96,9 @@ class Runner:
         #: at least ``min_stall`` — 2 ms, or two periods at rates below 1 kHz
         self.stall = StallRule(plan.max_stall, max(2e-3, 2.0 * plan.dt)) if paced else None
         self.result: RunResult | None = None
-        self.stop_signal: str | None = None
+        #: the operator stop: the first stop signal's name (``stop_signal``), a second one
+        #: raises KeyboardInterrupt (the e-stop path); installed for the run
+        self._stop = OperatorStop()
         #: paced: the deadline after the loop's last step (the end phase continues the grid)
         self.next_deadline: float | None = None
 
@@ -127,18 +129,13 @@ class Runner:
         stack.callback(os.sched_setaffinity, 0, old)
         log.info("loop pinned to CPU %d", cpu)
 
+    @property
+    def stop_signal(self) -> str | None:
+        """The first stop signal of the run (``"SIGINT"``, ``"SIGTERM"`` …) or None."""
+        return self._stop.signal
+
     def _install_signals(self, stack: contextlib.ExitStack) -> None:
-        if threading.current_thread() is not threading.main_thread():
-            return
-
-        def handler(signum, frame):
-            if self.stop_signal is not None:  # second Ctrl-C: give up at once
-                raise KeyboardInterrupt
-            self.stop_signal = signal.Signals(signum).name
-
-        for sig in STOP_SIGNALS:
-            old = signal.signal(sig, handler)
-            stack.callback(signal.signal, sig, old)
+        stack.enter_context(self._stop)  # main thread only, restored at the end of the run
 
     def run(self) -> RunResult:  # noqa: C901
         """Run the test; return a :class:`RunResult` (never raises on a safety trip)."""
