@@ -57,7 +57,9 @@ READER_IDLE = 2.0
 
 __all__ = [
     "DEADLINE_SLACK",
+    "DISPLACEMENT",
     "DISPLACEMENT_LSB",
+    "FORCE",
     "FORCE_LSB",
     "INVALID_S32",
     "Driver",
@@ -73,6 +75,10 @@ __all__ = [
 DISPLACEMENT_LSB = 1e-7
 #: Fixed-point resolution of forces on CAN and Modbus (N per count, signed 32 bit).
 FORCE_LSB = 1e-2
+#: The wire control modes (:meth:`Driver.set_control`): the command is a displacement (m) or a
+#: force set-point (N). A ``"load"`` channel is force-controlled on the wire.
+DISPLACEMENT = "displacement"
+FORCE = "force"
 #: Signed 32-bit raw value reserved for "no valid measurement" (decoded as NaN).
 INVALID_S32 = -(2**31)
 _S32_MAX = 2**31 - 1
@@ -199,7 +205,9 @@ def extend_seq(raw: int, reference: int, bits: int) -> int:
     return reference - ((reference - raw) & mask)
 
 
-def check_command(seq: int, displacement: float, lsb: float | None = DISPLACEMENT_LSB) -> None:
+def check_command(
+    seq: int, displacement: float, lsb: float | None = DISPLACEMENT_LSB, control: str = DISPLACEMENT
+) -> None:
     """Raise :class:`InputError` for a command that must never reach an actuator.
 
     Parameters
@@ -207,18 +215,22 @@ def check_command(seq: int, displacement: float, lsb: float | None = DISPLACEMEN
     seq : int
         Step sequence number, must be ≥ 0.
     displacement : float
-        Command (m), must be finite and, when ``lsb`` is given, representable in signed 32 bit.
+        Command (m, or N when ``control`` is ``"force"``), must be finite and, when ``lsb`` is
+        given, representable in signed 32 bit.
     lsb : float or None
-        Fixed-point resolution of the bus (m per count), or ``None`` for a float wire format.
+        Fixed-point resolution of the bus (unit per count), or ``None`` for a float wire format.
+    control : str
+        The wire mode, ``"displacement"`` or ``"force"`` (names the quantity in the message).
     """
+    what, unit = ("force", "N") if control == FORCE else ("displacement", "m")
     if seq < 0:
         raise InputError(f"command sequence number must be >= 0, got {seq}")
     if not math.isfinite(displacement):
-        raise InputError(f"command displacement for step {seq} is not finite ({displacement})")
+        raise InputError(f"command {what} for step {seq} is not finite ({displacement})")
     if lsb is not None and abs(displacement) > _S32_MAX * lsb:
         raise InputError(
-            f"command displacement {displacement} m for step {seq} exceeds the bus range "
-            f"±{_S32_MAX * lsb:.1f} m"
+            f"command {what} {displacement} {unit} for step {seq} exceeds the bus range "
+            f"±{_S32_MAX * lsb:.1f} {unit}"
         )
 
 
@@ -254,8 +266,8 @@ class Driver(ABC):
     (:meth:`_classify`).
 
     Class attributes a driver sets: :attr:`name`, :attr:`honours_deadline`,
-    :attr:`echoes_seq`, :attr:`command_lsb`; class methods describing its links and twin:
-    :meth:`link_key`, :meth:`link_load`, :meth:`share_key`, :meth:`own_link`,
+    :attr:`echoes_seq`, :attr:`command_lsb`, :attr:`control_modes`; class methods describing
+    its links and twin: :meth:`link_key`, :meth:`link_load`, :meth:`share_key`, :meth:`own_link`,
     :meth:`inline_twin` (see ``docs/protocols.md``, "Adding a driver").
     """
 
@@ -267,7 +279,8 @@ class Driver(ABC):
     #: first feedback received after a command was sent answers it (its age is recorded).
     echoes_seq: ClassVar[bool] = True
     #: Fixed-point resolution of the command on the wire (m per count) for
-    #: :func:`check_command`; ``None`` for a float wire format.
+    #: :func:`check_command`; ``None`` for a float wire format (or one whose driver checks the
+    #: range itself). In force mode a fixed-point command is checked at :data:`FORCE_LSB`.
     command_lsb: ClassVar[float | None] = DISPLACEMENT_LSB
     #: The set-point and the enable flag travel together in one frame (a CAN frame, a serial
     #: frame, the built-in Modbus FC 23 request): the position of an ``enable=False`` command is
@@ -276,6 +289,14 @@ class Driver(ABC):
     #: CiA 402's target and controlword): :meth:`arm` then reads where the actuator is first
     #: (:meth:`poll`) and writes only that (see :meth:`arm`, "no start jump").
     atomic_command: ClassVar[bool] = True
+
+    #: The wire control modes this driver can run (:meth:`set_control`): ``"displacement"``
+    #: (the command is a position, m) and, for a driver that can, ``"force"`` (the command is a
+    #: force set-point, N). A driver whose force capability depends on its profile or device
+    #: lists ``"force"`` here and refuses in :meth:`set_control` what its profile lacks.
+    control_modes: ClassVar[tuple[str, ...]] = (DISPLACEMENT,)
+    #: The wire mode this driver runs, set by :meth:`set_control` before :meth:`open`.
+    control: str = DISPLACEMENT
 
     stats: DriverStats
     # class-level defaults: a subclass that does not call Driver.__init__ still works
@@ -287,6 +308,7 @@ class Driver(ABC):
     _rx_stop: threading.Event | None = None
     _last_receive = 0.0
     _last_position = 0.0  # the last finite measured displacement delivered (m)
+    _last_force = 0.0  # the last finite measured force delivered (N)
     _overrun_warned = False
     _threaded = True
     #: Why the transport is down (the :class:`LinkDown` message of the last receive), or
@@ -321,6 +343,39 @@ class Driver(ABC):
     ) -> None:
         self.stop_reader()
         self.close()
+
+    def set_control(self, mode: str) -> None:
+        """Select the wire control mode, once, before :meth:`open`.
+
+        In ``"force"`` mode :meth:`send` carries a force set-point (N) where it carries a
+        displacement otherwise; :class:`Feedback` is unchanged (displacement m, force N), and
+        :meth:`arm` holds the measured force instead of the position (no start jump).
+
+        Parameters
+        ----------
+        mode : str
+            ``"displacement"`` or ``"force"`` (a ``"load"`` channel asks for ``"force"``).
+
+        Raises
+        ------
+        InputError
+            ``mode`` is not one of :attr:`control_modes` (one line naming the driver and the
+            mode). A driver overriding this also refuses a profile or device that lacks what
+            the mode needs, naming what is missing.
+        """
+        name = getattr(self, "name", type(self).__name__)
+        if mode not in self.control_modes:
+            hint = ""
+            if mode == FORCE and self.profile_protocol is not None:
+                hint = (
+                    f"; a {self.profile_protocol} profile (driver.profile) with a force "
+                    "set-point role can"
+                )
+            raise InputError(
+                f"driver {name!r} cannot run a {mode!r}-controlled channel (its control modes: "
+                f"{', '.join(self.control_modes)}){hint}"
+            )
+        self.control = mode
 
     # -- the contract: what a driver implements -------------------------------------------------
     def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
@@ -362,10 +417,14 @@ class Driver(ABC):
     def send(self, seq: int, displacement: float, enable: bool = True) -> None:
         """Send the command for step ``seq``: ``displacement`` in metres, ``enable`` flag.
 
+        In force mode (:meth:`set_control`) ``displacement`` is the force set-point in N.
         Raises :class:`~rths_hil.errors.InputError` for a non-finite or out-of-range command;
         transport failures are counted (``send_errors``), not raised.
         """
-        check_command(seq, displacement, self.command_lsb)
+        lsb = self.command_lsb
+        if self.control == FORCE and lsb is not None:
+            lsb = FORCE_LSB  # a fixed-point force set-point, N per count
+        check_command(seq, displacement, lsb, self.control)
         prev = self._last_sent
         self._last_sent = seq
         self._t_sent = _perf()
@@ -414,8 +473,11 @@ class Driver(ABC):
                     f = fb.force
                     if d != d or f != f:
                         stats.invalid_values += 1
-                    elif d - d == 0.0:
-                        self._last_position = d
+                    else:
+                        if d - d == 0.0:
+                            self._last_position = d
+                        if f - f == 0.0:
+                            self._last_force = f
                     fb.age = now - self._t_sent
                     return fb
             if now >= deadline:
@@ -440,8 +502,11 @@ class Driver(ABC):
             fb.displacement = math.nan
         if fb.displacement != fb.displacement or fb.force != fb.force:
             self.stats.invalid_values += 1
-        elif math.isfinite(fb.displacement):
-            self._last_position = fb.displacement
+        else:
+            if math.isfinite(fb.displacement):
+                self._last_position = fb.displacement
+            if math.isfinite(fb.force):
+                self._last_force = fb.force
         fb.age = _perf() - self._t_sent
         return fb
 
@@ -515,6 +580,10 @@ class Driver(ABC):
           set-point, still disabled; when the position cannot be read, nothing is written and
           ``None`` is returned (the start is refused on hardware).
 
+        In force mode (:meth:`set_control`) the same holds for the force: the arming command
+        carries the last measured force (atomic), or the force :meth:`poll` read (not atomic),
+        so the first force set-point equals the measured force and goes ahead of the enable.
+
         The runner then sends the run's first ``enable=True`` command with the position the
         arming reply reported — the start ramp's first point, or without a ramp a step-0
         command within ``start.tolerance`` of it (:mod:`rths_hil.hybrid.phases`) — and keeps
@@ -526,17 +595,19 @@ class Driver(ABC):
         which serves an inline twin first).
         """
         recv = receive or self.receive
-        hold = self._last_position
+        force = self.control == FORCE
+        hold = self._last_force if force else self._last_position
         if not self.atomic_command:
             where = self.poll(timeout, receive)
-            if where is None or not math.isfinite(where.displacement):
+            held = math.nan if where is None else (where.force if force else where.displacement)
+            if not math.isfinite(held):
                 log.warning(
-                    "driver %s: where the actuator is could not be read before arming; "
-                    "nothing written",
+                    "driver %s: the actuator's %s could not be read before arming; nothing written",
                     getattr(self, "name", type(self).__name__),
+                    "force" if force else "position",
                 )
                 return None
-            hold = where.displacement
+            hold = held
         self.send(0, hold, False)
         fb = recv(timeout)
         self._last_sent = -1
