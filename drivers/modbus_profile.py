@@ -176,6 +176,8 @@ class ModbusProfileDriver(Driver):
     name: ClassVar[str] = "modbus"
     honours_deadline: ClassVar[bool] = True  # select() with the time left
     command_lsb: ClassVar[float | None] = None  # the profile's point type checks the range
+    #: force when the profile maps ``roles.force_setpoint`` (:meth:`set_control`)
+    control_modes: ClassVar[tuple[str, ...]] = ("displacement", "force")
 
     def __init__(
         self,
@@ -235,9 +237,7 @@ class ModbusProfileDriver(Driver):
         self._enabled: bool | None = None
         self._estop_sent = False
         self._hb = 0
-        self._sp = prof.points["setpoint"]
         self._reads = prof.reads
-        self._n_reads = 1 if prof.fc23 else len(prof.reads)
         #: precompiled at open (modbus_layout): the step's request and each block's decoder
         self._template: RequestTemplate | None = None
         self._blocks: list[BlockLayout] = []
@@ -253,8 +253,16 @@ class ModbusProfileDriver(Driver):
         self._status = prof.points["status"]
         self._read_frames: list[bytes] = []
         self._pending: deque[tuple[int, int, bytes]] = deque()  # RTU: (tid, fc, frame)
-        # the step's write request, built once; per step its registers and id change
-        sp = self._sp
+        self._use_setpoint()
+
+    def _use_setpoint(self) -> None:
+        """The point written every step (``roles.setpoint``, or ``roles.force_setpoint`` in
+        force mode) and the step's write request, built once (per step its registers and id
+        change)."""
+        prof = self.profile
+        self._sp = sp = prof.points["setpoint"]
+        self._n_reads = 1 if prof.fc23 else len(prof.reads)
+        self._template = None  # compiled at open
         if prof.fc23:
             b = self._reads[0]
             self._step_pdu: Any = ReadWriteMultipleRegistersRequest(
@@ -268,6 +276,22 @@ class ModbusProfileDriver(Driver):
                 address=sp.address, registers=[0] * sp.count
             )
         self._step_pdu.dev_id = self.unit
+
+    def set_control(self, mode: str) -> None:
+        """Select the wire mode before :meth:`open` (:meth:`Driver.set_control`).
+
+        ``"force"`` writes the profile's ``roles.force_setpoint`` (N) every step instead of
+        ``roles.setpoint``; a profile without it is refused with one line.
+        """
+        super().set_control(mode)
+        try:
+            prof = self.profile.for_control(mode)
+        except InputError as exc:
+            self.control = "displacement"
+            raise InputError(f"modbus driver: {exc}") from None
+        if prof is not self.profile:
+            self.profile = prof
+            self._use_setpoint()
 
     # -- transport ------------------------------------------------------------------------------
     def open(self) -> None:
@@ -457,7 +481,7 @@ class ModbusProfileDriver(Driver):
         checks = [
             (b.table, b.address, b.count, ", ".join(p.role for p in b.points)) for b in prof.reads
         ]
-        checks.append(("holding", self._sp.address, self._sp.count, "setpoint"))
+        checks.append(("holding", self._sp.address, self._sp.count, self._sp.role))
         deadline = time.perf_counter() + self.connect_timeout
         for i, (table, address, count, roles) in enumerate(checks):
             tid = (i << 4) | SLOT_CHECK

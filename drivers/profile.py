@@ -6,6 +6,9 @@ A profile maps the bridge's **roles** onto the controller's protocol:
 role                      meaning
 ========================  ===============================================================
 ``roles.setpoint``        commanded actuator displacement (written every step)
+``roles.force_setpoint``  commanded force (optional): written every step instead of the
+                          set-point on a force-controlled channel (``control = "force"``
+                          or ``"load"``); a profile without it refuses such a channel
 ``roles.position``        measured actuator displacement (read every step)
 ``roles.force``           measured specimen force (read every step)
 ``roles.status``          the controller's status word; ``[status]`` gives the bit masks
@@ -51,7 +54,7 @@ out-of-range registers, a missing role, scale 0, a DBC without the named message
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -109,6 +112,10 @@ TABLES: dict[str, tuple[int, bool]] = {
 }
 READ_ROLES = ("position", "force", "status")
 ROLES = ("setpoint", *READ_ROLES)
+#: Roles a profile may map: the force set-point of a force-controlled channel.
+OPTIONAL_ROLES = ("force_setpoint",)
+#: The wire control modes (:meth:`rths_hil.drivers.base.Driver.set_control`).
+CONTROL_MODES = ("displacement", "force")
 ACTIONS = ("enable", "disable", "estop", "acknowledge")
 STATUS_BITS: dict[str, int] = {
     "enabled": int(Status.ENABLED),
@@ -189,7 +196,12 @@ class _Reader:
 _UNIT_KIND = {"m": "length", "cm": "length", "mm": "length", "um": "length", "µm": "length"}
 _UNIT_KIND["in"] = "length"
 _UNIT_KIND.update({"N": "force", "kN": "force", "lbf": "force"})
-_ROLE_KIND = {"setpoint": "length", "position": "length", "force": "force"}
+_ROLE_KIND = {
+    "setpoint": "length",
+    "position": "length",
+    "force": "force",
+    "force_setpoint": "force",
+}
 
 
 def _units(r: _Reader, default: str = "", role: str = "") -> float:
@@ -242,6 +254,26 @@ def _check_masks(source: str, masks: dict[int, int], point: ModbusPoint) -> None
                 f"profile {source}: status.{names[flag]}: 0x{mask:X} is not a bit of the "
                 f"{point.table} {point.type} status point (bits up to 0x{hi:X})"
             )
+
+
+def _range_refusal(source: str, role: str, what: str, lo: float, hi: float, limit: float) -> str:
+    """The one line refusing a set-point field that cannot carry ±``limit`` (SI)."""
+    if role == "force_setpoint":
+        return (
+            f"profile {source}: roles.force_setpoint: {what} carries {lo * 1e-3:g}…"
+            f"{hi * 1e-3:g} kN, not the force limit ±{limit * 1e-3:g} kN (safety.force_limit)"
+        )
+    return (
+        f"profile {source}: roles.setpoint: {what} carries {lo * 1e3:g}…{hi * 1e3:g} mm, not "
+        f"the displacement limit ±{limit * 1e3:g} mm (safety.displacement_limit)"
+    )
+
+
+def _no_force_role(source: str, how: str) -> InputError:
+    return InputError(
+        f"profile {source}: roles.force_setpoint is missing: a force-controlled channel "
+        f'(control = "force" or "load") writes its force set-point there ({how})'
+    )
 
 
 def status_from_word(word: int, masks: dict[int, int]) -> int:
@@ -423,17 +455,45 @@ class ModbusProfile:
 
     def check_setpoint_range(self, limit: float) -> None:
         """Refuse a set-point point that cannot carry every command within ±``limit`` m
-        (``safety.displacement_limit``; 0 = off): one line, before anything moves."""
+        (``safety.displacement_limit``; 0 = off): one line, before anything moves.
+
+        On the profile of a force-controlled channel (:meth:`for_control`) the written point
+        is the force set-point and ``limit`` the force limit in N (``safety.force_limit``).
+        """
         sp = self.points["setpoint"]
         if limit <= 0 or sp.type not in _INT_RANGE:
             return
         lo, hi = sorted(sp.si(v) for v in _INT_RANGE[sp.type])
         if lo > -limit or hi < limit:
-            raise InputError(
-                f"profile {self.source}: roles.setpoint: {sp.type} with scale {sp.scale:g} "
-                f"carries {lo * 1e3:g}…{hi * 1e3:g} mm, not the displacement limit "
-                f"±{limit * 1e3:g} mm (safety.displacement_limit)"
-            )
+            what = f"{sp.type} with scale {sp.scale:g}"
+            raise InputError(_range_refusal(self.source, sp.role, what, lo, hi, limit))
+
+    @property
+    def control_modes(self) -> tuple[str, ...]:
+        """The wire control modes the map can run: ``displacement``, and ``force`` when it
+        maps ``roles.force_setpoint``."""
+        return CONTROL_MODES if "force_setpoint" in self.points else CONTROL_MODES[:1]
+
+    def for_control(self, mode: str) -> ModbusProfile:
+        """The profile as a channel in wire mode ``mode`` uses it.
+
+        ``"displacement"``: this profile. ``"force"``: the same map with
+        ``roles.force_setpoint`` as the point written every step (``points["setpoint"]``,
+        its role ``force_setpoint``, its value in N), the requests per step worked out for it.
+
+        Raises
+        ------
+        InputError
+            ``"force"`` and the map has no ``roles.force_setpoint`` (one line).
+        """
+        if mode != "force":
+            return self
+        fsp = self.points.get("force_setpoint")
+        if fsp is None:
+            raise _no_force_role(self.source, "a holding register point in N, kN or lbf")
+        points = {**self.points, "setpoint": fsp}
+        fc23 = fsp.table == "holding" and len(self.reads) == 1 and self.reads[0].table == "holding"
+        return replace(self, points=points, fc23=fc23)
 
     def step_functions(self) -> list[int]:
         """The function code of each request of one step: 23, or 16 and one read per block
@@ -490,6 +550,25 @@ def _modbus_point(r: _Reader, role: str, defaults: dict[str, str]) -> ModbusPoin
     )
 
 
+def _modbus_roles(roles: _Reader, defaults: dict[str, str]) -> dict[str, ModbusPoint]:
+    """The role points of ``[roles]``: the required ones and the force set-point if mapped;
+    the set-points must be writable registers."""
+    src = roles.source
+    points = {role: _modbus_point(roles, role, defaults) for role in ROLES}
+    for role in OPTIONAL_ROLES:
+        if role in roles.data:
+            points[role] = _modbus_point(roles, role, defaults)
+    for role, what in (("setpoint", "a displacement"), ("force_setpoint", "a force")):
+        sp = points.get(role)
+        if sp is None:
+            continue
+        if not TABLES[sp.table][1]:
+            raise InputError(f"profile {src}: roles.{role}: the {sp.table} table is read-only")
+        if sp.type == "bool":
+            raise InputError(f"profile {src}: roles.{role}: {what} needs a register type")
+    return points
+
+
 def _check_overlaps(source: str, points: list[ModbusPoint], actions: list[ModbusAction]) -> None:
     spans = [(p.table, p.address, p.end, f"roles.{p.role}") for p in points]
     spans += [(a.table, a.address, a.address + 1, f"actions.{a.name}") for a in actions]
@@ -533,18 +612,14 @@ def _load_modbus(r: _Reader) -> ModbusProfile:
         }
     roles = r.table("roles", required=True)
     assert roles is not None
-    roles.unknown(ROLES)
+    roles.unknown(ROLES + OPTIONAL_ROLES)
     missing = [x for x in ROLES if x not in roles.data]
     if missing:
         raise InputError(
             f"profile {src}: roles.{missing[0]} is missing (the bridge needs {', '.join(ROLES)})"
         )
-    points = {role: _modbus_point(roles, role, defaults) for role in ROLES}
+    points = _modbus_roles(roles, defaults)
     sp = points["setpoint"]
-    if not TABLES[sp.table][1]:
-        raise InputError(f"profile {src}: roles.setpoint: the {sp.table} table is read-only")
-    if sp.type == "bool":
-        raise InputError(f"profile {src}: roles.setpoint: a displacement needs a register type")
     acts = r.table("actions", required=True)
     assert acts is not None
     acts.unknown(ACTIONS)

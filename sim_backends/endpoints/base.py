@@ -26,6 +26,10 @@ real-time loop relies on):
   actuator that a previous test or the operator left off centre. The plant runs about it
   (``measured = initial_position + plant(command − initial_position)``): commanding the
   initial position holds still, commanding 0 moves the actuator there through its dynamics.
+* Force control: a plant that runs in force mode (``plant.control == "force"``, the force twin
+  of :mod:`rths_hil.sim_backends.force`) takes the decoded force set-point (N) unchanged
+  (:attr:`TwinController.control`); the initial position does not offset it. The endpoint
+  decodes the force set-point role of its protocol instead of the displacement's.
 
 :class:`TwinEndpoint` runs the protocol side in a daemon thread and applies the frame faults of a
 :class:`~rths_hil.sim_backends.faults.Faults` plan.
@@ -159,6 +163,10 @@ class TwinController:
         self.stats = TwinStats()
         self._mask = (1 << seq_bits) - 1 if seq_bits else 0
         self.heartbeat_timeout = heartbeat_timeout
+        #: The wire control mode the plant runs (``"displacement"`` or ``"force"``): what a
+        #: command's value is, m or N (module docstring).
+        self.control: str = str(getattr(plant, "control", None) or "displacement")
+        self._offset = self.control != "force"  # the initial position offsets displacements
         self.lock = threading.Lock()
         self.reset()
 
@@ -286,7 +294,7 @@ class TwinController:
                 self.enabled = bool(enable)
             if self.enabled and math.isfinite(displacement):
                 home = self.home
-                if home:
+                if home and self._offset:
                     d, f = self.plant.step(displacement - home)
                     d += home
                 else:
@@ -337,6 +345,12 @@ class TwinEndpoint(ABC):
     def plant(self) -> Plant:
         """The plant being driven."""
         return self.controller.plant
+
+    @property
+    def control(self) -> str:
+        """The wire control mode of the plant (``"displacement"`` or ``"force"``): which
+        set-point role the endpoint decodes."""
+        return self.controller.control
 
     # -- how ``rths-hil twin serve`` maps its options onto this endpoint ----------------------
     #: Transports ``--transport`` accepts, the default first (empty: none to choose).

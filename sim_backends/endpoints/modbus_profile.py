@@ -15,15 +15,16 @@ and which mapped spans a request touches are worked out once and remembered, so 
 costs the twin's thread little beside pymodbus's request decoding and response framing.
 
 Controller behaviour (the :class:`~.base.TwinController` of every twin): each write of the
-set-point is one command — one plant step while enabled, a hold while disabled; the
-``enable`` / ``disable`` actions set the enable state; ``acknowledge`` starts a new run (as the
-built-in twins' arming command: the latch cleared, the plant at rest, the step count from 0);
-``estop`` latches the e-stop; a heartbeat write or a set-point write feeds the controller-side
-watchdog. After each command the position, force and status points show the new values; the
-status word is refreshed on every read (a watchdog latch is visible at once). The map carries
-no sequence number: the twin counts set-point writes from the acknowledge (the disabled write
-that follows it is the arming command, the next one the run's step 0), so a fault plan's step
-numbers are the bridge's.
+set-point (``roles.force_setpoint`` when the plant is force-controlled: its value in N goes to
+the plant unchanged; a profile without it is refused) is one command — one plant step while
+enabled, a hold while disabled; the ``enable`` / ``disable`` actions set the enable state;
+``acknowledge`` starts a new run (as the built-in twins' arming command: the latch cleared, the
+plant at rest, the step count from 0); ``estop`` latches the e-stop; a heartbeat write or a
+set-point write feeds the controller-side watchdog. After each command the position, force and
+status points show the new values; the status word is refreshed on every read (a watchdog latch
+is visible at once). The map carries no sequence number: the twin counts set-point writes from
+the acknowledge (the disabled write that follows it is the arming command, the next one the
+run's step 0), so a fault plan's step numbers are the bridge's.
 
 Faults: the frame faults of step ``k`` (drop, corrupt, duplicate, delay) apply to the responses
 to the reads of the feedback after the set-point write of step ``k`` — with FC 23 its one
@@ -142,6 +143,10 @@ class ModbusProfileTwin(TwinEndpoint):
         self.profile = prof
         self.host, self.port, self.allow_remote = str(host), int(port), bool(allow_remote)
         self.device_id = prof.unit if device_id is None else int(device_id)
+        try:  # the point the controller follows: roles.setpoint, or the force set-point
+            self._sp = prof.for_control(self.control).points["setpoint"]
+        except InputError as exc:
+            raise InputError(f"modbus twin: {exc}") from None
         self.tables: dict[str, dict[int, int]] = {t: {} for t in _READ_TABLE.values()}
         for p in list(prof.points.values()) + ([prof.heartbeat] if prof.heartbeat else []):
             for a in range(p.address, p.end):
@@ -438,7 +443,7 @@ class ModbusProfileTwin(TwinEndpoint):
         hb = prof.heartbeat
         if hb is not None and address <= hb.address < address + len(regs):
             self.controller.heartbeat()
-        sp = prof.points["setpoint"]
+        sp = self._sp
         if address <= sp.address and sp.end <= address + len(regs):
             x = self._from_registers(sp, [t[a] for a in range(sp.address, sp.end)])
             reply = self.controller.command(self._k, x, self._enable)

@@ -4,8 +4,11 @@ fixed-format driver and of a profile without a force role."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from rths_hil.drivers.base import Driver, Feedback
+from rths_hil.drivers.profile import load_profile
 from rths_hil.drivers.registry import create_driver
 
 from rths_hil.errors import InputError
@@ -82,3 +85,80 @@ def test_force_command_checked_as_a_force():
     drv.set_control("force")
     with pytest.raises(InputError, match="command force for step 3 is not finite"):
         drv.send(3, float("nan"))
+
+
+# ------------------------------------------------------------------------------------------
+# Modbus map: roles.force_setpoint
+# ------------------------------------------------------------------------------------------
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLES = ROOT / "examples" / "controllers"
+MODBUS_MAP = EXAMPLES / "modbus_map.toml"
+
+FORCE_ROLE = """
+[roles.force_setpoint]
+table = "holding"
+address = 104
+type = "int32"
+scale = 0.5
+units = "N"
+"""
+
+
+def _map(tmp_path: Path, extra: str = FORCE_ROLE, name: str = "map.toml") -> Path:
+    p = tmp_path / name
+    p.write_text(MODBUS_MAP.read_text() + extra)
+    return p
+
+
+def test_modbus_map_without_force_role_refuses_force_with_one_line():
+    drv = create_driver("modbus", profile=str(MODBUS_MAP))
+    with pytest.raises(InputError) as exc:
+        drv.set_control("force")
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert f"profile {MODBUS_MAP}: roles.force_setpoint is missing" in msg
+    assert drv.control == "displacement"
+
+
+def test_modbus_map_force_role_is_the_written_point(tmp_path):
+    prof = load_profile(_map(tmp_path))
+    assert prof.control_modes == ("displacement", "force")
+    assert prof.for_control("displacement") is prof
+    force = prof.for_control("force")
+    sp = force.points["setpoint"]
+    assert (sp.role, sp.address, sp.type) == ("force_setpoint", 104, "int32")
+    # the raw value in half-newtons: 1234.5 N is 2469 counts, the inverse gives it back
+    assert sp.raw_value(1234.5) == 2469 and sp.si(2469) == 1234.5
+    # the map's reads are input registers: FC 16 for the force set-point, then FC 4
+    assert force.step_functions() == [16, 4] and force.rtu_frames()[0] == (9 + 2 * 2, 8)
+    drv = create_driver("modbus", profile=str(tmp_path / "map.toml"))
+    drv.set_control("force")
+    assert drv.control == "force" and drv._sp.role == "force_setpoint"
+
+
+def test_force_setpoint_range_is_checked_against_the_force_limit(tmp_path):
+    prof = load_profile(_map(tmp_path, FORCE_ROLE.replace("int32", "int16"))).for_control("force")
+    prof.check_setpoint_range(16000.0)  # int16 of 0.5 N: ±16383.5 N
+    with pytest.raises(InputError) as exc:
+        prof.check_setpoint_range(20000.0)
+    assert str(exc.value).endswith(
+        "roles.force_setpoint: int16 with scale 0.5 carries -16.384…16.3835 kN, not the force "
+        "limit ±20 kN (safety.force_limit)"
+    )
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "needle"),
+    [
+        ('units = "N"', 'units = "mm"', "roles.force_setpoint.units: 'mm' is a length unit"),
+        ('table = "holding"', 'table = "input"', "roles.force_setpoint: the input table is"),
+        ("address = 104", "address = 101", "roles.force_setpoint: holding 101–102 overlaps"),
+        ('type = "int32"\n', 'type = "float16"\n', "roles.force_setpoint.type: unknown type"),
+    ],
+)
+def test_modbus_force_role_validated_with_one_line(tmp_path, old, new, needle):
+    p = _map(tmp_path, FORCE_ROLE.replace(old, new, 1))
+    with pytest.raises(InputError) as exc:
+        load_profile(p)
+    assert "\n" not in str(exc.value)
+    assert needle in str(exc.value)

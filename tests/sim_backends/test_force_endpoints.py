@@ -1,0 +1,116 @@
+"""A force-controlled channel through each protocol family's twin (issue #35): the driver in
+force mode (:meth:`Driver.set_control`) writes the profile's force set-point, the twin decodes
+it and hands it to the plant in N unchanged (equal to what was sent, to the profile's
+resolution), and the measured force comes back; the start does not jump (the first force
+set-point is the measured force). A profile without a force role is refused by the twin too.
+
+The plant is a recording force-controlled stand-in (``control = "force"``, the
+:class:`~rths_hil.sim_backends.base.Plant` protocol): it stores each set-point it is given and
+answers with a spring's displacement and a force of its own (0.9 × the set-point, so that the
+force read back is not the set-point echoed by mistake).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from rths_hil.drivers.registry import create_driver
+from rths_hil.sim_backends.twin import start_twin
+
+from rths_hil.errors import InputError
+
+pytestmark = pytest.mark.timing  # TCP servers, CAN buses and threads
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLES = ROOT / "examples" / "controllers"
+MODBUS_MAP = EXAMPLES / "modbus_map.toml"
+CAN_DBC = EXAMPLES / "can_dbc.toml"
+
+STIFFNESS = 2.0e6  # N/m
+RATIO = 0.9  # measured force / set-point of the stand-in plant
+#: set-points of a short test (N): the first is the measured force at rest (no start jump)
+FORCES = [0.0, 1234.56, -2500.26, 7777.7, 12.3, -0.4, 40000.0]
+
+
+class ForceSpring:
+    """A force-controlled stand-in plant: records each set-point (N)."""
+
+    control = "force"
+    dt = 1.0 / 1024.0
+
+    def __init__(self) -> None:
+        self.got: list[float] = []
+
+    def reset(self) -> None:
+        pass
+
+    def step(self, command: float) -> tuple[float, float]:
+        self.got.append(command)
+        f = RATIO * command
+        return f / STIFFNESS, f
+
+
+def _run(drv, forces):
+    """Arm, then one force set-point per step; the feedbacks."""
+    fb0 = drv.arm(1.0)
+    assert fb0 is not None
+    out = []
+    for k, f in enumerate(forces):
+        drv.send(k, f, True)
+        fb = drv.receive(1.0)
+        assert fb is not None and fb.seq == k, (k, fb)
+        out.append(fb)
+    return fb0, out
+
+
+# ------------------------------------------------------------------------------------------
+# Modbus map
+# ------------------------------------------------------------------------------------------
+#: a force set-point in half-newtons, int32 (resolution 0.5 N), holding registers 104–105
+MODBUS_FORCE_ROLE = """
+[roles.force_setpoint]      # written every step instead of the set-point in force control
+table = "holding"
+address = 104
+type = "int32"
+scale = 0.5
+units = "N"
+"""
+
+
+def _modbus_force_map(tmp_path: Path, fc23: bool = False) -> Path:
+    text = MODBUS_MAP.read_text() + MODBUS_FORCE_ROLE
+    if fc23:  # every point in holding registers: one FC 23 per step
+        text = text.replace('table = "input"', 'table = "holding"')
+    p = tmp_path / "map_force.toml"
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize(("fc23", "transport"), [(False, "tcp"), (True, "tcp"), (False, "rtu")])
+def test_modbus_map_force_channel_through_its_twin(tmp_path, fc23, transport):
+    plant = ForceSpring()
+    prof = _modbus_force_map(tmp_path, fc23)
+    with start_twin("modbus", plant, transport=transport, profile=str(prof)) as twin:
+        drv = create_driver("modbus", **twin.connection)
+        drv.set_control("force")
+        assert drv.profile.fc23 is fc23
+        with drv:
+            fb0, fbs = _run(drv, FORCES)
+    assert fb0.force == 0.0
+    # the twin stepped its plant once per enabled step, with the set-point in N as sent, to
+    # the map's resolution (0.5 N, round half to even as Python's round)
+    assert plant.got == [round(f / 0.5) * 0.5 for f in FORCES]
+    for f, fb in zip(FORCES, fbs, strict=True):
+        sent = round(f / 0.5) * 0.5
+        # float32 kN and mm in the map: 7 significant digits
+        assert fb.force == pytest.approx(RATIO * sent, rel=1e-6, abs=1e-3)
+        assert fb.displacement == pytest.approx(RATIO * sent / STIFFNESS, rel=1e-6, abs=1e-9)
+
+
+def test_modbus_twin_refuses_a_force_plant_without_a_force_role():
+    with pytest.raises(InputError) as exc:
+        start_twin("modbus", ForceSpring(), port=0, profile=str(MODBUS_MAP))
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert msg.startswith("modbus twin: profile ") and "roles.force_setpoint is missing" in msg
