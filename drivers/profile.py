@@ -696,7 +696,11 @@ class CANProfile:
 
     def check_setpoint_range(self, limit: float) -> None:
         """Refuse a set-point signal that cannot carry every command within ±``limit`` m
-        (``safety.displacement_limit``; 0 = off): one line, before anything moves."""
+        (``safety.displacement_limit``; 0 = off): one line, before anything moves.
+
+        On the profile of a force-controlled channel (:meth:`for_control`) the set-point is
+        the force set-point signal and ``limit`` the force limit in N (``safety.force_limit``).
+        """
         sp = self.roles["setpoint"]
         if limit <= 0:
             return
@@ -710,11 +714,35 @@ class CANProfile:
             ends[1] = min(max(ends), float(sig.maximum) * sp.factor)
         lo, hi = min(ends), max(ends)
         if lo > -limit or hi < limit:
-            raise InputError(
-                f"profile {self.source}: roles.setpoint: the DBC signal {sp.message}."
-                f"{sp.signal} carries {lo * 1e3:g}…{hi * 1e3:g} mm, not the displacement "
-                f"limit ±{limit * 1e3:g} mm (safety.displacement_limit)"
+            what = f"the DBC signal {sp.message}.{sp.signal}"
+            raise InputError(_range_refusal(self.source, sp.role, what, lo, hi, limit))
+
+    @property
+    def control_modes(self) -> tuple[str, ...]:
+        """The wire control modes the profile can run: ``displacement``, and ``force`` when
+        it maps ``roles.force_setpoint``."""
+        return CONTROL_MODES if "force_setpoint" in self.roles else CONTROL_MODES[:1]
+
+    def for_control(self, mode: str) -> CANProfile:
+        """The profile as a channel in wire mode ``mode`` uses it.
+
+        ``"displacement"``: this profile. ``"force"``: ``roles.force_setpoint`` (a signal of
+        the command message, its value in N) as the set-point of every command frame; the
+        displacement set-point signal keeps its DBC initial value.
+
+        Raises
+        ------
+        InputError
+            ``"force"`` and the profile has no ``roles.force_setpoint`` (one line).
+        """
+        if mode != "force":
+            return self
+        fsp = self.roles.get("force_setpoint")
+        if fsp is None:
+            raise _no_force_role(
+                self.source, f"a signal of the command message {self.roles['setpoint'].message}"
             )
+        return replace(self, roles={**self.roles, "setpoint": fsp})
 
     @property
     def command(self) -> Any:
@@ -772,13 +800,26 @@ def _load_can(r: _Reader, base: Path) -> CANProfile:
         raise InputError(f"profile {src}: dbc: {exc}") from None
     roles_t = r.table("roles", required=True)
     assert roles_t is not None
-    roles_t.unknown(ROLES)
+    roles_t.unknown(ROLES + OPTIONAL_ROLES)
     missing = [x for x in ROLES if x not in roles_t.data]
     if missing:
         raise InputError(
             f"profile {src}: roles.{missing[0]} is missing (the bridge needs {', '.join(ROLES)})"
         )
-    roles = {x: _can_signal(roles_t, x, db, dbc_rel) for x in ROLES}
+    roles = {
+        x: _can_signal(roles_t, x, db, dbc_rel) for x in ROLES + OPTIONAL_ROLES if x in roles_t.data
+    }
+    fsp = roles.get("force_setpoint")
+    if fsp is not None and fsp.message != roles["setpoint"].message:
+        raise InputError(
+            f"profile {src}: roles.force_setpoint: must be a signal of the command message "
+            f"{roles['setpoint'].message} (roles.setpoint), got {fsp.message}"
+        )
+    if fsp is not None and fsp.signal == roles["setpoint"].signal:
+        raise InputError(
+            f"profile {src}: roles.force_setpoint: {fsp.message}.{fsp.signal} is the "
+            "displacement set-point's signal (roles.setpoint)"
+        )
     fb = roles["position"].message
     for x in ("force", "status"):
         if roles[x].message != fb:

@@ -59,6 +59,8 @@ class CANProfileDriver(Driver):
     honours_deadline: ClassVar[bool] = True
     echoes_seq: ClassVar[bool] = False
     command_lsb: ClassVar[float | None] = None  # the DBC signal's range is checked
+    #: force when the profile maps ``roles.force_setpoint`` (:meth:`set_control`)
+    control_modes: ClassVar[tuple[str, ...]] = ("displacement", "force")
 
     def __init__(
         self,
@@ -80,9 +82,7 @@ class CANProfileDriver(Driver):
         self._cmd = cmd
         self._fb = fb
         r = prof.roles
-        self._sp_sig, self._sp_factor = r["setpoint"].signal, r["setpoint"].factor
-        sp = cmd.get_signal_by_name(self._sp_sig)
-        self._sp_range = (sp.minimum, sp.maximum)
+        self._use_setpoint()
         self._estop_sent = False  # an e-stop sent and not yet acknowledged
         # the command's signals: every one 0 (or its DBC initial value) unless a role sets it
         self._values: dict[str, float] = {
@@ -135,6 +135,30 @@ class CANProfileDriver(Driver):
         self._box: deque = deque()
         self._routes: dict[int, deque] = {}
 
+    def _use_setpoint(self) -> None:
+        """The set-point signal of the command frame: ``roles.setpoint``, or
+        ``roles.force_setpoint`` in force mode (:meth:`set_control`)."""
+        sp = self.profile.roles["setpoint"]
+        self._sp_sig, self._sp_factor = sp.signal, sp.factor
+        sig = self._cmd.get_signal_by_name(sp.signal)
+        self._sp_range = (sig.minimum, sig.maximum)
+
+    def set_control(self, mode: str) -> None:
+        """Select the wire mode before :meth:`open` (:meth:`Driver.set_control`).
+
+        ``"force"`` carries the force set-point (N) in the profile's ``roles.force_setpoint``
+        signal of every command frame; a profile without it is refused with one line.
+        """
+        super().set_control(mode)
+        try:
+            prof = self.profile.for_control(mode)
+        except InputError as exc:
+            self.control = "displacement"
+            raise InputError(f"can driver: {exc}") from None
+        if prof is not self.profile:
+            self.profile = prof
+            self._use_setpoint()
+
     # -- transport ------------------------------------------------------------------------------
     def open(self) -> None:
         if self._bus is not None:
@@ -178,8 +202,10 @@ class CANProfileDriver(Driver):
         value = displacement / self._sp_factor
         lo, hi = self._sp_range
         if (lo is not None and value < lo) or (hi is not None and value > hi):
+            what = "force" if self.control == "force" else "displacement"
+            unit = "N" if self.control == "force" else "m"
             raise InputError(
-                f"command displacement {displacement} m for step {seq}: out of the DBC range "
+                f"command {what} {displacement} {unit} for step {seq}: out of the DBC range "
                 f"of {self._cmd.name}.{self._sp_sig}"
             )
         values = self._values

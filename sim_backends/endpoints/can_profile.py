@@ -1,17 +1,18 @@
 """CAN twin for a profile: a controller node speaking the lab's own DBC.
 
-The twin loads the same profile as the driver (:mod:`rths_hil.drivers.profile`) and answers
-each command frame with one feedback frame, both encoded and decoded by cantools from the DBC
+The twin loads the same profile as the driver (:mod:`rths_hil.drivers.profile`) and answers each
+command frame with one feedback frame, both encoded and decoded by cantools from the DBC
 (Motorola or Intel signals, standard or extended identifiers). Like the lab's controller it
 echoes no sequence number. Controller behaviour (the :class:`~.base.TwinController` of every
 twin): a command with the enable signal at ``actions.enable``'s value is one plant step; one
-with it at ``actions.disable``'s value holds; the acknowledge signal at its value (sent with
-the enable flag off) starts a new run as the built-in twins' arming command does (latch
-cleared, plant at rest, step count from 0); the e-stop frame latches; a command or a heartbeat
-frame feeds the controller-side watchdog. Frame faults of a fault plan (drop, corrupt, delay,
-duplicate) apply to the feedback frames; a ``nan`` fault sets the status word's
-``sensor_invalid`` bit (when the profile maps one) and repeats the last position, as an
-integer signal cannot carry NaN.
+with it at ``actions.disable``'s value holds; the acknowledge signal at its value (sent with the
+enable flag off) starts a new run as the built-in twins' arming command does (latch cleared,
+plant at rest, step count from 0); the e-stop frame latches; a command or a heartbeat frame
+feeds the controller-side watchdog. A force-controlled plant (``plant.control == "force"``)
+takes the ``roles.force_setpoint`` signal's value in N unchanged (a profile without it is
+refused). Frame faults of a fault plan (drop, corrupt, delay, duplicate) apply to the feedback
+frames; a ``nan`` fault sets the status word's ``sensor_invalid`` bit (when the profile maps
+one) and repeats the last position, as an integer signal cannot carry NaN.
 """
 
 from __future__ import annotations
@@ -62,7 +63,11 @@ class CANProfileTwin(TwinEndpoint):
         self._estop = db.get_message_by_name(prof.actions["estop"].message)
         self._hb = db.get_message_by_name(prof.heartbeat.message) if prof.heartbeat else None
         r = prof.roles
-        self._sp = (r["setpoint"].signal, r["setpoint"].factor)
+        try:  # the set-point the controller follows: roles.setpoint, or the force set-point
+            sp = prof.for_control(self.control).roles["setpoint"]
+        except InputError as exc:
+            raise InputError(f"can twin: {exc}") from None
+        self._sp = (sp.signal, sp.factor)
         self._fbsig = {
             "position": (r["position"].signal, r["position"].factor),
             "force": (r["force"].signal, r["force"].factor),

@@ -162,3 +162,70 @@ def test_modbus_force_role_validated_with_one_line(tmp_path, old, new, needle):
         load_profile(p)
     assert "\n" not in str(exc.value)
     assert needle in str(exc.value)
+
+
+# ------------------------------------------------------------------------------------------
+# DBC profile: roles.force_setpoint
+# ------------------------------------------------------------------------------------------
+CAN_DBC = EXAMPLES / "can_dbc.toml"
+DBC_FORCE = ' SG_ ForceSetpoint : 47|16@0- (2,0) [-65536|65534] "N" Axis\n'
+
+
+def _can(tmp_path: Path, role: str) -> Path:
+    dbc = (EXAMPLES / "lab_axis.dbc").read_text()
+    anchor = ' SG_ AckCmd : 38|1@0+ (1,0) [0|1] "" Axis\n'
+    (tmp_path / "lab_axis.dbc").write_text(dbc.replace(anchor, anchor + DBC_FORCE))
+    p = tmp_path / "can.toml"
+    p.write_text(CAN_DBC.read_text() + role)
+    return p
+
+
+def test_dbc_profile_without_force_role_refuses_force_with_one_line():
+    drv = create_driver("can", profile=str(CAN_DBC))
+    with pytest.raises(InputError) as exc:
+        drv.set_control("force")
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"can driver: profile {CAN_DBC}: roles.force_setpoint is missing")
+    assert drv.control == "displacement"
+
+
+def test_dbc_force_role_is_the_command_frames_setpoint(tmp_path):
+    role = '\n[roles.force_setpoint]\nmessage = "AxisCommand"\nsignal = "ForceSetpoint"\n'
+    prof = load_profile(_can(tmp_path, role))
+    assert prof.control_modes == ("displacement", "force")
+    force = prof.for_control("force")
+    assert force.roles["setpoint"].signal == "ForceSetpoint"
+    assert force.command.name == "AxisCommand"
+    force.check_setpoint_range(60000.0)  # 16 bits of 2 N, limited by the DBC to ±65 kN
+    with pytest.raises(InputError, match=r"carries -65\.536…65\.534 kN, not the force limit"):
+        force.check_setpoint_range(70000.0)
+    drv = create_driver("can", profile=str(tmp_path / "can.toml"))
+    drv.set_control("force")
+    with pytest.raises(InputError, match=r"command force 70000\.0 N for step 1: out of the DBC"):
+        drv.send(1, 70000.0, True)
+
+
+@pytest.mark.parametrize(
+    ("role", "needle"),
+    [
+        (
+            '\n[roles.force_setpoint]\nmessage = "AxisStatus"\nsignal = "ForceActual"\n',
+            "roles.force_setpoint: must be a signal of the command message AxisCommand",
+        ),
+        (
+            '\n[roles.force_setpoint]\nmessage = "AxisCommand"\nsignal = "PositionSetpoint"\n',
+            "roles.force_setpoint.units: 'mm' is a length unit; the force_setpoint is a force",
+        ),
+        (
+            '\n[roles.force_setpoint]\nmessage = "AxisCommand"\nsignal = "PositionSetpoint"\n'
+            'units = "N"\n',
+            "AxisCommand.PositionSetpoint is the displacement set-point's signal",
+        ),
+    ],
+)
+def test_dbc_force_role_validated_with_one_line(tmp_path, role, needle):
+    with pytest.raises(InputError) as exc:
+        load_profile(_can(tmp_path, role))
+    assert "\n" not in str(exc.value)
+    assert needle in str(exc.value)

@@ -114,3 +114,59 @@ def test_modbus_twin_refuses_a_force_plant_without_a_force_role():
     msg = str(exc.value)
     assert "\n" not in msg
     assert msg.startswith("modbus twin: profile ") and "roles.force_setpoint is missing" in msg
+
+
+# ------------------------------------------------------------------------------------------
+# CAN with the lab's DBC
+# ------------------------------------------------------------------------------------------
+#: a force set-point signal in the command frame: Motorola, 24 bits from bit 47, 0.5 N
+DBC_FORCE_SIGNAL = ' SG_ ForceSetpoint : 47|24@0- (0.5,0) [-4194304|4194303.5] "N" Axis\n'
+CAN_FORCE_ROLE = """
+[roles.force_setpoint]
+message = "AxisCommand"
+signal = "ForceSetpoint"
+"""
+
+
+def _can_force_profile(tmp_path: Path, role: bool = True) -> Path:
+    dbc = (EXAMPLES / "lab_axis.dbc").read_text()
+    anchor = ' SG_ AckCmd : 38|1@0+ (1,0) [0|1] "" Axis\n'
+    assert anchor in dbc
+    (tmp_path / "lab_axis.dbc").write_text(dbc.replace(anchor, anchor + DBC_FORCE_SIGNAL))
+    p = tmp_path / "can_force.toml"
+    p.write_text(CAN_DBC.read_text() + (CAN_FORCE_ROLE if role else ""))
+    return p
+
+
+def test_can_profile_force_channel_through_its_twin(tmp_path):
+    import cantools
+
+    plant = ForceSpring()
+    prof = _can_force_profile(tmp_path)
+    with start_twin("can", plant, profile=str(prof)) as twin:
+        drv = create_driver("can", **twin.connection)
+        drv.set_control("force")
+        with drv:
+            fb0, fbs = _run(drv, FORCES)
+            frame = bytes(drv._cmd_data)  # the last command frame as it went out
+    assert fb0.force == 0.0
+    # the set-point decoded by the twin is what was sent, to the signal's 0.5 N
+    assert plant.got == pytest.approx([round(f / 0.5) * 0.5 for f in FORCES], abs=1e-9)
+    for f, fb in zip(FORCES, fbs, strict=True):
+        sent = round(f / 0.5) * 0.5
+        assert fb.force == pytest.approx(RATIO * sent, abs=0.25)  # ForceActual: 0.5 N
+        assert fb.displacement == pytest.approx(RATIO * sent / STIFFNESS, abs=0.5e-7)
+    # the frame read with cantools from the DBC file alone: the force in its signal, the
+    # displacement set-point untouched, the enable on
+    db = cantools.database.load_file(str(tmp_path / "lab_axis.dbc"))
+    v = db.get_message_by_name("AxisCommand").decode(frame)
+    assert v["ForceSetpoint"] == 40000.0 and v["PositionSetpoint"] == 0.0 and v["EnableCmd"] == 1
+
+
+def test_can_twin_refuses_a_force_plant_without_a_force_role(tmp_path):
+    with pytest.raises(InputError) as exc:
+        start_twin("can", ForceSpring(), profile=str(_can_force_profile(tmp_path, role=False)))
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert msg.startswith("can twin: profile ") and "roles.force_setpoint is missing" in msg
+    assert "a signal of the command message AxisCommand" in msg
