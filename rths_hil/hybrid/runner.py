@@ -394,6 +394,17 @@ class Runner:
         check_evaluators = safety.evaluators
         check_timing = safety.timing
         timeout = plan.timeout
+        # paced with the automatic reply wait (loop.feedback_timeout = 0): the replies are
+        # waited for at most until the step's own work after them still ends before the next
+        # deadline, i.e. until deadline + Δt − reserve, where reserve is the recent peak of that
+        # work (+50 %, decaying by 0.2 % a step, between 5 % and 25 % of Δt; a step whose work
+        # took longer than Δt is a stall, not work to reserve for). A reply later than
+        # that is a missed reply (degradation: the measurement is held), not an overrun that
+        # the following steps inherit (a controller that answers one request at a time fills
+        # most of the period at 1 kHz).
+        budget = paced and not plan.cfg["loop"]["feedback_timeout"]
+        reserve_min, reserve_max = 0.05 * dt, 0.25 * dt
+        reserve = 0.2 * dt
         spin = plan.spin
         min_sleep = MIN_SLEEP * dt
         thr = plan.overrun_threshold
@@ -484,9 +495,13 @@ class Runner:
                     now = perf()
                 # ---- every channel's reply --------------------------------------------------
                 t_lim = now + timeout
+                if budget:
+                    t_cut = t0 + tk + dt - reserve  # (t0: after a slip, step k is on time)
+                    if t_cut < t_lim:
+                        t_lim = t_cut
                 t_first = t_last = 0.0
                 for ch in chans:
-                    rem = t_lim - perf() if multi else timeout
+                    rem = t_lim - perf() if multi or budget else timeout
                     fb = ch.receive(rem if rem > 0.0 else 0.0)
                     t = ch.reply_clock = perf()
                     if fb is not None:
@@ -599,7 +614,15 @@ class Runner:
                     ch.command = ch.command_next
                 xs = x_next
                 t_end = perf()
-                work_list[k] = t_end - t_work
+                w = t_end - t_work
+                work_list[k] = w
+                if budget and w < dt:  # the reserve for the work after the replies (above)
+                    w *= 1.5
+                    reserve = w if w > reserve else reserve * 0.998
+                    if reserve < reserve_min:
+                        reserve = reserve_min
+                    elif reserve > reserve_max:
+                        reserve = reserve_max
                 if paced and usage(THREAD).ru_nvcsw == v_send:  # the thread never blocked
                     stalled_list[k] = max(0.0, t_end - prev_send - (cpu() - c_send))
                 k += 1
