@@ -129,6 +129,7 @@ class Axis:
             "served": 0,
             "dropped": 0,
             "pauses": 0,
+            "pause_time": 0.0,  # s, summed
         }
 
     # -- time --------------------------------------------------------------------------------
@@ -144,7 +145,9 @@ class Axis:
             return 0.0
         self.next_pause = self._draw_pause(now)
         self.history["pauses"] += 1
-        return self.rng.uniform(0.020, 0.040)
+        pause = self.rng.uniform(0.020, 0.040)
+        self.history["pause_time"] += pause
+        return pause
 
     def _lag(self, t: float) -> None:
         dt = t - self.t
