@@ -701,6 +701,14 @@ class SafetyMonitor:
     stuck : StuckRule or None
     controller : ControllerRule or None
     stability : StabilityRule or None
+    control : str
+        The channel's ``control.mode``. ``"displacement"``: the target and the command are
+        displacements, checked against the displacement limit. ``"force"`` or ``"load"``: they
+        are forces, checked against the force limit, and the structure's trial displacement
+        (:meth:`check_command`'s ``trial``) against the displacement limit; the measured
+        displacement and force are checked in every mode; the stuck-sensor rule (command
+        motion against measured motion, in m) does not apply to a force-controlled channel
+        (a held load does not move).
 
     Notes
     -----
@@ -726,8 +734,11 @@ class SafetyMonitor:
         stuck: StuckRule | None = None,
         controller: ControllerRule | None = None,
         stability: StabilityRule | None = None,
+        control: str = "displacement",
     ) -> None:
         self.dt = positive_number(dt, "time step")
+        self.control = control
+        self.force_mode = control != "displacement"
         inf = math.inf
         self._disp = (
             LimitRule("displacement", displacement_limit, "m") if displacement_limit else None
@@ -807,17 +818,44 @@ class SafetyMonitor:
         return self._fire(Trip("nan", f"non-finite value: {reason}", values=dict(bad)), t, k)
 
     def check_command(
-        self, t: float, k: int, target: float, velocity: float, command: float
+        self, t: float, k: int, target: float, velocity: float, command: float, trial: float = 0.0
     ) -> Trip | None:
-        """Before sending: the target, the structure's velocity and the command."""
+        """Before sending: the target, the structure's velocity and the command.
+
+        A force-controlled channel's target and command are forces (N) and ``trial`` is the
+        structure's displacement along it (m; class docstring).
+        """
         if self.tripped is not None:
             return self.tripped
         if not _isfinite(target + velocity + command):
             return self._nan(t, k, ("target", "velocity", "command"), (target, velocity, command))
+        if self.force_mode:
+            return self._check_force_command(t, k, target, velocity, command, trial)
         lo, hi = self._d_lo, self._d_hi
         if not (lo <= command <= hi and lo <= target <= hi):
             q, v = ("command", command) if not (lo <= command <= hi) else ("target", target)
             return self._fire(self._disp_trip(q, v), t, k)
+        lim = self.vel_limit
+        if not (-lim <= velocity <= lim):
+            return self._fire(self._vel.check("velocity", velocity), t, k)
+        return None
+
+    def _check_force_command(
+        self, t: float, k: int, target: float, velocity: float, command: float, trial: float
+    ) -> Trip | None:
+        """:meth:`check_command` of a force-controlled channel."""
+        lim = self.force_limit
+        if not (-lim <= command <= lim and -lim <= target <= lim):
+            q, v = (
+                ("commanded force", command)
+                if not (-lim <= command <= lim)
+                else ("target force", target)
+            )
+            return self._fire(self._force.check(q, v), t, k)
+        if not _isfinite(trial):
+            return self._nan(t, k, ("trial displacement",), (trial,))
+        if not (self._d_lo <= trial <= self._d_hi):
+            return self._fire(self._disp_trip("trial displacement", trial), t, k)
         lim = self.vel_limit
         if not (-lim <= velocity <= lim):
             return self._fire(self._vel.check("velocity", velocity), t, k)
@@ -889,7 +927,7 @@ class SafetyMonitor:
             if not (-lim <= v <= lim):
                 return self._fire(self._vel.check("measured velocity", v), t, k)
         st = self.stuck
-        if st is not None:
+        if st is not None and not self.force_mode:
             trip = st.check(command, measured)
             if trip is not None:
                 return self._fire(trip, t, k)

@@ -37,6 +37,7 @@ no such attribute, or ``"displacement"``); the endpoints pass the decoded set-po
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping
 from typing import Any
 
@@ -136,7 +137,9 @@ class ForcePlant(TwinPlant):
         super().__init__(Series(stages), (), specimen, sensor)
 
 
-def force_plant(twin: Mapping[str, Any], dt: float, loop_gain: float) -> ForcePlant:
+def force_plant(
+    twin: Mapping[str, Any] | str | os.PathLike[str], dt: float, loop_gain: float
+) -> ForcePlant:
     """A :class:`ForcePlant` from a model file's tables (``actuator``, ``specimen``, ``sensor``).
 
     The ``[actuator]`` table's ``delay``, ``gain`` and ``model`` (``delay_gain`` or
@@ -145,8 +148,9 @@ def force_plant(twin: Mapping[str, Any], dt: float, loop_gain: float) -> ForcePl
 
     Parameters
     ----------
-    twin : mapping
-        The tables as a parsed model file or a configuration's ``[twin]`` section holds them.
+    twin : mapping or path
+        The tables as a parsed model file or a configuration's ``[twin]`` section holds them,
+        or a model file.
     dt : float
         Step (s).
     loop_gain : float
@@ -162,7 +166,12 @@ def force_plant(twin: Mapping[str, Any], dt: float, loop_gain: float) -> ForcePl
     from .modelfile import SpecimenSpec, load_model
     from .models import make_model
 
-    spec = load_model({k: dict(twin[k]) for k in ("actuator", "specimen", "sensor") if twin.get(k)})
+    if isinstance(twin, str | os.PathLike):
+        spec = load_model(os.fspath(twin))
+    else:
+        spec = load_model(
+            {k: dict(twin[k]) for k in ("actuator", "specimen", "sensor") if twin.get(k)}
+        )
     a = spec.actuator
     if a.effects:
         raise InputError(

@@ -12,6 +12,7 @@ from .model import Config, resolve_channel
 from .schema import CHANNEL_SECTIONS
 
 __all__ = [
+    "check_control_keys",
     "check_motion_keys",
     "check_window_samples",
     "cross_check",
@@ -68,7 +69,14 @@ def cross_check(cfg: Config, note: str = "") -> None:
                 f"{path}.transform: {len(e['transform'])} entries, the structure has {n_dof} DOF"
             )
         site = st["kind"] == "openfresco"  # its DOFs are its actuators: channel i on DOF i
-        if n_dof is not None and n_dof > 1 and "dof" not in e and "transform" not in e and not site:
+        load = e.get("control", {}).get("mode", cfg["control"]["mode"]) == "load"  # no DOF
+        if (
+            n_dof is not None
+            and n_dof > 1
+            and "dof" not in e
+            and "transform" not in e
+            and not (site or load)
+        ):
             raise InputError(
                 f"{path}: say where the actuator acts: dof = 1..{n_dof} or transform = [...]"
             )
@@ -121,6 +129,46 @@ def cross_check_channel(cfg: Config, where: str) -> None:
     if c["adaptive"] and not cfg["fei"]["enabled"]:
         raise InputError(f"{where}: compensation.adaptive needs fei.enabled = true")
     check_motion_keys(cfg, where)
+    check_control_keys(cfg, where)
+
+
+def check_control_keys(cfg: Config, where: str) -> None:
+    """A channel's control mode and its load: a load channel holds one load (a constant or a
+    schedule) inside the force limit; only a load channel has one; a force channel needs the
+    specimen stiffness its force targets are computed with (``docs/channels.md``)."""
+    c = cfg["control"]
+    mode, load, sched = c["mode"], c["load"], c["load_schedule"]
+    if mode != "load":
+        if load or sched:
+            key = "load" if load else "load_schedule"
+            raise InputError(
+                f"{where}: control.{key}: only a control.mode = 'load' channel holds a load "
+                f"(this channel is {mode}-controlled)"
+            )
+    else:
+        if load and sched:
+            raise InputError(
+                f"{where}: control.load_schedule: give control.load or control.load_schedule, "
+                "not both"
+            )
+        if not load and not sched:
+            raise InputError(
+                f"{where}: control.load: a control.mode = 'load' channel needs the force it "
+                "holds: control.load (N) or control.load_schedule ([[t, N], …])"
+            )
+        lim = cfg["safety"]["force_limit"]
+        peak = abs(load) if load else max(abs(v) for _, v in sched)
+        if lim and not peak < lim:
+            key = "load" if load else "load_schedule"
+            raise InputError(
+                f"{where}: control.{key}: {peak:.6g} N is not inside the force limit "
+                f"±{lim:.6g} N (safety.force_limit)"
+            )
+    if mode == "force" and not cfg["structure"]["k_specimen"] > 0:
+        raise InputError(
+            f"{where}: structure.k_specimen: a control.mode = 'force' channel computes its force "
+            "targets with the specimen's stiffness: give it (> 0 N/m)"
+        )
 
 
 def check_motion_keys(cfg: Config, where: str) -> None:

@@ -173,11 +173,37 @@ def coerce(key: Key, value: Any, path: str) -> Any:  # noqa: C901
             check_range(key, v, f"{path}[{i}]")
             out.append(v)
         return out
+    if kind == "schedule":
+        return _schedule(key, value, path)
     if kind == "table":
         if not isinstance(value, dict):
             raise InputError(f"{path}: expected a table, got {describe(value)}")
         return copy.deepcopy(value)
     raise AssertionError(kind)  # pragma: no cover
+
+
+def _schedule(key: Key, value: Any, path: str) -> list[list[float]]:
+    """``[[t, v], …]``: times in s from 0, non-decreasing; values in the key's second unit."""
+    unit = key.unit.split(",")[-1].strip()
+    if not isinstance(value, list):
+        raise InputError(f"{path}: expected an array of [time, value] pairs, got {describe(value)}")
+    out: list[list[float]] = []
+    for i, pair in enumerate(value):
+        where = f"{path}[{i}]"
+        if not isinstance(pair, list) or len(pair) != 2:
+            raise InputError(f"{where}: expected a pair [time, value], got {describe(pair)}")
+        t = quantity(pair[0], "s", f"{where}[0]")
+        v = quantity(pair[1], unit, f"{where}[1]")
+        if not math.isfinite(t) or t < 0:
+            raise InputError(f"{where}[0]: the time must be a finite number ≥ 0 s, got {t!r}")
+        if not math.isfinite(v):
+            raise InputError(f"{where}[1]: must be a finite number, got {v!r}")
+        if out and t < out[-1][0]:
+            raise InputError(
+                f"{where}[0]: the times must not decrease ({t:g} s after {out[-1][0]:g} s)"
+            )
+        out.append([t, v])
+    return out
 
 
 def unknown_key(path: str, name: str, known: Iterable[str]) -> InputError:

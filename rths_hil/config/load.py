@@ -72,6 +72,8 @@ def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:  # noqa: C901
                 )
             out["transform"] = [float(v) for v in value]
         elif key in CHANNEL_SECTIONS:
+            if key == "control" and isinstance(value, str):  # control = "load"
+                value = {"mode": value}
             if not isinstance(value, dict):
                 raise InputError(f"{where}: {kp}: expected a table, got {describe(value)}")
             keys = SCHEMA[key]
@@ -114,6 +116,8 @@ def merge(cfg: Config, data: Mapping[str, Any], where: str) -> None:
             continue
         if section not in SCHEMA:
             raise InputError(f"{where}: {unknown_key(section, section, SCHEMA)}")
+        if section == "control" and isinstance(table, str):  # control = "force"
+            table = {"mode": table}
         if not isinstance(table, dict):
             raise InputError(
                 f"{where}: {section}: expected a table [{section}], got {describe(table)}"
@@ -153,6 +157,10 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not sep or not name:
         raise InputError(f"--set {text}: expected section.key=value")
     parts = name.split(".")
+    if parts == ["control"] or (
+        len(parts) == 3 and parts[0] == "actuators" and parts[2] == "control"
+    ):
+        parts.append("mode")  # --set control=force is control.mode
     if any(not p for p in parts) or len(parts) < 2:
         raise InputError(f"--set {text}: expected section.key=value")
     try:

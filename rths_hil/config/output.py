@@ -97,9 +97,12 @@ def schema_markdown() -> str:
                 rng = f"{lo or '(−∞'}, {hi or '∞)'}"
             else:
                 rng = ""
-            kind = {"window": 'float or "nT"', "table": "table", "array": "array"}.get(
-                key.kind, key.kind
-            )
+            kind = {
+                "window": 'float or "nT"',
+                "table": "table",
+                "array": "array",
+                "schedule": "array of [t, value]",
+            }.get(key.kind, key.kind)
             out.append(
                 f"| `{name}` | {kind} | {key.unit} | {rng} | "
                 f"`{toml_value(key.default)}` | {key.doc} |"
@@ -110,9 +113,10 @@ def schema_markdown() -> str:
         "",
         "Several actuators (channels) in one test: one `[[actuators]]` table per channel. Without",
         "any, the test has one channel made of the top-level sections (a single-actuator test).",
-        "The top-level `driver`, `twin`, `compensation`, `fei`, `kalman` and `safety` sections are",
-        "the defaults every channel inherits; a channel overrides any of their keys in its own",
-        "sub-tables (`[actuators.compensation]`, …). A key a channel sets replaces the top-level",
+        "The top-level `control`, `driver`, `twin`, `compensation`, `fei`, `kalman` and `safety`",
+        "sections are the defaults every channel inherits; a channel overrides any of their keys",
+        'in its own sub-tables (`[actuators.compensation]`, …; `control = "load"` is',
+        '`control.mode = "load"`). A key a channel sets replaces the top-level',
         "value (tables too), except `driver.connection`, merged key by key (a channel sets only",
         "its `node` or `device_id`; a channel on another driver starts from an empty",
         "connection). `--set section.key=value` sets a key on every channel;",

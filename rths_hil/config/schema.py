@@ -43,6 +43,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "CHANNEL_KEYS",
     "CHANNEL_SECTIONS",
+    "CONTROL_MODES",
     "MASS_RANGE",
     "SCHEMA",
     "STEP_KEYS",
@@ -64,8 +65,10 @@ class Key:
     ----------
     kind : str
         ``float`` (a quantity in ``unit``), ``int``, ``bool``, ``str``, ``choice``, ``window``
-        (seconds or natural periods), ``array`` (a list of quantities in ``unit``) or
-        ``table`` (free-form, checked by its consumer).
+        (seconds or natural periods), ``array`` (a list of quantities in ``unit``),
+        ``schedule`` (a list of ``[t, value]`` pairs, ``t`` in s non-decreasing from 0, the
+        value in the second unit of ``unit``) or ``table`` (free-form, checked by its
+        consumer).
     default : Any
         Default value (already in SI units).
     unit : str
@@ -90,6 +93,9 @@ class Key:
     hi_open: bool = False
     choices: tuple[str, ...] = ()
 
+
+#: A channel's control modes (``control.mode``): what its actuator follows.
+CONTROL_MODES = ("displacement", "force", "load")
 
 #: The schema: section → key → :class:`Key`. The defaults form the embedded NEES-711 setup.
 #: Physically plausible masses (kg) of a numerical substructure: 1 g (a bench model's storey)
@@ -367,6 +373,42 @@ SCHEMA: dict[str, dict[str, Key]] = {
             hi=60,
         ),
     },
+    "control": {
+        "mode": Key(
+            "choice",
+            "displacement",
+            unit="-",
+            doc="what the channel's actuator follows: displacement (the structure's trial "
+            "displacement; tracked: the measured displacement), force (a force from the "
+            "numerical substructure, force-based substructuring: docs/channels.md; tracked: the "
+            "measured force) or load (a constant or scheduled force held through the test, "
+            "control.load or control.load_schedule; tracked: the measured force). "
+            'control = "force" is read as control.mode = "force"',
+            choices=CONTROL_MODES,
+        ),
+        "load": Key(
+            "float",
+            0.0,
+            unit="N",
+            doc="load: the constant force held through the test",
+        ),
+        "load_schedule": Key(
+            "schedule",
+            [],
+            unit="s, N",
+            doc="load: [[t, F], …] the force held, piecewise linear in the test's time t from "
+            "step 0 (held before the first and after the last point); instead of control.load",
+        ),
+        "load_ramp": Key(
+            "float",
+            0.0,
+            unit="s",
+            doc="force and load: the ramp of the force up from where it is to the first load "
+            "after arming, and down to 0 N before the hand-back (0 = start.ramp_time)",
+            lo=0,
+            hi=600,
+        ),
+    },
     "driver": {
         "name": Key(
             "str",
@@ -460,6 +502,16 @@ SCHEMA: dict[str, dict[str, Key]] = {
             0.0,
             unit="m",
             doc="where the twin's actuator sits at rest (an actuator left off centre)",
+        ),
+        "force_loop_gain": Key(
+            "float",
+            2.0e-4,
+            unit="m/(s·N)",
+            doc="force and load channels: the twin's force-loop gain K_f (piston velocity per N "
+            "of force error); its closed loop lags by T = (1 + K_f·c)/(K_f·k) on the twin's "
+            "specimen k, c (4.2 ms on the default 1.19 MN/m specimen)",
+            lo=0,
+            lo_open=True,
         ),
     },
     "compensation": {
@@ -679,7 +731,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
     },
     "safety": {
         "displacement_limit": Key(
-            "float", 0.050, unit="m", doc="|target|, |command|, |measured| limit (0 = off)", lo=0
+            "float",
+            0.050,
+            unit="m",
+            doc="|target|, |command|, |measured| limit (0 = off); on a force or load channel "
+            "the |measured| and the structure's |trial| displacement",
+            lo=0,
         ),
         "velocity_limit": Key(
             "float",
@@ -688,7 +745,14 @@ SCHEMA: dict[str, dict[str, Key]] = {
             doc="|structure velocity| and |measured velocity| limit (0 = off)",
             lo=0,
         ),
-        "force_limit": Key("float", 100e3, unit="N", doc="|measured force| limit (0 = off)", lo=0),
+        "force_limit": Key(
+            "float",
+            100e3,
+            unit="N",
+            doc="|measured force| limit (0 = off); on a force or load channel also the limit "
+            "of its target and commanded force",
+            lo=0,
+        ),
         "fei_amplitude_tol": Key(
             "float", 0.2, unit="-", doc="FEI rule: tolerance on |A − 1| (0 = off)", lo=0
         ),
@@ -992,7 +1056,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
 
 #: Sections an ``[[actuators]]`` entry may set for its channel; the top-level ones are the
 #: defaults every channel inherits.
-CHANNEL_SECTIONS = ("driver", "twin", "compensation", "fei", "kalman", "safety")
+CHANNEL_SECTIONS = ("control", "driver", "twin", "compensation", "fei", "kalman", "safety")
 #: Keys of an ``[[actuators]]`` entry besides its sections.
 CHANNEL_KEYS = ("name", "dof", "transform")
 

@@ -29,7 +29,7 @@ from .plan import ChannelPlan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Channel"]
+__all__ = ["Channel", "step_mixed"]
 
 _ESTOP = int(Status.ESTOP_ACTIVE)
 
@@ -109,8 +109,10 @@ class Channel:
         "compensate",
         "compensator",
         "compensator_observe",
+        "control",
         "dof",
         "driver",
+        "dt",
         "estop_confirmed",
         "exact_fei",
         "feedback_ok",
@@ -127,11 +129,13 @@ class Channel:
         "fei_on_target",
         "fei_valid",
         "force",
+        "force_mode",
         "fs",
         "gap_start",
         "gap_steps",
         "gaps",
         "heartbeat",
+        "k_force",
         "kalman",
         "kalman_every",
         "kalman_new",
@@ -140,6 +144,7 @@ class Channel:
         "kf_gain",
         "last_command",
         "link_down",
+        "load",
         "longest_gap",
         "longest_gap_steps",
         "measured",
@@ -164,6 +169,8 @@ class Channel:
         "suffix",
         "target",
         "target_next",
+        "trial",
+        "trial_next",
         "twin",
         "velocity",
         "warmup_steps",
@@ -184,6 +191,12 @@ class Channel:
             None if observe is Compensator.observe else plan.compensator.observe
         )
         self.adaptive = plan.adaptive
+        self.control = plan.control
+        self.force_mode = plan.control != "displacement"
+        self.k_force = plan.k_force
+        self.load = plan.load
+        self.dt = 1.0 / fs
+        self.trial = self.trial_next = 0.0
         self.kalman = plan.kalman
         self.monitor = plan.monitor
         self.stream_fei = StreamingFEI(fs, plan.window_s) if plan.fei_enabled else None
@@ -280,6 +293,12 @@ class Channel:
             raise InputError(f"{where}: driver: {exc}") from None
         except TypeError as exc:
             raise InputError(f"{where}: driver.connection: {exc}") from None
+        set_control = getattr(driver, "set_control", None)
+        if set_control is not None:  # the wire mode, once, before open (a load is a force)
+            try:
+                set_control(plan.wire_control)
+            except InputError as exc:
+                raise InputError(f"{where}: control.mode = {self.control!r}: {exc}") from None
         driver.open()
         stack.callback(driver.close)
         stack.callback(driver.stop_reader)  # before close: a reader thread stops first
@@ -346,7 +365,8 @@ class Channel:
         update of the Kalman filter. Sets :attr:`fei_new` / :attr:`kalman_new` when a new
         estimate is there for the rules.
         """
-        meas = self.measured
+        # the tracked quantity: the measured force of a force-controlled channel
+        meas = self.force if self.force_mode else self.measured
         ok = self.feedback_ok
         if self.compensator_observe is not None and ok:
             self.compensator_observe(self.target, self.command, meas)
@@ -390,7 +410,38 @@ class Channel:
             self.kalman_new = new and k >= self.warmup_steps
         ind = self.stability_ind
         if ind is not None:  # the interface's energy balance of this step (O(1))
-            self.stability = ind.push(self.target, meas, self.force, self.velocity)
+            if self.force_mode:  # the interface's displacements: trial and measured
+                self.stability = ind.push(self.trial, self.measured, self.force, self.velocity)
+            else:
+                self.stability = ind.push(self.target, meas, self.force, self.velocity)
+
+    def interface_force(self) -> float:
+        """The force this channel returns to the structure for the step just measured (N).
+
+        Displacement: the measured force. Force: the measured force carried to the trial
+        displacement along the specimen stiffness the integrator assumes,
+        ``F_m + k_s·(d − x_m)`` (``docs/channels.md``). Load: nothing (it acts on no DOF).
+        """
+        c = self.control
+        if c == "force":
+            return self.force + self.k_force * (self.trial - self.measured)
+        if c == "load":
+            return 0.0
+        return self.force
+
+    def force_target(self, trial: float, k: int) -> float:
+        """The target of step ``k`` for the structure's trial displacement ``trial`` along it.
+
+        Displacement: ``trial`` (m). Force: the force that takes the specimen from its last
+        measured state to ``trial`` along the assumed stiffness, ``F_m + k_s·(trial − x_m)``
+        (N). Load: the schedule's force at step ``k`` (N).
+        """
+        c = self.control
+        if c == "force":
+            return self.force + self.k_force * (trial - self.measured)
+        if c == "load":
+            return self.load.at(k * self.dt)
+        return trial
 
     def keepalive(self) -> None:
         """Heartbeat while no command is due (the controller's watchdog); serve an inline twin.
@@ -446,3 +497,50 @@ class Channel:
                 "e-stop sent but not confirmed by the controller of %s", self.name or "the actuator"
             )
         return self.estop_confirmed
+
+
+def step_mixed(st: Any, k: int, ag: float, chans: list[Channel], n_dof: int) -> list[float]:
+    """Commit step ``k`` of a test with force or load channels; set every channel's next target.
+
+    The runner's structure phase when some channel is not displacement-controlled: each channel
+    returns its :meth:`Channel.interface_force` along its row of T, the stage commits step ``k``
+    and returns the DOF displacements of step ``k + 1``; each channel's trial displacement
+    along it becomes its next target (:meth:`Channel.force_target`), compensated. The trial
+    displacement of step ``k`` (:attr:`Channel.trial`) is the one this function set as
+    ``trial_next`` at step ``k − 1``.
+    """
+    f = [0.0] * n_dof
+    for ch in chans:
+        ch.trial = ch.trial_next
+        fc = ch.interface_force()
+        if ch.dof >= 0:
+            f[ch.dof] += fc
+        else:
+            for i, r in enumerate(ch.row):
+                f[i] += r * fc
+    x_next = st.step(k, ag, f)
+    v_d, r_d = st.v, st.r
+    for ch in chans:
+        d = ch.dof
+        if d >= 0:
+            x = x_next[d]
+            ch.velocity = v_d[d]
+            ch.restoring_force = r_d[d]
+        else:
+            x = _dot(ch.row, x_next)
+            ch.velocity = _dot(ch.row, v_d)
+            ch.restoring_force = _dot(ch.row, r_d)
+        ch.trial_next = x
+        ch.target_next = ch.force_target(x, k + 1)
+        ch.alpha = ch.compensator.alpha
+        ch.command_next = ch.compensate(ch.target_next)
+    return x_next
+
+
+def _dot(row: list[float], x: Any) -> float:
+    """T-row · vector for short rows (plain floats; the runner's sum)."""
+    s = 0.0
+    for r, v in zip(row, x, strict=False):
+        if r:
+            s += r * v
+    return s

@@ -291,6 +291,9 @@ class Phases:
                 x = float(xs[ch.dof])
             else:
                 x = float(sum(r * v for r, v in zip(ch.row, xs, strict=False)))
+            if ch.force_mode:  # the force of step 0 (from rest, or the load's)
+                ch.trial = ch.trial_next = x
+                x = ch.force_target(x, 0)
             ch.compensator.reset(x)
             out.append(float(ch.compensator.step(x)))
             ch.compensator.reset(x)
@@ -352,26 +355,38 @@ class Phases:
         self.where = where = self._locate(armed, firsts)
         offset_mode = self.start_cfg["mode"] == "offset"
         for ch, w in zip(self.chans, where, strict=True):
-            if offset_mode and w.status is not None:
+            if offset_mode and w.status is not None and not ch.force_mode:
                 w.offset = w.position
             rec.event(
                 "start_position", 0.0, 0, channel=ch.name, position=w.position,
                 force=w.force, status=w.status, first_command=w.first, offset=w.offset,
-                mode=self.start_cfg["mode"],
+                mode=self.start_cfg["mode"], control=ch.control,
             )  # fmt: skip
         self.offsets = [w.offset for w in where]
         for ch, off in zip(self.chans, self.offsets, strict=True):
             ch.monitor.set_offset(off)  # offset mode: the absolute stroke is watched too
-        self.sent = [w.position for w in where]
-        # absolute commands: from where each actuator is to its step-0 command
-        a = np.array([w.position for w in where])
+        # absolute commands: from where each actuator is to its step-0 command; a force
+        # channel's from the force it measures (0 N unread) to its first force
+        forced = np.array([ch.force_mode for ch in self.chans], dtype=bool)
+        a = np.array(
+            [
+                (w.force if math.isfinite(w.force) else 0.0) if f else w.position
+                for w, f in zip(where, forced, strict=True)
+            ]
+        )
         b = np.array([w.first + w.offset for w in where])
+        self.sent = a.tolist()
+        # a force within the force that moves the assumed specimen by start.tolerance
         tol = self.start_cfg["tolerance"]
+        tol_f = tol * float(self.plan.cfg["structure"]["k_specimen"])
         trip = None
-        if np.any(np.abs(b - a) > tol):
+        gap = np.abs(b - a)
+        if np.any(gap[~forced] > tol) or np.any(gap[forced] > tol_f):
             v = _ramp_velocity(self.chans, self.start_cfg["velocity"])
-            dist = float(np.max(np.abs(b - a)))
+            dist = float(np.max(gap[~forced], initial=0.0))
             duration = ramp_duration(dist, v, self.start_cfg["ramp_time"])
+            if np.any(forced):  # the load's ramp: at least control.load_ramp
+                duration = max(duration, max(ch.plan.load_ramp for ch in self.chans))
             n_ramp = max(1, math.ceil(duration / self.dt))
             n_hold = round(self.start_cfg["hold"] / self.dt)
             paths = [
@@ -432,11 +447,17 @@ class Phases:
             rest = np.full(len(self.chans), float(self.end_cfg["rest_position"]))
         else:
             rest = last.copy()
+        forced = np.array([ch.force_mode for ch in self.chans], dtype=bool)
+        rest[forced] = 0.0  # a force channel unloads before the hand-back
         v = _ramp_velocity(self.chans, self.start_cfg["velocity"])
-        dist = float(np.max(np.abs(rest - last))) if len(last) else 0.0
+        gap = np.abs(rest - last)
+        dist = float(np.max(gap[~forced], initial=0.0))
         n_ramp = 0
         if dist > 0.0:
             n_ramp = max(1, math.ceil(ramp_duration(dist, v, 0.0) / dt))
+        if np.any(gap[forced] > 0.0):  # the load's ramp down: control.load_ramp
+            ramp = max(ch.plan.load_ramp for ch, f in zip(self.chans, forced, strict=True) if f)
+            n_ramp = max(n_ramp, max(1, math.ceil(ramp / dt)))
         n_hold = round(self.end_cfg["hold"] / dt)
         paths = [
             np.concatenate([cosine_ramp(ai, bi, n_ramp)[1:], np.full(n_hold, bi)])
@@ -502,7 +523,8 @@ class Phases:
         previous phase's next deadline) or a moment from now (:func:`.timing.first_deadline`),
         and :attr:`next_deadline` set after each; lockstep: the next command when the replies
         are in. Returns the first trip (or ``None``) and each channel's last measured
-        displacement (absolute).
+        displacement (absolute; a force-controlled channel's measured force). A force
+        channel's path is forces (N): checked against its force limit, no velocity.
         """
         runner = self.runner
         plan = self.plan
@@ -529,7 +551,7 @@ class Phases:
                 self.next_deadline = t0 + (i + 1) * dt
             for j, (ch, (send, _), p, off) in enumerate(links):
                 c = float(p[i])
-                v = (c - sent[j]) / dt
+                v = 0.0 if ch.force_mode else (c - sent[j]) / dt  # a force ramp: no motion
                 trip = ch.monitor.check_command(t, k, c - off, v, c - off)
                 if trip is not None:
                     return runner.safety.fire(trip, ch, t, k), meas_abs
@@ -545,7 +567,7 @@ class Phases:
                         getattr(ch.driver, "link_down", None),
                     )  # fmt: skip
                 else:
-                    meas_abs[j] = fb.displacement
+                    meas_abs[j] = fb.force if ch.force_mode else fb.displacement
                     trip = ch.monitor.check_feedback(
                         t, k, True, seq0 + i, fb.seq, fb.status, c - off,
                         fb.displacement - off, fb.force,

@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "ChannelPlan",
+    "LoadSchedule",
     "TestPlan",
     "build_ground_motion",
     "build_plan",
@@ -101,13 +102,20 @@ def choose_plant(cfg: Config, dt: float):
     """The twin's plant of a channel (``cfg`` is the channel's resolved configuration).
 
     ``twin.model`` (a model file) or the ``twin.actuator`` / ``specimen`` / ``sensor`` tables,
-    built by :func:`rths_hil.sim_backends.modelfile.build_plant`. This is the one place the loop
-    chooses a twin.
+    built by :func:`rths_hil.sim_backends.modelfile.build_plant`; a force or load channel
+    (``control.mode``) gets the force-controlled twin of the same tables
+    (:func:`rths_hil.sim_backends.force.force_plant`, force-loop gain ``twin.force_loop_gain``).
+    This is the one place the loop chooses a twin.
     """
     from rths_hil.sim_backends.modelfile import build_plant
 
     tw = cfg["twin"]
     try:
+        if cfg["control"]["mode"] != "displacement":  # a force or load channel: the force twin
+            from rths_hil.sim_backends.force import force_plant
+
+            source = cfg.resolve_path(tw["model"]) if tw["model"] else tw
+            return force_plant(source, dt, tw["force_loop_gain"])
         return build_plant(tw, dt, str(cfg.base_dir))
     except InputError as exc:
         where = "twin.model: " if tw["model"] else "twin."  # the message names the table key
@@ -231,6 +239,42 @@ def record_columns(
 # plans
 
 
+class LoadSchedule:
+    """The force a load channel holds: constant, or piecewise linear in time.
+
+    Parameters
+    ----------
+    load : float
+        The constant force (N), used when ``schedule`` is empty.
+    schedule : list of [t, F]
+        Times (s from step 0, non-decreasing) and forces (N); held before the first point and
+        after the last.
+
+    Examples
+    --------
+    >>> s = LoadSchedule(0.0, [[0.0, 100.0], [2.0, 300.0]])
+    >>> s.at(1.0), s.at(5.0)
+    (200.0, 300.0)
+    """
+
+    def __init__(self, load: float, schedule: list[list[float]] | None = None) -> None:
+        pts = np.array(schedule if schedule else [[0.0, load]], dtype=float).reshape(-1, 2)
+        self.times = pts[:, 0]
+        self.forces = pts[:, 1]
+        self.constant = float(self.forces[0]) if np.all(self.forces == self.forces[0]) else None
+
+    def at(self, t: float) -> float:
+        """The force (N) at time ``t`` (s)."""
+        if self.constant is not None:
+            return self.constant
+        return float(np.interp(t, self.times, self.forces))
+
+    @property
+    def peak(self) -> float:
+        """The largest magnitude of the schedule (N)."""
+        return float(np.max(np.abs(self.forces)))
+
+
 @dataclass
 class ChannelPlan:
     """One actuator channel, planned (no I/O yet).
@@ -277,6 +321,21 @@ class ChannelPlan:
     stability_window: float = 0.0
     stability_damping: float = 0.0
     stability_min_velocity: float = 0.0
+    #: ``control.mode``: displacement, force (the force target from the structure) or load
+    #: (the force from :attr:`load`); the wire mode is force for both of the latter
+    control: str = "displacement"
+    #: force: the specimen stiffness along the actuator its force targets are computed with
+    #: (``structure.k_specimen``, N/m; docs/channels.md)
+    k_force: float = 0.0
+    #: load: the force held at a time from step 0 (N)
+    load: LoadSchedule | None = None
+    #: force and load: the force ramps' shortest duration (s)
+    load_ramp: float = 0.0
+
+    @property
+    def wire_control(self) -> str:
+        """The driver's control mode: ``displacement`` or ``force`` (a load channel too)."""
+        return "displacement" if self.control == "displacement" else "force"
 
 
 @dataclass
@@ -395,6 +454,8 @@ def _plan_channel(  # noqa: C901
     profile = cfg["driver"]["profile"]
     from rths_hil.drivers.profile import is_builtin, load_profile
 
+    control = cfg["control"]["mode"]
+    wire = "displacement" if control == "displacement" else "force"  # a load is a force
     if not is_builtin(profile):
         path = cfg.resolve_path(profile)
         try:
@@ -407,11 +468,23 @@ def _plan_channel(  # noqa: C901
                 f"{where}: driver.profile: {path} is a {prof.protocol} profile; driver "
                 f"{name!r} takes {speaks}"
             )
-        try:  # every command within the displacement limit must fit the set-point's field
-            prof.check_setpoint_range(float(cfg["safety"]["displacement_limit"]))
+        try:  # every command within the displacement (force) limit must fit the set-point
+            if wire == "force" and hasattr(prof, "for_control"):
+                prof = prof.for_control("force")
+                prof.check_setpoint_range(float(cfg["safety"]["force_limit"]))
+            else:
+                prof.check_setpoint_range(float(cfg["safety"]["displacement_limit"]))
         except InputError as exc:
             raise InputError(f"{where}: driver.profile: {exc}") from None
         conn["profile"] = str(path)
+    # the driver that speaks the channel (its profile's, when it has one) runs its wire mode
+    wcls = dcls if is_builtin(profile) else dcls.profile_driver()
+    modes = tuple(getattr(wcls, "control_modes", ("displacement",)))
+    if wire not in modes:
+        raise InputError(
+            f"{where}: control.mode = {control!r}: driver {name!r} cannot run a "
+            f"force-controlled channel (its control modes: {', '.join(modes)})"
+        )
     if tw["enabled"] and plant is None:
         plant = choose_plant(cfg, dt)
     faults = None
@@ -502,9 +575,10 @@ def _plan_channel(  # noqa: C901
         overrun=None,  # one rule for the whole loop (TestPlan.max_overruns)
         stuck=StuckRule(sf["stuck_steps"], sf["stuck_motion"]) if sf["stuck_steps"] else None,
         controller=ControllerRule() if sf["controller_status"] else None,
+        control=control,
     )
     stab_window = stab_damping = 0.0
-    if sf["stability"] != "off":
+    if sf["stability"] != "off" and control != "load":  # a load is not from the structure
         w = sf["stability_window"]
         try:
             stab_window = parse_window(w, fn1) if isinstance(w, str) else float(w)
@@ -555,6 +629,14 @@ def _plan_channel(  # noqa: C901
         stability_window=stab_window,
         stability_damping=stab_damping,
         stability_min_velocity=sf["stability_min_velocity"],
+        control=control,
+        k_force=float(cfg["structure"]["k_specimen"]) if control == "force" else 0.0,
+        load=(
+            LoadSchedule(cfg["control"]["load"], cfg["control"]["load_schedule"])
+            if control == "load"
+            else None
+        ),
+        load_ramp=float(cfg["control"]["load_ramp"] or cfg["start"]["ramp_time"]),
     )
 
 
@@ -659,8 +741,26 @@ def build_plan(  # noqa: C901
             f"{cfg.source}: actuators: a structure of {n_dof} DOF needs [[actuators]] entries "
             "saying where each actuator acts (dof or transform)"
         )
-    rows = [channel_row(cc, i, n_dof, i + 1 if site else 1) for i, cc in enumerate(chans_cfg)]
-    structure, fn1 = build_structure(cfg, dt, float(ag[0]), np.array(rows), model)
+    # a load channel's force comes from its schedule: it acts on no DOF (a zero row of T)
+    loads = [cc.config["control"]["mode"] == "load" for cc in chans_cfg]
+    for i, cc in enumerate(chans_cfg):
+        if loads[i] and (cc.dof is not None or cc.transform is not None):
+            key = "dof" if cc.dof is not None else "transform"
+            raise InputError(
+                f"{_where(cc, i)}.{key}: a control.mode = 'load' channel holds its load "
+                "(control.load), it acts on no DOF of the structure: remove the key"
+            )
+    if all(loads):
+        raise InputError(
+            f"{cfg.source}: control.mode: every channel holds a load; a test needs a channel "
+            "the structure drives (displacement or force)"
+        )
+    rows = [
+        np.zeros(n_dof) if loads[i] else channel_row(cc, i, n_dof, i + 1 if site else 1)
+        for i, cc in enumerate(chans_cfg)
+    ]
+    coupled = [r for i, r in enumerate(rows) if not loads[i]]
+    structure, fn1 = build_structure(cfg, dt, float(ag[0]), np.array(coupled), model)
     plants: dict[str, Any] = {}
     if plant is not None:
         if isinstance(plant, dict):
@@ -669,7 +769,8 @@ def build_plan(  # noqa: C901
             plants = {chans_cfg[0].name: plant}
         else:
             raise InputError("plant=: several channels: pass {channel name: plant}")
-    c_along = damping_along_rows(cfg, structure, model, rows)
+    c_coupled = iter(damping_along_rows(cfg, structure, model, coupled))
+    c_along = [None if loads[i] else next(c_coupled) for i in range(len(rows))]
     channels = [
         _plan_channel(
             cc, i, len(chans_cfg), rows[i], fs, fn1, plants.get(cc.name), mode, c_along[i]

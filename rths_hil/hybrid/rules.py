@@ -57,7 +57,9 @@ class Safety:
 
     def _command_one(self, t: float, k: int) -> Trip | None:
         ch = self._ch
-        trip = self._check_command(t, k, ch.target_next, ch.velocity, ch.command_next)
+        trip = self._check_command(
+            t, k, ch.target_next, ch.velocity, ch.command_next, ch.trial_next
+        )
         return None if trip is None else self.fire(trip, ch, t, k)
 
     def fire(self, trip: Trip, ch: Channel | None, t: float, k: int) -> Trip:
@@ -81,9 +83,12 @@ class Safety:
         return out
 
     def command(self, t: float, k: int) -> Trip | None:
-        """Before sending: each channel's next target, its velocity and its command."""
+        """Before sending: each channel's next target, its velocity and its command (and a
+        force-controlled channel's trial displacement)."""
         for ch in self.channels:
-            trip = ch.monitor.check_command(t, k, ch.target_next, ch.velocity, ch.command_next)
+            trip = ch.monitor.check_command(
+                t, k, ch.target_next, ch.velocity, ch.command_next, ch.trial_next
+            )
             if trip is not None:
                 return self.fire(trip, ch, t, k)
         return None
