@@ -31,13 +31,18 @@ from .shaping import (
     envelope,
     finite_or,
     fit_range,
+    stability_levels,
 )
 
 OVERVIEW_BUCKETS = 500  # buckets (about one pixel each) of the whole-test plot
 
-#: Columns of the 10 s displacement plot's source, and of the FEI plots' source (delays in ms).
+#: Columns of the 10 s displacement plot's source, and of the source of the FEI, Kalman and
+#: stability plots (delays in ms; ``s``: the energy stability indicator S).
 WINDOW_COLUMNS = ("t", "target", "command", "measured")
-FEI_COLUMNS = ("t", "a", "d", "a_ex", "d_ex", "kf_g", "kf_d")
+FEI_COLUMNS = ("t", "a", "d", "a_ex", "d_ex", "kf_g", "kf_d", "s")
+
+#: Colours of the stability indicator's warning and limit levels.
+S_LEVEL_COLORS = {"warn": "#d97706", "limit": "#b91c1c"}
 
 COLORS = {
     "target": "#1f77b4",
@@ -227,6 +232,48 @@ class ChannelView:
             )
         self.kalman = pk
 
+        # the energy stability indicator S (rths_hil.stability) beside the FEI: injected over
+        # dissipated energy in the rule's window; its warning and limit levels as lines
+        self.s_levels = stability_levels(safety)
+        top = max(self.s_levels.values(), default=1.0)
+        self.y_s = Range1d(-0.1 * top, 1.15 * top)
+        rule = str(safety.get("stability", "off"))
+        levels = ", ".join(
+            f"{'warning' if k == 'warn' else 'limit'} {v:g}" for k, v in self.s_levels.items()
+        )
+        ps = figure(
+            title="stability indicator S = injected / dissipated energy · "
+            + (f"{levels} (rule: {rule})" if levels else "rule off"),
+            name=f"stability{sfx}",
+            height=220,
+            width=w,
+            x_range=fei_range,
+            y_range=self.y_s,
+            tools=tools,
+            x_axis_label="time (s)",
+        )
+        sl = ps.line("t", "s", source=self.fei, color="#7c3aed", line_width=1.6)
+        ps.add_layout(
+            Legend(
+                items=[("S", [sl])],
+                location="top_left",
+                orientation="horizontal",
+                background_fill_alpha=0.6,
+            )
+        )
+        for key, level in self.s_levels.items():
+            ps.add_layout(
+                Span(
+                    location=level,
+                    dimension="width",
+                    line_color=S_LEVEL_COLORS[key],
+                    line_dash="dashed",
+                    line_width=1.5,
+                    name=f"s_{key}{sfx}",
+                )
+            )
+        self.stability = ps
+
         pf = figure(
             title="force–displacement (last 10 s)",
             name=f"fd{sfx}",
@@ -245,6 +292,7 @@ class ChannelView:
             "force",
             "FEI |A−1|",
             "FEI |d|",
+            "stability S",
             "Kalman gain",
             "Kalman delay",
             "missed replies",
@@ -265,7 +313,7 @@ class ChannelView:
         pb.add_layout(Span(location=1.0, dimension="height", line_color="#b91c1c", line_width=2))
         self.margin = pb
         self.limits = LimitShares(ch, safety, cfg, paced)
-        self.layout = column(self.title, row(p, q), row(pa, pd), row(pk, pf), row(pb))
+        self.layout = column(self.title, row(p, q), row(pa, pd), row(ps, pk), row(pf, pb))
 
     # -- data ----------------------------------------------------------------------------------
     def window_data(self, rec: np.ndarray, names, idx: slice, group: str = "win") -> dict:
@@ -287,6 +335,7 @@ class ChannelView:
             "d_ex": channel_values(rec, names, "fei_exact_delay", ch, idx) * 1e3,
             "kf_g": channel_values(rec, names, "kf_gain", ch, idx),
             "kf_d": channel_values(rec, names, "kf_delay", ch, idx) * 1e3,
+            "s": channel_values(rec, names, "stability", ch, idx),
         }
 
     def fit_axes(self, group: str) -> None:
@@ -304,6 +353,11 @@ class ChannelView:
             fit_range(self.y_d, *span(self.fei.data, "d", "d_ex"), 1.0)
             fit_range(self.y_kd, *span(self.fei.data, "kf_d"), 1.0)
             fit_range(self.y_kg, *span(self.fei.data, "kf_g"), 0.02)
+            # S: from 0 to its levels at least, so that the margin to them is always in view
+            lo, hi = span(self.fei.data, "s")
+            top = max(self.s_levels.values(), default=hi if math.isfinite(hi) else 1.0)
+            if math.isfinite(lo):
+                fit_range(self.y_s, min(lo, 0.0), max(hi, top), 0.5)
 
     def overview_update(self, rec: np.ndarray, names, rows: int, planned: int, final: bool):
         """Extend the whole-test plot with the buckets completed since the last call.

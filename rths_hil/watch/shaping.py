@@ -27,6 +27,7 @@ __all__ = [
     "envelope",
     "finite_or",
     "fit_range",
+    "stability_levels",
     "stride",
     "true_runs",
 ]
@@ -359,3 +360,21 @@ def actuator_label(ch: str, meta: dict) -> str:
         chans = meta.get("channels") or []
         ch = str(chans[0].get("name") or "") if len(chans) == 1 else ""
     return f"Actuator {ch}" if ch else "Actuator"
+
+
+def stability_levels(safety: dict) -> dict[str, float]:
+    """The stability rule's levels of ``S`` to draw: ``{"warn": …, "limit": …}``.
+
+    None when ``safety.stability`` is ``"off"``; else the warning level (a ``stability`` event)
+    and the limit (a trip in ``"trip"``; in ``"warn"`` the level the run would trip at). A level
+    that is not a positive number is left out.
+    """
+    mode = str(safety.get("stability", "off"))
+    out: dict[str, float] = {}
+    if mode == "off":
+        return out
+    for key, name in (("warn", "stability_warn"), ("limit", "stability_limit")):
+        v = finite_or(safety.get(name))
+        if v > 0:
+            out[key] = v
+    return out

@@ -21,12 +21,22 @@ from rths_hil.watch.source import CHANNEL_COLUMNS
 
 AMPLITUDE = {"": 0.004, "left": 0.004, "right": 0.002}
 
+#: The ``stability`` column a run adds after :data:`COLUMNS` (the energy stability indicator S).
+STABILITY = ("stability", "<f8", "-", "energy stability indicator S")
+
+
+def stability_value(t: float, ch: str) -> float:
+    """The synthetic ``S`` of channel ``ch`` at loop time ``t`` (NaN: not valid, the first
+    second): a slow sine about 0.5, opposite on the channel ``right``."""
+    sign = -1.0 if ch == "right" else 1.0
+    return 0.5 + sign * 0.4 * math.sin(2 * math.pi * 0.1 * t) if t >= 1.0 else math.nan
+
 
 def columns_for(channels: list[str], n_dof: int = 1) -> list[tuple[str, str, str, str]]:
     """Record columns for ``channels`` (``[""]``: the single-channel columns)."""
     if channels == [""]:
-        return list(COLUMNS)
-    per = [c for c in COLUMNS if c[0] in CHANNEL_COLUMNS and c[0] != "seq"]
+        return [*COLUMNS, STABILITY]
+    per = [c for c in COLUMNS if c[0] in CHANNEL_COLUMNS and c[0] != "seq"] + [STABILITY]
     shared = [c for c in COLUMNS if c[0] not in CHANNEL_COLUMNS or c[0] == "seq"]
     cols = shared[:3]
     for ch in channels:
@@ -84,6 +94,8 @@ def row_values(cols, k: int, fs: float) -> list:
             v = on
         elif base == "feedback_ok":
             v = True
+        elif base == "stability":
+            v = stability_value(t, ch)
         else:
             v = False if code == "|b1" else 0.0
         out.append(v)

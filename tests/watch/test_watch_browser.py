@@ -24,7 +24,7 @@ from PIL import Image
 
 from rths_hil.recorder import header_row_count, read_run
 from rths_hil.watch.browser import Browser, chromium_path
-from tests.helpers.watch_records import write_run
+from tests.helpers.watch_records import stability_value, write_run
 
 # against the wall clock or with other processes: run apart from the parallel tests
 # (the "timing" marker, pyproject.toml; make test)
@@ -169,73 +169,145 @@ def _local_only(requests: list[str], url: str) -> None:
         assert r.startswith((f"http://{host}/", f"ws://{host}/", "data:", "about:")), r
 
 
-WD_TIMEOUT = 2.0  # s: the wall-clock watchdog of the live run (generous on a loaded machine)
+WD_TIMEOUT = 2.0  # s: the wall-clock watchdog of the live runs (generous on a loaded machine)
+S_WINDOW = 1.0  # s: the stability indicator's window in the live runs (S valid from about 2 s)
+
+#: ``loop.cpu`` of the shared live run: the last CPU (the CI machines have two or more).
+LOOP_CPU = max(os.sched_getaffinity(0))
+
+_RENDERED_Y = (
+    "(() => { const m = Bokeh.documents[0].get_model_by_name(%s);"
+    " return m.renderers.filter(r => r.glyph && r.glyph.y && r.glyph.y.field)"
+    ".map(r => r.glyph.y.field); })()"
+)
+_BANDS = (
+    "(() => { const m = Bokeh.documents[0].get_model_by_name(%s);"
+    " return m.center.filter(a => a.bottom !== undefined && a.top !== undefined"
+    " && a.bottom !== null && typeof a.bottom === 'number').map(a => [a.bottom, a.top]); })()"
+)
+_S_SPANS = (
+    "(() => { const m = Bokeh.documents[0].get_model_by_name(%s);"
+    " return m.center.filter(a => a.location !== undefined && a.dimension === 'width')"
+    ".map(a => [a.name, a.location]); })()"
+)
 
 
-def test_live_paced_run_plots_move_and_the_e_stop_shows(browser, tmp_path):
-    run_dir = tmp_path / "run"
-    watch, url = _start_watch(run_dir)
-    run = None
-    try:
-        # missing directory: one clear line in the terminal and on the page, no traceback
-        line = _read_line(watch)
-        assert "does not exist (yet): waiting" in line, line
+def _open_once(browser: Browser, url: str) -> None:
+    """Open ``url`` unless the page already shows it (tests sharing a page)."""
+    if browser.eval("location.href") != url:
         _open(browser, url)
-        assert "WAITING" in _wait_state(browser, "does not exist")
-        fault_step = 15 * FS  # NaN from the sensor at t = 15 s: the nan rule trips
-        run = _follow_stderr(subprocess.Popen(
-            [sys.executable, "-m", "rths_hil", "run", *PACED, "--duration", "20", "--out",
-             str(run_dir), "-q", "--set", f"twin.faults=nan={fault_step}",
-             "--set", f"safety.watchdog_timeout={WD_TIMEOUT}"],
-            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
-        ))  # fmt: skip
-        _wait_state(browser, "RUNNING")
-        t_end = time.monotonic() + 30
-        while not _last_t(browser) >= 1.5 and time.monotonic() < t_end:  # NaN: no rows yet
-            time.sleep(0.05)
-        title = browser.model("title", "text")
-        assert ">Actuator<" in title  # one unnamed actuator, not the driver's name
-        shot1, t1 = browser.screenshot(tmp_path / "live1.png"), _last_t(browser)
-        lag = time.time() - _sent_at(run_dir, t1)
-        t_end = time.monotonic() + 20
-        while _last_t(browser) < t1 + 1.0 and time.monotonic() < t_end:
-            time.sleep(0.05)
-        shot2, t2 = browser.screenshot(tmp_path / "live2.png"), _last_t(browser)
-        assert t2 > t1 + 0.8, (t1, t2)
-        # the plots moved: the displacement plots (top of the page) differ in many pixels
-        a, b = _pixels(shot1), _pixels(shot2)
-        top = slice(140, 560)
-        changed = (np.abs(a[top] - b[top]).sum(axis=2) > 30).mean()
-        assert changed > 0.01, changed
-        # the page shows rows sent a moment ago (its refresh rate and lag are measured by
-        # benchmarks/bench_watch.py: timing is not a unit test on a shared machine)
-        assert lag > 0
-        # the e-stop: exit 3, and the banner names the rule, the time and the step
-        assert run.wait(60) == 3, _err(run)
-        state = _wait_state(browser, "E-STOP", timeout=20)
-        assert "nan" in state and f"step {fault_step}" in state and "t = 15.000 s" in state
-        assert state.lower().count("e-stop") == 1, state  # not "E-STOP — e-stop: …"
-        # the wall-clock feedback watchdog has its bar: at least one period between replies
-        # (a reply per step), well under the timeout (it did not trip)
-        limits, peaks = browser.column("bars", "limit"), browser.column("bars", "peak")
-        bars = dict(zip(limits, peaks, strict=True))
-        assert 0.99 / FS / WD_TIMEOUT <= bars["feedback watchdog"] < 1.0, bars
-        browser.screenshot(tmp_path / "estop.png")
-        events = browser.column("events", "kind")
-        assert events[-3:] == ["trip", "estop", "end"], events
-        # everything the page loaded came from the watcher itself (no CDN)
-        _local_only(browser.requests, url)
-        assert any("/static/js/bokeh" in r for r in browser.requests)
+
+
+def _wait_t(browser: Browser, t: float, source: str = "window", timeout: float = 30.0) -> float:
+    """Wait until the page's 10 s window reaches loop time ``t``; return its last time."""
+    t_end = time.monotonic() + timeout
+    while not _last_t(browser, source) >= t and time.monotonic() < t_end:  # NaN: no rows yet
+        time.sleep(0.05)
+    return _last_t(browser, source)
+
+
+def _s_shown(browser: Browser, ch: str = "") -> tuple[np.ndarray, np.ndarray]:
+    """Time and S of the stability plot's rows in the page (NaN where S is not valid)."""
+    name = "fei" + (f"_{ch}" if ch else "")
+    t = np.array(browser.column(name, "t") or [], dtype=float)
+    s = np.array([np.nan if v is None else v for v in browser.column(name, "s") or []], float)
+    return t, s
+
+
+def _check_s_plot(browser: Browser, cfg: dict, ch: str = "") -> None:
+    """The stability plot draws the ``s`` column, with the rule's warning and limit as lines."""
+    sfx = f"_{ch}" if ch else ""
+    assert browser.eval(_RENDERED_Y % json.dumps(f"stability{sfx}")) == ["s"]
+    levels = dict(browser.eval(_S_SPANS % json.dumps(f"stability{sfx}")))
+    safety = cfg["safety"]
+    assert levels == {
+        f"s_warn{sfx}": pytest.approx(safety["stability_warn"]),
+        f"s_limit{sfx}": pytest.approx(safety["stability_limit"]),
+    }, levels
+
+
+@pytest.fixture(scope="module")
+def live_run(tmp_path_factory):
+    """One paced ``rths-hil run --watch`` (60 s, the loop on :data:`LOOP_CPU`), shared by the
+    tests of the live page; ended by the stop-button test (or killed at the end)."""
+    run_dir = tmp_path_factory.mktemp("live") / "run"
+    run = _follow_stderr(subprocess.Popen(
+        [sys.executable, "-m", "rths_hil", "run", *PACED, "--duration", "60", "--out",
+         str(run_dir), "-q", "--watch", "--watch-port", "0", "--set", f"loop.cpu={LOOP_CPU}",
+         "--set", f"safety.watchdog_timeout={WD_TIMEOUT}",
+         "--set", f"safety.stability_window={S_WINDOW}"],
+        stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
+    ))  # fmt: skip
+    try:
+        line = _read_line(run)
+        m = re.search(r"live view at (http://\S+)", line)
+        assert m, line
+        yield run, m.group(1), run_dir
     finally:
-        if run is not None and run.poll() is None:
+        if run.poll() is None:
             run.kill()
             run.wait()
-        err = _stop(watch)
-    assert "Traceback" not in err
 
 
-#: ``loop.cpu`` of the stop-button run: the last CPU (the CI machines have two or more).
-LOOP_CPU = max(os.sched_getaffinity(0))
+def test_live_paced_run_plots_and_stability_move(browser, live_run, tmp_path):
+    _, url, run_dir = live_run
+    n_req = len(browser.requests)
+    _open_once(browser, url)
+    _wait_state(browser, "RUNNING")
+    # S is valid from about 2 s (a window of 1 s over 1 s of motion): wait for it
+    t1 = _wait_t(browser, 2.5)
+    title = browser.model("title", "text")
+    assert ">Actuator<" in title  # one unnamed actuator, not the driver's name
+    cfg = json.loads((run_dir / "meta.json").read_text())["config"]
+    _check_s_plot(browser, cfg)
+    shot1, t1 = browser.screenshot(tmp_path / "live1.png"), _last_t(browser)
+    lag = time.time() - _sent_at(run_dir, t1)
+    ts1, s1 = _s_shown(browser)
+    t2 = _wait_t(browser, t1 + 1.0)
+    assert t2 > t1 + 0.8, (t1, t2)
+    # the plots moved: the displacement plots (top of the page) differ in many pixels (a
+    # loaded browser paints a moment after its data changed: a few more screenshots)
+    top = slice(140, 560)
+    t_end = time.monotonic() + 5
+    while True:
+        shot2 = browser.screenshot(tmp_path / "live2.png")
+        a, b = _pixels(shot1), _pixels(shot2)
+        changed = (np.abs(a[top] - b[top]).sum(axis=2) > 30).mean()
+        if changed > 0.01 or time.monotonic() > t_end:
+            break
+        time.sleep(0.3)
+    assert changed > 0.01, changed
+    # the page shows rows sent a moment ago (its refresh rate and lag are measured by
+    # benchmarks/bench_watch.py: timing is not a unit test on a shared machine)
+    assert lag > 0
+    # the S plot moved on with the loop, and shows the record's S at each of its times
+    t_end = time.monotonic() + 10
+    while (ts2 := _s_shown(browser)[0]).size and ts2[-1] < ts1[-1] + 0.8:
+        assert time.monotonic() < t_end, (ts1[-1], ts2[-1])
+        time.sleep(0.05)
+    ts2, s2 = _s_shown(browser)
+    valid = ts2[np.isfinite(s2)]
+    assert valid.size and valid[-1] >= ts1[-1] + 0.8, (ts1[-1], valid[-1:])
+    rec = read_run(run_dir).record
+    for ts, s in ((ts1, s1), (ts2, s2)):
+        k = np.round(ts * FS).astype(int)
+        np.testing.assert_array_equal(s, rec["stability"][k])
+    # the limit bars: the wall-clock feedback watchdog at least one period between replies (a
+    # reply per step) and well under the timeout; S as a share of its limit (1.5), its peak
+    # at least that of the S shown first and at most that of the whole record
+    t_end = time.monotonic() + 10
+    while "stability S" not in (browser.column("bars", "limit") or []):
+        assert time.monotonic() < t_end, browser.column("bars", "limit")
+        time.sleep(0.1)
+    limits, peaks = browser.column("bars", "limit"), browser.column("bars", "peak")
+    bars = dict(zip(limits, peaks, strict=True))
+    assert 0.99 / FS / WD_TIMEOUT <= bars["feedback watchdog"] < 1.0, bars
+    s_all = read_run(run_dir).record["stability"]
+    lo, hi = np.nanmax(np.maximum(s1, 0.0)) / 1.5, np.nanmax(np.maximum(s_all, 0.0)) / 1.5
+    assert lo - 1e-12 <= bars["stability S"] <= hi + 1e-12, (lo, bars, hi)
+    # everything the page loaded came from the watcher itself (no CDN)
+    _local_only(browser.requests[n_req:], url)
+    assert any("/static/js/bokeh" in r for r in browser.requests)
 
 
 def _child_with(pid: int, word: str) -> int:
@@ -254,40 +326,25 @@ def _child_with(pid: int, word: str) -> int:
     raise AssertionError(f"no child of {pid} runs {word!r}")
 
 
-def test_stop_button_ends_a_paced_run_with_exit_130_and_a_complete_record(browser, tmp_path):
-    run_dir = tmp_path / "run"
-    run = _follow_stderr(subprocess.Popen(
-        [sys.executable, "-m", "rths_hil", "run", *PACED, "--duration", "60", "--out",
-         str(run_dir), "-q", "--watch", "--watch-port", "0", "--set", f"loop.cpu={LOOP_CPU}"],
-        stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
-    ))  # fmt: skip
-    try:
-        line = _read_line(run)
-        m = re.search(r"live view at (http://\S+)", line)
-        assert m, line
-        _open(browser, m.group(1))
-        _wait_state(browser, "RUNNING")
-        # the loop runs on its CPU; the live view at nice 10, on the other CPUs
-        assert os.sched_getaffinity(run.pid) == {LOOP_CPU}
-        watcher = _child_with(run.pid, "watch")
-        assert os.getpriority(os.PRIO_PROCESS, watcher) == max(
-            10, os.getpriority(os.PRIO_PROCESS, 0)
-        )
-        assert LOOP_CPU not in os.sched_getaffinity(watcher)
-        assert os.sched_getaffinity(watcher) == set(range(os.cpu_count())) - {LOOP_CPU}
-        # the confirmation comes first; cancelling it sends nothing
-        browser.click_button("Operator stop…")
-        browser.click_button("Cancel")
-        time.sleep(0.6)
-        assert run.poll() is None
-        browser.click_button("Operator stop…")
-        browser.click_button("Yes, stop the run")
-        code = run.wait(30)
-        err = _err(run)
-    finally:
-        if run.poll() is None:
-            run.kill()
-            run.wait()
+def test_stop_button_ends_a_paced_run_with_exit_130_and_a_complete_record(browser, live_run):
+    run, url, run_dir = live_run
+    _open_once(browser, url)
+    _wait_state(browser, "RUNNING")
+    # the loop runs on its CPU; the live view at nice 10, on the other CPUs
+    assert os.sched_getaffinity(run.pid) == {LOOP_CPU}
+    watcher = _child_with(run.pid, "watch")
+    assert os.getpriority(os.PRIO_PROCESS, watcher) == max(10, os.getpriority(os.PRIO_PROCESS, 0))
+    assert LOOP_CPU not in os.sched_getaffinity(watcher)
+    assert os.sched_getaffinity(watcher) == set(range(os.cpu_count())) - {LOOP_CPU}
+    # the confirmation comes first; cancelling it sends nothing
+    browser.click_button("Operator stop…")
+    browser.click_button("Cancel")
+    time.sleep(0.3)
+    assert run.poll() is None
+    browser.click_button("Operator stop…")
+    browser.click_button("Yes, stop the run")
+    code = run.wait(30)
+    err = _err(run)
     assert code == 130, err
     assert "operator stop" in err and "Traceback" not in err
     data = read_run(run_dir)
@@ -301,109 +358,150 @@ def test_stop_button_ends_a_paced_run_with_exit_130_and_a_complete_record(browse
     np.testing.assert_array_equal(data.record["step"], np.arange(n))
 
 
-def test_replay_of_a_multi_channel_record_with_the_slider(browser, tmp_path, monkeypatch):
-    run_dir = write_run(tmp_path / "two", monkeypatch, ["left", "right"], seconds=24, end=None)
+def test_nan_from_the_sensor_turns_the_banner_into_the_e_stop(browser, tmp_path):
+    run_dir = tmp_path / "run"
+    fault_step = FS  # NaN from the sensor at t = 1 s: the nan rule trips
+    # the watcher and the run start together (the page's wait for a run directory that does
+    # not exist yet is test_missing_empty_and_unreadable_run_directories_are_messages)
+    run = _follow_stderr(subprocess.Popen(
+        [sys.executable, "-m", "rths_hil", "run", *PACED, "--duration", "20", "--out",
+         str(run_dir), "-q", "--set", f"twin.faults=nan={fault_step}",
+         "--set", f"safety.watchdog_timeout={WD_TIMEOUT}"],
+        stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
+    ))  # fmt: skip
     watch, url = _start_watch(run_dir)
     try:
         _open(browser, url)
-        assert "KILLED" in _wait_state(browser, "KILLED")
-        assert "Actuator left" in browser.model("title_left", "text")
-        assert "Actuator right" in browser.model("title_right", "text")
-        assert _last_t(browser, "window_left") == pytest.approx(24 - 1 / 256, abs=0.05)
-        # the measured column of each channel is what was written (amplitudes 4 and 2 mm),
-        # shown in mm
-        for ch, amp in (("left", 4.0), ("right", 2.0)):
-            m = np.array(browser.column(f"window_{ch}", "measured"), dtype=float)
-            assert np.nanmax(np.abs(m)) == pytest.approx(amp, rel=0.01)
-        # replay: move the slider back to 12 s; the window follows it
-        browser.eval("Bokeh.documents[0].get_model_by_name('slider').value = 12.0")
+        # the e-stop: exit 3, and the banner names the rule, the time and the step
+        assert run.wait(60) == 3, _err(run)
+        state = _wait_state(browser, "E-STOP", timeout=20)
+        assert "nan" in state and f"step {fault_step}" in state and "t = 1.000 s" in state
+        assert state.lower().count("e-stop") == 1, state  # not "E-STOP — e-stop: …"
+        browser.screenshot(tmp_path / "estop.png")
         t_end = time.monotonic() + 10
-        while abs(_last_t(browser, "window_left") - 12.0) > 0.1 and time.monotonic() < t_end:
-            time.sleep(0.05)
-        t = np.array(browser.column("window_left", "t"))
-        assert t[-1] == pytest.approx(12.0, abs=0.1) and t[0] == pytest.approx(2.0, abs=0.1)
-        info = re.sub("<[^>]+>", "", browser.model("info", "text"))
-        assert "replay: window ends at 12.00 s" in info
-        # no stop button for a run nobody is writing
-        assert browser.model("stop", "visible") is False
+        while (events := browser.column("events", "kind") or [])[-1:] != ["end"]:
+            assert time.monotonic() < t_end, events
+            time.sleep(0.1)
+        assert events[-3:] == ["trip", "estop", "end"], events
     finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait()
         err = _stop(watch)
     assert "Traceback" not in err
 
 
-def test_other_address_needs_the_token(browser, tmp_path, monkeypatch):
-    run_dir = write_run(tmp_path / "one", monkeypatch, [""], seconds=2)
-    # 127.0.0.2 is a loopback address, but not the default one: the token is required
+@pytest.fixture(scope="module")
+def two_channel(tmp_path_factory):
+    """A watcher on a killed two-channel record of 16 s (no end event), shared by the replay
+    tests, on another address than the default (127.0.0.2, a loopback address but not the
+    default one): its pages need the token."""
+    mp = pytest.MonkeyPatch()
+    try:
+        run_dir = write_run(tmp_path_factory.mktemp("two") / "two", mp, ["left", "right"],
+                            seconds=16, end=None)  # fmt: skip
+    finally:
+        mp.undo()
     watch, url = _start_watch(run_dir, "--host", "127.0.0.2")
     try:
-        assert "?token=" in url
-        _open(browser, url.split("?")[0])
-        assert browser.model("forbidden", "text") and browser.model("state", "text") is None
-        _open(browser, url.split("?")[0] + "?token=wrong")
-        assert browser.model("forbidden", "text")
-        _open(browser, url)
-        assert "COMPLETED" in _wait_state(browser, "COMPLETED")
+        yield run_dir, url, watch
     finally:
         err = _stop(watch)
-    assert "warning: listening on 127.0.0.2" in err
+        assert "Traceback" not in err
 
 
-def test_empty_and_unreadable_run_directories_are_messages(browser, tmp_path):
+def test_replay_of_a_multi_channel_record_with_the_slider(browser, two_channel):
+    _, url, _ = two_channel
+    _open_once(browser, url)
+    assert "KILLED" in _wait_state(browser, "KILLED")
+    assert "Actuator left" in browser.model("title_left", "text")
+    assert "Actuator right" in browser.model("title_right", "text")
+    browser.click_button("follow the end")
+    assert _wait_t(browser, 16 - 1 / 256 - 0.05, "window_left") == pytest.approx(
+        16 - 1 / 256, abs=0.05
+    )
+    # the measured column of each channel is what was written (amplitudes 4 and 2 mm),
+    # shown in mm
+    for ch, amp in (("left", 4.0), ("right", 2.0)):
+        m = np.array(browser.column(f"window_{ch}", "measured"), dtype=float)
+        assert np.nanmax(np.abs(m)) == pytest.approx(amp, rel=0.01)
+    # replay: move the slider back to 12 s; the window and the S plot follow it
+    browser.eval("Bokeh.documents[0].get_model_by_name('slider').value = 12.0")
+    t_end = time.monotonic() + 10
+    while time.monotonic() < t_end and not (
+        abs(_last_t(browser, "window_left") - 12.0) <= 0.1
+        and abs(_last_t(browser, "fei_right") - 12.0) <= 0.1
+        and "replay" in (browser.model("info", "text") or "")
+    ):
+        time.sleep(0.05)
+    t = np.array(browser.column("window_left", "t"))
+    assert t[-1] == pytest.approx(12.0, abs=0.1) and t[0] == pytest.approx(2.0, abs=0.1)
+    info = re.sub("<[^>]+>", "", browser.model("info", "text"))
+    assert "replay: window ends at 12.00 s" in info
+    # each channel's S plot shows that channel's S at its times, over the replayed window
+    for ch in ("left", "right"):
+        ts, s = _s_shown(browser, ch)
+        assert ts[-1] == pytest.approx(12.0, abs=0.1) and ts[0] == pytest.approx(2.0, abs=0.1)
+        np.testing.assert_allclose(s, [stability_value(x, ch) for x in ts], rtol=1e-12)
+    # no stop button for a run nobody is writing
+    assert browser.model("stop", "visible") is False
+
+
+def test_kalman_and_stability_have_their_own_plots_and_bands(browser, two_channel):
+    """The Kalman delay (measured vs command, ≈ the actuator's lag) is not drawn over the FEI
+    delay's ±tolerance band: it has its own plot against ``safety.kf_delay_max``; S has its
+    own plot with the rule's levels; the displacements are in mm and the force in kN."""
+    run_dir, url, _ = two_channel
+    _open_once(browser, url)
+    _wait_state(browser, "KILLED")
+    t_end = time.monotonic() + 20
+    while not browser.column("loop_left", "force") and time.monotonic() < t_end:
+        time.sleep(0.1)
+    cfg = json.loads((run_dir / "meta.json").read_text())["config"]
+    fei_d = browser.eval(_RENDERED_Y % json.dumps("fei_d_left"))
+    kalman = browser.eval(_RENDERED_Y % json.dumps("kalman_left"))
+    assert "d" in fei_d and "kf_d" not in fei_d and "s" not in fei_d, fei_d
+    assert "kf_d" in kalman and "kf_g" in kalman, kalman
+    for ch in ("left", "right"):
+        _check_s_plot(browser, cfg, ch)
+    bands_d = browser.eval(_BANDS % json.dumps("fei_d_left"))
+    bands_k = browser.eval(_BANDS % json.dumps("kalman_left"))
+    tol, kmax = cfg["safety"]["fei_delay_tol"] * 1e3, cfg["safety"]["kf_delay_max"] * 1e3
+    assert bands_d == [[pytest.approx(-tol), pytest.approx(tol)]], bands_d
+    assert bands_k == [[pytest.approx(-kmax), pytest.approx(kmax)]], bands_k
+    # mm and kN: the written amplitudes are 4 mm and 2e5 N/m · 4 mm = 0.8 kN
+    m = np.array(browser.column("window_left", "measured"), dtype=float)
+    f = np.array(browser.column("loop_left", "force"), dtype=float)
+    assert np.nanmax(np.abs(m)) == pytest.approx(4.0, rel=0.01)
+    assert np.nanmax(np.abs(f)) == pytest.approx(0.8, rel=0.01)
+
+
+def test_other_address_needs_the_token(browser, two_channel):
+    _, url, watch = two_channel
+    assert "?token=" in url
+    _open(browser, url.split("?")[0])
+    assert browser.model("forbidden", "text") and browser.model("state", "text") is None
+    _open(browser, url.split("?")[0] + "?token=wrong")
+    assert browser.model("forbidden", "text")
+    _open(browser, url)
+    assert "KILLED" in _wait_state(browser, "KILLED")
+    assert "warning: listening on 127.0.0.2" in "".join(watch.stderr_lines)
+
+
+def test_missing_empty_and_unreadable_run_directories_are_messages(browser, tmp_path):
     empty = tmp_path / "empty"
-    empty.mkdir()
     watch, url = _start_watch(empty)
     try:
+        # missing directory: one clear line in the terminal and on the page, no traceback
         line = _read_line(watch)
-        assert "has no run record (record.npy) yet" in line
+        assert "does not exist (yet): waiting" in line, line
         _open(browser, url)
+        assert "WAITING" in _wait_state(browser, "does not exist")
+        empty.mkdir()
+        assert "has no run record (record.npy) yet" in _read_line(watch)
         _wait_state(browser, "has no run record")
         (empty / "record.npy").write_bytes(b"garbage, not a record")
         assert "UNREADABLE" in _wait_state(browser, "unreadable record")
-    finally:
-        err = _stop(watch)
-    assert "Traceback" not in err
-
-
-_RENDERED_Y = (
-    "(() => { const m = Bokeh.documents[0].get_model_by_name(%s);"
-    " return m.renderers.filter(r => r.glyph && r.glyph.y && r.glyph.y.field)"
-    ".map(r => r.glyph.y.field); })()"
-)
-_BANDS = (
-    "(() => { const m = Bokeh.documents[0].get_model_by_name(%s);"
-    " return m.center.filter(a => a.bottom !== undefined && a.top !== undefined"
-    " && a.bottom !== null && typeof a.bottom === 'number').map(a => [a.bottom, a.top]); })()"
-)
-
-
-def test_kalman_has_its_own_plot_and_band_units_in_mm(browser, tmp_path, monkeypatch):
-    """The Kalman delay (measured vs command, ≈ the actuator's lag) is not drawn over the FEI
-    delay's ±tolerance band: it has its own plot against ``safety.kf_delay_max``; the
-    displacements are in mm and the force in kN."""
-    run_dir = write_run(tmp_path / "one", monkeypatch, [""], seconds=4)
-    watch, url = _start_watch(run_dir)
-    try:
-        _open(browser, url)
-        _wait_state(browser, "COMPLETED")
-        t_end = time.monotonic() + 20
-        while not browser.column("loop", "force") and time.monotonic() < t_end:
-            time.sleep(0.1)
-        fei_d = browser.eval(_RENDERED_Y % json.dumps("fei_d"))
-        kalman = browser.eval(_RENDERED_Y % json.dumps("kalman"))
-        assert "d" in fei_d and "kf_d" not in fei_d, fei_d
-        assert "kf_d" in kalman and "kf_g" in kalman, kalman
-        cfg = json.loads((run_dir / "meta.json").read_text())["config"]["safety"]
-        bands_d = browser.eval(_BANDS % json.dumps("fei_d"))
-        bands_k = browser.eval(_BANDS % json.dumps("kalman"))
-        tol, kmax = cfg["fei_delay_tol"] * 1e3, cfg["kf_delay_max"] * 1e3
-        assert bands_d == [[pytest.approx(-tol), pytest.approx(tol)]], bands_d
-        assert bands_k == [[pytest.approx(-kmax), pytest.approx(kmax)]], bands_k
-        # mm and kN: the written amplitudes are 4 mm and 2e5 N/m · 4 mm = 0.8 kN
-        m = np.array(browser.column("window", "measured"), dtype=float)
-        f = np.array(browser.column("loop", "force"), dtype=float)
-        assert np.nanmax(np.abs(m)) == pytest.approx(4.0, rel=0.01)
-        assert np.nanmax(np.abs(f)) == pytest.approx(0.8, rel=0.01)
-        assert browser.model("title", "text").endswith(">Actuator</h2>")
     finally:
         err = _stop(watch)
     assert "Traceback" not in err
