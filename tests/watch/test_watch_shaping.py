@@ -18,6 +18,7 @@ from rths_hil.watch.shaping import (
     consecutive,
     finite_or,
     fit_range,
+    stability_levels,
     stride,
     true_runs,
 )
@@ -191,3 +192,19 @@ def test_watchdog_bar_discounts_the_bridges_stalls_like_the_rule():
     # without the stall events the bar would have counted the stalls as silence
     blind = LimitShares("", safety, cfg, paced=True)._shares(rec, names, 0, n)["feedback watchdog"]
     assert blind[139] * 0.05 - want[139] == pytest.approx(0.05, abs=1e-9)  # steps 100, 101
+
+
+def test_stability_levels_are_the_rules_and_none_when_off():
+    """The S plot's lines: the warning and the limit of ``[safety]`` while the rule is on
+    (in "warn" the limit is where "trip" would stop), none when it is off; a level that is not
+    a positive number is not drawn."""
+    sf = {"stability": "warn", "stability_warn": 1.0, "stability_limit": 1.5}
+    assert stability_levels(sf) == {"warn": 1.0, "limit": 1.5}
+    assert stability_levels({**sf, "stability": "trip", "stability_warn": 0.8}) == {
+        "warn": 0.8,
+        "limit": 1.5,
+    }
+    assert stability_levels({**sf, "stability": "off"}) == {}
+    assert stability_levels({}) == {}
+    assert stability_levels({**sf, "stability_limit": 0.0}) == {"warn": 1.0}
+    assert stability_levels({**sf, "stability_warn": "nan"}) == {"limit": 1.5}
