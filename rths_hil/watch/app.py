@@ -7,9 +7,9 @@ each plot whose data or range changed (every renderer of such a plot is painted 
 
 * the 10 s plots get the new rows only (:meth:`ColumnDataSource.stream` with a rollover of
   10 s), decimated by a stride aligned to the step index, so a point never moves: the
-  displacement at every refresh, the FEI A and d (estimates over a window of seconds) every
-  :data:`FEI_S`, on a time axis of their own; the time axes are set, and the value axes move
-  only when the data leaves them or uses less than a third of them;
+  displacement at every refresh, the FEI A and d, the Kalman estimates and S (estimates over a
+  window of seconds) every :data:`FEI_S`, on a time axis of their own; the time axes are set,
+  and the value axes move only when the data leaves them or uses less than a third of them;
 * the whole-test plot (the minimum and maximum of each bucket of about one pixel, only for
   completed buckets), the force–displacement loop, the lateness plot (on its own time axis),
   the limit bars and the counts are refreshed once per :data:`SLOW_S`;
@@ -20,10 +20,11 @@ Per channel: target / command / measured over the window and the whole test (ove
 online FEI amplitude A(t) and delay d(t) (the FEI paper, Eq. 2.2 and 2.5; streaming and exact)
 with the safety rule's tolerance bands and the windows where the FEI is invalid greyed; the
 Kalman delay and gain (measured vs command: the actuator's own lag) on a plot of their own,
-the delay against its own band (``safety.kf_delay_max``); the force–displacement loop; the
-share of every safety limit in use as bars, the wall-clock feedback watchdog of a paced run
-among them. Displacements are shown in mm and forces in kN (the record stays SI). For the
-run: its state (running, completed, e-stop with rule, channel and time, operator stop,
+the delay against its own band (``safety.kf_delay_max``); the energy stability indicator S
+(:mod:`rths_hil.stability`) with the rule's warning and limit as lines; the force–displacement
+loop; the share of every safety limit in use as bars, the wall-clock feedback watchdog of a
+paced run and S among them. Displacements are shown in mm and forces in kN (the record stays
+SI). For the run: its state (running, completed, e-stop with rule, channel and time, operator stop,
 killed), the loop's lateness and overruns, the event list, a time slider to replay a finished
 run, and the operator-stop button.
 
