@@ -19,12 +19,26 @@ energy into the test than the damping removes.
 
 Source and derivation
 ---------------------
-The method follows the idea of Gálmez & Fermandois (2020, "Online Stability Analysis for
-Real-Time Hybrid Simulation Testing", Frontiers in Built Environment 6:134): an energy balance at
-the interface, with the actuator's delay acting as negative damping. **The body of that paper
-could not be read while this module was written** (only its abstract and keywords: delay,
-energy methods, negative damping, stability analysis), so no equation of the paper is cited
-here and the indicator is derived from first principles as follows.
+The method takes the approach of Gálmez & Fermandois (2020, "Online Stability Analysis for
+Real-Time Hybrid Simulation Testing", Frontiers in Built Environment 6:134,
+doi:10.3389/fbuil.2020.00134): as its abstract states, a stability analysis of the RTHS loop by
+energy methods gives an online indicator meant to detect instability before the displacements
+grow, shown on the virtual RTHS benchmark problem with several compensation strategies; its
+keywords name the mechanism, the actuator's delay acting as negative damping. Only the paper's
+abstract, keywords and the opening of its Section 1 (Introduction) are available to this
+project, so no equation of the paper is cited here, and the definition below — the energy
+balance at the interface, its normalisation, the window and the levels — is derived from first
+principles. Where it may differ from the paper, these are this module's choices and why:
+
+* *normalisation* by the energy the numerical structure's viscous damping dissipates in the
+  same window, so that ``S = 1`` is exactly the linear stability boundary (below) and ``S``
+  does not depend on the amplitude;
+* *window*: exponential, time constant ``T_w`` (``safety.stability_window``, three natural
+  periods by default), so that each step costs O(1) with a handful of floats of state, and two
+  periods or more average the twice-per-cycle ripple of the energy flows;
+* *levels*: warning at ``S = 1`` (the boundary) and trip at 1.5 (``safety.stability_warn``,
+  ``safety.stability_limit``; the margin above the window's spread that the study in
+  ``docs/stability.md`` measured).
 
 *Energy balance.* The numerical structure moves along ``x_t`` and receives the measured force
 ``f_m``; the specimen moves along ``x_m`` and exerts ``f_m``. With ``E_n`` the numerical
