@@ -618,6 +618,8 @@ class CANopenDriver(Driver):
     echoes_seq: ClassVar[bool] = True
     #: positions are INTEGER32 counts of ``counts_per_m``, checked in :meth:`_send_raw`
     command_lsb: ClassVar[float | None] = None
+    #: force: CiA 402 cyclic synchronous torque (:meth:`set_control`); CiA 408 refuses it
+    control_modes: ClassVar[tuple[str, ...]] = ("displacement", "force")
     stats: CANopenStats
 
     def __init__(  # noqa: C901 - the connection keys, checked one by one
@@ -745,6 +747,10 @@ class CANopenDriver(Driver):
         #: the force object of the driver's own mapping; after start-up the one a TPDO carries
         self.force_object = f_obj
         self._force_nan: int | None = _S32[0]  # the "no valid value" of an INTEGER32 force
+        #: force mode: N per count of the target torque (0x6076 / 10⁶ × force_per_torque, read
+        #: at start-up) and the measured force read at arming (the first set-point's reference)
+        self._torque_newtons = math.nan
+        self._force_at_arm: float | None = None
         v = {
             "control": _variable(self.od, p.control, self.eds, "control word"),
             "status": _variable(self.od, p.status, self.eds, "status word"),
@@ -912,6 +918,107 @@ class CANopenDriver(Driver):
                     )
 
     # ------------------------------------------------------------------------------------------
+    # the wire mode
+    def set_control(self, mode: str) -> None:
+        """Select the wire mode before :meth:`open` (:meth:`Driver.set_control`).
+
+        ``"force"``: CiA 402 cyclic synchronous torque — modes of operation 0x6060 = 10, the
+        target torque 0x6071 (per mille of the motor rated torque 0x6076, scaled to N by
+        ``force_per_torque``) in the RPDO instead of the target position; the measured force
+        as before (the torque actual 0x6077 or ``force_object``). Refused with one line: a
+        profile without force control (CiA 408), an EDS without 0x6071 (writable, mappable)
+        or 0x6076, a channel with no measured force; at start-up a drive whose supported
+        drive modes 0x6502 lack CST, or whose mode display 0x6061 does not show it.
+        """
+        super().set_control(mode)
+        try:
+            self._use_control(mode)
+        except InputError:
+            self.control = "displacement"
+            raise
+
+    def _use_control(self, mode: str) -> None:
+        base = PROFILES[self.profile.name]
+        prof = base.for_control(mode)
+        if prof is None:
+            raise InputError(
+                f"canopen: device_profile {base.name!r} has no force control the driver "
+                "speaks (CiA 402 cyclic synchronous torque can): a force-controlled channel "
+                "needs another controller"
+            )
+        if prof is self.profile:
+            return
+        if mode == "force":
+            if not self._force_candidates:
+                raise InputError(
+                    "canopen: a force-controlled channel needs the measured force: give "
+                    'driver.connection.force_object (force_object = "" maps none)'
+                )
+            if RATED_TORQUE[0] not in self.od:
+                raise InputError(
+                    f"canopen: eds {self.eds!r} has no object 0x6076 (motor rated torque) to "
+                    f"scale the {prof.setpoint_name} 0x{prof.setpoint[0]:04X}"
+                )
+        sp = _variable(self.od, prof.setpoint, self.eds, prof.setpoint_name)
+        if not sp.writable:
+            raise InputError(
+                f"canopen: eds {self.eds!r}: 0x{sp.index:04X}:{sp.subindex:02X} ({sp.name}, the "
+                f"{prof.setpoint_name}) is read-only: the bridge cannot command the device"
+            )
+        if not sp.pdo_mappable and self.configure_pdo:
+            raise InputError(
+                f"canopen: eds {self.eds!r}: 0x{sp.index:04X}:{sp.subindex:02X} ({sp.name}) is "
+                "not PDO-mappable (PDOMapping=0), the driver cannot map it (configure_pdo = "
+                "false takes the mapping the device has)"
+            )
+        self.profile = prof
+        self._rpdo_vars = [self._rpdo_vars[0], sp]
+        self.rpdo_layout = Layout.of(self._rpdo_vars, "RPDO1")
+        self._rpdo_msg = Frame.blank(self._rpdo_id, self.rpdo_layout.fmt.size)
+        self._rpdo_data = self._rpdo_msg.data
+
+    def _check_force_mode(self) -> None:
+        """Start-up in force mode (pre-operational): the drive must support the mode (0x6502,
+        when the EDS has it) before it is written; the rated torque scales the set-point."""
+        p = self.profile
+        bit = p.mode_bit
+        if bit is not None and 0x6502 in self.od:
+            modes = self._sdo_read(0x6502)
+            if not modes >> bit & 1:
+                raise InputError(
+                    f"canopen: node {self.node_id} does not support cyclic synchronous torque "
+                    f"(supported drive modes 0x6502 = 0x{modes:08X}, bit {bit} clear): it "
+                    "cannot run a force-controlled channel"
+                )
+        rated = self._sdo_read(*RATED_TORQUE)
+        if rated <= 0:
+            raise InputError(
+                f"canopen: node {self.node_id}: motor rated torque 0x6076 is {rated}: the "
+                f"{p.setpoint_name} 0x{p.setpoint[0]:04X} cannot be scaled"
+            )
+        self._torque_newtons = rated / 1e6 * self.force_per_torque
+
+    def _check_mode_display(self) -> None:
+        """Force mode: the modes of operation display 0x6061 (where the EDS has it) shows the
+        mode written, within ``sdo_timeout`` (a drive switches modes in its own time)."""
+        p = self.profile
+        if p.mode is None or p.number != 402 or 0x6061 not in self.od:
+            return
+        want = p.mode[2]
+        end = time.monotonic() + self.sdo_timeout
+        while True:
+            shown = self._sdo_read(0x6061)
+            if shown == want:
+                return
+            if time.monotonic() > end:
+                raise InputError(
+                    f"canopen: node {self.node_id} shows modes of operation {shown} (0x6061) "
+                    f"after 0x6060 = {want} was written: it did not switch to "
+                    f"{'cyclic synchronous torque' if want == 10 else f'mode {want}'}"
+                )
+            time.sleep(0.005)
+
+    # ------------------------------------------------------------------------------------------
     # start-up
     def _sdo_read(self, index: int, sub: int = 0) -> int:
         assert self.node is not None
@@ -991,8 +1098,13 @@ class CANopenDriver(Driver):
                 )
         log.info("canopen: node %d identity %s", self.node_id, self.identity)
         node.nmt.send_command(0x80)  # pre-operational
+        force = p.control_mode == "force"
+        if force:
+            self._check_force_mode()
         if p.mode is not None:
             self._sdo_write(*p.mode)
+        if force:
+            self._check_mode_display()
         self._sdo_write(0x1017, 0, round(self.controller_heartbeat * 1000))
         if self.device_watchdog is not None:
             ms = max(1, round(self.device_watchdog * 1000))
@@ -1048,7 +1160,7 @@ class CANopenDriver(Driver):
             "status": self._locate(maps["TPDO"], p.status),
             "actual": self._locate(maps["TPDO"], p.actual),
         }
-        names = {"control": "control word", "setpoint": "position set-point",
+        names = {"control": "control word", "setpoint": p.setpoint_name,
                  "status": "status word", "actual": "actual position"}  # fmt: skip
         for key, at in where.items():
             if at is None:
@@ -1080,6 +1192,12 @@ class CANopenDriver(Driver):
             self.force_object = None
         if self.force_object is not None:
             self._force_scale_from_device()
+        elif p.control_mode == "force":
+            raise InputError(
+                f"canopen: node {self.node_id} maps no measured force in a TPDO ("
+                + ", ".join(f"0x{i:04X}:{s:02X}" for i, s in self._force_candidates)
+                + "): a force-controlled channel tracks it"
+            )
         # the PDOs used: sent on every SYNC (TPDO) and enabled, set so when the driver may
         used_r = sorted({where["control"][0], where["setpoint"][0]})
         used_t = sorted({where["status"][0], where["actual"][0]}
@@ -1399,6 +1517,37 @@ class CANopenDriver(Driver):
         self.stats.syncs += 1
 
     def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
+        if self.profile.control_mode == "force":
+            counts = self._torque_counts(seq, displacement, enable)
+        else:
+            counts = self._position_counts(seq, displacement, enable)
+        if enable:
+            self._first_enable = False
+        self._send_counts(seq, counts, enable)
+
+    def _torque_counts(self, seq: int, force: float, enable: bool) -> int:
+        """Force mode: the target torque (per mille of the rated torque) of ``force`` (N);
+        the first enabled one within 1 % of the rated force of the force read at arming."""
+        per = self._torque_newtons
+        if not per > 0:  # not opened: nothing is scaled yet
+            raise InputError(f"canopen: node {self.node_id}: force command before start-up")
+        counts = round(force / per)
+        if not -32768 < counts <= 32767:
+            raise InputError(
+                f"command force {force} N for step {seq} is out of the INTEGER16 range of the "
+                f"{self.profile.setpoint_name} at {per:g} N per count (0x6076, force_per_torque)"
+            )
+        if enable and self._first_enable and self._force_at_arm is not None:
+            gap = abs(force - self._force_at_arm)
+            if gap > 10 * per:
+                raise InputError(
+                    f"canopen: the first force set-point {force:.6g} N is {gap:.6g} N from the "
+                    f"force {self._force_at_arm:.6g} N read at arming (more than 1 % of the "
+                    "rated force): the axis would jump"
+                )
+        return counts
+
+    def _position_counts(self, seq: int, displacement: float, enable: bool) -> int:
         counts = round(displacement * self.counts_per_m)
         if not _S32[0] < counts <= _S32[1]:
             raise InputError(
@@ -1413,8 +1562,9 @@ class CANopenDriver(Driver):
                     f"actual position {self._actual_at_arm:.6g} m read at arming (start_tolerance "
                     f"{self.start_tolerance:g} m): the axis would jump"
                 )
-        if enable:
-            self._first_enable = False
+        return counts
+
+    def _send_counts(self, seq: int, counts: int, enable: bool) -> None:
         if self._latched and not self._estop_seen and enable:
             self._settle_estop(ESTOP_SETTLE)
         if not enable and self._latched:
@@ -1595,6 +1745,9 @@ class CANopenDriver(Driver):
                     break
                 time.sleep(0.005)
             self._actual_at_arm = self._sdo_read(*p.actual) / self.counts_per_m
+            if p.control_mode == "force" and self.force_object is not None:
+                fc = self._sdo_read(*self.force_object)
+                self._force_at_arm = None if fc == self._force_nan else fc * self.newtons_per_count
         except InputError as exc:
             log.warning("canopen: arming node %d failed: %s", self.node_id, exc)
             return None
@@ -1604,6 +1757,9 @@ class CANopenDriver(Driver):
         self._emcy_code, self._emcy_text = 0, ""
         self._first_enable = True
         self._last_counts = round(self._actual_at_arm * self.counts_per_m)
+        if p.control_mode == "force":  # the held set-point: the force read at arming
+            f0 = self._force_at_arm
+            self._last_counts = round(f0 / self._torque_newtons) if f0 is not None else 0
         self._last_sent = -1
         self._last_delivered = -1
         with self._lock:

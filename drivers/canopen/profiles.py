@@ -8,7 +8,10 @@ towards the one the bridge wants. Object indices and state codings are cited in
 
 **CiA 402** (drives and motion control, cyclic synchronous position mode, 0x6060 = 8): the
 tables of :class:`canopen.profiles.p402.State402` (status-word masks, control-word commands,
-transition table) are used as they are; this module only chooses the transitions.
+transition table) are used as they are; this module only chooses the transitions. A
+force-controlled channel runs the drive in cyclic synchronous torque mode (CST, 0x6060 = 10)
+with the target torque 0x6071 (INTEGER16, per mille of the motor rated torque 0x6076) as the
+set-point (:meth:`Profile.for_control`); the state machine is the same.
 
 **CiA 408** (fluid power: proportional valves and hydrostatic drives): device control word
 0x6040 bits 0–3 ``D`` (disabled), ``H`` (hold), ``M`` (device mode active), ``R`` (reset fault,
@@ -21,7 +24,7 @@ e-stop is ``HOLD`` (the axis holds at its hold set-point), latched by the driver
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from canopen.profiles.p402 import State402
 
@@ -86,6 +89,15 @@ class Profile:
     mode : tuple of (int, int, int) or None
         Object written at start-up (pre-operational) and its value: 402 modes of operation
         0x6060 = 8 (cyclic synchronous position), 408 device mode 0x6042 = 1 (set-point via bus).
+    control_mode : str
+        What the set-point is: ``"displacement"`` (a position, counts) or ``"force"`` (402:
+        the target torque of cyclic synchronous torque, per mille of the rated torque).
+    setpoint_name : str
+        The set-point object's name, for messages.
+    force : tuple or None
+        The force-control variant of the profile: (set-point object, its name, mode object
+        and value) — 402: target torque 0x6071, 0x6060 = 10 (CST); ``None`` where the
+        profile has no force control the driver speaks.
     """
 
     name: str
@@ -95,6 +107,30 @@ class Profile:
     setpoint: tuple[int, int]
     actual: tuple[int, int]
     mode: tuple[int, int, int] | None
+    control_mode: str = "displacement"
+    setpoint_name: str = "position set-point"
+    force: tuple[tuple[int, int], str, tuple[int, int, int]] | None = None
+
+    def for_control(self, mode: str) -> Profile | None:
+        """The profile of a channel in wire mode ``mode``: this one for ``"displacement"``;
+        for ``"force"`` the force-control variant (402: CST, set-point 0x6071, mode 10), or
+        ``None`` when the profile has none."""
+        if mode != "force":
+            return self
+        if self.force is None:
+            return None
+        setpoint, name, mode_obj = self.force
+        return replace(
+            self, setpoint=setpoint, setpoint_name=name, mode=mode_obj, control_mode="force"
+        )
+
+    @property
+    def mode_bit(self) -> int | None:
+        """The bit of the profile's mode in the supported drive modes 0x6502 (402: bit 7
+        cyclic synchronous position, 8 velocity, 9 torque), or None."""
+        if self.number != 402 or self.mode is None:
+            return None
+        return {8: 7, 9: 8, 10: 9}.get(self.mode[2])
 
     def state(self, statusword: int) -> str:
         """FSA state named by ``statusword``."""
@@ -197,7 +233,14 @@ class Profile:
 #: The profiles by name (``driver.connection.profile``).
 PROFILES: dict[str, Profile] = {
     "cia402": Profile(
-        "cia402", 402, (0x6040, 0), (0x6041, 0), (0x607A, 0), (0x6064, 0), (0x6060, 0, 8)
+        "cia402",
+        402,
+        (0x6040, 0),
+        (0x6041, 0),
+        (0x607A, 0),
+        (0x6064, 0),
+        (0x6060, 0, 8),
+        force=((0x6071, 0), "target torque", (0x6060, 0, 10)),
     ),
     "cia408": Profile(
         "cia408", 408, (0x6040, 0), (0x6041, 0), (0x6600, 1), (0x6601, 1), (0x6042, 0, 1)

@@ -24,6 +24,15 @@ what a device does with them:
   A runaway fault (``runaway_from``) does the same with EMCY 0x8611 (following error).
 * SDO reads of the status word, actual position, force, following error 0x60F4 and mode display
   0x6061 are answered from the device's live state.
+* Modes of operation (402): the twin runs the mode of its plant — cyclic synchronous position
+  (0x6060 = 8, the target position 0x607A in the RPDO) for a displacement plant, cyclic
+  synchronous torque (0x6060 = 10, the target torque 0x6071 in the RPDO, per mille of the
+  motor rated torque 0x6076, × ``force_per_torque`` = N) for a force-controlled one
+  (``plant.control == "force"``, whose step takes the set-point in N unchanged); the
+  supported drive modes 0x6502 answer that mode's bit (7 or 9) and a write of another mode
+  to 0x6060 is aborted (SDO abort 0x06090030, value range exceeded). The torque actual 0x6077
+  is the measured force in per mille of the rated torque. A CiA 408 twin with a
+  force-controlled plant is refused (the driver speaks no 408 force control).
 """
 
 from __future__ import annotations
@@ -42,6 +51,7 @@ from typing import Any
 import can
 import canopen
 from canopen.objectdictionary import ObjectDictionaryError
+from canopen.sdo import SdoAbortedError
 from rths_hil.drivers.base import INVALID_S32, Status
 from rths_hil.drivers.can import virtual_rx_queue
 from rths_hil.drivers.can.codec import Frame
@@ -61,6 +71,12 @@ log = logging.getLogger(__name__)
 EMCY_HEARTBEAT = 0x8130
 EMCY_FOLLOWING_ERROR = 0x8611
 _S32 = (-(2**31) + 1, 2**31 - 1)
+_S16 = (-(2**15) + 1, 2**15 - 1)
+#: SDO abort code: value range of parameter exceeded (CiA 301)
+SDO_VALUE_RANGE = 0x06090030
+#: CiA 402 modes of operation and their bit in the supported drive modes 0x6502
+MODE_CSP, MODE_CST = 8, 10
+_MODE_BIT = {MODE_CSP: 7, MODE_CST: 9}
 # CiA 402 status words of the states (State402.SW_MASK values, + voltage enabled / remote)
 _SW402 = {
     "NOT READY TO SWITCH ON": 0x0000,
@@ -122,6 +138,7 @@ class CANopenTwin(TwinEndpoint):
         force_object: str = "0x2100",
         newtons_per_count: float = 0.01,
         bridge_node_id: int = BRIDGE_NODE_ID,
+        force_per_torque: float = 1.0,
         **driver_keys: Any,
     ) -> None:
         super().__init__(controller)
@@ -131,6 +148,25 @@ class CANopenTwin(TwinEndpoint):
                 f"{', '.join(PROFILES)})"
             )
         self.profile = PROFILES[device_profile]
+        prof = self.profile.for_control(self.control)
+        if prof is None:
+            raise InputError(
+                f"canopen twin: device_profile {device_profile!r} has no force control the "
+                "driver speaks: a force-controlled plant needs cia402 (cyclic synchronous "
+                "torque)"
+            )
+        #: the set-point object of the RPDO and the mode of operation the twin runs (402)
+        self._sp_obj = prof.setpoint
+        self._run_mode = prof.mode[2] if prof.mode is not None else 0
+        if (
+            isinstance(force_per_torque, bool)
+            or not isinstance(force_per_torque, int | float)
+            or not (math.isfinite(force_per_torque) and force_per_torque > 0)
+        ):
+            raise InputError(
+                f"canopen: force_per_torque must be a positive number, got {force_per_torque!r}"
+            )
+        self.force_per_torque = float(force_per_torque)
         self.interface, self.channel, self.bitrate = str(interface), str(channel), bitrate
         self.bus_options = dict(bus_options or {})
         self.eds = os.fspath(eds) if eds else default_eds(device_profile)
@@ -152,6 +188,13 @@ class CANopenTwin(TwinEndpoint):
             "force_object": force_object, "newtons_per_count": newtons_per_count,
             "bridge_node_id": self.bridge_node_id, **self.driver_keys,
         }  # fmt: skip
+        if force_per_torque != 1.0:
+            self.connection_keys["force_per_torque"] = force_per_torque
+        if self.control == "force" and 0x6076 not in self.od:
+            raise InputError(
+                f"canopen twin: eds {self.eds!r} has no object 0x6076 (motor rated torque) to "
+                "scale the target torque 0x6071 of a force-controlled plant"
+            )
         if bitrate is not None:
             self.connection_keys["bitrate"] = bitrate
         if self.bus_options:
@@ -179,6 +222,7 @@ class CANopenTwin(TwinEndpoint):
         #: inline: frames are handled under this lock, by the thread or the bridge's pump
         self._serving = threading.Lock()
         self._pumped_at = -math.inf
+        self._newtons = math.nan  # N per count of 0x6071/0x6077 (0x6076), read at NMT start
 
     # -- transport ------------------------------------------------------------------------------
     def _setup(self) -> None:
@@ -357,6 +401,7 @@ class CANopenTwin(TwinEndpoint):
             self._tpdo = [m for m in (node.tpdo[1], node.tpdo[2]) if m.enabled and m.map]
             self._rx = {(v.index, v.subindex): v for v in self._rpdo.map}
             self._fast = self._compile()
+            self._newtons = self.torque_newtons if 0x6076 in self.od else math.nan
             ctl = self.controller
             with ctl.lock:
                 ctl._arm()  # a new session: plant at rest, sequence count restarted
@@ -376,7 +421,7 @@ class CANopenTwin(TwinEndpoint):
         rng = random.Random(0x7A1 + self.node_id)
         try:
             keys = [(v.index, v.subindex) for v in rp.map]
-            if p.control not in keys or p.setpoint not in keys:
+            if p.control not in keys or self._sp_obj not in keys:
                 return None
             rx = Layout.of([v.od for v in rp.map], "RPDO1")
             rx.check(rp, "RPDO1", rng)
@@ -391,7 +436,7 @@ class CANopenTwin(TwinEndpoint):
                      self.node_id, exc)  # fmt: skip
             return None
         return (rp.cob_id, rx.fmt.size, rx.fmt.unpack, keys.index(p.control),
-                keys.index(p.setpoint), tx)  # fmt: skip
+                keys.index(self._sp_obj), tx)  # fmt: skip
 
     def _on_bridge_heartbeat(self, can_id: int, data: bytes, ts: float) -> None:
         self.controller.heartbeat()
@@ -400,7 +445,12 @@ class CANopenTwin(TwinEndpoint):
         if index == self.profile.control[0]:
             self._apply(int.from_bytes(data, "little"))
         elif index == 0x6060:
-            self.mode = int.from_bytes(data, "little", signed=True)
+            mode = int.from_bytes(data, "little", signed=True)
+            if self.profile.number == 402 and mode != self._run_mode:
+                # a mode the twin's plant cannot run (CSP: a displacement plant, CST: a force
+                # plant; 0x6502 says which): refused as a device refuses an unsupported value
+                raise SdoAbortedError(SDO_VALUE_RANGE)
+            self.mode = mode
         elif index == 0x6042 and self.profile.number == 408:
             self.mode = int.from_bytes(data, "little", signed=True)
         elif index == 0x1016 and subindex == 1:
@@ -426,7 +476,27 @@ class CANopenTwin(TwinEndpoint):
             return self.target - self._counts(ctl.displacement)
         if index == 0x6061 and p.number == 402:
             return self.mode
+        if index == 0x6502 and p.number == 402:
+            return 1 << _MODE_BIT.get(self._run_mode, 7)
+        if index == 0x6077 and p.number == 402 and 0x6076 in self.od:
+            return self._torque_counts(ctl.force)
         return None
+
+    @property
+    def torque_newtons(self) -> float:
+        """N per count of the target torque 0x6071 and the torque actual 0x6077: the motor
+        rated torque 0x6076 (mN·m, a linear motor's rated force in mN; as written by SDO, else
+        the EDS's) / 10⁶ × ``force_per_torque``."""
+        node = self.node
+        raw = node.sdo[0x6076].raw if node is not None else self.od[0x6076].default
+        return float(raw) / 1e6 * self.force_per_torque
+
+    def _torque_counts(self, force: float) -> int:
+        if force != force:
+            return 0  # an INTEGER16 has no reserved "invalid" value
+        per = self._newtons
+        c = round(force / (per if per == per else self.torque_newtons))
+        return min(max(c, _S16[0]), _S16[1])
 
     # -- device FSA --------------------------------------------------------------------------
     def statusword(self) -> int:
@@ -529,7 +599,7 @@ class CANopenTwin(TwinEndpoint):
     # -- the step ------------------------------------------------------------------------------
     def _following(self) -> bool:
         if self.profile.number == 402:
-            return self.state == "OPERATION ENABLED" and self.mode == 8
+            return self.state == "OPERATION ENABLED" and self.mode == self._run_mode
         return self.state == "ACTIVE" and self.mode == 1
 
     def _on_sync(self, can_id: int, data: bytes, ts: float) -> None:
@@ -553,7 +623,7 @@ class CANopenTwin(TwinEndpoint):
             else:
                 try:  # the RPDO as the library mapped it (rp.map), decoded by its PDO variables
                     cw = self._rx[self.profile.control].raw
-                    self.target = self._rx[self.profile.setpoint].raw
+                    self.target = self._rx[self._sp_obj].raw
                 except (KeyError, ObjectDictionaryError, struct.error):
                     self.controller.stats.malformed += 1
                     cw = self._cw
@@ -563,7 +633,11 @@ class CANopenTwin(TwinEndpoint):
         ctl = self.controller
         if self._following():
             hb = ctl._last_heartbeat  # the consumer watches heartbeats only (CiA 301)
-            reply = ctl.command(n, self.target / self.counts_per_m, True)
+            if self._run_mode == MODE_CST:  # the target torque, in N to the force plant
+                value = self.target * self._newtons
+            else:
+                value = self.target / self.counts_per_m
+            reply = ctl.command(n, value, True)
             if hb is not None:
                 ctl._last_heartbeat = hb
             if reply is not None and reply[3] & Status.FAULT:

@@ -229,3 +229,67 @@ def test_dbc_force_role_validated_with_one_line(tmp_path, role, needle):
         load_profile(_can(tmp_path, role))
     assert "\n" not in str(exc.value)
     assert needle in str(exc.value)
+
+
+# ------------------------------------------------------------------------------------------
+# CANopen: CiA 402 cyclic synchronous torque, CiA 408
+# ------------------------------------------------------------------------------------------
+def _eds_without(tmp_path: Path, *sections: str) -> str:
+    """The twin's CiA 402 EDS without the objects ``sections`` (e.g. ``"6071"``)."""
+    from rths_hil.sim_backends.endpoints.canopen_twin import default_eds
+
+    text = Path(default_eds("cia402")).read_text()
+    blocks = text.split("\n[")
+    keep = [b for b in blocks if not any(b.startswith(f"{sec}]") for sec in sections)]
+    out = "\n[".join(keep)
+    for sec in sections:
+        out = out.replace(f"=0x{sec}\n", "=0x6502\n")  # (listed objects stay valid)
+    p = tmp_path / "drive.eds"
+    p.write_text(out)
+    return str(p)
+
+
+def test_cia402_force_mode_maps_the_target_torque():
+    from rths_hil.sim_backends.endpoints.canopen_twin import default_eds
+
+    drv = create_driver("canopen", eds=default_eds("cia402"))
+    assert drv.profile.setpoint == (0x607A, 0) and drv.profile.mode == (0x6060, 0, 8)
+    drv.set_control("force")
+    p = drv.profile
+    assert (p.setpoint, p.mode, p.setpoint_name) == ((0x6071, 0), (0x6060, 0, 10), "target torque")
+    # RPDO1: control word (UNSIGNED16) + target torque (INTEGER16), little-endian
+    assert drv.rpdo_layout.fmt.format == "<Hh" and drv.rpdo_layout.bits == 32
+
+
+@pytest.mark.parametrize(
+    ("missing", "needle"),
+    [
+        ("6071", "has no object 0x6071:00 (target torque)"),
+        ("6076", "has no object 0x6076 (motor rated torque) to scale the target torque 0x6071"),
+    ],
+)
+def test_cia402_force_mode_refuses_an_eds_without_what_it_needs(tmp_path, missing, needle):
+    drv = create_driver("canopen", eds=_eds_without(tmp_path, missing))
+    with pytest.raises(InputError) as exc:
+        drv.set_control("force")
+    assert "\n" not in str(exc.value) and needle in str(exc.value)
+    assert drv.control == "displacement" and drv.profile.setpoint == (0x607A, 0)
+
+
+def test_cia402_force_mode_needs_a_measured_force():
+    from rths_hil.sim_backends.endpoints.canopen_twin import default_eds
+
+    drv = create_driver("canopen", eds=default_eds("cia402"), force_object="")
+    with pytest.raises(InputError, match="a force-controlled channel needs the measured force"):
+        drv.set_control("force")
+
+
+def test_cia408_refuses_force_with_one_line():
+    from rths_hil.sim_backends.endpoints.canopen_twin import default_eds
+
+    drv = create_driver("canopen", eds=default_eds("cia408"), device_profile="cia408")
+    with pytest.raises(InputError) as exc:
+        drv.set_control("force")
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert msg.startswith("canopen: device_profile 'cia408' has no force control")

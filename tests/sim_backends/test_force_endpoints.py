@@ -170,3 +170,67 @@ def test_can_twin_refuses_a_force_plant_without_a_force_role(tmp_path):
     assert "\n" not in msg
     assert msg.startswith("can twin: profile ") and "roles.force_setpoint is missing" in msg
     assert "a signal of the command message AxisCommand" in msg
+
+
+# ------------------------------------------------------------------------------------------
+# CANopen CiA 402: cyclic synchronous torque
+# ------------------------------------------------------------------------------------------
+#: the twin's EDS: motor rated torque 0x6076 = 20 000 000 mN (a linear motor rated 20 kN)
+RATED_MN = 20_000_000
+#: a CST test: the arming force held while the drive walks its state machine, then forces
+CST_FORCES = [0.0] * 4 + [1234.56, -2500.26, 7777.7, 12.3, 40000.0, -65000.0]
+
+
+@pytest.mark.parametrize(("force_object", "force_per_torque"), [(None, 1.0), ("0x6077", 2.0)])
+def test_cia402_cst_force_channel_through_its_twin(force_object, force_per_torque):
+    plant = ForceSpring()
+    keys = {"force_per_torque": force_per_torque}
+    with start_twin("canopen", plant, device_profile="cia402", **keys) as twin:
+        conn = dict(twin.connection)
+        if force_object is not None:  # the torque actual, scaled by 0x6076 as the target
+            conn["force_object"] = force_object
+            del conn["newtons_per_count"]
+        drv = create_driver("canopen", **conn)
+        drv.set_control("force")
+        drv.open()
+        try:
+            assert twin.mode == 10  # written at start-up: cyclic synchronous torque
+            assert "0x6040:00 + 0x6071:00" in drv.mapping["RPDO1"]
+            fb0, fbs = _run(drv, CST_FORCES)
+        finally:
+            drv.close()
+    per = RATED_MN / 1e6 * force_per_torque  # N per per-mille of the rated torque
+    want = [round(f / per) * per for f in CST_FORCES]
+    # the drive follows from OPERATION ENABLED (armed to SWITCHED ON, the first enabled step
+    # enables operation): the plant got the target torque of each step from then on, in N,
+    # as sent, to 1 ‰ of 0x6076
+    n = len(plant.got)
+    assert n >= len(CST_FORCES) - 4
+    assert plant.got == pytest.approx(want[-n:], abs=1e-9)
+    res = per if force_object == "0x6077" else 0.01  # the torque actual: 1 ‰ of the rating
+    for sent, fb in zip(want[-n:], fbs[-n:], strict=True):
+        assert fb.force == pytest.approx(RATIO * sent, abs=res / 2 + 1e-9)
+        assert fb.displacement == pytest.approx(RATIO * sent / STIFFNESS, abs=1e-7)
+    assert fb0.force == 0.0 and all(fb.status & 0x01 for fb in fbs[-n:])
+
+
+def test_cia402_cst_refused_by_a_position_only_drive():
+    """The displacement twin supports cyclic synchronous position only (0x6502 bit 7)."""
+    from rths_hil.sim_backends.twin import default_plant
+
+    with start_twin("canopen", default_plant(), device_profile="cia402") as twin:
+        drv = create_driver("canopen", **twin.connection)
+        drv.set_control("force")
+        with pytest.raises(InputError) as exc:
+            drv.open()
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert msg == (
+        "canopen: node 1 does not support cyclic synchronous torque (supported drive modes "
+        "0x6502 = 0x00000080, bit 9 clear): it cannot run a force-controlled channel"
+    )
+
+
+def test_canopen_twin_refuses_a_force_plant_on_cia408():
+    with pytest.raises(InputError, match="device_profile 'cia408' has no force control"):
+        start_twin("canopen", ForceSpring(), device_profile="cia408")
