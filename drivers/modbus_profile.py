@@ -228,6 +228,9 @@ class ModbusProfileDriver(Driver):
         self._head_t = 0.0  # when the request at the head of the queue was written
         self._lock = threading.RLock()
         self._given_up: deque[int] = deque(maxlen=8)  # ids of requests given up (TCP)
+        #: TCP one at a time: the id of the last step's read, still outstanding when this
+        #: step was sent, whose answer is this step's measurement (see _send_locked)
+        self._adopted = -1
         self.estop_word: int | None = None  # its status word read back after the e-stop
         self._framer: Any = (FramerRTU if self._rtu else FramerSocket)(DecodePDU(False))
         self._sock: socket.socket | None = None
@@ -645,7 +648,19 @@ class ModbusProfileDriver(Driver):
             return
         out.append((base, tpl.function_code, tpl.build(raw, base)))  # FC 16 or FC 23
         if not self.profile.fc23 and self._serial:
-            out += self._reads_only(base)
+            head = pending[0][0] if pending and not self._rtu else -1
+            steady = enable and len(out) == 1  # no action this step: no status to confirm
+            if steady and self._n_reads == 1 and head & 15 == 1 and head >> 4 != base >> 4:
+                # TCP one at a time, the last step's read still outstanding (its answer was
+                # missed): the controller samples when it serves that read, now, so its answer
+                # is this step's measurement; a read of its own behind the write would come a
+                # whole transaction later and miss this step too (a cascade of missed replies
+                # at rates where the two transactions fill most of the period). Not with an
+                # action (enable, disable, acknowledge): its effect is read after it.
+                self._adopted = head
+            else:
+                self._adopted = -1
+                out += self._reads_only(base)
         self._submit(out)
 
     def _drop_pending(self) -> None:
@@ -900,6 +915,9 @@ class ModbusProfileDriver(Driver):
             self.stats.count_malformed("bad_frame")
             return None
         seq12 = tid >> 4
+        if tid == self._adopted:  # the last step's read, this step's measurement (above)
+            self._adopted = -1
+            seq12 = self._last_sent & 0x0FFF
         if seq12 != self._parts_seq:
             self._parts_seq = seq12
             self._parts = {}
