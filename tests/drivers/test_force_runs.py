@@ -1,0 +1,97 @@
+"""A force-controlled channel run end to end (``rths-hil run``, lockstep) through each protocol
+family's twin: the column example's axial-load channel over the Modbus map with a force
+set-point register, a DBC profile with a force set-point signal, and a CiA 402 drive in cyclic
+synchronous torque. The twin's plant is the same force-controlled one each time, so the three
+records must agree step for step to the wire's resolution (the set-point's 0.5 N of the DBC,
+20 N of the CiA 402 target torque, float32 kN of the map); a built-in fixed-format driver on
+the load channel is refused by the CLI in one line, exit 2."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rths_hil.cli import main
+from rths_hil.recorder import read_run
+from tests.helpers.cli import one_line_exit_2
+
+pytestmark = pytest.mark.timing  # lockstep runs with twins on TCP and CAN buses
+
+ROOT = Path(__file__).resolve().parents[2]
+COLUMN = ROOT / "examples" / "column_axial.toml"
+EXAMPLES = ROOT / "examples" / "controllers"
+RUN = ["--lockstep", "--duration", "1.5", "--set", "loop.console=0", "--set", "output.plot=false"]
+RUN += ["--set", "actuators.vertical.control.load_ramp=0.5", "-q"]
+
+#: the vertical channel's driver per family (the Modbus map is the example's own)
+DRIVERS = {
+    "modbus": None,
+    "can": 'driver = { name = "can", profile = "can_force.toml" }',
+    "canopen": 'driver = { name = "canopen", connection = { device_profile = "cia402" } }',
+}
+#: how far each family's axial force may lie from the map's: its set-point's resolution (N)
+#: times the force loop's static gain (1), plus the measured force's (0.5 N DBC, 0.01 N 0x2100)
+TOLERANCE = {"can": 0.25 + 0.25, "canopen": 10.0 + 0.01}
+
+
+def _config(directory: Path, family: str) -> Path:
+    text = COLUMN.read_text()
+    i = text.index('driver = { name = "modbus"')
+    j = text.index("\n", i)
+    if DRIVERS[family] is not None:
+        text = text[:i] + DRIVERS[family] + text[j:]
+    (directory / "column_axial_map.toml").write_text(
+        (COLUMN.parent / "column_axial_map.toml").read_text()
+    )
+    dbc = (EXAMPLES / "lab_axis.dbc").read_text()
+    anchor = ' SG_ AckCmd : 38|1@0+ (1,0) [0|1] "" Axis\n'
+    force = ' SG_ ForceSetpoint : 47|24@0- (0.5,0) [-4194304|4194303.5] "N" Axis\n'
+    (directory / "lab_axis.dbc").write_text(dbc.replace(anchor, anchor + force))
+    (directory / "can_force.toml").write_text(
+        (EXAMPLES / "can_dbc.toml").read_text()
+        + '\n[roles.force_setpoint]\nmessage = "AxisCommand"\nsignal = "ForceSetpoint"\n'
+    )
+    p = directory / f"column_{family}.toml"
+    p.write_text(text)
+    return p
+
+
+def _run(directory: Path, family: str):
+    out = directory / f"run_{family}"
+    code = main(["run", str(_config(directory, family)), *RUN, "--set", f"output.dir={out}"])
+    assert code == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "completed", summary["trip"]
+    return read_run(out).record
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The run over the Modbus map (the example as shipped)."""
+    return _run(tmp_path_factory.mktemp("modbus"), "modbus")
+
+
+@pytest.mark.skipif(not (COLUMN.parent / "column_axial_map.toml").exists(), reason="no example")
+@pytest.mark.parametrize("family", ["can", "canopen"])
+def test_force_channel_runs_alike_through_each_family(tmp_path, reference, family):
+    rec = _run(tmp_path, family)
+    ref_f = np.asarray(reference["force_vertical"])
+    f = np.asarray(rec["force_vertical"])
+    assert f.shape == ref_f.shape
+    assert np.nanmax(np.abs(ref_f)) > 1e5  # the axial load was applied (600 kN)
+    assert np.max(np.abs(f - ref_f)) <= TOLERANCE[family]
+    # the displacement-controlled channel beside it: the same run
+    np.testing.assert_allclose(rec["measured_horizontal"], reference["measured_horizontal"])
+
+
+@pytest.mark.skipif(not COLUMN.exists(), reason="no example")
+def test_builtin_driver_on_a_load_channel_is_refused(tmp_path, capsys):
+    text = COLUMN.read_text()
+    i = text.index('driver = { name = "modbus"')
+    j = text.index("\n", i)
+    p = tmp_path / "column_builtin.toml"
+    p.write_text(text[:i] + 'driver = { name = "serial" }' + text[j:])
+    one_line_exit_2(["run", str(p), *RUN], capsys, "'serial'", "force")
