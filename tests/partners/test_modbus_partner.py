@@ -286,3 +286,35 @@ def test_paced_512_hz_default_profile_completes_and_hands_back_disabled(modbus_s
     (hb,) = events(out, "handback")
     assert hb["disabled"] and not hb["latched"]
     assert partner.stop()["latches"] == []
+
+
+# ------------------------------------------------------------------------------------------
+# item 7: one request at a time, a missed reply does not cost the next step its reply too
+# ------------------------------------------------------------------------------------------
+def test_the_last_steps_outstanding_read_is_the_next_steps_measurement(modbus_servo):
+    """Every request makes the partner pause 20–40 ms. Step 0's read is still outstanding when
+    step 1 is sent: its answer — the controller samples when it serves the read, during step
+    1 — is step 1's measurement, not an answer discarded as late while step 1 waits for a read
+    of its own one more transaction (here one more pause) later."""
+    partner = modbus_servo(pause_rate=1000)  # (a pause before every request)
+    drv = create_driver("modbus", profile=str(PROFILE), **partner.connection)
+    with drv:
+        assert drv.arm(2.0) is not None
+        drv.send(0, 0.0, True)  # the enable edge: set-point, enable, read
+        assert drv.receive(1.0) is not None
+        drv.send(1, 0.0, True)  # a steady step: the set-point write, then its read
+        t0 = time.perf_counter()
+        assert drv.receive(0.001) is None  # the write is paused at the partner
+        while drv.receive(0.001) is None:  # until the write's answer came: the read is out
+            assert time.perf_counter() - t0 < 0.2
+            if drv._pending and drv._pending[0][0] & 15 == 1:
+                break
+        late = drv.stats.late
+        drv.send(2, 0.0, True)  # step 1's read still outstanding
+        t1 = time.perf_counter()
+        fb = drv.receive(0.2)
+        wait = time.perf_counter() - t1
+    assert fb is not None and fb.seq == 2
+    assert drv.stats.late == late  # step 1's answer was not thrown away
+    # one pause (the read's, under way already), not three (read, write, a read of its own)
+    assert wait < 0.045, f"{wait * 1e3:.1f} ms"
