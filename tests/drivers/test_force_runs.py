@@ -95,3 +95,15 @@ def test_builtin_driver_on_a_load_channel_is_refused(tmp_path, capsys):
     p = tmp_path / "column_builtin.toml"
     p.write_text(text[:i] + 'driver = { name = "serial" }' + text[j:])
     one_line_exit_2(["run", str(p), *RUN], capsys, "'serial'", "force")
+
+
+@pytest.mark.skipif(not COLUMN.exists(), reason="no example")
+def test_profile_without_a_force_role_on_a_load_channel_is_refused(tmp_path, capsys):
+    text = COLUMN.read_text().replace(
+        'profile = "column_axial_map.toml"', f'profile = "{EXAMPLES / "modbus_map.toml"}"'
+    )
+    p = tmp_path / "column_no_role.toml"
+    p.write_text(text)
+    one_line_exit_2(
+        ["run", str(p), *RUN], capsys, "roles.force_setpoint is missing", "modbus_map.toml"
+    )

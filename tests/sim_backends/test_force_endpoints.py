@@ -12,8 +12,10 @@ force read back is not the set-point echoed by mistake).
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
+import can
 import pytest
 from rths_hil.drivers.registry import create_driver
 from rths_hil.sim_backends.twin import start_twin
@@ -193,14 +195,26 @@ def test_cia402_cst_force_channel_through_its_twin(force_object, force_per_torqu
         drv = create_driver("canopen", **conn)
         drv.set_control("force")
         drv.open()
+        # every frame on the bus, read by a bus of its own (python-can's virtual interface)
+        spy = can.Bus(interface="virtual", channel=conn["channel"], receive_own_messages=False)
         try:
             assert twin.mode == 10  # written at start-up: cyclic synchronous torque
             assert "0x6040:00 + 0x6071:00" in drv.mapping["RPDO1"]
             fb0, fbs = _run(drv, CST_FORCES)
+            rpdos = []
+            while (msg := spy.recv(0.0)) is not None:
+                if msg.arbitration_id == 0x200 + conn["node_id"]:
+                    rpdos.append(bytes(msg.data))
         finally:
+            spy.shutdown()
             drv.close()
     per = RATED_MN / 1e6 * force_per_torque  # N per per-mille of the rated torque
     want = [round(f / per) * per for f in CST_FORCES]
+    # RPDO1 as CiA 301 lays it out (little-endian, in mapping order): the control word
+    # (UNSIGNED16) and the target torque 0x6071 (INTEGER16, per mille of 0x6076); the last
+    # steps' frames carry enable operation (0x000F) and each step's torque
+    sent = [struct.unpack("<Hh", d) for d in rpdos[-6:]]
+    assert sent == [(0x000F, round(f / per)) for f in CST_FORCES[-6:]]
     # the drive follows from OPERATION ENABLED (armed to SWITCHED ON, the first enabled step
     # enables operation): the plant got the target torque of each step from then on, in N,
     # as sent, to 1 ‰ of 0x6076
