@@ -99,6 +99,14 @@ def test_modbus_map_force_channel_through_its_twin(tmp_path, fc23, transport):
         assert drv.profile.fc23 is fc23
         with drv:
             fb0, fbs = _run(drv, FORCES)
+            regs = None
+            if transport == "tcp":  # the force set-point registers, read by pymodbus's client
+                from pymodbus.client import ModbusTcpClient
+
+                with ModbusTcpClient(twin.connection["host"], port=twin.connection["port"]) as c:
+                    regs = c.read_holding_registers(104, count=2, device_id=1).registers
+    if regs is not None:  # int32, high word first (the map's word order): half-newtons
+        assert struct.unpack(">i", struct.pack(">HH", *regs))[0] == round(FORCES[-1] / 0.5)
     assert fb0.force == 0.0
     # the twin stepped its plant once per enabled step, with the set-point in N as sent, to
     # the map's resolution (0.5 N, round half to even as Python's round)
