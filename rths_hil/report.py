@@ -123,6 +123,20 @@ def channel_suffixes(run: RunData) -> list[tuple[str, str]]:
     return out or [("", "")]
 
 
+def channel_controls(run: RunData) -> dict[str, str]:
+    """Column suffix → ``control.mode`` of each channel (``displacement`` for older runs)."""
+    chans = run.meta.get("channels") or []
+    return {
+        sfx: (c.get("control") or "displacement")
+        for (_, sfx), c in zip(channel_suffixes(run), chans, strict=False)
+    }
+
+
+def tracked_column(control: str) -> str:
+    """The record column a channel tracks: ``measured`` (displacement, m) or ``force`` (N)."""
+    return "measured" if control == "displacement" else "force"
+
+
 def exact_fei_points(rec: np.ndarray, sfx: str = "") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The exact-FEI cross-check as points: (window-end step, A, d), one per new valid window.
 
@@ -227,15 +241,20 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
         chans = channel_suffixes(run)
         warnings = _events(run, "stability")
         energy = end.get("stability") or {}
+        controls = channel_controls(run)
         with _Rows(run.path / RECORD_FILE) as src:
             if len(chans) == 1:
-                out.update(_record_figures(src, fs, lean_rows, chans[0][1]))
+                ctl = controls.get(chans[0][1], "displacement")
+                out.update(_record_figures(src, fs, lean_rows, chans[0][1], ctl))
                 stab = _stability_figures(src, chans[0][1], chans[0][0], energy, warnings)
                 if stab:
                     out["stability"] = stab
             else:  # several channels: the same figures per channel
                 out["channels"] = {
-                    name: _record_figures(src, fs, lean_rows, sfx) for name, sfx in chans
+                    name: _record_figures(
+                        src, fs, lean_rows, sfx, controls.get(sfx, "displacement")
+                    )
+                    for name, sfx in chans
                 }
                 for name, sfx in chans:
                     stab = _stability_figures(src, sfx, name, energy, warnings)
@@ -338,18 +357,27 @@ class _Rows:
         return out
 
 
-def _record_figures(rec: _Rows, fs: float, lean_rows: int, sfx: str = "") -> dict[str, Any]:
+def _record_figures(
+    rec: _Rows, fs: float, lean_rows: int, sfx: str = "", control: str = "displacement"
+) -> dict[str, Any]:
     """Whole-record FEI, metrics, online-estimate statistics and peaks of a record (≥ 16 rows).
 
     ``sfx`` selects a channel's columns (``"_left"``: ``target_left`` …; ``""``: one channel).
+    ``control`` is the channel's ``control.mode``: the FEI and J1–J3 are of its tracked
+    quantity, the measured displacement (m) or, on a force or load channel, the measured force
+    against the target force (N); ``control``, ``tracked`` and ``unit`` say which.
     """
     from .fei import fei
 
     out: dict[str, Any] = {}
     n = len(rec)
-    finite = _all_finite(rec, ("target" + sfx, "command" + sfx, "measured" + sfx))
+    tracked = tracked_column(control)
+    out["control"] = control
+    out["tracked"] = tracked
+    out["unit"] = "m" if tracked == "measured" else "N"
+    meas = tracked + sfx
+    finite = _all_finite(rec, ("target" + sfx, "command" + sfx, meas))
     lean = n > lean_rows and finite
-    meas = "measured" + sfx
     for key, col in (("fei_target", "target" + sfx), ("fei_command", "command" + sfx)):
         try:
             if lean:
@@ -699,6 +727,11 @@ def _format_channel(s: dict[str, Any], short: bool = False) -> list[str]:
     """Summary lines of one channel (FEI, metrics, online FEI, peaks); ``short``: the run is
     too short for the whole-record FEI and J1–J3 (:func:`_too_short`), they are left out."""
     lines: list[str] = []
+    forced = s.get("control", "displacement") != "displacement"
+    if forced:  # the mode and the tracked quantity in its unit
+        lines.append(
+            f"  control: {s['control']}; tracked: the measured force (N) against the target force"
+        )
     for key, label in (
         ()
         if short
@@ -754,10 +787,16 @@ def _format_channel(s: dict[str, Any], short: bool = False) -> list[str]:
         lines.append(f"  stability S: {text}{levels}{warned}")
     if s.get("peak"):
         p = s["peak"]
-        lines.append(
-            f"  peak target {p['target'] * 1e3:.2f} mm, measured "
-            f"{p['measured'] * 1e3:.2f} mm, force {p['force'] / 1e3:.2f} kN"
-        )
+        if forced:
+            lines.append(
+                f"  peak target {p['target'] / 1e3:.2f} kN, force {p['force'] / 1e3:.2f} kN, "
+                f"measured {p['measured'] * 1e3:.2f} mm"
+            )
+        else:
+            lines.append(
+                f"  peak target {p['target'] * 1e3:.2f} mm, measured "
+                f"{p['measured'] * 1e3:.2f} mm, force {p['force'] / 1e3:.2f} kN"
+            )
     return lines
 
 
@@ -777,7 +816,9 @@ def plot_report(  # noqa: C901
     text (:func:`format_summary`). Several channels: the ground motion, then per channel the
     displacements, the tracking error, A and d; the lateness or Kalman panel of the first
     channel; every channel's force–displacement loop beside the summary. Displacements are
-    drawn in mm, forces in kN (the files stay SI). A trip or an operator stop is a red line on
+    drawn in mm, forces in kN (the files stay SI); a force or load channel (``control.mode``)
+    has its target, command and measured force (kN) in the displacements' panel and its force
+    tracking error. A trip or an operator stop is a red line on
     every time panel, labelled with the rule and the time on the top one.
 
     ``summary`` is the run's :func:`summarize` dict (read from ``summary.json``, or computed,
@@ -804,12 +845,15 @@ def plot_report(  # noqa: C901
             summary = summarize(run.path, write=False)
     chans = channel_suffixes(run)
     multi = len(chans) > 1
+    controls = channel_controls(run)
+    # each channel's tracked column: the measured displacement, or a force channel's force
+    tracked = {sfx: tracked_column(controls.get(sfx, "displacement")) for _, sfx in chans}
     per_channel = (
-        "target", "command", "measured", "fei_amplitude", "fei_delay", "fei_valid",
+        "target", "command", "measured", "force", "fei_amplitude", "fei_delay", "fei_valid",
         "kf_delay", "kf_gain",
     )  # fmt: skip
     derived = {
-        "error" + sfx: (lambda p, sfx=sfx: p["measured" + sfx] - p["target" + sfx])
+        "error" + sfx: (lambda p, sfx=sfx, m=tracked[sfx]: p[m + sfx] - p["target" + sfx])
         for _, sfx in chans
     }
     with _Rows(run.path / RECORD_FILE) as src:
@@ -865,30 +909,37 @@ def plot_report(  # noqa: C901
     for c, (name, sfx) in enumerate(chans):
         head = f"channel {name}: " if multi else ""
         k = 1 + per * c
+        meas = tracked[sfx]
+        # a force or load channel tracks its force: drawn in kN, its mode in the titles
+        if meas == "force":
+            sc, unit, what = 1e-3, "kN", "force"
+            head += f"{controls.get(sfx)}-controlled, "
+        else:
+            sc, unit, what = mm, "mm", "displacement"
         ax = axes[k]
-        ax.plot(t, env["target" + sfx] * mm, lw=1.0, label="calculated (target)")
-        ax.plot(t, env["command" + sfx] * mm, lw=0.8, label="command")
-        ax.plot(t, env["measured" + sfx] * mm, lw=0.8, ls="--", label="measured")
-        ax.set_ylabel("displacement (mm)")
-        ax.set_title(f"{head}displacements (cf. the FEI paper's Fig. 5.1)")
+        ax.plot(t, env["target" + sfx] * sc, lw=1.0, label="calculated (target)")
+        ax.plot(t, env["command" + sfx] * sc, lw=0.8, label="command")
+        ax.plot(t, env[meas + sfx] * sc, lw=0.8, ls="--", label="measured")
+        ax.set_ylabel(f"{what} ({unit})")
+        ax.set_title(f"{head}{what}s (cf. the FEI paper's Fig. 5.1)")
         ax.legend(loc="upper right", fontsize=8)
         k += 1
         if not multi:
             ax = axes[k]
             if zoom is not None and len(zoom):
                 tz = zoom["time"]
-                ax.plot(tz, zoom["target"] * mm, lw=1.2, label="calculated (target)")
-                ax.plot(tz, zoom["command"] * mm, lw=1.0, label="command")
-                ax.plot(tz, zoom["measured"] * mm, lw=1.0, ls="--", label="measured")
+                ax.plot(tz, zoom["target"] * sc, lw=1.2, label="calculated (target)")
+                ax.plot(tz, zoom["command"] * sc, lw=1.0, label="command")
+                ax.plot(tz, zoom[meas] * sc, lw=1.0, ls="--", label="measured")
                 ax.legend(loc="upper right", fontsize=8)
-            ax.set_ylabel("displacement (mm)")
+            ax.set_ylabel(f"{what} ({unit})")
             ax.set_title("around the peak")
             k += 1
         ax = axes[k]
-        ax.plot(t, env["error" + sfx] * mm, lw=0.7, color="C3")
+        ax.plot(t, env["error" + sfx] * sc, lw=0.7, color="C3")
         ax.axhline(0.0, color="0.5", lw=0.5)
-        ax.set_ylabel("error (mm)")
-        ax.set_title(f"{head}tracking error, measured − target")
+        ax.set_ylabel(f"error ({unit})")
+        ax.set_title(f"{head}tracking error, measured − target {what}")
         k += 1
         valid = env["fei_valid" + sfx] > 0.5
         ex = exact[sfx]
@@ -902,7 +953,7 @@ def plot_report(  # noqa: C901
             ax.set_ylabel(label)
             ax.legend(loc="upper right", fontsize=8)
         axes[k].set_title(
-            f"{head}online FEI, measured vs {pair} (cf. the FEI paper's Fig. 5.2); "
+            f"{head}online FEI, measured {what} vs {pair} (cf. the FEI paper's Fig. 5.2); "
             "grey: invalid windows" + ("; green: stability indicator S" if has_stab[sfx] else "")
         )
         if has_stab[sfx]:  # beside the FEI: S on the right axis of the A panel

@@ -777,7 +777,7 @@ class SafetyMonitor:
             self.watchdog,
             self.sequence,
             self.overrun,
-            self.stuck,
+            None if self.force_mode else self.stuck,  # not on a force channel
             self.controller,
         ):
             if r is not None:

@@ -52,9 +52,18 @@ class Channel:
         Open driver (after :meth:`open`).
     twin : TwinEndpoint or None
         The running twin endpoint, kept after the run for inspection.
+    control : str
+        ``control.mode``: ``displacement``, ``force`` or ``load``; :attr:`force_mode` is true
+        for the latter two (the wire mode is force).
     target, command : float
         This step's trial displacement from the structure (T·u, m) and the command sent for
-        it after compensation (m).
+        it after compensation (m). A force channel's are its target force and force set-point
+        (N, :meth:`force_target`), a load channel's its load (N).
+    trial, trial_next : float
+        A force channel's trial displacement from the structure along it (m), this step's
+        and the next (:func:`step_mixed`; recorded as ``trial``).
+    k_force : float
+        A force channel's assumed specimen stiffness (N/m, ``structure.k_specimen``).
     target_next, command_next : float
         The same for the next step, computed before its deadline.
     measured, force : float
@@ -432,13 +441,14 @@ class Channel:
     def force_target(self, trial: float, k: int) -> float:
         """The target of step ``k`` for the structure's trial displacement ``trial`` along it.
 
-        Displacement: ``trial`` (m). Force: the force that takes the specimen from its last
-        measured state to ``trial`` along the assumed stiffness, ``F_m + k_s·(trial − x_m)``
-        (N). Load: the schedule's force at step ``k`` (N).
+        Displacement: ``trial`` (m). Force: the force the assumed specimen stiffness needs
+        for it, ``k_s·trial`` (N; built from the structure's state alone, so the compensator
+        leads a smooth signal and no measurement is fed back through the actuator). Load: the
+        schedule's force at step ``k`` (N).
         """
         c = self.control
         if c == "force":
-            return self.force + self.k_force * (trial - self.measured)
+            return self.k_force * trial
         if c == "load":
             return self.load.at(k * self.dt)
         return trial

@@ -20,6 +20,15 @@ Start (:meth:`Phases.start`, after each controller is armed)
     sent is the loop's command plus the start position, each measured displacement the loop
     sees is the measurement minus it (so the record's command and measured columns are about
     the start position, and the displacement limit applies to them).
+Force and load channels (``control.mode``, docs/channels.md)
+    Their paths are forces (N): the start ramp goes from the force the arming reply measured
+    (the first force set-point is that force: no jump) to the channel's first target (a load
+    channel's load), over at least ``control.load_ramp`` (default ``start.ramp_time``); no
+    ramp when it is within ``start.tolerance · structure.k_specimen``; ``start.mode =
+    "offset"`` does not offset a force. At the end they ramp down to 0 N over
+    ``control.load_ramp`` (whatever ``end.rest``) before the hand-back. Every channel's ramp
+    takes the longest duration any channel needs; a force path is checked against the force
+    limit, with no velocity.
 End (:meth:`Phases.end`; completed run, operator stop, Ctrl-C, SIGTERM, SIGHUP)
     Each actuator ramps from its last command to ``end.rest_position`` (``end.rest =
     "position"``) or holds there (``"hold"``, the default), is commanded there for ``end.hold``
@@ -396,7 +405,10 @@ class Phases:
             m = len(paths[0])
             k0 = -m
             t_start = k0 * self.dt
-            peak = [float(np.max(np.abs(np.diff(p)))) / self.dt for p in paths]
+            # peak velocity of a displacement ramp; a force ramp's peak rate (N/s) apart
+            rates = [float(np.max(np.abs(np.diff(p)))) / self.dt for p in paths]
+            peak = [None if f else r for r, f in zip(rates, forced, strict=True)]
+            force_rate = [r if f else None for r, f in zip(rates, forced, strict=True)]
             trip, meas = self._drive(paths, seq0=0, k0=k0)
             # reset the feedback watchdogs: the loop's lead-in is not a missing reply
             for ch in self.chans:
@@ -406,7 +418,8 @@ class Phases:
             rec.event(
                 "start_ramp", t_start, k0, channels=[ch.name for ch in self.chans],
                 start=a.tolist(), end=b.tolist(), duration=n_ramp * self.dt,
-                hold=n_hold * self.dt, steps=m, peak_velocity=peak, velocity_limit=v,
+                hold=n_hold * self.dt, steps=m, peak_velocity=peak, peak_force_rate=force_rate,
+                velocity_limit=v,
                 measured_end=meas, completed=trip is None and self.runner.stop_signal is None,
             )  # fmt: skip
             self.shift = m

@@ -40,7 +40,7 @@ from ..safety import (
 from ..structure import BoucWenParams, CRStepper
 from ..units import parse_window
 from . import columns
-from .structures import MDOFStage, SDOFStage, StructureStage
+from .structures import MDOFStage, SDOFStage, StructureStage, TrialColumns
 
 log = logging.getLogger(__name__)
 
@@ -378,6 +378,11 @@ class TestPlan:
         return np.array([ch.row for ch in self.channels])
 
 
+#: The Kalman estimator's options in the tracked signal's unit and their defaults in m; a force
+#: channel's are these times the specimen stiffness (``structure.k_specimen``, N/m).
+KALMAN_SIGNAL_SCALES = {"measurement_noise": 5e-5, "offset_std0": 1e-3, "offset_rate": 1e-4}
+
+
 def _window(ch_cfg: Config, fn1: float) -> float:
     w = ch_cfg["fei"]["window"]
     return parse_window(w, fn1) if isinstance(w, str) else float(w)
@@ -537,6 +542,10 @@ def _plan_channel(  # noqa: C901
             opts.setdefault(
                 "delay0", min((comp.alpha - 1.0) * dt, 0.09) if comp_cfg["enabled"] else 0.0
             )
+        if wire == "force":  # the signal is a force: its noise and offset scales in N
+            scale = float(cfg["structure"]["k_specimen"]) or 1.0e6  # N per m of the defaults
+            for key, default in KALMAN_SIGNAL_SCALES.items():
+                opts.setdefault(key, default * scale)
         try:
             kalman = DelayGainEstimator(fs, **opts)
         except (TypeError, InputError) as exc:
@@ -808,7 +817,20 @@ def build_plan(  # noqa: C901
     _check_shared_links(cfg, channels)
     links = link_loads(cfg, channels, fs)
     sf = cfg["safety"]
+    forced = [ch for ch in channels if ch.control != "displacement"]
+    if any(ch.control == "force" for ch in forced):  # the trial displacements beside
+        structure = TrialColumns(
+            structure,
+            [(ch.name, "trial" + ch.suffix) for ch in forced if ch.control == "force"],
+        )
     cols = record_columns([ch.name for ch in channels], n_dof, structure)
+    for ch in forced:  # the target and the command of a force channel are forces
+        what = "the structure (force)" if ch.control == "force" else "control.load (load)"
+        for i, (name, dtype, _, _) in enumerate(cols):
+            if name == "target" + ch.suffix:
+                cols[i] = (name, dtype, "N", f"target force from {what}")
+            elif name == "command" + ch.suffix:
+                cols[i] = (name, dtype, "N", "force set-point sent (after compensation)")
     row_bytes = sum(np.dtype(col[1]).itemsize for col in cols)
     check_disk(n * row_bytes, run_dir, f"the record of {dur or n / fs:g} s at {fs:g} Hz")
     return TestPlan(

@@ -55,6 +55,10 @@ def open_recorder(plan: TestPlan, channels: list[Channel]) -> Recorder:
                     "twin": ch.twin.connection if ch.twin is not None else None,
                     "window_s": ch.plan.window_s,
                     "fei_pair": ch.plan.fei_pair,
+                    # control.mode and the tracked quantity: its column and unit
+                    "control": ch.control,
+                    "tracked": "force" if ch.force_mode else "measured",
+                    "tracked_unit": "N" if ch.force_mode else "m",
                 }
                 for ch in channels
             ],

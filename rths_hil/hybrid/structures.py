@@ -51,7 +51,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from ..safety import Trip
 
-__all__ = ["MDOFStage", "SDOFStage", "StageContext", "StructureStage"]
+__all__ = ["MDOFStage", "SDOFStage", "StageContext", "StructureStage", "TrialColumns"]
 
 
 @dataclass
@@ -195,3 +195,47 @@ class MDOFStage:
 
     def close(self) -> None:
         pass
+
+
+class TrialColumns:
+    """A structure stage with each force channel's trial displacement as a record column.
+
+    A force-controlled channel's ``target`` and ``command`` are forces; the structure's
+    displacement along it, the one the force target is computed for
+    (:attr:`rths_hil.hybrid.channel.Channel.trial`), is recorded beside them as
+    ``trial_<channel>`` (``trial`` for a single channel; m), so that the compatibility error
+    ``measured − trial`` can be read from the record. Everything else is the wrapped stage's.
+
+    Parameters
+    ----------
+    stage : StructureStage
+        The stage.
+    columns : list of (channel name, column name)
+        The force channels and their columns.
+    """
+
+    def __init__(self, stage: Any, columns: list[tuple[str, str]]) -> None:
+        self.stage = stage
+        self._names = [name for name, _ in columns]
+        self._chans: list[Any] = []
+        self.record_columns = tuple(stage.record_columns) + tuple(
+            (
+                col,
+                f"trial_{j}",
+                "<f8",
+                "m",
+                "force channel: the structure's trial displacement along the actuator, the "
+                "one its force target is computed for",
+            )
+            for j, (_, col) in enumerate(columns)
+        )
+
+    def attach(self, context: StageContext) -> None:
+        by_name = {ch.name: ch for ch in context.channels}
+        self._chans = [by_name[n] for n in self._names]
+        self.stage.attach(context)
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("trial_") and name[6:].isdigit():
+            return self._chans[int(name[6:])].trial
+        return getattr(self.__dict__["stage"], name)
