@@ -9,6 +9,7 @@ the load channel is refused by the CLI in one line, exit 2."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -37,15 +38,22 @@ DRIVERS = {
 TOLERANCE = {"can": 0.25 + 0.25, "canopen": 10.0 + 0.01}
 
 
-def _config(directory: Path, family: str) -> Path:
+def _column(driver: str | None) -> str:
+    """The column example with the vertical channel's driver line replaced by ``driver``
+    (``None``: the example's own, its profile path made absolute)."""
     text = COLUMN.read_text()
     i = text.index('driver = { name = "modbus"')
     j = text.index("\n", i)
-    if DRIVERS[family] is not None:
-        text = text[:i] + DRIVERS[family] + text[j:]
-    (directory / "column_axial_map.toml").write_text(
-        (COLUMN.parent / "column_axial_map.toml").read_text()
-    )
+    if driver is None:
+        line = text[i:j]
+        m = re.search(r'profile = "([^"]+)"', line)
+        assert m is not None, line
+        driver = line.replace(m.group(1), str(COLUMN.parent / m.group(1)))
+    return text[:i] + driver + text[j:]
+
+
+def _config(directory: Path, family: str) -> Path:
+    text = _column(DRIVERS[family])
     dbc = (EXAMPLES / "lab_axis.dbc").read_text()
     anchor = ' SG_ AckCmd : 38|1@0+ (1,0) [0|1] "" Axis\n'
     force = ' SG_ ForceSetpoint : 47|24@0- (0.5,0) [-4194304|4194303.5] "N" Axis\n'
@@ -74,7 +82,7 @@ def reference(tmp_path_factory):
     return _run(tmp_path_factory.mktemp("modbus"), "modbus")
 
 
-@pytest.mark.skipif(not (COLUMN.parent / "column_axial_map.toml").exists(), reason="no example")
+@pytest.mark.skipif(not COLUMN.exists(), reason="no example")
 @pytest.mark.parametrize("family", ["can", "canopen"])
 def test_force_channel_runs_alike_through_each_family(tmp_path, reference, family):
     rec = _run(tmp_path, family)
@@ -89,21 +97,17 @@ def test_force_channel_runs_alike_through_each_family(tmp_path, reference, famil
 
 @pytest.mark.skipif(not COLUMN.exists(), reason="no example")
 def test_builtin_driver_on_a_load_channel_is_refused(tmp_path, capsys):
-    text = COLUMN.read_text()
-    i = text.index('driver = { name = "modbus"')
-    j = text.index("\n", i)
     p = tmp_path / "column_builtin.toml"
-    p.write_text(text[:i] + 'driver = { name = "serial" }' + text[j:])
+    p.write_text(_column('driver = { name = "serial" }'))
     one_line_exit_2(["run", str(p), *RUN], capsys, "'serial'", "force")
 
 
 @pytest.mark.skipif(not COLUMN.exists(), reason="no example")
 def test_profile_without_a_force_role_on_a_load_channel_is_refused(tmp_path, capsys):
-    text = COLUMN.read_text().replace(
-        'profile = "column_axial_map.toml"', f'profile = "{EXAMPLES / "modbus_map.toml"}"'
-    )
     p = tmp_path / "column_no_role.toml"
-    p.write_text(text)
+    p.write_text(
+        _column(f'driver = {{ name = "modbus", profile = "{EXAMPLES / "modbus_map.toml"}" }}')
+    )
     one_line_exit_2(
         ["run", str(p), *RUN], capsys, "roles.force_setpoint is missing", "modbus_map.toml"
     )
