@@ -58,7 +58,15 @@ from bokeh.models import (
 from bokeh.plotting import figure
 
 from .figures import ChannelView
-from .shaping import actuator_label, block_max, channel_config, channel_values, finite_or, stride
+from .shaping import (
+    actuator_label,
+    block_max,
+    channel_config,
+    channel_control,
+    channel_values,
+    finite_or,
+    stride,
+)
 from .source import RunFollower, RunState, channel_column
 
 __all__ = [
@@ -343,6 +351,7 @@ class _Page:
                     self.overview_range,
                     fs,
                     gap,
+                    channel_control(meta, ch),
                 )
             )
         self._next = {}

@@ -68,9 +68,17 @@ class ChannelView:
         overview_range: Range1d,
         fs: float,
         gap: int,
+        control: str = "displacement",
     ) -> None:
         self.ch = ch
         self.fs = fs
+        # the tracked quantity: the displacement (shown in mm), or the force of a force- or
+        # load-controlled channel (its target and command are forces; shown in kN)
+        self.control = control
+        self.force_mode = control != "displacement"
+        self.tracked = "force" if self.force_mode else "measured"
+        self.scale, self.unit = (1e-3, "kN") if self.force_mode else (1e3, "mm")
+        quantity = "force" if self.force_mode else "displacement"
         sfx = channel_suffix(ch)
         w = 560
         tools = "pan,wheel_zoom,box_zoom,reset,save"
@@ -86,7 +94,9 @@ class ChannelView:
             data={"limit": [], "used": [], "peak": [], "color": []}, name=f"bars{sfx}"
         )
         self.title = Div(
-            text=f"<h2 style='margin:8px 0 0 0'>{html.escape(label)}</h2>",
+            text=f"<h2 style='margin:8px 0 0 0'>{html.escape(label)}"
+            f"<span style='font-weight:400;font-size:16px;color:#4b5563'> · "
+            f"{html.escape(control)} control · tracked: {quantity} ({self.unit})</span></h2>",
             name=f"title{sfx}",
         )
         self.invalid_tracker = InvalidSpans(gap)
@@ -95,16 +105,16 @@ class ChannelView:
         self.ovw_whole = -1  # rows of the ended run when it was drawn whole
 
         # value axes set by the refresh (see fit_range): an automatic range moves at every refresh
-        self.y_disp = Range1d(-1.0, 1.0)  # mm
+        self.y_disp = Range1d(-1.0, 1.0)  # mm (kN)
         p = figure(
-            title="displacement: last 10 s",
+            title=f"{quantity}: last 10 s",
             height=260,
             width=w,
             x_range=x_range,
             y_range=self.y_disp,
             tools=tools,
             x_axis_label="time (s)",
-            y_axis_label="mm",
+            y_axis_label=self.unit,
         )
         for key in ("target", "command", "measured"):
             p.line("t", key, source=self.win, color=COLORS[key], legend_label=key, line_width=1.6)
@@ -113,13 +123,13 @@ class ChannelView:
         self.disp = p
 
         q = figure(
-            title="displacement: whole test (min/max per pixel)",
+            title=f"{quantity}: whole test (min/max per pixel)",
             height=260,
             width=w,
             x_range=overview_range,
             tools=tools,
             x_axis_label="time (s)",
-            y_axis_label="mm",
+            y_axis_label=self.unit,
         )
         q.line("t", "target", source=self.ovw, color=COLORS["target"], legend_label="target")
         q.line("t", "measured", source=self.ovw, color=COLORS["measured"], legend_label="measured")
@@ -312,7 +322,7 @@ class ChannelView:
         pb.scatter("peak", "limit", marker="diamond", size=10, color="#111827", source=self.bars)
         pb.add_layout(Span(location=1.0, dimension="height", line_color="#b91c1c", line_width=2))
         self.margin = pb
-        self.limits = LimitShares(ch, safety, cfg, paced)
+        self.limits = LimitShares(ch, safety, cfg, paced, control)
         self.layout = column(self.title, row(p, q), row(pa, pd), row(ps, pk), row(pf, pb))
 
     # -- data ----------------------------------------------------------------------------------
@@ -321,11 +331,12 @@ class ChannelView:
         ch = self.ch
         t = np.asarray(rec["time"][idx], dtype=float)
         if group == "win":
-            return {  # displacements in mm (the record stays in m)
+            sc = self.scale  # displacements in mm, forces in kN (the record stays SI)
+            return {  # "measured": the tracked quantity, measured
                 "t": t,
-                "target": channel_values(rec, names, "target", ch, idx) * 1e3,
-                "command": channel_values(rec, names, "command", ch, idx) * 1e3,
-                "measured": channel_values(rec, names, "measured", ch, idx) * 1e3,
+                "target": channel_values(rec, names, "target", ch, idx) * sc,
+                "command": channel_values(rec, names, "command", ch, idx) * sc,
+                "measured": channel_values(rec, names, self.tracked, ch, idx) * sc,
             }
         return {
             "t": t,
@@ -386,8 +397,8 @@ class ChannelView:
         ends = np.minimum(np.arange(a, b, m) + m, b)
         half = 0.5 * (ends - np.arange(a, b, m)) / self.fs
         data = {"t": np.column_stack([t, t + half]).ravel()}
-        for key in ("target", "measured"):
-            x = channel_values(rec, names, key, self.ch, slice(a, b)) * 1e3  # mm
+        for key, col in (("target", "target"), ("measured", self.tracked)):
+            x = channel_values(rec, names, col, self.ch, slice(a, b)) * self.scale  # mm or kN
             pad = (-x.size) % m  # the last, incomplete bucket (final only): NaN-padded
             data[key] = envelope(np.append(x, np.full(pad, np.nan)), m)
         self.ovw_upto = b

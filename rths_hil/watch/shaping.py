@@ -22,6 +22,7 @@ __all__ = [
     "actuator_label",
     "block_max",
     "channel_config",
+    "channel_control",
     "channel_values",
     "consecutive",
     "envelope",
@@ -175,6 +176,22 @@ def channel_config(cfg: dict, ch: str) -> dict:
     return out
 
 
+def channel_control(meta: dict, ch: str) -> str:
+    """The control mode of channel ``ch``: ``"displacement"``, ``"force"`` or ``"load"``.
+
+    From the run's channel description (``meta["channels"][i]["control"]``) when it has one,
+    else from the configuration the channel ran with (``control.mode``, or ``control`` given as
+    a word); ``"displacement"`` when neither says.
+    """
+    for entry in meta.get("channels") or []:
+        if isinstance(entry, dict) and str(entry.get("name") or "") == ch and entry.get("control"):
+            return str(entry["control"])
+    c = channel_config(meta.get("config", {}) or {}, ch).get("control")
+    if isinstance(c, dict):
+        return str(c.get("mode") or "displacement")
+    return str(c) if isinstance(c, str) and c else "displacement"
+
+
 def consecutive(flag: np.ndarray, carry: int) -> np.ndarray:
     """Length of the run of True ending at each sample (``carry``: the run before the first)."""
     n = flag.size
@@ -190,10 +207,17 @@ class LimitShares:
     For each limit of ``[safety]`` (the loop's rules, :mod:`rths_hil.safety`): ``now`` is the
     share over the latest refresh period (the latest value for the FEI and Kalman estimates,
     the current run for consecutive counts), ``peak`` the largest share so far. 1 = the limit.
+
+    A force-controlled channel (``control`` ``"force"`` or ``"load"``) commands a force: its
+    target and command count against the force limit with the measured force, and only its
+    measured displacement against the displacement limit (the rules of such a channel).
     """
 
-    def __init__(self, ch: str, safety: dict, cfg: dict, paced: bool) -> None:
+    def __init__(
+        self, ch: str, safety: dict, cfg: dict, paced: bool, control: str = "displacement"
+    ) -> None:
         self.ch = ch
+        self.force_mode = control != "displacement"
         self.safety = safety
         self.cfg = cfg
         self.paced = paced
@@ -246,10 +270,15 @@ class LimitShares:
             name = channel_column(names, base, ch)
             return None if name is None else np.asarray(rec[name][a:b], dtype=float)
 
+        commanded = ("target", "command")
         for label, bases, key in (
-            ("displacement", ("target", "command", "measured"), "displacement_limit"),
+            (
+                "displacement",
+                ("measured",) if self.force_mode else (*commanded, "measured"),
+                "displacement_limit",
+            ),
             ("velocity", ("velocity",), "velocity_limit"),
-            ("force", ("force",), "force_limit"),
+            ("force", (*commanded, "force") if self.force_mode else ("force",), "force_limit"),
         ):
             lim = finite_or(sf.get(key))
             cols = [c for c in (col(x) for x in bases) if c is not None]

@@ -206,12 +206,20 @@ def _wait_t(browser: Browser, t: float, source: str = "window", timeout: float =
     return _last_t(browser, source)
 
 
+def _columns(browser: Browser, source: str, *cols: str) -> list[list]:
+    """Columns of the ColumnDataSource ``source``, read at once (a refresh may stream rows
+    onto a source, or replace it, between two reads)."""
+    return browser.eval(
+        f"(() => {{ const m = Bokeh.documents[0].get_model_by_name({json.dumps(source)});"
+        " const c = k => Array.from((m && (m.data.get ? m.data.get(k) : m.data[k])) || []);"
+        f" return {json.dumps(list(cols))}.map(c); }})()"
+    )
+
+
 def _s_shown(browser: Browser, ch: str = "") -> tuple[np.ndarray, np.ndarray]:
     """Time and S of the stability plot's rows in the page (NaN where S is not valid)."""
-    name = "fei" + (f"_{ch}" if ch else "")
-    t = np.array(browser.column(name, "t") or [], dtype=float)
-    s = np.array([np.nan if v is None else v for v in browser.column(name, "s") or []], float)
-    return t, s
+    t, s = _columns(browser, "fei" + (f"_{ch}" if ch else ""), "t", "s")
+    return np.array(t, dtype=float), np.array([np.nan if v is None else v for v in s], float)
 
 
 def _check_s_plot(browser: Browser, cfg: dict, ch: str = "") -> None:
@@ -258,6 +266,7 @@ def test_live_paced_run_plots_and_stability_move(browser, live_run, tmp_path):
     t1 = _wait_t(browser, 2.5)
     title = browser.model("title", "text")
     assert ">Actuator<" in title  # one unnamed actuator, not the driver's name
+    assert "displacement control · tracked: displacement (mm)" in title
     cfg = json.loads((run_dir / "meta.json").read_text())["config"]
     _check_s_plot(browser, cfg)
     shot1, t1 = browser.screenshot(tmp_path / "live1.png"), _last_t(browser)
@@ -296,11 +305,11 @@ def test_live_paced_run_plots_and_stability_move(browser, live_run, tmp_path):
     # reply per step) and well under the timeout; S as a share of its limit (1.5), its peak
     # at least that of the S shown first and at most that of the whole record
     t_end = time.monotonic() + 10
-    while "stability S" not in (browser.column("bars", "limit") or []):
-        assert time.monotonic() < t_end, browser.column("bars", "limit")
+    while "stability S" not in (
+        bars := dict(zip(*_columns(browser, "bars", "limit", "peak"), strict=True))
+    ):
+        assert time.monotonic() < t_end, bars
         time.sleep(0.1)
-    limits, peaks = browser.column("bars", "limit"), browser.column("bars", "peak")
-    bars = dict(zip(limits, peaks, strict=True))
     assert 0.99 / FS / WD_TIMEOUT <= bars["feedback watchdog"] < 1.0, bars
     s_all = read_run(run_dir).record["stability"]
     lo, hi = np.nanmax(np.maximum(s1, 0.0)) / 1.5, np.nanmax(np.maximum(s_all, 0.0)) / 1.5
@@ -402,6 +411,11 @@ def two_channel(tmp_path_factory):
                             seconds=16, end=None)  # fmt: skip
     finally:
         mp.undo()
+    # the channel "right" is force-controlled (its tracked quantity is its measured force)
+    meta = json.loads((run_dir / "meta.json").read_text())
+    meta["channels"] = [{"name": "left", "control": "displacement"}, {"name": "right"}]
+    meta["config"]["actuators"] = [{"name": "right", "control": {"mode": "force"}}]
+    (run_dir / "meta.json").write_text(json.dumps(meta))
     watch, url = _start_watch(run_dir, "--host", "127.0.0.2")
     try:
         yield run_dir, url, watch
@@ -414,17 +428,21 @@ def test_replay_of_a_multi_channel_record_with_the_slider(browser, two_channel):
     _, url, _ = two_channel
     _open_once(browser, url)
     assert "KILLED" in _wait_state(browser, "KILLED")
-    assert "Actuator left" in browser.model("title_left", "text")
-    assert "Actuator right" in browser.model("title_right", "text")
+    left, right = browser.model("title_left", "text"), browser.model("title_right", "text")
+    assert "Actuator left" in left and "displacement control" in left and "(mm)" in left
+    assert "Actuator right" in right and "force control" in right and "force (kN)" in right
     browser.click_button("follow the end")
     assert _wait_t(browser, 16 - 1 / 256 - 0.05, "window_left") == pytest.approx(
         16 - 1 / 256, abs=0.05
     )
-    # the measured column of each channel is what was written (amplitudes 4 and 2 mm),
-    # shown in mm
-    for ch, amp in (("left", 4.0), ("right", 2.0)):
+    # each channel's tracked quantity is what was written: the measured displacement of
+    # "left" (amplitude 4 mm) in mm, the measured force of the force channel "right"
+    # (2e5 N/m · 2 mm = 0.4 kN) in kN, its target in kN too
+    for ch, amp in (("left", 4.0), ("right", 0.4)):
         m = np.array(browser.column(f"window_{ch}", "measured"), dtype=float)
         assert np.nanmax(np.abs(m)) == pytest.approx(amp, rel=0.01)
+    x = np.array(browser.column("window_right", "target"), dtype=float)
+    assert np.nanmax(np.abs(x)) == pytest.approx(0.002e-3, rel=0.01)
     # replay: move the slider back to 12 s; the window and the S plot follow it
     browser.eval("Bokeh.documents[0].get_model_by_name('slider').value = 12.0")
     t_end = time.monotonic() + 10

@@ -14,6 +14,7 @@ from rths_hil.watch.shaping import (
     LimitShares,
     actuator_label,
     block_max,
+    channel_control,
     channel_values,
     consecutive,
     finite_or,
@@ -208,3 +209,34 @@ def test_stability_levels_are_the_rules_and_none_when_off():
     assert stability_levels({}) == {}
     assert stability_levels({**sf, "stability_limit": 0.0}) == {"warn": 1.0}
     assert stability_levels({**sf, "stability_warn": "nan"}) == {"limit": 1.5}
+
+
+def test_channel_control_from_the_channel_description_or_the_configuration():
+    cfg = {
+        "control": {"mode": "displacement"},
+        "actuators": [{"name": "v", "control": {"mode": "load", "load": 6e5}}, {"name": "h"}],
+    }
+    assert channel_control({"config": cfg}, "v") == "load"
+    assert channel_control({"config": cfg}, "h") == "displacement"
+    # the run's channel description wins over the configuration
+    meta = {"config": cfg, "channels": [{"name": "h", "control": "force"}]}
+    assert channel_control(meta, "h") == "force"
+    assert channel_control({"config": {"control": "force"}}, "") == "force"
+    assert channel_control({}, "") == "displacement"
+
+
+def test_limit_shares_of_a_force_channel_count_its_commands_as_forces():
+    """A force-controlled channel's target and command are forces: they count against the force
+    limit with the measured force; the displacement limit sees the measured displacement."""
+    safety = {"displacement_limit": 0.02, "force_limit": 2e5}
+    cfg = {"loop": {"fs": 100.0}, "kalman": {"enabled": False}, "safety": safety}
+    rec, names = _record(300, "")
+    rec["target"] = 1.5e5 * RNG.standard_normal(300)  # N
+    rec["command"] = 1.5e5 * RNG.standard_normal(300)  # N
+    got = LimitShares("", safety, cfg, paced=False, control="force").update(rec, names, 300, 50)
+    peak = dict(zip(got["limit"], got["peak"], strict=True))
+    f = np.max(np.abs([rec["target"], rec["command"], rec["force"]]), axis=0).max()
+    assert peak["force"] == pytest.approx(min(f / 2e5, 1.1), rel=1e-12)
+    assert peak["displacement"] == pytest.approx(
+        min(np.abs(rec["measured"]).max() / 0.02, 1.1), rel=1e-12
+    )
