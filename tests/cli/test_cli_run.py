@@ -11,9 +11,8 @@ from rths_hil.cli import main
 from rths_hil.config import load_config
 from rths_hil.recorder import read_run
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# in-process, in lockstep: no test here depends on the wall clock (they run with the parallel
+# tests, not under the "timing" marker)
 
 QUICK = ["--lockstep", "--set", "loop.console=0"]
 

@@ -17,10 +17,8 @@ from rths_hil.config import (
 )
 from rths_hil.errors import InputError
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
-
+# no test here runs against the wall clock or starts another process (the refusals go through
+# the CLI in-process): they run with the parallel tests, not under the "timing" marker
 ROOT = Path(__file__).resolve().parents[2]
 
 

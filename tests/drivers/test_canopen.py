@@ -34,9 +34,10 @@ from rths_hil.linkbudget import link_load as budget
 from rths_hil.recorder import read_run
 from tests.helpers.loop import run_loop
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# The object dictionary, the state machines, refusals and lockstep runs (waits of 1 s and more)
+# run with the parallel tests; the tests of heartbeats, of a wait of 0.1 s or less, of an EMCY
+# within a few steps and the paced run run apart from them, one at a time (the "timing"
+# marker, pyproject.toml; make test).
 
 ROOT = Path(__file__).resolve().parents[2]
 ENABLED, ESTOP, FAULT = int(Status.ENABLED), int(Status.ESTOP_ACTIVE), int(Status.FAULT)
@@ -145,6 +146,7 @@ def test_lockstep_run_tracks(tmp_path, profile):
     assert res.driver_stats["received"] >= len(rec) - 2
 
 
+@pytest.mark.timing  # the EMCY within 2 steps
 def test_emcy_trips_the_loop_naming_the_code(tmp_path):
     at = 1024
     _, res, _ = _run(
@@ -157,6 +159,7 @@ def test_emcy_trips_the_loop_naming_the_code(tmp_path):
     assert any(s.startswith("0x8611") for s in res.driver_stats["emcy"])
 
 
+@pytest.mark.timing
 @pytest.mark.parametrize("inline", [False, True])
 def test_twin_latches_when_the_bridge_heartbeat_stops(inline):
     """Served on its thread or inline (the steps pumped from this thread, the SDO exchanges by
@@ -249,6 +252,7 @@ def test_link_budget_counts_sync_pdos_and_heartbeats():
     assert axes_that_fit(512) == 4
 
 
+@pytest.mark.timing  # 0.3 s late against a 0.1 s wait
 @pytest.mark.parametrize(
     "faults, counter",
     [("drop=40", "timeouts"), ("corrupt=40", "malformed"), ("delay=40:0.3", "timeouts")],
@@ -366,6 +370,7 @@ def test_two_axes_with_one_node_id_are_refused(tmp_path):
     assert len(err) == 1 and "both CANopen node 1 on bus virtual:rths-canopen-two-axes" in err[0]
 
 
+@pytest.mark.timing  # the EMCY within 3 steps
 def test_two_axes_a_fault_on_one_stops_both(tmp_path):
     """A runaway on node 2 (EMCY 0x8611) trips the loop naming that node; both axes on the
     bus are e-stopped: the healthy one confirms its quick stop, the faulty one holds in FAULT."""
@@ -389,6 +394,7 @@ def test_two_axes_a_fault_on_one_stops_both(tmp_path):
     assert b.twin.state == "FAULT"  # the faulty axis holds in FAULT (its quick stop ignored)
 
 
+@pytest.mark.timing
 def test_bridge_heartbeat_goes_on_after_an_estop_until_the_nodes_are_closed():
     """Two axes on one bus, each device's heartbeat consumer 0.25 s. While the loop steps the
     bridge's heartbeat goes with its steps (a loop that stops stepping lets the consumer run
@@ -432,6 +438,7 @@ def test_bridge_heartbeat_goes_on_after_an_estop_until_the_nodes_are_closed():
         d1.close()
 
 
+@pytest.mark.timing
 def test_a_late_device_on_a_shared_bus_costs_its_own_step_only():
     """Two axes on one bus; node 2's device answers one SYNC 0.45 s late (its thread held), the
     receive waits 0.3 s. Node 2 misses that step only; its late TPDOs, arriving after the next
@@ -477,6 +484,7 @@ def test_a_late_device_on_a_shared_bus_costs_its_own_step_only():
             d.close()
 
 
+@pytest.mark.timing  # answers read at once
 def test_the_sync_goes_with_the_last_axis_rpdo_on_the_bus():
     """The bus sends the step's SYNC as soon as every axis on it has written its RPDO (not at
     the first receive): one axis, with its RPDO; two axes, with the second one's — one SYNC a
@@ -511,6 +519,7 @@ def test_the_sync_goes_with_the_last_axis_rpdo_on_the_bus():
         d1.close()
 
 
+@pytest.mark.timing  # paced
 def test_an_inline_twin_serves_the_steps_on_the_loops_thread(tmp_path, monkeypatch):
     """A paced run of the CiA 402 example as shipped (``twin.inline``): the steps' SYNCs are
     handled on the loop's thread (no hand-off to the twin's thread per step), the SDO writes
@@ -592,6 +601,7 @@ def _error_field(drv) -> int:
         drv._listen(False)
 
 
+@pytest.mark.timing
 def test_arming_tells_a_heartbeat_fault_from_a_device_fault_by_the_error_field():
     """A new bridge finds the device in FAULT: from the pre-defined error field 0x1003 it tells
     the heartbeat consumer's fault (the bridge before it stopped: EMCY 0x8130, reported as the

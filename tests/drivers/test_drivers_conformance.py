@@ -30,9 +30,9 @@ from rths_hil.sim_backends.twin import default_plant, start_twin
 
 from rths_hil.errors import InputError
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# Lockstep exchanges with generous waits (TIMEOUT): they run with the parallel tests. The tests
+# whose result depends on how soon a reply comes (a wait of 0.1 s or less, an elapsed time)
+# run apart from them, one at a time (the "timing" marker, pyproject.toml; make test).
 
 DT = 1.0 / 1024.0
 DELAY, GAIN, STIFFNESS = 0.0033, 0.9, 2.0e5
@@ -182,6 +182,7 @@ def test_sequence_numbers_wrap_the_wire_width(rig_factory) -> None:
     assert rig.driver.stats.seq_gaps == 0
 
 
+@pytest.mark.timing  # the copy must come within 0.1 s
 def test_duplicate_command_does_not_step_twice(rig_factory) -> None:
     rig = rig_factory()
     for k in range(10):
@@ -224,6 +225,7 @@ def test_estop_reaches_twin_and_twin_holds(rig_factory) -> None:
 
 
 # -- timeouts and injected faults -------------------------------------------------------------
+@pytest.mark.timing  # an elapsed time
 def test_timeout_returns_none_and_counts(rig_factory) -> None:
     rig = rig_factory()
     t0 = time.perf_counter()
@@ -259,6 +261,7 @@ def test_fault_drop_command(rig_factory) -> None:
     assert rig.driver.stats.seq_gaps == 1
 
 
+@pytest.mark.timing  # 0.15 s late against a 0.1 s wait
 def test_fault_delay_gives_timeout_then_late_frame(rig_factory) -> None:
     # the answer to step 5 comes 0.15 s late: after step 5's timeout (0.1 s), before step 6's
     rig = rig_factory(Faults(delay={5: 0.15}))
@@ -333,6 +336,7 @@ def test_fault_disconnect(rig_factory, transport: Transport) -> None:
         assert s.disconnects >= 1
 
 
+@pytest.mark.timing  # 0.05 s waits
 def test_random_frame_faults_never_raise(rig_factory) -> None:
     rig = rig_factory(Faults(p_drop=0.05, p_corrupt=0.05, p_duplicate=0.05, seed=11))
     fbs = run(rig, 200, timeout=0.05)
@@ -353,6 +357,7 @@ def test_invalid_commands_are_refused(rig_factory) -> None:
     assert rig.driver.stats.sent == 0
 
 
+@pytest.mark.timing  # an elapsed time
 @pytest.mark.parametrize("interface", ["serial", "slcan"])
 def test_can_over_a_serial_line_reports_the_far_end_gone(interface, caplog) -> None:
     """The served CAN twin's pseudo-terminals closed under a connected driver (the twin process

@@ -25,9 +25,9 @@ from rths_hil.cli import main
 from rths_hil.errors import InputError
 from rths_hil.recorder import read_run
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# Validation, codecs, link budgets and lockstep exchanges with their twins (waits of 1 s) run
+# with the parallel tests; the paced runs, and a test that needs a frame read within 50 ms, run
+# apart from them, one at a time (the "timing" marker, pyproject.toml; make test).
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples" / "controllers"
@@ -388,6 +388,7 @@ def test_can_dbc_lockstep_matches_the_builtin_dbc(tmp_path) -> None:
     assert diff.max() <= 0.5 * 1.001 and (diff < 1e-9).mean() > 0.95
 
 
+@pytest.mark.timing
 @pytest.mark.parametrize("cfg", ["modbus_map_run.toml", "can_dbc_run.toml"])
 def test_examples_run_paced(tmp_path, cfg) -> None:
     out = tmp_path / "paced"
@@ -426,6 +427,7 @@ def test_startup_check_refuses_a_map_the_controller_lacks(tmp_path) -> None:
         twin.stop()
 
 
+@pytest.mark.timing  # the stray frame read within 50 ms
 def test_can_profile_matches_feedback_without_an_echo() -> None:
     """The first feedback after a command answers it (age recorded); a frame that was already
     waiting when the command went out is counted late and never delivered."""

@@ -32,9 +32,10 @@ from rths_hil.recorder import read_run
 from tests.helpers.loop import run_loop
 from tests.helpers.procs import ServedTwin, toml_table
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# The lockstep rows are bounded in steps (a healthy reply has LOCKSTEP_LIMIT, 1.5 s, to come):
+# they run with the parallel tests. The paced rows, bounded in wall-clock time, and the twin
+# process killed or stopped run apart from them, one at a time (the "timing" marker,
+# pyproject.toml; make test).
 
 FS = 1024
 AT = 300  # the faulty step (≈ 0.29 s into the run)
@@ -193,6 +194,7 @@ def test_lockstep(tmp_path, reference, driver, fault):
     assert run.record["feedback_ok"][:AT].all()  # nothing before the fault
 
 
+@pytest.mark.timing
 @pytest.mark.parametrize("fault", PACED)
 @pytest.mark.parametrize("driver", DRIVERS)
 def test_paced(tmp_path, driver, fault):
@@ -250,6 +252,7 @@ SERVED = {
 }
 
 
+@pytest.mark.timing
 @pytest.mark.parametrize("driver", sorted(SERVED))
 @pytest.mark.parametrize("fault", ["twin_killed", "twin_stopped_1s"])
 def test_paced_twin_process(tmp_path, driver, fault):
