@@ -23,11 +23,12 @@ from .base import Plant
 from .delay import DelayGain
 from .endpoints.base import TwinController, TwinEndpoint
 from .faults import Faults
+from .force import DEFAULT_LOOP_GAIN, ForcePlant
 from .plant import TwinPlant
 from .registry import twin_class
 from .specimen import KelvinVoigt
 
-__all__ = ["default_plant", "start_twin"]
+__all__ = ["default_force_plant", "default_plant", "start_twin"]
 
 #: Default step of the twins (s): the bridge's 1024 Hz loop.
 DEFAULT_DT = 1.0 / 1024.0
@@ -39,6 +40,27 @@ def default_plant(
     """The delay + gain actuator of the FEI paper's Fig. 4.1 (20 ms, gain 1) on a 1 MN/m
     spring, noiseless, at 1024 Hz."""
     return TwinPlant(DelayGain(delay, gain, dt), specimen=KelvinVoigt(stiffness, 0.0, dt))
+
+
+def default_force_plant(
+    delay: float = 0.005,
+    gain: float = 1.0,
+    stiffness: float = 1.19e6,
+    loop_gain: float | None = None,
+    dt: float = DEFAULT_DT,
+) -> ForcePlant:
+    """The force-controlled twin (:class:`~rths_hil.sim_backends.force.ForcePlant`): a 5 ms
+    delay and gain 1 on the force set-point, then the closed force loop on a spring of
+    ``stiffness`` (default the RTHS benchmark's 1.19 MN/m, a 4.2 ms loop at the default
+    ``loop_gain``), noiseless, at 1024 Hz. A channel with ``control.mode = "force"`` or
+    ``"load"`` gets this twin built from its ``[twin]`` tables
+    (:func:`~rths_hil.sim_backends.force.force_plant`, ``twin.force_loop_gain``)."""
+    return ForcePlant(
+        KelvinVoigt(stiffness, 0.0, dt),
+        DEFAULT_LOOP_GAIN if loop_gain is None else loop_gain,
+        delay,
+        gain,
+    )
 
 
 def start_twin(

@@ -11,6 +11,7 @@ from rths_hil.sim_backends.first_order import FirstOrderServo
 from rths_hil.sim_backends.force import ForcePlant, force_plant
 from rths_hil.sim_backends.plant import Sensor
 from rths_hil.sim_backends.specimen import KelvinVoigt
+from rths_hil.sim_backends.twin import default_force_plant
 from scipy.integrate import solve_ivp
 
 from rths_hil.errors import InputError
@@ -35,6 +36,11 @@ def test_is_a_plant_in_force_mode():
     assert isinstance(p, Plant) and p.control == "force"
     # T = 1/(K_f k) with the default gain on a 1 MN/m spring
     assert p.time_constant == pytest.approx(1.0 / (2.0e-4 * 1.0e6))
+    d = default_force_plant()
+    assert d.control == "force" and d.time_constant == pytest.approx(1.0 / (2.0e-4 * 1.19e6))
+    x, f = np.array([d.step(1e4) for _ in range(1024)]).T
+    assert f[-1] == pytest.approx(1e4) and x[-1] == pytest.approx(1e4 / 1.19e6)
+    assert np.all(f[:4] == 0.0)  # the 5 ms delay (5.12 samples, Lagrange from the 5th)
 
 
 def test_steady_state_force_is_gain_times_command_and_displacement_force_over_stiffness():
