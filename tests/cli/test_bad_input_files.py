@@ -15,9 +15,8 @@ from rths_hil.errors import InputError
 from rths_hil.recorder import RECORD_FILE, Recorder
 from tests.helpers.cli import one_line_exit_2 as _one_line_exit_2
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# file-system errors and races between processes, in lockstep: no test here depends on the wall
+# clock (they run with the parallel tests, not under the "timing" marker)
 
 LONG = "a" * 300  # one path component over the 255-byte limit of Linux file systems
 RUN = ["run", "--lockstep", "--duration", "1", "-q", "--no-plot"]

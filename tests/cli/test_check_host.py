@@ -19,9 +19,9 @@ import pytest
 from rths_hil.checkhost import Timing, host_facts, measure, verdict
 from tests.helpers.procs import ROOT
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# The verdict's arithmetic, the host facts and the CLI (its exit codes, its cached line, its
+# operator stop within a bound of seconds) run with the parallel tests; the measurement's
+# wake-ups, one per period, run apart from them (the "timing" marker, pyproject.toml; make test).
 
 FS = 1024.0
 P = 1.0 / FS
@@ -59,6 +59,7 @@ def test_verdict_marginal_and_cannot_hold():
     assert verdict(_timing(lat), FS, SPIN, THR, MAX_OVER)[0] == "holds"
 
 
+@pytest.mark.timing  # one wake-up per 2 ms period
 def test_measure_wakes_every_period_for_the_duration():
     t0 = time.perf_counter()
     t = measure(2e-3, 0.4, priority=0, cpu=0)
@@ -123,7 +124,9 @@ def test_cli_bad_input(tmp_path, args, text):
     assert not (tmp_path / "cache" / "check-host.json").exists()
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+# one signal: every stop signal is caught by the same OperatorStop
+# (test_loop_paced.py::test_every_stop_signal_is_the_operator_stop_and_a_second_one_interrupts)
+@pytest.mark.parametrize("sig", [signal.SIGHUP])
 def test_operator_stop_ends_the_measurement_with_130_and_keeps_no_verdict(tmp_path, sig):
     env = dict(os.environ, RTHS_HIL_CACHE=str(tmp_path / "cache"))
     proc = subprocess.Popen(

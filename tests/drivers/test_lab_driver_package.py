@@ -17,9 +17,8 @@ import pytest
 from rths_hil.cli import main
 from rths_hil.recorder import read_run
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# The registries and the lockstep run (virtual time) run with the parallel tests; the paced runs
+# run apart from them, one at a time (the "timing" marker, pyproject.toml; make test).
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "lab_driver"
 QUIET = ["--set", "loop.console=0", "-q"]
@@ -117,6 +116,7 @@ def test_lab_driver_lockstep_equals_the_serial_driver(lab_package: Path, tmp_pat
     assert np.ptp(a["measured"]) > 1e-3  # the twin moved
 
 
+@pytest.mark.timing
 def test_lab_driver_paced_run_completes(lab_package: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "paced"
     args = ["run", "--paced", "--duration", "2", "--out", str(out), "--set", "loop.console=0"]
@@ -132,6 +132,7 @@ def test_lab_driver_paced_run_completes(lab_package: Path, tmp_path: Path, capsy
     assert link and "UDP loopback" in link[0]
 
 
+@pytest.mark.timing
 def test_a_blocking_driver_cannot_hold_the_watchdog(lab_package: Path, tmp_path: Path) -> None:
     """Its receive blocks 0.4 s; the watchdog (safety.watchdog_timeout) still trips within its
     limit plus one period of the deadline of the first unanswered step (wall time,

@@ -16,9 +16,9 @@ from rths_hil.config import load_config
 from rths_hil.hybrid import RTHSLoop
 from rths_hil.recorder import header_row_count, read_run
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# the paced runs: against the wall clock, with other processes; run apart from the parallel
+# tests (the "timing" marker, pyproject.toml; make test)
+timing = pytest.mark.timing
 
 FS = 1024.0
 # a loaded CI machine must not stop these runs for reasons they do not test
@@ -64,6 +64,7 @@ def _wait_rows(path: Path, proc: subprocess.Popen, timeout: float = 30.0) -> Non
     raise AssertionError("the run never flushed a row")
 
 
+@timing
 def test_paced_run_keeps_the_wall_clock(tmp_path):
     cfg = load_config(
         None, ["loop.duration=1.5", "loop.console=0", "output.plot=false", *TOLERANT[1::2]]
@@ -92,6 +93,7 @@ def test_paced_run_keeps_the_wall_clock(tmp_path):
     assert run.record["feedback_ok"].mean() > 0.9
 
 
+@timing
 def test_kill_9_leaves_the_record_complete_up_to_the_kill(tmp_path):
     out = tmp_path / "run"
     proc = _start(out)
@@ -113,6 +115,7 @@ def test_kill_9_leaves_the_record_complete_up_to_the_kill(tmp_path):
     assert [e["kind"] for e in run.events][:4] == ["start", "arm", "start_position", "clock"]
 
 
+@timing
 def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
     out = tmp_path / "run"
     proc = _start(out)
@@ -136,7 +139,35 @@ def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
     assert summary["status"] == "operator_stop" and summary["trip"]["rule"] == "operator"
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1])
+def test_every_stop_signal_is_the_operator_stop_and_a_second_one_interrupts():
+    """``run``, ``commission``, ``check-host`` and the studies catch the stop signals with
+    :class:`rths_hil.stopping.OperatorStop`, one handler for every signal of STOP_SIGNALS:
+    each one, sent to this process, is recorded by its name and the command's next check
+    stops; a second one raises at once; the handlers are restored after. With this, one
+    signal proves a command's whole stop path (SIGHUP below, SIGINT above; SIGTERM in
+    test_start_end.py and test_commission.py)."""
+    from rths_hil.hybrid.runner import STOP_SIGNALS
+    from rths_hil.stopping import OperatorStop, Stopped
+
+    wanted = {"SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2"}
+    assert {s.name for s in map(signal.Signals, STOP_SIGNALS)} == wanted
+    before = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    for sig in STOP_SIGNALS:
+        name = signal.Signals(sig).name
+        with OperatorStop() as stop:
+            stop.check()  # nothing yet
+            signal.raise_signal(sig)  # (handled before it returns)
+            assert stop.signal == name
+            with pytest.raises(Stopped, match=name):
+                stop.check()
+            with pytest.raises(KeyboardInterrupt):
+                signal.raise_signal(sig)
+        assert {s: signal.getsignal(s) for s in STOP_SIGNALS} == before  # restored
+
+
+# one signal: every stop signal is caught by the same OperatorStop (the test above)
+@timing
+@pytest.mark.parametrize("sig", [signal.SIGHUP])
 def test_every_terminating_signal_takes_the_operator_stop_path(tmp_path, sig):
     """A closed terminal or ssh session (SIGHUP) stops the run as Ctrl-C does: the stop and
     end events, every controller handed back disabled and not latched, exit 130."""

@@ -26,9 +26,9 @@ from rths_hil.hybrid import (
 )
 from rths_hil.recorder import read_run
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# The attribution against the event model and the console's percentile are arithmetic: they run
+# with the parallel tests; the paced runs and the paced floor run apart from them, one at a time
+# (the "timing" marker, pyproject.toml; make test).
 
 DT = 1.0 / 4096.0
 THR = 0.5 * DT
@@ -160,6 +160,7 @@ def test_bad_shapes_are_refused():
         attribute_overruns(np.zeros(3), np.zeros(2), THR)
 
 
+@pytest.mark.timing
 def test_the_empty_loop_floor_keeps_the_grid():
     fs = 1024.0
     lat, ready = paced_floor(fs, 0.3, spin=2e-4)
@@ -195,6 +196,7 @@ class _SlowPlant:
         return self.inner.step(command)
 
 
+@pytest.mark.timing
 def test_consecutive_overruns_trip_where_the_record_says(tmp_path):
     fs = 1024.0
     cfg = load_config(
@@ -264,6 +266,7 @@ def same_cpu_hog():
         hog.wait()
 
 
+@pytest.mark.timing
 def test_the_threads_clock_tells_a_preemption_inside_the_work_from_the_work(
     tmp_path, monkeypatch, same_cpu_hog
 ):

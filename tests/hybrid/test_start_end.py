@@ -35,9 +35,9 @@ from tests.helpers.cli import one_line_exit_2
 from tests.helpers.loop import run_loop
 from tests.helpers.procs import LATCH_LINE, ROOT, ServedTwin, bridge_cmd, toml_table, wait_rows
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# The start and end phases in lockstep, the refusals and the served twin in lockstep run with
+# the parallel tests; the paced runs against a served twin run apart from them, one at a time
+# (the "timing" marker, pyproject.toml; make test).
 
 MM = 1e-3
 LSB = 1e-7  # CAN/Modbus displacement resolution (m)
@@ -290,6 +290,7 @@ def _modbus_status(conn) -> int:
         client.close()
 
 
+@pytest.mark.timing
 def test_served_twin_logs_no_latch_after_a_completed_paced_run(served, tmp_path):
     out = tmp_path / "run"
     cmd = bridge_cmd("modbus", served.connection, out, "--paced", "--duration", "1")
@@ -307,7 +308,10 @@ def test_served_twin_logs_no_latch_after_a_completed_paced_run(served, tmp_path)
     assert time.monotonic() - t_end >= 3 * HB
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+# one signal: every stop signal is caught by the same OperatorStop
+# (test_loop_paced.py::test_every_stop_signal_is_the_operator_stop_and_a_second_one_interrupts)
+@pytest.mark.timing
+@pytest.mark.parametrize("sig", [signal.SIGTERM])
 def test_signal_stop_hands_back_without_estop(served, tmp_path, sig):
     out = tmp_path / "run"
     cmd = bridge_cmd("modbus", served.connection, out, "--paced", "--duration", "30")

@@ -25,9 +25,8 @@ from rths_hil.recorder import (
 )
 from tests.helpers.records import row as _row
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# The recorder in-process runs with the parallel tests; the paced writer killed (-9) runs apart
+# from them (the "timing" marker, pyproject.toml; make test).
 
 NAMES = [c[0] for c in COLUMNS]
 
@@ -116,6 +115,7 @@ def test_existing_record_is_refused(tmp_path):
         Recorder(tmp_path / "run2", fs=10.0, flush_interval=0.5)
 
 
+@pytest.mark.timing
 def test_kill_9_leaves_every_flushed_row_readable(tmp_path):
     run = tmp_path / "run"
     script = textwrap.dedent(

@@ -16,9 +16,9 @@ import pytest
 
 from rths_hil.recorder import RECORD_FILE, header_row_count, read_run
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# The record on a full disk, in lockstep, runs with the parallel tests; a signal in the start-up,
+# a receive's timeout and lockstep under a 1 s reply bound run apart from them, one at a time
+# (the "timing" marker, pyproject.toml; make test).
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -62,6 +62,7 @@ def test_disk_full_is_a_safety_trip_that_keeps_what_was_flushed(tmp_path):
     assert estop["confirmed"] is True  # the twin latched the e-stop
 
 
+@pytest.mark.timing
 def test_ctrl_c_during_start_up_exits_130_without_a_traceback(tmp_path):
     """SIGINT while the command starts (imports), and as soon as the run directory appears
     (twin, driver, warm-up, arming, first steps): exit 130, one line, no traceback."""
@@ -90,6 +91,7 @@ def test_ctrl_c_during_start_up_exits_130_without_a_traceback(tmp_path):
             assert events[-1]["kind"] == "end" and events[-1]["status"] == "operator_stop"
 
 
+@pytest.mark.timing
 def test_can_receive_honours_its_timeout_on_interfaces_that_do_not():
     """python-can's ``serial`` interface waits 0.1 s whatever recv is given; the driver not."""
     import can
@@ -120,6 +122,7 @@ def test_can_receive_honours_its_timeout_on_interfaces_that_do_not():
     assert drv.stats.malformed_reasons.get("unknown_id") == 1  # loop:// echoes the command
 
 
+@pytest.mark.timing
 def test_lockstep_is_deterministic_with_a_sub_millisecond_feedback_timeout(tmp_path):
     """examples/modbus.toml (feedback_timeout = 0.7 ms) twice in lockstep: identical records.
 

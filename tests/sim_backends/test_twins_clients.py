@@ -31,9 +31,9 @@ from rths_hil.sim_backends.delay import fractional_delay
 from rths_hil.sim_backends.plant import TwinPlant
 from rths_hil.sim_backends.twin import default_plant, start_twin
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# Exchanges with waits of 1 s and more, and "twin serve" as a process, run with the parallel
+# tests; the heartbeat watchdog of 50 ms runs apart from them (the "timing" marker,
+# pyproject.toml; make test).
 
 DT = 1.0 / 1024.0
 DELAY, GAIN, K = 0.0042, 1.05, 3.0e5
@@ -155,6 +155,7 @@ def test_modbus_rtu_twin_with_plain_pymodbus_serial_client() -> None:
     np.testing.assert_allclose([o[2] for o in out], x, atol=0.5e-7 + 1e-12)
 
 
+@pytest.mark.timing  # a 50 ms heartbeat timeout
 def test_heartbeat_watchdog_trips_estop() -> None:
     with start_twin("can", plant(), heartbeat_timeout=0.05) as twin:
         with CANDriver(**twin.connection) as drv:
