@@ -47,7 +47,7 @@ from ..errors import InputError
 from ..recorder import Recorder, RecordWriteError
 from ..safety import OverrunRule, StallRule, Trip
 from ..stopping import OperatorStop
-from .channel import Channel
+from .channel import Channel, step_mixed
 from .phases import Phases, preflight
 from .plan import TestPlan
 from .record import open_recorder, row_writer
@@ -352,6 +352,9 @@ class Runner:
         xs = st.reset()
         for ch in self.channels:
             ch.target = xs[ch.dof] if ch.dof >= 0 else _dot(ch.row, xs)
+            if ch.force_mode:  # a force target from the trial displacement, or the load
+                ch.trial = ch.trial_next = ch.target
+                ch.target = ch.force_target(ch.target, 0)
             ch.compensator.reset(ch.target)
             ch.alpha = ch.compensator.alpha
             ch.command = ch.compensate(ch.target)
@@ -386,6 +389,7 @@ class Runner:
         safety = self.safety
         st = plan.structure
         n_dof = st.n_dof
+        mixed = any(ch.force_mode for ch in chans)  # force or load channels
         st_step = st.step
         write_row = row_writer(rec, chans, st)  # (time, step, ground_accel, lateness, skew, dofs)
 
@@ -540,30 +544,33 @@ class Runner:
                         ch.heartbeat()
                 # ---- structure: commit step k with the measured forces, next targets ---------
                 if trip is None:
-                    if n_dof == 1 and not multi:
-                        x_next = st_step(k, ag[k], (chans[0].force * chans[0].row[0],))
+                    if mixed:  # force or load channels (.channel.step_mixed)
+                        x_next = step_mixed(st, k, ag[k], chans, n_dof)
                     else:
-                        f = [0.0] * n_dof
-                        for ch in chans:
-                            if ch.dof >= 0:
-                                f[ch.dof] += ch.force
-                            else:
-                                for i, r in enumerate(ch.row):
-                                    f[i] += r * ch.force
-                        x_next = st_step(k, ag[k], f)
-                    v_d, r_d = st.v, st.r
-                    for ch in chans:
-                        d = ch.dof
-                        if d >= 0:
-                            ch.target_next = x_next[d]
-                            ch.velocity = v_d[d]
-                            ch.restoring_force = r_d[d]
+                        if n_dof == 1 and not multi:
+                            x_next = st_step(k, ag[k], (chans[0].force * chans[0].row[0],))
                         else:
-                            ch.target_next = _dot(ch.row, x_next)
-                            ch.velocity = _dot(ch.row, v_d)
-                            ch.restoring_force = _dot(ch.row, r_d)
-                        ch.alpha = ch.compensator.alpha
-                        ch.command_next = ch.compensate(ch.target_next)
+                            f = [0.0] * n_dof
+                            for ch in chans:
+                                if ch.dof >= 0:
+                                    f[ch.dof] += ch.force
+                                else:
+                                    for i, r in enumerate(ch.row):
+                                        f[i] += r * ch.force
+                            x_next = st_step(k, ag[k], f)
+                        v_d, r_d = st.v, st.r
+                        for ch in chans:
+                            d = ch.dof
+                            if d >= 0:
+                                ch.target_next = x_next[d]
+                                ch.velocity = v_d[d]
+                                ch.restoring_force = r_d[d]
+                            else:
+                                ch.target_next = _dot(ch.row, x_next)
+                                ch.velocity = _dot(ch.row, v_d)
+                                ch.restoring_force = _dot(ch.row, r_d)
+                            ch.alpha = ch.compensator.alpha
+                            ch.command_next = ch.compensate(ch.target_next)
                     trip = check_command(tk, k)
                     if st.finished and trip is None:
                         trip = st.trip  # an external structure's fault
@@ -594,7 +601,7 @@ class Runner:
                 write_row(tk, k, ag[k], lat, skew, xs)
                 for ch in chans:
                     if console:  # peaks, for the console's safety margin only
-                        a = ch.target
+                        a = ch.measured if ch.force_mode else ch.target
                         if a < 0:
                             a = -a
                         if a > ch.peak_displacement:
