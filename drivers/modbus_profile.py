@@ -22,10 +22,11 @@ serves one transaction at a time and drops a request that arrives while another 
 progress) is sent one request at a time from then on, with a warning (:attr:`link_note`). One
 at a time, a request is not written over an outstanding one (given up after ``HEAD_GIVEUP``).
 
-**Arming and the enable edge.** Arming writes the disable and acknowledge actions and reads
-the measured values, no set-point (a controller that follows its set-point register once
-enabled would move to it); on the enable edge the set-point goes out before the enable
-action, so the controller follows the command from the edge.
+**Arming and the enable edge.** Arming writes the loop of the channel's wire mode
+(``actions.force_mode`` / ``actions.displacement_mode``, where the profile maps it), the disable
+and acknowledge actions and reads the measured values, no set-point (a controller that follows
+its set-point register once enabled would move to it); on the enable edge the set-point goes out
+before the enable action, so the controller follows the command from the edge.
 
 **E-stop** (Modbus TCP): over a second connection of its own, idle but for the e-stop (else on
 the step's connection after the outstanding answer, at most ``ESTOP_DRAIN``), its answer
@@ -94,7 +95,7 @@ from rths_hil.errors import InputError
 
 from .base import Driver, Feedback, LinkDown, Status, extend_seq
 from .modbus_layout import BlockLayout, PointLayout, RequestTemplate, StepReply
-from .profile import ModbusAction, ModbusProfile, load_profile, status_from_word
+from .profile import MODE_ACTIONS, ModbusAction, ModbusProfile, load_profile, status_from_word
 
 __all__ = ["ModbusProfileDriver"]
 
@@ -620,7 +621,9 @@ class ModbusProfileDriver(Driver):
         base = (seq & 0x0FFF) << 4
         if self._arming:
             # the arming command (a new run): disable, acknowledge, read where the actuator
-            # is; no set-point (the controller would follow it once enabled)
+            # is; no set-point (the controller would follow it once enabled). A controller
+            # that selects its loop on command gets the channel's loop first, while disabled
+            out += self._action(acts.get(MODE_ACTIONS[self.control]))
             out += self._action(acts.get("disable")) + self._action(acts.get("acknowledge"))
             self._enabled, self._estop_sent = False, False
             self._submit(out + self._reads_only(base))

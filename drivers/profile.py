@@ -22,6 +22,11 @@ role                      meaning
 ``heartbeat``             a counter the bridge writes at ``loop.heartbeat``
 ========================  ===============================================================
 
+Optional ``actions.force_mode`` and ``actions.displacement_mode`` select the controller's loop
+for a controller that closes its force or displacement loop on command (not by which set-point
+is written): Modbus writes the one of the channel's wire mode while disabled at arming, CAN
+carries it in every command frame; ``force_mode`` needs ``roles.force_setpoint``.
+
 ``protocol = "modbus"`` (Modbus TCP): each role is a *point* — ``table`` (``holding``,
 ``input``, ``coil``, ``discrete``), ``address`` (0-based PDU address), ``type`` (``int16``,
 ``uint16``, ``int32``, ``uint32``, ``float32``, ``float64``; ``bool`` for coils and discrete
@@ -116,7 +121,9 @@ ROLES = ("setpoint", *READ_ROLES)
 OPTIONAL_ROLES = ("force_setpoint",)
 #: The wire control modes (:meth:`rths_hil.drivers.base.Driver.set_control`).
 CONTROL_MODES = ("displacement", "force")
-ACTIONS = ("enable", "disable", "estop", "acknowledge")
+ACTIONS = ("enable", "disable", "estop", "acknowledge", "force_mode", "displacement_mode")
+#: The actions that select the controller's loop, by wire mode.
+MODE_ACTIONS = {"force": "force_mode", "displacement": "displacement_mode"}
 STATUS_BITS: dict[str, int] = {
     "enabled": int(Status.ENABLED),
     "estop": int(Status.ESTOP_ACTIVE),
@@ -491,6 +498,7 @@ class ModbusProfile:
         fsp = self.points.get("force_setpoint")
         if fsp is None:
             raise _no_force_role(self.source, "a holding register point in N, kN or lbf")
+        _check_force_loop(self.source, self.actions)
         points = {**self.points, "setpoint": fsp}
         fc23 = fsp.table == "holding" and len(self.reads) == 1 and self.reads[0].table == "holding"
         return replace(self, points=points, fc23=fc23)
@@ -569,6 +577,39 @@ def _modbus_roles(roles: _Reader, defaults: dict[str, str]) -> dict[str, ModbusP
     return points
 
 
+def _check_force_loop(source: str, actions: dict[str, Any]) -> None:
+    """A controller that selects its loop on command (``actions.displacement_mode``) runs a
+    force channel only with the action that selects its force loop."""
+    if "displacement_mode" in actions and "force_mode" not in actions:
+        raise InputError(
+            f"profile {source}: actions.force_mode is missing: the controller selects its loop "
+            "on command (actions.displacement_mode) and a force-controlled channel needs its "
+            "force loop selected"
+        )
+
+
+def _check_mode_actions(src: str, actions: dict[str, Any], roles: dict[str, Any]) -> None:
+    """``actions.force_mode`` only with a force set-point to follow, and not the same write as
+    ``actions.displacement_mode`` (the controller could not tell the loops apart)."""
+    if "force_mode" in actions and "force_setpoint" not in roles:
+        raise InputError(
+            f"profile {src}: actions.force_mode: selects a force loop, but the profile maps no "
+            "roles.force_setpoint to command it"
+        )
+    f, d = actions.get("force_mode"), actions.get("displacement_mode")
+    if f is not None and d is not None:
+        same = (
+            (f.message, f.signal, f.value) == (d.message, d.signal, d.value)
+            if isinstance(f, CANSignal)
+            else (f.table, f.address, f.value) == (d.table, d.address, d.value)
+        )
+        if same:
+            raise InputError(
+                f"profile {src}: actions.displacement_mode: the same write as "
+                "actions.force_mode: the controller could not tell the loops apart"
+            )
+
+
 def _check_overlaps(source: str, points: list[ModbusPoint], actions: list[ModbusAction]) -> None:
     spans = [(p.table, p.address, p.end, f"roles.{p.role}") for p in points]
     spans += [(a.table, a.address, a.address + 1, f"actions.{a.name}") for a in actions]
@@ -636,6 +677,7 @@ def _load_modbus(r: _Reader) -> ModbusProfile:
         actions[name] = ModbusAction(
             name, table, a.int("address", lo=0, hi=65535), a.int("value", 1, lo=0, hi=hi)
         )
+    _check_mode_actions(src, actions, points)
     heartbeat = None
     if r.table("heartbeat") is not None:
         heartbeat = _modbus_point(r, "heartbeat", defaults)
@@ -742,6 +784,7 @@ class CANProfile:
             raise _no_force_role(
                 self.source, f"a signal of the command message {self.roles['setpoint'].message}"
             )
+        _check_force_loop(self.source, self.actions)
         return replace(self, roles={**self.roles, "setpoint": fsp})
 
     @property
@@ -843,6 +886,7 @@ def _load_can(r: _Reader, base: Path) -> CANProfile:
             )
     if actions["estop"].message in (roles["setpoint"].message, fb):
         raise InputError(f"profile {src}: actions.estop: needs a message of its own")
+    _check_mode_actions(src, actions, roles)
     hb = None
     if r.table("heartbeat") is not None:
         hb = _can_signal(r, "heartbeat", db, dbc_rel)

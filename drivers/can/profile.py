@@ -35,7 +35,7 @@ from cantools.database.errors import Error as CantoolsError
 from rths_hil.errors import InputError
 
 from ..base import Driver, Feedback, LinkDown
-from ..profile import CANProfile, load_profile, status_from_word
+from ..profile import MODE_ACTIONS, CANProfile, load_profile, status_from_word
 from . import SharedBus, release_bus, shared_bus
 from .codec import Frame
 
@@ -96,6 +96,7 @@ class CANProfileDriver(Driver):
             self._off = (acts["disable"].signal, acts["disable"].value)
         if "acknowledge" in acts:
             self._ack = (acts["acknowledge"].signal, acts["acknowledge"].value)
+        self._use_mode()
         self._pos = (r["position"].signal, r["position"].factor)
         self._force = (r["force"].signal, r["force"].factor)
         self._status = r["status"].signal
@@ -158,6 +159,14 @@ class CANProfileDriver(Driver):
         if prof is not self.profile:
             self.profile = prof
             self._use_setpoint()
+        self._use_mode()
+
+    def _use_mode(self) -> None:
+        """A controller that selects its loop on command: the signal of the channel's loop
+        (``actions.force_mode`` / ``actions.displacement_mode``) at its value in every frame."""
+        act = self.profile.actions.get(MODE_ACTIONS[self.control])
+        if act is not None:
+            self._values[act.signal] = float(act.value or 0.0)
 
     # -- transport ------------------------------------------------------------------------------
     def open(self) -> None:

@@ -81,6 +81,11 @@ class CANProfileTwin(TwinEndpoint):
             else None
         )
         self._estop_sig = (acts["estop"].signal, acts["estop"].value)
+        #: a controller that selects its loop on command: the force loop's signal and value
+        #: (any other value of it, or none, is the displacement loop)
+        self._modes = bool({"force_mode", "displacement_mode"} & set(acts))
+        fm = acts.get("force_mode")
+        self._force_loop = (fm.signal, fm.value) if fm is not None else None
         self._fb_limits = {s.name: (s.minimum, s.maximum) for s in self._fb.signals}
         self._share: SharedBus | None = None
         self._bus: can.BusABC | None = None
@@ -152,6 +157,10 @@ class CANProfileTwin(TwinEndpoint):
                 v = self._cmd.decode(msg.data, decode_choices=False)
                 x = float(v[self._sp[0]]) * self._sp[1]  # type: ignore[arg-type]
                 enable = self._enable is None or v[self._enable[0]] == self._enable[1]
+                if self._modes:  # the loop the frame selects must be the plant's
+                    fl = self._force_loop
+                    force = fl is not None and v[fl[0]] == fl[1]
+                    enable = enable and force == (self.control == "force")
                 if self._ack is not None and not enable and v[self._ack[0]] == self._ack[1]:
                     reply = ctl.command(0, x, False)  # a new run: arm; the run's step 0 next
                     self._k = 0

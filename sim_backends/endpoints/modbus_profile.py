@@ -173,6 +173,11 @@ class ModbusProfileTwin(TwinEndpoint):
         self._listener: socket.socket | None = None
         self._conns: dict[int, list[Any]] = {}  # fd → [socket, buffer]
         self._enable = False
+        #: a controller that selects its loop on command (actions.force_mode /
+        #: displacement_mode): the loop selected, displacement at power-on; it follows the
+        #: set-point only while the loop is its plant's
+        self._modes = bool({"force_mode", "displacement_mode"} & set(prof.actions))
+        self._loop = "displacement"
         self._k = 0
         # the frame faults of the current step (copies, corrupt), applied to its read responses
         self._plan: tuple[int, bool] | None = None
@@ -446,7 +451,8 @@ class ModbusProfileTwin(TwinEndpoint):
         sp = self._sp
         if address <= sp.address and sp.end <= address + len(regs):
             x = self._from_registers(sp, [t[a] for a in range(sp.address, sp.end)])
-            reply = self.controller.command(self._k, x, self._enable)
+            enable = self._enable and (not self._modes or self._loop == self.control)
+            reply = self.controller.command(self._k, x, enable)
             if self._enable or self._k:  # (the disabled write at 0 is the arming command)
                 self._k += 1
             self.emit(reply)
@@ -460,6 +466,10 @@ class ModbusProfileTwin(TwinEndpoint):
                 self._enable = True
             elif name == "disable":
                 self._enable = False
+            elif name == "force_mode":
+                self._loop = "force"
+            elif name == "displacement_mode":
+                self._loop = "displacement"
             elif name == "acknowledge":
                 self._enable = False
                 self._k = 0  # a new run (arming): the count restarts

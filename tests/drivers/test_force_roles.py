@@ -293,3 +293,44 @@ def test_cia408_refuses_force_with_one_line():
     msg = str(exc.value)
     assert "\n" not in msg
     assert msg.startswith("canopen: device_profile 'cia408' has no force control")
+
+
+# ------------------------------------------------------------------------------------------
+# actions.force_mode / actions.displacement_mode
+# ------------------------------------------------------------------------------------------
+MODES = """
+[actions.force_mode]
+table = "holding"
+address = 300
+value = 2
+
+[actions.displacement_mode]
+table = "holding"
+address = 300
+value = 1
+"""
+
+
+def test_mode_actions_validated_with_one_line(tmp_path):
+    load_profile(_map(tmp_path, FORCE_ROLE + MODES, "ok.toml"))  # both, on one register
+    cases = [
+        (
+            MODES,
+            "actions.force_mode: selects a force loop, but the profile maps no "
+            "roles.force_setpoint",
+        ),
+        (
+            FORCE_ROLE + MODES.replace("value = 1", "value = 2"),
+            "actions.displacement_mode: the same write as actions.force_mode",
+        ),
+    ]
+    for i, (extra, needle) in enumerate(cases):
+        with pytest.raises(InputError) as exc:
+            load_profile(_map(tmp_path, extra, f"bad{i}.toml"))
+        assert "\n" not in str(exc.value) and needle in str(exc.value)
+    # a controller that selects its loop, with no force loop action: no force channel
+    only_disp = MODES.split("[actions.displacement_mode]")[1]
+    prof = load_profile(_map(tmp_path, FORCE_ROLE + "[actions.displacement_mode]" + only_disp))
+    assert prof.for_control("displacement") is prof
+    with pytest.raises(InputError, match=r"actions\.force_mode is missing: the controller"):
+        prof.for_control("force")

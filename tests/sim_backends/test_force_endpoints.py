@@ -256,3 +256,89 @@ def test_cia402_cst_refused_by_a_position_only_drive():
 def test_canopen_twin_refuses_a_force_plant_on_cia408():
     with pytest.raises(InputError, match="device_profile 'cia408' has no force control"):
         start_twin("canopen", ForceSpring(), device_profile="cia408")
+
+
+# ------------------------------------------------------------------------------------------
+# a controller that selects its loop on command (actions.force_mode / displacement_mode)
+# ------------------------------------------------------------------------------------------
+#: the map's control-mode register: 1 displacement loop, 2 force loop
+MODBUS_MODES = """
+[actions.force_mode]
+table = "holding"
+address = 300
+value = 2
+
+[actions.displacement_mode]
+table = "holding"
+address = 300
+value = 1
+"""
+#: the DBC's loop bit in the command frame (byte 4, bit 5): 1 force loop, 0 displacement loop
+DBC_LOOP_SIGNAL = ' SG_ ForceLoop : 37|1@0+ (1,0) [0|1] "" Axis\n'
+CAN_MODES = """
+[actions.force_mode]
+message = "AxisCommand"
+signal = "ForceLoop"
+value = 1
+
+[actions.displacement_mode]
+message = "AxisCommand"
+signal = "ForceLoop"
+value = 0
+"""
+
+
+def _with_modes(path: Path, modes: str, name: str) -> Path:
+    p = path.parent / name
+    p.write_text(path.read_text() + modes)
+    return p
+
+
+def _can_loop_profile(tmp_path: Path) -> Path:
+    prof = _can_force_profile(tmp_path)
+    dbc = tmp_path / "lab_axis.dbc"
+    text = dbc.read_text()
+    anchor = ' SG_ AckCmd : 38|1@0+ (1,0) [0|1] "" Axis\n'
+    dbc.write_text(text.replace(anchor, anchor + DBC_LOOP_SIGNAL))
+    return prof
+
+
+@pytest.mark.parametrize("family", ["modbus", "can"])
+def test_controller_selecting_its_loop_follows_force_once_selected(tmp_path, family):
+    """The driver selects the force loop (Modbus: the mode register written at arming, read
+    back with pymodbus's client; CAN: the loop bit in every command frame) and the twin
+    follows; a driver whose profile does not select it is not followed (the twin holds,
+    never ENABLED), as such a controller stays in its displacement loop."""
+    if family == "modbus":
+        base = _modbus_force_map(tmp_path)
+        modes, extra = MODBUS_MODES, {"port": 0}
+    else:
+        base = _can_loop_profile(tmp_path)
+        modes, extra = CAN_MODES, {}
+    full = _with_modes(base, modes, f"{family}_modes.toml")
+    plant = ForceSpring()
+    with start_twin(family, plant, profile=str(full), **extra) as twin:
+        drv = create_driver(family, **twin.connection)
+        drv.set_control("force")
+        with drv:
+            _, fbs = _run(drv, FORCES)
+            if family == "modbus":
+                from pymodbus.client import ModbusTcpClient
+
+                with ModbusTcpClient(twin.connection["host"], port=twin.connection["port"]) as c:
+                    assert c.read_holding_registers(300, count=1).registers == [2]
+            else:
+                assert drv._values["ForceLoop"] == 1.0
+        assert len(plant.got) == len(FORCES) and all(fb.status & 0x01 for fb in fbs)
+        # the same controller, driven through the profile without the mode actions
+        plant.got.clear()
+        other = create_driver(family, **{**twin.connection, "profile": str(base)})
+        other.set_control("force")
+        with other:
+            if family == "modbus":  # the register holds the last run's loop: back to 1
+                from pymodbus.client import ModbusTcpClient
+
+                with ModbusTcpClient(twin.connection["host"], port=twin.connection["port"]) as c:
+                    c.write_register(300, 1)
+            _, fbs = _run(other, FORCES)
+        assert plant.got == [] and not any(fb.status & 0x01 for fb in fbs)
