@@ -392,7 +392,7 @@ def test_can_dbc_lockstep_matches_the_builtin_dbc(tmp_path) -> None:
 @pytest.mark.parametrize("cfg", ["modbus_map_run.toml", "can_dbc_run.toml"])
 def test_examples_run_paced(tmp_path, cfg) -> None:
     out = tmp_path / "paced"
-    args = ["run", str(EXAMPLES / cfg), "--duration", "2", "--out", str(out)]
+    args = ["run", str(EXAMPLES / cfg), "--duration", "1", "--out", str(out)]
     # the rule under test is the example's protocol, not the loop's timing: an in-process twin
     # thread shares the interpreter with the spinning loop and misses 20 ms now and then on
     # this 2-core machine (as in test_fault_matrix's paced rows), and the Modbus map's two
