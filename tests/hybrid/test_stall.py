@@ -152,8 +152,8 @@ def _events(out: Path, kind: str) -> list[dict]:
 
 def test_a_40_ms_freeze_of_the_bridge_completes_with_a_stall_event(tmp_path):
     out = tmp_path / "run"
-    # frozen after 1 s; the 1.5 s left hold the ≥ 100 steps after the stall checked below
-    proc = _start(out, duration="2.5")
+    # frozen after 1 s; the 0.6 s left hold the ≥ 100 steps after the stall checked below
+    proc = _start(out, duration="1.6")
     _wait_rows(out / "record.npy", proc)
     _freeze(proc, 0.04)
     _, err = proc.communicate(timeout=60)
@@ -252,7 +252,8 @@ def test_the_test_goes_on_when_the_console_goes_away(tmp_path):
     """Closing the terminal's stderr (the reading end of its pipe) mid-run: no traceback, no
     exit 1: the run completes and records its end."""
     out = tmp_path / "run"
-    proc = _start(out, "--set", "loop.console=0.05", quiet=False, duration="3")
+    # closed after 0.5 s: a console line every 50 ms into the closed pipe for the second left
+    proc = _start(out, "--set", "loop.console=0.05", quiet=False, duration="1.5")
     _wait_rows(out / "record.npy", proc, rows=512)
     proc.stderr.close()
     proc.stdout.close()
