@@ -111,3 +111,33 @@ def test_profile_without_a_force_role_on_a_load_channel_is_refused(tmp_path, cap
     one_line_exit_2(
         ["run", str(p), *RUN], capsys, "roles.force_setpoint is missing", "modbus_map.toml"
     )
+
+
+def test_cst_refused_by_an_independent_drive_without_it(tmp_path):
+    """The partner drive (tests/partners/cia402_drive.py, written from CiA 402 apart from the
+    driver and its twin) supports profile position and CSP only (its 0x6502 = 0x81). With a
+    lab EDS that lists the target torque 0x6071 the driver asks the drive itself and refuses
+    the force channel in one line before writing the mode."""
+    from rths_hil.drivers.registry import create_driver
+
+    from rths_hil.errors import InputError
+    from tests.partners.canopen_fixtures import EDS, DrivePartner
+
+    eds = tmp_path / "lab_with_torque.eds"
+    eds.write_text(
+        EDS.read_text() + "\n[6071]\nParameterName=Target torque\nObjectType=0x7\nDataType=0x0003\n"
+        "AccessType=rww\nDefaultValue=0\nPDOMapping=1\n"
+    )
+    drive = DrivePartner(tmp_path, "serial")
+    try:
+        drv = create_driver("canopen", **{**drive.connection, "eds": str(eds)})
+        drv.set_control("force")
+        with pytest.raises(InputError) as exc:
+            drv.open()
+        assert str(exc.value) == (
+            "canopen: node 5 does not support cyclic synchronous torque (supported drive "
+            "modes 0x6502 = 0x00000081, bit 9 clear): it cannot run a force-controlled channel"
+        )
+    finally:
+        drive.stop()
+    assert drive.final is not None and drive.final["mode"] != 10
