@@ -203,7 +203,7 @@ class ModbusProfileDriver(Driver):
             raise InputError(f"modbus driver: transport must be 'tcp' or 'rtu', got {transport!r}")
         if transport == "rtu" and not device:
             raise InputError("modbus driver: transport 'rtu' needs device= (serial port or URL)")
-        self.profile = prof
+        self.profile = self._base_profile = prof
         self.transport = transport
         self._rtu = transport == "rtu"
         #: one request on the wire at a time (RTU always; TCP when the profile says so)
@@ -289,7 +289,7 @@ class ModbusProfileDriver(Driver):
         """
         super().set_control(mode)
         try:
-            prof = self.profile.for_control(mode)
+            prof = self._base_profile.for_control(mode)
         except InputError as exc:
             self.control = "displacement"
             raise InputError(f"modbus driver: {exc}") from None

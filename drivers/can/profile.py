@@ -74,7 +74,7 @@ class CANProfileDriver(Driver):
         prof = load_profile(profile)
         if not isinstance(prof, CANProfile):
             raise InputError(f"can driver: profile {profile} is not a CAN profile")
-        self.profile = prof
+        self.profile = self._base_profile = prof
         self.interface, self.channel = str(interface), str(channel)
         self.bitrate = None if bitrate is None else int(bitrate)
         self.bus_options = dict(bus_options or {})
@@ -152,7 +152,7 @@ class CANProfileDriver(Driver):
         """
         super().set_control(mode)
         try:
-            prof = self.profile.for_control(mode)
+            prof = self._base_profile.for_control(mode)
         except InputError as exc:
             self.control = "displacement"
             raise InputError(f"can driver: {exc}") from None
@@ -164,9 +164,13 @@ class CANProfileDriver(Driver):
     def _use_mode(self) -> None:
         """A controller that selects its loop on command: the signal of the channel's loop
         (``actions.force_mode`` / ``actions.displacement_mode``) at its value in every frame."""
-        act = self.profile.actions.get(MODE_ACTIONS[self.control])
+        acts = self.profile.actions
+        act = acts.get(MODE_ACTIONS[self.control])
         if act is not None:
             self._values[act.signal] = float(act.value or 0.0)
+        elif "force_mode" in acts:  # the displacement loop: the force loop's signal at rest
+            sig = self._cmd.get_signal_by_name(acts["force_mode"].signal)
+            self._values[sig.name] = float(sig.raw_initial or 0) * sig.scale + sig.offset
 
     # -- transport ------------------------------------------------------------------------------
     def open(self) -> None:

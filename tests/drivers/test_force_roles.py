@@ -334,3 +334,17 @@ def test_mode_actions_validated_with_one_line(tmp_path):
     assert prof.for_control("displacement") is prof
     with pytest.raises(InputError, match=r"actions\.force_mode is missing: the controller"):
         prof.for_control("force")
+
+
+def test_profile_drivers_switch_back_to_displacement(tmp_path):
+    drv = create_driver("modbus", profile=str(_map(tmp_path)))
+    drv.set_control("force")
+    assert (drv._sp.role, drv._sp.address) == ("force_setpoint", 104)
+    drv.set_control("displacement")
+    assert (drv._sp.role, drv._sp.address) == ("setpoint", 100)
+    role = '\n[roles.force_setpoint]\nmessage = "AxisCommand"\nsignal = "ForceSetpoint"\n'
+    can_drv = create_driver("can", profile=str(_can(tmp_path, role)))
+    can_drv.set_control("force")
+    assert can_drv._sp_sig == "ForceSetpoint"
+    can_drv.set_control("displacement")
+    assert can_drv._sp_sig == "PositionSetpoint"
