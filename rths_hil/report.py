@@ -257,7 +257,9 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
                     for name, sfx in chans
                 }
                 for name, sfx in chans:
-                    stab = _stability_figures(src, sfx, name, energy, warnings)
+                    stab = _stability_figures(
+                        src, sfx, name, energy, warnings, controls.get(sfx, "displacement")
+                    )
                     if stab:
                         out["channels"][name]["stability"] = stab
     if out["mode"] == "paced" and n:
@@ -403,6 +405,9 @@ def _record_figures(
         measured = rec.column(meas)
         ok = np.isfinite(measured)
         out["metrics"] = _metrics(target[ok], measured[ok], fs)
+        if not ok.any() or np.ptp(target[ok]) == 0.0:
+            # a constant target (a held load): no lag or phase to measure
+            out["metrics"]["j1_delay"] = out["metrics"]["tracking_indicator"] = None
         del target, measured, ok
     # online estimates and peaks, chunk by chunk
     cnt = 0
@@ -435,9 +440,15 @@ def _record_figures(
 
 
 def _stability_figures(
-    rec: _Rows, sfx: str, name: str, energy: dict, warnings: list[dict]
+    rec: _Rows,
+    sfx: str,
+    name: str,
+    energy: dict,
+    warnings: list[dict],
+    control: str = "displacement",
 ) -> dict[str, Any] | None:
-    """The stability indicator of a channel over the run, or None (no ``stability`` column).
+    """The stability indicator of a channel over the run, or None (no ``stability`` column, or
+    a load channel: its force is not from the structure, it has no indicator).
 
     ``peak`` and ``mean`` of the valid windowed S, ``valid`` (their share of the rows),
     ``whole_run`` (all the injected over all the dissipated energy, from the ``end`` event),
@@ -445,7 +456,7 @@ def _stability_figures(
     (``stability`` events) and ``first_warning`` (its time, s).
     """
     col = "stability" + sfx
-    if col not in (rec.dtype.names or ()):
+    if col not in (rec.dtype.names or ()) or control == "load":
         return None
     cnt = 0
     total = 0.0
@@ -857,7 +868,10 @@ def plot_report(  # noqa: C901
         for _, sfx in chans
     }
     with _Rows(run.path / RECORD_FILE) as src:
-        has_stab = {sfx: "stability" + sfx in (src.dtype.names or ()) for _, sfx in chans}
+        has_stab = {  # a load channel has no indicator (its force is not the structure's)
+            sfx: "stability" + sfx in (src.dtype.names or ()) and controls.get(sfx) != "load"
+            for _, sfx in chans
+        }
         cols = (
             "lateness",
             "ground_accel",

@@ -16,6 +16,7 @@ import pytest
 import rths_hil
 from rths_hil.config import load_config
 from rths_hil.recorder import read_run
+from rths_hil.report import format_summary, plot_report
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "column_axial.toml"
@@ -97,6 +98,14 @@ def test_column_lockstep_axial_held_and_horizontal_as_without_it(tmp_path):
     assert a_mixed == pytest.approx(a_alone, abs=1e-4)
     assert d_mixed == pytest.approx(d_alone, abs=2e-5)
     assert abs(a_mixed - 1.0) < 0.01 and abs(d_mixed) < 1e-3  # and it tracks
+    # a held load: no lag to measure, no stability indicator; the report draws it in kN
+    v = summary["channels"]["vertical"]
+    assert v["metrics"]["j1_delay"] is None and "stability" not in v
+    assert v["metrics"]["j2_nrms"] < 0.01  # %
+    assert "control: load; tracked: the measured force (N)" in format_summary(summary)
+    fig = plot_report(out, keep_figure=True)
+    labels = [ax.get_ylabel() for ax in fig.axes]
+    assert "force (kN)" in labels and "displacement (mm)" in labels
 
 
 @pytest.mark.timing
