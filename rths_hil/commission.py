@@ -942,6 +942,14 @@ def commission(
         )
     if plan is None:
         plan = build_plan(cfg, out, mode="paced")
+    forced = [cp for cp in plan.channels if cp.control != "displacement"]
+    if forced:  # its motions are displacements: a force set-point would take them as N
+        cp = forced[0]
+        raise InputError(
+            f"{cfg.source}: control.mode: commissioning moves each actuator in displacement "
+            f"control; {'channel ' + cp.name if cp.name else 'the actuator'} is "
+            f"{cp.control}-controlled: commission it with control.mode = 'displacement'"
+        )
     say = progress or (lambda text: None)
     reports: list[ChannelReport] = []
     with contextlib.ExitStack() as stack:

@@ -3,6 +3,8 @@ line (exit 2), and what the plan makes of them."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -150,3 +152,15 @@ def test_plan_refusals(tmp_path):
             tmp_path / "r",
             duration=0.5,
         )
+
+
+def test_commissioning_a_force_channel_is_refused(tmp_path, capsys):
+    """Commissioning moves each actuator in displacement: a force set-point would take its
+    motions as newtons."""
+    example = Path(__file__).resolve().parents[2] / "examples" / "column_axial.toml"
+    one_line_exit_2(
+        ["commission", str(example), "--yes", "--out", str(tmp_path / "c")],
+        capsys,
+        "commissioning moves each actuator in displacement control; channel vertical is "
+        "load-controlled",
+    )
