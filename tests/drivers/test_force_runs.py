@@ -1,7 +1,7 @@
 """A force-controlled channel run end to end (``rths-hil run``, lockstep) through each protocol
-family's twin: the column example's axial-load channel over the Modbus map with a force
-set-point register, a DBC profile with a force set-point signal, and a CiA 402 drive in cyclic
-synchronous torque. The twin's plant is the same force-controlled one each time, so the three
+family's twin: the column example's axial-load channel, and a force-controlled SDOF
+(``control = "force"``), over the Modbus map with a force set-point register, a DBC profile
+with a force set-point signal, and a CiA 402 drive in cyclic synchronous torque. The twin's plant is the same force-controlled one each time, so the three
 records must agree step for step to the wire's resolution (the set-point's 0.5 N of the DBC,
 20 N of the CiA 402 target torque, float32 kN of the map); a built-in fixed-format driver on
 the load channel is refused by the CLI in one line, exit 2."""
@@ -146,3 +146,68 @@ def test_cst_refused_by_an_independent_drive_without_it(tmp_path):
     finally:
         drive.stop()
     assert drive.final is not None and drive.final["mode"] != 10
+
+
+# ------------------------------------------------------------------------------------------
+# a force-controlled SDOF (control = "force": the command from the numerical substructure)
+# ------------------------------------------------------------------------------------------
+SDOF = """
+control = "force"
+[structure]
+kind = "sdof"
+mass = 5000.0
+fn = 2.0
+damping = 0.02
+bouc_wen = false
+k_specimen = 1.19e6
+[ground_motion]
+pga = 1.0
+[twin]
+specimen = {{ stiffness = 1.19e6, damping = 114.6 }}
+{driver}
+"""
+SDOF_DRIVERS = {
+    "modbus": '[driver]\nname = "modbus"\nprofile = "{map}"\nconnection = {{ transport = "tcp" }}',
+    "can": '[driver]\nname = "can"\nprofile = "can_force.toml"',
+    # a 2 kN·m rating seen as 2 N per count of the target torque (force_per_torque 0.1)
+    "canopen": '[driver]\nname = "canopen"\n'
+    'connection = {{ device_profile = "cia402", force_per_torque = 0.1 }}',
+}
+#: the force's and the command's largest departure from the map's run (N): twice the
+#: set-point's half resolution plus the measurement's (0.5 N DBC; 2 N CST, 0.01 N 0x2100)
+SDOF_TOLERANCE = {"can": 2 * (0.25 + 0.25), "canopen": 2 * (1.0 + 0.005)}
+
+
+def _sdof_run(directory: Path, family: str):
+    _config(directory, "can")  # the DBC profile with its force signal, beside the config
+    driver = SDOF_DRIVERS[family].format(map=EXAMPLES / "column_axial_map.toml")
+    p = directory / f"sdof_{family}.toml"
+    p.write_text(SDOF.format(driver=driver))
+    out = directory / f"sdof_{family}"
+    sets = ["--set", "loop.console=0", "--set", "output.plot=false", "-q"]
+    code = main(
+        ["run", str(p), "--lockstep", "--duration", "2", *sets, "--set", f"output.dir={out}"]
+    )
+    assert code == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "completed", summary["trip"]
+    return read_run(out).record
+
+
+@pytest.fixture(scope="module")
+def sdof_reference(tmp_path_factory):
+    return _sdof_run(tmp_path_factory.mktemp("sdof"), "modbus")
+
+
+@pytest.mark.skipif(not (EXAMPLES / "column_axial_map.toml").exists(), reason="no example")
+@pytest.mark.parametrize("family", ["can", "canopen"])
+def test_force_controlled_sdof_runs_alike_through_each_family(tmp_path, sdof_reference, family):
+    rec = _sdof_run(tmp_path, family)
+    ref = sdof_reference
+    assert np.max(np.abs(ref["force"])) > 1e3  # the structure loaded the specimen
+    for col in ("force", "command"):
+        gap = np.max(np.abs(np.asarray(rec[col]) - np.asarray(ref[col])))
+        assert gap <= SDOF_TOLERANCE[family], (col, gap)
+    # the displacement the force produced: the same to the force gap over the stiffness
+    gap = np.max(np.abs(np.asarray(rec["measured"]) - np.asarray(ref["measured"])))
+    assert gap <= SDOF_TOLERANCE[family] / 1.19e6
