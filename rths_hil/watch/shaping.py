@@ -209,8 +209,9 @@ class LimitShares:
     the current run for consecutive counts), ``peak`` the largest share so far. 1 = the limit.
 
     A force-controlled channel (``control`` ``"force"`` or ``"load"``) commands a force: its
-    target and command count against the force limit with the measured force, and only its
-    measured displacement against the displacement limit (the rules of such a channel).
+    target and command count against the force limit with the measured force, and its measured
+    displacement and the structure's trial displacement along it (the record's ``trial``
+    column) against the displacement limit (the rules of such a channel).
     """
 
     def __init__(
@@ -274,7 +275,7 @@ class LimitShares:
         for label, bases, key in (
             (
                 "displacement",
-                ("measured",) if self.force_mode else (*commanded, "measured"),
+                ("measured", "trial") if self.force_mode else (*commanded, "measured"),
                 "displacement_limit",
             ),
             ("velocity", ("velocity",), "velocity_limit"),

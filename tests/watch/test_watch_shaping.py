@@ -227,16 +227,21 @@ def test_channel_control_from_the_channel_description_or_the_configuration():
 
 def test_limit_shares_of_a_force_channel_count_its_commands_as_forces():
     """A force-controlled channel's target and command are forces: they count against the force
-    limit with the measured force; the displacement limit sees the measured displacement."""
+    limit with the measured force; the displacement limit sees the measured and the trial
+    displacement."""
     safety = {"displacement_limit": 0.02, "force_limit": 2e5}
     cfg = {"loop": {"fs": 100.0}, "kalman": {"enabled": False}, "safety": safety}
-    rec, names = _record(300, "")
+    rec0, names = _record(300, "")
+    rec = np.zeros(300, dtype=[*rec0.dtype.descr, ("trial", float)])
+    for nm in names:
+        rec[nm] = rec0[nm]
+    names = [*names, "trial"]
     rec["target"] = 1.5e5 * RNG.standard_normal(300)  # N
     rec["command"] = 1.5e5 * RNG.standard_normal(300)  # N
+    rec["trial"] = 0.012 * RNG.standard_normal(300)  # m
     got = LimitShares("", safety, cfg, paced=False, control="force").update(rec, names, 300, 50)
     peak = dict(zip(got["limit"], got["peak"], strict=True))
     f = np.max(np.abs([rec["target"], rec["command"], rec["force"]]), axis=0).max()
+    d = np.max(np.abs([rec["measured"], rec["trial"]]), axis=0).max()
     assert peak["force"] == pytest.approx(min(f / 2e5, 1.1), rel=1e-12)
-    assert peak["displacement"] == pytest.approx(
-        min(np.abs(rec["measured"]).max() / 0.02, 1.1), rel=1e-12
-    )
+    assert peak["displacement"] == pytest.approx(min(d / 0.02, 1.1), rel=1e-12)
