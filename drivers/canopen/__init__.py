@@ -1416,6 +1416,8 @@ class CANopenDriver(Driver):
             step = self._step
             if step == self._delivered_sync:
                 self.stats.duplicates += 1
+                if self._latched and not self._estop_seen and values is not None:
+                    self._note_estop(slot, values)
                 return
             part = self._part
             if part[slot] is _MISSING:
@@ -1433,6 +1435,16 @@ class CANopenDriver(Driver):
             bus = self._bus
             if bus is None or not bus.reading:  # a thread may wait for it
                 self._wake.set()
+
+    def _note_estop(self, slot: int, values: tuple[int, ...]) -> None:
+        """After the e-stop: a TPDO of a step already delivered (the e-stop's own SYNC is sent
+        for the last step) still tells whether the device reports the e-stop state."""
+        at = self._at[0]
+        if at is None or at[0] != slot:
+            return
+        state = self.profile.state(values[at[1]])
+        if self.profile.flags(state, True) & _ESTOP:
+            self._estop_seen = True
 
     def _decode(self, step: int, parts: tuple[Any, ...]) -> Feedback | None:
         """The feedback of one SYNC's TPDO values (``parts``: one tuple per TPDO used, in the
