@@ -3,9 +3,9 @@ family's twin: the column example's axial-load channel, and a force-controlled S
 "force"``), over the Modbus map with a force set-point register, a DBC profile with a force
 set-point signal, and a CiA 402 drive in cyclic synchronous torque. The twin's plant is the same
 force-controlled one each time, so the three records must agree step for step to the wire's
-resolution (the set-point's 0.5 N of the DBC, 20 N of the CiA 402 target torque, float32 kN of
-the map); a built-in fixed-format driver on the load channel is refused by the CLI in one line,
-exit 2."""
+resolution (the set-point's 0.5 N of the DBC, 20 N of the CiA 402 target torque, 2 N in the
+SDOF, float32 kN of the map); a built-in fixed-format driver on the load channel is refused by
+the CLI in one line, exit 2."""
 
 from __future__ import annotations
 
