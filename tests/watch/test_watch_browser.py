@@ -24,6 +24,7 @@ from PIL import Image
 
 from rths_hil.recorder import header_row_count, read_run
 from rths_hil.watch.browser import Browser, chromium_path
+from rths_hil.watch.source import RunFollower
 from tests.helpers.watch_records import stability_value, write_run
 
 # against the wall clock or with other processes: run apart from the parallel tests
@@ -156,9 +157,18 @@ def _wall_t0(run_dir: Path) -> float:
     raise AssertionError("no clock event")
 
 
+def _growing_record(run_dir: Path) -> np.ndarray:
+    """The rows of a record still being written (read as the watcher reads it: up to the
+    header's count, which never counts a row not on disk; ``read_run`` is for a whole file)."""
+    f = RunFollower(run_dir)
+    f.poll()
+    assert f.record is not None
+    return np.array(f.record[: f.rows])
+
+
 def _sent_at(run_dir: Path, t: float) -> float:
     """Wall-clock time at which the row of loop time ``t`` was sent."""
-    rec = read_run(run_dir).record
+    rec = _growing_record(run_dir)
     k = round(t * FS)
     return _wall_t0(run_dir) + t + float(rec["lateness"][k])
 
@@ -297,7 +307,7 @@ def test_live_paced_run_plots_and_stability_move(browser, live_run, tmp_path):
     ts2, s2 = _s_shown(browser)
     valid = ts2[np.isfinite(s2)]
     assert valid.size and valid[-1] >= ts1[-1] + 0.8, (ts1[-1], valid[-1:])
-    rec = read_run(run_dir).record
+    rec = _growing_record(run_dir)
     for ts, s in ((ts1, s1), (ts2, s2)):
         k = np.round(ts * FS).astype(int)
         np.testing.assert_array_equal(s, rec["stability"][k])
@@ -311,7 +321,7 @@ def test_live_paced_run_plots_and_stability_move(browser, live_run, tmp_path):
         assert time.monotonic() < t_end, bars
         time.sleep(0.1)
     assert 0.99 / FS / WD_TIMEOUT <= bars["feedback watchdog"] < 1.0, bars
-    s_all = read_run(run_dir).record["stability"]
+    s_all = _growing_record(run_dir)["stability"]
     lo, hi = np.nanmax(np.maximum(s1, 0.0)) / 1.5, np.nanmax(np.maximum(s_all, 0.0)) / 1.5
     assert lo - 1e-12 <= bars["stability S"] <= hi + 1e-12, (lo, bars, hi)
     # everything the page loaded came from the watcher itself (no CDN)
