@@ -518,6 +518,17 @@ def step_mixed(st: Any, k: int, ag: float, chans: list[Channel], n_dof: int) -> 
     along it becomes its next target (:meth:`Channel.force_target`), compensated. The trial
     displacement of step ``k`` (:attr:`Channel.trial`) is the one this function set as
     ``trial_next`` at step ``k − 1``.
+
+    Force-based substructuring, what the integrator assumes: the CR integration is explicit in
+    displacement, so the trial displacement ``d[k+1]`` along a force channel is known before
+    its force is measured; the channel asks the specimen for ``k_s·d[k+1]`` and returns
+    ``F_m + k_s·(d − x_m)``, with ``k_s`` the specimen stiffness the integrator already assumes
+    for its parameter (``structure.k_specimen``). The specimen is taken as close to
+    linear-elastic with that stiffness along the actuator over a step, its force a function of
+    its displacement (not of the path between steps), its damping and inertia forces small
+    beside ``k_s·d`` (measured and returned, not predicted). For a linear specimen of
+    stiffness ``k`` the returned force is exactly ``k·d`` when ``k_s = k``, and wrong by
+    ``(k − k_s)²·d/k`` otherwise (a force loop of unit gain); docs/channels.md.
     """
     f = [0.0] * n_dof
     for ch in chans:
