@@ -205,7 +205,7 @@ def test_kill_9_of_a_paced_two_channel_run_leaves_a_readable_record(tmp_path):
             if ev.exists() and '"clock"' in ev.read_text():
                 break
             time.sleep(0.05)
-        time.sleep(2.0)
+        time.sleep(0.5)  # a few flushes of both channels' rows
         os.kill(proc.pid, signal.SIGKILL)
         t_kill = time.time()
         proc.wait(10)

@@ -61,7 +61,7 @@ def silent_listener():
     srv.close()
 
 
-@pytest.mark.timing
+# a 1 s handshake bound within 30 s: runs with the parallel tests
 def test_a_port_where_no_scheduler_answers(tmp_path, capsys, monkeypatch, silent_listener):
     pytest.importorskip("distributed")
     monkeypatch.setattr(executors, "HANDSHAKE_TIMEOUT", 1.0)

@@ -16,8 +16,8 @@ import pytest
 
 from tests.helpers.procs import ROOT
 
-# other processes and the wall clock: run apart from the parallel tests (make test)
-pytestmark = pytest.mark.timing
+# other processes, bounded in seconds (the stop within 15 s, the workers gone within 10 s, the
+# trials 1 s of simulated time each): they run with the parallel tests
 
 CONFIG = str(ROOT / "examples" / "can.toml")
 
