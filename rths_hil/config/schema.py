@@ -284,7 +284,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             "float",
             0.0,
             unit="s",
-            doc="paced: wait for a reply at most this long (0 = auto: 0.8 period)",
+            doc="paced: wait for a reply at most this long after the send (0 = auto: until the "
+            "step's work after the reply still ends before the next deadline)",
             lo=0,
             hi=10,
         ),
