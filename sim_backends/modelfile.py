@@ -49,6 +49,7 @@ from rths_hil.formats import read_toml, toml_key, toml_value
 from rths_hil.units import parse_force, parse_length, parse_time, parse_velocity
 
 from .effects import EFFECTS, make_effect, validate_params
+from .force import FORCE_REFUSED, FORCE_UNITS
 from .models import make_model
 from .plant import Sensor, TwinPlant
 from .registry import MODELS, model_entry
@@ -153,6 +154,7 @@ def _number(value: Any, where: str, unit: str = "") -> float:
     With ``unit`` 's', 'm', 'N' or 'm/s' a string with units is read too (:mod:`rths_hil.units`).
     """
     parsers = {"s": parse_time, "m": parse_length, "N": parse_force, "m/s": parse_velocity}
+    # "N/s" (a force twin's drift rate) is a number
     if isinstance(value, str) and unit in parsers:
         parse = parsers[unit]
         try:
@@ -180,7 +182,9 @@ def _unknown(table: Mapping[str, Any], known: Any, where: str) -> None:
             raise InputError(f"{where}{key}: unknown key (known: {', '.join(known)})")
 
 
-def load_model(source: str | Path | Mapping[str, Any], name: str | None = None) -> ModelSpec:  # noqa: C901
+def load_model(  # noqa: C901
+    source: str | Path | Mapping[str, Any], name: str | None = None, control: str = "displacement"
+) -> ModelSpec:
     """Read and validate a model file (path) or an already-parsed dict.
 
     Parameters
@@ -190,6 +194,10 @@ def load_model(source: str | Path | Mapping[str, Any], name: str | None = None) 
     name : str, optional
         Prefix of error messages (default: the file name; none for a dict, so that a caller
         can prefix its own key path, e.g. ``run.toml: twin.actuator.delay: …``).
+    control : {"displacement", "force"}
+        The twin the file is for. ``"force"`` (the force-controlled twin,
+        :mod:`rths_hil.sim_backends.force`): effects it does not take are refused naming why,
+        and ``offset`` and ``drift`` are read in N and N/s.
 
     Returns
     -------
@@ -273,10 +281,17 @@ def load_model(source: str | Path | Mapping[str, Any], name: str | None = None) 
         kind = et.pop("kind")
         if not isinstance(kind, str) or kind not in EFFECTS:
             raise InputError(f"{where}kind: unknown effect {kind!r} (known: {', '.join(EFFECTS)})")
+        if control == "force" and kind in FORCE_REFUSED:
+            raise InputError(
+                f"{where}kind: a force-controlled twin does not take {kind!r} "
+                f"({FORCE_REFUSED[kind]})"
+            )
         if kind == "force_feedback":
             et.setdefault("specimen_stiffness", spec_values["stiffness"])
             et.setdefault("specimen_damping", spec_values["damping"])
         units = {q.name: q.unit for q in EFFECTS[kind].PARAMS}
+        if control == "force":
+            units.update(FORCE_UNITS.get(kind, {}))
         values = {}
         for key, value in et.items():
             if key in units:

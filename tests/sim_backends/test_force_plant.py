@@ -122,7 +122,7 @@ def test_force_plant_from_tables_and_refusals():
     assert p.time_constant == pytest.approx(1.0 / (1e-4 * 5e6))
     with pytest.raises(InputError, match="effects"):
         force_plant(
-            {"actuator": {"delay": 0.0, "effects": [{"kind": "offset", "offset": 1e-3}]}}, DT, 1e-4
+            {"actuator": {"delay": 0.0, "effects": [{"kind": "backlash", "width": 1e-3}]}}, DT, 1e-4
         )
     with pytest.raises(InputError, match="benchmark"):
         force_plant({"actuator": {"model": "benchmark"}}, DT, 1e-4)
