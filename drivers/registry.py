@@ -17,12 +17,12 @@ keyword arguments. An entry point with a built-in name replaces the built-in dri
 
 from __future__ import annotations
 
-import importlib
 import inspect
-from importlib.metadata import entry_points
 from typing import Any
 
 from rths_hil.errors import InputError
+from rths_hil.plugins import load_target
+from rths_hil.plugins import targets as plugin_targets
 
 from .base import Driver
 
@@ -38,19 +38,13 @@ BUILTIN: dict[str, str] = {
 
 
 def _load(target: str) -> type[Driver]:
-    module, _, attr = target.partition(":")
-    obj = getattr(importlib.import_module(module), attr)
-    if not (inspect.isclass(obj) and issubclass(obj, Driver)):
-        raise InputError(f"driver entry point {target!r} is not a drivers.base.Driver subclass")
-    return obj
+    cls: type[Driver] = load_target(target, Driver, "driver entry point")
+    return cls
 
 
 def available() -> dict[str, str]:
     """Map every known driver name to its ``module:Class`` target."""
-    found = dict(BUILTIN)
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        found[ep.name] = ep.value
-    return found
+    return plugin_targets(ENTRY_POINT_GROUP, BUILTIN)
 
 
 def driver_class(name: str) -> type[Driver]:

@@ -34,10 +34,10 @@ import importlib
 import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass
-from importlib.metadata import entry_points
 from typing import Any
 
 from rths_hil.errors import InputError
+from rths_hil.plugins import targets as plugin_targets
 
 from .benchmark import BENCHMARK_NOMINAL, BenchmarkServo
 from .effects import EFFECTS
@@ -172,10 +172,7 @@ def available_twins() -> dict[str, str]:
 
     Entry points are included; an entry point with a built-in name replaces the built-in twin.
     """
-    found = {name: e.target for name, e in TWINS.items()}
-    for ep in entry_points(group=TWIN_ENTRY_POINT_GROUP):
-        found[ep.name] = ep.value
-    return found
+    return plugin_targets(TWIN_ENTRY_POINT_GROUP, {name: e.target for name, e in TWINS.items()})
 
 
 def twin_class(driver_name: str) -> tuple[type, TwinEntry]:

@@ -22,14 +22,13 @@ See ``docs/compensation.md``.
 
 from __future__ import annotations
 
-import importlib
-import inspect
 from collections.abc import Mapping
-from importlib.metadata import entry_points
 from typing import Any
 
 from ..compensation import Compensator, InverseCompensator, alpha_for_delay
 from ..errors import InputError
+from ..plugins import load_target
+from ..plugins import targets as plugin_targets
 
 __all__ = ["BUILTIN", "ENTRY_POINT_GROUP", "available", "build_compensator", "compensator_class"]
 
@@ -46,10 +45,7 @@ BUILTIN: dict[str, str] = {
 
 def available() -> dict[str, str]:
     """Map every known compensator name to its ``module:Class`` target."""
-    found = dict(BUILTIN)
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        found[ep.name] = ep.value
-    return found
+    return plugin_targets(ENTRY_POINT_GROUP, BUILTIN)
 
 
 def compensator_class(name: str) -> type[Compensator]:
@@ -63,18 +59,10 @@ def compensator_class(name: str) -> type[Compensator]:
     targets = available()
     if name not in targets:
         raise InputError(f"unknown compensator {name!r}; available: {', '.join(sorted(targets))}")
-    target = targets[name]
-    module, _, attr = target.partition(":")
-    try:
-        obj = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as exc:
-        raise InputError(f"compensator {name!r}: cannot load {target!r} ({exc})") from None
-    if not (inspect.isclass(obj) and issubclass(obj, Compensator)):
-        raise InputError(
-            f"compensator entry point {target!r} is not a rths_hil.compensation.Compensator "
-            "subclass"
-        )
-    return obj
+    cls: type[Compensator] = load_target(
+        targets[name], Compensator, f"compensator {name!r}: entry point"
+    )
+    return cls
 
 
 def build_compensator(c: Mapping[str, Any], fs: float) -> Compensator:
