@@ -16,12 +16,20 @@ Examples::
     rths-hil twin serve --driver can --interface serial              # pseudo-terminal pair
     rths-hil twin serve --driver can --interface socketcan --channel vcan0 --model twin.toml
     rths-hil twin serve --driver modbus --port 1502 --profile examples/controllers/modbus_map.toml
+    rths-hil twin serve --driver modbus --profile examples/controllers/column_axial_map.toml \
+        --control force --force-loop-gain 2e-4 --model force_twin.toml   # a force-controlled twin
+
+``--control force`` serves the force-controlled twin (:mod:`rths_hil.sim_backends.force`): the
+set-point is a force (N) on the profile's force role (a Modbus map's ``force_setpoint``, a DBC
+profile's force set-point signal, CiA 402 cyclic synchronous torque), closed through a force
+loop of gain ``--force-loop-gain`` (m/s per N) on the model file's specimen.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import sys
@@ -32,6 +40,9 @@ from ..errors import InputError
 from ..units import parse_length, parse_time
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from rths_hil.sim_backends.base import Plant
     from rths_hil.sim_backends.endpoints.base import TwinEndpoint
 
 DEFAULT_DT = 1.0 / 1024.0
@@ -64,7 +75,24 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="controller profile (TOML: the lab's register map or DBC, docs/profiles.md); the "
         "twin speaks it (modbus: tcp; can: socketcan or the lab's interface)",
     )
-    p.add_argument("--model", help="twin model file (TOML); default: 20 ms delay, gain 1, spring")
+    p.add_argument(
+        "--model",
+        help="twin model file (TOML); default: 20 ms delay, gain 1, spring (force: 5 ms delay, "
+        "gain 1, the RTHS benchmark's 1.19 MN/m spring)",
+    )
+    p.add_argument(
+        "--control",
+        choices=("displacement", "force"),
+        default="displacement",
+        help="the twin's control mode: displacement (default) or force (the set-point is a "
+        "force in N; the profile needs a force set-point role)",
+    )
+    p.add_argument(
+        "--force-loop-gain",
+        default=None,
+        help="force control: the force loop's gain K_f in m/s per N (default 2e-4: a 4.2 ms "
+        "loop on 1.19 MN/m)",
+    )
     p.add_argument("--dt", default=None, help="twin step, e.g. 1ms (default 1/1024 s)")
     p.add_argument("--transport", help="modbus: tcp (default) or rtu; serial: pty (default) or tcp")
     p.add_argument("--host", default="127.0.0.1", help="TCP bind address (default 127.0.0.1)")
@@ -156,21 +184,60 @@ def _check_device(path: str) -> None:
         raise InputError(f"--device {path}: not a serial device (a character device)")
 
 
-def run(args: argparse.Namespace) -> int:
-    """Serve until SIGINT/SIGTERM; return 0."""
-    from rths_hil.sim_backends.faults import Faults
-    from rths_hil.sim_backends.twin import default_plant, start_twin
+def _loop_gain(args: argparse.Namespace) -> float | None:
+    """``--force-loop-gain`` as a number > 0 (m/s per N), or None when not given."""
+    text = args.force_loop_gain
+    if text is None:
+        return None
+    if args.control != "force":
+        raise InputError(f"--force-loop-gain {text}: only with --control force")
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise InputError(f"--force-loop-gain {text}: must be a number > 0 (m/s per N)")
+    return value
 
-    dt = DEFAULT_DT if args.dt is None else parse_time(args.dt, "--dt")
-    if not dt > 0:
-        raise InputError(f"--dt {args.dt}: the step must be > 0")
 
-    def plant():
+def _plant_factory(args: argparse.Namespace, dt: float) -> Callable[[], Plant]:
+    """What builds each unit's plant: ``--model`` or the default, of ``--control``'s twin."""
+    from rths_hil.sim_backends.twin import default_force_plant, default_plant
+
+    loop_gain = _loop_gain(args)
+
+    def plant() -> Plant:
+        if args.control == "force":
+            from rths_hil.sim_backends.force import DEFAULT_LOOP_GAIN, force_plant
+
+            if args.model:
+                try:
+                    return force_plant(args.model, dt, loop_gain or DEFAULT_LOOP_GAIN)
+                except InputError as exc:  # a message naming the file already says which
+                    if str(exc).startswith(str(args.model)):
+                        raise
+                    raise InputError(f"--model {args.model}: {exc}") from None
+            return default_force_plant(loop_gain=loop_gain, dt=dt)
         if args.model:
             from rths_hil.sim_backends.modelfile import build_plant
 
             return build_plant(args.model, dt)
         return default_plant(dt=dt)
+
+    plant()  # a bad model file is refused before anything listens
+    return plant
+
+
+def run(args: argparse.Namespace) -> int:
+    """Serve until SIGINT/SIGTERM; return 0."""
+    from rths_hil.sim_backends.faults import Faults
+    from rths_hil.sim_backends.twin import start_twin
+
+    dt = DEFAULT_DT if args.dt is None else parse_time(args.dt, "--dt")
+    if not dt > 0:
+        raise InputError(f"--dt {args.dt}: the step must be > 0")
+
+    plant = _plant_factory(args, dt)
 
     hb = parse_time(args.heartbeat_timeout, "--heartbeat-timeout")
     if not hb >= 0:
