@@ -79,7 +79,8 @@ Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1â€
 ``configure_pdo`` (documented in ``docs/canopen.md``).
 """
 
-from .driver import CANopenDriver, CANopenStats
+from .device import CANopenStats
+from .driver import CANopenDriver
 from .linkbudget import axes_that_fit, link_load, step_frames
 from .network import CANopenBus
 from .od import (

@@ -7,11 +7,7 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import threading
 import time
-from collections import deque
-from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import canopen
@@ -19,10 +15,8 @@ from canopen.emcy import EmcyError
 
 from rths_hil.errors import InputError
 
-from ..base import Driver, DriverStats, Feedback, LinkDown
-from ..can.codec import Frame
-from .device import DeviceStartUp
-from .linkbudget import LinkPlanning
+from ..base import Feedback, LinkDown
+from .mapping import PdoMapping
 from .network import CANopenBus
 from .od import (
     _BUS_ERRORS,
@@ -31,46 +25,15 @@ from .od import (
     _MISSING,
     _S32,
     _WATCHDOG,
-    BRIDGE_NODE_ID,
     EMCY_HEARTBEAT,
     ESTOP_SETTLE,
-    FORCE_OBJECT,
-    NMT_OPERATIONAL,
-    TORQUE_ACTUAL,
-    _check_bitrate,
-    _identity,
     _perf,
-    _quantity,
-    _variable,
-    load_od,
-    parse_object,
 )
-from .pdo import Layout, PdoMapping
-from .profiles import PROFILES, Profile
 
 log = logging.getLogger(__package__)
 
 
-@dataclass(slots=True)
-class CANopenStats(DriverStats):
-    """:class:`DriverStats` plus the CANopen counters.
-
-    Attributes
-    ----------
-    syncs : int
-        SYNC frames sent.
-    emcy : list of str
-        Every EMCY received, as ``"0x8130 Monitoring"``.
-    heartbeat_lost : int
-        Receives that returned nothing because the controller's heartbeat had stopped.
-    """
-
-    syncs: int = 0
-    emcy: list[str] = field(default_factory=list)
-    heartbeat_lost: int = 0
-
-
-class CANopenDriver(DeviceStartUp, PdoMapping, LinkPlanning, Driver):
+class CANopenDriver(PdoMapping):
     """Lockstep actuator driver over CANopen (see :mod:`rths_hil.drivers.canopen`)."""
 
     name: ClassVar[str] = "canopen"
@@ -83,247 +46,6 @@ class CANopenDriver(DeviceStartUp, PdoMapping, LinkPlanning, Driver):
     command_lsb: ClassVar[float | None] = None
     #: force: CiA 402 cyclic synchronous torque (:meth:`set_control`); CiA 408 refuses it
     control_modes: ClassVar[tuple[str, ...]] = ("displacement", "force")
-    stats: CANopenStats
-
-    def __init__(  # noqa: C901 - the connection keys, checked one by one
-        self,
-        eds: str | None = None,
-        node_id: int = 1,
-        device_profile: str = "cia402",
-        interface: str = "virtual",
-        channel: str = "rths-canopen",
-        bitrate: int | None = None,
-        bus_options: dict[str, Any] | None = None,
-        counts_per_m: float = 1e7,
-        force_object: str | None = None,
-        newtons_per_count: float | None = None,
-        force_per_torque: float = 1.0,
-        bridge_node_id: int = BRIDGE_NODE_ID,
-        heartbeat_period: float = 0.1,
-        controller_heartbeat: float = 0.1,
-        controller_heartbeat_timeout: float = 1.0,
-        device_watchdog: float | None = None,
-        start_tolerance: float = 1e-3,
-        sdo_timeout: float = 0.5,
-        vendor_id: int | None = None,
-        product_code: int | None = None,
-        configure_pdo: bool = True,
-    ) -> None:
-        super().__init__()
-        self.stats = CANopenStats()
-        if device_profile not in PROFILES:
-            raise InputError(
-                f"canopen: device_profile {device_profile!r} is not known (known: "
-                f"{', '.join(PROFILES)})"
-            )
-        self.profile: Profile = PROFILES[device_profile]
-        for key, v, lo in (("node_id", node_id, 1), ("bridge_node_id", bridge_node_id, 1)):
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= 127:
-                raise InputError(f"canopen: {key} must be an integer 1..127, got {v!r}")
-        if node_id == bridge_node_id:
-            raise InputError(f"canopen: node_id and bridge_node_id are both {node_id}")
-        for key, v in (
-            ("counts_per_m", counts_per_m),
-            ("newtons_per_count", 0.01 if newtons_per_count is None else newtons_per_count),
-            ("force_per_torque", force_per_torque),
-        ):
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, int | float)
-                or not (math.isfinite(v) and v > 0)
-            ):
-                raise InputError(f"canopen: {key} must be a positive number, got {v!r}")
-        if counts_per_m is not None and isinstance(counts_per_m, int | float):
-            if not isinstance(counts_per_m, bool) and counts_per_m > 1e12:
-                raise InputError(
-                    f"canopen: counts_per_m must be ≤ 1e12 (1 pm per count; INTEGER32 then "
-                    f"spans ±2.1 mm), got {counts_per_m!r}"
-                )
-        heartbeat_period = _quantity("heartbeat_period", heartbeat_period, "s")
-        controller_heartbeat = _quantity("controller_heartbeat", controller_heartbeat, "s")
-        controller_heartbeat_timeout = _quantity(
-            "controller_heartbeat_timeout", controller_heartbeat_timeout, "s"
-        )
-        start_tolerance = _quantity("start_tolerance", start_tolerance, "m")
-        sdo_timeout = _quantity("sdo_timeout", sdo_timeout, "s")
-        device_watchdog = _quantity("device_watchdog", device_watchdog, "s")
-        for key, v in (
-            ("heartbeat_period", heartbeat_period),
-            ("controller_heartbeat", controller_heartbeat),
-            ("controller_heartbeat_timeout", controller_heartbeat_timeout),
-            ("start_tolerance", start_tolerance),
-            ("sdo_timeout", sdo_timeout),
-            ("device_watchdog", 0.0 if device_watchdog is None else device_watchdog),
-        ):
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, int | float)
-                or not (math.isfinite(v) and v >= 0)
-            ):
-                raise InputError(f"canopen: {key} must be a number ≥ 0 (s), got {v!r}")
-        if controller_heartbeat * 1000 > 65535:
-            raise InputError("canopen: controller_heartbeat must be ≤ 65.535 s (0x1017 in ms)")
-        if device_watchdog is not None and device_watchdog * 1000 > 65535:
-            raise InputError(
-                f"canopen: device_watchdog must be ≤ 65.535 s (0x1016 holds 16 bits of ms), "
-                f"got {device_watchdog!r}"
-            )
-        _check_bitrate(bitrate)
-        if eds is None:
-            raise InputError("canopen: eds: give the controller's EDS file (driver.connection.eds)")
-        self.eds = os.fspath(eds)
-        self.node_id = node_id
-        self.bridge_node_id = bridge_node_id
-        self.interface, self.channel = str(interface), str(channel)
-        self.bitrate = None if bitrate is None else int(bitrate)
-        self.bus_options = dict(bus_options or {})
-        self.counts_per_m = float(counts_per_m)
-        #: the force scale given (None: 0.01 N per count, or from 0x6076 for the torque actual)
-        self._newtons_given = None if newtons_per_count is None else float(newtons_per_count)
-        self.newtons_per_count = 0.01 if newtons_per_count is None else float(newtons_per_count)
-        self.force_per_torque = float(force_per_torque)
-        self.heartbeat_period = float(heartbeat_period)
-        self.controller_heartbeat = float(controller_heartbeat)
-        self.controller_heartbeat_timeout = float(controller_heartbeat_timeout)
-        self.device_watchdog = None if not device_watchdog else float(device_watchdog)
-        self.start_tolerance = float(start_tolerance)
-        self.sdo_timeout = float(sdo_timeout) or 0.5
-        self.vendor_id = _identity("vendor_id", vendor_id)
-        self.product_code = _identity("product_code", product_code)
-        if not isinstance(configure_pdo, bool):
-            raise InputError(
-                f"canopen: configure_pdo must be true or false (a TOML boolean), got "
-                f"{configure_pdo!r}"
-            )
-        self.configure_pdo = configure_pdo
-        self.od = load_od(self.eds, node_id)
-        p = self.profile
-        if force_object is None:  # the twins' 0x2100 where the EDS has it, else torque actual
-            cands = [o for o in (FORCE_OBJECT, TORQUE_ACTUAL) if o[0] in self.od]
-        elif str(force_object).strip():
-            cands = [parse_object(force_object, "force_object")]
-        else:
-            cands = []
-        #: objects that may carry the measured force, in order of preference (``force_object``)
-        self._force_candidates = cands
-        f_obj = cands[0] if cands else None
-        #: the force object of the driver's own mapping; after start-up the one a TPDO carries
-        self.force_object = f_obj
-        self._force_nan: int | None = _S32[0]  # the "no valid value" of an INTEGER32 force
-        #: force mode: N per count of the target torque (0x6076 / 10⁶ × force_per_torque, read
-        #: at start-up) and the measured force read at arming (the first set-point's reference)
-        self._torque_newtons = math.nan
-        self._force_at_arm: float | None = None
-        v = {
-            "control": _variable(self.od, p.control, self.eds, "control word"),
-            "status": _variable(self.od, p.status, self.eds, "status word"),
-            "setpoint": _variable(self.od, p.setpoint, self.eds, "position set-point"),
-            "actual": _variable(self.od, p.actual, self.eds, "actual position"),
-        }
-        for obj, what, needed in (
-            (0x1000, "device type", True),
-            (0x1018, "identity", True),
-            (0x1017, "producer heartbeat time, for controller_heartbeat", controller_heartbeat),
-            (0x1016, "consumer heartbeat time, for device_watchdog", self.device_watchdog),
-        ):
-            if needed and obj not in self.od:
-                raise InputError(f"canopen: eds {self.eds!r} has no object 0x{obj:04X} ({what})")
-        if p.mode is not None:
-            _variable(self.od, p.mode[:2], self.eds, "mode")
-        for key in ("control", "setpoint"):  # written by SDO (arming, hand-back) and by RPDO
-            if not v[key].writable:
-                raise InputError(
-                    f"canopen: eds {self.eds!r}: 0x{v[key].index:04X}:{v[key].subindex:02X} "
-                    f"({v[key].name}, the {key.replace('setpoint', 'position set-point')}"
-                    f"{' word' if key == 'control' else ''}) is read-only: the bridge cannot "
-                    "command the device"
-                )
-        self._rpdo_vars = [v["control"], v["setpoint"]]
-        self._tpdo1_vars = [v["status"], v["actual"]]
-        self._tpdo2_vars = (
-            [_variable(self.od, f_obj, self.eds, "force_object")] if f_obj is not None else []
-        )
-        for obj in cands:
-            fv = _variable(self.od, obj, self.eds, "force_object")
-            own = {p.control: "control word", p.status: "status word",
-                   p.setpoint: "position set-point", p.actual: "actual position"}  # fmt: skip
-            code = (
-                fv.STRUCT_TYPES[fv.data_type].format[-1] if fv.data_type in fv.STRUCT_TYPES else ""
-            )
-            if obj in own or not code or not code.islower() or code in "fd?":
-                why = f"the profile's {own[obj]}" if obj in own else "not a signed integer"
-                raise InputError(
-                    f"canopen: force_object 0x{obj[0]:04X}:{obj[1]:02X} ({fv.name}) is {why}: "
-                    "give the object that carries the measured force"
-                )
-        for var in (*self._rpdo_vars, *self._tpdo1_vars, *self._tpdo2_vars):
-            if not var.pdo_mappable and self.configure_pdo:
-                raise InputError(
-                    f"canopen: eds {self.eds!r}: 0x{var.index:04X}:{var.subindex:02X} "
-                    f"({var.name}) is not PDO-mappable (PDOMapping=0), the driver cannot map it "
-                    "(configure_pdo = false takes the mapping the device has)"
-                )
-        self.rpdo_layout = Layout.of(self._rpdo_vars, "RPDO1")
-        self.tpdo1_layout = Layout.of(self._tpdo1_vars, "TPDO1")
-        self.tpdo2_layout = Layout.of(self._tpdo2_vars, "TPDO2") if self._tpdo2_vars else None
-        self._rpdo_id = 0x200 + node_id
-        self._tpdo_ids = (0x180 + node_id, 0x280 + node_id)
-        self._hb_id = 0x700 + bridge_node_id
-        self.network: canopen.Network | None = None
-        self.node: canopen.RemoteNode | None = None
-        self._q: deque[Feedback] = deque()  # decoded feedback (appended by _on_tpdo)
-        self._wake = threading.Event()  # set by _on_tpdo (the notifier thread's hand-off)
-        self._lock = threading.Lock()
-        # the TPDO values of the current SYNC: one slot per TPDO used (in PDO number order),
-        # _MISSING until it came, None when malformed; reset at every SYNC. Until _map_pdos
-        # reads the device's mapping: the driver's own (TPDO1 = status word + position,
-        # TPDO2 = force)
-        self._n_tpdo = 2 if f_obj is not None else 1
-        self._blank: tuple[Any, ...] = (_MISSING,) * self._n_tpdo
-        self._part: list[Any] = list(self._blank)
-        self._have = 0  # TPDOs of the current SYNC received
-        #: (slot, position) in the TPDO values of the status word, the actual position and
-        #: the force (None: not mapped)
-        self._at: tuple[tuple[int, int] | None, ...] = (
-            (0, 0),
-            (0, 1),
-            (1, 0) if f_obj is not None else None,
-        )
-        #: the PDOs used, as the device maps them (``"TPDO1": "COB-ID 0x185: 0x6041:00 + …"``)
-        self.mapping: dict[str, str] = {}
-        self._states: dict[int, str] = {}
-        self._flags: dict[tuple[str, bool], int] = {}
-        self._words: dict[tuple[str, bool, bool], int] = {}
-        # the library's PDO maps and the precompiled packing checked against them (_map_pdos)
-        self._rpdo_map: Any = None
-        self._tpdo_maps: dict[int, Any] = {}
-        self._tpdo_decode: dict[int, tuple[int, int, Any]] = {}  # cob → (slot, size, unpack)
-        self._step = -1  # the step the last SYNC belongs to
-        self._delivered_sync = -2
-        self._state = "NOT READY TO SWITCH ON" if p.number == 402 else "NOT READY"
-        self._latched = False
-        self._estop_seen = False  # the device reported the e-stop state since the e-stop
-        self._emcy_code = 0
-        self._emcy_text = ""
-        self._hb_seen: float | None = None
-        self._hb_last_sent = 0.0
-        self._last_counts = 0
-        self._actual_at_arm: float | None = None
-        self._first_enable = True
-        self._opened = False
-        self._bus: CANopenBus | None = None
-        self._awaiting: int | None = None  # the step of an RPDO sent and not yet SYNCed
-        # the RPDO of every step, built once and rewritten in place (Frame: a can.Message that
-        # the virtual bus copies cheaply, drivers.can.codec); the SYNC is the bus's
-        self._rpdo_msg = Frame.blank(self._rpdo_id, self.rpdo_layout.fmt.size)
-        self._rpdo_data = self._rpdo_msg.data
-        #: each RPDO of a step: its frame and ``pack(word, counts)`` (set by _map_pdos)
-        self._rpdo_out: list[tuple[Frame, Any]] = []
-        #: the bridge wrote the device's heartbeat consumer 0x1016:01 (cleared at close)
-        self._consumer_set = False
-        self._hb_msg = Frame(
-            arbitration_id=self._hb_id, is_extended_id=False, dlc=1, data=bytes((NMT_OPERATIONAL,))
-        )
 
     def open(self) -> None:
         if self._opened:
@@ -768,7 +490,7 @@ class CANopenDriver(DeviceStartUp, PdoMapping, LinkPlanning, Driver):
             and bus is not None
             and bus.axes.keys() - {self.node_id}
         ):  # other axes stay on the network: this node leaves its dispatch
-            for pdo in node.tpdo.map.values():
+            for pdo in node.tpdo.map.values():  # type: ignore[union-attr]
                 for cb in [
                     cb for cb in net.subscribers.get(pdo.cob_id, ()) if cb == pdo.on_message
                 ]:

@@ -14,6 +14,7 @@ from canopen.objectdictionary import ODArray, ODRecord
 
 from rths_hil.errors import InputError
 
+from ..base import Driver
 from .od import (
     BRIDGE_NODE_ID,
     TORQUE_ACTUAL,
@@ -27,7 +28,7 @@ from .profiles import PROFILES
 log = logging.getLogger(__package__)
 
 
-class LinkPlanning:
+class LinkPlanning(Driver):
     """What the driver class knows of its link (a part of
     :class:`~rths_hil.drivers.canopen.CANopenDriver`)."""
 
@@ -202,7 +203,7 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
         + f") bits at {fs:g} Hz + heartbeats of {b_hb} bits: the bridge's at {hb_bridge:g} Hz, "
         f"{channels} × the device's at {hb_dev:g} Hz"
     )
-    base = {"channels": channels, "fs": fs}
+    base: dict[str, Any] = {"channels": channels, "fs": fs}
     interface = str(c.get("interface", "virtual"))
     bits_s = (b_sync + channels * per_axis) * fs + per_second_bits
     if bitrate is None:

@@ -85,7 +85,8 @@ class CANopenBus:
         #: the error that stopped the library's notifier thread (the bus gone: a serial line
         #: closed, an adapter unplugged), taken by :class:`_BusGone`; None while it reads
         self.gone: BaseException | None = None
-        network.listeners.append(_BusGone(self))  # every notifier started on the network
+        # every notifier started on the network (python-can takes any can.Listener)
+        network.listeners.append(_BusGone(self))  # type: ignore[arg-type]
         #: after an e-stop: the library's periodic heartbeat task (:meth:`hold_heartbeat`)
         self._hb_task: Any = None
 
