@@ -84,7 +84,7 @@ def test_servo_lag_effect_is_a_second_lag_on_the_force():
     T = 1.0 / (LG * K)
     sys = signal.lti([1.0], np.polymul([tv, 1.0], [T, 1.0]))
     _, ref, _ = signal.lsim(sys, cmd, t, interp=True)
-    assert np.max(np.abs(f - ref)) < 1e-3 * 30e3
+    assert np.max(np.abs(f - ref)) < 2e-4 * 30e3  # measured 2.8e-5
 
 
 def test_time_varying_delay_delays_the_force_reference():
@@ -103,10 +103,10 @@ def test_time_varying_delay_delays_the_force_reference():
     delayed = command(t - tau)  # the exact delayed reference, then the loop's lag
     T = 1.0 / (LG * K)
     _, ref, _ = signal.lsim(signal.lti([1.0], [T, 1.0]), delayed, t, interp=True)
-    assert np.max(np.abs(f - ref)) < 2e-3 * 20e3
+    assert np.max(np.abs(f - ref)) < 2e-4 * 20e3  # measured 3.3e-5
     # and it is a delay: the same loop without it is further from the reference
     _, f0 = ForcePlant(KelvinVoigt(K, 0.0, DT), LG).simulate(command(t))
-    assert np.max(np.abs(f0 - ref)) > 10 * np.max(np.abs(f - ref))
+    assert np.max(np.abs(f0 - ref)) > 0.05 * 20e3  # measured 0.13
 
 
 def test_stroke_limit_clips_the_piston_and_the_force_follows_the_specimen():
@@ -121,7 +121,7 @@ def test_stroke_limit_clips_the_piston_and_the_force_follows_the_specimen():
     assert np.sum(np.abs(x) == lim) > 100  # held at the stops for a while
     # no wind-up: leaving the stop follows the brute-force loop with the piston at the stop
     ref = _brute_loop(t, cmd, lo=-lim, hi=lim)
-    assert np.max(np.abs(x - ref)) < 2e-3 * lim
+    assert np.max(np.abs(x - ref)) < 2e-4 * lim  # measured 1.9e-5
     # step and simulate agree
     p.reset()
     stepped = np.array([p.step(c)[0] for c in cmd])
@@ -139,7 +139,7 @@ def test_velocity_limit_bounds_the_displacement_rate():
     assert np.max(rate) <= vmax * (1 + 1e-9)
     assert np.max(rate) == pytest.approx(vmax, rel=1e-9)  # it binds
     ref = _brute_loop(t, cmd, vmax=vmax)
-    assert np.max(np.abs(x - ref)) < 1e-2 * 30e3 / K
+    assert np.max(np.abs(x - ref)) < 2e-4 * 30e3 / K  # measured 1.4e-5
     assert f[-1] == pytest.approx(30e3, rel=1e-6)  # and the loop still settles on the force
 
 
