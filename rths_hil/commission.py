@@ -1086,11 +1086,14 @@ def tuned_fragment(reports: list[ChannelReport], plan: Any) -> str:
 
 
 def write_report(reports: list[ChannelReport], plan: Any, out: Path) -> Path:
-    """``report.md`` and one PNG per channel in ``out``; return the report's path."""
-    import matplotlib
+    """``report.md`` and, unless ``output.plot`` is false, one PNG per channel in ``out``;
+    return the report's path."""
+    draw = bool(plan.cfg["output"]["plot"])
+    if draw:
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
 
     lines = [
         "# Commissioning report",
@@ -1110,30 +1113,31 @@ def write_report(reports: list[ChannelReport], plan: Any, out: Path) -> Path:
     for rep in reports:
         name = rep.name or "actuator"
         png = f"{name}.png"
-        fig, axes = plt.subplots(1, 3, figsize=(15, 3.8), constrained_layout=True)
-        if rep.latency.size:
-            axes[0].hist(rep.latency * 1e3, bins=50, color="C0")
-        axes[0].set_xlabel("round trip (ms), actuator disabled")
-        axes[0].set_ylabel("replies")
-        axes[0].set_title(f"{name}: latency at {plan.fs:g} Hz")
-        for ax, trace, title in (
-            (axes[1], rep.motion, "ramp–hold–ramp"),
-            (axes[2], rep.chirp, "chirp and fitted model"),
-        ):
-            if trace is not None:
-                cmd, meas = trace
-                t = np.arange(cmd.size) / plan.fs
-                ax.plot(t, 1e3 * cmd, lw=1.0, label="command")
-                ax.plot(t, 1e3 * meas, lw=0.8, label="measured")
-                if ax is axes[2] and rep.plant is not None:
-                    ax.plot(t, 1e3 * rep.plant.model, lw=0.8, ls="--", label="model")
-                ax.legend(loc="upper right")
-            ax.set_xlabel("time (s)")
-            ax.set_ylabel("displacement (mm)")
-            ax.set_title(f"{name}: {title}")
-        fig.savefig(out / png, dpi=90)
-        plt.close(fig)
-        rep.plot = png
+        if draw:
+            fig, axes = plt.subplots(1, 3, figsize=(15, 3.8), constrained_layout=True)
+            if rep.latency.size:
+                axes[0].hist(rep.latency * 1e3, bins=50, color="C0")
+            axes[0].set_xlabel("round trip (ms), actuator disabled")
+            axes[0].set_ylabel("replies")
+            axes[0].set_title(f"{name}: latency at {plan.fs:g} Hz")
+            for ax, trace, title in (
+                (axes[1], rep.motion, "ramp–hold–ramp"),
+                (axes[2], rep.chirp, "chirp and fitted model"),
+            ):
+                if trace is not None:
+                    cmd, meas = trace
+                    t = np.arange(cmd.size) / plan.fs
+                    ax.plot(t, 1e3 * cmd, lw=1.0, label="command")
+                    ax.plot(t, 1e3 * meas, lw=0.8, label="measured")
+                    if ax is axes[2] and rep.plant is not None:
+                        ax.plot(t, 1e3 * rep.plant.model, lw=0.8, ls="--", label="model")
+                    ax.legend(loc="upper right")
+                ax.set_xlabel("time (s)")
+                ax.set_ylabel("displacement (mm)")
+                ax.set_title(f"{name}: {title}")
+            fig.savefig(out / png, dpi=90)
+            plt.close(fig)
+            rep.plot = png
         lines += [
             f"## {name} ({rep.driver}, {rep.target})",
             "",
@@ -1143,7 +1147,7 @@ def write_report(reports: list[ChannelReport], plan: Any, out: Path) -> Path:
         for s in rep.steps:
             figs = ", ".join(f"{k} = {_fmt(v)}" for k, v in s.figures.items())
             lines.append(f"| {s.name} | {s.status} | {s.reason or '—'} | {figs or '—'} |")
-        lines += ["", f"![{name}]({png})", ""]
+        lines += ["", f"![{name}]({png})", ""] if draw else [""]
     path = out / "report.md"
     path.write_text("\n".join(lines), encoding="utf-8")
     return path

@@ -1051,7 +1051,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
             hi=0.1,
             lo_open=True,
         ),
-        "plot": Key("bool", True, unit="-", doc="write report.png at the end"),
+        "plot": Key(
+            "bool",
+            True,
+            unit="-",
+            doc="write the figures at the end (run: report.png; commission: one PNG per channel)",
+        ),
     },
 }
 
