@@ -28,7 +28,8 @@ spring-dashpot's (a mass on the rod makes a real force loop second order; keep i
 ``k·T²``). Sensor noise, quantisation and their seeded streams are the displacement twin's.
 
 The effects catalogue (:mod:`rths_hil.sim_backends.effects`) acts where each effect acts on a
-force-controlled rig (:data:`FORCE_EFFECTS`), in the order the model file gives:
+force-controlled rig (:data:`FORCE_EFFECTS`), in the order the model file gives (those on the
+reference before the loop):
 
 - on the force reference (N), after the delay and gain: ``offset`` (a set-point or load-cell
   zero error; ``offset`` in N: the force settles at ``gain·F_c + offset``), ``drift`` (``rate``
@@ -70,6 +71,7 @@ __all__ = [
     "DEFAULT_LOOP_GAIN",
     "FORCE_EFFECTS",
     "FORCE_REFUSED",
+    "FORCE_UNITS",
     "ForcePlant",
     "force_loop_time_constant",
     "force_plant",
