@@ -52,6 +52,9 @@ __all__ = [
     "EFFECTS",
     "EFFECT_ORDER",
     "EFFECT_RANGES",
+    "FORCE_EFFECTS",
+    "FORCE_REFUSED",
+    "FORCE_UNITS",
     "Backlash",
     "Drift",
     "Effect",
@@ -895,6 +898,31 @@ EFFECTS: dict[str, type[Effect]] = {
         ForceFeedback,
     )
 }
+
+#: The catalogue effects the force-controlled twin (:mod:`rths_hil.sim_backends.force`) takes:
+#: kind → where it acts, ``"reference"`` (the force set-point path, N) or ``"loop"`` (the
+#: piston inside the force loop, m).
+FORCE_EFFECTS: dict[str, str] = {
+    "offset": "reference",
+    "drift": "reference",
+    "servo_lag": "reference",
+    "time_varying_delay": "reference",
+    "stroke_limit": "loop",
+    "velocity_limit": "loop",
+}
+#: The catalogue effects the force twin refuses, and why (the refusal's message).
+FORCE_REFUSED: dict[str, str] = {
+    "backlash": (
+        "play in the load train, which the force loop pushes through to the set-point; its "
+        "transient needs the piston and the specimen as two states, and this loop has one"
+    ),
+    "force_feedback": (
+        "the specimen's force acting back on a displacement loop through the oil column; "
+        "the force twin has the specimen in its loop already"
+    ),
+}
+#: Units of the reference effects' parameters in the force twin (the catalogue's are m, m/s).
+FORCE_UNITS: dict[str, dict[str, str]] = {"offset": {"offset": "N"}, "drift": {"rate": "N/s"}}
 
 #: Realistic ranges of each effect's parameters (SI), from each :class:`Param`'s ``typical``:
 #: the twin's documentation, the random hidden effects of the diagnosis benchmarks and tests.

@@ -61,7 +61,7 @@ from rths_hil.errors import InputError
 
 from .base import ActuatorModel, check_dt
 from .delay import DelayGain
-from .effects import Effect, EffectChain
+from .effects import FORCE_EFFECTS, FORCE_REFUSED, FORCE_UNITS, Effect, EffectChain
 from .first_order import first_order_coeffs
 from .models import Series
 from .plant import Sensor, TwinPlant
@@ -80,30 +80,6 @@ __all__ = [
 #: Default force-loop gain K_f (m/s per N): a 4.2 ms closed force loop on the RTHS benchmark's
 #: 1.19 MN/m specimen (T = 1/(K_f·k)).
 DEFAULT_LOOP_GAIN = 2.0e-4
-
-#: The catalogue effects the force twin takes: kind → where it acts, ``"reference"`` (the force
-#: set-point path, N) or ``"loop"`` (the piston inside the force loop, m).
-FORCE_EFFECTS: dict[str, str] = {
-    "offset": "reference",
-    "drift": "reference",
-    "servo_lag": "reference",
-    "time_varying_delay": "reference",
-    "stroke_limit": "loop",
-    "velocity_limit": "loop",
-}
-#: The catalogue effects the force twin refuses, and why (the refusal's message).
-FORCE_REFUSED: dict[str, str] = {
-    "backlash": (
-        "play in the load train, which the force loop pushes through to the set-point; its "
-        "transient needs the piston and the specimen as two states, and this loop has one"
-    ),
-    "force_feedback": (
-        "the specimen's force acting back on a displacement loop through the oil column; "
-        "the force twin has the specimen in its loop already"
-    ),
-}
-#: Units of the reference effects' parameters in the force twin (the catalogue's are m, m/s).
-FORCE_UNITS: dict[str, dict[str, str]] = {"offset": {"offset": "N"}, "drift": {"rate": "N/s"}}
 
 
 def force_loop_time_constant(loop_gain: float, stiffness: float, damping: float = 0.0) -> float:

@@ -48,8 +48,7 @@ from rths_hil.errors import InputError
 from rths_hil.formats import read_toml, toml_key, toml_value
 from rths_hil.units import parse_force, parse_length, parse_time, parse_velocity
 
-from .effects import EFFECTS, make_effect, validate_params
-from .force import FORCE_REFUSED, FORCE_UNITS
+from .effects import EFFECTS, FORCE_REFUSED, FORCE_UNITS, make_effect, validate_params
 from .models import make_model
 from .plant import Sensor, TwinPlant
 from .registry import MODELS, model_entry

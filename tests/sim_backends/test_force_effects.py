@@ -167,3 +167,10 @@ def test_a_model_file_path_takes_the_effects(tmp_path):
     assert f[-1] == pytest.approx(5.5e3, rel=1e-9)
     x, f = p.simulate(np.full(1024, 50e3))
     assert x[-1] == pytest.approx(0.010) and f[-1] == pytest.approx(K * 0.010)
+
+
+def test_every_catalogue_effect_is_taken_or_refused_by_the_force_twin():
+    from rths_hil.sim_backends.effects import EFFECTS, FORCE_EFFECTS, FORCE_REFUSED
+
+    assert set(FORCE_EFFECTS) | set(FORCE_REFUSED) == set(EFFECTS)
+    assert not set(FORCE_EFFECTS) & set(FORCE_REFUSED)
