@@ -72,5 +72,5 @@ def test_lab_driver_from_entry_point(lab_package: Path) -> None:
     assert type(drv).__name__ == "MyLabDriver" and drv.port == 9100
     with pytest.raises(InputError, match=r"unknown connection setting.*baud"):
         create_driver("mylab", baud=9600)
-    with pytest.raises(InputError, match=r"not a drivers\.base\.Driver subclass"):
+    with pytest.raises(InputError, match=r"not a rths_hil\.drivers\.base\.Driver subclass"):
         driver_class("broken")
