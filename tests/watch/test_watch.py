@@ -174,9 +174,13 @@ def test_meta_names_the_recording_process(tmp_path):
 
 
 def _hold_record(run_dir, meta_pid: bool = True) -> subprocess.Popen:
-    """A process recording ``run_dir`` (its Recorder open) until it is signalled."""
+    """A process recording ``run_dir`` (its Recorder open) until it is signalled.
+
+    It takes SIGINT as Python does by default even when started with SIGINT ignored (a
+    non-interactive shell starts background jobs so, and children inherit it)."""
     code = (
-        "import json, sys, time; from rths_hil.recorder import Recorder; "
+        "import json, signal, sys, time; from rths_hil.recorder import Recorder; "
+        "signal.signal(signal.SIGINT, signal.default_int_handler); "
         f"r = Recorder({str(run_dir)!r}, 100.0); "
         + ("" if meta_pid else "r.meta.pop('pid'); r.update_meta(); ")
         + "print('open', flush=True); time.sleep(60)"
