@@ -676,6 +676,9 @@ def read_npy_header(path: str | Path) -> NpyHeader:
                 )
             fh.seek(start)
             text = fh.read(hlen)
+            # the size again, after the header: a recorder still writing appends its rows
+            # before it patches their count, so rows counted here are in the file now
+            size = os.fstat(fh.fileno()).st_size
     except OSError as exc:
         raise InputError(f"{p}: unreadable record ({exc.strerror})") from None
     try:

@@ -53,6 +53,36 @@ def test_rows_are_on_disk_after_each_flush_and_header_counts_them(tmp_path):
     np.testing.assert_array_equal(data, _expected(130))
 
 
+def test_a_reader_never_sees_more_rows_counted_than_written(tmp_path):
+    """A reader following a record that is being written (the live view, a test waiting for
+    rows) reads the header, then the file's size: the writer appends its rows before it
+    patches their count, so every counted row is in the file (read the other way round, the
+    size could be older than the count: "the header counts 663 rows but the file holds 612")."""
+    import threading
+
+    from rths_hil.recorder import read_npy_header
+
+    rec = Recorder(tmp_path / "run", fs=1000.0, flush_interval=0.001)  # a flush a row
+    done = threading.Event()
+
+    def write() -> None:
+        for k in range(20000):
+            rec.append(*_row(k))
+        done.set()
+
+    t = threading.Thread(target=write)
+    t.start()
+    reads = 0
+    try:
+        while not done.is_set():
+            read_npy_header(rec.path)  # InputError when the count ran ahead of the data
+            reads += 1
+    finally:
+        t.join()
+        rec.close()
+    assert reads > 100 and header_row_count(rec.path) == 20000
+
+
 def test_patched_header_equals_a_freshly_built_one(tmp_path):
     """Only the row count is rewritten; the header must be byte for byte the full rebuild."""
     rec = Recorder(tmp_path / "run", fs=1000.0, flush_interval=0.001)
