@@ -37,6 +37,8 @@ def test_late_replies_are_missed_not_overruns(tmp_path):
     assert np.count_nonzero(~ok[AT : AT + LATE]) >= 0.9 * LATE
     lat = np.asarray(res.lateness)
     over = np.count_nonzero(lat[AT : AT + 2 * LATE] > res.overrun_threshold)
-    assert over <= 0.1 * LATE, f"{over} overruns while the replies were late"
+    # (a wait counted from the send overran on every one of them, 100 in a row: a trip; at
+    # 4096 Hz a loaded machine's own late wake-ups are a few here)
+    assert over <= 0.3 * LATE, f"{over} overruns while the replies were late"
     # and the replies come back once the twin has caught up
     assert ok[AT + 4 * LATE :].mean() > 0.95
