@@ -45,7 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import can
 from rths_hil.drivers.can.codec import load as load_dbc
-from rths_hil.drivers.modbus import _TCP_REQ, READ_ADDRESS, READ_COUNT, WRITE_ADDRESS
+from rths_hil.drivers.modbus.driver import _TCP_REQ, READ_ADDRESS, READ_COUNT, WRITE_ADDRESS
 from rths_hil.drivers.registry import create_driver
 from rths_hil.drivers.serial import COMMAND, T_COMMAND, encode_frame
 from rths_hil.sim_backends.twin import default_plant, start_twin

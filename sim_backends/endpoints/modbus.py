@@ -42,28 +42,26 @@ from typing import Any, ClassVar
 
 import serial
 from pymodbus.constants import ExcCodes
-from pymodbus.framer import FramerRTU, FramerSocket
-from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.pdu.bit_message import ReadCoilsResponse, WriteSingleCoilResponse
 from pymodbus.pdu.register_message import (
     ReadHoldingRegistersResponse,
     ReadWriteMultipleRegistersResponse,
 )
 from rths_hil.drivers.base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Status
-from rths_hil.drivers.modbus import (
-    COIL_ESTOP,
+from rths_hil.drivers.modbus.driver import COIL_ESTOP, REG, WRITE_ADDRESS, WRITE_COUNT, feedback_crc
+from rths_hil.drivers.modbus.transport import (
     MAX_UNIT,
-    REG,
-    WRITE_ADDRESS,
-    WRITE_COUNT,
-    feedback_crc,
+    framer,
+    illegal_data_value,
+    rtu_frame_size,
 )
 
 from rths_hil.errors import InputError
 
 from ..faults import Faults
 from .base import TwinController, TwinEndpoint, listen
-from .modbus_profile import ModbusProfileTwin, illegal_data_value
+from .modbus_profile import ModbusProfileTwin
 
 __all__ = ["ModbusServer", "ModbusTwin"]
 
@@ -100,7 +98,7 @@ class ModbusServer:
 
     def __init__(self, transport: str) -> None:
         self.transport = transport
-        self.framer = (FramerSocket if transport == "tcp" else FramerRTU)(DecodePDU(True))
+        self.framer = framer(transport == "rtu", server=True)
         self.units: dict[int, ModbusTwin] = {}
         self.listener: socket.socket | None = None
         self.conns: list[_Conn] = []
@@ -234,26 +232,25 @@ class ModbusServer:
             self._process(conn)
 
     def _process(self, conn: _Conn) -> None:
-        framer = self.framer
+        frm = self.framer
         while conn.buf and conn in self.conns:
             data = conn.buf
             if self.transport == "rtu":
                 # pymodbus's RTU framer consumes the whole buffer; cut one frame by its size so
                 # that back-to-back requests (e-stop then command) are both served.
-                if len(data) < framer.MIN_SIZE:
+                if len(data) < frm.MIN_SIZE:
                     return
-                pdu_class = framer.decoder.lookupPduClass(data)
-                if pdu_class is None:
+                size = rtu_frame_size(frm.decoder, data)
+                if size is None:
                     self._malformed()
                     conn.buf = data[1:]  # hunt for the next frame start
                     continue
-                size = pdu_class.calculateRtuFrameSize(data)
                 if not size or len(data) < size:
                     return
                 data = data[:size]
-            used, dev_id, tid, pdu_bytes = framer.decode(data)
+            used, dev_id, tid, pdu_bytes = frm.decode(data)
             if not used:
-                if len(conn.buf) > 2 * framer.MAX_SIZE:
+                if len(conn.buf) > 2 * frm.MAX_SIZE:
                     self._malformed()
                     conn.buf = b""
                 return
@@ -278,7 +275,7 @@ class ModbusServer:
                 exc = ExceptionResponse(pdu_bytes[0], ExcCodes.ILLEGAL_VALUE)
                 self.send(conn, exc, dev_id, tid)
                 continue
-            pdu = framer.decoder.decode(pdu_bytes)
+            pdu = frm.decoder.decode(pdu_bytes)
             if pdu is None:
                 unit.controller.stats.malformed += 1
                 self.send(

@@ -9,7 +9,7 @@ read block read as 0), as a real controller does, so a driver started with a pro
 not match is refused by its start-up check. Requests are decoded and responses built by pymodbus
 (``FramerSocket`` / ``FramerRTU``, ``DecodePDU``, its PDU classes; an RTU request is cut by the
 size its PDU class computes and checked by its CRC). Values are converted by the precompiled
-``struct`` layouts of :mod:`rths_hil.drivers.modbus_layout` (made once, each checked against
+``struct`` layouts of :mod:`rths_hil.drivers.modbus.layout` (made once, each checked against
 pymodbus's ``convert_to_registers`` / ``convert_from_registers``), a status word's registers
 and which mapped spans a request touches are worked out once and remembered, so that a step
 costs the twin's thread little beside pymodbus's request decoding and response framing.
@@ -46,8 +46,7 @@ import tty
 from typing import Any
 
 from pymodbus.constants import ExcCodes
-from pymodbus.framer import FramerRTU, FramerSocket
-from pymodbus.pdu import DecodePDU, ExceptionResponse
+from pymodbus.pdu import ExceptionResponse
 from pymodbus.pdu.bit_message import (
     ReadCoilsResponse,
     ReadDiscreteInputsResponse,
@@ -61,7 +60,8 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterResponse,
 )
 from rths_hil.drivers.base import Status
-from rths_hil.drivers.modbus_layout import PointLayout
+from rths_hil.drivers.modbus.layout import PointLayout
+from rths_hil.drivers.modbus.transport import framer, illegal_data_value, rtu_frame_size
 from rths_hil.drivers.profile import ModbusPoint, ModbusProfile, load_profile, word_from_status
 
 from rths_hil.errors import InputError
@@ -69,40 +69,11 @@ from rths_hil.errors import InputError
 from ..faults import Faults
 from .base import TwinController, TwinEndpoint, listen
 
-__all__ = ["ModbusProfileTwin", "illegal_data_value"]
+__all__ = ["ModbusProfileTwin"]
 
 _READ_TABLE = {3: "holding", 4: "input", 1: "coil", 2: "discrete"}
 _SAMPLE_FLAGS = int(Status.SENSOR_INVALID | Status.SEQ_GAP)
 _FEEDBACK_FC = frozenset((1, 2, 3, 4, 23))  # the responses that carry a step's feedback
-
-#: Quantity limits of the requests (MODBUS Application Protocol V1.1b3, §6.1–6.17).
-_QTY = {1: 2000, 2: 2000, 3: 125, 4: 125, 15: 1968, 16: 123}
-
-
-def illegal_data_value(pdu: bytes) -> bool:
-    """A request whose fields the Modbus application protocol answers with exception 03
-    (ILLEGAL DATA VALUE) — checked on the raw PDU, which pymodbus's request classes decode
-    without these checks: a quantity out of 1…the function's limit, a byte count that is not
-    the quantity's, data bytes that are not the byte count's, and an FC 5 output value other
-    than 0x0000 or 0xFF00 (V1.1b3 §6.1–6.17)."""
-    fc = pdu[0] if pdu else 0
-    try:
-        if fc == 5:
-            return len(pdu) != 5 or struct.unpack_from(">H", pdu, 3)[0] not in (0, 0xFF00)
-        if fc in (1, 2, 3, 4):
-            return len(pdu) != 5 or not 1 <= struct.unpack_from(">H", pdu, 3)[0] <= _QTY[fc]
-        if fc in (15, 16):
-            qty, nbytes = struct.unpack_from(">HB", pdu, 3)
-            want = 2 * qty if fc == 16 else -(-qty // 8)
-            return not 1 <= qty <= _QTY[fc] or nbytes != want or len(pdu) != 6 + nbytes
-        if fc == 23:
-            rq, _, wq, nbytes = struct.unpack_from(">HHHB", pdu, 3)
-            bad_q = not (1 <= rq <= 125 and 1 <= wq <= 121)
-            return bad_q or nbytes != 2 * wq or len(pdu) != 10 + nbytes
-    except struct.error:
-        return True
-    return False
-
 
 _READ_RESP = {
     3: ReadHoldingRegistersResponse,
@@ -156,7 +127,7 @@ class ModbusProfileTwin(TwinEndpoint):
                 self.tables[b.table].setdefault(a, 0)
         for act in prof.actions.values():
             self.tables[act.table].setdefault(act.address, 0)
-        self._framer: Any = (FramerRTU if transport == "rtu" else FramerSocket)(DecodePDU(True))
+        self._framer: Any = framer(transport == "rtu", server=True)
         # made once: each register point's layout (checked against pymodbus) and the struct of
         # its registers as they go on the wire, high byte first: ">HH" for two registers
         self._layouts: dict[str, tuple[PointLayout, struct.Struct]] = {
@@ -296,20 +267,19 @@ class ModbusProfileTwin(TwinEndpoint):
             self._stop.wait(timeout)  # nobody on the other end (yet)
             return
         entry[1] += data
-        framer = self._framer
+        frm = self._framer
         self._out = []
         while len(entry[1]) >= 4:
             buf = entry[1]
-            cls = framer.decoder.lookupPduClass(buf)
-            if cls is None:
+            size = rtu_frame_size(frm.decoder, buf)
+            if size is None:
                 self.controller.stats.malformed += 1
                 entry[1] = buf[1:]  # hunt for the next frame start
                 continue
-            size = cls.calculateRtuFrameSize(buf)
             if not size or len(buf) < size:
                 break
             frame, entry[1] = buf[:size], buf[size:]
-            _, dev_id, _, pdu_bytes = framer.decode(frame)  # checks the CRC
+            _, dev_id, _, pdu_bytes = frm.decode(frame)  # checks the CRC
             if not pdu_bytes:
                 self.controller.stats.malformed += 1
                 continue
@@ -319,7 +289,7 @@ class ModbusProfileTwin(TwinEndpoint):
                 self.controller.stats.malformed += 1
                 self._reply(None, ExceptionResponse(pdu_bytes[0], ExcCodes.ILLEGAL_VALUE), 0)
                 continue
-            pdu = framer.decoder.decode(pdu_bytes)
+            pdu = frm.decoder.decode(pdu_bytes)
             if pdu is None:
                 self.controller.stats.malformed += 1
                 self._reply(None, ExceptionResponse(pdu_bytes[0] & 0x7F, 1), 0)
@@ -334,10 +304,10 @@ class ModbusProfileTwin(TwinEndpoint):
     def _process(self, entry: list[Any]) -> None:
         """Answer every complete request in the buffer; the responses go out in one write
         (a pipelined write + read is answered in one TCP segment)."""
-        framer = self._framer
+        frm = self._framer
         self._out: list[bytes] = []
         while entry[1]:
-            used, dev_id, tid, pdu_bytes = framer.decode(entry[1])
+            used, dev_id, tid, pdu_bytes = frm.decode(entry[1])
             if not used:
                 return
             entry[1] = entry[1][used:]
@@ -349,7 +319,7 @@ class ModbusProfileTwin(TwinEndpoint):
                 exc = ExceptionResponse(pdu_bytes[0], ExcCodes.ILLEGAL_VALUE)
                 self._reply(entry[0], exc, tid)
                 continue
-            pdu = framer.decoder.decode(pdu_bytes)
+            pdu = frm.decoder.decode(pdu_bytes)
             if pdu is None:
                 self.controller.stats.malformed += 1
                 self._reply(entry[0], ExceptionResponse(pdu_bytes[0] & 0x7F, 1), tid)

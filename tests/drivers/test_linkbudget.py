@@ -214,7 +214,7 @@ def test_modbus_rtu_frames_equal_pymodbus():
 
 def test_modbus_rtu_transaction_time():
     # (21 + 19 + 2 × 3.5) characters × 11 bits / 115 200 baud = 4.488 ms (the issue's ≈ 4.3 ms
-    # counted 38 bytes; drivers/modbus.py's map has 40)
+    # counted 38 bytes; drivers/modbus/driver.py's map has 40)
     t = rtu_transaction_time(115200)
     assert t == pytest.approx(47 * 11 / 115200)
     assert 4.3e-3 < t < 4.6e-3

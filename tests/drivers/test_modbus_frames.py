@@ -18,7 +18,7 @@ from pymodbus.pdu.register_message import (
     ReadHoldingRegistersRequest,
     WriteMultipleRegistersRequest,
 )
-from rths_hil.sim_backends.endpoints.modbus_profile import illegal_data_value
+from rths_hil.drivers.modbus.transport import illegal_data_value
 from rths_hil.sim_backends.twin import default_plant, start_twin
 
 pytestmark = pytest.mark.timing  # twins in threads, over sockets

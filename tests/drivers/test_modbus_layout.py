@@ -1,4 +1,4 @@
-"""The Modbus profile's precompiled layouts (drivers/modbus_layout.py) against pymodbus itself.
+"""The Modbus profile's precompiled layouts (drivers/modbus/layout.py) against pymodbus itself.
 
 Property-style: for every register type, word order and byte order, with scale and offset, for
 random values, the bytes the precompiled layouts write equal pymodbus's generic encoding
@@ -26,7 +26,7 @@ from pymodbus.pdu.register_message import (
     ReadWriteMultipleRegistersRequest,
     WriteMultipleRegistersRequest,
 )
-from rths_hil.drivers.modbus_layout import BlockLayout, PointLayout, RequestTemplate
+from rths_hil.drivers.modbus.layout import BlockLayout, PointLayout, RequestTemplate
 from rths_hil.drivers.profile import REG_TYPES, ModbusPoint, ReadBlock
 from rths_hil.drivers.registry import create_driver
 from rths_hil.sim_backends.twin import default_plant, start_twin
@@ -351,7 +351,7 @@ def test_step_reply_reads_pymodbus_frames_and_refuses_any_other_byte(two_blocks)
     generic decoding gives; a change of any byte outside the registers (a transaction id, a
     header, the echo), another step's id or a short buffer gives ``None``."""
     from pymodbus.pdu.register_message import WriteMultipleRegistersResponse
-    from rths_hil.drivers.modbus_layout import StepReply
+    from rths_hil.drivers.modbus.layout import StepReply
 
     rng = np.random.default_rng(11 + two_blocks)
     pos = point("position", "float32", 200, table="input", scale=0.5, offset=1.0, factor=1e-3)

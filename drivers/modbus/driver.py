@@ -28,21 +28,22 @@ The hot path packs the request and unpacks the response with precompiled ``struc
 few µs) instead of pymodbus's client stack; the tests check byte for byte that these frames are
 the ones pymodbus's own ``ReadWriteMultipleRegistersRequest`` / ``FramerSocket`` /
 ``FramerRTU`` build, and a plain pymodbus client drives the twin using only this map. RTU frame
-CRCs come from pymodbus (``FramerRTU.compute_CRC``). The driver waits with ``select`` on the
-socket or serial descriptor: unlike pymodbus's synchronous RTU client it never polls in 1 ms
-sleeps.
+CRCs come from pymodbus (``FramerRTU.compute_CRC``), an RTU response is cut by the size its
+pymodbus PDU class computes (:func:`.transport.rtu_frame_size`). The connection is the package's
+one transport (:class:`.transport.Link`), which waits with ``select`` on the socket or serial
+descriptor: unlike pymodbus's synchronous RTU client it never polls in 1 ms sleeps.
 
 **Several actuators on one Modbus TCP connection.** Each controller is a Modbus *unit*
-(``device_id``, 1–247, the MBAP unit identifier). The drivers of the units on one server
-(same ``host`` and ``port``) share one TCP connection (:class:`Link`), as CAN nodes share one
+(``device_id``, 1–247, the MBAP unit identifier). The drivers of the units on one server (same
+``host`` and ``port``) share one TCP connection (:class:`.transport.Link`), as CAN nodes share one
 bus: every request carries its unit id, and a driver that reads another unit's response off the
-connection hands it to that unit's inbox, so every byte is read once. The requests of one step
-are pipelined — every channel's FC 23 is written before any response is awaited, as Modbus TCP
-allows several outstanding transactions on one connection — and told apart by the unit id and by
-the transaction id: ``SEQ`` XOR ``slot << 8``, where ``slot`` is the driver's place on the
-connection (0 for the first, so a single driver's transaction id is ``SEQ`` itself). A server that
-handles one transaction at a time answers them in order; the cost is then its processing time
-per unit, not a round trip per unit. RTU lines are not shared (one driver per serial line).
+connection hands it to that unit's inbox, so every byte is read once. The requests of one step are
+pipelined — every channel's FC 23 is written before any response is awaited, as Modbus TCP allows
+several outstanding transactions on one connection — and told apart by the unit id and by the
+transaction id: ``SEQ`` XOR ``slot << 8``, where ``slot`` is the driver's place on the connection
+(0 for the first, so a single driver's transaction id is ``SEQ`` itself). A server that handles one
+transaction at a time answers them in order; the cost is then its processing time per unit, not a
+round trip per unit. RTU lines are not shared (one driver per serial line).
 """
 
 from __future__ import annotations
@@ -50,36 +51,29 @@ from __future__ import annotations
 import binascii
 import logging
 import math
-import os
-import select
 import socket
 import struct
-import threading
 import time
 from collections import deque
 from typing import TYPE_CHECKING, Any, ClassVar
-
-import serial
-from pymodbus.framer import FramerRTU
 
 from rths_hil.errors import InputError
 
 if TYPE_CHECKING:
     from rths_hil.linkbudget import LinkLoad
 
-from .base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Driver, Feedback, LinkDown
-from .base import extend_seq as _extend_seq
+from ..base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Driver, Feedback, LinkDown
+from ..base import extend_seq as _extend_seq
+from .transport import MAX_UNIT, Link, framer, open_serial, open_tcp, rtu_frame_size
 
 __all__ = [
     "COIL_ESTOP",
     "FORCE_LSB",
-    "MAX_UNIT",
     "READ_ADDRESS",
     "READ_COUNT",
     "REG",
     "WRITE_ADDRESS",
     "WRITE_COUNT",
-    "Link",
     "ModbusDriver",
     "feedback_crc",
 ]
@@ -113,135 +107,13 @@ _RTU_REQ = struct.Struct(">BBHHHHBHHi")
 _RTU_RESP = struct.Struct(">BBBHHiiHH")  # with the RTU CRC
 _FB_REGS = struct.Struct(">HHiiH")  # registers 16..22
 _crc_hqx = binascii.crc_hqx
-_rtu_crc = FramerRTU.compute_CRC
-
-
-#: Highest Modbus unit id a controller can have (1–247; 0 is broadcast, 248–255 reserved).
-MAX_UNIT = 247
-
-
-def _await_tcp(
-    sock: socket.socket, buf: bytes, tid: int, deadline: float
-) -> tuple[bytes | None, bytes]:
-    """The PDU of the Modbus TCP response ``tid`` on ``sock`` before ``deadline`` (``None``:
-    none), and the bytes read past it. Raises OSError when the connection is gone."""
-    while True:
-        while len(buf) >= 8:
-            end = 6 + ((buf[4] << 8) | buf[5])
-            if len(buf) < end:
-                break
-            frame, buf = buf[:end], buf[end:]
-            if (frame[0] << 8) | frame[1] == tid:
-                return frame[7:], buf
-        remaining = deadline - time.perf_counter()
-        if remaining <= 0 or not select.select((sock,), (), (), remaining)[0]:
-            return None, buf
-        data = sock.recv(4096)
-        if not data:
-            raise ConnectionResetError("closed")
-        buf += data
+_RTU_FRAMER = framer(rtu=True)
+_rtu_crc = _RTU_FRAMER.compute_CRC
 
 
 def feedback_crc(block12: bytes) -> int:
     """FB_CRC: CRC-16/CCITT-FALSE (``binascii.crc_hqx``, init 0xFFFF) of registers 16–21."""
     return _crc_hqx(block12, 0xFFFF)
-
-
-class Link:
-    """One transport (a TCP connection or a serial line) and the drivers of the units on it.
-
-    A TCP link is shared by every driver in the process with the same ``host`` and ``port``
-    (:meth:`get`); a serial line belongs to one driver. ``fd`` is ``None`` while the transport
-    is down; the next write reconnects it.
-
-    Attributes
-    ----------
-    fd : int or None
-        Descriptor the drivers read and write.
-    buf : bytes
-        Bytes read but not yet parsed (shared: a read may hold several units' responses).
-    units : dict
-        Unit id → the driver of that unit on this link.
-    """
-
-    _shared: ClassVar[dict[tuple, Link]] = {}
-    _lock: ClassVar[threading.Lock] = threading.Lock()
-
-    def __init__(self, key: tuple | None, opener: Any) -> None:
-        self.key = key
-        self._opener = opener
-        self.sock: socket.socket | None = None
-        self.ser: Any = None
-        self.fd: int | None = None
-        self.buf = b""
-        self.units: dict[int, ModbusDriver] = {}
-        #: TCP: the e-stop's own connection, shared by the units (ModbusDriver.estop)
-        self.esock: socket.socket | None = None
-
-    @classmethod
-    def get(cls, driver: ModbusDriver) -> Link:
-        """The link of ``driver`` (TCP: shared by host and port), with the driver registered.
-
-        Raises
-        ------
-        InputError
-            Another open driver already speaks to this unit on this link, or the transport
-            cannot be opened.
-        """
-        if driver._rtu:
-            link = cls(None, driver._open_serial)
-            link.units[driver.device_id] = driver
-            link.connect()
-            return link
-        key = ("tcp", driver.host, driver.port)
-        with cls._lock:
-            link = cls._shared.get(key)
-            if link is None:
-                link = cls(key, driver._open_socket)
-                link.connect()
-                cls._shared[key] = link
-            elif driver.device_id in link.units:
-                raise InputError(
-                    f"modbus driver: unit {driver.device_id} is already open on "
-                    f"{driver.host}:{driver.port} (give each channel its own device_id)"
-                )
-            used = {d._tid_x for d in link.units.values()}
-            driver._tid_x = next(s << 8 for s in range(256) if s << 8 not in used)
-            link.units[driver.device_id] = driver
-            return link
-
-    def connect(self) -> None:
-        """Open the transport if it is down (raises InputError)."""
-        if self.fd is None:
-            self.sock, self.ser, self.fd = self._opener()
-            self.buf = b""
-
-    def disconnect(self) -> None:
-        """Close the transport (the drivers stay registered; a write reconnects)."""
-        sock, ser = self.sock, self.ser
-        self.sock = self.ser = self.fd = None
-        self.buf = b""
-        try:
-            if sock is not None:
-                sock.close()
-            if ser is not None:
-                ser.close()
-        except (OSError, serial.SerialException):  # pragma: no cover
-            pass
-
-    def release(self, driver: ModbusDriver) -> None:
-        """Drop ``driver``; the last one closes the transport."""
-        with self._lock:
-            if self.units.get(driver.device_id) is driver:
-                del self.units[driver.device_id]
-            if self.units:
-                return
-            if self.key is not None and self._shared.get(self.key) is self:
-                del self._shared[self.key]
-        self.disconnect()
-        esock, self.esock = self.esock, None
-        if esock is not None:
-            esock.close()
 
 
 class ModbusDriver(Driver):
@@ -346,8 +218,8 @@ class ModbusDriver(Driver):
 
     @classmethod
     def profile_driver(cls) -> type[Driver]:
-        """A lab's own register map: :class:`~.modbus_profile.ModbusProfileDriver`."""
-        from .modbus_profile import ModbusProfileDriver
+        """A lab's own register map: :class:`~.profile.ModbusProfileDriver`."""
+        from .profile import ModbusProfileDriver
 
         return ModbusProfileDriver
 
@@ -394,33 +266,16 @@ class ModbusDriver(Driver):
             seen[key] = name
 
     # -- transport ------------------------------------------------------------------------------
-    def _open_serial(self) -> tuple[None, Any, int]:
-        try:
-            ser = serial.serial_for_url(
-                self.device,
-                baudrate=self.baudrate,
-                parity=self.parity,
-                stopbits=self.stopbits,
-                bytesize=8,
-                timeout=0,
-            )
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise InputError(f"modbus driver: cannot open {self.device!r}: {exc}") from None
-        if not hasattr(ser, "fd"):
-            ser.close()
-            raise InputError(f"modbus driver: RTU needs a serial device, got {self.device!r}")
-        return None, ser, ser.fd
-
-    def _open_socket(self) -> tuple[socket.socket, None, int]:
-        try:
-            sock = socket.create_connection((self.host, self.port), self.connect_timeout)
-        except OSError as exc:
-            raise InputError(
-                f"modbus driver: cannot connect to {self.host}:{self.port}: {exc}"
-            ) from None
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        sock.setblocking(False)
+    def _open_line(self) -> tuple[socket.socket | None, Any, int]:
+        """Open the transport (:class:`~.transport.Link`'s opener)."""
+        if self._rtu:
+            ser = open_serial(self.device, self.baudrate, self.parity, self.stopbits)
+            return None, ser, ser.fd
+        sock = self._open_estop()
         return sock, None, sock.fileno()
+
+    def _open_estop(self) -> socket.socket:
+        return open_tcp(self.host, self.port, self.connect_timeout)
 
     @property
     def link(self) -> Link | None:
@@ -432,12 +287,8 @@ class ModbusDriver(Driver):
             return
         self._inbox.clear()
         self._link = Link.get(self)
-        link = self._link
-        if not self._rtu and self.estop_connection and link.esock is None:
-            try:  # one for the link: the units on it share it, as they share the link
-                link.esock = self._open_socket()[0]
-            except InputError as exc:
-                log.info("modbus driver: no second connection for the e-stop (%s)", exc)
+        if self.estop_connection:  # one for the link: the units on it share it
+            self._link.open_estop()
 
     @property
     def _esock(self) -> socket.socket | None:
@@ -447,25 +298,14 @@ class ModbusDriver(Driver):
     def close(self) -> None:
         link, self._link = self._link, None
         if link is not None:
-            link.release(self)
+            link.release(self, self.device_id)
 
     def _write(self, frame: bytes) -> None:
         link = self._link
         if link is None:
             self.stats.send_errors += 1
             return
-        if link.fd is None:
-            try:
-                link.connect()  # reconnect after a lost connection
-            except InputError:
-                self.stats.send_errors += 1
-                return
-        try:
-            os.write(link.fd, frame)  # type: ignore[arg-type]
-        except OSError:
-            self.stats.send_errors += 1
-            self.stats.disconnects += 1
-            link.disconnect()
+        link.write(frame, self.stats, reconnect=True)
 
     # -- commands -------------------------------------------------------------------------------
     def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
@@ -519,31 +359,27 @@ class ModbusDriver(Driver):
         """The e-stop over its own connection: write coil 0 ON, read it back, again until it
         reads latched or ``ESTOP_WINDOW`` has passed. False: the connection is gone (the
         caller writes the e-stop on the link instead)."""
-        sock = self._esock
-        assert sock is not None
+        link = self._link
+        assert link is not None
         end = time.perf_counter() + ESTOP_WINDOW
         write = struct.pack(">BHH", FC_WRITE_COIL, COIL_ESTOP, 0xFF00)
         read = struct.pack(">BHH", FC_READ_COILS, COIL_ESTOP, 1)
-        buf = b""
         self.estop_latched = None
         writes = 0
         try:
             while time.perf_counter() < end:
                 writes += 1
                 for tid, pdu in ((0xFFFE ^ self._tid_x, write), (0xFFFD ^ self._tid_x, read)):
-                    sock.send(struct.pack(">HHHB", tid, 0, len(pdu) + 1, self.device_id) + pdu)
+                    frame = struct.pack(">HHHB", tid, 0, len(pdu) + 1, self.device_id) + pdu
                     until = min(end, time.perf_counter() + self.estop_timeout)
-                    got, buf = _await_tcp(sock, buf, tid, until)
+                    got = link.ask(frame, tid, self.device_id, until)
                     if got is None:
                         break
                     if pdu is read and got[:2] == bytes((FC_READ_COILS, 1)) and len(got) > 2:
                         self.estop_latched = bool(got[2] & 1)
                 if self.estop_latched:
                     break
-        except OSError:
-            sock.close()
-            if self._link is not None:
-                self._link.esock = None
+        except OSError:  # (the link closed it)
             return False
         where = f"modbus driver: e-stop to unit {self.device_id} at {self.host}:{self.port}"
         if self.estop_latched:
@@ -571,15 +407,11 @@ class ModbusDriver(Driver):
                 return fb
             if not more:
                 break
-        fd = link.fd
-        if fd is None:
+        if link.fd is None:
             raise LinkDown("modbus connection lost")
         remaining = deadline - time.perf_counter()
         try:
-            ready = select.select((fd,), (), (), remaining if remaining > 0.0 else 0.0)[0]
-            data = os.read(fd, 4096) if ready else b""
-            if ready and not data:
-                raise ConnectionResetError("peer closed the connection")
+            data = link.read(remaining)
         except (OSError, ValueError):
             self.stats.disconnects += 1
             link.disconnect()
@@ -675,7 +507,7 @@ class ModbusDriver(Driver):
             link.buf = b""
             return None, False
         fc = buf[1]
-        size = _RTU_RESP.size if fc == FC_RW else 8 if fc == FC_WRITE_COIL else 5
+        size = rtu_frame_size(_RTU_FRAMER.decoder, buf) or 5  # (an unknown function: its CRC)
         if len(buf) < size:
             return None, False
         frame, link.buf = buf[:size], buf[size:]

@@ -35,16 +35,16 @@ or ``ESTOP_WINDOW`` has passed (:meth:`ModbusProfileDriver.estop`). Messages giv
 controller's status register as it has it (:meth:`ModbusProfileDriver.fault_text`).
 
 **Modbus RTU** (a serial line: ``device``, ``baudrate``, ``parity``, ``stopbits``). RTU is
-half-duplex and carries no transaction id: the driver keeps the step's requests in a queue,
-writes the first, and writes the next one when the answer to the previous one has come (an
-answer whose function code is not the one of the request at the head of the queue answers an
-older request: counted ``late``, dropped). The step of a response is the step of its request.
-A frame is cut by the size pymodbus's PDU class computes from its header and checked by its CRC
-(``FramerRTU``); garbage is dropped when the line falls idle. An e-stop goes out at once (as
-the built-in RTU driver's, :mod:`.modbus`), ahead of the queue.
+half-duplex and carries no transaction id: the driver keeps the step's requests in a queue, writes
+the first, and writes the next one when the answer to the previous one has come (an answer whose
+function code is not the one of the request at the head of the queue answers an older request:
+counted ``late``, dropped). The step of a response is the step of its request. A frame is cut by
+the size pymodbus's PDU class computes from its header and checked by its CRC (``FramerRTU``,
+:func:`.transport.rtu_frame_size`); garbage is dropped when the line falls idle. An e-stop goes out
+at once (as the built-in RTU driver's, :mod:`.driver`), ahead of the queue.
 
 pymodbus is the authority for the frames and the conversions, and its generic work is done
-once, at :meth:`ModbusProfileDriver.open` (:mod:`.modbus_layout`): the step's requests are built
+once, at :meth:`ModbusProfileDriver.open` (:mod:`.layout`): the step's requests are built
 by its request classes and framers, the set-point's value bytes located in them, and every
 point's wire bytes turned into a ``struct`` format (word order, byte order, type), each checked
 against pymodbus's ``convert_to_registers`` / ``convert_from_registers``, ``buildFrame`` and
@@ -62,8 +62,6 @@ naming the role.
 from __future__ import annotations
 
 import logging
-import os
-import select
 import socket
 import threading
 import time
@@ -71,9 +69,6 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any, ClassVar
 
-import serial
-from pymodbus.framer import FramerRTU, FramerSocket
-from pymodbus.pdu import DecodePDU
 from pymodbus.pdu.bit_message import (
     ReadCoilsRequest,
     ReadDiscreteInputsRequest,
@@ -93,9 +88,10 @@ from pymodbus.pdu.register_message import (
 
 from rths_hil.errors import InputError
 
-from .base import Driver, Feedback, LinkDown, Status, extend_seq
-from .modbus_layout import BlockLayout, PointLayout, RequestTemplate, StepReply
-from .profile import MODE_ACTIONS, ModbusAction, ModbusProfile, load_profile, status_from_word
+from ..base import Driver, Feedback, LinkDown, Status, extend_seq
+from ..profile import MODE_ACTIONS, ModbusAction, ModbusProfile, load_profile, status_from_word
+from .layout import BlockLayout, PointLayout, RequestTemplate, StepReply
+from .transport import EXCEPTIONS, Link, framer, open_serial, open_tcp, rtu_frame_size
 
 __all__ = ["ModbusProfileDriver"]
 
@@ -112,13 +108,6 @@ _READ_FC = {"holding": 3, "input": 4, "coil": 1, "discrete": 2}
 SLOT_CHECK = 13  # the start-up reads (and the pipelining probe)
 SLOT_HEARTBEAT = 14
 SLOT_ACTION = 15  # actions, the set-point written ahead of the enable, the e-stop and its poll
-_EXC = {
-    1: "illegal function",
-    2: "illegal data address",
-    3: "illegal data value",
-    4: "server device failure",
-    6: "server device busy",
-}
 #: How long the pipelining probe waits for the second answer once the first came (s).
 PROBE_WAIT = 0.1
 #: E-stop over Modbus TCP: how long it may wait for the answer outstanding on the link before
@@ -222,8 +211,6 @@ class ModbusProfileDriver(Driver):
         self.link_note: str | None = None
         self._probed = False  # the pipelining probe ran (TCP, pipeline = true)
         self._arming = False
-        self._esock: socket.socket | None = None  # the e-stop's own connection (TCP)
-        self._ebuf = b""
         self._etid = 0
         self._word: int | None = None  # the controller's last status word
         self._head_t = 0.0  # when the request at the head of the queue was written
@@ -233,16 +220,14 @@ class ModbusProfileDriver(Driver):
         #: step was sent, whose answer is this step's measurement (see _send_locked)
         self._adopted = -1
         self.estop_word: int | None = None  # its status word read back after the e-stop
-        self._framer: Any = (FramerRTU if self._rtu else FramerSocket)(DecodePDU(False))
-        self._sock: socket.socket | None = None
-        self._ser: Any = None
-        self._fd: int | None = None
-        self._buf = b""
+        self._framer: Any = framer(self._rtu)
+        #: the connection (:mod:`.transport`), and the e-stop's own (TCP): made at open
+        self._link: Link | None = None
         self._enabled: bool | None = None
         self._estop_sent = False
         self._hb = 0
         self._reads = prof.reads
-        #: precompiled at open (modbus_layout): the step's request and each block's decoder
+        #: precompiled at open (layout): the step's request and each block's decoder
         self._template: RequestTemplate | None = None
         self._blocks: list[BlockLayout] = []
         self._block_fc: list[int] = []  # the function code answering each block
@@ -303,29 +288,10 @@ class ModbusProfileDriver(Driver):
             return
         if self._template is None:
             self._compile()
-        if self._rtu:
-            try:
-                ser = serial.serial_for_url(
-                    self.device, baudrate=self.baudrate, parity=self.parity,
-                    stopbits=self.stopbits, bytesize=8, timeout=0,
-                )  # fmt: skip
-            except (serial.SerialException, OSError, ValueError) as exc:
-                raise InputError(f"modbus driver: cannot open {self.device!r}: {exc}") from None
-            if not hasattr(ser, "fd"):
-                ser.close()
-                raise InputError(f"modbus driver: RTU needs a serial device, got {self.device!r}")
-            self._ser, self._fd = ser, ser.fd
-        else:
-            try:
-                sock = socket.create_connection((self.host, self.port), self.connect_timeout)
-            except OSError as exc:
-                raise InputError(
-                    f"modbus driver: cannot connect to {self.host}:{self.port}: {exc}"
-                ) from None
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            sock.setblocking(False)
-            self._sock, self._fd = sock, sock.fileno()
-        self._buf = b""
+        if self._link is None:
+            self._link = Link(None, self._open_line, self._open_estop)
+        link = self._link
+        link.connect()
         try:
             self._check_map()
         except InputError:
@@ -335,7 +301,7 @@ class ModbusProfileDriver(Driver):
             if not self._serial and not self._probed:
                 self._probe_pipeline()
             if self.estop_connection:
-                self._open_estop_link()
+                self._link.open_estop()
 
     def _probe_pipeline(self) -> None:
         """Two reads in one write: does the controller answer both? A controller that serves
@@ -372,26 +338,42 @@ class ModbusProfileDriver(Driver):
                 log.warning("modbus driver: %s", self.link_note)
                 return
 
-    def _open_estop_link(self) -> None:
-        """The e-stop's own connection (TCP); none when the controller refuses a second one."""
-        self._close_estop_link()
-        try:
-            sock = socket.create_connection((self.host, self.port), self.connect_timeout)
-        except OSError as exc:
-            log.info("modbus driver: no second connection for the e-stop (%s)", exc)
-            return
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        sock.setblocking(False)
-        self._esock, self._ebuf = sock, b""
+    def _open_line(self) -> tuple[socket.socket | None, Any, int]:
+        """Open the transport (:class:`~.transport.Link`'s opener)."""
+        if self._rtu:
+            ser = open_serial(self.device, self.baudrate, self.parity, self.stopbits)
+            return None, ser, ser.fd
+        sock = self._open_estop()
+        return sock, None, sock.fileno()
 
-    def _close_estop_link(self) -> None:
-        sock, self._esock = self._esock, None
-        if sock is not None:
-            sock.close()
+    def _open_estop(self) -> socket.socket:
+        return open_tcp(self.host, self.port, self.connect_timeout)
+
+    @property
+    def _fd(self) -> int | None:
+        """The step connection's descriptor (``None``: down or not open)."""
+        link = self._link
+        return None if link is None else link.fd
+
+    @property
+    def _buf(self) -> bytes:
+        """Bytes read off the step's connection, not yet parsed."""
+        link = self._link
+        return b"" if link is None else link.buf
+
+    @_buf.setter
+    def _buf(self, value: bytes) -> None:
+        if self._link is not None:
+            self._link.buf = value
+
+    @property
+    def _esock(self) -> socket.socket | None:
+        link = self._link
+        return None if link is None else link.esock
 
     def _compile(self) -> None:
         """pymodbus's generic work, once: the step's request template and the read blocks'
-        decoders, each checked against pymodbus (:mod:`.modbus_layout`)."""
+        decoders, each checked against pymodbus (:mod:`.layout`)."""
         prof, src = self.profile, self.profile.source
         self._blocks = [BlockLayout(b, src) for b in self._reads]
         if prof.fc23:
@@ -427,23 +409,19 @@ class ModbusProfileDriver(Driver):
         self._reply = StepReply(self._framer, self.unit, replies)
 
     def close(self) -> None:
-        self._close_estop_link()
-        self._close_main()
+        link, self._link = self._link, None
+        self._enabled = None
+        self._pending.clear()
+        if link is not None:
+            link.close_estop()
+            link.disconnect()
 
     def _close_main(self) -> None:
         """Close the step's connection (a lost link; the e-stop's own stays open)."""
-        sock, self._sock = self._sock, None
-        ser, self._ser = self._ser, None
-        self._fd = None
         self._enabled = None
         self._pending.clear()
-        if sock is not None:
-            sock.close()
-        if ser is not None:
-            try:
-                ser.close()
-            except (OSError, serial.SerialException):  # pragma: no cover
-                pass
+        if self._link is not None:
+            self._link.disconnect()
 
     def _where(self) -> str:
         return str(self.device) if self._rtu else f"{self.host}:{self.port}"
@@ -453,16 +431,15 @@ class ModbusProfileDriver(Driver):
         return self._framer.buildFrame(pdu)
 
     def _write(self, data: bytes) -> None:
-        fd = self._fd
-        if fd is None:
+        link = self._link
+        if link is None:
             self.stats.send_errors += 1
             return
-        try:
-            os.write(fd, data)
-        except OSError:
-            self.stats.send_errors += 1
-            self.stats.disconnects += 1
-            self._close_main()
+        was_up = link.fd is not None
+        link.write(data, self.stats)
+        if was_up and link.fd is None:  # the write lost the connection
+            self._enabled = None
+            self._pending.clear()
 
     def _submit(self, requests: list[tuple[int, int, bytes]]) -> None:
         """Send ``(tid, function code, frame)`` requests: TCP pipelined all at once in one
@@ -507,7 +484,7 @@ class ModbusProfileDriver(Driver):
                     raise InputError(
                         f"modbus driver: profile {prof.source}: roles.{roles}: the controller "
                         f"refuses a read of {table} {address}–{address + count - 1} (Modbus "
-                        f"exception {code}: {_EXC.get(code, 'error')})"
+                        f"exception {code}: {EXCEPTIONS.get(code, 'error')})"
                     )
                 break
 
@@ -520,13 +497,14 @@ class ModbusProfileDriver(Driver):
             if got is not None:
                 continue
             remaining = deadline - time.perf_counter()
-            if remaining <= 0 or self._fd is None:
+            link = self._link
+            if remaining <= 0 or link is None or link.fd is None:
                 return None
-            if select.select((self._fd,), (), (), remaining)[0]:
-                data = os.read(self._fd, 4096)
-                if not data:
-                    return None
-                self._buf += data
+            try:
+                data = link.read(remaining)
+            except ConnectionResetError:
+                return None
+            link.buf += data
 
     def _parse_one(self) -> tuple[int, bytes] | None:
         """The next response in the buffer as (transaction id, PDU bytes); (-1, b"") for one
@@ -539,9 +517,8 @@ class ModbusProfileDriver(Driver):
                 self.stats.count_malformed("unknown_id")
                 self._buf = b""
                 return (-1, b"")
-            cls = self._framer.decoder.lookupPduClass(buf)
-            size = cls.calculateRtuFrameSize(buf) if cls is not None else 0
-            if cls is None:
+            size = rtu_frame_size(self._framer.decoder, buf)
+            if size is None:
                 self.stats.count_malformed("unknown_function")
                 self._buf = b""
                 return (-1, b"")
@@ -838,28 +815,12 @@ class ModbusProfileDriver(Driver):
                     return None
                 if got[0] == tid:
                     return got[1]
-        sock = self._esock
-        if sock is None:
+        link = self._link
+        if link is None:
             return None
         try:
-            sock.send(frame)
-            while True:
-                while len(self._ebuf) >= 8:
-                    used, dev_id, rtid, pdu = self._framer.decode(self._ebuf)
-                    if not used:
-                        break
-                    self._ebuf = self._ebuf[used:]
-                    if rtid == tid and dev_id == self.unit and pdu:
-                        return bytes(pdu)
-                remaining = deadline - time.perf_counter()
-                if remaining <= 0 or not select.select((sock,), (), (), remaining)[0]:
-                    return None
-                data = sock.recv(4096)
-                if not data:
-                    raise ConnectionResetError("closed")
-                self._ebuf += data
-        except OSError:
-            self._close_estop_link()  # the next attempt goes over the step's connection
+            return link.ask(frame, tid, self.unit, deadline)
+        except OSError:  # (closed: the next attempt goes over the step's connection)
             return None
 
     def _read_status(self, end: float, own: bool) -> int | None:
@@ -955,7 +916,7 @@ class ModbusProfileDriver(Driver):
 
     def _whole_reply(self) -> Feedback | None:
         """Pipelined TCP: the step's whole reply at the head of the buffer, in one pass
-        (:class:`.modbus_layout.StepReply`); anything else is left to :meth:`_parse_one`."""
+        (:class:`.layout.StepReply`); anything else is left to :meth:`_parse_one`."""
         reply = self._reply
         if reply is None or len(self._buf) < reply.size:
             return None
@@ -992,19 +953,14 @@ class ModbusProfileDriver(Driver):
                 fb = self._parse_buffer()
                 if fb is not None:
                     return fb
-                fd = self._fd
-            if fd is None:
+                link, fd = self._link, self._fd
+            if link is None or fd is None:
                 raise LinkDown("modbus connection closed")
             remaining = deadline - time.perf_counter()
             try:
-                ready = select.select((fd,), (), (), remaining if remaining > 0.0 else 0.0)[0]
+                ready = link.ready(fd, remaining)
                 with self._lock:
-                    try:
-                        data = os.read(fd, 4096) if ready and fd == self._fd else b""
-                    except BlockingIOError:  # read by the other thread meanwhile
-                        data, ready = b"", []
-                    if ready and not data:
-                        raise ConnectionResetError("peer closed the connection")
+                    data = link.recv(fd) if ready else b""  # (b"": the other thread read it)
                     if data:
                         self._buf += data
                     elif remaining <= 0 and self._rtu and self._buf:

@@ -1,0 +1,44 @@
+"""Modbus (TCP and RTU): the protocol's package, as pymodbus shares one framer and one PDU layer
+between its client and its server.
+
+* :mod:`.transport` — the client's connection (:class:`~.transport.Link`: a TCP connection,
+  shared by the units on one server, or a serial line; the e-stop's own connection), the
+  framers and the request checks the twins' servers use too.
+* :mod:`.layout` — a register map's precompiled wire layouts, each checked against pymodbus.
+* :mod:`.driver` — :class:`ModbusDriver`, the built-in register map (one FC 23 per step).
+* :mod:`.profile` — :class:`ModbusProfileDriver`, a lab's own register map from a profile.
+* :mod:`.linkbudget` — the Modbus link model (RTU transactions and silences, TCP segments)
+  and the planning facts of the driver class.
+
+The twins (:mod:`rths_hil.sim_backends.endpoints.modbus`,
+:mod:`rths_hil.sim_backends.endpoints.modbus_profile`) import their framing from here.
+"""
+
+from .driver import (
+    COIL_ESTOP,
+    FORCE_LSB,
+    READ_ADDRESS,
+    READ_COUNT,
+    REG,
+    WRITE_ADDRESS,
+    WRITE_COUNT,
+    ModbusDriver,
+    feedback_crc,
+)
+from .profile import ModbusProfileDriver
+from .transport import MAX_UNIT, Link
+
+__all__ = [
+    "COIL_ESTOP",
+    "FORCE_LSB",
+    "MAX_UNIT",
+    "READ_ADDRESS",
+    "READ_COUNT",
+    "REG",
+    "WRITE_ADDRESS",
+    "WRITE_COUNT",
+    "Link",
+    "ModbusDriver",
+    "ModbusProfileDriver",
+    "feedback_crc",
+]
