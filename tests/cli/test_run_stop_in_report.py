@@ -19,7 +19,7 @@ pytestmark = pytest.mark.timing
 def test_a_signal_while_the_report_is_written(tmp_path, sig):
     run_dir = tmp_path / "run"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "rths_hil", "run", "--lockstep", "--duration", "2",
+        [sys.executable, "-m", "rths_hil", "run", "--lockstep", "--duration", "0.5",
          "--set", f"output.dir={run_dir}", "--set", "loop.console=0"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
@@ -37,4 +37,4 @@ def test_a_signal_while_the_report_is_written(tmp_path, sig):
     assert "Traceback" not in err
     assert report.is_file() and report.stat().st_size > 10_000
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["status"] == "completed" and summary["steps"] == 2 * 1024
+    assert summary["status"] == "completed" and summary["steps"] == 512

@@ -24,13 +24,10 @@ from rths_hil.watch.shaping import (
     true_runs,
 )
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
-
 RNG = np.random.default_rng(27)
 
 
+@pytest.mark.timing  # another process (the others are pure functions: with the parallel tests)
 def test_shaping_imports_without_bokeh():
     code = "import sys, rths_hil.watch.shaping; print('bokeh' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
