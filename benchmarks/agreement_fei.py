@@ -21,7 +21,7 @@ from rths_hil.sim_backends.delay import fractional_delay
 
 from rths_hil import fei as F
 from rths_hil.groundmotion import bundled_records, load
-from rths_hil.structure import simulate_sdof
+from rths_hil.structures.sdof import simulate_sdof
 
 
 def main() -> None:

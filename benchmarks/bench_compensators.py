@@ -17,8 +17,8 @@ import time
 import numpy as np
 from _results import markdown_table, write_results
 
-from rths_hil.compensation import Compensator
 from rths_hil.compensators import BUILTIN, build_compensator
+from rths_hil.compensators.base import Compensator
 from rths_hil.config import load_config
 
 FS = 1024.0

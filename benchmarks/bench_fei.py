@@ -26,7 +26,7 @@ from rths_hil.sim_backends.delay import fractional_delay
 
 from rths_hil.fei import OnlineFEI, fft_length, moving_fei
 from rths_hil.groundmotion import default_record
-from rths_hil.structure import simulate_sdof
+from rths_hil.structures.sdof import simulate_sdof
 
 FS = 1024.0
 

@@ -44,7 +44,7 @@ from rths_hil.drivers.registry import create_driver
 from rths_hil.sim_backends.modelfile import load_plant
 from rths_hil.sim_backends.twin import default_plant, start_twin
 
-from rths_hil.compensation import InverseCompensator
+from rths_hil.compensators.inverse import InverseCompensator
 from rths_hil.config import load_config
 from rths_hil.estimation import DelayGainEstimator
 from rths_hil.hybrid import (
@@ -57,9 +57,9 @@ from rths_hil.hybrid import (
 )
 from rths_hil.hybrid.evaluators import ExactFEI, StreamingFEI
 from rths_hil.hybrid.runner import Runner
-from rths_hil.recorder import COLUMNS, Recorder
+from rths_hil.records.recorder import COLUMNS, Recorder
 from rths_hil.safety import SafetyMonitor, StuckRule, WatchdogRule
-from rths_hil.structure import BoucWenParams, CRStepper
+from rths_hil.structures.sdof import BoucWenParams, CRStepper
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import write_results

@@ -37,7 +37,7 @@ from _results import write_results  # noqa: E402
 import tests.helpers.opensees_site as S  # noqa: E402
 from rths_hil.metrics import j2_nrms  # noqa: E402
 from rths_hil.openfresco.timing import KINDS  # noqa: E402
-from rths_hil.recorder import read_run  # noqa: E402
+from rths_hil.records.recorder import read_run  # noqa: E402
 
 
 def _numerical_rate(tmp: Path, dt: float, dur: float, accel, *extra: str) -> float:

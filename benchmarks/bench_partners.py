@@ -217,7 +217,7 @@ def paced_run(label: str, tuned: Path | None, fs: int, duration: float, tmp: Pat
         tail = (p.stdout + p.stderr).strip().splitlines()
         return {"status": f"no summary (exit {p.returncode})", "why": tail[-1] if tail else ""}
     s = json.loads(path.read_text())
-    from rths_hil.recorder import read_run
+    from rths_hil.records.recorder import read_run
 
     rec = read_run(out).record
     ft = np.asarray(rec["feedback_time"], dtype=float)

@@ -1,7 +1,7 @@
 """Cost of one integrator step (SDOF and MDOF) and of a 60 s record at 1024 Hz.
 
 Goal: ≤ 20 µs per CR step of an SDOF with Bouc-Wen, i.e. ≤ 2 % of a 1024 Hz step.
-MDOF (rths_hil.mdof.MDOFCRStepper, shear buildings of n = 1, 3 and 10 storeys, linear and
+MDOF (rths_hil.structures.mdof.MDOFCRStepper, shear buildings of n = 1, 3 and 10 storeys, linear and
 Bouc-Wen): µs per step with a specimen force vector, as a ratio to the SDOF CRStepper step
 measured in the same run.
 References measured in the same run: a naive Newmark written the obvious way (numpy scalars,
@@ -21,8 +21,8 @@ from _results import markdown_table, write_results
 from scipy.integrate import solve_ivp
 
 from rths_hil.groundmotion import default_record
-from rths_hil.mdof import MDOFCRStepper, shear_building
-from rths_hil.structure import BoucWenParams, CRStepper, NewmarkStepper, simulate_sdof
+from rths_hil.structures.mdof import MDOFCRStepper, shear_building
+from rths_hil.structures.sdof import BoucWenParams, CRStepper, NewmarkStepper, simulate_sdof
 
 FS = 1024.0
 FN = 1.0

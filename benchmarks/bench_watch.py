@@ -55,7 +55,7 @@ import numpy as np
 from rths_hil.cli.run import _keep_off
 from rths_hil.config import load_config
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 
 GOALS = (
     "- the loop's own work per step, p99, with a watcher and its page within 2 % of p99 "

@@ -19,7 +19,7 @@ from _results import markdown_table, write_results
 from rths_hil.config import load_config
 from rths_hil.fei import fei
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 
 ROOT = Path(__file__).resolve().parents[1]
 TWO = ROOT / "examples" / "two_actuators.toml"

@@ -2,7 +2,8 @@
 
 The core package: the frequency-domain evaluation index (FEI) and its moving windows
 (:mod:`rths_hil.fei`), tracking metrics (:mod:`rths_hil.metrics`), the numerical substructure
-(:mod:`rths_hil.structure`, MDOF in :mod:`rths_hil.mdof`, :mod:`rths_hil.groundmotion`),
+(:mod:`rths_hil.structures.sdof`, MDOF in :mod:`rths_hil.structures.mdof`,
+:mod:`rths_hil.groundmotion`),
 the link budget of each bus (:mod:`rths_hil.linkbudget`), compensation, Kalman delay/gain
 estimation (:mod:`rths_hil.estimation`), the real-time loop, safety rules
 (:mod:`rths_hil.safety`), crash-safe records, studies, the discrepancy workflow and the

@@ -37,7 +37,7 @@ from .errors import InputError
 
 if TYPE_CHECKING:  # pragma: no cover
     from .hybrid.result import RunResult
-    from .recorder import RunData
+    from .records.recorder import RunData
 
 log = logging.getLogger(__name__)
 
@@ -264,7 +264,7 @@ class Run:
             The run has no ``meta.json`` (its mode, driver, planned length and e-stop outcome
             are unknown: a summary would hold ``None`` for them).
         """
-        from .recorder import META_FILE
+        from .records.recorder import META_FILE
         from .report import summarize
 
         if not self.meta:
@@ -301,7 +301,7 @@ def open_run(run_dir: str | Path) -> Run:
     InputError
         ``run_dir`` is not a path, or not a readable run directory (one line).
     """
-    from .recorder import read_run
+    from .records.recorder import read_run
 
     if not isinstance(run_dir, str | os.PathLike):
         raise InputError(f"run_dir: expected a path (str or Path), got {type(run_dir).__name__}")

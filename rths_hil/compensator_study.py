@@ -119,7 +119,7 @@ _REFERENCES_BYTES = 256e6
 
 def _reference_floors(cfg, n: int, tmp: str, key: tuple[str, float | None]) -> np.ndarray:
     """(n, floors ≤ 3) displacements of the reference: the same test with an ideal actuator."""
-    from .recorder import read_run
+    from .records.recorder import read_run
 
     ref = _REFERENCES.get(key)
     if ref is None or ref.shape[0] < n:
@@ -170,7 +170,7 @@ def floors_trial(spec: study.TrialSpec) -> dict[str, Any]:
     from .fei import fei
     from .hybrid import run
     from .metrics import benchmark_criteria, criteria
-    from .recorder import read_run
+    from .records.recorder import read_run
 
     rob._sweep_dead_scratch()
     key = _reference_key(spec)

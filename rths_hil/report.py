@@ -24,9 +24,9 @@ from typing import IO, Any
 import numpy as np
 
 from .formats import json_text
-from .hybrid.columns import channel_suffix
 from .metrics import overlap_peak_lag
-from .recorder import RECORD_FILE, RunData, read_npy_header, read_run
+from .records.columns import channel_suffix
+from .records.recorder import RECORD_FILE, RunData, read_npy_header, read_run
 
 __all__ = ["LiveLine", "format_live", "format_summary", "plot_report", "summarize"]
 

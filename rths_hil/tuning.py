@@ -1,6 +1,6 @@
 """Tuning of the inverse compensation from short trial tests.
 
-Inverse compensation (Chen & Ricles 2009; :mod:`rths_hil.compensation`) sends
+Inverse compensation (Chen & Ricles 2009; :mod:`rths_hil.compensators.inverse`) sends
 ``x_c[k] = a·(α·x_t[k] − (α − 1)·x_t[k−1])``. It is the backward-Euler inverse of a first-order
 actuator lag ``T = (α − 1)·Δt``; for a slowly varying target it leads by ``(α − 1)·Δt``. Too
 small an α leaves the actuator lagging (equivalent delay ``d > 0``, the FEI paper's Eq. 2.5), too
@@ -342,7 +342,7 @@ class LoopTrials:
     def __call__(self, alpha: float, factor: float, index: int) -> Trial:
         """Run trial ``index`` with α and amplitude factor; return its evaluation."""
         from .hybrid import RTHSLoop
-        from .recorder import read_run
+        from .records.recorder import read_run
 
         run_dir = self.out_dir / f"{self.prefix}-{index:02d}"
         if (run_dir / "record.npy").exists():

@@ -9,7 +9,7 @@ plain formats, so the example runs from a clone of rths_hil alone:
   variables ``M``, ``K``, ``C``, ``zetas``) and the specimen of the partition (``F1_input_file.m``:
   ``m_e``, ``k_e``, ``z_e``).
 * ``numerical_caseN.npz`` — each case's numerical substructure (M, K, C and the influence
-  vector), derived with :func:`rths_hil.mdof.partition` (the specimen on DOF 1, the first
+  vector), derived with :func:`rths_hil.structures.mdof.partition` (the specimen on DOF 1, the first
   storey): what ``structure.matrices`` of ``benchmark.toml`` reads.
 * ``el_centro.csv``, ``kobe.csv``, ``morgan_hill.csv`` — the three ground motions
   (``ElCentroAccelNoScaling.mat``: ``ElCentroAccel``, ``KobeAccelNoScaling.mat``: ``KobeAccel``,
@@ -37,7 +37,7 @@ import numpy as np
 import scipy.io
 import tomli_w
 
-from rths_hil import mdof
+from rths_hil.structures import mdof
 
 HERE = Path(__file__).resolve().parent
 REPOSITORY = "https://github.com/lihongweiseu/RTHS_benchmark_SMC"

@@ -1,7 +1,7 @@
 """Online adaptive α against offline tuning on the NEES-711 twin (docs/tuning.md).
 
 Both start from α = 15 (the FEI paper's under-compensated test). The loop's adaptive option
-(``compensation.adaptive``, :class:`rths_hil.compensation.AdaptiveAlpha`) moves α during the
+(``compensation.adaptive``, :class:`rths_hil.compensators.inverse.AdaptiveAlpha`) moves α during the
 test from the streaming MWO delay estimate (window 3T = 3.9 s) with time constant T and rate
 limit 5 /s; offline tuning (``rths-hil tune``) runs 15 s trials between tests. The balanced α
 is the zero crossing of d(α) from two whole-record tests (α = 27 and 29).
@@ -26,7 +26,7 @@ import numpy as np
 from rths_hil.config import load_config
 from rths_hil.fei import fei
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from rths_hil.tuning import LoopTrials, sweep, tune
 
 HERE = Path(__file__).resolve().parent

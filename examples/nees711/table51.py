@@ -30,7 +30,7 @@ import numpy as np
 
 from rths_hil.config import load_config
 from rths_hil.fei import MovingFEIResult, moving_fei
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from rths_hil.tuning import LoopTrials, SweepResult, Trial, sweep
 
 HERE = Path(__file__).resolve().parent

@@ -25,7 +25,7 @@ from ..diagnose import (
     write_outputs,
 )
 from ..errors import InputError
-from ..records import read_record
+from ..records.csvfiles import read_record
 
 
 def _positive_int(text: str) -> int:

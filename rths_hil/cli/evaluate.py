@@ -11,7 +11,7 @@ import numpy as np
 from .. import fei as F
 from .. import metrics
 from ..errors import InputError
-from ..records import read_record, write_record
+from ..records.csvfiles import read_record, write_record
 from ..units import parse_window
 
 

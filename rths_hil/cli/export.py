@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     """Export; print the files written."""
     from ..errors import InputError
-    from ..recorder import export_run
+    from ..records.recorder import export_run
 
     csv = args.csv or not (args.hdf5 or args.mat)
     cols = None

@@ -86,8 +86,8 @@ def run(args: argparse.Namespace) -> int:
     from rths_hil.sim_backends.delay import DelayGain
 
     from ..groundmotion import default_record, resolve
-    from ..records import write_record
-    from ..structure import SDOFResponse, simulate_sdof
+    from ..records.csvfiles import write_record
+    from ..structures.sdof import SDOFResponse, simulate_sdof
 
     fn = _number(args.fn, "fn")
     if fn <= 0:

@@ -18,7 +18,7 @@ from rths_hil.sim_backends.modelfile import dump_model, model_to_toml
 
 from ..errors import InputError
 from ..estimation import DelayGainEstimator, calibrate
-from ..records import read_record, write_record
+from ..records.csvfiles import read_record, write_record
 from ..units import parse_time
 
 

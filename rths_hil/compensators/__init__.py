@@ -4,7 +4,7 @@
 ``[actuators.compensation]`` for one). Two sources, as for drivers and twins:
 
 * :data:`BUILTIN` — the methods shipped here, by name → ``"module:Class"``, imported only when
-  asked for: ``inverse`` (:class:`rths_hil.compensation.InverseCompensator`), ``polynomial``
+  asked for: ``inverse`` (:class:`rths_hil.compensators.inverse.InverseCompensator`), ``polynomial``
   (:class:`~rths_hil.compensators.polynomial.PolynomialCompensator`), ``ats``
   (:class:`~rths_hil.compensators.ats.ATSCompensator`) and ``model``
   (:class:`~rths_hil.compensators.model.ModelCompensator`);
@@ -14,8 +14,9 @@
       [project.entry-points."rths_hil.compensators"]
       mylab = "mylab_comp:MyCompensator"
 
-The class must subclass :class:`rths_hil.compensation.Compensator`; it is built with
-:meth:`~rths_hil.compensation.Compensator.from_config` (by default ``cls(fs=…, **options)`` with the
+The class must subclass :class:`rths_hil.compensators.base.Compensator`; it is built with
+:meth:`~rths_hil.compensators.base.Compensator.from_config`
+(by default ``cls(fs=…, **options)`` with the
 keys of ``compensation.options``). An entry point with a built-in name replaces the built-in.
 See ``docs/compensation.md``.
 """
@@ -25,10 +26,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from ..compensation import Compensator, InverseCompensator, alpha_for_delay
 from ..errors import InputError
 from ..plugins import load_target
 from ..plugins import targets as plugin_targets
+from .base import Compensator
+from .inverse import InverseCompensator, alpha_for_delay
 
 __all__ = ["BUILTIN", "ENTRY_POINT_GROUP", "available", "build_compensator", "compensator_class"]
 
@@ -36,7 +38,7 @@ ENTRY_POINT_GROUP = "rths_hil.compensators"
 
 #: The compensators shipped with rths_hil: name → ``"module:Class"``.
 BUILTIN: dict[str, str] = {
-    "inverse": "rths_hil.compensation:InverseCompensator",
+    "inverse": "rths_hil.compensators.inverse:InverseCompensator",
     "polynomial": "rths_hil.compensators.polynomial:PolynomialCompensator",
     "ats": "rths_hil.compensators.ats:ATSCompensator",
     "model": "rths_hil.compensators.model:ModelCompensator",

@@ -59,8 +59,8 @@ import numba
 import numpy as np
 from scipy.signal import butter
 
-from ..compensation import Compensator
 from ..errors import InputError
+from .base import Compensator
 
 __all__ = ["ATSCompensator"]
 

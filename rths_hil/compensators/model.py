@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 from scipy.signal import bilinear, tf2sos
 
-from ..compensation import Compensator
 from ..errors import InputError
+from .base import Compensator
 
 __all__ = ["ModelCompensator", "feedforward_tf"]
 

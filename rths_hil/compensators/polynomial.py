@@ -23,8 +23,8 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from ..compensation import Compensator
 from ..errors import InputError
+from .base import Compensator
 
 __all__ = ["PolynomialCompensator", "lagrange_extrapolation"]
 

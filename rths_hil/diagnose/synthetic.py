@@ -1,7 +1,8 @@
 """Records with hidden effects, for testing the diagnosis workflow and measuring its confusion.
 
 A case is an RTHS-like record: the command is the displacement response of a linear SDOF structure
-(the FEI paper's Section 4: 2-5 % damping, CR integration, :func:`rths_hil.structure.simulate_sdof`)
+(the FEI paper's Section 4: 2-5 % damping, CR integration,
+:func:`rths_hil.structures.sdof.simulate_sdof`)
 to the strong-motion part of a bundled ground motion; the measured displacement and force come from
 a twin (:class:`rths_hil.sim_backends.plant.TwinPlant`) whose actuator is the FEI paper's delay +
 gain block (Fig. 4.1) followed by one or more *hidden* catalogue effects of random size drawn from
@@ -33,7 +34,7 @@ from rths_hil.groundmotion import bundled_path, load
 from rths_hil.sim_backends.effects import EFFECT_ORDER, EFFECT_RANGES, EFFECTS, draw_effect_params
 from rths_hil.sim_backends.modelfile import ActuatorSpec, EffectSpec, ModelSpec, SpecimenSpec
 from rths_hil.sim_backends.plant import Sensor
-from rths_hil.structure import simulate_sdof
+from rths_hil.structures.sdof import simulate_sdof
 
 __all__ = ["GROUND_MOTIONS", "SyntheticCase", "make_case"]
 

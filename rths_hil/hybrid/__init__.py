@@ -17,7 +17,7 @@ scripts is :func:`rths_hil.run`, ``docs/api.md``). Where to look:
     after the record's columns (``target``, ``command``, ``measured``, ``force`` …).
 ``columns.py``
     the record's columns, once: name, dtype, unit, description, what fills each; the
-    per-channel column-name rule (:func:`~rths_hil.hybrid.columns.column_name`).
+    per-channel column-name rule (:func:`~rths_hil.records.columns.column_name`).
 ``runner.py``
     the step: send every channel → receive every channel → structure → compensate →
     evaluators → safety (one call per phase) → record (by column name); e-stop of all.

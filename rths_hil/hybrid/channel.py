@@ -2,7 +2,7 @@
 
 A :class:`Channel` is built from a :class:`~rths_hil.hybrid.plan.ChannelPlan` and opened by the
 runner. It holds the channel's state of the current step as plain attributes named after the
-record's columns (:func:`rths_hil.hybrid.columns.channel_columns`: ``target``, ``command``,
+record's columns (:func:`rths_hil.records.columns.channel_columns`: ``target``, ``command``,
 ``measured``, ``force`` … are read by name into each row), and does the per-channel work that
 needs no other channel: sending, receiving (serving an inline twin first), the evaluators and
 the e-stop with its confirmation poll.
@@ -20,7 +20,7 @@ import numpy as np
 
 from rths_hil.drivers.base import Driver, Status
 
-from ..compensation import Compensator
+from ..compensators.base import Compensator
 from ..errors import InputError
 from ..fei import OnlineFEI
 from ..stability import StabilityIndicator

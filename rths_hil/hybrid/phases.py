@@ -77,7 +77,7 @@ from ..safety import Trip
 from .timing import first_deadline
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..recorder import Recorder
+    from ..records.recorder import Recorder
     from .channel import Channel
     from .plan import TestPlan
     from .result import RunResult

@@ -23,9 +23,11 @@ from typing import Any
 import numpy as np
 
 from .. import groundmotion
-from ..compensation import AdaptiveAlpha, Compensator
+from ..compensators.base import Compensator
+from ..compensators.inverse import AdaptiveAlpha
 from ..config import ChannelConfig, Config, check_window_samples, structure_dofs
 from ..errors import InputError
+from ..records import columns
 from ..resources import check_disk, check_memory
 from ..safety import (
     ControllerRule,
@@ -37,10 +39,9 @@ from ..safety import (
     StuckRule,
     WatchdogRule,
 )
-from ..structure import BoucWenParams, CRStepper
+from ..structures.sdof import BoucWenParams, CRStepper
+from ..structures.stages import MDOFStage, SDOFStage, StructureStage, TrialColumns
 from ..units import parse_window
-from . import columns
-from .structures import MDOFStage, SDOFStage, StructureStage, TrialColumns
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +130,7 @@ def build_model(cfg: Config):
     modes 1 and 2 (Rayleigh), or the file's ``C``. Bouc-Wen storeys (``bouc_wen = true``) take
     the shape keys of ``[structure]`` with each storey's stiffness as ``k_a``.
     """
-    from .. import mdof
+    from ..structures import mdof
 
     s = cfg["structure"]
     damping: dict[str, Any] = (
@@ -173,7 +174,7 @@ def build_structure(
     """The structure stage of ``structure.kind`` and its first natural frequency (Hz).
 
     ``sdof``: the FEI paper's Section 5 frame (CR integration, Bouc-Wen). ``shear_building`` and
-    ``matrices``: the CR integrator in matrix form of :mod:`rths_hil.mdof`, with
+    ``matrices``: the CR integrator in matrix form of :mod:`rths_hil.structures.mdof`, with
     ``structure.k_specimen`` seen through each actuator's transform row in α (``rows``).
     """
     s = cfg["structure"]
@@ -204,7 +205,7 @@ def build_structure(
         except InputError as exc:
             raise InputError(f"{cfg.source}: structure: {exc}") from None
         return SDOFStage(st), float(s["fn"])
-    from ..mdof import MDOFCRStepper
+    from ..structures.mdof import MDOFCRStepper
 
     if model is None:
         model = structure_size(cfg)[1]
@@ -226,7 +227,7 @@ def record_columns(
 ) -> list[tuple[str, str, str, str]]:
     """The record's columns (name, dtype, unit, description), in file order.
 
-    The table of :mod:`rths_hil.hybrid.columns` laid out for ``channels`` (their names;
+    The table of :mod:`rths_hil.records.columns` laid out for ``channels`` (their names;
     ``[""]`` for one channel) on ``n_dof`` DOFs, then the structure stage's own columns.
     """
     cols = columns.specs(channels, n_dof)

@@ -8,12 +8,13 @@ is a channel (:mod:`rths_hil.hybrid.channel`: driver ⇄ twin, compensator, eval
 rules), and pacing and overrun attribution are in :mod:`rths_hil.hybrid.timing`. With several
 actuators every channel's command is sent before any reply is awaited (``docs/channels.md``).
 
-One loop ties together the numerical substructure (:class:`rths_hil.structure.CRStepper` or a
-multi-DOF model), the compensator (:mod:`rths_hil.compensation`), a bus driver (:mod:`drivers`)
+One loop ties together the numerical substructure (:class:`rths_hil.structures.sdof.CRStepper` or a
+multi-DOF model), the compensator (:mod:`rths_hil.compensators.inverse`),
+a bus driver (:mod:`drivers`)
 talking to a twin (:mod:`rths_hil.sim_backends.twin`) or a real controller, the online evaluators
 (streaming and exact :class:`rths_hil.fei.OnlineFEI`,
 :class:`rths_hil.estimation.DelayGainEstimator`), the safety rules (:mod:`rths_hil.safety`)
-and the crash-safe recorder (:mod:`rths_hil.recorder`).
+and the crash-safe recorder (:mod:`rths_hil.records.recorder`).
 
 Step order
 ----------

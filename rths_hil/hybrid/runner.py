@@ -16,7 +16,7 @@ recorder, and steps. Each step ``k``::
 The CR integration is explicit in displacement (Chen & Ricles 2008): the targets of step k+1
 depend only on the state of step k, so every command of step k+1 is ready before its deadline.
 
-Safety is called once per phase (:class:`~rths_hil.hybrid.rules.Safety`); a fired rule comes
+Safety is called once per phase (:class:`~rths_hil.safety.channels.Safety`); a fired rule comes
 back as a :class:`~rths_hil.safety.Trip` naming the channel, the rule and the values, and the
 runner then e-stops **every** channel through its driver (each twin or controller latches and
 holds), confirms each latch with one status poll, records the events and returns; the CLI exits
@@ -44,16 +44,16 @@ from collections.abc import Callable
 import numpy as np
 
 from ..errors import InputError
-from ..recorder import Recorder, RecordWriteError
+from ..records.recorder import Recorder, RecordWriteError
+from ..records.run import open_recorder, row_writer
 from ..safety import OverrunRule, StallRule, Trip
+from ..safety.channels import Safety
 from ..stopping import OperatorStop
+from ..structures.stages import StageContext
 from .channel import Channel, step_mixed
 from .phases import Phases, preflight
 from .plan import TestPlan
-from .record import open_recorder, row_writer
 from .result import RunResult
-from .rules import Safety
-from .structures import StageContext
 from .timing import MIN_SLEEP, first_deadline, p99
 
 log = logging.getLogger(__name__)

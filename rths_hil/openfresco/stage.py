@@ -1,7 +1,7 @@
 """The experimental site as the runner's structure stage (``structure.kind = "openfresco"``).
 
 The runner (:mod:`rths_hil.hybrid.runner`) asks its structure stage, once per loop step, for
-the next targets given the measured forces (:class:`rths_hil.hybrid.structures.StructureStage`).
+the next targets given the measured forces (:class:`rths_hil.structures.stages.StructureStage`).
 Here the answer comes from OpenSees: :class:`SiteStage` wraps an
 :class:`~rths_hil.openfresco.site.ExperimentalSite` whose DOFs are the actuator channels (the
 site maps OpenSees' element DOFs to them), so the channels use ``dof = i`` and compensation,
@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from ..hybrid.structures import StageContext
 from ..safety import Trip
+from ..structures.stages import StageContext
 from .site import ExperimentalSite
 from .timing import IDLE, KINDS, SiteFault
 
@@ -63,7 +63,7 @@ class SiteStage:
         Number of actuator channels.
     """
 
-    #: The stage's record columns (:class:`rths_hil.hybrid.structures.StructureStage`): name,
+    #: The stage's record columns (:class:`rths_hil.structures.stages.StructureStage`): name,
     #: attribute, dtype, unit, description.
     record_columns = (
         ("of_kind", "kind", "<i8", "-", f"how the row's target was made ({_KIND_CODES})"),

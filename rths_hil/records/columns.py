@@ -15,7 +15,7 @@ kf_delay_right, lateness, feedback_ok_left, feedback_ok_right, seq, …``). A re
 actuator names its channel columns plainly (``target``); a record of several suffixes each with
 ``_<channel name>`` (:func:`column_name`, the rule in one place for the writers and the readers:
 report, studies, live view). A record of several DOFs ends with ``u_1 … u_n``, a structure
-stage's own columns (:attr:`rths_hil.hybrid.structures.StructureStage.record_columns`) come
+stage's own columns (:attr:`rths_hil.structures.stages.StructureStage.record_columns`) come
 last.
 """
 
@@ -225,7 +225,8 @@ def specs(channels: Sequence[str], n_dof: int) -> list[Spec]:
 def single_channel_columns() -> tuple[Spec, ...]:
     """The columns every single-channel record begins with, up to ``seq``.
 
-    What :class:`rths_hil.recorder.Recorder` writes by default (:data:`rths_hil.recorder.COLUMNS`);
+    What :class:`rths_hil.records.recorder.Recorder` writes by default
+    (:data:`rths_hil.records.recorder.COLUMNS`);
     a run adds ``feedback_time``, ``fei_exact_step`` and ``stability`` after them.
     """
     cols = specs([""], 1)

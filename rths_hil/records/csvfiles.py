@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError, check_regular_file
+from ..errors import InputError, check_regular_file
 
 #: Relative tolerance on the time step when checking that a record is uniformly sampled.
 UNIFORM_RTOL = 1e-3

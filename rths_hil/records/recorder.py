@@ -24,7 +24,8 @@ A run directory holds
     holds ``record.npy`` open for writing).
 
 :func:`read_run` reads a (possibly crashed) run directory back, and :func:`export_run` writes
-``record.csv`` (the record CSV of :mod:`rths_hil.records`, ``time`` first, same column names)
+``record.csv`` (the record CSV of :mod:`rths_hil.records.csvfiles`,
+``time`` first, same column names)
 and, when ``h5py`` is importable, ``record.h5``. See ``docs/records.md``.
 """
 
@@ -47,9 +48,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .formats import json_safe
-from .hybrid.columns import single_channel_columns
+from ..errors import InputError
+from ..formats import json_safe
+from .columns import single_channel_columns
 
 __all__ = [
     "COLUMNS",
@@ -86,7 +87,7 @@ class RecordWriteError(RuntimeError):
 
 #: The columns of a single-channel record up to ``seq``: (name, numpy dtype, unit,
 #: description), in file order; the default of :class:`Recorder`. Defined with every other
-#: column in :data:`rths_hil.hybrid.columns.TABLE`.
+#: column in :data:`rths_hil.records.columns.TABLE`.
 COLUMNS: tuple[tuple[str, str, str, str], ...] = single_channel_columns()
 
 _STRUCT_CODES = {"<f8": "d", "<i8": "q", "|b1": "?"}
@@ -168,7 +169,7 @@ class Recorder:
         More metadata keys.
     columns : sequence of (name, dtype, unit, description)
         The record's columns (default :data:`COLUMNS`, a single-channel test; the runner
-        passes its plan's, :func:`rths_hil.hybrid.columns.specs`).
+        passes its plan's, :func:`rths_hil.records.columns.specs`).
 
     Notes
     -----
@@ -513,7 +514,8 @@ def export_run(
 ) -> list[Path]:
     """Export a run's record to ``record.csv``, ``record.h5`` and/or ``record.mat``.
 
-    The CSV is a record CSV (:func:`rths_hil.records.write_record`): header line with the column
+    The CSV is a record CSV (:func:`rths_hil.records.csvfiles.write_record`):
+    header line with the column
     names of :data:`COLUMNS`, ``time`` first, SI units, booleans as 0/1, NaN as ``nan``
     (estimates of invalid windows). The HDF5 file has one dataset per column under ``/record``
     (attributes ``unit`` and ``description``), the metadata as the JSON attribute ``meta`` and the
@@ -536,7 +538,7 @@ def export_run(
         Not a run directory; HDF5 asked for but ``h5py`` (the ``hdf5`` extra) is not
         installed.
     """
-    from .records import write_record
+    from .csvfiles import write_record
 
     run = read_run(run_dir)
     if len(run.record) == 0:
@@ -573,7 +575,7 @@ def export_run(
             raise InputError(f"export: cannot write {p}: {exc.strerror or exc}") from None
         written.append(p)
     if hdf5:
-        from .errors import require
+        from ..errors import require
 
         require("hdf5", "HDF5 export (--hdf5)")
         import h5py

@@ -1,9 +1,10 @@
 """The run's record: the recorder with the run's metadata, and one row per step by column name.
 
-:func:`open_recorder` creates the run directory's files (:class:`rths_hil.recorder.Recorder`)
+:func:`open_recorder` creates the run directory's files
+(:class:`rths_hil.records.recorder.Recorder`)
 with the plan's columns and what a reader needs to interpret them (channels, their suffixes
 and transforms, drivers, twins). :func:`row_writer` fills each row from the column table
-(:mod:`rths_hil.hybrid.columns`): a loop column from the step's value of its name, a channel
+(:mod:`rths_hil.records.columns`): a loop column from the step's value of its name, a channel
 column from the :class:`~rths_hil.hybrid.channel.Channel` attribute of its name, a structure
 stage's column from the stage's attribute.
 """
@@ -14,16 +15,16 @@ from collections.abc import Callable
 from typing import Any
 
 from ..errors import InputError
-from ..recorder import Recorder
-from .channel import Channel
+from ..hybrid.channel import Channel
+from ..hybrid.plan import TestPlan
 from .columns import layout
-from .plan import TestPlan
+from .recorder import Recorder
 
 __all__ = ["ROW_ARGUMENTS", "open_recorder", "row_writer"]
 
 
 def open_recorder(plan: TestPlan, channels: list[Channel]) -> Recorder:
-    """The run's :class:`~rths_hil.recorder.Recorder`: the plan's columns and the run's metadata."""
+    """The run's :class:`~rths_hil.records.recorder.Recorder`: the plan's columns and metadata."""
     cfg = plan.cfg
     first = channels[0]
     return Recorder(
@@ -67,8 +68,8 @@ def open_recorder(plan: TestPlan, channels: list[Channel]) -> Recorder:
 
 
 #: The loop's values of a row, the parameters of the writer :func:`row_writer` returns: every
-#: ``loop`` column of :data:`rths_hil.hybrid.columns.TABLE` takes its value from the parameter
-#: of its :attr:`~rths_hil.hybrid.columns.Column.attribute`, ``u_1 … u_n`` from ``dofs``.
+#: ``loop`` column of :data:`rths_hil.records.columns.TABLE` takes its value from the parameter
+#: of its :attr:`~rths_hil.records.columns.Column.attribute`, ``u_1 … u_n`` from ``dofs``.
 ROW_ARGUMENTS = ("time", "step", "ground_accel", "lateness", "skew", "dofs")
 
 
@@ -80,8 +81,8 @@ def row_writer(rec: Recorder, channels: list[Channel], stage: Any) -> Callable[.
     :class:`~rths_hil.hybrid.channel.Channel` attribute of its name (``ch0.target``,
     ``ch1.measured`` …), a structure stage's column the stage's attribute (``stage.kind``); the
     DOF displacements ``u_1 … u_n`` (several DOFs only) are ``dofs``. The columns are
-    :func:`rths_hil.hybrid.columns.layout` of ``channels`` on the stage's DOFs, then the stage's
-    own :attr:`~rths_hil.hybrid.structures.StructureStage.record_columns` (the order of
+    :func:`rths_hil.records.columns.layout` of ``channels`` on the stage's DOFs, then the stage's
+    own :attr:`~rths_hil.structures.stages.StructureStage.record_columns` (the order of
     :attr:`TestPlan.columns <rths_hil.hybrid.plan.TestPlan>`).
 
     The writer is compiled once per run from that list of names, as

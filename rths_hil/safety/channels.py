@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import math
 
-from ..safety import OverrunRule, Trip
-from .channel import Channel
+from ..hybrid.channel import Channel
+from . import OverrunRule, Trip
 
 __all__ = ["Safety"]
 

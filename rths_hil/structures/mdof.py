@@ -20,9 +20,9 @@ acting on element deformations ``d = D·u`` (storey drifts of a shear building) 
   (:func:`rayleigh_coefficients`, Chopra 2012 Eq. 11.4.9) or given (a0, a1); or modal damping
   ``C = M·Φ·diag(2ζ_i·ω_i)·Φᵀ·M`` with mass-normalised modes (Chopra 2012 Eq. 11.5.8).
 * :class:`MDOFCRStepper` — the explicit CR algorithm of Chen & Ricles (2008) in matrix form,
-  with the same interface as :class:`rths_hil.structure.CRStepper`: after every call the next
+  with the same interface as :class:`rths_hil.structures.sdof.CRStepper`: after every call the next
   displacement vector :attr:`~MDOFCRStepper.x_next` is known before the specimen forces of that
-  step are measured. For n = 1 it reproduces :class:`~rths_hil.structure.CRStepper` to
+  step are measured. For n = 1 it reproduces :class:`~rths_hil.structures.sdof.CRStepper` to
   round-off.
 * :func:`simulate_mdof` runs a whole ground-motion history offline.
 
@@ -57,9 +57,9 @@ import numba
 import numpy as np
 import scipy.linalg
 
-from .errors import InputError
-from .structure import BoucWenParams
-from .units import positive_number
+from ..errors import InputError
+from ..units import positive_number
+from .sdof import BoucWenParams
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +162,7 @@ class MDOFModel:
         building: ``d_i = u_i − u_{i−1}``); ``None`` for a linear model.
     bouc_wen : tuple of BoucWenParams, or None
         One parameter set per element (the same parameters as
-        :class:`rths_hil.structure.BoucWenParams`; ``k_a`` is the element's initial stiffness,
+        :class:`rths_hil.structures.sdof.BoucWenParams`; ``k_a`` is the element's initial stiffness,
         ``K = Dᵀ·diag(k_a)·D``).
     name : str
         Short description (``"shear building, 3 storeys"``, file name, …).
@@ -302,7 +302,7 @@ def _damping(
     if zeta is not None:
         z1, z2 = _zeta_pair(zeta)
         if n == 1:
-            # one mode: c = 2ζ·√(k·m), the Rayleigh limit ω1 = ω2 (and rths_hil.structure's c)
+            # one mode: c = 2ζ·√(k·m), the Rayleigh limit ω1 = ω2 (and rths_hil.structures.sdof's c)
             if z1 < 0 or not math.isfinite(z1):
                 raise InputError(f"damping ratio must be a finite number ≥ 0, got {zeta!r}")
             return np.array([[2.0 * z1 * math.sqrt(K[0, 0] * M[0, 0])]])
@@ -780,7 +780,7 @@ class MDOFCRStepper:
     ``u[n+1]`` is known (:attr:`x_next`) before anything of step n+1 is measured: impose
     ``T·x_next`` with the actuators, measure the forces ``f``, then call :meth:`step` with the
     ground acceleration of step n+1 and ``Tᵀ·f``; it returns ``u[n+2]``, the next target.
-    The interface is that of :class:`rths_hil.structure.CRStepper` with vectors of length n.
+    The interface is that of :class:`rths_hil.structures.sdof.CRStepper` with vectors of length n.
 
     Parameters
     ----------

@@ -36,8 +36,8 @@ from typing import Literal
 
 import numpy as np
 
-from .errors import InputError
-from .units import positive_number
+from ..errors import InputError
+from ..units import positive_number
 
 log = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@ A structure stage turns the measured restoring forces of the DOFs into the next 
 DOFs. It is the one place the runner asks "where do the actuators go next"; anything that can
 answer it can drive a test: the paper's SDOF frame (:class:`SDOFStage`, Chen & Ricles' CR
 integration), a shear building or a model given by its matrices (:class:`MDOFStage`, the CR
-integrator in matrix form of :mod:`rths_hil.mdof`), or an experimental site's client
+integrator in matrix form of :mod:`rths_hil.structures.mdof`), or an experimental site's client
 (OpenSees/OpenFresco) whose analysis computes the targets.
 
 The interface (:class:`StructureStage`)::
@@ -105,7 +105,7 @@ class StructureStage(Protocol):
 
 
 class SDOFStage:
-    """The paper's SDOF frame: :class:`rths_hil.structure.CRStepper` behind the stage interface.
+    """The paper's SDOF frame: :class:`~rths_hil.structures.sdof.CRStepper` as a stage.
 
     Parameters
     ----------
@@ -153,7 +153,8 @@ class MDOFStage:
     Parameters
     ----------
     stepper
-        CR integrator in matrix form (:mod:`rths_hil.mdof`): ``x_next`` (n-vector known before
+        CR integrator in matrix form (:mod:`rths_hil.structures.mdof`): ``x_next``
+        (n-vector known before
         the force is measured), ``step(ag, extra_force) -> x_next``, ``v`` and (if it has one)
         ``restoring_force``.
     """

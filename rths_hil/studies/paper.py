@@ -57,7 +57,7 @@ from ..errors import InputError
 from ..fei import MovingFEIResult, moving_fei
 from ..groundmotion import GroundMotion
 from ..plotting import save_figure
-from ..structure import BoucWenParams, simulate_sdof
+from ..structures.sdof import BoucWenParams, simulate_sdof
 from .executors import run_cases
 
 log = logging.getLogger(__name__)

@@ -36,11 +36,11 @@ from ..config import SCHEMA, Config, coerce, cross_check, resolve_channel, set_c
 from ..errors import InputError
 from ..fei import fei
 from ..hybrid import build_ground_motion, run
-from ..hybrid.columns import channel_suffix, column_name
 from ..metrics import benchmark_criteria, criteria
 from ..plotting import save_figure
-from ..recorder import read_run
-from ..structure import BoucWenParams, CRStepper
+from ..records.columns import channel_suffix, column_name
+from ..records.recorder import read_run
+from ..structures.sdof import BoucWenParams, CRStepper
 from ..units import parse_accel, parse_force, parse_length, parse_time, parse_velocity
 from .executors import run_cases
 from .paper import format_value
@@ -151,7 +151,7 @@ def _record_channels(cfg) -> list[str | None]:
 
 def channel_suffixes(cfg) -> list[str]:
     """Record-column suffixes of the channels: ``[""]`` for one channel, else ``_<name>``
-    (:func:`rths_hil.hybrid.columns.channel_suffix`)."""
+    (:func:`rths_hil.records.columns.channel_suffix`)."""
     return [channel_suffix(ch) for ch in _record_channels(cfg)]
 
 

@@ -23,7 +23,7 @@ from bokeh.models import (
 )
 from bokeh.plotting import figure
 
-from ..hybrid.columns import channel_suffix
+from ..records.columns import channel_suffix
 from .shaping import (
     InvalidSpans,
     LimitShares,

@@ -1,7 +1,7 @@
 """Follow a run directory while it is written: the growing record, the events, the writer.
 
 The watcher never talks to the loop. It reads what the loop's crash-safe recorder
-(:mod:`rths_hil.recorder`) puts on disk: ``meta.json`` (written before the first step),
+(:mod:`rths_hil.records.recorder`) puts on disk: ``meta.json`` (written before the first step),
 ``record.npy`` (a ``.npy`` file whose header row count is patched after each flush and never
 counts a row that is not on disk) and ``events.jsonl`` (one JSON line per event, flushed at
 once). :class:`RunFollower` re-reads the header's row count on each :meth:`RunFollower.poll`
@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..hybrid.columns import channel_columns, column_name
-from ..recorder import EVENTS_FILE, META_FILE, RECORD_FILE, read_npy_header
+from ..records.columns import channel_columns, column_name
+from ..records.recorder import EVENTS_FILE, META_FILE, RECORD_FILE, read_npy_header
 
 __all__ = [
     "CHANNEL_COLUMNS",
@@ -47,7 +47,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Columns a multi-channel record carries once per actuator channel, as ``<name>_<channel>``
-#: (:func:`rths_hil.hybrid.columns.column_name`).
+#: (:func:`rths_hil.records.columns.column_name`).
 CHANNEL_COLUMNS = tuple(c.name for c in channel_columns())
 
 
@@ -217,7 +217,8 @@ _SHAPE = re.compile(rb"'shape': \((\d+),\)")
 
 
 class RunFollower:
-    """Incremental reader of a run directory being written by :class:`rths_hil.recorder.Recorder`.
+    """Incremental reader of a run directory being written by
+    :class:`rths_hil.records.recorder.Recorder`.
 
     Parameters
     ----------

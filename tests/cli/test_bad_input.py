@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from rths_hil.cli import main
-from rths_hil.records import write_record
+from rths_hil.records.csvfiles import write_record
 from rths_hil.units import G
 from tests.helpers.cli import one_line_exit_2 as _one_line_exit_2
 

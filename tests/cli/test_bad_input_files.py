@@ -12,7 +12,7 @@ import pytest
 
 from rths_hil.cli import main
 from rths_hil.errors import InputError
-from rths_hil.recorder import RECORD_FILE, Recorder
+from rths_hil.records.recorder import RECORD_FILE, Recorder
 from tests.helpers.cli import one_line_exit_2 as _one_line_exit_2
 
 # file-system errors and races between processes, in lockstep: no test here depends on the wall

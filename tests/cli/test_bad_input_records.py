@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from rths_hil.cli import main
-from rths_hil.recorder import (
+from rths_hil.records.recorder import (
     EVENTS_FILE,
     META_FILE,
     RECORD_FILE,
@@ -180,7 +180,7 @@ def test_events_line_that_is_json_but_not_an_object(small_run, capsys):
 
 
 def test_export_of_a_run_killed_before_its_first_flush(tmp_path, capsys):
-    from rths_hil.recorder import Recorder
+    from rths_hil.records.recorder import Recorder
 
     d = tmp_path / "killed"
     rec = Recorder(d, fs=1024.0)

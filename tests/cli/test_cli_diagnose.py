@@ -11,7 +11,7 @@ from rths_hil.sim_backends.modelfile import dump_model, load_model
 from rths_hil.cli import main
 from rths_hil.diagnose.synthetic import make_case
 from rths_hil.metrics import j2_nrms
-from rths_hil.records import write_record
+from rths_hil.records.csvfiles import write_record
 
 
 def _write_case(tmp_path, kinds, seed, duration=20.0, force=True):

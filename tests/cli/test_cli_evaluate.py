@@ -7,7 +7,7 @@ import pytest
 from rths_hil.sim_backends.delay import fractional_delay
 
 from rths_hil.cli import main
-from rths_hil.records import write_record
+from rths_hil.records.csvfiles import write_record
 
 FS = 512.0
 

@@ -9,7 +9,7 @@ import pytest
 
 from rths_hil.cli import main
 from rths_hil.config import load_config
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 
 # in-process, in lockstep: no test here depends on the wall clock (they run with the parallel
 # tests, not under the "timing" marker)

@@ -9,8 +9,8 @@ from rths_hil.sim_backends.delay import fractional_delay
 from rths_hil.cli import main
 from rths_hil.fei import fei
 from rths_hil.groundmotion import default_record
-from rths_hil.records import read_record
-from rths_hil.structure import simulate_sdof
+from rths_hil.records.csvfiles import read_record
+from rths_hil.structures.sdof import simulate_sdof
 from rths_hil.units import G
 
 

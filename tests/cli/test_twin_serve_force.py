@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from tests.helpers.cli import one_line_exit_2
 from tests.helpers.procs import ROOT, ServedTwin, bridge_cmd
 

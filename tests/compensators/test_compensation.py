@@ -9,7 +9,7 @@ import pytest
 from rths_hil.sim_backends.delay import fractional_delay
 from scipy.signal import lfilter
 
-from rths_hil.compensation import AdaptiveAlpha, InverseCompensator, alpha_for_delay
+from rths_hil.compensators.inverse import AdaptiveAlpha, InverseCompensator, alpha_for_delay
 from rths_hil.errors import InputError
 
 FS = 1024.0

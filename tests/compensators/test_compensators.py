@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 from rths_hil.sim_backends.delay import fractional_delay
 
-from rths_hil.compensation import Compensator, InverseCompensator
 from rths_hil.compensators import BUILTIN, available, build_compensator, compensator_class
 from rths_hil.compensators.ats import ATSCompensator
+from rths_hil.compensators.base import Compensator
+from rths_hil.compensators.inverse import InverseCompensator
 from rths_hil.compensators.model import ModelCompensator
 from rths_hil.compensators.polynomial import PolynomialCompensator, lagrange_extrapolation
 from rths_hil.config import load_config, set_compensation, to_toml
@@ -235,7 +236,7 @@ def test_model_delay_key_overrides_delay_for_the_model_only():
 # registry and configuration
 
 _MODULE = """
-from rths_hil.compensation import Compensator
+from rths_hil.compensators.inverse import Compensator
 
 
 class ScaledLead(Compensator):
@@ -297,10 +298,12 @@ def test_builtin_compensators_load_without_metadata():
 
 def test_lab_compensator_from_an_entry_point_runs_in_the_loop(lab_package, tmp_path):
     from rths_hil.hybrid import RTHSLoop
-    from rths_hil.recorder import read_run
+    from rths_hil.records.recorder import read_run
 
     assert available()["scaled"] == "mylab_comp:ScaledLead"
-    with pytest.raises(InputError, match=r"not a rths_hil\.compensation\.Compensator subclass"):
+    with pytest.raises(
+        InputError, match=r"not a rths_hil\.compensators\.base\.Compensator subclass"
+    ):
         compensator_class("broken")
     cfg = load_config(
         None,

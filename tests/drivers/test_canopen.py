@@ -31,7 +31,7 @@ from rths_hil.errors import InputError
 from rths_hil.hybrid import RTHSLoop
 from rths_hil.linkbudget import can_frame_bits
 from rths_hil.linkbudget import link_load as budget
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from tests.helpers.loop import run_loop
 
 # The object dictionary, the state machines, refusals and lockstep runs (waits of 1 s and more)

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from rths_hil.cli import main
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from tests.helpers.cli import one_line_exit_2
 
 pytestmark = pytest.mark.timing  # lockstep runs with twins on TCP and CAN buses

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from rths_hil.cli import main
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 
 # The registries and the lockstep run (virtual time) run with the parallel tests; the paced runs
 # run apart from them, one at a time (the "timing" marker, pyproject.toml; make test).

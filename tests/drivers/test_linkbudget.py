@@ -385,7 +385,7 @@ def test_builtin_modbus_rtu_with_its_twin_runs_at_115200_baud(tmp_path, capsys):
     1024 Hz runs (lockstep) over the twin's pseudo-terminal; the same run on a named serial
     port is refused with one line, exit 2."""
     from rths_hil.cli import main
-    from rths_hil.recorder import read_run
+    from rths_hil.records.recorder import read_run
 
     cfg = os.path.join(os.path.dirname(__file__), "..", "..", "examples", "modbus.toml")
     out = tmp_path / "rtu"

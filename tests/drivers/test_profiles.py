@@ -23,7 +23,7 @@ from rths_hil.sim_backends.twin import default_plant, start_twin
 
 from rths_hil.cli import main
 from rths_hil.errors import InputError
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 
 # Validation, codecs, link budgets and lockstep exchanges with their twins (waits of 1 s) run
 # with the parallel tests; the paced runs, and a test that needs a frame read within 50 ms, run

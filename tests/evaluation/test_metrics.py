@@ -73,7 +73,7 @@ def test_bad_pairs():
 def test_j1_on_a_short_building_up_transient(delay):
     """6 s of a growing SDOF response: the strongest part sits at the end of the record."""
     from rths_hil.groundmotion import default_record
-    from rths_hil.structure import simulate_sdof
+    from rths_hil.structures.sdof import simulate_sdof
 
     ag = default_record().resampled(FS).accel[: int(6 * FS)]
     x = simulate_sdof(ag, FS, 0.77, 0.02)

@@ -13,12 +13,12 @@ import pytest
 from rths_hil.sim_backends.models import benchmark_transfer_function
 from scipy import linalg
 
-from rths_hil import mdof
 from rths_hil import studies as study
 from rths_hil.compensator_study import compensator_study, floors_trial
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.groundmotion import load
+from rths_hil.structures import mdof
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = ROOT / "examples" / "benchmark"
@@ -144,7 +144,7 @@ def test_records_load_with_the_benchmark_sampling(name, dt, npts, pga):
 
 
 # ---------------------------------------------------------------------------------------------
-# partition (rths_hil.mdof)
+# partition (rths_hil.structures.mdof)
 
 
 def test_partition_closed_form_and_errors():
@@ -190,7 +190,7 @@ def test_ideal_actuator_with_the_partition_reproduces_the_reference_structure(da
     cfg = study.inline_twin(cfg)
     n = 8 * 1024
     study.reference_by_loop(cfg, n, tmp_path)
-    from rths_hil.recorder import read_run
+    from rths_hil.records.recorder import read_run
 
     rec = read_run(tmp_path / "reference").record
     loop = np.column_stack([rec[f"u_{i}"] for i in (1, 2, 3)])
@@ -209,7 +209,7 @@ def test_short_lockstep_runs_of_the_example(tmp_path):
     from rths_hil.fei import fei
     from rths_hil.hybrid import RTHSLoop
     from rths_hil.metrics import j2_nrms
-    from rths_hil.recorder import read_run
+    from rths_hil.records.recorder import read_run
 
     out = {}
     for method in ("inverse", "model"):

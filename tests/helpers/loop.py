@@ -8,7 +8,7 @@ from typing import Any
 
 from rths_hil.config import load_config
 from rths_hil.hybrid import RTHSLoop, RunResult
-from rths_hil.recorder import RunData, read_run
+from rths_hil.records.recorder import RunData, read_run
 
 #: Overrides every helper run starts from: no console line, no report figure.
 QUIET = ("loop.console=0", "output.plot=false")

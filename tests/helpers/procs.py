@@ -11,7 +11,7 @@ import threading
 import time
 from pathlib import Path
 
-from rths_hil.recorder import header_row_count
+from rths_hil.records.recorder import header_row_count
 
 ROOT = Path(__file__).resolve().parents[2]
 LATCH_LINE = "e-stop latched"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rths_hil.recorder import COLUMNS
+from rths_hil.records.recorder import COLUMNS
 
 
 def row(k: int, fs: float = 1024.0) -> tuple:

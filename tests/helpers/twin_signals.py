@@ -1,6 +1,6 @@
 """Realistic test signals for the twin/estimation tests: SDOF responses to bundled records.
 
-Independent of rths_hil.structure on purpose: the response is scipy.signal.lsim of the
+Independent of rths_hil.structures.sdof on purpose: the response is scipy.signal.lsim of the
 continuous 1-DOF transfer function ``X/Ag = -1/(s² + 2ζω s + ω²)`` driven by the bundled
 accelerogram (g → m/s²) linearly interpolated to ``fs``, then scaled to a chosen peak.
 """

@@ -1,6 +1,6 @@
-"""Synthetic run directories written through the real :class:`rths_hil.recorder.Recorder`.
+"""Synthetic run directories written through the real :class:`rths_hil.records.recorder.Recorder`.
 
-A single-channel record has the columns (:data:`rths_hil.recorder.COLUMNS`); a
+A single-channel record has the columns (:data:`rths_hil.records.recorder.COLUMNS`); a
 multi-channel record suffixes each per-channel column with ``_<channel>`` and adds ``u_1 …
 u_n`` (the layout of multi-actuator tests). The signals are known sines, so a test can check
 what the watcher reads and shows against what was written.
@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rths_hil import recorder
 from rths_hil.config import load_config
-from rths_hil.recorder import COLUMNS, Recorder
+from rths_hil.records import recorder
+from rths_hil.records.recorder import COLUMNS, Recorder
 from rths_hil.watch.source import CHANNEL_COLUMNS
 
 AMPLITUDE = {"": 0.004, "left": 0.004, "right": 0.002}

@@ -22,7 +22,7 @@ from rths_hil.cli import main as cli
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import COLUMNS, read_run
+from rths_hil.records.recorder import COLUMNS, read_run
 from tests.helpers.loop import run_loop
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -91,14 +91,14 @@ def test_single_actuator_record_keeps_todays_columns(tmp_path):
 
 
 def test_structure_targets_equal_the_offline_mdof_integration(tmp_path):
-    """The runner's wiring (ag indexing, Tᵀ·f, T·u) against rths_hil.mdof run offline.
+    """The runner's wiring (ag indexing, Tᵀ·f, T·u) against rths_hil.structures.mdof run offline.
 
     Specimens of zero stiffness and no force noise: the structure then moves exactly as the
     offline CR integration of the same model (whose accuracy against modal superposition with
     scipy.signal is tests/structure/test_mdof.py's).
     """
     from rths_hil.hybrid.plan import build_ground_motion, build_model
-    from rths_hil.mdof import simulate_mdof
+    from rths_hil.structures.mdof import simulate_mdof
 
     over = [
         "twin.specimen={stiffness=0.0, damping=0.0}",

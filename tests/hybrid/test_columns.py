@@ -1,4 +1,4 @@
-"""The record's columns, defined once (rths_hil.hybrid.columns), and rows written by name."""
+"""The record's columns, defined once (rths_hil.records.columns), and rows written by name."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from rths_hil.hybrid.channel import Channel
-from rths_hil.hybrid.columns import TABLE, channel_columns, column_name, layout, specs
-from rths_hil.hybrid.record import row_writer
-from rths_hil.recorder import COLUMNS, Recorder, read_run
+from rths_hil.records.columns import TABLE, channel_columns, column_name, layout, specs
+from rths_hil.records.recorder import COLUMNS, Recorder, read_run
+from rths_hil.records.run import row_writer
 from rths_hil.watch.source import find_channels
 
 

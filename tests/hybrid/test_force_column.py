@@ -15,7 +15,7 @@ import pytest
 
 import rths_hil
 from rths_hil.config import load_config
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from rths_hil.report import format_summary, plot_report
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 import rths_hil
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "column_axial.toml"

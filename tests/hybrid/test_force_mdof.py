@@ -16,7 +16,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 import rths_hil
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 
 ROOT = Path(__file__).resolve().parents[2]
 MAP = ROOT / "examples" / "controllers" / "column_axial_map.toml"

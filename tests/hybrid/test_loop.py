@@ -9,12 +9,12 @@ import pytest
 from rths_hil.sim_backends.modelfile import load_plant
 
 from rths_hil import groundmotion
-from rths_hil.compensation import InverseCompensator
+from rths_hil.compensators.inverse import InverseCompensator
 from rths_hil.config import load_config
 from rths_hil.fei import fei
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import read_run
-from rths_hil.structure import BoucWenParams, CRStepper
+from rths_hil.records.recorder import read_run
+from rths_hil.structures.sdof import BoucWenParams, CRStepper
 
 FS = 1024.0
 DELAY = 0.020  # the twin's pure transport delay (the FEI paper's Fig. 4.1 block model)

@@ -9,7 +9,7 @@ import pytest
 
 from rths_hil.config import load_config
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 
 FS = 1024.0
 DRIVERS = ["can", "modbus", "serial"]

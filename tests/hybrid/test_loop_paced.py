@@ -14,7 +14,7 @@ import pytest
 
 from rths_hil.config import load_config
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import header_row_count, read_run
+from rths_hil.records.recorder import header_row_count, read_run
 
 # the paced runs: against the wall clock, with other processes; run apart from the parallel
 # tests (the "timing" marker, pyproject.toml; make test)

@@ -24,7 +24,7 @@ from rths_hil.hybrid import (
     count_causes,
     paced_floor,
 )
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 
 # The attribution against the event model and the console's percentile are arithmetic: they run
 # with the parallel tests; the paced runs and the paced floor run apart from them, one at a time

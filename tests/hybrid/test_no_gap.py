@@ -24,7 +24,7 @@ from rths_hil.sim_backends.endpoints.base import TwinController
 
 from rths_hil.config import load_config
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from tests.helpers.loop import QUIET, run_loop
 
 pytestmark = pytest.mark.timing

@@ -25,7 +25,7 @@ import pytest
 
 from rths_hil.config import load_config
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from rths_hil.report import summarize
 from tests.partners.modbus_fixtures import PROFILE, modbus_servo  # noqa: F401 (fixture)
 

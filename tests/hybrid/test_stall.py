@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rths_hil.recorder import header_row_count, read_run
+from rths_hil.records.recorder import header_row_count, read_run
 from rths_hil.safety import StallRule, WatchdogRule
 
 # against the wall clock or with other processes: run apart from the parallel tests

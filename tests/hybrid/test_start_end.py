@@ -30,7 +30,7 @@ from rths_hil.sim_backends.twin import default_plant
 
 from rths_hil.errors import InputError
 from rths_hil.hybrid.phases import cosine_ramp, ramp_duration
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from tests.helpers.cli import one_line_exit_2
 from tests.helpers.loop import run_loop
 from tests.helpers.procs import LATCH_LINE, ROOT, ServedTwin, bridge_cmd, toml_table, wait_rows

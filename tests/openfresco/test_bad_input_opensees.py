@@ -18,7 +18,7 @@ import pytest
 
 from rths_hil.errors import InputError
 from rths_hil.openfresco import protocol as P
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from tests.helpers.openfresco import GENERIC_CLIENT_ID, _client, _frame, _loop, _recv
 
 # against the wall clock or with other processes: run apart from the parallel tests

@@ -35,7 +35,7 @@ from rths_hil.openfresco.timing import (
     PredictorCorrector,
     SiteFault,
 )
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from tests.helpers.openfresco import GENERIC_CLIENT_ID, _client, _frame, _loop, _recv
 
 # against the wall clock or with other processes: run apart from the parallel tests

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from rths_hil.errors import InputError
-from rths_hil.recorder import (
+from rths_hil.records.recorder import (
     COLUMNS,
     Recorder,
     _header_bytes,
@@ -60,7 +60,7 @@ def test_a_reader_never_sees_more_rows_counted_than_written(tmp_path):
     size could be older than the count: "the header counts 663 rows but the file holds 612")."""
     import threading
 
-    from rths_hil.recorder import read_npy_header
+    from rths_hil.records.recorder import read_npy_header
 
     rec = Recorder(tmp_path / "run", fs=1000.0, flush_interval=0.001)  # a flush a row
     done = threading.Event()
@@ -153,7 +153,7 @@ def test_kill_9_leaves_every_flushed_row_readable(tmp_path):
         import sys, time
         sys.path.insert(0, {str(os.getcwd())!r})
         from tests.helpers.records import row as _row
-        from rths_hil.recorder import Recorder
+        from rths_hil.records.recorder import Recorder
         rec = Recorder({str(run)!r}, fs=1000.0, flush_interval=0.05)
         k = 0
         t0 = time.perf_counter()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rths_hil.errors import InputError
-from rths_hil.records import read_record, write_record
+from rths_hil.records.csvfiles import read_record, write_record
 
 
 def write(tmp_path, text, name="r.csv"):

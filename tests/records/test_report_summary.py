@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 
-from rths_hil.recorder import COLUMNS, Recorder
+from rths_hil.records.recorder import COLUMNS, Recorder
 from rths_hil.report import format_summary, summarize
 
 
@@ -98,7 +98,7 @@ def test_report_panels_units_and_trip_label(tmp_path):
 
     from rths_hil.config import load_config
     from rths_hil.hybrid import RTHSLoop
-    from rths_hil.recorder import read_run
+    from rths_hil.records.recorder import read_run
     from rths_hil.report import plot_report
 
     cfg = load_config(None, ["loop.console=0", "safety.displacement_limit=0.004"])

@@ -14,7 +14,7 @@ import scipy.io
 
 import rths_hil
 from rths_hil.errors import InputError
-from rths_hil.recorder import export_run, read_run
+from rths_hil.records.recorder import export_run, read_run
 from tests.helpers.cli import one_line_exit_2
 from tests.helpers.loop import run_loop
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from rths_hil import report
-from rths_hil.recorder import COLUMNS, Recorder
+from rths_hil.records.recorder import COLUMNS, Recorder
 from rths_hil.report import plot_report, summarize
 
 FS = 512.0

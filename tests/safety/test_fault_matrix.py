@@ -28,7 +28,7 @@ import pytest
 
 from rths_hil.config import load_config
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from tests.helpers.loop import run_loop
 from tests.helpers.procs import ServedTwin, toml_table
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rths_hil.recorder import RECORD_FILE, header_row_count, read_run
+from rths_hil.records.recorder import RECORD_FILE, header_row_count, read_run
 
 # The record on a full disk, in lockstep, runs with the parallel tests; a signal in the start-up,
 # a receive's timeout and lockstep under a 1 s reply bound run apart from them, one at a time

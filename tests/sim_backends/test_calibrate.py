@@ -10,7 +10,7 @@ from scipy import signal
 from rths_hil.cli import main
 from rths_hil.errors import InputError
 from rths_hil.estimation import calibrate
-from rths_hil.records import read_record, write_record
+from rths_hil.records.csvfiles import read_record, write_record
 from tests.helpers.twin_signals import FS, sdof_response
 
 

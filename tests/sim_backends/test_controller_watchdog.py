@@ -23,7 +23,7 @@ import pytest
 from rths_hil.drivers.base import Status
 from rths_hil.drivers.registry import create_driver
 
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from tests.helpers.procs import (
     LATCH_LINE,
     ROOT,

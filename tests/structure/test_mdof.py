@@ -1,4 +1,4 @@
-"""MDOF models and the CR integrator in matrix form (rths_hil.mdof).
+"""MDOF models and the CR integrator in matrix form (rths_hil.structures.mdof).
 
 Independent references: modal superposition with each mode's response from scipy.signal.lsim of
 its continuous state-space model (exact for the piecewise-linear ground motion), the SDOF
@@ -17,7 +17,7 @@ from scipy.signal import lsim
 
 from rths_hil.errors import InputError
 from rths_hil.groundmotion import bundled_path, default_record, load
-from rths_hil.mdof import (
+from rths_hil.structures.mdof import (
     MDOFCRStepper,
     from_matrices,
     load_csv,
@@ -26,7 +26,7 @@ from rths_hil.mdof import (
     shear_building,
     simulate_mdof,
 )
-from rths_hil.structure import BoucWenParams, CRStepper
+from rths_hil.structures.sdof import BoucWenParams, CRStepper
 
 FS = 1024.0
 # A 3-storey laboratory-scale shear building: floor masses (kg), storey stiffnesses (N/m)
@@ -424,7 +424,7 @@ def test_stepper_loads_its_kernel_before_the_first_step():
 
     code = (
         "import numpy as np\n"
-        "from rths_hil import mdof\n"
+        "from rths_hil.structures import mdof\n"
         "m = mdof.shear_building([2e5, 2e5], [1e8, 1e8], zeta=0.02)\n"
         "assert len(mdof._cr_step.overloads) == 0\n"
         "s = mdof.MDOFCRStepper(m, 1 / 1024)\n"

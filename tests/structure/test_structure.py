@@ -10,7 +10,7 @@ from scipy.signal import lsim
 
 from rths_hil.errors import InputError
 from rths_hil.groundmotion import default_record
-from rths_hil.structure import (
+from rths_hil.structures.sdof import (
     K_A_PAPER,
     BoucWen,
     BoucWenParams,

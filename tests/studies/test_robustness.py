@@ -40,7 +40,7 @@ def test_reference_response_equals_the_loop_with_an_ideal_transfer_system(tmp_pa
     from rths_hil.sim_backends.specimen import KelvinVoigt
 
     from rths_hil.hybrid import run
-    from rths_hil.recorder import read_run
+    from rths_hil.records.recorder import read_run
 
     # the serial transport carries float64 (the CAN frames quantise displacement and force)
     cfg = study.inline_twin(

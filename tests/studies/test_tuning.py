@@ -17,7 +17,7 @@ from rths_hil.cli import main as cli
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.hybrid import build_ground_motion
-from rths_hil.recorder import read_run
+from rths_hil.records.recorder import read_run
 from rths_hil.tuning import (
     LoopTrials,
     Trial,

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from rths_hil.cli import main
-from rths_hil.recorder import Recorder, header_row_count, read_run
+from rths_hil.records.recorder import Recorder, header_row_count, read_run
 from rths_hil.watch.source import RunFollower, find_channels, find_writer
 from tests.helpers.watch_records import AMPLITUDE, _recorder, columns_for, row_values, write_run
 
@@ -107,7 +107,7 @@ def test_unreadable_record_is_a_message(tmp_path):
 def test_find_writer_is_the_process_holding_the_record_open(tmp_path):
     run_dir = tmp_path / "run"
     code = (
-        "import sys, time; from rths_hil.recorder import Recorder; "
+        "import sys, time; from rths_hil.records.recorder import Recorder; "
         f"r = Recorder({str(run_dir)!r}, 100.0); print('open', flush=True); time.sleep(60)"
     )
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
@@ -179,7 +179,7 @@ def _hold_record(run_dir, meta_pid: bool = True) -> subprocess.Popen:
     It takes SIGINT as Python does by default even when started with SIGINT ignored (a
     non-interactive shell starts background jobs so, and children inherit it)."""
     code = (
-        "import json, signal, sys, time; from rths_hil.recorder import Recorder; "
+        "import json, signal, sys, time; from rths_hil.records.recorder import Recorder; "
         "signal.signal(signal.SIGINT, signal.default_int_handler); "
         f"r = Recorder({str(run_dir)!r}, 100.0); "
         + ("" if meta_pid else "r.meta.pop('pid'); r.update_meta(); ")

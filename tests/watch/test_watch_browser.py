@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from rths_hil.recorder import header_row_count, read_run
+from rths_hil.records.recorder import header_row_count, read_run
 from rths_hil.watch.browser import Browser, chromium_path
 from rths_hil.watch.source import RunFollower
 from tests.helpers.watch_records import stability_value, write_run
