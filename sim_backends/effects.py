@@ -161,9 +161,13 @@ class Fitting:
     needs_specimen: bool = False
 
 
-def _positive(name: str, unit: str, doc: str, typical: ParamRange, **kw: float) -> Param:
+def _positive(
+    name: str, unit: str, doc: str, typical: ParamRange, default: float | None = None
+) -> Param:
     """A parameter that must be > 0."""
-    return Param(name, unit, doc, minimum=0.0, exclusive_minimum=True, typical=typical, **kw)
+    return Param(
+        name, unit, doc, default=default, minimum=0.0, exclusive_minimum=True, typical=typical
+    )
 
 
 class Effect(ABC):

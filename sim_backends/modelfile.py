@@ -234,8 +234,13 @@ def load_model(  # noqa: C901
                 if v < 0:
                     raise InputError(f"{p}specimen.{key}: must be ≥ 0, got {v!r}")
                 specimen_given[key] = v
-        specimen = SpecimenSpec(**{**SPECIMEN_DEFAULTS, **specimen_given})
     spec_values = {**SPECIMEN_DEFAULTS, **specimen_given}
+    if "specimen" in data:
+        specimen = SpecimenSpec(
+            stiffness=spec_values["stiffness"],
+            damping=spec_values["damping"],
+            mass=spec_values["mass"],
+        )
 
     at = _table(data["actuator"], f"{p}actuator")
     model = at.get("model", "delay_gain")

@@ -92,7 +92,7 @@ _SW402 = {
 
 def default_eds(profile: str) -> str:
     """Path of the shipped EDS of the twin of ``profile`` (``cia402`` or ``cia408``)."""
-    return os.fspath(resources.files("rths_hil.sim_backends") / "eds" / f"{profile}_twin.eds")
+    return str(resources.files("rths_hil.sim_backends") / "eds" / f"{profile}_twin.eds")
 
 
 class CANopenTwin(TwinEndpoint):
@@ -488,7 +488,13 @@ class CANopenTwin(TwinEndpoint):
         rated torque 0x6076 (mN·m, a linear motor's rated force in mN; as written by SDO, else
         the EDS's) / 10⁶ × ``force_per_torque``."""
         node = self.node
-        raw = node.sdo[0x6076].raw if node is not None else self.od[0x6076].default
+        if node is None:
+            raw = self.od[0x6076].default
+        else:
+            rated = node.sdo[0x6076]
+            # 0x6076 is a VAR (CiA 402); the SDO client returns the matching Variable
+            assert isinstance(rated, canopen.sdo.Variable)
+            raw = rated.raw
         return float(raw) / 1e6 * self.force_per_torque
 
     def _torque_counts(self, force: float) -> int:

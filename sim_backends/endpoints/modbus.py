@@ -117,6 +117,7 @@ class ModbusServer:
         InputError
             The unit is already served there, or the transport cannot be opened.
         """
+        srv: ModbusServer | None
         if twin.transport != "tcp":
             srv = cls(twin.transport)
             srv._open_rtu(twin.device, twin.baudrate)
@@ -205,10 +206,10 @@ class ModbusServer:
         ready = select.select(rlist, (), (), timeout)[0]
         if not ready:
             if self.transport == "rtu":
-                for conn in self.conns:
-                    if conn.buf:  # line idle: an incomplete RTU frame is garbage
+                for idle in self.conns:
+                    if idle.buf:  # line idle: an incomplete RTU frame is garbage
                         self._malformed()
-                        conn.buf = b""
+                        idle.buf = b""
             return
         for item in ready:
             if item is self.listener:

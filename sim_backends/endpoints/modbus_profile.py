@@ -268,7 +268,7 @@ class ModbusProfileTwin(TwinEndpoint):
             return
         entry[1] += data
         frm = self._framer
-        self._out = []
+        self._out: list[bytes] = []
         while len(entry[1]) >= 4:
             buf = entry[1]
             size = rtu_frame_size(frm.decoder, buf)
@@ -305,7 +305,7 @@ class ModbusProfileTwin(TwinEndpoint):
         """Answer every complete request in the buffer; the responses go out in one write
         (a pipelined write + read is answered in one TCP segment)."""
         frm = self._framer
-        self._out: list[bytes] = []
+        self._out = []
         while entry[1]:
             used, dev_id, tid, pdu_bytes = frm.decode(entry[1])
             if not used:
