@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import logging
 import socket
+import statistics
 import threading
 import time
 from collections import deque
@@ -110,6 +111,11 @@ SLOT_HEARTBEAT = 14
 SLOT_ACTION = 15  # actions, the set-point written ahead of the enable, the e-stop and its poll
 #: How long the pipelining probe waits for the second answer once the first came (s).
 PROBE_WAIT = 0.1
+#: One request at a time over TCP: single reads timed at open (the driver's ``round_trip``).
+ROUND_TRIPS = 24
+#: The share of the loop period a step's one-at-a-time transactions may fill before
+#: :meth:`ModbusProfileDriver.link_check` warns (the rest is the round trip's own spread).
+LINK_FILL = 0.75
 #: E-stop over Modbus TCP: how long it may wait for the answer outstanding on the link before
 #: writing the e-stop there (s), and how long it keeps writing and reading back (s).
 ESTOP_DRAIN = 0.05
@@ -161,6 +167,9 @@ class ModbusProfileDriver(Driver):
     link_note : str or None
         What the driver found out about the link when it opened (e.g. that the controller
         answers one request at a time), for the run's events; ``None`` when nothing.
+    round_trip : tuple of float or None
+        Modbus TCP one request at a time: the median and 90th percentile (s) of
+        ``ROUND_TRIPS`` single reads timed when the link opened; ``None`` otherwise.
     """
 
     name: ClassVar[str] = "modbus"
@@ -209,6 +218,7 @@ class ModbusProfileDriver(Driver):
             )
         self.estop_connection = estop_connection
         self.link_note: str | None = None
+        self.round_trip: tuple[float, float] | None = None
         self._probed = False  # the pipelining probe ran (TCP, pipeline = true)
         self._arming = False
         self._etid = 0
@@ -300,6 +310,8 @@ class ModbusProfileDriver(Driver):
         if not self._rtu:
             if not self._serial and not self._probed:
                 self._probe_pipeline()
+            if self._serial and self.round_trip is None:
+                self._time_round_trips()
             if self.estop_connection:
                 self._link.open_estop()
 
@@ -337,6 +349,58 @@ class ModbusProfileDriver(Driver):
                 )
                 log.warning("modbus driver: %s", self.link_note)
                 return
+
+    def _time_round_trips(self) -> None:
+        """One request at a time over TCP: time ``ROUND_TRIPS`` single reads of the step's
+        first block, each written when the last was answered (:attr:`round_trip`). A read the
+        controller drops (its own pauses) is given up after ``PROBE_WAIT`` and not counted."""
+        b = self._reads[0]
+        req = _READS[b.table](address=b.address, count=b.count)
+        times: list[float] = []
+        for i in range(ROUND_TRIPS):
+            tid = ((0x200 + i) << 4) | SLOT_CHECK
+            sent = time.perf_counter()
+            self._submit([(tid, req.function_code, self._frame(req, tid))])
+            got = self._next_pdu(sent + PROBE_WAIT)
+            while got is not None and got[0] != tid:
+                got = self._next_pdu(sent + PROBE_WAIT)
+            if got is None:
+                self._pending.clear()  # (given up: the next read goes out at once)
+                continue
+            times.append(time.perf_counter() - sent)
+        if len(times) >= ROUND_TRIPS // 2:
+            deciles = statistics.quantiles(times, n=10)
+            self.round_trip = (statistics.median(times), deciles[8])
+
+    def requests_per_step(self) -> int:
+        """A steady step's requests: the set-point write and the reads (FC 23: one)."""
+        return 1 if self.profile.fc23 else 1 + len(self._reads)
+
+    def link_check(self, fs: float) -> str | None:
+        """What the measured link means at loop rate ``fs`` (Hz): a warning when a step's
+        one-at-a-time transactions fill more than ``LINK_FILL`` of the period, else ``None``.
+
+        A controller that serves one request at a time answers a step's requests one after
+        the other, so a step needs ``n·t_rt`` of link time (``n`` requests, round trip
+        ``t_rt``, the median measured at open). Where that exceeds the period the link
+        cannot carry every step: the replies that do not fit are missed (held measurements,
+        counted in the summary), however fast the loop.
+        """
+        if self.round_trip is None or fs <= 0:
+            return None
+        n, (rt, rt90) = self.requests_per_step(), self.round_trip
+        need = n * rt
+        if need <= LINK_FILL / fs:
+            return None
+        fcs = " + ".join(f"FC {c}" for c in ([23] if self.profile.fc23 else [16, *self._block_fc]))
+        return (
+            f"the controller at {self._where()} (unit {self.unit}) answers one request at a "
+            f"time in {rt * 1e3:.2f} ms (median of {ROUND_TRIPS} reads, 90th percentile "
+            f"{rt90 * 1e3:.2f} ms): a step's {n} requests ({fcs}) take about "
+            f"{need * 1e3:.2f} ms, {100 * need * fs:.0f} % of the {1e3 / fs:.3f} ms period at "
+            f"{fs:g} Hz; expect missed replies (held measurements). At most "
+            f"{LINK_FILL / need:.0f} Hz leaves a quarter of the period free"
+        )
 
     def _open_line(self) -> tuple[socket.socket | None, Any, int]:
         """Open the transport (:class:`~.transport.Link`'s opener)."""

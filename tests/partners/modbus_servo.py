@@ -47,7 +47,8 @@ Behaviour
   the same connection is in progress is dropped (no answer), as is the rest of a segment that
   carried several requests. Connections are served concurrently (a second one can watch).
 - Now and then (``--pause-rate`` per second, Poisson) the network stack pauses 20–40 ms before
-  it handles a request.
+  it handles a request; ``--service-time`` adds a fixed processing time to every transaction
+  (a slow controller stack).
 - The axis in real time: a 12 ms transport delay, an 8 ms first-order lag, gain 0.98 on the
   motion commanded since the enable edge, a 1e6 N/m specimen. Disabled or latched it holds
   where it is; enabled it holds the last set-point when commands stop.
@@ -116,6 +117,7 @@ class Axis:
         self.wd_deadline = math.inf
         self.rng = random.Random(seed)
         self.pause_rate = pause_rate
+        self.service_time = 0.0  # s, each transaction's own processing time (--service-time)
         self.next_pause = self._draw_pause(self.t0)
         self.history: dict[str, Any] = {
             "latches": [],
@@ -285,7 +287,7 @@ class OneAtATime(ServerRequestHandler):
 
     async def handle_request(self) -> None:
         try:
-            pause = self.axis.pause_due()
+            pause = self.axis.pause_due() + self.axis.service_time
             if pause:
                 await asyncio.sleep(pause)
             await super().handle_request()
@@ -376,6 +378,7 @@ def make_device(axis: Axis) -> SimDevice:
 
 async def serve(args: argparse.Namespace) -> int:
     axis = Axis(args.position, args.stroke, args.pause_rate, args.seed, args.watchdog)
+    axis.service_time = args.service_time
     server = ServoServer(axis, make_device(axis), ("127.0.0.1", args.port))
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -400,6 +403,12 @@ def main(argv: list[str] | None = None) -> int:
         "--pause-rate", type=float, default=0.5, help="network stack pauses per second (0: none)"
     )
     p.add_argument("--seed", type=int, default=1, help="seed of the pause times")
+    p.add_argument(
+        "--service-time",
+        type=float,
+        default=0.0,
+        help="time the controller takes to serve each transaction (s), as a slow stack does",
+    )
     p.add_argument(
         "--watchdog", type=float, default=WATCHDOG_TIME, help="heartbeat watchdog time (s)"
     )
