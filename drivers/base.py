@@ -267,8 +267,9 @@ class Driver(ABC):
 
     Class attributes a driver sets: :attr:`name`, :attr:`honours_deadline`,
     :attr:`echoes_seq`, :attr:`command_lsb`, :attr:`control_modes`; class methods describing
-    its links and twin: :meth:`link_key`, :meth:`link_load`, :meth:`share_key`, :meth:`own_link`,
-    :meth:`inline_twin` (see ``docs/protocols.md``, "Adding a driver").
+    its links and twin: :meth:`link_key`, :meth:`link_load`, :meth:`link_advice`,
+    :meth:`share_key`, :meth:`own_link`, :meth:`inline_twin` (see ``docs/protocols.md``,
+    "Adding a driver").
     """
 
     name: ClassVar[str]
@@ -701,7 +702,8 @@ class Driver(ABC):
         """Load of the link used by ``channels_on_link`` channels at the loop rate ``fs``.
 
         Default: frame sizes unknown, not checked. A driver that knows its frames returns the
-        fraction of the link's capacity (formulas and helpers in :mod:`rths_hil.linkbudget`).
+        fraction of the link's capacity (the link model of its protocol's package, with the
+        shared arithmetic of :mod:`rths_hil.linkbudget`).
         """
         from rths_hil.linkbudget import LinkLoad
 
@@ -712,6 +714,16 @@ class Driver(ABC):
             channels=int(channels_on_link),
             fs=float(fs),
         )
+
+    @classmethod
+    def link_advice(cls, load: LinkLoad, limit: float) -> list[str]:
+        """What else would bring a link of this driver's kind (``load.kind``) under ``limit``.
+
+        :mod:`rths_hil.linkbudget` works out a lower loop rate and fewer channels per link for
+        every link; a driver adds its protocol's own (a higher bit or baud rate, another
+        transport). Default: nothing more.
+        """
+        return []
 
     @classmethod
     def own_link(cls, connection: dict[str, Any]) -> bool:

@@ -38,18 +38,16 @@ import queue
 import threading
 import time
 from collections import deque
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 import can
 from can.interfaces.virtual import VirtualBus
 
 from rths_hil.errors import InputError
 
-if TYPE_CHECKING:
-    from rths_hil.linkbudget import LinkLoad
-
 from ..base import Driver, Feedback, LinkDown
 from .codec import ActuatorCodecs, Frame, load
+from .linkbudget import LinkPlanning
 
 __all__ = [
     "MAX_NODE",
@@ -186,7 +184,7 @@ def _check_node(node: int) -> int:
     return node
 
 
-class CANDriver(Driver):
+class CANDriver(LinkPlanning):
     """Lockstep actuator driver over CAN (see the module docstring).
 
     Parameters
@@ -264,26 +262,7 @@ class CANDriver(Driver):
         self._reader: can.BufferedReader | None = None
         self._hb = 0
 
-    # -- what this driver knows about its links and its twin (rths_hil.drivers.base.Driver) --------
-    @classmethod
-    def link_key(cls, connection: dict[str, Any]) -> str:
-        from rths_hil.linkbudget import can_link_key
-
-        return can_link_key(dict(connection or {}))
-
-    @classmethod
-    def link_load(
-        cls,
-        connection: dict[str, Any],
-        channels_on_link: int,
-        fs: float,
-        *,
-        heartbeat_hz: float = 0.0,
-    ) -> LinkLoad:
-        from rths_hil.linkbudget import can_load
-
-        return can_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
-
+    # -- what this driver knows about its twin (its links: .linkbudget.LinkPlanning) ------------
     @classmethod
     def profile_driver(cls) -> type[Driver]:
         """A lab's own DBC: :class:`~.profile.CANProfileDriver`."""

@@ -174,9 +174,11 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
     Per step: one SYNC for the bus (shared by its axes, :class:`CANopenBus`) plus, per axis,
     RPDO1, TPDO1 and TPDO2; per second the bridge's heartbeat, one per bus (``heartbeat_hz``, at
     least ``1/heartbeat_period``), and each device's (``1/controller_heartbeat``). Frame bits
-    with worst-case stuffing (:func:`rths_hil.linkbudget.can_frame_bits`).
+    with worst-case stuffing (:func:`rths_hil.drivers.can.linkbudget.can_frame_bits`).
     """
-    from rths_hil.linkbudget import LinkLoad, can_frame_bits, link_key
+    from rths_hil.linkbudget import LinkLoad, link_key
+
+    from ..can.linkbudget import can_frame_bits
 
     c = dict(connection or {})
     for key in ("heartbeat_period", "controller_heartbeat"):  # as the driver takes them

@@ -55,16 +55,17 @@ import socket
 import struct
 import time
 from collections import deque
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
+
+from pymodbus.framer import FramerRTU
+from pymodbus.pdu import DecodePDU
 
 from rths_hil.errors import InputError
 
-if TYPE_CHECKING:
-    from rths_hil.linkbudget import LinkLoad
-
 from ..base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Driver, Feedback, LinkDown
 from ..base import extend_seq as _extend_seq
-from .transport import MAX_UNIT, Link, framer, open_serial, open_tcp, rtu_frame_size
+from .linkbudget import LinkPlanning
+from .transport import Link, open_serial, open_tcp, rtu_frame_size
 
 __all__ = [
     "COIL_ESTOP",
@@ -107,8 +108,8 @@ _RTU_REQ = struct.Struct(">BBHHHHBHHi")
 _RTU_RESP = struct.Struct(">BBBHHiiHH")  # with the RTU CRC
 _FB_REGS = struct.Struct(">HHiiH")  # registers 16..22
 _crc_hqx = binascii.crc_hqx
-_RTU_FRAMER = framer(rtu=True)
-_rtu_crc = _RTU_FRAMER.compute_CRC
+_RTU_DECODER = DecodePDU(False)  # the response classes, to cut an RTU frame by its size
+_rtu_crc = FramerRTU.compute_CRC
 
 
 def feedback_crc(block12: bytes) -> int:
@@ -116,7 +117,7 @@ def feedback_crc(block12: bytes) -> int:
     return _crc_hqx(block12, 0xFFFF)
 
 
-class ModbusDriver(Driver):
+class ModbusDriver(LinkPlanning):
     """Lockstep actuator driver over Modbus TCP or RTU (see the module docstring).
 
     Parameters
@@ -196,74 +197,13 @@ class ModbusDriver(Driver):
         # MBAP length, unit id, function code and byte count of a good FC 23 response
         self._resp_head = struct.pack(">HHBBB", 0, _TCP_RESP.size - 6, self.device_id, FC_RW, 14)
 
-    # -- what this driver knows about its links and its twin (rths_hil.drivers.base.Driver) --------
-    @classmethod
-    def link_key(cls, connection: dict[str, Any]) -> str:
-        from rths_hil.linkbudget import modbus_link_key
-
-        return modbus_link_key(dict(connection or {}))
-
-    @classmethod
-    def link_load(
-        cls,
-        connection: dict[str, Any],
-        channels_on_link: int,
-        fs: float,
-        *,
-        heartbeat_hz: float = 0.0,
-    ) -> LinkLoad:
-        from rths_hil.linkbudget import modbus_load
-
-        return modbus_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
-
+    # -- what this driver knows about its twin (its links: .linkbudget.LinkPlanning) ------------
     @classmethod
     def profile_driver(cls) -> type[Driver]:
         """A lab's own register map: :class:`~.profile.ModbusProfileDriver`."""
         from .profile import ModbusProfileDriver
 
         return ModbusProfileDriver
-
-    @classmethod
-    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
-        """Modbus TCP channels on one ``host:port`` need distinct unit ids (``device_id``,
-        1–247); a Modbus RTU line carries one channel."""
-        seen: dict[tuple, str] = {}
-        tcp = [
-            (c.get("host", "127.0.0.1"), c.get("port", 502))
-            for _, _, c, _ in channels
-            if c.get("transport", "tcp") == "tcp"
-        ]
-        for i, name, conn, twin in channels:
-            if conn.get("transport", "tcp") == "rtu":
-                if twin and not conn.get("device"):
-                    continue  # each twin gets a pseudo-terminal of its own
-                key: tuple = ("rtu", conn.get("device"))
-                if key in seen:
-                    raise InputError(
-                        f"actuators: channels {seen[key]!r} and {name!r} use one Modbus RTU line "
-                        "(an RTU line carries one channel; use one serial port per channel or "
-                        "Modbus TCP)"
-                    )
-                seen[key] = name
-                continue
-            if twin and not conn.get("port"):
-                continue  # each twin gets a port of its own
-            unit = conn.get("device_id", 1)
-            host, port = conn.get("host", "127.0.0.1"), conn.get("port", 502)
-            bad = isinstance(unit, bool) or not isinstance(unit, int) or not 1 <= unit <= MAX_UNIT
-            if bad and tcp.count((host, port)) > 1:  # alone, a device may answer unit 255
-                raise InputError(
-                    f"actuators[{i}] ({name}).driver.connection.device_id: {unit!r} is not a "
-                    "Modbus unit id (1–247) for a connection it shares"
-                )
-            key = ("tcp", host, port, unit)
-            if key in seen:
-                raise InputError(
-                    f"actuators: channels {seen[key]!r} and {name!r} both use Modbus unit "
-                    f"{unit} on {host}:{port} (driver.connection.device_id): give each channel "
-                    "its own unit id"
-                )
-            seen[key] = name
 
     # -- transport ------------------------------------------------------------------------------
     def _open_line(self) -> tuple[socket.socket | None, Any, int]:
@@ -391,8 +331,9 @@ class ModbusDriver(Driver):
 
     # -- feedback -------------------------------------------------------------------------------
     def _recv_internal(self, deadline: float) -> Feedback | None:
-        if self._stash is not None:
-            fb, self._stash = self._stash, None
+        fb: Feedback | None = self._stash
+        if fb is not None:
+            self._stash = None
             return fb
         inbox = self._inbox
         if inbox:  # read off the shared connection by another unit's driver
@@ -507,7 +448,7 @@ class ModbusDriver(Driver):
             link.buf = b""
             return None, False
         fc = buf[1]
-        size = rtu_frame_size(_RTU_FRAMER.decoder, buf) or 5  # (an unknown function: its CRC)
+        size = rtu_frame_size(_RTU_DECODER, buf) or 5  # (an unknown function: its CRC)
         if len(buf) < size:
             return None, False
         frame, link.buf = buf[:size], buf[size:]

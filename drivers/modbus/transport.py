@@ -201,16 +201,18 @@ class Link:
             return link
         key = ("tcp", driver.host, driver.port)
         with cls._lock:
-            link = cls._shared.get(key)
-            if link is None:
+            shared = cls._shared.get(key)
+            if shared is None:
                 link = cls(key, driver._open_line, driver._open_estop)
                 link.connect()
                 cls._shared[key] = link
-            elif driver.device_id in link.units:
+            elif driver.device_id in shared.units:
                 raise InputError(
                     f"modbus driver: unit {driver.device_id} is already open on "
                     f"{driver.host}:{driver.port} (give each channel its own device_id)"
                 )
+            else:
+                link = shared
             used = {d._tid_x for d in link.units.values()}
             driver._tid_x = next(s << 8 for s in range(256) if s << 8 not in used)
             link.units[driver.device_id] = driver

@@ -1,20 +1,4 @@
-"""Serial driver: binary frames with a sequence number and a CRC, COBS-framed, over pyserial.
-
-Frame (before framing), all little-endian; the last two bytes are the CRC-16/CCITT-FALSE
-(poly 0x1021, init 0xFFFF, ``binascii.crc_hqx(body, 0xFFFF)``) of everything before them:
-
-=========  ====  ===================================================  =====
-type       id    body after the type byte                             bytes
-=========  ====  ===================================================  =====
-command    0x01  seq u32, control u8 (bit 0 enable), displacement f64  16
-estop      0x02  key u8 = 0xA5                                         4
-heartbeat  0x03  counter u8                                            4
-feedback   0x81  seq u32, status u8, displacement f64, force f64       24
-=========  ====  ===================================================  =====
-
-Each frame is COBS-encoded (``cobs.cobs``, Cheshire & Baker 1999) and terminated by one 0x00
-byte, so a receiver resynchronises at the next zero after any line error. Displacements are
-in metres and forces in newtons as IEEE-754 doubles; NaN marks an invalid measurement.
+"""Serial driver: the frames of :mod:`.framing` (COBS, sequence number, CRC) over pyserial.
 
 Any pyserial URL works: a device (``/dev/ttyUSB0``, a pseudo-terminal ``/dev/pts/N``),
 ``socket://host:port`` or ``loop://``. On POSIX ports the driver waits with ``select`` on the
@@ -23,40 +7,32 @@ file descriptor (no polling sleeps); other URL handlers use pyserial's own timeo
 
 from __future__ import annotations
 
-import binascii
 import os
 import select
-import struct
 import time
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 import serial
-from cobs import cobs
 
 from rths_hil.errors import InputError
 
-if TYPE_CHECKING:
-    from rths_hil.linkbudget import LinkLoad
+from ..base import Feedback, LinkDown
+from .framing import (
+    COMMAND,
+    ESTOP,
+    ESTOP_KEY,
+    FEEDBACK,
+    HEARTBEAT,
+    T_COMMAND,
+    T_ESTOP,
+    T_FEEDBACK,
+    T_HEARTBEAT,
+    decode_frame,
+    encode_frame,
+)
+from .linkbudget import LinkPlanning
 
-from .base import Driver, Feedback, LinkDown
-
-__all__ = [
-    "ESTOP_KEY",
-    "SerialDriver",
-    "decode_frame",
-    "encode_frame",
-]
-
-T_COMMAND, T_ESTOP, T_HEARTBEAT, T_FEEDBACK = 0x01, 0x02, 0x03, 0x81
-ESTOP_KEY = 0xA5
-COMMAND = struct.Struct("<BIBd")
-ESTOP = struct.Struct("<BB")
-HEARTBEAT = struct.Struct("<BB")
-FEEDBACK = struct.Struct("<BIBdd")
-_CRC = struct.Struct("<H")
-_crc = binascii.crc_hqx
-_cobs_encode = cobs.encode
-_cobs_decode = cobs.decode
+__all__ = ["SerialDriver"]
 
 if os.name == "posix":
     from serial.serialposix import Serial as _PosixSerial
@@ -64,30 +40,7 @@ else:  # pragma: no cover - Windows
     _PosixSerial = None
 
 
-def encode_frame(body: bytes) -> bytes:
-    """Append the CRC to ``body``, COBS-encode it and add the 0x00 delimiter."""
-    return _cobs_encode(body + _CRC.pack(_crc(body, 0xFFFF))) + b"\x00"
-
-
-def decode_frame(encoded: bytes) -> tuple[bytes | None, str | None]:
-    """Undo :func:`encode_frame` for one frame without its delimiter.
-
-    Returns ``(body, None)`` or ``(None, reason)`` with reason ``bad_cobs``, ``bad_length`` or
-    ``bad_crc``.
-    """
-    try:
-        raw = _cobs_decode(encoded)
-    except cobs.DecodeError:
-        return None, "bad_cobs"
-    if len(raw) < 3:
-        return None, "bad_length"
-    body = raw[:-2]
-    if _CRC.unpack_from(raw, len(raw) - 2)[0] != _crc(body, 0xFFFF):
-        return None, "bad_crc"
-    return body, None
-
-
-class SerialDriver(Driver):
+class SerialDriver(LinkPlanning):
     """Lockstep actuator driver over a serial line (see the module docstring).
 
     Parameters
@@ -111,41 +64,6 @@ class SerialDriver(Driver):
         self._fd: int | None = None
         self._buf = b""
         self._hb = 0
-
-    # -- what this driver knows about its links and its twin (rths_hil.drivers.base.Driver) --------
-    @classmethod
-    def link_key(cls, connection: dict[str, Any]) -> str:
-        from rths_hil.linkbudget import serial_link_key
-
-        return serial_link_key(dict(connection or {}))
-
-    @classmethod
-    def link_load(
-        cls,
-        connection: dict[str, Any],
-        channels_on_link: int,
-        fs: float,
-        *,
-        heartbeat_hz: float = 0.0,
-    ) -> LinkLoad:
-        from rths_hil.linkbudget import serial_load
-
-        return serial_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
-
-    @classmethod
-    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
-        """A serial port carries one channel."""
-        seen: dict[tuple, str] = {}
-        for _, name, conn, twin in channels:
-            if twin and not (conn.get("url") or conn.get("port")):
-                continue
-            key = (conn.get("url"), conn.get("port"))
-            if key in seen:
-                raise InputError(
-                    f"actuators: channels {seen[key]!r} and {name!r} use one serial port "
-                    "(serial links carry one channel each)"
-                )
-            seen[key] = name
 
     def open(self) -> None:
         if self._ser is not None:

@@ -16,7 +16,7 @@ import socket
 import tty
 from typing import Any
 
-from rths_hil.drivers.serial import (
+from rths_hil.drivers.serial.framing import (
     _CRC,
     COMMAND,
     ESTOP_KEY,
@@ -29,7 +29,7 @@ from rths_hil.drivers.serial import (
     _crc,
     decode_frame,
 )
-from rths_hil.drivers.serial import encode_frame as _encode_frame
+from rths_hil.drivers.serial.framing import encode_frame as _encode_frame
 
 from rths_hil.errors import InputError
 

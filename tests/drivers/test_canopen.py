@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from canopen.profiles.p402 import State402
 from rths_hil.drivers.base import Status
+from rths_hil.drivers.can.linkbudget import can_frame_bits
 from rths_hil.drivers.canopen import CANopenDriver, axes_that_fit, link_load
 from rths_hil.drivers.registry import create_driver
 from rths_hil.sim_backends.endpoints.canopen_twin import EMCY_FOLLOWING_ERROR, default_eds
@@ -29,7 +30,6 @@ from rths_hil.sim_backends.twin import default_plant, start_twin
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.hybrid import RTHSLoop
-from rths_hil.linkbudget import can_frame_bits
 from rths_hil.linkbudget import link_load as budget
 from rths_hil.records.recorder import read_run
 from tests.helpers.loop import run_loop

@@ -1,4 +1,5 @@
-"""Link budget arithmetic (rths_hil.linkbudget) against hand-worked and brute-force frames.
+"""Link budget arithmetic (rths_hil.linkbudget, the protocols' link models) against hand-worked
+and brute-force frames.
 
 References: the issue's hand-worked numbers (an 8-byte classic CAN frame is 111–135 bits;
 command + feedback per channel at 1024 Hz ≈ 28 % of 1 Mbit/s), CAN frames built bit by bit
@@ -22,22 +23,17 @@ from pymodbus.pdu.register_message import (
     ReadWriteMultipleRegistersResponse,
 )
 from rths_hil.drivers.can.codec import DBC_PATH
-from rths_hil.drivers.serial import COMMAND, FEEDBACK, T_COMMAND, T_FEEDBACK, encode_frame
-
-from rths_hil.errors import InputError
-from rths_hil.linkbudget import (
+from rths_hil.drivers.can.linkbudget import (
     can_fd_frame_time,
     can_frame_bits,
     can_serial_frame_chars,
-    check_links,
-    cobs_frame_bytes,
-    format_loads,
-    link_key,
-    link_load,
-    modbus_rtu_frame_bytes,
-    rtu_transaction_time,
-    serial_frame_bytes,
 )
+from rths_hil.drivers.modbus.linkbudget import rtu_frame_bytes, rtu_transaction_time
+from rths_hil.drivers.serial import COMMAND, FEEDBACK, T_COMMAND, T_FEEDBACK, encode_frame
+from rths_hil.drivers.serial.linkbudget import cobs_frame_bytes, serial_frame_bytes
+
+from rths_hil.errors import InputError
+from rths_hil.linkbudget import check_links, format_loads, link_key, link_load
 
 FS = 1024.0
 CAN_1M = {"interface": "socketcan", "channel": "can0", "bitrate": 1_000_000}
@@ -199,7 +195,7 @@ def test_no_limit_links(tmp_path):
 
 
 def test_modbus_rtu_frames_equal_pymodbus():
-    req_n, resp_n = modbus_rtu_frame_bytes()
+    req_n, resp_n = rtu_frame_bytes()
     req = ReadWriteMultipleRegistersRequest(
         read_address=16,
         read_count=7,
