@@ -10,8 +10,10 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 from rths_hil.records.recorder import header_row_count
+from tests.helpers.loop import LoopRun, run_loop
 
 ROOT = Path(__file__).resolve().parents[2]
 LATCH_LINE = "e-stop latched"
@@ -75,29 +77,37 @@ def toml_table(d: dict) -> str:
     return "{" + ", ".join(f"{k} = {value(v)}" for k, v in d.items()) + "}"
 
 
-def bridge_cmd(driver: str, connection: dict, out: Path, *extra: str) -> list[str]:
-    """``rths-hil run`` against an external twin (``twin.enabled = false``): hardware to the
-    bridge, so confirmed, and stepped by its commands (lockstep allowed)."""
+def bridge_overrides(driver: str, connection: dict) -> list[str]:
+    """The configuration of a bridge to an external twin (``twin.enabled = false``): hardware
+    to the bridge, so confirmed, and stepped by its commands (lockstep allowed)."""
     return [
-        sys.executable,
-        "-m",
-        "rths_hil",
-        "run",
-        "-q",
-        "--no-plot",
-        "--confirm-hardware",
-        "--out",
-        str(out),
-        "--set",
         "twin.enabled=false",
-        "--set",
         "driver.stepped=true",
-        "--set",
         f"driver.name={driver}",
-        "--set",
         f"driver.connection={toml_table(connection)}",
-        *extra,
     ]
+
+
+def bridge_cmd(driver: str, connection: dict, out: Path, *extra: str) -> list[str]:
+    """``rths-hil run`` against an external twin, as its own process (:func:`bridge_overrides`)."""
+    sets = [f"--set={s}" for s in bridge_overrides(driver, connection)]
+    cmd = [sys.executable, "-m", "rths_hil", "run", "-q", "--no-plot", "--confirm-hardware"]
+    return [*cmd, "--out", str(out), *sets, *extra]
+
+
+def run_bridge(
+    driver: str,
+    connection: dict,
+    out: Path,
+    *overrides: str,
+    config: Path | None = None,
+    **loop_kwargs: Any,
+) -> LoopRun:
+    """The same bridge run in this process (no second interpreter to start where the bridge's
+    own process is not the point): ``overrides`` after :func:`bridge_overrides`;
+    ``loop_kwargs`` (``mode``, ``duration`` …) to :class:`rths_hil.hybrid.RTHSLoop`."""
+    sets = [*bridge_overrides(driver, connection), "loop.confirm_hardware=true"]
+    return run_loop(out, config, *sets, *overrides, **loop_kwargs)
 
 
 def start_bridge(cmd: list[str]) -> subprocess.Popen:

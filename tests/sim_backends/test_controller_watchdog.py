@@ -15,7 +15,6 @@ falls silent.
 
 from __future__ import annotations
 
-import json
 import time
 
 import numpy as np
@@ -30,6 +29,7 @@ from tests.helpers.procs import (
     ServedTwin,
     bridge_cmd,
     kill9,
+    run_bridge,
     start_bridge,
     wait_rows,
 )
@@ -47,21 +47,18 @@ TIMEOUT_IN = 0.1
 # most 50 ms), plus the log line's trip through a pipe, on a loaded machine
 SLACK = 0.25
 # steps the bridge takes before it is killed (the twin enabled and fed by then)
-ROWS = 1000
+ROWS = 300
 LATCHED = int(Status.ESTOP_ACTIVE | Status.WATCHDOG)
 
 
-def _second_run(driver, connection, out, *extra):
+def _second_run(driver, connection, out, *overrides):
     """A new lockstep run against the same twin: must arm it and complete (0.25 s: 256 steps,
-    each on a reply)."""
-    import subprocess
-
-    cmd = bridge_cmd(driver, connection, out, "--lockstep", "--duration", "0.25", *extra)
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr
-    events = [json.loads(x) for x in (out / "events.jsonl").read_text().splitlines()]
-    arm = next(e for e in events if e["kind"] == "arm")
-    return arm, np.load(out / "record.npy")
+    each on a reply). In this process: a new run is what the twin must accept, not a new
+    process."""
+    r = run_bridge(driver, connection, out, *overrides, mode="lockstep", duration=0.25)
+    assert r.result.status == "completed", r.result.trip
+    arm = next(e for e in r.run.events if e["kind"] == "arm")
+    return arm, r.run.record
 
 
 @pytest.fixture()
@@ -239,9 +236,9 @@ def test_modbus_map_twin_latches_when_the_bridge_is_killed(modbus_map_twin, tmp_
 
     prof = load_profile(MAP)
     conn = modbus_map_twin.connection
-    profile = [f"--set=driver.profile={MAP}"]
+    profile = f"driver.profile={MAP}"
     _kill_bridge_and_time_latch(
-        modbus_map_twin, "modbus", "modbus-map", tmp_path / "run1", *profile
+        modbus_map_twin, "modbus", "modbus-map", tmp_path / "run1", f"--set={profile}"
     )
     # what a plain Modbus client sees at the map's addresses: the status word latched, not
     # enabled, and the position and force input registers held
@@ -262,7 +259,7 @@ def test_modbus_map_twin_latches_when_the_bridge_is_killed(modbus_map_twin, tmp_
     assert r1.registers == r2.registers  # holding: position and force unchanged
     # a second run against the same twin acknowledges and arms it, and completes (the map's
     # status is read after the acknowledge was written: the latch shows cleared)
-    arm, rec = _second_run("modbus", conn, tmp_path / "run2", *profile)
+    arm, rec = _second_run("modbus", conn, tmp_path / "run2", profile)
     assert arm["replied"] and arm["status"] & LATCHED == 0
     assert rec["feedback_ok"].all() and len(rec) == 256
 
@@ -282,8 +279,10 @@ def test_can_dbc_twin_latches_when_the_bridge_is_killed(tmp_path):
     try:
         conn = twin.connection
         assert conn["interface"] == "serial" and conn["channel"].startswith("/dev/pts/")
-        profile = [f"--set=driver.profile={DBC}"]
-        _kill_bridge_and_time_latch(twin, "can", "can-dbc serial", tmp_path / "run1", *profile)
+        profile = f"driver.profile={DBC}"
+        _kill_bridge_and_time_latch(
+            twin, "can", "can-dbc serial", tmp_path / "run1", f"--set={profile}"
+        )
         cmd, fb = prof.command, prof.feedback
         sp, en = prof.roles["setpoint"], prof.actions["enable"]
         pos, st = prof.roles["position"], prof.roles["status"]
@@ -311,7 +310,7 @@ def test_can_dbc_twin_latches_when_the_bridge_is_killed(tmp_path):
             assert not word & masks[int(Status.ENABLED)]
         assert replies[0][pos.signal] == replies[1][pos.signal]  # holds, ignores both commands
         # a second run against the same twin acknowledges the latch at arming and completes
-        arm, rec = _second_run("can", conn, tmp_path / "run2", *profile)
+        arm, rec = _second_run("can", conn, tmp_path / "run2", profile)
         assert arm["replied"] and arm["status"] & LATCHED == LATCHED
         assert rec["feedback_ok"].all() and len(rec) == 256
     finally:
