@@ -47,7 +47,7 @@ import can
 from rths_hil.drivers.can.codec import load as load_dbc
 from rths_hil.drivers.modbus.driver import _TCP_REQ, READ_ADDRESS, READ_COUNT, WRITE_ADDRESS
 from rths_hil.drivers.registry import create_driver
-from rths_hil.drivers.serial import COMMAND, T_COMMAND, encode_frame
+from rths_hil.drivers.serial.framing import COMMAND, T_COMMAND, encode_frame
 from rths_hil.sim_backends.twin import default_plant, start_twin
 
 Step = Callable[[int], None]
@@ -286,7 +286,7 @@ def modbus_rtu_modes(n: int) -> dict[str, tuple[Step, Callable[[], None]]]:
 
 # -- serial -------------------------------------------------------------------------------------
 def serial_modes(n: int) -> dict[str, tuple[Step, Callable[[], None]]]:
-    from rths_hil.drivers.serial import FEEDBACK, T_FEEDBACK
+    from rths_hil.drivers.serial.framing import FEEDBACK, T_FEEDBACK
 
     command = encode_frame(COMMAND.pack(T_COMMAND, 1, 1, 0.001))
     reply = encode_frame(FEEDBACK.pack(T_FEEDBACK, 1, 1, 0.001, 1.0))

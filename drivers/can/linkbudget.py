@@ -92,33 +92,6 @@ CAN_SERIAL_INTERFACES = ("slcan", "serial")
 CAN_SERIAL_DEFAULT_BAUD = 115200
 
 
-class LinkPlanning(Driver):
-    """What the CAN driver class knows of its link (a part of
-    :class:`~rths_hil.drivers.can.CANDriver`)."""
-
-    @classmethod
-    def link_key(cls, connection: dict[str, Any]) -> str:
-        """CAN: interface and channel (:func:`link_key`)."""
-        return link_key(dict(connection or {}))
-
-    @classmethod
-    def link_load(
-        cls,
-        connection: dict[str, Any],
-        channels_on_link: int,
-        fs: float,
-        *,
-        heartbeat_hz: float = 0.0,
-    ) -> LinkLoad:
-        """Command and feedback frames on the bus (:func:`link_load`)."""
-        return link_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
-
-    @classmethod
-    def link_advice(cls, load: LinkLoad, limit: float) -> list[str]:
-        """A CAN bus over the limit: the next standard bit rate, CAN FD (:func:`link_advice`)."""
-        return link_advice(load, limit)
-
-
 # --------------------------------------------------------------------------------------------
 # frames on the wire
 # --------------------------------------------------------------------------------------------
@@ -213,7 +186,7 @@ def _can_frame_lengths(dbc: str | None) -> tuple[int, int, int]:
 # --------------------------------------------------------------------------------------------
 def link_key(connection: dict[str, Any]) -> str:
     """CAN: interface and channel."""
-    c = connection
+    c = connection or {}
     return f"can {c.get('interface', 'virtual')}:{c.get('channel', 'rths-hil')}"
 
 
@@ -366,3 +339,13 @@ def link_advice(ld: LinkLoad, limit: float) -> list[str]:
                 what = "frames"
             options.append(f"CAN FD ({rates}) {what}: {fd * 100:.0f} %")
     return options
+
+
+class LinkPlanning(Driver):
+    """What the CAN driver class knows of its link (a part of
+    :class:`~rths_hil.drivers.can.CANDriver`)."""
+
+    link_key = staticmethod(link_key)
+    link_load = staticmethod(link_load)
+
+    link_advice = staticmethod(link_advice)

@@ -55,7 +55,8 @@ import socket
 import struct
 import time
 from collections import deque
-from typing import Any, ClassVar
+from collections.abc import Callable
+from typing import ClassVar
 
 from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU
@@ -65,7 +66,7 @@ from rths_hil.errors import InputError
 from ..base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Driver, Feedback, LinkDown
 from ..base import extend_seq as _extend_seq
 from .linkbudget import LinkPlanning
-from .transport import Link, open_serial, open_tcp, rtu_frame_size
+from .transport import Link, rtu_frame_size
 
 __all__ = [
     "COIL_ESTOP",
@@ -206,17 +207,6 @@ class ModbusDriver(LinkPlanning):
         return ModbusProfileDriver
 
     # -- transport ------------------------------------------------------------------------------
-    def _open_line(self) -> tuple[socket.socket | None, Any, int]:
-        """Open the transport (:class:`~.transport.Link`'s opener)."""
-        if self._rtu:
-            ser = open_serial(self.device, self.baudrate, self.parity, self.stopbits)
-            return None, ser, ser.fd
-        sock = self._open_estop()
-        return sock, None, sock.fileno()
-
-    def _open_estop(self) -> socket.socket:
-        return open_tcp(self.host, self.port, self.connect_timeout)
-
     @property
     def link(self) -> Link | None:
         """The transport this driver uses (shared with the other units on it over TCP)."""
@@ -342,12 +332,9 @@ class ModbusDriver(LinkPlanning):
         if link is None:
             raise LinkDown("modbus driver closed")
         parse = self._parse_rtu if self._rtu else self._parse_tcp
-        while link.buf:
-            fb, more = parse(link)
-            if fb is not None:
-                return fb
-            if not more:
-                break
+        fb = self._parse_all(link, parse)
+        if fb is not None:
+            return fb
         if link.fd is None:
             raise LinkDown("modbus connection lost")
         remaining = deadline - time.perf_counter()
@@ -359,16 +346,25 @@ class ModbusDriver(LinkPlanning):
             raise LinkDown("modbus connection lost") from None
         if data:
             link.buf += data
-            while link.buf:
-                fb, more = parse(link)
-                if fb is not None:
-                    return fb
-                if not more:
-                    break
-        elif remaining <= 0 and self._rtu and link.buf:
+            return self._parse_all(link, parse)
+        if remaining <= 0 and self._rtu and link.buf:
             # an idle line ends an RTU frame: drop the rest
             self.stats.count_malformed("bad_length")
             link.buf = b""
+        return None
+
+    @staticmethod
+    def _parse_all(
+        link: Link, parse: Callable[[Link], tuple[Feedback | None, bool]]
+    ) -> Feedback | None:
+        """The first feedback among the frames in ``link.buf`` (``parse`` takes them one by
+        one), or ``None`` when none is complete."""
+        while link.buf:
+            fb, more = parse(link)
+            if fb is not None:
+                return fb
+            if not more:
+                break
         return None
 
     def _deliver(self, raw_seq: int, status: int, rd: int, rf: int) -> Feedback | None:

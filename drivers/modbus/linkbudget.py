@@ -64,84 +64,6 @@ ETHERNET_BITRATE = 100_000_000
 TCP_SEGMENT_OVERHEAD = 90
 
 
-class LinkPlanning(Driver):
-    """What the Modbus driver class knows of its link (a part of
-    :class:`~rths_hil.drivers.modbus.ModbusDriver`)."""
-
-    @classmethod
-    def link_key(cls, connection: dict[str, Any]) -> str:
-        """Modbus TCP: host and port; RTU: the serial device (:func:`link_key`)."""
-        return link_key(dict(connection or {}))
-
-    @classmethod
-    def link_load(
-        cls,
-        connection: dict[str, Any],
-        channels_on_link: int,
-        fs: float,
-        *,
-        heartbeat_hz: float = 0.0,
-    ) -> LinkLoad:
-        """FC 23 transactions on the line, or MBAP frames in TCP segments (:func:`link_load`)."""
-        return link_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
-
-    @classmethod
-    def link_advice(cls, load: LinkLoad, limit: float) -> list[str]:
-        """An RTU line over the limit: the next standard baud rate, or Modbus TCP."""
-        if load.kind != "modbus-rtu" or not (load.rate and load.load):
-            return []
-        needed = load.rate * load.load / limit
-        r = next((b for b in BAUDRATES if b >= needed), None)
-        out = []
-        if r is not None and r > load.rate:
-            out.append(f"{r} baud")
-        elif r is None:
-            out.append(f"a line faster than {BAUDRATES[-1]} baud")
-        return [*out, "Modbus TCP"]
-
-    @classmethod
-    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
-        """Modbus TCP channels on one ``host:port`` need distinct unit ids (``device_id``,
-        1–247); a Modbus RTU line carries one channel."""
-        seen: dict[tuple, str] = {}
-        tcp = [
-            (c.get("host", "127.0.0.1"), c.get("port", 502))
-            for _, _, c, _ in channels
-            if c.get("transport", "tcp") == "tcp"
-        ]
-        for i, name, conn, twin in channels:
-            if conn.get("transport", "tcp") == "rtu":
-                if twin and not conn.get("device"):
-                    continue  # each twin gets a pseudo-terminal of its own
-                key: tuple = ("rtu", conn.get("device"))
-                if key in seen:
-                    raise InputError(
-                        f"actuators: channels {seen[key]!r} and {name!r} use one Modbus RTU line "
-                        "(an RTU line carries one channel; use one serial port per channel or "
-                        "Modbus TCP)"
-                    )
-                seen[key] = name
-                continue
-            if twin and not conn.get("port"):
-                continue  # each twin gets a port of its own
-            unit = conn.get("device_id", 1)
-            host, port = conn.get("host", "127.0.0.1"), conn.get("port", 502)
-            bad = isinstance(unit, bool) or not isinstance(unit, int) or not 1 <= unit <= MAX_UNIT
-            if bad and tcp.count((host, port)) > 1:  # alone, a device may answer unit 255
-                raise InputError(
-                    f"actuators[{i}] ({name}).driver.connection.device_id: {unit!r} is not a "
-                    "Modbus unit id (1–247) for a connection it shares"
-                )
-            key = ("tcp", host, port, unit)
-            if key in seen:
-                raise InputError(
-                    f"actuators: channels {seen[key]!r} and {name!r} both use Modbus unit "
-                    f"{unit} on {host}:{port} (driver.connection.device_id): give each channel "
-                    "its own unit id"
-                )
-            seen[key] = name
-
-
 def rtu_frame_bytes(
     write_count: int | None = None, read_count: int | None = None
 ) -> tuple[int, int]:
@@ -184,7 +106,7 @@ def rtu_transaction_time(
 
 def link_key(connection: dict[str, Any]) -> str:
     """Modbus TCP: host and port; RTU: the serial device."""
-    c = connection
+    c = connection or {}
     if c.get("transport", "tcp") == "rtu":
         return f"modbus rtu {c.get('device') or 'twin pty'}"
     return f"modbus tcp {c.get('host', '127.0.0.1')}:{c.get('port', 502)}"
@@ -274,3 +196,67 @@ def link_load(
         per_channel=bits / ETHERNET_BITRATE,
         **base,
     )
+
+
+class LinkPlanning(Driver):
+    """What the Modbus driver class knows of its link (a part of
+    :class:`~rths_hil.drivers.modbus.ModbusDriver`)."""
+
+    link_key = staticmethod(link_key)
+    link_load = staticmethod(link_load)
+
+    @classmethod
+    def link_advice(cls, load: LinkLoad, limit: float) -> list[str]:
+        """An RTU line over the limit: the next standard baud rate, or Modbus TCP."""
+        if load.kind != "modbus-rtu" or not (load.rate and load.load):
+            return []
+        needed = load.rate * load.load / limit
+        r = next((b for b in BAUDRATES if b >= needed), None)
+        out = []
+        if r is not None and r > load.rate:
+            out.append(f"{r} baud")
+        elif r is None:
+            out.append(f"a line faster than {BAUDRATES[-1]} baud")
+        return [*out, "Modbus TCP"]
+
+    @classmethod
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
+        """Modbus TCP channels on one ``host:port`` need distinct unit ids (``device_id``,
+        1–247); a Modbus RTU line carries one channel."""
+        seen: dict[tuple, str] = {}
+        tcp = [
+            (c.get("host", "127.0.0.1"), c.get("port", 502))
+            for _, _, c, _ in channels
+            if c.get("transport", "tcp") == "tcp"
+        ]
+        for i, name, conn, twin in channels:
+            if conn.get("transport", "tcp") == "rtu":
+                if twin and not conn.get("device"):
+                    continue  # each twin gets a pseudo-terminal of its own
+                key: tuple = ("rtu", conn.get("device"))
+                if key in seen:
+                    raise InputError(
+                        f"actuators: channels {seen[key]!r} and {name!r} use one Modbus RTU line "
+                        "(an RTU line carries one channel; use one serial port per channel or "
+                        "Modbus TCP)"
+                    )
+                seen[key] = name
+                continue
+            if twin and not conn.get("port"):
+                continue  # each twin gets a port of its own
+            unit = conn.get("device_id", 1)
+            host, port = conn.get("host", "127.0.0.1"), conn.get("port", 502)
+            bad = isinstance(unit, bool) or not isinstance(unit, int) or not 1 <= unit <= MAX_UNIT
+            if bad and tcp.count((host, port)) > 1:  # alone, a device may answer unit 255
+                raise InputError(
+                    f"actuators[{i}] ({name}).driver.connection.device_id: {unit!r} is not a "
+                    "Modbus unit id (1–247) for a connection it shares"
+                )
+            key = ("tcp", host, port, unit)
+            if key in seen:
+                raise InputError(
+                    f"actuators: channels {seen[key]!r} and {name!r} both use Modbus unit "
+                    f"{unit} on {host}:{port} (driver.connection.device_id): give each channel "
+                    "its own unit id"
+                )
+            seen[key] = name

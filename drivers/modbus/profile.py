@@ -92,7 +92,7 @@ from rths_hil.errors import InputError
 from ..base import Driver, Feedback, LinkDown, Status, extend_seq
 from ..profile import MODE_ACTIONS, ModbusAction, ModbusProfile, load_profile, status_from_word
 from .layout import BlockLayout, PointLayout, RequestTemplate, StepReply
-from .transport import EXCEPTIONS, Link, framer, open_serial, open_tcp, rtu_frame_size
+from .transport import EXCEPTIONS, Link, framer, openers, rtu_frame_size
 
 __all__ = ["ModbusProfileDriver"]
 
@@ -299,7 +299,7 @@ class ModbusProfileDriver(Driver):
         if self._template is None:
             self._compile()
         if self._link is None:
-            self._link = Link(None, self._open_line, self._open_estop)
+            self._link = Link(None, *openers(self))
         link = self._link
         link.connect()
         try:
@@ -401,17 +401,6 @@ class ModbusProfileDriver(Driver):
             f"{fs:g} Hz; expect missed replies (held measurements). At most "
             f"{LINK_FILL / need:.0f} Hz leaves a quarter of the period free"
         )
-
-    def _open_line(self) -> tuple[socket.socket | None, Any, int]:
-        """Open the transport (:class:`~.transport.Link`'s opener)."""
-        if self._rtu:
-            ser = open_serial(self.device, self.baudrate, self.parity, self.stopbits)
-            return None, ser, ser.fd
-        sock = self._open_estop()
-        return sock, None, sock.fileno()
-
-    def _open_estop(self) -> socket.socket:
-        return open_tcp(self.host, self.port, self.connect_timeout)
 
     @property
     def _fd(self) -> int | None:

@@ -43,6 +43,7 @@ __all__ = [
     "illegal_data_value",
     "open_serial",
     "open_tcp",
+    "openers",
     "rtu_frame_size",
 ]
 
@@ -134,6 +135,24 @@ def open_serial(device: str | None, baudrate: int, parity: str, stopbits: int) -
     return ser
 
 
+def openers(d: Any) -> tuple[Opener, Callable[[], socket.socket]]:
+    """What opens the transport of driver ``d`` (its ``_rtu``, ``device``, ``baudrate``,
+    ``parity``, ``stopbits``, ``host``, ``port`` and ``connect_timeout``) and what opens the
+    e-stop's own connection (TCP)."""
+
+    def estop() -> socket.socket:
+        return open_tcp(d.host, d.port, d.connect_timeout)
+
+    def line() -> tuple[socket.socket | None, Any, int]:
+        if d._rtu:
+            ser = open_serial(d.device, d.baudrate, d.parity, d.stopbits)
+            return None, ser, ser.fd
+        sock = estop()
+        return sock, None, sock.fileno()
+
+    return line, estop
+
+
 class Link:
     """One transport (a TCP connection or a serial line) and the drivers of the units on it.
 
@@ -194,8 +213,9 @@ class Link:
             Another open driver already speaks to this unit on this link, or the transport
             cannot be opened.
         """
+        line, estop = openers(driver)
         if driver._rtu:
-            link = cls(None, driver._open_line)
+            link = cls(None, line)
             link.units[driver.device_id] = driver
             link.connect()
             return link
@@ -203,7 +223,7 @@ class Link:
         with cls._lock:
             shared = cls._shared.get(key)
             if shared is None:
-                link = cls(key, driver._open_line, driver._open_estop)
+                link = cls(key, line, estop)
                 link.connect()
                 cls._shared[key] = link
             elif driver.device_id in shared.units:

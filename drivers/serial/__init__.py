@@ -2,31 +2,5 @@
 share), :mod:`.driver` (:class:`SerialDriver`) and :mod:`.linkbudget` (its link model)."""
 
 from .driver import SerialDriver
-from .framing import (
-    COMMAND,
-    ESTOP,
-    ESTOP_KEY,
-    FEEDBACK,
-    HEARTBEAT,
-    T_COMMAND,
-    T_ESTOP,
-    T_FEEDBACK,
-    T_HEARTBEAT,
-    decode_frame,
-    encode_frame,
-)
 
-__all__ = [
-    "COMMAND",
-    "ESTOP",
-    "ESTOP_KEY",
-    "FEEDBACK",
-    "HEARTBEAT",
-    "T_COMMAND",
-    "T_ESTOP",
-    "T_FEEDBACK",
-    "T_HEARTBEAT",
-    "SerialDriver",
-    "decode_frame",
-    "encode_frame",
-]
+__all__ = ["SerialDriver"]

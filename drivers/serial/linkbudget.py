@@ -34,49 +34,6 @@ if TYPE_CHECKING:
 __all__ = ["LinkPlanning", "cobs_frame_bytes", "link_key", "link_load", "serial_frame_bytes"]
 
 
-class LinkPlanning(Driver):
-    """What the serial driver class knows of its link (a part of
-    :class:`~rths_hil.drivers.serial.SerialDriver`)."""
-
-    @classmethod
-    def link_key(cls, connection: dict[str, Any]) -> str:
-        """Serial: the port or URL (:func:`link_key`)."""
-        return link_key(dict(connection or {}))
-
-    @classmethod
-    def link_load(
-        cls,
-        connection: dict[str, Any],
-        channels_on_link: int,
-        fs: float,
-        *,
-        heartbeat_hz: float = 0.0,
-    ) -> LinkLoad:
-        """The COBS frames on the line (:func:`link_load`)."""
-        return link_load(connection, channels_on_link, fs, heartbeat_hz=heartbeat_hz)
-
-    @classmethod
-    def link_advice(cls, load: LinkLoad, limit: float) -> list[str]:
-        """A serial line over the limit (``kind`` ``serial``: this driver's, or a CAN adapter's
-        line): the next standard baud rate."""
-        return baud_advice(load, limit) if load.kind == "serial" else []
-
-    @classmethod
-    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
-        """A serial port carries one channel."""
-        seen: dict[tuple, str] = {}
-        for _, name, conn, twin in channels:
-            if twin and not (conn.get("url") or conn.get("port")):
-                continue
-            key = (conn.get("url"), conn.get("port"))
-            if key in seen:
-                raise InputError(
-                    f"actuators: channels {seen[key]!r} and {name!r} use one serial port "
-                    "(serial links carry one channel each)"
-                )
-            seen[key] = name
-
-
 def baud_advice(ld: LinkLoad, limit: float) -> list[str]:
     """The next standard baud rate that brings the line ``ld`` under ``limit``."""
     if not (ld.rate and ld.load):
@@ -106,7 +63,7 @@ def serial_frame_bytes() -> tuple[int, int]:
 
 def link_key(connection: dict[str, Any]) -> str:
     """Serial: the port or URL."""
-    return f"serial {connection.get('url') or 'twin pty'}"
+    return f"serial {(connection or {}).get('url') or 'twin pty'}"
 
 
 def link_load(
@@ -152,3 +109,32 @@ def link_load(
         per_second=t_hb,
         **base,
     )
+
+
+class LinkPlanning(Driver):
+    """What the serial driver class knows of its link (a part of
+    :class:`~rths_hil.drivers.serial.SerialDriver`)."""
+
+    link_key = staticmethod(link_key)
+    link_load = staticmethod(link_load)
+
+    @classmethod
+    def link_advice(cls, load: LinkLoad, limit: float) -> list[str]:
+        """A serial line over the limit (``kind`` ``serial``: this driver's, or a CAN adapter's
+        line): the next standard baud rate."""
+        return baud_advice(load, limit) if load.kind == "serial" else []
+
+    @classmethod
+    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
+        """A serial port carries one channel."""
+        seen: dict[tuple, str] = {}
+        for _, name, conn, twin in channels:
+            if twin and not (conn.get("url") or conn.get("port")):
+                continue
+            key = (conn.get("url"), conn.get("port"))
+            if key in seen:
+                raise InputError(
+                    f"actuators: channels {seen[key]!r} and {name!r} use one serial port "
+                    "(serial links carry one channel each)"
+                )
+            seen[key] = name

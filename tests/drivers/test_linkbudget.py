@@ -29,7 +29,7 @@ from rths_hil.drivers.can.linkbudget import (
     can_serial_frame_chars,
 )
 from rths_hil.drivers.modbus.linkbudget import rtu_frame_bytes, rtu_transaction_time
-from rths_hil.drivers.serial import COMMAND, FEEDBACK, T_COMMAND, T_FEEDBACK, encode_frame
+from rths_hil.drivers.serial.framing import COMMAND, FEEDBACK, T_COMMAND, T_FEEDBACK, encode_frame
 from rths_hil.drivers.serial.linkbudget import cobs_frame_bytes, serial_frame_bytes
 
 from rths_hil.errors import InputError
