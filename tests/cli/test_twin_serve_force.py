@@ -2,24 +2,23 @@
 
 The twin serves the force-controlled twin of a model file behind the Modbus map with a force
 set-point (examples/controllers/column_axial_map.toml) or a CiA 402 drive in cyclic synchronous
-torque; the bridge, another process, runs a short lockstep force-controlled SDOF test against
-it (``control = "force"``, ``twin.enabled = false``). The reference is the all-numerical model
-of the same structure, ``m ü + (c + c_s) u̇ + (k + k_s) u = −m a_g``, integrated by scipy: it
-only agrees when the served twin closed a force loop on the model file's specimen.
+torque; the bridge (in the test's process) runs a short lockstep force-controlled SDOF test
+against it (``control = "force"``, ``twin.enabled = false``). The reference is the
+all-numerical model of the same structure, ``m ü + (c + c_s) u̇ + (k + k_s) u = −m a_g``,
+integrated by scipy: it only agrees when the served twin closed a force loop on the model
+file's specimen.
 """
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from rths_hil.records.recorder import read_run
 from tests.helpers.cli import one_line_exit_2
-from tests.helpers.procs import ROOT, ServedTwin, bridge_cmd
+from tests.helpers.procs import ROOT, ServedTwin, run_bridge
 
 MAP = ROOT / "examples" / "controllers" / "column_axial_map.toml"
 M, FN, ZETA = 5000.0, 2.0, 0.02  # the numerical frame
@@ -70,7 +69,7 @@ def _reference(t: np.ndarray, ag: np.ndarray) -> np.ndarray:
     return sol.y[0]
 
 
-@pytest.mark.timing  # two processes
+@pytest.mark.timing  # another process
 @pytest.mark.parametrize("driver", sorted(FAMILIES))
 def test_served_force_twin_runs_a_lockstep_force_channel(tmp_path: Path, driver: str) -> None:
     model = tmp_path / "force_twin.toml"
@@ -88,13 +87,12 @@ def test_served_force_twin_runs_a_lockstep_force_channel(tmp_path: Path, driver:
         "--driver", driver, *serve, "--model", str(model),
         "--control", "force", "--force-loop-gain", "2e-4", "--heartbeat-timeout", "0",
     )  # fmt: skip
-    try:
-        cmd = bridge_cmd(driver, twin.connection, out, "--lockstep", "--duration=1", str(cfg))
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    try:  # the bridge in this process: the twin's own process is the point
+        res = run_bridge(driver, twin.connection, out, config=cfg, mode="lockstep", duration=1.0)
     finally:
         twin.stop()
-    assert proc.returncode == 0, proc.stderr
-    run = read_run(out)
+    assert res.result.status == "completed", res.result.trip
+    run = res.run
     (ch,) = run.meta["channels"]
     assert (ch["control"], ch["tracked"]) == ("force", "force")
     rec = run.record

@@ -98,14 +98,14 @@ def test_kill_9_leaves_the_record_complete_up_to_the_kill(tmp_path):
     out = tmp_path / "run"
     proc = _start(out)
     _wait_rows(out / "record.npy", proc)
-    time.sleep(2.0)
+    time.sleep(1.0)
     t_kill = time.time()
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)
     run = read_run(out)
     rec = run.record
     n = len(rec)
-    assert n > 2 * FS * 0.9
+    assert n > FS * 0.9
     np.testing.assert_array_equal(rec["step"], np.arange(n))
     # the last flushed row was sent at most 0.25 s before the kill
     t_last = _wall_t0(run) + rec["time"][-1] + rec["lateness"][-1]
@@ -117,6 +117,10 @@ def test_kill_9_leaves_the_record_complete_up_to_the_kill(tmp_path):
 
 @timing
 def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
+    """Ctrl-C (SIGINT) stops the run as every stop signal does (a closed terminal's SIGHUP, a
+    SIGTERM: the same handler, test_every_stop_signal_is_the_operator_stop_and_a_second_one_
+    interrupts): the stop and end events, every controller handed back disabled and not
+    latched, no e-stop, exit 130 with one line."""
     out = tmp_path / "run"
     proc = _start(out)
     _wait_rows(out / "record.npy", proc)
@@ -129,6 +133,8 @@ def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
     run = read_run(out)
     kinds = [e["kind"] for e in run.events]
     assert "operator_stop" in kinds and kinds[-1] == "end"
+    stop = next(e for e in run.events if e["kind"] == "operator_stop")
+    assert stop["signal"] == "SIGINT"
     end = run.events[-1]
     assert end["status"] == "operator_stop" and end["step"] == len(run.record)
     # an operator stop holds the actuator and hands the controller back disabled (no e-stop)
@@ -144,8 +150,8 @@ def test_every_stop_signal_is_the_operator_stop_and_a_second_one_interrupts():
     :class:`rths_hil.stopping.OperatorStop`, one handler for every signal of STOP_SIGNALS:
     each one, sent to this process, is recorded by its name and the command's next check
     stops; a second one raises at once; the handlers are restored after. With this, one
-    signal proves a command's whole stop path (SIGHUP below, SIGINT above; SIGTERM in
-    test_start_end.py and test_commission.py)."""
+    signal proves a command's whole stop path (SIGINT above; SIGTERM in test_start_end.py and
+    test_commission.py)."""
     from rths_hil.hybrid.runner import STOP_SIGNALS
     from rths_hil.stopping import OperatorStop, Stopped
 
@@ -163,25 +169,3 @@ def test_every_stop_signal_is_the_operator_stop_and_a_second_one_interrupts():
             with pytest.raises(KeyboardInterrupt):
                 signal.raise_signal(sig)
         assert {s: signal.getsignal(s) for s in STOP_SIGNALS} == before  # restored
-
-
-# one signal: every stop signal is caught by the same OperatorStop (the test above)
-@timing
-@pytest.mark.parametrize("sig", [signal.SIGHUP])
-def test_every_terminating_signal_takes_the_operator_stop_path(tmp_path, sig):
-    """A closed terminal or ssh session (SIGHUP) stops the run as Ctrl-C does: the stop and
-    end events, every controller handed back disabled and not latched, exit 130."""
-    out = tmp_path / "run"
-    proc = _start(out)
-    _wait_rows(out / "record.npy", proc)
-    proc.send_signal(sig)
-    proc.communicate(timeout=30)
-    assert proc.returncode == 130
-    run = read_run(out)
-    stop = next(e for e in run.events if e["kind"] == "operator_stop")
-    assert stop["signal"] == signal.Signals(sig).name
-    assert run.events[-1]["kind"] == "end" and run.events[-1]["status"] == "operator_stop"
-    assert run.events[-1]["step"] == len(run.record)
-    assert not any(e["kind"] == "estop" for e in run.events)
-    handback = next(e for e in run.events if e["kind"] == "handback")
-    assert handback["disabled"] is True and handback["latched"] is False
