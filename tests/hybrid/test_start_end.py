@@ -33,7 +33,15 @@ from rths_hil.hybrid.phases import cosine_ramp, ramp_duration
 from rths_hil.records.recorder import read_run
 from tests.helpers.cli import one_line_exit_2
 from tests.helpers.loop import run_loop
-from tests.helpers.procs import LATCH_LINE, ROOT, ServedTwin, bridge_cmd, toml_table, wait_rows
+from tests.helpers.procs import (
+    LATCH_LINE,
+    ROOT,
+    ServedTwin,
+    bridge_cmd,
+    run_bridge,
+    toml_table,
+    wait_rows,
+)
 
 # The start and end phases in lockstep, the refusals and the served twin in lockstep run with
 # the parallel tests; the paced runs against a served twin run apart from them, one at a time
@@ -293,10 +301,10 @@ def _modbus_status(conn) -> int:
 @pytest.mark.timing
 def test_served_twin_logs_no_latch_after_a_completed_paced_run(served, tmp_path):
     out = tmp_path / "run"
-    cmd = bridge_cmd("modbus", served.connection, out, "--paced", "--duration", "1")
-    cmd += [f"--set={s}" for s in [*BASE, *PACED]]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr
+    # the bridge in this process (the twin is the other one; a bridge process's own stop is
+    # the next test)
+    r = run_bridge("modbus", served.connection, out, *BASE, *PACED, mode="paced", duration=1.0)
+    assert r.result.status == "completed", r.result.trip
     t_end = time.monotonic()
     time.sleep(3 * HB)  # well past the controller's watchdog
     assert served.first(LATCH_LINE, timeout=0.1) is None, served.lines
