@@ -30,8 +30,9 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 import serial
+from pymodbus.constants import ExcCodes
 from pymodbus.framer import FramerRTU, FramerSocket
-from pymodbus.pdu import DecodePDU
+from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 
 from rths_hil.errors import InputError
 
@@ -39,8 +40,10 @@ __all__ = [
     "EXCEPTIONS",
     "MAX_UNIT",
     "Link",
+    "check_request",
     "framer",
     "illegal_data_value",
+    "next_request",
     "open_serial",
     "open_tcp",
     "openers",
@@ -106,6 +109,45 @@ def illegal_data_value(pdu: bytes) -> bool:
     except struct.error:
         return True
     return False
+
+
+def next_request(frm: FramerRTU | FramerSocket, buf: bytes) -> tuple[int, int, int, bytes] | None:
+    """The request at the head of a server's ``buf``: ``(bytes used, unit id, transaction id,
+    PDU)``, ``None`` while no whole frame is there.
+
+    An RTU request is cut by the size its PDU class computes (pymodbus's RTU framer would take
+    the whole buffer), so that back-to-back requests are each served. The PDU is empty for
+    garbage to count and drop: an RTU frame with a wrong CRC, a function code no PDU class has
+    (``used`` 1: the hunt for the next frame start), a TCP buffer that grew past two frames
+    without one whole frame in it (all of it).
+    """
+    data = buf
+    if isinstance(frm, FramerRTU):
+        if len(buf) < frm.MIN_SIZE:
+            return None
+        size = rtu_frame_size(frm.decoder, buf)
+        if size is None:
+            return 1, 0, 0, b""
+        if not size or len(buf) < size:
+            return None
+        data = buf[:size]
+    used, dev_id, tid, pdu = frm.decode(data)
+    if not used:
+        return (len(buf), 0, 0, b"") if len(buf) > 2 * frm.MAX_SIZE else None
+    return used, dev_id, tid, bytes(pdu)
+
+
+def check_request(decoder: DecodePDU, pdu: bytes) -> ModbusPDU:
+    """The request ``pdu`` decoded by pymodbus, or the exception response the application
+    protocol gives it: ILLEGAL DATA VALUE (:func:`illegal_data_value`), ILLEGAL FUNCTION (no
+    request class has its function code). A server answers an :class:`ExceptionResponse` as
+    it is and counts it malformed."""
+    if illegal_data_value(pdu):
+        return ExceptionResponse(pdu[0], ExcCodes.ILLEGAL_VALUE)
+    request = decoder.decode(pdu)
+    if request is None:
+        return ExceptionResponse(pdu[0] & 0x7F, ExcCodes.ILLEGAL_FUNCTION)
+    return request
 
 
 # -- the client's connection ---------------------------------------------------------------------

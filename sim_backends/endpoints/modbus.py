@@ -50,12 +50,7 @@ from pymodbus.pdu.register_message import (
 )
 from rths_hil.drivers.base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Status
 from rths_hil.drivers.modbus.driver import COIL_ESTOP, REG, WRITE_ADDRESS, WRITE_COUNT, feedback_crc
-from rths_hil.drivers.modbus.transport import (
-    MAX_UNIT,
-    framer,
-    illegal_data_value,
-    rtu_frame_size,
-)
+from rths_hil.drivers.modbus.transport import MAX_UNIT, check_request, framer, next_request
 
 from rths_hil.errors import InputError
 
@@ -235,29 +230,13 @@ class ModbusServer:
     def _process(self, conn: _Conn) -> None:
         frm = self.framer
         while conn.buf and conn in self.conns:
-            data = conn.buf
-            if self.transport == "rtu":
-                # pymodbus's RTU framer consumes the whole buffer; cut one frame by its size so
-                # that back-to-back requests (e-stop then command) are both served.
-                if len(data) < frm.MIN_SIZE:
-                    return
-                size = rtu_frame_size(frm.decoder, data)
-                if size is None:
-                    self._malformed()
-                    conn.buf = data[1:]  # hunt for the next frame start
-                    continue
-                if not size or len(data) < size:
-                    return
-                data = data[:size]
-            used, dev_id, tid, pdu_bytes = frm.decode(data)
-            if not used:
-                if len(conn.buf) > 2 * frm.MAX_SIZE:
-                    self._malformed()
-                    conn.buf = b""
+            got = next_request(frm, conn.buf)
+            if got is None:
                 return
+            used, dev_id, tid, pdu_bytes = got
             conn.buf = conn.buf[used:]
             if not pdu_bytes:
-                self._malformed()  # RTU CRC error: garbage
+                self._malformed()  # garbage (an RTU CRC error, no such function code)
                 continue
             unit = self.units.get(dev_id)
             if unit is None and self.transport == "rtu":
@@ -271,20 +250,10 @@ class ModbusServer:
                 continue
             if unit._gone:
                 continue  # this unit fell silent (disconnect fault)
-            if illegal_data_value(pdu_bytes):
+            pdu = check_request(frm.decoder, pdu_bytes)
+            if isinstance(pdu, ExceptionResponse):
                 unit.controller.stats.malformed += 1
-                exc = ExceptionResponse(pdu_bytes[0], ExcCodes.ILLEGAL_VALUE)
-                self.send(conn, exc, dev_id, tid)
-                continue
-            pdu = frm.decoder.decode(pdu_bytes)
-            if pdu is None:
-                unit.controller.stats.malformed += 1
-                self.send(
-                    conn,
-                    ExceptionResponse(pdu_bytes[0] & 0x7F, ExcCodes.ILLEGAL_FUNCTION),
-                    dev_id,
-                    tid,
-                )
+                self.send(conn, pdu, dev_id, tid)
                 continue
             pdu.dev_id, pdu.transaction_id = dev_id, tid
             unit._dispatch(conn, pdu)

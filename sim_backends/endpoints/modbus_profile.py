@@ -61,7 +61,7 @@ from pymodbus.pdu.register_message import (
 )
 from rths_hil.drivers.base import Status
 from rths_hil.drivers.modbus.layout import PointLayout
-from rths_hil.drivers.modbus.transport import framer, illegal_data_value, rtu_frame_size
+from rths_hil.drivers.modbus.transport import check_request, framer, next_request
 from rths_hil.drivers.profile import ModbusPoint, ModbusProfile, load_profile, word_from_status
 
 from rths_hil.errors import InputError
@@ -267,34 +267,19 @@ class ModbusProfileTwin(TwinEndpoint):
             self._stop.wait(timeout)  # nobody on the other end (yet)
             return
         entry[1] += data
-        frm = self._framer
         self._out: list[bytes] = []
-        while len(entry[1]) >= 4:
-            buf = entry[1]
-            size = rtu_frame_size(frm.decoder, buf)
-            if size is None:
-                self.controller.stats.malformed += 1
-                entry[1] = buf[1:]  # hunt for the next frame start
-                continue
-            if not size or len(buf) < size:
+        while entry[1]:
+            got = next_request(self._framer, entry[1])
+            if got is None:
                 break
-            frame, entry[1] = buf[:size], buf[size:]
-            _, dev_id, _, pdu_bytes = frm.decode(frame)  # checks the CRC
+            used, dev_id, _, pdu_bytes = got
+            entry[1] = entry[1][used:]
             if not pdu_bytes:
-                self.controller.stats.malformed += 1
+                self.controller.stats.malformed += 1  # garbage (a CRC error, no such function)
                 continue
             if dev_id not in (self.device_id, 0):
                 continue  # another slave's request
-            if illegal_data_value(pdu_bytes):
-                self.controller.stats.malformed += 1
-                self._reply(None, ExceptionResponse(pdu_bytes[0], ExcCodes.ILLEGAL_VALUE), 0)
-                continue
-            pdu = frm.decoder.decode(pdu_bytes)
-            if pdu is None:
-                self.controller.stats.malformed += 1
-                self._reply(None, ExceptionResponse(pdu_bytes[0] & 0x7F, 1), 0)
-                continue
-            self._reply(None, self._dispatch(pdu), 0)
+            self._answer(None, pdu_bytes, 0)
         if self._out:
             try:
                 os.write(fd, b"".join(self._out))
@@ -304,32 +289,32 @@ class ModbusProfileTwin(TwinEndpoint):
     def _process(self, entry: list[Any]) -> None:
         """Answer every complete request in the buffer; the responses go out in one write
         (a pipelined write + read is answered in one TCP segment)."""
-        frm = self._framer
         self._out = []
         while entry[1]:
-            used, dev_id, tid, pdu_bytes = frm.decode(entry[1])
-            if not used:
-                return
+            got = next_request(self._framer, entry[1])
+            if got is None:
+                break  # (the rest of the frame comes with the next read)
+            used, dev_id, tid, pdu_bytes = got
             entry[1] = entry[1][used:]
             if dev_id != self.device_id or not pdu_bytes:
                 self.controller.stats.malformed += 1
                 continue
-            if illegal_data_value(pdu_bytes):
-                self.controller.stats.malformed += 1
-                exc = ExceptionResponse(pdu_bytes[0], ExcCodes.ILLEGAL_VALUE)
-                self._reply(entry[0], exc, tid)
-                continue
-            pdu = frm.decoder.decode(pdu_bytes)
-            if pdu is None:
-                self.controller.stats.malformed += 1
-                self._reply(entry[0], ExceptionResponse(pdu_bytes[0] & 0x7F, 1), tid)
-                continue
-            self._reply(entry[0], self._dispatch(pdu), tid)
+            self._answer(entry[0], pdu_bytes, tid)
         if self._out:
             try:
                 entry[0].sendall(b"".join(self._out))
             except OSError:  # pragma: no cover - client gone
                 pass
+
+    def _answer(self, sock: socket.socket | None, pdu_bytes: bytes, tid: int) -> None:
+        """Answer one request of this unit: its response, or the exception response a
+        malformed request gets (counted)."""
+        pdu = check_request(self._framer.decoder, pdu_bytes)
+        if isinstance(pdu, ExceptionResponse):
+            self.controller.stats.malformed += 1
+            self._reply(sock, pdu, tid)
+            return
+        self._reply(sock, self._dispatch(pdu), tid)
 
     def _reply(self, sock: socket.socket | None, pdu: Any, tid: int) -> None:
         if pdu is None:
