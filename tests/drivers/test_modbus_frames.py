@@ -104,3 +104,28 @@ def test_twins_answer_illegal_fields_with_exception_03(profile) -> None:
                 assert ok.function_code == 5  # a well-formed request is still served
     finally:
         twin.stop()
+
+
+@pytest.mark.parametrize("profile", [None, MODBUS_MAP])
+def test_twins_answer_requests_split_across_segments(profile) -> None:
+    """Two reads written together, the second cut in the middle and its rest sent later (TCP
+    may deliver a pipelined write in any segments): each twin answers both, the first at once
+    (MODBUS Messaging on TCP/IP V1.0b §3.1: the MBAP length delimits a request, not the
+    segment)."""
+    extra = {"profile": str(profile)} if profile else {}
+    twin = start_twin("modbus", default_plant(), port=0, **extra)
+    c = twin.connection
+    coil = 2 if profile else 0
+    first = frame(ReadCoilsRequest(address=coil, count=1), tid=7)
+    second = frame(ReadCoilsRequest(address=coil, count=1), tid=8)
+    try:
+        with socket.create_connection((c.get("host", "127.0.0.1"), c["port"]), 1.0) as s:
+            s.settimeout(1.0)
+            s.sendall(bytes(first + second[:5]))
+            used, _, tid, pdu = FRAMER.decode(s.recv(512))
+            assert used and tid == 7 and pdu[0] == 1, (used, tid, pdu)
+            s.sendall(bytes(second[5:]))
+            used, _, tid, pdu = FRAMER.decode(s.recv(512))
+            assert used and tid == 8 and pdu[0] == 1, (used, tid, pdu)
+    finally:
+        twin.stop()
