@@ -12,7 +12,6 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy import linalg, signal
 
 from rths_hil.errors import InputError
 
@@ -81,6 +80,9 @@ class StateSpaceModel(ActuatorModel):
         self._cd = np.ascontiguousarray(np.concatenate([c[0], d[0]]))
         self._xu = np.zeros(n + 1)
         self._next = np.zeros(n)
+        # where used: a twin's start-up (twin serve) does without scipy.signal's second
+        from scipy import signal
+
         z, p, k = signal.ss2zpk(a, b, c, d)
         self.sos = signal.zpk2sos(z, p, k)
 
@@ -100,11 +102,15 @@ class StateSpaceModel(ActuatorModel):
 
     def simulate(self, command: np.ndarray) -> np.ndarray:
         """The achieved displacement (m) for a whole command history (m), from rest."""
+        from scipy import signal
+
         self.reset()
         return signal.sosfilt(self.sos, np.asarray(command, dtype=float))
 
     def frequency_response(self, freqs: np.ndarray) -> np.ndarray:
         """Complex response of the discrete model at ``freqs`` (Hz)."""
+        from scipy import signal
+
         _, h = signal.freqz_sos(self.sos, worN=2 * np.pi * np.asarray(freqs) * self.dt)
         return h
 
@@ -185,6 +191,9 @@ class BenchmarkServo(StateSpaceModel):
                 raise InputError(f"{key}: must be a positive finite number, got {value!r}")
         self.params = {**values, "plant_gain": plant_gain}
         num, den = benchmark_transfer_function(**values, plant_gain=plant_gain)
+        # where used: a twin's start-up (twin serve) does without scipy.signal's second
+        from scipy import linalg, signal
+
         a, b, c, d = signal.tf2ss(num, den)
         # Balance the companion form (coefficients span 1 … 2e13) before discretising.
         a_bal, t = linalg.matrix_balance(a, permute=False)

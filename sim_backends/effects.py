@@ -39,7 +39,6 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.signal import lfilter
 
 from rths_hil.errors import InputError
 
@@ -859,6 +858,9 @@ class ForceFeedback(Effect):
         return y
 
     def simulate(self, x: np.ndarray) -> np.ndarray:
+        # where used: a twin's start-up (twin serve) does without scipy.signal's second
+        from scipy.signal import lfilter
+
         self.reset()
         return lfilter(self.b, self.a, np.asarray(x, dtype=float))
 

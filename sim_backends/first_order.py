@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import signal
 
 from rths_hil.errors import InputError
 
@@ -81,5 +80,8 @@ class FirstOrderServo(ActuatorModel):
 
     def simulate(self, command: np.ndarray) -> np.ndarray:
         """The achieved displacement (m) for a whole command history (m), from rest."""
+        # where used: a twin's start-up (twin serve) does without scipy.signal's second
+        from scipy.signal import lfilter
+
         self.reset()
-        return signal.lfilter(self.b, self.a, np.asarray(command, dtype=float))
+        return lfilter(self.b, self.a, np.asarray(command, dtype=float))

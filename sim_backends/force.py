@@ -55,7 +55,6 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
 
 from rths_hil.errors import InputError
 
@@ -132,6 +131,9 @@ class _ForceLoop(ActuatorModel):
     def simulate(self, command: np.ndarray) -> np.ndarray:
         if self.limits.effects:
             return super().simulate(command)
+        # where used: a twin's start-up (twin serve) does without scipy.signal's second
+        from scipy.signal import lfilter
+
         self.reset()
         return np.asarray(lfilter(self.b, self.a, np.asarray(command, dtype=float)))
 

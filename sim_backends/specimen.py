@@ -18,7 +18,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.signal import lfilter
 
 from rths_hil.errors import InputError
 
@@ -70,6 +69,9 @@ class KelvinVoigt:
 
     def simulate(self, displacement: np.ndarray) -> np.ndarray:
         """Force history for a displacement history from rest (vectorised, same as stepping)."""
+        # where used: a twin's start-up (twin serve) does without scipy.signal's second
+        from scipy.signal import lfilter
+
         self.reset()
         x = np.asarray(displacement, dtype=float)
         v = lfilter([1.0, -1.0], [1.0], x) / self.dt

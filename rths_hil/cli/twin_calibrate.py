@@ -17,7 +17,6 @@ import numpy as np
 from rths_hil.sim_backends.modelfile import dump_model, model_to_toml
 
 from ..errors import InputError
-from ..estimation import DelayGainEstimator, calibrate
 from ..records.csvfiles import read_record, write_record
 from ..units import parse_time
 
@@ -50,6 +49,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Execute ``twin calibrate``; return the exit code."""
+    # here, not at registration: ``twin serve`` shares the parser and does without the
+    # estimators' scipy.stats, scipy.signal and filterpy (seconds of its start-up)
+    from ..estimation import DelayGainEstimator, calibrate
+
     max_delay = parse_time(args.max_delay, "--max-delay")
     if max_delay <= 0:
         raise InputError(f"--max-delay: must be > 0, got {args.max_delay!r}")
