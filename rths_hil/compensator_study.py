@@ -150,7 +150,7 @@ def _reference_key(spec: study.TrialSpec) -> tuple[str, float | None]:
 
 def _floor_columns(rec: np.ndarray) -> np.ndarray:
     """``u_1 … u_3`` of a record (floors above three are not judged by J1–J9)."""
-    names = [f"u_{i}" for i in (1, 2, 3) if f"u_{i}" in rec.dtype.names]
+    names = [f"u_{i}" for i in (1, 2, 3) if f"u_{i}" in (rec.dtype.names or ())]
     return np.column_stack([np.asarray(rec[c], dtype=float) for c in names])
 
 

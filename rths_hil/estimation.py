@@ -47,7 +47,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, overload
 
 import numba
 import numpy as np
@@ -286,7 +286,8 @@ class DelayGainEstimator:
         self._n_held = 0
         self._innovation = 0.0  # filterpy backend
         # load the kernel now on a throwaway copy, not at the loop's first sample
-        _ekf_update(*(a.copy() for a in self._arrays), 0.0, 0.0)
+        u, y, st, x, p, c = (a.copy() for a in self._arrays)
+        _ekf_update(u, y, st, x, p, c, 0.0, 0.0)
 
     # -- state ------------------------------------------------------------------------------
     @property
@@ -626,6 +627,28 @@ def _model_output(
     return out
 
 
+@overload
+def calibrate(
+    time: Sequence[float] | np.ndarray,
+    inputs: Sequence[float] | np.ndarray,
+    measured: Sequence[float] | np.ndarray,
+    *,
+    servo_lag: bool = ...,
+    fit_offset: bool = ...,
+    delay_range: tuple[float, float] = ...,
+    return_info: Literal[False] = ...,
+) -> ModelSpec: ...
+@overload
+def calibrate(
+    time: Sequence[float] | np.ndarray,
+    inputs: Sequence[float] | np.ndarray,
+    measured: Sequence[float] | np.ndarray,
+    *,
+    servo_lag: bool = ...,
+    fit_offset: bool = ...,
+    delay_range: tuple[float, float] = ...,
+    return_info: Literal[True],
+) -> tuple[ModelSpec, CalibrationInfo]: ...
 def calibrate(
     time: Sequence[float] | np.ndarray,
     inputs: Sequence[float] | np.ndarray,

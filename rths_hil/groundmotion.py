@@ -276,12 +276,13 @@ def _parse_csv(  # noqa: C901
         if unit is None:
             raise InputError(f"{name}: give the units of column {column!r} (g, m/s2 or cm/s2)")
     else:
-        acol = next((lower.index(c) for c in _CSV_ACCEL_COLUMNS if c in lower), None)
-        if acol is None:
+        found = next((lower.index(c) for c in _CSV_ACCEL_COLUMNS if c in lower), None)
+        if found is None:
             raise InputError(
                 f"{name}:1: no acceleration column (expected one of "
                 f"{', '.join(_CSV_ACCEL_COLUMNS)}; header has: {', '.join(header)})"
             )
+        acol = found
         unit = units or _CSV_ACCEL_COLUMNS[lower[acol]]
     if unit not in _UNIT_FACTORS:
         raise InputError(f"{name}: unknown acceleration unit {unit!r} (use g, m/s2 or cm/s2)")

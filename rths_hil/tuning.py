@@ -57,7 +57,7 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, overload
 
 import numpy as np
 
@@ -107,6 +107,10 @@ FACTOR_BOUNDS = (0.5, 2.0)
 # closed forms
 
 
+@overload
+def compensator_response(alpha: float, f: float, dt: float) -> complex: ...
+@overload
+def compensator_response(alpha: float, f: np.ndarray, dt: float) -> np.ndarray: ...
 def compensator_response(alpha: float, f: float | np.ndarray, dt: float) -> np.ndarray | complex:
     """Frequency response ``C = α − (α − 1)·e^{−jωΔt}`` of the inverse compensator.
 

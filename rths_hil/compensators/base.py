@@ -10,7 +10,7 @@ displacement measured, and an ``alpha`` attribute (the equivalent inverse-compen
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar
 
 from ..errors import InputError
@@ -50,8 +50,10 @@ class Compensator:
         (a lab's own compensator); the built-in methods read their documented keys.
         """
         opts = dict(c.get("options") or {})
+        # a lab's compensator declares its own constructor (fs and its options)
+        make: Callable[..., Compensator] = cls
         try:
-            return cls(fs=fs, **opts)
+            return make(fs=fs, **opts)
         except TypeError as exc:
             raise InputError(f"compensation.options: {exc}") from None
 

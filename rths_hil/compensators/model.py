@@ -43,9 +43,16 @@ def _series_exp(tau: float, n: int) -> np.ndarray:
     return np.array([tau**i / math.factorial(i) for i in range(n + 1)])
 
 
+def _without_leading_zeros(c: Sequence[float] | np.ndarray) -> np.ndarray:
+    """Polynomial coefficients ``c`` (highest power first) as floats, leading zeros dropped."""
+    a = np.asarray(c, dtype=float)
+    # numpy's stub for trim_zeros does not accept an ndarray (it works on one)
+    return np.asarray(np.trim_zeros(a, "f"))  # type: ignore[arg-type]
+
+
 def feedforward_tf(
-    num: Sequence[float],
-    den: Sequence[float],
+    num: Sequence[float] | np.ndarray,
+    den: Sequence[float] | np.ndarray,
     gain: float,
     delay: float,
     cutoff: float,
@@ -57,8 +64,8 @@ def feedforward_tf(
     ``R(s) = num/den`` (see the module docstring). Raises :class:`InputError` for a model whose
     inverse is unstable or improper inputs.
     """
-    num = np.trim_zeros(np.asarray(num, dtype=float), "f")
-    den = np.trim_zeros(np.asarray(den, dtype=float), "f")
+    num = _without_leading_zeros(num)
+    den = _without_leading_zeros(den)
     if (
         num.size == 0
         or den.size == 0

@@ -210,8 +210,8 @@ def _apply_channel_override(cfg: Config, parts: list[str], value: Any, where: st
             sec[kname] = value
         entry[key] = sec
     else:
-        known = (*CHANNEL_KEYS[1:], *CHANNEL_SECTIONS)
-        raise InputError(f"{where}: {unknown_key(f'actuators.{name}.{key}', key, known)}")
+        allowed = (*CHANNEL_KEYS[1:], *CHANNEL_SECTIONS)
+        raise InputError(f"{where}: {unknown_key(f'actuators.{name}.{key}', key, allowed)}")
     chans[i] = _actuator(entry, i, where)
 
 

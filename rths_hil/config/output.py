@@ -11,7 +11,7 @@ from .schema import CHANNEL_KEYS, CHANNEL_SECTIONS, SCHEMA
 __all__ = ["schema_markdown", "to_toml", "toml_value"]
 
 
-def to_toml(cfg: Mapping[str, Mapping[str, Any]], comments: bool = True) -> str:
+def to_toml(cfg: Mapping[str, Any], comments: bool = True) -> str:
     """Render a configuration as TOML (with each key's unit and description as comments)."""
     lines: list[str] = []
     for section, keys in SCHEMA.items():
@@ -26,13 +26,13 @@ def to_toml(cfg: Mapping[str, Mapping[str, Any]], comments: bool = True) -> str:
         lines.append("")
     for entry in cfg.get("actuators") or []:
         lines.append("[[actuators]]")
-        for key in CHANNEL_KEYS:
-            if key in entry:
-                lines.append(f"{key} = {toml_value(entry[key])}")
-        for section in CHANNEL_SECTIONS:
-            if entry.get(section):
-                lines.append(f"[actuators.{section}]")
-                lines += [f"{k} = {toml_value(v)}" for k, v in entry[section].items()]
+        for ckey in CHANNEL_KEYS:
+            if ckey in entry:
+                lines.append(f"{ckey} = {toml_value(entry[ckey])}")
+        for csec in CHANNEL_SECTIONS:
+            if entry.get(csec):
+                lines.append(f"[actuators.{csec}]")
+                lines += [f"{k} = {toml_value(v)}" for k, v in entry[csec].items()]
         lines.append("")
     return "\n".join(lines)
 

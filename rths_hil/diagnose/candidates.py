@@ -605,8 +605,11 @@ def polish(  # noqa: C901
     if not slots or rss_in == 0:
         return spec, pred_in, rss_in
     scales = []
-    for where, i, name, v, lg in slots:
-        step = steps.get((i, name)) if where == "effect" else {"delay": 1e-3, "gain": 1e-2}[name]
+    for _, idx, name, v, lg in slots:
+        if idx is None:  # the actuator's delay or gain
+            step: float | None = {"delay": 1e-3, "gain": 1e-2}[name]
+        else:
+            step = steps.get((idx, name))
         if lg:
             scales.append(1.0)
         elif step is not None:

@@ -137,7 +137,7 @@ def _finish(
     abs_floor: float,
     rel_floor: float,
     peak0: float = 0.0,
-) -> tuple[np.ndarray, ...]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     """Turn the spectral sums into (A, φ, f_eq, d, valid, level, running peak).
 
     ``E = Σ|X|²``, ``F = Σ k |X|²``, ``S = Σ Y conj(X)`` over bins 1 … p−1.

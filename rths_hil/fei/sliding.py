@@ -37,6 +37,8 @@ are summed; changes the last bits only). No flag that assumes finite or non-NaN 
 
 from __future__ import annotations
 
+from typing import Literal, TypedDict
+
 import numba
 import numpy as np
 import scipy.fft as sfft
@@ -44,10 +46,20 @@ import scipy.fft as sfft
 # Row indices of the state arrays Dr/Di (6 × K): target g = 0, +1, −1, measured g = 0, +1, −1.
 _NSTATE = 6
 
+
+class JitOptions(TypedDict, total=False):
+    """The ``numba.njit`` options the FEI kernels are compiled with."""
+
+    cache: bool
+    nogil: bool
+    error_model: Literal["python", "numpy"]
+    fastmath: set[str]
+
+
 # fastmath "contract": fused multiply-adds only (see the module docstring).
-_JIT = {"cache": True, "nogil": True, "fastmath": {"contract"}}
+_JIT: JitOptions = {"cache": True, "nogil": True, "fastmath": {"contract"}}
 # ... and "reassoc" for the sums over bins (summation order only).
-_JIT_SUM = {"cache": True, "nogil": True, "fastmath": {"contract", "reassoc"}}
+_JIT_SUM: JitOptions = {"cache": True, "nogil": True, "fastmath": {"contract", "reassoc"}}
 
 
 @numba.njit(**_JIT)

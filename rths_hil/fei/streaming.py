@@ -57,6 +57,7 @@ from scipy.special import ellipj, ellipk
 from .sliding import (
     LB_CONST_ROWS,
     LB_RESYNC_WINDOWS,
+    JitOptions,
     lowband_constants,
     lowband_step,
     lowband_swap,
@@ -182,7 +183,7 @@ _NRING = 10  # ring slot: the eight real quantities, then q₁ (re, im)
 _NWORK = 12
 
 # fastmath "contract" only (fused multiply-adds); error_model "numpy": 1/0 gives inf, no raise.
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy", "fastmath": {"contract"}}
+_JIT: JitOptions = {"cache": True, "nogil": True, "error_model": "numpy", "fastmath": {"contract"}}
 
 
 @numba.njit(inline="always", **_JIT)

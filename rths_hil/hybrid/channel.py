@@ -14,6 +14,7 @@ import contextlib
 import logging
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -32,6 +33,15 @@ log = logging.getLogger(__name__)
 __all__ = ["Channel", "step_mixed"]
 
 _ESTOP = int(Status.ESTOP_ACTIVE)
+
+
+def _unbound(*_: Any) -> Any:
+    """A channel's driver call before :meth:`Channel.bind`."""
+    raise RuntimeError("the channel has no driver yet (bind() first)")
+
+
+def _no_heartbeat() -> None:
+    """No heartbeat before :meth:`Channel.bind` (nothing to keep alive)."""
 
 
 class Channel:
@@ -254,7 +264,10 @@ class Channel:
         self.last_command = 0.0
         self.estop_confirmed: bool | None = None
         self._estop_status: int | None = None
-        self.send = self.receive = self.heartbeat = None
+        # the driver's hot-path calls, bound by bind()
+        self.send: Callable[[int, float, bool], None] = _unbound
+        self.receive: Callable[[float], Any] = _unbound
+        self.heartbeat: Callable[[], None] = _no_heartbeat
         # the time this channel's receive returned (perf_counter): its watchdog measures the
         # time between its own replies, not the time other channels' waits took
         self.reply_clock = 0.0
@@ -450,7 +463,9 @@ class Channel:
         if c == "force":
             return self.k_force * trial
         if c == "load":
-            return self.load.at(k * self.dt)
+            load = self.load
+            assert load is not None  # a load-controlled channel has its schedule (plan)
+            return load.at(k * self.dt)
         return trial
 
     def keepalive(self) -> None:
@@ -458,8 +473,7 @@ class Channel:
 
         For a structure that makes the loop wait (an external analysis): the actuator holds.
         """
-        if self.heartbeat is not None:
-            self.heartbeat()
+        self.heartbeat()
         twin = self.twin
         if twin is not None and getattr(twin, "inline", False):
             twin.pump()
@@ -475,8 +489,10 @@ class Channel:
 
     def estop(self) -> None:
         """Send the e-stop through the driver (never raises)."""
-        with contextlib.suppress(Exception):
-            self.driver.estop()
+        driver = self.driver
+        if driver is not None:
+            with contextlib.suppress(Exception):
+                driver.estop()
         if self.twin is not None and getattr(self.twin, "inline", False):
             with contextlib.suppress(Exception):
                 self.twin.pump()

@@ -148,10 +148,10 @@ class ExactFEI:
         self.end_step = -1  # step at which the window of :attr:`latest` ended
         self._fs = float(fs)
         self.online = None
-        self._proc: subprocess.Popen | None = None
+        self._proc: subprocess.Popen[bytes] | None = None
         self._pending = b""
         if background:
-            self._proc = subprocess.Popen(
+            proc = subprocess.Popen(
                 [
                     sys.executable,
                     "-c",
@@ -165,9 +165,11 @@ class ExactFEI:
                 bufsize=0,
                 start_new_session=True,  # a terminal's Ctrl-C goes to the loop only
             )
-            self._in = self._proc.stdin.fileno()
-            self._out = self._proc.stdout.fileno()
-            ready = self._proc.stdout.read(_EXACT_RESULT.size)  # blocks until warmed up
+            assert proc.stdin is not None and proc.stdout is not None  # both PIPE
+            self._proc = proc
+            self._in = proc.stdin.fileno()
+            self._out = proc.stdout.fileno()
+            ready = proc.stdout.read(_EXACT_RESULT.size)  # blocks until warmed up
             if len(ready) != _EXACT_RESULT.size:
                 raise RuntimeError("the exact-FEI worker process did not start")
             os.set_blocking(self._out, False)
@@ -203,7 +205,9 @@ class ExactFEI:
             self._collect()
             os.write(self._in, b.tobytes())
             return
-        res = self.online.update(b[: self.hop], b[self.hop :])
+        online = self.online
+        assert online is not None  # no worker process: evaluated here
+        res = online.update(b[: self.hop], b[self.hop :])
         if len(res):
             self.windows += len(res)
             self.end_step = round(float(res.t_end[-1]) * self._fs)
@@ -219,6 +223,7 @@ class ExactFEI:
         proc, self._proc = self._proc, None
         if proc is None:
             return
+        assert proc.stdin is not None and proc.stdout is not None  # both PIPE
         try:
             proc.stdin.close()
             proc.wait(timeout=5.0)

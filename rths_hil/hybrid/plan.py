@@ -24,7 +24,7 @@ import numpy as np
 
 from .. import groundmotion
 from ..compensators.base import Compensator
-from ..compensators.inverse import AdaptiveAlpha
+from ..compensators.inverse import AdaptiveAlpha, InverseCompensator
 from ..config import ChannelConfig, Config, check_window_samples, structure_dofs
 from ..errors import InputError
 from ..records import columns
@@ -155,12 +155,19 @@ def build_model(cfg: Config):
     return mdof.load_csv(paths["M"], paths["K"], **damping)
 
 
+def _site_dofs(cfg: Config) -> int:
+    """Number of DOFs of an OpenFresco site: its actuators (:func:`structure_dofs`)."""
+    dofs = structure_dofs(cfg)
+    assert dofs is not None  # known for kind "openfresco"
+    return dofs
+
+
 def structure_size(cfg: Config) -> tuple[int, Any]:
     """Number of DOFs and the MDOF model (None for the SDOF frame)."""
     if cfg["structure"]["kind"] == "sdof":
         return 1, None
-    if cfg["structure"]["kind"] == "openfresco":  # the site's DOFs are its actuators
-        return structure_dofs(cfg), None
+    if cfg["structure"]["kind"] == "openfresco":
+        return _site_dofs(cfg), None
     try:
         model = build_model(cfg)
     except InputError as exc:
@@ -182,7 +189,7 @@ def build_structure(
         from ..openfresco.stage import SiteStage
 
         try:
-            return SiteStage(cfg["openfresco"], dt, structure_dofs(cfg)), float(s["fn"])
+            return SiteStage(cfg["openfresco"], dt, _site_dofs(cfg)), float(s["fn"])
         except InputError as exc:
             raise InputError(f"{cfg.source}: {exc}") from None
     if s["kind"] == "sdof":
@@ -519,6 +526,7 @@ def _plan_channel(  # noqa: C901
                 f"{where}: compensation.adaptive adapts the inverse method's α; method "
                 f"{comp_cfg['method']!r} does not take it (ats adapts on its own)"
             )
+        assert isinstance(comp, InverseCompensator)  # method "inverse" (checked above)
         adaptive = AdaptiveAlpha(
             comp,
             dt,

@@ -205,7 +205,7 @@ class Recorder:
                     f"{self.run_dir} already holds a run ({name}): choose a new output directory"
                 )
         self.fs = float(fs)
-        self.columns = tuple(tuple(c) for c in columns)
+        self.columns = tuple((name, code, unit, doc) for name, code, unit, doc in columns)
         self.dtype = record_dtype(self.columns)
         self._descr = np.lib.format.dtype_to_descr(self.dtype)
         try:
@@ -553,7 +553,7 @@ def export_run(
         raise InputError(f"export: cannot create {dest}: {exc.strerror}") from None
     if not dest.is_dir():
         raise InputError(f"export: {dest} is not a directory")
-    names = list(run.record.dtype.names)
+    names = list(run.record.dtype.names or ())
     if columns is not None:
         unknown = [c for c in columns if c not in names]
         if unknown:
@@ -699,7 +699,7 @@ def read_npy_header(path: str | Path) -> NpyHeader:
     ):
         raise InputError(f"{p}: unreadable record (the .npy header is not a record's header)")
     try:
-        dtype = np.lib.format.descr_to_dtype(header.get("descr"))
+        dtype = np.lib.format.descr_to_dtype(header["descr"])
     except (ValueError, TypeError, KeyError, IndexError):
         raise InputError(f"{p}: unreadable record (bad dtype in the .npy header)") from None
     if dtype.names is None or "time" not in dtype.names or dtype.hasobject:

@@ -152,6 +152,15 @@ class SafetyMonitor:
         assert trip is not None
         return trip
 
+    @staticmethod
+    def _limit_trip(rule: LimitRule | None, quantity: str, value: float) -> Trip:
+        """The trip of ``rule`` for ``value`` outside its limit (the rule exists whenever its
+        limit is finite, and only a finite limit can be exceeded)."""
+        assert rule is not None
+        trip = rule.check(quantity, value)
+        assert trip is not None
+        return trip
+
     def _fire(self, trip: Trip, t: float, k: int) -> Trip:
         self.tripped = trip.at(t, k)
         return self.tripped
@@ -181,7 +190,7 @@ class SafetyMonitor:
             return self._fire(self._disp_trip(q, v), t, k)
         lim = self.vel_limit
         if not (-lim <= velocity <= lim):
-            return self._fire(self._vel.check("velocity", velocity), t, k)
+            return self._fire(self._limit_trip(self._vel, "velocity", velocity), t, k)
         return None
 
     def _check_force_command(
@@ -195,14 +204,14 @@ class SafetyMonitor:
                 if not (-lim <= command <= lim)
                 else ("target force", target)
             )
-            return self._fire(self._force.check(q, v), t, k)
+            return self._fire(self._limit_trip(self._force, q, v), t, k)
         if not _isfinite(trial):
             return self._nan(t, k, ("trial displacement",), (trial,))
         if not (self._d_lo <= trial <= self._d_hi):
             return self._fire(self._disp_trip("trial displacement", trial), t, k)
         lim = self.vel_limit
         if not (-lim <= velocity <= lim):
-            return self._fire(self._vel.check("velocity", velocity), t, k)
+            return self._fire(self._limit_trip(self._vel, "velocity", velocity), t, k)
         return None
 
     def _silence(self, t: float, k: int, ok: bool, link_down: str | None) -> Trip | None:
@@ -251,14 +260,16 @@ class SafetyMonitor:
                 return self._fire(trip, t, k)
         ctl = self.controller
         if ctl is not None and status & ctl.mask:
-            return self._fire(ctl.check(status), t, k)
+            trip = ctl.check(status)
+            if trip is not None:  # always: the status has a bit of the mask
+                return self._fire(trip, t, k)
         if not _isfinite(measured + force):
             return self._nan(t, k, ("measured", "force"), (measured, force))
         if not (self._d_lo <= measured <= self._d_hi):
             return self._fire(self._disp_trip("measured displacement", measured), t, k)
         lim = self.force_limit
         if not (-lim <= force <= lim):
-            return self._fire(self._force.check("measured force", force), t, k)
+            return self._fire(self._limit_trip(self._force, "measured force", force), t, k)
         prev = self._prev_meas
         prev_k = self._prev_k
         self._prev_meas = measured
@@ -269,7 +280,7 @@ class SafetyMonitor:
             # hold the measurement; its change is spread over the whole gap)
             v = (measured - prev) / ((k - prev_k) * self.dt)
             if not (-lim <= v <= lim):
-                return self._fire(self._vel.check("measured velocity", v), t, k)
+                return self._fire(self._limit_trip(self._vel, "measured velocity", v), t, k)
         st = self.stuck
         if st is not None and not self.force_mode:
             trip = st.check(command, measured)

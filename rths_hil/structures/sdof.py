@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Literal, overload
 
 import numpy as np
 
@@ -292,6 +292,10 @@ class _SDOFStepper:
         self.a = -float(ag0) - (self.c * self.v + r0 + self.extra_force) / self.mass
         self.n = 0
 
+    def step(self, ag: float, extra_force: float = 0.0) -> float:
+        """Advance one step under ground acceleration ``ag`` (m/s²); returns x (m)."""
+        raise NotImplementedError
+
 
 class CRStepper(_SDOFStepper):
     """Explicit CR integrator (Chen & Ricles 2008) for an SDOF, one call per step.
@@ -550,6 +554,29 @@ class SDOFResponse:
     k: float
 
 
+@overload
+def simulate_sdof(
+    ag: np.ndarray,
+    fs: float,
+    fn: float,
+    zeta: float,
+    k: float | None = ...,
+    bouc_wen: BoucWenParams | bool | None = ...,
+    method: Literal["cr", "newmark"] = ...,
+    full: Literal[False] = ...,
+) -> np.ndarray: ...
+@overload
+def simulate_sdof(
+    ag: np.ndarray,
+    fs: float,
+    fn: float,
+    zeta: float,
+    k: float | None = ...,
+    bouc_wen: BoucWenParams | bool | None = ...,
+    method: Literal["cr", "newmark"] = ...,
+    *,
+    full: Literal[True],
+) -> SDOFResponse: ...
 def simulate_sdof(
     ag: np.ndarray,
     fs: float,

@@ -85,7 +85,11 @@ class StructureStage(Protocol):
     finished: bool
     trip: Trip | None
     external: bool
-    record_columns: tuple[tuple[str, str, str, str, str], ...]
+
+    @property
+    def record_columns(self) -> tuple[tuple[str, str, str, str, str], ...]:
+        """The stage's own record columns: name, attribute, dtype, unit, description."""
+        ...
 
     def attach(self, context: StageContext) -> None:
         """What the stage may use of the running test, before :meth:`reset`."""
@@ -114,9 +118,9 @@ class SDOFStage:
     """
 
     n_dof = 1
-    trip = None
+    trip: Trip | None = None
     external = False
-    record_columns = ()
+    record_columns: tuple[tuple[str, str, str, str, str], ...] = ()
 
     def __init__(self, stepper) -> None:
         self.stepper = stepper
@@ -159,9 +163,9 @@ class MDOFStage:
         ``restoring_force``.
     """
 
-    trip = None
+    trip: Trip | None = None
     external = False
-    record_columns = ()
+    record_columns: tuple[tuple[str, str, str, str, str], ...] = ()
 
     def __init__(self, stepper) -> None:
         self.stepper = stepper

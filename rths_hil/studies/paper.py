@@ -414,7 +414,12 @@ def accuracy_study(
     for fn in fns:
         if not (math.isfinite(fn) and fn > 0):
             raise InputError(f"natural frequency must be > 0 Hz, got {fn!r}")
-        tw = window_s if window_s is not None else window_periods / fn
+        if window_s is not None:
+            tw = window_s
+        elif window_periods is not None:
+            tw = window_periods / fn
+        else:
+            raise InputError("give the window: window_periods or window_s")
         if tw > gm.duration:
             raise InputError(
                 f"window of {tw:g} s (fn = {fn:g} Hz) is longer than the record ({gm.duration:g} s)"

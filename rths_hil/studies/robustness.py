@@ -350,7 +350,8 @@ def _check_values(cfg, values: dict[str, float], where: str) -> None:
         _set_value(trial, key, v)
     try:
         cross_check(trial)
-        for name in _channel_names(trial) or [None]:
+        names: list[str | None] = [*_channel_names(trial)] or [None]
+        for name in names:
             _twin_spec(trial, name).build(1.0 / float(trial["loop"]["fs"]))
     except InputError as exc:
         msg = str(exc).removeprefix(f"{trial.source}: ")
@@ -395,11 +396,11 @@ def default_perturbations(cfg) -> list[Perturbation]:
 
     k = spec.specimen.stiffness if spec.specimen is not None else None
     if model == "benchmark":
-        p = {**BENCHMARK_NOMINAL, **spec.actuator.params}
+        nominal = {**BENCHMARK_NOMINAL, **spec.actuator.params}
         for name, sigma in (("a3", 1.3), ("beta1", 3.3), ("beta2", 3.3e3)):
-            normal(f"twin.actuator.{name}", p[name], sigma)
+            normal(f"twin.actuator.{name}", nominal[name], sigma)
         if "specimen_stiffness" in spec.actuator.params or k is None:
-            normal("twin.actuator.specimen_stiffness", p["specimen_stiffness"], 50e3)
+            normal("twin.actuator.specimen_stiffness", nominal["specimen_stiffness"], 50e3)
         else:
             rel("twin.specimen.stiffness", k, _SIGMA_STIFFNESS)
         return out

@@ -20,6 +20,10 @@ import tempfile
 import time
 import urllib.request
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from tornado.websocket import WebSocketClientConnection
 
 __all__ = ["Browser", "chromium_path"]
 
@@ -113,7 +117,7 @@ class Browser:
         self.requests: list[str] = []
         self.events: list[dict] = []
         self._id = 0
-        self.ws = None
+        self.ws: WebSocketClientConnection | None = None
         try:
             port = self._port()
             with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as r:
@@ -154,15 +158,18 @@ class Browser:
 
     # -- protocol ----------------------------------------------------------------------------------
     async def _call(self, method: str, params: dict, timeout: float) -> dict:
+        ws = self.ws
+        if ws is None:
+            raise ConnectionError("DevTools connection closed")
         self._id += 1
         my = self._id
-        await self.ws.write_message(json.dumps({"id": my, "method": method, "params": params}))
+        await ws.write_message(json.dumps({"id": my, "method": method, "params": params}))
         t_end = time.monotonic() + timeout
         while True:
             left = t_end - time.monotonic()
             if left <= 0:
                 raise TimeoutError(f"DevTools: no answer to {method}")
-            msg = await asyncio.wait_for(self.ws.read_message(), left)
+            msg = await asyncio.wait_for(ws.read_message(), left)
             if msg is None:
                 raise ConnectionError("DevTools connection closed")
             data = json.loads(msg)

@@ -16,10 +16,14 @@ import secrets
 import signal
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import InputError
 from .app import WatchContext, build_document
 from .source import RunFollower
+
+if TYPE_CHECKING:
+    from bokeh.server.server import Server
 
 __all__ = ["LOCAL_HOSTS", "WatchServer"]
 
@@ -63,7 +67,7 @@ class WatchServer:
         self.token = None if host in LOCAL_HOSTS else secrets.token_urlsafe(24)
         self.follower = RunFollower(self.run_dir)
         self.ctx = WatchContext(self.follower, self.token, allow_stop, notify)
-        self._server = None
+        self._server: Server | None = None
 
     @property
     def url(self) -> str:
@@ -103,7 +107,7 @@ class WatchServer:
                 allow_websocket_origin=[f"{h}:{self.port}" for h in ("127.0.0.1", "localhost")]
             )
         try:
-            self._server = Server(
+            server = Server(
                 {"/": app},
                 address=self.host,
                 port=self.port,
@@ -117,12 +121,16 @@ class WatchServer:
                     f"port {self.port} on {self.host} is in use: choose another with --port"
                 ) from None
             raise InputError(f"cannot listen on {self.host}:{self.port}: {exc.strerror}") from None
-        self._server.start()
+        self._server = server
+        server.start()
 
     def run_forever(self) -> None:
         """Serve until SIGINT or SIGTERM."""
+        from tornado.platform.asyncio import BaseAsyncIOLoop
+
         assert self._server is not None, "start() first"
         loop = self._server.io_loop
+        assert isinstance(loop, BaseAsyncIOLoop)  # tornado ≥ 5: every IOLoop runs on asyncio
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.asyncio_loop.add_signal_handler(sig, loop.stop)
         try:
