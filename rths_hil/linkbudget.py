@@ -47,6 +47,7 @@ __all__ = [
     "check_links",
     "format_loads",
     "is_loopback",
+    "link_inputs",
     "link_key",
     "link_load",
     "positive",
@@ -170,6 +171,15 @@ def serial_rate_kind(device: str | None) -> str | None:
     if os.path.realpath(d).startswith(("/dev/pts/", "/dev/ptmx")):
         return "pseudo-terminal has no line rate"
     return None
+
+
+def link_inputs(
+    connection: dict[str, Any] | None, channels_on_link: int, fs: float
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A link model's inputs, checked: a copy of the connection, and the channels on the link
+    and the loop rate as the :class:`LinkLoad` fields they fill (``channels``, ``fs``)."""
+    fs = positive(fs, "loop rate fs (Hz)")
+    return dict(connection or {}), {"channels": channels_count(channels_on_link), "fs": fs}
 
 
 def channels_count(channels_on_link: int) -> int:

@@ -50,21 +50,19 @@ ISO 11898-1:2015, Road vehicles — Controller area network (CAN) — Part 1.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rths_hil.errors import InputError
 from rths_hil.linkbudget import (
+    LinkLoad,
     bits_per_char,
-    channels_count,
+    link_inputs,
     positive,
     rate_text,
     serial_rate_kind,
 )
 
 from ..base import Driver
-
-if TYPE_CHECKING:
-    from rths_hil.linkbudget import LinkLoad
 
 __all__ = [
     "CAN_BITRATES",
@@ -199,13 +197,9 @@ def link_load(
 ) -> LinkLoad:
     """Classic CAN: command + feedback frames from the DBC, worst-case stuffing (module
     docstring); CAN through a serial line (``slcan``, ``serial``)."""
-    from rths_hil.linkbudget import LinkLoad
-
-    c = dict(connection or {})
-    fs = positive(fs, "loop rate fs (Hz)")
-    ch = channels_count(channels_on_link)
+    c, base = link_inputs(connection, channels_on_link, fs)
+    ch, fs = base["channels"], base["fs"]
     hb = float(heartbeat_hz)
-    base: dict[str, Any] = {"channels": ch, "fs": fs}
     name = link_key(c)
     n_cmd, n_fb, n_hb = _can_frame_lengths(c.get("dbc"))
     ext = (False, False, False)
@@ -266,8 +260,6 @@ def _can_serial_load(
     base: dict[str, Any],
 ) -> LinkLoad:
     """Load of a CAN link through a serial line (``slcan``, ``serial``): module docstring."""
-    from rths_hil.linkbudget import LinkLoad
-
     ch, fs = base["channels"], base["fs"]
     device, baud = _can_serial_line(c, interface)
     baud = positive(baud, f"{name}: baud rate")

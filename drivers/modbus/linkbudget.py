@@ -28,14 +28,15 @@ Modbus Organization, "MODBUS over Serial Line, Specification and Implementation 
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rths_hil.errors import InputError
 from rths_hil.linkbudget import (
     BAUDRATES,
+    LinkLoad,
     bits_per_char,
-    channels_count,
     is_loopback,
+    link_inputs,
     positive,
     rate_text,
     serial_rate_kind,
@@ -43,9 +44,6 @@ from rths_hil.linkbudget import (
 
 from ..base import Driver
 from .transport import MAX_UNIT
-
-if TYPE_CHECKING:
-    from rths_hil.linkbudget import LinkLoad
 
 __all__ = [
     "ETHERNET_BITRATE",
@@ -130,13 +128,9 @@ def link_load(
     heartbeat_hz: float = 0.0,
 ) -> LinkLoad:
     """Modbus RTU (FC 23 transactions and silences) or Modbus TCP (MBAP in Ethernet frames)."""
-    from rths_hil.linkbudget import LinkLoad
-
-    c = dict(connection or {})
-    fs = positive(fs, "loop rate fs (Hz)")
-    ch = channels_count(channels_on_link)
+    c, base = link_inputs(connection, channels_on_link, fs)
+    ch, fs = base["channels"], base["fs"]
     del heartbeat_hz  # Modbus has no heartbeat frame
-    base: dict[str, Any] = {"channels": ch, "fs": fs}
     name = link_key(c)
     prof = _profile(c)
     if c.get("transport", "tcp") == "rtu":

@@ -14,22 +14,20 @@ A connection that names no ``url`` is a twin's own pseudo-terminal, which has no
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rths_hil.errors import InputError
 from rths_hil.linkbudget import (
     BAUDRATES,
+    LinkLoad,
     bits_per_char,
-    channels_count,
+    link_inputs,
     positive,
     serial_rate_kind,
 )
 
 from ..base import Driver
 from .framing import COMMAND, FEEDBACK
-
-if TYPE_CHECKING:
-    from rths_hil.linkbudget import LinkLoad
 
 __all__ = ["LinkPlanning", "cobs_frame_bytes", "link_key", "link_load", "serial_frame_bytes"]
 
@@ -74,13 +72,9 @@ def link_load(
     heartbeat_hz: float = 0.0,
 ) -> LinkLoad:
     """The serial driver's COBS frames on the line (module docstring)."""
-    from rths_hil.linkbudget import LinkLoad
-
-    c = dict(connection or {})
-    fs = positive(fs, "loop rate fs (Hz)")
-    ch = channels_count(channels_on_link)
+    c, base = link_inputs(connection, channels_on_link, fs)
+    ch, fs = base["channels"], base["fs"]
     hb = float(heartbeat_hz)
-    base: dict[str, Any] = {"channels": ch, "fs": fs}
     name = link_key(c)
     why = serial_rate_kind(c.get("url"))
     n_cmd, n_fb = serial_frame_bytes()
