@@ -28,6 +28,7 @@ import numpy as np
 import pytest
 from rths_hil.sim_backends.twin import default_plant
 
+from rths_hil.cli import main as cli_main
 from rths_hil.errors import InputError
 from rths_hil.hybrid.phases import cosine_ramp, ramp_duration
 from rths_hil.records.recorder import read_run
@@ -176,28 +177,21 @@ def test_cli_refusal_is_one_line_exit_2(tmp_path):
     assert len(lines) == 1 and "-70.000 mm" in lines[0] and "displacement limit" in lines[0]
 
 
-def test_controller_fault_at_start_is_refused(tmp_path):
-    """A served twin left in a runaway fault: the next run reads FAULT and refuses to start."""
+def test_controller_fault_at_start_is_refused(tmp_path, capsys):
+    """A served twin left in a runaway fault: the next run reads FAULT and refuses to start
+    (both runs in this process, the second through ``rths-hil run``'s own ``main``)."""
     twin = ServedTwin(
         "--driver", "modbus", "--heartbeat-timeout", "0", "--faults", "runaway_from=50"
     )  # fmt: skip
     try:
         base = [*BASE, "safety.velocity_limit=0"]
-        sets = [f"--set={s}" for s in base]
-        first = subprocess.run(
-            [*bridge_cmd("modbus", twin.connection, tmp_path / "r1", "--lockstep"), *sets],
-            capture_output=True, text=True, timeout=120, cwd=ROOT,
-        )  # fmt: skip
-        assert first.returncode == 3, first.stderr  # the runaway trips the run
-        second = subprocess.run(
-            [*bridge_cmd("modbus", twin.connection, tmp_path / "r2", "--lockstep"), *sets],
-            capture_output=True, text=True, timeout=120, cwd=ROOT,
-        )  # fmt: skip
+        first = run_bridge("modbus", twin.connection, tmp_path / "r1", *base, mode="lockstep")
+        assert first.result.status == "trip", first.result  # the runaway trips the run
+        second = bridge_cmd("modbus", twin.connection, tmp_path / "r2", "--lockstep")[3:]
+        one_line_exit_2([*second, *[f"--set={s}" for s in base]], capsys,
+                        "reports a fault (status 0x")  # fmt: skip
     finally:
         twin.stop()
-    lines = [ln for ln in second.stderr.splitlines() if ln.strip()]
-    assert second.returncode == 2, second.stderr
-    assert len(lines) == 1 and "reports a fault (status 0x" in lines[0]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -353,8 +347,8 @@ def _hw_cmd(conn, out, *extra):
 
 
 def test_hardware_needs_confirmation_and_lockstep_needs_stepped(tmp_path, capsys):
-    """The two refusals are checked in-process (the same ``main``, exit 2, one line); the run
-    that is allowed goes through a real ``rths-hil run`` process against the served twin."""
+    """The two refusals and the run that is allowed, against the served twin, each through
+    ``rths-hil run``'s own ``main`` in this process (exit 2 and one line; exit 0)."""
     twin = ServedTwin("--driver", "modbus", "--heartbeat-timeout", "0")
     try:
         conn = twin.connection
@@ -369,11 +363,11 @@ def test_hardware_needs_confirmation_and_lockstep_needs_stepped(tmp_path, capsys
             "--lockstep",
             "--set=driver.stepped=true",
             "--set=loop.confirm_hardware=true",
-        )
-        res = subprocess.run(stepped, capture_output=True, text=True, timeout=120, cwd=ROOT)
+        )[3:]
+        code = cli_main(stepped)
     finally:
         twin.stop()
-    assert res.returncode == 0, res.stderr
+    assert code == 0, capsys.readouterr().err
     assert json.loads((tmp_path / "c" / "meta.json").read_text())["mode"] == "lockstep"
 
 
