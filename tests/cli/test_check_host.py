@@ -17,6 +17,8 @@ import numpy as np
 import pytest
 
 from rths_hil.checkhost import Timing, host_facts, measure, verdict
+from rths_hil.cli import main
+from tests.helpers.cli import one_line_exit_2
 from tests.helpers.procs import ROOT
 
 # The verdict's arithmetic, the host facts and the CLI (its exit codes, its cached line, its
@@ -84,7 +86,7 @@ def test_host_facts_match_the_kernel():
     assert f.cpus == os.cpu_count()
 
 
-def test_cli_verdict_is_cached_and_shown_by_run(tmp_path):
+def test_cli_verdict_is_cached_and_shown_by_run(tmp_path, monkeypatch, capsys):
     env = dict(os.environ, RTHS_HIL_CACHE=str(tmp_path / "cache"))
     cmd = [sys.executable, "-m", "rths_hil"]
     proc = subprocess.run(
@@ -96,12 +98,12 @@ def test_cli_verdict_is_cached_and_shown_by_run(tmp_path):
     cached = json.loads((tmp_path / "cache" / "check-host.json").read_text())
     assert line.endswith(cached["line"]) and cached["fs"] == 1024.0
     assert (proc.returncode == 0) == (cached["word"] == "holds")
-    run = subprocess.run(
-        [*cmd, "run", "--duration", "0.5", "--no-plot", "--out", str(tmp_path / "r"),
-         "--set=loop.console=0", "--set=safety.max_overruns=100000"],
-        capture_output=True, text=True, timeout=120, cwd=ROOT, env=env,
-    )  # fmt: skip
-    assert cached["line"] in run.stderr
+    # ``run`` in this process (its own main), reading the same cache
+    monkeypatch.setenv("RTHS_HIL_CACHE", env["RTHS_HIL_CACHE"])
+    capsys.readouterr()
+    main(["run", "--duration", "0.5", "--no-plot", "--out", str(tmp_path / "r"),
+          "--set=loop.console=0", "--set=safety.max_overruns=100000"])  # fmt: skip
+    assert cached["line"] in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -113,14 +115,9 @@ def test_cli_verdict_is_cached_and_shown_by_run(tmp_path):
         (["--set", "loop.cpu=999"], "loop.cpu = 999"),
     ],
 )
-def test_cli_bad_input(tmp_path, args, text):
-    env = dict(os.environ, RTHS_HIL_CACHE=str(tmp_path / "cache"))
-    proc = subprocess.run(
-        [sys.executable, "-m", "rths_hil", "check-host", *args],
-        capture_output=True, text=True, timeout=60, cwd=ROOT, env=env,
-    )  # fmt: skip
-    lines = proc.stderr.strip().splitlines()
-    assert proc.returncode == 2 and len(lines) == 1 and text in lines[0], proc.stderr
+def test_cli_bad_input(tmp_path, monkeypatch, capsys, args, text):
+    monkeypatch.setenv("RTHS_HIL_CACHE", str(tmp_path / "cache"))
+    one_line_exit_2(["check-host", *args], capsys, text)  # (in this process: refused at once)
     assert not (tmp_path / "cache" / "check-host.json").exists()
 
 
