@@ -245,7 +245,27 @@ def _parse_at2(path: Path, name: str) -> tuple[float, np.ndarray]:
 # CSV
 
 
-def _parse_csv(  # noqa: C901
+def _csv_accel_column(
+    name: str, header: list[str], lower: list[str], column: str | None, units: str | None
+) -> tuple[int, str]:
+    """Index and unit of the acceleration column (``column`` or the first known one)."""
+    if column is not None:
+        if column.lower() not in lower:
+            raise InputError(f"{name}:1: no column {column!r} (header has: {', '.join(header)})")
+        unit = units or _CSV_ACCEL_COLUMNS.get(column.lower())
+        if unit is None:
+            raise InputError(f"{name}: give the units of column {column!r} (g, m/s2 or cm/s2)")
+        return lower.index(column.lower()), unit
+    acol = next((lower.index(c) for c in _CSV_ACCEL_COLUMNS if c in lower), None)
+    if acol is None:
+        raise InputError(
+            f"{name}:1: no acceleration column (expected one of "
+            f"{', '.join(_CSV_ACCEL_COLUMNS)}; header has: {', '.join(header)})"
+        )
+    return acol, units or _CSV_ACCEL_COLUMNS[lower[acol]]
+
+
+def _parse_csv(
     path: Path, name: str, column: str | None, units: str | None
 ) -> tuple[float, np.ndarray]:
     try:
@@ -268,22 +288,7 @@ def _parse_csv(  # noqa: C901
             f"{name}:1: no time column (expected one of {', '.join(_CSV_TIME_COLUMNS)};"
             f" header has: {', '.join(header)})"
         )
-    if column is not None:
-        if column.lower() not in lower:
-            raise InputError(f"{name}:1: no column {column!r} (header has: {', '.join(header)})")
-        acol = lower.index(column.lower())
-        unit = units or _CSV_ACCEL_COLUMNS.get(column.lower())
-        if unit is None:
-            raise InputError(f"{name}: give the units of column {column!r} (g, m/s2 or cm/s2)")
-    else:
-        found = next((lower.index(c) for c in _CSV_ACCEL_COLUMNS if c in lower), None)
-        if found is None:
-            raise InputError(
-                f"{name}:1: no acceleration column (expected one of "
-                f"{', '.join(_CSV_ACCEL_COLUMNS)}; header has: {', '.join(header)})"
-            )
-        acol = found
-        unit = units or _CSV_ACCEL_COLUMNS[lower[acol]]
+    acol, unit = _csv_accel_column(name, header, lower, column, units)
     if unit not in _UNIT_FACTORS:
         raise InputError(f"{name}: unknown acceleration unit {unit!r} (use g, m/s2 or cm/s2)")
     t: list[float] = []

@@ -459,7 +459,34 @@ def _ms(x: float) -> str:
     return f"{1e3 * x:+.2f} ms"
 
 
-def tune(  # noqa: C901
+def _check_tune_inputs(
+    alpha0: float,
+    dt: float,
+    factor0: float,
+    tol_delay: float,
+    tol_amplitude: float,
+    max_iterations: int,
+    alpha_bounds: tuple[float, float],
+    factor_bounds: tuple[float, float],
+) -> None:
+    """Raise InputError for a :func:`tune` argument out of its range."""
+    if not (dt > 0 and math.isfinite(dt)):
+        raise InputError(f"time step must be > 0 s, got {dt!r}")
+    if not (tol_delay > 0 and tol_amplitude > 0):
+        raise InputError("tolerances must be > 0")
+    if int(max_iterations) < 1:
+        raise InputError(f"max iterations must be ≥ 1, got {max_iterations!r}")
+    lo, hi = alpha_bounds
+    if not (1.0 <= lo <= alpha0 <= hi):
+        raise InputError(f"starting α = {alpha0:g} is outside its bounds [{lo:g}, {hi:g}]")
+    flo, fhi = factor_bounds
+    if not (flo <= factor0 <= fhi):
+        raise InputError(
+            f"starting amplitude factor {factor0:g} is outside its bounds [{flo:g}, {fhi:g}]"
+        )
+
+
+def tune(
     run_trial: TrialRunner,
     alpha0: float,
     dt: float,
@@ -499,20 +526,11 @@ def tune(  # noqa: C901
     -------
     TuneResult
     """
-    if not (dt > 0 and math.isfinite(dt)):
-        raise InputError(f"time step must be > 0 s, got {dt!r}")
-    if not (tol_delay > 0 and tol_amplitude > 0):
-        raise InputError("tolerances must be > 0")
-    if int(max_iterations) < 1:
-        raise InputError(f"max iterations must be ≥ 1, got {max_iterations!r}")
+    _check_tune_inputs(
+        alpha0, dt, factor0, tol_delay, tol_amplitude, max_iterations, alpha_bounds, factor_bounds
+    )
     lo, hi = alpha_bounds
-    if not (1.0 <= lo <= alpha0 <= hi):
-        raise InputError(f"starting α = {alpha0:g} is outside its bounds [{lo:g}, {hi:g}]")
     flo, fhi = factor_bounds
-    if not (flo <= factor0 <= fhi):
-        raise InputError(
-            f"starting amplitude factor {factor0:g} is outside its bounds [{flo:g}, {fhi:g}]"
-        )
     trials: list[Trial] = []
     errors: list[float] = []
     alpha, factor = float(alpha0), float(factor0)

@@ -112,19 +112,10 @@ def _tolerant_console() -> None:
                 h.setStream(new)
 
 
-def main(args: argparse.Namespace) -> int:  # noqa: C901
-    """Run the test; return the exit code."""
+def _mode_and_duration(args: argparse.Namespace) -> tuple[str | None, float | None]:
+    """The loop mode (``--lockstep``, ``--paced`` or the configuration's) and ``--duration``."""
     from ..errors import InputError
-    from ..hybrid import RTHSLoop, new_run_dir
-    from ..hybrid.phases import preflight, require_confirmation
-    from ..linkbudget import format_loads
-    from ..report import LiveLine, format_summary, plot_report, summarize
-    from ..stopping import OperatorStop
 
-    cfg = config_from_args(args)
-    if args.show_config:
-        sys.stdout.write(to_toml(cfg))
-        return 0
     if args.lockstep and args.paced:
         raise InputError("--lockstep and --paced exclude each other")
     mode = "lockstep" if args.lockstep else "paced" if args.paced else None
@@ -133,6 +124,42 @@ def main(args: argparse.Namespace) -> int:  # noqa: C901
         duration = parse_time(args.duration, "--duration")
         if duration < 0:
             raise InputError(f"--duration must be >= 0 s, got {args.duration!r}")
+    return mode, duration
+
+
+def _announce(loop: Any, run_dir: Path, site: bool) -> None:
+    """The run's first lines on stderr: mode, span, rate, drivers, record, link budget."""
+    from ..linkbudget import format_loads
+
+    span = f"{loop.n_steps / loop.fs:.1f} s"
+    drivers = ", ".join(dict.fromkeys(ch.driver_name for ch in loop.plan.channels))
+    if site:
+        span = f"until the client ends (at most {span})"
+    twin = " + twin" if loop.twin_enabled else ""
+    print(
+        f"rths-hil run: {loop.mode} {span} at {loop.fs:g} Hz, "
+        f"driver{'s' if ', ' in drivers else ''} {drivers}{twin}, record in {run_dir}",
+        file=sys.stderr,
+    )
+    for line in format_loads(loop.plan.links).splitlines():  # the link budget
+        print(f"rths-hil run: {line}", file=sys.stderr)
+    if loop.mode == "paced":
+        _host_line()
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the test; return the exit code."""
+    from ..errors import InputError
+    from ..hybrid import RTHSLoop, new_run_dir
+    from ..hybrid.phases import preflight, require_confirmation
+    from ..report import LiveLine, format_summary, plot_report, summarize
+    from ..stopping import OperatorStop
+
+    cfg = config_from_args(args)
+    if args.show_config:
+        sys.stdout.write(to_toml(cfg))
+        return 0
+    mode, duration = _mode_and_duration(args)
     if args.watch:
         from ..errors import require
 
@@ -150,20 +177,7 @@ def main(args: argparse.Namespace) -> int:  # noqa: C901
         watcher = _start_watcher(run_dir, args.watch_port, cfg["loop"]["cpu"])
     site: Any = loop.structure if hasattr(loop.structure, "paste_lines") else None
     if not args.quiet:
-        span = f"{loop.n_steps / loop.fs:.1f} s"
-        drivers = ", ".join(dict.fromkeys(ch.driver_name for ch in loop.plan.channels))
-        if site is not None:
-            span = f"until the client ends (at most {span})"
-        twin = " + twin" if loop.twin_enabled else ""
-        print(
-            f"rths-hil run: {loop.mode} {span} at {loop.fs:g} Hz, "
-            f"driver{'s' if ', ' in drivers else ''} {drivers}{twin}, record in {run_dir}",
-            file=sys.stderr,
-        )
-        for line in format_loads(loop.plan.links).splitlines():  # the link budget
-            print(f"rths-hil run: {line}", file=sys.stderr)
-        if loop.mode == "paced":
-            _host_line()
+        _announce(loop, run_dir, site is not None)
     if site is not None:  # structure.kind = "openfresco": listen, say what to paste, then wait
         host, port = site.listen()
         py, tcl = site.paste_lines()

@@ -100,7 +100,7 @@ def check_range(key: Key, v: float, path: str) -> None:
         raise InputError(f"{path}: must be {op} {key.hi:g}{unit}, got {v:g}")
 
 
-def coerce(key: Key, value: Any, path: str) -> Any:  # noqa: C901
+def coerce(key: Key, value: Any, path: str) -> Any:
     """``value`` as ``key`` takes it: type checked, units read to SI, range checked.
 
     Parameters
@@ -125,16 +125,7 @@ def coerce(key: Key, value: Any, path: str) -> Any:  # noqa: C901
     """
     kind = key.kind
     if kind == "float":
-        v = quantity(value, key.unit, path)
-        try:
-            check_range(key, v, path)
-        except InputError as exc:
-            if key.unit == "s" and key.hi is not None and v > key.hi and _bare(value):
-                raise InputError(
-                    f'{exc} (a bare number is in seconds: write e.g. "{value} ms" for milliseconds)'
-                ) from None
-            raise
-        return v
+        return _float(key, value, path)
     if kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):
             raise InputError(f"{path}: expected an integer, got {describe(value)}")
@@ -155,24 +146,9 @@ def coerce(key: Key, value: Any, path: str) -> Any:  # noqa: C901
             )
         return value
     if kind == "window":
-        if isinstance(value, str) and value.strip().endswith("T"):
-            try:
-                parse_window(value, 1.0)  # syntax check; resolved with structure.fn later
-            except InputError as exc:
-                raise InputError(f"{path}: {exc}") from None
-            return value.strip()
-        v = quantity(value, "s", path)
-        check_range(key, v, path)
-        return v
+        return _window(key, value, path)
     if kind == "array":
-        if not isinstance(value, list):
-            raise InputError(f"{path}: expected an array of numbers, got {describe(value)}")
-        out = []
-        for i, item in enumerate(value):
-            v = quantity(item, key.unit, f"{path}[{i}]")
-            check_range(key, v, f"{path}[{i}]")
-            out.append(v)
-        return out
+        return _array(key, value, path)
     if kind == "schedule":
         return _schedule(key, value, path)
     if kind == "table":
@@ -180,6 +156,45 @@ def coerce(key: Key, value: Any, path: str) -> Any:  # noqa: C901
             raise InputError(f"{path}: expected a table, got {describe(value)}")
         return copy.deepcopy(value)
     raise AssertionError(kind)  # pragma: no cover
+
+
+def _float(key: Key, value: Any, path: str) -> float:
+    """A number in the key's unit (SI), range checked."""
+    v = quantity(value, key.unit, path)
+    try:
+        check_range(key, v, path)
+    except InputError as exc:
+        if key.unit == "s" and key.hi is not None and v > key.hi and _bare(value):
+            raise InputError(
+                f'{exc} (a bare number is in seconds: write e.g. "{value} ms" for milliseconds)'
+            ) from None
+        raise
+    return v
+
+
+def _window(key: Key, value: Any, path: str) -> float | str:
+    """A window: a duration (s) or a number of periods ``"nT"`` (kept as text)."""
+    if isinstance(value, str) and value.strip().endswith("T"):
+        try:
+            parse_window(value, 1.0)  # syntax check; resolved with structure.fn later
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
+        return value.strip()
+    v = quantity(value, "s", path)
+    check_range(key, v, path)
+    return v
+
+
+def _array(key: Key, value: Any, path: str) -> list[float]:
+    """An array of numbers in the key's unit (SI), each range checked."""
+    if not isinstance(value, list):
+        raise InputError(f"{path}: expected an array of numbers, got {describe(value)}")
+    out = []
+    for i, item in enumerate(value):
+        v = quantity(item, key.unit, f"{path}[{i}]")
+        check_range(key, v, f"{path}[{i}]")
+        out.append(v)
+    return out
 
 
 def _schedule(key: Key, value: Any, path: str) -> list[list[float]]:

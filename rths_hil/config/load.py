@@ -38,59 +38,67 @@ __all__ = [
 _NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}\Z")
 
 
-def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:  # noqa: C901
+def _actuator_key(key: str, value: Any, kp: str, where: str) -> Any:
+    """The validated value of the ``[[actuators]]`` key ``key`` (path ``kp``)."""
+    if key == "name":
+        if not isinstance(value, str) or not _NAME_RE.match(value):
+            raise InputError(
+                f"{where}: {kp}: expected a name of 1 to 32 letters, digits and _ starting "
+                f"with a letter, got {describe(value)}"
+            )
+        return value
+    if key == "dof":
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise InputError(
+                f"{where}: {kp}: expected a storey/DOF number ≥ 1, got {describe(value)}"
+            )
+        return value
+    if key == "transform":
+        if (
+            not isinstance(value, list)
+            or not value
+            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+            or not all(math.isfinite(v) for v in value)
+        ):
+            raise InputError(
+                f"{where}: {kp}: expected a non-empty array of finite numbers (a row of T), "
+                f"got {describe(value)}"
+            )
+        return [float(v) for v in value]
+    if key in CHANNEL_SECTIONS:
+        return _actuator_section(key, value, kp, where)
+    raise InputError(
+        f"{where}: {unknown_key(kp, key, (*CHANNEL_KEYS, *CHANNEL_SECTIONS))} "
+        "(an actuator sets name, dof or transform and the sections it overrides)"
+    )
+
+
+def _actuator_section(key: str, value: Any, kp: str, where: str) -> dict[str, Any]:
+    """The validated section ``key`` an ``[[actuators]]`` entry overrides (path ``kp``)."""
+    if key == "control" and isinstance(value, str):  # control = "load"
+        value = {"mode": value}
+    if not isinstance(value, dict):
+        raise InputError(f"{where}: {kp}: expected a table, got {describe(value)}")
+    keys = SCHEMA[key]
+    sec: dict[str, Any] = {}
+    for name, v in value.items():
+        if name not in keys:
+            raise InputError(f"{where}: {unknown_key(f'{kp}.{name}', name, keys)}")
+        try:
+            sec[name] = coerce(keys[name], v, f"{kp}.{name}")
+        except InputError as exc:
+            raise InputError(f"{where}: {exc}") from None
+    return sec
+
+
+def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:
     """Validate one ``[[actuators]]`` entry (its own keys, not the cross-channel rules)."""
     path = f"actuators[{i}]"
     if not isinstance(entry, dict):
         raise InputError(f"{where}: {path}: expected a table [[actuators]], got {describe(entry)}")
-    out: dict[str, Any] = {}
-    for key, value in entry.items():
-        kp = f"{path}.{key}"
-        if key == "name":
-            if not isinstance(value, str) or not _NAME_RE.match(value):
-                raise InputError(
-                    f"{where}: {kp}: expected a name of 1 to 32 letters, digits and _ starting "
-                    f"with a letter, got {describe(value)}"
-                )
-            out["name"] = value
-        elif key == "dof":
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise InputError(
-                    f"{where}: {kp}: expected a storey/DOF number ≥ 1, got {describe(value)}"
-                )
-            out["dof"] = value
-        elif key == "transform":
-            if (
-                not isinstance(value, list)
-                or not value
-                or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-                or not all(math.isfinite(v) for v in value)
-            ):
-                raise InputError(
-                    f"{where}: {kp}: expected a non-empty array of finite numbers (a row of T), "
-                    f"got {describe(value)}"
-                )
-            out["transform"] = [float(v) for v in value]
-        elif key in CHANNEL_SECTIONS:
-            if key == "control" and isinstance(value, str):  # control = "load"
-                value = {"mode": value}
-            if not isinstance(value, dict):
-                raise InputError(f"{where}: {kp}: expected a table, got {describe(value)}")
-            keys = SCHEMA[key]
-            sec: dict[str, Any] = {}
-            for name, v in value.items():
-                if name not in keys:
-                    raise InputError(f"{where}: {unknown_key(f'{kp}.{name}', name, keys)}")
-                try:
-                    sec[name] = coerce(keys[name], v, f"{kp}.{name}")
-                except InputError as exc:
-                    raise InputError(f"{where}: {exc}") from None
-            out[key] = sec
-        else:
-            raise InputError(
-                f"{where}: {unknown_key(kp, key, (*CHANNEL_KEYS, *CHANNEL_SECTIONS))} "
-                "(an actuator sets name, dof or transform and the sections it overrides)"
-            )
+    out: dict[str, Any] = {
+        key: _actuator_key(key, value, f"{path}.{key}", where) for key, value in entry.items()
+    }
     if "name" not in out:
         raise InputError(f"{where}: {path}.name: every [[actuators]] entry needs a name")
     if "dof" in out and "transform" in out:

@@ -562,7 +562,50 @@ def delta_bic(n: int, rss_before: float, rss_after: float, k: int) -> float:
     return n * math.log(rss_before / rss_after) - k * math.log(n)
 
 
-def polish(  # noqa: C901
+#: One parameter :func:`polish` moves: (where, effect index or None, name, start value, log).
+_Slot = tuple[str, int | None, str, float, bool]
+
+
+def _polish_slots(
+    work: ModelSpec, effects: list[int], actuator: bool
+) -> tuple[list[_Slot], dict[tuple[int, str], float | None]]:
+    """The parameters :func:`polish` moves and the effects' finite-difference steps."""
+    a = work.actuator
+    slots: list[_Slot] = []
+    if actuator and "time_varying_delay" not in [e.kind for e in a.effects]:
+        slots.append(("actuator", None, "delay", a.delay, False))
+    if actuator:
+        slots.append(("actuator", None, "gain", a.gain, False))
+    steps: dict[tuple[int, str], float | None] = {}
+    for i in effects:
+        e = a.effects[i]
+        for prm in EFFECTS[e.kind].PARAMS:
+            if not prm.polish:
+                continue
+            v = float(e.params[prm.name])
+            slots.append(("effect", i, prm.name, v, prm.log_scale and v > 0))
+            steps[i, prm.name] = prm.step
+    return slots, steps
+
+
+def _polish_scales(slots: list[_Slot], steps: dict[tuple[int, str], float | None]) -> list[float]:
+    """The scale of each slot: 1 for a logarithm, else its step or its start value."""
+    scales = []
+    for _, idx, name, v, lg in slots:
+        if idx is None:  # the actuator's delay or gain
+            step: float | None = {"delay": 1e-3, "gain": 1e-2}[name]
+        else:
+            step = steps.get((idx, name))
+        if lg:
+            scales.append(1.0)
+        elif step is not None:
+            scales.append(step)
+        else:
+            scales.append(max(abs(v), 1e-9))
+    return scales
+
+
+def polish(
     spec: ModelSpec,
     data: Data,
     effects: list[int],
@@ -586,36 +629,12 @@ def polish(  # noqa: C901
     exact = Data(data.command, data.measured, data.fs, data.force)
     work = copy.deepcopy(spec)
     a = work.actuator
-    slots: list[tuple[str, int | None, str, float, bool]] = []  # (where, index, name, v0, log)
-    if actuator and "time_varying_delay" not in [e.kind for e in a.effects]:
-        slots.append(("actuator", None, "delay", a.delay, False))
-    if actuator:
-        slots.append(("actuator", None, "gain", a.gain, False))
-    steps: dict[tuple[int, str], float | None] = {}
-    for i in effects:
-        e = a.effects[i]
-        for prm in EFFECTS[e.kind].PARAMS:
-            if not prm.polish:
-                continue
-            v = float(e.params[prm.name])
-            slots.append(("effect", i, prm.name, v, prm.log_scale and v > 0))
-            steps[i, prm.name] = prm.step
+    slots, steps = _polish_slots(work, effects, actuator)
     pred_in = Model(spec, exact).pred
     rss_in = _rss(exact, pred_in)
     if not slots or rss_in == 0:
         return spec, pred_in, rss_in
-    scales = []
-    for _, idx, name, v, lg in slots:
-        if idx is None:  # the actuator's delay or gain
-            step: float | None = {"delay": 1e-3, "gain": 1e-2}[name]
-        else:
-            step = steps.get((idx, name))
-        if lg:
-            scales.append(1.0)
-        elif step is not None:
-            scales.append(step)
-        else:
-            scales.append(max(abs(v), 1e-9))
+    scales = _polish_scales(slots, steps)
     lower = np.array([-math.log(10.0) if sl[4] else -10.0 for sl in slots])
     upper = np.array([math.log(10.0) if sl[4] else 10.0 for sl in slots])
     for j, sl in enumerate(slots):  # the delay may move by up to 50 ms (not below 0)

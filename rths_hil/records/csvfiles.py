@@ -67,7 +67,40 @@ class Record:
         return ["time", *self.columns]
 
 
-def read_record(  # noqa: C901
+def _kept_columns(
+    header: list[str], name: str, required: Sequence[str], optional: Sequence[str] | None
+) -> list[str]:
+    """The columns of ``header`` to keep (``time``, ``required``, ``optional``: all if None)."""
+    need = ["time", *[c for c in required if c != "time"]]
+    missing = [c for c in need if c not in header]
+    if missing:
+        raise InputError(
+            f"{name}:1: missing column(s) {', '.join(missing)} (header has: {', '.join(header)})"
+        )
+    if len(set(header)) != len(header):
+        raise InputError(f"{name}:1: duplicate column names in header")
+    return [h for h in header if h in need or optional is None or h in optional]
+
+
+def _cell(text: str, name: str, lineno: int, column: str) -> float:
+    """One value of a record CSV (file ``name``, line ``lineno``, column ``column``)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise InputError(
+            f"{name}:{lineno}: column {column!r}: not a number: {text.strip()!r}"
+        ) from None
+    if not math.isfinite(v):
+        raise InputError(f"{name}:{lineno}: column {column!r}: non-finite value {text.strip()!r}")
+    if abs(v) > MAX_ABS_VALUE:
+        raise InputError(
+            f"{name}:{lineno}: column {column!r}: value {text.strip()!r} is "
+            f"not physical (|value| > {MAX_ABS_VALUE:g} in SI units)"
+        )
+    return v
+
+
+def read_record(
     path: str | Path,
     required: Sequence[str] = ("time", "target", "measured"),
     optional: Sequence[str] | None = None,
@@ -127,16 +160,7 @@ def read_record(  # noqa: C901
         except (csv.Error, UnicodeDecodeError) as exc:
             raise InputError(f"{name}:1: cannot read header ({exc})") from None
         header = [h.strip() for h in header]
-        need = ["time", *[c for c in required if c != "time"]]
-        missing = [c for c in need if c not in header]
-        if missing:
-            raise InputError(
-                f"{name}:1: missing column(s) {', '.join(missing)}"
-                f" (header has: {', '.join(header)})"
-            )
-        if len(set(header)) != len(header):
-            raise InputError(f"{name}:1: duplicate column names in header")
-        keep = [h for h in header if h in need or optional is None or h in optional]
+        keep = _kept_columns(header, name, required, optional)
         idx = [header.index(h) for h in keep]
         rows: list[list[float]] = []
         ncol = len(header)
@@ -146,27 +170,7 @@ def read_record(  # noqa: C901
                     continue
                 if len(row) != ncol:
                     raise InputError(f"{name}:{lineno}: expected {ncol} values, found {len(row)}")
-                vals = []
-                for i in idx:
-                    text = row[i]
-                    try:
-                        v = float(text)
-                    except ValueError:
-                        raise InputError(
-                            f"{name}:{lineno}: column {header[i]!r}: not a number: {text.strip()!r}"
-                        ) from None
-                    if not math.isfinite(v):
-                        raise InputError(
-                            f"{name}:{lineno}: column {header[i]!r}: "
-                            f"non-finite value {text.strip()!r}"
-                        )
-                    if abs(v) > MAX_ABS_VALUE:
-                        raise InputError(
-                            f"{name}:{lineno}: column {header[i]!r}: value {text.strip()!r} is "
-                            f"not physical (|value| > {MAX_ABS_VALUE:g} in SI units)"
-                        )
-                    vals.append(v)
-                rows.append(vals)
+                rows.append([_cell(row[i], name, lineno, header[i]) for i in idx])
         except csv.Error as exc:
             raise InputError(f"{name}:{reader.line_num}: malformed CSV ({exc})") from None
         except UnicodeDecodeError:

@@ -267,7 +267,29 @@ def _varyable_keys(cfg) -> list[str]:
     return keys
 
 
-def parse_vary(text: str, cfg) -> Perturbation:  # noqa: C901
+_PARSERS = {
+    "s": parse_time,
+    "m": parse_length,
+    "m/s²": parse_accel,
+    "N": parse_force,
+    "m/s": parse_velocity,
+}
+
+
+def _vary_value(p: str, unit: str | None, key: str, where: str) -> float:
+    """One end of a ``--vary`` range, in ``unit`` (SI; a plain number without a unit)."""
+    parse = _PARSERS.get(unit) if unit else None
+    try:
+        v = parse(p, key) if parse is not None else float(p)
+    except (InputError, ValueError):
+        what = f"a number in {unit}" if unit else "a number"
+        raise InputError(f"{where}: {p!r} is not {what}") from None
+    if not math.isfinite(v):
+        raise InputError(f"{where}: {p!r} is not finite")
+    return float(v)
+
+
+def parse_vary(text: str, cfg) -> Perturbation:
     """Parse and check ``KEY=LOW:HIGH[:normal]`` against an inline-twin Config.
 
     Values may carry units where the key has one (``twin.actuator.delay=15ms:35ms``). The key
@@ -304,25 +326,7 @@ def parse_vary(text: str, cfg) -> Perturbation:  # noqa: C901
     unit = _TWIN_UNITS.get(name) if _twin_key(key) else None
     if not _twin_key(key):
         unit = SCHEMA[key.split(".")[0]][name].unit
-    values = []
-    for p in parts:
-        try:
-            if unit == "s":
-                v = parse_time(p, key)
-            elif unit == "m":
-                v = parse_length(p, key)
-            elif unit == "m/s²":
-                v = parse_accel(p, key)
-            elif unit in ("N", "m/s"):
-                v = (parse_force if unit == "N" else parse_velocity)(p, key)
-            else:
-                v = float(p)
-        except (InputError, ValueError):
-            what = f"a number in {unit}" if unit else "a number"
-            raise InputError(f"{where}: {p!r} is not {what}") from None
-        if not math.isfinite(v):
-            raise InputError(f"{where}: {p!r} is not finite")
-        values.append(float(v))
+    values = [_vary_value(p, unit, key, where) for p in parts]
     low, high = values
     if low > high:
         raise InputError(f"{where}: low ({parts[0]}) is above high ({parts[1]})")

@@ -372,7 +372,24 @@ class _Page:
             self.sent_at = now
             self.tick.start = self.seq
 
-    def _refresh(self) -> None:  # noqa: C901
+    def _update_slider(
+        self, live: bool, now: float, t_first: float, t_last: float, fs: float
+    ) -> None:
+        """The replay slider's range: it follows a live run every 5 s (a change of a widget
+        re-lays out the page)."""
+        if live and now - self._slider_at < 5.0:
+            return
+        self._slider_at = now
+        self._setting = True
+        try:
+            self.slider.start = t_first
+            self.slider.end = max(t_last, t_first + 1.0 / fs)
+            self.slider.step = max(1.0 / fs, 0.01)
+            self.slider.disabled = False
+        finally:
+            self._setting = False
+
+    def _refresh(self) -> None:
         st = self.ctx.state()
         f = self.ctx.follower
         self._banner(st)
@@ -391,19 +408,8 @@ class _Page:
         rec, names, fs = f.record, f.names, f.fs()
         t_last = float(rec["time"][-1])
         t_first = float(rec["time"][0])
-        # replay slider
-        # the slider follows a live run every 5 s (a change of a widget re-lays out the page)
         now = time.monotonic()
-        if not st.live or now - self._slider_at >= 5.0:
-            self._slider_at = now
-            self._setting = True
-            try:
-                self.slider.start = t_first
-                self.slider.end = max(t_last, t_first + 1.0 / fs)
-                self.slider.step = max(1.0 / fs, 0.01)
-                self.slider.disabled = False
-            finally:
-                self._setting = False
+        self._update_slider(st.live, now, t_first, t_last, fs)
         self.play.disabled = not st.finished
         if self.replay_playing:
             v = self.slider.value + REFRESH_S

@@ -547,12 +547,16 @@ class CANopenTwin(TwinEndpoint):
             except (can.CanError, OSError, RuntimeError):  # pragma: no cover
                 pass
 
-    def _apply(self, cw: int) -> None:  # noqa: C901
+    def _apply(self, cw: int) -> None:
         """Apply control word ``cw`` to the device FSA."""
         prev, self._cw = self._cw, cw
         if self.profile.number == 408:
             self._apply408(cw, prev)
-            return
+        else:
+            self._apply402(cw, prev)
+
+    def _apply402(self, cw: int, prev: int) -> None:
+        """Control word ``cw`` (the previous one ``prev``) on the CiA 402 power drive FSA."""
         s = self.state
         if s in ("FAULT", "FAULT REACTION ACTIVE"):
             if cw & 0x80 and not prev & 0x80:  # fault reset, rising edge (transition 15)

@@ -60,7 +60,7 @@ def test_a_run_recorded_before_overrun_causes_has_none(tmp_path):
 
 
 def test_too_short_rule():
-    from rths_hil.report import _too_short
+    from rths_hil.report.summary import _too_short
 
     fs = 1024.0
     # shorter than one FEI window (3.9 s) → too short; the window decides when longer than 1 s

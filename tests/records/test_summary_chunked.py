@@ -13,9 +13,9 @@ import math
 import numpy as np
 import pytest
 
-from rths_hil import report
 from rths_hil.records.recorder import COLUMNS, Recorder
-from rths_hil.report import plot_report, summarize
+from rths_hil.report import figure, plot_report, summarize
+from rths_hil.report import summary as report_summary
 
 FS = 512.0
 DELAY = 0.0123
@@ -27,7 +27,8 @@ CHUNK = 4096  # rows per chunk in these tests (the module's is 2**18)
 
 @pytest.fixture(autouse=True)
 def small_chunks(monkeypatch):
-    monkeypatch.setattr(report, "_CHUNK", CHUNK)
+    monkeypatch.setattr(report_summary, "_CHUNK", CHUNK)
+    monkeypatch.setattr(figure, "_CHUNK", CHUNK)
 
 
 @pytest.fixture(scope="module")
