@@ -547,6 +547,16 @@ class Driver(ABC):
     def heartbeat(self) -> None:  # noqa: B027 - deliberately a no-op by default
         """Send a keep-alive where the bus needs one; a no-op otherwise."""
 
+    def link_check(self, fs: float) -> str | None:
+        """What the link, as measured when it opened, means at loop rate ``fs`` (Hz).
+
+        A one-line warning when the controller cannot carry a step every period (for example
+        a Modbus server that answers one request at a time, too slowly for the step's
+        requests), said at arming by ``run`` and ``commission``; ``None`` when there is
+        nothing to say or nothing was measured (the default).
+        """
+        return None
+
     def poll(
         self, timeout: float, receive: Callable[[float], Feedback | None] | None = None
     ) -> Feedback | None:
