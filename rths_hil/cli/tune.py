@@ -125,13 +125,11 @@ def _confirm(n_trials: int, pga: float, scale: float, cfg, flag: bool) -> None:
 def main(args: argparse.Namespace) -> int:  # noqa: C901
     """Run the tuning (or the sweep); return the exit code."""
     from ..hybrid import new_run_dir
-    from ..tuning import (
-        LoopTrials,
+    from ..tuning import LoopTrials, sweep, tune
+    from ..tuning_output import (
         format_table,
         plot_sweep,
         plot_tuning,
-        sweep,
-        tune,
         write_table_csv,
         write_tuned_config,
     )

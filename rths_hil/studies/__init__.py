@@ -28,19 +28,21 @@ from .paper import (
     write_accuracy_csv,
     write_window_size_csv,
 )
+from .perturbations import (
+    Perturbation,
+    channel_suffixes,
+    default_perturbations,
+    inline_twin,
+    parse_vary,
+)
 from .robustness import (
     BENCHMARK_MIN_STEPS,
     SUMMARY_METRICS,
     TRIAL_COLUMNS,
-    Perturbation,
     RobustnessResult,
     TrialSpec,
-    channel_suffixes,
-    default_perturbations,
     exact_text,
-    inline_twin,
     metric_summary,
-    parse_vary,
     plan_trials,
     plot_robustness,
     preflight,

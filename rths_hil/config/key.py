@@ -1,0 +1,59 @@
+"""One configuration key (:class:`Key`: kind, default, unit, range, doc) and the ranges several
+sections share."""
+
+from __future__ import annotations
+
+from dataclasses import KW_ONLY, dataclass
+from typing import Any
+
+__all__ = ["CONTROL_MODES", "MASS_RANGE", "STIFFNESS_RANGE", "Key"]
+
+
+@dataclass(frozen=True)
+class Key:
+    """One configuration key.
+
+    Attributes
+    ----------
+    kind : str
+        ``float`` (a quantity in ``unit``), ``int``, ``bool``, ``str``, ``choice``, ``window``
+        (seconds or natural periods), ``array`` (a list of quantities in ``unit``),
+        ``schedule`` (a list of ``[t, value]`` pairs, ``t`` in s non-decreasing from 0, the
+        value in the second unit of ``unit``) or ``table`` (free-form, checked by its
+        consumer).
+    default : Any
+        Default value (already in SI units).
+    unit : str
+        SI unit of the value (``s``, ``m``, ``Hz``, ``N``, ``kg``, ``N/m``, ``m/s``, ``m/s²``,
+        ``1/s``, ``-``, ``steps``, ``windows``).
+    doc : str
+        One-line description.
+    lo, hi : float or None
+        Allowed range; ``lo_open``/``hi_open`` make the bound exclusive.
+    choices : tuple of str
+        Allowed values of a ``choice`` key.
+    """
+
+    kind: str
+    default: Any
+    _: KW_ONLY
+    unit: str = "-"
+    doc: str = ""
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple[str, ...] = ()
+
+
+#: A channel's control modes (``control.mode``): what its actuator follows.
+CONTROL_MODES = ("displacement", "force", "load")
+
+#: The schema: section → key → :class:`Key`. The defaults form the embedded NEES-711 setup.
+#: Physically plausible masses (kg) of a numerical substructure: 1 g (a bench model's storey)
+#: to 10 Mt (ten times a 100-storey tower's floor). Beyond them the structure's matrices are
+#: numerically singular (1e-300 kg) or its response overflows: refused with the key and value.
+MASS_RANGE = (1e-3, 1e10)
+#: Physically plausible storey stiffnesses (N/m): 1 mN/m to 1 TN/m (a stiff concrete core
+#: storey is of order 1e10 N/m).
+STIFFNESS_RANGE = (1e-3, 1e12)
