@@ -88,6 +88,7 @@ from rths_hil.drivers.base import Feedback, LinkDown, Status
 
 from .config import Config
 from .errors import InputError
+from .hybrid.pacer import Pacer
 from .hybrid.phases import cosine_ramp, ramp_duration
 from .stopping import OperatorStop, Stopped
 
@@ -226,6 +227,9 @@ class _Controller:
         self.drv = ch.driver
         self.recv = ch.receive
         self.dt = 1.0 / fs
+        #: one command per period: sleep until 0.3 ms before each deadline, then spin (no
+        #: real-time scheduling here, so no forced sleep)
+        self.pacer = Pacer(self.dt, 3e-4)
         self.timeout = timeout
         self.hb = heartbeat_steps
         self.stop = stop
@@ -276,19 +280,13 @@ class _Controller:
         check: bool = True,
     ) -> None:
         """One command of ``path`` per period (sleep, then spin to the deadline)."""
-        perf = time.perf_counter
-        t0 = perf() + self.dt
+        pacer = self.pacer
+        pacer.start(lead=0.0)  # the first command a period from now
         self.lateness = late = np.zeros(len(path))
         for i, x in enumerate(path):
             if check:
                 self.stop.check()
-            deadline = t0 + i * self.dt
-            gap = deadline - perf() - 3e-4
-            if gap > 0:
-                time.sleep(gap)
-            while (now := perf()) < deadline:
-                pass
-            late[i] = now - deadline
+            late[i] = pacer.wait(i) - pacer.due
             fb, rtt = self.exchange(float(x), enable)
             if self.hb and i % self.hb == 0:
                 self.drv.heartbeat()

@@ -17,7 +17,7 @@ import math
 import time
 from collections.abc import Callable
 
-__all__ = ["MIN_SLEEP", "PHASE_LEAD", "SPIN_CAP", "Pacer", "first_deadline"]
+__all__ = ["MIN_SLEEP", "PHASE_LEAD", "SPIN_CAP", "Pacer", "ReplyBudget", "first_deadline"]
 
 #: Paced: from the end of a phase's set-up to its first deadline, at least (s). A phase that
 #: follows another one without set-up (the loop after the start ramp, the end after the loop)
@@ -235,3 +235,55 @@ class Pacer:
         if over:
             self.overruns += 1
         return lat
+
+
+class ReplyBudget:
+    """How long a paced step waits for its replies (``docs/loop.md``, "Modes").
+
+    With ``loop.feedback_timeout`` set the replies are waited for at most that long after the
+    send. With the automatic wait (``auto``: ``loop.feedback_timeout = 0``, paced) they are
+    waited for at most until the step's own work after them still ends before the next
+    deadline: until deadline + Δt − reserve, where the reserve is the recent peak of that
+    work (+50 %, decaying by 0.2 % a step, kept between 5 % and 25 % of Δt; a step whose work
+    took longer than Δt is a stall, not work to reserve for). A reply later than that is a
+    missed reply (the measurement is held), not an overrun that the following steps inherit.
+
+    Parameters
+    ----------
+    dt : float
+        Period (s).
+    timeout : float
+        The reply timeout from the send (s).
+    auto : bool
+        The automatic wait (paced, ``loop.feedback_timeout = 0``).
+    """
+
+    __slots__ = ("auto", "dt", "reserve", "reserve_max", "reserve_min", "timeout")
+
+    def __init__(self, dt: float, timeout: float, auto: bool) -> None:
+        self.dt = dt
+        self.timeout = timeout
+        self.auto = bool(auto)
+        self.reserve_min, self.reserve_max = 0.05 * dt, 0.25 * dt
+        self.reserve = 0.2 * dt
+
+    def limit(self, now: float, deadline: float) -> float:
+        """The time (s) by which the replies of the step sent at ``now`` for ``deadline``
+        must have come."""
+        t_lim = now + self.timeout
+        if self.auto:
+            t_cut = deadline + self.dt - self.reserve
+            if t_cut < t_lim:
+                t_lim = t_cut
+        return t_lim
+
+    def note(self, work: float) -> None:
+        """A step's work after its replies took ``work`` s: update the reserve."""
+        if self.auto and work < self.dt:
+            work *= 1.5
+            reserve = work if work > self.reserve else self.reserve * 0.998
+            if reserve < self.reserve_min:
+                reserve = self.reserve_min
+            elif reserve > self.reserve_max:
+                reserve = self.reserve_max
+            self.reserve = reserve

@@ -42,7 +42,7 @@ Both phases step like the loop: one command per channel per period (paced) or pe
 commands, the feedback (link, watchdog, sequence, controller status, limits) at every step; a
 trip ends the phase and the runner e-stops every channel. Paced, the start ramp begins a period
 after arming, the loop's step 0 continues its grid and the end phase the loop's
-(:attr:`Phases.next_deadline`, :func:`.timing.first_deadline`): from arming to the hand-back
+(:attr:`Phases.next_deadline`, :func:`.pacer.first_deadline`): from arming to the hand-back
 no controller waits more than a period for its next command (the runner does its set-up
 before arming). The first command that enables a controller is where its actuator is (the
 ramp's first point; :meth:`rths_hil.drivers.base.Driver.arm` writes nothing it would follow).
@@ -74,14 +74,14 @@ from rths_hil.drivers.base import Feedback, Status
 
 from ..errors import InputError
 from ..safety import Trip
-from .timing import first_deadline
+from .pacer import Pacer
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..records.recorder import Recorder
+    from ..safety.channels import Safety
     from .channel import Channel
     from .plan import TestPlan
     from .result import RunResult
-    from .runner import Runner
 
 log = logging.getLogger(__name__)
 
@@ -149,15 +149,6 @@ def require_confirmation(plan: TestPlan, confirmed: bool, command: str) -> None:
         f"{plan.cfg.source}: {names} drives real hardware (twin.enabled = false): "
         f"pass --confirm-hardware to `rths-hil {command}` (or set loop.confirm_hardware = true)"
     )
-
-
-def _wait_until(deadline: float, spin: float) -> None:
-    """Sleep until ``spin`` before ``deadline`` (perf_counter s), then busy-wait to it."""
-    gap = deadline - time.perf_counter() - spin
-    if gap > 0:
-        time.sleep(gap)
-    while time.perf_counter() < deadline:
-        pass
 
 
 # ----------------------------------------------------------------------------------------------
@@ -253,17 +244,36 @@ class Phases:
 
     Parameters
     ----------
-    runner : Runner
-        The runner whose channels are open and armed.
+    plan : TestPlan
+        The run's plan (configuration, rate, mode, timeouts, heartbeat).
+    channels : list of Channel
+        The run's channels, open and armed.
+    safety : Safety
+        The run's safety (a fired rule becomes the trip).
     rec : Recorder
         The run's recorder (events).
+    stopped : callable
+        The operator stop flag: true once a stop signal came.
+    pacer : Pacer, optional
+        Paced: the wait for each deadline (default: the loop's settings,
+        :meth:`Pacer.for_loop` with ``plan.spin``).
     """
 
-    def __init__(self, runner: Runner, rec: Recorder) -> None:
-        self.runner = runner
-        self.plan = runner.plan
+    def __init__(
+        self,
+        plan: TestPlan,
+        channels: list[Channel],
+        safety: Safety,
+        rec: Recorder,
+        stopped: Callable[[], bool],
+        pacer: Pacer | None = None,
+    ) -> None:
+        self.plan = plan
         self.rec = rec
-        self.chans = runner.channels
+        self.chans = channels
+        self.safety = safety
+        self.stopped = stopped
+        self.pacer = pacer if pacer is not None else Pacer.for_loop(plan.dt, plan.spin)
         cfg = self.plan.cfg
         self.start_cfg = cfg["start"]
         self.end_cfg = cfg["end"]
@@ -420,7 +430,7 @@ class Phases:
                 start=a.tolist(), end=b.tolist(), duration=n_ramp * self.dt,
                 hold=n_hold * self.dt, steps=m, peak_velocity=peak, peak_force_rate=force_rate,
                 velocity_limit=v,
-                measured_end=meas, completed=trip is None and self.runner.stop_signal is None,
+                measured_end=meas, completed=trip is None and not self.stopped(),
             )  # fmt: skip
             self.shift = m
         if self.shift or any(self.offsets):
@@ -481,7 +491,8 @@ class Phases:
         if m:
             trip, meas = self._drive(paths, seq0=seq0, k0=k0, t_first=t_first)
         elif self.paced and t_first is not None:  # disable on the loop's grid
-            _wait_until(first_deadline(dt, t_first), self.plan.spin)
+            self.pacer.start(t_first)
+            self.pacer.wait(0)
         rec.event(
             "end_ramp", k0 * dt, k0, channels=[ch.name for ch in self.chans], start=last.tolist(),
             end=rest.tolist(), rest=self.end_cfg["rest"], duration=n_ramp * dt,
@@ -533,41 +544,43 @@ class Phases:
 
         Sequence ``seq0 + i`` and safety step ``k0 + i`` for the path's ``i``-th command. Paced:
         one step per period (sleep, then spin to the deadline), the first at ``t_first`` (the
-        previous phase's next deadline) or a moment from now (:func:`.timing.first_deadline`),
+        previous phase's next deadline) or a moment from now (:func:`.pacer.first_deadline`),
         and :attr:`next_deadline` set after each; lockstep: the next command when the replies
         are in. Returns the first trip (or ``None``) and each channel's last measured
         displacement (absolute; a force-controlled channel's measured force). A force
         channel's path is forces (N): checked against its force limit, no velocity.
         """
-        runner = self.runner
         plan = self.plan
         chans = self.chans
-        dt = self.dt
         paced = self.paced
+        pacer = self.pacer
+        dt = self.dt
         timeout = plan.timeout
         hb = plan.heartbeat_steps
-        spin = plan.spin
+        stopped = self.stopped
+        fire = self.safety.fire
         perf = time.perf_counter
         m = len(paths[0])
         meas_abs = [math.nan] * len(chans)
         sent = self.sent
         links = list(zip(chans, self.raw, paths, self.offsets, strict=True))
-        t0 = first_deadline(dt, t_first) if paced else perf()
+        if paced:
+            pacer.start(t_first)
         for i in range(m):
             k = k0 + i
             t = k * dt
-            if runner.stop_signal is not None and k < 0:
+            if k < 0 and stopped():
                 # a stop during the start ramp: the loop sees it at once and ends the test
                 return None, meas_abs
             if paced:
-                _wait_until(t0 + i * dt, spin)
-                self.next_deadline = t0 + (i + 1) * dt
+                pacer.wait(i)
+                self.next_deadline = pacer.deadline(i + 1)
             for j, (ch, (send, _), p, off) in enumerate(links):
                 c = float(p[i])
                 v = 0.0 if ch.force_mode else (c - sent[j]) / dt  # a force ramp: no motion
                 trip = ch.monitor.check_command(t, k, c - off, v, c - off)
                 if trip is not None:
-                    return runner.safety.fire(trip, ch, t, k), meas_abs
+                    return fire(trip, ch, t, k), meas_abs
                 send(seq0 + i, c, True)
                 sent[j] = c
             for j, (ch, (_, recv), p, off) in enumerate(links):
@@ -586,7 +599,7 @@ class Phases:
                         fb.displacement - off, fb.force,
                     )  # fmt: skip
                 if trip is not None:
-                    return runner.safety.fire(trip, ch, t, k), meas_abs
+                    return fire(trip, ch, t, k), meas_abs
             if hb and i % hb == 0:
                 for ch in chans:
                     ch.heartbeat()

@@ -22,9 +22,11 @@ runner then e-stops **every** channel through its driver (each twin or controlle
 holds), confirms each latch with one status poll, records the events and returns; the CLI exits
 with 3.
 
-Modes, pacing and the overrun policy are those of ``docs/loop.md`` (:mod:`.timing`). What the
-run returns is a :class:`~rths_hil.hybrid.result.RunResult`; the record's files and rows are
-made in :mod:`.record`.
+The phases of a step are :class:`~.step.Step`'s methods; the paced wait is a
+:class:`~.pacer.Pacer`. Modes, pacing and the overrun policy are those of ``docs/loop.md``
+(:mod:`.pacer`, :mod:`.timing`). What the run returns is a
+:class:`~rths_hil.hybrid.result.RunResult`; the record's files and rows are made in
+:mod:`.record`.
 """
 
 from __future__ import annotations
@@ -45,16 +47,17 @@ import numpy as np
 
 from ..errors import InputError
 from ..records.recorder import Recorder, RecordWriteError
-from ..records.run import open_recorder, row_writer
+from ..records.run import open_recorder
 from ..safety import OverrunRule, StallRule, Trip
 from ..safety.channels import Safety
 from ..stopping import OperatorStop
 from ..structures.stages import StageContext
-from .channel import Channel, step_mixed
+from .channel import Channel
 from .phases import Phases, preflight
 from .plan import TestPlan
 from .result import RunResult
-from .timing import MIN_SLEEP, first_deadline, p99
+from .step import Step, dot
+from .timing import p99
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +172,9 @@ class Runner:
             # Everything that takes time is done before any controller is armed: from the
             # arming command to the hand-back every controller gets a command (and its
             # heartbeat) every period, with no silent gap between the phases (docs/loop.md)
-            phases = Phases(self, rec)
+            phases = Phases(
+                plan, self.channels, self.safety, rec, lambda: self.stop_signal is not None
+            )
             firsts = phases.first_commands()  # the loop's step-0 commands ...
             start = self._start_state()  # ... and the loop's state of step 0 (in this order)
             bufs = self._buffers()
@@ -351,7 +356,7 @@ class Runner:
         )
         xs = st.reset()
         for ch in self.channels:
-            ch.target = xs[ch.dof] if ch.dof >= 0 else _dot(ch.row, xs)
+            ch.target = xs[ch.dof] if ch.dof >= 0 else dot(ch.row, xs)
             if ch.force_mode:  # a force target from the trial displacement, or the load
                 ch.trial = ch.trial_next = ch.target
                 ch.target = ch.force_target(ch.target, 0)
@@ -359,13 +364,13 @@ class Runner:
             ch.alpha = ch.compensator.alpha
             ch.command = ch.compensate(ch.target)
             ch.target_next, ch.command_next = ch.target, ch.command
-            ch.velocity = st.v[ch.dof] if ch.dof >= 0 else _dot(ch.row, st.v)
+            ch.velocity = st.v[ch.dof] if ch.dof >= 0 else dot(ch.row, st.v)
         trip = self.safety.command(0.0, 0)
         for ch in self.channels:
             ch.last_command = ch.command
         return xs, trip
 
-    def _loop(  # noqa: C901
+    def _loop(
         self,
         rec: Recorder,
         start: tuple[list[float], Trip | None],
@@ -375,272 +380,66 @@ class Runner:
         """Step from 0 until the end, a trip or an operator stop (the step; ``docs/loop.md``).
 
         ``start``: :meth:`_start_state`'s result; ``bufs``: :meth:`_buffers`'; ``t_first``
-        (paced): the next deadline of the start phase, which the loop's grid continues.
+        (paced): the next deadline of the start phase, which the loop's grid continues. The
+        phases of a step are :class:`~.step.Step`'s.
         """
         plan = self.plan
-        n = plan.n_steps
         dt = plan.dt
         paced = plan.mode == "paced"
-        # a memoryview of the plan's float64 array: Python floats on indexing, no copy (an
-        # hour at 4096 Hz is 118 MB; a list would be 32 B per sample)
-        ag = memoryview(np.ascontiguousarray(plan.ag, dtype=float))
         chans = self.channels
-        multi = len(chans) > 1
-        safety = self.safety
-        st = plan.structure
-        n_dof = st.n_dof
-        mixed = any(ch.force_mode for ch in chans)  # force or load channels
-        st_step = st.step
-        write_row = row_writer(rec, chans, st)  # (time, step, ground_accel, lateness, skew, dofs)
-
-        check_feedback = safety.feedback
-        check_command = safety.command
-        check_evaluators = safety.evaluators
-        check_timing = safety.timing
-        timeout = plan.timeout
-        # paced with the automatic reply wait (loop.feedback_timeout = 0): the replies are
-        # waited for at most until the step's own work after them still ends before the next
-        # deadline, i.e. until deadline + Δt − reserve, where reserve is the recent peak of that
-        # work (+50 %, decaying by 0.2 % a step, between 5 % and 25 % of Δt; a step whose work
-        # took longer than Δt is a stall, not work to reserve for). A reply later than
-        # that is a missed reply (degradation: the measurement is held), not an overrun that
-        # the following steps inherit (a controller that answers one request at a time fills
-        # most of the period at 1 kHz).
-        budget = paced and not plan.cfg["loop"]["feedback_timeout"]
-        reserve_min, reserve_max = 0.05 * dt, 0.25 * dt
-        reserve = 0.2 * dt
-        spin = plan.spin
-        min_sleep = MIN_SLEEP * dt
-        thr = plan.overrun_threshold
-        hb_steps = plan.heartbeat_steps
-        hb_next = 0  # the step of the next heartbeat (every hb_steps; at once after a stall)
-        stall_rule = self.stall
-        min_stall = stall_rule.min_stall if stall_rule is not None else math.inf
-        slip = plan.after_stall == "slip"
-        stalls: list[tuple[int, float]] = []
+        console = plan.console_interval if self.live is not None else 0.0
+        step = Step(plan, chans, self.safety, self.stall, rec, bufs, console)
+        pacer = step.pacer
+        wait, sent, replies = step.wait, pacer.sent, step.replies
+        check_feedback, heartbeat, advance = self.safety.feedback, step.heartbeat, step.advance
+        evaluate, record, account = step.evaluate, step.record, step.account
+        lat_list = bufs[0]
         perf = time.perf_counter
-        sleep = time.sleep
-        nan = math.nan
-
-        # lateness (paced; lockstep: zero by definition, see the result below), work, ready and
-        # stalled (paced), allocated before arming (:meth:`_buffers`)
-        lat_list, lat_view, work_list, ready_list, stalled_list = bufs
         cpu = time.thread_time
         usage = resource.getrusage
         THREAD = resource.RUSAGE_THREAD
-        console = plan.console_interval if self.live is not None else 0.0
-        next_console = math.inf
-
         xs, trip = start
-        overruns = 0
-        missed = 0
         status = "completed"
         k = 0
-        lat = 0.0
-        skew = nan
-        was_over = False
+        lat = c_send = 0.0
+        v_send = 0
         t_start = perf()
         # paced: on the start ramp's grid when it ran, else a moment from now (first_deadline)
-        t0 = first_deadline(dt, t_first) if paced else t_start
-        prev_send = t0 - dt  # the previous step's send (perf_counter): stalls are gaps from it
+        t0 = pacer.start(t_first) if paced else t_start
         # wall-clock time of deadline 0: row k was sent at wall_t0 + k·Δt + lateness[k]
         rec.event("clock", 0.0, 0, wall_t0=time.time() + (t0 - perf()))
-        if console > 0:
-            next_console = t_start + console
-            last_console_k, last_console_t = 0, t_start
-        wall = 0.0
+        live = _Console(self, bufs[1], t_start, console)
         try:
-            while k < n and trip is None:
+            while k < step.n and trip is None:
                 if self.stop_signal is not None:
-                    status = "operator_stop"
-                    trip = Trip("operator", f"operator stop ({self.stop_signal})").at(k * dt, k)
-                    rec.event("operator_stop", k * dt, k, signal=self.stop_signal)
+                    status, trip = "operator_stop", self._operator_stop(rec, k)
                     break
                 tk = k * dt
-                # ---- wait for the deadline, then send every command at once --------------------
+                # ---- wait for the deadline, then send every command at once ----------------
                 if paced:
-                    deadline = t0 + tk
-                    now = perf()
-                    gap = deadline - now
-                    ready_list[k] = -gap  # > 0: the previous step's work ran past the deadline
-                    rem = gap - spin
-                    if rem < min_sleep and gap > 2.0 * min_sleep:
-                        rem = min_sleep  # give the CPU away every period (RT bandwidth limit)
-                    if rem > 0:
-                        sleep(rem)
-                        now = perf()
-                    while now < deadline:
-                        now = perf()
-                    lat = now - deadline
-                    if lat > thr:  # late: a stall of the bridge, or an overrun to catch up
-                        if lat > min_stall and now - prev_send - dt > min_stall:
-                            trip = self._stall(rec, tk, k, prev_send + dt, now, lat, stalls)
-                            if trip is not None:
-                                break  # step k is not sent: every channel is e-stopped
-                            # the controllers' heartbeat watchdogs heard nothing during the
-                            # stall: their heartbeat goes with this step, not up to a period
-                            # of loop.heartbeat later
-                            hb_next = k
-                            if slip:  # shift the time base: step k is on time from here
-                                t0 += lat
-                                rec.event("clock", tk, k, wall_t0=time.time() - tk, slip=lat)
-                        elif not slip:
-                            now = self._catch_up_spacing(now, prev_send)
-                            lat = now - deadline
+                    now, lat, trip = wait(k, tk)
+                    if trip is not None:
+                        break  # step k is not sent: every channel is e-stopped
                     c_send = cpu()  # the step's work starts: the thread's CPU clock, its
                     v_send = usage(THREAD).ru_nvcsw  # voluntary context switches so far
-                    for ch in chans:
-                        ch.send(k, ch.command, True)
-                    prev_send = now
-                    lat_list[k] = lat
-                else:
-                    for ch in chans:
-                        ch.send(k, ch.command, True)
-                    now = perf()
-                # ---- every channel's reply --------------------------------------------------
-                t_lim = now + timeout
-                if budget:
-                    t_cut = t0 + tk + dt - reserve  # (t0: after a slip, step k is on time)
-                    if t_cut < t_lim:
-                        t_lim = t_cut
-                t_first = t_last = 0.0
                 for ch in chans:
-                    rem = t_lim - perf() if multi or budget else timeout
-                    fb = ch.receive(rem if rem > 0.0 else 0.0)
-                    t = ch.reply_clock = perf()
-                    if fb is not None:
-                        if ch.gap_steps:  # a reply ends a gap: one event (the degradation)
-                            self._gap_ended(rec, ch, t)
-                        ch.ok_clock = t
-                        t -= now
-                        ch.feedback_ok = True
-                        ch.measured = fb.displacement
-                        ch.force = fb.force
-                        ch.reply_seq = fb.seq
-                        ch.reply_status = fb.status
-                        ch.feedback_time = t
-                        if t > t_last:
-                            t_last = t
-                        if t_first == 0.0 or t < t_first:
-                            t_first = t
-                    else:  # a missed reply: the measurement is held (``measured``, ``force``)
-                        ch.feedback_ok = False
-                        ch.reply_seq = -1
-                        ch.reply_status = 0
-                        ch.feedback_time = nan
-                        ch.missed_replies += 1
-                        missed += 1
-                        if not ch.gap_steps:
-                            ch.gap_start = k
-                        ch.gap_steps += 1
-                        ch.link_down = ch.driver.link_down  # a dead link trips at once
-                t_work = perf()
-                if multi:
-                    skew = t_last - t_first if t_first > 0.0 else nan
-                trip = check_feedback(tk, k)
-                if hb_steps and k >= hb_next:
-                    hb_next = k + hb_steps
-                    for ch in chans:
-                        ch.heartbeat()
-                # ---- structure: commit step k with the measured forces, next targets ---------
-                if trip is None:
-                    if mixed:  # force or load channels (.channel.step_mixed)
-                        x_next = step_mixed(st, k, ag[k], chans, n_dof)
-                    else:
-                        if n_dof == 1 and not multi:
-                            x_next = st_step(k, ag[k], (chans[0].force * chans[0].row[0],))
-                        else:
-                            f = [0.0] * n_dof
-                            for ch in chans:
-                                if ch.dof >= 0:
-                                    f[ch.dof] += ch.force
-                                else:
-                                    for i, r in enumerate(ch.row):
-                                        f[i] += r * ch.force
-                            x_next = st_step(k, ag[k], f)
-                        v_d, r_d = st.v, st.r
-                        for ch in chans:
-                            d = ch.dof
-                            if d >= 0:
-                                ch.target_next = x_next[d]
-                                ch.velocity = v_d[d]
-                                ch.restoring_force = r_d[d]
-                            else:
-                                ch.target_next = _dot(ch.row, x_next)
-                                ch.velocity = _dot(ch.row, v_d)
-                                ch.restoring_force = _dot(ch.row, r_d)
-                            ch.alpha = ch.compensator.alpha
-                            ch.command_next = ch.compensate(ch.target_next)
-                    trip = check_command(tk, k)
-                    if st.finished and trip is None:
-                        trip = st.trip  # an external structure's fault
-                        if trip is None:
-                            n = k + 1  # the structure ends the test after this step
-                else:
-                    x_next = xs
-                    for ch in chans:
-                        ch.target_next, ch.command_next = ch.target, ch.command
-                # ---- evaluators -------------------------------------------------------------
-                for ch in chans:
-                    ch.evaluate(k)
-                if trip is None:
-                    trip = check_evaluators(tk, k)
-                if safety.events:  # the stability indicator's warnings
-                    for ev in safety.events:
-                        rec.event("stability", tk, k, **ev)
-                    safety.events.clear()
+                    ch.send(k, ch.command, True)
                 if paced:
-                    over = lat > thr
-                    if over:
-                        overruns += 1
-                    # the rule counts consecutive overruns: nothing to tell it while none
-                    if (over or was_over) and trip is None:
-                        trip = check_timing(tk, k, over, lat)
-                    was_over = over
-                # ---- record row k (every column by name, see .record.row_writer) -------------
-                write_row(tk, k, ag[k], lat, skew, xs)
-                for ch in chans:
-                    if console:  # peaks, for the console's safety margin only
-                        a = ch.measured if ch.force_mode else ch.target
-                        if a < 0:
-                            a = -a
-                        if a > ch.peak_displacement:
-                            ch.peak_displacement = a
-                        a = ch.velocity
-                        if a < 0:
-                            a = -a
-                        if a > ch.peak_velocity:
-                            ch.peak_velocity = a
-                        a = ch.force
-                        if a < 0:
-                            a = -a
-                        if a > ch.peak_force:
-                            ch.peak_force = a
-                    ch.last_command = ch.command
-                    ch.target = ch.target_next
-                    ch.command = ch.command_next
-                xs = x_next
-                t_end = perf()
-                w = t_end - t_work
-                work_list[k] = w
-                if budget and w < dt:  # the reserve for the work after the replies (above)
-                    w *= 1.5
-                    reserve = w if w > reserve else reserve * 0.998
-                    if reserve < reserve_min:
-                        reserve = reserve_min
-                    elif reserve > reserve_max:
-                        reserve = reserve_max
-                if paced and usage(THREAD).ru_nvcsw == v_send:  # the thread never blocked
-                    stalled_list[k] = max(0.0, t_end - prev_send - (cpu() - c_send))
-                k += 1
-                if console > 0:
+                    lat_list[k] = lat = sent(now)
+                else:
                     now = perf()
-                    if now >= next_console:
-                        rate = (k - last_console_k) / (now - last_console_t)
-                        recent = lat_view[last_console_k:k]
-                        self.live(self._status(tk, k, n, rate, recent, overruns, paced))
-                        last_console_k, last_console_t = k, now
-                        next_console = now + console
+                skew = replies(k, now, tk)  # ---- every channel's reply -------------------
+                t_work = perf()
+                trip = check_feedback(tk, k)
+                heartbeat(k)
+                x_next, trip = advance(k, tk, xs, trip)  # ---- structure, command safety --
+                trip = evaluate(k, tk, lat, trip)  # ---- evaluators, their rules -----------
+                record(tk, k, lat, skew, xs)  # ---- row k ----------------------------------
+                xs = x_next
+                account(k, t_work, c_send, v_send)
+                k += 1
+                if console:
+                    live.tick(tk, k, step.n, pacer.overruns)
             wall = perf() - t_start
         except RecordWriteError as exc:  # disk full or gone: a safety event, not a crash
             wall = perf() - t_start
@@ -654,13 +453,30 @@ class Runner:
             rec.event("error", k * dt, k, error=repr(sys.exc_info()[1]))
             raise
         # paced: the end phase continues this grid (no silent gap before the hand-back)
-        self.next_deadline = t0 + k * dt if paced else None
+        self.next_deadline = pacer.deadline(k) if paced else None
+        return self._loop_result(rec, step, k, wall, trip, status)
+
+    def _operator_stop(self, rec: Recorder, k: int) -> Trip:
+        """The operator stopped the run before step ``k``: its event and trip."""
+        dt = self.plan.dt
+        rec.event("operator_stop", k * dt, k, signal=self.stop_signal)
+        return Trip("operator", f"operator stop ({self.stop_signal})").at(k * dt, k)
+
+    def _loop_result(
+        self, rec: Recorder, step: Step, k: int, wall: float, trip: Trip | None, status: str
+    ) -> RunResult:
+        """The loop's :class:`RunResult` after ``k`` steps (open reply gaps and the trip
+        recorded)."""
+        plan = self.plan
+        paced = step.paced
+        chans = self.channels
         for ch in chans:  # a gap still open at the end (the trip it caused, or the last steps)
             if ch.gap_steps:
-                self._gap_ended(rec, ch, perf(), ended=False)
+                step.gap_ended(ch, time.perf_counter(), ended=False)
         if trip is not None and status != "operator_stop":
             status = "trip"
             rec.event("trip", **{k2: v2 for k2, v2 in trip.as_event().items() if k2 != "kind"})
+        _lat_list, lat_view, work_list, ready_list, stalled_list = step.bufs
         # paced: a view (keeps lat_list alive, no copy); lockstep: zeros without memory
         lateness = lat_view[:k] if paced else np.broadcast_to(np.float64(0.0), (k,))
         ready = np.array(ready_list[:k], dtype=float) if paced else np.zeros(0)
@@ -674,39 +490,17 @@ class Runner:
             fs=plan.fs,
             wall_time=wall,
             lateness=lateness,
-            overruns=overruns,
-            missed_replies=missed,
+            overruns=step.pacer.overruns,
+            missed_replies=step.missed,
             estop_confirmed=None,
             final_alpha=chans[0].compensator.alpha,
             ready=ready,
-            overrun_threshold=thr if paced else math.nan,
+            overrun_threshold=plan.overrun_threshold if paced else math.nan,
             work=np.frombuffer(work_list, dtype=float)[:k],
             stalled=np.frombuffer(stalled_list, dtype=float)[:k] if paced else np.zeros(0),
             channels=[ch.name for ch in chans],
-            stalls=stalls,
+            stalls=step.stalls,
         )
-
-    def _gap_ended(self, rec: Recorder, ch: Channel, now: float, ended: bool = True) -> None:
-        """A reply gap of ``ch`` ended at ``now`` (perf_counter s): one ``reply_gap`` event.
-
-        The event gives the gap's first missed step and its loop time (``start``), the missed
-        replies (``count``), the silence (``length``, s: from the good reply before the gap to
-        the one that ended it, or to the end of the loop when ``ended`` is false; NaN when no
-        reply had come before it) and the channel; the channel keeps the count and the longest.
-        """
-        k0, n = ch.gap_start, ch.gap_steps
-        length = now - ch.ok_clock
-        ch.gap_steps = 0
-        ch.gaps += 1
-        if n > ch.longest_gap_steps:
-            ch.longest_gap_steps = n
-        if length > ch.longest_gap:
-            ch.longest_gap = length
-        dt = self.plan.dt
-        rec.event(
-            "reply_gap", k0 * dt, k0, channel=ch.name, start=k0 * dt, count=n, length=length,
-            ended=ended, link_down=ch.link_down,
-        )  # fmt: skip
 
     def reply_gaps(self) -> dict:
         """The run's reply gaps for the ``end`` event and the summary.
@@ -734,50 +528,6 @@ class Runner:
         if len(per) > 1:
             out["channels"] = per
         return out
-
-    def _stall(
-        self,
-        rec: Recorder,
-        tk: float,
-        k: int,
-        start: float,
-        end: float,
-        lateness: float,
-        stalls: list,
-    ) -> Trip | None:
-        """The loop did not run from ``start`` to ``end`` (perf_counter s): a stall of the bridge.
-
-        Every channel's watchdog is told (the time is not controller silence), the stall is an
-        event with its length and what the loop does next, and a stall longer than
-        ``safety.max_stall`` trips.
-        """
-        length = end - start
-        for ch in self.channels:
-            wd = ch.monitor.watchdog
-            if wd is not None:
-                wd.stalled(start, end)
-        stalls.append((k, length))
-        trip = self.stall.check(length)
-        action = "trip" if trip is not None else self.plan.after_stall
-        rec.event("stall", tk, k, length=length, lateness=lateness, action=action)
-        # every stall is an event; the console hears of the long ones (the summary counts all)
-        (log.warning if length >= 0.01 or trip is not None else log.info)(
-            "the bridge stalled for %.1f ms before step %d (%s)", length * 1e3, k, action
-        )
-        return None if trip is None else self.safety.fire(trip, None, tk, k)
-
-    def _catch_up_spacing(self, now: float, prev_send: float) -> float:
-        """Catch-up after a stall: wait until no channel's command moves faster (in wall-clock
-        time, from the previous send) than its velocity limit allows; return the send time."""
-        need = 0.0
-        for ch in self.channels:
-            lim = ch.monitor.vel_limit
-            if lim != math.inf:
-                need = max(need, abs(ch.command - ch.last_command) / lim)
-        perf = time.perf_counter
-        while now < prev_send + need:
-            now = perf()
-        return now
 
     def stability_energy(self) -> dict:
         """Per channel with the stability indicator: the energy the tracking error injected
@@ -832,10 +582,27 @@ class Runner:
         }
 
 
-def _dot(row: list[float], x) -> float:
-    """T-row · vector for short rows (plain floats)."""
-    s = 0.0
-    for r, v in zip(row, x, strict=False):
-        if r:
-            s += r * v
-    return s
+class _Console:
+    """The console's status line every ``loop.console`` seconds (:meth:`Runner._status`)."""
+
+    __slots__ = ("interval", "last_k", "last_t", "lat_view", "next_t", "runner")
+
+    def __init__(self, runner: Runner, lat_view: np.ndarray, t_start: float, interval: float):
+        self.runner = runner
+        self.lat_view = lat_view
+        self.interval = interval
+        self.next_t = t_start + interval if interval > 0 else math.inf
+        self.last_k, self.last_t = 0, t_start
+
+    def tick(self, tk: float, k: int, n: int, overruns: int) -> None:
+        """After step ``k − 1`` (loop time ``tk``): the status line when it is due."""
+        now = time.perf_counter()
+        if now >= self.next_t:
+            r = self.runner
+            rate = (k - self.last_k) / (now - self.last_t)
+            recent = self.lat_view[self.last_k : k]
+            paced = r.plan.mode == "paced"
+            assert r.live is not None
+            r.live(r._status(tk, k, n, rate, recent, overruns, paced))
+            self.last_k, self.last_t = k, now
+            self.next_t = now + self.interval

@@ -1,8 +1,9 @@
 """Pacing of the loop and overrun attribution (paced mode).
 
-The paced wait (absolute grid ``t0 + k·Δt``, sleep until ``spin`` before the deadline, then
-busy-wait), the machine's own floor (:func:`paced_floor`, the same wait with no work) and the
-attribution of each overrun to the machine or to the loop's work (:func:`attribute_overruns`).
+The paced wait itself (absolute grid ``t0 + k·Δt``, sleep until ``spin`` before the deadline,
+then busy-wait) is :class:`~.pacer.Pacer`; here: the machine's own floor (:func:`paced_floor`,
+the same wait with no work) and the attribution of each overrun to the machine or to the
+loop's work (:func:`attribute_overruns`).
 See ``docs/loop.md``.
 """
 
@@ -17,6 +18,7 @@ import time
 import numpy as np
 
 from ..errors import InputError
+from .pacer import MIN_SLEEP, PHASE_LEAD, Pacer, first_deadline
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +27,9 @@ __all__ = [
     "MACHINE",
     "MACHINE_BACKLOG",
     "MACHINE_IN_WORK",
+    "MIN_SLEEP",
     "ON_TIME",
+    "PHASE_LEAD",
     "WORK",
     "WORK_BACKLOG",
     "attribute_overruns",
@@ -35,32 +39,6 @@ __all__ = [
 ]
 
 LEAD_IN = 0.1  # s between the start of paced_floor's stepping and its first deadline
-#: Paced: from the end of a phase's set-up to its first deadline, at least (s). A phase that
-#: follows another one without set-up (the loop after the start ramp, the end after the loop)
-#: continues the previous one's grid instead: the controllers get a command every period from
-#: arming to the hand-back (``docs/loop.md``, "No silent gap").
-PHASE_LEAD = 0.002
-
-
-def first_deadline(dt: float, after: float | None = None) -> float:
-    """The first deadline (perf_counter s) of a paced phase of period ``dt``.
-
-    ``after``: the next deadline of the phase before it (its grid continues), used when it is
-    not already more than a period past; otherwise one period, at least :data:`PHASE_LEAD`,
-    from now.
-    """
-    now = time.perf_counter()
-    if after is not None and after > now - dt:
-        return max(after, now)
-    return now + max(dt, PHASE_LEAD)
-
-
-# Paced: when the work leaves less than ``spin`` before the deadline, still sleep this fraction
-# of a period if there is room for it (and as much again to spin). A SCHED_FIFO thread that
-# never sleeps exhausts the kernel's RT bandwidth (sched_rt_runtime_us = 95 %; on Linux ≥ 6.12
-# the fair server) and is stopped for ≈ 50 ms every second: at 4096 Hz with ≈ 170 µs of work
-# per 244 µs period that alone made 18 % of the steps late.
-MIN_SLEEP = 0.1
 
 
 #: Causes of a paced overrun, the codes :func:`attribute_overruns` returns.
@@ -174,14 +152,10 @@ def paced_floor(
     """
     if not (fs > 0 and duration > 0):
         raise InputError(f"paced_floor: fs and duration must be > 0, got {fs}, {duration}")
-    dt = 1.0 / fs
-    spin = min(spin, 0.4 * dt)
-    min_sleep = MIN_SLEEP * dt
+    pacer = Pacer.for_loop(1.0 / fs, spin)  # the loop's own wait (spin capped at 0.4 Δt)
     n = max(1, round(duration * fs))
     lat_list = [0.0] * n
     ready_list = [0.0] * n
-    perf = time.perf_counter
-    sleep = time.sleep
     old_sched = None
     if priority > 0:
         try:
@@ -196,21 +170,12 @@ def paced_floor(
     gc.collect()
     gc.disable()
     try:
-        t0 = perf() + LEAD_IN
+        pacer.t0 = time.perf_counter() + LEAD_IN
+        wait = pacer.wait
         for k in range(n):
-            deadline = t0 + k * dt
-            now = perf()
-            gap = deadline - now
-            ready_list[k] = -gap
-            rem = gap - spin
-            if rem < min_sleep and gap > 2.0 * min_sleep:
-                rem = min_sleep
-            if rem > 0:
-                sleep(rem)
-                now = perf()
-            while now < deadline:
-                now = perf()
-            lat_list[k] = now - deadline
+            now = wait(k)
+            ready_list[k] = pacer.ready
+            lat_list[k] = now - pacer.due
     finally:
         sys.setswitchinterval(old_switch)
         if gc_was:

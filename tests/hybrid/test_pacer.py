@@ -11,7 +11,7 @@ import math
 
 import pytest
 
-from rths_hil.hybrid.pacer import MIN_SLEEP, SPIN_CAP, Pacer, first_deadline
+from rths_hil.hybrid.pacer import MIN_SLEEP, SPIN_CAP, Pacer, ReplyBudget, first_deadline
 
 
 class FakeClock:
@@ -153,3 +153,29 @@ def test_spin_until_and_bad_period() -> None:
     assert 1e-3 <= end < 1e-3 + 1.01e-5
     with pytest.raises(ValueError, match="dt must be > 0"):
         Pacer(0.0, 3e-4)
+
+
+def test_reply_budget_reserve_follows_the_work_peak() -> None:
+    dt = 1e-3
+    b = ReplyBudget(dt, timeout=0.05, auto=True)
+    # before any work: deadline + Δt − 20 % Δt, earlier than send + timeout
+    assert b.limit(now=1.0001, deadline=1.0) == pytest.approx(1.0 + 0.8e-3)
+    b.note(0.1e-3)  # 0.15 ms < the 0.2 ms reserve: it decays by 0.2 %
+    assert b.reserve == pytest.approx(0.2e-3 * 0.998)
+    b.note(0.14e-3)  # 0.21 ms > the reserve: the new peak
+    assert b.reserve == pytest.approx(0.21e-3)
+    b.note(0.9e-3)  # 1.35 ms: capped at 25 % of Δt
+    assert b.reserve == pytest.approx(0.25e-3)
+    b.note(2e-3)  # longer than Δt: a stall, not work to reserve for
+    assert b.reserve == pytest.approx(0.25e-3)
+    r = 0.25e-3
+    for _ in range(1000):  # no work: decays to the 5 % floor
+        b.note(0.0)
+        r = max(r * 0.998, 0.05e-3)
+    assert b.reserve == pytest.approx(r) == pytest.approx(0.05e-3)
+    assert b.limit(now=2.0, deadline=2.0) == pytest.approx(2.0 + 1e-3 - 0.05e-3)
+    # a fixed timeout (loop.feedback_timeout) or lockstep: the send + timeout, no reserve
+    fixed = ReplyBudget(dt, timeout=2e-3, auto=False)
+    fixed.note(0.1e-3)
+    assert fixed.limit(now=3.0, deadline=2.9995) == 3.002
+    assert fixed.reserve == pytest.approx(0.2e-3)

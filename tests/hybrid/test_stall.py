@@ -231,25 +231,26 @@ def test_catch_up_after_a_stall_keeps_the_command_within_the_velocity_limit(tmp_
     assert (dc / dts).max() > 0.9 * vlim  # the limit did hold the catch-up back
 
 
-def test_catch_up_spacing_waits_for_the_slowest_channel(monkeypatch):
+def test_catch_up_spacing_waits_for_the_slowest_channel():
     """The spacing rule itself: the send waits |Δc| / v_lim after the previous send for the
     channel that needs longest; channels without a velocity limit do not hold it back. The
     clock is a counter (0.1 ms a reading), so the wait is exact whatever the machine does."""
     from types import SimpleNamespace as NS
 
-    from rths_hil.hybrid.runner import Runner
+    from rths_hil.hybrid.pacer import Pacer
+    from rths_hil.hybrid.step import Step
 
     ticks = iter(range(1, 10**6))
-    monkeypatch.setattr(time, "perf_counter", lambda: next(ticks) * 1e-4)
+    pacer = Pacer(1e-3, 3e-4, clock=lambda: next(ticks) * 1e-4)
     chans = [
         NS(command=1e-3, last_command=0.0, monitor=NS(vel_limit=1.0)),  # 1 mm at 1 m/s: 1 ms
         NS(command=2e-3, last_command=1e-3, monitor=NS(vel_limit=0.5)),  # 1 mm at 0.5 m/s: 2 ms
         NS(command=1.0, last_command=0.0, monitor=NS(vel_limit=math.inf)),
     ]
-    t = 0.0
-    sent = Runner._catch_up_spacing(NS(channels=chans), t, t)
+    t = pacer.prev_send = 0.0
+    sent = Step.catch_up(NS(chans=chans, pacer=pacer), t)
     assert 2e-3 <= sent - t < 2e-3 + 1e-4  # the first reading at or past 2 ms (not 1 or 3)
-    sent = Runner._catch_up_spacing(NS(channels=chans[2:]), t, t)
+    sent = Step.catch_up(NS(chans=chans[2:], pacer=pacer), t)
     assert sent == t
 
 
