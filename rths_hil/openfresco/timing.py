@@ -163,6 +163,10 @@ class TimingMode:
             return t
         return None
 
+    def _target_or_end(self) -> bool:
+        """A new target is there, or the session ended (a condition wait's predicate)."""
+        return self._new_target() is not None or self.mb.closed is not None
+
     def _take(self, t: Target, k: int) -> None:
         self.seq = t.seq
         self.pending = t
@@ -343,15 +347,16 @@ class Lockstep(_RampBase):
         waited = False
         while True:
             with mb.cond:
+                # a poll: a new target, the end of the session or KEEPALIVE s (the
+                # condition's own wait, on its monotonic clock)
+                left = deadline - time.monotonic()
+                mb.cond.wait_for(self._target_or_end, min(max(left, 0.0), KEEPALIVE))
                 t = self._new_target()
                 if t is None:
                     if self._check_closed():
                         return None
-                    left = deadline - time.monotonic()
-                    if left <= 0:
+                    if deadline - time.monotonic() <= 0:
                         raise SiteFault(f"openfresco: no trial from the client within {limit:g} s")
-                    mb.cond.wait(min(left, KEEPALIVE))
-                    t = self._new_target()
             if t is not None:
                 break
             waited = True
@@ -580,17 +585,11 @@ class PredictorCorrector(TimingMode):
         return c
 
     def _wait_for(self, limit: float) -> Target | None:
+        """A new target within ``limit`` s (or the end of the session): the target or None."""
         mb = self.mb
-        deadline = time.perf_counter() + limit
         with mb.cond:
-            while True:
-                t = self._new_target()
-                if t is not None or mb.closed is not None:
-                    return t
-                left = deadline - time.perf_counter()
-                if left <= 0:
-                    return None
-                mb.cond.wait(left)
+            mb.cond.wait_for(self._target_or_end, limit)
+            return self._new_target()
 
 
 def make_timing(name: str, mailbox: Mailbox, n: int, dt: float, opts: dict) -> TimingMode:
