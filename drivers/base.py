@@ -37,12 +37,9 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from enum import IntFlag
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 from rths_hil.errors import InputError
-
-if TYPE_CHECKING:
-    from rths_hil.linkbudget import LinkLoad
 
 log = logging.getLogger(__name__)
 _perf = time.perf_counter
@@ -266,10 +263,11 @@ class Driver(ABC):
     (:meth:`_classify`).
 
     Class attributes a driver sets: :attr:`name`, :attr:`honours_deadline`,
-    :attr:`echoes_seq`, :attr:`command_lsb`, :attr:`control_modes`; class methods describing
-    its links and twin: :meth:`link_key`, :meth:`link_load`, :meth:`link_advice`,
-    :meth:`share_key`, :meth:`own_link`, :meth:`inline_twin` (see ``docs/protocols.md``,
-    "Adding a driver").
+    :attr:`echoes_seq`, :attr:`command_lsb`, :attr:`atomic_command`, :attr:`control_modes`.
+    What the plan knows before any bus is opened (the link, its load, who may share it, the
+    twin, the profile format) is not the driver's: it is the protocol's descriptor
+    (:class:`rths_hil.drivers.protocol.Protocol`, see ``docs/protocols.md``, "Adding a
+    driver").
     """
 
     name: ClassVar[str]
@@ -366,15 +364,9 @@ class Driver(ABC):
         """
         name = getattr(self, "name", type(self).__name__)
         if mode not in self.control_modes:
-            hint = ""
-            if mode == FORCE and self.profile_protocol is not None:
-                hint = (
-                    f"; a {self.profile_protocol} profile (driver.profile) with a force "
-                    "set-point role can"
-                )
             raise InputError(
                 f"driver {name!r} cannot run a {mode!r}-controlled channel (its control modes: "
-                f"{', '.join(self.control_modes)}){hint}"
+                f"{', '.join(self.control_modes)})"
             )
         self.control = mode
 
@@ -689,98 +681,6 @@ class Driver(ABC):
             stop.set()
         if t is not None and t is not threading.current_thread():
             t.join(timeout=1.0)
-
-    # -- what the driver class knows: its links and its twin -----------------------------------
-    @classmethod
-    def link_key(cls, connection: dict[str, Any]) -> str:
-        """Name of the physical link ``connection`` uses; equal names share one link.
-
-        Default: the driver name and its sorted settings (every channel its own link).
-        """
-        c = dict(connection or {})
-        return f"{cls.name} " + ",".join(f"{k}={c[k]}" for k in sorted(c))
-
-    @classmethod
-    def link_load(
-        cls,
-        connection: dict[str, Any],
-        channels_on_link: int,
-        fs: float,
-        *,
-        heartbeat_hz: float = 0.0,
-    ) -> LinkLoad:
-        """Load of the link used by ``channels_on_link`` channels at the loop rate ``fs``.
-
-        Default: frame sizes unknown, not checked. A driver that knows its frames returns the
-        fraction of the link's capacity (the link model of its protocol's package, with the
-        shared arithmetic of :mod:`rths_hil.linkbudget`).
-        """
-        from rths_hil.linkbudget import LinkLoad
-
-        return LinkLoad(
-            cls.link_key(connection),
-            None,
-            f"driver {cls.name!r}: frame sizes unknown, not checked",
-            channels=int(channels_on_link),
-            fs=float(fs),
-        )
-
-    @classmethod
-    def link_advice(cls, load: LinkLoad, limit: float) -> list[str]:
-        """What else would bring a link of this driver's kind (``load.kind``) under ``limit``.
-
-        :mod:`rths_hil.linkbudget` works out a lower loop rate and fewer channels per link for
-        every link; a driver adds its protocol's own (a higher bit or baud rate, another
-        transport). Default: nothing more.
-        """
-        return []
-
-    @classmethod
-    def own_link(cls, connection: dict[str, Any]) -> bool:
-        """True when a channel with a twin gets a link of its own.
-
-        No bus, port or device is named in ``connection``: the twin opens a fresh one.
-        """
-        c = connection or {}
-        return not (c.get("channel") or c.get("port") or c.get("url"))
-
-    @classmethod
-    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
-        """Refuse channels of this driver that cannot share their link (one line).
-
-        Parameters
-        ----------
-        channels : list of (index, name, connection, twin_enabled)
-            Every channel of the test that uses this driver (index in ``actuators``).
-
-        Raises
-        ------
-        InputError
-            Two channels would speak to the same controller: one line starting
-            ``actuators: …`` naming them and the setting that tells them apart (the plan adds
-            the file). Default: no check.
-        """
-        return None
-
-    #: The ``protocol`` of the controller profiles this driver takes (``driver.profile``;
-    #: :mod:`rths_hil.drivers.profile`), or ``None``.
-    profile_protocol: ClassVar[str | None] = None
-
-    @classmethod
-    def profile_driver(cls) -> type[Driver]:
-        """The driver class that speaks a profile of :attr:`profile_protocol`.
-
-        Raises
-        ------
-        InputError
-            This driver takes no profile.
-        """
-        raise InputError(f"driver {getattr(cls, 'name', cls.__name__)!r} takes no profile")
-
-    @classmethod
-    def inline_twin(cls, connection: dict[str, Any]) -> bool:
-        """Whether this driver's twin can be served from the loop's thread (``twin.inline``)."""
-        return False
 
     # -- shared sequence bookkeeping ------------------------------------------------------------
     def _classify(self, seq: int) -> bool:

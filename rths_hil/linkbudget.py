@@ -3,10 +3,11 @@
 Every step each channel sends one command and receives one feedback. Before any software, the
 bus has to carry those bits in time: this module computes, for each link, the fraction of its
 capacity used per second and refuses a configuration above a limit (80 % by default) with one
-line saying what would fit. It names no protocol: the driver class of a channel knows its link
-(``Driver.link_key``), its frames and their load (``Driver.link_load``, a :class:`LinkLoad`)
-and what would bring it under the limit (``Driver.link_advice``), each in the link model of its
-protocol's package (``drivers/can/linkbudget.py``, ``drivers/canopen/linkbudget.py``,
+line saying what would fit. It names no protocol: the protocol descriptor of a channel's driver
+(:class:`rths_hil.drivers.protocol.Protocol`, from the driver registry) knows its link
+(``link_key``), its frames and their load (``link_load``, a :class:`LinkLoad`) and what would
+bring it under the limit (``link_advice``), each in the link model of its protocol's package
+(``drivers/can/linkbudget.py``, ``drivers/canopen/linkbudget.py``,
 ``drivers/modbus/linkbudget.py``, ``drivers/serial/linkbudget.py``; the formulas are in those
 modules and, with a table of rates × channels, in ``docs/protocols.md``). Here: the arithmetic
 they share, the check against the limit and the console lines.
@@ -98,7 +99,7 @@ class LinkLoad:
         computed for information only, e.g. a virtual bus with a ``bitrate``).
     kind : str
         What kind of link it is: the registry name of the driver whose link model advises on
-        it (``Driver.link_advice``), optionally with a variant after a hyphen (``can``,
+        it (``Protocol.link_advice``), optionally with a variant after a hyphen (``can``,
         ``modbus-rtu``, ``modbus-tcp``, ``serial``); ``other``: no advice but the loop rate
         and the channels per link.
     rate : float or None
@@ -190,27 +191,29 @@ def channels_count(channels_on_link: int) -> int:
     return ch
 
 
-def _driver_class(driver_name: str) -> Any:
-    """The registered driver class of ``driver_name``, or ``None`` for an unknown name."""
-    from rths_hil.drivers.registry import available, driver_class
+def _protocol(driver_name: str) -> Any:
+    """The protocol descriptor of ``driver_name`` (the driver registry), or ``None`` for an
+    unknown name."""
+    from rths_hil.drivers.registry import available, protocol
 
     if str(driver_name) not in available():
         return None
-    return driver_class(str(driver_name))
+    return protocol(str(driver_name))
 
 
 def link_key(driver_name: str, connection: dict[str, Any]) -> str:
     """Name of the physical link a channel's connection uses; equal names share one link.
 
-    Asks the driver class (``Driver.link_key``): CAN: interface and channel; Modbus TCP: host
-    and port; Modbus RTU: the serial device; serial: the port or URL. Other drivers (and
+    Asks the protocol descriptor (``Protocol.link_key``): CAN: interface and channel; Modbus
+    TCP: host and port; Modbus RTU: the serial device; serial: the port or URL. Other drivers (and
     unknown names): the driver name and its sorted settings.
     """
     c = dict(connection or {})
-    cls = _driver_class(driver_name)
-    if cls is None:
+    proto = _protocol(driver_name)
+    if proto is None:
         return f"{driver_name} " + ",".join(f"{k}={c[k]}" for k in sorted(c))
-    return cls.link_key(c)
+    key: str = proto.link_key(c)
+    return key
 
 
 def link_load(
@@ -223,8 +226,8 @@ def link_load(
 ) -> LinkLoad:
     """Load of the link used by ``channels_on_link`` channels of ``driver_name`` at ``fs``.
 
-    The driver class computes it (``Driver.link_load``: the link model of its protocol's
-    package); a driver that does not know its frames, or an unknown name, reports "not
+    The protocol descriptor computes it (``Protocol.link_load``: the link model of its
+    protocol's package); a driver that does not know its frames, or an unknown name, reports "not
     checked".
 
     Parameters
@@ -247,8 +250,8 @@ def link_load(
     c = dict(connection or {})
     fs = positive(fs, "loop rate fs (Hz)")
     ch = channels_count(channels_on_link)
-    cls = _driver_class(driver_name)
-    if cls is None:
+    proto = _protocol(driver_name)
+    if proto is None:
         return LinkLoad(
             link_key(driver_name, c),
             None,
@@ -256,12 +259,13 @@ def link_load(
             channels=ch,
             fs=fs,
         )
-    return cls.link_load(c, ch, fs, heartbeat_hz=float(heartbeat_hz))
+    load: LinkLoad = proto.link_load(c, ch, fs, heartbeat_hz=float(heartbeat_hz))
+    return load
 
 
 def _what_fits(ld: LinkLoad, limit: float) -> str:
     """The alternatives that would bring ``ld`` under ``limit``, as one phrase: the loop rate
-    and the channels per link, then the advice of the link's protocol (``Driver.link_advice``
+    and the channels per link, then the advice of the link's protocol (``Protocol.link_advice``
     of the driver its ``kind`` names)."""
     options = []
     if ld.per_channel > 0 and limit > ld.per_second:
@@ -273,9 +277,9 @@ def _what_fits(ld: LinkLoad, limit: float) -> str:
             options.append(f"≤ {per_bus} channel{'s' if per_bus > 1 else ''} per link")
         elif per_bus < 1:
             options.append("not even one channel per link at this rate")
-    cls = _driver_class(ld.kind.split("-", 1)[0])
-    if cls is not None:
-        options += cls.link_advice(ld, limit)
+    proto = _protocol(ld.kind.split("-", 1)[0])
+    if proto is not None:
+        options += proto.link_advice(ld, limit)
     return "; ".join(options) if options else "nothing at this rate"
 
 

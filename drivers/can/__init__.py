@@ -46,14 +46,17 @@ from can.interfaces.virtual import VirtualBus
 from rths_hil.errors import InputError
 
 from ..base import Driver, Feedback, LinkDown
+from ..protocol import Protocol
+from . import linkbudget
 from .codec import ActuatorCodecs, Frame, load
-from .linkbudget import LinkPlanning
 
 __all__ = [
     "MAX_NODE",
+    "PROTOCOL",
     "TIMEOUT_HONOURED",
     "CANDriver",
     "SharedBus",
+    "check_node",
     "release_bus",
     "shared_bus",
     "virtual_rx_queue",
@@ -178,13 +181,14 @@ def release_bus(share: SharedBus) -> None:
         pass
 
 
-def _check_node(node: int) -> int:
+def check_node(node: int) -> int:
+    """``node`` checked: a CAN node number 0..:data:`MAX_NODE` (else :class:`InputError`)."""
     if isinstance(node, bool) or not isinstance(node, int) or not 0 <= node <= MAX_NODE:
         raise InputError(f"CAN: node must be an integer 0..{MAX_NODE}, got {node!r}")
     return node
 
 
-class CANDriver(LinkPlanning):
+class CANDriver(Driver):
     """Lockstep actuator driver over CAN (see the module docstring).
 
     Parameters
@@ -204,7 +208,6 @@ class CANDriver(LinkPlanning):
     """
 
     name: ClassVar[str] = "can"
-    profile_protocol: ClassVar[str | None] = "can"
     honours_deadline: ClassVar[bool] = True  # the virtual queue / SocketCAN / the Notifier
 
     def __init__(
@@ -217,7 +220,7 @@ class CANDriver(LinkPlanning):
         node: int = 0,
     ) -> None:
         super().__init__()
-        self.node = _check_node(node)
+        self.node = check_node(node)
         self.interface = str(interface)
         self.channel = str(channel)
         self.bitrate = None if bitrate is None else int(bitrate)
@@ -261,37 +264,6 @@ class CANDriver(LinkPlanning):
         self._routes: dict[int, deque] = {}
         self._reader: can.BufferedReader | None = None
         self._hb = 0
-
-    # -- what this driver knows about its twin (its links: .linkbudget.LinkPlanning) ------------
-    @classmethod
-    def profile_driver(cls) -> type[Driver]:
-        """A lab's own DBC: :class:`~.profile.CANProfileDriver`."""
-        from .profile import CANProfileDriver
-
-        return CANProfileDriver
-
-    @classmethod
-    def inline_twin(cls, connection: dict[str, Any]) -> bool:
-        """The twin on python-can's in-process ``virtual`` bus can be served inline."""
-        from ..profile import is_builtin
-
-        c = connection or {}
-        return str(c.get("interface", "virtual")) == "virtual" and is_builtin(c.get("profile"))
-
-    @classmethod
-    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
-        """Channels on one bus need distinct CAN nodes (``driver.connection.node``)."""
-        seen: dict[tuple, str] = {}
-        for _, name, conn, twin in channels:
-            if conn.get("channel") is None and twin:
-                continue  # each twin gets a bus of its own
-            key = (conn.get("interface", "virtual"), conn.get("channel"), conn.get("node", 0))
-            if key in seen:
-                raise InputError(
-                    f"actuators: channels {seen[key]!r} and {name!r} use the same CAN node on "
-                    "one bus (set driver.connection.node)"
-                )
-            seen[key] = name
 
     def open(self) -> None:
         if self._bus is not None:
@@ -434,3 +406,25 @@ class CANDriver(LinkPlanning):
         disp = math.nan if rd == d_bad else rd * d_sc + d_off
         force = math.nan if rf == f_bad else rf * f_sc + f_off
         return Feedback(seq, disp, force, (v >> st_sh) & st_m)
+
+
+def _profile_driver() -> type[Driver]:
+    """A lab's own DBC: :class:`~.profile.CANProfileDriver`."""
+    from .profile import CANProfileDriver
+
+    return CANProfileDriver
+
+
+#: The CAN protocol's planning facts (:mod:`rths_hil.drivers.protocol`).
+PROTOCOL = Protocol(
+    name="can",
+    driver=CANDriver,
+    link_key=linkbudget.link_key,
+    link_load=linkbudget.link_load,
+    link_advice=linkbudget.link_advice,
+    check_sharing=linkbudget.check_sharing,
+    inline_twin=linkbudget.inline_twin,
+    profile_protocol="can",
+    profile_driver=_profile_driver,
+    path_keys=("dbc",),
+)

@@ -1,6 +1,6 @@
 """The CAN link model: the bits of a step's frames on a classic CAN bus (and through a serial
 line to a USB–CAN adapter), the load of a set of nodes, what would fit (a higher bit rate, CAN
-FD), and the planning facts of the driver class (its link).
+FD), and the planning facts of the protocol (who may share a bus, whether its twin runs inline).
 
 **Classic CAN** (ISO 11898-1, 11-bit identifier, ``s`` data bytes). Without stuffing a data
 frame plus the 3-bit interframe space is ``47 + 8s`` bits; the 34 + 8s bits from SOF to the end
@@ -62,17 +62,18 @@ from rths_hil.linkbudget import (
     serial_rate_kind,
 )
 
-from ..base import Driver
+from ..protocol import ChannelUse
 
 __all__ = [
     "CAN_BITRATES",
     "CAN_FD_LENGTHS",
     "CAN_FD_RATES",
-    "LinkPlanning",
     "can_fd_frame_time",
     "can_fd_length",
     "can_frame_bits",
     "can_serial_frame_chars",
+    "check_sharing",
+    "inline_twin",
     "link_advice",
     "link_key",
     "link_load",
@@ -333,11 +334,25 @@ def link_advice(ld: LinkLoad, limit: float) -> list[str]:
     return options
 
 
-class LinkPlanning(Driver):
-    """What the CAN driver class knows of its link (a part of
-    :class:`~rths_hil.drivers.can.CANDriver`)."""
+def inline_twin(connection: dict[str, Any]) -> bool:
+    """The twin on python-can's in-process ``virtual`` bus can be served inline (the built-in
+    protocol only)."""
+    from ..profile import is_builtin
 
-    link_key = staticmethod(link_key)
-    link_load = staticmethod(link_load)
+    c = connection or {}
+    return str(c.get("interface", "virtual")) == "virtual" and is_builtin(c.get("profile"))
 
-    link_advice = staticmethod(link_advice)
+
+def check_sharing(channels: list[ChannelUse]) -> None:
+    """Channels on one bus need distinct CAN nodes (``driver.connection.node``)."""
+    seen: dict[tuple, str] = {}
+    for _, name, conn, twin in channels:
+        if conn.get("channel") is None and twin:
+            continue  # each twin gets a bus of its own
+        key = (conn.get("interface", "virtual"), conn.get("channel"), conn.get("node", 0))
+        if key in seen:
+            raise InputError(
+                f"actuators: channels {seen[key]!r} and {name!r} use the same CAN node on "
+                "one bus (set driver.connection.node)"
+            )
+        seen[key] = name

@@ -79,6 +79,8 @@ Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1â€
 ``configure_pdo`` (documented in ``docs/canopen.md``).
 """
 
+from ..protocol import Protocol
+from . import linkbudget
 from .device import CANopenStats
 from .driver import CANopenDriver
 from .linkbudget import axes_that_fit, link_load, step_frames
@@ -103,6 +105,7 @@ __all__ = [
     "ESTOP_SETTLE",
     "FORCE_OBJECT",
     "NMT_OPERATIONAL",
+    "PROTOCOL",
     "RATED_TORQUE",
     "SYNC_ID",
     "TORQUE_ACTUAL",
@@ -116,3 +119,14 @@ __all__ = [
     "parse_object",
     "step_frames",
 ]
+
+#: The CANopen protocol's planning facts (:mod:`rths_hil.drivers.protocol`).
+PROTOCOL = Protocol(
+    name="canopen",
+    driver=CANopenDriver,
+    link_key=linkbudget.link_key,
+    link_load=linkbudget.link_load,
+    check_sharing=linkbudget.check_sharing,
+    inline_twin=linkbudget.inline_twin,
+    path_keys=("eds",),
+)

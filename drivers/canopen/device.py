@@ -20,9 +20,8 @@ from canopen.objectdictionary import ODVariable
 
 from rths_hil.errors import InputError
 
-from ..base import DriverStats, Feedback
+from ..base import Driver, DriverStats, Feedback
 from ..can.codec import Frame
-from .linkbudget import LinkPlanning
 from .network import CANopenBus
 from .od import (
     _MISSING,
@@ -65,7 +64,7 @@ class CANopenStats(DriverStats):
     heartbeat_lost: int = 0
 
 
-class DeviceStartUp(LinkPlanning):
+class DeviceStartUp(Driver):
     """The connection keys and the device's start-up by SDO (the base of
     :class:`~rths_hil.drivers.canopen.CANopenDriver`)."""
 

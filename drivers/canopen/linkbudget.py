@@ -1,5 +1,5 @@
 """The CANopen link model: the frames of one axis per step (SYNC, PDOs, heartbeats), the bus
-load of a set of axes, how many fit, and the planning facts of the driver class (its link,
+load of a set of axes, how many fit, and the planning facts of the protocol (its link,
 who may share it).
 """
 
@@ -14,7 +14,7 @@ from canopen.objectdictionary import ODArray, ODRecord
 
 from rths_hil.errors import InputError
 
-from ..base import Driver
+from ..protocol import ChannelUse
 from .od import (
     BRIDGE_NODE_ID,
     TORQUE_ACTUAL,
@@ -28,64 +28,45 @@ from .profiles import PROFILES
 log = logging.getLogger(__package__)
 
 
-class LinkPlanning(Driver):
-    """What the driver class knows of its link (a part of
-    :class:`~rths_hil.drivers.canopen.CANopenDriver`)."""
+def inline_twin(connection: dict[str, Any]) -> bool:
+    """The twin on python-can's in-process ``virtual`` bus serves the steps from the loop's
+    thread (its own thread answers the SDO exchanges, see
+    :meth:`rths_hil.sim_backends.endpoints.canopen_twin.CANopenTwin.start`)."""
+    return str((connection or {}).get("interface", "virtual")) == "virtual"
 
-    # ------------------------------------------------------------------------------------------
-    # what the class knows: its link and who may share it
-    @classmethod
-    def inline_twin(cls, connection: dict[str, Any]) -> bool:
-        """The twin on python-can's in-process ``virtual`` bus serves the steps from the loop's
-        thread (its own thread answers the SDO exchanges, see
-        :meth:`rths_hil.sim_backends.endpoints.canopen_twin.CANopenTwin.start`)."""
-        return str((connection or {}).get("interface", "virtual")) == "virtual"
 
-    @classmethod
-    def link_key(cls, connection: dict[str, Any]) -> str:
-        """CANopen: the python-can interface and channel of the bus."""
-        c = connection or {}
-        return f"canopen {c.get('interface', 'virtual')}:{c.get('channel', 'rths-canopen')}"
+def link_key(connection: dict[str, Any]) -> str:
+    """CANopen: the python-can interface and channel of the bus."""
+    c = connection or {}
+    return f"canopen {c.get('interface', 'virtual')}:{c.get('channel', 'rths-canopen')}"
 
-    @classmethod
-    def link_load(
-        cls,
-        connection: dict[str, Any],
-        channels_on_link: int,
-        fs: float,
-        *,
-        heartbeat_hz: float = 0.0,
-    ):
-        """SYNC, PDOs and heartbeats on the bus (:func:`link_load` of this module)."""
-        return link_load(connection, int(channels_on_link), float(fs), heartbeat_hz=heartbeat_hz)
 
-    @classmethod
-    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
-        """Several axes may share a bus (one SYNC per step for all, :class:`CANopenBus`), each
-        with its own node id and the bus's settings (bit rate, the bridge's node id)."""
-        seen: dict[str, dict[str, Any]] = {}
-        for _, name, conn, twin in channels:
-            c = conn or {}
-            if twin and not c.get("channel"):
-                continue  # each twin gets a bus of its own
-            key = cls.link_key(c)
-            where = key.split(" ", 1)[1]
-            first = seen.setdefault(key, {"name": name, "nodes": {}, "conn": c})
-            node = c.get("node_id", 1)
-            other = first["nodes"].get(node)
-            if other is not None:
+def check_sharing(channels: list[ChannelUse]) -> None:
+    """Several axes may share a bus (one SYNC per step for all, :class:`CANopenBus`), each
+    with its own node id and the bus's settings (bit rate, the bridge's node id)."""
+    seen: dict[str, dict[str, Any]] = {}
+    for _, name, conn, twin in channels:
+        c = conn or {}
+        if twin and not c.get("channel"):
+            continue  # each twin gets a bus of its own
+        key = link_key(c)
+        where = key.split(" ", 1)[1]
+        first = seen.setdefault(key, {"name": name, "nodes": {}, "conn": c})
+        node = c.get("node_id", 1)
+        other = first["nodes"].get(node)
+        if other is not None:
+            raise InputError(
+                f"actuators: channels {other!r} and {name!r} are both CANopen node {node} on "
+                f"bus {where}: give each axis its own driver.connection.node_id"
+            )
+        first["nodes"][node] = name
+        for k, default in (("bitrate", None), ("bridge_node_id", BRIDGE_NODE_ID)):
+            if c.get(k, default) != first["conn"].get(k, default):
                 raise InputError(
-                    f"actuators: channels {other!r} and {name!r} are both CANopen node {node} on "
-                    f"bus {where}: give each axis its own driver.connection.node_id"
+                    f"actuators: channels {first['name']!r} and {name!r} share CANopen bus "
+                    f"{where} but differ in driver.connection.{k} "
+                    f"({first['conn'].get(k, default)} vs {c.get(k, default)})"
                 )
-            first["nodes"][node] = name
-            for k, default in (("bitrate", None), ("bridge_node_id", BRIDGE_NODE_ID)):
-                if c.get(k, default) != first["conn"].get(k, default):
-                    raise InputError(
-                        f"actuators: channels {first['name']!r} and {name!r} share CANopen bus "
-                        f"{where} but differ in driver.connection.{k} "
-                        f"({first['conn'].get(k, default)} vs {c.get(k, default)})"
-                    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -176,7 +157,7 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
     least ``1/heartbeat_period``), and each device's (``1/controller_heartbeat``). Frame bits
     with worst-case stuffing (:func:`rths_hil.drivers.can.linkbudget.can_frame_bits`).
     """
-    from rths_hil.linkbudget import LinkLoad, link_key
+    from rths_hil.linkbudget import LinkLoad
 
     from ..can.linkbudget import can_frame_bits
 
@@ -196,7 +177,7 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
     ctrl = c.get("controller_heartbeat", 0.1)
     hb_dev = 1.0 / ctrl if ctrl else 0.0
     b_hb = can_frame_bits(1)
-    name = link_key("canopen", c)
+    name = link_key(c)
     per_second_bits = b_hb * (hb_bridge + channels * hb_dev)  # the bridge's: one per bus
     detail = (
         f"SYNC {b_sync} + {channels} × (RPDO {can_frame_bits(n['rpdo'])} + TPDO "

@@ -8,12 +8,15 @@ between its client and its server.
 * :mod:`.driver` — :class:`ModbusDriver`, the built-in register map (one FC 23 per step).
 * :mod:`.profile` — :class:`ModbusProfileDriver`, a lab's own register map from a profile.
 * :mod:`.linkbudget` — the Modbus link model (RTU transactions and silences, TCP segments)
-  and the planning facts of the driver class.
+  and the planning facts of the protocol (:data:`PROTOCOL`).
 
 The twins (:mod:`rths_hil.sim_backends.endpoints.modbus`,
 :mod:`rths_hil.sim_backends.endpoints.modbus_profile`) import their framing from here.
 """
 
+from ..base import Driver
+from ..protocol import Protocol
+from . import linkbudget
 from .driver import (
     COIL_ESTOP,
     FORCE_LSB,
@@ -32,6 +35,7 @@ __all__ = [
     "COIL_ESTOP",
     "FORCE_LSB",
     "MAX_UNIT",
+    "PROTOCOL",
     "READ_ADDRESS",
     "READ_COUNT",
     "REG",
@@ -42,3 +46,21 @@ __all__ = [
     "ModbusProfileDriver",
     "feedback_crc",
 ]
+
+
+def _profile_driver() -> type[Driver]:
+    """A lab's own register map: :class:`~.profile.ModbusProfileDriver`."""
+    return ModbusProfileDriver
+
+
+#: The Modbus protocol's planning facts (:mod:`rths_hil.drivers.protocol`).
+PROTOCOL = Protocol(
+    name="modbus",
+    driver=ModbusDriver,
+    link_key=linkbudget.link_key,
+    link_load=linkbudget.link_load,
+    link_advice=linkbudget.link_advice,
+    check_sharing=linkbudget.check_sharing,
+    profile_protocol="modbus",
+    profile_driver=_profile_driver,
+)

@@ -65,7 +65,6 @@ from rths_hil.errors import InputError
 
 from ..base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Driver, Feedback, LinkDown
 from ..base import extend_seq as _extend_seq
-from .linkbudget import LinkPlanning
 from .transport import Link, rtu_frame_size
 
 __all__ = [
@@ -118,7 +117,7 @@ def feedback_crc(block12: bytes) -> int:
     return _crc_hqx(block12, 0xFFFF)
 
 
-class ModbusDriver(LinkPlanning):
+class ModbusDriver(Driver):
     """Lockstep actuator driver over Modbus TCP or RTU (see the module docstring).
 
     Parameters
@@ -152,7 +151,6 @@ class ModbusDriver(LinkPlanning):
     """
 
     name: ClassVar[str] = "modbus"
-    profile_protocol: ClassVar[str | None] = "modbus"
     honours_deadline: ClassVar[bool] = True  # select() on the socket or serial descriptor
 
     def __init__(
@@ -197,14 +195,6 @@ class ModbusDriver(LinkPlanning):
         self._rtu = transport == "rtu"
         # MBAP length, unit id, function code and byte count of a good FC 23 response
         self._resp_head = struct.pack(">HHBBB", 0, _TCP_RESP.size - 6, self.device_id, FC_RW, 14)
-
-    # -- what this driver knows about its twin (its links: .linkbudget.LinkPlanning) ------------
-    @classmethod
-    def profile_driver(cls) -> type[Driver]:
-        """A lab's own register map: :class:`~.profile.ModbusProfileDriver`."""
-        from .profile import ModbusProfileDriver
-
-        return ModbusProfileDriver
 
     # -- transport ------------------------------------------------------------------------------
     @property

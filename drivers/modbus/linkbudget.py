@@ -1,5 +1,5 @@
 """The Modbus link model: the bytes of a step on an RTU line or in TCP segments, the load of a
-set of units, and the planning facts of the driver class (its link, who may share it).
+set of units, and the planning facts of the protocol (its link, who may share it).
 
 **Modbus RTU** (Modbus over Serial Line V1.02): one FC 23 transaction per channel and step —
 request ``13 + 2·w`` bytes and response ``5 + 2·r`` bytes for ``w`` written and ``r`` read
@@ -42,13 +42,14 @@ from rths_hil.linkbudget import (
     serial_rate_kind,
 )
 
-from ..base import Driver
+from ..protocol import ChannelUse
 from .transport import MAX_UNIT
 
 __all__ = [
     "ETHERNET_BITRATE",
     "TCP_SEGMENT_OVERHEAD",
-    "LinkPlanning",
+    "check_sharing",
+    "link_advice",
     "link_key",
     "link_load",
     "rtu_frame_bytes",
@@ -192,65 +193,57 @@ def link_load(
     )
 
 
-class LinkPlanning(Driver):
-    """What the Modbus driver class knows of its link (a part of
-    :class:`~rths_hil.drivers.modbus.ModbusDriver`)."""
+def link_advice(load: LinkLoad, limit: float) -> list[str]:
+    """An RTU line over the limit: the next standard baud rate, or Modbus TCP."""
+    if load.kind != "modbus-rtu" or not (load.rate and load.load):
+        return []
+    needed = load.rate * load.load / limit
+    r = next((b for b in BAUDRATES if b >= needed), None)
+    out = []
+    if r is not None and r > load.rate:
+        out.append(f"{r} baud")
+    elif r is None:
+        out.append(f"a line faster than {BAUDRATES[-1]} baud")
+    return [*out, "Modbus TCP"]
 
-    link_key = staticmethod(link_key)
-    link_load = staticmethod(link_load)
 
-    @classmethod
-    def link_advice(cls, load: LinkLoad, limit: float) -> list[str]:
-        """An RTU line over the limit: the next standard baud rate, or Modbus TCP."""
-        if load.kind != "modbus-rtu" or not (load.rate and load.load):
-            return []
-        needed = load.rate * load.load / limit
-        r = next((b for b in BAUDRATES if b >= needed), None)
-        out = []
-        if r is not None and r > load.rate:
-            out.append(f"{r} baud")
-        elif r is None:
-            out.append(f"a line faster than {BAUDRATES[-1]} baud")
-        return [*out, "Modbus TCP"]
-
-    @classmethod
-    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
-        """Modbus TCP channels on one ``host:port`` need distinct unit ids (``device_id``,
-        1–247); a Modbus RTU line carries one channel."""
-        seen: dict[tuple, str] = {}
-        tcp = [
-            (c.get("host", "127.0.0.1"), c.get("port", 502))
-            for _, _, c, _ in channels
-            if c.get("transport", "tcp") == "tcp"
-        ]
-        for i, name, conn, twin in channels:
-            if conn.get("transport", "tcp") == "rtu":
-                if twin and not conn.get("device"):
-                    continue  # each twin gets a pseudo-terminal of its own
-                key: tuple = ("rtu", conn.get("device"))
-                if key in seen:
-                    raise InputError(
-                        f"actuators: channels {seen[key]!r} and {name!r} use one Modbus RTU line "
-                        "(an RTU line carries one channel; use one serial port per channel or "
-                        "Modbus TCP)"
-                    )
-                seen[key] = name
-                continue
-            if twin and not conn.get("port"):
-                continue  # each twin gets a port of its own
-            unit = conn.get("device_id", 1)
-            host, port = conn.get("host", "127.0.0.1"), conn.get("port", 502)
-            bad = isinstance(unit, bool) or not isinstance(unit, int) or not 1 <= unit <= MAX_UNIT
-            if bad and tcp.count((host, port)) > 1:  # alone, a device may answer unit 255
-                raise InputError(
-                    f"actuators[{i}] ({name}).driver.connection.device_id: {unit!r} is not a "
-                    "Modbus unit id (1–247) for a connection it shares"
-                )
-            key = ("tcp", host, port, unit)
+def check_sharing(channels: list[ChannelUse]) -> None:
+    """Modbus TCP channels on one ``host:port`` need distinct unit ids (``device_id``,
+    1–247); a Modbus RTU line carries one channel."""
+    seen: dict[tuple, str] = {}
+    tcp = [
+        (c.get("host", "127.0.0.1"), c.get("port", 502))
+        for _, _, c, _ in channels
+        if c.get("transport", "tcp") == "tcp"
+    ]
+    for i, name, conn, twin in channels:
+        if conn.get("transport", "tcp") == "rtu":
+            if twin and not conn.get("device"):
+                continue  # each twin gets a pseudo-terminal of its own
+            key: tuple = ("rtu", conn.get("device"))
             if key in seen:
                 raise InputError(
-                    f"actuators: channels {seen[key]!r} and {name!r} both use Modbus unit "
-                    f"{unit} on {host}:{port} (driver.connection.device_id): give each channel "
-                    "its own unit id"
+                    f"actuators: channels {seen[key]!r} and {name!r} use one Modbus RTU line "
+                    "(an RTU line carries one channel; use one serial port per channel or "
+                    "Modbus TCP)"
                 )
             seen[key] = name
+            continue
+        if twin and not conn.get("port"):
+            continue  # each twin gets a port of its own
+        unit = conn.get("device_id", 1)
+        host, port = conn.get("host", "127.0.0.1"), conn.get("port", 502)
+        bad = isinstance(unit, bool) or not isinstance(unit, int) or not 1 <= unit <= MAX_UNIT
+        if bad and tcp.count((host, port)) > 1:  # alone, a device may answer unit 255
+            raise InputError(
+                f"actuators[{i}] ({name}).driver.connection.device_id: {unit!r} is not a "
+                "Modbus unit id (1–247) for a connection it shares"
+            )
+        key = ("tcp", host, port, unit)
+        if key in seen:
+            raise InputError(
+                f"actuators: channels {seen[key]!r} and {name!r} both use Modbus unit "
+                f"{unit} on {host}:{port} (driver.connection.device_id): give each channel "
+                "its own unit id"
+            )
+        seen[key] = name

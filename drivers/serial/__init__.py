@@ -1,6 +1,19 @@
 """The serial protocol's package: :mod:`.framing` (the COBS/CRC frames the driver and its twin
-share), :mod:`.driver` (:class:`SerialDriver`) and :mod:`.linkbudget` (its link model)."""
+share), :mod:`.driver` (:class:`SerialDriver`) and :mod:`.linkbudget` (its link model), and
+:data:`PROTOCOL`, its planning facts (:mod:`rths_hil.drivers.protocol`)."""
 
+from ..protocol import Protocol
+from . import linkbudget
 from .driver import SerialDriver
 
-__all__ = ["SerialDriver"]
+__all__ = ["PROTOCOL", "SerialDriver"]
+
+#: The serial protocol's planning facts.
+PROTOCOL = Protocol(
+    name="serial",
+    driver=SerialDriver,
+    link_key=linkbudget.link_key,
+    link_load=linkbudget.link_load,
+    link_advice=linkbudget.link_advice,
+    check_sharing=linkbudget.check_sharing,
+)

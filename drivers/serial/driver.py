@@ -16,7 +16,7 @@ import serial
 
 from rths_hil.errors import InputError
 
-from ..base import Feedback, LinkDown
+from ..base import Driver, Feedback, LinkDown
 from .framing import (
     COMMAND,
     ESTOP,
@@ -30,7 +30,6 @@ from .framing import (
     decode_frame,
     encode_frame,
 )
-from .linkbudget import LinkPlanning
 
 __all__ = ["SerialDriver"]
 
@@ -40,7 +39,7 @@ else:  # pragma: no cover - Windows
     _PosixSerial = None
 
 
-class SerialDriver(LinkPlanning):
+class SerialDriver(Driver):
     """Lockstep actuator driver over a serial line (see the module docstring).
 
     Parameters

@@ -1,5 +1,5 @@
 """The serial link model: the COBS frames of a step on the line, the load of a channel, and the
-planning facts of the driver class (its link, who may share it).
+planning facts of the protocol (its link, who may share it).
 
 COBS adds one byte per started 254 bytes and the frame ends with a 0x00 delimiter: command
 16 → 18 bytes, feedback 24 → 26 bytes (:mod:`.framing`, CRC included), ``1 + 8 + parity +
@@ -26,10 +26,18 @@ from rths_hil.linkbudget import (
     serial_rate_kind,
 )
 
-from ..base import Driver
+from ..protocol import ChannelUse
 from .framing import COMMAND, FEEDBACK
 
-__all__ = ["LinkPlanning", "cobs_frame_bytes", "link_key", "link_load", "serial_frame_bytes"]
+__all__ = [
+    "baud_advice",
+    "check_sharing",
+    "cobs_frame_bytes",
+    "link_advice",
+    "link_key",
+    "link_load",
+    "serial_frame_bytes",
+]
 
 
 def baud_advice(ld: LinkLoad, limit: float) -> list[str]:
@@ -105,30 +113,22 @@ def link_load(
     )
 
 
-class LinkPlanning(Driver):
-    """What the serial driver class knows of its link (a part of
-    :class:`~rths_hil.drivers.serial.SerialDriver`)."""
+def link_advice(load: LinkLoad, limit: float) -> list[str]:
+    """A serial line over the limit (``kind`` ``serial``: this driver's, or a CAN adapter's
+    line): the next standard baud rate."""
+    return baud_advice(load, limit) if load.kind == "serial" else []
 
-    link_key = staticmethod(link_key)
-    link_load = staticmethod(link_load)
 
-    @classmethod
-    def link_advice(cls, load: LinkLoad, limit: float) -> list[str]:
-        """A serial line over the limit (``kind`` ``serial``: this driver's, or a CAN adapter's
-        line): the next standard baud rate."""
-        return baud_advice(load, limit) if load.kind == "serial" else []
-
-    @classmethod
-    def check_sharing(cls, channels: list[tuple[int, str, dict[str, Any], bool]]) -> None:
-        """A serial port carries one channel."""
-        seen: dict[tuple, str] = {}
-        for _, name, conn, twin in channels:
-            if twin and not (conn.get("url") or conn.get("port")):
-                continue
-            key = (conn.get("url"), conn.get("port"))
-            if key in seen:
-                raise InputError(
-                    f"actuators: channels {seen[key]!r} and {name!r} use one serial port "
-                    "(serial links carry one channel each)"
-                )
-            seen[key] = name
+def check_sharing(channels: list[ChannelUse]) -> None:
+    """A serial port carries one channel."""
+    seen: dict[tuple, str] = {}
+    for _, name, conn, twin in channels:
+        if twin and not (conn.get("url") or conn.get("port")):
+            continue
+        key = (conn.get("url"), conn.get("port"))
+        if key in seen:
+            raise InputError(
+                f"actuators: channels {seen[key]!r} and {name!r} use one serial port "
+                "(serial links carry one channel each)"
+            )
+        seen[key] = name

@@ -442,10 +442,10 @@ def _plan_channel(  # noqa: C901
     dof = int(nz[0]) if nz.size == 1 and row[nz[0]] == 1.0 else -1
 
     name = cfg["driver"]["name"]
-    from rths_hil.drivers.registry import driver_class
+    from rths_hil.drivers.registry import protocol
 
     try:
-        dcls = driver_class(name)
+        proto = protocol(name)
     except InputError as exc:
         raise InputError(f"{where}: driver.name: {exc}") from None
     tw = cfg["twin"]
@@ -460,10 +460,9 @@ def _plan_channel(  # noqa: C901
                 "controller"
             )
     conn = dict(cfg["driver"]["connection"])
-    if isinstance(conn.get("dbc"), str) and conn["dbc"]:  # relative to the config file
-        conn["dbc"] = str(cfg.resolve_path(conn["dbc"]))
-    if isinstance(conn.get("eds"), str) and conn["eds"]:  # a CANopen EDS: relative to the config
-        conn["eds"] = str(cfg.resolve_path(conn["eds"]))
+    for key in proto.path_keys:  # files (a DBC, an EDS): relative to the config file
+        if isinstance(conn.get(key), str) and conn[key]:
+            conn[key] = str(cfg.resolve_path(conn[key]))
     profile = cfg["driver"]["profile"]
     from rths_hil.drivers.profile import is_builtin, load_profile
 
@@ -475,8 +474,8 @@ def _plan_channel(  # noqa: C901
             prof = load_profile(path)
         except InputError as exc:
             raise InputError(f"{where}: driver.profile: {exc}") from None
-        if prof.protocol != dcls.profile_protocol:
-            speaks = dcls.profile_protocol or "no profile"
+        if prof.protocol != proto.profile_protocol:
+            speaks = proto.profile_protocol or "no profile"
             raise InputError(
                 f"{where}: driver.profile: {path} is a {prof.protocol} profile; driver "
                 f"{name!r} takes {speaks}"
@@ -491,12 +490,15 @@ def _plan_channel(  # noqa: C901
             raise InputError(f"{where}: driver.profile: {exc}") from None
         conn["profile"] = str(path)
     # the driver that speaks the channel (its profile's, when it has one) runs its wire mode
-    wcls = dcls if is_builtin(profile) else dcls.profile_driver()
+    wcls = proto.driver if is_builtin(profile) else proto.profile_driver_class()
     modes = tuple(getattr(wcls, "control_modes", ("displacement",)))
     if wire not in modes:
+        hint = ""
+        if proto.profile_protocol is not None and is_builtin(profile):
+            hint = f"; a {proto.profile_protocol} profile (driver.profile) with a force role can"
         raise InputError(
             f"{where}: control.mode = {control!r}: driver {name!r} cannot run a "
-            f"force-controlled channel (its control modes: {', '.join(modes)})"
+            f"force-controlled channel (its control modes: {', '.join(modes)}){hint}"
         )
     if tw["enabled"] and plant is None:
         plant = choose_plant(cfg, dt)
@@ -508,7 +510,7 @@ def _plan_channel(  # noqa: C901
             faults = Faults.parse(tw["faults"])
         except InputError as exc:
             raise InputError(f"{where}: twin.faults: {exc}") from None
-    inline = bool(tw["inline"] and tw["enabled"] and dcls.inline_twin(conn))
+    inline = bool(tw["inline"] and tw["enabled"] and proto.inline_twin(conn))
 
     # in time units (delay, delay_rate, …): the same at any loop.fs
     comp_cfg = cfg["compensation"]
@@ -891,14 +893,14 @@ def link_loads(cfg: Config, channels: list[ChannelPlan], fs: float) -> list:
     Channels with a twin and no explicit bus (CAN channel, Modbus port, serial port) each get a
     link of their own (a fresh virtual bus, port or pseudo-terminal).
     """
-    from rths_hil.drivers.registry import driver_class
+    from rths_hil.drivers.registry import protocol
 
     from ..linkbudget import check_links, link_key, link_load
 
     groups: dict[str, list[ChannelPlan]] = {}
     for i, ch in enumerate(channels):
         conn = ch.connection
-        own = ch.twin_enabled and driver_class(ch.driver_name).own_link(conn)
+        own = ch.twin_enabled and protocol(ch.driver_name).own_link(conn)
         key = f"{link_key(ch.driver_name, conn)}#{i}" if own else link_key(ch.driver_name, conn)
         groups.setdefault(key, []).append(ch)
     hb = cfg["loop"]["heartbeat"]
@@ -921,8 +923,8 @@ def link_loads(cfg: Config, channels: list[ChannelPlan], fs: float) -> list:
 
 def _check_shared_links(cfg: Config, channels: list[ChannelPlan]) -> None:
     """Channels sharing a link must be told apart (CAN node ids, Modbus unit ids; one channel
-    per serial line): each driver class checks its own channels (``Driver.check_sharing``)."""
-    from rths_hil.drivers.registry import driver_class
+    per serial line): each protocol checks its own channels (``Protocol.check_sharing``)."""
+    from rths_hil.drivers.registry import protocol
 
     by_driver: dict[str, list[tuple[int, str, dict[str, Any], bool]]] = {}
     for i, ch in enumerate(channels):
@@ -931,6 +933,6 @@ def _check_shared_links(cfg: Config, channels: list[ChannelPlan]) -> None:
         )
     for name, chs in by_driver.items():
         try:
-            driver_class(name).check_sharing(chs)
+            protocol(name).check_sharing(chs)
         except InputError as exc:
             raise InputError(f"{cfg.source}: {exc}") from None

@@ -37,7 +37,7 @@ import struct
 from typing import Any
 
 import can
-from rths_hil.drivers.can import SharedBus, _check_node, release_bus, shared_bus
+from rths_hil.drivers.can import SharedBus, check_node, release_bus, shared_bus
 from rths_hil.drivers.can.codec import Frame, load
 
 from rths_hil.errors import InputError
@@ -84,7 +84,7 @@ class CANTwin(TwinEndpoint):
         node: int = 0,
     ) -> None:
         super().__init__(controller)
-        self.node = _check_node(node)
+        self.node = check_node(node)
         if channel is None:
             channel = PTY_CHANNEL if interface in PTY_INTERFACES else "rths-hil"
         self.interface, self.channel, self.bitrate = str(interface), str(channel), bitrate

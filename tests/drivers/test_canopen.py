@@ -22,7 +22,7 @@ from canopen.profiles.p402 import State402
 from rths_hil.drivers.base import Status
 from rths_hil.drivers.can.linkbudget import can_frame_bits
 from rths_hil.drivers.canopen import CANopenDriver, axes_that_fit, link_load
-from rths_hil.drivers.registry import create_driver
+from rths_hil.drivers.registry import create_driver, protocol
 from rths_hil.sim_backends.endpoints.canopen_twin import EMCY_FOLLOWING_ERROR, default_eds
 from rths_hil.sim_backends.faults import Faults
 from rths_hil.sim_backends.twin import default_plant, start_twin
@@ -314,20 +314,21 @@ def test_canopen_bus_sharing_rules():
     """Several axes may share a bus (one SYNC for all), each with its own node id and the
     bus's bit rate; a repeated node id or a differing bit rate is refused in one line; twins
     without a named channel each get a bus of their own."""
+    check_sharing = protocol("canopen").check_sharing
     same = {"interface": "socketcan", "channel": "can0"}
-    CANopenDriver.check_sharing([(0, "x", {**same, "node_id": 1}, False),
-                                 (1, "y", {**same, "node_id": 2}, False)])  # fmt: skip
+    check_sharing([(0, "x", {**same, "node_id": 1}, False),
+                   (1, "y", {**same, "node_id": 2}, False)])  # fmt: skip
     with pytest.raises(
         InputError, match=r"'x' and 'y' are both CANopen node 3 on bus socketcan:can0"
     ):
-        CANopenDriver.check_sharing([(0, "x", {**same, "node_id": 3}, False),
-                                     (1, "y", {**same, "node_id": 3}, False)])  # fmt: skip
+        check_sharing([(0, "x", {**same, "node_id": 3}, False),
+                       (1, "y", {**same, "node_id": 3}, False)])  # fmt: skip
     with pytest.raises(InputError, match=r"differ in driver.connection.bitrate"):
-        CANopenDriver.check_sharing(
+        check_sharing(
             [(0, "x", {**same, "node_id": 1, "bitrate": 1_000_000}, False),
              (1, "y", {**same, "node_id": 2, "bitrate": 500_000}, False)]
         )  # fmt: skip
-    CANopenDriver.check_sharing([(0, "x", {}, True), (1, "y", {}, True)])
+    check_sharing([(0, "x", {}, True), (1, "y", {}, True)])
 
 
 TWO_AXES = ROOT / "examples" / "controllers" / "cia402_two_axes.toml"

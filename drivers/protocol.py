@@ -1,0 +1,166 @@
+"""What the planner knows of a protocol: one small, frozen descriptor per driver name.
+
+The :class:`~rths_hil.drivers.base.Driver` class is the bus contract only (open, send, receive,
+arm, e-stop, in the style of python-can's ``BusABC``). What the plan and the link budget need
+before any bus is opened — which physical link a connection uses, the load of its frames, who
+may share it, whether its twin can be served from the loop's thread, which profile format the
+protocol takes and which connection settings are file paths — is a :class:`Protocol`. Each
+protocol package exports one as ``PROTOCOL`` (``rths_hil.drivers.can.PROTOCOL`` …);
+:mod:`rths_hil.drivers.registry` maps driver names to them. A lab's driver registered as a
+:class:`Driver` subclass gets one built from its class (:meth:`Protocol.from_driver`): the
+class's hooks of the same names, where it has them, else the defaults.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from rths_hil.errors import InputError
+
+if TYPE_CHECKING:
+    from rths_hil.linkbudget import LinkLoad
+
+    from .base import Driver
+
+__all__ = ["HOOKS", "ChannelUse", "Protocol", "default_own_link"]
+
+#: One channel of a test as :attr:`Protocol.check_sharing` sees it: (index in ``actuators``,
+#: channel name, its connection settings, whether a twin serves it).
+ChannelUse = tuple[int, str, dict[str, Any], bool]
+
+#: The descriptor's planning hooks a lab's driver class may define (as class methods).
+HOOKS = ("link_key", "link_load", "link_advice", "check_sharing", "own_link", "inline_twin")
+
+
+def default_own_link(connection: dict[str, Any]) -> bool:
+    """True when a channel with a twin gets a link of its own: no bus, port or device is
+    named in ``connection`` (the twin opens a fresh one)."""
+    c = connection or {}
+    return not (c.get("channel") or c.get("port") or c.get("url"))
+
+
+def _no_advice(load: LinkLoad, limit: float) -> list[str]:
+    return []
+
+
+def _no_check(channels: list[ChannelUse]) -> None:
+    return None
+
+
+def _never(connection: dict[str, Any]) -> bool:
+    return False
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """The planning facts of one protocol (one driver name).
+
+    Attributes
+    ----------
+    name : str
+        The driver name (``driver.name``).
+    driver : type
+        The :class:`~rths_hil.drivers.base.Driver` subclass that speaks it.
+    link_key : callable, optional
+        ``(connection) -> str``: the name of the physical link a connection uses; equal names
+        share one link. Default: the driver name and its sorted settings (every channel its
+        own link).
+    link_load : callable, optional
+        ``(connection, channels_on_link, fs, *, heartbeat_hz) ->``
+        :class:`~rths_hil.linkbudget.LinkLoad`: the link's load at loop rate ``fs`` (the link
+        model of the protocol's package). Default: frame sizes unknown, not checked.
+    link_advice : callable
+        ``(load, limit) -> list[str]``: what else would bring a link of this protocol (its
+        ``load.kind``) under ``limit`` (a higher bit or baud rate, another transport).
+    check_sharing : callable
+        ``(channels) -> None``: refuse channels that cannot share their link, one line starting
+        ``actuators: …`` (:class:`~rths_hil.errors.InputError`); ``channels`` are
+        :data:`ChannelUse` tuples of every channel using this driver.
+    own_link : callable
+        ``(connection) -> bool``: a channel with a twin gets a link of its own
+        (:func:`default_own_link`).
+    inline_twin : callable
+        ``(connection) -> bool``: the twin can be served from the loop's thread
+        (``twin.inline``). Default: never.
+    profile_protocol : str or None
+        The ``protocol`` of the controller profiles this driver takes (``driver.profile``), or
+        ``None``.
+    profile_driver : callable or None
+        ``() -> type[Driver]``: the driver class that speaks such a profile.
+    path_keys : tuple of str
+        Connection settings that are file paths (resolved relative to the config file).
+    """
+
+    name: str
+    driver: type[Driver]
+    link_key: Callable[[dict[str, Any]], str] | None = None
+    link_load: Callable[..., LinkLoad] | None = None
+    link_advice: Callable[[LinkLoad, float], list[str]] = _no_advice
+    check_sharing: Callable[[list[ChannelUse]], None] = _no_check
+    own_link: Callable[[dict[str, Any]], bool] = default_own_link
+    inline_twin: Callable[[dict[str, Any]], bool] = _never
+    profile_protocol: str | None = None
+    profile_driver: Callable[[], type[Driver]] | None = None
+    path_keys: tuple[str, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        name = self.name
+        if self.link_key is None:
+
+            def key(connection: dict[str, Any]) -> str:
+                c = dict(connection or {})
+                return f"{name} " + ",".join(f"{k}={c[k]}" for k in sorted(c))
+
+            object.__setattr__(self, "link_key", key)
+        if self.link_load is None:
+            link_key = self.link_key
+
+            def load(
+                connection: dict[str, Any],
+                channels_on_link: int,
+                fs: float,
+                *,
+                heartbeat_hz: float = 0.0,
+            ) -> LinkLoad:
+                from rths_hil.linkbudget import LinkLoad
+
+                return LinkLoad(
+                    link_key(connection),  # type: ignore[misc]
+                    None,
+                    f"driver {name!r}: frame sizes unknown, not checked",
+                    channels=int(channels_on_link),
+                    fs=float(fs),
+                )
+
+            object.__setattr__(self, "link_load", load)
+
+    def profile_driver_class(self) -> type[Driver]:
+        """The driver class that speaks a profile of :attr:`profile_protocol`.
+
+        Raises
+        ------
+        InputError
+            This driver takes no profile.
+        """
+        if self.profile_driver is None:
+            raise InputError(f"driver {self.name!r} takes no profile")
+        return self.profile_driver()
+
+    @classmethod
+    def from_driver(cls, name: str, driver: type[Driver]) -> Protocol:
+        """The descriptor of a driver class registered on its own (a lab's entry point).
+
+        Its class methods named as the hooks (:data:`HOOKS`), its ``profile_protocol`` and
+        ``profile_driver`` and its ``path_keys``, where it has them; the defaults otherwise.
+        """
+        hooks: dict[str, Any] = {h: getattr(driver, h) for h in HOOKS if hasattr(driver, h)}
+        return cls(
+            name=name,
+            driver=driver,
+            profile_protocol=getattr(driver, "profile_protocol", None),
+            profile_driver=getattr(driver, "profile_driver", None),
+            path_keys=tuple(getattr(driver, "path_keys", ())),
+            **hooks,
+        )
