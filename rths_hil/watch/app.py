@@ -41,6 +41,7 @@ import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from bokeh.document import Document
@@ -164,7 +165,7 @@ class _Page:
         self.info_div = Div(text="", name="info", width=1140, height=40)
         self._slider_at = 0.0
         self._slow_at = 0.0
-        self._last_key = None
+        self._last_key: tuple[Any, ...] | None = None
         self._n_ovr = 0
         # what the browser holds of each 10 s source group (``win``, ``fei``): every m-th row
         # up to the row in ``_next`` (exclusive) while following the live end; absent: nothing
@@ -472,8 +473,10 @@ class _Page:
         whole window.
         """
         nxt = self._next.get(group)
-        stream = self.follow and nxt is not None and first <= nxt <= k_end
-        a = nxt if stream else first
+        if self.follow and nxt is not None and first <= nxt <= k_end:
+            stream, a = True, nxt
+        else:
+            stream, a = False, first
         if self.follow:
             self._next[group] = a + m * max(0, math.ceil((k_end - a) / m))
         else:
@@ -578,8 +581,9 @@ class _Page:
         if f.meta.get("mode") == "paced":
             parts.append(f"{n_ovr} overruns")
         w0 = f.wall_t0()
-        if st.live and w0 is not None:
-            lag = time.time() - (w0 + t_last + finite_or(f.record["lateness"][-1]))
+        rec = f.record
+        if st.live and w0 is not None and rec is not None:
+            lag = time.time() - (w0 + t_last + finite_or(rec["lateness"][-1]))
             parts.append(f"{lag:.2f} s behind")
         return "lateness, ms · " + " · ".join(parts)
 

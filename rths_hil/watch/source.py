@@ -28,6 +28,7 @@ import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -354,12 +355,12 @@ class RunFollower:
         """The record's actuator channels (``[""]`` for a single-channel record)."""
         if self._dtype is None:
             return []
-        return find_channels(self._dtype.names)
+        return find_channels(self._dtype.names or ())
 
     @property
     def names(self) -> tuple[str, ...]:
         """The record's column names (empty before the record exists)."""
-        return () if self._dtype is None else tuple(self._dtype.names)
+        return () if self._dtype is None else tuple(self._dtype.names or ())
 
     def poll(self, now: float | None = None) -> RunState:
         """Read what is new on disk and return the run's :class:`RunState`."""
@@ -397,12 +398,23 @@ class RunFollower:
         trip = next((e for e in reversed(self.events) if e.get("kind") == "trip"), None)
         t_last = float(self.record["time"][-1]) if self.record is not None and self.rows else None
         t = float("nan") if t_last is None else t_last
-        common = dict(rows=self.rows, time=t, writer=self.writer, trip=trip, end=end)
-        common["events"] = self.events
+
+        def state(phase: str, message: str) -> RunState:
+            return RunState(
+                phase,
+                message,
+                rows=self.rows,
+                time=t,
+                writer=self.writer,
+                trip=trip,
+                end=end,
+                events=self.events,
+            )
+
         if end is not None:
             status = str(end.get("status", "completed"))
             phase = status if status in ("completed", "trip", "operator_stop") else "error"
-            self.state = RunState(phase, _end_message(status, end, trip, self.events), **common)
+            self.state = state(phase, _end_message(status, end, trip, self.events))
         elif self.writer is not None or now - self._grown_at < self.stale_after:
             # a record that still grows is live even when its writer is not visible here
             phase = "running" if self.rows else "starting"
@@ -415,7 +427,7 @@ class RunFollower:
             if trip is not None:
                 msg = "e-stop: " + _trip_text(trip)
                 phase = "trip"
-            self.state = RunState(phase, msg, **common)
+            self.state = state(phase, msg)
         else:
             err = next((e for e in reversed(self.events) if e.get("kind") == "error"), None)
             msg = (
@@ -424,7 +436,7 @@ class RunFollower:
             )
             if err is not None:
                 msg = f"crashed: {err.get('error', 'error')}; the record holds {self.rows} steps"
-            self.state = RunState("killed", msg, **common)
+            self.state = state("killed", msg)
         return self.state
 
     def signal_writer(self, sig: int = signal.SIGINT) -> int | None:
@@ -467,7 +479,7 @@ class RunFollower:
 def _trip_text(trip: dict) -> str:
     ch = trip.get("channel")
     where = f" on channel {ch}" if ch else ""
-    t = trip.get("time")
+    t: Any = trip.get("time")  # from JSON: a number if well formed
     try:
         tt = f" at t = {float(t):.3f} s"
     except (TypeError, ValueError):
@@ -477,7 +489,7 @@ def _trip_text(trip: dict) -> str:
 
 
 def _end_message(status: str, end: dict, trip: dict | None, events: list[dict]) -> str:
-    t = end.get("time")
+    t: Any = end.get("time")  # from JSON: a number if well formed
     try:
         tt = f"{float(t):.2f} s"
     except (TypeError, ValueError):
