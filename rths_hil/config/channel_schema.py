@@ -5,6 +5,8 @@
 
 from __future__ import annotations
 
+from rths_hil.drivers.registry import DEFAULT as DEFAULT_DRIVER
+
 from .key import CONTROL_MODES, Key
 
 __all__ = ["CHANNEL_SCHEMA"]
@@ -50,7 +52,7 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
     "driver": {
         "name": Key(
             "str",
-            "can",
+            DEFAULT_DRIVER,
             unit="-",
             doc="driver name in the registry (can, modbus, serial, canopen, or a lab's entry "
             "point)",
