@@ -34,16 +34,13 @@ import importlib
 import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rths_hil.errors import InputError
 from rths_hil.plugins import targets as plugin_targets
 
 from .benchmark import BENCHMARK_NOMINAL, BenchmarkServo
 from .effects import EFFECTS
-
-if TYPE_CHECKING:
-    from .endpoints.base import TwinEndpoint
 
 __all__ = [
     "EFFECTS",
@@ -178,7 +175,7 @@ def available_twins() -> dict[str, str]:
     return plugin_targets(TWIN_ENTRY_POINT_GROUP, {name: e.target for name, e in TWINS.items()})
 
 
-def twin_class(driver_name: str) -> tuple[type[TwinEndpoint], TwinEntry]:
+def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
     """The endpoint class and its entry for ``driver_name``.
 
     A twin from an entry point describes itself with class attributes of its endpoint

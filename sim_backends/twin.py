@@ -110,6 +110,7 @@ def start_twin(
         Unknown driver name or endpoint setting, or a transport that cannot be opened.
     """
     cls, entry = twin_class(driver_name)
+    assert issubclass(cls, TwinEndpoint)  # a built-in twin is; twin_class checks an entry point
     profile = connection.pop("profile", None)
     if not is_builtin(profile):
         cls = cls.profile_twin()

@@ -9,6 +9,9 @@ scripts is :func:`rths_hil.run`, ``docs/api.md``). Where to look:
 ``plan.py``
     configuration → :class:`~rths_hil.hybrid.plan.TestPlan`: structure, one channel per
     actuator, record columns; every validation and "which model / which driver" decision.
+``substructure.py``
+    the numerical side of the plan: the ground motion, a channel's twin plant, the MDOF model
+    and the structure stage.
 ``structures.py``
     the structure stage interface (SDOF CR stepper, MDOF models, an external site's client)
     and what a stage may use of the running test.
@@ -51,8 +54,8 @@ _EXPORTS = {
     "Runner": "runner",
     "TestPlan": "plan",
     "build_plan": "plan",
-    "build_ground_motion": "plan",
-    "choose_plant": "plan",
+    "build_ground_motion": "substructure",
+    "choose_plant": "substructure",
     "new_run_dir": "plan",
     "CAUSES": "timing",
     "MACHINE": "timing",

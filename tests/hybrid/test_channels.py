@@ -97,7 +97,7 @@ def test_structure_targets_equal_the_offline_mdof_integration(tmp_path):
     offline CR integration of the same model (whose accuracy against modal superposition with
     scipy.signal is tests/structure/test_mdof.py's).
     """
-    from rths_hil.hybrid.plan import build_ground_motion, build_model
+    from rths_hil.hybrid.substructure import build_ground_motion, build_model
     from rths_hil.structures.mdof import simulate_mdof
 
     over = [
