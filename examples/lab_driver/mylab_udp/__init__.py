@@ -16,10 +16,12 @@ heartbeat  ``H``                                                               1
 The driver implements only what the bus does — :meth:`UDPDriver._send_raw` writes a command,
 :meth:`UDPDriver._recv_internal` returns the next feedback that arrived without waiting past the
 deadline — and says what it knows about its link (:meth:`UDPDriver.link_key`,
-:meth:`UDPDriver.link_load`). The base class keeps the sequence rules, the timeouts and the
-counters. The twin is a :class:`~rths_hil.sim_backends.endpoints.base.TwinEndpoint` around the
-same controller state machine as the built-in twins (arming, e-stop latch, controller-side
-watchdog, faults). Both are found through the entry points in ``pyproject.toml``.
+:meth:`UDPDriver.link_load`, which the registry reads into the driver's protocol descriptor,
+:meth:`rths_hil.drivers.protocol.Protocol.from_driver`). The base class keeps the sequence
+rules, the timeouts and the counters. The twin is a
+:class:`~rths_hil.sim_backends.endpoints.base.TwinEndpoint` around the same controller state
+machine as the built-in twins (arming, e-stop latch, controller-side watchdog, faults). Both
+are found through the entry points in ``pyproject.toml``.
 """
 
 from __future__ import annotations
