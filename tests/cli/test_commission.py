@@ -359,8 +359,9 @@ def test_identified_plant_fragment_tracks_when_included(tmp_path, capsys):
         f'include = ["c/tuned.toml"]\n[twin]\nactuator = {toml_table(PLANT)}\n', encoding="utf-8"
     )
     # the whole record's FEI; 5 s of the embedded test (4 s gave A − 1 = 3e-4, d = 3 µs here);
-    # ``rths-hil run`` in this process
-    code = main(["run", str(cfg), "--paced", "--duration", "5", "--no-plot", "-q",
+    # ``rths-hil run`` in this process, in lockstep: the twin's plant runs in the loop's time,
+    # so the FEI is the paced run's to the last digit (A − 1 = 3.5e-4, d = −0.2 µs both)
+    code = main(["run", str(cfg), "--lockstep", "--duration", "5", "--no-plot", "-q",
                  "--out", str(tmp_path / "run")])  # fmt: skip
     assert code == 0, capsys.readouterr().err
     fei = json.loads((tmp_path / "run" / "summary.json").read_text())["fei_target"]
