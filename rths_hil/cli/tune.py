@@ -25,11 +25,16 @@ import argparse
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import InputError
 from ..formats import json_text
 from ..units import parse_fraction, parse_range, parse_time
 from .options import add_config_arguments, config_from_args
+
+if TYPE_CHECKING:
+    from ..config import Config
+    from ..tuning import SweepResult, TuneResult
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -122,19 +127,12 @@ def _confirm(n_trials: int, pga: float, scale: float, cfg, flag: bool) -> None:
     )
 
 
-def main(args: argparse.Namespace) -> int:  # noqa: C901
-    """Run the tuning (or the sweep); return the exit code."""
-    from ..hybrid import new_run_dir
-    from ..tuning import LoopTrials, sweep, tune
-    from ..tuning_output import (
-        format_table,
-        plot_sweep,
-        plot_tuning,
-        write_table_csv,
-        write_tuned_config,
-    )
-
-    cfg = config_from_args(args)
+def _checked_options(
+    args: argparse.Namespace, cfg: Config
+) -> tuple[float, float, float, list[float] | None, bool, float]:
+    """The checked numbers of the command line: delay and amplitude tolerances, trial
+    duration, the ``--sweep`` grid (None: tune), whether a channel is on hardware, and the
+    hardware trials' scale."""
     tol_d = parse_time(args.tolerance_delay, "--tolerance-delay")
     tol_a = parse_fraction(args.tolerance_amplitude, "--tolerance-amplitude")
     if not (math.isfinite(tol_d) and tol_d > 0):
@@ -159,6 +157,87 @@ def main(args: argparse.Namespace) -> int:  # noqa: C901
         scale = parse_fraction(args.hardware_scale, "--hardware-scale")
         if not (math.isfinite(scale) and 0 < scale <= 1):
             raise InputError(f"--hardware-scale must be in (0, 1], got {args.hardware_scale!r}")
+    return tol_d, tol_a, duration, grid, hardware, scale
+
+
+def _finish_sweep(
+    res: SweepResult,
+    cfg: Config,
+    out: Path,
+    summary: dict,
+    no_plot: bool,
+    tol_d: float,
+    tol_a: float,
+) -> int:
+    """Write the sweep's table, tuned configuration, figure and summary; its exit code."""
+    from ..tuning_output import plot_sweep, write_table_csv, write_tuned_config
+
+    write_table_csv(res.trials, out / "sweep.csv")
+    summary["sweep"] = res.as_dict()
+    if res.found:
+        write_tuned_config(
+            cfg, out / "tuned.toml", res.alpha, res.factor, note=f"sweep: {res.reason}"
+        )
+    if not no_plot:
+        plot_sweep(res, out / "sweep.png", tol_d, tol_a)
+    (out / "summary.json").write_text(json_text(summary), encoding="utf-8")
+    if res.found:
+        print(
+            f"recommended α = {res.alpha:.2f} (zero crossing of d(α)), amplitude factor "
+            f"{res.factor:.4f}; {res.reason}; tuned config {out / 'tuned.toml'}"
+        )
+    else:
+        print(f"rths-hil tune: no recommendation: {res.reason}", file=sys.stderr)
+    stopped = [t for t in res.trials if t.status == "operator_stop"]
+    if stopped:
+        return 130
+    return 0 if res.found else 1
+
+
+def _finish_tune(
+    res: TuneResult, cfg: Config, out: Path, summary: dict, no_plot: bool, quiet: bool
+) -> int:
+    """Write the tuning's table, tuned configuration, figure and summary; its exit code."""
+    from ..tuning_output import plot_tuning, write_table_csv, write_tuned_config
+
+    write_table_csv(res.trials, out / "tuning.csv")
+    summary["tuning"] = res.as_dict()
+    if res.best:
+        write_tuned_config(
+            cfg,
+            out / "tuned.toml",
+            res.alpha,
+            res.factor,
+            note=f"{res.stop}: {res.reason}\nbest verified trial: {res.best}",
+        )
+    if not no_plot and res.trials:
+        plot_tuning(res, out / "tuning.png")
+    (out / "summary.json").write_text(json_text(summary), encoding="utf-8")
+    if not quiet:
+        print(f"rths-hil tune: {res.reason}", file=sys.stderr)
+    if res.best:
+        print(
+            f"{'tuned' if res.converged else 'best so far'}: α = {res.alpha:.3f}, amplitude "
+            f"factor {res.factor:.4f} (trial {res.best} of {res.iterations}); "
+            f"config {out / 'tuned.toml'}"
+        )
+    else:
+        print(f"rths-hil tune: no usable trial: {res.reason}", file=sys.stderr)
+    if res.stop == "trip":
+        return 3
+    if res.stop == "operator_stop":
+        return 130
+    return 0 if res.converged else 1
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the tuning (or the sweep); return the exit code."""
+    from ..hybrid import new_run_dir
+    from ..tuning import LoopTrials, sweep, tune
+    from ..tuning_output import format_table
+
+    cfg = config_from_args(args)
+    tol_d, tol_a, duration, grid, hardware, scale = _checked_options(args, cfg)
     c = cfg["compensation"]
     lo, hi = c["alpha_min"], c["alpha_max"]
     if grid is None and not (lo <= c["alpha"] <= hi):
@@ -226,26 +305,7 @@ def main(args: argparse.Namespace) -> int:  # noqa: C901
     elif grid is not None:
         res = sweep(runner, grid, factor=c["amplitude"], stop_on_trip=hardware)
     if grid is not None:
-        write_table_csv(res.trials, out / "sweep.csv")
-        summary["sweep"] = res.as_dict()
-        if res.found:
-            write_tuned_config(
-                cfg, out / "tuned.toml", res.alpha, res.factor, note=f"sweep: {res.reason}"
-            )
-        if not args.no_plot:
-            plot_sweep(res, out / "sweep.png", tol_d, tol_a)
-        (out / "summary.json").write_text(json_text(summary), encoding="utf-8")
-        if res.found:
-            print(
-                f"recommended α = {res.alpha:.2f} (zero crossing of d(α)), amplitude factor "
-                f"{res.factor:.4f}; {res.reason}; tuned config {out / 'tuned.toml'}"
-            )
-        else:
-            print(f"rths-hil tune: no recommendation: {res.reason}", file=sys.stderr)
-        stopped = [t for t in res.trials if t.status == "operator_stop"]
-        if stopped:
-            return 130
-        return 0 if res.found else 1
+        return _finish_sweep(res, cfg, out, summary, args.no_plot, tol_d, tol_a)
 
     res = tune(
         runner,
@@ -258,34 +318,7 @@ def main(args: argparse.Namespace) -> int:  # noqa: C901
         tune_amplitude=not args.alpha_only,
         alpha_bounds=(lo, hi),
     )
-    write_table_csv(res.trials, out / "tuning.csv")
-    summary["tuning"] = res.as_dict()
-    if res.best:
-        write_tuned_config(
-            cfg,
-            out / "tuned.toml",
-            res.alpha,
-            res.factor,
-            note=f"{res.stop}: {res.reason}\nbest verified trial: {res.best}",
-        )
-    if not args.no_plot and res.trials:
-        plot_tuning(res, out / "tuning.png")
-    (out / "summary.json").write_text(json_text(summary), encoding="utf-8")
-    if not quiet:
-        print(f"rths-hil tune: {res.reason}", file=sys.stderr)
-    if res.best:
-        print(
-            f"{'tuned' if res.converged else 'best so far'}: α = {res.alpha:.3f}, amplitude "
-            f"factor {res.factor:.4f} (trial {res.best} of {res.iterations}); "
-            f"config {out / 'tuned.toml'}"
-        )
-    else:
-        print(f"rths-hil tune: no usable trial: {res.reason}", file=sys.stderr)
-    if res.stop == "trip":
-        return 3
-    if res.stop == "operator_stop":
-        return 130
-    return 0 if res.converged else 1
+    return _finish_tune(res, cfg, out, summary, args.no_plot, quiet)
 
 
 def _parallel_sweep(runner, grid: list[float], factor: float, scheduler: str, on_trial):
