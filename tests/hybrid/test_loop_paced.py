@@ -128,7 +128,8 @@ def test_sigint_is_an_operator_stop_with_the_same_flush_path(tmp_path):
     proc.send_signal(signal.SIGINT)
     _, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 130, stderr
-    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    # (a loaded machine's own stalls are logged as they happen: not part of the stop's line)
+    lines = [ln for ln in stderr.splitlines() if ln.strip() and "the bridge stalled" not in ln]
     assert len(lines) == 1 and "operator stop" in lines[0] and str(out) in lines[0]
     run = read_run(out)
     kinds = [e["kind"] for e in run.events]
