@@ -476,6 +476,10 @@ def _identify(ctl: _Controller, rep: ChannelReport, amp: float, lim: float) -> f
     note = getattr(ctl.drv, "link_note", None)  # e.g. a Modbus server that answers one
     if isinstance(note, str) and note:  # request at a time: the driver fell back
         figs["link"] = note
+    warning = ctl.drv.link_check(1.0 / ctl.dt)  # e.g. its round trip against the period
+    if warning:
+        figs["link check"] = warning
+        log.warning("%s: %s", rep.target, warning)
     why = ""
     if fb is None:
         why = "no reply to the arming command"

@@ -681,17 +681,22 @@ class ModbusProfileDriver(Driver):
             return
         out.append((base, tpl.function_code, tpl.build(raw, base)))  # FC 16 or FC 23
         if not self.profile.fc23 and self._serial:
-            head = pending[0][0] if pending and not self._rtu else -1
+            # the last step's read, outstanding or waiting behind an outstanding write
+            old = -1 if self._rtu else next((r[0] for r in pending if r[0] & 15 == 1), -1)
             steady = enable and len(out) == 1  # no action this step: no status to confirm
-            if steady and self._n_reads == 1 and head & 15 == 1 and head >> 4 != base >> 4:
-                # TCP one at a time, the last step's read still outstanding (its answer was
-                # missed): the controller samples when it serves that read, now, so its answer
-                # is this step's measurement; a read of its own behind the write would come a
-                # whole transaction later and miss this step too (a cascade of missed replies
-                # at rates where the two transactions fill most of the period). Not with an
-                # action (enable, disable, acknowledge): its effect is read after it.
-                self._adopted = head
+            if steady and self._n_reads == 1 and old >= 0 and old >> 4 != base >> 4:
+                # TCP one at a time, the last step's read not answered yet (its answer was
+                # missed): the controller samples when it serves that read, at the earliest
+                # now, so its answer is this step's measurement; a read of its own behind the
+                # write would come a whole transaction later and miss this step too (a
+                # cascade of missed replies at rates where the two transactions fill most of
+                # the period). Not with an action (enable, disable, acknowledge): its effect
+                # is read after it.
+                self._adopted = old
             else:
+                if old >= 0 and pending[0][0] != old:  # not on the wire: this step reads anew
+                    pending.remove(next(r for r in pending if r[0] == old))
+                    self.stats.late += 1
                 self._adopted = -1
                 out += self._reads_only(base)
         self._submit(out)
@@ -702,8 +707,9 @@ class ModbusProfileDriver(Driver):
         RTU: all of them (the line is resynchronised). Modbus TCP one at a time: the request
         on the wire stays outstanding unless it has been for ``HEAD_GIVEUP`` (a controller
         that serves one request at a time drops one written while another is in progress, so
-        the next is written when its answer comes); the ones not yet written are dropped, but
-        for a heartbeat (the controller's watchdog counts on it).
+        the next is written when its answer comes); of the ones not yet written the step's
+        set-point writes are dropped (the next step writes a newer one), the heartbeats and
+        actions stay, and the step's read stays when a write is on the wire.
         """
         pending = self._pending
         if self._rtu:  # the line is resynchronised: nothing of the last step is kept
@@ -715,17 +721,29 @@ class ModbusProfileDriver(Driver):
             return
         head, rest = pending[0], list(pending)[1:]
         stale = time.perf_counter() - self._head_t > HEAD_GIVEUP
-        hb = [r for r in rest if r[0] & 15 == SLOT_HEARTBEAT]
-        dropped = [r for r in rest if r[0] & 15 != SLOT_HEARTBEAT]
+        # kept, in their order: heartbeats (the controller's watchdog counts on them),
+        # actions (an enable, a disable, the set-point ahead of an enable: dropped and sent
+        # again behind the next step's outstanding request, on a link slower than the period
+        # they would never go out) and the step's read if a write is on the wire (it goes
+        # before the next step's write and is that step's measurement, _send_locked)
+        read_ok = self._n_reads == 1 and not self.profile.fc23 and head[0] & 15 != 1
+        keep, dropped, has_read = [], [], False
+        for r in rest:
+            slot = r[0] & 15
+            if slot == SLOT_HEARTBEAT or (slot == SLOT_ACTION and r[2]):
+                keep.append(r)
+            elif slot == 1 and read_ok and not has_read:
+                keep.append(r)
+                has_read = True
+            else:
+                dropped.append(r)
         self.stats.late += len(dropped) + (1 if stale else 0)
-        if any(r[0] & 15 == SLOT_ACTION and r[2] for r in dropped):
-            self._enabled = None  # an action that never went out: the next step sends it
         pending.clear()
         if stale:
             self._given_up.append(head[0])
         else:
             pending.append(head)
-        pending.extend(hb)
+        pending.extend(keep)
         if stale and pending:
             self._write(pending[0][2])
             self._head_t = time.perf_counter()

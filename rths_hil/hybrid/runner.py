@@ -179,6 +179,7 @@ class Runner:
             start = self._start_state()  # ... and the loop's state of step 0 (in this order)
             bufs = self._buffers()
             self._quiet_interpreter(stack)
+            self._check_links(rec)
             # a new run on each controller: restart its sequence count, acknowledge a latch
             replies = []
             for ch in self.channels:
@@ -340,6 +341,15 @@ class Runner:
         return confirmed
 
     # ------------------------------------------------------------------------------------------
+    def _check_links(self, rec: Recorder) -> None:
+        """Say what each link, as measured when it opened, means at the loop rate (a warning
+        on the terminal and a ``link`` event; e.g. a controller too slow for the rate)."""
+        for ch in self.channels:
+            warning = ch.driver.link_check(self.plan.fs)
+            if warning:
+                log.warning("channel %s: %s", ch.name, warning)
+                rec.event("link", 0.0, 0, channel=ch.name, warning=warning)
+
     def _start_state(self) -> tuple[list[float], Trip | None]:
         """The state of step 0: the DOF targets, each channel's target and first command.
 

@@ -299,6 +299,31 @@ def test_watchdog_trip_names_the_status_register_and_the_link_its_requests(modbu
     assert partner.status() == WATCHDOG | ESTOP
 
 
+def test_a_link_too_slow_for_the_rate_is_said_at_arming_and_costs_what_it_said(
+    modbus_servo, tmp_path
+):
+    """The partner takes 2 ms per transaction: at 512 Hz a step's FC 16 + FC 4 need about
+    4 ms of a 1.95 ms period. ``run`` says so before it arms (terminal and record, with the
+    highest rate that fits), and the run then misses about the share of replies the link
+    cannot carry (at least a third: the link carries at most one step's pair in two), held
+    as degradation: the enable, the set-points and a read every few steps still go out, and
+    the run completes (before, each step's write went out ahead of the read and the enable
+    again, no read ever did, and the reply watchdog tripped)."""
+    partner = modbus_servo(pause_rate=0, service_time=0.002)
+    out = tmp_path / "slow"
+    sets = ("loop.fs=512", "safety.watchdog_timeout=0.2")
+    rc, text = finish(run_bridge(partner, out, *sets, duration=1.0))
+    (link,) = events(out, "link")
+    assert "2 requests (FC 16 + FC 4)" in link["warning"] and "at 512 Hz" in link["warning"]
+    assert link["warning"] in text
+    highest = float(re.search(r"At most (\d+) Hz", link["warning"]).group(1))
+    assert 100 <= highest <= 190  # 0.75 / (2 × 2.0–3.7 ms)
+    assert rc == 0, text
+    s = open_run(out).summary()
+    assert s["status"] == "completed" and s["steps"] == 512
+    assert s["steps"] / 3 <= s["missed_replies"] < s["steps"], s
+
+
 def test_paced_512_hz_default_profile_completes_and_hands_back_disabled(modbus_servo, tmp_path):
     """The docs' default profile (pipeline = true), paced at 512 Hz against the partner with
     its pauses: the run completes and the controller is handed back disabled, not latched
