@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import statistics
 import struct
 import subprocess
@@ -220,6 +221,12 @@ def paced_run(label: str, tuned: Path | None, fs: int, duration: float, tmp: Pat
     from rths_hil.records.recorder import read_run
 
     rec = read_run(out).record
+    link = ""  # the link check at arming: the share of the period a step's requests take
+    for line in (out / "events.jsonl").read_text().splitlines():
+        e = json.loads(line)
+        if e.get("kind") == "link":
+            m = re.search(r"(\d+) % of the", e.get("warning", ""))
+            link = f"warned ({m.group(1)} %)" if m else "warned"
     ft = np.asarray(rec["feedback_time"], dtype=float)
     ft = ft[np.isfinite(ft)]
     trip = s.get("trip") or {}
@@ -238,6 +245,7 @@ def paced_run(label: str, tuned: Path | None, fs: int, duration: float, tmp: Pat
         "reply_p50": float(np.percentile(ft, 50)) if ft.size else float("nan"),
         "reply_p99": float(np.percentile(ft, 99)) if ft.size else float("nan"),
         "work": (s.get("overrun_causes") or {}).get("work", 0),
+        "link": link or "–",
         # the replies the partner's own network-stack pauses cost (Modbus partner): no bridge
         # can have them; a pause of T s costs about T·fs + 1 replies
         "paused": final.get("pause_time", 0.0) * fs + final.get("pauses", 0),
@@ -302,6 +310,7 @@ def main(argv: list[str] | None = None) -> int:
                 _ms(statistics.median([x.get("reply_p50", float("nan")) for x in results])),
                 _ms(max((x.get("reply_p99", float("nan")) for x in results), default=float("nan"))),
                 _ms(rt_p50),
+                ", ".join(sorted({str(x.get("link", "–")) for x in results})),
                 sum(x.get("work", 0) for x in results),
                 ", ".join(sorted({str(x.get("handed_back")) for x in results})),
                 "; ".join(w[:90].replace("|", "/") for w in whys) or "–",
@@ -322,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
         ["partner", "fs (Hz)", "completed", "missed replies", "missed beyond the partner's "
          "pauses", "longest gap (ms)", "FEI A",
          "FEI d (ms)", "bridge reply p50 (ms)", "bridge reply p99 (ms)", "raw round trip p50 "
-         "(ms)", "work-caused overruns", "partner at the end", "trips"],
+         "(ms)", "link check at arming", "work-caused overruns", "partner at the end", "trips"],
         rows,
     )  # fmt: skip
     write_results(
@@ -343,7 +352,10 @@ def main(argv: list[str] | None = None) -> int:
         "record (median of the runs). The Modbus partner pauses its network stack 20–40 ms "
         "0.5 times a second (Poisson): a pause of T s costs about T·fs + 1 replies to any "
         "client, 1.5 % of them at its default rate; `missed beyond the partner's pauses` takes "
-        "those (summed from the partner's own account of its pauses) out. "
+        "those (summed from the partner's own account of its pauses) out. `link check at "
+        "arming`: whether `run` warned that a step's one-at-a-time requests fill more than "
+        "75 % of the period (at the round trip the driver timed when it opened), and by how "
+        "much. "
         "Load average at the end: "
         f"{os.getloadavg()[0]:.1f} (1 min) on {os.cpu_count()} cores.",
     )

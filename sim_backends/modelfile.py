@@ -181,7 +181,128 @@ def _unknown(table: Mapping[str, Any], known: Any, where: str) -> None:
             raise InputError(f"{where}{key}: unknown key (known: {', '.join(known)})")
 
 
-def load_model(  # noqa: C901
+def _read_specimen(data: Mapping[str, Any], p: str) -> tuple[SpecimenSpec | None, dict[str, float]]:
+    """The ``[specimen]`` table (None without one) and the keys it gives."""
+    specimen = None
+    specimen_given: dict[str, float] = {}
+    if "specimen" in data:
+        st = _table(data["specimen"], f"{p}specimen")
+        _unknown(st, ("model", *_SPECIMEN_KEYS), f"{p}specimen.")
+        model = st.get("model", "kelvin_voigt")
+        if model not in ("kelvin_voigt", "spring_dashpot"):
+            raise InputError(
+                f"{p}specimen.model: unknown specimen model {model!r} (known: kelvin_voigt)"
+            )
+        for key in _SPECIMEN_KEYS:
+            if key in st:
+                v = _number(st[key], f"{p}specimen.{key}")
+                if v < 0:
+                    raise InputError(f"{p}specimen.{key}: must be ≥ 0, got {v!r}")
+                specimen_given[key] = v
+        values = {**SPECIMEN_DEFAULTS, **specimen_given}
+        specimen = SpecimenSpec(
+            stiffness=values["stiffness"], damping=values["damping"], mass=values["mass"]
+        )
+    return specimen, specimen_given
+
+
+def _read_actuator(
+    at: Mapping[str, Any], p: str, specimen_given: dict[str, float]
+) -> tuple[str, float, float, dict[str, float]]:
+    """The ``[actuator]`` table's model, delay (s), gain and parameters (checked by a build)."""
+    model = at.get("model", "delay_gain")
+    if not isinstance(model, str):
+        raise InputError(
+            f"{p}actuator.model: unknown actuator model {model!r} (known: {', '.join(MODELS)})"
+        )
+    try:
+        model, entry = model_entry(model)
+    except InputError as exc:
+        raise InputError(f"{p}actuator.model: {exc}") from None
+    model_params = entry.params
+    _unknown(at, ("delay", "gain", "model", "effects", *model_params), f"{p}actuator.")
+    delay = _number(at.get("delay", 0.0), f"{p}actuator.delay", "s")
+    if delay < 0:
+        raise InputError(f"{p}actuator.delay: must be ≥ 0 s, got {delay!r}")
+    gain = _number(at.get("gain", 1.0), f"{p}actuator.gain")
+    params: dict[str, float] = {}
+    for key, (default, unit) in model_params.items():
+        if key in at:
+            params[key] = _number(at[key], f"{p}actuator.{key}", _UNITS.get(key, unit))
+        elif default is None:
+            raise InputError(f"{p}actuator.{key}: required by model {model!r}")
+    if entry.uses_specimen:
+        for key in _SPECIMEN_KEYS:
+            if f"specimen_{key}" not in params and key in specimen_given:
+                params[f"specimen_{key}"] = specimen_given[key]
+    try:  # the model's own range checks (e.g. time_constant > 0, stable benchmark plant)
+        make_model(model, 1.0 / 1024.0, delay=delay, gain=gain, **params)
+    except InputError as exc:
+        raise InputError(f"{p}actuator.{exc}") from None
+    return model, delay, gain, params
+
+
+def _read_effects(
+    at: Mapping[str, Any], p: str, control: str, spec_values: dict[str, float]
+) -> list[EffectSpec]:
+    """The ``[[actuator.effects]]`` of a twin of ``control`` (force: its refusals, units)."""
+    effects: list[EffectSpec] = []
+    raw_effects = at.get("effects", [])
+    if not isinstance(raw_effects, list):
+        raise InputError(f"{p}actuator.effects: must be an array of tables [[actuator.effects]]")
+    for i, raw in enumerate(raw_effects):
+        where = f"{p}actuator.effects[{i}]."
+        et = dict(_table(raw, where[:-1]))
+        if "kind" not in et:
+            raise InputError(f"{where}kind: missing (known: {', '.join(EFFECTS)})")
+        kind = et.pop("kind")
+        if not isinstance(kind, str) or kind not in EFFECTS:
+            raise InputError(f"{where}kind: unknown effect {kind!r} (known: {', '.join(EFFECTS)})")
+        if control == "force" and kind in FORCE_REFUSED:
+            raise InputError(
+                f"{where}kind: a force-controlled twin does not take {kind!r} "
+                f"({FORCE_REFUSED[kind]})"
+            )
+        if kind == "force_feedback":
+            et.setdefault("specimen_stiffness", spec_values["stiffness"])
+            et.setdefault("specimen_damping", spec_values["damping"])
+        units = {q.name: q.unit for q in EFFECTS[kind].PARAMS}
+        if control == "force":
+            units.update(FORCE_UNITS.get(kind, {}))
+        values = {}
+        for key, value in et.items():
+            if key in units:
+                values[key] = _number(value, f"{where}{key}", units[key])
+            else:
+                values[key] = value  # validate_params names the unknown key
+        effects.append(EffectSpec(kind, validate_params(kind, values, where)))
+    return effects
+
+
+def _read_sensor(data: Mapping[str, Any], p: str) -> Sensor:
+    """The ``[sensor]`` table (noise, resolution, seed; defaults without one)."""
+    sensor = Sensor()
+    if "sensor" in data:
+        stab = _table(data["sensor"], f"{p}sensor")
+        _unknown(stab, (*_SENSOR_KEYS, "seed"), f"{p}sensor.")
+        kwargs: dict[str, Any] = {}
+        for key in _SENSOR_KEYS:
+            if key in stab:
+                unit = "m" if key.startswith("displacement") else ""
+                v = _number(stab[key], f"{p}sensor.{key}", unit)
+                if v < 0:
+                    raise InputError(f"{p}sensor.{key}: must be ≥ 0, got {v!r}")
+                kwargs[key] = v
+        if "seed" in stab:
+            seed = stab["seed"]
+            if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+                raise InputError(f"{p}sensor.seed: must be a non-negative integer, got {seed!r}")
+            kwargs["seed"] = seed
+        sensor = Sensor(**kwargs)
+    return sensor
+
+
+def load_model(
     source: str | Path | Mapping[str, Any], name: str | None = None, control: str = "displacement"
 ) -> ModelSpec:
     """Read and validate a model file (path) or an already-parsed dict.
@@ -218,110 +339,13 @@ def load_model(  # noqa: C901
     if "actuator" not in data:
         raise InputError(f"{p}actuator: missing table [actuator]")
 
-    specimen = None
-    specimen_given: dict[str, float] = {}
-    if "specimen" in data:
-        st = _table(data["specimen"], f"{p}specimen")
-        _unknown(st, ("model", *_SPECIMEN_KEYS), f"{p}specimen.")
-        model = st.get("model", "kelvin_voigt")
-        if model not in ("kelvin_voigt", "spring_dashpot"):
-            raise InputError(
-                f"{p}specimen.model: unknown specimen model {model!r} (known: kelvin_voigt)"
-            )
-        for key in _SPECIMEN_KEYS:
-            if key in st:
-                v = _number(st[key], f"{p}specimen.{key}")
-                if v < 0:
-                    raise InputError(f"{p}specimen.{key}: must be ≥ 0, got {v!r}")
-                specimen_given[key] = v
+    specimen, specimen_given = _read_specimen(data, p)
     spec_values = {**SPECIMEN_DEFAULTS, **specimen_given}
-    if "specimen" in data:
-        specimen = SpecimenSpec(
-            stiffness=spec_values["stiffness"],
-            damping=spec_values["damping"],
-            mass=spec_values["mass"],
-        )
 
     at = _table(data["actuator"], f"{p}actuator")
-    model = at.get("model", "delay_gain")
-    if not isinstance(model, str):
-        raise InputError(
-            f"{p}actuator.model: unknown actuator model {model!r} (known: {', '.join(MODELS)})"
-        )
-    try:
-        model, entry = model_entry(model)
-    except InputError as exc:
-        raise InputError(f"{p}actuator.model: {exc}") from None
-    model_params = entry.params
-    _unknown(at, ("delay", "gain", "model", "effects", *model_params), f"{p}actuator.")
-    delay = _number(at.get("delay", 0.0), f"{p}actuator.delay", "s")
-    if delay < 0:
-        raise InputError(f"{p}actuator.delay: must be ≥ 0 s, got {delay!r}")
-    gain = _number(at.get("gain", 1.0), f"{p}actuator.gain")
-    params: dict[str, float] = {}
-    for key, (default, unit) in model_params.items():
-        if key in at:
-            params[key] = _number(at[key], f"{p}actuator.{key}", _UNITS.get(key, unit))
-        elif default is None:
-            raise InputError(f"{p}actuator.{key}: required by model {model!r}")
-    if entry.uses_specimen:
-        for key in _SPECIMEN_KEYS:
-            if f"specimen_{key}" not in params and key in specimen_given:
-                params[f"specimen_{key}"] = specimen_given[key]
-    try:  # the model's own range checks (e.g. time_constant > 0, stable benchmark plant)
-        make_model(model, 1.0 / 1024.0, delay=delay, gain=gain, **params)
-    except InputError as exc:
-        raise InputError(f"{p}actuator.{exc}") from None
-
-    effects: list[EffectSpec] = []
-    raw_effects = at.get("effects", [])
-    if not isinstance(raw_effects, list):
-        raise InputError(f"{p}actuator.effects: must be an array of tables [[actuator.effects]]")
-    for i, raw in enumerate(raw_effects):
-        where = f"{p}actuator.effects[{i}]."
-        et = dict(_table(raw, where[:-1]))
-        if "kind" not in et:
-            raise InputError(f"{where}kind: missing (known: {', '.join(EFFECTS)})")
-        kind = et.pop("kind")
-        if not isinstance(kind, str) or kind not in EFFECTS:
-            raise InputError(f"{where}kind: unknown effect {kind!r} (known: {', '.join(EFFECTS)})")
-        if control == "force" and kind in FORCE_REFUSED:
-            raise InputError(
-                f"{where}kind: a force-controlled twin does not take {kind!r} "
-                f"({FORCE_REFUSED[kind]})"
-            )
-        if kind == "force_feedback":
-            et.setdefault("specimen_stiffness", spec_values["stiffness"])
-            et.setdefault("specimen_damping", spec_values["damping"])
-        units = {q.name: q.unit for q in EFFECTS[kind].PARAMS}
-        if control == "force":
-            units.update(FORCE_UNITS.get(kind, {}))
-        values = {}
-        for key, value in et.items():
-            if key in units:
-                values[key] = _number(value, f"{where}{key}", units[key])
-            else:
-                values[key] = value  # validate_params names the unknown key
-        effects.append(EffectSpec(kind, validate_params(kind, values, where)))
-
-    sensor = Sensor()
-    if "sensor" in data:
-        stab = _table(data["sensor"], f"{p}sensor")
-        _unknown(stab, (*_SENSOR_KEYS, "seed"), f"{p}sensor.")
-        kwargs: dict[str, Any] = {}
-        for key in _SENSOR_KEYS:
-            if key in stab:
-                unit = "m" if key.startswith("displacement") else ""
-                v = _number(stab[key], f"{p}sensor.{key}", unit)
-                if v < 0:
-                    raise InputError(f"{p}sensor.{key}: must be ≥ 0, got {v!r}")
-                kwargs[key] = v
-        if "seed" in stab:
-            seed = stab["seed"]
-            if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-                raise InputError(f"{p}sensor.seed: must be a non-negative integer, got {seed!r}")
-            kwargs["seed"] = seed
-        sensor = Sensor(**kwargs)
+    model, delay, gain, params = _read_actuator(at, p, specimen_given)
+    effects = _read_effects(at, p, control, spec_values)
+    sensor = _read_sensor(data, p)
 
     actuator = ActuatorSpec(delay, gain, model, params, effects)
     return ModelSpec(actuator, specimen, sensor, name or "model")
