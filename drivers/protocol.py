@@ -13,6 +13,7 @@ class's hooks of the same names, where it has them, else the defaults.
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -91,6 +92,11 @@ class Protocol:
         ``() -> type[Driver]``: the driver class that speaks such a profile.
     path_keys : tuple of str
         Connection settings that are file paths (resolved relative to the config file).
+    serve_options : callable or None
+        ``(group) -> None``: add the protocol's own ``rths-hil twin serve`` options to an
+        :mod:`argparse` argument group (its twin endpoint's ``connection_from_args`` reads
+        them). Protocols on one kind of line share one function (CANopen uses CAN's); the
+        command adds each function once. Default: none beyond the command's own.
     """
 
     name: str
@@ -104,6 +110,7 @@ class Protocol:
     profile_protocol: str | None = None
     profile_driver: Callable[[], type[Driver]] | None = None
     path_keys: tuple[str, ...] = field(default=())
+    serve_options: Callable[[argparse._ArgumentGroup], None] | None = None
 
     def __post_init__(self) -> None:
         name = self.name
@@ -153,7 +160,8 @@ class Protocol:
         """The descriptor of a driver class registered on its own (a lab's entry point).
 
         Its class methods named as the hooks (:data:`HOOKS`), its ``profile_protocol`` and
-        ``profile_driver`` and its ``path_keys``, where it has them; the defaults otherwise.
+        ``profile_driver``, its ``path_keys`` and ``serve_options``, where it has them; the
+        defaults otherwise.
         """
         hooks: dict[str, Any] = {h: getattr(driver, h) for h in HOOKS if hasattr(driver, h)}
         return cls(
@@ -162,5 +170,6 @@ class Protocol:
             profile_protocol=getattr(driver, "profile_protocol", None),
             profile_driver=getattr(driver, "profile_driver", None),
             path_keys=tuple(getattr(driver, "path_keys", ())),
+            serve_options=getattr(driver, "serve_options", None),
             **hooks,
         )

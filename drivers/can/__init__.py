@@ -47,7 +47,7 @@ from rths_hil.errors import InputError
 
 from ..base import Driver, Feedback, LinkDown
 from ..protocol import Protocol
-from . import linkbudget
+from . import linkbudget, options
 from .codec import ActuatorCodecs, Frame, load
 
 __all__ = [
@@ -427,4 +427,5 @@ PROTOCOL = Protocol(
     profile_protocol="can",
     profile_driver=_profile_driver,
     path_keys=("dbc",),
+    serve_options=options.serve_options,
 )

@@ -79,6 +79,7 @@ Connection keys: ``eds`` (required: the controller's EDS file), ``node_id`` (1â€
 ``configure_pdo`` (documented in ``docs/canopen.md``).
 """
 
+from ..can import options as can_options
 from ..protocol import Protocol
 from . import linkbudget
 from .device import CANopenStats
@@ -129,4 +130,5 @@ PROTOCOL = Protocol(
     check_sharing=linkbudget.check_sharing,
     inline_twin=linkbudget.inline_twin,
     path_keys=("eds",),
+    serve_options=can_options.serve_options,
 )

@@ -7,6 +7,7 @@ between its client and its server.
 * :mod:`.layout` — a register map's precompiled wire layouts, each checked against pymodbus.
 * :mod:`.driver` — :class:`ModbusDriver`, the built-in register map (one FC 23 per step).
 * :mod:`.profile` — :class:`ModbusProfileDriver`, a lab's own register map from a profile.
+* :mod:`.options` — the ``rths-hil twin serve`` options of a Modbus twin.
 * :mod:`.linkbudget` — the Modbus link model (RTU transactions and silences, TCP segments)
   and the planning facts of the protocol (:data:`PROTOCOL`).
 
@@ -16,7 +17,7 @@ The twins (:mod:`rths_hil.sim_backends.endpoints.modbus`,
 
 from ..base import Driver
 from ..protocol import Protocol
-from . import linkbudget
+from . import linkbudget, options
 from .driver import (
     COIL_ESTOP,
     FORCE_LSB,
@@ -63,4 +64,5 @@ PROTOCOL = Protocol(
     check_sharing=linkbudget.check_sharing,
     profile_protocol="modbus",
     profile_driver=_profile_driver,
+    serve_options=options.serve_options,
 )

@@ -2,27 +2,20 @@
 
 For a lab's dry run: the twin speaks the chosen driver's real protocol on a real transport and
 prints, on one line, where it listens and the driver connection settings (JSON) that reach it
-(one line per Modbus unit when ``--device-id`` is given several times: units of one TCP
-server, each its own controller, plant, faults and watchdog).
-Ctrl-C (SIGINT) or SIGTERM stops it cleanly with exit code 0.
+(one line per unit when the protocol serves several controllers behind one endpoint, each its
+own controller, plant, faults and watchdog). Ctrl-C (SIGINT) or SIGTERM stops it cleanly with
+exit code 0.
 
-Examples::
+Each protocol package declares its own options (its descriptor's ``serve_options``,
+:mod:`rths_hil.drivers.protocol`) and its twin endpoint turns them into its settings
+(``connection_from_args``); the command lines of every shipped protocol are in
+``docs/protocols.md`` ("Twins, faults and ``twin serve``")::
 
-    rths-hil twin serve --driver modbus --port 1502
-    rths-hil twin serve --driver modbus --port 1502 --device-id 1 --device-id 2   # two units
-    rths-hil twin serve --driver modbus --transport rtu          # prints the /dev/pts path
-    rths-hil twin serve --driver serial                          # pseudo-terminal
-    rths-hil twin serve --driver serial --transport tcp --port 5000
-    rths-hil twin serve --driver can --interface serial              # pseudo-terminal pair
-    rths-hil twin serve --driver can --interface socketcan --channel vcan0 --model twin.toml
-    rths-hil twin serve --driver modbus --port 1502 --profile examples/controllers/modbus_map.toml
-    rths-hil twin serve --driver modbus --profile examples/controllers/column_axial_map.toml \
-        --control force --force-loop-gain 2e-4 --model force_twin.toml   # a force-controlled twin
+    rths-hil twin serve --driver NAME [--transport T] [--port P] [--profile FILE] [--model FILE]
 
 ``--control force`` serves the force-controlled twin (:mod:`rths_hil.sim_backends.force`): the
-set-point is a force (N) on the profile's force role (a Modbus map's ``force_setpoint``, a DBC
-profile's force set-point signal, CiA 402 cyclic synchronous torque), closed through a force
-loop of gain ``--force-loop-gain`` (m/s per N) on the model file's specimen.
+set-point is a force (N) on the profile's force role, closed through a force loop of gain
+``--force-loop-gain`` (m/s per N) on the model file's specimen.
 """
 
 from __future__ import annotations
@@ -48,32 +41,21 @@ if TYPE_CHECKING:
 DEFAULT_DT = 1.0 / 1024.0
 
 
-def _bitrate(text: str) -> int:
-    """A CAN bit rate: a positive integer (bit/s), at most 8 Mbit/s (CAN FD's data phase)."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of bit/s") from None
-    if not 0 < v <= 8_000_000:
-        raise argparse.ArgumentTypeError(f"{v} bit/s is not a CAN bit rate (1 … 8 000 000)")
-    return v
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``serve`` to the ``twin`` sub-command group."""
     from rths_hil.sim_backends.registry import available_twins
 
     p = sub.add_parser(
         "serve",
-        help="run a virtual actuator twin behind a CAN, Modbus or serial endpoint",
+        help="run a virtual actuator twin behind its protocol's endpoint",
         description=__doc__.splitlines()[0] if __doc__ else None,
     )
     p.add_argument("--driver", required=True, choices=sorted(available_twins()))
     p.add_argument(
         "--profile",
         default=None,
-        help="controller profile (TOML: the lab's register map or DBC, docs/profiles.md); the "
-        "twin speaks it (modbus: tcp; can: socketcan or the lab's interface)",
+        help="controller profile (TOML: the lab's own controller description, "
+        "docs/profiles.md); the twin speaks it",
     )
     p.add_argument(
         "--model",
@@ -94,7 +76,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "loop on 1.19 MN/m)",
     )
     p.add_argument("--dt", default=None, help="twin step, e.g. 1ms (default 1/1024 s)")
-    p.add_argument("--transport", help="modbus: tcp (default) or rtu; serial: pty (default) or tcp")
+    p.add_argument(
+        "--transport",
+        help="the twin's transport, the first the default: "
+        + "; ".join(f"{name}: {' or '.join(t)}" for name, t in _transports().items()),
+    )
     p.add_argument("--host", default="127.0.0.1", help="TCP bind address (default 127.0.0.1)")
     p.add_argument(
         "--allow-remote",
@@ -104,26 +90,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--port", type=int, default=None, help="TCP port (default 0: any free port, printed)"
     )
-    p.add_argument("--device", help="modbus rtu: serial device to serve (default: a new pty)")
-    p.add_argument(
-        "--device-id",
-        type=int,
-        action="append",
-        default=None,
-        help="modbus unit id (default 1); repeat for several units on one TCP server",
-    )
-    p.add_argument(
-        "--interface",
-        default="socketcan",
-        help="CAN: python-can interface (default socketcan; serial or slcan: a pseudo-terminal "
-        "pair on this machine)",
-    )
-    p.add_argument(
-        "--channel",
-        default=None,
-        help="CAN: channel (default vcan0; serial, slcan: pty = a new pseudo-terminal pair)",
-    )
-    p.add_argument("--bitrate", type=_bitrate, default=None, help="CAN: bit rate (bit/s)")
     p.add_argument("--faults", default=None, help='fault plan, e.g. "drop=5,9; p_corrupt=0.01"')
     p.add_argument(
         "--heartbeat-timeout",
@@ -136,7 +102,36 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="0",
         help="where the actuator sits at rest, e.g. 3mm (an off-centre actuator; default 0)",
     )
+    _protocol_options(p)
     p.set_defaults(func=run)
+
+
+def _transports() -> dict[str, tuple[str, ...]]:
+    """The transports each built-in twin offers (``--transport``), the default first."""
+    from rths_hil.sim_backends.registry import TWINS
+
+    return {name: entry.transports for name, entry in TWINS.items() if entry.transports}
+
+
+def _protocol_options(p: argparse.ArgumentParser) -> None:
+    """Add each protocol's own options (its descriptor's ``serve_options``), one group per
+    function: protocols sharing one kind of line share its options."""
+    from rths_hil.drivers.registry import available, protocol
+    from rths_hil.sim_backends.registry import available_twins
+
+    drivers = available()
+    users: dict[Callable[[argparse._ArgumentGroup], None], list[str]] = {}
+    for name in sorted(available_twins()):
+        if name not in drivers:
+            continue
+        try:
+            add = protocol(name).serve_options
+        except InputError:  # a broken plug-in is refused with its own line when served
+            continue
+        if add is not None:
+            users.setdefault(add, []).append(name)
+    for add, names in users.items():
+        add(p.add_argument_group(f"{', '.join(names)} options"))
 
 
 def _endpoint(args: argparse.Namespace) -> type[TwinEndpoint]:
@@ -162,10 +157,11 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
         except (RuntimeError, OSError) as exc:  # a symlink loop (RuntimeError before 3.13)
             raise InputError(f"--profile {args.profile}: cannot be resolved: {exc}") from None
         conn["profile"] = path
-    if args.device:
+    device = getattr(args, "device", None)
+    if device:
         if "device" not in conn:
             raise InputError(
-                f"--device {args.device}: --driver {args.driver} serves no device here "
+                f"--device {device}: --driver {args.driver} serves no device here "
                 f"({conn.get('transport', 'its own line')})"
             )
         _check_device(conn["device"])

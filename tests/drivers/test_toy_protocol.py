@@ -18,6 +18,7 @@ from rths_hil.errors import InputError
 from rths_hil.records.recorder import read_run
 
 QUIET = ["--set", "loop.console=0", "-q"]
+ROOT = Path(__file__).resolve().parents[2]
 
 # The toy wire, little-endian, over UDP on the loopback interface: a command is type 0xC1, seq
 # u32, enable u8, displacement i32 in µm (10 bytes); a feedback 0xF1, seq u32, status u8,
@@ -129,8 +130,13 @@ def check_sharing(channels):
         seen[key] = name
 
 
+def serve_options(group):
+    group.add_argument("--toy-rate", type=int, default=None, help="toy: line rate (bit/s)")
+
+
 PROTOCOL = Protocol(name="toy", driver=ToyDriver, link_key=link_key, link_load=link_load,
-                    link_advice=link_advice, check_sharing=check_sharing)
+                    link_advice=link_advice, check_sharing=check_sharing,
+                    serve_options=serve_options)
 """
 
 _TWIN = """
@@ -148,6 +154,10 @@ SENT = []
 class ToyTwin(TwinEndpoint):
     name = "toy"
     seq_bits = None
+
+    @classmethod
+    def connection_from_args(cls, args):
+        return {"rate": args.toy_rate}
 
     def __init__(self, controller, host="127.0.0.1", port=0, rate=None):
         super().__init__(controller)
@@ -303,3 +313,41 @@ def test_a_protocol_registered_at_run_time(toy_package: Path) -> None:
         unregister("toy2")
     assert "toy2" not in available()
     assert link_load("toy2", {"rate": 480_000}, 2, 500.0).load is None  # unknown: not checked
+
+
+@pytest.mark.timing
+def test_the_toy_twin_served_with_its_own_option(toy_package: Path) -> None:
+    """``twin serve`` lists the option the toy's descriptor declares, and serves the toy's twin
+    as its own process with it: the listen line carries the rate, the toy driver in this
+    process steps the twin (a command answered with its sequence number)."""
+    import json
+    import os
+    import signal
+    import subprocess
+
+    import toy_proto
+
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(toy_package), str(ROOT)]))
+    cmd = [sys.executable, "-m", "rths_hil", "twin", "serve", "--driver", "toy"]
+    helped = subprocess.run([*cmd, "--help"], capture_output=True, text=True, env=env, cwd=ROOT)
+    assert helped.returncode == 0, helped.stderr
+    assert "toy options:" in helped.stdout and "--toy-rate" in helped.stdout
+    proc = subprocess.Popen([*cmd, "--toy-rate", "250000"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)  # fmt: skip
+    try:
+        line = proc.stdout.readline()
+        assert "toy twin listening on toy udp 127.0.0.1:" in line, proc.stderr.read()
+        conn = json.loads(line.split(" connection ", 1)[1])
+        assert conn["rate"] == 250000 and conn["port"] > 0
+        drv = toy_proto.ToyDriver(**conn)
+        drv.open()
+        try:
+            drv.send(7, 0.0, enable=False)
+            fb = drv.receive(5.0)
+        finally:
+            drv.close()
+        assert fb is not None and fb.seq == 7
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=10)
+    assert rc == 0, proc.stderr.read()
