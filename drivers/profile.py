@@ -58,6 +58,7 @@ out-of-range registers, a missing role, scale 0, a DBC without the named message
 
 from __future__ import annotations
 
+import builtins
 import math
 from dataclasses import dataclass, field, replace
 from functools import cache
@@ -131,7 +132,7 @@ STATUS_BITS: dict[str, int] = {
     "watchdog": int(Status.WATCHDOG),
     "sensor_invalid": int(Status.SENSOR_INVALID),
 }
-_DT = ModbusClientMixin.DATATYPE
+_DT: type[ModbusClientMixin.DATATYPE] = ModbusClientMixin.DATATYPE  # a variable, not an alias
 _INT_RANGE = {
     "int16": (-(2**15), 2**15 - 1),
     "uint16": (0, 2**16 - 1),
@@ -177,7 +178,13 @@ class _Reader:
             raise self.fail(name, f"unknown value {v!r} (known: {', '.join(choices)})")
         return v
 
-    def int(self, name: str, default: int | None = None, lo: int = 0, hi: int = 65535) -> int:
+    def int(
+        self,
+        name: builtins.str,
+        default: builtins.int | None = None,
+        lo: builtins.int = 0,
+        hi: builtins.int = 65535,
+    ) -> builtins.int:
         v = self.data.get(name, default)
         if v is None:
             raise InputError(f"profile {self.source}: {self.key(name)} is missing")
@@ -187,13 +194,13 @@ class _Reader:
             raise self.fail(name, f"{v} is out of range {lo}..{hi}")
         return v
 
-    def float(self, name: str, default: float) -> float:
+    def float(self, name: builtins.str, default: builtins.float) -> builtins.float:
         v = self.data.get(name, default)
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
             raise self.fail(name, f"must be a finite number, got {v!r}")
         return float(v)
 
-    def unknown(self, known: tuple[str, ...]) -> None:
+    def unknown(self, known: tuple[builtins.str, ...]) -> None:
         extra = sorted(set(self.data) - set(known))
         if extra:
             raise self.fail(extra[0], f"unknown key (known: {', '.join(known)})")

@@ -22,6 +22,7 @@ and the others) never copy it; either way the frame on the bus is unchanged.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -264,7 +265,8 @@ def load(path: str | None = None) -> ActuatorCodecs:
                 f"in this bit order, found {', '.join(codec.names)}"
             )
         codecs[name] = codec
-    choices = db.get_message_by_name("EStop").get_signal_by_name("EStopKey").choices or {}
+    estop_key = db.get_message_by_name("EStop").get_signal_by_name("EStopKey")
+    choices: Mapping[int, object] = estop_key.choices or {}
     keys = [int(k) for k, v in choices.items() if str(v) == "ESTOP"]
     return ActuatorCodecs(
         database=db,

@@ -89,13 +89,11 @@ class CANProfileDriver(Driver):
             s.name: float(s.raw_initial or 0) * s.scale + s.offset for s in cmd.signals
         }
         acts = prof.actions
-        self._on = self._off = self._ack = None
-        if "enable" in acts:
-            self._on = (acts["enable"].signal, acts["enable"].value)
-        if "disable" in acts:
-            self._off = (acts["disable"].signal, acts["disable"].value)
-        if "acknowledge" in acts:
-            self._ack = (acts["acknowledge"].signal, acts["acknowledge"].value)
+        # (signal, value) each action writes (an action's value is always given: default 1)
+        self._on, self._off, self._ack = (
+            (acts[a].signal, float(acts[a].value or 0.0)) if a in acts else None
+            for a in ("enable", "disable", "acknowledge")
+        )
         self._use_mode()
         self._pos = (r["position"].signal, r["position"].factor)
         self._force = (r["force"].signal, r["force"].factor)
