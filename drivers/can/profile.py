@@ -35,9 +35,10 @@ from cantools.database.errors import Error as CantoolsError
 from rths_hil.errors import InputError
 
 from ..base import Driver, Feedback, LinkDown
-from ..profile import MODE_ACTIONS, CANProfile, load_profile, status_from_word
+from ..profile import MODE_ACTIONS, load_profile, status_from_word
 from . import SharedBus, release_bus, shared_bus
 from .codec import Frame
+from .profile_format import CANProfile
 
 __all__ = ["CANProfileDriver"]
 

@@ -54,7 +54,7 @@ from pymodbus.pdu.register_message import (
 
 from rths_hil.errors import InputError
 
-from ..profile import ModbusPoint, ReadBlock
+from .profile_format import ModbusPoint, ReadBlock
 
 __all__ = ["TID", "BlockLayout", "PointLayout", "RequestTemplate", "StepReply", "rtu_crc"]
 

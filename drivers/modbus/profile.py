@@ -90,8 +90,9 @@ from pymodbus.pdu.register_message import (
 from rths_hil.errors import InputError
 
 from ..base import Driver, Feedback, LinkDown, Status, extend_seq
-from ..profile import MODE_ACTIONS, ModbusAction, ModbusProfile, load_profile, status_from_word
+from ..profile import MODE_ACTIONS, load_profile, status_from_word
 from .layout import BlockLayout, PointLayout, RequestTemplate, StepReply
+from .profile_format import ModbusAction, ModbusProfile
 from .transport import EXCEPTIONS, Link, framer, openers, rtu_frame_size
 
 __all__ = ["ModbusProfileDriver"]

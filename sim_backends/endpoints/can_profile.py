@@ -24,7 +24,8 @@ from typing import Any
 import can
 from rths_hil.drivers.can import SharedBus, release_bus, shared_bus
 from rths_hil.drivers.can.codec import Frame
-from rths_hil.drivers.profile import CANProfile, load_profile, word_from_status
+from rths_hil.drivers.can.profile_format import CANProfile
+from rths_hil.drivers.profile import load_profile, word_from_status
 
 from rths_hil.errors import InputError
 

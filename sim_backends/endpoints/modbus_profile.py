@@ -61,8 +61,9 @@ from pymodbus.pdu.register_message import (
 )
 from rths_hil.drivers.base import Status
 from rths_hil.drivers.modbus.layout import PointLayout
+from rths_hil.drivers.modbus.profile_format import ModbusPoint, ModbusProfile
 from rths_hil.drivers.modbus.transport import check_request, framer, next_request
-from rths_hil.drivers.profile import ModbusPoint, ModbusProfile, load_profile, word_from_status
+from rths_hil.drivers.profile import load_profile, word_from_status
 
 from rths_hil.errors import InputError
 

@@ -27,7 +27,7 @@ from pymodbus.pdu.register_message import (
     WriteMultipleRegistersRequest,
 )
 from rths_hil.drivers.modbus.layout import BlockLayout, PointLayout, RequestTemplate
-from rths_hil.drivers.profile import REG_TYPES, ModbusPoint, ReadBlock
+from rths_hil.drivers.modbus.profile_format import REG_TYPES, ModbusPoint, ReadBlock
 from rths_hil.drivers.registry import create_driver
 from rths_hil.sim_backends.twin import default_plant, start_twin
 
