@@ -6,7 +6,10 @@ between its client and its server.
   framers and the request checks the twins' servers use too.
 * :mod:`.layout` — a register map's precompiled wire layouts, each checked against pymodbus.
 * :mod:`.driver` — :class:`ModbusDriver`, the built-in register map (one FC 23 per step).
-* :mod:`.profile` — :class:`ModbusProfileDriver`, a lab's own register map from a profile.
+* :mod:`.profile_format` — the register-map profile format (``ModbusProfile``).
+* :mod:`.profile` — :class:`ModbusProfileDriver`, a lab's own register map from a profile;
+  :mod:`.requests` (its requests on the connection: pipelined, or one at a time and the
+  queue) and :mod:`.estop` (its e-stop path) are its bases.
 * :mod:`.options` — the ``rths-hil twin serve`` options of a Modbus twin.
 * :mod:`.linkbudget` — the Modbus link model (RTU transactions and silences, TCP segments)
   and the planning facts of the protocol (:data:`PROTOCOL`).

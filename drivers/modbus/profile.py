@@ -57,12 +57,14 @@ length are checked as pymodbus's response classes check them. The read requests 
 Also at open, every mapped read block and the set-point registers are read once: a controller
 that refuses one (a Modbus exception, e.g. illegal data address) is refused with one line
 naming the role.
+
+The requests on the connection (pipelined, or one at a time and its queue) are
+:class:`.requests.RequestQueue`, the e-stop path :class:`.estop.EStopPath`: the driver's bases.
 """
 
 from __future__ import annotations
 
 import logging
-import socket
 import statistics
 import threading
 import time
@@ -70,15 +72,9 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any, ClassVar
 
-from pymodbus.pdu.bit_message import (
-    ReadCoilsRequest,
-    ReadDiscreteInputsRequest,
-    WriteSingleCoilRequest,
-)
 from pymodbus.pdu.register_message import (
     ReadHoldingRegistersRequest,
     ReadHoldingRegistersResponse,
-    ReadInputRegistersRequest,
     ReadInputRegistersResponse,
     ReadWriteMultipleRegistersRequest,
     ReadWriteMultipleRegistersResponse,
@@ -89,27 +85,20 @@ from pymodbus.pdu.register_message import (
 
 from rths_hil.errors import InputError
 
-from ..base import Driver, Feedback, LinkDown, Status, extend_seq
+from ..base import Driver, Feedback, LinkDown, extend_seq
 from ..profile import MODE_ACTIONS, load_profile, status_from_word
+from .estop import EStopPath
 from .layout import BlockLayout, PointLayout, RequestTemplate, StepReply
-from .profile_format import ModbusAction, ModbusProfile
-from .transport import EXCEPTIONS, Link, framer, openers, rtu_frame_size
+from .profile_format import ModbusProfile
+from .requests import _READS, SLOT_ACTION, SLOT_CHECK, SLOT_HEARTBEAT
+from .transport import EXCEPTIONS, Link, framer, openers
 
 __all__ = ["ModbusProfileDriver"]
 
 log = logging.getLogger(__name__)
 
-_READS = {
-    "holding": ReadHoldingRegistersRequest,
-    "input": ReadInputRegistersRequest,
-    "coil": ReadCoilsRequest,
-    "discrete": ReadDiscreteInputsRequest,
-}
 #: The function code of each table's read response (and FC 23's).
 _READ_FC = {"holding": 3, "input": 4, "coil": 1, "discrete": 2}
-SLOT_CHECK = 13  # the start-up reads (and the pipelining probe)
-SLOT_HEARTBEAT = 14
-SLOT_ACTION = 15  # actions, the set-point written ahead of the enable, the e-stop and its poll
 #: How long the pipelining probe waits for the second answer once the first came (s).
 PROBE_WAIT = 0.1
 #: One request at a time over TCP: single reads timed at open (the driver's ``round_trip``).
@@ -117,26 +106,9 @@ ROUND_TRIPS = 24
 #: The share of the loop period a step's one-at-a-time transactions may fill before
 #: :meth:`ModbusProfileDriver.link_check` warns (the rest is the round trip's own spread).
 LINK_FILL = 0.75
-#: E-stop over Modbus TCP: how long it may wait for the answer outstanding on the link before
-#: writing the e-stop there (s), and how long it keeps writing and reading back (s).
-ESTOP_DRAIN = 0.05
-ESTOP_WINDOW = 0.5
-#: One request at a time over TCP: how long a request stays outstanding (the next ones wait
-#: for its answer) before the driver gives it up and writes the next (s). Longer than a
-#: controller's own pauses (20–40 ms), and well inside the loop's reply watchdog
-#: (``safety.watchdog_timeout``, 0.1 s by default), so that one request the controller lost
-#: costs a reply gap, not a trip.
-HEAD_GIVEUP = 0.05
-_FLAG_NAMES = {
-    int(Status.ENABLED): "enabled",
-    int(Status.ESTOP_ACTIVE): "e-stop",
-    int(Status.FAULT): "fault",
-    int(Status.WATCHDOG): "watchdog",
-    int(Status.SENSOR_INVALID): "sensor invalid",
-}
 
 
-class ModbusProfileDriver(Driver):
+class ModbusProfileDriver(EStopPath, Driver):
     """Lockstep driver for a Modbus TCP or RTU controller described by a profile.
 
     Parameters
@@ -403,28 +375,6 @@ class ModbusProfileDriver(Driver):
             f"{LINK_FILL / need:.0f} Hz leaves a quarter of the period free"
         )
 
-    @property
-    def _fd(self) -> int | None:
-        """The step connection's descriptor (``None``: down or not open)."""
-        link = self._link
-        return None if link is None else link.fd
-
-    @property
-    def _buf(self) -> bytes:
-        """Bytes read off the step's connection, not yet parsed."""
-        link = self._link
-        return b"" if link is None else link.buf
-
-    @_buf.setter
-    def _buf(self, value: bytes) -> None:
-        if self._link is not None:
-            self._link.buf = value
-
-    @property
-    def _esock(self) -> socket.socket | None:
-        link = self._link
-        return None if link is None else link.esock
-
     def _compile(self) -> None:
         """pymodbus's generic work, once: the step's request template and the read blocks'
         decoders, each checked against pymodbus (:mod:`.layout`)."""
@@ -470,46 +420,6 @@ class ModbusProfileDriver(Driver):
             link.close_estop()
             link.disconnect()
 
-    def _close_main(self) -> None:
-        """Close the step's connection (a lost link; the e-stop's own stays open)."""
-        self._enabled = None
-        self._pending.clear()
-        if self._link is not None:
-            self._link.disconnect()
-
-    def _where(self) -> str:
-        return str(self.device) if self._rtu else f"{self.host}:{self.port}"
-
-    def _frame(self, pdu: Any, tid: int) -> bytes:
-        pdu.dev_id, pdu.transaction_id = self.unit, tid
-        return self._framer.buildFrame(pdu)
-
-    def _write(self, data: bytes) -> None:
-        link = self._link
-        if link is None:
-            self.stats.send_errors += 1
-            return
-        was_up = link.fd is not None
-        link.write(data, self.stats)
-        if was_up and link.fd is None:  # the write lost the connection
-            self._enabled = None
-            self._pending.clear()
-
-    def _submit(self, requests: list[tuple[int, int, bytes]]) -> None:
-        """Send ``(tid, function code, frame)`` requests: TCP pipelined all at once in one
-        write; RTU (and TCP with ``pipeline = false``) one at a time (the next when the
-        previous one is answered)."""
-        if not requests:
-            return
-        if not self._serial:
-            self._write(b"".join(r[2] for r in requests))
-            return
-        idle = not self._pending
-        self._pending.extend(requests)
-        if idle:
-            self._write(self._pending[0][2])
-            self._head_t = time.perf_counter()
-
     def _check_map(self) -> None:
         """Read every mapped block once; refuse a map the controller does not have."""
         prof = self.profile
@@ -542,97 +452,7 @@ class ModbusProfileDriver(Driver):
                     )
                 break
 
-    def _next_pdu(self, deadline: float) -> tuple[int, bytes] | None:
-        """The next response off the line before ``deadline`` (blocking helper)."""
-        while True:
-            got = self._parse_one()
-            if got is not None and got[0] >= 0:
-                return got
-            if got is not None:
-                continue
-            remaining = deadline - time.perf_counter()
-            link = self._link
-            if remaining <= 0 or link is None or link.fd is None:
-                return None
-            try:
-                data = link.read(remaining)
-            except ConnectionResetError:
-                return None
-            link.buf += data
-
-    def _parse_one(self) -> tuple[int, bytes] | None:
-        """The next response in the buffer as (transaction id, PDU bytes); (-1, b"") for one
-        that is not ours or broken (counted); ``None`` when no complete frame is there."""
-        buf = self._buf
-        if self._rtu:
-            if len(buf) < 5:
-                return None
-            if buf[0] != self.unit:
-                self.stats.count_malformed("unknown_id")
-                self._buf = b""
-                return (-1, b"")
-            size = rtu_frame_size(self._framer.decoder, buf)
-            if size is None:
-                self.stats.count_malformed("unknown_function")
-                self._buf = b""
-                return (-1, b"")
-            if not size or len(buf) < size:
-                return None
-            frame, self._buf = buf[:size], buf[size:]
-            _, _, _, pdu_bytes = self._framer.decode(frame)  # checks the CRC
-            if not pdu_bytes:
-                self.stats.count_malformed("bad_crc")
-                self._buf = b""  # resynchronise on the next frame
-                return (-1, b"")
-            pending = self._pending
-            want = pending[0][1] if pending else -1
-            if pdu_bytes[0] & 0x7F != want:
-                self.stats.late += 1  # the answer to an older request
-                return (-1, b"")
-            tid = pending.popleft()[0]
-            if pending and pending[0][2]:  # (an e-stop went out already: b"")
-                self._write(pending[0][2])
-            return tid, pdu_bytes
-        if len(buf) < 8:
-            return None
-        used, dev_id, tid, pdu_bytes = self._framer.decode(buf)
-        if not used:
-            if len(buf) > 512:
-                self.stats.count_malformed("bad_header")
-                self._buf = b""
-            return None
-        self._buf = buf[used:]
-        if dev_id != self.unit or not pdu_bytes:
-            self.stats.count_malformed("unknown_id")
-            return (-1, b"")
-        self._answered(tid)
-        return tid, pdu_bytes
-
-    def _answered(self, tid: int) -> None:
-        """TCP one at a time: the answer to ``tid`` came; the next request goes out."""
-        pending = self._pending
-        if pending and pending[0][0] == tid:
-            pending.popleft()
-        elif tid in self._given_up:
-            # the late answer to a request given up: the controller was still serving it when
-            # the one now outstanding arrived, and dropped that one: write it again
-            self._given_up.remove(tid)
-        else:
-            return
-        if pending:
-            self._write(pending[0][2])
-            self._head_t = time.perf_counter()
-
     # -- commands -------------------------------------------------------------------------------
-    def _action(self, action: ModbusAction | None) -> list[tuple[int, int, bytes]]:
-        if action is None:
-            return []
-        if action.table == "coil":
-            pdu: Any = WriteSingleCoilRequest(address=action.address, bits=[bool(action.value)])
-        else:
-            pdu = WriteSingleRegisterRequest(address=action.address, registers=[action.value])
-        return [(SLOT_ACTION, pdu.function_code, self._frame(pdu, SLOT_ACTION))]
-
     def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
         with self._lock:
             self._send_locked(seq, displacement, enable)
@@ -702,53 +522,6 @@ class ModbusProfileDriver(Driver):
                 out += self._reads_only(base)
         self._submit(out)
 
-    def _drop_pending(self) -> None:
-        """Drop the last step's unanswered requests before this step's go out.
-
-        RTU: all of them (the line is resynchronised). Modbus TCP one at a time: the request
-        on the wire stays outstanding unless it has been for ``HEAD_GIVEUP`` (a controller
-        that serves one request at a time drops one written while another is in progress, so
-        the next is written when its answer comes); of the ones not yet written the step's
-        set-point writes are dropped (the next step writes a newer one), the heartbeats and
-        actions stay, and the step's read stays when a write is on the wire.
-        """
-        pending = self._pending
-        if self._rtu:  # the line is resynchronised: nothing of the last step is kept
-            self.stats.late += len(pending)
-            if any(r[0] & 15 == SLOT_ACTION and r[2] for r in list(pending)[1:]):
-                self._enabled = None  # an action that never went out: the next step sends it
-            pending.clear()
-            self._buf = b""
-            return
-        head, rest = pending[0], list(pending)[1:]
-        stale = time.perf_counter() - self._head_t > HEAD_GIVEUP
-        # kept, in their order: heartbeats (the controller's watchdog counts on them),
-        # actions (an enable, a disable, the set-point ahead of an enable: dropped and sent
-        # again behind the next step's outstanding request, on a link slower than the period
-        # they would never go out) and the step's read if a write is on the wire (it goes
-        # before the next step's write and is that step's measurement, _send_locked)
-        read_ok = self._n_reads == 1 and not self.profile.fc23 and head[0] & 15 != 1
-        keep, dropped, has_read = [], [], False
-        for r in rest:
-            slot = r[0] & 15
-            if slot == SLOT_HEARTBEAT or (slot == SLOT_ACTION and r[2]):
-                keep.append(r)
-            elif slot == 1 and read_ok and not has_read:
-                keep.append(r)
-                has_read = True
-            else:
-                dropped.append(r)
-        self.stats.late += len(dropped) + (1 if stale else 0)
-        pending.clear()
-        if stale:
-            self._given_up.append(head[0])
-        else:
-            pending.append(head)
-        pending.extend(keep)
-        if stale and pending:
-            self._write(pending[0][2])
-            self._head_t = time.perf_counter()
-
     def _reads_only(self, base: int) -> list[tuple[int, int, bytes]]:
         """The step's reads alone (for FC 23 maps an FC 3 of the block) with the step's ids."""
         if self.profile.fc23:
@@ -774,155 +547,6 @@ class ModbusProfileDriver(Driver):
             return super().arm(timeout, receive)
         finally:
             self._arming = False
-
-    def estop(self) -> None:
-        """Latch the controller's e-stop (``actions.estop``), whatever is outstanding.
-
-        RTU: written at once, answered after the request on the line. Modbus TCP: written on
-        the e-stop's own connection (``estop_connection``), else on the step's connection once
-        the answer outstanding there has come (at most 50 ms: a controller that serves one
-        request at a time drops a request that arrives while another is in progress); its
-        answer awaited (``estop_timeout``) and the status word read back, and written again
-        until the status word shows the e-stop or 0.5 s have passed. :attr:`estop_word` is
-        the status word read back (``None``: no answer); the outcome is logged in the
-        controller's own terms (its status register).
-        """
-        self.stats.estops += 1
-        self._estop_sent = True  # the next disable acknowledges it
-        ((tid, fc, frame),) = self._action(self.profile.actions["estop"])
-        with self._lock:
-            if self._rtu:  # written now: answered after the request on the line, if any
-                self._pending.insert(1 if self._pending else 0, (tid, fc, b""))
-                self._write(frame)
-                return
-            self._estop_tcp()
-
-    def _estop_tcp(self) -> None:
-        mask = self._masks[int(Status.ESTOP_ACTIVE)]
-        t0 = time.perf_counter()
-        end = t0 + ESTOP_WINDOW
-        self.estop_word = None
-        writes, answered, refused = 0, 0, None
-        own_silent = False  # no answer on the e-stop's own connection: the step's next
-        while True:
-            own = self._esock is not None and not own_silent
-            if not own and self._fd is None:
-                if self._esock is None:
-                    break  # no connection left to the controller
-                own = True
-            if not own:
-                self._drain(min(end, time.perf_counter() + ESTOP_DRAIN))
-            self._etid = (self._etid + 1) & 0xFF
-            tid = ((0xE00 | self._etid) << 4) | SLOT_ACTION
-            act = self.profile.actions["estop"]
-            ((_, _, frame),) = self._action(act)
-            frame = tid.to_bytes(2, "big") + frame[2:]
-            writes += 1
-            pdu = self._ask(frame, tid, min(end, time.perf_counter() + self.estop_timeout), own)
-            own_silent = own and pdu is None
-            if pdu is not None:
-                answered += 1
-                if pdu[0] & 0x80:
-                    refused = pdu[1] if len(pdu) > 1 else 0
-                word = self._read_status(end, own)
-                if word is not None:
-                    self.estop_word = word
-                    if word & mask:
-                        break
-            if time.perf_counter() >= end:
-                break
-        if own:  # the step's connection: let its outstanding answer come (the confirmation poll)
-            self._drain(min(end, time.perf_counter() + ESTOP_DRAIN))
-        self._pending.clear()
-        via = "its own connection" if own else "the step's connection"
-        word = self.estop_word
-        where = f"modbus driver: e-stop to the controller at {self._where()} over {via}"
-        ms = (time.perf_counter() - t0) * 1e3
-        if word is not None and word & mask:
-            log.warning(
-                "%s: latched, status register %s (%d write%s, %.0f ms)",
-                where, self.describe_word(word), writes, "s" if writes > 1 else "", ms,
-            )  # fmt: skip
-        elif word is not None:
-            why = f", the e-stop write refused (exception {refused})" if refused else ""
-            log.error(
-                "%s: NOT latched: status register %s after %d writes in %.0f ms%s",
-                where, self.describe_word(word), writes, ms, why,
-            )  # fmt: skip
-        else:
-            log.error(
-                "%s: not confirmed: no status read back (%d writes, %d answered, in %.0f ms)",
-                where, writes, answered, ms,
-            )  # fmt: skip
-
-    def _drain(self, deadline: float) -> None:
-        """One request at a time: wait (until ``deadline``) for the answer outstanding on the
-        step's connection, sending nothing more; the requests queued behind it are dropped."""
-        pending = self._pending
-        while len(pending) > 1:
-            pending.pop()
-        while pending and self._fd is not None:
-            try:
-                if self._next_pdu(deadline) is None:
-                    break
-            except OSError:
-                self._close_main()
-                break
-
-    def _ask(self, frame: bytes, tid: int, deadline: float, own: bool) -> bytes | None:
-        """Write one request on the e-stop's own connection (``own``) or the step's, and
-        return the PDU of its answer (``None``: none before ``deadline``)."""
-        if not own:
-            if self._fd is None:
-                return None
-            self._pending.clear()
-            self._write(frame)
-            while True:
-                try:
-                    got = self._next_pdu(deadline)
-                except OSError:
-                    self._close_main()
-                    return None
-                if got is None:
-                    return None
-                if got[0] == tid:
-                    return got[1]
-        link = self._link
-        if link is None:
-            return None
-        try:
-            return link.ask(frame, tid, self.unit, deadline)
-        except OSError:  # (closed: the next attempt goes over the step's connection)
-            return None
-
-    def _read_status(self, end: float, own: bool) -> int | None:
-        """The controller's status word, read on its own (``None``: no answer)."""
-        st = self._status
-        req = _READS[st.table](address=st.address, count=st.count)
-        self._etid = (self._etid + 1) & 0xFF
-        tid = ((0xF00 | self._etid) << 4) | SLOT_CHECK
-        pdu = self._ask(
-            self._frame(req, tid), tid, min(end, time.perf_counter() + self.estop_timeout), own
-        )
-        if pdu is None or pdu[0] & 0x80 or len(pdu) < 3:
-            return None
-        if st.table in ("coil", "discrete"):
-            return pdu[2] & 1
-        n = pdu[1] // 2
-        if n < st.count or len(pdu) < 2 + 2 * n:
-            return None
-        regs = [int.from_bytes(pdu[2 + 2 * i : 4 + 2 * i], "big") for i in range(st.count)]
-        return st.raw_from_registers(regs)
-
-    def describe_word(self, word: int) -> str:
-        """A status word in the controller's terms: ``0x00A0 (e-stop, watchdog)``."""
-        names = [_FLAG_NAMES[f] for f, m in self._masks.items() if word & m and f in _FLAG_NAMES]
-        return f"0x{word:04X} ({', '.join(names) if names else 'none of the profile bits'})"
-
-    def fault_text(self) -> str:
-        """The controller's last status register, in its own terms (for a trip's reason)."""
-        word = self._word
-        return "" if word is None else f"status register {self.describe_word(word)}"
 
     def heartbeat(self) -> None:
         hb = self.profile.heartbeat
