@@ -18,19 +18,20 @@ import os
 import sys
 
 from ..units import parse_time
-from .options import add_config_arguments, config_from_args
+from .options import add_command, add_config_arguments, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``check-host`` to the top-level parser."""
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "check-host",
+        __doc__,
+        main,
         help="measure this computer's wake-up timing and judge it for the loop's rate",
-        description=__doc__.splitlines()[0],
     )
     add_config_arguments(p)
     p.add_argument("--duration", default="10s", help="measurement time (default 10s)")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:

@@ -25,16 +25,18 @@ import argparse
 import sys
 from pathlib import Path
 
-from .options import add_config_arguments
+from .options import add_command, add_config_arguments
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``commission`` to the top-level parser."""
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "commission",
+        __doc__,
+        main,
         help="check each channel's controller (latency, enable, motion, e-stop, watchdog) "
         "and identify its plant for the compensation",
-        description=__doc__.splitlines()[0],
     )
     add_config_arguments(p)
     p.add_argument("--yes", action="store_true", help="answer the prompts (twins only)")
@@ -44,7 +46,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="confirm that commissioning may drive real hardware (twin.enabled = false)",
     )
     p.add_argument("--out", metavar="DIR", help="report directory (default commission/<time>)")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:

@@ -26,6 +26,7 @@ from ..diagnose import (
 )
 from ..errors import InputError
 from ..records.csvfiles import read_record
+from .options import add_command
 
 
 def _positive_int(text: str) -> int:
@@ -40,10 +41,12 @@ def _positive_int(text: str) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``diagnose`` sub-command."""
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "diagnose",
+        __doc__,
+        run,
         help="find where the twin and a record disagree, name and add the missing effect",
-        description=__doc__.splitlines()[0],
     )
     p.add_argument("record", help="record CSV: time, command, measured (m) [, target, force (N)]")
     p.add_argument("--model", help="base model file (TOML); default: delay + gain fitted to it")
@@ -65,7 +68,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"comma-separated subset of: {', '.join(CANDIDATES)} (default: all)",
     )
     p.add_argument("--no-plot", action="store_true", help="do not write diagnose.png")
-    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

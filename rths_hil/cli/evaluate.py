@@ -13,18 +13,21 @@ from .. import metrics
 from ..errors import InputError
 from ..records.csvfiles import read_record, write_record
 from ..units import parse_window
+from .options import add_command
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``evaluate`` to the top-level parser."""
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "evaluate",
-        help="FEI (whole record and moving windows), J1–J3 and TI of a target/measured record",
-        description=(
+        (
             "Evaluate actuator tracking of a record CSV with columns time,target,measured "
             "(SI units): whole-record FEI (FEI paper, Eq. 2.1–2.5), J1–J3, TI, and the "
             "moving-window FEI with overlap (the FEI paper's Section 3–4)."
         ),
+        run,
+        help="FEI (whole record and moving windows), J1–J3 and TI of a target/measured record",
     )
     p.add_argument("record", help="record CSV (header with time,target,measured; SI units)")
     p.add_argument(
@@ -57,7 +60,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--out", default=None, help="write per-window results to this CSV")
     p.add_argument("--plot", default=None, help="write a Fig. 5.2-style PNG here")
-    p.set_defaults(func=run)
 
 
 def _stats(values: np.ndarray, valid: np.ndarray) -> tuple[float, float, float, float]:

@@ -11,13 +11,17 @@ from __future__ import annotations
 
 import argparse
 
+from .options import add_command
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``export`` to the top-level parser."""
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "export",
+        __doc__,
+        main,
         help="export a run directory's record to CSV / HDF5 / MATLAB",
-        description=__doc__.splitlines()[0],
     )
     p.add_argument("run_dir", metavar="RUN_DIR", help="run directory written by rths-hil run")
     p.add_argument("--csv", action="store_true", help="write record.csv (default)")
@@ -31,7 +35,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="A,B,...",
         help="export only these columns (time is always first), e.g. target,command,measured",
     )
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:

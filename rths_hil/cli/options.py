@@ -1,5 +1,6 @@
 """Command-line options several sub-commands share.
 
+:func:`add_command` adds a sub-command with its help, description and function;
 :func:`add_config_arguments` adds the optional ``CONFIG.toml`` and the repeatable
 ``--set KEY=VALUE`` of ``run``, ``commission``, ``tune`` and ``check-host``;
 :func:`config_from_args` loads the configuration they name (:func:`rths_hil.config.load_config`).
@@ -8,12 +9,42 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from ..config import Config
 
-__all__ = ["add_config_arguments", "config_from_args"]
+__all__ = ["add_command", "add_config_arguments", "config_from_args"]
+
+
+def add_command(
+    sub: argparse._SubParsersAction,
+    name: str,
+    doc: str | None,
+    func: Callable[[argparse.Namespace], int],
+    help: str,
+) -> argparse.ArgumentParser:
+    """Add the sub-command ``name`` to ``sub`` and return its parser.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The sub-parsers to add it to.
+    name : str
+        The sub-command.
+    doc : str
+        Its description: the first line of it (the module's docstring, whose first line says
+        what the command does).
+    func : callable
+        Runs the command with the parsed arguments; returns the exit code.
+    help : str
+        Its line in the parent's list of commands.
+    """
+    first = (doc or "").strip().splitlines()
+    parser = sub.add_parser(name, help=help, description=first[0] if first else None)
+    parser.set_defaults(func=func)
+    return parser
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, set_example: str = "") -> None:

@@ -24,15 +24,17 @@ from typing import Any
 
 from ..config import to_toml
 from ..units import parse_time
-from .options import add_config_arguments, config_from_args
+from .options import add_command, add_config_arguments, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``run`` to the top-level parser."""
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "run",
+        __doc__,
+        main,
         help="run an RTHS test through a driver (default: NEES-711 setup on a CAN twin)",
-        description=__doc__.splitlines()[0],
     )
     add_config_arguments(p, "loop.fs=2048")
     p.add_argument(
@@ -66,7 +68,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="confirm that the run may drive real hardware (a channel with twin.enabled = false; "
         "or loop.confirm_hardware = true in the configuration)",
     )
-    p.set_defaults(func=main)
 
 
 class _Console:

@@ -18,16 +18,19 @@ import numpy as np
 
 from ..errors import InputError
 from ..units import parse_accel, parse_time
+from .options import add_command
 
 log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``simulate`` sub-command."""
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "simulate",
+        __doc__,
+        run,
         help="simulate an SDOF + delay/gain actuator under a ground motion (FEI paper, Fig. 4.1)",
-        description=__doc__.splitlines()[0],
     )
     p.add_argument(
         "--record",
@@ -59,7 +62,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="PNG",
         help="also plot the histories (default file: OUT with .png)",
     )
-    p.set_defaults(func=run)
 
 
 def _number(text: str, what: str) -> float:

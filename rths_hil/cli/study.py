@@ -20,7 +20,9 @@ import argparse
 import math
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from ..errors import InputError
 from ..resources import MAX_TRIALS, check_count, check_memory, max_workers
@@ -117,33 +119,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "full chain on Dask, collect J1–J9 (paper and benchmark script), the whole-record FEI, "
         "the MWO extremes and the safety trips; write trials.csv, summary.csv and plots.",
     )
-    rb.add_argument("config", metavar="CONFIG", help="TOML configuration of the test (a twin)")
-    rb.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        default=[],
-        help="override a configuration key before drawing (repeatable)",
-    )
-    rb.add_argument("--trials", type=int, default=200, help="perturbed twins (default 200)")
-    rb.add_argument(
-        "--vary",
-        metavar="KEY=LOW:HIGH[:normal]",
-        action="append",
-        default=None,
-        help="vary a key uniformly (or normally, ±2σ = LOW:HIGH), e.g. "
+    _trial_arguments(
+        rb,
+        trials=200,
+        vary_help="vary a key uniformly (or normally, ±2σ = LOW:HIGH), e.g. "
         "twin.actuator.delay=15ms:35ms (repeatable; default: benchmark-style spreads)",
-    )
-    rb.add_argument("--seed", type=int, default=0, help="seed of the draws (default 0)")
-    rb.add_argument(
-        "--scheduler",
-        default="local",
-        metavar="local|ADDRESS",
-        help="'local' (default: a Dask cluster of --workers processes on 127.0.0.1) or a "
-        "Dask scheduler address, e.g. tcp://host:8786",
-    )
-    rb.add_argument(
-        "--workers", type=int, default=2, help="worker processes of a local cluster (default 2)"
     )
     rb.add_argument(
         "--alpha",
@@ -151,12 +131,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="A,B,C",
         help="run every twin with each α (e.g. 15,20,29) and chart robustness against α",
     )
-    rb.add_argument(
-        "--duration", default=None, help="seconds of the record per trial (default: the config's)"
-    )
-    rb.add_argument("--no-progress", action="store_true", help="no progress bar")
-    rb.add_argument("--no-plot", action="store_true", help="do not write the PNGs")
-    rb.add_argument("--out", required=True, help="output directory (created if missing)")
     rb.set_defaults(func=run_robustness)
 
     cp = st.add_parser(
@@ -167,13 +141,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "every draw in lockstep, compare J1–J9 (paper and benchmark script), the whole-record "
         "FEI and the trips; write trials.csv, comparison.csv, comparison.md and box plots.",
     )
-    cp.add_argument("config", metavar="CONFIG", help="TOML configuration of the test (a twin)")
-    cp.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        default=[],
-        help="override a configuration key before drawing (repeatable)",
+    _trial_arguments(
+        cp,
+        trials=100,
+        vary_help="vary a key as in study robustness (repeatable; default: benchmark-style "
+        "spreads)",
     )
     cp.add_argument(
         "--methods",
@@ -181,32 +153,41 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="A,B",
         help="compensators to compare (default inverse,polynomial,ats,model)",
     )
-    cp.add_argument("--trials", type=int, default=100, help="perturbed twins (default 100)")
-    cp.add_argument(
-        "--vary",
-        metavar="KEY=LOW:HIGH[:normal]",
+    cp.set_defaults(func=run_compensators)
+    parser.set_defaults(func=lambda args: _no_study(parser))
+
+
+def _trial_arguments(p: argparse.ArgumentParser, trials: int, vary_help: str) -> None:
+    """The arguments of the studies over perturbed twins (robustness, compensators)."""
+    p.add_argument("config", metavar="CONFIG", help="TOML configuration of the test (a twin)")
+    p.add_argument(
+        "--set",
+        metavar="KEY=VALUE",
         action="append",
-        default=None,
-        help="vary a key as in study robustness (repeatable; default: benchmark-style spreads)",
+        default=[],
+        help="override a configuration key before drawing (repeatable)",
     )
-    cp.add_argument("--seed", type=int, default=0, help="seed of the draws (default 0)")
-    cp.add_argument(
+    p.add_argument("--trials", type=int, default=trials, help=f"perturbed twins (default {trials})")
+    p.add_argument(
+        "--vary", metavar="KEY=LOW:HIGH[:normal]", action="append", default=None, help=vary_help
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the draws (default 0)")
+    p.add_argument(
         "--scheduler",
         default="local",
         metavar="local|ADDRESS",
-        help="'local' (a Dask cluster of --workers processes on 127.0.0.1) or a scheduler address",
+        help="'local' (default: a Dask cluster of --workers processes on 127.0.0.1) or a "
+        "Dask scheduler address, e.g. tcp://host:8786",
     )
-    cp.add_argument(
+    p.add_argument(
         "--workers", type=int, default=2, help="worker processes of a local cluster (default 2)"
     )
-    cp.add_argument(
+    p.add_argument(
         "--duration", default=None, help="seconds of the record per trial (default: the config's)"
     )
-    cp.add_argument("--no-progress", action="store_true", help="no progress bar")
-    cp.add_argument("--no-plot", action="store_true", help="do not write the PNG")
-    cp.add_argument("--out", required=True, help="output directory (created if missing)")
-    cp.set_defaults(func=run_compensators)
-    parser.set_defaults(func=lambda args: _no_study(parser))
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-plot", action="store_true", help="do not write the PNGs")
+    p.add_argument("--out", required=True, help="output directory (created if missing)")
 
 
 def _stoppable(run):
@@ -397,12 +378,9 @@ def run_accuracy(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_robustness(args: argparse.Namespace) -> int:
-    """``study robustness``."""
-    import json
-    import sys
-    import time
-
+def _trial_inputs(args: argparse.Namespace) -> tuple[Any, Any, list, float | None]:
+    """A study over perturbed twins: the configuration, its inline twin, the perturbations and
+    the duration per trial (``None``: the configuration's), every argument checked."""
     from .. import studies as study
     from ..config import load_config
 
@@ -418,11 +396,6 @@ def run_robustness(args: argparse.Namespace) -> int:
         perts = [study.parse_vary(text, base) for text in args.vary]
     else:
         perts = study.default_perturbations(base)
-    alphas = None
-    if args.alpha is not None:
-        alphas = parse_range(args.alpha, "--alpha")
-        if not alphas:
-            raise InputError(f"--alpha {args.alpha!r}: no values")
     duration = None
     if args.duration is not None:
         duration = parse_time(args.duration, "--duration")
@@ -433,7 +406,18 @@ def run_robustness(args: argparse.Namespace) -> int:
             4 * 8 * duration * fs * min(args.workers, args.trials),
             f"--duration {duration:g} s at {fs:g} Hz on {min(args.workers, args.trials)} workers",
         )
-    specs = study.plan_trials(base, perts, args.trials, args.seed, alphas, duration)
+    return cfg, base, perts, duration
+
+
+def _study_dir(
+    args: argparse.Namespace, base: Any, duration: float | None, name: str, runs: str, perts: list
+) -> Path:
+    """The checked output directory of a study over perturbed twins (after its preflight);
+    says on stderr what runs (``runs``) where."""
+    import sys
+
+    from .. import studies as study
+
     study.preflight(base, duration)
     out = _outdir(args.out)
     if (out / "trials.csv").exists():
@@ -441,48 +425,101 @@ def run_robustness(args: argparse.Namespace) -> int:
     if args.scheduler is not None:  # before anything starts
         from ..errors import require
 
-        require("studies", "a Dask scheduler (--scheduler, study robustness)")
+        require("studies", f"a Dask scheduler (--scheduler, study {name})")
     where = "a local Dask cluster" if args.scheduler == "local" else args.scheduler
     print(
-        f"rths-hil study robustness: {args.trials} twins × {len({s.alpha for s in specs})} α "
-        f"= {len(specs)} lockstep runs on {where}; varying " + ", ".join(p.text for p in perts),
+        f"rths-hil study {name}: {runs} on {where}; varying " + ", ".join(p.text for p in perts),
         file=sys.stderr,
     )
+    return out
+
+
+def _run_trials(
+    args: argparse.Namespace,
+    name: str,
+    total: int,
+    partial: Callable[[list[dict], Path], None],
+    out: Path,
+    run: Callable[..., Any],
+    *pos: Any,
+    **kw: Any,
+) -> tuple[Any, float] | None:
+    """``run(*pos, **kw)`` on the study's executor (with ``seed``, ``executor``, ``progress``
+    and ``on_row`` from ``args``): its result and wall time (s).
+
+    An operator stop (Ctrl-C, SIGTERM, SIGHUP) writes the runs that finished with
+    ``partial(rows, out / "trials.partial.csv")``, says so and returns None (exit 130).
+    """
+    import sys
+    import time
+
+    from .. import studies as study
+
     t0 = time.perf_counter()
     done: list[dict] = []
     got: list[str] = []
     try:
         with interrupting() as got, study.open_executor(args.scheduler, args.workers) as ex:
-            res = study.robustness_study(
-                base,
-                perts,
-                args.trials,
+            res = run(
+                *pos,
+                **kw,
                 seed=args.seed,
-                alphas=alphas,
-                duration=duration,
                 executor=ex,
                 progress=not args.no_progress,
                 on_row=done.append,
             )
     except KeyboardInterrupt:
-        order = {a: i for i, a in enumerate(dict.fromkeys(s.alpha for s in specs))}
-        done.sort(key=lambda r: (order.get(r["alpha"], 0), r["trial"]))
-        partial = study.RobustnessResult(
-            done,
-            perts,
-            list(order),
-            args.seed,
-            [p.key for p in perts],
-            study.channel_suffixes(base),
-        )
-        study.write_trials_csv(out / "trials.partial.csv", partial)
+        partial(done, out / "trials.partial.csv")
         print(
-            f"rths-hil study robustness: operator stop ({_signal(got)}); the {len(done)} of "
-            f"{len(specs)} runs that finished are in {out / 'trials.partial.csv'}",
+            f"rths-hil study {name}: operator stop ({_signal(got)}); the {len(done)} of "
+            f"{total} runs that finished are in {out / 'trials.partial.csv'}",
             file=sys.stderr,
         )
+        return None
+    return res, time.perf_counter() - t0
+
+
+def run_robustness(args: argparse.Namespace) -> int:
+    """``study robustness``."""
+    import json
+
+    from .. import studies as study
+
+    cfg, base, perts, duration = _trial_inputs(args)
+    alphas = None
+    if args.alpha is not None:
+        alphas = parse_range(args.alpha, "--alpha")
+        if not alphas:
+            raise InputError(f"--alpha {args.alpha!r}: no values")
+    specs = study.plan_trials(base, perts, args.trials, args.seed, alphas, duration)
+    runs = f"{args.trials} twins × {len({s.alpha for s in specs})} α = {len(specs)} lockstep runs"
+    out = _study_dir(args, base, duration, "robustness", runs, perts)
+
+    def partial(done: list[dict], path: Path) -> None:
+        order = {a: i for i, a in enumerate(dict.fromkeys(s.alpha for s in specs))}
+        done.sort(key=lambda r: (order.get(r["alpha"], 0), r["trial"]))
+        suffixes = study.channel_suffixes(base)
+        res = study.RobustnessResult(
+            done, perts, list(order), args.seed, [p.key for p in perts], suffixes
+        )
+        study.write_trials_csv(path, res)
+
+    ran = _run_trials(
+        args,
+        "robustness",
+        len(specs),
+        partial,
+        out,
+        study.robustness_study,
+        base,
+        perts,
+        args.trials,
+        alphas=alphas,
+        duration=duration,
+    )
+    if ran is None:
         return 130
-    wall = time.perf_counter() - t0
+    res, wall = ran
     study.write_trials_csv(out / "trials.csv", res)
     study.write_summary(out / "summary.csv", res)
     summary = {
@@ -526,69 +563,38 @@ def run_robustness(args: argparse.Namespace) -> int:
 
 def run_compensators(args: argparse.Namespace) -> int:
     """``study compensators``."""
-    import sys
-    import time
 
     from .. import compensator_study as cs
     from .. import studies as study
-    from ..config import load_config
 
-    cfg = load_config(args.config, args.set)
-    base = study.inline_twin(cfg)
-    if args.trials < 1:
-        raise InputError(f"--trials must be ≥ 1, got {args.trials}")
-    if args.workers < 1:
-        raise InputError(f"--workers must be ≥ 1, got {args.workers}")
+    _, base, perts, duration = _trial_inputs(args)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    if args.vary:
-        perts = [study.parse_vary(text, base) for text in args.vary]
-    else:
-        perts = study.default_perturbations(base)
-    duration = None
-    if args.duration is not None:
-        duration = parse_time(args.duration, "--duration")
-        if not (math.isfinite(duration) and duration > 0):
-            raise InputError(f"--duration must be > 0 s, got {args.duration!r}")
     cases = cs.plan_method_trials(base, methods, perts, args.trials, args.seed, duration)
-    study.preflight(base, duration)
-    out = _outdir(args.out)
-    if (out / "trials.csv").exists():
-        raise InputError(f"--out {out}: already holds a study (trials.csv); choose a new one")
-    where = "a local Dask cluster" if args.scheduler == "local" else args.scheduler
-    print(
-        f"rths-hil study compensators: {args.trials} twins × {len(methods)} methods = "
-        f"{len(cases)} lockstep runs on {where}; varying " + ", ".join(p.text for p in perts),
-        file=sys.stderr,
-    )
-    t0 = time.perf_counter()
-    done: list[dict] = []
-    got: list[str] = []
-    try:
-        with interrupting() as got, study.open_executor(args.scheduler, args.workers) as ex:
-            res = cs.compensator_study(
-                base,
-                methods,
-                perts,
-                args.trials,
-                seed=args.seed,
-                duration=duration,
-                executor=ex,
-                progress=not args.no_progress,
-                on_row=done.append,
-            )
-    except KeyboardInterrupt:
+    runs = f"{args.trials} twins × {len(methods)} methods = {len(cases)} lockstep runs"
+    out = _study_dir(args, base, duration, "compensators", runs, perts)
+
+    def partial(done: list[dict], path: Path) -> None:
         done.sort(key=lambda r: (methods.index(r["method"]), r["trial"]))
-        partial = cs.CompensatorComparison(
-            done, methods, [p.key for p in perts], study.channel_suffixes(base), args.seed
-        )
-        cs.write_trials(out / "trials.partial.csv", partial)
-        print(
-            f"rths-hil study compensators: operator stop ({_signal(got)}); the {len(done)} of "
-            f"{len(cases)} runs that finished are in {out / 'trials.partial.csv'}",
-            file=sys.stderr,
-        )
+        suffixes = study.channel_suffixes(base)
+        res = cs.CompensatorComparison(done, methods, [p.key for p in perts], suffixes, args.seed)
+        cs.write_trials(path, res)
+
+    ran = _run_trials(
+        args,
+        "compensators",
+        len(cases),
+        partial,
+        out,
+        cs.compensator_study,
+        base,
+        methods,
+        perts,
+        args.trials,
+        duration=duration,
+    )
+    if ran is None:
         return 130
-    wall = time.perf_counter() - t0
+    res, wall = ran
     written = cs.write_comparison(out, res, plot=not args.no_plot)
     summ = {(r["method"], r["metric"]): r for r in res.summary()}
     for sfx in res.suffixes:

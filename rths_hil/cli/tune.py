@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 from ..errors import InputError
 from ..formats import json_text
 from ..units import parse_fraction, parse_range, parse_time
-from .options import add_config_arguments, config_from_args
+from .options import add_command, add_config_arguments, config_from_args
 
 if TYPE_CHECKING:
     from ..config import Config
@@ -39,10 +39,12 @@ if TYPE_CHECKING:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``tune`` to the top-level parser."""
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "tune",
+        __doc__,
+        main,
         help="tune inverse compensation (α, amplitude factor) from trial tests or an α sweep",
-        description=__doc__.splitlines()[0],
     )
     add_config_arguments(p, "compensation.alpha=15")
     p.add_argument(
@@ -98,7 +100,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-plot", action="store_true", help="do not write the PNG")
     p.add_argument("-q", "--quiet", action="store_true", help="print only the result line")
-    p.set_defaults(func=main)
 
 
 def _confirm(n_trials: int, pga: float, scale: float, cfg, flag: bool) -> None:

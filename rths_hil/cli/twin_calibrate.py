@@ -19,14 +19,17 @@ from rths_hil.sim_backends.modelfile import dump_model, model_to_toml
 from ..errors import InputError
 from ..records.csvfiles import read_record, write_record
 from ..units import parse_time
+from .options import add_command
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``twin calibrate`` to the ``twin`` sub-parsers."""
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "calibrate",
+        __doc__,
+        run,
         help="fit a twin model file to a recorded test",
-        description=__doc__.splitlines()[0],
     )
     p.add_argument("record", help="record CSV with time, command or target, measured (m)")
     p.add_argument("--out", help="model file to write (TOML); default: print it")
@@ -44,7 +47,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="CSV",
         help="also run the online Kalman estimator and write its gain/delay history here",
     )
-    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -19,13 +19,17 @@ import sys
 import time
 from pathlib import Path
 
+from .options import add_command
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``watch`` to the top-level parser."""
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "watch",
+        __doc__,
+        main,
         help="live view of a run in the browser (replay of a finished one)",
-        description=__doc__.splitlines()[0],
     )
     p.add_argument("run_dir", nargs="?", metavar="RUN_DIR", help="run directory to follow")
     p.add_argument(
@@ -48,7 +52,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="print only the URL and errors")
     # used by `rths-hil run --watch`: exit some time after the run's process is gone
     p.add_argument("--parent", type=int, default=None, help=argparse.SUPPRESS)
-    p.set_defaults(func=main)
 
 
 def latest_run(base: Path) -> Path:

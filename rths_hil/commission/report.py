@@ -51,6 +51,10 @@ class ChannelReport:
         """The step called ``name``, or None."""
         return next((s for s in self.steps if s.name == name), None)
 
+    def result(self, name: str, why: str, figures: dict[str, Any] | None = None) -> None:
+        """Add the step ``name``: failed with the reason ``why``, passed when it is empty."""
+        self.steps.append(StepResult(name, "failed" if why else "passed", why, figures or {}))
+
     def passed(self, name: str) -> bool:
         """Whether the step called ``name`` passed."""
         s = self.step(name)

@@ -81,7 +81,7 @@ def identify(ctl: Controller, rep: ChannelReport, amp: float, lim: float) -> flo
             why = "the position is outside the limit"
         elif lim != math.inf and abs(fb.displacement) + amp > lim:
             why = "no room for the motion within the limit"
-    rep.steps.append(StepResult("identify", "failed" if why else "passed", why, figs))
+    rep.result("identify", why, figs)
     if why or fb is None:
         return None
     ctl.x = float(fb.displacement)
@@ -117,14 +117,12 @@ def latency(ctl: Controller, rep: ChannelReport, n: int, x0: float, link_time: f
         "link_time_ms": None if link_time is None else link_time * 1e3,
     }
     if missed > 0.01 * n:
-        rep.steps.append(
-            StepResult("latency", "failed", f"{missed} of {n} replies missed (> 1 %)", figs)
-        )
+        rep.result("latency", f"{missed} of {n} replies missed (> 1 %)", figs)
     elif _pct(got, 99) > ctl.timeout:
         why = "p99 round trip above the feedback timeout"
-        rep.steps.append(StepResult("latency", "failed", why, figs))
+        rep.result("latency", why, figs)
     else:
-        rep.steps.append(StepResult("latency", "passed", "", figs))
+        rep.result("latency", "", figs)
 
 
 def enable(ctl: Controller, rep: ChannelReport, x0: float, tol: float) -> None:
@@ -147,7 +145,7 @@ def enable(ctl: Controller, rep: ChannelReport, x0: float, tol: float) -> None:
         why = "no reply to the disabling commands (replies missed, not a controller that stays on)"
     elif off.status & ENABLED:
         why = f"the controller still reports ENABLED after the disable ({status_names(off.status)})"
-    rep.steps.append(StepResult("enable", "failed" if why else "passed", why, figs))
+    rep.result("enable", why, figs)
 
 
 def motion(ctl: Controller, rep: ChannelReport, plan: Any, x0: float) -> None:
@@ -176,7 +174,7 @@ def motion(ctl: Controller, rep: ChannelReport, plan: Any, x0: float) -> None:
     }
     hold_end = nh // 5 + nr + nh
     if ok.sum() < 0.9 * path.size:
-        rep.steps.append(StepResult("motion", "failed", "too many replies missed", figs))
+        rep.result("motion", "too many replies missed", figs)
         return
     filled = meas.copy()
     idx = np.flatnonzero(ok)
@@ -201,15 +199,11 @@ def motion(ctl: Controller, rep: ChannelReport, plan: Any, x0: float) -> None:
         hold_error_um=hold_err * 1e6,
     )
     if hold_err > 0.1 * amp:
-        rep.steps.append(
-            StepResult("motion", "failed", "the hold missed the target by > 10 %", figs)
-        )
+        rep.result("motion", "the hold missed the target by > 10 %", figs)
     elif not r.valid or abs(r.amplitude - 1.0) > 0.1:
-        rep.steps.append(
-            StepResult("motion", "failed", "FEI amplitude off by more than 10 %", figs)
-        )
+        rep.result("motion", "FEI amplitude off by more than 10 %", figs)
     else:
-        rep.steps.append(StepResult("motion", "passed", "", figs))
+        rep.result("motion", "", figs)
 
 
 def plant(ctl: Controller, rep: ChannelReport, plan: Any, x0: float, chirp_time: float) -> None:
@@ -239,10 +233,10 @@ def plant(ctl: Controller, rep: ChannelReport, plan: Any, x0: float, chirp_time:
     figs["missed"] = int((~ok).sum())
     if latched:
         why = f"the controller latched during the chirp (status {status_names(latched[0])})"
-        rep.steps.append(StepResult("plant", "failed", why, figs))
+        rep.result("plant", why, figs)
         return
     if ok.sum() < 0.9 * path.size:
-        rep.steps.append(StepResult("plant", "failed", "too many replies missed", figs))
+        rep.result("plant", "too many replies missed", figs)
         return
     max_time = 0.2
     # a command that left late (this computer stalled): a controller in real time held the
@@ -257,7 +251,7 @@ def plant(ctl: Controller, rep: ChannelReport, plan: Any, x0: float, chirp_time:
         figs["fitted_share"] = float(valid.mean())
     if valid.mean() < 0.3:
         why = "this computer stalled too often under the chirp to fit a model (check-host)"
-        rep.steps.append(StepResult("plant", "failed", why, figs))
+        rep.result("plant", why, figs)
         return
     fit = ctl.idle_while(
         lambda: identify_plant(path, meas, plan.fs, max_time=max_time, valid=valid)
@@ -272,12 +266,12 @@ def plant(ctl: Controller, rep: ChannelReport, plan: Any, x0: float, chirp_time:
     )
     if not fit.fit >= 0.9:
         why = f"the delayed first-order model explains {fit.fit:.0%} of the motion (< 90 %)"
-        rep.steps.append(StepResult("plant", "failed", why, figs))
+        rep.result("plant", why, figs)
     elif max(fit.delay, fit.lag) >= 2 * max_time - 1e-6 or not 0.2 < fit.gain < 5.0:
         why = "an identified value sits at its bound (the controller does not follow the chirp)"
-        rep.steps.append(StepResult("plant", "failed", why, figs))
+        rep.result("plant", why, figs)
     else:
-        rep.steps.append(StepResult("plant", "passed", "", figs))
+        rep.result("plant", "", figs)
 
 
 def estop(ctl: Controller, rep: ChannelReport, x0: float, amp: float) -> None:
@@ -319,7 +313,7 @@ def estop(ctl: Controller, rep: ChannelReport, x0: float, amp: float) -> None:
         why = "enable = False did not acknowledge the latch"
     elif not re_ok:
         why = "the controller did not re-enable"
-    rep.steps.append(StepResult("estop", "failed" if why else "passed", why, figs))
+    rep.result("estop", why, figs)
 
 
 def watchdog(ctl: Controller, rep: ChannelReport, com: dict, x0: float) -> None:
@@ -350,14 +344,12 @@ def watchdog(ctl: Controller, rep: ChannelReport, com: dict, x0: float) -> None:
         "acknowledged_status": status_names(st2),
     }
     if not ok:
-        rep.steps.append(
-            StepResult("watchdog", "failed", "no watchdog latch after its timeout", figs)
-        )
+        rep.result("watchdog", "no watchdog latch after its timeout", figs)
     elif st2 is None or st2 & LATCHED:
         why = "the watchdog latch was not acknowledged by arming"
-        rep.steps.append(StepResult("watchdog", "failed", why, figs))
+        rep.result("watchdog", why, figs)
     else:
-        rep.steps.append(StepResult("watchdog", "passed", "", figs))
+        rep.result("watchdog", "", figs)
 
 
 def hand_back(ctl: Controller, rep: ChannelReport, x0: float, hold: float) -> None:
@@ -386,6 +378,6 @@ def hand_back(ctl: Controller, rep: ChannelReport, x0: float, hold: float) -> No
         why = f"the controller is left latched (status {status_names(st)})"
     else:
         why = ""
-    rep.steps.append(StepResult("hand-back", "failed" if why else "passed", why, figs))
+    rep.result("hand-back", why, figs)
     if why:
         log.warning("%s: hand-back: %s", rep.name or "actuator", why)

@@ -10,7 +10,7 @@ import copy
 import difflib
 import math
 import re
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from ..errors import InputError
@@ -30,6 +30,15 @@ __all__ = ["check_range", "coerce", "describe", "quantity", "unknown_key"]
 
 _NUM_RE = re.compile(rf"\s*({NUMBER})\s*(\S*)\s*")
 _PREFIX = {"": 1.0, "k": 1e3, "M": 1e6}
+#: The reader of a quantity in each unit that :mod:`rths_hil.units` reads.
+_PARSERS: dict[str, Callable[[str, str], float]] = {
+    "s": parse_time,
+    "m": parse_length,
+    "N": parse_force,
+    "m/s": parse_velocity,
+    "m/s²": parse_accel,
+    "-": parse_fraction,
+}
 
 
 def describe(v: Any) -> str:
@@ -53,21 +62,12 @@ def quantity(value: Any, unit: str, path: str) -> float:
         raise InputError(f"{path}: expected a number in {unit}, got {describe(value)}")
     if isinstance(value, int | float):
         return float(value)
-    try:
-        if unit == "s":
-            return parse_time(value, path)
-        if unit == "m":
-            return parse_length(value, path)
-        if unit == "N":
-            return parse_force(value, path)
-        if unit == "m/s":
-            return parse_velocity(value, path)
-        if unit == "m/s²":
-            return parse_accel(value, path)
-        if unit == "-":
-            return parse_fraction(value, path)
-    except InputError as exc:
-        raise InputError(f"{path}: {exc}") from None
+    parse = _PARSERS.get(unit)
+    if parse is not None:
+        try:
+            return parse(value, path)
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
     m = _NUM_RE.fullmatch(value)
     if m:
         num, u = float(m.group(1)), m.group(2)

@@ -14,7 +14,7 @@ import multiprocessing
 import re
 import signal
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
 
 from tqdm import tqdm
@@ -140,14 +140,9 @@ def open_executor(scheduler: str | None = None, workers: int = 2) -> Iterator[Ex
         whose worker dies is rerun on another one (the scheduler's ``allowed-failures``).
     """
     if scheduler is None:
-        ex = make_executor(workers)
-        try:
+        pool = make_executor(workers)
+        with _serving(pool, lambda: pool.shutdown(wait=True, cancel_futures=True)) as ex:
             yield ex
-        except KeyboardInterrupt:
-            stop_pool(ex)
-            raise
-        finally:
-            ex.shutdown(wait=True, cancel_futures=True)
         return
     if int(workers) != workers or workers < 1:
         raise InputError(f"workers must be a positive integer, got {workers!r}")
@@ -187,16 +182,26 @@ def open_executor(scheduler: str | None = None, workers: int = 2) -> Iterator[Ex
         log.info("Dask scheduler %s with %d worker(s)", address, n)
         if n == 0:
             log.warning("the Dask scheduler at %s has no workers yet; tasks will wait", address)
-    ex = client.get_executor(pure=False)
+
+    def close() -> None:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+    with _serving(client.get_executor(pure=False), close) as ex:
+        yield ex
+
+
+@contextlib.contextmanager
+def _serving(ex: Executor, close: Callable[[], None]) -> Iterator[Executor]:
+    """``ex``, its tasks stopped at an operator stop (KeyboardInterrupt); ``close()`` on exit."""
     try:
         yield ex
     except KeyboardInterrupt:
         stop_pool(ex)
         raise
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        close()
 
 
 _ADDRESS_RE = re.compile(r"^(tcp|tls|inproc|ucx|ws|wss)://[^\s/:]+:\d+/?$")

@@ -82,6 +82,19 @@ class ChannelView:
         sfx = channel_suffix(ch)
         w = 560
         tools = "pan,wheel_zoom,box_zoom,reset,save"
+
+        def timeline(title: str, height: int, x_range: Range1d, **kw) -> figure:
+            """A plot over time (s) of the page's width and tools."""
+            return figure(
+                title=title,
+                height=height,
+                width=w,
+                x_range=x_range,
+                tools=tools,
+                x_axis_label="time (s)",
+                **kw,
+            )
+
         # the 10 s window (streamed), the force–displacement loop and the whole test (slow)
         self.win = ColumnDataSource(data={k: [] for k in WINDOW_COLUMNS}, name=f"window{sfx}")
         self.fei = ColumnDataSource(data={k: [] for k in FEI_COLUMNS}, name=f"fei{sfx}")
@@ -106,15 +119,8 @@ class ChannelView:
 
         # value axes set by the refresh (see fit_range): an automatic range moves at every refresh
         self.y_disp = Range1d(-1.0, 1.0)  # mm (kN)
-        p = figure(
-            title=f"{quantity}: last 10 s",
-            height=260,
-            width=w,
-            x_range=x_range,
-            y_range=self.y_disp,
-            tools=tools,
-            x_axis_label="time (s)",
-            y_axis_label=self.unit,
+        p = timeline(
+            f"{quantity}: last 10 s", 260, x_range, y_range=self.y_disp, y_axis_label=self.unit
         )
         for key in ("target", "command", "measured"):
             p.line("t", key, source=self.win, color=COLORS[key], legend_label=key, line_width=1.6)
@@ -122,13 +128,10 @@ class ChannelView:
         p.legend.click_policy = "hide"
         self.disp = p
 
-        q = figure(
-            title=f"{quantity}: whole test (min/max per pixel)",
-            height=260,
-            width=w,
-            x_range=overview_range,
-            tools=tools,
-            x_axis_label="time (s)",
+        q = timeline(
+            f"{quantity}: whole test (min/max per pixel)",
+            260,
+            overview_range,
             y_axis_label=self.unit,
         )
         q.line("t", "target", source=self.ovw, color=COLORS["target"], legend_label="target")
@@ -142,25 +145,19 @@ class ChannelView:
         d_tol = finite_or(safety.get("fei_delay_tol"))
         self.y_a = Range1d(0.9, 1.1)
         self.y_d = Range1d(-5.0, 5.0)
-        pa = figure(
-            title="FEI amplitude A, measured vs target (1 = perfect)",
+        pa = timeline(
+            "FEI amplitude A, measured vs target (1 = perfect)",
+            220,
+            fei_range,
             name=f"fei_a{sfx}",
-            height=220,
-            width=w,
-            x_range=fei_range,
             y_range=self.y_a,
-            tools=tools,
-            x_axis_label="time (s)",
         )
-        pd = figure(
-            title="FEI delay d, measured vs target (ms, > 0: measured lags)",
+        pd = timeline(
+            "FEI delay d, measured vs target (ms, > 0: measured lags)",
+            220,
+            fei_range,
             name=f"fei_d{sfx}",
-            height=220,
-            width=w,
-            x_range=fei_range,
             y_range=self.y_d,
-            tools=tools,
-            x_axis_label="time (s)",
         )
         for fig, key, ex, tol, label in (
             (pa, "a", "a_ex", a_tol, "A"),
@@ -203,14 +200,11 @@ class ChannelView:
         kd_max = finite_or(safety.get("kf_delay_max")) * 1e3
         self.y_kd = Range1d(0.0, 30.0)
         self.y_kg = Range1d(0.9, 1.1)
-        pk = figure(
-            title="Kalman estimates of the actuator, measured vs command: delay (ms), gain",
-            height=220,
-            width=w,
-            x_range=fei_range,
+        pk = timeline(
+            "Kalman estimates of the actuator, measured vs command: delay (ms), gain",
+            220,
+            fei_range,
             y_range=self.y_kd,
-            tools=tools,
-            x_axis_label="time (s)",
             y_axis_label="delay (ms)",
             name=f"kalman{sfx}",
         )
@@ -251,16 +245,13 @@ class ChannelView:
         levels = ", ".join(
             f"{'warning' if k == 'warn' else 'limit'} {v:g}" for k, v in self.s_levels.items()
         )
-        ps = figure(
-            title="stability indicator S = injected / dissipated energy · "
+        ps = timeline(
+            "stability indicator S = injected / dissipated energy · "
             + (f"{levels} (rule: {rule})" if levels else "rule off"),
+            220,
+            fei_range,
             name=f"stability{sfx}",
-            height=220,
-            width=w,
-            x_range=fei_range,
             y_range=self.y_s,
-            tools=tools,
-            x_axis_label="time (s)",
         )
         sl = ps.line("t", "s", source=self.fei, color="#7c3aed", line_width=1.6)
         ps.add_layout(
