@@ -34,6 +34,7 @@ from __future__ import annotations
 import ast
 import contextlib
 import datetime as _dt
+import functools
 import json
 import logging
 import math
@@ -117,7 +118,14 @@ def _header_bytes(descr, rows: int, total_len: int | None = None) -> bytes:
 
 
 def package_versions() -> dict[str, str]:
-    """Versions of Python, the platform and the packages a run depends on."""
+    """Versions of Python, the platform and the packages a run depends on (a new dict)."""
+    return dict(_package_versions())
+
+
+@functools.cache
+def _package_versions() -> dict[str, str]:
+    """Read once per process: installed versions do not change under a running process, and
+    the metadata lookups cost about 50 ms, on every run of a study or a test session."""
     out = {"python": sys.version.split()[0], "platform": platform.platform()}
     for name in (
         "rths_hil",
