@@ -258,6 +258,24 @@ def _records(specs: list[str] | None, fs: float, pga: float | None):
     return out
 
 
+def _paper_study(args: argparse.Namespace, c: dict, run: Callable[..., Any], *pos, **kw) -> Any:
+    """``run(*pos, **kw)``, a study of the FEI paper: its cases on the executor of
+    ``--scheduler`` and ``--workers``, the structure's ζ and the actuator's gain and delay
+    from ``c`` (:func:`_common`)."""
+    from .. import studies as study
+
+    with study.open_executor(args.scheduler, args.workers) as ex:
+        return run(
+            *pos,
+            **kw,
+            executor=ex,
+            progress=not args.no_progress,
+            zeta=c["zeta"],
+            gain=c["gain"],
+            delay=c["delay"],
+        )
+
+
 def _outdir(text: str) -> Path:
     out = Path(text)
     try:
@@ -292,19 +310,16 @@ def run_window_size(args: argparse.Namespace) -> int:
                 f"{min(fns):g} Hz: the window search cannot start"
             )
     out = _outdir(args.out)
-    with study.open_executor(args.scheduler, args.workers) as ex:
-        rows = study.window_size_study(
-            gms,
-            fns,
-            executor=ex,
-            progress=not args.no_progress,
-            zeta=c["zeta"],
-            gain=c["gain"],
-            delay=c["delay"],
-            criterion=crit,
-            bouc_wen=True if args.bouc_wen else None,
-            max_periods=max_periods,
-        )
+    rows = _paper_study(
+        args,
+        c,
+        study.window_size_study,
+        gms,
+        fns,
+        criterion=crit,
+        bouc_wen=True if args.bouc_wen else None,
+        max_periods=max_periods,
+    )
     study.write_window_size_csv(out / "window_size.csv", rows)
     study.plot_window_size(out / "window_size.png", rows)
     print(f"{'record':<34}{'fn (Hz)':>8}{'t_w (s)':>9}{'t_w/Tn':>8}{'err %':>8}")
@@ -346,20 +361,17 @@ def run_accuracy(args: argparse.Namespace) -> int:
             raise InputError(f"--fn {f:g} Hz is not below the Nyquist frequency")
     gm = _records(["default"] if args.record is None else [args.record], c["fs"], c["pga"])[0]
     out = _outdir(args.out)
-    with study.open_executor(args.scheduler, args.workers) as ex:
-        rows = study.accuracy_study(
-            gm,
-            fns,
-            window_periods=periods,
-            window_s=window_s,
-            executor=ex,
-            progress=not args.no_progress,
-            zeta=c["zeta"],
-            gain=c["gain"],
-            delay=c["delay"],
-            hop=args.hop,
-            min_level=c["min_level"],
-        )
+    rows = _paper_study(
+        args,
+        c,
+        study.accuracy_study,
+        gm,
+        fns,
+        window_periods=periods,
+        window_s=window_s,
+        hop=args.hop,
+        min_level=c["min_level"],
+    )
     study.write_accuracy_csv(out / "accuracy.csv", rows)
     study.plot_accuracy(out / "accuracy.png", rows, c["gain"], c["delay"])
     print(

@@ -116,13 +116,12 @@ def latency(ctl: Controller, rep: ChannelReport, n: int, x0: float, link_time: f
         "timeout_ms": ctl.timeout * 1e3,
         "link_time_ms": None if link_time is None else link_time * 1e3,
     }
+    why = ""
     if missed > 0.01 * n:
-        rep.result("latency", f"{missed} of {n} replies missed (> 1 %)", figs)
+        why = f"{missed} of {n} replies missed (> 1 %)"
     elif _pct(got, 99) > ctl.timeout:
         why = "p99 round trip above the feedback timeout"
-        rep.result("latency", why, figs)
-    else:
-        rep.result("latency", "", figs)
+    rep.result("latency", why, figs)
 
 
 def enable(ctl: Controller, rep: ChannelReport, x0: float, tol: float) -> None:
@@ -198,12 +197,12 @@ def motion(ctl: Controller, rep: ChannelReport, plan: Any, x0: float) -> None:
         kalman_delay_ms=d * 1e3,
         hold_error_um=hold_err * 1e6,
     )
+    why = ""
     if hold_err > 0.1 * amp:
-        rep.result("motion", "the hold missed the target by > 10 %", figs)
+        why = "the hold missed the target by > 10 %"
     elif not r.valid or abs(r.amplitude - 1.0) > 0.1:
-        rep.result("motion", "FEI amplitude off by more than 10 %", figs)
-    else:
-        rep.result("motion", "", figs)
+        why = "FEI amplitude off by more than 10 %"
+    rep.result("motion", why, figs)
 
 
 def plant(ctl: Controller, rep: ChannelReport, plan: Any, x0: float, chirp_time: float) -> None:
@@ -264,14 +263,12 @@ def plant(ctl: Controller, rep: ChannelReport, plan: Any, x0: float, chirp_time:
         equivalent_delay_ms=(fit.delay + fit.lag) * 1e3,
         explained=fit.fit,
     )
+    why = ""
     if not fit.fit >= 0.9:
         why = f"the delayed first-order model explains {fit.fit:.0%} of the motion (< 90 %)"
-        rep.result("plant", why, figs)
     elif max(fit.delay, fit.lag) >= 2 * max_time - 1e-6 or not 0.2 < fit.gain < 5.0:
         why = "an identified value sits at its bound (the controller does not follow the chirp)"
-        rep.result("plant", why, figs)
-    else:
-        rep.result("plant", "", figs)
+    rep.result("plant", why, figs)
 
 
 def estop(ctl: Controller, rep: ChannelReport, x0: float, amp: float) -> None:
@@ -343,13 +340,12 @@ def watchdog(ctl: Controller, rep: ChannelReport, com: dict, x0: float) -> None:
         "armed_status": status_names(None if armed is None else int(armed.status)),
         "acknowledged_status": status_names(st2),
     }
+    why = ""
     if not ok:
-        rep.result("watchdog", "no watchdog latch after its timeout", figs)
+        why = "no watchdog latch after its timeout"
     elif st2 is None or st2 & LATCHED:
         why = "the watchdog latch was not acknowledged by arming"
-        rep.result("watchdog", why, figs)
-    else:
-        rep.result("watchdog", "", figs)
+    rep.result("watchdog", why, figs)
 
 
 def hand_back(ctl: Controller, rep: ChannelReport, x0: float, hold: float) -> None:

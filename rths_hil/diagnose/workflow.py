@@ -406,6 +406,7 @@ def _without(spec: ModelSpec, base: ModelSpec, name: str) -> ModelSpec:
     return out
 
 
+@dataclass(eq=False)
 class _Search:
     """Forward selection with BIC, its first choice revisited, then a swap/drop pass."""
 
@@ -414,27 +415,18 @@ class _Search:
     #: Alternative first choices explored when two or more effects are named.
     BEAM = 3
 
-    def __init__(
-        self,
-        base: ModelSpec,
-        data: Data,
-        exact: Data,
-        candidates: tuple[str, ...],
-        threshold: float,
-        tie_margin: float,
-        max_effects: int,
-        fitted_base: bool,
-    ) -> None:
-        self.base = base
-        self.data = data
-        self.exact = exact
-        self.candidates = candidates
-        self.threshold = threshold
-        self.tie_margin = tie_margin
-        self.max_effects = max_effects
-        self.fitted_base = fitted_base
-        self.history: list[dict[str, Any]] = []
-        self.n = data.n
+    base: ModelSpec
+    data: Data
+    exact: Data
+    candidates: tuple[str, ...]
+    threshold: float
+    tie_margin: float
+    max_effects: int
+    fitted_base: bool
+    history: list[dict[str, Any]] = field(default_factory=list, init=False)
+
+    def __post_init__(self) -> None:
+        self.n = self.data.n
 
     # -- pieces -----------------------------------------------------------------------------
     def polish(self, spec: ModelSpec, items: list[_Item]) -> tuple[ModelSpec, np.ndarray, float]:
