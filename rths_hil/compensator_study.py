@@ -190,16 +190,7 @@ def floors_trial(spec: study.TrialSpec) -> dict[str, Any]:
     fs = float(cfg["loop"]["fs"])
     comp = cfg["actuators"][0].get("compensation", {})
     alpha = comp.get("alpha", cfg["compensation"]["alpha"])
-    row: dict[str, Any] = {"trial": spec.index, "alpha": float(alpha)}
-    row.update({k: float(v) for k, v in spec.values.items()})
-    trip = res.trip
-    row.update(
-        status=res.status,
-        steps=int(res.steps),
-        trip_rule=trip.rule if trip is not None else "",
-        trip_time=float(trip.time) if trip is not None else math.nan,
-        trip_reason=trip.reason if trip is not None else "",
-    )
+    row = rob._trial_row(spec, alpha, res)
     target = np.asarray(rec["target"], dtype=float)
     measured = np.asarray(rec["measured"], dtype=float)
     n = target.size

@@ -254,16 +254,8 @@ def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
             log.warning("trial %d (α = %g): %s", spec.index, spec.alpha, exc)
             return _invalid_row(spec, str(exc))
     fs = float(cfg["loop"]["fs"])
-    row: dict[str, Any] = {"trial": spec.index, "alpha": float(cfg["compensation"]["alpha"])}
-    row.update({k: float(v) for k, v in spec.values.items()})
+    row = _trial_row(spec, cfg["compensation"]["alpha"], res)
     trip = res.trip
-    row.update(
-        status=res.status,
-        steps=int(res.steps),
-        trip_rule=trip.rule if trip is not None else "",
-        trip_time=float(trip.time) if trip is not None else math.nan,
-        trip_reason=trip.reason if trip is not None else "",
-    )
     if sfx_all != [""]:
         row["trip_channel"] = trip.channel if trip is not None else ""
         for sfx, entry in zip(sfx_all, cfg["actuators"], strict=True):
@@ -297,6 +289,21 @@ def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
         row["peak_target" + sfx] = float(np.max(np.abs(target))) if n else nan
         row["peak_reference" + sfx] = float(np.max(np.abs(reference))) if n else nan
         row["peak_force" + sfx] = float(np.max(np.abs(rec[column_name("force", ch)]))) if n else nan
+    return row
+
+
+def _trial_row(spec: Any, alpha: float, res: Any) -> dict[str, Any]:
+    """The head of a trial's row: its index, α, the drawn values and how its run ended."""
+    row: dict[str, Any] = {"trial": spec.index, "alpha": float(alpha)}
+    row.update({k: float(v) for k, v in spec.values.items()})
+    trip = res.trip
+    row.update(
+        status=res.status,
+        steps=int(res.steps),
+        trip_rule=trip.rule if trip is not None else "",
+        trip_time=float(trip.time) if trip is not None else math.nan,
+        trip_reason=trip.reason if trip is not None else "",
+    )
     return row
 
 
