@@ -130,8 +130,26 @@ def _protocol_options(p: argparse.ArgumentParser) -> None:
             continue
         if add is not None:
             users.setdefault(add, []).append(name)
+    owned: list[tuple[tuple[str, ...], list[argparse.Action]]] = []
     for add, names in users.items():
-        add(p.add_argument_group(f"{', '.join(names)} options"))
+        group = p.add_argument_group(f"{', '.join(names)} options")
+        add(group)
+        owned.append((tuple(names), list(group._group_actions)))
+    p.set_defaults(protocol_options=owned)  # (checked against --driver: _check_owned)
+
+
+def _check_owned(args: argparse.Namespace) -> None:
+    """Refuse, in one line, an option of another protocol than ``--driver``'s (it would be
+    ignored: ``--bitrate`` given to a Modbus twin)."""
+    for names, actions in getattr(args, "protocol_options", ()):
+        if args.driver in names:
+            continue
+        for action in actions:
+            if getattr(args, action.dest, action.default) != action.default:
+                raise InputError(
+                    f"{action.option_strings[0]}: an option of the {' and '.join(names)} "
+                    f"twins; --driver {args.driver} does not take it"
+                )
 
 
 def _endpoint(args: argparse.Namespace) -> type[TwinEndpoint]:
@@ -165,6 +183,7 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
                 f"({conn.get('transport', 'its own line')})"
             )
         _check_device(conn["device"])
+    _check_owned(args)
     return conn
 
 

@@ -38,3 +38,14 @@ def test_a_bit_rate_that_is_none(capsys, rate):
         ["twin", "serve", "--driver", "can", "--interface", "slcan", f"--bitrate={rate}"],
         capsys, "--bitrate",
     )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["--driver", "modbus", "--bitrate", "500000"], "--bitrate: an option of the can and "),
+        (["--driver", "can", "--device-id", "2"], "--device-id: an option of the modbus twins"),
+    ],
+)
+def test_another_protocols_option_is_refused_not_ignored(capsys, argv, needle):
+    one_line_exit_2(["twin", "serve", *argv], capsys, needle)
