@@ -301,13 +301,23 @@ def test_the_threads_clock_tells_a_preemption_inside_the_work_from_the_work(
     # judged: the steps not already late by a stall of the machine (one of each kind at least)
     judged = [k for k in at if res.lateness[k] <= thr]
     assert {at[k] for k in judged} == {"preempted", "cpu", "sleep"}, res.lateness[list(at)]
+    told_apart = set()
     for k in judged:
         assert res.ready[k + 1] > 0.002  # the disturbance made the next step late
         if at[k] == "preempted":
             assert res.stalled[k] > 0.0035, res.stalled[k]
             assert cause[k + 1] == MACHINE_IN_WORK
+            told_apart.add(at[k])
+        elif res.ready[k + 1] - res.stalled[k] <= thr:
+            # the machine preempted this step's own work as well, long enough to explain the
+            # lateness (a noisy host does, now and then): then it is the machine's, as for
+            # the hog
+            assert cause[k + 1] == MACHINE_IN_WORK, (k, res.stalled[k])
         else:
-            assert res.stalled[k] < 0.002 if at[k] == "cpu" else res.stalled[k] == 0.0
             assert cause[k + 1] == WORK
+            if res.stalled[k] < 0.002 if at[k] == "cpu" else res.stalled[k] == 0.0:
+                told_apart.add(at[k])  # and the thread's clock saw no machine in it
+    # at least one step of each kind was told apart from the others
+    assert told_apart == {"preempted", "cpu", "sleep"}, res.stalled[list(at)]
     counts = res.overrun_causes()
     assert sum(counts.values()) == res.overruns

@@ -131,7 +131,9 @@ def test_heartbeat_goes_out_with_the_first_step_after_a_stall(tmp_path, arrivals
     loop.console_interval = 0.1
     res = loop.run()
     assert res.status == "completed", res.trip
-    (stall,) = [e for e in read_run(tmp_path / "run").events if e["kind"] == "stall"]
+    # the 60 ms one (a noisy host may add short stalls of its own)
+    stalls = [e for e in read_run(tmp_path / "run").events if e["kind"] == "stall"]
+    (stall,) = [e for e in stalls if e["length"] >= 0.05]
     assert 0.05 <= stall["length"] < 0.2
     # the controller's side: the first command after the stall, and the next heartbeat
     t_wake = slept[0] + 0.060
