@@ -2,14 +2,17 @@
 
 :mod:`~rths_hil.config.schema` (every key with its type, unit, range, default and doc; the
 α ↔ delay key pairs), :mod:`~rths_hil.config.coerce` (one value to its key's type, unit and
-range), :mod:`~rths_hil.config.model` (:class:`Config` and its channels),
+range; :func:`check_table`, one table to its keys: the validator of configuration sections,
+controller profiles and twin model files), :mod:`~rths_hil.config.model` (:class:`Config`
+and its channels),
 :mod:`~rths_hil.config.load` (files, ``[[actuators]]``, ``--set``),
 :mod:`~rths_hil.config.checks` (every rule relating keys to each other),
 :mod:`~rths_hil.config.output` (TOML and the markdown reference ``docs/config.md``).
 """
 
 from .checks import check_window_samples, cross_check, cross_check_channel, structure_dofs
-from .coerce import check_range, coerce, describe, quantity, unknown_key
+from .coerce import check_range, check_table, coerce, describe, quantity, unknown_key
+from .key import REQUIRED
 from .load import MAX_CONFIG_BYTES, apply_overrides, load_config, merge, parse_override
 from .model import ChannelConfig, Config, default_config, resolve_channel
 from .output import schema_markdown, to_toml, toml_value
@@ -31,6 +34,7 @@ __all__ = [
     "CHANNEL_SECTIONS",
     "MASS_RANGE",
     "MAX_CONFIG_BYTES",
+    "REQUIRED",
     "SCHEMA",
     "STEP_KEYS",
     "STEP_PAIR",
@@ -41,6 +45,7 @@ __all__ = [
     "apply_overrides",
     "check_compensation_units",
     "check_range",
+    "check_table",
     "check_window_samples",
     "coerce",
     "cross_check",

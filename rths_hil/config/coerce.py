@@ -1,4 +1,6 @@
-"""Coercion of one configuration value to its key's type, unit and range.
+"""Coercion of one configuration value to its key's type, unit and range, and of one table
+to its declared keys (:func:`check_table`: the validator of the run configuration, controller
+profiles and twin model files).
 
 Numbers with units are read by :mod:`rths_hil.units` (same number syntax); a value that fails
 raises :class:`~rths_hil.errors.InputError` naming the key path.
@@ -10,7 +12,7 @@ import copy
 import difflib
 import math
 import re
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from ..errors import InputError
@@ -24,9 +26,9 @@ from ..units import (
     parse_velocity,
     parse_window,
 )
-from .schema import Key
+from .key import REQUIRED, Key
 
-__all__ = ["check_range", "coerce", "describe", "quantity", "unknown_key"]
+__all__ = ["check_range", "check_table", "coerce", "describe", "quantity", "unknown_key"]
 
 _NUM_RE = re.compile(rf"\s*({NUMBER})\s*(\S*)\s*")
 _PREFIX = {"": 1.0, "k": 1e3, "M": 1e6}
@@ -227,3 +229,67 @@ def unknown_key(path: str, name: str, known: Iterable[str]) -> InputError:
     close = difflib.get_close_matches(name, known, n=1, cutoff=0.5)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
     return InputError(f"{path}: unknown key{hint}; known keys: {', '.join(known)}")
+
+
+def check_table(
+    table: Any,
+    keys: Mapping[str, Key],
+    where: str = "",
+    path: str = "",
+    *,
+    defaults: bool = True,
+    missing: str = "missing",
+) -> dict[str, Any]:
+    """``table`` checked against its declared ``keys``: the one validator of configuration
+    sections, profile tables and model-file tables.
+
+    Parameters
+    ----------
+    table : Any
+        As read from TOML (a table is a dict).
+    keys : mapping of str to Key
+        The keys the table may hold; a key whose default is :data:`~rths_hil.config.REQUIRED`
+        must be given.
+    where : str
+        The source, first in every message (``run.toml``, ``profile lab.toml``); empty for none.
+    path : str
+        The table's key path (``loop``, ``roles.setpoint``, ``actuator.effects[0]``); empty
+        for a document's top level.
+    defaults : bool
+        Fill the keys not given with their defaults (``False``: only the keys given, for a
+        source merged over others).
+    missing : str
+        What a message says of a required key not given (``"required by model 'servo_lag'"``).
+
+    Returns
+    -------
+    dict
+        Each key given, coerced to its type and SI unit and range checked (:func:`coerce`), in
+        the table's order; then, with ``defaults``, the others with their defaults (copied).
+
+    Raises
+    ------
+    InputError
+        One line ``where: path.key: what is wrong``: not a table, an unknown key (with the
+        closest known one), a wrong type, unit or range, a required key not given.
+    """
+    pre = f"{where}: " if where else ""
+    if not isinstance(table, Mapping):
+        raise InputError(f"{pre}{path or 'document'}: expected a table, got {describe(table)}")
+    out: dict[str, Any] = {}
+    for name, value in table.items():
+        kp = f"{path}.{name}" if path else str(name)
+        if name not in keys:
+            raise InputError(f"{pre}{unknown_key(kp, str(name), keys)}")
+        try:
+            out[name] = coerce(keys[name], value, kp)
+        except InputError as exc:
+            raise InputError(f"{pre}{exc}") from None
+    for name, key in keys.items():
+        if name in out:
+            continue
+        if key.default is REQUIRED:
+            raise InputError(f"{pre}{f'{path}.{name}' if path else name}: {missing}")
+        if defaults:
+            out[name] = copy.deepcopy(key.default)
+    return out

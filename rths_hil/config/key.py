@@ -4,9 +4,21 @@ sections share."""
 from __future__ import annotations
 
 from dataclasses import KW_ONLY, dataclass
-from typing import Any
+from typing import Any, Final
 
-__all__ = ["CONTROL_MODES", "MASS_RANGE", "STIFFNESS_RANGE", "Key"]
+
+class _Required:
+    """The default of a key a table must give (:data:`REQUIRED`)."""
+
+    def __repr__(self) -> str:
+        return "REQUIRED"
+
+
+#: The default of a key that has none: :func:`rths_hil.config.check_table` refuses a table
+#: without it (profiles and model files; every run configuration key has a default).
+REQUIRED: Final = _Required()
+
+__all__ = ["CONTROL_MODES", "MASS_RANGE", "REQUIRED", "STIFFNESS_RANGE", "Key"]
 
 
 @dataclass(frozen=True)
@@ -22,7 +34,8 @@ class Key:
         value in the second unit of ``unit``) or ``table`` (free-form, checked by its
         consumer).
     default : Any
-        Default value (already in SI units).
+        Default value (already in SI units); :data:`REQUIRED` for a key that must be given,
+        ``None`` for an optional one without a value.
     unit : str
         SI unit of the value (``s``, ``m``, ``Hz``, ``N``, ``kg``, ``N/m``, ``m/s``, ``m/s²``,
         ``1/s``, ``-``, ``steps``, ``windows``).

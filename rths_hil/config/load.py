@@ -14,7 +14,7 @@ from typing import Any
 from ..errors import InputError
 from ..formats import read_toml
 from .checks import cross_check
-from .coerce import coerce, describe, unknown_key
+from .coerce import check_table, coerce, describe, unknown_key
 from .model import Config, default_config
 from .schema import (
     CHANNEL_KEYS,
@@ -79,16 +79,7 @@ def _actuator_section(key: str, value: Any, kp: str, where: str) -> dict[str, An
         value = {"mode": value}
     if not isinstance(value, dict):
         raise InputError(f"{where}: {kp}: expected a table, got {describe(value)}")
-    keys = SCHEMA[key]
-    sec: dict[str, Any] = {}
-    for name, v in value.items():
-        if name not in keys:
-            raise InputError(f"{where}: {unknown_key(f'{kp}.{name}', name, keys)}")
-        try:
-            sec[name] = coerce(keys[name], v, f"{kp}.{name}")
-        except InputError as exc:
-            raise InputError(f"{where}: {exc}") from None
-    return sec
+    return check_table(value, SCHEMA[key], where, kp, defaults=False)
 
 
 def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:
@@ -130,15 +121,7 @@ def merge(cfg: Config, data: Mapping[str, Any], where: str) -> None:
             raise InputError(
                 f"{where}: {section}: expected a table [{section}], got {describe(table)}"
             )
-        keys = SCHEMA[section]
-        for name, value in table.items():
-            path = f"{section}.{name}"
-            if name not in keys:
-                raise InputError(f"{where}: {unknown_key(path, name, keys)}")
-            try:
-                cfg[section][name] = coerce(keys[name], value, path)
-            except InputError as exc:
-                raise InputError(f"{where}: {exc}") from None
+        cfg[section].update(check_table(table, SCHEMA[section], where, section, defaults=False))
     # α and the other step keys of this source are read at this source's loop rate
     fs = cfg["loop"]["fs"]
     comp = data.get("compensation")
@@ -367,6 +350,8 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -
     Returns
     -------
     Config
+        The defaults, then the file (after what it includes), then the overrides, every rule
+        relating keys checked (:func:`rths_hil.config.cross_check`).
 
     Raises
     ------
