@@ -75,6 +75,7 @@ from rths_hil.drivers.base import Feedback, Status
 from ..errors import InputError
 from ..safety import Trip
 from .pacer import Pacer
+from .setup import dot
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..records.recorder import Recorder
@@ -309,7 +310,7 @@ class Phases:
             elif ch.dof >= 0:
                 x = float(xs[ch.dof])
             else:
-                x = float(sum(r * v for r, v in zip(ch.row, xs, strict=False)))
+                x = float(dot(ch.row, xs))  # the channel's row of T (.setup)
             if ch.force_mode:  # the force of step 0 (from rest, or the load's)
                 ch.trial = ch.trial_next = x
                 x = ch.force_target(x, 0)

@@ -41,6 +41,7 @@ from ..safety import (
 )
 from ..structures.stages import StructureStage, TrialColumns
 from ..units import parse_window
+from .setup import channel_row
 from .substructure import (
     build_ground_motion,
     build_structure,
@@ -235,7 +236,7 @@ class TestPlan:
 
     @property
     def transform(self) -> np.ndarray:
-        """T: one row per channel (channels × DOFs)."""
+        """T: one row per channel (channels × DOFs; :mod:`.setup`)."""
         return np.array([ch.row for ch in self.channels])
 
 
@@ -251,30 +252,6 @@ def _window(ch_cfg: Config, fn1: float) -> float:
 
 def _where(cc: ChannelConfig, i: int) -> str:
     return cc.config.source + (f": actuators[{i}] ({cc.name})" if cc.name else "")
-
-
-def channel_row(cc: ChannelConfig, i: int, n_dof: int, default_dof: int = 1) -> np.ndarray:
-    """Row of T of a channel: its ``transform``, or the unit row of its ``dof``.
-
-    ``dof`` defaults to ``default_dof`` (1; an experimental site passes ``i + 1``: its DOFs
-    are its actuators, channel ``i`` drives site DOF ``i``).
-    """
-    where = _where(cc, i)
-    if cc.transform is not None:
-        row = np.asarray(cc.transform, dtype=float)
-        if row.size != n_dof:
-            raise InputError(
-                f"{where}.transform: {row.size} entries, the structure has {n_dof} DOF"
-            )
-    else:
-        d = cc.dof if cc.dof is not None else default_dof
-        if not 1 <= d <= n_dof:
-            raise InputError(f"{where}.dof: {d} is out of range: the structure has {n_dof} DOF")
-        row = np.zeros(n_dof)
-        row[d - 1] = 1.0
-    if not np.any(row):
-        raise InputError(f"{where}.transform: all zero: the actuator acts on no DOF")
-    return row
 
 
 def _plan_channel(  # noqa: C901
@@ -629,7 +606,10 @@ def build_plan(  # noqa: C901
             "the structure drives (displacement or force)"
         )
     rows = [
-        np.zeros(n_dof) if loads[i] else channel_row(cc, i, n_dof, i + 1 if site else 1)
+        np.zeros(n_dof)
+        if loads[i]
+        # a site's DOFs are its actuators: channel i drives site DOF i + 1 by default
+        else channel_row(cc.transform, cc.dof, n_dof, _where(cc, i), i + 1 if site else 1)
         for i, cc in enumerate(chans_cfg)
     ]
     coupled = [r for i, r in enumerate(rows) if not loads[i]]

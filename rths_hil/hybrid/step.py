@@ -21,6 +21,7 @@ from ..records.run import row_writer
 from ..safety import Trip
 from .channel import Channel, step_mixed
 from .pacer import Pacer, ReplyBudget
+from .setup import dot
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..records.recorder import Recorder
@@ -33,15 +34,6 @@ log = logging.getLogger(__name__)
 __all__ = ["Step", "dot"]
 
 _THREAD = resource.RUSAGE_THREAD
-
-
-def dot(row: list[float], x) -> float:
-    """T-row · vector for short rows (plain floats)."""
-    s = 0.0
-    for r, v in zip(row, x, strict=False):
-        if r:
-            s += r * v
-    return s
 
 
 class Step:

@@ -1,7 +1,9 @@
 """The experimental site: OpenSees' element DOFs ↔ the bridge's actuator channels.
 
-:class:`Mapping` turns element displacements into actuator commands and measured actuator
-forces back into element forces by a transformation ``T`` (``n_actuators × n_dofs``)::
+:class:`Mapping` is the site's experimental setup (OpenFresco's ``ExperimentalSetup`` role,
+:mod:`rths_hil.hybrid.setup`, which the channels' rows over a numerical structure use too): it
+turns element displacements into actuator commands and measured actuator forces back into
+element forces by a transformation ``T`` (``n_actuators × n_dofs``)::
 
     d = T·u          (actuator displacement from the element's trial displacements)
     p = Tᵀ·f         (element forces from the measured actuator forces)
@@ -9,8 +11,9 @@ forces back into element forces by a transformation ``T`` (``n_actuators × n_do
 The default for a two-node element with one DOF per node (``-dof 1 -dof 1``) is OpenFresco's
 basic system of a one-actuator setup: ``T = [−1, 1]``, the actuator elongation ``u₂ − u₁``,
 forces ``(−f, +f)``. With ``n`` actuators, an element of ``n + 1`` nodes (one DOF each) gets
-the basic system of ``n`` two-node elements in series (:func:`chain_transform`: actuator ``i``
-between nodes ``i`` and ``i + 1``), an element of ``n`` DOFs the identity (actuator ``i`` on
+the basic system of ``n`` two-node elements in series
+(:func:`~rths_hil.hybrid.setup.chain_transform`: actuator ``i`` between nodes ``i`` and
+``i + 1``), an element of ``n`` DOFs the identity (actuator ``i`` on
 element DOF ``i``); a one-DOF element with one actuator gets ``T = [1]``. Stiffness, damping
 and mass replies are ``Tᵀ·K·T`` with ``K`` (``C``, ``M``) given per actuator in the
 configuration (the specimen estimate); damping and mass default to zero (the measured force
@@ -34,13 +37,16 @@ import numpy as np
 
 from ..config import SCHEMA
 from ..errors import InputError
+from ..hybrid.setup import Setup, check_rows, site_transform, split_rows
 from . import protocol as P
 from .server import SiteServer
 from .timing import SiteFault, TimingMode, make_timing
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DEFAULTS", "TIMINGS", "ExperimentalSite", "Mapping", "SiteFault", "chain_transform"]
+__all__ = ["DEFAULTS", "TIMINGS", "ExperimentalSite", "Mapping", "SiteFault"]
+
+_TRANSFORM = "openfresco.transform"
 
 TIMINGS = ("lockstep", "predictor-corrector", "ramp-hold")
 
@@ -72,20 +78,9 @@ def _matrix(value: Any, n: int, what: str) -> np.ndarray:
     return a
 
 
-def chain_transform(n: int) -> np.ndarray:
-    """``T`` of ``n`` actuators between ``n + 1`` nodes in series: row i is ``u_{i+1} − u_i``.
-
-    The basic system of a chain of two-node elements (one DOF per node): one actuator per
-    element, its elongation ``u_{i+1} − u_i``, forces ``(−f_i, +f_i)`` at its nodes.
-    """
-    T = np.zeros((n, n + 1))
-    for i in range(n):
-        T[i, i], T[i, i + 1] = -1.0, 1.0
-    return T
-
-
-class Mapping:
-    """Element DOFs ↔ actuators (``d = T·u``, ``p = Tᵀ·f``) and the matrix replies.
+class Mapping(Setup):
+    """The site's setup: element DOFs ↔ actuators (``d = T·u``, ``p = Tᵀ·f``) and the matrix
+    replies (:class:`rths_hil.hybrid.setup.Setup`, OpenFresco's ``ExperimentalSetup`` role).
 
     Parameters
     ----------
@@ -96,7 +91,14 @@ class Mapping:
     stiffness, damping, mass : float, list or matrix
         Per-actuator estimates (N/m, N·s/m, kg) for the replies to getInitialStiff /
         getTangentStiff, getDamp, getMass.
+
+    Notes
+    -----
+    ``T`` is fixed when the client's element is known (:meth:`bind`); before that :attr:`T`
+    is ``None``.
     """
+
+    T: np.ndarray | None  # type: ignore[assignment]
 
     def __init__(
         self,
@@ -108,94 +110,46 @@ class Mapping:
     ) -> None:
         if int(n_actuators) < 1:
             raise InputError(f"openfresco.actuators must be ≥ 1, got {n_actuators!r}")
-        self.n_actuators = int(n_actuators)
-        self._transform = (
-            self._rows(transform) if transform is not None and len(transform) else None
+        self.n_actuators = n = int(n_actuators)
+        self.rows = (
+            split_rows(transform, n, _TRANSFORM)
+            if transform is not None and len(transform)
+            else None
         )
-        self.K = _matrix(stiffness, self.n_actuators, "stiffness")
-        self.C = _matrix(damping, self.n_actuators, "damping")
-        self.M = _matrix(mass, self.n_actuators, "mass")
-        self.T: np.ndarray | None = None
-        if self._transform is not None:
-            self._check(self._transform, None)
-
-    def _rows(self, transform: Any) -> np.ndarray:
-        """``T`` from nested rows or a flat row-major list of ``n_actuators`` rows."""
-        try:
-            T = np.asarray(transform, dtype=float)
-        except (TypeError, ValueError):
-            raise InputError(f"openfresco.transform: not numbers: {transform!r}") from None
-        if T.ndim == 1:
-            if T.size % self.n_actuators:
-                raise InputError(
-                    f"openfresco.transform: {T.size} values are not {self.n_actuators} rows "
-                    "(one row of element-DOF weights per actuator, row-major)"
-                )
-            T = T.reshape(self.n_actuators, -1)
-        return T
-
-    def _check(self, T: np.ndarray, nb: int | None) -> np.ndarray:
-        if T.ndim == 1:
-            T = T[None, :]
-        if T.ndim != 2 or T.shape[0] != self.n_actuators:
-            raise InputError(
-                f"openfresco.transform: {T.shape[0] if T.ndim == 2 else '?'} row(s), expected "
-                f"one per actuator ({self.n_actuators})"
-            )
-        if nb is not None and T.shape[1] != nb:
-            raise InputError(
-                f"openfresco.transform: rows of {T.shape[1]} values, but the client's element "
-                f"has {nb} DOFs"
-            )
-        if not np.all(np.isfinite(T)) or np.linalg.matrix_rank(T) < self.n_actuators:
-            raise InputError("openfresco.transform: rows must be finite and independent")
-        return T
+        self.K = _matrix(stiffness, n, "stiffness")
+        self.C = _matrix(damping, n, "damping")
+        self.M = _matrix(mass, n, "mass")
+        self.T = None
+        if self.rows is not None:
+            check_rows(self.rows, n, None, _TRANSFORM)
 
     def bind(self, session: P.SessionID) -> None:
         """Fix ``T`` for the client's element (called when its ID arrives)."""
         nb = session.nb
+        n = self.n_actuators
+        T: np.ndarray | None
         if session.protocol == "generic-tcp":
-            T = np.eye(self.n_actuators)
-            if nb != self.n_actuators:
+            T = np.eye(n)
+            if nb != n:
                 raise InputError(
-                    f"GenericTCP controls {nb} displacements, the site drives "
-                    f"{self.n_actuators} actuators"
+                    f"GenericTCP controls {nb} displacements, the site drives {n} actuators"
                 )
-        elif self._transform is not None:
-            T = self._check(self._transform, nb)
-        elif nb == self.n_actuators:
-            T = np.eye(nb)  # actuator i on element DOF i
-        elif nb == self.n_actuators + 1:
-            T = chain_transform(self.n_actuators)  # basic system: u_{i+1} − u_i
+        elif self.rows is not None:
+            T = check_rows(self.rows, n, nb, _TRANSFORM)
         else:
-            raise InputError(
-                f"the client's element has {nb} DOFs for {self.n_actuators} actuator(s): give "
-                "openfresco.transform (one row of element-DOF weights per actuator)"
-            )
-        self.T = T
-        self.n_dofs = T.shape[1]
-        self._pinv = np.linalg.pinv(T)
+            T = site_transform(n, nb)  # one actuator per DOF, or the basic system u_{i+1} − u_i
+            if T is None:
+                raise InputError(
+                    f"the client's element has {nb} DOFs for {n} actuator(s): give "
+                    "openfresco.transform (one row of element-DOF weights per actuator)"
+                )
+        Setup.__init__(self, T)
         self._mats = {
-            P.GET_INITIAL_STIFF: T.T @ self.K @ T,
-            P.GET_TANGENT_STIFF: T.T @ self.K @ T,
-            P.GET_DAMP: T.T @ self.C @ T,
-            P.GET_MASS: T.T @ self.M @ T,
+            P.GET_INITIAL_STIFF: self.on_dofs(self.K),
+            P.GET_TANGENT_STIFF: self.on_dofs(self.K),
+            P.GET_DAMP: self.on_dofs(self.C),
+            P.GET_MASS: self.on_dofs(self.M),
         }
-
-    def to_actuators(self, u: np.ndarray) -> np.ndarray:
-        """Actuator displacements ``T·u`` of element displacements ``u``."""
-        return self.T @ u
-
-    def to_dofs(self, f: np.ndarray) -> np.ndarray:
-        """Element forces ``Tᵀ·f`` of actuator forces ``f``."""
-        return self.T.T @ f
-
-    def dofs_from_measured(self, u_trial: np.ndarray, d_meas: np.ndarray) -> np.ndarray:
-        """Element displacements consistent with the measurement, nearest the trial.
-
-        ``u = u_trial + T⁺·(d_meas − T·u_trial)`` (the minimum-norm correction).
-        """
-        return u_trial + self._pinv @ (d_meas - self.T @ u_trial)
 
     def matrix(self, action: int) -> np.ndarray:
         """The element matrix for a stiffness / damping / mass request."""
@@ -292,7 +246,7 @@ class ExperimentalSite:
         """The ``genericClient`` lines (OpenSeesPy, Tcl) to paste into the OpenSees model."""
         host = self.server.host if self.server else self.host
         port = self.server.port if self.server else self.options["port"]
-        T = self.mapping._transform
+        T = self.mapping.rows
         return _genericclient_lines(host, port, T.shape[1] if T is not None else self.n + 1)
 
     def accept(self, stop: Callable[[], bool] = lambda: False) -> P.SessionID:
