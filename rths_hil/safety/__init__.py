@@ -7,32 +7,8 @@
 * :mod:`rths_hil.safety.channels` — the rules of every channel asked once per phase of a step.
 """
 
+from . import rules
 from .monitor import SafetyMonitor
-from .rules import (
-    ControllerRule,
-    FEIRule,
-    KalmanRule,
-    LimitRule,
-    OverrunRule,
-    SequenceRule,
-    StabilityRule,
-    StallRule,
-    StuckRule,
-    Trip,
-    WatchdogRule,
-)
+from .rules import *  # noqa: F403 (the rules' public names, as asyncio re-exports its parts)
 
-__all__ = [
-    "ControllerRule",
-    "FEIRule",
-    "KalmanRule",
-    "LimitRule",
-    "OverrunRule",
-    "SafetyMonitor",
-    "SequenceRule",
-    "StabilityRule",
-    "StallRule",
-    "StuckRule",
-    "Trip",
-    "WatchdogRule",
-]
+__all__ = ["SafetyMonitor", *rules.__all__]

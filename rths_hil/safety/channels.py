@@ -9,11 +9,28 @@ after the evaluators (:meth:`Safety.evaluators`) and, paced, with the step's lat
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 from ..hybrid.channel import Channel
 from . import OverrunRule, Trip
 
 __all__ = ["Safety"]
+
+
+def _feedback(check: Callable[..., Trip | None], ch: Channel, t: float, k: int) -> Trip | None:
+    """``check`` (a :meth:`~rths_hil.safety.SafetyMonitor.check_feedback`) on ``ch``'s reply."""
+    return check(
+        t,
+        k,
+        ch.feedback_ok,
+        k,
+        ch.reply_seq,
+        ch.reply_status,
+        ch.command,
+        ch.measured,
+        ch.force,
+        ch.link_down,
+    )
 
 
 class Safety:
@@ -41,18 +58,7 @@ class Safety:
 
     def _feedback_one(self, t: float, k: int) -> Trip | None:
         ch = self._ch
-        trip = self._check_feedback(
-            t,
-            k,
-            ch.feedback_ok,
-            k,
-            ch.reply_seq,
-            ch.reply_status,
-            ch.command,
-            ch.measured,
-            ch.force,
-            ch.link_down,
-        )
+        trip = _feedback(self._check_feedback, ch, t, k)
         return None if trip is None else self.fire(trip, ch, t, k)
 
     def _command_one(self, t: float, k: int) -> Trip | None:
@@ -96,18 +102,7 @@ class Safety:
     def feedback(self, t: float, k: int) -> Trip | None:
         """After the replies: link, watchdog, sequence, controller status, NaN, limits, stuck."""
         for ch in self.channels:
-            trip = ch.monitor.check_feedback(
-                t,
-                k,
-                ch.feedback_ok,
-                k,
-                ch.reply_seq,
-                ch.reply_status,
-                ch.command,
-                ch.measured,
-                ch.force,
-                ch.link_down,
-            )
+            trip = _feedback(ch.monitor.check_feedback, ch, t, k)
             if trip is not None:
                 return self.fire(trip, ch, t, k)
         return None

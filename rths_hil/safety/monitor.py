@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 from ..units import positive_number
 from .rules import (
@@ -165,6 +166,19 @@ class SafetyMonitor:
         self.tripped = trip.at(t, k)
         return self.tripped
 
+    def _ask(
+        self,
+        rule: FEIRule | StabilityRule | KalmanRule | WatchdogRule | None,
+        t: float,
+        k: int,
+        *values: Any,
+    ) -> Trip | None:
+        """``rule.check(*values)``, its trip stamped and kept; ``None`` without the rule."""
+        if rule is None:
+            return None
+        trip = rule.check(*values)
+        return None if trip is None else self._fire(trip, t, k)
+
     def _nan(self, t: float, k: int, names: Sequence[str], values: Sequence[float]) -> Trip:
         bad = [(n, v) for n, v in zip(names, values, strict=True) if not _isfinite(v)]
         reason = ", ".join(f"{n} = {v!r}" for n, v in bad)
@@ -219,12 +233,7 @@ class SafetyMonitor:
         if not ok and link_down is not None:
             reason = f"the link to the controller is down ({link_down})"
             return self._fire(Trip("link", reason), t, k)
-        wd = self.watchdog
-        if wd is not None:
-            trip = wd.check(ok)
-            if trip is not None:
-                return self._fire(trip, t, k)
-        return None
+        return self._ask(self.watchdog, t, k, ok)
 
     def check_feedback(
         self,
@@ -296,12 +305,7 @@ class SafetyMonitor:
             return self.tripped
         if valid and not _isfinite(amplitude + delay):
             return self._nan(t, k, ("fei_amplitude", "fei_delay"), (amplitude, delay))
-        rule = self.fei
-        if rule is not None:
-            trip = rule.check(amplitude, delay, valid)
-            if trip is not None:
-                return self._fire(trip, t, k)
-        return None
+        return self._ask(self.fei, t, k, amplitude, delay, valid)
 
     def check_stability(
         self, t: float, k: int, ratio: float, injected: float = math.nan
@@ -309,12 +313,7 @@ class SafetyMonitor:
         """The channel's energy stability indicator ``S`` of this step (NaN: not valid)."""
         if self.tripped is not None:
             return self.tripped
-        rule = self.stability
-        if rule is not None:
-            trip = rule.check(ratio, injected)
-            if trip is not None:
-                return self._fire(trip, t, k)
-        return None
+        return self._ask(self.stability, t, k, ratio, injected)
 
     def check_kalman(self, t: float, k: int, gain: float, delay: float) -> Trip | None:
         """The Kalman estimator's gain and delay."""
@@ -322,12 +321,7 @@ class SafetyMonitor:
             return self.tripped
         if not _isfinite(gain + delay):
             return self._nan(t, k, ("kf_gain", "kf_delay"), (gain, delay))
-        rule = self.kalman
-        if rule is not None:
-            trip = rule.check(gain, delay)
-            if trip is not None:
-                return self._fire(trip, t, k)
-        return None
+        return self._ask(self.kalman, t, k, gain, delay)
 
     def margin(self, peak_displacement: float, peak_velocity: float, peak_force: float):
         """The nearest limit: ``(name, fraction of the limit still unused)`` (for the console)."""
