@@ -5,7 +5,8 @@ arm, e-stop, in the style of python-can's ``BusABC``). What the plan and the lin
 before any bus is opened — which physical link a connection uses, the load of its frames, who
 may share it, whether its twin can be served from the loop's thread, which profile format the
 protocol takes and which connection settings are file paths — is a :class:`Protocol`. Each
-protocol package exports one as ``PROTOCOL`` (``rths_hil.drivers.can.PROTOCOL`` …);
+protocol package exports one as ``PROTOCOL`` (``rths_hil.drivers.can.PROTOCOL`` …), its hooks
+the functions of the same names in the package's link model (:meth:`Protocol.from_hooks`);
 :mod:`rths_hil.drivers.registry` maps driver names to them. A lab's driver registered as a
 :class:`Driver` subclass gets one built from its class (:meth:`Protocol.from_driver`): the
 class's hooks of the same names, where it has them, else the defaults.
@@ -19,13 +20,12 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from rths_hil.errors import InputError
+from rths_hil.linkbudget import LinkLoad, link_inputs
 
 if TYPE_CHECKING:
-    from rths_hil.linkbudget import LinkLoad
-
     from .base import Driver
 
-__all__ = ["HOOKS", "ChannelUse", "Protocol", "default_own_link"]
+__all__ = ["HOOKS", "ChannelUse", "LinkInputs", "Protocol", "default_own_link", "link_model"]
 
 #: One channel of a test as :attr:`Protocol.check_sharing` sees it: (index in ``actuators``,
 #: channel name, its connection settings, whether a twin serves it).
@@ -40,6 +40,68 @@ def default_own_link(connection: dict[str, Any]) -> bool:
     named in ``connection`` (the twin opens a fresh one)."""
     c = connection or {}
     return not (c.get("channel") or c.get("port") or c.get("url"))
+
+
+@dataclass(frozen=True)
+class LinkInputs:
+    """What a link model computes a link's load from, checked (:func:`link_model`).
+
+    Attributes
+    ----------
+    connection : dict
+        A copy of the connection settings.
+    link : str
+        The link's name (the protocol's ``link_key`` of ``connection``).
+    channels : int
+        Channels on the link (≥ 1).
+    fs : float
+        Loop rate (Hz, > 0).
+    heartbeat_hz : float
+        Heartbeat frames per second per channel (0: none).
+    """
+
+    connection: dict[str, Any]
+    link: str
+    channels: int
+    fs: float
+    heartbeat_hz: float
+
+    @property
+    def base(self) -> dict[str, Any]:
+        """The :class:`~rths_hil.linkbudget.LinkLoad` fields the inputs fill (``channels``,
+        ``fs``)."""
+        return {"channels": self.channels, "fs": self.fs}
+
+
+def link_model(
+    link_key: Callable[[dict[str, Any]], str],
+) -> Callable[[Callable[[LinkInputs], LinkLoad]], Callable[..., LinkLoad]]:
+    """Decorator: a protocol's ``link_load`` hook from its link model, a function of the
+    checked inputs (:class:`LinkInputs`, the link named by ``link_key``).
+
+    The hook takes ``(connection, channels_on_link, fs, *, heartbeat_hz=0.0)``
+    (:attr:`Protocol.link_load`); a channel count below 1 or a loop rate that is not a positive
+    number is refused (:class:`~rths_hil.errors.InputError`) before the model runs.
+    """
+
+    def wrap(model: Callable[[LinkInputs], LinkLoad]) -> Callable[..., LinkLoad]:
+        def link_load(
+            connection: dict[str, Any],
+            channels_on_link: int,
+            fs: float,
+            *,
+            heartbeat_hz: float = 0.0,
+        ) -> LinkLoad:
+            c, base = link_inputs(connection, channels_on_link, fs)
+            return model(
+                LinkInputs(c, link_key(c), base["channels"], base["fs"], float(heartbeat_hz))
+            )
+
+        for attr in ("__module__", "__name__", "__qualname__", "__doc__"):
+            setattr(link_load, attr, getattr(model, attr))
+        return link_load
+
+    return wrap
 
 
 def _no_advice(load: LinkLoad, limit: float) -> list[str]:
@@ -122,23 +184,11 @@ class Protocol:
 
             object.__setattr__(self, "link_key", key)
         if self.link_load is None:
-            link_key = self.link_key
 
-            def load(
-                connection: dict[str, Any],
-                channels_on_link: int,
-                fs: float,
-                *,
-                heartbeat_hz: float = 0.0,
-            ) -> LinkLoad:
-                from rths_hil.linkbudget import LinkLoad
-
+            @link_model(self.link_key)  # type: ignore[arg-type]
+            def load(i: LinkInputs) -> LinkLoad:
                 return LinkLoad(
-                    link_key(connection),  # type: ignore[misc]
-                    None,
-                    f"driver {name!r}: frame sizes unknown, not checked",
-                    channels=int(channels_on_link),
-                    fs=float(fs),
+                    i.link, None, f"driver {name!r}: frame sizes unknown, not checked", **i.base
                 )
 
             object.__setattr__(self, "link_load", load)
@@ -156,6 +206,25 @@ class Protocol:
         return self.profile_driver()
 
     @classmethod
+    def from_hooks(cls, name: str, driver: type[Driver], hooks: Any, **facts: Any) -> Protocol:
+        """The descriptor whose planning hooks are the functions of ``hooks`` named as them.
+
+        Parameters
+        ----------
+        name : str
+            The driver name.
+        driver : type
+            The driver class.
+        hooks : module or class
+            Where the hooks are (a protocol package's link model module, a driver class): its
+            attributes named as one of :data:`HOOKS`; a hook it lacks keeps the default.
+        **facts
+            The other attributes (``profile_protocol``, ``path_keys`` …).
+        """
+        found = {h: getattr(hooks, h) for h in HOOKS if hasattr(hooks, h)}
+        return cls(name=name, driver=driver, **found, **facts)
+
+    @classmethod
     def from_driver(cls, name: str, driver: type[Driver]) -> Protocol:
         """The descriptor of a driver class registered on its own (a lab's entry point).
 
@@ -163,13 +232,12 @@ class Protocol:
         ``profile_driver``, its ``path_keys`` and ``serve_options``, where it has them; the
         defaults otherwise.
         """
-        hooks: dict[str, Any] = {h: getattr(driver, h) for h in HOOKS if hasattr(driver, h)}
-        return cls(
-            name=name,
-            driver=driver,
+        return cls.from_hooks(
+            name,
+            driver,
+            driver,
             profile_protocol=getattr(driver, "profile_protocol", None),
             profile_driver=getattr(driver, "profile_driver", None),
             path_keys=tuple(getattr(driver, "path_keys", ())),
             serve_options=getattr(driver, "serve_options", None),
-            **hooks,
         )

@@ -56,6 +56,7 @@ __all__ = [
     "TIMEOUT_HONOURED",
     "CANDriver",
     "SharedBus",
+    "SharedBusDriver",
     "check_node",
     "release_bus",
     "shared_bus",
@@ -188,7 +189,122 @@ def check_node(node: int) -> int:
     return node
 
 
-class CANDriver(Driver):
+class SharedBusDriver(Driver):
+    """A driver that is one node on a python-can bus shared per interface and channel
+    (:func:`shared_bus`, bridge side): its bus settings, opening and closing its share, sending
+    a frame and reading its feedback (frames for another node go to that node's inbox; see the
+    module docstring for the receive paths).
+
+    A subclass calls :meth:`_init_bus` from its ``__init__`` and defines :meth:`_parse` (a
+    frame read off the bus → its feedback, or ``None``, counted) and :meth:`_holder` (who holds
+    the feedback identifier, for the refusal of a second driver on it).
+    """
+
+    def _init_bus(
+        self,
+        interface: str,
+        channel: str,
+        bitrate: int | None,
+        bus_options: dict[str, Any] | None,
+        feedback_id: int,
+    ) -> None:
+        """The bus settings and the node's feedback identifier (``_fb_id``); not yet open."""
+        self.interface, self.channel = str(interface), str(channel)
+        self.bitrate = None if bitrate is None else int(bitrate)
+        self.bus_options = dict(bus_options or {})
+        self._fb_id = feedback_id
+        self._bus: can.BusABC | None = None
+        self._rxq: queue.Queue | None = None
+        self._share: SharedBus | None = None
+        self._box: deque = deque()  # frames for this node read off the bus by another node
+        self._routes: dict[int, deque] = {}
+        self._reader: can.BufferedReader | None = None
+
+    def _parse(self, msg: can.Message) -> Feedback | None:
+        """The feedback in ``msg``, or ``None`` (counted; another node's frame to its inbox)."""
+        raise NotImplementedError
+
+    def _holder(self) -> str:
+        """Who the feedback identifier belongs to, as the refusal of a second driver says."""
+        raise NotImplementedError
+
+    def open(self) -> None:
+        if self._bus is not None:
+            return
+        kwargs = dict(self.bus_options)
+        if self.bitrate is not None:
+            kwargs["bitrate"] = self.bitrate
+        try:
+            share = shared_bus("bridge", self.interface, self.channel, **kwargs)
+        except InputError as exc:
+            raise InputError(f"CAN driver: {exc}") from None
+        if self._fb_id in share.inboxes:
+            release_bus(share)
+            raise InputError(
+                f"CAN driver: {self._holder()} is already open on channel {self.channel!r}"
+            )
+        self._share = share
+        self._box = share.inboxes[self._fb_id] = deque()
+        self._routes = share.inboxes
+        self._bus, self._rxq, self._reader = share.bus, share.rxq, share.reader
+
+    def close(self) -> None:
+        share, self._share = self._share, None
+        self._bus = self._rxq = self._reader = None
+        if share is not None:
+            share.inboxes.pop(self._fb_id, None)
+            release_bus(share)
+
+    def _send_frame(self, msg: can.Message) -> None:
+        if self._bus is None:
+            self.stats.send_errors += 1
+            return
+        try:
+            self._bus.send(msg)
+        except (can.CanError, OSError):
+            self.stats.send_errors += 1
+
+    def _recv_internal(self, deadline: float) -> Feedback | None:
+        box = self._box
+        if box:  # read off the shared bus by another node's driver
+            return self._parse(box.popleft())
+        q = self._rxq
+        if q is not None:  # virtual bus: its queue directly (see virtual_rx_queue)
+            frames = q.queue
+            if frames:  # already there: take it without the queue's lock round trips
+                msg = frames.popleft()
+            else:
+                remaining = deadline - _perf()
+                if remaining <= 0.0:
+                    return None
+                try:
+                    msg = q.get(True, remaining)
+                except queue.Empty:
+                    return None
+            return self._parse(msg)
+        bus = self._bus
+        if bus is None:
+            raise LinkDown("CAN bus closed")
+        remaining = deadline - _perf()
+        reader = self._reader
+        if reader is not None:  # an interface that ignores the timeout: its reader
+            msg = reader.get_message(remaining if remaining > 0.0 else 0.0)
+            if msg is None:
+                share = self._share
+                if share is not None and share.notifier and share.notifier.exception:
+                    self.stats.disconnects += 1
+                    raise LinkDown("CAN bus reader stopped")
+                return None
+            return self._parse(msg)
+        try:
+            msg = bus.recv(remaining if remaining > 0.0 else 0.0)
+        except (can.CanError, OSError):
+            self.stats.disconnects += 1
+            raise LinkDown("CAN bus read failed") from None
+        return None if msg is None else self._parse(msg)
+
+
+class CANDriver(SharedBusDriver):
     """Lockstep actuator driver over CAN (see the module docstring).
 
     Parameters
@@ -221,10 +337,6 @@ class CANDriver(Driver):
     ) -> None:
         super().__init__()
         self.node = check_node(node)
-        self.interface = str(interface)
-        self.channel = str(channel)
-        self.bitrate = None if bitrate is None else int(bitrate)
-        self.bus_options = dict(bus_options or {})
         self.codecs: ActuatorCodecs = load(dbc)
         cmd, fb = self.codecs.command, self.codecs.feedback
         # Command: Seq, Displacement, Control — shifts and masks precompiled from the DBC.
@@ -235,7 +347,8 @@ class CANDriver(Driver):
         self._c_scale, self._c_offset = cmd.scales[1], cmd.offsets[1]
         self._c_lo, self._c_hi = cmd.raw_range(1)
         self._c_len = cmd.length
-        self._f_id, self._f_len = fb.frame_id + node, fb.length
+        self._init_bus(interface, channel, bitrate, bus_options, fb.frame_id + node)
+        self._f_len = fb.length
         # Feedback: Seq, Status, Displacement, Force — bit positions, masks, sign bits, scales
         # and INVALID values as one tuple: _handle unpacks it once per frame.
         self._f_layout = (
@@ -257,53 +370,10 @@ class CANDriver(Driver):
         self._cmd_data = self._cmd_msg.data
         self._estop_id = self.codecs.estop.frame_id + node
         self._hb_id = self.codecs.heartbeat.frame_id + node
-        self._bus: can.BusABC | None = None
-        self._rxq: queue.Queue | None = None
-        self._share: SharedBus | None = None
-        self._box: deque = deque()  # frames for this node read off the bus by another node
-        self._routes: dict[int, deque] = {}
-        self._reader: can.BufferedReader | None = None
         self._hb = 0
 
-    def open(self) -> None:
-        if self._bus is not None:
-            return
-        kwargs = dict(self.bus_options)
-        if self.bitrate is not None:
-            kwargs["bitrate"] = self.bitrate
-        try:
-            share = shared_bus("bridge", self.interface, self.channel, **kwargs)
-        except InputError as exc:
-            raise InputError(f"CAN driver: {exc}") from None
-        if self._f_id in share.inboxes:
-            release_bus(share)
-            raise InputError(
-                f"CAN driver: node {self.node} is already open on channel {self.channel!r}"
-            )
-        self._share = share
-        self._box = share.inboxes[self._f_id] = deque()
-        self._routes = share.inboxes
-        self._bus = share.bus
-        self._rxq = share.rxq
-        self._reader = share.reader
-
-    def close(self) -> None:
-        share, self._share = self._share, None
-        self._bus = None
-        self._rxq = None
-        self._reader = None
-        if share is not None:
-            share.inboxes.pop(self._f_id, None)
-            release_bus(share)
-
-    def _send_frame(self, msg: can.Message) -> None:
-        if self._bus is None:
-            self.stats.send_errors += 1
-            return
-        try:
-            self._bus.send(msg)
-        except (can.CanError, OSError):
-            self.stats.send_errors += 1
+    def _holder(self) -> str:
+        return f"node {self.node}"
 
     def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
         raw = round((displacement - self._c_offset) / self._c_scale)
@@ -332,56 +402,17 @@ class CANDriver(Driver):
             Frame(arbitration_id=self._hb_id, data=c.pack(self._hb), is_extended_id=False)
         )
 
-    def _recv_internal(self, deadline: float) -> Feedback | None:
-        box = self._box
-        if box:  # read off the shared bus by another node's driver
-            return self._decode(box.popleft())
-        q = self._rxq
-        if q is not None:  # virtual bus: its queue directly (see virtual_rx_queue)
-            frames = q.queue
-            if frames:  # already there: take it without the queue's lock round trips
-                msg = frames.popleft()
-            else:
-                remaining = deadline - _perf()
-                if remaining <= 0.0:
-                    return None
-                try:
-                    msg = q.get(True, remaining)
-                except queue.Empty:
-                    return None
-            return self._decode(msg)
-        bus = self._bus
-        if bus is None:
-            raise LinkDown("CAN bus closed")
-        remaining = deadline - _perf()
-        reader = self._reader
-        if reader is not None:  # an interface that ignores the timeout: its reader
-            msg = reader.get_message(remaining if remaining > 0.0 else 0.0)
-            if msg is None:
-                share = self._share
-                if share is not None and share.notifier and share.notifier.exception:
-                    self.stats.disconnects += 1
-                    raise LinkDown("CAN bus reader stopped")
-                return None
-            return self._decode(msg)
-        try:
-            msg = bus.recv(remaining if remaining > 0.0 else 0.0)
-        except (can.CanError, OSError):
-            self.stats.disconnects += 1
-            raise LinkDown("CAN bus read failed") from None
-        return None if msg is None else self._decode(msg)
-
     def _handle(self, msg: can.Message) -> Feedback | None:
         """Decode ``msg`` and apply the sequence rules and counters (as :meth:`receive`)."""
-        return self._accept(self._decode(msg))
+        return self._accept(self._parse(msg))
 
-    def _decode(self, msg: can.Message) -> Feedback | None:
+    def _parse(self, msg: can.Message) -> Feedback | None:
         """The feedback in ``msg`` (sequence number extended), or None (counted)."""
         stats = self.stats
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             stats.count_malformed("bad_frame")
             return None
-        if msg.arbitration_id != self._f_id:
+        if msg.arbitration_id != self._fb_id:
             other = self._routes.get(msg.arbitration_id)
             if other is not None:  # another node's feedback on the shared bus
                 other.append(msg)
@@ -415,15 +446,12 @@ def _profile_driver() -> type[Driver]:
     return CANProfileDriver
 
 
-#: The CAN protocol's planning facts (:mod:`rths_hil.drivers.protocol`).
-PROTOCOL = Protocol(
-    name="can",
-    driver=CANDriver,
-    link_key=linkbudget.link_key,
-    link_load=linkbudget.link_load,
-    link_advice=linkbudget.link_advice,
-    check_sharing=linkbudget.check_sharing,
-    inline_twin=linkbudget.inline_twin,
+#: The CAN protocol's planning facts (:mod:`rths_hil.drivers.protocol`): the hooks of its link
+#: model (:mod:`.linkbudget`) and what else differs from the defaults.
+PROTOCOL = Protocol.from_hooks(
+    "can",
+    CANDriver,
+    linkbudget,
     profile_protocol="can",
     profile_driver=_profile_driver,
     path_keys=("dbc",),

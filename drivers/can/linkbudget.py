@@ -56,13 +56,12 @@ from rths_hil.errors import InputError
 from rths_hil.linkbudget import (
     LinkLoad,
     bits_per_char,
-    link_inputs,
     positive,
     rate_text,
     serial_rate_kind,
 )
 
-from ..protocol import ChannelUse
+from ..protocol import ChannelUse, LinkInputs, link_model
 
 __all__ = [
     "CAN_BITRATES",
@@ -189,19 +188,11 @@ def link_key(connection: dict[str, Any]) -> str:
     return f"can {c.get('interface', 'virtual')}:{c.get('channel', 'rths-hil')}"
 
 
-def link_load(
-    connection: dict[str, Any],
-    channels_on_link: int,
-    fs: float,
-    *,
-    heartbeat_hz: float = 0.0,
-) -> LinkLoad:
+@link_model(link_key)
+def link_load(i: LinkInputs) -> LinkLoad:
     """Classic CAN: command + feedback frames from the DBC, worst-case stuffing (module
     docstring); CAN through a serial line (``slcan``, ``serial``)."""
-    c, base = link_inputs(connection, channels_on_link, fs)
-    ch, fs = base["channels"], base["fs"]
-    hb = float(heartbeat_hz)
-    name = link_key(c)
+    c, name, ch, fs, hb = i.connection, i.link, i.channels, i.fs, i.heartbeat_hz
     n_cmd, n_fb, n_hb = _can_frame_lengths(c.get("dbc"))
     ext = (False, False, False)
     profile = c.get("profile")
@@ -227,11 +218,11 @@ def link_load(
     bitrate = c.get("bitrate")
     interface = str(c.get("interface", "virtual"))
     if interface in CAN_SERIAL_INTERFACES:
-        return _can_serial_load(c, interface, name, (n_cmd, n_fb, n_hb), bits_step, hb, base)
+        return _can_serial_load(i, interface, (n_cmd, n_fb, n_hb), bits_step)
     if bitrate is None:
         why = "virtual bus" if interface == "virtual" else "bit rate set by the interface"
         return LinkLoad(
-            name, None, f"{why}; {frames} = {bits_step * fs:.0f} bit/s", kind="can", **base
+            name, None, f"{why}; {frames} = {bits_step * fs:.0f} bit/s", kind="can", **i.base
         )
     rate = positive(bitrate, f"{name}: bitrate (bit/s)")
     load = (bits_step * fs + ch * b_hb * hb) / rate
@@ -247,21 +238,15 @@ def link_load(
         rate=rate,
         per_channel=(b_cmd + b_fb) / rate,
         per_second=ch * b_hb * hb / rate,
-        **base,
+        **i.base,
     )
 
 
 def _can_serial_load(
-    c: dict[str, Any],
-    interface: str,
-    name: str,
-    lengths: tuple[int, int, int],
-    can_bits_step: int,
-    hb: float,
-    base: dict[str, Any],
+    i: LinkInputs, interface: str, lengths: tuple[int, int, int], can_bits_step: int
 ) -> LinkLoad:
     """Load of a CAN link through a serial line (``slcan``, ``serial``): module docstring."""
-    ch, fs = base["channels"], base["fs"]
+    c, name, ch, fs, hb = i.connection, i.link, i.channels, i.fs, i.heartbeat_hz
     device, baud = _can_serial_line(c, interface)
     baud = positive(baud, f"{name}: baud rate")
     c_cmd, c_fb, c_hb = (can_serial_frame_chars(interface, n) for n in lengths)
@@ -272,7 +257,7 @@ def _can_serial_load(
         frames += f" + heartbeats {ch} × {c_hb} {unit} at {hb:g} Hz"
     why = serial_rate_kind(device)
     if why is not None:
-        return LinkLoad(name, None, f"{why}; {frames}", kind="serial", **base)
+        return LinkLoad(name, None, f"{why}; {frames}", kind="serial", **i.base)
     t_step = (c_cmd + c_fb) * bpc / baud
     t_hb = ch * c_hb * bpc * hb / baud
     line = ch * t_step * fs + t_hb
@@ -293,7 +278,7 @@ def _can_serial_load(
                 rate=rate,
                 per_channel=b_step / rate,
                 per_second=ch * b_hb * hb / rate,
-                **base,
+                **i.base,
             )
     return LinkLoad(
         name,
@@ -303,7 +288,7 @@ def _can_serial_load(
         rate=baud,
         per_channel=t_step,
         per_second=t_hb,
-        **base,
+        **i.base,
     )
 
 

@@ -23,9 +23,6 @@ The bus is opened as for :class:`~.CANDriver` (python-can, shared per interface 
 from __future__ import annotations
 
 import math
-import queue
-import time
-from collections import deque
 from functools import partial
 from typing import Any, ClassVar
 
@@ -34,18 +31,16 @@ from cantools.database.errors import Error as CantoolsError
 
 from rths_hil.errors import InputError
 
-from ..base import Driver, Feedback, LinkDown
+from ..base import Feedback
 from ..profile import MODE_ACTIONS, load_profile, status_from_word
-from . import SharedBus, release_bus, shared_bus
+from . import SharedBusDriver
 from .codec import Frame
 from .profile_format import CANProfile
 
 __all__ = ["CANProfileDriver"]
 
-_perf = time.perf_counter
 
-
-class CANProfileDriver(Driver):
+class CANProfileDriver(SharedBusDriver):
     """Lockstep driver for a CAN controller with its own DBC (see the module docstring).
 
     Parameters
@@ -76,10 +71,8 @@ class CANProfileDriver(Driver):
         if not isinstance(prof, CANProfile):
             raise InputError(f"can driver: profile {profile} is not a CAN profile")
         self.profile = self._base_profile = prof
-        self.interface, self.channel = str(interface), str(channel)
-        self.bitrate = None if bitrate is None else int(bitrate)
-        self.bus_options = dict(bus_options or {})
         cmd, fb = prof.command, prof.feedback
+        self._init_bus(interface, channel, bitrate, bus_options, fb.frame_id)
         self._cmd = cmd
         self._fb = fb
         r = prof.roles
@@ -101,7 +94,7 @@ class CANProfileDriver(Driver):
         self._status = r["status"].signal
         self._masks = prof.masks
         self._flags: dict[int, int] = {}
-        self._fb_id, self._fb_ext = fb.frame_id, bool(fb.is_extended_frame)
+        self._fb_ext = bool(fb.is_extended_frame)
         # one command frame, reused: send() rewrites its payload in place (codec.Frame copies
         # cheaply on the virtual bus)
         self._cmd_frame = Frame(
@@ -128,12 +121,6 @@ class CANProfileDriver(Driver):
         if prof.heartbeat is not None:
             self._hb_msg = prof.database.get_message_by_name(prof.heartbeat.message)
         self._hb = 0
-        self._share: SharedBus | None = None
-        self._bus: can.BusABC | None = None
-        self._rxq: queue.Queue | None = None
-        self._reader: can.BufferedReader | None = None
-        self._box: deque = deque()
-        self._routes: dict[int, deque] = {}
 
     def _use_setpoint(self) -> None:
         """The set-point signal of the command frame: ``roles.setpoint``, or
@@ -171,43 +158,9 @@ class CANProfileDriver(Driver):
             sig = self._cmd.get_signal_by_name(acts["force_mode"].signal)
             self._values[sig.name] = float(sig.raw_initial or 0) * sig.scale + sig.offset
 
-    # -- transport ------------------------------------------------------------------------------
-    def open(self) -> None:
-        if self._bus is not None:
-            return
-        kwargs = dict(self.bus_options)
-        if self.bitrate is not None:
-            kwargs["bitrate"] = self.bitrate
-        try:
-            share = shared_bus("bridge", self.interface, self.channel, **kwargs)
-        except InputError as exc:
-            raise InputError(f"CAN driver: {exc}") from None
-        if self._fb_id in share.inboxes:
-            release_bus(share)
-            raise InputError(
-                f"CAN driver: a driver for feedback id 0x{self._fb_id:X} is already open on "
-                f"channel {self.channel!r}"
-            )
-        self._share = share
-        self._box = share.inboxes[self._fb_id] = deque()
-        self._routes = share.inboxes
-        self._bus, self._rxq, self._reader = share.bus, share.rxq, share.reader
-
-    def close(self) -> None:
-        share, self._share = self._share, None
-        self._bus = self._rxq = self._reader = None
-        if share is not None:
-            share.inboxes.pop(self._fb_id, None)
-            release_bus(share)
-
-    def _send_frame(self, msg: can.Message) -> None:
-        if self._bus is None:
-            self.stats.send_errors += 1
-            return
-        try:
-            self._bus.send(msg)
-        except (can.CanError, OSError):
-            self.stats.send_errors += 1
+    # -- transport: the shared bus (SharedBusDriver) -----------------------------------------
+    def _holder(self) -> str:
+        return f"a driver for feedback id 0x{self._fb_id:X}"
 
     # -- commands -------------------------------------------------------------------------------
     def _send_raw(self, seq: int, displacement: float, enable: bool) -> None:
@@ -300,39 +253,3 @@ class CANProfileDriver(Driver):
         if flags is None:  # the bridge's flags of a status word, looked up once per word
             flags = self._flags[word] = status_from_word(word, self._masks)
         return Feedback(-1, d if math.isfinite(d) else math.nan, f, flags)
-
-    def _recv_internal(self, deadline: float) -> Feedback | None:
-        box = self._box
-        if box:
-            return self._parse(box.popleft())
-        q = self._rxq
-        if q is not None:
-            frames = q.queue
-            if frames:
-                return self._parse(frames.popleft())
-            remaining = deadline - _perf()
-            if remaining <= 0.0:
-                return None
-            try:
-                return self._parse(q.get(True, remaining))
-            except queue.Empty:
-                return None
-        bus = self._bus
-        if bus is None:
-            raise LinkDown("CAN bus closed")
-        remaining = deadline - _perf()
-        if self._reader is not None:  # an interface that ignores the timeout: its reader
-            msg = self._reader.get_message(remaining if remaining > 0.0 else 0.0)
-            if msg is None:
-                share = self._share
-                if share is not None and share.notifier and share.notifier.exception:
-                    self.stats.disconnects += 1
-                    raise LinkDown("CAN bus reader stopped")
-                return None
-        else:
-            try:
-                msg = bus.recv(remaining if remaining > 0.0 else 0.0)
-            except (can.CanError, OSError):
-                self.stats.disconnects += 1
-                raise LinkDown("CAN bus read failed") from None
-        return None if msg is None else self._parse(msg)

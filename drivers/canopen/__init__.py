@@ -121,14 +121,12 @@ __all__ = [
     "step_frames",
 ]
 
-#: The CANopen protocol's planning facts (:mod:`rths_hil.drivers.protocol`).
-PROTOCOL = Protocol(
-    name="canopen",
-    driver=CANopenDriver,
-    link_key=linkbudget.link_key,
-    link_load=linkbudget.link_load,
-    check_sharing=linkbudget.check_sharing,
-    inline_twin=linkbudget.inline_twin,
+#: The CANopen protocol's planning facts (:mod:`rths_hil.drivers.protocol`): the hooks of its link
+#: model (:mod:`.linkbudget`) and what else differs from the defaults.
+PROTOCOL = Protocol.from_hooks(
+    "canopen",
+    CANopenDriver,
+    linkbudget,
     path_keys=("eds",),
     serve_options=can_options.serve_options,
 )

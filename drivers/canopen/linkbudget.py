@@ -13,8 +13,9 @@ import canopen
 from canopen.objectdictionary import ODArray, ODRecord
 
 from rths_hil.errors import InputError
+from rths_hil.linkbudget import LinkLoad
 
-from ..protocol import ChannelUse
+from ..protocol import ChannelUse, LinkInputs, link_model
 from .od import (
     BRIDGE_NODE_ID,
     TORQUE_ACTUAL,
@@ -149,7 +150,8 @@ def _fixed_eds_frames(c: dict[str, Any]) -> dict[str, int] | None:
             "tpdo2": sum(size(m) for m in extra.values())}  # fmt: skip
 
 
-def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat_hz: float = 0.0):
+@link_model(link_key)
+def link_load(i: LinkInputs) -> LinkLoad:
     """The CANopen link's load (:class:`rths_hil.linkbudget.LinkLoad`) of ``channels`` axes.
 
     Per step: one SYNC for the bus (shared by its axes, :class:`CANopenBus`) plus, per axis,
@@ -157,11 +159,9 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
     least ``1/heartbeat_period``), and each device's (``1/controller_heartbeat``). Frame bits
     with worst-case stuffing (:func:`rths_hil.drivers.can.linkbudget.can_frame_bits`).
     """
-    from rths_hil.linkbudget import LinkLoad
-
     from ..can.linkbudget import can_frame_bits
 
-    c = dict(connection or {})
+    c, name, channels, fs = i.connection, i.link, i.channels, i.fs
     for key in ("heartbeat_period", "controller_heartbeat"):  # as the driver takes them
         if key in c:
             v = _quantity(key, c[key], "s")
@@ -173,11 +173,11 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
     n = step_frames(c)
     per_axis = sum(can_frame_bits(n[k]) for k in ("rpdo", "tpdo1", "tpdo2") if n[k] or k != "tpdo2")
     b_sync = can_frame_bits(0)
-    hb_bridge = max(heartbeat_hz, 1.0 / c["heartbeat_period"] if c.get("heartbeat_period") else 0.0)
+    period = c.get("heartbeat_period")
+    hb_bridge = max(i.heartbeat_hz, 1.0 / period if period else 0.0)
     ctrl = c.get("controller_heartbeat", 0.1)
     hb_dev = 1.0 / ctrl if ctrl else 0.0
     b_hb = can_frame_bits(1)
-    name = link_key(c)
     per_second_bits = b_hb * (hb_bridge + channels * hb_dev)  # the bridge's: one per bus
     detail = (
         f"SYNC {b_sync} + {channels} × (RPDO {can_frame_bits(n['rpdo'])} + TPDO "
@@ -186,12 +186,11 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
         + f") bits at {fs:g} Hz + heartbeats of {b_hb} bits: the bridge's at {hb_bridge:g} Hz, "
         f"{channels} × the device's at {hb_dev:g} Hz"
     )
-    base: dict[str, Any] = {"channels": channels, "fs": fs}
     interface = str(c.get("interface", "virtual"))
     bits_s = (b_sync + channels * per_axis) * fs + per_second_bits
     if bitrate is None:
         why = "virtual bus" if interface == "virtual" else "bit rate set by the interface"
-        return LinkLoad(name, None, f"{why}; {detail} = {bits_s:.0f} bit/s", kind="can", **base)
+        return LinkLoad(name, None, f"{why}; {detail} = {bits_s:.0f} bit/s", kind="can", **i.base)
     rate = float(bitrate)
     return LinkLoad(
         name,
@@ -203,7 +202,7 @@ def link_load(connection: dict[str, Any], channels: int, fs: float, *, heartbeat
         rate=rate,
         per_channel=per_axis / rate,
         per_second=(b_sync * fs + per_second_bits) / rate,
-        **base,
+        **i.base,
     )
 
 
@@ -211,14 +210,11 @@ def axes_that_fit(
     fs: float, bitrate: float = 1e6, limit: float = 0.8, connection: dict[str, Any] | None = None
 ) -> int:
     """How many axes one CANopen bus carries at ``fs`` below ``limit`` (SYNC, PDOs, heartbeats)."""
+    bus = {**(connection or {}), "bitrate": bitrate, "interface": "socketcan"}
     n = 0
-    while (
-        link_load(
-            {**(connection or {}), "bitrate": bitrate, "interface": "socketcan"}, n + 1, fs
-        ).load
-        <= limit
-    ):
-        n += 1
-        if n > 127:
+    while n < 128:
+        load = link_load(bus, n + 1, fs).load
+        if load is None or load > limit:
             break
+        n += 1
     return n

@@ -57,14 +57,12 @@ def _profile_driver() -> type[Driver]:
     return ModbusProfileDriver
 
 
-#: The Modbus protocol's planning facts (:mod:`rths_hil.drivers.protocol`).
-PROTOCOL = Protocol(
-    name="modbus",
-    driver=ModbusDriver,
-    link_key=linkbudget.link_key,
-    link_load=linkbudget.link_load,
-    link_advice=linkbudget.link_advice,
-    check_sharing=linkbudget.check_sharing,
+#: The Modbus protocol's planning facts (:mod:`rths_hil.drivers.protocol`): the hooks of its link
+#: model (:mod:`.linkbudget`) and what else differs from the defaults.
+PROTOCOL = Protocol.from_hooks(
+    "modbus",
+    ModbusDriver,
+    linkbudget,
     profile_protocol="modbus",
     profile_driver=_profile_driver,
     serve_options=options.serve_options,

@@ -36,13 +36,12 @@ from rths_hil.linkbudget import (
     LinkLoad,
     bits_per_char,
     is_loopback,
-    link_inputs,
     positive,
     rate_text,
     serial_rate_kind,
 )
 
-from ..protocol import ChannelUse
+from ..protocol import ChannelUse, LinkInputs, link_model
 from .transport import MAX_UNIT
 
 __all__ = [
@@ -121,18 +120,10 @@ def _profile(c: dict[str, Any]) -> Any:
     return load_profile(str(profile))
 
 
-def link_load(
-    connection: dict[str, Any],
-    channels_on_link: int,
-    fs: float,
-    *,
-    heartbeat_hz: float = 0.0,
-) -> LinkLoad:
+@link_model(link_key)
+def link_load(i: LinkInputs) -> LinkLoad:
     """Modbus RTU (FC 23 transactions and silences) or Modbus TCP (MBAP in Ethernet frames)."""
-    c, base = link_inputs(connection, channels_on_link, fs)
-    ch, fs = base["channels"], base["fs"]
-    del heartbeat_hz  # Modbus has no heartbeat frame
-    name = link_key(c)
+    c, name, ch, fs = i.connection, i.link, i.channels, i.fs  # Modbus has no heartbeat frame
     prof = _profile(c)
     if c.get("transport", "tcp") == "rtu":
         why = serial_rate_kind(c.get("device"))
@@ -154,7 +145,7 @@ def link_load(
                 f"{fs:g} Hz (profile)"
             )
         if why is not None:
-            return LinkLoad(name, None, f"{why}; {frames}", kind="modbus-rtu", **base)
+            return LinkLoad(name, None, f"{why}; {frames}", kind="modbus-rtu", **i.base)
         return LinkLoad(
             name,
             ch * t * fs,
@@ -162,7 +153,7 @@ def link_load(
             kind="modbus-rtu",
             rate=baud,
             per_channel=t,
-            **base,
+            **i.base,
         )
     host = str(c.get("host", "127.0.0.1"))
     req, resp = 25, 23  # MBAP header (7) + FC 23 PDU
@@ -178,7 +169,7 @@ def link_load(
             None,
             f"TCP loopback; {ch} × {fcs} ({sizes} bytes) at {fs:g} Hz",
             kind="modbus-tcp",
-            **base,
+            **i.base,
         )
     bits = 8 * (req + resp + 2 * n * TCP_SEGMENT_OVERHEAD)
     return LinkLoad(
@@ -189,7 +180,7 @@ def link_load(
         kind="modbus-tcp",
         rate=ETHERNET_BITRATE,
         per_channel=bits / ETHERNET_BITRATE,
-        **base,
+        **i.base,
     )
 
 

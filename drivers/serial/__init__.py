@@ -8,12 +8,5 @@ from .driver import SerialDriver
 
 __all__ = ["PROTOCOL", "SerialDriver"]
 
-#: The serial protocol's planning facts.
-PROTOCOL = Protocol(
-    name="serial",
-    driver=SerialDriver,
-    link_key=linkbudget.link_key,
-    link_load=linkbudget.link_load,
-    link_advice=linkbudget.link_advice,
-    check_sharing=linkbudget.check_sharing,
-)
+#: The serial protocol's planning facts: the hooks of its link model (:mod:`.linkbudget`).
+PROTOCOL = Protocol.from_hooks("serial", SerialDriver, linkbudget)

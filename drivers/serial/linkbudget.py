@@ -21,12 +21,11 @@ from rths_hil.linkbudget import (
     BAUDRATES,
     LinkLoad,
     bits_per_char,
-    link_inputs,
     positive,
     serial_rate_kind,
 )
 
-from ..protocol import ChannelUse
+from ..protocol import ChannelUse, LinkInputs, link_model
 from .framing import COMMAND, FEEDBACK
 
 __all__ = [
@@ -72,18 +71,10 @@ def link_key(connection: dict[str, Any]) -> str:
     return f"serial {(connection or {}).get('url') or 'twin pty'}"
 
 
-def link_load(
-    connection: dict[str, Any],
-    channels_on_link: int,
-    fs: float,
-    *,
-    heartbeat_hz: float = 0.0,
-) -> LinkLoad:
+@link_model(link_key)
+def link_load(i: LinkInputs) -> LinkLoad:
     """The serial driver's COBS frames on the line (module docstring)."""
-    c, base = link_inputs(connection, channels_on_link, fs)
-    ch, fs = base["channels"], base["fs"]
-    hb = float(heartbeat_hz)
-    name = link_key(c)
+    c, name, ch, fs, hb = i.connection, i.link, i.channels, i.fs, i.heartbeat_hz
     why = serial_rate_kind(c.get("url"))
     n_cmd, n_fb = serial_frame_bytes()
     n_hb = cobs_frame_bytes(4)
@@ -96,7 +87,7 @@ def link_load(
     if hb > 0:
         frames += f" + heartbeats {ch} × {n_hb} bytes at {hb:g} Hz"
     if why is not None:
-        return LinkLoad(name, None, f"{why}; {frames}", kind="serial", **base)
+        return LinkLoad(name, None, f"{why}; {frames}", kind="serial", **i.base)
     # lockstep: the feedback answers the command, so each step needs the line for both
     # frames in turn (full duplex does not overlap them); heartbeats go with the commands
     t_step = (n_cmd + n_fb) * bpc / baud
@@ -109,7 +100,7 @@ def link_load(
         rate=baud,
         per_channel=t_step,
         per_second=t_hb,
-        **base,
+        **i.base,
     )
 
 
