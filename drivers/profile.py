@@ -55,20 +55,24 @@ The profile is validated when loaded: one line naming the file and the key, exit
 out-of-range registers, a missing role, scale 0, a DBC without the named message or signal.
 ``driver.profile = "rths-hil"`` (the default) is the built-in protocol of each driver.
 
-This module holds what both formats share (the roles, units, status masks, the reader of the
-file's tables) and :func:`load_profile`; each protocol's package holds its format:
+Every table's keys are declared as :class:`~rths_hil.config.Key` tables next to the format that
+reads them and checked by :func:`rths_hil.config.check_table`, the validator of the run
+configuration. This module holds what both formats share (the roles, units, status masks, the
+keys of the role, action and status tables) and :func:`load_profile`; each protocol's package
+holds its format:
 :mod:`rths_hil.drivers.modbus.profile_format` (``ModbusProfile``, a register map) and
 :mod:`rths_hil.drivers.can.profile_format` (``CANProfile``, a DBC profile).
 """
 
 from __future__ import annotations
 
-import builtins
-import math
+from collections.abc import Iterable, Mapping
 from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from rths_hil.config.coerce import check_table
+from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
 from rths_hil.formats import read_toml
 
@@ -128,64 +132,51 @@ def is_builtin(profile: str | None) -> bool:
     return profile is None or str(profile) in ("", BUILTIN_PROFILE)
 
 
-class _Reader:
-    """Typed access to one TOML table, with errors naming the file and the key."""
+def where(source: str) -> str:
+    """The start of every message about the profile file ``source``."""
+    return f"profile {source}"
 
-    def __init__(self, source: str, data: dict[str, Any], where: str = "") -> None:
-        self.source, self.data, self.where = source, data, where
 
-    def key(self, name: str) -> str:
-        return f"{self.where}.{name}" if self.where else name
+def check_keys(
+    source: str, table: Any, keys: Mapping[str, Key], path: str, missing: str = "missing"
+) -> dict[str, Any]:
+    """A table of the profile ``source`` at ``path`` checked against its declared ``keys``
+    (:func:`rths_hil.config.check_table`): the values, defaults filled."""
+    return check_table(table, keys, where(source), path, missing=missing)
 
-    def fail(self, name: str, why: str) -> InputError:
-        return InputError(f"profile {self.source}: {self.key(name)}: {why}")
 
-    def table(self, name: str, required: bool = False) -> _Reader | None:
-        v = self.data.get(name)
-        if v is None:
-            if required:
-                raise InputError(f"profile {self.source}: {self.key(name)} is missing")
-            return None
-        if not isinstance(v, dict):
-            raise self.fail(name, "must be a table")
-        return _Reader(self.source, v, self.key(name))
+def top_keys(own: Mapping[str, Key]) -> dict[str, Key]:
+    """The top-level keys of a profile format: ``protocol``, ``name``, the format's ``own``,
+    the role, status, action and heartbeat tables."""
+    return {
+        "protocol": PROTOCOL,
+        "name": Key("str", "", doc="the controller's name (free text)"),
+        **own,
+        "roles": Key("table", REQUIRED, doc="role → where its value is on the wire"),
+        "status": Key("table", REQUIRED, doc="status flag → bit mask of the status word"),
+        "actions": Key("table", REQUIRED, doc="action → the write that performs it"),
+        "heartbeat": Key("table", None, doc="a counter the bridge writes at loop.heartbeat"),
+    }
 
-    def str(self, name: str, default: str | None = None, choices: Any = None) -> str:
-        v = self.data.get(name, default)
-        if v is None:
-            raise InputError(f"profile {self.source}: {self.key(name)} is missing")
-        if not isinstance(v, str):
-            raise self.fail(name, f"must be a string, got {v!r}")
-        if choices is not None and v not in choices:
-            raise self.fail(name, f"unknown value {v!r} (known: {', '.join(choices)})")
-        return v
 
-    def int(
-        self,
-        name: builtins.str,
-        default: builtins.int | None = None,
-        lo: builtins.int = 0,
-        hi: builtins.int = 65535,
-    ) -> builtins.int:
-        v = self.data.get(name, default)
-        if v is None:
-            raise InputError(f"profile {self.source}: {self.key(name)} is missing")
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise self.fail(name, f"must be an integer, got {v!r}")
-        if not lo <= v <= hi:
-            raise self.fail(name, f"{v} is out of range {lo}..{hi}")
-        return v
-
-    def float(self, name: builtins.str, default: builtins.float) -> builtins.float:
-        v = self.data.get(name, default)
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise self.fail(name, f"must be a finite number, got {v!r}")
-        return float(v)
-
-    def unknown(self, known: tuple[builtins.str, ...]) -> None:
-        extra = sorted(set(self.data) - set(known))
-        if extra:
-            raise self.fail(extra[0], f"unknown key (known: {', '.join(known)})")
+#: ``protocol``: which format the file is.
+PROTOCOL = Key("choice", REQUIRED, choices=("modbus", "can"), doc="the profile's format")
+#: ``units`` of a role: the unit of its value on the wire (a key of :data:`UNITS`).
+UNITS_KEY = Key("str", None, doc="unit of the value on the wire (SI when omitted)")
+#: ``[roles]``: the required roles and the optional force set-point, each a table.
+ROLE_KEYS = {
+    **{r: Key("table", REQUIRED) for r in ROLES},
+    **{r: Key("table", None) for r in OPTIONAL_ROLES},
+}
+#: The roles a message names when one is missing.
+ROLES_MISSING = f"missing (the bridge needs {', '.join(ROLES)})"
+#: ``[actions]``: the e-stop is required (every driver can e-stop).
+ACTION_KEYS = {a: Key("table", REQUIRED if a == "estop" else None) for a in ACTIONS}
+#: ``[status]``: flag → bit mask; ``enabled`` and ``estop`` required.
+STATUS_KEYS = {
+    name: Key("int", REQUIRED if name in ("enabled", "estop") else None, lo=1, hi=2**32 - 1)
+    for name in STATUS_BITS
+}
 
 
 #: What each unit measures; a role takes only its own kind.
@@ -200,36 +191,34 @@ _ROLE_KIND = {
 }
 
 
-def _units(r: _Reader, default: str = "", role: str = "") -> float:
-    u = r.str("units", default)
+def _units(source: str, path: str, given: str | None, default: str = "", role: str = "") -> float:
+    """The SI factor of the ``units`` at ``path`` (``given``, else ``default``); a role takes
+    only a unit of its own kind."""
+    u = default if given is None else given
     if u not in UNITS:
-        raise r.fail("units", f"unknown unit {u!r} (known: {', '.join(k for k in UNITS if k)})")
+        raise InputError(
+            f"{where(source)}: {path}.units: unknown unit {u!r} "
+            f"(known: {', '.join(k for k in UNITS if k)})"
+        )
     want, kind = _ROLE_KIND.get(role), _UNIT_KIND.get(u)
     if want is not None and kind is not None and kind != want:
-        raise r.fail("units", f"{u!r} is a {kind} unit; the {role} is a {want}")
+        raise InputError(
+            f"{where(source)}: {path}.units: {u!r} is a {kind} unit; the {role} is a {want}"
+        )
     return UNITS[u]
 
 
-def _masks(r: _Reader) -> dict[int, int]:
+def _masks(source: str, status: Any) -> dict[int, int]:
     """``[status]``: flag → mask (a bit of the status word that sets the flag)."""
-    st = r.table("status", required=True)
-    assert st is not None
-    st.unknown(tuple(STATUS_BITS))
-    out: dict[int, int] = {}
-    for name, flag in STATUS_BITS.items():
-        if name in st.data:
-            mask = st.int(name, lo=1, hi=2**32 - 1)
-            out[flag] = mask
-    for need in ("enabled", "estop"):
-        if need not in st.data:
-            raise InputError(f"profile {r.source}: status.{need} (bit mask) is missing")
+    given = check_keys(source, status, STATUS_KEYS, "status", "missing (a bit mask)")
+    out = {STATUS_BITS[n]: m for n, m in given.items() if m is not None}
     enabled = out[int(Status.ENABLED)]
     for name, flag in STATUS_BITS.items():
         if name != "enabled" and flag in out and out[flag] & enabled:
-            raise st.fail(
-                name,
-                f"0x{out[flag]:X} shares bits with status.enabled (0x{enabled:X}): the "
-                "controller could never be enabled without reporting it",
+            raise InputError(
+                f"{where(source)}: status.{name}: 0x{out[flag]:X} shares bits with "
+                f"status.enabled (0x{enabled:X}): the controller could never be enabled "
+                "without reporting it"
             )
     return out
 
@@ -254,22 +243,39 @@ def _no_force_role(source: str, how: str) -> InputError:
     )
 
 
+def _force_setpoint(source: str, roles: dict[str, Any], actions: dict[str, Any], how: str) -> Any:
+    """``roles["force_setpoint"]``, the set-point a channel in wire mode force writes.
+
+    Raises
+    ------
+    InputError
+        The profile maps no force set-point (``how`` says what it would be), or its
+        controller selects its loop on command without an action for the force loop.
+    """
+    fsp = roles.get("force_setpoint")
+    if fsp is None:
+        raise _no_force_role(source, how)
+    _check_force_loop(source, actions)
+    return fsp
+
+
+def _move_bits(bits: int, pairs: Iterable[tuple[int, int]]) -> int:
+    """The bits ``to`` of each pair ``(from, to)`` whose ``from`` bits ``bits`` has."""
+    out = 0
+    for have, give in pairs:
+        if bits & have:
+            out |= give
+    return out
+
+
 def status_from_word(word: int, masks: dict[int, int]) -> int:
     """The bridge's :class:`Status` flags from a controller status word."""
-    s = 0
-    for flag, mask in masks.items():
-        if word & mask:
-            s |= flag
-    return s
+    return _move_bits(word, ((mask, flag) for flag, mask in masks.items()))
 
 
 def word_from_status(status: int, masks: dict[int, int]) -> int:
     """The controller status word for the bridge's :class:`Status` flags (twins)."""
-    w = 0
-    for flag, mask in masks.items():
-        if status & flag:
-            w |= mask
-    return w
+    return _move_bits(status, masks.items())
 
 
 def _check_force_loop(source: str, actions: dict[str, Any]) -> None:
@@ -310,17 +316,18 @@ def _check_mode_actions(
 def _load_cached(path: str) -> ModbusProfile | CANProfile:
     p = Path(path)
     data = read_toml(p, "profile", f"profile {p}")
-    r = _Reader(str(p), data)
-    protocol = r.str("protocol", choices=("modbus", "can"))
+    protocol = data.get("protocol")
     if protocol == "modbus":
         from .modbus.profile_format import load_modbus
 
-        r.unknown(("protocol", "name", "modbus", "roles", "status", "actions", "heartbeat"))
-        return load_modbus(r)
-    from .can.profile_format import load_can
+        return load_modbus(str(p), data)
+    if protocol == "can":
+        from .can.profile_format import load_can
 
-    r.unknown(("protocol", "name", "dbc", "roles", "status", "actions", "heartbeat"))
-    return load_can(r, p.parent)
+        return load_can(str(p), data, p.parent)
+    given = {"protocol": protocol} if "protocol" in data else {}
+    check_keys(str(p), given, {"protocol": PROTOCOL}, "")  # says what is wrong with it
+    raise AssertionError(protocol)  # pragma: no cover
 
 
 def load_profile(path: str | Path) -> ModbusProfile | CANProfile:

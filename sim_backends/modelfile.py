@@ -1,6 +1,7 @@
 """The twin model file (TOML): one format for ``twin serve``, ``simulate`` and ``twin calibrate``.
 
-Format (all values SI; times and lengths may also be strings with units, ``"12ms"``, ``"0.2mm"``)::
+Format (all values SI; a quantity may also be a string with a unit as in the run configuration,
+``"12ms"``, ``"0.2mm"``, ``"1.19 MN/m"``)::
 
     [actuator]
     delay = 0.012              # s, transport delay (the FEI paper, Fig. 4.1), default 0
@@ -25,8 +26,11 @@ Format (all values SI; times and lengths may also be strings with units, ``"12ms
     force_resolution = 0.1     # N
     seed = 0
 
-Unknown tables, keys, models or effect kinds raise :class:`~rths_hil.errors.InputError` naming
-the file and the key path, e.g. ``twin.toml: actuator.effects[1].kind: unknown effect 'foo'
+Each table's keys are declared (:data:`FILE_KEYS`, :data:`ACTUATOR_KEYS` with the model's
+parameters, each effect's ``PARAMS``, :data:`SPECIMEN_KEYS`, :data:`SENSOR_KEYS`) and checked by
+:func:`rths_hil.config.check_table`, the validator of the run configuration. Unknown tables,
+keys, models or effect kinds raise :class:`~rths_hil.errors.InputError` naming the file and the
+key path, e.g. ``twin.toml: actuator.effects[1].kind: unknown effect 'foo'
 (known: offset, drift, …)`` (effects are numbered from 0 as in the file's order).
 
 ``force_feedback`` effects without ``specimen_stiffness``/``specimen_damping`` take them from
@@ -37,24 +41,27 @@ the file and the key path, e.g. ``twin.toml: actuator.effects[1].kind: unknown e
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from rths_hil.config import REQUIRED, Key, check_table
 from rths_hil.errors import InputError
 from rths_hil.formats import read_toml, toml_key, toml_value
-from rths_hil.units import parse_force, parse_length, parse_time, parse_velocity
 
-from .effects import EFFECTS, FORCE_REFUSED, FORCE_UNITS, make_effect, validate_params
+from .effects import EFFECTS, FORCE_REFUSED, FORCE_UNITS, Param, make_effect, validate_params
 from .models import make_model
 from .plant import Sensor, TwinPlant
 from .registry import MODELS, model_entry
 from .specimen import SPECIMEN_DEFAULTS, KelvinVoigt
 
 __all__ = [
+    "ACTUATOR_KEYS",
+    "FILE_KEYS",
+    "SENSOR_KEYS",
+    "SPECIMEN_KEYS",
     "ActuatorSpec",
     "EffectSpec",
     "ModelSpec",
@@ -69,6 +76,35 @@ __all__ = [
 _SENSOR_KEYS = ("displacement_noise", "force_noise", "displacement_resolution", "force_resolution")
 _SPECIMEN_KEYS = ("stiffness", "damping", "mass")
 _UNITS = {"delay": "s", "time_constant": "s"}
+
+#: The tables of a model file.
+FILE_KEYS = {
+    "actuator": Key("table", REQUIRED),  # the actuator model, its parameters and effects
+    "specimen": Key("table", None, doc="the specimen (default: the benchmark's)"),
+    "sensor": Key("table", None, doc="the measurement chain (default: no noise)"),
+}
+#: ``[actuator]``'s own keys (an actuator model adds its parameters).
+ACTUATOR_KEYS = {
+    "delay": Key("float", 0.0, unit="s", lo=0, doc="transport delay (the FEI paper, Fig. 4.1)"),
+    "gain": Key("float", 1.0, doc="amplitude gain"),
+    "model": Key("str", "delay_gain", doc="actuator model (sim_backends.registry.MODELS)"),
+    "effects": Key("tables", [], doc="[[actuator.effects]], applied in order after the model"),
+}
+#: ``[specimen]``: a Kelvin–Voigt spring, dashpot and mass (defaults: SPECIMEN_DEFAULTS).
+SPECIMEN_KEYS = {
+    "model": Key("choice", "kelvin_voigt", choices=("kelvin_voigt", "spring_dashpot")),
+    "stiffness": Key("float", None, unit="N/m", lo=0, doc="spring stiffness"),
+    "damping": Key("float", None, unit="N·s/m", lo=0, doc="dashpot coefficient"),
+    "mass": Key("float", None, unit="kg", lo=0, doc="specimen mass"),
+}
+#: ``[sensor]``: white noise (std) and quantisation step of each channel, the noise's seed.
+SENSOR_KEYS = {
+    "displacement_noise": Key("float", 0.0, unit="m", lo=0, doc="displacement noise (std)"),
+    "force_noise": Key("float", 0.0, unit="N", lo=0, doc="force noise (std)"),
+    "displacement_resolution": Key("float", 0.0, unit="m", lo=0, doc="quantisation step"),
+    "force_resolution": Key("float", 0.0, unit="N", lo=0, doc="quantisation step"),
+    "seed": Key("int", 0, lo=0, doc="seed of the noise generator"),
+}
 
 
 @dataclass
@@ -147,69 +183,49 @@ class ModelSpec:
         return out
 
 
-def _number(value: Any, where: str, unit: str = "") -> float:
-    """A finite float from a TOML value.
-
-    With ``unit`` 's', 'm', 'N' or 'm/s' a string with units is read too (:mod:`rths_hil.units`).
-    """
-    parsers = {"s": parse_time, "m": parse_length, "N": parse_force, "m/s": parse_velocity}
-    # "N/s" (a force twin's drift rate) is a number
-    if isinstance(value, str) and unit in parsers:
-        parse = parsers[unit]
-        try:
-            out = parse(value, "value")
-        except InputError as exc:
-            raise InputError(f"{where}: {exc}") from None
-    elif isinstance(value, bool) or not isinstance(value, int | float):
-        raise InputError(f"{where}: must be a number{f' in {unit}' if unit else ''}, got {value!r}")
-    else:
-        out = float(value)
-    if not math.isfinite(out):
-        raise InputError(f"{where}: must be finite, got {value!r}")
-    return out
+def _param_key(param: Param, unit: str) -> Key:
+    """The :class:`~rths_hil.config.Key` of an effect's parameter (its value in ``unit``)."""
+    default = REQUIRED if param.default is None else param.default
+    return Key(
+        "float",
+        default,
+        unit=unit,
+        doc=param.doc,
+        lo=param.minimum,
+        hi=param.maximum,
+        lo_open=param.exclusive_minimum,
+    )
 
 
-def _table(value: Any, where: str) -> Mapping[str, Any]:
-    if not isinstance(value, Mapping):
-        raise InputError(f"{where}: must be a table, got {type(value).__name__}")
-    return value
+def _model_keys(params: Mapping[str, tuple[float | None, str]]) -> dict[str, Key]:
+    """``[actuator]``'s keys with an actuator model's parameters (name → default, unit)."""
+    keys = dict(ACTUATOR_KEYS)
+    for name, (default, unit) in params.items():
+        given_unit = _UNITS.get(name, unit) or "-"
+        keys[name] = Key("float", REQUIRED if default is None else default, unit=given_unit)
+    return keys
 
 
-def _unknown(table: Mapping[str, Any], known: Any, where: str) -> None:
-    for key in table:
-        if key not in known:
-            raise InputError(f"{where}{key}: unknown key (known: {', '.join(known)})")
-
-
-def _read_specimen(data: Mapping[str, Any], p: str) -> tuple[SpecimenSpec | None, dict[str, float]]:
+def _read_specimen(
+    table: Mapping[str, Any] | None, where: str
+) -> tuple[SpecimenSpec | None, dict[str, float]]:
     """The ``[specimen]`` table (None without one) and the keys it gives."""
-    specimen = None
-    specimen_given: dict[str, float] = {}
-    if "specimen" in data:
-        st = _table(data["specimen"], f"{p}specimen")
-        _unknown(st, ("model", *_SPECIMEN_KEYS), f"{p}specimen.")
-        model = st.get("model", "kelvin_voigt")
-        if model not in ("kelvin_voigt", "spring_dashpot"):
-            raise InputError(
-                f"{p}specimen.model: unknown specimen model {model!r} (known: kelvin_voigt)"
-            )
-        for key in _SPECIMEN_KEYS:
-            if key in st:
-                v = _number(st[key], f"{p}specimen.{key}")
-                if v < 0:
-                    raise InputError(f"{p}specimen.{key}: must be ≥ 0, got {v!r}")
-                specimen_given[key] = v
-        values = {**SPECIMEN_DEFAULTS, **specimen_given}
-        specimen = SpecimenSpec(
-            stiffness=values["stiffness"], damping=values["damping"], mass=values["mass"]
-        )
+    if table is None:
+        return None, {}
+    given = check_table(table, SPECIMEN_KEYS, where, "specimen")
+    specimen_given = {k: given[k] for k in _SPECIMEN_KEYS if given[k] is not None}
+    values = {**SPECIMEN_DEFAULTS, **specimen_given}
+    specimen = SpecimenSpec(
+        stiffness=values["stiffness"], damping=values["damping"], mass=values["mass"]
+    )
     return specimen, specimen_given
 
 
 def _read_actuator(
-    at: Mapping[str, Any], p: str, specimen_given: dict[str, float]
-) -> tuple[str, float, float, dict[str, float]]:
-    """The ``[actuator]`` table's model, delay (s), gain and parameters (checked by a build)."""
+    at: Mapping[str, Any], where: str, specimen_given: dict[str, float]
+) -> tuple[str, float, float, dict[str, float], list[dict[str, Any]]]:
+    """The ``[actuator]`` table: model, delay (s), gain, parameters, effect tables."""
+    p = f"{where}: " if where else ""
     model = at.get("model", "delay_gain")
     if not isinstance(model, str):
         raise InputError(
@@ -219,18 +235,10 @@ def _read_actuator(
         model, entry = model_entry(model)
     except InputError as exc:
         raise InputError(f"{p}actuator.model: {exc}") from None
-    model_params = entry.params
-    _unknown(at, ("delay", "gain", "model", "effects", *model_params), f"{p}actuator.")
-    delay = _number(at.get("delay", 0.0), f"{p}actuator.delay", "s")
-    if delay < 0:
-        raise InputError(f"{p}actuator.delay: must be ≥ 0 s, got {delay!r}")
-    gain = _number(at.get("gain", 1.0), f"{p}actuator.gain")
-    params: dict[str, float] = {}
-    for key, (default, unit) in model_params.items():
-        if key in at:
-            params[key] = _number(at[key], f"{p}actuator.{key}", _UNITS.get(key, unit))
-        elif default is None:
-            raise InputError(f"{p}actuator.{key}: required by model {model!r}")
+    missing = f"required by model {model!r}"
+    values = check_table(at, _model_keys(entry.params), where, "actuator", missing=missing)
+    delay, gain = values["delay"], values["gain"]
+    params = {k: values[k] for k in entry.params if k in at}
     if entry.uses_specimen:
         for key in _SPECIMEN_KEYS:
             if f"specimen_{key}" not in params and key in specimen_given:
@@ -239,28 +247,27 @@ def _read_actuator(
         make_model(model, 1.0 / 1024.0, delay=delay, gain=gain, **params)
     except InputError as exc:
         raise InputError(f"{p}actuator.{exc}") from None
-    return model, delay, gain, params
+    return model, delay, gain, params, values["effects"]
 
 
 def _read_effects(
-    at: Mapping[str, Any], p: str, control: str, spec_values: dict[str, float]
+    raw_effects: list[dict[str, Any]], where: str, control: str, spec_values: dict[str, float]
 ) -> list[EffectSpec]:
     """The ``[[actuator.effects]]`` of a twin of ``control`` (force: its refusals, units)."""
+    p = f"{where}: " if where else ""
     effects: list[EffectSpec] = []
-    raw_effects = at.get("effects", [])
-    if not isinstance(raw_effects, list):
-        raise InputError(f"{p}actuator.effects: must be an array of tables [[actuator.effects]]")
-    for i, raw in enumerate(raw_effects):
-        where = f"{p}actuator.effects[{i}]."
-        et = dict(_table(raw, where[:-1]))
+    for i, et in enumerate(raw_effects):
+        path = f"actuator.effects[{i}]"
         if "kind" not in et:
-            raise InputError(f"{where}kind: missing (known: {', '.join(EFFECTS)})")
+            raise InputError(f"{p}{path}.kind: missing (known: {', '.join(EFFECTS)})")
         kind = et.pop("kind")
         if not isinstance(kind, str) or kind not in EFFECTS:
-            raise InputError(f"{where}kind: unknown effect {kind!r} (known: {', '.join(EFFECTS)})")
+            raise InputError(
+                f"{p}{path}.kind: unknown effect {kind!r} (known: {', '.join(EFFECTS)})"
+            )
         if control == "force" and kind in FORCE_REFUSED:
             raise InputError(
-                f"{where}kind: a force-controlled twin does not take {kind!r} "
+                f"{p}{path}.kind: a force-controlled twin does not take {kind!r} "
                 f"({FORCE_REFUSED[kind]})"
             )
         if kind == "force_feedback":
@@ -269,37 +276,10 @@ def _read_effects(
         units = {q.name: q.unit for q in EFFECTS[kind].PARAMS}
         if control == "force":
             units.update(FORCE_UNITS.get(kind, {}))
-        values = {}
-        for key, value in et.items():
-            if key in units:
-                values[key] = _number(value, f"{where}{key}", units[key])
-            else:
-                values[key] = value  # validate_params names the unknown key
-        effects.append(EffectSpec(kind, validate_params(kind, values, where)))
+        keys = {q.name: _param_key(q, units[q.name]) for q in EFFECTS[kind].PARAMS}
+        values = check_table(et, keys, where, path, missing=f"required by effect {kind!r}")
+        effects.append(EffectSpec(kind, validate_params(kind, values, f"{p}{path}.")))
     return effects
-
-
-def _read_sensor(data: Mapping[str, Any], p: str) -> Sensor:
-    """The ``[sensor]`` table (noise, resolution, seed; defaults without one)."""
-    sensor = Sensor()
-    if "sensor" in data:
-        stab = _table(data["sensor"], f"{p}sensor")
-        _unknown(stab, (*_SENSOR_KEYS, "seed"), f"{p}sensor.")
-        kwargs: dict[str, Any] = {}
-        for key in _SENSOR_KEYS:
-            if key in stab:
-                unit = "m" if key.startswith("displacement") else ""
-                v = _number(stab[key], f"{p}sensor.{key}", unit)
-                if v < 0:
-                    raise InputError(f"{p}sensor.{key}: must be ≥ 0, got {v!r}")
-                kwargs[key] = v
-        if "seed" in stab:
-            seed = stab["seed"]
-            if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-                raise InputError(f"{p}sensor.seed: must be a non-negative integer, got {seed!r}")
-            kwargs["seed"] = seed
-        sensor = Sensor(**kwargs)
-    return sensor
 
 
 def load_model(
@@ -334,18 +314,14 @@ def load_model(
     else:
         name = str(source) if name is None else name
         data = read_toml(source, "model file", name)
-    p = f"{name}: " if name else ""
-    _unknown(data, ("actuator", "specimen", "sensor"), p)
-    if "actuator" not in data:
-        raise InputError(f"{p}actuator: missing table [actuator]")
-
-    specimen, specimen_given = _read_specimen(data, p)
+    where = name or ""
+    top = check_table(data, FILE_KEYS, where, missing="missing table [actuator]")
+    specimen, specimen_given = _read_specimen(top["specimen"], where)
     spec_values = {**SPECIMEN_DEFAULTS, **specimen_given}
 
-    at = _table(data["actuator"], f"{p}actuator")
-    model, delay, gain, params = _read_actuator(at, p, specimen_given)
-    effects = _read_effects(at, p, control, spec_values)
-    sensor = _read_sensor(data, p)
+    model, delay, gain, params, raw = _read_actuator(top["actuator"], where, specimen_given)
+    effects = _read_effects(raw, where, control, spec_values)
+    sensor = Sensor(**check_table(top["sensor"] or {}, SENSOR_KEYS, where, "sensor"))
 
     actuator = ActuatorSpec(delay, gain, model, params, effects)
     return ModelSpec(actuator, specimen, sensor, name or "model")

@@ -9,25 +9,38 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
 
 from ..profile import (
-    ACTIONS,
+    ACTION_KEYS,
     CONTROL_MODES,
-    OPTIONAL_ROLES,
-    ROLES,
+    ROLE_KEYS,
+    ROLES_MISSING,
     STATUS_BITS,
     UNITS,
-    _check_force_loop,
+    UNITS_KEY,
     _check_mode_actions,
+    _force_setpoint,
     _masks,
-    _no_force_role,
     _range_refusal,
-    _Reader,
     _units,
+    check_keys,
+    top_keys,
 )
 
-__all__ = ["CANProfile", "CANSignal", "load_can"]
+__all__ = ["FILE_KEYS", "SIGNAL_KEYS", "CANProfile", "CANSignal", "load_can"]
+
+#: The top-level keys of a DBC profile.
+FILE_KEYS = top_keys({"dbc": Key("str", REQUIRED, doc="the DBC file, relative to the profile")})
+#: A role (or the heartbeat) on a DBC signal.
+SIGNAL_KEYS = {
+    "message": Key("str", REQUIRED, doc="the DBC message"),
+    "signal": Key("str", REQUIRED, doc="the signal of the message"),
+    "units": UNITS_KEY,
+}
+#: An action: the signal and the value written.
+ACTION_SIGNAL_KEYS = {**SIGNAL_KEYS, "value": Key("float", 1.0, doc="the value written")}
 
 
 # ------------------------------------------------------------------------------------------
@@ -100,12 +113,8 @@ class CANProfile:
         """
         if mode != "force":
             return self
-        fsp = self.roles.get("force_setpoint")
-        if fsp is None:
-            raise _no_force_role(
-                self.source, f"a signal of the command message {self.roles['setpoint'].message}"
-            )
-        _check_force_loop(self.source, self.actions)
+        how = f"a signal of the command message {self.roles['setpoint'].message}"
+        fsp = _force_setpoint(self.source, self.roles, self.actions, how)
         return replace(self, roles={**self.roles, "setpoint": fsp})
 
     @property
@@ -119,59 +128,60 @@ class CANProfile:
         return self.database.get_message_by_name(self.roles["position"].message)
 
 
-def _can_signal(r: _Reader, name: str, db: Any, dbc: str, action: bool = False) -> CANSignal:
-    t = r.table(name, required=True)
-    assert t is not None
-    t.unknown(("message", "signal", "units", "value") if action else ("message", "signal", "units"))
-    msg_name = t.str("message")
-    sig_name = t.str("signal")
+def _can_signal(
+    src: str, table: Any, path: str, db: Any, dbc: str, action: bool = False
+) -> CANSignal:
+    """The role, heartbeat or action at ``path`` on its DBC signal (the SI factor of its
+    unit: the profile's ``units``, else the DBC's)."""
+    t = check_keys(src, table, ACTION_SIGNAL_KEYS if action else SIGNAL_KEYS, path)
+    msg_name, sig_name = t["message"], t["signal"]
+
+    def fail(key: str, why: str) -> InputError:
+        return InputError(f"profile {src}: {path}.{key}: {why}")
+
     try:
         msg = db.get_message_by_name(msg_name)
     except KeyError:
-        raise t.fail("message", f"the DBC {dbc} has no message {msg_name!r}") from None
+        raise fail("message", f"the DBC {dbc} has no message {msg_name!r}") from None
     try:
         sig = msg.get_signal_by_name(sig_name)
     except KeyError:
-        raise t.fail(
+        raise fail(
             "signal", f"the DBC {dbc} message {msg_name} has no signal {sig_name!r}"
         ) from None
     if sig.scale == 0:
-        raise t.fail("signal", f"DBC signal {msg_name}.{sig_name} has scale 0")
+        raise fail("signal", f"DBC signal {msg_name}.{sig_name} has scale 0")
     unit = str(sig.unit or "").strip()
-    if "units" not in t.data and unit not in UNITS:
+    if t["units"] is None and unit not in UNITS:
         # the DBC names a unit the bridge cannot convert: taken as SI it could be off by any
         # factor (a "cm" signal read as metres is 100 times off)
-        raise t.fail(
+        raise fail(
             "signal",
             f"the DBC {dbc} gives {msg_name}.{sig_name} the unit {unit!r}, which the bridge "
             f"does not convert (known: {', '.join(k for k in UNITS if k)}); give its units "
             "in the profile",
         )
-    factor = _units(t, unit, role=name)
-    value = t.float("value", 1.0) if action else None
-    return CANSignal(name, msg_name, sig_name, factor, value)
+    role = path.rpartition(".")[2]
+    factor = _units(src, path, t["units"], unit, role=role)
+    return CANSignal(role, msg_name, sig_name, factor, t.get("value"))
 
 
-def load_can(r: _Reader, base: Path) -> CANProfile:
+def load_can(src: str, data: dict[str, Any], base: Path) -> CANProfile:
+    """The DBC profile ``src`` (its TOML ``data``; ``dbc`` relative to ``base``)."""
     from .codec import load_dbc
 
-    src = r.source
-    dbc_rel = r.str("dbc")
+    top = check_keys(src, data, FILE_KEYS, "")
+    dbc_rel = top["dbc"]
     dbc = base / dbc_rel
     try:
         db = load_dbc(dbc)
     except InputError as exc:
         raise InputError(f"profile {src}: dbc: {exc}") from None
-    roles_t = r.table("roles", required=True)
-    assert roles_t is not None
-    roles_t.unknown(ROLES + OPTIONAL_ROLES)
-    missing = [x for x in ROLES if x not in roles_t.data]
-    if missing:
-        raise InputError(
-            f"profile {src}: roles.{missing[0]} is missing (the bridge needs {', '.join(ROLES)})"
-        )
+    given = check_keys(src, top["roles"], ROLE_KEYS, "roles", ROLES_MISSING)
     roles = {
-        x: _can_signal(roles_t, x, db, dbc_rel) for x in ROLES + OPTIONAL_ROLES if x in roles_t.data
+        x: _can_signal(src, given[x], f"roles.{x}", db, dbc_rel)
+        for x in ROLE_KEYS
+        if given[x] is not None
     }
     fsp = roles.get("force_setpoint")
     if fsp is not None and fsp.message != roles["setpoint"].message:
@@ -193,12 +203,14 @@ def load_can(r: _Reader, base: Path) -> CANProfile:
             )
     if roles["setpoint"].message == fb:
         raise InputError(f"profile {src}: roles.setpoint: the command and feedback share {fb}")
-    acts = r.table("actions", required=True)
-    assert acts is not None
-    acts.unknown(ACTIONS)
-    if "estop" not in acts.data:
-        raise InputError(f"profile {src}: actions.estop is missing (every driver can e-stop)")
-    actions = {a: _can_signal(acts, a, db, dbc_rel, action=True) for a in ACTIONS if a in acts.data}
+    given = check_keys(
+        src, top["actions"], ACTION_KEYS, "actions", "missing (every driver can e-stop)"
+    )
+    actions = {
+        a: _can_signal(src, given[a], f"actions.{a}", db, dbc_rel, action=True)
+        for a in ACTION_KEYS
+        if given[a] is not None
+    }
     for a, s in actions.items():
         if a != "estop" and s.message != roles["setpoint"].message:
             raise InputError(
@@ -209,15 +221,15 @@ def load_can(r: _Reader, base: Path) -> CANProfile:
         raise InputError(f"profile {src}: actions.estop: needs a message of its own")
     _check_mode_actions(src, actions, roles, lambda a: (a.message, a.signal, a.value))
     hb = None
-    if r.table("heartbeat") is not None:
-        hb = _can_signal(r, "heartbeat", db, dbc_rel)
+    if top["heartbeat"] is not None:
+        hb = _can_signal(src, top["heartbeat"], "heartbeat", db, dbc_rel)
         if hb.message in (actions["estop"].message, fb):
             what = "the e-stop's" if hb.message == actions["estop"].message else "the feedback"
             raise InputError(
                 f"profile {src}: heartbeat.message: {hb.message} is {what} message: every "
                 "heartbeat would be sent as one; give the heartbeat a message of its own"
             )
-    masks = _masks(r)
+    masks = _masks(src, top["status"])
     _check_can_fields(src, db, roles, actions, masks, hb)
     return CANProfile(src, str(dbc), db, roles, actions, masks, hb)
 

@@ -11,25 +11,30 @@ from typing import Any
 
 from pymodbus.client.mixin import ModbusClientMixin
 
+from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
 
 from ..profile import (
-    ACTIONS,
+    ACTION_KEYS,
     CONTROL_MODES,
-    OPTIONAL_ROLES,
     READ_ROLES,
-    ROLES,
+    ROLE_KEYS,
+    ROLES_MISSING,
     STATUS_BITS,
-    _check_force_loop,
+    UNITS_KEY,
     _check_mode_actions,
+    _force_setpoint,
     _masks,
-    _no_force_role,
     _range_refusal,
-    _Reader,
     _units,
+    check_keys,
+    top_keys,
 )
 
 __all__ = [
+    "FILE_KEYS",
+    "MODBUS_KEYS",
+    "POINT_KEYS",
     "REG_TYPES",
     "TABLES",
     "ModbusAction",
@@ -54,6 +59,36 @@ TABLES: dict[str, tuple[int, bool]] = {
     "input": (4, False),
     "coil": (1, True),
     "discrete": (2, False),
+}
+_ORDERS = ("big", "little")
+#: The top-level keys of a register-map profile.
+FILE_KEYS = top_keys({"modbus": Key("table", {}, doc="the unit id and the map's defaults")})
+#: ``[modbus]``.
+MODBUS_KEYS = {
+    "unit": Key("int", 1, lo=0, hi=255, doc="the unit id"),
+    "word_order": Key("choice", "big", choices=_ORDERS, doc="default word order of the points"),
+    "byte_order": Key("choice", "big", choices=_ORDERS, doc="default byte order of the points"),
+    "pipeline": Key("bool", True, doc="Modbus TCP: a step's requests in one socket write"),
+}
+#: A role (or the heartbeat) on a point of a Modbus table.
+POINT_KEYS = {
+    "table": Key("choice", REQUIRED, choices=tuple(TABLES), doc="the Modbus table"),
+    "address": Key("int", REQUIRED, lo=0, hi=65535, doc="0-based PDU address"),
+    "type": Key("str", None, doc="register type (REG_TYPES; bool on coils and discrete inputs)"),
+    "word_order": Key("choice", None, choices=_ORDERS, doc="default: [modbus] word_order"),
+    "byte_order": Key("choice", None, choices=_ORDERS, doc="default: [modbus] byte_order"),
+    "scale": Key("float", 1.0, doc="value in units = raw · scale + offset"),
+    "offset": Key("float", 0.0, doc="value in units = raw · scale + offset"),
+    "units": UNITS_KEY,
+}
+#: An action: ``value`` written to ``table[address]`` (a coil is 0 or 1: FC 5 writes ON or OFF).
+_ACTION = {
+    table: {
+        "table": Key("choice", REQUIRED, choices=("coil", "holding"), doc="coil or holding"),
+        "address": Key("int", REQUIRED, lo=0, hi=65535, doc="0-based PDU address"),
+        "value": Key("int", 1, lo=0, hi=hi, doc="the value written"),
+    }
+    for table, hi in (("coil", 1), ("holding", 65535))
 }
 _DT: type[ModbusClientMixin.DATATYPE] = ModbusClientMixin.DATATYPE  # a variable, not an alias
 _INT_RANGE = {
@@ -276,10 +311,8 @@ class ModbusProfile:
         """
         if mode != "force":
             return self
-        fsp = self.points.get("force_setpoint")
-        if fsp is None:
-            raise _no_force_role(self.source, "a holding register point in N, kN or lbf")
-        _check_force_loop(self.source, self.actions)
+        how = "a holding register point in N, kN or lbf"
+        fsp = _force_setpoint(self.source, self.points, self.actions, how)
         points = {**self.points, "setpoint": fsp}
         fc23 = fsp.table == "holding" and len(self.reads) == 1 and self.reads[0].table == "holding"
         return replace(self, points=points, fc23=fc23)
@@ -307,46 +340,50 @@ class ModbusProfile:
         return out
 
 
-def _modbus_point(r: _Reader, role: str, defaults: dict[str, str]) -> ModbusPoint:
-    p = r.table(role, required=True)
-    assert p is not None
-    p.unknown(("table", "address", "type", "word_order", "byte_order", "scale", "offset", "units"))
-    table = p.str("table", choices=tuple(TABLES))
-    bit = table in ("coil", "discrete")
-    typ = p.str("type", "bool" if bit else None)
+def _modbus_point(src: str, table: Any, path: str, defaults: dict[str, Any]) -> ModbusPoint:
+    """The role or heartbeat at ``path`` on its Modbus point (``defaults``: ``[modbus]``)."""
+    p = check_keys(src, table, POINT_KEYS, path)
+
+    def fail(key: str, why: str) -> InputError:
+        return InputError(f"profile {src}: {path}.{key}: {why}")
+
+    bit = p["table"] in ("coil", "discrete")
+    typ = p["type"] or ("bool" if bit else None)
+    if typ is None:
+        raise fail("type", "missing")
     if bit and typ != "bool":
-        raise p.fail("type", f"a {table} holds a bool, got {typ!r}")
+        raise fail("type", f"a {p['table']} holds a bool, got {typ!r}")
     if not bit and typ not in REG_TYPES:
-        raise p.fail("type", f"unknown type {typ!r} (known: {', '.join(REG_TYPES)})")
+        raise fail("type", f"unknown type {typ!r} (known: {', '.join(REG_TYPES)})")
     count = 1 if bit else REG_TYPES[typ]
-    address = p.int("address", lo=0, hi=65535)
-    if address + count > 65536:
-        raise p.fail("address", f"{address}+{count} registers run past 65535")
-    scale = p.float("scale", 1.0)
-    if scale == 0.0:
-        raise p.fail("scale", "must not be 0")
+    if p["address"] + count > 65536:
+        raise fail("address", f"{p['address']}+{count} registers run past 65535")
+    if p["scale"] == 0.0:
+        raise fail("scale", "must not be 0")
+    role = path.rpartition(".")[2]
     return ModbusPoint(
         role=role,
-        table=table,
-        address=address,
+        table=p["table"],
+        address=p["address"],
         type=typ,
         count=count,
-        word_order=p.str("word_order", defaults["word_order"], ("big", "little")),
-        byte_order=p.str("byte_order", defaults["byte_order"], ("big", "little")),
-        scale=scale,
-        offset=p.float("offset", 0.0),
-        factor=_units(p, role=role),
+        word_order=p["word_order"] or defaults["word_order"],
+        byte_order=p["byte_order"] or defaults["byte_order"],
+        scale=p["scale"],
+        offset=p["offset"],
+        factor=_units(src, path, p["units"], role=role),
     )
 
 
-def _modbus_roles(roles: _Reader, defaults: dict[str, str]) -> dict[str, ModbusPoint]:
+def _modbus_roles(src: str, roles: Any, defaults: dict[str, Any]) -> dict[str, ModbusPoint]:
     """The role points of ``[roles]``: the required ones and the force set-point if mapped;
     the set-points must be writable registers."""
-    src = roles.source
-    points = {role: _modbus_point(roles, role, defaults) for role in ROLES}
-    for role in OPTIONAL_ROLES:
-        if role in roles.data:
-            points[role] = _modbus_point(roles, role, defaults)
+    given = check_keys(src, roles, ROLE_KEYS, "roles", ROLES_MISSING)
+    points = {
+        role: _modbus_point(src, given[role], f"roles.{role}", defaults)
+        for role in ROLE_KEYS
+        if given[role] is not None
+    }
     for role, what in (("setpoint", "a displacement"), ("force_setpoint", "a force")):
         sp = points.get(role)
         if sp is None:
@@ -356,6 +393,20 @@ def _modbus_roles(roles: _Reader, defaults: dict[str, str]) -> dict[str, ModbusP
         if sp.type == "bool":
             raise InputError(f"profile {src}: roles.{role}: {what} needs a register type")
     return points
+
+
+def _modbus_actions(src: str, actions: Any) -> dict[str, ModbusAction]:
+    """The writes of ``[actions]`` (the e-stop required)."""
+    given = check_keys(src, actions, ACTION_KEYS, "actions", "missing (every driver can e-stop)")
+    out = {}
+    for name in ACTION_KEYS:
+        t = given[name]
+        if t is None:
+            continue
+        keys = _ACTION["coil" if isinstance(t, dict) and t.get("table") == "coil" else "holding"]
+        a = check_keys(src, t, keys, f"actions.{name}")
+        out[name] = ModbusAction(name, a["table"], a["address"], a["value"])
+    return out
 
 
 def _check_overlaps(source: str, points: list[ModbusPoint], actions: list[ModbusAction]) -> None:
@@ -383,52 +434,17 @@ def _read_blocks(points: list[ModbusPoint]) -> tuple[ReadBlock, ...]:
     return tuple(out)
 
 
-def load_modbus(r: _Reader) -> ModbusProfile:
-    src = r.source
-    mb = r.table("modbus")
-    defaults = {"word_order": "big", "byte_order": "big"}
-    unit = 1
-    pipeline = True
-    if mb is not None:
-        mb.unknown(("unit", "word_order", "byte_order", "pipeline"))
-        unit = mb.int("unit", 1, lo=0, hi=255)
-        pipeline = mb.data.get("pipeline", True)
-        if not isinstance(pipeline, bool):
-            raise mb.fail("pipeline", f"must be true or false, got {pipeline!r}")
-        defaults = {
-            "word_order": mb.str("word_order", "big", ("big", "little")),
-            "byte_order": mb.str("byte_order", "big", ("big", "little")),
-        }
-    roles = r.table("roles", required=True)
-    assert roles is not None
-    roles.unknown(ROLES + OPTIONAL_ROLES)
-    missing = [x for x in ROLES if x not in roles.data]
-    if missing:
-        raise InputError(
-            f"profile {src}: roles.{missing[0]} is missing (the bridge needs {', '.join(ROLES)})"
-        )
-    points = _modbus_roles(roles, defaults)
+def load_modbus(src: str, data: dict[str, Any]) -> ModbusProfile:
+    """The register-map profile ``src`` (its TOML ``data``)."""
+    top = check_keys(src, data, FILE_KEYS, "")
+    mb = check_keys(src, top["modbus"], MODBUS_KEYS, "modbus")
+    points = _modbus_roles(src, top["roles"], mb)
     sp = points["setpoint"]
-    acts = r.table("actions", required=True)
-    assert acts is not None
-    acts.unknown(ACTIONS)
-    if "estop" not in acts.data:
-        raise InputError(f"profile {src}: actions.estop is missing (every driver can e-stop)")
-    actions = {}
-    for name in ACTIONS:
-        a = acts.table(name)
-        if a is None:
-            continue
-        a.unknown(("table", "address", "value"))
-        table = a.str("table", choices=("coil", "holding"))
-        hi = 1 if table == "coil" else 65535  # a coil is 0 or 1 (FC 5 writes ON or OFF)
-        actions[name] = ModbusAction(
-            name, table, a.int("address", lo=0, hi=65535), a.int("value", 1, lo=0, hi=hi)
-        )
+    actions = _modbus_actions(src, top["actions"])
     _check_mode_actions(src, actions, points, lambda a: (a.table, a.address, a.value))
     heartbeat = None
-    if r.table("heartbeat") is not None:
-        heartbeat = _modbus_point(r, "heartbeat", defaults)
+    if top["heartbeat"] is not None:
+        heartbeat = _modbus_point(src, top["heartbeat"], "heartbeat", mb)
         if heartbeat.table not in ("holding",) or heartbeat.type not in ("uint16", "int16"):
             raise InputError(f"profile {src}: heartbeat: must be a 16-bit holding register")
     allpoints = list(points.values()) + ([heartbeat] if heartbeat else [])
@@ -442,16 +458,16 @@ def load_modbus(r: _Reader) -> ModbusProfile:
                 f"{b.address}; one read carries at most {limit}"
             )
     fc23 = sp.table == "holding" and len(reads) == 1 and reads[0].table == "holding"
-    masks = _masks(r)
+    masks = _masks(src, top["status"])
     _check_masks(src, masks, points["status"])
     return ModbusProfile(
         source=src,
-        unit=unit,
+        unit=mb["unit"],
         points=points,
         actions=actions,
         masks=masks,
         heartbeat=heartbeat,
         reads=reads,
         fc23=fc23,
-        pipeline=pipeline,
+        pipeline=mb["pipeline"],
     )

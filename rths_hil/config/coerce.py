@@ -61,13 +61,14 @@ def describe(v: Any) -> str:
 def quantity(value: Any, unit: str, path: str) -> float:
     """Read a float in ``unit`` from a number or a string with a unit."""
     if isinstance(value, bool) or not isinstance(value, int | float | str):
-        raise InputError(f"{path}: expected a number in {unit}, got {describe(value)}")
+        what = "a number" if unit in ("", "-") else f"a number in {unit}"
+        raise InputError(f"{path}: expected {what}, got {describe(value)}")
     if isinstance(value, int | float):
         return float(value)
     parse = _PARSERS.get(unit)
     if parse is not None:
         try:
-            return parse(value, path)
+            return parse(value, "value")
         except InputError as exc:
             raise InputError(f"{path}: {exc}") from None
     m = _NUM_RE.fullmatch(value)
@@ -125,39 +126,46 @@ def coerce(key: Key, value: Any, path: str) -> Any:
     InputError
         Wrong type, unit or range, naming ``path``.
     """
-    kind = key.kind
-    if kind == "float":
-        return _float(key, value, path)
-    if kind == "int":
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise InputError(f"{path}: expected an integer, got {describe(value)}")
-        check_range(key, value, path)
-        return int(value)
-    if kind == "bool":
-        if not isinstance(value, bool):
-            raise InputError(f"{path}: expected true or false, got {describe(value)}")
-        return value
-    if kind == "str":
-        if not isinstance(value, str):
-            raise InputError(f"{path}: expected a string, got {describe(value)}")
-        return value
-    if kind == "choice":
-        if not isinstance(value, str) or value not in key.choices:
-            raise InputError(
-                f"{path}: must be one of {', '.join(key.choices)}, got {describe(value)}"
-            )
-        return value
-    if kind == "window":
-        return _window(key, value, path)
-    if kind == "array":
-        return _array(key, value, path)
-    if kind == "schedule":
-        return _schedule(key, value, path)
-    if kind == "table":
-        if not isinstance(value, dict):
-            raise InputError(f"{path}: expected a table, got {describe(value)}")
-        return copy.deepcopy(value)
-    raise AssertionError(kind)  # pragma: no cover
+    return _KINDS[key.kind](key, value, path)
+
+
+def _int(key: Key, value: Any, path: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InputError(f"{path}: expected an integer, got {describe(value)}")
+    check_range(key, value, path)
+    return int(value)
+
+
+def _bool(key: Key, value: Any, path: str) -> bool:
+    if not isinstance(value, bool):
+        raise InputError(f"{path}: expected true or false, got {describe(value)}")
+    return value
+
+
+def _str(key: Key, value: Any, path: str) -> str:
+    if not isinstance(value, str):
+        raise InputError(f"{path}: expected a string, got {describe(value)}")
+    return value
+
+
+def _choice(key: Key, value: Any, path: str) -> str:
+    if not isinstance(value, str) or value not in key.choices:
+        raise InputError(f"{path}: must be one of {', '.join(key.choices)}, got {describe(value)}")
+    return value
+
+
+def _table(key: Key, value: Any, path: str) -> dict[str, Any]:
+    """A table checked by its consumer (a copy)."""
+    if not isinstance(value, dict):
+        raise InputError(f"{path}: expected a table, got {describe(value)}")
+    return copy.deepcopy(value)
+
+
+def _tables(key: Key, value: Any, path: str) -> list[dict[str, Any]]:
+    """An array of tables, each checked by its consumer (a copy)."""
+    if not isinstance(value, list):
+        raise InputError(f"{path}: expected an array of tables, got {describe(value)}")
+    return [_table(key, item, f"{path}[{i}]") for i, item in enumerate(value)]
 
 
 def _float(key: Key, value: Any, path: str) -> float:
@@ -223,6 +231,21 @@ def _schedule(key: Key, value: Any, path: str) -> list[list[float]]:
     return out
 
 
+#: The reader of each :attr:`Key.kind`.
+_KINDS: dict[str, Callable[[Key, Any, str], Any]] = {
+    "float": _float,
+    "int": _int,
+    "bool": _bool,
+    "str": _str,
+    "choice": _choice,
+    "window": _window,
+    "array": _array,
+    "schedule": _schedule,
+    "table": _table,
+    "tables": _tables,
+}
+
+
 def unknown_key(path: str, name: str, known: Iterable[str]) -> InputError:
     """The error for an unknown key ``name`` at ``path``: the closest known key, then all."""
     known = list(known)
@@ -259,7 +282,8 @@ def check_table(
         Fill the keys not given with their defaults (``False``: only the keys given, for a
         source merged over others).
     missing : str
-        What a message says of a required key not given (``"required by model 'servo_lag'"``).
+        What a message says of a required key not given (``"required by model 'servo_lag'"``),
+        followed by the key's doc and unit.
 
     Returns
     -------
@@ -289,7 +313,11 @@ def check_table(
         if name in out:
             continue
         if key.default is REQUIRED:
-            raise InputError(f"{pre}{f'{path}.{name}' if path else name}: {missing}")
+            what = ", ".join(w for w in (key.doc, "" if key.unit == "-" else key.unit) if w)
+            raise InputError(
+                f"{pre}{f'{path}.{name}' if path else name}: {missing}"
+                + (f" ({what})" if what else "")
+            )
         if defaults:
             out[name] = copy.deepcopy(key.default)
     return out

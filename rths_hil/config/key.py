@@ -31,8 +31,8 @@ class Key:
         ``float`` (a quantity in ``unit``), ``int``, ``bool``, ``str``, ``choice``, ``window``
         (seconds or natural periods), ``array`` (a list of quantities in ``unit``),
         ``schedule`` (a list of ``[t, value]`` pairs, ``t`` in s non-decreasing from 0, the
-        value in the second unit of ``unit``) or ``table`` (free-form, checked by its
-        consumer).
+        value in the second unit of ``unit``), ``table`` (free-form, checked by its
+        consumer) or ``tables`` (an array of tables, each checked by its consumer).
     default : Any
         Default value (already in SI units); :data:`REQUIRED` for a key that must be given,
         ``None`` for an optional one without a value.

@@ -96,7 +96,7 @@ def _variant(tmp_path: Path, src: Path, old: str, new: str, name: str = "p.toml"
             MODBUS_MAP,
             "address = 1\nvalue = 1",
             "address = 1\nvalue = 2",
-            ["actions.estop.value", "out of range 0..1"],
+            ["actions.estop.value: must be ≤ 1, got 2"],
         ),
         (
             MODBUS_MAP,
@@ -137,7 +137,10 @@ def test_a_missing_role_is_refused(tmp_path) -> None:
     end = text.index("[roles.status]")
     p = tmp_path / "p.toml"
     p.write_text(text[:start] + text[end:])
-    with pytest.raises(InputError, match=r"roles\.force is missing"):
+    with pytest.raises(
+        InputError,
+        match=r"roles\.force: missing \(the bridge needs setpoint, position, force, status\)",
+    ):
         load_profile(p)
 
 
@@ -627,5 +630,5 @@ def test_modbus_tcp_pipelined_equals_one_at_a_time(tmp_path, fc23) -> None:
 def test_modbus_pipeline_must_be_a_bool(tmp_path) -> None:
     p = tmp_path / "bad.toml"
     p.write_text(MODBUS_MAP.read_text().replace("unit = 1\n", 'unit = 1\npipeline = "yes"\n'))
-    with pytest.raises(InputError, match=r"modbus\.pipeline: must be true or false"):
+    with pytest.raises(InputError, match=r"modbus\.pipeline: expected true or false"):
         load_profile(p)
