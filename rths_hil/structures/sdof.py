@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, replace
-from typing import Literal, overload
+from typing import Literal, TypedDict, Unpack, overload
 
 import numpy as np
 
@@ -235,8 +235,24 @@ def _make_restoring(
     return k0, bw
 
 
+class SDOFOptions(TypedDict, total=False):
+    """The keyword arguments every SDOF stepper takes (see :class:`CRStepper`)."""
+
+    fn: float | None
+    bouc_wen: BoucWenParams | BoucWen | bool | None
+    x0: float
+    v0: float
+    ag0: float
+    extra_force0: float
+
+
 class _SDOFStepper:
-    """Common state of the SDOF steppers (see :class:`CRStepper`)."""
+    """Common state of the SDOF steppers (see :class:`CRStepper`).
+
+    A subclass sets its own parameters, then calls this constructor, which computes the
+    structure's ``k`` and ``c``, then the integrator's coefficients (:meth:`_coefficients`),
+    then starts from the initial state (:meth:`reset`).
+    """
 
     explicit: bool = False
 
@@ -249,6 +265,10 @@ class _SDOFStepper:
         *,
         fn: float | None = None,
         bouc_wen: BoucWenParams | BoucWen | bool | None = None,
+        x0: float = 0.0,
+        v0: float = 0.0,
+        ag0: float = 0.0,
+        extra_force0: float = 0.0,
     ) -> None:
         self.mass = positive_number(mass, "mass (kg)")
         z = float(zeta)
@@ -265,6 +285,11 @@ class _SDOFStepper:
         self.restoring_force = 0.0
         self.extra_force = 0.0
         self.n = 0
+        self._coefficients()
+        self.reset(x0, v0, ag0, extra_force0)
+
+    def _coefficients(self) -> None:
+        """The integrator's constants, from ``mass``, ``c``, ``k`` and ``dt``."""
 
     @property
     def fn(self) -> float:
@@ -280,7 +305,10 @@ class _SDOFStepper:
         bw = self.bouc_wen
         return self.k * x if bw is None else bw.update(x)
 
-    def _reset_state(self, x0: float, v0: float, ag0: float, extra_force0: float) -> None:
+    def reset(
+        self, x0: float = 0.0, v0: float = 0.0, ag0: float = 0.0, extra_force0: float = 0.0
+    ) -> None:
+        """Restart from the given initial state (t = 0)."""
         if self.bouc_wen is not None:
             self.bouc_wen.reset(x0, 0.0)
             r0 = self.bouc_wen.force
@@ -374,30 +402,26 @@ class CRStepper(_SDOFStepper):
         k: float | None = None,
         dt: float | None = None,
         *,
-        fn: float | None = None,
-        bouc_wen: BoucWenParams | BoucWen | bool | None = None,
         k_specimen: float = 0.0,
-        x0: float = 0.0,
-        v0: float = 0.0,
-        ag0: float = 0.0,
-        extra_force0: float = 0.0,
+        **options: Unpack[SDOFOptions],
     ) -> None:
-        super().__init__(mass, zeta, k, dt, fn=fn, bouc_wen=bouc_wen)
         ks = float(k_specimen)
         if not (math.isfinite(ks) and ks >= 0):
             raise InputError(f"k_specimen must be ≥ 0 N/m, got {k_specimen!r}")
         self.k_specimen = ks
-        m, dt_, c = self.mass, self.dt, self.c
-        self.alpha = 4.0 * m / (4.0 * m + 2.0 * dt_ * c + dt_ * dt_ * (self.k + ks))
-        self._adt = self.alpha * dt_
-        self._adt2 = self.alpha * dt_ * dt_
-        self.reset(x0, v0, ag0, extra_force0)
+        super().__init__(mass, zeta, k, dt, **options)
+
+    def _coefficients(self) -> None:
+        m, dt, c = self.mass, self.dt, self.c
+        self.alpha = 4.0 * m / (4.0 * m + 2.0 * dt * c + dt * dt * (self.k + self.k_specimen))
+        self._adt = self.alpha * dt
+        self._adt2 = self.alpha * dt * dt
 
     def reset(
         self, x0: float = 0.0, v0: float = 0.0, ag0: float = 0.0, extra_force0: float = 0.0
     ) -> None:
-        """Restart from the given initial state (t = 0)."""
-        self._reset_state(x0, v0, ag0, extra_force0)
+        """Restart from the given initial state (t = 0); :attr:`x_next` is then x[1]."""
+        super().reset(x0, v0, ag0, extra_force0)
         self.x_next = self.x + self.dt * self.v + self._adt2 * self.a
         self._v_next = self.v + self._adt * self.a
 
@@ -462,30 +486,20 @@ class NewmarkStepper(_SDOFStepper):
         k: float | None = None,
         dt: float | None = None,
         *,
-        fn: float | None = None,
-        bouc_wen: BoucWenParams | BoucWen | bool | None = None,
-        x0: float = 0.0,
-        v0: float = 0.0,
-        ag0: float = 0.0,
-        extra_force0: float = 0.0,
         tol: float = 1e-10,
         max_iter: int = 30,
+        **options: Unpack[SDOFOptions],
     ) -> None:
-        super().__init__(mass, zeta, k, dt, fn=fn, bouc_wen=bouc_wen)
-        dt_ = self.dt
-        self._c0 = 4.0 / (dt_ * dt_)
-        self._c1 = 4.0 / dt_
-        self._k_dyn = self.mass * self._c0 + self.c * 2.0 / dt_
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         self.iterations = 0
-        self.reset(x0, v0, ag0, extra_force0)
+        super().__init__(mass, zeta, k, dt, **options)
 
-    def reset(
-        self, x0: float = 0.0, v0: float = 0.0, ag0: float = 0.0, extra_force0: float = 0.0
-    ) -> None:
-        """Restart from the given initial state (t = 0)."""
-        self._reset_state(x0, v0, ag0, extra_force0)
+    def _coefficients(self) -> None:
+        dt = self.dt
+        self._c0 = 4.0 / (dt * dt)
+        self._c1 = 4.0 / dt
+        self._k_dyn = self.mass * self._c0 + self.c * 2.0 / dt
 
     def step(self, ag: float, extra_force: float = 0.0) -> float:
         """Advance to step n+1 with ground acceleration ``ag`` and external force ``extra_force``.

@@ -108,7 +108,30 @@ class StructureStage(Protocol):
         ...
 
 
-class SDOFStage:
+class _StepperStage:
+    """A structure stepper (``step(ag, extra_force)``, ``x_next``, ``v``) as a stage of ``n_dof``
+    DOFs, on its own (no context, nothing to release)."""
+
+    trip: Trip | None = None
+    external = False
+    record_columns: tuple[tuple[str, str, str, str, str], ...] = ()
+
+    def __init__(self, stepper, n_dof: int) -> None:
+        self.stepper = stepper
+        self._step = stepper.step
+        self.n_dof = n_dof
+        self.v = [0.0] * n_dof
+        self.r = [0.0] * n_dof
+        self.finished = False
+
+    def attach(self, context: StageContext) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class SDOFStage(_StepperStage):
     """The paper's SDOF frame: :class:`~rths_hil.structures.sdof.CRStepper` as a stage.
 
     Parameters
@@ -117,20 +140,8 @@ class SDOFStage:
         The CR stepper (Chen & Ricles 2008; Bouc-Wen restoring force, the FEI paper Eq. 4.1–4.2).
     """
 
-    n_dof = 1
-    trip: Trip | None = None
-    external = False
-    record_columns: tuple[tuple[str, str, str, str, str], ...] = ()
-
     def __init__(self, stepper) -> None:
-        self.stepper = stepper
-        self._step = stepper.step
-        self.v = [0.0]
-        self.r = [0.0]
-        self.finished = False
-
-    def attach(self, context: StageContext) -> None:
-        pass
+        super().__init__(stepper, 1)
 
     def reset(self) -> list[float]:
         st = self.stepper
@@ -147,11 +158,8 @@ class SDOFStage:
         self.r[0] = st.restoring_force
         return [x]
 
-    def close(self) -> None:
-        pass
 
-
-class MDOFStage:
+class MDOFStage(_StepperStage):
     """A multi-DOF model (shear building, matrices) behind the stage interface.
 
     Parameters
@@ -163,20 +171,8 @@ class MDOFStage:
         ``restoring_force``.
     """
 
-    trip: Trip | None = None
-    external = False
-    record_columns: tuple[tuple[str, str, str, str, str], ...] = ()
-
     def __init__(self, stepper) -> None:
-        self.stepper = stepper
-        self._step = stepper.step
-        self.n_dof = len(stepper.x_next)
-        self.v = [0.0] * self.n_dof
-        self.r = [0.0] * self.n_dof
-        self.finished = False
-
-    def attach(self, context: StageContext) -> None:
-        pass
+        super().__init__(stepper, len(stepper.x_next))
 
     def _state(self) -> None:
         st = self.stepper
@@ -197,9 +193,6 @@ class MDOFStage:
         x = self._step(ag, np.asarray(force, dtype=float))
         self._state()
         return x.tolist()
-
-    def close(self) -> None:
-        pass
 
 
 class TrialColumns:
