@@ -181,7 +181,10 @@ class ExactFEI:
             data = os.read(self._out, 65536)
         except BlockingIOError:
             return
-        buf = self._pending + data
+        self._take(self._pending + data)
+
+    def _take(self, buf: bytes) -> None:
+        """Keep the last whole result in ``buf`` (the worker's, oldest first); the rest waits."""
         n = len(buf) // _EXACT_RESULT.size
         if n:
             a, d, f, v, w, end = _EXACT_RESULT.unpack_from(buf, (n - 1) * _EXACT_RESULT.size)
@@ -228,13 +231,7 @@ class ExactFEI:
             proc.stdin.close()
             proc.wait(timeout=5.0)
             os.set_blocking(self._out, True)
-            rest = self._pending + proc.stdout.read()
-            n = len(rest) // _EXACT_RESULT.size
-            if n:
-                a, d, f, v, w, end = _EXACT_RESULT.unpack_from(rest, (n - 1) * _EXACT_RESULT.size)
-                self.latest = (a, d, f, v > 0.5)
-                self.windows = w
-                self.end_step = end
+            self._take(self._pending + proc.stdout.read())
         except (OSError, subprocess.TimeoutExpired):
             proc.kill()
         finally:
