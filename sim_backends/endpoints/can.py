@@ -44,7 +44,7 @@ from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
 from .can_profile import CANProfileTwin
-from .nullmodem import PTY_CHANNEL, PTY_INTERFACES, NullModem, can_line_from_args, serial_line
+from .nullmodem import PTY_CHANNEL, PTY_INTERFACES, CANLine, can_line_from_args
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +54,7 @@ __all__ = ["PTY_CHANNEL", "PTY_INTERFACES", "CANTwin"]
 _GARBLED = object()
 
 
-class CANTwin(TwinEndpoint):
+class CANTwin(CANLine, TwinEndpoint):
     """Controller node on ``interface``/``channel`` (``virtual`` buses are in-process only;
     ``serial`` or ``slcan`` with ``channel="pty"`` reaches other processes on this machine, see
     the module docstring)."""
@@ -136,15 +136,9 @@ class CANTwin(TwinEndpoint):
         self._fb_frames = [self._fb_frame]
         self._bus: can.BusABC | None = None
         self._rxq = None
-        self.cable: NullModem | None = None
 
     def _setup(self) -> None:
-        kwargs = dict(self.bus_options)
-        if self.bitrate is not None:
-            kwargs["bitrate"] = self.bitrate
-        self.cable, channel, bridge_channel, kwargs, bridge_options = serial_line(
-            self.interface, self.channel, kwargs, "CAN twin"
-        )
+        channel, bridge_channel, kwargs, options = self._open_line("CAN twin")
         try:
             share = shared_bus("twin", self.interface, channel, **kwargs)
         except InputError as exc:
@@ -159,19 +153,16 @@ class CANTwin(TwinEndpoint):
         self._share = share
         self._handlers = share.handlers
         self._bus = share.bus
-        self.connection = {"interface": self.interface, "channel": bridge_channel}
+        conn: dict[str, Any] = {"interface": self.interface, "channel": bridge_channel}
         if self.node:
-            self.connection["node"] = self.node
-        if self.bitrate is not None:
-            self.connection["bitrate"] = self.bitrate
+            conn["node"] = self.node
         if self.dbc is not None:
-            self.connection["dbc"] = self.dbc
-        options = {**bridge_options, **self.bus_options}
-        if options:
-            self.connection["bus_options"] = dict(options)
-        self.where = f"CAN interface {self.interface} channel {bridge_channel} node {self.node}"
-        if self.cable is not None:
-            self.where += " (pseudo-terminal null modem)"
+            conn["dbc"] = self.dbc
+        self.connection = self._bridge_end(conn, options)
+        self.where = (
+            f"CAN interface {self.interface} channel {bridge_channel} node {self.node}"
+            + self._line_note
+        )
         self._rxq = share.rxq
 
     def _teardown(self) -> None:
@@ -184,11 +175,6 @@ class CANTwin(TwinEndpoint):
                     del share.handlers[i]
             release_bus(share)
         self._close_cable()
-
-    def _close_cable(self) -> None:
-        cable, self.cable = self.cable, None
-        if cable is not None:
-            cable.close()
 
     def _dispatch(self, msg: can.Message) -> None:
         """Handle ``msg`` in the endpoint of its identifier (this one when unknown)."""

@@ -30,12 +30,12 @@ from rths_hil.drivers.profile import load_profile, word_from_status
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
-from .nullmodem import NullModem, serial_line
+from .nullmodem import CANLine
 
 __all__ = ["CANProfileTwin"]
 
 
-class CANProfileTwin(TwinEndpoint):
+class CANProfileTwin(CANLine, TwinEndpoint):
     """Controller node on ``interface``/``channel`` speaking ``profile``."""
 
     name = "can"
@@ -90,37 +90,25 @@ class CANProfileTwin(TwinEndpoint):
         self._fb_limits = {s.name: (s.minimum, s.maximum) for s in self._fb.signals}
         self._share: SharedBus | None = None
         self._bus: can.BusABC | None = None
-        self.cable: NullModem | None = None
         self._k = 0
         self._last: dict[str, float] = {}  # the last value sent of each feedback signal
 
     def _setup(self) -> None:
-        kwargs = dict(self.bus_options)
-        if self.bitrate is not None:
-            kwargs["bitrate"] = self.bitrate
-        # serial or slcan with channel "pty": a null-modem pair of pseudo-terminals (serial_line)
-        self.cable, channel, bridge_channel, kwargs, bridge_options = serial_line(
-            self.interface, self.channel, kwargs, "can twin"
-        )
+        # serial or slcan with channel "pty": a null-modem pair of pseudo-terminals
+        channel, bridge_channel, kwargs, options = self._open_line("can twin")
         try:
             self._share = shared_bus("twin", self.interface, channel, **kwargs)
         except InputError:
             self._close_cable()
             raise
         self._bus = self._share.bus
-        self.connection = {
+        conn = {
             "interface": self.interface,
             "channel": bridge_channel,
             "profile": self.profile_path,
         }
-        if self.bitrate is not None:
-            self.connection["bitrate"] = self.bitrate
-        options = {**bridge_options, **self.bus_options}
-        if options:
-            self.connection["bus_options"] = options
-        self.where = f"can {self.interface}:{bridge_channel} ({self.profile_path})"
-        if self.cable is not None:
-            self.where += " (pseudo-terminal null modem)"
+        self.connection = self._bridge_end(conn, options)
+        self.where = f"can {self.interface}:{bridge_channel} ({self.profile_path}){self._line_note}"
 
     def _teardown(self) -> None:
         share, self._share = self._share, None
@@ -128,11 +116,6 @@ class CANProfileTwin(TwinEndpoint):
         if share is not None:
             release_bus(share)
         self._close_cable()
-
-    def _close_cable(self) -> None:
-        cable, self.cable = self.cable, None
-        if cable is not None:
-            cable.close()
 
     def _serve_once(self, timeout: float) -> None:
         share = self._share
@@ -217,10 +200,4 @@ class CANProfileTwin(TwinEndpoint):
         )
 
     def _write(self, frame: can.Message) -> None:
-        bus = self._bus
-        if bus is None:
-            return
-        try:
-            bus.send(frame)
-        except (can.CanError, OSError):  # pragma: no cover - bus gone
-            pass
+        self._send(self._bus, frame)

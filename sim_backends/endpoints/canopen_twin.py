@@ -61,7 +61,7 @@ from rths_hil.drivers.canopen.profiles import PROFILES, SW408
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
-from .nullmodem import NullModem, can_line_from_args, serial_line
+from .nullmodem import CANLine, can_line_from_args
 
 __all__ = ["EMCY_FOLLOWING_ERROR", "EMCY_HEARTBEAT", "CANopenTwin", "default_eds"]
 
@@ -95,7 +95,7 @@ def default_eds(profile: str) -> str:
     return str(resources.files("rths_hil.sim_backends") / "eds" / f"{profile}_twin.eds")
 
 
-class CANopenTwin(TwinEndpoint):
+class CANopenTwin(CANLine, TwinEndpoint):
     """A CANopen device (CiA 402 or 408) around a :class:`TwinController` (module docstring).
 
     Parameters
@@ -218,7 +218,6 @@ class CANopenTwin(TwinEndpoint):
         self._rxq: queue.Queue | None = None
         self._nmt_state = ""
         self._hb_watch = False
-        self.cable: NullModem | None = None
         #: inline: frames are handled under this lock, by the thread or the bridge's pump
         self._serving = threading.Lock()
         self._pumped_at = -math.inf
@@ -226,12 +225,7 @@ class CANopenTwin(TwinEndpoint):
 
     # -- transport ------------------------------------------------------------------------------
     def _setup(self) -> None:
-        kwargs = dict(self.bus_options)
-        if self.bitrate is not None:
-            kwargs["bitrate"] = self.bitrate
-        self.cable, channel, bridge_channel, kwargs, bridge_options = serial_line(
-            self.interface, self.channel, kwargs, "canopen twin"
-        )
+        channel, bridge_channel, kwargs, options = self._open_line("canopen twin")
         try:
             self.bus = can.Bus(interface=self.interface, channel=channel, **kwargs)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
@@ -250,16 +244,13 @@ class CANopenTwin(TwinEndpoint):
         net.subscribe(0x700 + self.bridge_node_id, self._on_bridge_heartbeat)
         node.nmt.state = "PRE-OPERATIONAL"
         self._nmt_state = node.nmt.state
-        self.connection = dict(self.connection_keys)
+        self.connection = self._bridge_end(
+            {**self.connection_keys, "channel": bridge_channel}, options
+        )
         self.where = (
             f"CANopen {self.profile.name} node {self.node_id} on {self.interface} {bridge_channel}"
+            + self._line_note
         )
-        if self.cable is not None:
-            self.connection["channel"] = bridge_channel
-            options = {**bridge_options, **self.bus_options}
-            if options:
-                self.connection["bus_options"] = options
-            self.where += " (pseudo-terminal null modem)"
 
     def _teardown(self) -> None:
         node, self.node = self.node, None
@@ -274,11 +265,6 @@ class CANopenTwin(TwinEndpoint):
             except (can.CanError, OSError):  # pragma: no cover
                 pass
         self._close_cable()
-
-    def _close_cable(self) -> None:
-        cable, self.cable = self.cable, None
-        if cable is not None:
-            cable.close()
 
     # -- serving: from the endpoint's thread, or inline from the bridge's ---------------------
     @property
@@ -707,10 +693,4 @@ class CANopenTwin(TwinEndpoint):
         )
 
     def _write(self, frame: can.Message) -> None:
-        bus = self.bus
-        if bus is None:
-            return
-        try:
-            bus.send(frame)
-        except (can.CanError, OSError):  # pragma: no cover - bus gone
-            pass
+        self._send(self.bus, frame)

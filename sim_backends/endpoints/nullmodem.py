@@ -5,10 +5,10 @@ serial device paths such that bytes written to one are read from the other. A tw
 (:attr:`NullModem.twin_path`) with the same library the bridge uses on the other end
 (:attr:`NullModem.bridge_path`), so both sides speak the protocol through the library's own
 framing — the CAN, CAN profile and CANopen twins serve python-can's ``serial`` and ``slcan``
-interfaces this way (:func:`serial_line`). Nothing leaves the machine: a pseudo-terminal is a
-kernel object, not a network endpoint. :func:`can_line_from_args` is the line a CAN twin served
-as its own process opens from the command line: one of these pseudo-terminal pairs, or the lab's
-interface.
+interfaces this way (:func:`serial_line`, :class:`CANLine`). Nothing leaves the machine: a
+pseudo-terminal is a kernel object, not a network endpoint. :func:`can_line_from_args` is the
+line a CAN twin served as its own process opens from the command line: one of these
+pseudo-terminal pairs, or the lab's interface.
 
 The cable keeps a descriptor of each end open itself, so that a process closing its end (or
 being killed) does not hang the pair up: the next process that opens the same path continues
@@ -26,6 +26,8 @@ import threading
 import tty
 from typing import Any
 
+import can
+
 from rths_hil.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -33,6 +35,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "PTY_CHANNEL",
     "PTY_INTERFACES",
+    "CANLine",
     "NullModem",
     "can_line_from_args",
     "serial_line",
@@ -193,3 +196,64 @@ def serial_line(
     bridge_options, twin_options = PTY_INTERFACES[interface]
     return (cable, cable.twin_path, cable.bridge_path, {**twin_options, **kwargs},
             dict(bridge_options))  # fmt: skip
+
+
+class CANLine:
+    """The python-can line of a CAN-family twin (CAN, CAN profile, CANopen): the settings
+    ``interface``, ``channel``, ``bitrate`` and ``bus_options`` the twin keeps, and the
+    null-modem :attr:`cable` while the line has one (:func:`serial_line`)."""
+
+    interface: str
+    channel: str
+    bitrate: int | None
+    bus_options: dict[str, Any]
+    #: the pseudo-terminal pair of a serial-line interface with channel "pty", while open
+    cable: NullModem | None = None
+
+    def _open_line(self, who: str) -> tuple[str, str, dict[str, Any], dict[str, Any]]:
+        """The two ends of the line, the cable made when it needs one (``who`` names the twin
+        in an error).
+
+        Returns
+        -------
+        tuple
+            The channel the twin opens, the channel the bridge opens, the twin end's python-can
+            options (``bus_options`` and ``bitrate`` over the interface's own) and the bridge
+            end's ``bus_options`` (the interface's needs, then the twin's ``bus_options``).
+        """
+        kwargs = dict(self.bus_options)
+        if self.bitrate is not None:
+            kwargs["bitrate"] = self.bitrate
+        self.cable, channel, bridge_channel, kwargs, bridge_options = serial_line(
+            self.interface, self.channel, kwargs, who
+        )
+        return channel, bridge_channel, kwargs, {**bridge_options, **self.bus_options}
+
+    def _bridge_end(self, connection: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
+        """``connection`` (what the bridge's driver opens) with the line's ``bitrate`` and the
+        bridge end's python-can ``options`` (:meth:`_open_line`) where set."""
+        if self.bitrate is not None:
+            connection["bitrate"] = self.bitrate
+        if options:
+            connection["bus_options"] = options
+        return connection
+
+    @property
+    def _line_note(self) -> str:
+        """What the twin's ``where`` adds for a line that is a null-modem cable."""
+        return " (pseudo-terminal null modem)" if self.cable is not None else ""
+
+    def _send(self, bus: Any, frame: Any) -> None:
+        """Put ``frame`` on the python-can ``bus``; nothing when the bus is gone (closed, or
+        failing: the bridge then sees no answer)."""
+        if bus is None:
+            return
+        try:
+            bus.send(frame)
+        except (can.CanError, OSError):  # pragma: no cover - bus gone
+            pass
+
+    def _close_cable(self) -> None:
+        cable, self.cable = self.cable, None
+        if cable is not None:
+            cable.close()
