@@ -49,7 +49,7 @@ from .effect_base import (
     _positive,
     validate_params,
 )
-from .first_order import FirstOrderServo, first_order_coeffs
+from .first_order import FirstOrderSection, FirstOrderServo, first_order_coeffs
 
 _MM = 1e-3
 
@@ -545,7 +545,7 @@ class TimeVaryingDelay(Effect):
         return out
 
 
-class ForceFeedback(Effect):
+class ForceFeedback(FirstOrderSection, Effect):
     """Control-structure interaction: the specimen force compresses the oil column.
 
     With the hydraulic (oil-column) stiffness ``k_h = 4βA²/V`` in series with the specimen
@@ -621,23 +621,7 @@ class ForceFeedback(Effect):
             b, a = first_order_coeffs(self.static_gain, self.time_constant, self.dt)
         else:
             b, a = np.array([self.static_gain, 0.0]), np.array([1.0, 0.0])
-        self.b, self.a = b, a
-        self._b0, self._b1, self._a1 = float(b[0]), float(b[1]), float(a[1])
-
-    def reset(self) -> None:
-        self._z = 0.0
-
-    def step(self, x: float) -> float:
-        y = self._b0 * x + self._z
-        self._z = self._b1 * x - self._a1 * y
-        return y
-
-    def simulate(self, x: np.ndarray) -> np.ndarray:
-        # where used: a twin's start-up (twin serve) does without scipy.signal's second
-        from scipy.signal import lfilter
-
-        self.reset()
-        return lfilter(self.b, self.a, np.asarray(x, dtype=float))
+        self._set_section(b, a)
 
 
 class EffectChain:

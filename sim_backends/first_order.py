@@ -16,7 +16,7 @@ from rths_hil.errors import InputError
 
 from .base import ActuatorModel, check_dt
 
-__all__ = ["FirstOrderServo", "first_order_coeffs"]
+__all__ = ["FirstOrderSection", "FirstOrderServo", "first_order_coeffs"]
 
 
 def first_order_coeffs(
@@ -34,7 +34,44 @@ def first_order_coeffs(
     return np.array([gain * (1.0 - c), gain * (c - p)]), np.array([1.0, -p])
 
 
-class FirstOrderServo(ActuatorModel):
+class FirstOrderSection:
+    """A first-order section ``(b0 + b1 z⁻¹) / (1 + a1 z⁻¹)`` stepped or run on a whole history.
+
+    :meth:`step` is the transposed direct form II recursion that :func:`scipy.signal.lfilter`
+    uses, so :meth:`step` and :meth:`simulate` agree to the last bit. The class that takes it
+    (:class:`FirstOrderServo`, the ``force_feedback`` effect) sets its coefficients with
+    :meth:`_set_section`.
+    """
+
+    b: np.ndarray
+    a: np.ndarray
+
+    def _set_section(self, b: np.ndarray, a: np.ndarray) -> None:
+        """The coefficients ``b = (b0, b1)`` and ``a = (1, a1)``; the state at rest."""
+        self.b, self.a = b, a
+        self._b0, self._b1, self._a1 = float(b[0]), float(b[1]), float(a[1])
+        self._z = 0.0
+
+    def reset(self) -> None:
+        """Return to rest (zero state)."""
+        self._z = 0.0
+
+    def step(self, x: float) -> float:
+        """Advance one step with input ``x``; the output."""
+        y = self._b0 * x + self._z
+        self._z = self._b1 * x - self._a1 * y
+        return y
+
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        """The output for a whole input history, from rest."""
+        # where used: a twin's start-up (twin serve) does without scipy.signal's second
+        from scipy.signal import lfilter
+
+        self.reset()
+        return lfilter(self.b, self.a, np.asarray(x, dtype=float))
+
+
+class FirstOrderServo(FirstOrderSection, ActuatorModel):
     """First-order servo lag ``G(s) = 1 / (T s + 1)`` discretised with a first-order hold.
 
     The lag is the dominant dynamics of a servo-hydraulic actuator under proportional control:
@@ -61,27 +98,4 @@ class FirstOrderServo(ActuatorModel):
         if not math.isfinite(t) or t <= 0:
             raise InputError(f"time_constant: must be > 0 s, got {time_constant!r}")
         self.time_constant = t
-        b, a = first_order_coeffs(1.0, t, self.dt)
-        self.b = b
-        self.a = a
-        self._b0, self._b1 = float(b[0]), float(b[1])
-        self._a1 = float(a[1])
-        self._z = 0.0
-
-    def reset(self) -> None:
-        """Return to rest (zero state, empty delay lines)."""
-        self._z = 0.0
-
-    def step(self, command: float) -> float:
-        """Advance one step: the achieved displacement (m) for ``command`` (m)."""
-        y = self._b0 * command + self._z
-        self._z = self._b1 * command - self._a1 * y
-        return y
-
-    def simulate(self, command: np.ndarray) -> np.ndarray:
-        """The achieved displacement (m) for a whole command history (m), from rest."""
-        # where used: a twin's start-up (twin serve) does without scipy.signal's second
-        from scipy.signal import lfilter
-
-        self.reset()
-        return lfilter(self.b, self.a, np.asarray(command, dtype=float))
+        self._set_section(*first_order_coeffs(1.0, t, self.dt))
