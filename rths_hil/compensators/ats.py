@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import ClassVar
 
 import numba
 import numpy as np
@@ -194,33 +194,19 @@ class ATSCompensator(Compensator):
         The current ``[a0, a1, a2]``; ``alpha = 1 + a1·fs``.
     """
 
-    KEYS = (
-        "delay",
-        "amplitude",
-        "ats_window",
-        "ats_interval",
-        "ats_cutoff",
-        "ats_threshold",
-        "ats_min",
-        "ats_max",
-        "ats_rate",
-    )
-
-    @classmethod
-    def from_config(cls, c: Mapping[str, Any], fs: float) -> ATSCompensator:
-        """The ``delay``, ``amplitude`` and ``ats_*`` keys of the compensation section."""
-        return cls(
-            fs,
-            c["delay"],
-            c["amplitude"],
-            window=c["ats_window"],
-            interval=c["ats_interval"],
-            cutoff=c["ats_cutoff"],
-            threshold=c["ats_threshold"],
-            lower=c["ats_min"],
-            upper=c["ats_max"],
-            rate=c["ats_rate"],
-        )
+    #: the ``delay``, ``amplitude`` and ``ats_*`` keys of the compensation section
+    ARGUMENTS: ClassVar[Mapping[str, str]] = {
+        "delay": "delay",
+        "amplitude": "amplitude",
+        "window": "ats_window",
+        "interval": "ats_interval",
+        "cutoff": "ats_cutoff",
+        "threshold": "ats_threshold",
+        "lower": "ats_min",
+        "upper": "ats_max",
+        "rate": "ats_rate",
+    }
+    KEYS = tuple(ARGUMENTS.values())
 
     def __init__(
         self,

@@ -36,9 +36,13 @@ class Compensator:
     KEYS : tuple of str
         The ``compensation.*`` keys the method reads besides ``enabled`` and ``method``
         (documentation; a lab's method takes its own keys from ``compensation.options``).
+    ARGUMENTS : mapping of str to str
+        A built-in method's constructor arguments and the ``compensation.*`` key each comes
+        from, read by the default :meth:`from_config` (with ``fs``); empty for a lab's method.
     """
 
     KEYS: ClassVar[tuple[str, ...]] = ()
+    ARGUMENTS: ClassVar[Mapping[str, str]] = {}
     alpha: float = 1.0
     enabled: bool = True
 
@@ -46,16 +50,35 @@ class Compensator:
     def from_config(cls, c: Mapping[str, Any], fs: float) -> Compensator:
         """Build from a channel's resolved ``compensation`` section at loop rate ``fs`` (Hz).
 
-        The default passes ``fs`` and the keys of ``compensation.options`` to the constructor
-        (a lab's own compensator); the built-in methods read their documented keys.
+        The default passes ``fs`` and, as :attr:`ARGUMENTS` names them, the built-in method's
+        keys or else the keys of ``compensation.options`` (a lab's own compensator) to the
+        constructor.
         """
-        opts = dict(c.get("options") or {})
         # a lab's compensator declares its own constructor (fs and its options)
         make: Callable[..., Compensator] = cls
+        if cls.ARGUMENTS:
+            return make(fs=fs, **cls.config_arguments(c))
+        opts = dict(c.get("options") or {})
         try:
             return make(fs=fs, **opts)
         except TypeError as exc:
             raise InputError(f"compensation.options: {exc}") from None
+
+    @classmethod
+    def config_arguments(cls, c: Mapping[str, Any]) -> dict[str, Any]:
+        """The constructor's keyword arguments from the ``compensation`` section ``c``.
+
+        Parameters
+        ----------
+        c : mapping
+            A channel's resolved ``compensation`` section.
+
+        Returns
+        -------
+        dict
+            ``{argument: c[key]}`` for each ``argument: key`` of :attr:`ARGUMENTS`.
+        """
+        return {arg: c[key] for arg, key in cls.ARGUMENTS.items()}
 
     def reset(self, target: float = 0.0) -> None:
         """Forget the history: the target has been ``target`` (m) forever (on re-arm)."""

@@ -30,6 +30,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from ..errors import InputError
+from ..units import positive_number
 from .base import Compensator
 
 __all__ = ["AdaptiveAlpha", "InverseCompensator", "alpha_for_delay"]
@@ -86,10 +87,8 @@ class InverseCompensator(Compensator):
     def __init__(self, alpha: float = 1.0, amplitude: float = 1.0, enabled: bool = True) -> None:
         if not (math.isfinite(alpha) and alpha >= 1.0):
             raise InputError(f"compensation alpha must be a finite number >= 1, got {alpha}")
-        if not (math.isfinite(amplitude) and amplitude > 0.0):
-            raise InputError(f"compensation amplitude factor must be > 0, got {amplitude}")
         self.alpha = float(alpha)
-        self.amplitude = float(amplitude)
+        self.amplitude = positive_number(amplitude, "compensation amplitude factor")
         self.enabled = bool(enabled)
         self.prev = 0.0
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy.signal import bilinear, tf2sos
@@ -114,38 +114,29 @@ class ModelCompensator(Compensator):
         Amplitude factor on the feedforward.
     """
 
-    KEYS = (
-        "delay",
-        "amplitude",
-        "model_delay",
-        "model_time_constant",
-        "model_gain",
-        "model_num",
-        "model_den",
-        "model_cutoff",
-        "model_order",
-        "model_kp",
-    )
+    #: the ``delay``, ``amplitude`` and ``model_*`` keys of the compensation section
+    ARGUMENTS: ClassVar[Mapping[str, str]] = {
+        "delay": "delay",
+        "amplitude": "amplitude",
+        "time_constant": "model_time_constant",
+        "gain": "model_gain",
+        "num": "model_num",
+        "den": "model_den",
+        "cutoff": "model_cutoff",
+        "order": "model_order",
+        "kp": "model_kp",
+    }
+    KEYS = (*ARGUMENTS.values(), "model_delay")
 
     @classmethod
     def from_config(cls, c: Mapping[str, Any], fs: float) -> ModelCompensator:
-        """The ``delay``, ``amplitude`` and ``model_*`` keys of the compensation section.
-
-        The model's transport delay is ``model_delay`` when it is ≥ 0, else ``delay``.
-        """
+        """:attr:`ARGUMENTS` of the compensation section; the model's transport delay is
+        ``model_delay`` when it is ≥ 0, else ``delay``."""
+        args = cls.config_arguments(c)
         tau = c.get("model_delay", -1.0)
-        return cls(
-            fs,
-            tau if tau >= 0 else c["delay"],
-            time_constant=c["model_time_constant"],
-            gain=c["model_gain"],
-            num=c["model_num"],
-            den=c["model_den"],
-            cutoff=c["model_cutoff"],
-            order=c["model_order"],
-            kp=c["model_kp"],
-            amplitude=c["amplitude"],
-        )
+        if tau >= 0:
+            args["delay"] = tau
+        return cls(fs, **args)
 
     def __init__(
         self,

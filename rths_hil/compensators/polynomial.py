@@ -19,11 +19,11 @@ compensation leaves on a pure delay; the gain at high frequency grows with ``Σ|
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
-from typing import Any
+from typing import ClassVar
 
 from ..errors import InputError
+from ..units import positive_number
 from .base import Compensator
 
 __all__ = ["PolynomialCompensator", "lagrange_extrapolation"]
@@ -56,25 +56,21 @@ class PolynomialCompensator(Compensator):
         Amplitude factor ``a`` on the command.
     """
 
-    KEYS = ("delay", "order", "amplitude")
+    ARGUMENTS: ClassVar[Mapping[str, str]] = {
+        "delay": "delay",
+        "order": "order",
+        "amplitude": "amplitude",
+    }
+    KEYS = tuple(ARGUMENTS.values())
     __slots__ = ("_h", "_w", "alpha", "amplitude", "delay", "enabled", "fs", "order")
-
-    @classmethod
-    def from_config(cls, c: Mapping[str, Any], fs: float) -> PolynomialCompensator:
-        """``delay``, ``order`` and ``amplitude`` of the compensation section."""
-        return cls(fs, c["delay"], c["order"], c["amplitude"])
 
     def __init__(self, fs: float, delay: float, order: int = 3, amplitude: float = 1.0) -> None:
         if not (isinstance(order, int) and 1 <= order <= 4):
             raise InputError(f"compensation.order: must be 1 … 4, got {order!r}")
-        if not (math.isfinite(delay) and delay >= 0):
-            raise InputError(f"compensation.delay: must be ≥ 0 s, got {delay!r}")
-        if not (math.isfinite(amplitude) and amplitude > 0):
-            raise InputError(f"compensation.amplitude: must be > 0, got {amplitude!r}")
         self.fs = float(fs)
-        self.delay = float(delay)
+        self.delay = positive_number(delay, "compensation.delay (s)", allow_zero=True)
         self.order = order
-        self.amplitude = float(amplitude)
+        self.amplitude = positive_number(amplitude, "compensation.amplitude")
         self.enabled = True
         self.alpha = 1.0 + self.delay * self.fs
         self._w = [self.amplitude * w for w in lagrange_extrapolation(order, self.delay * fs)]
