@@ -66,10 +66,10 @@ holds its format:
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from functools import cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar, Self, TypeVar
 
 from rths_hil.config.coerce import check_table
 from rths_hil.config.key import REQUIRED, Key
@@ -79,18 +79,19 @@ from rths_hil.formats import read_toml
 from .base import Status
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
-
     from .can.profile_format import CANProfile
     from .modbus.profile_format import ModbusProfile
 
 __all__ = [
     "BUILTIN_PROFILE",
+    "ProfileFormat",
     "is_builtin",
     "load_profile",
     "status_from_word",
     "word_from_status",
 ]
+
+T = TypeVar("T")
 
 #: The name of the built-in profile: each driver's own protocol.
 BUILTIN_PROFILE = "rths-hil"
@@ -179,6 +180,20 @@ STATUS_KEYS = {
 }
 
 
+def read_roles(source: str, table: Any, read: Callable[[Any, str], T]) -> dict[str, T]:
+    """``[roles]``: each role mapped, in :data:`ROLE_KEYS` order, read by ``read(its table,
+    its key path)``; every role the bridge needs must be there."""
+    given = check_keys(source, table, ROLE_KEYS, "roles", ROLES_MISSING)
+    return {r: read(given[r], f"roles.{r}") for r in ROLE_KEYS if given[r] is not None}
+
+
+def read_actions(source: str, table: Any, read: Callable[[Any, str], T]) -> dict[str, T]:
+    """``[actions]``: each action given, in :data:`ACTIONS` order, read by ``read(its table,
+    its key path)``; the e-stop must be there."""
+    given = check_keys(source, table, ACTION_KEYS, "actions", "missing (every driver can e-stop)")
+    return {a: read(given[a], f"actions.{a}") for a in ACTION_KEYS if given[a] is not None}
+
+
 #: What each unit measures; a role takes only its own kind.
 _UNIT_KIND = {"m": "length", "cm": "length", "mm": "length", "um": "length", "µm": "length"}
 _UNIT_KIND["in"] = "length"
@@ -223,6 +238,15 @@ def _masks(source: str, status: Any) -> dict[int, int]:
     return out
 
 
+def check_mask_bits(source: str, masks: dict[int, int], top: int, what: str) -> None:
+    """Every status mask a bit of the status field: none above ``top`` (``what`` names the
+    field)."""
+    for name, flag in STATUS_BITS.items():
+        mask = masks.get(flag, 0)
+        if mask > top:
+            raise InputError(f"{where(source)}: status.{name}: 0x{mask:X} is not a bit of {what}")
+
+
 def _range_refusal(source: str, role: str, what: str, lo: float, hi: float, limit: float) -> str:
     """The one line refusing a set-point field that cannot carry ±``limit`` (SI)."""
     if role == "force_setpoint":
@@ -243,20 +267,55 @@ def _no_force_role(source: str, how: str) -> InputError:
     )
 
 
-def _force_setpoint(source: str, roles: dict[str, Any], actions: dict[str, Any], how: str) -> Any:
-    """``roles["force_setpoint"]``, the set-point a channel in wire mode force writes.
+class ProfileFormat:
+    """What the two profile formats share: the wire control modes a profile can run and the
+    profile a force-controlled channel uses.
 
-    Raises
-    ------
-    InputError
-        The profile maps no force set-point (``how`` says what it would be), or its
-        controller selects its loop on command without an action for the force loop.
+    A format is a frozen dataclass with ``source``, ``actions`` and its role map, the field
+    :attr:`ROLE_FIELD` (role → where its value is on the wire); it says what its force
+    set-point would be (:meth:`_force_hint`) and how it writes one (:meth:`_with_setpoint`).
     """
-    fsp = roles.get("force_setpoint")
-    if fsp is None:
-        raise _no_force_role(source, how)
-    _check_force_loop(source, actions)
-    return fsp
+
+    #: The field holding the role map.
+    ROLE_FIELD: ClassVar[str] = "roles"
+    source: str
+    actions: dict[str, Any]
+
+    def _roles(self) -> dict[str, Any]:
+        roles: dict[str, Any] = getattr(self, self.ROLE_FIELD)
+        return roles
+
+    def _force_hint(self) -> str:
+        raise NotImplementedError
+
+    def _with_setpoint(self, fsp: Any) -> Self:
+        raise NotImplementedError
+
+    @property
+    def control_modes(self) -> tuple[str, ...]:
+        """The wire control modes the profile can run: ``displacement``, and ``force`` when
+        it maps ``roles.force_setpoint``."""
+        return CONTROL_MODES if "force_setpoint" in self._roles() else CONTROL_MODES[:1]
+
+    def for_control(self, mode: str) -> Self:
+        """The profile as a channel in wire mode ``mode`` uses it.
+
+        ``"displacement"``: this profile. ``"force"``: the profile with
+        ``roles.force_setpoint`` as the set-point written every step (its value in N).
+
+        Raises
+        ------
+        InputError
+            ``"force"`` and the profile has no ``roles.force_setpoint``, or its controller
+            selects its loop on command without an action for the force loop (one line).
+        """
+        if mode != "force":
+            return self
+        fsp = self._roles().get("force_setpoint")
+        if fsp is None:
+            raise _no_force_role(self.source, self._force_hint())
+        _check_force_loop(self.source, self.actions)
+        return self._with_setpoint(fsp)
 
 
 def _move_bits(bits: int, pairs: Iterable[tuple[int, int]]) -> int:

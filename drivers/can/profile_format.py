@@ -13,19 +13,17 @@ from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
 
 from ..profile import (
-    ACTION_KEYS,
-    CONTROL_MODES,
-    ROLE_KEYS,
-    ROLES_MISSING,
-    STATUS_BITS,
     UNITS,
     UNITS_KEY,
+    ProfileFormat,
     _check_mode_actions,
-    _force_setpoint,
     _masks,
     _range_refusal,
     _units,
     check_keys,
+    check_mask_bits,
+    read_actions,
+    read_roles,
     top_keys,
 )
 
@@ -58,7 +56,7 @@ class CANSignal:
 
 
 @dataclass(frozen=True)
-class CANProfile:
+class CANProfile(ProfileFormat):
     """A validated CAN profile (see the module docstring)."""
 
     source: str
@@ -93,28 +91,12 @@ class CANProfile:
             what = f"the DBC signal {sp.message}.{sp.signal}"
             raise InputError(_range_refusal(self.source, sp.role, what, lo, hi, limit))
 
-    @property
-    def control_modes(self) -> tuple[str, ...]:
-        """The wire control modes the profile can run: ``displacement``, and ``force`` when
-        it maps ``roles.force_setpoint``."""
-        return CONTROL_MODES if "force_setpoint" in self.roles else CONTROL_MODES[:1]
+    def _force_hint(self) -> str:
+        """``roles.force_setpoint`` is a signal of the command message; as the set-point of
+        every command frame, the displacement set-point signal keeps its DBC initial value."""
+        return f"a signal of the command message {self.roles['setpoint'].message}"
 
-    def for_control(self, mode: str) -> CANProfile:
-        """The profile as a channel in wire mode ``mode`` uses it.
-
-        ``"displacement"``: this profile. ``"force"``: ``roles.force_setpoint`` (a signal of
-        the command message, its value in N) as the set-point of every command frame; the
-        displacement set-point signal keeps its DBC initial value.
-
-        Raises
-        ------
-        InputError
-            ``"force"`` and the profile has no ``roles.force_setpoint`` (one line).
-        """
-        if mode != "force":
-            return self
-        how = f"a signal of the command message {self.roles['setpoint'].message}"
-        fsp = _force_setpoint(self.source, self.roles, self.actions, how)
+    def _with_setpoint(self, fsp: CANSignal) -> CANProfile:
         return replace(self, roles={**self.roles, "setpoint": fsp})
 
     @property
@@ -177,12 +159,7 @@ def load_can(src: str, data: dict[str, Any], base: Path) -> CANProfile:
         db = load_dbc(dbc)
     except InputError as exc:
         raise InputError(f"profile {src}: dbc: {exc}") from None
-    given = check_keys(src, top["roles"], ROLE_KEYS, "roles", ROLES_MISSING)
-    roles = {
-        x: _can_signal(src, given[x], f"roles.{x}", db, dbc_rel)
-        for x in ROLE_KEYS
-        if given[x] is not None
-    }
+    roles = read_roles(src, top["roles"], lambda t, path: _can_signal(src, t, path, db, dbc_rel))
     fsp = roles.get("force_setpoint")
     if fsp is not None and fsp.message != roles["setpoint"].message:
         raise InputError(
@@ -203,14 +180,9 @@ def load_can(src: str, data: dict[str, Any], base: Path) -> CANProfile:
             )
     if roles["setpoint"].message == fb:
         raise InputError(f"profile {src}: roles.setpoint: the command and feedback share {fb}")
-    given = check_keys(
-        src, top["actions"], ACTION_KEYS, "actions", "missing (every driver can e-stop)"
+    actions = read_actions(
+        src, top["actions"], lambda t, path: _can_signal(src, t, path, db, dbc_rel, action=True)
     )
-    actions = {
-        a: _can_signal(src, given[a], f"actions.{a}", db, dbc_rel, action=True)
-        for a in ACTION_KEYS
-        if given[a] is not None
-    }
     for a, s in actions.items():
         if a != "estop" and s.message != roles["setpoint"].message:
             raise InputError(
@@ -255,14 +227,8 @@ def _check_can_fields(
         return db.get_message_by_name(s.message).get_signal_by_name(s.signal)
 
     st = roles["status"]
-    lo, hi = _raw_range(signal(st))
-    names = {flag: name for name, flag in STATUS_BITS.items()}
-    for flag, mask in masks.items():
-        if mask > max(hi, 0):
-            raise InputError(
-                f"profile {src}: status.{names[flag]}: 0x{mask:X} is not a bit of the DBC "
-                f"signal {st.message}.{st.signal} ({signal(st).length} bits)"
-            )
+    what = f"the DBC signal {st.message}.{st.signal} ({signal(st).length} bits)"
+    check_mask_bits(src, masks, max(_raw_range(signal(st))[1], 0), what)
     for name, a in actions.items():
         sig = signal(a)
         lo, hi = _raw_range(sig)

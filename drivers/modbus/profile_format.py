@@ -15,19 +15,17 @@ from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
 
 from ..profile import (
-    ACTION_KEYS,
-    CONTROL_MODES,
     READ_ROLES,
-    ROLE_KEYS,
-    ROLES_MISSING,
-    STATUS_BITS,
     UNITS_KEY,
+    ProfileFormat,
     _check_mode_actions,
-    _force_setpoint,
     _masks,
     _range_refusal,
     _units,
     check_keys,
+    check_mask_bits,
+    read_actions,
+    read_roles,
     top_keys,
 )
 
@@ -108,13 +106,8 @@ def _check_masks(source: str, masks: dict[int, int], point: ModbusPoint) -> None
         )
     top = {"bool": 0x1, "int16": 0x7FFF, "uint16": 0xFFFF, "int32": 0x7FFFFFFF}
     hi = top.get(point.type, 0xFFFFFFFF)
-    names = {flag: name for name, flag in STATUS_BITS.items()}
-    for flag, mask in masks.items():
-        if mask > hi:
-            raise InputError(
-                f"profile {source}: status.{names[flag]}: 0x{mask:X} is not a bit of the "
-                f"{point.table} {point.type} status point (bits up to 0x{hi:X})"
-            )
+    what = f"the {point.table} {point.type} status point (bits up to 0x{hi:X})"
+    check_mask_bits(source, masks, hi, what)
 
 
 # ------------------------------------------------------------------------------------------
@@ -248,7 +241,7 @@ class ReadBlock:
 
 
 @dataclass(frozen=True)
-class ModbusProfile:
+class ModbusProfile(ProfileFormat):
     """A validated Modbus profile (see the module docstring).
 
     Attributes
@@ -291,28 +284,14 @@ class ModbusProfile:
             what = f"{sp.type} with scale {sp.scale:g}"
             raise InputError(_range_refusal(self.source, sp.role, what, lo, hi, limit))
 
-    @property
-    def control_modes(self) -> tuple[str, ...]:
-        """The wire control modes the map can run: ``displacement``, and ``force`` when it
-        maps ``roles.force_setpoint``."""
-        return CONTROL_MODES if "force_setpoint" in self.points else CONTROL_MODES[:1]
+    ROLE_FIELD = "points"
 
-    def for_control(self, mode: str) -> ModbusProfile:
-        """The profile as a channel in wire mode ``mode`` uses it.
+    def _force_hint(self) -> str:
+        return "a holding register point in N, kN or lbf"
 
-        ``"displacement"``: this profile. ``"force"``: the same map with
-        ``roles.force_setpoint`` as the point written every step (``points["setpoint"]``,
-        its role ``force_setpoint``, its value in N), the requests per step worked out for it.
-
-        Raises
-        ------
-        InputError
-            ``"force"`` and the map has no ``roles.force_setpoint`` (one line).
-        """
-        if mode != "force":
-            return self
-        how = "a holding register point in N, kN or lbf"
-        fsp = _force_setpoint(self.source, self.points, self.actions, how)
+    def _with_setpoint(self, fsp: ModbusPoint) -> ModbusProfile:
+        """The map with ``fsp`` as the point written every step (``points["setpoint"]``, its
+        role ``force_setpoint``), the requests per step worked out for it."""
         points = {**self.points, "setpoint": fsp}
         fc23 = fsp.table == "holding" and len(self.reads) == 1 and self.reads[0].table == "holding"
         return replace(self, points=points, fc23=fc23)
@@ -378,12 +357,7 @@ def _modbus_point(src: str, table: Any, path: str, defaults: dict[str, Any]) -> 
 def _modbus_roles(src: str, roles: Any, defaults: dict[str, Any]) -> dict[str, ModbusPoint]:
     """The role points of ``[roles]``: the required ones and the force set-point if mapped;
     the set-points must be writable registers."""
-    given = check_keys(src, roles, ROLE_KEYS, "roles", ROLES_MISSING)
-    points = {
-        role: _modbus_point(src, given[role], f"roles.{role}", defaults)
-        for role in ROLE_KEYS
-        if given[role] is not None
-    }
+    points = read_roles(src, roles, lambda t, path: _modbus_point(src, t, path, defaults))
     for role, what in (("setpoint", "a displacement"), ("force_setpoint", "a force")):
         sp = points.get(role)
         if sp is None:
@@ -395,18 +369,11 @@ def _modbus_roles(src: str, roles: Any, defaults: dict[str, Any]) -> dict[str, M
     return points
 
 
-def _modbus_actions(src: str, actions: Any) -> dict[str, ModbusAction]:
-    """The writes of ``[actions]`` (the e-stop required)."""
-    given = check_keys(src, actions, ACTION_KEYS, "actions", "missing (every driver can e-stop)")
-    out = {}
-    for name in ACTION_KEYS:
-        t = given[name]
-        if t is None:
-            continue
-        keys = _ACTION["coil" if isinstance(t, dict) and t.get("table") == "coil" else "holding"]
-        a = check_keys(src, t, keys, f"actions.{name}")
-        out[name] = ModbusAction(name, a["table"], a["address"], a["value"])
-    return out
+def _modbus_action(src: str, table: Any, path: str) -> ModbusAction:
+    """The write of the action at ``path`` (a coil takes 0 or 1)."""
+    coil = isinstance(table, dict) and table.get("table") == "coil"
+    a = check_keys(src, table, _ACTION["coil" if coil else "holding"], path)
+    return ModbusAction(path.rpartition(".")[2], a["table"], a["address"], a["value"])
 
 
 def _check_overlaps(source: str, points: list[ModbusPoint], actions: list[ModbusAction]) -> None:
@@ -440,7 +407,7 @@ def load_modbus(src: str, data: dict[str, Any]) -> ModbusProfile:
     mb = check_keys(src, top["modbus"], MODBUS_KEYS, "modbus")
     points = _modbus_roles(src, top["roles"], mb)
     sp = points["setpoint"]
-    actions = _modbus_actions(src, top["actions"])
+    actions = read_actions(src, top["actions"], lambda t, path: _modbus_action(src, t, path))
     _check_mode_actions(src, actions, points, lambda a: (a.table, a.address, a.value))
     heartbeat = None
     if top["heartbeat"] is not None:
