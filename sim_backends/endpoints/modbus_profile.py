@@ -162,15 +162,7 @@ class ModbusProfileTwin(TwinEndpoint):
             return
         self._listener = listen(self.host, self.port, self.allow_remote, "modbus twin")
         port = self._listener.getsockname()[1]
-        self.connection = {
-            "transport": "tcp",
-            "host": self.host,
-            "port": port,
-            "device_id": self.device_id,
-            "profile": self.profile_path,
-        }
-        self.where = f"modbus tcp {self.host}:{port} unit {self.device_id} ({self.profile_path})"
-        self._publish(0.0, 0.0, self.controller.status())
+        self._ready(f"{self.host}:{port}", host=self.host, port=port)
 
     def _setup_rtu(self) -> None:
         """An RTU slave on a pseudo-terminal pair of its own (the driver opens the other end)
@@ -191,13 +183,18 @@ class ModbusProfileTwin(TwinEndpoint):
                 raise InputError(f"modbus twin: cannot open {self.device!r}: {exc}") from None
             self._conns = {self._serial.fd: [None, b""]}
             path = self.device
+        self._ready(path, device=path)
+
+    def _ready(self, place: str, **line: Any) -> None:
+        """Serving at ``place`` on ``line`` (``host`` and ``port``, or ``device``): the driver's
+        ``connection`` and ``where``, and the registers at rest."""
         self.connection = {
-            "transport": "rtu",
-            "device": path,
+            "transport": self.transport,
+            **line,
             "device_id": self.device_id,
             "profile": self.profile_path,
         }
-        self.where = f"modbus rtu {path} unit {self.device_id} ({self.profile_path})"
+        self.where = f"modbus {self.transport} {place} unit {self.device_id} ({self.profile_path})"
         self._publish(0.0, 0.0, self.controller.status())
 
     def _teardown(self) -> None:
