@@ -7,9 +7,16 @@ from __future__ import annotations
 
 from rths_hil.drivers.registry import DEFAULT as DEFAULT_DRIVER
 
-from .key import CONTROL_MODES, Key
+from .key import CONTROL_MODES, Key, seconds, steps
 
 __all__ = ["CHANNEL_SCHEMA"]
+
+
+def _pair(default: str, doc: str) -> Key:
+    """The signals an estimator compares with the measured one: the target (as in the FEI
+    paper) or the command."""
+    return Key("choice", default, doc=doc, choices=("target", "command"))
+
 
 #: section → key → :class:`~rths_hil.config.key.Key` of the per-channel sections.
 CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
@@ -17,7 +24,6 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
         "mode": Key(
             "choice",
             "displacement",
-            unit="-",
             doc="what the channel's actuator follows: displacement (the structure's trial "
             "displacement; tracked: the measured displacement), force (a force from the "
             "numerical substructure, force-based substructuring: docs/channels.md; tracked: the "
@@ -39,13 +45,10 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
             doc="load: [[t, F], …] the force held, piecewise linear in the test's time t from "
             "step 0 (held before the first and after the last point); instead of control.load",
         ),
-        "load_ramp": Key(
-            "float",
+        "load_ramp": seconds(
             0.0,
-            unit="s",
             doc="force and load: the ramp of the force up from where it is to the first load "
             "after arming, and down to 0 N before the hand-back (0 = start.ramp_time)",
-            lo=0,
             hi=600,
         ),
     },
@@ -53,14 +56,12 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
         "name": Key(
             "str",
             DEFAULT_DRIVER,
-            unit="-",
             doc="driver name in the registry (can, modbus, serial, canopen, or a lab's entry "
             "point)",
         ),
         "connection": Key(
             "table",
             {},
-            unit="-",
             doc="driver connection settings (e.g. interface/channel for CAN, "
             "host/port for Modbus, url for serial, eds/node_id/profile for CANopen: "
             "docs/canopen.md); with a twin they go to the twin, which hands the driver its "
@@ -69,14 +70,12 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
         "profile": Key(
             "str",
             "rths-hil",
-            unit="-",
             doc="controller profile: 'rths-hil' (the driver's own protocol) or a profile file "
             "(TOML: the lab's register map or DBC, docs/profiles.md); the twin speaks it too",
         ),
         "stepped": Key(
             "bool",
             False,
-            unit="-",
             doc="the controller advances one step per command (virtual time), so a lockstep "
             "run against it without a twin is allowed",
         ),
@@ -85,55 +84,43 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
         "enabled": Key(
             "bool",
             True,
-            unit="-",
             doc="run an in-process virtual twin (false: real controller at the connection)",
         ),
         "inline": Key(
             "bool",
             True,
-            unit="-",
             doc="serve a twin on python-can's in-process virtual bus from the loop thread "
             "(same frames and controller, no thread hand-off; a CANopen twin's own thread "
             "still answers the SDO exchanges); false: in its own thread",
         ),
         "model": Key(
-            "str",
-            "",
-            unit="-",
-            doc="twin model file (TOML, [actuator] ...); empty: the tables below",
+            "str", "", doc="twin model file (TOML, [actuator] ...); empty: the tables below"
         ),
         "actuator": Key(
             "table",
             {"model": "first_order", "time_constant": 0.020, "delay": 0.005, "gain": 1.0},
-            unit="-",
             doc="actuator model as in a model file's [actuator] table",
         ),
         "specimen": Key(
             "table",
             {},
-            unit="-",
             doc="specimen model as in a model file's [specimen] table (empty: the model "
             "file default)",
         ),
         "sensor": Key(
             "table",
             {"displacement_noise": 2e-6, "force_noise": 5.0, "seed": 0},
-            unit="-",
             doc="sensor noise and quantisation as in a model file's [sensor] table",
         ),
-        "watchdog": Key(
-            "float",
+        "watchdog": seconds(
             0.5,
-            unit="s",
             doc="paced: the in-process twin's controller-side watchdog: no command or heartbeat "
             "for this long while enabled → it holds and latches its e-stop (0 = off; off in "
             "lockstep)",
-            lo=0,
         ),
         "faults": Key(
             "str",
             "",
-            unit="-",
             doc="fault plan for tests and dry runs, e.g. 'stuck_from=3000' "
             "(rths_hil.sim_backends.faults)",
         ),
@@ -155,21 +142,17 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
         ),
     },
     "compensation": {
-        "enabled": Key("bool", True, unit="-", doc="actuator delay compensation on"),
+        "enabled": Key("bool", True, doc="actuator delay compensation on"),
         "method": Key(
             "str",
             "inverse",
-            unit="-",
             doc="compensator: inverse, polynomial, ats, model or a lab's own registered under "
             "the entry-point group rths_hil.compensators (docs/compensation.md)",
         ),
-        "delay": Key(
-            "float",
+        "delay": seconds(
             0.025,
-            unit="s",
             doc="delay to compensate (inverse: α = 1 + delay·fs; polynomial: extrapolation "
             "horizon; ats: initial a1; model: the model's transport delay)",
-            lo=0,
             hi=1.0,
         ),
         "alpha": Key(
@@ -181,20 +164,9 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
             "1024 Hz)",
             lo=1,
         ),
-        "amplitude": Key(
-            "float", 1.0, unit="-", doc="amplitude factor on the command", lo=0, lo_open=True
-        ),
-        "adaptive": Key(
-            "bool", False, unit="-", doc="inverse: adapt α online from the online FEI delay"
-        ),
-        "time_constant": Key(
-            "float",
-            6.0,
-            unit="s",
-            doc="adaptive: time constant of the α update",
-            lo=0,
-            lo_open=True,
-        ),
+        "amplitude": Key("float", 1.0, doc="amplitude factor on the command", lo=0, lo_open=True),
+        "adaptive": Key("bool", False, doc="inverse: adapt α online from the online FEI delay"),
+        "time_constant": seconds(6.0, doc="adaptive: time constant of the α update", positive=True),
         "delay_rate": Key(
             "float",
             0.0048828125,
@@ -211,36 +183,22 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
             lo_open=True,
         ),
-        "delay_min": Key(
-            "float", 0.0, unit="s", doc="adaptive: lower bound of delay", lo=0, hi=1.0
-        ),
-        "delay_max": Key(
-            "float", 0.0966796875, unit="s", doc="adaptive: upper bound of delay", lo=0, hi=1.0
-        ),
+        "delay_min": seconds(0.0, doc="adaptive: lower bound of delay", hi=1.0),
+        "delay_max": seconds(0.0966796875, doc="adaptive: upper bound of delay", hi=1.0),
         "alpha_min": Key(
             "float", 1.0, unit="steps", doc="adaptive: lower bound of α (1 + delay_min·fs)", lo=1
         ),
         "alpha_max": Key(
             "float", 100.0, unit="steps", doc="adaptive: upper bound of α (1 + delay_max·fs)", lo=1
         ),
-        "order": Key(
-            "int", 3, unit="-", doc="polynomial: order n of the extrapolation (1 … 4)", lo=1, hi=4
+        "order": Key("int", 3, doc="polynomial: order n of the extrapolation (1 … 4)", lo=1, hi=4),
+        "ats_window": seconds(
+            1.0, doc="ats: length of the moving least-squares window", positive=True
         ),
-        "ats_window": Key(
-            "float",
-            1.0,
-            unit="s",
-            doc="ats: length of the moving least-squares window",
-            lo=0,
-            lo_open=True,
-        ),
-        "ats_interval": Key(
-            "float",
+        "ats_interval": seconds(
             0.015625,
-            unit="s",
             doc="ats: time between window samples and coefficient updates (16 steps at 1024 Hz)",
-            lo=0,
-            lo_open=True,
+            positive=True,
         ),
         "ats_cutoff": Key(
             "float",
@@ -259,18 +217,14 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
         ),
         "ats_min": Key(
-            "array", [0.7, 0.0, 0.0], unit="-", doc="ats: lower bounds of a0 (-), a1 (s), a2 (s²)"
+            "array", [0.7, 0.0, 0.0], doc="ats: lower bounds of a0 (-), a1 (s), a2 (s²)"
         ),
         "ats_max": Key(
-            "array",
-            [1.3, 0.08, 0.0032],
-            unit="-",
-            doc="ats: upper bounds of a0 (-), a1 (s), a2 (s²)",
+            "array", [1.3, 0.08, 0.0032], doc="ats: upper bounds of a0 (-), a1 (s), a2 (s²)"
         ),
         "ats_rate": Key(
             "array",
             [2.0, 0.05, 0.001],
-            unit="-",
             doc="ats: maximum rate of change of a0 (1/s), a1 (s/s), a2 (s²/s)",
         ),
         "model_delay": Key(
@@ -282,31 +236,19 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
             "delay)",
             hi=1.0,
         ),
-        "model_time_constant": Key(
-            "float",
-            0.0,
-            unit="s",
-            doc="model: servo lag T of the actuator model g·e^(−s·delay)/(T s + 1)",
-            lo=0,
+        "model_time_constant": seconds(
+            0.0, doc="model: servo lag T of the actuator model g·e^(−s·delay)/(T s + 1)"
         ),
         "model_gain": Key(
-            "float",
-            1.0,
-            unit="-",
-            doc="model: static gain g of the actuator model",
-            lo=0,
-            lo_open=True,
+            "float", 1.0, doc="model: static gain g of the actuator model", lo=0, lo_open=True
         ),
         "model_num": Key(
             "array",
             [],
-            unit="-",
             doc="model: numerator of a rational actuator model (powers of s, highest first); "
             "with model_den it replaces g/(T s + 1)",
         ),
-        "model_den": Key(
-            "array", [], unit="-", doc="model: denominator of the rational actuator model"
-        ),
+        "model_den": Key("array", [], doc="model: denominator of the rational actuator model"),
         "model_cutoff": Key(
             "float",
             60.0,
@@ -316,28 +258,16 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
             lo_open=True,
         ),
         "model_order": Key(
-            "int",
-            3,
-            unit="-",
-            doc="model: Taylor order of the delay prediction e^(s·τ)",
-            lo=0,
-            hi=4,
+            "int", 3, doc="model: Taylor order of the delay prediction e^(s·τ)", lo=0, hi=4
         ),
-        "model_kp": Key(
-            "float", 0.0, unit="-", doc="model: proportional feedback gain on target − measured"
-        ),
-        "options": Key(
-            "table", {}, unit="-", doc="a lab compensator's own keys (passed to its from_config)"
-        ),
+        "model_kp": Key("float", 0.0, doc="model: proportional feedback gain on target − measured"),
+        "options": Key("table", {}, doc="a lab compensator's own keys (passed to its from_config)"),
     },
     "fei": {
-        "enabled": Key("bool", True, unit="-", doc="online FEI (streaming every sample)"),
-        "pair": Key(
-            "choice",
+        "enabled": Key("bool", True, doc="online FEI (streaming every sample)"),
+        "pair": _pair(
             "target",
-            unit="-",
             doc="evaluated pair: measured vs target (as in the FEI paper) or measured vs command",
-            choices=("target", "command"),
         ),
         "window": Key(
             "window",
@@ -347,27 +277,15 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
             lo_open=True,
         ),
-        "exact_hop": Key(
-            "int",
-            256,
-            unit="steps",
-            doc="exact FEI cross-check every this many samples (0 = off)",
-            lo=0,
-        ),
+        "exact_hop": steps(256, doc="exact FEI cross-check every this many samples (0 = off)"),
     },
     "kalman": {
-        "enabled": Key("bool", True, unit="-", doc="Kalman gain/delay estimator beside the FEI"),
-        "pair": Key(
-            "choice",
-            "command",
-            unit="-",
-            doc="input of the estimator: command (the actuator's own delay) or target",
-            choices=("target", "command"),
+        "enabled": Key("bool", True, doc="Kalman gain/delay estimator beside the FEI"),
+        "pair": _pair(
+            "command", doc="input of the estimator: command (the actuator's own delay) or target"
         ),
-        "every": Key("int", 1, unit="steps", doc="run the estimator every this many steps", lo=1),
-        "options": Key(
-            "table", {}, unit="-", doc="estimator keyword arguments (rths_hil.estimation)"
-        ),
+        "every": steps(1, doc="run the estimator every this many steps", lo=1),
+        "options": Key("table", {}, doc="estimator keyword arguments (rths_hil.estimation)"),
     },
     "safety": {
         "displacement_limit": Key(
@@ -394,11 +312,9 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
         ),
         "fei_amplitude_tol": Key(
-            "float", 0.2, unit="-", doc="FEI rule: tolerance on |A − 1| (0 = off)", lo=0
+            "float", 0.2, doc="FEI rule: tolerance on |A − 1| (0 = off)", lo=0
         ),
-        "fei_delay_tol": Key(
-            "float", 0.015, unit="s", doc="FEI rule: tolerance on |d| (0 = off)", lo=0
-        ),
+        "fei_delay_tol": seconds(0.015, doc="FEI rule: tolerance on |d| (0 = off)"),
         "fei_consecutive": Key(
             "int",
             256,
@@ -406,58 +322,36 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
             doc="FEI rule: consecutive valid windows out of tolerance that trip",
             lo=1,
         ),
-        "kf_gain_min": Key("float", 0.5, unit="-", doc="Kalman rule: lowest gain estimate"),
-        "kf_gain_max": Key("float", 1.5, unit="-", doc="Kalman rule: highest gain estimate"),
-        "kf_delay_max": Key(
-            "float", 0.1, unit="s", doc="Kalman rule: |delay estimate| limit (0 = off)", lo=0
-        ),
-        "watchdog_missed": Key(
-            "int",
+        "kf_gain_min": Key("float", 0.5, doc="Kalman rule: lowest gain estimate"),
+        "kf_gain_max": Key("float", 1.5, doc="Kalman rule: highest gain estimate"),
+        "kf_delay_max": seconds(0.1, doc="Kalman rule: |delay estimate| limit (0 = off)"),
+        "watchdog_missed": steps(
             0,
-            unit="steps",
             doc="consecutive missed replies that also trip (0 = none beyond watchdog_timeout; "
             "lockstep counts watchdog_timeout in steps of virtual time)",
-            lo=0,
         ),
-        "watchdog_timeout": Key(
-            "float",
+        "watchdog_timeout": seconds(
             0.1,
-            unit="s",
             doc="controller silence that trips: time without a good reply while the bridge "
             "ran (paced: wall clock, stalls of the bridge not counted; lockstep: virtual time); "
             "shorter gaps hold the measurement and are counted, not tripped. Keep it above the "
             "controller's own reply pauses and below its heartbeat watchdog (rths-hil "
             "commission measures both)",
-            lo=0,
-            lo_open=True,
+            positive=True,
         ),
-        "max_stall": Key(
-            "float",
+        "max_stall": seconds(
             0.2,
-            unit="s",
             doc="paced: a stall of the bridge itself (this process or computer not running "
             "the loop) longer than this trips; shorter ones are events and the test goes on",
-            lo=0,
-            lo_open=True,
+            positive=True,
         ),
-        "max_sequence_gaps": Key(
-            "int", 0, unit="-", doc="sequence gaps tolerated before a trip", lo=0
-        ),
+        "max_sequence_gaps": Key("int", 0, doc="sequence gaps tolerated before a trip", lo=0),
         "controller_status": Key(
-            "bool",
-            True,
-            unit="-",
-            doc="trip on the controller's alarm bits (e-stop, fault, watchdog)",
+            "bool", True, doc="trip on the controller's alarm bits (e-stop, fault, watchdog)"
         ),
-        "max_overruns": Key(
-            "int", 100, unit="steps", doc="consecutive paced overruns that trip", lo=1
-        ),
-        "stuck_steps": Key(
-            "int",
-            50,
-            unit="steps",
-            doc="identical measured values while the command moves that trip (0 = off)",
-            lo=0,
+        "max_overruns": steps(100, doc="consecutive paced overruns that trip", lo=1),
+        "stuck_steps": steps(
+            50, doc="identical measured values while the command moves that trip (0 = off)"
         ),
         "stuck_motion": Key(
             "float",
@@ -467,17 +361,10 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
             lo_open=True,
         ),
-        "warmup": Key(
-            "float",
-            0.0,
-            unit="s",
-            doc="FEI, Kalman and stability rules start after this loop time",
-            lo=0,
-        ),
+        "warmup": seconds(0.0, doc="FEI, Kalman and stability rules start after this loop time"),
         "stability": Key(
             "choice",
             "warn",
-            unit="-",
             doc="energy stability indicator S (docs/stability.md): off, warn (a stability "
             "event when S crosses stability_warn) or trip (also the e-stop above "
             "stability_limit)",
@@ -486,7 +373,6 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
         "stability_warn": Key(
             "float",
             1.0,
-            unit="-",
             doc="S (energy the tracking error injects over what the structure's damping "
             "dissipates) above which a stability event is recorded; 1 is the linear stability "
             "boundary",
@@ -496,7 +382,6 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
         "stability_limit": Key(
             "float",
             1.5,
-            unit="-",
             doc="S above which stability = 'trip' stops the test (at least stability_warn)",
             lo=0,
             lo_open=True,

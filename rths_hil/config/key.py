@@ -18,7 +18,7 @@ class _Required:
 #: without it (profiles and model files; every run configuration key has a default).
 REQUIRED: Final = _Required()
 
-__all__ = ["CONTROL_MODES", "MASS_RANGE", "REQUIRED", "STIFFNESS_RANGE", "Key"]
+__all__ = ["CONTROL_MODES", "MASS_RANGE", "REQUIRED", "STIFFNESS_RANGE", "Key", "seconds", "steps"]
 
 
 @dataclass(frozen=True)
@@ -57,6 +57,17 @@ class Key:
     lo_open: bool = False
     hi_open: bool = False
     choices: tuple[str, ...] = ()
+
+
+def seconds(default: float, doc: str = "", *, positive: bool = False, **range_: Any) -> Key:
+    """A duration key: a float in s, ≥ 0 (> 0 with ``positive``); ``range_`` gives an upper
+    bound (``hi``, ``hi_open``)."""
+    return Key("float", default, unit="s", doc=doc, lo=0, lo_open=positive, **range_)
+
+
+def steps(default: int, doc: str = "", *, lo: int = 0) -> Key:
+    """A count of loop steps: an integer ≥ ``lo``."""
+    return Key("int", default, unit="steps", doc=doc, lo=lo)
 
 
 #: A channel's control modes (``control.mode``): what its actuator follows.
