@@ -3,19 +3,31 @@
 :func:`add_command` adds a sub-command with its help, description and function;
 :func:`add_config_arguments` adds the optional ``CONFIG.toml`` and the repeatable
 ``--set KEY=VALUE`` of ``run``, ``commission``, ``tune`` and ``check-host``;
-:func:`config_from_args` loads the configuration they name (:func:`rths_hil.config.load_config`).
+:func:`config_from_args` loads the configuration they name (:func:`rths_hil.config.load_config`);
+:func:`add_simulation_arguments` and :func:`simulation_from_args` are the damping, actuator, PGA
+and rate options of ``simulate`` and of the FEI paper's studies.
 """
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
+
+from ..errors import InputError
+from ..units import parse_accel, parse_fraction, parse_time, positive_number
 
 if TYPE_CHECKING:
     from ..config import Config
 
-__all__ = ["add_command", "add_config_arguments", "config_from_args"]
+__all__ = [
+    "Simulation",
+    "add_command",
+    "add_config_arguments",
+    "add_simulation_arguments",
+    "config_from_args",
+    "simulation_from_args",
+]
 
 
 def add_command(
@@ -68,3 +80,68 @@ def config_from_args(args: argparse.Namespace) -> Config:
     from ..config import load_config  # when a command runs: ``rths-hil --help`` stays quick
 
     return load_config(args.config, args.set)
+
+
+def add_simulation_arguments(parser: argparse.ArgumentParser, gain: str, delay: str) -> None:
+    """Add ``--zeta``, ``--gain``, ``--delay``, ``--pga`` and ``--fs`` of an offline simulation.
+
+    The SDOF structure's damping ratio, the delay/gain actuator, the scale of the ground motion
+    and the simulation rate; read them with :func:`simulation_from_args`.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The sub-command's parser.
+    gain, delay : str
+        The defaults of ``--gain`` and ``--delay`` (as the user would write them, e.g. ``"5ms"``).
+    """
+    parser.add_argument("--zeta", default="0.02", help="damping ratio (default 0.02; 2%% accepted)")
+    parser.add_argument("--gain", default=gain, help=f"actuator gain k_p (default {gain})")
+    parser.add_argument(
+        "--delay", default=delay, help=f"actuator transport delay, e.g. 5ms (default {delay})"
+    )
+    parser.add_argument(
+        "--pga", default=None, help="scale the ground motion to this PGA: m/s² or with a g suffix"
+    )
+    parser.add_argument("--fs", default="1024", help="simulation rate in Hz (default 1024)")
+
+
+class Simulation(NamedTuple):
+    """The options of :func:`add_simulation_arguments`, checked, in SI units."""
+
+    zeta: float
+    gain: float
+    delay: float
+    fs: float
+    pga: float | None
+
+
+def simulation_from_args(args: argparse.Namespace) -> Simulation:
+    """The options of :func:`add_simulation_arguments`, checked, in SI units.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    Simulation
+        ``zeta`` in [0, 1), ``gain`` > 0, ``delay`` ≥ 0 (s), ``fs`` > 0 (Hz) and ``pga``
+        (m/s², ``None``: the record's own).
+
+    Raises
+    ------
+    InputError
+        One line naming the option that is wrong.
+    """
+    zeta = parse_fraction(args.zeta, "--zeta")
+    if not 0 <= zeta < 1:
+        raise InputError(f"--zeta: damping ratio must lie in [0, 1), got {args.zeta}")
+    return Simulation(
+        zeta=zeta,
+        gain=positive_number(args.gain, "--gain"),
+        delay=positive_number(parse_time(args.delay, "--delay"), "--delay (s)", allow_zero=True),
+        fs=positive_number(args.fs, "--fs"),
+        pga=None if args.pga is None else parse_accel(args.pga, "--pga"),
+    )

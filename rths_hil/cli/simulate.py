@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
-from ..units import parse_accel, parse_time
-from .options import add_command
+from ..units import positive_number
+from .options import add_command, add_simulation_arguments, simulation_from_args
 
 log = logging.getLogger(__name__)
 
@@ -38,20 +37,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="ground motion: PEER .AT2 or .csv file, or a bundled record name "
         "(default: bundled El Centro 1940)",
     )
-    p.add_argument(
-        "--pga", default=None, help="scale to this PGA: m/s² or with a g suffix (0.0528g)"
-    )
     p.add_argument("--fn", required=True, help="natural frequency of the structure (Hz)")
-    p.add_argument("--zeta", default="0.02", help="damping ratio (default 0.02; 2%% accepted)")
     p.add_argument(
         "--bouc-wen",
         action="store_true",
         help="Bouc-Wen restoring force (the FEI paper's Eq. 4.1-4.2: x_y 10 mm, k_a 11.765 kN/mm, "
         "eta 0, beta 0.55, gamma 0.45, q 2)",
     )
-    p.add_argument("--gain", default="1.0", help="actuator gain k_p (default 1)")
-    p.add_argument("--delay", default="0", help="actuator transport delay, e.g. 5ms (default 0)")
-    p.add_argument("--fs", default="1024", help="sampling rate in Hz (default 1024)")
+    add_simulation_arguments(p, gain="1", delay="0")
     p.add_argument("--method", choices=("cr", "newmark"), default="cr", help="integrator")
     p.add_argument("--out", required=True, help="record CSV to write")
     p.add_argument(
@@ -64,25 +57,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
 
 
-def _number(text: str, what: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise InputError(f"--{what}: not a number: {text!r}") from None
-    if not math.isfinite(v):
-        raise InputError(f"--{what}: must be finite, got {text!r}")
-    return v
-
-
-def _fraction(text: str, what: str) -> float:
-    from ..units import parse_fraction
-
-    try:
-        return parse_fraction(text, what)
-    except InputError as exc:
-        raise InputError(f"--{what}: {exc}") from None
-
-
 def run(args: argparse.Namespace) -> int:
     """Run the simulation and write the record; returns the exit code."""
     from rths_hil.sim_backends.delay import DelayGain
@@ -91,31 +65,18 @@ def run(args: argparse.Namespace) -> int:
     from ..records.csvfiles import write_record
     from ..structures.sdof import SDOFResponse, simulate_sdof
 
-    fn = _number(args.fn, "fn")
-    if fn <= 0:
-        raise InputError(f"--fn: natural frequency must be > 0 Hz, got {args.fn}")
-    fs = _number(args.fs, "fs")
-    if fs <= 0:
-        raise InputError(f"--fs: sampling rate must be > 0 Hz, got {args.fs}")
+    zeta, gain, delay, fs, pga = simulation_from_args(args)
+    fn = positive_number(args.fn, "--fn (natural frequency, Hz)")
     if fn >= fs / 2:
         raise InputError(f"--fn {fn:g} Hz is not below the Nyquist frequency {fs / 2:g} Hz")
-    zeta = _fraction(args.zeta, "zeta")
-    if not 0 <= zeta < 1:
-        raise InputError(f"--zeta: damping ratio must lie in [0, 1), got {args.zeta}")
-    gain = _number(args.gain, "gain")
-    if gain <= 0:
-        raise InputError(f"--gain must be > 0, got {args.gain}")
-    delay = parse_time(args.delay, "--delay")
-    if not (math.isfinite(delay) and delay >= 0):
-        raise InputError(f"--delay must be ≥ 0, got {args.delay}")
     gm = default_record() if args.record is None else resolve(args.record)
     from ..resources import check_memory
 
     # the resampled record, the SDOF response and the delay's complex spectra: ~64 bytes a sample
     check_memory(64 * gm.duration * fs, f"--fs {fs:g} Hz over the record's {gm.duration:g} s")
     gm = gm.resampled(fs)
-    if args.pga is not None:  # after resampling, so that the simulated PGA is exactly this
-        gm = gm.scaled(parse_accel(args.pga, "--pga"))
+    if pga is not None:  # after resampling, so that the simulated PGA is exactly this
+        gm = gm.scaled(pga)
     if delay * fs >= gm.npts:
         raise InputError(f"--delay {args.delay} is longer than the record ({gm.duration:g} s)")
 

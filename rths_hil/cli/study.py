@@ -27,7 +27,8 @@ from typing import Any
 from ..errors import InputError
 from ..resources import MAX_TRIALS, check_count, check_memory, max_workers
 from ..stopping import interrupting
-from ..units import parse_accel, parse_fraction, parse_range, parse_time, positive_number
+from ..units import parse_fraction, parse_range, parse_time, positive_number
+from .options import add_simulation_arguments, simulation_from_args
 
 
 def _check_workers(workers: int) -> None:
@@ -50,11 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     st = parser.add_subparsers(dest="study_command", metavar="STUDY")
 
     def common(p: argparse.ArgumentParser, gain: str, delay: str) -> None:
-        p.add_argument("--zeta", default="0.02", help="damping ratio (default 0.02)")
-        p.add_argument("--gain", default=gain, help=f"actuator gain k_p (default {gain})")
-        p.add_argument("--delay", default=delay, help=f"actuator delay (default {delay})")
-        p.add_argument("--pga", default=None, help="scale records to this PGA (m/s² or 0.3g)")
-        p.add_argument("--fs", default="1024", help="simulation rate in Hz (default 1024)")
+        add_simulation_arguments(p, gain, delay)
         p.add_argument(
             "--min-level",
             default="0.1",
@@ -222,24 +219,14 @@ def _fns(text: str) -> list[float]:
 
 
 def _common(args: argparse.Namespace) -> dict:
-    zeta = parse_fraction(args.zeta, "--zeta")
-    if not 0 <= zeta < 1:
-        raise InputError(f"--zeta must lie in [0, 1), got {args.zeta}")
-    delay = parse_time(args.delay, "--delay")
-    if not (math.isfinite(delay) and delay > 0):
+    sim = simulation_from_args(args)
+    if sim.delay == 0:
         raise InputError(f"--delay must be > 0 (errors are relative to it), got {args.delay}")
     min_level = parse_fraction(args.min_level, "--min-level")
     if not 0 <= min_level < 1:
         raise InputError(f"--min-level must lie in [0, 1), got {args.min_level}")
     _check_workers(args.workers)
-    return {
-        "zeta": zeta,
-        "gain": positive_number(args.gain, "--gain"),
-        "delay": delay,
-        "min_level": min_level,
-        "fs": positive_number(args.fs, "--fs"),
-        "pga": None if args.pga is None else parse_accel(args.pga, "--pga"),
-    }
+    return {**sim._asdict(), "min_level": min_level}
 
 
 def _records(specs: list[str] | None, fs: float, pga: float | None):
