@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..errors import InputError
 from .channel_schema import CHANNEL_SCHEMA
-from .key import CONTROL_MODES, MASS_RANGE, STIFFNESS_RANGE, Key
+from .key import CONTROL_MODES, MASS_RANGE, STIFFNESS_RANGE, Key, seconds
 
 if TYPE_CHECKING:  # pragma: no cover
     from .model import Config
@@ -87,7 +87,6 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "damping": Key(
             "float",
             0.02,
-            unit="-",
             doc="inherent viscous damping ratio (c = 2ζ√(k·m))",
             lo=0,
             hi=1,
@@ -96,18 +95,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "bouc_wen": Key(
             "bool",
             True,
-            unit="-",
             doc="Bouc-Wen restoring force (the FEI paper's Eq. 4.1–4.2) instead of linear k·x",
         ),
         "x_y": Key(
             "float", 0.010, unit="m", doc="Bouc-Wen yield displacement x_y", lo=0, lo_open=True
         ),
-        "eta": Key(
-            "float", 0.0, unit="-", doc="Bouc-Wen post- to pre-yield stiffness ratio η", lo=0, hi=1
-        ),
-        "beta": Key("float", 0.55, unit="-", doc="Bouc-Wen shape parameter β"),
-        "gamma": Key("float", 0.45, unit="-", doc="Bouc-Wen shape parameter γ"),
-        "q": Key("float", 2.0, unit="-", doc="Bouc-Wen sharpness exponent q", lo=0, lo_open=True),
+        "eta": Key("float", 0.0, doc="Bouc-Wen post- to pre-yield stiffness ratio η", lo=0, hi=1),
+        "beta": Key("float", 0.55, doc="Bouc-Wen shape parameter β"),
+        "gamma": Key("float", 0.45, doc="Bouc-Wen shape parameter γ"),
+        "q": Key("float", 2.0, doc="Bouc-Wen sharpness exponent q", lo=0, lo_open=True),
         "k_specimen": Key(
             "float",
             1.19e6,
@@ -137,7 +133,6 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "rayleigh": Key(
             "array",
             [],
-            unit="-",
             doc="Rayleigh damping [α (1/s), β (s)], C = α·M + β·K; empty: ζ = damping on "
             "modes 1 and 2",
         ),
@@ -152,7 +147,6 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "record": Key(
             "str",
             "default",
-            unit="-",
             doc="record file (PEER .AT2 or CSV; relative to the config file) or the "
             "name of a bundled record; 'default' = El Centro 1940 (RSN 6, ELC180)",
         ),
@@ -163,20 +157,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
             doc="scale the record to this peak ground acceleration (0 = unscaled)",
             lo=0,
         ),
-        "tail": Key(
-            "float",
-            0.0,
-            unit="s",
-            doc="seconds of zero acceleration appended (free vibration)",
-            lo=0,
-        ),
+        "tail": seconds(0.0, doc="seconds of zero acceleration appended (free vibration)"),
     },
     "loop": {
         "fs": Key("float", 1024.0, unit="Hz", doc="loop (integration) rate", lo=1, hi=100_000),
         "mode": Key(
             "choice",
             "paced",
-            unit="-",
             doc="paced: wall clock, one step per period; lockstep: virtual time, as fast "
             "as the actuator answers",
             choices=("paced", "lockstep"),
@@ -184,32 +171,21 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "after_stall": Key(
             "choice",
             "slip",
-            unit="-",
             doc="paced: after a stall of the bridge, slip: shift the time base and go on at "
             "the normal rate (the actuator held during the stall); catch_up: run the missed "
             "steps back to back, no faster than the velocity limit allows",
             choices=("slip", "catch_up"),
         ),
-        "duration": Key(
-            "float",
-            30.0,
-            unit="s",
-            doc="simulated time to run (0 = the whole record plus tail)",
-            lo=0,
-        ),
-        "spin": Key(
-            "float",
+        "duration": seconds(30.0, doc="simulated time to run (0 = the whole record plus tail)"),
+        "spin": seconds(
             3e-4,
-            unit="s",
             doc="paced: sleep until this long before the deadline, then busy-wait (at most 0.4 "
             "period is used)",
-            lo=0,
             hi=0.01,
         ),
         "priority": Key(
             "int",
             10,
-            unit="-",
             doc="paced: SCHED_FIFO real-time priority of the loop and its threads (0 = leave the "
             "scheduler alone); needs root or CAP_SYS_NICE, else the run goes on without it",
             lo=0,
@@ -218,7 +194,6 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "cpu": Key(
             "int",
             -1,
-            unit="-",
             doc="paced: pin the loop (and the threads it starts) to this CPU, -1 = leave it to "
             "the scheduler; the exact-FEI worker and the live view of `run --watch` keep off it",
             lo=-1,
@@ -226,37 +201,29 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "overrun_threshold": Key(
             "float",
             0.5,
-            unit="-",
             doc="paced: a step is an overrun when its command leaves later "
             "than this fraction of a period after its deadline",
             lo=0,
             lo_open=True,
         ),
-        "feedback_timeout": Key(
-            "float",
+        "feedback_timeout": seconds(
             0.0,
-            unit="s",
             doc="paced: wait for a reply at most this long after the send (0 = auto: until the "
             "step's work after the reply still ends before the next deadline)",
-            lo=0,
             hi=10,
         ),
-        "lockstep_timeout": Key(
-            "float",
+        "lockstep_timeout": seconds(
             5.0,
-            unit="s",
             doc="lockstep: wait this long (wall clock) for each reply; none by then trips the "
             "watchdog",
-            lo=0,
             hi=60,
-            lo_open=True,
+            positive=True,
         ),
-        "heartbeat": Key("float", 0.1, unit="s", doc="driver heartbeat interval (0 = never)", lo=0),
-        "console": Key("float", 0.5, unit="s", doc="live console line interval (0 = off)", lo=0),
+        "heartbeat": seconds(0.1, doc="driver heartbeat interval (0 = never)"),
+        "console": seconds(0.5, doc="live console line interval (0 = off)"),
         "confirm_hardware": Key(
             "bool",
             False,
-            unit="-",
             doc="this configuration may drive real hardware (a channel without a twin) without "
             "--confirm-hardware on the command line (for a lab's own configurations)",
         ),
@@ -265,19 +232,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "mode": Key(
             "choice",
             "ramp",
-            unit="-",
             doc="ramp: move each actuator from where it is to the first target along a cosine "
             "ramp; offset: run the test about where it is (commands + start position, "
             "measurements − start position)",
             choices=("ramp", "offset"),
         ),
-        "ramp_time": Key(
-            "float",
+        "ramp_time": seconds(
             2.0,
-            unit="s",
             doc="shortest start ramp (longer when start.velocity needs it)",
-            lo=0,
-            lo_open=True,
+            positive=True,
             hi=600,
         ),
         "velocity": Key(
@@ -288,13 +251,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
             lo_open=True,
         ),
-        "hold": Key(
-            "float",
-            0.2,
-            unit="s",
-            doc="hold at the first target after the start ramp, before step 0",
-            lo=0,
-            hi=60,
+        "hold": seconds(
+            0.2, doc="hold at the first target after the start ramp, before step 0", hi=60
         ),
         "tolerance": Key(
             "float",
@@ -308,7 +266,6 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "rest": Key(
             "choice",
             "hold",
-            unit="-",
             doc="after a completed run or an operator stop: hold where the test ended, or ramp "
             "to end.rest_position; then the controller is disabled (a trip e-stops instead)",
             choices=("hold", "position"),
@@ -316,13 +273,10 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "rest_position": Key(
             "float", 0.0, unit="m", doc="end.rest = position: where to ramp to (absolute)"
         ),
-        "hold": Key(
-            "float",
+        "hold": seconds(
             0.0,
-            unit="s",
             doc="keep commanding the rest position this long before disabling (0: disable at "
             "once; a disabled controller holds where it is)",
-            lo=0,
             hi=60,
         ),
     },
@@ -369,69 +323,43 @@ SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
             hi=0.8,
         ),
-        "hold_after": Key(
-            "float",
-            0.02,
-            unit="s",
-            doc="predictor–corrector: hold when OpenSees is this late past a cycle's end",
-            lo=0,
+        "hold_after": seconds(
+            0.02, doc="predictor–corrector: hold when OpenSees is this late past a cycle's end"
         ),
-        "estop_after": Key(
-            "float",
+        "estop_after": seconds(
             0.25,
-            unit="s",
             doc="predictor–corrector: e-stop when OpenSees is this late past a cycle's end",
-            lo=0,
-            lo_open=True,
+            positive=True,
         ),
-        "ramp_time": Key(
-            "float",
+        "ramp_time": seconds(
             0.0,
-            unit="s",
             doc="ramp-hold: ramp per target; lockstep: ramp for trials without time "
             "(0 = 0.5 s and 0.01 s)",
-            lo=0,
         ),
-        "hold_time": Key("float", 0.1, unit="s", doc="ramp-hold: hold before the force", lo=0),
+        "hold_time": seconds(0.1, doc="ramp-hold: hold before the force"),
         "max_trials_per_step": Key(
             "int",
             -1,
-            unit="-",
             doc="distinct trials OpenSees may send per time step before the site stops "
             "(-1 = the timing's own: 1 for lockstep and ramp-hold, no limit for "
             "predictor-corrector; 0 = no limit)",
             lo=-1,
         ),
-        "element_dt": Key(
-            "float",
-            0.0,
-            unit="s",
-            doc="OpenSees' step when the trials carry no time (0 = from the time block)",
-            lo=0,
+        "element_dt": seconds(
+            0.0, doc="OpenSees' step when the trials carry no time (0 = from the time block)"
         ),
-        "start_timeout": Key(
-            "float", 60.0, unit="s", doc="wait this long for the first trial (0 = forever)", lo=0
+        "start_timeout": seconds(60.0, doc="wait this long for the first trial (0 = forever)"),
+        "client_timeout": seconds(
+            60.0, doc="lockstep, ramp-hold: wait this long for a later trial (0 = forever)"
         ),
-        "client_timeout": Key(
-            "float",
-            60.0,
-            unit="s",
-            doc="lockstep, ramp-hold: wait this long for a later trial (0 = forever)",
-            lo=0,
-        ),
-        "connect_timeout": Key(
-            "float", 0.0, unit="s", doc="wait this long for the client (0 = forever)", lo=0
-        ),
+        "connect_timeout": seconds(0.0, doc="wait this long for the client (0 = forever)"),
         "quickack": Key(
             "bool", True, doc="re-arm TCP_QUICKACK after every recv (off only to measure it)"
         ),
-        "max_duration": Key(
-            "float",
+        "max_duration": seconds(
             3600.0,
-            unit="s",
             doc="longest test when loop.duration = 0 (the client ends it with DIE)",
-            lo=0,
-            lo_open=True,
+            positive=True,
         ),
     },
     "commission": {
@@ -451,49 +379,34 @@ SCHEMA: dict[str, dict[str, Key]] = {
             lo=0,
             lo_open=True,
         ),
-        "latency_time": Key(
-            "float",
+        "latency_time": seconds(
             2.0,
-            unit="s",
             doc="length of the round-trip latency measurement (actuator disabled)",
-            lo=0,
-            lo_open=True,
+            positive=True,
         ),
         "watchdog_test": Key(
             "bool",
             True,
-            unit="-",
             doc="stop the heartbeat and check that the controller latches within its timeout",
         ),
-        "watchdog_timeout": Key(
-            "float",
+        "watchdog_timeout": seconds(
             0.0,
-            unit="s",
             doc="the controller's heartbeat timeout (0 = twin.watchdog for a twin; without it "
             "the watchdog step is skipped on hardware)",
-            lo=0,
         ),
     },
     "output": {
         "dir": Key(
             "str",
             "runs/{timestamp}",
-            unit="-",
             doc="run directory ({timestamp} is replaced by the start time)",
         ),
-        "flush_interval": Key(
-            "float",
-            0.05,
-            unit="s",
-            doc="record flush interval (≤ 0.1 s)",
-            lo=0,
-            hi=0.1,
-            lo_open=True,
+        "flush_interval": seconds(
+            0.05, doc="record flush interval (≤ 0.1 s)", hi=0.1, positive=True
         ),
         "plot": Key(
             "bool",
             True,
-            unit="-",
             doc="write the figures at the end (run: report.png; commission: one PNG per channel)",
         ),
     },
