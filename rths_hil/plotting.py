@@ -12,12 +12,15 @@ from .fei import MovingFEIResult
 
 
 def save_figure(fig, path: str | Path, dpi: int) -> Path:
-    """Write ``fig`` to ``path`` (format from the suffix, PNG without one), or raise.
+    """Write ``fig`` to ``path`` (format from the suffix, PNG without one) and close it, or raise.
 
     The figure is rendered into memory first and written with one checked write and close, so
     a full disk (``/dev/full``), a read-only directory or a name too long is an
-    :class:`~rths_hil.errors.InputError` naming the file, never a figure silently lost.
+    :class:`~rths_hil.errors.InputError` naming the file, never a figure silently lost. The
+    figure is closed (its memory released) either way.
     """
+    import matplotlib.pyplot as plt
+
     out = Path(path)
     fmt = out.suffix.lstrip(".").lower() or "png"
     buf = io.BytesIO()
@@ -25,6 +28,8 @@ def save_figure(fig, path: str | Path, dpi: int) -> Path:
         fig.savefig(buf, dpi=dpi, format=fmt)
     except ValueError as exc:  # an unknown format
         raise InputError(f"{out}: cannot write a figure: {exc}") from None
+    finally:
+        plt.close(fig)
     try:
         with open(out, "wb") as fh:
             fh.write(buf.getvalue())
@@ -101,6 +106,4 @@ def plot_moving_fei(
     axes[2].set_xlabel("time (s)")
     if title:
         fig.suptitle(title)
-    out = save_figure(fig, path, 110)
-    plt.close(fig)
-    return out
+    return save_figure(fig, path, 110)

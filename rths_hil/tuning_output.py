@@ -157,12 +157,9 @@ def plot_tuning(result: TuneResult, path: str | Path, title: str = "") -> Path:
     ax.set_xticks(it)
     ax.grid(True, alpha=0.3)
     fig.suptitle(title or f"rths-hil tune: {result.stop}")
-    out = Path(path)
     from .plotting import save_figure
 
-    save_figure(fig, out, 110)
-    plt.close(fig)
-    return out
+    return save_figure(fig, path, 110)
 
 
 def plot_sweep(
@@ -206,9 +203,6 @@ def plot_sweep(
         ax.grid(True, alpha=0.3)
         ax.legend(loc="best")
     fig.suptitle(title or "rths-hil tune --sweep")
-    out = Path(path)
     from .plotting import save_figure
 
-    save_figure(fig, out, 110)
-    plt.close(fig)
-    return out
+    return save_figure(fig, path, 110)

@@ -142,11 +142,6 @@ def _plot(path: Path, t, target, measured, ag, force, title: str) -> None:
     for ax in axes:
         ax.grid(True, alpha=0.3)
     fig.tight_layout()
-    try:
-        from ..plotting import save_figure
+    from ..plotting import save_figure
 
-        save_figure(fig, path, 110)
-    except OSError as exc:
-        raise InputError(f"--plot: cannot write {str(path)!r} ({exc.strerror})") from None
-    finally:
-        plt.close(fig)
+    save_figure(fig, path, 110)

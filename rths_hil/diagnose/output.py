@@ -178,12 +178,9 @@ def plot_diagnosis(dx: Diagnosis, path: str | Path, title: str = "") -> Path:
     ax7.set_xlabel("model displacement (mm)")
     ax7.set_ylabel("residual (mm)")
     ax7.legend(fontsize=8, markerscale=5)
-    out = Path(path)
     from ..plotting import save_figure
 
-    save_figure(fig, out, 90)
-    plt.close(fig)
-    return out
+    return save_figure(fig, path, 90)
 
 
 def write_outputs(

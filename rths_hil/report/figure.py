@@ -211,9 +211,7 @@ def plot_report(
         return fig
     from ..plotting import save_figure
 
-    save_figure(fig, out, 90)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out, 90)
 
 
 def _peak_zoom(src: _Rows, n: int, fs: float) -> np.ndarray:

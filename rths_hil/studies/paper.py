@@ -494,7 +494,6 @@ def plot_window_size(path: str | Path, rows: Sequence[WindowSizeResult]) -> None
     fig.tight_layout()
 
     save_figure(fig, path, 120)
-    plt.close(fig)
 
 
 def plot_accuracy(
@@ -526,4 +525,3 @@ def plot_accuracy(
     fig.tight_layout()
 
     save_figure(fig, path, 120)
-    plt.close(fig)

@@ -618,7 +618,6 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
     paths.append(out / "robustness_hist.png")
 
     save_figure(fig, paths[-1], 120)
-    plt.close(fig)
     if len(result.alphas) > 1:
         summ = result.summary()
         al = np.array(result.alphas)
@@ -653,5 +652,4 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
         paths.append(out / "robustness_alpha.png")
 
         save_figure(fig, paths[-1], 120)
-        plt.close(fig)
     return paths
