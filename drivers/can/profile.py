@@ -32,7 +32,8 @@ from cantools.database.errors import Error as CantoolsError
 from rths_hil.errors import InputError
 
 from ..base import Feedback
-from ..profile import MODE_ACTIONS, load_profile, status_from_word
+from ..profile import MODE_ACTIONS, status_from_word
+from ..profile_driver import ProfileDriver
 from . import SharedBusDriver
 from .codec import Frame
 from .profile_format import CANProfile
@@ -40,7 +41,7 @@ from .profile_format import CANProfile
 __all__ = ["CANProfileDriver"]
 
 
-class CANProfileDriver(SharedBusDriver):
+class CANProfileDriver(ProfileDriver, SharedBusDriver):
     """Lockstep driver for a CAN controller with its own DBC (see the module docstring).
 
     Parameters
@@ -54,9 +55,6 @@ class CANProfileDriver(SharedBusDriver):
     name: ClassVar[str] = "can"
     honours_deadline: ClassVar[bool] = True
     echoes_seq: ClassVar[bool] = False
-    command_lsb: ClassVar[float | None] = None  # the DBC signal's range is checked
-    #: force when the profile maps ``roles.force_setpoint`` (:meth:`set_control`)
-    control_modes: ClassVar[tuple[str, ...]] = ("displacement", "force")
 
     def __init__(
         self,
@@ -67,10 +65,7 @@ class CANProfileDriver(SharedBusDriver):
         bus_options: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
-        prof = load_profile(profile)
-        if not isinstance(prof, CANProfile):
-            raise InputError(f"can driver: profile {profile} is not a CAN profile")
-        self.profile = self._base_profile = prof
+        prof = self._load_profile(profile, CANProfile, "CAN")
         cmd, fb = prof.command, prof.feedback
         self._init_bus(interface, channel, bitrate, bus_options, fb.frame_id)
         self._cmd = cmd
@@ -131,20 +126,10 @@ class CANProfileDriver(SharedBusDriver):
         self._sp_range = (sig.minimum, sig.maximum)
 
     def set_control(self, mode: str) -> None:
-        """Select the wire mode before :meth:`open` (:meth:`Driver.set_control`).
-
-        ``"force"`` carries the force set-point (N) in the profile's ``roles.force_setpoint``
-        signal of every command frame; a profile without it is refused with one line.
+        """Select the wire mode before :meth:`open` (:meth:`ProfileDriver.set_control`): the
+        set-point signal of every command frame, and the loop's mode signal (:meth:`_use_mode`).
         """
         super().set_control(mode)
-        try:
-            prof = self._base_profile.for_control(mode)
-        except InputError as exc:
-            self.control = "displacement"
-            raise InputError(f"can driver: {exc}") from None
-        if prof is not self.profile:
-            self.profile = prof
-            self._use_setpoint()
         self._use_mode()
 
     def _use_mode(self) -> None:

@@ -85,8 +85,9 @@ from pymodbus.pdu.register_message import (
 
 from rths_hil.errors import InputError
 
-from ..base import Driver, Feedback, LinkDown, extend_seq
-from ..profile import MODE_ACTIONS, load_profile, status_from_word
+from ..base import Feedback, LinkDown, extend_seq
+from ..profile import MODE_ACTIONS, status_from_word
+from ..profile_driver import ProfileDriver
 from .estop import EStopPath
 from .layout import BlockLayout, PointLayout, RequestTemplate, StepReply
 from .profile_format import ModbusProfile
@@ -108,7 +109,7 @@ ROUND_TRIPS = 24
 LINK_FILL = 0.75
 
 
-class ModbusProfileDriver(EStopPath, Driver):
+class ModbusProfileDriver(EStopPath, ProfileDriver):
     """Lockstep driver for a Modbus TCP or RTU controller described by a profile.
 
     Parameters
@@ -147,9 +148,6 @@ class ModbusProfileDriver(EStopPath, Driver):
 
     name: ClassVar[str] = "modbus"
     honours_deadline: ClassVar[bool] = True  # select() with the time left
-    command_lsb: ClassVar[float | None] = None  # the profile's point type checks the range
-    #: force when the profile maps ``roles.force_setpoint`` (:meth:`set_control`)
-    control_modes: ClassVar[tuple[str, ...]] = ("displacement", "force")
 
     def __init__(
         self,
@@ -167,14 +165,11 @@ class ModbusProfileDriver(EStopPath, Driver):
         estop_connection: bool = True,
     ) -> None:
         super().__init__()
-        prof = load_profile(profile)
-        if not isinstance(prof, ModbusProfile):
-            raise InputError(f"modbus driver: profile {profile} is not a Modbus profile")
+        prof = self._load_profile(profile, ModbusProfile, "Modbus")
         if transport not in ("tcp", "rtu"):
             raise InputError(f"modbus driver: transport must be 'tcp' or 'rtu', got {transport!r}")
         if transport == "rtu" and not device:
             raise InputError("modbus driver: transport 'rtu' needs device= (serial port or URL)")
-        self.profile = self._base_profile = prof
         self.transport = transport
         self._rtu = transport == "rtu"
         #: one request on the wire at a time (RTU always; TCP when the profile says so)
@@ -248,22 +243,6 @@ class ModbusProfileDriver(EStopPath, Driver):
                 address=sp.address, registers=[0] * sp.count
             )
         self._step_pdu.dev_id = self.unit
-
-    def set_control(self, mode: str) -> None:
-        """Select the wire mode before :meth:`open` (:meth:`Driver.set_control`).
-
-        ``"force"`` writes the profile's ``roles.force_setpoint`` (N) every step instead of
-        ``roles.setpoint``; a profile without it is refused with one line.
-        """
-        super().set_control(mode)
-        try:
-            prof = self._base_profile.for_control(mode)
-        except InputError as exc:
-            self.control = "displacement"
-            raise InputError(f"modbus driver: {exc}") from None
-        if prof is not self.profile:
-            self.profile = prof
-            self._use_setpoint()
 
     # -- transport ------------------------------------------------------------------------------
     def open(self) -> None:
