@@ -25,7 +25,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .options import add_command, add_config_arguments
+from .options import add_command, add_config_arguments, add_confirm_hardware
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,11 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_config_arguments(p)
     p.add_argument("--yes", action="store_true", help="answer the prompts (twins only)")
-    p.add_argument(
-        "--confirm-hardware",
-        action="store_true",
-        help="confirm that commissioning may drive real hardware (twin.enabled = false)",
-    )
+    add_confirm_hardware(p, "commissioning")
     p.add_argument("--out", metavar="DIR", help="report directory (default commission/<time>)")
 
 

@@ -2,7 +2,8 @@
 
 :func:`add_command` adds a sub-command with its help, description and function;
 :func:`add_config_arguments` adds the optional ``CONFIG.toml`` and the repeatable
-``--set KEY=VALUE`` of ``run``, ``commission``, ``tune`` and ``check-host``;
+``--set KEY=VALUE`` of ``run``, ``commission``, ``tune`` and ``check-host``, and
+:func:`add_confirm_hardware` the ``--confirm-hardware`` of the first three;
 :func:`config_from_args` loads the configuration they name (:func:`rths_hil.config.load_config`);
 :func:`add_simulation_arguments` and :func:`simulation_from_args` are the damping, actuator, PGA
 and rate options of ``simulate`` and of the FEI paper's studies.
@@ -24,6 +25,7 @@ __all__ = [
     "Simulation",
     "add_command",
     "add_config_arguments",
+    "add_confirm_hardware",
     "add_simulation_arguments",
     "config_from_args",
     "simulation_from_args",
@@ -72,6 +74,27 @@ def add_config_arguments(parser: argparse.ArgumentParser, set_example: str = "")
         action="append",
         default=[],
         help=f"override a configuration key{example} (repeatable)",
+    )
+
+
+def add_confirm_hardware(parser: argparse.ArgumentParser, what: str) -> None:
+    """Add ``--confirm-hardware``, the operator's consent that ``what`` may drive real hardware.
+
+    Read by :func:`rths_hil.hybrid.phases.require_confirmation` (``run``, ``commission``) and
+    ``tune``; ``loop.confirm_hardware = true`` in the configuration consents as well.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The sub-command's parser.
+    what : str
+        What may drive the hardware, e.g. ``"the run"``.
+    """
+    parser.add_argument(
+        "--confirm-hardware",
+        action="store_true",
+        help=f"confirm that {what} may drive real hardware (a channel with twin.enabled = false; "
+        "or loop.confirm_hardware = true in the configuration)",
     )
 
 

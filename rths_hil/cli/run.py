@@ -24,7 +24,7 @@ from typing import Any
 
 from ..config import to_toml
 from ..units import parse_time
-from .options import add_command, add_config_arguments, config_from_args
+from .options import add_command, add_config_arguments, add_confirm_hardware, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -62,12 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--watch-port", type=int, default=8050, metavar="PORT", help="port of --watch (8050)"
     )
-    p.add_argument(
-        "--confirm-hardware",
-        action="store_true",
-        help="confirm that the run may drive real hardware (a channel with twin.enabled = false; "
-        "or loop.confirm_hardware = true in the configuration)",
-    )
+    add_confirm_hardware(p, "the run")
 
 
 class _Console:

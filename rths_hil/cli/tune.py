@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 from ..errors import InputError
 from ..formats import json_text
 from ..units import parse_fraction, parse_range, parse_time
-from .options import add_command, add_config_arguments, config_from_args
+from .options import add_command, add_config_arguments, add_confirm_hardware, config_from_args
 
 if TYPE_CHECKING:
     from ..config import Config
@@ -79,11 +79,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="run twin trials in real time (default lockstep; hardware trials are always paced)",
     )
-    p.add_argument(
-        "--confirm-hardware",
-        action="store_true",
-        help="confirm that trials may drive the real actuator (twin.enabled = false)",
-    )
+    add_confirm_hardware(p, "the trials")
     p.add_argument(
         "--hardware-scale",
         default="25%",
