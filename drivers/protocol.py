@@ -133,7 +133,8 @@ class Protocol:
     link_load : callable, optional
         ``(connection, channels_on_link, fs, *, heartbeat_hz) ->``
         :class:`~rths_hil.linkbudget.LinkLoad`: the link's load at loop rate ``fs`` (the link
-        model of the protocol's package). Default: frame sizes unknown, not checked.
+        model of the protocol's package, written with :func:`link_model`). Default: frame
+        sizes unknown, not checked.
     link_advice : callable
         ``(load, limit) -> list[str]``: what else would bring a link of this protocol (its
         ``load.kind``) under ``limit`` (a higher bit or baud rate, another transport).
