@@ -11,7 +11,8 @@ import numpy as np
 
 from rths_hil.drivers.base import Feedback, Status
 
-from ..hybrid.pacer import Pacer
+from ..hybrid.pacer import Pacer, ReplyBudget
+from ..hybrid.stepio import ENABLED, ESTOP, FAULT, LATCHED, WATCHDOG, StepIO
 from ..stopping import OperatorStop
 
 __all__ = [
@@ -25,18 +26,13 @@ __all__ = [
     "status_names",
 ]
 
-ENABLED = int(Status.ENABLED)
-ESTOP = int(Status.ESTOP_ACTIVE)
-FAULT = int(Status.FAULT)
-WATCHDOG = int(Status.WATCHDOG)
-LATCHED = ESTOP | FAULT | WATCHDOG
-
 
 class Controller:
     """Paced command/reply exchanges with one channel's controller (sequence after arming).
 
-    Every paced motion checks the operator stop once per period (:class:`Stopped`); the
-    hand-back's own exchanges do not (``check=False``).
+    Each exchange is the loop's (:class:`~rths_hil.hybrid.stepio.StepIO`: the command, its
+    reply within :attr:`timeout`). Every paced motion checks the operator stop once per period
+    (:class:`Stopped`); the hand-back's own exchanges do not (``check=False``).
     """
 
     def __init__(
@@ -49,7 +45,8 @@ class Controller:
         #: one command per period: sleep until 0.3 ms before each deadline, then spin (no
         #: real-time scheduling here, so no forced sleep)
         self.pacer = Pacer(self.dt, 3e-4)
-        self.timeout = timeout
+        #: the command and its reply within the timeout
+        self.io = StepIO([(self.drv.send, self.recv)], ReplyBudget(self.dt, timeout, False))
         self.hb = heartbeat_steps
         self.stop = stop
         self.seq = 0
@@ -60,6 +57,15 @@ class Controller:
         self.x = math.nan
         self.enabled = False
 
+    @property
+    def timeout(self) -> float:
+        """How long a reply is waited for (s)."""
+        return self.io.budget.timeout
+
+    @timeout.setter
+    def timeout(self, value: float) -> None:
+        self.io.budget.timeout = value
+
     def arm(self) -> Feedback | None:
         """The driver's arming command: a new run; acknowledges a latch (e-stop, watchdog)."""
         self.seq = 0
@@ -69,14 +75,14 @@ class Controller:
     def exchange(self, x: float, enable: bool) -> tuple[Feedback | None, float]:
         """One command and its reply: (feedback or None, round trip in s)."""
         self.seq += 1
+        io = self.io
         t = time.perf_counter()
         self.x, self.enabled = float(x), bool(enable)
-        self.drv.send(self.seq, float(x), enable)
-        fb = self.recv(self.timeout)
-        rtt = time.perf_counter() - t
+        io.send(self.seq, (self.x,), enable)
+        fb = io.collect(t)[0]
         if fb is not None:
             self.last = fb
-        return fb, rtt
+        return fb, io.clocks[0] - t
 
     def poll(self, x: float, enable: bool, tries: int = 5) -> Feedback | None:
         """A command answered at last: up to ``tries`` exchanges, each waiting ≥ 0.2 s."""

@@ -70,12 +70,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rths_hil.drivers.base import Feedback, Status
+from rths_hil.drivers.base import Feedback
 
 from ..errors import InputError
 from ..safety import Trip
-from .pacer import Pacer
+from .pacer import Pacer, ReplyBudget
 from .setup import dot
+from .stepio import ENABLED, ESTOP, FAULT, StepIO
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..records.recorder import Recorder
@@ -95,10 +96,6 @@ __all__ = [
     "ramp_duration",
     "require_confirmation",
 ]
-
-_ENABLED = int(Status.ENABLED)
-_ESTOP = int(Status.ESTOP_ACTIVE)
-_FAULT = int(Status.FAULT)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -336,7 +333,7 @@ class Phases:
                 where.append(_Where(home, math.nan, None, first))
                 continue
             pos, force, status = float(fb.displacement), float(fb.force), int(fb.status)
-            if status & _FAULT:
+            if status & FAULT:
                 raise InputError(
                     f"{label}: the controller reports a fault (status 0x{status:02x}) at the "
                     "start; clear it on the controller before starting"
@@ -519,8 +516,8 @@ class Phases:
             except InputError:
                 fb = None
             status = None if fb is None else int(fb.status)
-            disabled = status is not None and not status & _ENABLED
-            latched = status is not None and bool(status & _ESTOP)
+            disabled = status is not None and not status & ENABLED
+            latched = status is not None and bool(status & ESTOP)
             ok = disabled and not latched
             ok_all = ok_all and ok
             self.rec.event(
@@ -556,15 +553,17 @@ class Phases:
         paced = self.paced
         pacer = self.pacer
         dt = self.dt
-        timeout = plan.timeout
         hb = plan.heartbeat_steps
         stopped = self.stopped
         fire = self.safety.fire
-        perf = time.perf_counter
         m = len(paths[0])
         meas_abs = [math.nan] * len(chans)
         sent = self.sent
-        links = list(zip(chans, self.raw, paths, self.offsets, strict=True))
+        cmds = list(sent)
+        # each reply within the loop's timeout; the drivers' own send and receive (absolute)
+        io = StepIO(self.raw, ReplyBudget(dt, plan.timeout, False), shared=False)
+        replies, clocks = io.replies, io.clocks
+        lanes = list(zip(chans, paths, self.offsets, strict=True))
         if paced:
             pacer.start(t_first)
         for i in range(m):
@@ -576,27 +575,29 @@ class Phases:
             if paced:
                 pacer.wait(i)
                 self.next_deadline = pacer.deadline(i + 1)
-            for j, (ch, (send, _), p, off) in enumerate(links):
-                c = float(p[i])
+            for j, (ch, p, off) in enumerate(lanes):  # every command checked, then all sent
+                c = cmds[j] = float(p[i])
                 v = 0.0 if ch.force_mode else (c - sent[j]) / dt  # a force ramp: no motion
                 trip = ch.monitor.check_command(t, k, c - off, v, c - off)
                 if trip is not None:
                     return fire(trip, ch, t, k), meas_abs
-                send(seq0 + i, c, True)
-                sent[j] = c
-            for j, (ch, (_, recv), p, off) in enumerate(links):
-                fb = recv(timeout)
-                ch.reply_clock = perf()
-                c = float(p[i])
+            seq = seq0 + i
+            io.send(seq, cmds, True)
+            sent[:] = cmds
+            io.collect(time.perf_counter())
+            for j, (ch, _, off) in enumerate(lanes):
+                fb = replies[j]
+                ch.reply_clock = clocks[j]
+                c = cmds[j]
                 if fb is None:
                     trip = ch.monitor.check_feedback(
-                        t, k, False, seq0 + i, -1, 0, c - off, math.nan, math.nan,
+                        t, k, False, seq, -1, 0, c - off, math.nan, math.nan,
                         getattr(ch.driver, "link_down", None),
                     )  # fmt: skip
                 else:
                     meas_abs[j] = fb.force if ch.force_mode else fb.displacement
                     trip = ch.monitor.check_feedback(
-                        t, k, True, seq0 + i, fb.seq, fb.status, c - off,
+                        t, k, True, seq, fb.seq, fb.status, c - off,
                         fb.displacement - off, fb.force,
                     )  # fmt: skip
                 if trip is not None:

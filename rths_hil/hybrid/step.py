@@ -2,8 +2,9 @@
 evaluators, record, accounting (the step order of ``docs/loop.md``).
 
 :class:`Step` holds what every phase needs (channels, safety, structure, recorder, the
-:class:`~.pacer.Pacer` and the :class:`~.pacer.ReplyBudget`) so that
-:meth:`Runner._loop <rths_hil.hybrid.runner.Runner._loop>` only strings the phases together.
+:class:`~.pacer.Pacer`, the :class:`~.pacer.ReplyBudget` and the replies'
+:class:`~.stepio.StepIO`) so that :meth:`Runner._loop <rths_hil.hybrid.runner.Runner._loop>`
+only strings the phases together.
 The phases keep the per-step path short: plain floats, no allocation but the structure's own.
 """
 
@@ -22,6 +23,7 @@ from ..safety import Trip
 from .channel import Channel, step_mixed
 from .pacer import Pacer, ReplyBudget
 from .setup import dot
+from .stepio import StepIO
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..records.recorder import Recorder
@@ -67,6 +69,7 @@ class Step:
         "dt",
         "hb_next",
         "hb_steps",
+        "io",
         "lat_list",
         "missed",
         "mixed",
@@ -123,6 +126,8 @@ class Step:
         self.budget = ReplyBudget(
             dt, plan.timeout, paced and not plan.cfg["loop"]["feedback_timeout"]
         )
+        # every channel's replies within the budget (their sends are the runner's)
+        self.io = StepIO([(ch.send, ch.receive) for ch in channels], self.budget)
         self.slip = plan.after_stall == "slip"
         self.stalls: list[tuple[int, float]] = []
         self.hb_steps = plan.heartbeat_steps
@@ -197,23 +202,19 @@ class Step:
 
     # ---- every channel's reply -------------------------------------------------------------
     def replies(self, k: int, now: float, tk: float) -> float:
-        """Receive every channel's reply of step ``k`` (sent at ``now``) within the budget.
+        """Receive every channel's reply of step ``k`` (sent at ``now``) within the budget
+        (:meth:`.stepio.StepIO.collect`).
 
         A reply ends a reply gap (one event); a missed one holds the measurement, counts and
         opens or extends the channel's gap. Returns the skew between the channels' replies
         (s; NaN with one channel or no reply).
         """
-        multi = self.multi
-        auto = self.budget.auto
+        io = self.io
         # (after a slip, step k is on time: the grid's t0 moved)
-        t_lim = self.budget.limit(now, self.pacer.t0 + tk)
-        timeout = self.budget.timeout
-        perf = time.perf_counter
+        io.collect(now, self.pacer.t0 + tk)
         t_first = t_last = 0.0
-        for ch in self.chans:
-            rem = t_lim - perf() if multi or auto else timeout
-            fb = ch.receive(rem if rem > 0.0 else 0.0)
-            t = ch.reply_clock = perf()
+        for ch, fb, t in zip(self.chans, io.replies, io.clocks, strict=False):
+            ch.reply_clock = t
             if fb is not None:
                 if ch.gap_steps:  # a reply ends a gap: one event (the degradation)
                     self.gap_ended(ch, t)
@@ -231,7 +232,7 @@ class Step:
                     t_first = t
             else:  # a missed reply: the measurement is held (``measured``, ``force``)
                 self.missing(ch, k)
-        return t_last - t_first if multi and t_first > 0.0 else math.nan
+        return t_last - t_first if self.multi and t_first > 0.0 else math.nan
 
     def missing(self, ch: Channel, k: int) -> None:
         """Channel ``ch`` missed its reply of step ``k``."""
