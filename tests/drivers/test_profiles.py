@@ -61,6 +61,12 @@ def _variant(tmp_path: Path, src: Path, old: str, new: str, name: str = "p.toml"
         (MODBUS_MAP, "address = 202", "address = 201", ["roles.force", "overlaps roles.position"]),
         (MODBUS_MAP, "address = 100 ", "address = 65535 ", ["roles.setpoint.address", "65535"]),
         (MODBUS_MAP, "[roles.force]", "[roles.unused]", ["roles.unused", "unknown key"]),
+        (
+            MODBUS_MAP,
+            "address = 100 ",
+            "adress = 100 ",
+            ["roles.setpoint.adress: unknown key (did you mean 'address'?)"],
+        ),
         (MODBUS_MAP, 'units = "kN"', 'units = "kN"\nscale = 0', ["roles.force.scale", "not be 0"]),
         (MODBUS_MAP, 'units = "kN"', 'units = "furlong"', ["roles.force.units", "furlong"]),
         (MODBUS_MAP, "[actions.estop]\ntable", "[actions.stop]\ntable", ["actions.stop"]),

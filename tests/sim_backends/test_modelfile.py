@@ -245,3 +245,39 @@ def test_cli_error_is_one_line(tmp_path, capsys):
     assert rc == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "missing.csv" in err
+
+
+def test_every_quantity_takes_a_unit_as_the_configuration_does():
+    # the reference values are the unit definitions (1 lbf = 4.4482216152605 N exactly)
+    spec = load_model(
+        {
+            "actuator": {
+                "delay": "5 ms",
+                "gain": "98%",
+                "effects": [
+                    {"kind": "backlash", "width": "0.2 mm"},
+                    {"kind": "drift", "rate": "3 mm/s"},
+                ],
+            },
+            "specimen": {"stiffness": "1.19 MN/m", "damping": 114.6, "mass": "2 kg"},
+            "sensor": {"displacement_noise": "16 um", "force_noise": "0.5 lbf", "seed": 3},
+        }
+    )
+    assert spec.actuator.delay == pytest.approx(5e-3)
+    assert spec.actuator.gain == pytest.approx(0.98)
+    assert spec.actuator.effects[0].params["width"] == pytest.approx(2e-4)
+    assert spec.actuator.effects[1].params["rate"] == pytest.approx(3e-3)
+    assert spec.specimen is not None and spec.specimen.stiffness == pytest.approx(1.19e6)
+    assert spec.specimen.mass == pytest.approx(2.0)
+    assert spec.sensor.displacement_noise == pytest.approx(16e-6)
+    assert spec.sensor.force_noise == pytest.approx(0.5 * 4.4482216152605)
+    # a force twin reads offset in N: a length is refused naming the key
+    with pytest.raises(
+        InputError, match=r"^actuator\.effects\[0\]\.offset: cannot read value '2 mm'"
+    ):
+        load_model(
+            {"actuator": {"effects": [{"kind": "offset", "offset": "2 mm"}]}}, control="force"
+        )
+    assert load_model(
+        {"actuator": {"effects": [{"kind": "offset", "offset": "2 kN"}]}}, control="force"
+    ).actuator.effects[0].params["offset"] == pytest.approx(2000.0)
