@@ -544,9 +544,12 @@ class Phases:
         one step per period (sleep, then spin to the deadline), the first at ``t_first`` (the
         previous phase's next deadline) or a moment from now (:func:`.pacer.first_deadline`),
         and :attr:`next_deadline` set after each; lockstep: the next command when the replies
-        are in. Returns the first trip (or ``None``) and each channel's last measured
-        displacement (absolute; a force-controlled channel's measured force). A force
-        channel's path is forces (N): checked against its force limit, no velocity.
+        are in. Each step checks every channel's command, then sends them all and collects the
+        replies (:class:`~.stepio.StepIO`, each within the loop's timeout), as the loop does;
+        a trip before the sends sends none of the step. Returns the first trip (or ``None``)
+        and each channel's last measured displacement (absolute; a force-controlled channel's
+        measured force). A force channel's path is forces (N): checked against its force
+        limit, no velocity.
         """
         plan = self.plan
         chans = self.chans
