@@ -129,7 +129,7 @@ def commission(
     plan: Any = None,
     stop: OperatorStop | None = None,
     progress: Callable[[str], None] | None = None,
-    chirp_time: float = CHIRP_TIME,
+    chirp_time: float | None = None,
 ) -> list[ChannelReport]:
     """Commission every channel of ``cfg`` (module docstring); write the report into ``out``.
 
@@ -147,8 +147,9 @@ def commission(
         them from its start). After a stop the channels not reached are skipped.
     progress : callable, optional
         Called with ``"<channel>: <step>"`` as each step starts.
-    chirp_time : float
-        Length of the identification chirp (s); shorter is a quicker, coarser fit.
+    chirp_time : float, optional
+        Length of the identification chirp (s; ``commission.chirp_time`` when not given);
+        shorter is a quicker, coarser fit.
 
     Returns
     -------
@@ -200,7 +201,8 @@ def commission(
                     rep.steps = [StepResult(name, "skipped", why) for name in STEPS]
                     reports.append(rep)
                     continue
-                reports.append(run_channel(ch, plan, load, confirm, stop, say, chirp_time))
+                chirp = cfg["commission"]["chirp_time"] if chirp_time is None else chirp_time
+                reports.append(run_channel(ch, plan, load, confirm, stop, say, chirp))
         except BaseException:  # a second signal, a driver's error: e-stop every channel
             for ch in chans:
                 if ch.driver is not None:  # opened

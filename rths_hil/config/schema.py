@@ -384,6 +384,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
             doc="length of the round-trip latency measurement (actuator disabled)",
             positive=True,
         ),
+        "chirp_time": Key(
+            "float",
+            4.0,
+            unit="s",
+            doc="length of the plant step's identification chirp (0.5 Hz up to min(20 Hz, fs/16)); "
+            "shorter is a quicker, coarser fit",
+            lo=0.5,
+            hi=60.0,
+        ),
         "watchdog_test": Key(
             "bool",
             True,

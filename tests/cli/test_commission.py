@@ -58,10 +58,11 @@ CONN = {
 }
 
 
-def _commission(tmp_path, over, name="c", chirp_time=1.0):
-    """In-process commissioning; a 1 s chirp where the plant is not the point."""
-    cfg = load_config(None, [*BASE, *over])
-    reports = commission(cfg, tmp_path / name, chirp_time=chirp_time)
+def _commission(tmp_path, over, name="c", chirp_time=0.5):
+    """In-process commissioning; the shortest chirp (commission.chirp_time, 0.5 s) where the
+    plant is not the point."""
+    cfg = load_config(None, [*BASE, f"commission.chirp_time={chirp_time}", *over])
+    reports = commission(cfg, tmp_path / name)
     (rep,) = reports
     return rep, {s.name: s for s in rep.steps}
 
@@ -77,6 +78,7 @@ def test_every_twin_passes(tmp_path, driver):
     for name in ("identify", "enable", "motion", "plant", "estop", "watchdog", "hand-back"):
         assert steps[name].status == "passed", (name, steps[name])
     assert steps["hand-back"].figures["status"] == "0"  # disabled, nothing latched
+    assert steps["plant"].figures["chirp_s"] == 0.5  # commission.chirp_time
     # the round trips are this machine's: on a loaded one the step may fail on its figures
     # (then for a timing reason), but the twin answered
     lat = steps["latency"]
@@ -193,7 +195,8 @@ def _hardware_commission(twin, out, *extra):
         sys.executable, "-m", "rths_hil", "commission", "--confirm-hardware", "--out", str(out),
         "--set=twin.enabled=false", "--set=driver.name=modbus",
         f"--set=driver.connection={toml_table(twin.connection)}",
-        "--set=commission.latency_time=0.3", *[f"--set={s}" for s in BASE[1:]], *extra,
+        "--set=commission.latency_time=0.3", "--set=commission.chirp_time=0.5",
+        *[f"--set={s}" for s in BASE[1:]], *extra,
     ]  # fmt: skip
     proc = subprocess.Popen(cmd, stdin=slave, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, cwd=ROOT)  # fmt: skip
@@ -293,7 +296,7 @@ def test_canopen_examples_pass_their_estop_and_watchdog_steps(tmp_path, example,
         ROOT / "examples" / "controllers" / f"{example}.toml",
         [*BASE, "commission.latency_time=0.3", f"twin.inline={inline}"],
     )
-    (rep,) = commission(cfg, tmp_path / "c", chirp_time=1.0)
+    (rep,) = commission(cfg, tmp_path / "c", chirp_time=0.5)
     steps = {s.name: s for s in rep.steps}
     for name in ("identify", "enable", "motion", "estop", "watchdog", "hand-back"):
         assert steps[name].status == "passed", (name, steps[name])
@@ -314,7 +317,7 @@ def test_modbus_partner_is_handed_back_ready_after_the_watchdog_step(modbus_serv
         "commission.watchdog_timeout=0.2",
     ])  # fmt: skip
     tmp = partner.state_file.parent
-    (rep,) = commission(cfg, tmp / "c", chirp_time=1.0)
+    (rep,) = commission(cfg, tmp / "c", chirp_time=0.5)
     steps = {s.name: s for s in rep.steps}
     # a loaded machine may stall a motion step past the partner's watchdog: that step fails,
     # the watchdog step and the hand-back are the point
@@ -341,8 +344,9 @@ PLANT = {"model": "first_order", "delay": 0.012, "time_constant": 0.008, "gain":
 @timing
 def test_identified_plant_fragment_tracks_when_included(tmp_path, capsys):
     over = [f"twin.actuator={toml_table(PLANT)}", "commission.latency_time=0.5"]
-    # a 2 s chirp: errors of ~0.01 ms, 0.01 ms, 0.0004 here (1 s: 0.2 ms, 0.2 ms, 0.001)
-    rep, steps = _commission(tmp_path, over, chirp_time=2.0)
+    # a 1 s chirp: errors of ~0.2 ms, 0.2 ms, 0.001 here, a fifth of the tolerances (2 s:
+    # 0.01 ms, 0.01 ms, 0.0004)
+    rep, steps = _commission(tmp_path, over, chirp_time=1.0)
     assert steps["plant"].status == "passed", steps["plant"]
     p = rep.plant
     # the twin answers within its step: the loop sees the plant's own delay (± half a step),
@@ -413,7 +417,8 @@ def test_two_channel_fragment_is_merged_by_channel_name(tmp_path):
     cfg_path = tmp_path / "two.toml"
     cfg_path.write_text(own)
     cfg = load_config(cfg_path, [*BASE, "commission.latency_time=0.3"])
-    reports = commission(cfg, tmp_path / "c", chirp_time=2.0)
+    # a 1 s chirp: delay and lag within ~0.2 ms on a twin (test_identified_plant_fragment_…)
+    reports = commission(cfg, tmp_path / "c", chirp_time=1.0)
     fits = {r.name: r.plant for r in reports}
     assert set(fits) == {"storey1", "storey3"}
     for name, delay in (("storey1", 0.010), ("storey3", 0.020)):
@@ -461,7 +466,7 @@ def test_modbus_partner_fragment_tracks_the_first_test(modbus_servo, tmp_path): 
     test = tmp_path / "test.toml"
     test.write_text('include = ["c/tuned.toml"]\n')
     run = subprocess.run(
-        [sys.executable, "-m", "rths_hil", "run", str(test), "--paced", "--duration", "8",
+        [sys.executable, "-m", "rths_hil", "run", str(test), "--paced", "--duration", "5",
          "--no-plot", "-q", "--confirm-hardware", "--out", str(tmp_path / "run"),
          *[f"--set={s}" for s in rig]],
         capture_output=True, text=True, timeout=180, cwd=ROOT,
