@@ -220,20 +220,17 @@ def floors_trial(spec: study.TrialSpec) -> dict[str, Any]:
 
 
 @dataclass
-class CompensatorComparison:
-    """Outcome of :func:`compensator_study`.
+class CompensatorComparison(rob.TrialRows):
+    """Outcome of :func:`compensator_study`: :class:`~rths_hil.studies.robustness.TrialRows`
+    grouped by method.
 
     Attributes
     ----------
-    rows : list of dict
-        One per method × trial, ordered by method (as given) then trial.
     methods : list of str
-    keys : list of str
-        The varied keys.
-    suffixes : list of str
-        Channel column suffixes (``[""]`` for one channel).
-    seed : int
     """
+
+    group_key = "method"
+    metrics = COMPARISON_METRICS
 
     rows: list[dict[str, Any]]
     methods: list[str]
@@ -246,16 +243,10 @@ class CompensatorComparison:
         """``trials.csv`` columns in order."""
         return ["method", "trial", "alpha", *self.keys, *study.trial_columns(self.suffixes)]
 
-    def summary(self) -> list[dict[str, Any]]:
-        """Per method and criterion (per channel): median, 5th and 95th percentiles over the
-        trials with a value, their count and the share of trials a safety rule stopped."""
-        out = []
-        for m in self.methods:
-            rows = [r for r in self.rows if r["method"] == m]
-            tripped = sum(r["status"] == "trip" for r in rows)
-            for metric in (c + sfx for sfx in self.suffixes for c in COMPARISON_METRICS):
-                out.append({"method": m, **study.metric_summary(rows, metric, tripped)})
-        return out
+    @property
+    def groups(self) -> list[str]:
+        """The methods."""
+        return self.methods
 
 
 def compensator_study(
@@ -319,22 +310,12 @@ def _md_table(res: CompensatorComparison) -> str:
     return "\n".join(lines)
 
 
-def write_trials(path: str | Path, res: CompensatorComparison) -> None:
-    """One line per method × trial, full-precision numbers (``trials.csv``)."""
-    cols = res.columns
-    with Path(path).open("w", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh)
-        w.writerow(cols)
-        for r in res.rows:
-            w.writerow([study.exact_text(r.get(c, math.nan)) for c in cols])
-
-
 def write_comparison(
     out_dir: str | Path, res: CompensatorComparison, plot: bool = True
 ) -> list[str]:
     """Write trials.csv, comparison.csv, comparison.md and (``plot``) compensators_box.png."""
     out = Path(out_dir)
-    write_trials(out / "trials.csv", res)
+    study.write_trials_csv(out / "trials.csv", res)
     summ = res.summary()
     scols = ["method", "metric", "median", "p5", "p95", "n", "trials", "share_tripped"]
     with (out / "comparison.csv").open("w", newline="", encoding="utf-8") as fh:

@@ -576,7 +576,7 @@ def run_compensators(args: argparse.Namespace) -> int:
         done.sort(key=lambda r: (methods.index(r["method"]), r["trial"]))
         suffixes = study.channel_suffixes(base)
         res = cs.CompensatorComparison(done, methods, [p.key for p in perts], suffixes, args.seed)
-        cs.write_trials(path, res)
+        study.write_trials_csv(path, res)
 
     ran = _run_trials(
         args,

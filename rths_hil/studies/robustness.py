@@ -24,7 +24,7 @@ from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -321,21 +321,80 @@ def _invalid_row(spec: TrialSpec, reason: str) -> dict[str, Any]:
 BENCHMARK_MIN_STEPS = 64
 
 
-@dataclass
-class RobustnessResult:
-    """Outcome of :func:`robustness_study`.
+#: Metrics summarised per α (and per channel).
+SUMMARY_METRICS: tuple[str, ...] = (
+    "fei_amplitude",
+    "fei_delay",
+    "mwo_delay_min",
+    "mwo_delay_max",
+    "J1",
+    "J2",
+    "J3",
+    "J4",
+    "J7",
+    "bench_J1",
+    "bench_J2",
+)
+
+
+class TrialRows:
+    """The rows of trials on perturbed twins, one per trial and group (an α, a method).
 
     Attributes
     ----------
     rows : list of dict
-        One per trial × α, ordered by α (as given) then trial.
+        One per group × trial, ordered by group (as given) then trial.
+    keys : list of str
+        The varied keys (columns after ``alpha``).
+    suffixes : list of str
+        Channel column suffixes (``[""]`` for one channel).
+    seed : int
+        Seed of the draws.
+    """
+
+    rows: list[dict[str, Any]]
+    keys: list[str]
+    suffixes: list[str]
+    seed: int
+    #: the row key naming a row's group, and the metrics :meth:`summary` summarises
+    group_key: ClassVar[str]
+    metrics: ClassVar[tuple[str, ...]]
+
+    @property
+    def groups(self) -> Sequence[Any]:
+        """The groups, in order."""
+        raise NotImplementedError
+
+    @property
+    def columns(self) -> list[str]:
+        """``trials.csv`` columns in order."""
+        raise NotImplementedError
+
+    def summary(self) -> list[dict[str, Any]]:
+        """Per group and metric (per channel): median, 5th and 95th percentiles over the trials
+        with a value, their count, and per group the share of trials a safety rule stopped."""
+        out = []
+        for g in self.groups:
+            rows = [r for r in self.rows if r[self.group_key] == g]
+            tripped = sum(r["status"] == "trip" for r in rows)
+            for m in (m + sfx for sfx in self.suffixes for m in self.metrics):
+                out.append({self.group_key: g, **metric_summary(rows, m, tripped)})
+        return out
+
+
+@dataclass
+class RobustnessResult(TrialRows):
+    """Outcome of :func:`robustness_study`: :class:`TrialRows` grouped by α.
+
+    Attributes
+    ----------
     perturbations : list of Perturbation
     alphas : list of float
         The α of the runs (the configuration's when not varied).
-    seed : int
-    keys : list of str
-        The varied keys (columns after ``alpha``).
     """
+
+    group_key = "alpha"
+    metrics = SUMMARY_METRICS
 
     rows: list[dict[str, Any]]
     perturbations: list[Perturbation]
@@ -349,20 +408,14 @@ class RobustnessResult:
         """CSV columns in order."""
         return ["trial", "alpha", *self.keys, *trial_columns(self.suffixes)]
 
+    @property
+    def groups(self) -> list[float]:
+        """The α of the runs."""
+        return self.alphas
+
     def by_alpha(self, alpha: float) -> list[dict[str, Any]]:
         """The rows run with ``alpha``."""
         return [r for r in self.rows if r["alpha"] == alpha]
-
-    def summary(self) -> list[dict[str, Any]]:
-        """Per α and metric: median, 5th and 95th percentiles over the trials with a value,
-        their count, and per α the share of trials a safety rule stopped."""
-        out = []
-        for alpha in self.alphas:
-            rows = self.by_alpha(alpha)
-            tripped = sum(r["status"] == "trip" for r in rows)
-            for m in (m + sfx for sfx in self.suffixes for m in SUMMARY_METRICS):
-                out.append({"alpha": alpha, **metric_summary(rows, m, tripped)})
-        return out
 
 
 def metric_summary(rows: Sequence[dict], metric: str, tripped: int) -> dict:
@@ -417,22 +470,6 @@ def trial_columns(suffixes: Sequence[str] = ("",)) -> list[str]:
     for sfx in suffixes:
         out += ["alpha" + sfx, *(c + sfx for c in _CHANNEL_COLUMNS)]
     return out
-
-
-#: Metrics summarised per α (and per channel).
-SUMMARY_METRICS: tuple[str, ...] = (
-    "fei_amplitude",
-    "fei_delay",
-    "mwo_delay_min",
-    "mwo_delay_max",
-    "J1",
-    "J2",
-    "J3",
-    "J4",
-    "J7",
-    "bench_J1",
-    "bench_J2",
-)
 
 
 def plan_trials(
@@ -556,15 +593,15 @@ def robustness_study(
     )
 
 
-def write_trials_csv(path: str | Path, result: RobustnessResult) -> None:
-    """``trials.csv``: one line per trial × α, full-precision numbers (``repr``)."""
-
+def write_trials_csv(path: str | Path, result: TrialRows) -> None:
+    """``trials.csv``: one line per row (trial × α or method), full-precision numbers
+    (``repr``; NaN where a row has no value)."""
     cols = result.columns
     with Path(path).open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(cols)
         for r in result.rows:
-            w.writerow([exact_text(r[c]) for c in cols])
+            w.writerow([exact_text(r.get(c, math.nan)) for c in cols])
 
 
 def exact_text(v) -> str:
