@@ -291,6 +291,28 @@ class ProfileFormat:
     def _with_setpoint(self, fsp: Any) -> Self:
         raise NotImplementedError
 
+    def _setpoint_span(self) -> tuple[float, float, str] | None:
+        """The lowest and highest SI value the set-point field carries and what the field is
+        (a message names it); ``None`` when it carries any."""
+        raise NotImplementedError
+
+    def check_setpoint_range(self, limit: float) -> None:
+        """Refuse a set-point field that cannot carry every command within ±``limit`` m
+        (``safety.displacement_limit``; 0 = off): one line, before anything moves.
+
+        On the profile of a force-controlled channel (:meth:`for_control`) the set-point is
+        the force set-point and ``limit`` the force limit in N (``safety.force_limit``).
+
+        Raises
+        ------
+        InputError
+            The field's range does not reach ±``limit``.
+        """
+        span = self._setpoint_span() if limit > 0 else None
+        if span is not None and (span[0] > -limit or span[1] < limit):
+            role = self._roles()["setpoint"].role
+            raise InputError(_range_refusal(self.source, role, span[2], *span[:2], limit))
+
     @property
     def control_modes(self) -> tuple[str, ...]:
         """The wire control modes the profile can run: ``displacement``, and ``force`` when

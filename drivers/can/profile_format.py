@@ -18,7 +18,6 @@ from ..profile import (
     ProfileFormat,
     _check_mode_actions,
     _masks,
-    _range_refusal,
     _units,
     check_keys,
     check_mask_bits,
@@ -68,28 +67,17 @@ class CANProfile(ProfileFormat):
     heartbeat: CANSignal | None
     protocol: str = "can"
 
-    def check_setpoint_range(self, limit: float) -> None:
-        """Refuse a set-point signal that cannot carry every command within ±``limit`` m
-        (``safety.displacement_limit``; 0 = off): one line, before anything moves.
-
-        On the profile of a force-controlled channel (:meth:`for_control`) the set-point is
-        the force set-point signal and ``limit`` the force limit in N (``safety.force_limit``).
-        """
+    def _setpoint_span(self) -> tuple[float, float, str]:
+        """The set-point signal's raw range (its bits and sign) through its scale and offset,
+        within the DBC's minimum and maximum."""
         sp = self.roles["setpoint"]
-        if limit <= 0:
-            return
         sig = self.command.get_signal_by_name(sp.signal)
-        n = int(sig.length)
-        raw = (-(2 ** (n - 1)), 2 ** (n - 1) - 1) if sig.is_signed else (0, 2**n - 1)
-        ends = [(r * sig.scale + sig.offset) * sp.factor for r in raw]
+        ends = [(r * sig.scale + sig.offset) * sp.factor for r in _raw_range(sig)]
         if sig.minimum is not None:
             ends[0] = max(min(ends), float(sig.minimum) * sp.factor)
         if sig.maximum is not None:
             ends[1] = min(max(ends), float(sig.maximum) * sp.factor)
-        lo, hi = min(ends), max(ends)
-        if lo > -limit or hi < limit:
-            what = f"the DBC signal {sp.message}.{sp.signal}"
-            raise InputError(_range_refusal(self.source, sp.role, what, lo, hi, limit))
+        return min(ends), max(ends), f"the DBC signal {sp.message}.{sp.signal}"
 
     def _force_hint(self) -> str:
         """``roles.force_setpoint`` is a signal of the command message; as the set-point of

@@ -20,7 +20,6 @@ from ..profile import (
     ProfileFormat,
     _check_mode_actions,
     _masks,
-    _range_refusal,
     _units,
     check_keys,
     check_mask_bits,
@@ -269,20 +268,13 @@ class ModbusProfile(ProfileFormat):
     protocol: str = "modbus"
     units_doc: dict[str, str] = field(default_factory=dict)
 
-    def check_setpoint_range(self, limit: float) -> None:
-        """Refuse a set-point point that cannot carry every command within ±``limit`` m
-        (``safety.displacement_limit``; 0 = off): one line, before anything moves.
-
-        On the profile of a force-controlled channel (:meth:`for_control`) the written point
-        is the force set-point and ``limit`` the force limit in N (``safety.force_limit``).
-        """
+    def _setpoint_span(self) -> tuple[float, float, str] | None:
+        """An integer set-point point's range through its scale (a float one carries any)."""
         sp = self.points["setpoint"]
-        if limit <= 0 or sp.type not in _INT_RANGE:
-            return
+        if sp.type not in _INT_RANGE:
+            return None
         lo, hi = sorted(sp.si(v) for v in _INT_RANGE[sp.type])
-        if lo > -limit or hi < limit:
-            what = f"{sp.type} with scale {sp.scale:g}"
-            raise InputError(_range_refusal(self.source, sp.role, what, lo, hi, limit))
+        return lo, hi, f"{sp.type} with scale {sp.scale:g}"
 
     ROLE_FIELD = "points"
 
