@@ -6,7 +6,8 @@
 :func:`add_confirm_hardware` the ``--confirm-hardware`` of the first three;
 :func:`config_from_args` loads the configuration they name (:func:`rths_hil.config.load_config`);
 :func:`add_simulation_arguments` and :func:`simulation_from_args` are the damping, actuator, PGA
-and rate options of ``simulate`` and of the FEI paper's studies.
+and rate options of ``simulate`` and of the FEI paper's studies, with
+:func:`add_ground_motion_argument` their ``--record``.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ __all__ = [
     "add_command",
     "add_config_arguments",
     "add_confirm_hardware",
+    "add_ground_motion_argument",
     "add_simulation_arguments",
     "config_from_args",
     "simulation_from_args",
@@ -137,6 +139,34 @@ class Simulation(NamedTuple):
     delay: float
     fs: float
     pga: float | None
+
+
+def add_ground_motion_argument(
+    parser: argparse.ArgumentParser, default: str, several: bool
+) -> None:
+    """Add ``--record``, the ground motion of an offline simulation.
+
+    A PEER ``.AT2`` or ``.csv`` file or a bundled record's name
+    (:func:`rths_hil.groundmotion.resolve`); ``args.record`` is ``None`` when not given, else
+    the name or, with ``several``, the list of names (``--record`` repeated).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The sub-command's parser.
+    default : str
+        What is used without ``--record`` (for the help).
+    several : bool
+        Whether ``--record`` may be repeated.
+    """
+    parser.add_argument(
+        "--record",
+        action="append" if several else "store",
+        default=None,
+        help="ground motion: PEER .AT2 or .csv file, or a bundled record name"
+        + ("; repeat for several" if several else "")
+        + f" (default: {default})",
+    )
 
 
 def simulation_from_args(args: argparse.Namespace) -> Simulation:

@@ -17,7 +17,12 @@ import numpy as np
 
 from ..errors import InputError
 from ..units import positive_number
-from .options import add_command, add_simulation_arguments, simulation_from_args
+from .options import (
+    add_command,
+    add_ground_motion_argument,
+    add_simulation_arguments,
+    simulation_from_args,
+)
 
 log = logging.getLogger(__name__)
 
@@ -31,12 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         run,
         help="simulate an SDOF + delay/gain actuator under a ground motion (FEI paper, Fig. 4.1)",
     )
-    p.add_argument(
-        "--record",
-        default=None,
-        help="ground motion: PEER .AT2 or .csv file, or a bundled record name "
-        "(default: bundled El Centro 1940)",
-    )
+    add_ground_motion_argument(p, "bundled El Centro 1940", several=False)
     p.add_argument("--fn", required=True, help="natural frequency of the structure (Hz)")
     p.add_argument(
         "--bouc-wen",

@@ -28,7 +28,7 @@ from ..errors import InputError
 from ..resources import MAX_TRIALS, check_count, check_memory, max_workers
 from ..stopping import interrupting
 from ..units import parse_fraction, parse_range, parse_time, positive_number
-from .options import add_simulation_arguments, simulation_from_args
+from .options import add_ground_motion_argument, add_simulation_arguments, simulation_from_args
 
 
 def _check_workers(workers: int) -> None:
@@ -77,12 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "FEI paper, Fig. 4.2: t_w from 1·Tn upwards by 0.1·Tn until the criterion holds."
         ),
     )
-    ws.add_argument(
-        "--record",
-        action="append",
-        default=None,
-        help="ground motion file or bundled name; repeat for several (default: all bundled)",
-    )
+    add_ground_motion_argument(ws, "all bundled", several=True)
     ws.add_argument("--fn", default="0.2:5.1:0.1", help="frequencies start:stop:step or a,b,c (Hz)")
     ws.add_argument("--criterion", default="1%", help="tolerance on |d − τ|/τ (default 1%%)")
     ws.add_argument(
@@ -100,9 +95,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="max FEI errors, linear and Bouc-Wen (the FEI paper's Table 4.1, Fig. 4.6)",
         description="The FEI paper's Table 4.1 / Fig. 4.6 for linear and Bouc-Wen SDOF structures.",
     )
-    acc.add_argument(
-        "--record", default=None, help="ground motion file or bundled name (default El Centro)"
-    )
+    add_ground_motion_argument(acc, "bundled El Centro 1940", several=False)
     acc.add_argument("--fn", default="0.5,0.7,1.0", help="frequencies a,b,c (Hz)")
     acc.add_argument("--window", default="3T", help="window: 3T (periods) or seconds (3s)")
     acc.add_argument("--hop", type=int, default=1, help="samples between windows (default 1)")
