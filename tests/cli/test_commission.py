@@ -466,7 +466,7 @@ def test_modbus_partner_fragment_tracks_the_first_test(modbus_servo, tmp_path): 
     test = tmp_path / "test.toml"
     test.write_text('include = ["c/tuned.toml"]\n')
     run = subprocess.run(
-        [sys.executable, "-m", "rths_hil", "run", str(test), "--paced", "--duration", "5",
+        [sys.executable, "-m", "rths_hil", "run", str(test), "--paced", "--duration", "8",
          "--no-plot", "-q", "--confirm-hardware", "--out", str(tmp_path / "run"),
          *[f"--set={s}" for s in rig]],
         capture_output=True, text=True, timeout=180, cwd=ROOT,
