@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import copy
-import math
 import re
 import tomllib
 from collections.abc import Iterable, Mapping
@@ -15,6 +14,7 @@ from ..errors import InputError
 from ..formats import read_toml
 from .checks import cross_check
 from .coerce import check_table, coerce, describe, unknown_key
+from .key import REQUIRED, Key
 from .model import Config, default_config
 from .schema import (
     CHANNEL_KEYS,
@@ -38,48 +38,14 @@ __all__ = [
 _NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}\Z")
 
 
-def _actuator_key(key: str, value: Any, kp: str, where: str) -> Any:
-    """The validated value of the ``[[actuators]]`` key ``key`` (path ``kp``)."""
-    if key == "name":
-        if not isinstance(value, str) or not _NAME_RE.match(value):
-            raise InputError(
-                f"{where}: {kp}: expected a name of 1 to 32 letters, digits and _ starting "
-                f"with a letter, got {describe(value)}"
-            )
-        return value
-    if key == "dof":
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise InputError(
-                f"{where}: {kp}: expected a storey/DOF number ≥ 1, got {describe(value)}"
-            )
-        return value
-    if key == "transform":
-        if (
-            not isinstance(value, list)
-            or not value
-            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-            or not all(math.isfinite(v) for v in value)
-        ):
-            raise InputError(
-                f"{where}: {kp}: expected a non-empty array of finite numbers (a row of T), "
-                f"got {describe(value)}"
-            )
-        return [float(v) for v in value]
-    if key in CHANNEL_SECTIONS:
-        return _actuator_section(key, value, kp, where)
-    raise InputError(
-        f"{where}: {unknown_key(kp, key, (*CHANNEL_KEYS, *CHANNEL_SECTIONS))} "
-        "(an actuator sets name, dof or transform and the sections it overrides)"
-    )
-
-
-def _actuator_section(key: str, value: Any, kp: str, where: str) -> dict[str, Any]:
-    """The validated section ``key`` an ``[[actuators]]`` entry overrides (path ``kp``)."""
-    if key == "control" and isinstance(value, str):  # control = "load"
-        value = {"mode": value}
-    if not isinstance(value, dict):
-        raise InputError(f"{where}: {kp}: expected a table, got {describe(value)}")
-    return check_table(value, SCHEMA[key], where, kp, defaults=False)
+#: The keys of an ``[[actuators]]`` entry: its name, where it acts (a storey, or a row of the
+#: transformation T: displacement = T·u) and the sections it overrides.
+ENTRY_KEYS: dict[str, Key] = {
+    "name": Key("str", REQUIRED),
+    "dof": Key("int", None, lo=1, doc="the storey / DOF the actuator drives"),
+    "transform": Key("array", None, doc="a row of T (displacement = T·u), instead of dof"),
+    **{section: Key("table", None) for section in CHANNEL_SECTIONS},
+}
 
 
 def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:
@@ -87,11 +53,23 @@ def _actuator(entry: Any, i: int, where: str) -> dict[str, Any]:
     path = f"actuators[{i}]"
     if not isinstance(entry, dict):
         raise InputError(f"{where}: {path}: expected a table [[actuators]], got {describe(entry)}")
-    out: dict[str, Any] = {
-        key: _actuator_key(key, value, f"{path}.{key}", where) for key, value in entry.items()
-    }
-    if "name" not in out:
-        raise InputError(f"{where}: {path}.name: every [[actuators]] entry needs a name")
+    if isinstance(entry.get("control"), str):  # control = "load"
+        entry = {**entry, "control": {"mode": entry["control"]}}
+    missing = "every [[actuators]] entry needs a name"
+    out = check_table(entry, ENTRY_KEYS, where, path, defaults=False, missing=missing)
+    if not _NAME_RE.match(out["name"]):
+        raise InputError(
+            f"{where}: {path}.name: expected a name of 1 to 32 letters, digits and _ starting "
+            f"with a letter, got {describe(out['name'])}"
+        )
+    if out.get("transform") == []:
+        raise InputError(f"{where}: {path}.transform: expected a non-empty array (a row of T)")
+    for section in CHANNEL_SECTIONS:
+        if section in out:
+            keys = SCHEMA[section]
+            out[section] = check_table(
+                out[section], keys, where, f"{path}.{section}", defaults=False
+            )
     if "dof" in out and "transform" in out:
         raise InputError(f"{where}: {path}.transform: give dof or transform, not both")
     return out
