@@ -23,9 +23,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from .options import add_command, add_config_arguments, add_confirm_hardware
+from .options import add_command, add_config_arguments, add_confirm_hardware, add_out_dir, out_dir
+
+#: the report directory without --out
+_OUT = "commission/{timestamp}"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -41,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_config_arguments(p)
     p.add_argument("--yes", action="store_true", help="answer the prompts (twins only)")
     add_confirm_hardware(p, "commissioning")
-    p.add_argument("--out", metavar="DIR", help="report directory (default commission/<time>)")
+    add_out_dir(p, "report", _OUT)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -56,14 +58,11 @@ def _main(args: argparse.Namespace, stop) -> int:
     from ..commission import commission
     from ..config import load_config
     from ..errors import InputError
-    from ..hybrid import new_run_dir
     from ..hybrid.phases import hardware_channels, require_confirmation
     from ..hybrid.plan import build_plan
 
     cfg = load_config(args.config, args.set)
-    out = Path(args.out) if args.out else new_run_dir("commission/{timestamp}")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError(f"--out {out}: exists and is not an empty directory; choose a new one")
+    out = out_dir(args, _OUT, empty=True)
     plan = build_plan(cfg, out, mode="paced")
     hardware = bool(hardware_channels(plan))
     require_confirmation(plan, args.confirm_hardware, "commission")

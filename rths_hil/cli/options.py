@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 from ..errors import InputError
@@ -28,8 +29,10 @@ __all__ = [
     "add_config_arguments",
     "add_confirm_hardware",
     "add_ground_motion_argument",
+    "add_out_dir",
     "add_simulation_arguments",
     "config_from_args",
+    "out_dir",
     "simulation_from_args",
 ]
 
@@ -98,6 +101,56 @@ def add_confirm_hardware(parser: argparse.ArgumentParser, what: str) -> None:
         help=f"confirm that {what} may drive real hardware (a channel with twin.enabled = false; "
         "or loop.confirm_hardware = true in the configuration)",
     )
+
+
+def add_out_dir(parser: argparse.ArgumentParser, what: str, default: str) -> None:
+    """Add ``--out DIR``, the directory a command writes (see :func:`out_dir`).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The sub-command's parser.
+    what : str
+        What the directory holds, e.g. ``"run"``.
+    default : str
+        The directory without ``--out``, for the help (a pattern such as
+        ``commission/{timestamp}``, or the configuration key that holds one).
+    """
+    parser.add_argument("--out", metavar="DIR", help=f"{what} directory (default: {default})")
+
+
+def out_dir(args: argparse.Namespace, pattern: str, empty: bool) -> Path:
+    """The directory of ``--out``, else a new one from ``pattern``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments (``args.out``, ``None`` when not given).
+    pattern : str
+        The default directory; ``{timestamp}`` is expanded and a directory that holds a run
+        gets a suffix (:func:`rths_hil.hybrid.plan.new_run_dir`).
+    empty : bool
+        Refuse a directory that exists and is not empty (a command whose files have fixed
+        names).
+
+    Returns
+    -------
+    Path
+        The directory (not created).
+
+    Raises
+    ------
+    InputError
+        ``--out`` given empty, or (``empty``) naming a file or a directory with files.
+    """
+    from ..hybrid.plan import new_run_dir
+
+    if args.out is not None and not args.out.strip():
+        raise InputError("--out is empty: give a directory")
+    out = Path(args.out) if args.out else new_run_dir(pattern)
+    if empty and out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"--out {out}: exists and is not an empty directory; choose a new one")
+    return out
 
 
 def config_from_args(args: argparse.Namespace) -> Config:

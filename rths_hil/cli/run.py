@@ -24,7 +24,14 @@ from typing import Any
 
 from ..config import to_toml
 from ..units import parse_time
-from .options import add_command, add_config_arguments, add_confirm_hardware, config_from_args
+from .options import (
+    add_command,
+    add_config_arguments,
+    add_confirm_hardware,
+    add_out_dir,
+    config_from_args,
+    out_dir,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -46,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--duration", metavar="S", help="simulated time to run, e.g. 10 or 10s (0 = whole record)"
     )
-    p.add_argument("--out", metavar="DIR", help="run directory (default: output.dir)")
+    add_out_dir(p, "run", "output.dir")
     p.add_argument(
         "--show-config",
         action="store_true",
@@ -145,8 +152,7 @@ def _announce(loop: Any, run_dir: Path, site: bool) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run the test; return the exit code."""
-    from ..errors import InputError
-    from ..hybrid import RTHSLoop, new_run_dir
+    from ..hybrid import RTHSLoop
     from ..hybrid.phases import preflight, require_confirmation
     from ..report import LiveLine, format_summary, plot_report, summarize
     from ..stopping import OperatorStop
@@ -160,9 +166,7 @@ def main(args: argparse.Namespace) -> int:
         from ..errors import require
 
         require("live", "rths-hil run --watch")
-    if args.out is not None and not args.out.strip():
-        raise InputError("--out is empty: give a run directory")
-    run_dir = Path(args.out) if args.out else new_run_dir(cfg["output"]["dir"])
+    run_dir = out_dir(args, cfg["output"]["dir"], empty=False)
     _tolerant_console()  # from here on hardware may move: a closed terminal must not stop it
     live = None if args.quiet or cfg["loop"]["console"] <= 0 else LiveLine(sys.stderr)
     loop = RTHSLoop(cfg, run_dir, live=live, mode=mode, duration=duration)

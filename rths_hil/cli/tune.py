@@ -30,11 +30,22 @@ from typing import TYPE_CHECKING
 from ..errors import InputError
 from ..formats import json_text
 from ..units import parse_fraction, parse_range, parse_time
-from .options import add_command, add_config_arguments, add_confirm_hardware, config_from_args
+from .options import (
+    add_command,
+    add_config_arguments,
+    add_confirm_hardware,
+    add_out_dir,
+    config_from_args,
+    out_dir,
+)
 
 if TYPE_CHECKING:
     from ..config import Config
     from ..tuning import SweepResult, TuneResult
+
+
+#: the output directory without --out
+_OUT = "runs/tune-{timestamp}"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -73,7 +84,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--alpha-only", action="store_true", help="tune α only (keep the amplitude factor)"
     )
-    p.add_argument("--out", metavar="DIR", help="output directory (default runs/tune-<time>)")
+    add_out_dir(p, "output", _OUT)
     p.add_argument(
         "--paced",
         action="store_true",
@@ -229,7 +240,6 @@ def _finish_tune(
 
 def main(args: argparse.Namespace) -> int:
     """Run the tuning (or the sweep); return the exit code."""
-    from ..hybrid import new_run_dir
     from ..tuning import LoopTrials, sweep, tune
     from ..tuning_output import format_table
 
@@ -242,9 +252,7 @@ def main(args: argparse.Namespace) -> int:
             f"compensation.alpha = {c['alpha']:g} is outside [alpha_min, alpha_max] = "
             f"[{lo:g}, {hi:g}]"
         )
-    out = Path(args.out) if args.out else new_run_dir("runs/tune-{timestamp}")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError(f"--out {out}: exists and is not an empty directory; choose a new one")
+    out = out_dir(args, _OUT, empty=True)
     mode = "paced" if (hardware or args.paced) else "lockstep"
     quiet = args.quiet
 
