@@ -26,9 +26,6 @@ import sys
 
 from .options import add_command, add_config_arguments, add_confirm_hardware, add_out_dir, out_dir
 
-#: the report directory without --out
-_OUT = "commission/{timestamp}"
-
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``commission`` to the top-level parser."""
@@ -43,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_config_arguments(p)
     p.add_argument("--yes", action="store_true", help="answer the prompts (twins only)")
     add_confirm_hardware(p, "commissioning")
-    add_out_dir(p, "report", _OUT)
+    add_out_dir(p, "report", "commission/{timestamp}")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -62,7 +59,7 @@ def _main(args: argparse.Namespace, stop) -> int:
     from ..hybrid.plan import build_plan
 
     cfg = load_config(args.config, args.set)
-    out = out_dir(args, _OUT, empty=True)
+    out = out_dir(args, empty=True)
     plan = build_plan(cfg, out, mode="paced")
     hardware = bool(hardware_channels(plan))
     require_confirmation(plan, args.confirm_hardware, "commission")

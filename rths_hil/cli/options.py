@@ -113,25 +113,28 @@ def add_out_dir(parser: argparse.ArgumentParser, what: str, default: str) -> Non
     what : str
         What the directory holds, e.g. ``"run"``.
     default : str
-        The directory without ``--out``, for the help (a pattern such as
-        ``commission/{timestamp}``, or the configuration key that holds one).
+        The directory without ``--out``: a pattern such as ``commission/{timestamp}``
+        (:func:`out_dir` reads it), or the configuration key that holds one (for the help; the
+        command passes the key's value to :func:`out_dir`).
     """
     parser.add_argument("--out", metavar="DIR", help=f"{what} directory (default: {default})")
+    parser.set_defaults(out_pattern=default)
 
 
-def out_dir(args: argparse.Namespace, pattern: str, empty: bool) -> Path:
-    """The directory of ``--out``, else a new one from ``pattern``.
+def out_dir(args: argparse.Namespace, empty: bool, pattern: str | None = None) -> Path:
+    """The directory of ``--out``, else a new one from the default pattern.
 
     Parameters
     ----------
     args : argparse.Namespace
         The parsed arguments (``args.out``, ``None`` when not given).
-    pattern : str
-        The default directory; ``{timestamp}`` is expanded and a directory that holds a run
-        gets a suffix (:func:`rths_hil.hybrid.plan.new_run_dir`).
     empty : bool
         Refuse a directory that exists and is not empty (a command whose files have fixed
         names).
+    pattern : str, optional
+        The default directory, if not the one :func:`add_out_dir` declared; ``{timestamp}`` is
+        expanded and a directory that holds a run gets a suffix
+        (:func:`rths_hil.hybrid.plan.new_run_dir`).
 
     Returns
     -------
@@ -147,7 +150,7 @@ def out_dir(args: argparse.Namespace, pattern: str, empty: bool) -> Path:
 
     if args.out is not None and not args.out.strip():
         raise InputError("--out is empty: give a directory")
-    out = Path(args.out) if args.out else new_run_dir(pattern)
+    out = Path(args.out) if args.out else new_run_dir(pattern or args.out_pattern)
     if empty and out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"--out {out}: exists and is not an empty directory; choose a new one")
     return out

@@ -166,7 +166,7 @@ def main(args: argparse.Namespace) -> int:
         from ..errors import require
 
         require("live", "rths-hil run --watch")
-    run_dir = out_dir(args, cfg["output"]["dir"], empty=False)
+    run_dir = out_dir(args, empty=False, pattern=cfg["output"]["dir"])
     _tolerant_console()  # from here on hardware may move: a closed terminal must not stop it
     live = None if args.quiet or cfg["loop"]["console"] <= 0 else LiveLine(sys.stderr)
     loop = RTHSLoop(cfg, run_dir, live=live, mode=mode, duration=duration)

@@ -44,10 +44,6 @@ if TYPE_CHECKING:
     from ..tuning import SweepResult, TuneResult
 
 
-#: the output directory without --out
-_OUT = "runs/tune-{timestamp}"
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``tune`` to the top-level parser."""
     p = add_command(
@@ -84,7 +80,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--alpha-only", action="store_true", help="tune α only (keep the amplitude factor)"
     )
-    add_out_dir(p, "output", _OUT)
+    add_out_dir(p, "output", "runs/tune-{timestamp}")
     p.add_argument(
         "--paced",
         action="store_true",
@@ -252,7 +248,7 @@ def main(args: argparse.Namespace) -> int:
             f"compensation.alpha = {c['alpha']:g} is outside [alpha_min, alpha_max] = "
             f"[{lo:g}, {hi:g}]"
         )
-    out = out_dir(args, _OUT, empty=True)
+    out = out_dir(args, empty=True)
     mode = "paced" if (hardware or args.paced) else "lockstep"
     quiet = args.quiet
 

@@ -14,22 +14,22 @@ from tests.helpers.cli import one_line_exit_2
 
 
 def _args(out):
-    return argparse.Namespace(out=out)
+    return argparse.Namespace(out=out, out_pattern="runs/t-{timestamp}")
 
 
 def test_given_directory_default_pattern_and_refusals(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    assert out_dir(_args("x/y"), "runs/{timestamp}", empty=True) == Path("x/y")
-    made = out_dir(_args(None), "runs/t-{timestamp}", empty=True)
+    assert out_dir(_args("x/y"), empty=True) == Path("x/y")
+    made = out_dir(_args(None), empty=True)
     assert re.fullmatch(r"runs/t-\d{8}-\d{6}", made.as_posix())
     with pytest.raises(InputError, match="--out is empty"):
-        out_dir(_args("  "), "runs/{timestamp}", empty=False)
+        out_dir(_args("  "), empty=False)
     full = tmp_path / "full"
     full.mkdir()
     (full / "report.md").write_text("x")
     with pytest.raises(InputError, match="not an empty directory"):
-        out_dir(_args(str(full)), "runs/{timestamp}", empty=True)
-    assert out_dir(_args(str(full)), "runs/{timestamp}", empty=False) == full  # run: a suffix later
+        out_dir(_args(str(full)), empty=True)
+    assert out_dir(_args(str(full)), empty=False, pattern="unused") == full  # run: a suffix later
 
 
 @pytest.mark.parametrize("command", ["tune", "commission"])
