@@ -8,9 +8,9 @@ import importlib
 from types import SimpleNamespace
 
 import pytest
-
 from rths_hil.drivers.protocol import HOOKS, LinkInputs, Protocol, link_model
 from rths_hil.drivers.registry import protocol
+
 from rths_hil.errors import InputError
 from rths_hil.linkbudget import LinkLoad
 
