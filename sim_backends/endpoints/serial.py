@@ -79,32 +79,31 @@ class SerialTwin(TwinEndpoint):
             self.connection = {"url": f"socket://{host}:{port}"}
             self.where = f"socket://{host}:{port}"
 
-    def _teardown(self) -> None:
-        for fd in (self._fd if self.transport == "pty" else None, self._slave):
-            if fd is not None:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self._fd = self._slave = None
-        for s in (self._client, self._listener):
-            if s is not None:
-                s.close()
-        self._client = self._listener = None
-
-    def _go_away(self) -> None:
-        super()._go_away()
+    def _close_line(self) -> None:
+        """Close the line: both ends of the pseudo-terminal (``pty``), or the connected client
+        (``tcp``; the listener stays)."""
         if self.transport == "pty":
-            if self._fd is not None:
-                os.close(self._fd)
-                self._fd = None
-            if self._slave is not None:
-                os.close(self._slave)
-                self._slave = None
+            for fd in (self._fd, self._slave):
+                if fd is not None:
+                    try:
+                        os.close(fd)
+                    except OSError:
+                        pass
+            self._slave = None
         elif self._client is not None:
             self._client.close()
             self._client = None
-            self._fd = None
+        self._fd = None
+
+    def _teardown(self) -> None:
+        self._close_line()
+        if self._listener is not None:
+            self._listener.close()
+            self._listener = None
+
+    def _go_away(self) -> None:
+        super()._go_away()
+        self._close_line()
 
     def _serve_once(self, timeout: float) -> None:
         if self.transport == "tcp" and self._client is None:
