@@ -12,10 +12,6 @@ import pytest
 
 from tests.helpers.cli import one_line_exit_2 as _one_line_exit_2
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
-
 
 def _serve(*args: str):
     proc = subprocess.Popen(
@@ -28,6 +24,10 @@ def _serve(*args: str):
     return proc, line
 
 
+# a twin served as its own process, read against the wall clock: run apart from the parallel
+# tests (the "timing" marker, pyproject.toml; make test); the refused devices (in-process
+# ``main``, no process started) run with the parallel tests
+@pytest.mark.timing
 def test_served_can_twin_survives_a_malformed_frame_from_a_second_writer():
     from rths_hil.drivers.can import CANDriver
 

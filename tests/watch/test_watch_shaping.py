@@ -27,8 +27,7 @@ from rths_hil.watch.shaping import (
 RNG = np.random.default_rng(27)
 
 
-@pytest.mark.timing  # another process (the others are pure functions: with the parallel tests)
-def test_shaping_imports_without_bokeh():
+def test_shaping_imports_without_bokeh():  # a fresh interpreter (no clock, no server)
     code = "import sys, rths_hil.watch.shaping; print('bokeh' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
