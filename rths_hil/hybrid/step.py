@@ -65,6 +65,8 @@ class Step:
         "bufs",
         "chans",
         "check_timing",
+        "clocks",
+        "collect",
         "console",
         "dt",
         "hb_next",
@@ -127,7 +129,8 @@ class Step:
             dt, plan.timeout, paced and not plan.cfg["loop"]["feedback_timeout"]
         )
         # every channel's replies within the budget (their sends are the runner's)
-        self.io = StepIO([(ch.send, ch.receive) for ch in channels], self.budget)
+        self.io = io = StepIO([(ch.send, ch.receive) for ch in channels], self.budget)
+        self.collect, self.clocks = io.collect, io.clocks
         self.slip = plan.after_stall == "slip"
         self.stalls: list[tuple[int, float]] = []
         self.hb_steps = plan.heartbeat_steps
@@ -209,11 +212,10 @@ class Step:
         opens or extends the channel's gap. Returns the skew between the channels' replies
         (s; NaN with one channel or no reply).
         """
-        io = self.io
         # (after a slip, step k is on time: the grid's t0 moved)
-        io.collect(now, self.pacer.t0 + tk)
+        replies = self.collect(now, self.pacer.t0 + tk)
         t_first = t_last = 0.0
-        for ch, fb, t in zip(self.chans, io.replies, io.clocks, strict=False):
+        for ch, fb, t in zip(self.chans, replies, self.clocks, strict=False):
             ch.reply_clock = t
             if fb is not None:
                 if ch.gap_steps:  # a reply ends a gap: one event (the degradation)
@@ -226,10 +228,11 @@ class Step:
                 ch.reply_seq = fb.seq
                 ch.reply_status = fb.status
                 ch.feedback_time = t
-                if t > t_last:
-                    t_last = t
-                if t_first == 0.0 or t < t_first:
+                # the replies are read one after the other: the first that came is the
+                # earliest, the last the latest
+                if t_first == 0.0:
                     t_first = t
+                t_last = t
             else:  # a missed reply: the measurement is held (``measured``, ``force``)
                 self.missing(ch, k)
         return t_last - t_first if self.multi and t_first > 0.0 else math.nan
