@@ -317,7 +317,10 @@ def test_a_link_too_slow_for_the_rate_is_said_at_arming_and_costs_what_it_said(
     assert "2 requests (FC 16 + FC 4)" in link["warning"] and "at 512 Hz" in link["warning"]
     assert link["warning"] in text
     highest = float(re.search(r"At most (\d+) Hz", link["warning"]).group(1))
-    assert 100 <= highest <= 190  # 0.75 / (2 × 2.0–3.7 ms)
+    # at most 0.75 / (2 × 2.0 ms): the partner's service time is a floor of the round trip
+    # (its accuracy against the test's own round trips is test_a_slow_one_at_a_time_link_...;
+    # a starved machine measures longer ones, hence no lower bound here)
+    assert highest <= 190
     assert rc == 0, text
     s = open_run(out).summary()
     assert s["status"] == "completed" and s["steps"] == 512
