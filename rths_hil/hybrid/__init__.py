@@ -11,34 +11,38 @@ scripts is :func:`rths_hil.run`, ``docs/api.md``). Where to look:
     actuator, record columns; every validation and "which model / which driver" decision.
 ``substructure.py``
     the numerical side of the plan: the ground motion, a channel's twin plant, the MDOF model
-    and the structure stage.
-``structures.py``
-    the structure stage interface (SDOF CR stepper, MDOF models, an external site's client)
-    and what a stage may use of the running test.
+    and the structure stage (the stages themselves are :mod:`rths_hil.structures`).
+``setup.py``
+    the experimental setup (OpenFresco's ``ExperimentalSetup``): DOFs ↔ actuators, one
+    transformation ``T`` both ways, for the channels and the OpenSees site.
 ``channel.py``
     one actuator: driver ⇄ twin, compensator, evaluators, safety rules, and its state named
     after the record's columns (``target``, ``command``, ``measured``, ``force`` …).
-``columns.py``
-    the record's columns, once: name, dtype, unit, description, what fills each; the
-    per-channel column-name rule (:func:`~rths_hil.records.columns.column_name`).
 ``runner.py``
-    the step: send every channel → receive every channel → structure → compensate →
-    evaluators → safety (one call per phase) → record (by column name); e-stop of all.
-``rules.py``
-    the safety rules of every channel, asked once per phase of a step.
-``record.py``
-    the recorder with the run's metadata, and one row per step by column name.
-``result.py``
-    :class:`~rths_hil.hybrid.result.RunResult`, what a run did.
+    a run: open the channels, arm, the start phase, the loop, the end phase, the result;
+    e-stop of all.
+``step.py``
+    the loop's step in named phases: wait and send → replies → structure → compensate →
+    evaluators → safety (one call per phase) → record (by column name) → accounting.
+``stepio.py``
+    one step's exchange with the controllers (send, collect within the budget, hold what is
+    missing), for the loop, the start/end phases and commissioning.
+``pacer.py``
+    the paced wait (one grid of deadlines, sleep then spin, stall detection) and the reply
+    budget.
 ``phases.py``
     from where the actuators are to step 0 (start ramp), and back to rest at the end.
 ``evaluators.py``
     streaming and exact online FEI on the step path.
 ``timing.py``
-    pacing, the machine's floor and overrun attribution.
+    the machine's floor and overrun attribution.
+``result.py``
+    :class:`~rths_hil.hybrid.result.RunResult`, what a run did.
 
-The names below are imported on first use (the submodules import the recorder, which imports
-:mod:`.columns` of this package).
+The record's columns, the recorder and the safety rules are :mod:`rths_hil.records` and
+:mod:`rths_hil.safety`.
+
+The names below are imported on first use (the submodules import the recorder and the drivers).
 """
 
 from __future__ import annotations
