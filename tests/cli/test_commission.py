@@ -112,9 +112,9 @@ def test_replies_dropped_fail_the_latency_step(tmp_path):
 
 @timing
 def test_estop_that_does_not_latch_fails_the_estop_step(tmp_path):
-    rep, steps = _commission(
-        tmp_path, ["twin.faults=estop_ignored=1", "commission.latency_time=0.3"]
-    )
+    # (the watchdog step is not the point: skipped)
+    over = ["twin.faults=estop_ignored=1", "commission.watchdog_test=false"]
+    rep, steps = _commission(tmp_path, [*over, "commission.latency_time=0.3"])
     assert steps["estop"].status == "failed"
     assert steps["estop"].reason == "the controller did not latch the e-stop"
     assert steps["estop"].figures["moved_um"] > 100  # it followed the command instead
@@ -343,7 +343,9 @@ PLANT = {"model": "first_order", "delay": 0.012, "time_constant": 0.008, "gain":
 
 @timing
 def test_identified_plant_fragment_tracks_when_included(tmp_path, capsys):
+    # (the watchdog step is not the point; the fragment's watchdog is the twin's declared one)
     over = [f"twin.actuator={toml_table(PLANT)}", "commission.latency_time=0.5"]
+    over.append("commission.watchdog_test=false")
     # a 1 s chirp: errors of ~0.2 ms, 0.2 ms, 0.001 here, a fifth of the tolerances (2 s:
     # 0.01 ms, 0.01 ms, 0.0004)
     rep, steps = _commission(tmp_path, over, chirp_time=1.0)
@@ -416,7 +418,10 @@ def test_two_channel_fragment_is_merged_by_channel_name(tmp_path):
     own = "\n".join(ln for ln in src.splitlines() if not ln.startswith("compensation = { alpha"))
     cfg_path = tmp_path / "two.toml"
     cfg_path.write_text(own)
-    cfg = load_config(cfg_path, [*BASE, "commission.latency_time=0.3"])
+    # (the watchdog step is not the point: skipped)
+    cfg = load_config(
+        cfg_path, [*BASE, "commission.latency_time=0.3", "commission.watchdog_test=false"]
+    )
     # a 1 s chirp: delay and lag within ~0.2 ms on a twin (test_identified_plant_fragment_…)
     reports = commission(cfg, tmp_path / "c", chirp_time=1.0)
     fits = {r.name: r.plant for r in reports}
