@@ -150,7 +150,9 @@ def out_dir(args: argparse.Namespace, empty: bool, pattern: str | None = None) -
 
     if args.out is not None and not args.out.strip():
         raise InputError("--out is empty: give a directory")
-    out = Path(args.out) if args.out else new_run_dir(pattern or args.out_pattern)
+    if pattern is None:  # (an empty configured pattern is new_run_dir's to refuse)
+        pattern = args.out_pattern
+    out = Path(args.out) if args.out else new_run_dir(pattern)
     if empty and out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"--out {out}: exists and is not an empty directory; choose a new one")
     return out
