@@ -13,6 +13,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from rths_hil.config.coerce import check_table
+from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
 
 __all__ = ["EFFECTS", "Effect", "Fitting", "Param", "ParamRange", "validate_params"]
@@ -44,8 +46,8 @@ class Param:
     default : float or None
         Default value; ``None`` = required.
     minimum, maximum : float or None
-        Bounds checked by :func:`validate_params`; ``exclusive_minimum`` makes the minimum
-        strict.
+        Bounds checked by :func:`validate_params` (through :meth:`key`); ``exclusive_minimum``
+        makes the minimum strict.
     typical : ParamRange or None
         Realistic range (random hidden effects of the diagnosis benchmarks and tests,
         :func:`draw_effect_params`); ``None`` for parameters that are not drawn.
@@ -74,6 +76,20 @@ class Param:
         log-uniformly and has one sign): the joint re-fit moves its logarithm."""
         t = self.typical
         return t is not None and t.log and not t.signed
+
+    def key(self, unit: str | None = None) -> Key:
+        """The parameter as a configuration :class:`~rths_hil.config.Key`: a float in ``unit``
+        (default :attr:`unit`), required without a default, range checked
+        (:func:`~rths_hil.config.check_table`)."""
+        return Key(
+            "float",
+            REQUIRED if self.default is None else self.default,
+            unit=self.unit if unit is None else unit,
+            doc=self.doc,
+            lo=self.minimum,
+            hi=self.maximum,
+            lo_open=self.exclusive_minimum,
+        )
 
 
 @dataclass(frozen=True)
@@ -213,43 +229,52 @@ class Effect(ABC):
 EFFECTS: dict[str, type[Effect]] = {}
 
 
-def validate_params(kind: str, params: Mapping[str, Any], where: str = "") -> dict[str, float]:
+def validate_params(
+    kind: str,
+    params: Mapping[str, Any],
+    where: str = "",
+    path: str = "",
+    *,
+    units: Mapping[str, str] | None = None,
+) -> dict[str, float]:
     """Check ``params`` against effect ``kind``'s :attr:`Effect.PARAMS`; fill defaults.
 
-    ``where`` prefixes error messages (e.g. ``"twin.toml: actuator.effects[1]."``).
+    Each parameter is read as its :meth:`Param.key` by :func:`~rths_hil.config.check_table`
+    (a number, or a string with a unit; range checked; an unknown name gets the closest known
+    one), then the effect's cross-parameter :meth:`Effect.check` runs.
+
+    Parameters
+    ----------
+    kind : str
+        The effect (a key of :data:`EFFECTS`).
+    params : mapping
+        Parameter name → value (SI, or a string with a unit).
+    where : str
+        The source, first in every message (``twin.toml``); empty for none.
+    path : str
+        The parameters' table (``actuator.effects[1]``); empty for none.
+    units : mapping of str to str, optional
+        A parameter's unit where it differs from :attr:`Param.unit` (the force-controlled
+        twin's ``offset`` in N).
+
+    Returns
+    -------
+    dict of str to float
+        Every parameter of the effect, in SI units.
+
+    Raises
+    ------
+    InputError
+        ``where: path.name: what is wrong`` (an unknown effect, an unknown, missing or out of
+        range parameter).
     """
+    pre = f"{where}: " if where else ""
+    dot = f"{path}." if path else ""
     if kind not in EFFECTS:
-        raise InputError(f"{where}kind: unknown effect {kind!r} (known: {', '.join(EFFECTS)})")
-    specs = {p.name: p for p in EFFECTS[kind].PARAMS}
-    for key in params:
-        if key not in specs:
-            raise InputError(
-                f"{where}{key}: unknown parameter of effect {kind!r} (known: {', '.join(specs)})"
-            )
-    out: dict[str, float] = {}
-    for name, spec in specs.items():
-        if name in params:
-            raw = params[name]
-            if isinstance(raw, bool) or not isinstance(raw, int | float | np.floating | np.integer):
-                raise InputError(f"{where}{name}: must be a number in {spec.unit}, got {raw!r}")
-            value = float(raw)
-        elif spec.default is not None:
-            value = float(spec.default)
-        else:
-            raise InputError(
-                f"{where}{name}: required by effect {kind!r} ({spec.doc}, {spec.unit})"
-            )
-        if not math.isfinite(value):
-            raise InputError(f"{where}{name}: must be finite, got {value!r}")
-        if spec.minimum is not None and (
-            value < spec.minimum or (spec.exclusive_minimum and value == spec.minimum)
-        ):
-            op = ">" if spec.exclusive_minimum else "≥"
-            raise InputError(
-                f"{where}{name}: must be {op} {spec.minimum} {spec.unit}, got {value!r}"
-            )
-        if spec.maximum is not None and value > spec.maximum:
-            raise InputError(f"{where}{name}: must be ≤ {spec.maximum} {spec.unit}, got {value!r}")
-        out[name] = value
-    EFFECTS[kind].check(out, where)
+        raise InputError(f"{pre}{dot}kind: unknown effect {kind!r} (known: {', '.join(EFFECTS)})")
+    units = units or {}
+    keys = {p.name: p.key(units.get(p.name)) for p in EFFECTS[kind].PARAMS}
+    given = {k: v.item() if isinstance(v, np.generic) else v for k, v in params.items()}
+    out = check_table(given, keys, where, path, missing=f"required by effect {kind!r}")
+    EFFECTS[kind].check(out, f"{pre}{dot}")
     return out

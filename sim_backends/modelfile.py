@@ -51,7 +51,7 @@ from rths_hil.config import REQUIRED, Key, check_table
 from rths_hil.errors import InputError
 from rths_hil.formats import read_toml, toml_key, toml_value
 
-from .effects import EFFECTS, FORCE_REFUSED, FORCE_UNITS, Param, make_effect, validate_params
+from .effects import EFFECTS, FORCE_REFUSED, FORCE_UNITS, make_effect, validate_params
 from .models import make_model
 from .plant import Sensor, TwinPlant
 from .registry import MODELS, model_entry
@@ -183,20 +183,6 @@ class ModelSpec:
         return out
 
 
-def _param_key(param: Param, unit: str) -> Key:
-    """The :class:`~rths_hil.config.Key` of an effect's parameter (its value in ``unit``)."""
-    default = REQUIRED if param.default is None else param.default
-    return Key(
-        "float",
-        default,
-        unit=unit,
-        doc=param.doc,
-        lo=param.minimum,
-        hi=param.maximum,
-        lo_open=param.exclusive_minimum,
-    )
-
-
 def _model_keys(params: Mapping[str, tuple[float | None, str]]) -> dict[str, Key]:
     """``[actuator]``'s keys with an actuator model's parameters (name → default, unit)."""
     keys = dict(ACTUATOR_KEYS)
@@ -273,12 +259,8 @@ def _read_effects(
         if kind == "force_feedback":
             et.setdefault("specimen_stiffness", spec_values["stiffness"])
             et.setdefault("specimen_damping", spec_values["damping"])
-        units = {q.name: q.unit for q in EFFECTS[kind].PARAMS}
-        if control == "force":
-            units.update(FORCE_UNITS.get(kind, {}))
-        keys = {q.name: _param_key(q, units[q.name]) for q in EFFECTS[kind].PARAMS}
-        values = check_table(et, keys, where, path, missing=f"required by effect {kind!r}")
-        effects.append(EffectSpec(kind, validate_params(kind, values, f"{p}{path}.")))
+        units = FORCE_UNITS.get(kind, {}) if control == "force" else {}
+        effects.append(EffectSpec(kind, validate_params(kind, et, where, path, units=units)))
     return effects
 
 

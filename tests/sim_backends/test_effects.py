@@ -210,24 +210,40 @@ def test_chain_applies_in_order():
 
 
 def test_validation_messages_name_the_parameter():
+    """Effect parameters read as configuration keys (rths_hil.config.check_table): one
+    wording with the run configuration, profiles and model files."""
     with pytest.raises(InputError, match=r"kind: unknown effect 'foo' \(known: offset, drift"):
         make_effect("foo", DT)
-    with pytest.raises(InputError, match="width: required by effect 'backlash'"):
+    with pytest.raises(
+        InputError, match=r"^width: required by effect 'backlash' \(total play, m\)$"
+    ):
         make_effect("backlash", DT)
-    with pytest.raises(InputError, match="widht: unknown parameter of effect 'backlash'"):
+    with pytest.raises(
+        InputError, match=r"^widht: unknown key \(did you mean 'width'\?\); known keys: width$"
+    ):
         make_effect("backlash", DT, widht=1e-4)
-    with pytest.raises(InputError, match="width: must be ≥ 0"):
+    with pytest.raises(InputError, match=r"^width: must be ≥ 0 m, got -0\.0001$"):
         make_effect("backlash", DT, width=-1e-4)
-    with pytest.raises(InputError, match="limit: must be > 0"):
+    with pytest.raises(InputError, match=r"^limit: must be > 0 m/s, got 0$"):
         make_effect("velocity_limit", DT, limit=0.0)
     with pytest.raises(InputError, match="amplitude: must not exceed delay"):
         make_effect("time_varying_delay", DT, delay=0.005, amplitude=0.006)
-    with pytest.raises(InputError, match="offset: must be a number"):
-        make_effect("offset", DT, offset="1mm")
-    with pytest.raises(InputError, match="offset: must be finite"):
+    with pytest.raises(InputError, match=r"^offset: expected a number in m, got an array$"):
+        make_effect("offset", DT, offset=[0.001])
+    with pytest.raises(InputError, match=r"^offset: must be a finite number, got inf$"):
         make_effect("offset", DT, offset=math.inf)
-    with pytest.raises(InputError, match=r"here\.rate: required"):
-        validate_params("drift", {}, where="here.")
+    with pytest.raises(InputError, match=r"^here: effects\[2\]\.rate: required by effect 'drift'"):
+        validate_params("drift", {}, "here", "effects[2]")
+    with pytest.raises(InputError, match=r"^here: effects\[2\]\.amplitude: must not exceed"):
+        validate_params(
+            "time_varying_delay", {"delay": 0.001, "amplitude": 0.002}, "here", "effects[2]"
+        )
+    # a value may carry its unit, as in a model file; numpy scalars are numbers
+    assert make_effect("offset", DT, offset="1.5 mm").params["offset"] == pytest.approx(1.5e-3)
+    assert make_effect("offset", DT, offset=np.int64(1)).params["offset"] == 1.0
+    assert validate_params("offset", {"offset": "2 kN"}, units={"offset": "N"}) == {
+        "offset": 2000.0
+    }
 
 
 def test_ranges_are_physical_and_consistent():
