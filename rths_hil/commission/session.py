@@ -123,7 +123,7 @@ def plan_twin_watchdog(ch: Any) -> float | None:
 
 def commission(
     cfg: Config,
-    out: Path,
+    out: str | Path,
     *,
     confirm: Callable[[str], bool] = lambda what: True,
     plan: Any = None,
@@ -136,7 +136,7 @@ def commission(
     Parameters
     ----------
     cfg : Config
-    out : Path
+    out : str or Path
         Report directory (created).
     confirm : callable
         Asked before the steps that enable or move an actuator; False skips them.
@@ -163,6 +163,7 @@ def commission(
     from ..hybrid.channel import Channel
     from ..hybrid.plan import build_plan
 
+    out = Path(out)
     lt = cfg["commission"]["latency_time"]
     if not lt <= MAX_LATENCY_TIME:
         raise InputError(
