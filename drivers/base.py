@@ -33,13 +33,16 @@ import queue
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from enum import IntFlag
 from types import TracebackType
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from rths_hil.errors import InputError
+
+if TYPE_CHECKING:
+    from rths_hil.config.key import Key
 
 log = logging.getLogger(__name__)
 _perf = time.perf_counter
@@ -296,6 +299,11 @@ class Driver(ABC):
     control_modes: ClassVar[tuple[str, ...]] = (DISPLACEMENT,)
     #: The wire mode this driver runs, set by :meth:`set_control` before :meth:`open`.
     control: str = DISPLACEMENT
+    #: The connection settings the driver takes (``driver.connection``): name →
+    #: :class:`~rths_hil.config.Key` (kind, default, SI unit, range, doc), read by
+    #: :func:`~rths_hil.drivers.registry.check_connection` before the driver is built; the
+    #: defaults are those of ``__init__``. ``None``: the constructor's signature is checked.
+    CONNECTION: ClassVar[Mapping[str, Key] | None] = None
 
     stats: DriverStats
     # class-level defaults: a subclass that does not call Driver.__init__ still works

@@ -23,6 +23,8 @@ from rths_hil.errors import InputError
 from rths_hil.linkbudget import LinkLoad, link_inputs
 
 if TYPE_CHECKING:
+    from rths_hil.config.key import Key
+
     from .base import Driver
 
 __all__ = ["HOOKS", "ChannelUse", "LinkInputs", "Protocol", "default_own_link", "link_model"]
@@ -205,6 +207,24 @@ class Protocol:
         if self.profile_driver is None:
             raise InputError(f"driver {self.name!r} takes no profile")
         return self.profile_driver()
+
+    def connection_keys(self, profile: bool = False) -> dict[str, Key] | None:
+        """The connection settings the protocol's driver declares (``CONNECTION``).
+
+        Parameters
+        ----------
+        profile : bool
+            Those of the driver that speaks a lab's profile (:meth:`profile_driver_class`).
+
+        Returns
+        -------
+        dict of str to Key or None
+            Name → :class:`~rths_hil.config.Key`; ``None`` when the class declares none (its
+            constructor's signature is checked instead).
+        """
+        cls = self.profile_driver_class() if profile else self.driver
+        keys = getattr(cls, "CONNECTION", None)
+        return None if keys is None else dict(keys)
 
     @classmethod
     def from_hooks(cls, name: str, driver: type[Driver], hooks: Any, **facts: Any) -> Protocol:

@@ -16,14 +16,20 @@ Three sources, in the style of python-can's ``BACKENDS`` plus entry points:
   (:meth:`~rths_hil.drivers.protocol.Protocol.from_driver`).
 * :func:`register` — a descriptor added at run time (a test, a script).
 
-The driver class takes its connection settings as keyword arguments. An entry point with a
-built-in name replaces the built-in driver; a registered descriptor replaces both.
+The driver class takes its connection settings as keyword arguments. A class that declares
+them (``CONNECTION``: name → :class:`~rths_hil.config.Key`, as every built-in driver does) has
+them read by :func:`~rths_hil.config.check_table`, the validator of the run configuration,
+profiles and model files (:func:`check_connection`); a lab's class without it has the names
+checked against its constructor's signature. An entry point with a built-in name replaces the
+built-in driver; a registered descriptor replaces both.
 """
 
 from __future__ import annotations
 
 import inspect
-from typing import Any
+from collections.abc import Mapping
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
 
 from rths_hil.errors import InputError
 from rths_hil.plugins import load_target
@@ -32,11 +38,15 @@ from rths_hil.plugins import targets as plugin_targets
 from .base import Driver
 from .protocol import Protocol
 
+if TYPE_CHECKING:
+    pass
+
 __all__ = [
     "BUILTIN",
     "DEFAULT",
     "ENTRY_POINT_GROUP",
     "available",
+    "check_connection",
     "create_driver",
     "driver_class",
     "protocol",
@@ -121,13 +131,95 @@ def driver_class(name: str) -> type[Driver]:
     return protocol(name).driver
 
 
-def create_driver(name: str, **connection: Any) -> Driver:
-    """Build (not open) the driver ``name`` with its connection settings.
+def check_connection(
+    cls: type[Driver],
+    connection: Mapping[str, Any],
+    where: str = "",
+    path: str = "driver.connection",
+    *,
+    defaults: bool = True,
+    twin: bool = False,
+) -> dict[str, Any]:
+    """``connection`` (without ``profile``) as driver class ``cls`` takes it.
+
+    A class that declares ``CONNECTION`` has it read by :func:`~rths_hil.config.check_table`
+    (types, SI units, ranges, choices; an unknown key gets the closest known one); a class
+    without it has the names checked against its constructor's signature.
+
+    Parameters
+    ----------
+    cls : type
+        The driver class.
+    connection : mapping
+        The connection settings as configured.
+    where : str
+        The source, first in every message (``run.toml``); empty for none.
+    path : str
+        The settings' key path in messages (``driver.connection``).
+    defaults : bool
+        Fill the keys not given with their declared defaults (``False``: only those given).
+    twin : bool
+        The settings go to a twin first (:func:`rths_hil.sim_backends.twin.start_twin`), which
+        fills in the line and the files the driver needs and takes settings of its own (the
+        serial twin's ``transport``): only the keys the driver declares are read, a required
+        key may be missing, the others are passed on as given (the twin checks them).
+
+    Returns
+    -------
+    dict
+        The settings coerced to their keys' types and SI units (as given, for a class without
+        ``CONNECTION``).
 
     Raises
     ------
     InputError
-        Unknown driver name, or a connection key the driver does not take.
+        One line ``where: path.key: what is wrong``.
+    """
+    from rths_hil.config import REQUIRED, check_table
+
+    keys = None if cls.CONNECTION is None else dict(cls.CONNECTION)
+    if keys is None:
+        if not twin:
+            _check_signature(cls, connection, where, path)
+        return dict(connection)
+    if not twin:
+        return check_table(connection, keys, where, path, defaults=defaults)
+    keys = {k: replace(v, default=None) if v.default is REQUIRED else v for k, v in keys.items()}
+    ours = {k: v for k, v in connection.items() if k in keys}
+    checked = check_table(ours, keys, where, path, defaults=defaults)
+    return {k: checked[k] if k in checked else v for k, v in connection.items()} | checked
+
+
+def _check_signature(
+    cls: type[Driver], connection: Mapping[str, Any], where: str, path: str
+) -> None:
+    """Refuse a setting ``cls.__init__`` does not take (a class without ``CONNECTION``)."""
+    params = inspect.signature(cls.__init__).parameters
+    if any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        return
+    kinds = (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    accepted = sorted(n for n, p in params.items() if n != "self" and p.kind in kinds)
+    unknown = sorted(set(connection) - set(accepted))
+    if unknown:
+        pre = f"{where}: " if where else ""
+        raise InputError(
+            f"{pre}{path}: unknown connection setting(s) {', '.join(unknown)}; "
+            f"accepted: {', '.join(accepted)}"
+        )
+
+
+def create_driver(name: str, **connection: Any) -> Driver:
+    """Build (not open) the driver ``name`` with its connection settings.
+
+    The settings are read by :func:`check_connection` (``profile`` aside: a lab's profile
+    picks the protocol's profile driver); the driver is built with the values coerced, the
+    keys not given at their declared defaults.
+
+    Raises
+    ------
+    InputError
+        Unknown driver name, or a connection setting the driver does not take (one line
+        ``driver.connection.KEY: …``).
     """
     proto = protocol(name)
     cls = proto.driver
@@ -137,17 +229,7 @@ def create_driver(name: str, **connection: Any) -> Driver:
 
     if not is_builtin(profile):
         cls = proto.profile_driver_class()
-        connection["profile"] = profile
-    params = inspect.signature(cls.__init__).parameters
-    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
-        accepted = [n for n, p in params.items() if n != "self" and p.kind is p.KEYWORD_ONLY]
-        accepted += [
-            n for n, p in params.items() if n != "self" and p.kind is p.POSITIONAL_OR_KEYWORD
-        ]
-        unknown = sorted(set(connection) - set(accepted))
-        if unknown:
-            raise InputError(
-                f"driver {name!r}: unknown connection setting(s) {', '.join(unknown)}; "
-                f"accepted: {', '.join(sorted(accepted))}"
-            )
-    return cls(**connection)
+    values = check_connection(cls, connection)
+    if not is_builtin(profile):
+        values["profile"] = profile
+    return cls(**values)

@@ -38,11 +38,13 @@ import queue
 import threading
 import time
 from collections import deque
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import can
 from can.interfaces.virtual import VirtualBus
 
+from rths_hil.config.key import Key
 from rths_hil.errors import InputError
 
 from ..base import Driver, Feedback, LinkDown
@@ -51,6 +53,7 @@ from . import linkbudget, options
 from .codec import ActuatorCodecs, Frame, load
 
 __all__ = [
+    "BUS_KEYS",
     "MAX_NODE",
     "PROTOCOL",
     "TIMEOUT_HONOURED",
@@ -65,6 +68,28 @@ __all__ = [
 
 #: Highest CAN node number (identifier offset) of an actuator on a shared bus.
 MAX_NODE = 15
+
+#: The bus settings of every driver on a python-can bus (:class:`SharedBusDriver`):
+#: ``driver.connection`` keys (:attr:`Driver.CONNECTION <rths_hil.drivers.base.Driver.CONNECTION>`).
+BUS_KEYS: dict[str, Key] = {
+    "interface": Key(
+        "str",
+        "virtual",
+        doc="python-can interface (virtual: in-process only; socketcan, pcan, kvaser, serial, "
+        "slcan …)",
+    ),
+    "channel": Key(
+        "str|int", "rths-hil", doc="bus channel (vcan0, can0, a serial device, a virtual name)"
+    ),
+    "bitrate": Key(
+        "int",
+        None,
+        unit="bit/s",
+        lo=1,
+        doc="bit rate, for interfaces that set it (none: the interface's)",
+    ),
+    "bus_options": Key("table", None, doc="further keyword arguments of python-can's can.Bus"),
+}
 
 #: python-can interfaces whose ``recv(timeout)`` returns within the timeout (read directly);
 #: any other is read through a :class:`can.Notifier` thread (see the module docstring).
@@ -325,6 +350,22 @@ class CANDriver(SharedBusDriver):
 
     name: ClassVar[str] = "can"
     honours_deadline: ClassVar[bool] = True  # the virtual queue / SocketCAN / the Notifier
+    CONNECTION: ClassVar[Mapping[str, Key]] = {
+        **BUS_KEYS,
+        "dbc": Key(
+            "str",
+            None,
+            doc="a DBC replacing the shipped one (same message and signal "
+            "names; relative to the configuration file)",
+        ),
+        "node": Key(
+            "int",
+            0,
+            lo=0,
+            hi=MAX_NODE,
+            doc="CAN node of the controller: every identifier is offset by it",
+        ),
+    }
 
     def __init__(
         self,
@@ -336,7 +377,7 @@ class CANDriver(SharedBusDriver):
         node: int = 0,
     ) -> None:
         super().__init__()
-        self.node = check_node(node)
+        self.node = int(node)
         self.codecs: ActuatorCodecs = load(dbc)
         cmd, fb = self.codecs.command, self.codecs.feedback
         # Command: Seq, Displacement, Control — shifts and masks precompiled from the DBC.

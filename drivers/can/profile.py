@@ -23,18 +23,20 @@ The bus is opened as for :class:`~.CANDriver` (python-can, shared per interface 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from functools import partial
 from typing import Any, ClassVar
 
 import can
 from cantools.database.errors import Error as CantoolsError
 
+from rths_hil.config.key import Key
 from rths_hil.errors import InputError
 
 from ..base import Feedback
 from ..profile import MODE_ACTIONS, status_from_word
 from ..profile_driver import ProfileDriver
-from . import SharedBusDriver
+from . import BUS_KEYS, SharedBusDriver
 from .codec import Frame
 from .profile_format import CANProfile
 
@@ -55,6 +57,8 @@ class CANProfileDriver(ProfileDriver, SharedBusDriver):
     name: ClassVar[str] = "can"
     honours_deadline: ClassVar[bool] = True
     echoes_seq: ClassVar[bool] = False
+    #: the bus settings (the profile is ``driver.profile``)
+    CONNECTION: ClassVar[Mapping[str, Key]] = BUS_KEYS
 
     def __init__(
         self,

@@ -1,4 +1,4 @@
-"""The driver's base: its counters, its connection keys (checked one by one) and bringing the
+"""The driver's base: its counters, its connection keys (:data:`CONNECTION_KEYS`) and bringing the
 device up by SDO: the wire mode (CiA 402 cyclic synchronous position or torque), the SDO reads
 and writes, and the start-up checks and writes before NMT operational (the base of
 :class:`~rths_hil.drivers.canopen.CANopenDriver`).
@@ -12,12 +12,14 @@ import os
 import threading
 import time
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import canopen
 from canopen.objectdictionary import ODVariable
 
+from rths_hil.config.key import REQUIRED, Key, seconds
 from rths_hil.errors import InputError
 
 from ..base import Driver, DriverStats, Feedback
@@ -32,9 +34,7 @@ from .od import (
     NMT_OPERATIONAL,
     RATED_TORQUE,
     TORQUE_ACTUAL,
-    _check_bitrate,
     _identity,
-    _quantity,
     _variable,
     load_od,
     parse_object,
@@ -64,13 +64,105 @@ class CANopenStats(DriverStats):
     heartbeat_lost: int = 0
 
 
+#: The CANopen driver's connection settings (``driver.connection``,
+#: :attr:`Driver.CONNECTION <rths_hil.drivers.base.Driver.CONNECTION>`).
+CONNECTION_KEYS: dict[str, Key] = {
+    "eds": Key(
+        "str",
+        REQUIRED,
+        doc="the controller's EDS file, relative to the configuration file (with a twin: the "
+        "twin's by default)",
+    ),
+    "node_id": Key("int", 1, lo=1, hi=127, doc="the controller's node id"),
+    "device_profile": Key(
+        "choice",
+        "cia402",
+        choices=tuple(PROFILES),
+        doc="the device profile (CiA 402 drive or CiA 408 hydraulic valve), not driver.profile",
+    ),
+    "interface": Key("str", "virtual", doc="python-can interface"),
+    "channel": Key("str|int", "rths-canopen", doc="bus channel"),
+    "bitrate": Key("int", None, unit="bit/s", lo=1, doc="bit rate, for interfaces that set it"),
+    "bus_options": Key("table", None, doc="further keyword arguments of python-can's can.Bus"),
+    "counts_per_m": Key(
+        "float",
+        1e7,
+        unit="counts/m",
+        lo=0,
+        lo_open=True,
+        hi=1e12,
+        doc="position scale, counts per m (above 1e12 INTEGER32 spans under ±2.1 mm)",
+    ),
+    "force_object": Key(
+        "str|int",
+        None,
+        doc='object of the measured force ("0x6077", "0x2100:1"; "": none); none: 0x2100 '
+        "where the EDS has it, else the torque actual 0x6077",
+    ),
+    "newtons_per_count": Key(
+        "float",
+        None,
+        unit="N/count",
+        lo=0,
+        lo_open=True,
+        doc="scale of the force object, N per count (none: 0.01; from 0x6076 for 0x6077)",
+    ),
+    "force_per_torque": Key(
+        "float",
+        1.0,
+        unit="N/(N·m)",
+        lo=0,
+        lo_open=True,
+        doc="N per N·m of the torque objects (1: a linear motor; a ball screw of lead L: 2π/L)",
+    ),
+    "bridge_node_id": Key(
+        "int", BRIDGE_NODE_ID, lo=1, hi=127, doc="the bridge's node id (its heartbeat 0x700 + id)"
+    ),
+    "heartbeat_period": seconds(
+        0.1, "the bridge's heartbeat producer period (0: only loop.heartbeat)"
+    ),
+    "controller_heartbeat": seconds(
+        0.1, "device heartbeat period written to 0x1017 in ms (0: none)", hi=65.535
+    ),
+    "controller_heartbeat_timeout": seconds(
+        1.0, "how long the bridge waits for the device's heartbeat"
+    ),
+    "device_watchdog": Key(
+        "float",
+        None,
+        unit="s",
+        lo=0,
+        hi=65.535,
+        doc="written in ms to 0x1016, the device's consumer of the bridge's heartbeat (none "
+        "or 0: not written)",
+    ),
+    "start_tolerance": Key(
+        "float", 1e-3, unit="m", lo=0, doc="largest first set-point − actual position at enabling"
+    ),
+    "sdo_timeout": seconds(0.5, "SDO response timeout (0: 0.5 s)"),
+    "vendor_id": Key(
+        "str|int", None, doc='identity 0x1018:1 to insist on (an integer or "0x0000A3C7")'
+    ),
+    "product_code": Key(
+        "str|int", None, doc='identity 0x1018:2 to insist on (an integer or "0x0000A3C7")'
+    ),
+    "configure_pdo": Key(
+        "bool",
+        True,
+        doc="write the driver's PDO mapping by SDO where the device lets it (false: take the "
+        "device's as it is)",
+    ),
+}
+
+
 class DeviceStartUp(Driver):
     """The connection keys and the device's start-up by SDO (the base of
     :class:`~rths_hil.drivers.canopen.CANopenDriver`)."""
 
     stats: CANopenStats
+    CONNECTION: ClassVar[Mapping[str, Key]] = CONNECTION_KEYS
 
-    def __init__(  # noqa: C901 - the connection keys, checked one by one
+    def __init__(
         self,
         eds: str | None = None,
         node_id: int = 1,
@@ -96,65 +188,14 @@ class DeviceStartUp(Driver):
     ) -> None:
         super().__init__()
         self.stats = CANopenStats()
-        if device_profile not in PROFILES:
+        if device_profile not in PROFILES:  # (a driver built without check_connection)
             raise InputError(
                 f"canopen: device_profile {device_profile!r} is not known (known: "
                 f"{', '.join(PROFILES)})"
             )
         self.profile: Profile = PROFILES[device_profile]
-        v: Any  # an int, a quantity, then the objects by role
-        for key, v, lo in (("node_id", node_id, 1), ("bridge_node_id", bridge_node_id, 1)):
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= 127:
-                raise InputError(f"canopen: {key} must be an integer 1..127, got {v!r}")
         if node_id == bridge_node_id:
             raise InputError(f"canopen: node_id and bridge_node_id are both {node_id}")
-        for key, v in (
-            ("counts_per_m", counts_per_m),
-            ("newtons_per_count", 0.01 if newtons_per_count is None else newtons_per_count),
-            ("force_per_torque", force_per_torque),
-        ):
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, int | float)
-                or not (math.isfinite(v) and v > 0)
-            ):
-                raise InputError(f"canopen: {key} must be a positive number, got {v!r}")
-        if counts_per_m is not None and isinstance(counts_per_m, int | float):
-            if not isinstance(counts_per_m, bool) and counts_per_m > 1e12:
-                raise InputError(
-                    f"canopen: counts_per_m must be ≤ 1e12 (1 pm per count; INTEGER32 then "
-                    f"spans ±2.1 mm), got {counts_per_m!r}"
-                )
-        heartbeat_period = _quantity("heartbeat_period", heartbeat_period, "s")
-        controller_heartbeat = _quantity("controller_heartbeat", controller_heartbeat, "s")
-        controller_heartbeat_timeout = _quantity(
-            "controller_heartbeat_timeout", controller_heartbeat_timeout, "s"
-        )
-        start_tolerance = _quantity("start_tolerance", start_tolerance, "m")
-        sdo_timeout = _quantity("sdo_timeout", sdo_timeout, "s")
-        device_watchdog = _quantity("device_watchdog", device_watchdog, "s")
-        for key, v in (
-            ("heartbeat_period", heartbeat_period),
-            ("controller_heartbeat", controller_heartbeat),
-            ("controller_heartbeat_timeout", controller_heartbeat_timeout),
-            ("start_tolerance", start_tolerance),
-            ("sdo_timeout", sdo_timeout),
-            ("device_watchdog", 0.0 if device_watchdog is None else device_watchdog),
-        ):
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, int | float)
-                or not (math.isfinite(v) and v >= 0)
-            ):
-                raise InputError(f"canopen: {key} must be a number ≥ 0 (s), got {v!r}")
-        if controller_heartbeat * 1000 > 65535:
-            raise InputError("canopen: controller_heartbeat must be ≤ 65.535 s (0x1017 in ms)")
-        if device_watchdog is not None and device_watchdog * 1000 > 65535:
-            raise InputError(
-                f"canopen: device_watchdog must be ≤ 65.535 s (0x1016 holds 16 bits of ms), "
-                f"got {device_watchdog!r}"
-            )
-        _check_bitrate(bitrate)
         if eds is None:
             raise InputError("canopen: eds: give the controller's EDS file (driver.connection.eds)")
         self.eds = os.fspath(eds)
@@ -176,11 +217,6 @@ class DeviceStartUp(Driver):
         self.sdo_timeout = float(sdo_timeout) or 0.5
         self.vendor_id = _identity("vendor_id", vendor_id)
         self.product_code = _identity("product_code", product_code)
-        if not isinstance(configure_pdo, bool):
-            raise InputError(
-                f"canopen: configure_pdo must be true or false (a TOML boolean), got "
-                f"{configure_pdo!r}"
-            )
         self.configure_pdo = configure_pdo
         self.od = load_od(self.eds, node_id)
         p = self.profile

@@ -55,17 +55,18 @@ import socket
 import struct
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import ClassVar
 
 from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU
 
+from rths_hil.config.key import Key
 from rths_hil.errors import InputError
 
 from ..base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Driver, Feedback, LinkDown
 from ..base import extend_seq as _extend_seq
-from .transport import Link, rtu_frame_size
+from .transport import CONNECTION_KEYS, Link, rtu_frame_size
 
 __all__ = [
     "COIL_ESTOP",
@@ -152,6 +153,7 @@ class ModbusDriver(Driver):
 
     name: ClassVar[str] = "modbus"
     honours_deadline: ClassVar[bool] = True  # select() on the socket or serial descriptor
+    CONNECTION: ClassVar[Mapping[str, Key]] = CONNECTION_KEYS
 
     def __init__(
         self,
@@ -168,16 +170,8 @@ class ModbusDriver(Driver):
         estop_connection: bool = True,
     ) -> None:
         super().__init__()
-        if not isinstance(estop_connection, bool):
-            raise InputError(
-                f"modbus driver: estop_connection must be true or false, got {estop_connection!r}"
-            )
-        if transport not in ("tcp", "rtu"):
-            raise InputError(f"modbus driver: transport must be 'tcp' or 'rtu', got {transport!r}")
         if transport == "rtu" and not device:
             raise InputError("modbus driver: transport 'rtu' needs device= (serial port or URL)")
-        if not 0 <= int(device_id) <= 255:
-            raise InputError(f"modbus driver: device_id {device_id} is not within 0..255")
         self.transport = transport
         self.host, self.port = str(host), int(port)
         self.device = device

@@ -69,7 +69,7 @@ import statistics
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar
 
 from pymodbus.pdu.register_message import (
@@ -83,6 +83,7 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterRequest,
 )
 
+from rths_hil.config.key import Key
 from rths_hil.errors import InputError
 
 from ..base import Feedback, LinkDown, extend_seq
@@ -92,7 +93,7 @@ from .estop import EStopPath
 from .layout import BlockLayout, PointLayout, RequestTemplate, StepReply
 from .profile_format import ModbusProfile
 from .requests import _READS, SLOT_ACTION, SLOT_CHECK, SLOT_HEARTBEAT
-from .transport import EXCEPTIONS, Link, framer, openers
+from .transport import CONNECTION_KEYS, EXCEPTIONS, Link, framer, openers
 
 __all__ = ["ModbusProfileDriver"]
 
@@ -148,6 +149,14 @@ class ModbusProfileDriver(EStopPath, ProfileDriver):
 
     name: ClassVar[str] = "modbus"
     honours_deadline: ClassVar[bool] = True  # select() with the time left
+    #: the built-in driver's, but the unit id is the profile's ``[modbus] unit`` by default
+    #: (the profile is ``driver.profile``)
+    CONNECTION: ClassVar[Mapping[str, Key]] = {
+        **CONNECTION_KEYS,
+        "device_id": Key(
+            "int", None, lo=0, hi=255, doc="Modbus unit id (none: the profile's [modbus] unit)"
+        ),
+    }
 
     def __init__(
         self,
@@ -166,8 +175,6 @@ class ModbusProfileDriver(EStopPath, ProfileDriver):
     ) -> None:
         super().__init__()
         prof = self._load_profile(profile, ModbusProfile, "Modbus")
-        if transport not in ("tcp", "rtu"):
-            raise InputError(f"modbus driver: transport must be 'tcp' or 'rtu', got {transport!r}")
         if transport == "rtu" and not device:
             raise InputError("modbus driver: transport 'rtu' needs device= (serial port or URL)")
         self.transport = transport
@@ -180,10 +187,6 @@ class ModbusProfileDriver(EStopPath, ProfileDriver):
         self.unit = prof.unit if device_id is None else int(device_id)
         self.connect_timeout = float(connect_timeout)
         self.estop_timeout = float(estop_timeout)
-        if not isinstance(estop_connection, bool):
-            raise InputError(
-                f"modbus driver: estop_connection must be true or false, got {estop_connection!r}"
-            )
         self.estop_connection = estop_connection
         self.link_note: str | None = None
         self.round_trip: tuple[float, float] | None = None

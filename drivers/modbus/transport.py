@@ -34,9 +34,11 @@ from pymodbus.constants import ExcCodes
 from pymodbus.framer import FramerRTU, FramerSocket
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 
+from rths_hil.config.key import Key, seconds
 from rths_hil.errors import InputError
 
 __all__ = [
+    "CONNECTION_KEYS",
     "EXCEPTIONS",
     "MAX_UNIT",
     "Link",
@@ -49,6 +51,35 @@ __all__ = [
     "openers",
     "rtu_frame_size",
 ]
+
+#: The connection settings of a Modbus driver (``driver.connection``,
+#: :attr:`Driver.CONNECTION <rths_hil.drivers.base.Driver.CONNECTION>`): the transport, its
+#: line or server, the unit and the e-stop's timing.
+CONNECTION_KEYS: dict[str, Key] = {
+    "transport": Key(
+        "choice", "tcp", choices=("tcp", "rtu"), doc="Modbus TCP (host, port) or RTU (device)"
+    ),
+    "host": Key("str", "127.0.0.1", doc="TCP: the controller's Modbus TCP server"),
+    "port": Key("int", 502, lo=0, hi=65535, doc="TCP: its port"),
+    "device": Key("str", None, doc="RTU: serial device or pyserial URL (/dev/ttyUSB0, /dev/pts/N)"),
+    "device_id": Key(
+        "int",
+        1,
+        lo=0,
+        hi=255,
+        doc="Modbus unit id; units on one host:port share one TCP connection",
+    ),
+    "baudrate": Key("int", 115200, unit="bit/s", lo=1, doc="RTU: line speed"),
+    "parity": Key("choice", "E", choices=("N", "E", "O", "M", "S"), doc="RTU: parity"),
+    "stopbits": Key("int", 1, lo=1, hi=2, doc="RTU: stop bits (8 data bits)"),
+    "connect_timeout": seconds(1.0, "TCP: connect (and start-up check) timeout"),
+    "estop_timeout": seconds(0.1, "how long one e-stop write waits for its answer"),
+    "estop_connection": Key(
+        "bool",
+        True,
+        doc="TCP: a second connection, idle but for the e-stop and its read-back",
+    ),
+}
 
 log = logging.getLogger(__name__)
 

@@ -10,10 +10,12 @@ from __future__ import annotations
 import os
 import select
 import time
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import serial
 
+from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
 
 from ..base import Driver, Feedback, LinkDown
@@ -53,6 +55,14 @@ class SerialDriver(Driver):
 
     name: ClassVar[str] = "serial"
     honours_deadline: ClassVar[bool] = True  # select() on POSIX ports, pyserial's own timeout
+    CONNECTION: ClassVar[Mapping[str, Key]] = {
+        "url": Key(
+            "str",
+            REQUIRED,
+            doc="serial device or pyserial URL (/dev/ttyUSB0, socket://host:port, loop://)",
+        ),
+        "baudrate": Key("int", 921600, unit="bit/s", lo=1, doc="line speed"),
+    }
     command_lsb: ClassVar[float | None] = None  # displacements travel as IEEE-754 doubles
 
     def __init__(self, url: str, baudrate: int = 921600) -> None:

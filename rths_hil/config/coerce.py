@@ -148,6 +148,13 @@ def _str(key: Key, value: Any, path: str) -> str:
     return value
 
 
+def _str_or_int(key: Key, value: Any, path: str) -> str | int:
+    """A name or a number (a CAN channel, an object index): either, as given."""
+    if isinstance(value, bool) or not isinstance(value, str | int):
+        raise InputError(f"{path}: expected a string or an integer, got {describe(value)}")
+    return value
+
+
 def _choice(key: Key, value: Any, path: str) -> str:
     if not isinstance(value, str) or value not in key.choices:
         raise InputError(f"{path}: must be one of {', '.join(key.choices)}, got {describe(value)}")
@@ -237,6 +244,7 @@ _KINDS: dict[str, Callable[[Key, Any, str], Any]] = {
     "int": _int,
     "bool": _bool,
     "str": _str,
+    "str|int": _str_or_int,
     "choice": _choice,
     "window": _window,
     "array": _array,

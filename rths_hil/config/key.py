@@ -28,7 +28,8 @@ class Key:
     Attributes
     ----------
     kind : str
-        ``float`` (a quantity in ``unit``), ``int``, ``bool``, ``str``, ``choice``, ``window``
+        ``float`` (a quantity in ``unit``), ``int``, ``bool``, ``str``, ``str|int`` (a name or
+        a number, as given: a CAN channel, an object index), ``choice``, ``window``
         (seconds or natural periods), ``array`` (a list of quantities in ``unit``),
         ``schedule`` (a list of ``[t, value]`` pairs, ``t`` in s non-decreasing from 0, the
         value in the second unit of ``unit``), ``table`` (free-form, checked by its

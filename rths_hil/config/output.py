@@ -6,6 +6,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from ..formats import toml_value
+from .key import REQUIRED, Key
 from .schema import CHANNEL_KEYS, CHANNEL_SECTIONS, SCHEMA
 
 __all__ = ["schema_markdown", "to_toml", "toml_value"]
@@ -82,32 +83,7 @@ def schema_markdown() -> str:
         "",
     ]
     for section, keys in SCHEMA.items():
-        out += [
-            f"## [{section}]",
-            "",
-            "| key | type | unit | range | default | description |",
-            "|---|---|---|---|---|---|",
-        ]
-        for name, key in keys.items():
-            if key.kind == "choice":
-                rng = " / ".join(key.choices)
-            elif key.lo is not None or key.hi is not None:
-                lo = "" if key.lo is None else f"{'(' if key.lo_open else '['}{key.lo:g}"
-                hi = "" if key.hi is None else f"{key.hi:g}{')' if key.hi_open else ']'}"
-                rng = f"{lo or '(−∞'}, {hi or '∞)'}"
-            else:
-                rng = ""
-            kind = {
-                "window": 'float or "nT"',
-                "table": "table",
-                "array": "array",
-                "schedule": "array of [t, value]",
-            }.get(key.kind, key.kind)
-            out.append(
-                f"| `{name}` | {kind} | {key.unit} | {rng} | "
-                f"`{toml_value(key.default)}` | {key.doc} |"
-            )
-        out.append("")
+        out += [f"## [{section}]", "", *_key_table(keys), ""]
     out += [
         "## [[actuators]]",
         "",
@@ -129,5 +105,67 @@ def schema_markdown() -> str:
         "| `transform` | array | row of T: actuator displacement = T·u, force returned as Tᵀ·f "
         "(`[-1, 1, 0]`: between storeys 1 and 2); instead of `dof` |",
         "",
+        *_connection_sections(),
     ]
     return "\n".join(out)
+
+
+def _key_table(keys: Mapping[str, Key]) -> list[str]:
+    """The markdown table of ``keys`` (type, unit, range, default, description)."""
+    out = [
+        "| key | type | unit | range | default | description |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, key in keys.items():
+        if key.kind == "choice":
+            rng = " / ".join(key.choices)
+        elif key.lo is not None or key.hi is not None:
+            lo = "" if key.lo is None else f"{'(' if key.lo_open else '['}{key.lo:g}"
+            hi = "" if key.hi is None else f"{key.hi:g}{')' if key.hi_open else ']'}"
+            rng = f"{lo or '(−∞'}, {hi or '∞)'}"
+        else:
+            rng = ""
+        kind = {
+            "window": 'float or "nT"',
+            "table": "table",
+            "array": "array",
+            "schedule": "array of [t, value]",
+            "str|int": "str or int",
+        }.get(key.kind, key.kind)
+        if key.default is REQUIRED:
+            default = "required"
+        elif key.default is None:
+            default = "none"
+        else:
+            default = f"`{toml_value(key.default)}`"
+        out.append(f"| `{name}` | {kind} | {key.unit} | {rng} | {default} | {key.doc} |")
+    return out
+
+
+def _connection_sections() -> list[str]:
+    """``driver.connection`` of each built-in driver: the keys its class declares
+    (``CONNECTION``), and those of its profile driver (``driver.profile``)."""
+    from rths_hil.drivers.registry import BUILTIN, protocol
+
+    out = [
+        "## Driver connection keys (`driver.connection`)",
+        "",
+        "Each driver declares the connection settings it takes (`CONNECTION` on its class); they",
+        "are read like the keys above, in one line naming `driver.connection.KEY` (an unknown",
+        "key with the closest known one), before any bus is opened. A channel with a twin",
+        "(`twin.enabled`) hands the connection to the twin first, which fills in the line and the",
+        "files (a required key may then be left out) and checks the settings of its own (the",
+        "serial twin's `transport`, `host`, `port`; see [protocols.md](protocols.md)). A lab's",
+        "driver that declares no `CONNECTION` has the names checked against its constructor.",
+        "",
+    ]
+    for name in BUILTIN:
+        proto = protocol(name)
+        variants = [(f"### `{name}`", proto.connection_keys())]
+        if proto.profile_driver is not None:
+            variants.append(
+                (f"### `{name}` with a profile (`driver.profile`)", proto.connection_keys(True))
+            )
+        for title, keys in variants:
+            out += [title, "", *_key_table(keys or {}), ""]
+    return out

@@ -321,6 +321,13 @@ def _plan_channel(  # noqa: C901
         conn["profile"] = str(path)
     # the driver that speaks the channel (its profile's, when it has one) runs its wire mode
     wcls = proto.driver if is_builtin(profile) else proto.profile_driver_class()
+    from rths_hil.drivers.registry import check_connection
+
+    # the connection as the driver declares it (types, SI units, ranges); a twin fills in
+    # the line and the files and checks the settings of its own
+    given = {k: v for k, v in conn.items() if k != "profile"}
+    checked = check_connection(wcls, given, where, defaults=False, twin=tw["enabled"])
+    conn = {**checked, **({"profile": conn["profile"]} if "profile" in conn else {})}
     modes = tuple(getattr(wcls, "control_modes", ("displacement",)))
     if wire not in modes:
         hint = ""

@@ -206,11 +206,14 @@ def test_twin_latches_when_the_bridge_heartbeat_stops(inline):
 @pytest.mark.parametrize(
     "setting, message",
     [
-        ("device_profile=cia999", "device_profile 'cia999' is not known"),
+        (
+            "device_profile=cia999",
+            "driver.connection.device_profile: must be one of cia402, cia408, got 'cia999'",
+        ),
         ("eds=missing.eds", "eds: no such file"),
         ("force_object=0x2999", "has no object 0x2999:00 (force_object)"),
-        ("node_id=0", "node_id must be an integer 1..127"),
-        ("counts_per_m=0", "counts_per_m must be a positive number"),
+        ("node_id=0", "driver.connection.node_id: must be ≥ 1, got 0"),
+        ("counts_per_m=0", "driver.connection.counts_per_m: must be > 0 counts/m, got 0"),
     ],
 )
 def test_bad_connection_is_one_line_exit_2(tmp_path, setting, message):

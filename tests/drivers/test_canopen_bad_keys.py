@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 from rths_hil.drivers.canopen import CANopenDriver
+from rths_hil.drivers.registry import create_driver
 
 from rths_hil.cli import main
 from rths_hil.errors import InputError
@@ -51,15 +52,29 @@ def one_error_line_exit_2(argv: list[str], capsys, *needles: str) -> None:
 @pytest.mark.parametrize(
     "setting, needles",
     [
-        ('counts_per_m="abc"', ["counts_per_m must be a positive number", "'abc'"]),
-        ("counts_per_m=1e300", ["counts_per_m must be ≤ 1e12"]),
+        (
+            'counts_per_m="abc"',
+            ["driver.connection.counts_per_m: cannot read 'abc' as a quantity in counts/m"],
+        ),
+        ("counts_per_m=1e300", ["driver.connection.counts_per_m: must be ≤ 1e+12 counts/m"]),
         ('vendor_id="abc"', ["vendor_id must be an UNSIGNED32", "'abc'"]),
+        (
+            "vendor_id=1.5",
+            ["driver.connection.vendor_id: expected a string or an integer, got 1.5"],
+        ),
         ('force_object="0x6040"', ["force_object 0x6040:00", "control word"]),
         ('force_object="0x6064:3"', ["no object 0x6064:03 (force_object)"]),
-        ('heartbeat_period="0.1 parsec"', ["heartbeat_period"]),
-        ('configure_pdo="false"', ["configure_pdo must be true or false", "'false'"]),
-        ("bitrate=-1", ["bitrate must be a positive integer", "-1"]),
-        ("device_watchdog=1e9", ["device_watchdog must be ≤ 65.535 s"]),
+        ('heartbeat_period="0.1 parsec"', ["driver.connection.heartbeat_period"]),
+        (
+            'configure_pdo="false"',
+            ["driver.connection.configure_pdo: expected true or false", "'false'"],
+        ),
+        ("bitrate=-1", ["driver.connection.bitrate: must be ≥ 1 bit/s, got -1"]),
+        ("bitrate=5e5", ["driver.connection.bitrate: expected an integer, got 500000.0"]),
+        ("device_watchdog=1e9", ["driver.connection.device_watchdog: must be ≤ 65.535 s"]),
+        ("controller_heartbeat=70", ["driver.connection.controller_heartbeat: must be ≤ 65.535 s"]),
+        ("node_id=128", ["driver.connection.node_id: must be ≤ 127, got 128"]),
+        ("node_idd=5", ["driver.connection.node_idd: unknown key (did you mean 'node_id'?)"]),
     ],
 )
 def test_bad_key_is_one_line_exit_2(tmp_path, capsys, setting, needles):
@@ -99,7 +114,8 @@ def test_eds_saying_position_is_not_pdo_mappable_is_refused_when_mapping(tmp_pat
 
 
 def test_times_and_lengths_take_their_units():
-    drv = CANopenDriver(
+    drv = create_driver(
+        "canopen",
         eds=str(VENDOR_EDS), node_id=5, heartbeat_period="0.1 s", controller_heartbeat="50ms",
         device_watchdog="0.5 s", start_tolerance="2 mm", vendor_id="0x0000A3C7",
     )  # fmt: skip
