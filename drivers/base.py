@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 from rths_hil.errors import InputError
 
 if TYPE_CHECKING:
-    from rths_hil.config.key import Key
+    from rths_hil.keys import Key
 
 log = logging.getLogger(__name__)
 _perf = time.perf_counter

@@ -72,9 +72,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Self, TypeVar
 
 from rths_hil.config.coerce import check_table
-from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
 from rths_hil.formats import read_toml
+from rths_hil.keys import REQUIRED, Key
 
 from .base import Status
 

@@ -23,7 +23,7 @@ from rths_hil.errors import InputError
 from rths_hil.linkbudget import LinkLoad, link_inputs
 
 if TYPE_CHECKING:
-    from rths_hil.config.key import Key
+    from rths_hil.keys import Key
 
     from .base import Driver
 

@@ -1,5 +1,12 @@
 """One configuration key (:class:`Key`: kind, default, unit, range, doc) and the ranges several
-sections share."""
+sections share.
+
+The keys of the run configuration (:mod:`rths_hil.config`) and those a plug-in declares for
+itself (a driver's connection, a compensator's method keys, a profile's or a model file's
+tables) are :class:`Key` objects, read by :func:`rths_hil.config.check_table`. This module sits
+outside :mod:`rths_hil.config` and imports nothing of the project, so that a plug-in whose keys
+the schema collects (the compensators) declares them without importing the configuration.
+"""
 
 from __future__ import annotations
 

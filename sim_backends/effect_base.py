@@ -14,8 +14,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rths_hil.config.coerce import check_table
-from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
+from rths_hil.keys import REQUIRED, Key
 
 __all__ = ["EFFECTS", "Effect", "Fitting", "Param", "ParamRange", "validate_params"]
 

@@ -44,8 +44,8 @@ from typing import Any, ClassVar
 import can
 from can.interfaces.virtual import VirtualBus
 
-from rths_hil.config.key import Key
 from rths_hil.errors import InputError
+from rths_hil.keys import Key
 
 from ..base import Driver, Feedback, LinkDown
 from ..protocol import Protocol

@@ -30,8 +30,8 @@ from typing import Any, ClassVar
 import can
 from cantools.database.errors import Error as CantoolsError
 
-from rths_hil.config.key import Key
 from rths_hil.errors import InputError
+from rths_hil.keys import Key
 
 from ..base import Feedback
 from ..profile import MODE_ACTIONS, status_from_word

@@ -9,8 +9,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
+from rths_hil.keys import REQUIRED, Key
 
 from ..profile import (
     UNITS,

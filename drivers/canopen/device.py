@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import canopen
 from canopen.objectdictionary import ODVariable
 
-from rths_hil.config.key import REQUIRED, Key, seconds
 from rths_hil.errors import InputError
+from rths_hil.keys import REQUIRED, Key, seconds
 
 from ..base import Driver, DriverStats, Feedback
 from ..can.codec import Frame

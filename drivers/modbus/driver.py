@@ -61,8 +61,8 @@ from typing import ClassVar
 from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU
 
-from rths_hil.config.key import Key
 from rths_hil.errors import InputError
+from rths_hil.keys import Key
 
 from ..base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Driver, Feedback, LinkDown
 from ..base import extend_seq as _extend_seq

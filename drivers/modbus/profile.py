@@ -83,8 +83,8 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterRequest,
 )
 
-from rths_hil.config.key import Key
 from rths_hil.errors import InputError
+from rths_hil.keys import Key
 
 from ..base import Feedback, LinkDown, extend_seq
 from ..profile import MODE_ACTIONS, status_from_word

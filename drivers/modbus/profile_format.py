@@ -11,8 +11,8 @@ from typing import Any
 
 from pymodbus.client.mixin import ModbusClientMixin
 
-from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
+from rths_hil.keys import REQUIRED, Key
 
 from ..profile import (
     READ_ROLES,

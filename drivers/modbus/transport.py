@@ -34,8 +34,8 @@ from pymodbus.constants import ExcCodes
 from pymodbus.framer import FramerRTU, FramerSocket
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 
-from rths_hil.config.key import Key, seconds
 from rths_hil.errors import InputError
+from rths_hil.keys import Key, seconds
 
 __all__ = [
     "CONNECTION_KEYS",

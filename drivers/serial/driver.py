@@ -15,8 +15,8 @@ from typing import Any, ClassVar
 
 import serial
 
-from rths_hil.config.key import REQUIRED, Key
 from rths_hil.errors import InputError
+from rths_hil.keys import REQUIRED, Key
 
 from ..base import Driver, Feedback, LinkDown
 from .framing import (

@@ -46,20 +46,18 @@ Per step the work is O(1): the filters and the target differences every step; ev
 window's ``q`` rows (64 by default, a fixed cost amortised over the interval) and solved in
 closed form after column scaling; an ill-conditioned window (a motion with one frequency gives
 ``x`` and ``ẍ`` collinear) keeps the previous coefficients. The numerical kernel is a plain
-``numba.njit`` loop.
+``numba.njit`` loop (:mod:`._ats_kernel`, loaded with the first compensator built).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from typing import ClassVar
 
-import numba
 import numpy as np
-from scipy.signal import butter
 
 from ..errors import InputError
+from ..keys import Key, seconds
 from .base import Compensator
 
 __all__ = ["ATSCompensator"]
@@ -69,96 +67,6 @@ _M0, _M1, _M2, _C0, _C1, _COUNT, _HEAD, _ROWS, _PRIMED = range(9)
 _A, _LO, _HI, _DMAX = 9, 12, 15, 18
 _DT, _SKIP, _THR2 = 21, 22, 23
 _Z = 24  # then 2 values per section for the command filter, 2 per section for the measured
-
-
-@numba.njit(cache=True)
-def _sos_step(sos, s, base, x):  # pragma: no cover - compiled
-    """One sample through second-order sections (transposed direct form II), state in s."""
-    for i in range(sos.shape[0]):
-        b0, b1, b2, a1, a2 = sos[i, 0], sos[i, 1], sos[i, 2], sos[i, 4], sos[i, 5]
-        j = base + 2 * i
-        y = b0 * x + s[j]
-        s[j] = b1 * x - a1 * y + s[j + 1]
-        s[j + 1] = b2 * x - a2 * y
-        x = y
-    return x
-
-
-@numba.njit(cache=True)
-def _observe(st, sos, ring, command, measured):  # pragma: no cover - compiled
-    """Filter the pair, form a window row every ``skip`` samples, refit; True if ``a`` moved."""
-    cf = _sos_step(sos, st, _Z, command)
-    mf = _sos_step(sos, st, _Z + 2 * sos.shape[0], measured)
-    st[_M2] = st[_M1]
-    st[_M1] = st[_M0]
-    st[_M0] = mf
-    st[_C1] = st[_C0]
-    st[_C0] = cf
-    st[_PRIMED] += 1.0
-    st[_COUNT] += 1.0
-    if st[_COUNT] < st[_SKIP] or st[_PRIMED] < 3.0:
-        return False
-    st[_COUNT] = 0.0
-    q = ring.shape[0]
-    h = int(st[_HEAD])
-    dt = st[_DT]
-    m0, m1, m2 = st[_M0], st[_M1], st[_M2]
-    ring[h, 0] = m1
-    ring[h, 1] = (m0 - m2) / (2.0 * dt)
-    ring[h, 2] = (m0 - 2.0 * m1 + m2) / (dt * dt)
-    ring[h, 3] = st[_C1]
-    st[_HEAD] = (h + 1) % q
-    if st[_ROWS] < q:
-        st[_ROWS] += 1.0
-        if st[_ROWS] < q:
-            return False
-    # normal equations over the window
-    s00 = s01 = s02 = s11 = s12 = s22 = b0 = b1 = b2 = 0.0
-    for r in range(q):
-        x0, x1, x2, y = ring[r, 0], ring[r, 1], ring[r, 2], ring[r, 3]
-        s00 += x0 * x0
-        s01 += x0 * x1
-        s02 += x0 * x2
-        s11 += x1 * x1
-        s12 += x1 * x2
-        s22 += x2 * x2
-        b0 += x0 * y
-        b1 += x1 * y
-        b2 += x2 * y
-    if s00 / q <= st[_THR2] or s11 <= 0.0 or s22 <= 0.0:
-        return False
-    # column scaling: unit diagonal, then the closed-form inverse of the 3×3 matrix
-    d0, d1, d2 = 1.0 / math.sqrt(s00), 1.0 / math.sqrt(s11), 1.0 / math.sqrt(s22)
-    n01, n02, n12 = s01 * d0 * d1, s02 * d0 * d2, s12 * d1 * d2
-    c0, c1, c2 = b0 * d0, b1 * d1, b2 * d2
-    det = 1.0 + 2.0 * n01 * n12 * n02 - n01 * n01 - n02 * n02 - n12 * n12
-    if det < 1e-9:
-        return False
-    i00 = 1.0 - n12 * n12
-    i01 = n02 * n12 - n01
-    i02 = n01 * n12 - n02
-    i11 = 1.0 - n02 * n02
-    i12 = n01 * n02 - n12
-    i22 = 1.0 - n01 * n01
-    sol0 = (i00 * c0 + i01 * c1 + i02 * c2) / det * d0
-    sol1 = (i01 * c0 + i11 * c1 + i12 * c2) / det * d1
-    sol2 = (i02 * c0 + i12 * c1 + i22 * c2) / det * d2
-    if sol0 != sol0 or sol1 != sol1 or sol2 != sol2:
-        return False
-    sol = (sol0, sol1, sol2)
-    for i in range(3):
-        v = sol[i]
-        a, dm = st[_A + i], st[_DMAX + i]
-        if v > a + dm:
-            v = a + dm
-        elif v < a - dm:
-            v = a - dm
-        if v > st[_HI + i]:
-            v = st[_HI + i]
-        elif v < st[_LO + i]:
-            v = st[_LO + i]
-        st[_A + i] = v
-    return True
 
 
 def _triple(values: Sequence[float], name: str) -> np.ndarray:
@@ -206,7 +114,43 @@ class ATSCompensator(Compensator):
         "upper": "ats_max",
         "rate": "ats_rate",
     }
-    KEYS = tuple(ARGUMENTS.values())
+    KEYS: ClassVar[Mapping[str, Key]] = {
+        "ats_window": seconds(
+            1.0, doc="ats: length of the moving least-squares window", positive=True
+        ),
+        "ats_interval": seconds(
+            0.015625,
+            doc="ats: time between window samples and coefficient updates (16 steps at 1024 Hz)",
+            positive=True,
+        ),
+        "ats_cutoff": Key(
+            "float",
+            20.0,
+            unit="Hz",
+            doc="ats: cut-off of the 6th-order Butterworth on command and measured",
+            lo=0,
+            lo_open=True,
+        ),
+        "ats_threshold": Key(
+            "float",
+            0.000254,
+            unit="m",
+            doc="ats: coefficients adapt only while the window's RMS measured displacement "
+            "exceeds this",
+            lo=0,
+        ),
+        "ats_min": Key(
+            "array", [0.7, 0.0, 0.0], doc="ats: lower bounds of a0 (-), a1 (s), a2 (s²)"
+        ),
+        "ats_max": Key(
+            "array", [1.3, 0.08, 0.0032], doc="ats: upper bounds of a0 (-), a1 (s), a2 (s²)"
+        ),
+        "ats_rate": Key(
+            "array",
+            [2.0, 0.05, 0.001],
+            doc="ats: maximum rate of change of a0 (1/s), a1 (s/s), a2 (s²/s)",
+        ),
+    }
 
     def __init__(
         self,
@@ -241,6 +185,10 @@ class ATSCompensator(Compensator):
         rate_arr = _triple(rate, "ats_rate")
         if np.any(lo > hi) or np.any(rate_arr <= 0):
             raise InputError("compensation.ats_min must not exceed ats_max; ats_rate must be > 0")
+        from scipy.signal import butter
+
+        from ._ats_kernel import observe  # numba: compiled when the first ATS is built
+
         self._sos = np.ascontiguousarray(butter(6, cutoff, fs=fs, output="sos"))
         self._st = np.zeros(_Z + 4 * self._sos.shape[0])
         self._params = np.concatenate(
@@ -253,11 +201,11 @@ class ATSCompensator(Compensator):
         self._x1 = self._x2 = self._x3 = 0.0
         self._c1 = 0.5 * fs
         self._c2 = fs * fs
-        self._observe = _observe
+        self._observe = observe
         self.updates = 0
         # compile now, not at a deadline
         self.reset(0.0)
-        _observe(self._st.copy(), self._sos, self._ring.copy(), 0.0, 0.0)
+        observe(self._st.copy(), self._sos, self._ring.copy(), 0.0, 0.0)
 
     @property
     def a(self) -> np.ndarray:

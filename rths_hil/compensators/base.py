@@ -14,6 +14,7 @@ from collections.abc import Callable, Mapping
 from typing import Any, ClassVar
 
 from ..errors import InputError
+from ..keys import Key
 
 __all__ = ["Compensator"]
 
@@ -33,15 +34,18 @@ class Compensator:
         and the console shows it; a method that adapts its lead keeps it current.
     enabled : bool
         False: the command is the target.
-    KEYS : tuple of str
-        The ``compensation.*`` keys the method reads besides ``enabled`` and ``method``
-        (documentation; a lab's method takes its own keys from ``compensation.options``).
+    KEYS : mapping of str to Key
+        The ``compensation.*`` keys of the method besides those every method shares
+        (``enabled``, ``method``, ``delay``, ``alpha``, ``amplitude``, ``options``): name →
+        :class:`~rths_hil.keys.Key`. The schema's ``compensation`` section is the shared keys
+        and the keys of each built-in method (:data:`rths_hil.compensators.BUILTIN`); a lab's
+        method takes its own keys from ``compensation.options``.
     ARGUMENTS : mapping of str to str
         A built-in method's constructor arguments and the ``compensation.*`` key each comes
         from, read by the default :meth:`from_config` (with ``fs``); empty for a lab's method.
     """
 
-    KEYS: ClassVar[tuple[str, ...]] = ()
+    KEYS: ClassVar[Mapping[str, Key]] = {}
     ARGUMENTS: ClassVar[Mapping[str, str]] = {}
     alpha: float = 1.0
     enabled: bool = True

@@ -27,9 +27,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, ClassVar
 
 from ..errors import InputError
+from ..keys import Key, seconds
 from ..units import positive_number
 from .base import Compensator
 
@@ -65,19 +66,36 @@ class InverseCompensator(Compensator):
     """
 
     __slots__ = ("alpha", "amplitude", "enabled", "prev")
-    KEYS = (
-        "delay",
-        "alpha",
-        "amplitude",
-        "adaptive",
-        "time_constant",
-        "delay_rate",
-        "rate",
-        "delay_min",
-        "delay_max",
-        "alpha_min",
-        "alpha_max",
-    )
+    #: the adaptive α's keys (:class:`AdaptiveAlpha`); each bound and rate also in loop steps
+    #: (``rths_hil.config.STEP_KEYS``: ``alpha_min = 1 + delay_min·fs``, ``rate = delay_rate·fs``)
+    KEYS: ClassVar[Mapping[str, Key]] = {
+        "adaptive": Key("bool", False, doc="inverse: adapt α online from the online FEI delay"),
+        "time_constant": seconds(6.0, doc="adaptive: time constant of the α update", positive=True),
+        "delay_rate": Key(
+            "float",
+            0.0048828125,
+            unit="s/s",
+            doc="adaptive: maximum rate of change of the compensated delay (5 steps/s at 1024 Hz)",
+            lo=0,
+            lo_open=True,
+        ),
+        "rate": Key(
+            "float",
+            5.0,
+            unit="1/s",
+            doc="adaptive: maximum |dα/dt|, another way to give delay_rate (rate = delay_rate·fs)",
+            lo=0,
+            lo_open=True,
+        ),
+        "delay_min": seconds(0.0, doc="adaptive: lower bound of delay", hi=1.0),
+        "delay_max": seconds(0.0966796875, doc="adaptive: upper bound of delay", hi=1.0),
+        "alpha_min": Key(
+            "float", 1.0, unit="steps", doc="adaptive: lower bound of α (1 + delay_min·fs)", lo=1
+        ),
+        "alpha_max": Key(
+            "float", 100.0, unit="steps", doc="adaptive: upper bound of α (1 + delay_max·fs)", lo=1
+        ),
+    }
 
     @classmethod
     def from_config(cls, c: Mapping[str, Any], fs: float) -> InverseCompensator:

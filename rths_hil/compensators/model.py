@@ -30,9 +30,9 @@ from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.signal import bilinear, tf2sos
 
 from ..errors import InputError
+from ..keys import Key, seconds
 from .base import Compensator
 
 __all__ = ["ModelCompensator", "feedforward_tf"]
@@ -126,7 +126,42 @@ class ModelCompensator(Compensator):
         "order": "model_order",
         "kp": "model_kp",
     }
-    KEYS = (*ARGUMENTS.values(), "model_delay")
+    KEYS: ClassVar[Mapping[str, Key]] = {
+        "model_delay": Key(
+            "float",
+            -1.0,
+            unit="s",
+            doc="model: transport delay τ of the actuator model; negative: compensation.delay "
+            "(a rational model that holds the whole plant takes 0 while another method keeps "
+            "delay)",
+            hi=1.0,
+        ),
+        "model_time_constant": seconds(
+            0.0, doc="model: servo lag T of the actuator model g·e^(−s·delay)/(T s + 1)"
+        ),
+        "model_gain": Key(
+            "float", 1.0, doc="model: static gain g of the actuator model", lo=0, lo_open=True
+        ),
+        "model_num": Key(
+            "array",
+            [],
+            doc="model: numerator of a rational actuator model (powers of s, highest first); "
+            "with model_den it replaces g/(T s + 1)",
+        ),
+        "model_den": Key("array", [], doc="model: denominator of the rational actuator model"),
+        "model_cutoff": Key(
+            "float",
+            60.0,
+            unit="Hz",
+            doc="model: corner of the low-pass that makes the inverse proper",
+            lo=0,
+            lo_open=True,
+        ),
+        "model_order": Key(
+            "int", 3, doc="model: Taylor order of the delay prediction e^(s·τ)", lo=0, hi=4
+        ),
+        "model_kp": Key("float", 0.0, doc="model: proportional feedback gain on target − measured"),
+    }
 
     @classmethod
     def from_config(cls, c: Mapping[str, Any], fs: float) -> ModelCompensator:
@@ -162,6 +197,8 @@ class ModelCompensator(Compensator):
         if not len(num):
             num, den = [1.0], ([time_constant, 1.0] if time_constant > 0 else [1.0])
         bs, as_ = feedforward_tf(num, den, gain, delay, cutoff, order, amplitude)
+        from scipy.signal import bilinear, tf2sos  # loaded with the first model built
+
         bz, az = bilinear(bs, as_, fs)
         self.sos = [tuple(float(v) for v in row) for row in tf2sos(bz, az)]
         self.fs = fs

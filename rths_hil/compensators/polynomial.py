@@ -23,6 +23,7 @@ from collections.abc import Mapping
 from typing import ClassVar
 
 from ..errors import InputError
+from ..keys import Key
 from ..units import positive_number
 from .base import Compensator
 
@@ -61,7 +62,9 @@ class PolynomialCompensator(Compensator):
         "order": "order",
         "amplitude": "amplitude",
     }
-    KEYS = tuple(ARGUMENTS.values())
+    KEYS: ClassVar[Mapping[str, Key]] = {
+        "order": Key("int", 3, doc="polynomial: order n of the extrapolation (1 … 4)", lo=1, hi=4),
+    }
     __slots__ = ("_h", "_w", "alpha", "amplitude", "delay", "enabled", "fs", "order")
 
     def __init__(self, fs: float, delay: float, order: int = 3, amplitude: float = 1.0) -> None:

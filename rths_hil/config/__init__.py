@@ -10,9 +10,9 @@ and its channels),
 :mod:`~rths_hil.config.output` (TOML and the markdown reference ``docs/config.md``).
 """
 
+from ..keys import REQUIRED
 from .checks import check_window_samples, cross_check, cross_check_channel, structure_dofs
 from .coerce import check_range, check_table, coerce, describe, quantity, unknown_key
-from .key import REQUIRED
 from .load import MAX_CONFIG_BYTES, apply_overrides, load_config, merge, parse_override
 from .model import ChannelConfig, Config, default_config, resolve_channel
 from .output import schema_markdown, to_toml, toml_value

@@ -5,9 +5,12 @@
 
 from __future__ import annotations
 
+import importlib
+
+from rths_hil.compensators import BUILTIN as BUILTIN_COMPENSATORS
 from rths_hil.drivers.registry import DEFAULT as DEFAULT_DRIVER
 
-from .key import CONTROL_MODES, Key, seconds, steps
+from ..keys import CONTROL_MODES, Key, seconds, steps
 
 __all__ = ["CHANNEL_SCHEMA"]
 
@@ -18,7 +21,60 @@ def _pair(default: str, doc: str) -> Key:
     return Key("choice", default, doc=doc, choices=("target", "command"))
 
 
-#: section → key → :class:`~rths_hil.config.key.Key` of the per-channel sections.
+#: The keys every compensation method shares; then the keys each built-in method declares
+#: (:attr:`Compensator.KEYS <rths_hil.compensators.base.Compensator.KEYS>`), then
+#: :data:`_COMPENSATION_TAIL`.
+_COMPENSATION_COMMON: dict[str, Key] = {
+    "enabled": Key("bool", True, doc="actuator delay compensation on"),
+    "method": Key(
+        "str",
+        "inverse",
+        doc="compensator: inverse, polynomial, ats, model or a lab's own registered under "
+        "the entry-point group rths_hil.compensators (docs/compensation.md)",
+    ),
+    "delay": seconds(
+        0.025,
+        doc="delay to compensate (inverse: α = 1 + delay·fs; polynomial: extrapolation "
+        "horizon; ats: initial a1; model: the model's transport delay)",
+        hi=1.0,
+    ),
+    "alpha": Key(
+        "float",
+        26.6,
+        unit="steps",
+        doc="inverse compensation α = 1 + delay·fs, another way to give delay: a file's α "
+        "is read at that file's loop.fs, a --set α at the final loop.fs (26.6 = 25 ms at "
+        "1024 Hz)",
+        lo=1,
+    ),
+    "amplitude": Key("float", 1.0, doc="amplitude factor on the command", lo=0, lo_open=True),
+}
+_COMPENSATION_TAIL: dict[str, Key] = {
+    "options": Key("table", {}, doc="a lab compensator's own keys (passed to its from_config)"),
+}
+
+
+def _compensation() -> dict[str, Key]:
+    """The ``compensation`` section: the shared keys, the keys of each built-in compensator
+    (:data:`rths_hil.compensators.BUILTIN`, in its order), ``options``.
+
+    Raises
+    ------
+    TypeError
+        Two methods declare one key differently, or a method redeclares a shared key.
+    """
+    keys = dict(_COMPENSATION_COMMON)
+    for name, target in BUILTIN_COMPENSATORS.items():
+        module, _, attr = target.partition(":")
+        cls = getattr(importlib.import_module(module), attr)
+        for key, spec in cls.KEYS.items():
+            if key in _COMPENSATION_COMMON or keys.get(key, spec) != spec:
+                raise TypeError(f"compensator {name!r}: compensation.{key} is declared twice")
+            keys[key] = spec
+    return {**keys, **_COMPENSATION_TAIL}
+
+
+#: section → key → :class:`~rths_hil.keys.Key` of the per-channel sections.
 CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
     "control": {
         "mode": Key(
@@ -141,128 +197,7 @@ CHANNEL_SCHEMA: dict[str, dict[str, Key]] = {
             lo_open=True,
         ),
     },
-    "compensation": {
-        "enabled": Key("bool", True, doc="actuator delay compensation on"),
-        "method": Key(
-            "str",
-            "inverse",
-            doc="compensator: inverse, polynomial, ats, model or a lab's own registered under "
-            "the entry-point group rths_hil.compensators (docs/compensation.md)",
-        ),
-        "delay": seconds(
-            0.025,
-            doc="delay to compensate (inverse: α = 1 + delay·fs; polynomial: extrapolation "
-            "horizon; ats: initial a1; model: the model's transport delay)",
-            hi=1.0,
-        ),
-        "alpha": Key(
-            "float",
-            26.6,
-            unit="steps",
-            doc="inverse compensation α = 1 + delay·fs, another way to give delay: a file's α "
-            "is read at that file's loop.fs, a --set α at the final loop.fs (26.6 = 25 ms at "
-            "1024 Hz)",
-            lo=1,
-        ),
-        "amplitude": Key("float", 1.0, doc="amplitude factor on the command", lo=0, lo_open=True),
-        "adaptive": Key("bool", False, doc="inverse: adapt α online from the online FEI delay"),
-        "time_constant": seconds(6.0, doc="adaptive: time constant of the α update", positive=True),
-        "delay_rate": Key(
-            "float",
-            0.0048828125,
-            unit="s/s",
-            doc="adaptive: maximum rate of change of the compensated delay (5 steps/s at 1024 Hz)",
-            lo=0,
-            lo_open=True,
-        ),
-        "rate": Key(
-            "float",
-            5.0,
-            unit="1/s",
-            doc="adaptive: maximum |dα/dt|, another way to give delay_rate (rate = delay_rate·fs)",
-            lo=0,
-            lo_open=True,
-        ),
-        "delay_min": seconds(0.0, doc="adaptive: lower bound of delay", hi=1.0),
-        "delay_max": seconds(0.0966796875, doc="adaptive: upper bound of delay", hi=1.0),
-        "alpha_min": Key(
-            "float", 1.0, unit="steps", doc="adaptive: lower bound of α (1 + delay_min·fs)", lo=1
-        ),
-        "alpha_max": Key(
-            "float", 100.0, unit="steps", doc="adaptive: upper bound of α (1 + delay_max·fs)", lo=1
-        ),
-        "order": Key("int", 3, doc="polynomial: order n of the extrapolation (1 … 4)", lo=1, hi=4),
-        "ats_window": seconds(
-            1.0, doc="ats: length of the moving least-squares window", positive=True
-        ),
-        "ats_interval": seconds(
-            0.015625,
-            doc="ats: time between window samples and coefficient updates (16 steps at 1024 Hz)",
-            positive=True,
-        ),
-        "ats_cutoff": Key(
-            "float",
-            20.0,
-            unit="Hz",
-            doc="ats: cut-off of the 6th-order Butterworth on command and measured",
-            lo=0,
-            lo_open=True,
-        ),
-        "ats_threshold": Key(
-            "float",
-            0.000254,
-            unit="m",
-            doc="ats: coefficients adapt only while the window's RMS measured displacement "
-            "exceeds this",
-            lo=0,
-        ),
-        "ats_min": Key(
-            "array", [0.7, 0.0, 0.0], doc="ats: lower bounds of a0 (-), a1 (s), a2 (s²)"
-        ),
-        "ats_max": Key(
-            "array", [1.3, 0.08, 0.0032], doc="ats: upper bounds of a0 (-), a1 (s), a2 (s²)"
-        ),
-        "ats_rate": Key(
-            "array",
-            [2.0, 0.05, 0.001],
-            doc="ats: maximum rate of change of a0 (1/s), a1 (s/s), a2 (s²/s)",
-        ),
-        "model_delay": Key(
-            "float",
-            -1.0,
-            unit="s",
-            doc="model: transport delay τ of the actuator model; negative: compensation.delay "
-            "(a rational model that holds the whole plant takes 0 while another method keeps "
-            "delay)",
-            hi=1.0,
-        ),
-        "model_time_constant": seconds(
-            0.0, doc="model: servo lag T of the actuator model g·e^(−s·delay)/(T s + 1)"
-        ),
-        "model_gain": Key(
-            "float", 1.0, doc="model: static gain g of the actuator model", lo=0, lo_open=True
-        ),
-        "model_num": Key(
-            "array",
-            [],
-            doc="model: numerator of a rational actuator model (powers of s, highest first); "
-            "with model_den it replaces g/(T s + 1)",
-        ),
-        "model_den": Key("array", [], doc="model: denominator of the rational actuator model"),
-        "model_cutoff": Key(
-            "float",
-            60.0,
-            unit="Hz",
-            doc="model: corner of the low-pass that makes the inverse proper",
-            lo=0,
-            lo_open=True,
-        ),
-        "model_order": Key(
-            "int", 3, doc="model: Taylor order of the delay prediction e^(s·τ)", lo=0, hi=4
-        ),
-        "model_kp": Key("float", 0.0, doc="model: proportional feedback gain on target − measured"),
-        "options": Key("table", {}, doc="a lab compensator's own keys (passed to its from_config)"),
-    },
+    "compensation": _compensation(),
     "fei": {
         "enabled": Key("bool", True, doc="online FEI (streaming every sample)"),
         "pair": _pair(

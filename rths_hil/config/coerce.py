@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from ..errors import InputError
+from ..keys import REQUIRED, Key
 from ..units import (
     NUMBER,
     parse_accel,
@@ -26,7 +27,6 @@ from ..units import (
     parse_velocity,
     parse_window,
 )
-from .key import REQUIRED, Key
 
 __all__ = ["check_range", "check_table", "coerce", "describe", "quantity", "unknown_key"]
 

@@ -12,9 +12,9 @@ from typing import Any
 
 from ..errors import InputError
 from ..formats import read_toml
+from ..keys import REQUIRED, Key
 from .checks import cross_check
 from .coerce import check_table, coerce, describe, unknown_key
-from .key import REQUIRED, Key
 from .model import Config, default_config
 from .schema import (
     CHANNEL_KEYS,

@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from ..formats import toml_value
-from .key import REQUIRED, Key
+from ..keys import REQUIRED, Key
 from .schema import CHANNEL_KEYS, CHANNEL_SECTIONS, SCHEMA
 
 __all__ = ["schema_markdown", "to_toml", "toml_value"]

@@ -35,8 +35,8 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from ..errors import InputError
+from ..keys import CONTROL_MODES, MASS_RANGE, STIFFNESS_RANGE, Key, seconds
 from .channel_schema import CHANNEL_SCHEMA
-from .key import CONTROL_MODES, MASS_RANGE, STIFFNESS_RANGE, Key, seconds
 
 if TYPE_CHECKING:  # pragma: no cover
     from .model import Config
