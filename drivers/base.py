@@ -277,6 +277,12 @@ class Driver(ABC):
     #: ``_recv_internal`` never blocks past its deadline (then it is called from the loop's
     #: thread; otherwise from a reader thread).
     honours_deadline: ClassVar[bool] = False
+    #: A receive that returns more than :data:`DEADLINE_SLACK` late moves the driver to a
+    #: reader thread (the fallback). ``False`` for a driver whose every wait takes the deadline
+    #: as its timeout (a late return is then the process not scheduled, which a thread does
+    #: not cure) and whose bus other drivers share: a reader thread of one node would take the
+    #: other nodes' replies off the bus while they wait on it, and they would miss them.
+    reader_fallback: ClassVar[bool] = True
     #: The controller echoes the command's sequence number in its feedback. ``False``: the
     #: first feedback received after a command was sent answers it (its age is recorded).
     echoes_seq: ClassVar[bool] = True
@@ -529,12 +535,15 @@ class Driver(ABC):
         if not self._overrun_warned:
             self._overrun_warned = True
             log.warning(
-                "driver %s returned %.1f ms past its receive deadline: reading it through a "
-                "reader thread from now on",
+                "driver %s returned %.1f ms past its receive deadline: %s",
                 getattr(self, "name", type(self).__name__),
                 late * 1e3,
+                "reading it through a reader thread from now on"
+                if self.reader_fallback
+                else "the process was not scheduled in time (counted)",
             )
-        self._threaded = True
+        if self.reader_fallback:
+            self._threaded = True
 
     @abstractmethod
     def estop(self) -> None:

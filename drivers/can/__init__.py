@@ -223,7 +223,13 @@ class SharedBusDriver(Driver):
     A subclass calls :meth:`_init_bus` from its ``__init__`` and defines :meth:`_parse` (a
     frame read off the bus → its feedback, or ``None``, counted) and :meth:`_holder` (who holds
     the feedback identifier, for the refusal of a second driver on it).
+
+    Every read waits with the deadline as its timeout (the virtual bus's queue, python-can's
+    reader, ``bus.recv``), and the nodes share the bus: a late receive is counted, never moved
+    to a reader thread (:attr:`~rths_hil.drivers.base.Driver.reader_fallback`).
     """
+
+    reader_fallback: ClassVar[bool] = False
 
     def _init_bus(
         self,

@@ -5,6 +5,7 @@ shipped DBC, as a controller would send them."""
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import can
@@ -21,8 +22,10 @@ FEEDBACK = DBC.get_message_by_name("Feedback")
 EXAMPLES = ROOT / "examples" / "controllers"
 
 
-def _feedback(node: int, displacement: float, force: float) -> can.Message:
-    data = FEEDBACK.encode({"Seq": 0, "Status": 0x01, "Displacement": displacement, "Force": force})
+def _feedback(node: int, displacement: float, force: float, seq: int = 0) -> can.Message:
+    data = FEEDBACK.encode(
+        {"Seq": seq, "Status": 0x01, "Displacement": displacement, "Force": force}
+    )
     return can.Message(arbitration_id=FEEDBACK.frame_id + node, data=data, is_extended_id=False)
 
 
@@ -86,3 +89,38 @@ def test_the_profile_driver_refuses_a_profile_of_another_protocol() -> None:
     assert str(err.value) == (
         f"can driver: profile {EXAMPLES / 'modbus_map.toml'} is not a CAN profile"
     )
+
+
+def test_a_node_moved_to_a_reader_thread_leaves_the_other_nodes_replies_to_them() -> None:
+    """A receive that returns far past its deadline (``rths_hil.drivers.base.DEADLINE_SLACK``,
+    here a stalled machine) is counted. Were node 0 then read through a reader thread (the
+    fallback of a driver that may block), that thread would take node 1's replies off the
+    shared bus into node 1's inbox while node 1 waits on the bus, and node 1 would miss them
+    (33 of these 40 did): every reply to node 1 must reach it."""
+    a = CANDriver(channel="shared-bus-5", node=0)
+    b = CANDriver(channel="shared-bus-5", node=1)
+    controller = can.Bus(interface="virtual", channel="shared-bus-5")
+    a.open()
+    b.open()
+    try:
+        a._overran(0.06)  # node 0's receive came back 60 ms late (the driver's fallback)
+        a.send(0, 0.0, enable=True)
+        assert a.receive(0.001) is None  # node 0 receives as the loop does (its thread, if any)
+        missed = 0
+        for seq in range(1, 41):
+            b.send(seq, 0.0, enable=True)
+            # the controller answers 2 ms later, while node 1 waits on the bus
+            reply = threading.Timer(0.002, controller.send, [_feedback(1, 0.0, 0.0, seq=seq)])
+            reply.start()
+            fb = b.receive(0.1)
+            reply.join()
+            if fb is None or fb.seq != seq:
+                missed += 1
+            a.receive(0.0)  # node 0 keeps receiving (its reader thread, if it has one, stays)
+        assert missed == 0
+        assert b.stats.timeouts == 0
+        assert a.stats.deadline_overruns == 1  # counted all the same
+    finally:
+        controller.shutdown()
+        a.close()
+        b.close()
