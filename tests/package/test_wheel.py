@@ -12,6 +12,7 @@ dependencies only: a feature of an extra that is not installed says which one in
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import venv
@@ -23,6 +24,11 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 pytestmark = pytest.mark.slow
+
+#: The environment of the commands run from the installed wheel: as a user's, where Python
+#: writes the bytecode of what it imports (with PYTHONDONTWRITEBYTECODE set, as it may be where
+#: the tests run, each command would compile every module it imports again, seconds each).
+ENV = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
 
 
 @pytest.fixture(scope="module")
@@ -37,14 +43,17 @@ def installed(tmp_path_factory):
     (wheel,) = dist.glob("rths_hil-*.whl")
     env_dir = work / "venv"
     # no pip of its own (ensurepip is the slow part of making a venv): this environment's pip
-    # installs into it (pip --python); the wheel's dependencies are still resolved for it
+    # installs into it (pip --python); the wheel's dependencies are still resolved for it.
+    # --no-compile: byte-compiling every installed module (most of them scipy's, never imported
+    # here) took half the fixture; the commands below compile what they import, once (ENV)
     venv.EnvBuilder(with_pip=False).create(env_dir)
     python = env_dir / "bin" / "python"
     subprocess.run(
-        [sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet", str(wheel)],
+        [sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet",
+         "--no-compile", str(wheel)],
         check=True,
         cwd=work,
-    )
+    )  # fmt: skip
     return wheel, env_dir, work
 
 
@@ -109,7 +118,7 @@ def test_a_missing_extra_is_one_line_naming_it(installed, args, extra, module):
         subprocess.run(
             [env_dir / "bin" / "rths-hil", "run", "--lockstep", "--duration", "0.2", "-q",
              "--no-plot", "--out", str(run_dir)],
-            cwd=work, check=True, capture_output=True, timeout=300,
+            cwd=work, env=ENV, check=True, capture_output=True, timeout=300,
         )  # fmt: skip
     example = str(ROOT / "examples" / "can.toml")
     if args[0] == "run":
@@ -117,7 +126,7 @@ def test_a_missing_extra_is_one_line_naming_it(installed, args, extra, module):
     subst = {"RUN": str(run_dir), "EXAMPLE": example, "O": str(work / f"o-{extra}")}
     proc = subprocess.run(
         [env_dir / "bin" / "rths-hil", *[subst.get(a, a) for a in args]],
-        cwd=work, capture_output=True, text=True, timeout=300,
+        cwd=work, env=ENV, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert proc.returncode == 2, proc.stderr
@@ -142,6 +151,7 @@ def test_lockstep_run_from_the_installed_wheel(installed, driver):
             str(out),
         ],
         cwd=work,
+        env=ENV,
         capture_output=True,
         text=True,
         timeout=300,
@@ -153,6 +163,7 @@ def test_lockstep_run_from_the_installed_wheel(installed, driver):
     where = subprocess.run(
         [env_dir / "bin" / "python", "-c", "import rths_hil.drivers as d; print(d.__file__)"],
         cwd=work,
+        env=ENV,
         capture_output=True,
         text=True,
         check=True,
