@@ -40,6 +40,9 @@ class CANopenDriver(PdoMapping):
     #: the bus is read with the time left (virtual queue / SocketCAN) or waited for on an event
     #: the library's notifier thread sets
     honours_deadline: ClassVar[bool] = True
+    # the axes on one bus read it for each other (each frame to its axis): a late receive is
+    # counted, never moved to a reader thread (Driver.reader_fallback)
+    reader_fallback: ClassVar[bool] = False
     #: the feedback carries the step of its SYNC (a TPDO set belongs to the SYNC before it)
     echoes_seq: ClassVar[bool] = True
     #: positions are INTEGER32 counts of ``counts_per_m``, checked in :meth:`_send_raw`

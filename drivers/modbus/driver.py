@@ -153,6 +153,9 @@ class ModbusDriver(Driver):
 
     name: ClassVar[str] = "modbus"
     honours_deadline: ClassVar[bool] = True  # select() on the socket or serial descriptor
+    # the units on one connection read it for each other (their inboxes): a late receive is
+    # counted, never moved to a reader thread (Driver.reader_fallback)
+    reader_fallback: ClassVar[bool] = False
     CONNECTION: ClassVar[Mapping[str, Key]] = CONNECTION_KEYS
 
     def __init__(

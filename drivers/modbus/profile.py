@@ -149,6 +149,7 @@ class ModbusProfileDriver(EStopPath, ProfileDriver):
 
     name: ClassVar[str] = "modbus"
     honours_deadline: ClassVar[bool] = True  # select() with the time left
+    reader_fallback: ClassVar[bool] = False  # a late receive counted (Driver.reader_fallback)
     #: the built-in driver's, but the unit id is the profile's ``[modbus] unit`` by default
     #: (the profile is ``driver.profile``)
     CONNECTION: ClassVar[Mapping[str, Key]] = {

@@ -250,3 +250,30 @@ def test_two_channels_on_one_rtu_line_are_refused(tmp_path):
     ]
     with pytest.raises(InputError, match=r"'storey1' and 'storey3' use one Modbus RTU line"):
         RTHSLoop(load_config(UNITS, over), tmp_path / "r")
+
+
+def test_a_unit_read_late_leaves_the_other_units_replies_to_it():
+    """A receive that returns far past its deadline (``rths_hil.drivers.base.DEADLINE_SLACK``,
+    a stalled machine) is counted. Were unit 1 then read through a reader thread (the fallback
+    of a driver that may block), that thread would read unit 2's replies off the shared
+    connection into unit 2's inbox while unit 2 waits on the socket, and unit 2 would miss
+    them: every reply must reach its unit."""
+    port = _free_port()
+    with (
+        start_twin("modbus", default_plant(delay=0.0), port=port, device_id=1) as t1,
+        start_twin("modbus", default_plant(delay=0.0), port=port, device_id=2) as t2,
+    ):
+        d1 = create_driver("modbus", **t1.connection)
+        d2 = create_driver("modbus", **t2.connection)
+        with d1, d2:
+            for d in (d1, d2):
+                assert d.arm(1.0) is not None
+            d1._overran(0.06)  # unit 1's receive came back 60 ms late
+            missed = 0
+            for k in range(40):
+                d1.send(k, 0.0)
+                d2.send(k, 0.0)
+                f1, f2 = d1.receive(0.2), d2.receive(0.2)
+                missed += (f1 is None or f1.seq != k) + (f2 is None or f2.seq != k)
+            assert missed == 0
+            assert d1.stats.deadline_overruns == 1 and d2.stats.timeouts == 0
