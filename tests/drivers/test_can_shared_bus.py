@@ -91,7 +91,7 @@ def test_the_profile_driver_refuses_a_profile_of_another_protocol() -> None:
     )
 
 
-def test_a_node_moved_to_a_reader_thread_leaves_the_other_nodes_replies_to_them() -> None:
+def test_a_node_read_late_leaves_the_other_nodes_replies_to_them() -> None:
     """A receive that returns far past its deadline (``rths_hil.drivers.base.DEADLINE_SLACK``,
     here a stalled machine) is counted. Were node 0 then read through a reader thread (the
     fallback of a driver that may block), that thread would take node 1's replies off the
