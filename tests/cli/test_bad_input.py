@@ -103,7 +103,7 @@ def test_in_process_modbus_twin_with_port_out_of_range(tmp_path, capsys):
             "driver.connection={port = 80000}",
         ],
         capsys,
-        "0..65535",
+        "driver.connection.port: must be ≤ 65535, got 80000",
     )
 
 
