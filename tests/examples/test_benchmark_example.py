@@ -247,16 +247,21 @@ def test_short_lockstep_runs_of_the_example(tmp_path):
 
 @pytest.fixture(scope="module")
 def small_study():
+    """Two draws, each run with both methods. Two are enough: the point is that the methods
+    share each draw and every criterion is finite, and the methods' J2 are far apart (about
+    4.4 % for the model against 6.5 % for the inverse in every draw, so no draw decides the
+    median). 7 s: the record's first 5 s are zeros, and at 5-6 s the floors have barely moved
+    (J2 is then tens of per cent or worse, and some criteria are not finite)."""
     cfg = load_config(str(CONFIG), [])
     with ThreadPoolExecutor(1) as ex:
         return compensator_study(
-            cfg, ["inverse", "model"], None, 3, seed=1, duration=7.0, executor=ex, progress=False
+            cfg, ["inverse", "model"], None, 2, seed=1, duration=7.0, executor=ex, progress=False
         )
 
 
-def test_three_trial_study_runs_every_method_with_all_floors(small_study):
+def test_two_trial_study_runs_every_method_with_all_floors(small_study):
     rows = small_study.rows
-    assert [r["method"] for r in rows] == ["inverse"] * 3 + ["model"] * 3
+    assert [r["method"] for r in rows] == ["inverse"] * 2 + ["model"] * 2
     for r in rows:
         assert r["status"] == "completed"
         for i in range(1, 10):
