@@ -302,12 +302,13 @@ def test_exact_fei_is_recorded_at_its_windows_end_step(tmp_path):
             "safety.watchdog_missed=100000",
         ],
     )
-    # 4.5 s: ≈ 28 exact points after the first 1 s window (one every 128 steps)
-    res = RTHSLoop(cfg, tmp_path / "r", mode="paced", duration=4.5).run()
-    assert res.steps > 4000
+    # 2.5 s: 12 exact points after the first 1 s window (one every 128 steps), each placed
+    # and compared below
+    res = RTHSLoop(cfg, tmp_path / "r", mode="paced", duration=2.5).run()
+    assert res.steps > 2400
     rec = read_run(tmp_path / "r").record
     k_end, amp, dly = exact_fei_points(rec)
-    assert k_end.size >= 20
+    assert k_end.size >= 10
     fs = cfg["loop"]["fs"]
     ref = moving_fei(rec["target"].astype(float), rec["measured"].astype(float), fs, 1.0, hop=1)
     ends = np.round(ref.t_end * fs).astype(int)
