@@ -214,8 +214,12 @@ def test_commission_against_the_drive_hands_it_back_disabled(cia402_drive, tmp_p
 
     drive = cia402_drive("serial")
     cfg = write_config(tmp_path, drive, force_object="0x6077", device_watchdog=0.5)
-    # the shortest chirp (0.5 s): the plant is not the point here, the hand-back is
-    cfg = load_config(str(cfg), ["loop.confirm_hardware=true", "commission.chirp_time=0.5"])
+    # the shortest chirp (0.5 s) and latency window (0.3 s, 77 round trips at 256 Hz): the plant
+    # and the latency figures are not the point here, the hand-back is
+    cfg = load_config(
+        str(cfg),
+        ["loop.confirm_hardware=true", "commission.chirp_time=0.5", "commission.latency_time=0.3"],
+    )
     reports = commission(cfg, tmp_path / "c")
     steps = {s.name: s for r in reports for s in r.steps}
     assert steps["hand-back"].status == "passed", steps["hand-back"].reason
