@@ -21,7 +21,11 @@ from rths_hil.diagnose.synthetic import make_case
 from rths_hil.errors import InputError
 from rths_hil.metrics import j2_nrms
 
-DURATION = 20.0
+#: Record length (s): the strong motion of each ground motion and at least 5 cycles of the
+#: slowest drawn structure (the diagnosis refuses shorter records: 10.6 s for one of these
+#: seeds). On 14 s records every fitted size is as close to the hidden one as on 20 s records
+#: (within 2 %, against the 5 % asserted) and the noise estimate within 3 % (15 % asserted).
+DURATION = 14.0
 
 #: The parameter that sizes each effect, checked against the hidden value.
 MAIN = {
