@@ -15,12 +15,13 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from rths_hil.drivers.registry import create_driver
 
-from tests.partners.canopen_fixtures import EDS
+from tests.partners.canopen_fixtures import EDS, DrivePartner
 
 pytestmark = pytest.mark.timing
 
@@ -83,15 +84,39 @@ def tracking(out: Path) -> tuple[float, float, np.ndarray]:
     return best[1] / fs, best[2], rec
 
 
+def _paced_run(tmp: Path, drive) -> tuple[Any, Path, int, int, dict]:
+    """``rths-hil run`` (paced, 256 Hz, 2 s) with the docs' keys against ``drive``; then the
+    drive's statusword and error count (SDO) and its state at exit."""
+    cfg = write_config(tmp, drive, force_object="0x6077")
+    out = tmp / "run"
+    r = rths_run(cfg, out, "--duration", "2")
+    sw, n_err = statusword_and_errors(drive)
+    return r, out, sw, n_err, drive.stop()
+
+
+@pytest.fixture(scope="module")
+def serial_run_from_5mm(tmp_path_factory):
+    """One paced run against the drive on python-can's ``serial`` interface, the drive
+    starting at +5 mm: shared by test_paced_run_against_a_fixed_mapping_drive[serial] (the
+    run, its tracking, its force, the hand-back; the start ramp precedes the record) and
+    test_start_from_a_non_zero_position_does_not_jump (the drive's enable edge)."""
+    tmp = tmp_path_factory.mktemp("serial_run")
+    drive = DrivePartner(tmp, "serial", position=0.005)
+    try:
+        yield _paced_run(tmp, drive)
+    finally:
+        drive.stop()
+
+
 @pytest.mark.parametrize("interface", ["serial", "slcan"])
-def test_paced_run_against_a_fixed_mapping_drive(cia402_drive, tmp_path, interface):
+def test_paced_run_against_a_fixed_mapping_drive(cia402_drive, tmp_path, request, interface):
     """``rths-hil run`` (paced, 256 Hz, 2 s) with the docs' keys: the drive's fixed mapping is
     read and used (no KeyError), the run completes and tracks, the force is the torque actual
     scaled by the drive's 0x6076, and the drive is handed back in SWITCH ON DISABLED, no error."""
-    drive = cia402_drive(interface)
-    cfg = write_config(tmp_path, drive, force_object="0x6077")
-    out = tmp_path / "run"
-    r = rths_run(cfg, out, "--duration", "2")
+    if interface == "serial":
+        r, out, sw, n_err, final = request.getfixturevalue("serial_run_from_5mm")
+    else:
+        r, out, sw, n_err, final = _paced_run(tmp_path, cia402_drive(interface))
     assert r.returncode == 0, r.stderr[-2000:]
     assert "Traceback" not in r.stderr
     assert "keeps its own PDO mapping" in r.stderr
@@ -106,25 +131,19 @@ def test_paced_run_against_a_fixed_mapping_drive(cia402_drive, tmp_path, interfa
     assert m.sum() > 400 and np.ptp(rec["force"][m]) > 500.0
     err = np.abs(rec["force"][m] - K_SPECIMEN * rec["measured"][m])
     assert err.max() <= TORQUE_LSB / 2 + K_SPECIMEN * 1e-6 + 1e-6, err.max()
-    sw, n_err = statusword_and_errors(drive)
     assert sw & 0x6F == SOD, hex(sw)
     assert n_err == 0
-    final = drive.stop()
     assert final["state"] == "SWITCH ON DISABLED" and final["emcy"] == []
     assert final["syncs"] >= 512 and final["tpdos"] >= 500
 
 
-def test_start_from_a_non_zero_position_does_not_jump(cia402_drive, tmp_path):
+def test_start_from_a_non_zero_position_does_not_jump(serial_run_from_5mm):
     """The drive starts at +5 mm: within 50 ms of its enable edge it moves ≤ 0.1 mm (measured
     by the drive's own 1 kHz cycle)."""
-    drive = cia402_drive("serial", position=0.005)
-    cfg = write_config(tmp_path, drive, force_object="0x6077")
-    out = tmp_path / "run"
-    r = rths_run(cfg, out, "--duration", "0.5")
+    r, _, _, _, final = serial_run_from_5mm
     # the claim is the motion at the enable edge, measured by the drive; a loaded machine may
     # still trip the run later (exit 3, its record kept), which the paced-run test covers
     assert r.returncode in (0, 3) and "Traceback" not in r.stderr, r.stderr[-2000:]
-    final = drive.stop()
     edges = final["enable_edges"]
     assert edges
     assert abs(edges[0]["x"] - 0.005) < 1e-9
