@@ -20,7 +20,9 @@ The driver class takes its connection settings as keyword arguments. A class tha
 them (``CONNECTION``: name → :class:`~rths_hil.config.Key`, as every built-in driver does) has
 them read by :func:`~rths_hil.config.check_table`, the validator of the run configuration,
 profiles and model files (:func:`check_connection`); a lab's class without it has the names
-checked against its constructor's signature. An entry point with a built-in name replaces the
+checked against its constructor's signature. With a twin, the settings go to the twin's
+endpoint, which declares those it takes the same way (``TwinEndpoint.CONNECTION``): they are
+read against both. An entry point with a built-in name replaces the
 built-in driver; a registered descriptor replaces both.
 """
 
@@ -39,7 +41,7 @@ from .base import Driver
 from .protocol import Protocol
 
 if TYPE_CHECKING:
-    pass
+    from rths_hil.keys import Key
 
 __all__ = [
     "BUILTIN",
@@ -139,6 +141,7 @@ def check_connection(
     *,
     defaults: bool = True,
     twin: bool = False,
+    twin_keys: Mapping[str, Key] | None = None,
 ) -> dict[str, Any]:
     """``connection`` (without ``profile``) as driver class ``cls`` takes it.
 
@@ -161,14 +164,22 @@ def check_connection(
     twin : bool
         The settings go to a twin first (:func:`rths_hil.sim_backends.twin.start_twin`), which
         fills in the line and the files the driver needs and takes settings of its own (the
-        serial twin's ``transport``): only the keys the driver declares are read, a required
-        key may be missing, the others are passed on as given (the twin checks them).
+        serial twin's ``transport``): a required key of the driver may be missing. Without
+        ``twin_keys`` only the keys the driver declares are read, the others are passed on as
+        given (the twin's constructor checks them).
+    twin_keys : mapping of str to Key, optional
+        With ``twin``: the settings the twin's endpoint takes (its ``CONNECTION``,
+        :func:`rths_hil.sim_backends.twin.twin_keys`). A key neither declares is unknown (the
+        closest of either named); a key of the driver's is read by its key, then every key
+        by the twin's; a key of the driver's the twin does not take is refused (the twin
+        gives the driver its line). Only the keys given are returned (the twin fills in the
+        rest), whatever ``defaults``.
 
     Returns
     -------
     dict
         The settings coerced to their keys' types and SI units (as given, for a class without
-        ``CONNECTION``).
+        ``CONNECTION`` and a twin without ``twin_keys``).
 
     Raises
     ------
@@ -178,6 +189,8 @@ def check_connection(
     from rths_hil.config import REQUIRED, check_table
 
     keys = None if cls.CONNECTION is None else dict(cls.CONNECTION)
+    if twin and twin_keys is not None:
+        return _check_with_twin(connection, keys or {}, dict(twin_keys), where, path)
     if keys is None:
         if not twin:
             _check_signature(cls, connection, where, path)
@@ -188,6 +201,38 @@ def check_connection(
     ours = {k: v for k, v in connection.items() if k in keys}
     checked = check_table(ours, keys, where, path, defaults=defaults)
     return {k: checked[k] if k in checked else v for k, v in connection.items()} | checked
+
+
+def _check_with_twin(
+    connection: Mapping[str, Any],
+    keys: dict[str, Key],
+    twin_keys: dict[str, Key],
+    where: str,
+    path: str,
+) -> dict[str, Any]:
+    """``connection`` read against the driver's ``keys`` and its twin's ``twin_keys``.
+
+    See :func:`check_connection` with ``twin_keys``; returns the keys given, as the twin takes
+    them.
+    """
+    from rths_hil.config import REQUIRED, check_table, unknown_key
+
+    pre = f"{where}: " if where else ""
+    known = {**keys, **twin_keys}
+    for name in connection:
+        if name not in known:
+            raise InputError(f"{pre}{unknown_key(f'{path}.{name}', str(name), known)}")
+    # the driver's reading first (its ranges): the values reach it through the twin
+    keys = {k: replace(v, default=None) if v.default is REQUIRED else v for k, v in keys.items()}
+    given = {k: v for k, v in connection.items() if k in keys}
+    check_table(given, keys, where, path, defaults=False)
+    for name in connection:
+        if name not in twin_keys:
+            raise InputError(
+                f"{pre}{path}.{name}: not a setting of the twin (twin.enabled = true: the twin "
+                f"gives the driver its line); the twin's keys: {', '.join(twin_keys)}"
+            )
+    return check_table(connection, twin_keys, where, path, defaults=False)
 
 
 def _check_signature(

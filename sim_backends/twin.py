@@ -13,7 +13,7 @@ twin (e.g. the TCP port actually bound when port 0 was asked, the pseudo-termina
 from __future__ import annotations
 
 import uuid
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rths_hil.drivers.profile import is_builtin
 
@@ -28,7 +28,10 @@ from .plant import TwinPlant
 from .registry import twin_class
 from .specimen import KelvinVoigt
 
-__all__ = ["default_force_plant", "default_plant", "start_twin"]
+if TYPE_CHECKING:
+    from rths_hil.keys import Key
+
+__all__ = ["default_force_plant", "default_plant", "start_twin", "twin_keys"]
 
 #: Default step of the twins (s): the bridge's 1024 Hz loop.
 DEFAULT_DT = 1.0 / 1024.0
@@ -63,6 +66,35 @@ def default_force_plant(
     )
 
 
+def twin_keys(driver_name: str, profile: bool = False) -> dict[str, Key] | None:
+    """The settings the twin of ``driver_name`` takes (its endpoint's ``CONNECTION``).
+
+    Parameters
+    ----------
+    driver_name : str
+        A driver a twin exists for (:func:`~rths_hil.sim_backends.registry.available_twins`).
+    profile : bool
+        Those of the twin that speaks a lab's profile (the endpoint's ``profile_twin()``).
+
+    Returns
+    -------
+    dict of str to Key or None
+        Name → :class:`~rths_hil.keys.Key` (``profile`` aside: :func:`start_twin` takes it
+        apart); ``None`` when the endpoint declares none (a lab's twin).
+
+    Raises
+    ------
+    InputError
+        No twin for that driver, or (``profile``) none of its protocol speaks a profile.
+    """
+    cls, _ = twin_class(driver_name)
+    assert issubclass(cls, TwinEndpoint)  # a built-in twin is; twin_class checks an entry point
+    if profile:
+        cls = cls.profile_twin()
+    keys = getattr(cls, "CONNECTION", None)
+    return None if keys is None else dict(keys)
+
+
 def start_twin(
     driver_name: str,
     plant: Plant,
@@ -92,9 +124,11 @@ def start_twin(
         Serve in a thread (default). ``False``: the caller serves with ``endpoint.pump()``
         (CAN on the ``virtual`` interface only; the lockstep loop's fast path).
     **connection
-        Endpoint settings. ``can``: ``interface`` (``virtual``; ``slcan`` reaches other
-        processes over a pseudo-terminal pair), ``channel`` (a fresh unique name by default;
-        ``slcan``: ``pty``), ``bitrate``, ``dbc``, ``bus_options``. ``modbus``: ``transport``
+        Endpoint settings (the endpoint's ``CONNECTION``, :func:`twin_keys`; a run reads them
+        from ``driver.connection`` before the twin starts). ``can``: ``interface``
+        (``virtual``; ``slcan`` reaches other processes over a pseudo-terminal pair),
+        ``channel`` (a fresh unique name by default; ``slcan``: ``pty``), ``bitrate``,
+        ``dbc``, ``bus_options``. ``modbus``: ``transport``
         (``tcp`` or ``rtu``), ``host`` (127.0.0.1), ``port`` (0 = any free port), ``device_id``
         (1), ``device`` (RTU: serial device; default a new pseudo-terminal). ``serial``:
         ``transport`` (``pty`` or ``tcp``), ``host``, ``port``.
@@ -126,6 +160,6 @@ def start_twin(
         connection.setdefault("channel", f"rths-twin-{uuid.uuid4().hex[:8]}")
     try:
         endpoint: TwinEndpoint = cls(controller, **connection)
-    except TypeError as exc:
+    except TypeError as exc:  # a setting the endpoint does not take, given past the plan
         raise InputError(f"twin {driver_name!r}: bad endpoint setting: {exc}") from None
     return endpoint.start(threaded)

@@ -323,10 +323,20 @@ def _plan_channel(  # noqa: C901
     wcls = proto.driver if is_builtin(profile) else proto.profile_driver_class()
     from rths_hil.drivers.registry import check_connection
 
-    # the connection as the driver declares it (types, SI units, ranges); a twin fills in
-    # the line and the files and checks the settings of its own
+    # the connection as the driver declares it (types, SI units, ranges) and, with a twin, as
+    # the twin's endpoint declares it (the twin fills in the line and the files)
     given = {k: v for k, v in conn.items() if k != "profile"}
-    checked = check_connection(wcls, given, where, defaults=False, twin=tw["enabled"])
+    twin_keys = None
+    if tw["enabled"]:
+        from rths_hil.sim_backends.twin import twin_keys as endpoint_keys
+
+        try:
+            twin_keys = endpoint_keys(name, profile=not is_builtin(profile))
+        except InputError as exc:
+            raise InputError(f"{where}: twin.enabled: {exc}") from None
+    checked = check_connection(
+        wcls, given, where, defaults=False, twin=tw["enabled"], twin_keys=twin_keys
+    )
     conn = {**checked, **({"profile": conn["profile"]} if "profile" in conn else {})}
     modes = tuple(getattr(wcls, "control_modes", ("displacement",)))
     if wire not in modes:

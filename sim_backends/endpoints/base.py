@@ -43,13 +43,15 @@ import socket
 import threading
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from types import TracebackType
-from typing import Any
+from typing import Any, ClassVar
 
 from rths_hil.drivers.base import Status
 
 from rths_hil.errors import InputError
+from rths_hil.keys import Key
 
 from ..base import Plant
 from ..faults import Faults
@@ -57,9 +59,21 @@ from ..registry import twin_class
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TwinController", "TwinEndpoint", "TwinStats", "listen"]
+__all__ = ["LISTEN_KEYS", "TwinController", "TwinEndpoint", "TwinStats", "listen"]
 
 _LOOPBACK = ("127.", "::1", "localhost")
+
+#: The settings of a twin that listens on TCP (:func:`listen`), as its
+#: :attr:`TwinEndpoint.CONNECTION` declares them.
+LISTEN_KEYS: dict[str, Key] = {
+    "host": Key("str", "127.0.0.1", doc="twin: TCP address to listen on (loopback by default)"),
+    "port": Key("int", 0, lo=0, hi=65535, doc="twin: TCP port to listen on (0: any free port)"),
+    "allow_remote": Key(
+        "bool",
+        False,
+        doc="twin: allow a host other than loopback (the twin is then reachable from the network)",
+    ),
+}
 _ENABLED = int(Status.ENABLED)
 _ESTOP_ACTIVE = int(Status.ESTOP_ACTIVE)
 _WATCHDOG = int(Status.WATCHDOG)
@@ -321,6 +335,13 @@ class TwinEndpoint(ABC):
 
     name: str = ""
     poll = 0.05
+    #: The settings the endpoint takes (``start_twin``'s ``**connection`` but ``profile``):
+    #: name → :class:`~rths_hil.keys.Key`, defaults as in ``__init__``. A run with a twin
+    #: reads ``driver.connection`` against them and the driver's own ``CONNECTION``
+    #: (:func:`rths_hil.drivers.registry.check_connection`) before the twin starts. ``None``
+    #: (a lab's twin that declares none): the driver's keys are read, the others reach the
+    #: constructor as given.
+    CONNECTION: ClassVar[Mapping[str, Key] | None] = None
 
     def __init__(self, controller: TwinController) -> None:
         self.controller = controller

@@ -34,17 +34,21 @@ from __future__ import annotations
 
 import logging
 import struct
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import can
-from rths_hil.drivers.can import SharedBus, check_node, release_bus, shared_bus
+from rths_hil.drivers.can import CANDriver, SharedBus, check_node, release_bus, shared_bus
 from rths_hil.drivers.can.codec import Frame, load
 
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
 from .can_profile import CANProfileTwin
-from .nullmodem import PTY_CHANNEL, PTY_INTERFACES, CANLine, can_line_from_args
+from .nullmodem import LINE_KEYS, PTY_CHANNEL, PTY_INTERFACES, CANLine, can_line_from_args
+
+if TYPE_CHECKING:
+    from rths_hil.keys import Key
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +64,11 @@ class CANTwin(CANLine, TwinEndpoint):
     the module docstring)."""
 
     name = "can"
+    #: The line (:data:`~.nullmodem.LINE_KEYS`), the driver's ``dbc`` and ``node``.
+    CONNECTION: ClassVar[Mapping[str, Key]] = {
+        **LINE_KEYS,
+        **{k: CANDriver.CONNECTION[k] for k in ("dbc", "node")},
+    }
 
     @classmethod
     def profile_twin(cls) -> type[TwinEndpoint]:

@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import math
 import queue
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import can
 from rths_hil.drivers.can import SharedBus, release_bus, shared_bus
@@ -30,7 +31,10 @@ from rths_hil.drivers.profile import load_profile, word_from_status
 from rths_hil.errors import InputError
 
 from .base import TwinController, TwinEndpoint
-from .nullmodem import CANLine
+from .nullmodem import LINE_KEYS, CANLine
+
+if TYPE_CHECKING:
+    from rths_hil.keys import Key
 
 __all__ = ["CANProfileTwin"]
 
@@ -39,6 +43,8 @@ class CANProfileTwin(CANLine, TwinEndpoint):
     """Controller node on ``interface``/``channel`` speaking ``profile``."""
 
     name = "can"
+    #: The line (:data:`~.nullmodem.LINE_KEYS`); the profile comes apart.
+    CONNECTION: ClassVar[Mapping[str, Key]] = LINE_KEYS
 
     def __init__(
         self,

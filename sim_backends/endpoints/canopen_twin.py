@@ -45,8 +45,9 @@ import random
 import struct
 import threading
 import time
+from collections.abc import Mapping
 from importlib import resources
-from typing import Any
+from typing import Any, ClassVar
 
 import can
 import canopen
@@ -56,9 +57,11 @@ from rths_hil.drivers.base import INVALID_S32, Status
 from rths_hil.drivers.can import virtual_rx_queue
 from rths_hil.drivers.can.codec import Frame
 from rths_hil.drivers.canopen import BRIDGE_NODE_ID, Layout, load_od, parse_object
+from rths_hil.drivers.canopen.device import CONNECTION_KEYS
 from rths_hil.drivers.canopen.profiles import PROFILES, SW408
 
 from rths_hil.errors import InputError
+from rths_hil.keys import Key
 
 from .base import TwinController, TwinEndpoint
 from .nullmodem import CANLine, can_line_from_args
@@ -112,6 +115,17 @@ class CANopenTwin(CANLine, TwinEndpoint):
     """
 
     name = "canopen"
+    #: The driver's keys (the twin hands on those it does not use), with the twin's defaults.
+    CONNECTION: ClassVar[Mapping[str, Key]] = {
+        **CONNECTION_KEYS,
+        "eds": Key("str", None, doc="twin: EDS of the node (none: the shipped one of the profile)"),
+        "force_object": Key(
+            "str|int", "0x2100", doc='twin: object of the measured force ("": none)'
+        ),
+        "newtons_per_count": Key(
+            "float", 0.01, unit="N/count", lo=0, lo_open=True, doc="twin: scale of the force object"
+        ),
+    }
     #: inline: the endpoint's thread serves again when no pump came for this long (s); while
     #: standing by it wakes once per ``handover`` (fewer hand-offs of the interpreter lock
     #: inside the loop's steps), so it takes over within two

@@ -38,7 +38,8 @@ import struct
 import threading
 import time
 import tty
-from typing import Any, ClassVar
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import serial
 from pymodbus.constants import ExcCodes
@@ -56,7 +57,10 @@ from rths_hil.errors import InputError
 
 from ..faults import Faults
 from .base import TwinController, TwinEndpoint, listen
-from .modbus_profile import ModbusProfileTwin
+from .modbus_profile import SERVER_KEYS, ModbusProfileTwin
+
+if TYPE_CHECKING:
+    from rths_hil.keys import Key
 
 __all__ = ["ModbusServer", "ModbusTwin"]
 
@@ -277,6 +281,7 @@ class ModbusTwin(TwinEndpoint):
 
     name = "modbus"
     poll = 0.02
+    CONNECTION: ClassVar[Mapping[str, Key]] = SERVER_KEYS
 
     @classmethod
     def connection_from_args(cls, args: Any) -> dict[str, Any]:

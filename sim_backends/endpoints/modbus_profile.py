@@ -43,7 +43,8 @@ import select
 import socket
 import struct
 import tty
-from typing import Any
+from collections.abc import Mapping
+from typing import Any, ClassVar
 
 from pymodbus.constants import ExcCodes
 from pymodbus.pdu import ExceptionResponse
@@ -61,14 +62,22 @@ from pymodbus.pdu.register_message import (
 )
 from rths_hil.drivers.base import Status
 from rths_hil.drivers.modbus.layout import PointLayout
+from rths_hil.drivers.modbus.profile import ModbusProfileDriver
 from rths_hil.drivers.modbus.profile_format import ModbusPoint, ModbusProfile
-from rths_hil.drivers.modbus.transport import check_request, framer, next_request
+from rths_hil.drivers.modbus.transport import (
+    CONNECTION_KEYS,
+    MAX_UNIT,
+    check_request,
+    framer,
+    next_request,
+)
 from rths_hil.drivers.profile import load_profile, word_from_status
 
 from rths_hil.errors import InputError
+from rths_hil.keys import Key
 
 from ..faults import Faults
-from .base import TwinController, TwinEndpoint, listen
+from .base import LISTEN_KEYS, TwinController, TwinEndpoint, listen
 
 __all__ = ["ModbusProfileTwin"]
 
@@ -84,10 +93,28 @@ _READ_RESP = {
 }
 
 
+#: The settings of a Modbus twin (:class:`ModbusProfileTwin` and
+#: :class:`~.modbus.ModbusTwin`): the transport, the TCP listener (:data:`~.base.LISTEN_KEYS`)
+#: or the RTU line, and the unit it answers as.
+SERVER_KEYS: dict[str, Key] = {
+    "transport": CONNECTION_KEYS["transport"],
+    **LISTEN_KEYS,
+    "device": Key("str", None, doc="twin, RTU: serial device (none: a new pseudo-terminal)"),
+    "device_id": Key("int", 1, lo=1, hi=MAX_UNIT, doc="twin: the Modbus unit id it answers as"),
+    "baudrate": CONNECTION_KEYS["baudrate"],
+}
+
+
 class ModbusProfileTwin(TwinEndpoint):
     """Modbus TCP server or RTU slave speaking ``profile`` (see the module docstring)."""
 
     name = "modbus"
+    #: :data:`SERVER_KEYS`, the unit as the profile driver's (none: the profile's); the
+    #: profile comes apart.
+    CONNECTION: ClassVar[Mapping[str, Key]] = {
+        **SERVER_KEYS,
+        "device_id": ModbusProfileDriver.CONNECTION["device_id"],
+    }
 
     def __init__(
         self,

@@ -27,12 +27,15 @@ import tty
 from typing import Any
 
 import can
+from rths_hil.drivers.can import BUS_KEYS
 
 from rths_hil.errors import InputError
+from rths_hil.keys import Key
 
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "LINE_KEYS",
     "PTY_CHANNEL",
     "PTY_INTERFACES",
     "CANLine",
@@ -144,6 +147,20 @@ PTY_CHANNEL = "pty"
 PTY_INTERFACES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     "slcan": ({"sleep_after_open": 0.0}, {"sleep_after_open": 0.0}),
     "serial": ({}, {"timeout": 0.005}),
+}
+
+
+#: The python-can line of a CAN-family twin as its :attr:`TwinEndpoint.CONNECTION
+#: <rths_hil.sim_backends.endpoints.base.TwinEndpoint.CONNECTION>` declares it: the driver's
+#: bus keys, the channel defaulting to a line of the twin's own.
+LINE_KEYS: dict[str, Key] = {
+    **BUS_KEYS,
+    "channel": Key(
+        "str|int",
+        None,
+        doc="bus channel (none: a fresh virtual bus of the twin's own; "
+        f"{PTY_CHANNEL!r} on serial or slcan: a null-modem pair of pseudo-terminals)",
+    ),
 }
 
 

@@ -14,7 +14,8 @@ import os
 import select
 import socket
 import tty
-from typing import Any
+from collections.abc import Mapping
+from typing import Any, ClassVar
 
 from rths_hil.drivers.serial.framing import (
     _CRC,
@@ -32,9 +33,10 @@ from rths_hil.drivers.serial.framing import (
 from rths_hil.drivers.serial.framing import encode_frame as _encode_frame
 
 from rths_hil.errors import InputError
+from rths_hil.keys import Key
 
 from ..faults import Faults
-from .base import TwinController, TwinEndpoint, listen
+from .base import LISTEN_KEYS, TwinController, TwinEndpoint, listen
 
 __all__ = ["SerialTwin"]
 
@@ -43,6 +45,17 @@ class SerialTwin(TwinEndpoint):
     """Serial twin on a pseudo-terminal (``transport="pty"``) or a TCP socket (``"tcp"``)."""
 
     name = "serial"
+    #: The line the twin offers (the driver gets its ``url``); a TCP socket's listener.
+    CONNECTION: ClassVar[Mapping[str, Key]] = {
+        "transport": Key(
+            "choice",
+            "pty",
+            choices=("pty", "tcp"),
+            doc="twin: the line it offers, a new pseudo-terminal (pty) or a TCP socket (tcp: "
+            "host, port)",
+        ),
+        **LISTEN_KEYS,
+    }
 
     def __init__(
         self,

@@ -15,7 +15,13 @@ from rths_hil.drivers.canopen.profiles import PROFILES
 from rths_hil.drivers.modbus import ModbusDriver, ModbusProfileDriver
 from rths_hil.drivers.registry import BUILTIN, check_connection, create_driver, protocol
 from rths_hil.drivers.serial import SerialDriver
-from rths_hil.sim_backends.endpoints.canopen_twin import default_eds
+from rths_hil.sim_backends.endpoints.can import CANTwin
+from rths_hil.sim_backends.endpoints.can_profile import CANProfileTwin
+from rths_hil.sim_backends.endpoints.canopen_twin import CANopenTwin, default_eds
+from rths_hil.sim_backends.endpoints.modbus import ModbusTwin
+from rths_hil.sim_backends.endpoints.modbus_profile import ModbusProfileTwin
+from rths_hil.sim_backends.endpoints.serial import SerialTwin
+from rths_hil.sim_backends.twin import twin_keys
 
 from rths_hil.cli import main
 from rths_hil.config import REQUIRED
@@ -181,3 +187,150 @@ def test_run_refuses_a_bad_connection_in_one_line_exit_2(capsys) -> None:
     assert lines == [
         f"rths-hil run: error: {cfg}: driver.connection.device_id: must be ≤ 255, got 300"
     ], err
+
+
+# -- with a twin: the driver's keys and those its twin's endpoint declares ----------------------
+
+TWINS = {
+    "can": (CANTwin, CANProfileTwin),
+    "modbus": (ModbusTwin, ModbusProfileTwin),
+    "serial": (SerialTwin, None),
+    "canopen": (CANopenTwin, None),
+}
+ENDPOINTS = [c for pair in TWINS.values() for c in pair if c is not None]
+
+
+@pytest.mark.parametrize("cls", ENDPOINTS, ids=lambda c: c.__name__)
+def test_twin_declared_keys_are_the_endpoint_parameters_with_its_defaults(cls) -> None:
+    """What an endpoint declares is what its constructor takes (a twin that hands the
+    driver's keys on takes those too), with the constructor's defaults."""
+    params = inspect.signature(cls.__init__).parameters
+    named = [n for n, p in params.items() if n not in ("self", "controller", "profile")]
+    named = [n for n in named if params[n].kind is not inspect.Parameter.VAR_KEYWORD]
+    passes_on = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    assert set(named) <= set(cls.CONNECTION)
+    rest = set(cls.CONNECTION) - set(named)
+    assert rest == (set(CANopenDriver.CONNECTION) - set(named) if passes_on else set())
+    for name in named:
+        assert cls.CONNECTION[name].default == params[name].default, name
+
+
+def test_twin_keys_are_those_of_the_endpoint_start_twin_builds() -> None:
+    for name, (plain, prof) in TWINS.items():
+        assert twin_keys(name) == dict(plain.CONNECTION), name
+        if prof is not None:
+            assert twin_keys(name, profile=True) == dict(prof.CONNECTION), name
+    with pytest.raises(InputError, match="no twin of this protocol speaks a profile"):
+        twin_keys("serial", profile=True)
+
+
+def _check(name, connection, profile=False):
+    proto = protocol(name)
+    cls = proto.profile_driver_class() if profile else proto.driver
+    keys = twin_keys(name, profile)
+    return check_connection(cls, connection, "run.toml", defaults=False, twin=True, twin_keys=keys)
+
+
+def test_with_a_twin_only_the_keys_given_come_back_as_the_twin_takes_them() -> None:
+    # serial: url is the twin's to give, transport/host/port the twin's own
+    given = {"transport": "tcp", "host": "127.0.0.1", "port": 0}
+    assert _check("serial", given) == given
+    assert _check("modbus", {"port": 0, "device_id": 7}) == {"port": 0, "device_id": 7}
+    out = _check("canopen", {"heartbeat_period": "50 ms", "force_object": ""})
+    assert math.isclose(out.pop("heartbeat_period"), 0.05) and out == {"force_object": ""}
+    assert _check("can", {}) == {}
+
+
+@pytest.mark.parametrize(
+    ("name", "profile", "connection", "message"),
+    [
+        ("can", False, {"nod": 1}, "nod: unknown key (did you mean 'node'?)"),
+        ("can", True, {"bitrat": 1}, "bitrat: unknown key (did you mean 'bitrate'?)"),
+        ("modbus", False, {"devce_id": 2}, "devce_id: unknown key (did you mean 'device_id'?)"),
+        (
+            "modbus",
+            True,
+            {"alow_remote": 1},
+            "alow_remote: unknown key (did you mean 'allow_remote'?)",
+        ),
+        ("serial", False, {"baudrat": 1}, "baudrat: unknown key (did you mean 'baudrate'?)"),
+        ("serial", False, {"transprt": "pty"}, "transprt: unknown key (did you mean 'transport'?)"),
+        ("canopen", False, {"node_di": 2}, "node_di: unknown key (did you mean 'node_id'?)"),
+        # the twin's own keys, type and range checked
+        ("serial", False, {"transport": "usb"}, "transport: must be one of pty, tcp, got 'usb'"),
+        ("serial", False, {"port": 70000}, "port: must be ≤ 65535, got 70000"),
+        ("modbus", False, {"allow_remote": 1}, "allow_remote: expected true or false, got 1"),
+        ("modbus", False, {"device_id": 250}, "device_id: must be ≤ 247, got 250"),
+        ("modbus", False, {"device_id": 300}, "device_id: must be ≤ 255, got 300"),  # driver's
+        ("canopen", False, {"newtons_per_count": 0}, "newtons_per_count: must be > 0 N/count"),
+        # a key of the driver's that the twin does not take: the twin gives the driver its line
+        ("serial", False, {"url": "loop://"}, "url: not a setting of the twin"),
+        ("modbus", False, {"parity": "N"}, "parity: not a setting of the twin"),
+    ],
+)
+def test_with_a_twin_a_bad_key_is_one_line_naming_it(name, profile, connection, message) -> None:
+    with pytest.raises(InputError) as err:
+        _check(name, connection, profile)
+    text = str(err.value)
+    assert text.startswith(f"run.toml: driver.connection.{message}"), text
+    assert "\n" not in text
+
+
+CONFIGS = {
+    "can": ROOT / "examples" / "can.toml",
+    "modbus": ROOT / "examples" / "modbus.toml",
+    "serial": ROOT / "examples" / "serial.toml",
+    "canopen": EXAMPLES / "cia402.toml",
+}
+
+
+@pytest.mark.parametrize(
+    ("name", "setting", "line"),
+    [
+        ("can", "{nod=1}", "driver.connection.nod: unknown key (did you mean 'node'?); known "),
+        ("modbus", "{devce_id=2}", "driver.connection.devce_id: unknown key (did you mean "),
+        ("serial", "{baudrat=9600}", "driver.connection.baudrat: unknown key (did you mean "),
+        ("canopen", "{node_di=2}", "driver.connection.node_di: unknown key (did you mean "),
+        ("serial", "{transport='usb'}", "driver.connection.transport: must be one of pty, tcp"),
+    ],
+)
+def test_run_with_a_twin_refuses_a_bad_key_in_one_line_exit_2(
+    name, setting, line, capsys, monkeypatch
+) -> None:
+    """Refused by the plan: no twin is started."""
+    import rths_hil.sim_backends.twin as twin_mod
+
+    started: list[str] = []
+    real = twin_mod.start_twin
+    monkeypatch.setattr(
+        twin_mod, "start_twin", lambda *a, **k: started.append(a[0]) or real(*a, **k)
+    )
+    cfg = CONFIGS[name]
+    argv = ["run", str(cfg), "--lockstep", "--no-plot", "-q", "--duration", "0.1"]
+    code = main([*argv, "--set", f"driver.connection={setting}"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err
+    lines = [x for x in err.splitlines() if "error" in x]
+    assert len(lines) == 1 and lines[0].startswith(f"rths-hil run: error: {cfg}: {line}"), err
+    assert started == []
+
+
+def test_a_twin_only_key_reaches_the_twin(tmp_path, monkeypatch) -> None:
+    """The serial twin's transport = "tcp" (not its default): the twin listens on TCP and the
+    run's driver reaches it there."""
+    built: list[dict] = []
+    real_init = SerialTwin.__init__
+
+    def spy(self, controller, **conn):
+        built.append(conn)
+        real_init(self, controller, **conn)
+
+    monkeypatch.setattr(SerialTwin, "__init__", spy)
+    cfg = ROOT / "examples" / "serial.toml"
+    argv = ["run", str(cfg), "--lockstep", "--no-plot", "-q", "--duration", "0.05"]
+    out = tmp_path / "run"
+    setting = "driver.connection={transport='tcp', port=0}"
+    code = main([*argv, "--set", setting, "--set", f"output.dir='{out}'"])
+    assert code == 0
+    assert built == [{"transport": "tcp", "port": 0}]
