@@ -154,18 +154,43 @@ def _connection_sections() -> list[str]:
         "are read like the keys above, in one line naming `driver.connection.KEY` (an unknown",
         "key with the closest known one), before any bus is opened. A channel with a twin",
         "(`twin.enabled`) hands the connection to the twin first, which fills in the line and the",
-        "files (a required key may then be left out) and checks the settings of its own (the",
-        "serial twin's `transport`, `host`, `port`; see [protocols.md](protocols.md)). A lab's",
-        "driver that declares no `CONNECTION` has the names checked against its constructor.",
+        "files (a required key may then be left out): its endpoint declares the settings it takes",
+        'the same way (`CONNECTION` on the endpoint class; "With its twin" below), and',
+        "the connection is read against both before the twin starts: the twin's own keys (the",
+        "serial twin's `transport`, `host`, `port`) are type and range checked, and a key of the",
+        "driver's the twin does not take (the serial driver's `url`: the twin gives it) is",
+        "refused. A lab's driver that declares no `CONNECTION` has the names checked against its",
+        "constructor; a lab's twin that declares none gets the other keys as given.",
         "",
     ]
+    from rths_hil.sim_backends.twin import twin_keys
+
     for name in BUILTIN:
         proto = protocol(name)
-        variants = [(f"### `{name}`", proto.connection_keys())]
+        variants = [(f"### `{name}`", proto.connection_keys(), twin_keys(name))]
         if proto.profile_driver is not None:
             variants.append(
-                (f"### `{name}` with a profile (`driver.profile`)", proto.connection_keys(True))
+                (
+                    f"### `{name}` with a profile (`driver.profile`)",
+                    proto.connection_keys(True),
+                    twin_keys(name, profile=True),
+                )
             )
-        for title, keys in variants:
+        for title, keys, twin in variants:
             out += [title, "", *_key_table(keys or {}), ""]
+            out += _twin_keys(keys or {}, twin or {})
     return out
+
+
+def _twin_keys(keys: dict[str, Key], twin: dict[str, Key]) -> list[str]:
+    """What a twin's endpoint takes beside the driver's ``keys``: the driver's keys it takes
+    as they are, those it does not take, and its own (or those it reads otherwise)."""
+    own = {k: v for k, v in twin.items() if keys.get(k) != v}
+    same = ", ".join(f"`{k}`" for k in twin if k not in own)
+    refused = ", ".join(f"`{k}`" for k in keys if k not in twin)
+    parts = [f"the driver's {same} as above" if same else "none of the driver's keys"]
+    if refused:
+        parts.append(f"not {refused} (refused)")
+    parts.append("and these:" if own else "nothing else.")
+    out = ["With its twin (`twin.enabled`): " + "; ".join(parts), ""]
+    return out + ([*_key_table(own), ""] if own else [])
