@@ -16,6 +16,11 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet --no-compile -e '.[dev]'
 	@touch $(STAMP)
 
+# Python writes the bytecode of what it imports into .venv and the tree (an environment that
+# sets PYTHONDONTWRITEBYTECODE would have every process compile every module it imports again:
+# the tests start hundreds, twins, partners and `rths-hil run` among them).
+run test: export PYTHONDONTWRITEBYTECODE =
+
 run: $(STAMP)
 	$(BIN)/rths-hil run $(ARGS)
 
@@ -27,7 +32,10 @@ $(SYSDEPS): scripts/system-deps.sh | $(STAMP)
 # Tests that run the loop against the wall clock or with other processes (marker "timing") run
 # one at a time after the others, which share the cores (pytest-xdist, one file per worker);
 # the slowest of them are listed at the end (they set the length of the run).
-# Exit 5 = PYTEST_ARGS selected none of one kind.
+# Exit 5 = PYTEST_ARGS selected none of one kind. numpy's OpenBLAS keeps one thread per test
+# process: a pool per core in each of two workers fought over the cores (a file's tests took
+# twice as long).
+test: export OPENBLAS_NUM_THREADS = 1
 test: $(STAMP) $(SYSDEPS) lint
 	$(BIN)/python -m pytest -q -m "not timing" -n auto --dist loadfile $(PYTEST_ARGS) || test $$? -eq 5
 	$(BIN)/python -m pytest -q -m timing --durations=25 $(PYTEST_ARGS) || test $$? -eq 5
