@@ -237,8 +237,11 @@ def _hardware_commission(twin, out, *extra):
     return proc, master
 
 
-@pytest.fixture()
+@pytest.fixture(scope="module")
 def served():
+    """One served twin for the tests below (each reads the twin's log from its own start on
+    and its position relative to where it found it): a twin is a controller that sees one
+    commissioning after another, e-stopped or handed back."""
     twin = ServedTwin("--driver", "modbus", "--heartbeat-timeout", f"{HB * 1e3:g}ms")
     yield twin
     twin.stop()
@@ -249,6 +252,8 @@ def served():
 @timing
 @pytest.mark.parametrize("sig", [signal.SIGTERM])
 def test_operator_stop_mid_motion_hands_the_controller_back(served, tmp_path, sig):
+    t0 = time.monotonic()
+    x0 = _modbus_state(served.connection)[1]  # where the actuator is (the motion is from there)
     proc, master = _hardware_commission(served, tmp_path / "c")
     try:
         for line in proc.stderr:
@@ -262,17 +267,18 @@ def test_operator_stop_mid_motion_hands_the_controller_back(served, tmp_path, si
         os.close(master)
         if proc.poll() is None:
             proc.kill()
-    assert moving & 0x01 and at > 1e-5, (moving, at)  # the signal came while enabled, moved
+    # the signal came while enabled, moved
+    assert moving & 0x01 and at - x0 > 1e-5, (moving, at, x0)
     assert proc.returncode == 130, err
     assert f"operator stop ({sig.name})" in err
     assert f"motion: skipped: operator stop ({sig.name})" in out
     assert "hand-back: passed" in out
     status, pos = _modbus_state(served.connection)
     assert status & 0x13 == 0, hex(status)  # not ENABLED, no e-stop or watchdog latched
-    assert -1e-5 < pos < 1.01e-3  # where the ramp was stopped, held there
+    assert -1e-5 < pos - x0 < 1.01e-3  # where the ramp was stopped, held there
     time.sleep(2 * HB)  # past the controller's watchdog: disabled, so nothing latches
     assert _modbus_state(served.connection)[0] & 0x13 == 0
-    assert served.first("e-stop latched", timeout=0.05) is None
+    assert served.first("e-stop latched", after=t0, timeout=0.05) is None
     assert "| hand-back | passed |" in (tmp_path / "c" / "report.md").read_text()
 
 
@@ -302,6 +308,7 @@ def test_a_second_signal_gives_up_at_once_and_leaves_nothing_enabled(served, tmp
 def test_hardware_commission_leaves_the_controller_disabled_after_its_watchdog_step(
     served, tmp_path
 ):
+    t0 = time.monotonic()
     # in this process (the twin is the other process; the operator's "yes" on a terminal is
     # the operator-stop tests'): confirmed by the configuration
     cfg = load_config(None, [
@@ -313,7 +320,7 @@ def test_hardware_commission_leaves_the_controller_disabled_after_its_watchdog_s
     steps = {s.name: s for s in rep.steps}
     assert rep.target == "hardware"
     assert steps["watchdog"].status == "passed", steps["watchdog"]  # it did latch …
-    assert served.first("e-stop latched", timeout=1.0) is not None
+    assert served.first("e-stop latched", after=t0, timeout=1.0) is not None
     assert steps["hand-back"].status == "passed", steps["hand-back"]  # … and was acknowledged
     time.sleep(2 * HB)
     status, _ = _modbus_state(served.connection)
