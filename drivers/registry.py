@@ -34,6 +34,7 @@ from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from rths_hil.errors import InputError
+from rths_hil.keys import REQUIRED
 from rths_hil.plugins import load_target
 from rths_hil.plugins import targets as plugin_targets
 
@@ -186,7 +187,7 @@ def check_connection(
     InputError
         One line ``where: path.key: what is wrong``.
     """
-    from rths_hil.config import REQUIRED, check_table
+    from rths_hil.config import check_table
 
     keys = None if cls.CONNECTION is None else dict(cls.CONNECTION)
     if twin and twin_keys is not None:
@@ -197,10 +198,15 @@ def check_connection(
         return dict(connection)
     if not twin:
         return check_table(connection, keys, where, path, defaults=defaults)
-    keys = {k: replace(v, default=None) if v.default is REQUIRED else v for k, v in keys.items()}
+    keys = _optional(keys)
     ours = {k: v for k, v in connection.items() if k in keys}
     checked = check_table(ours, keys, where, path, defaults=defaults)
     return {k: checked[k] if k in checked else v for k, v in connection.items()} | checked
+
+
+def _optional(keys: dict[str, Key]) -> dict[str, Key]:
+    """``keys`` with a required key optional (a twin fills it in)."""
+    return {k: replace(v, default=None) if v.default is REQUIRED else v for k, v in keys.items()}
 
 
 def _check_with_twin(
@@ -215,7 +221,7 @@ def _check_with_twin(
     See :func:`check_connection` with ``twin_keys``; returns the keys given, as the twin takes
     them.
     """
-    from rths_hil.config import REQUIRED, check_table, unknown_key
+    from rths_hil.config import check_table, unknown_key
 
     pre = f"{where}: " if where else ""
     known = {**keys, **twin_keys}
@@ -223,7 +229,7 @@ def _check_with_twin(
         if name not in known:
             raise InputError(f"{pre}{unknown_key(f'{path}.{name}', str(name), known)}")
     # the driver's reading first (its ranges): the values reach it through the twin
-    keys = {k: replace(v, default=None) if v.default is REQUIRED else v for k, v in keys.items()}
+    keys = _optional(keys)
     given = {k: v for k, v in connection.items() if k in keys}
     check_table(given, keys, where, path, defaults=False)
     for name in connection:
