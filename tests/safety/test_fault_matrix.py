@@ -38,7 +38,7 @@ from tests.helpers.procs import ServedTwin, toml_table
 # pyproject.toml; make test).
 
 FS = 1024
-AT = 300  # the faulty step (≈ 0.29 s into the run)
+AT = 150  # the faulty step (≈ 0.15 s into the run: past the first steps, the twins answering)
 CONTROLLERS = Path(__file__).resolve().parents[2] / "examples" / "controllers"
 # matrix row → the driver overrides: the built-in protocols and the controller profiles
 DRIVERS = {
@@ -208,9 +208,10 @@ def test_paced(tmp_path, driver, fault):
         f"twin.faults={FAULTS[fault]}",
         "safety.max_overruns=1000000",  # the rules under test only (the VM's stalls aside)
         *PACED_WATCHDOG,
-        # the watchdog rows trip ≈ 0.2 s after the fault at 0.29 s, and later by any stall of the
-        # bridge in that time (not counted as silence): room for it before the end
-        duration=0.8 if rule == "watchdog" else 0.5,
+        # the watchdog rows trip ≈ 0.2 s after the fault, and later by any stall of the bridge
+        # in that time (not counted as silence): room for it before the end; the others trip
+        # within 0.1 s of it or (a dropped reply) complete 0.2 s after it
+        duration=(AT / FS + 0.5) if rule == "watchdog" else (AT / FS + 0.2),
     )
     if rule is None:
         _report(driver, fault, "paced", res, "completed")
