@@ -423,7 +423,8 @@ def test_real_time_with_a_20ms_actuator(tmp_path, accel, dt):
     at element step 1/1024 s, 2, 23 and 78 at 1/256 s) while tracking stays within 1 % NRMS.
     What this test checks is the site, not the machine's real-time capability
     (benchmarks/bench_loop.py measures that)."""
-    dur = 3.0
+    # 2 s of El Centro, its first strong pulses: NRMS 0.35–0.40 % here, a tenth of the bound
+    dur = 2.0
     ref = S.reference(tmp_path, "frame", dt, dur, accel)
     result, _, floors, _ = S.hybrid(
         tmp_path,
