@@ -58,7 +58,8 @@ def test_controller_pauses_are_gaps_not_a_trip(modbus_servo, tmp_path):  # noqa:
     # (heartbeats every 50 ms: the partner's own 200 ms watchdog must not latch when a
     # loaded machine delays one of them)
     sets = ("safety.watchdog_timeout=0.15", "loop.heartbeat=0.05")
-    loop = RTHSLoop(_cfg(partner, *sets), tmp_path / "run", duration=3.0)
+    # 2 s: the partner pauses about 5 times a second (15 counted here, from its start)
+    loop = RTHSLoop(_cfg(partner, *sets), tmp_path / "run", duration=2.0)
     res = loop.run()
     state = partner.stop()
     assert res.status == "completed", res.trip
