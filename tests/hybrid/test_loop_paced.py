@@ -98,14 +98,14 @@ def test_kill_9_leaves_the_record_complete_up_to_the_kill(tmp_path):
     out = tmp_path / "run"
     proc = _start(out)
     _wait_rows(out / "record.npy", proc)
-    time.sleep(1.0)
+    time.sleep(0.5)  # ten flushes (output.flush_interval 0.05 s) before the kill
     t_kill = time.time()
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)
     run = read_run(out)
     rec = run.record
     n = len(rec)
-    assert n > FS * 0.9
+    assert n > FS * 0.4
     np.testing.assert_array_equal(rec["step"], np.arange(n))
     # the last flushed row was sent at most 0.25 s before the kill
     t_last = _wall_t0(run) + rec["time"][-1] + rec["lateness"][-1]
