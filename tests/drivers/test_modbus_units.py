@@ -119,7 +119,8 @@ def test_same_unit_twice_is_refused_one_line_exit_2(tmp_path, capsys):
     assert "'storey1' and 'storey3'" in err[0] and "unit 1 on 127.0.0.1:1502" in err[0]
     assert "driver.connection.device_id" in err[0]
     assert not (tmp_path / "o").exists()
-    with pytest.raises(InputError, match=r"actuators\[1\] \(storey3\): driver.connection.device_id"):
+    where = r"actuators\[1\] \(storey3\): driver.connection.device_id"
+    with pytest.raises(InputError, match=where):
         RTHSLoop(load_config(UNITS, ["actuators.storey3.driver.connection.device_id=0"]), tmp_path)
 
 
