@@ -6,6 +6,8 @@ shipped DBC, as a controller would send them."""
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import can
@@ -29,6 +31,22 @@ def _feedback(node: int, displacement: float, force: float, seq: int = 0) -> can
     return can.Message(arbitration_id=FEEDBACK.frame_id + node, data=data, is_extended_id=False)
 
 
+@contextmanager
+def _two_nodes(channel: str) -> Iterator[tuple[CANDriver, CANDriver, can.BusABC]]:
+    """Nodes 0 and 1 open on one virtual bus, and the controller's end of it."""
+    a = CANDriver(channel=channel, node=0)
+    b = CANDriver(channel=channel, node=1)
+    controller = can.Bus(interface="virtual", channel=channel)
+    a.open()
+    b.open()
+    try:
+        yield a, b, controller
+    finally:
+        controller.shutdown()
+        a.close()
+        b.close()
+
+
 def test_a_second_driver_for_a_node_is_refused_until_the_first_closes() -> None:
     a = CANDriver(channel="shared-bus-1", node=3)
     b = CANDriver(channel="shared-bus-1", node=3)
@@ -47,12 +65,7 @@ def test_a_second_driver_for_a_node_is_refused_until_the_first_closes() -> None:
 
 
 def test_a_frame_for_another_node_reaches_that_node() -> None:
-    a = CANDriver(channel="shared-bus-2", node=0)
-    b = CANDriver(channel="shared-bus-2", node=1)
-    controller = can.Bus(interface="virtual", channel="shared-bus-2")
-    a.open()
-    b.open()
-    try:
+    with _two_nodes("shared-bus-2") as (a, b, controller):
         a.send(0, 0.0, enable=True)
         b.send(0, 0.0, enable=True)
         controller.send(_feedback(1, 0.0025, -300.5))  # node 1's, read first by node 0
@@ -63,10 +76,6 @@ def test_a_frame_for_another_node_reaches_that_node() -> None:
         assert (fa.displacement, fa.force) == (pytest.approx(-0.001, abs=1e-7), 42.0)
         assert (fb.displacement, fb.force) == (pytest.approx(0.0025, abs=1e-7), -300.5)
         assert a.stats.malformed == 0 and b.stats.malformed == 0
-    finally:
-        controller.shutdown()
-        a.close()
-        b.close()
 
 
 def test_a_frame_for_no_node_is_counted() -> None:
@@ -97,12 +106,7 @@ def test_a_node_read_late_leaves_the_other_nodes_replies_to_them() -> None:
     fallback of a driver that may block), that thread would take node 1's replies off the
     shared bus into node 1's inbox while node 1 waits on the bus, and node 1 would miss them
     (33 of these 40 did): every reply to node 1 must reach it."""
-    a = CANDriver(channel="shared-bus-5", node=0)
-    b = CANDriver(channel="shared-bus-5", node=1)
-    controller = can.Bus(interface="virtual", channel="shared-bus-5")
-    a.open()
-    b.open()
-    try:
+    with _two_nodes("shared-bus-5") as (a, b, controller):
         a._overran(0.06)  # node 0's receive came back 60 ms late (the driver's fallback)
         a.send(0, 0.0, enable=True)
         assert a.receive(0.001) is None  # node 0 receives as the loop does (its thread, if any)
@@ -120,7 +124,3 @@ def test_a_node_read_late_leaves_the_other_nodes_replies_to_them() -> None:
         assert missed == 0
         assert b.stats.timeouts == 0
         assert a.stats.deadline_overruns == 1  # counted all the same
-    finally:
-        controller.shutdown()
-        a.close()
-        b.close()
