@@ -87,6 +87,10 @@ if TYPE_CHECKING:  # pragma: no cover
 
 log = logging.getLogger(__name__)
 
+#: The hand-back's disabling command is repeated, one exchange per step, until each channel
+#: has confirmed or this long (s; or the loop's timeout when longer) has passed since the first.
+HANDBACK_WAIT = 0.2
+
 __all__ = [
     "Link",
     "Phases",
@@ -488,9 +492,11 @@ class Phases:
         trip, meas = None, [math.nan] * len(self.chans)
         if m:
             trip, meas = self._drive(paths, seq0=seq0, k0=k0, t_first=t_first)
-        elif self.paced and t_first is not None:  # disable on the loop's grid
-            self.pacer.start(t_first)
-            self.pacer.wait(0)
+        grid = None  # paced: the disabling exchanges on the loop's grid, steps m, m + 1, …
+        if self.paced and (m or t_first is not None):
+            if not m:
+                self.pacer.start(t_first)
+            grid = m
         rec.event(
             "end_ramp", k0 * dt, k0, channels=[ch.name for ch in self.chans], start=last.tolist(),
             end=rest.tolist(), rest=self.end_cfg["rest"], duration=n_ramp * dt,
@@ -498,41 +504,71 @@ class Phases:
         )  # fmt: skip
         seq = seq0 + m
         if trip is None:
-            self.handback_ok = self._disable(seq, k0 + m, rest)
-            seq += 1
+            self.handback_ok, used = self._disable(seq, k0 + m, rest, grid)
+            seq += used
         # the loop's numbering for whatever is sent next (an e-stop's confirmation poll)
         self.shift = seq - k0
         self._link()
         return trip
 
-    def _disable(self, seq: int, k: int, rest: np.ndarray) -> bool:
-        """One ``enable=False`` command per channel; True when each replied disabled, unlatched."""
-        ok_all = True
-        for ch, (send, recv), x in zip(self.chans, self.raw, rest, strict=True):
-            fb = None
-            try:
-                send(seq, float(x), False)
-                fb = recv(max(self.plan.timeout, 0.2))
-            except InputError:
-                fb = None
+    def _disable(
+        self, seq: int, k: int, rest: np.ndarray, grid: int | None = None
+    ) -> tuple[bool, int]:
+        """Disable every controller; True when each replied disabled and unlatched.
+
+        One exchange as the loop's step: ``enable=False`` to every channel, then every reply
+        (on a shared CANopen bus, one SYNC for all axes); repeated, one exchange per step,
+        while a channel has not confirmed, for up to :data:`HANDBACK_WAIT` (or the loop's
+        timeout). A reply may be one the controller sent before it took the command (a
+        CANopen TPDO carries no step, each axis answers every SYNC, and a loaded link's answers
+        trail the SYNCs), and a drive may take a cycle to leave its enabled state: such an
+        answer is no refusal. Each channel's first disabled, unlatched reply confirms it.
+        ``grid`` (paced): the pacer step of the first exchange. Returns whether all confirmed
+        and the number of exchanges (sequence numbers ``seq``, ``seq + 1``, …).
+        """
+        n = len(self.chans)
+        fbs: list[Feedback | None] = [None] * n
+        ok = [False] * n
+        timeout = max(self.plan.timeout, HANDBACK_WAIT)
+        used = 0
+        t_end = math.inf
+        while not all(ok) and time.perf_counter() < t_end:
+            if grid is not None:
+                self.pacer.wait(grid + used)
+            if not used:
+                t_end = time.perf_counter() + timeout
+            sent = [True] * n
+            for j, ((send, _), x) in enumerate(zip(self.raw, rest, strict=True)):
+                try:
+                    send(seq + used, float(x), False)
+                except InputError:
+                    sent[j] = False
+            for j, (_, recv) in enumerate(self.raw):
+                try:
+                    fb = recv(timeout) if sent[j] else None
+                except InputError:
+                    fb = None
+                if fb is not None and not ok[j]:  # a confirmation stands; later ones drained
+                    fbs[j] = fb
+                    ok[j] = fb is not None and not int(fb.status) & (ENABLED | ESTOP)
+            used += 1
+        for ch, fb, good in zip(self.chans, fbs, ok, strict=True):
             status = None if fb is None else int(fb.status)
             disabled = status is not None and not status & ENABLED
             latched = status is not None and bool(status & ESTOP)
-            ok = disabled and not latched
-            ok_all = ok_all and ok
             self.rec.event(
                 "handback", k * self.dt, k, channel=ch.name, replied=fb is not None,
                 position=None if fb is None else fb.displacement,
                 force=None if fb is None else fb.force, status=status, disabled=disabled,
-                latched=latched,
+                latched=latched, exchanges=used,
             )  # fmt: skip
-            if not ok:
+            if not good:
                 log.warning(
                     "%s: the controller did not confirm the hand-back (status %s)",
                     _channel_label(ch.name),
                     "no reply" if status is None else f"0x{status:02x}",
                 )
-        return ok_all
+        return all(ok), used
 
     # ------------------------------------------------------------------------------------------
     def _drive(

@@ -151,6 +151,30 @@ def test_start_from_a_non_zero_position_does_not_jump(serial_run_from_5mm):
     assert edges[0]["max_dev_50ms"] <= 1e-4, (edges[0], r.stderr[-1500:])
 
 
+def test_hand_back_is_confirmed_on_a_link_whose_answers_trail_the_syncs(cia402_drive, tmp_path):
+    """The drive's answers trail its SYNCs by 6 ms while the bridge steps every 3.9 ms (256
+    Hz): the answer read right after the disabling command is one the drive sent before it
+    took it (OPERATION ENABLED). The bridge keeps disabling, one exchange per step, until an
+    answer says disabled: the hand-back is confirmed, not reported as refused, and the drive
+    ends in SWITCH ON DISABLED."""
+    drive = cia402_drive("serial", answer_delay=0.006)
+    cfg = write_config(tmp_path, drive)
+    out = tmp_path / "run"
+    r = rths_run(cfg, out, "--duration", "1")
+    final = drive.stop()
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "did not confirm the hand-back" not in r.stderr, r.stderr[-2000:]
+    events = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
+    (end,) = [e for e in events if e["kind"] == "end"]
+    assert end["status"] == "completed" and end["handback"] is True
+    (hb,) = [e for e in events if e["kind"] == "handback"]
+    assert hb["disabled"] and not hb["latched"]
+    # (the first answer is normally the drive's from before the command, so more than one
+    # exchange; a machine stall just before the hand-back lets the stale answers drain first)
+    assert hb["exchanges"] >= 1
+    assert final["state"] == "SWITCH ON DISABLED" and final["emcy"] == []
+
+
 def test_estop_reaches_the_drive_and_refused_mapping_writes_do_not_crash(cia402_drive, tmp_path):
     """A lab EDS that says the mapping is writable: the drive refuses the writes with an SDO
     abort, the driver takes the drive's own mapping; the e-stop puts the drive into QUICK STOP
