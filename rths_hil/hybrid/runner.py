@@ -404,6 +404,7 @@ class Runner:
         check_feedback, heartbeat, advance = self.safety.feedback, step.heartbeat, step.advance
         evaluate, record, account = step.evaluate, step.record, step.account
         lat_list = bufs[0]
+        stop = self._stop
         perf = time.perf_counter
         cpu = time.thread_time
         usage = resource.getrusage
@@ -421,7 +422,7 @@ class Runner:
         live = _Console(self, bufs[1], t_start, console)
         try:
             while k < step.n and trip is None:
-                if self.stop_signal is not None:
+                if stop.signal is not None:  # (the attribute: no property call per step)
                     status, trip = "operator_stop", self._operator_stop(rec, k)
                     break
                 tk = k * dt
@@ -441,7 +442,8 @@ class Runner:
                 skew = replies(k, now, tk)  # ---- every channel's reply -------------------
                 t_work = perf()
                 trip = check_feedback(tk, k)
-                heartbeat(k)
+                if k >= step.hb_next:  # (the test here: no call on the other steps)
+                    heartbeat(k)
                 x_next, trip = advance(k, tk, xs, trip)  # ---- structure, command safety --
                 trip = evaluate(k, tk, lat, trip)  # ---- evaluators, their rules -----------
                 record(tk, k, lat, skew, xs)  # ---- row k ----------------------------------

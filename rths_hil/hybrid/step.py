@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 __all__ = ["Step", "dot"]
 
 _THREAD = resource.RUSAGE_THREAD
+_perf = time.perf_counter
 
 
 class Step:
@@ -134,7 +135,8 @@ class Step:
         self.slip = plan.after_stall == "slip"
         self.stalls: list[tuple[int, float]] = []
         self.hb_steps = plan.heartbeat_steps
-        self.hb_next = 0  # the step of the next heartbeat (every hb_steps; at once after a stall)
+        # the step of the next heartbeat (every hb_steps; at once after a stall; none: inf)
+        self.hb_next = 0 if self.hb_steps else math.inf
         self.missed = 0
         self.was_over = False
         self.console = console
@@ -275,11 +277,14 @@ class Step:
         )  # fmt: skip
 
     def heartbeat(self, k: int) -> None:
-        """Every channel's heartbeat when it is due (every ``hb_steps``; at once after a stall)."""
-        if self.hb_steps and k >= self.hb_next:
-            self.hb_next = k + self.hb_steps
-            for ch in self.chans:
-                ch.heartbeat()
+        """Every channel's heartbeat, due at step :attr:`hb_next` (the loop calls it from
+        then: every ``hb_steps``, at once after a stall)."""
+        if not self.hb_steps:  # no heartbeats (a stall set hb_next)
+            self.hb_next = math.inf
+            return
+        self.hb_next = k + self.hb_steps
+        for ch in self.chans:
+            ch.heartbeat()
 
     # ---- structure: commit step k with the measured forces, next targets -------------------
     def advance(self, k: int, tk: float, xs, trip: Trip | None) -> tuple:
@@ -394,9 +399,8 @@ class Step:
     def account(self, k: int, t_work: float, c_send: float, v_send: int) -> None:
         """Step ``k``'s work (from its replies to its row) and, paced, the time its thread was
         preempted without blocking (from its send); the reply budget's reserve."""
-        t_end = time.perf_counter()
-        w = t_end - t_work
-        self.work_list[k] = w
+        t_end = _perf()
+        self.work_list[k] = w = t_end - t_work
         self.budget.note(w)
         if self.paced and resource.getrusage(_THREAD).ru_nvcsw == v_send:  # never blocked
             off_cpu = t_end - self.pacer.prev_send - (time.thread_time() - c_send)

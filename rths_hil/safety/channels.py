@@ -57,8 +57,11 @@ class Safety:
             self.command = self._command_one  # type: ignore[method-assign]
 
     def _feedback_one(self, t: float, k: int) -> Trip | None:
-        ch = self._ch
-        trip = _feedback(self._check_feedback, ch, t, k)
+        ch = self._ch  # (as _feedback, without its call: the one-channel step's path)
+        trip = self._check_feedback(
+            t, k, ch.feedback_ok, k, ch.reply_seq, ch.reply_status, ch.command, ch.measured,
+            ch.force, ch.link_down,
+        )  # fmt: skip
         return None if trip is None else self.fire(trip, ch, t, k)
 
     def _command_one(self, t: float, k: int) -> Trip | None:
