@@ -6,6 +6,7 @@ blocks past its receive deadline cannot hold the loop's watchdog past its limit.
 from __future__ import annotations
 
 import importlib
+import inspect
 import shutil
 import sys
 import tomllib
@@ -97,6 +98,42 @@ def test_registries_find_the_lab_driver_and_its_twin(lab_package: Path) -> None:
     assert available_twins()["mylab"] == "mylab_udp:UDPTwin"
     cls, entry = twin_class("mylab")
     assert cls.__name__ == "UDPTwin" and entry.seq_bits is None
+
+
+def test_the_lab_plugins_declare_their_constructors_keys(lab_package: Path) -> None:
+    """What the example declares (``CONNECTION``) is what its constructors take, with their
+    defaults: the configuration is read against the same names the classes are built with."""
+    from rths_hil.drivers.registry import driver_class
+    from rths_hil.sim_backends.registry import twin_class
+
+    for cls in (driver_class("mylab"), twin_class("mylab")[0]):
+        params = inspect.signature(cls.__init__).parameters
+        named = {n: p.default for n, p in params.items() if n not in ("self", "controller")}
+        assert {n: k.default for n, k in cls.CONNECTION.items()} == named, cls.__name__
+
+
+@pytest.mark.parametrize(
+    "twin, setting, line",
+    [
+        ("true", "{prot=9001}", "driver.connection.prot: unknown key (did you mean 'port'?)"),
+        ("true", "{port=70000}", "driver.connection.port: must be ≤ 65535, got 70000"),
+        ("false", "{port=0}", "driver.connection.port: must be ≥ 1, got 0"),
+        ("false", "{port='x'}", "driver.connection.port: "),
+    ],
+)
+def test_a_bad_lab_connection_is_one_line_naming_the_key(
+    lab_package: Path, twin: str, setting: str, line: str, capsys
+) -> None:
+    """The lab's keys are read by the same validator as the built-in drivers': one line naming
+    ``driver.connection.KEY``, exit 2, before a twin starts or a socket opens."""
+    argv = ["run", "--lockstep", "--no-plot", "-q", "--duration", "0.1", "--confirm-hardware"]
+    argv += ["--set", "driver.name=mylab", "--set", f"twin.enabled={twin}"]
+    code = main([*argv, "--set", f"driver.connection={setting}"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err
+    lines = [x for x in err.splitlines() if "error" in x]
+    assert len(lines) == 1 and line in lines[0], err
 
 
 def test_lab_driver_lockstep_equals_the_serial_driver(lab_package: Path, tmp_path: Path) -> None:

@@ -20,8 +20,9 @@ deadline — and says what it knows about its link (:meth:`UDPDriver.link_key`,
 :meth:`rths_hil.drivers.protocol.Protocol.from_driver`). The base class keeps the sequence
 rules, the timeouts and the counters. The twin is a
 :class:`~rths_hil.sim_backends.endpoints.base.TwinEndpoint` around the same controller state
-machine as the built-in twins (arming, e-stop latch, controller-side watchdog, faults). Both
-are found through the entry points in ``pyproject.toml``.
+machine as the built-in twins (arming, e-stop latch, controller-side watchdog, faults). Each
+declares the connection settings it takes (``CONNECTION``), which the configuration is read
+against before anything starts. Both are found through the entry points in ``pyproject.toml``.
 """
 
 from __future__ import annotations
@@ -30,12 +31,14 @@ import select
 import socket
 import struct
 import time
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from rths_hil.drivers.base import Driver, Feedback, LinkDown
 from rths_hil.sim_backends.endpoints.base import TwinController, TwinEndpoint
 
 from rths_hil.errors import InputError
+from rths_hil.keys import Key
 from rths_hil.linkbudget import LinkLoad
 
 __all__ = ["COMMAND", "FEEDBACK", "UDPDriver", "UDPTwin"]
@@ -58,6 +61,12 @@ class UDPDriver(Driver):
     """
 
     name: ClassVar[str] = "mylab"
+    #: ``driver.connection``: read (types, ranges, a misspelt key's closest match) before the
+    #: driver is built; the defaults are ``__init__``'s
+    CONNECTION: ClassVar[Mapping[str, Key]] = {
+        "host": Key("str", "127.0.0.1", doc="controller address"),
+        "port": Key("int", 9000, lo=1, hi=65535, doc="controller UDP port"),
+    }
     command_lsb: ClassVar[float | None] = None  # displacements travel as doubles
     honours_deadline: ClassVar[bool] = True  # select() with the time left
 
@@ -155,6 +164,11 @@ class UDPTwin(TwinEndpoint):
 
     name = "mylab"
     seq_bits = None  # the command carries the full 32-bit step number
+    #: what the twin takes (the driver is then given the address it bound)
+    CONNECTION: ClassVar[Mapping[str, Key]] = {
+        "host": Key("str", "127.0.0.1", doc="twin: loopback address to bind"),
+        "port": Key("int", 0, lo=0, hi=65535, doc="twin: UDP port (0: any free port)"),
+    }
 
     def __init__(self, controller: TwinController, host: str = "127.0.0.1", port: int = 0) -> None:
         super().__init__(controller)
