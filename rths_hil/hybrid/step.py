@@ -290,9 +290,12 @@ class Step:
     def advance(self, k: int, tk: float, xs, trip: Trip | None) -> tuple:
         """Commit step ``k`` with the measured forces; each channel's next target and command.
 
-        After a trip the targets and commands are held. Returns the next DOF targets and the
-        trip of the command phase (or of an external structure); an external structure that
-        ends the test sets the last step.
+        The structure's step ``k`` with the channels' forces (``Tᵀ·f``; force or load
+        channels: :func:`.channel.step_mixed`), then each channel's next target, velocity,
+        restoring force and compensated command (``T·u``). After a trip the targets and
+        commands are held. Returns the next DOF targets and the trip of the command phase (or
+        of an external structure); an external structure that ends the test sets the last
+        step.
         """
         chans = self.chans
         if trip is not None:
@@ -300,48 +303,40 @@ class Step:
                 ch.target_next, ch.command_next = ch.target, ch.command
             return xs, trip
         st = self.st
+        n_dof = self.n_dof
         if self.mixed:  # force or load channels (.channel.step_mixed)
-            x_next = step_mixed(st, k, self.ag[k], chans, self.n_dof)
+            x_next = step_mixed(st, k, self.ag[k], chans, n_dof)
         else:
-            x_next = self.structure(k)
+            if n_dof == 1 and not self.multi:
+                x_next = st.step(k, self.ag[k], (chans[0].force * chans[0].row[0],))
+            else:
+                f = [0.0] * n_dof
+                for ch in chans:
+                    if ch.dof >= 0:
+                        f[ch.dof] += ch.force
+                    else:
+                        for i, r in enumerate(ch.row):
+                            f[i] += r * ch.force
+                x_next = st.step(k, self.ag[k], f)
+            v_d, r_d = st.v, st.r
+            for ch in chans:
+                d = ch.dof
+                if d >= 0:
+                    ch.target_next = x_next[d]
+                    ch.velocity = v_d[d]
+                    ch.restoring_force = r_d[d]
+                else:
+                    ch.target_next = dot(ch.row, x_next)
+                    ch.velocity = dot(ch.row, v_d)
+                    ch.restoring_force = dot(ch.row, r_d)
+                ch.alpha = ch.compensator.alpha
+                ch.command_next = ch.compensate(ch.target_next)
         trip = self.safety.command(tk, k)
         if st.finished and trip is None:
             trip = st.trip  # an external structure's fault
             if trip is None:
                 self.n = k + 1  # the structure ends the test after this step
         return x_next, trip
-
-    def structure(self, k: int):
-        """The structure's step ``k`` with the channels' forces (``Tᵀ·f``); each channel's
-        next target, velocity, restoring force and compensated command (``T·u``)."""
-        chans = self.chans
-        st = self.st
-        n_dof = self.n_dof
-        if n_dof == 1 and not self.multi:
-            x_next = st.step(k, self.ag[k], (chans[0].force * chans[0].row[0],))
-        else:
-            f = [0.0] * n_dof
-            for ch in chans:
-                if ch.dof >= 0:
-                    f[ch.dof] += ch.force
-                else:
-                    for i, r in enumerate(ch.row):
-                        f[i] += r * ch.force
-            x_next = st.step(k, self.ag[k], f)
-        v_d, r_d = st.v, st.r
-        for ch in chans:
-            d = ch.dof
-            if d >= 0:
-                ch.target_next = x_next[d]
-                ch.velocity = v_d[d]
-                ch.restoring_force = r_d[d]
-            else:
-                ch.target_next = dot(ch.row, x_next)
-                ch.velocity = dot(ch.row, v_d)
-                ch.restoring_force = dot(ch.row, r_d)
-            ch.alpha = ch.compensator.alpha
-            ch.command_next = ch.compensate(ch.target_next)
-        return x_next
 
     # ---- evaluators and their rules --------------------------------------------------------
     def evaluate(self, k: int, tk: float, lat: float, trip: Trip | None) -> Trip | None:
@@ -401,7 +396,8 @@ class Step:
         preempted without blocking (from its send); the reply budget's reserve."""
         t_end = _perf()
         self.work_list[k] = w = t_end - t_work
-        self.budget.note(w)
+        if self.budget.auto:  # the reserve of the automatic wait (ReplyBudget.note)
+            self.budget.note(w)
         if self.paced and resource.getrusage(_THREAD).ru_nvcsw == v_send:  # never blocked
             off_cpu = t_end - self.pacer.prev_send - (time.thread_time() - c_send)
             self.stalled_list[k] = max(0.0, off_cpu)

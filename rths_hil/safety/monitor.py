@@ -233,7 +233,11 @@ class SafetyMonitor:
         if not ok and link_down is not None:
             reason = f"the link to the controller is down ({link_down})"
             return self._fire(Trip("link", reason), t, k)
-        return self._ask(self.watchdog, t, k, ok)
+        rule = self.watchdog  # (as _ask, without its call: every step)
+        if rule is None:
+            return None
+        trip = rule.check(ok)
+        return None if trip is None else self._fire(trip, t, k)
 
     def check_feedback(
         self,
@@ -313,7 +317,11 @@ class SafetyMonitor:
         """The channel's energy stability indicator ``S`` of this step (NaN: not valid)."""
         if self.tripped is not None:
             return self.tripped
-        return self._ask(self.stability, t, k, ratio, injected)
+        rule = self.stability  # (as _ask, without its call: every step)
+        if rule is None:
+            return None
+        trip = rule.check(ratio, injected)
+        return None if trip is None else self._fire(trip, t, k)
 
     def check_kalman(self, t: float, k: int, gain: float, delay: float) -> Trip | None:
         """The Kalman estimator's gain and delay."""
@@ -321,7 +329,11 @@ class SafetyMonitor:
             return self.tripped
         if not _isfinite(gain + delay):
             return self._nan(t, k, ("kf_gain", "kf_delay"), (gain, delay))
-        return self._ask(self.kalman, t, k, gain, delay)
+        rule = self.kalman  # (as _ask, without its call: every Kalman estimate)
+        if rule is None:
+            return None
+        trip = rule.check(gain, delay)
+        return None if trip is None else self._fire(trip, t, k)
 
     def margin(self, peak_displacement: float, peak_velocity: float, peak_force: float):
         """The nearest limit: ``(name, fraction of the limit still unused)`` (for the console)."""
