@@ -11,8 +11,6 @@ frame faults (drop, corrupt, delay) counted by the driver.
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -27,6 +25,7 @@ from rths_hil.sim_backends.endpoints.canopen_twin import EMCY_FOLLOWING_ERROR, d
 from rths_hil.sim_backends.faults import Faults
 from rths_hil.sim_backends.twin import default_plant, start_twin
 
+from rths_hil.cli import main
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.hybrid import RTHSLoop
@@ -203,6 +202,15 @@ def test_twin_latches_when_the_bridge_heartbeat_stops(inline):
         drv.close()
 
 
+def _run_refused(argv: list[str], capsys) -> list[str]:
+    """``rths-hil run ARGV`` in this process: exit 2, no traceback; the error lines."""
+    code = main(["run", *argv])
+    stderr = capsys.readouterr().err
+    assert code == 2, stderr
+    assert "Traceback" not in stderr
+    return [x for x in stderr.splitlines() if "error" in x]
+
+
 @pytest.mark.parametrize(
     "setting, message",
     [
@@ -216,16 +224,11 @@ def test_twin_latches_when_the_bridge_heartbeat_stops(inline):
         ("counts_per_m=0", "driver.connection.counts_per_m: must be > 0 counts/m, got 0"),
     ],
 )
-def test_bad_connection_is_one_line_exit_2(tmp_path, setting, message):
+def test_bad_connection_is_one_line_exit_2(tmp_path, setting, message, capsys):
     cfg = ROOT / "examples" / "controllers" / "cia402.toml"
     sets = ["--set", f"driver.connection.{setting}", "--set", f"output.dir={tmp_path}/r"]
-    cmd = [sys.executable, "-m", "rths_hil", "run", str(cfg), "--lockstep", "--duration", "0.5"]
-    cmd += sets
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=tmp_path)
-    assert proc.returncode == 2, proc.stderr
-    assert "Traceback" not in proc.stderr
-    err = [x for x in proc.stderr.splitlines() if "error" in x]
-    assert len(err) == 1 and message in err[0], proc.stderr
+    err = _run_refused([str(cfg), "--lockstep", "--duration", "0.5", *sets], capsys)
+    assert len(err) == 1 and message in err[0], err
 
 
 def test_eds_whose_pdo_does_not_fit_is_refused(tmp_path):
@@ -364,13 +367,11 @@ def test_two_axes_on_one_bus_share_one_sync_per_step(tmp_path):
         assert abs(float(np.median(rec["fei_delay" + sfx][v])) - delay) < 1.5e-3
 
 
-def test_two_axes_with_one_node_id_are_refused(tmp_path):
-    cmd = [sys.executable, "-m", "rths_hil", "run", str(TWO_AXES), "--lockstep", "--duration",
-           "0.5", "--set", "actuators.storey3.driver.connection.node_id=1",
-           "--set", f"output.dir={tmp_path}/r"]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=tmp_path)
-    assert proc.returncode == 2, proc.stderr
-    err = [x for x in proc.stderr.splitlines() if "error" in x]
+def test_two_axes_with_one_node_id_are_refused(tmp_path, capsys):
+    argv = [str(TWO_AXES), "--lockstep", "--duration", "0.5",
+            "--set", "actuators.storey3.driver.connection.node_id=1",
+            "--set", f"output.dir={tmp_path}/r"]  # fmt: skip
+    err = _run_refused(argv, capsys)
     assert len(err) == 1 and "both CANopen node 1 on bus virtual:rths-canopen-two-axes" in err[0]
 
 
