@@ -167,14 +167,10 @@ def test_start_outside_the_displacement_limit_is_refused(tmp_path):
     assert _events(run, "refused") and not _events(run, "start_ramp")
 
 
-def test_cli_refusal_is_one_line_exit_2(tmp_path):
-    out = tmp_path / "r"
-    cmd = [sys.executable, "-m", "rths_hil", "run", "-q", "--lockstep", "--out", str(out)]
-    cmd += [f"--set={s}" for s in [*BASE, 'twin.initial_position="-70mm"']]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
-    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert proc.returncode == 2, proc.stderr
-    assert len(lines) == 1 and "-70.000 mm" in lines[0] and "displacement limit" in lines[0]
+def test_cli_refusal_is_one_line_exit_2(tmp_path, capsys):
+    argv = ["run", "-q", "--lockstep", "--out", str(tmp_path / "r")]
+    argv += [f"--set={s}" for s in [*BASE, 'twin.initial_position="-70mm"']]
+    one_line_exit_2(argv, capsys, "-70.000 mm", "displacement limit")
 
 
 def test_controller_fault_at_start_is_refused(tmp_path, capsys):
