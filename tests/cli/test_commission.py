@@ -32,7 +32,7 @@ import pytest
 from rths_hil.cli import main
 from rths_hil.commission import commission
 from rths_hil.config import load_config
-from tests.helpers.cli import one_line_exit_2
+from tests.helpers.cli import one_line_exit_2, run_cli
 from tests.helpers.procs import ROOT, ServedTwin, toml_table
 from tests.partners.modbus_fixtures import PROFILE, ServoPartner, modbus_servo  # noqa: F401
 
@@ -522,11 +522,10 @@ def test_modbus_partner_fragment_tracks_the_first_test(
     test = out / "test.toml"  # (beside the commissioning's directory c/)
     test.write_text('include = ["c/tuned.toml"]\n')
     partner = modbus_servo(pause_rate=0)
-    run = subprocess.run(
-        [sys.executable, "-m", "rths_hil", "run", str(test), "--paced", "--duration", "8",
-         "--no-plot", "-q", "--confirm-hardware", "--out", str(tmp_path / "run"),
-         *[f"--set={s}" for s in _partner_rig(partner)]],
-        capture_output=True, text=True, timeout=180, cwd=ROOT,
+    run = run_cli(
+        ["run", str(test), "--paced", "--duration", "8", "--no-plot", "-q",
+         "--confirm-hardware", "--out", str(tmp_path / "run"),
+         *[f"--set={s}" for s in _partner_rig(partner)]]
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
     fei = json.loads((tmp_path / "run" / "summary.json").read_text())["fei_target"]

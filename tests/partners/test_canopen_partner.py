@@ -11,8 +11,6 @@ What the bridge did to the drive is read from the drive itself: by SDO with a pl
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -21,12 +19,11 @@ import numpy as np
 import pytest
 from rths_hil.drivers.registry import create_driver
 
-from tests.helpers.cli import one_line_exit_2
+from tests.helpers.cli import one_line_exit_2, run_cli
 from tests.partners.canopen_fixtures import EDS, DrivePartner
 
 pytestmark = pytest.mark.timing
 
-ROOT = Path(__file__).resolve().parents[2]
 K_SPECIMEN = 1e6  # N/m, the partner's specimen
 TORQUE_LSB = 5000.0 / 1000.0  # N per per mille: 0x6076 = 5 000 000 mN (its rated force)
 SOD, QSA = 0x40, 0x07  # statusword & 0x6F: SWITCH ON DISABLED, QUICK STOP ACTIVE
@@ -53,10 +50,12 @@ watchdog_timeout = 0.3
     return cfg
 
 
-def rths_run(cfg: Path, out: Path, *args: str, timeout: float = 60.0):
-    cmd = [sys.executable, "-m", "rths_hil", "run", str(cfg), "--no-plot",
-           "--confirm-hardware", "--out", str(out), "--set", "loop.console=0", *args]  # fmt: skip
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+def rths_run(cfg: Path, out: Path, *args: str):
+    """``rths-hil run CFG`` against the drive, as a lab runs it (in this process: the drive is
+    the other process); its exit code, stdout and stderr."""
+    argv = ["run", str(cfg), "--no-plot", "--confirm-hardware", "--out", str(out),
+            "--set", "loop.console=0", *args]  # fmt: skip
+    return run_cli(argv)
 
 
 def statusword_and_errors(drive) -> tuple[int, int]:

@@ -14,8 +14,6 @@ import re
 import socket
 import statistics
 import struct
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -25,6 +23,7 @@ from rths_hil.drivers.registry import create_driver
 from rths_hil.sim_backends.twin import default_plant, start_twin
 
 from rths_hil.api import open_run
+from tests.helpers.cli import run_cli
 from tests.partners.modbus_fixtures import PROFILE
 
 pytestmark = pytest.mark.timing
@@ -33,26 +32,20 @@ ROOT = Path(__file__).resolve().parents[2]
 READY, ENABLED, FAULT, WATCHDOG, ESTOP = 0x01, 0x02, 0x08, 0x20, 0x80
 
 
-def run_bridge(partner, out: Path, *sets: str, duration: float = 1.0) -> subprocess.Popen:
-    """``rths-hil run`` (paced) against the partner in its own process, as a lab runs it."""
-    cmd = [
-        sys.executable, "-m", "rths_hil", "run", "--no-plot", "--confirm-hardware",
-        "--out", str(out), "--duration", str(duration),
+def run_bridge(partner, out: Path, *sets: str, duration: float = 1.0) -> tuple[int, str]:
+    """``rths-hil run`` (paced) against the partner, as a lab runs it (in this process: the
+    partner is the other process); its exit code and what it printed."""
+    argv = [
+        "run", "--no-plot", "--confirm-hardware", "--out", str(out), "--duration", str(duration),
         "--set", "twin.enabled=false", "--set", "driver.name=modbus",
         "--set", f'driver.profile="{PROFILE}"',
         "--set", f'driver.connection={{host="127.0.0.1", port={partner.port}}}',
         "--set", "loop.console=0",
     ]  # fmt: skip
     for s in sets:
-        cmd += ["--set", s]
-    return subprocess.Popen(
-        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT
-    )
-
-
-def finish(proc: subprocess.Popen, timeout: float = 60.0) -> tuple[int, str]:
-    out, err = proc.communicate(timeout=timeout)
-    return proc.returncode, out + err
+        argv += ["--set", s]
+    r = run_cli(argv)
+    return r.returncode, r.stdout + r.stderr
 
 
 def events(out: Path, kind: str) -> list[dict]:
@@ -184,8 +177,7 @@ def test_trip_mid_run_estops_the_controller_not_its_watchdog(modbus_servo, tmp_p
     out = tmp_path / "trip"
     sets = ("safety.displacement_limit=0.15mm", "loop.fs=512", "loop.heartbeat=0.05")
     sets += ("safety.watchdog_timeout=0.25",)  # (a starved process is not the trip here)
-    proc = run_bridge(partner, out, *sets, duration=2.0)
-    rc, text = finish(proc)
+    rc, text = run_bridge(partner, out, *sets, duration=2.0)
     assert rc == 3, text
     assert partner.status() == ESTOP
     state = partner.stop()
@@ -228,8 +220,7 @@ def test_no_motion_at_the_enable_edge_from_plus_5_mm(modbus_servo, tmp_path):
     t.start()
     out = tmp_path / "jump"
     sets = ('start.mode="offset"', "end.hold=0", "loop.fs=256")
-    proc = run_bridge(partner, out, *sets, duration=0.2)
-    rc, text = finish(proc)
+    rc, text = run_bridge(partner, out, *sets, duration=0.2)
     stop.set()
     t.join(2)
     assert rc == 0, text
@@ -290,8 +281,7 @@ def test_watchdog_trip_names_the_status_register_and_the_link_its_requests(modbu
     out = tmp_path / "wd"
     sets = ("loop.heartbeat=0", "loop.fs=512", "safety.watchdog_timeout=0.25")  # (a stall
     # of this loaded machine is not the trip under test)
-    proc = run_bridge(partner, out, *sets, duration=1.0)
-    rc, text = finish(proc)
+    rc, text = run_bridge(partner, out, *sets, duration=1.0)
     assert rc == 3, text
     (trip,) = events(out, "trip")
     assert "status register 0x00A0 (e-stop, watchdog)" in trip["reason"], trip
@@ -312,7 +302,7 @@ def test_a_link_too_slow_for_the_rate_is_said_at_arming_and_costs_what_it_said(
     partner = modbus_servo(pause_rate=0, service_time=0.002)
     out = tmp_path / "slow"
     sets = ("loop.fs=512", "safety.watchdog_timeout=0.2")
-    rc, text = finish(run_bridge(partner, out, *sets, duration=1.0))
+    rc, text = run_bridge(partner, out, *sets, duration=1.0)
     (link,) = events(out, "link")
     assert "2 requests (FC 16 + FC 4)" in link["warning"] and "at 512 Hz" in link["warning"]
     assert link["warning"] in text
@@ -337,8 +327,7 @@ def test_paced_512_hz_default_profile_completes_and_hands_back_disabled(modbus_s
     partner = modbus_servo(pause_rate=2, watchdog=0.5)
     out = tmp_path / "paced"
     sets = ("loop.fs=512", "loop.heartbeat=0.05", "safety.watchdog_timeout=0.5")
-    proc = run_bridge(partner, out, *sets, duration=2.0)
-    rc, text = finish(proc)
+    rc, text = run_bridge(partner, out, *sets, duration=2.0)
     assert rc == 0, text
     assert "answers one request at a time" in text
     (arm,) = events(out, "arm")  # the fallback is in the record, not only on the terminal
