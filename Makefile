@@ -3,9 +3,8 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
-SYSDEPS := $(VENV)/.system-deps
 
-.PHONY: run test lint format bench clean
+.PHONY: run test deps system-deps lint format bench clean
 
 # --no-compile: Python compiles each module it imports, once, when it first imports it;
 # byte-compiling every installed module up front (numba, scipy, dask, matplotlib, OpenSeesPy …)
@@ -24,10 +23,15 @@ run test: export PYTHONDONTWRITEBYTECODE =
 run: $(STAMP)
 	$(BIN)/rths-hil run $(ARGS)
 
-# System packages some tests need (OpenSeesPy's BLAS/LAPACK, headless Chromium).
-$(SYSDEPS): scripts/system-deps.sh | $(STAMP)
-	bash scripts/system-deps.sh
-	@touch $(SYSDEPS)
+# System packages some tests need (OpenSeesPy's BLAS/LAPACK, headless Chromium): the script
+# installs what is missing and returns at once (dpkg-query) when nothing is.
+system-deps:
+	@bash scripts/system-deps.sh
+
+# The Python environment and the system packages side by side: two independent downloads and
+# installs (pip into .venv, apt-get into the system), on a fresh machine tens of seconds each.
+deps:
+	@$(MAKE) --no-print-directory -j2 $(STAMP) system-deps
 
 # Tests that run the loop against the wall clock or with other processes (marker "timing") run
 # one at a time after the others, which share the cores (pytest-xdist, one file per worker);
@@ -36,7 +40,7 @@ $(SYSDEPS): scripts/system-deps.sh | $(STAMP)
 # process: a pool per core in each of two workers fought over the cores (a file's tests took
 # twice as long).
 test: export OPENBLAS_NUM_THREADS = 1
-test: $(STAMP) $(SYSDEPS) lint
+test: deps lint
 	$(BIN)/python -m pytest -q -m "not timing" -n auto --dist loadfile $(PYTEST_ARGS) || test $$? -eq 5
 	$(BIN)/python -m pytest -q -m timing --durations=25 $(PYTEST_ARGS) || test $$? -eq 5
 	$(BIN)/python -m pytest -q --doctest-modules --pyargs rths_hil rths_hil.drivers rths_hil.sim_backends
