@@ -115,8 +115,9 @@ FAULTS = {
     "runaway": f"runaway_from={AT}; runaway_rate=0.05",
     "nan": f"nan={AT}",
     # paced: a reply that comes after its step's wait is never delivered, so one NaN reply can
-    # go unseen on a slow transport (CANopen's four frames a step): ten in a row
-    "nan_paced": "nan=" + ",".join(str(AT + i) for i in range(10)),
+    # go unseen on a slow transport (CANopen's four frames a step), and ten in a row behind a
+    # 10 ms stall of this machine (seen once, Modbus map): thirty in a row, the trip's bound
+    "nan_paced": "nan=" + ",".join(str(AT + i) for i in range(30)),
 }
 
 
