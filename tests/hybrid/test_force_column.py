@@ -112,7 +112,8 @@ def test_column_lockstep_axial_held_and_horizontal_as_without_it(tmp_path):
 def test_column_paced_axial_held_and_horizontal_as_without_it(tmp_path):
     out = tmp_path / "paced"
     # 3 s: the structure moves strongly from 1.8 s; one 2 s FEI window and more
-    rths_hil.run(EXAMPLE, SHORT, mode="paced", duration=3.0, run_dir=out)
+    res = rths_hil.run(EXAMPLE, SHORT, mode="paced", duration=3.0, run_dir=out)
+    assert res.status == "completed", res.trip  # (the reason first, if a rule tripped)
     summary = _check_axial(out)
     alone = tmp_path / "alone"
     rths_hil.run(
