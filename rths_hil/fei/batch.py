@@ -11,7 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft as sfft
-from scipy.signal import decimate as _decimate
 
 from ..errors import InputError
 
@@ -518,6 +517,10 @@ def moving_fei(
     if decimate > 1:
         if x.size < 27 * decimate:
             raise InputError(f"record too short to decimate by {decimate}")
+        # imported here: scipy.signal takes ~1.5 s to import (scipy ≥ 1.15), and the paced
+        # loop's exact-FEI worker process, which needs only OnlineFEI, waits for its imports
+        from scipy.signal import decimate as _decimate
+
         x = _decimate(x, decimate, zero_phase=True)
         y = _decimate(y, decimate, zero_phase=True)
     N = window_samples(window_s, fs_eff)
