@@ -33,9 +33,11 @@ system-deps:
 deps:
 	@$(MAKE) --no-print-directory -j2 $(STAMP) system-deps
 
-# Tests that run the loop against the wall clock or with other processes (marker "timing") run
-# one at a time after the others, which share the cores (pytest-xdist, one file per worker);
-# the slowest of them are listed at the end (they set the length of the run).
+# Tests whose checks need the machine to run them promptly (marker "timing": a loop paced
+# against the wall clock, a bound on how soon something happens) run one at a time after the
+# others, which share the cores (pytest-xdist, one file per worker; tests that start twins,
+# OpenSees or Chromium and wait for them as long as it takes are among these); the slowest
+# timing tests are listed at the end (they set the length of the run).
 # Exit 5 = PYTEST_ARGS selected none of one kind. numpy's OpenBLAS keeps one thread per test
 # process: a pool per core in each of two workers fought over the cores (a file's tests took
 # twice as long).

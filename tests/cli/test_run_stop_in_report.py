@@ -12,8 +12,6 @@ import time
 
 import pytest
 
-pytestmark = pytest.mark.timing
-
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM])  # SIGHUP and SIGINT: the same handler
 def test_a_signal_while_the_report_is_written(tmp_path, sig):

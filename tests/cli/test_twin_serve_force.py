@@ -69,7 +69,6 @@ def _reference(t: np.ndarray, ag: np.ndarray) -> np.ndarray:
     return sol.y[0]
 
 
-@pytest.mark.timing  # another process
 @pytest.mark.parametrize("driver", sorted(FAMILIES))
 def test_served_force_twin_runs_a_lockstep_force_channel(tmp_path: Path, driver: str) -> None:
     model = tmp_path / "force_twin.toml"

@@ -20,8 +20,6 @@ from rths_hil.cli import main
 from rths_hil.records.recorder import read_run
 from tests.helpers.cli import one_line_exit_2
 
-pytestmark = pytest.mark.timing  # lockstep runs with twins on TCP and CAN buses
-
 ROOT = Path(__file__).resolve().parents[2]
 COLUMN = ROOT / "examples" / "column_axial.toml"
 EXAMPLES = ROOT / "examples" / "controllers"

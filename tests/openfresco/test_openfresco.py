@@ -38,9 +38,10 @@ from rths_hil.openfresco.timing import (
 from rths_hil.records.recorder import read_run
 from tests.helpers.openfresco import GENERIC_CLIENT_ID, _client, _frame, _loop, _recv
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# The lockstep site (OpenSeesPy as another process) waits for each trial as long as it takes:
+# those tests run with the parallel tests. The paced ones (ramp-hold, predictor-corrector in
+# real time) run apart from them, one at a time (the "timing" marker, pyproject.toml; make test).
+timing = pytest.mark.timing
 
 # ---------------------------------------------------------------------------------------------
 # protocol and mapping
@@ -268,6 +269,7 @@ def test_generic_tcp_flavour_round_trip(tmp_path):
     assert summary["actions"]["getDaqResponse"] == 5
 
 
+@timing
 def test_ramp_hold_executes_each_trial_in_real_time(tmp_path):
     """ramp-hold (paced loop): ramp 50 ms, hold 20 ms, then the force; hold while waiting."""
     forces, t_req = [], []
@@ -411,6 +413,7 @@ def test_two_channels_in_lockstep_equal_the_numerical_model(tmp_path, accel):
     assert np.isfinite(rec["of_latency"]).sum() == round(dur / dt) - 1
 
 
+@timing
 @pytest.mark.parametrize("dt", [1 / 1024, 1 / 256])
 def test_real_time_with_a_20ms_actuator(tmp_path, accel, dt):
     """Issue test 2: paced 1024 Hz loop, twin with a 20 ms delay, compensation on,

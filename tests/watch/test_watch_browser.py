@@ -27,9 +27,10 @@ from rths_hil.watch.browser import Browser, chromium_path
 from rths_hil.watch.source import RunFollower
 from tests.helpers.watch_records import stability_value, write_run
 
-# against the wall clock or with other processes: run apart from the parallel tests
-# (the "timing" marker, pyproject.toml; make test)
-pytestmark = pytest.mark.timing
+# The live page follows a paced run: those tests run apart from the parallel tests, one at a
+# time (the "timing" marker, pyproject.toml; make test). Replays of finished records and the
+# page's messages run with the parallel tests.
+timing = pytest.mark.timing
 
 FS = 256
 # the run must not stop for reasons this test does not inject (a loaded CI machine is late)
@@ -267,6 +268,7 @@ def live_run(tmp_path_factory):
             run.wait()
 
 
+@timing
 def test_live_paced_run_plots_and_stability_move(browser, live_run, tmp_path):
     _, url, run_dir = live_run
     n_req = len(browser.requests)
@@ -345,6 +347,7 @@ def _child_with(pid: int, word: str) -> int:
     raise AssertionError(f"no child of {pid} runs {word!r}")
 
 
+@timing
 def test_stop_button_ends_a_paced_run_with_exit_130_and_a_complete_record(browser, live_run):
     run, url, run_dir = live_run
     _open_once(browser, url)
@@ -377,6 +380,7 @@ def test_stop_button_ends_a_paced_run_with_exit_130_and_a_complete_record(browse
     np.testing.assert_array_equal(data.record["step"], np.arange(n))
 
 
+@timing
 def test_nan_from_the_sensor_turns_the_banner_into_the_e_stop(browser, tmp_path):
     run_dir = tmp_path / "run"
     fault_step = FS  # NaN from the sensor at t = 1 s: the nan rule trips
