@@ -35,8 +35,8 @@ deps:
 
 # Tests whose checks need the machine to run them promptly (marker "timing": a loop paced
 # against the wall clock, a bound on how soon something happens) run one at a time after the
-# others, which share the cores (pytest-xdist, one file per worker; tests that start twins,
-# OpenSees or Chromium and wait for them as long as it takes are among these); the slowest
+# others. The others share the cores (pytest-xdist, one file per worker), those that start
+# twins, OpenSees or Chromium and wait for them as long as it takes included. The slowest
 # timing tests are listed at the end (they set the length of the run).
 # Exit 5 = PYTEST_ARGS selected none of one kind. numpy's OpenBLAS keeps one thread per test
 # process: a pool per core in each of two workers fought over the cores (a file's tests took

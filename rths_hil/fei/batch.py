@@ -517,7 +517,7 @@ def moving_fei(
     if decimate > 1:
         if x.size < 27 * decimate:
             raise InputError(f"record too short to decimate by {decimate}")
-        # imported here: scipy.signal takes ~1.5 s to import (scipy ≥ 1.15), and the paced
+        # imported here: scipy.signal takes 1–2 s to import (scipy 1.17), and the paced
         # loop's exact-FEI worker process, which needs only OnlineFEI, waits for its imports
         from scipy.signal import decimate as _decimate
 
