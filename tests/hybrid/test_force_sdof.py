@@ -4,8 +4,10 @@ The hybrid test: a linear SDOF frame (5 t, 2 Hz, 2 %) whose specimen (a 1.19 MN/
 114.6 N·s/m dashpot, the twin's) is loaded by a force-controlled actuator through the Modbus map
 with a force set-point, on the force-controlled twin (5 ms delay, 20 ms valve lag, a 4.2 ms
 closed force loop). The integrator assumes the specimen stiffness ``structure.k_specimen``
-(docs/channels.md). The reference: ``m ü + (c + c_s) u̇ + (k + k_s) u = −m a_g`` integrated by
-scipy's ``solve_ivp`` with the record's ground acceleration, nothing of rths_hil in it.
+(docs/channels.md). The reference: ``m ü + (c + c_s) u̇ + (k + k_s) u = −m a_g`` solved exactly
+for the record's ground acceleration taken as linear between samples (scipy's
+``lsim`` with ``interp=True``: the matrix exponential of the state equation, first-order hold),
+nothing of rths_hil in it.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
+from scipy.signal import lsim
 
 import rths_hil
 from rths_hil.records.recorder import read_run
@@ -49,15 +51,11 @@ specimen = {{ stiffness = {KS}, damping = {CS} }}
 def _reference(t: np.ndarray, ag: np.ndarray) -> np.ndarray:
     k = M * (2 * np.pi * FN) ** 2
     c = 2 * ZETA * np.sqrt(k * M)
-
-    def rhs(tt, y):
-        a = np.interp(tt, t, ag)
-        return [y[1], (-M * a - (c + CS) * y[1] - (k + KS) * y[0]) / M]
-
-    sol = solve_ivp(
-        rhs, (0.0, t[-1]), [0.0, 0.0], t_eval=t, rtol=1e-9, atol=1e-12, max_step=t[1] / 2
-    )
-    return sol.y[0]
+    # x = [u, u̇]:  ẋ = A x + B a_g,  A = [[0, 1], [−(k + k_s)/m, −(c + c_s)/m]],  B = [0, −1]
+    a = np.array([[0.0, 1.0], [-(k + KS) / M, -(c + CS) / M]])
+    b = np.array([[0.0], [-1.0]])
+    _, u, _ = lsim((a, b, np.array([[1.0, 0.0]]), np.zeros((1, 1))), ag, t, interp=True)
+    return u
 
 
 def _nrms(x: np.ndarray, ref: np.ndarray) -> float:
