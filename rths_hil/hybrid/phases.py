@@ -226,6 +226,19 @@ class Link:
         return fb
 
 
+def _hold(ch: Channel, displacement: float, force: float) -> None:
+    """Make ``ch``'s measurement (loop coordinates) what the loop holds on a missed reply.
+
+    Without it a reply missed on the loop's first step would hold the channel's initial 0 m and
+    0 N: a channel holding a 600 kN load would record 0 N, a force-controlled one would hand its
+    structure 0 N. An unread force (NaN) leaves the held force as it was.
+    """
+    if math.isfinite(displacement):
+        ch.measured = displacement
+    if math.isfinite(force):
+        ch.force = force
+
+
 @dataclass
 class _Where:
     """A channel at the start: where the actuator is and what step 0 commands."""
@@ -384,8 +397,11 @@ class Phases:
                 mode=self.start_cfg["mode"], control=ch.control,
             )  # fmt: skip
         self.offsets = [w.offset for w in where]
-        for ch, off in zip(self.chans, self.offsets, strict=True):
-            ch.monitor.set_offset(off)  # offset mode: the absolute stroke is watched too
+        for ch, w in zip(self.chans, where, strict=True):
+            ch.monitor.set_offset(w.offset)  # offset mode: the absolute stroke is watched too
+            # what a missed reply holds until the first one comes: the measurement at arming
+            # (loop coordinates), then each reply of the start ramp (_drive)
+            _hold(ch, w.position - w.offset, w.force)
         # absolute commands: from where each actuator is to its step-0 command; a force
         # channel's from the force it measures (0 N unread) to its first force
         forced = np.array([ch.force_mode for ch in self.chans], dtype=bool)
@@ -635,6 +651,7 @@ class Phases:
                     )  # fmt: skip
                 else:
                     meas_abs[j] = fb.force if ch.force_mode else fb.displacement
+                    _hold(ch, fb.displacement - off, fb.force)
                     trip = ch.monitor.check_feedback(
                         t, k, True, seq, fb.seq, fb.status, c - off,
                         fb.displacement - off, fb.force,

@@ -127,3 +127,27 @@ def test_column_paced_axial_held_and_horizontal_as_without_it(tmp_path):
     # little)
     assert abs(a_mixed - a_alone) < 0.005, (a_mixed, a_alone)
     assert abs(d_mixed - d_alone) < 0.5e-3, (d_mixed, d_alone)
+
+
+def test_a_reply_missed_on_the_first_step_holds_the_load_the_start_ramp_reached(tmp_path):
+    """The loop's first reply lost: the step holds the last measurement of the start ramp, not
+    the channel's initial 0 N (600 kN recorded as 0 N, and a load rule's false trip)."""
+    probe = tmp_path / "probe"
+    rths_hil.run(EXAMPLE, SHORT, mode="lockstep", duration=0.05, run_dir=probe)
+    (ramp,) = _events(probe, "start_ramp")
+    first = ramp["steps"]  # the controller's sequence number of the loop's step 0
+    out = tmp_path / "dropped"
+    res = rths_hil.run(
+        EXAMPLE, [*SHORT, f"twin.faults=drop={first}"], mode="lockstep", duration=0.05,
+        run_dir=out,
+    )  # fmt: skip
+    assert res.status == "completed", res.trip
+    rec = read_run(out).record
+    (ramp,) = _events(out, "start_ramp")
+    names = ramp["channels"]
+    assert not rec["feedback_ok_vertical"][0] and not rec["feedback_ok_horizontal"][0]
+    assert rec["feedback_ok_vertical"][1] and rec["feedback_ok_horizontal"][1]
+    # held: the ramp's last replies (the axial force; the horizontal position, no offset here)
+    assert rec["force_vertical"][0] == ramp["measured_end"][names.index("vertical")]
+    assert rec["measured_horizontal"][0] == ramp["measured_end"][names.index("horizontal")]
+    assert abs(rec["force_vertical"][0] / LOAD - 1.0) < 0.01
