@@ -1,5 +1,5 @@
 """``python -m rths_hil`` is the same as ``rths-hil``."""
 
-from .cli import entry
+from ._entry import entry
 
 entry()

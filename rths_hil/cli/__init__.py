@@ -98,7 +98,8 @@ _interrupted = False
 
 
 def entry() -> None:
-    """The ``rths-hil`` console script and ``python -m rths_hil``: :func:`main`, then exit.
+    """:func:`main`, then exit (the console script's, after :func:`rths_hil._entry.entry`
+    imported this package with Ctrl-C deferred).
 
     After a Ctrl-C that :func:`main` caught (exit 130, one line), the interpreter may still
     remember the KeyboardInterrupt from code it ran while importing (CPython then ends the

@@ -91,6 +91,35 @@ def test_ctrl_c_during_start_up_exits_130_without_a_traceback(tmp_path):
             assert events[-1]["kind"] == "end" and events[-1]["status"] == "operator_stop"
 
 
+#: a command started by ``rths_hil._entry`` (the console script) that sends itself SIGINT the
+#: moment the entry imports the command line (an import hook): the signal lands inside the
+#: command line's imports on every run, where a timed signal lands there only sometimes
+_SIGINT_IN_IMPORTS = """
+import builtins, os, signal, sys
+real = builtins.__import__
+def hook(name, globals=None, locals=None, fromlist=(), level=0):
+    if name == "cli" and level == 1 and (globals or {}).get("__name__") == "rths_hil._entry":
+        os.kill(os.getpid(), signal.SIGINT)
+    return real(name, globals, locals, fromlist, level)
+builtins.__import__ = hook
+out = sys.argv[1]
+sys.argv = ["rths-hil", "run", "--lockstep", "--duration", "1", "-q", "--no-plot", "--out", out]
+from rths_hil._entry import entry
+entry()
+"""
+
+
+def test_ctrl_c_while_the_command_line_is_imported_exits_130_in_one_line(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-c", _SIGINT_IN_IMPORTS, str(out)],
+        capture_output=True, text=True, cwd=ROOT, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 130, (proc.returncode, proc.stderr)
+    assert proc.stderr.strip() == "rths-hil: interrupted", proc.stderr
+    assert not out.exists()  # stopped before anything started
+
+
 @pytest.mark.timing
 def test_can_receive_honours_its_timeout_on_interfaces_that_do_not():
     """python-can's ``serial`` interface waits 0.1 s whatever recv is given; the driver not."""
