@@ -207,6 +207,7 @@ def _apply_override(cfg: Config, text: str, where: str | None = None) -> None:
     if name not in keys:
         raise InputError(f"{where}: {unknown_key(section + '.' + name, name, keys)}")
     key = keys[name]
+    cfg.origins[f"{section}.{name}"] = where
     if len(parts) > 2:
         if key.kind != "table":
             raise InputError(f"{where}: {section}.{name} is not a table")

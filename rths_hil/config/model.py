@@ -33,12 +33,24 @@ class Config(dict):
     ----------
     source : str
         Where it came from (a file path or ``<embedded default>``).
+    origins : dict of str to str
+        The keys (``section.name``) a ``--set`` item (or a caller's ``where``) set last, each
+        with that item: what :meth:`where` names instead of :attr:`source`.
     base_dir : Path
         Directory relative paths in the configuration are resolved against.
     """
 
     source: str = "<embedded default>"
     base_dir: Path = Path(".")
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.origins: dict[str, str] = {}
+
+    def where(self, key: str) -> str:
+        """Where ``key`` (``section.name``) was last set: its ``--set`` item, else the source
+        (an error about its value names what the user wrote)."""
+        return self.origins.get(key, self.source)
 
     @property
     def window_s(self) -> float:
@@ -97,7 +109,7 @@ def resolve_channel(cfg: Config, entry: Mapping[str, Any]) -> ChannelConfig:
     on another driver than the top-level one starts from an empty connection).
     """
     out = Config(copy.deepcopy({k: v for k, v in cfg.items() if k != "actuators"}))
-    out.source, out.base_dir = cfg.source, cfg.base_dir
+    out.source, out.base_dir, out.origins = cfg.source, cfg.base_dir, dict(cfg.origins)
     own_driver = entry.get("driver", {}).get("name")
     if own_driver is not None and own_driver != cfg["driver"]["name"]:
         out["driver"]["connection"] = {}

@@ -39,10 +39,13 @@ def build_ground_motion(cfg: Config) -> groundmotion.GroundMotion:
             gm = gm.padded(g["tail"])
         return gm.resampled(cfg["loop"]["fs"])
     except InputError as exc:
-        raise InputError(f"{cfg.source}: ground_motion.record: {exc}") from None
+        raise InputError(
+            f"{cfg.where('ground_motion.record')}: ground_motion.record: {exc}"
+        ) from None
     except OSError as exc:  # a path component over 255 characters, a directory, no permission
         raise InputError(
-            f"{cfg.source}: ground_motion.record: cannot read {spec!r}: {exc.strerror or exc}"
+            f"{cfg.where('ground_motion.record')}: ground_motion.record: cannot read {spec!r}: "
+            f"{exc.strerror or exc}"
         ) from None
 
 

@@ -241,3 +241,26 @@ def test_trip_at_step_0_exits_3_with_one_line(tmp_path, capsys):
     for ev in events:
         assert datetime.fromisoformat(ev["wall_time"]).tzinfo is not None
     assert isinstance(end["wall_duration"], float) and end["wall_duration"] >= 0
+
+
+def test_a_bad_record_names_where_it_was_given(tmp_path, capsys):
+    """A record that cannot be read: the error names the ``--set`` item that gave it, not the
+    configuration file the run read (which names another record), or the file that gave it."""
+    at2 = tmp_path / "cut.AT2"  # a header of 5 samples and only 2 of them
+    at2.write_text(
+        "PEER NGA STRONG MOTION DATABASE RECORD\nsite, 1940\nACCELERATION TIME SERIES IN UNITS "
+        "OF G\nNPTS=      5, DT=   .0100 SEC\n   .1000000E-02   .2000000E-02\n"
+    )
+    cfg = tmp_path / "test.toml"
+    cfg.write_text('[ground_motion]\nrecord = "default"\n')
+    item = f"ground_motion.record={at2}"
+    line = _one_line_exit_2(
+        ["run", str(cfg), "--lockstep", "--set", item, "--out", str(tmp_path / "a")],
+        capsys, f"--set {item}: ground_motion.record:", "NPTS=5", "only 2 values",
+    )  # fmt: skip
+    assert str(cfg) not in line
+    cfg.write_text(f'[ground_motion]\nrecord = "{at2}"\n')
+    _one_line_exit_2(
+        ["run", str(cfg), "--lockstep", "--out", str(tmp_path / "b")],
+        capsys, f"{cfg}: ground_motion.record:", "only 2 values",
+    )  # fmt: skip
