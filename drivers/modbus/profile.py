@@ -14,7 +14,10 @@ delivered once every read of its step has come back. With the profile's ``[modbu
 (the default) the step's requests go out in ONE socket write and the responses are matched by
 their transaction ids: the MBAP header's transaction identifier pairs a response with its
 request, so several transactions may be outstanding on one connection (MODBUS Messaging on
-TCP/IP Implementation Guide V1.0b, the MBAP header; docs/references.md). Without it, one
+TCP/IP Implementation Guide V1.0b, the MBAP header; docs/references.md). A step sent before
+the last step's read was answered writes its set-point alone and takes that read's answer as
+its measurement (once per read, within ``HEAD_GIVEUP``; ``_read_outstanding``): a read of
+its own would queue behind it at a controller with a request queue. Without it, one
 request at a time as on RTU (the next written when the previous one is answered), for a server
 that serves one transaction at a time. Whether the server answers pipelined requests is checked
 when the driver opens (two reads in one write): a server that answers the first only (it
@@ -92,7 +95,7 @@ from ..profile_driver import ProfileDriver
 from .estop import EStopPath
 from .layout import BlockLayout, PointLayout, RequestTemplate, StepReply
 from .profile_format import ModbusProfile
-from .requests import _READS, SLOT_ACTION, SLOT_CHECK, SLOT_HEARTBEAT
+from .requests import _READS, HEAD_GIVEUP, SLOT_ACTION, SLOT_CHECK, SLOT_HEARTBEAT
 from .transport import CONNECTION_KEYS, EXCEPTIONS, Link, framer, openers
 
 __all__ = ["ModbusProfileDriver"]
@@ -198,9 +201,13 @@ class ModbusProfileDriver(EStopPath, ProfileDriver):
         self._head_t = 0.0  # when the request at the head of the queue was written
         self._lock = threading.RLock()
         self._given_up: deque[int] = deque(maxlen=8)  # ids of requests given up (TCP)
-        #: TCP one at a time: the id of the last step's read, still outstanding when this
-        #: step was sent, whose answer is this step's measurement (see _send_locked)
+        #: the step (mod 4096) of the last step's reads, still outstanding when this step was
+        #: sent, whose answer is this step's measurement (see _send_locked); -1: none
         self._adopted = -1
+        #: pipelined TCP: the step whose reads were last written, and when (the one to adopt
+        #: when the next step goes out before their answer, _send_locked)
+        self._read_seq = -1
+        self._read_t = 0.0
         self.estop_word: int | None = None  # its status word read back after the e-stop
         self._framer: Any = framer(self._rtu)
         #: the connection (:mod:`.transport`), and the e-stop's own (TCP): made at open
@@ -460,6 +467,7 @@ class ModbusProfileDriver(EStopPath, ProfileDriver):
             out += self._action(acts.get(MODE_ACTIONS[self.control]))
             out += self._action(acts.get("disable")) + self._action(acts.get("acknowledge"))
             self._enabled, self._estop_sent = False, False
+            self._read_seq = -1
             self._submit(out + self._reads_only(base))
             return
         preload: list[tuple[int, int, bytes]] = []
@@ -481,6 +489,18 @@ class ModbusProfileDriver(EStopPath, ProfileDriver):
         out = preload + out
         if self._reply is not None:  # pipelined TCP: FC 16 + reads (or FC 23) in one write
             frames = tpl.build(raw, base)  # transaction ids base, base + 1, …
+            if not out and enable and self._read_outstanding():
+                # the last step's reads not answered yet: the controller serves them before
+                # this step's requests, so their answer, at the earliest now, is this step's
+                # measurement; reads of its own would queue behind them and come a step late
+                # again (a cascade of missed replies where the server needs most of the
+                # period). The set-point goes out alone (FC 16); no action this step.
+                self._adopted = self._read_seq & 0x0FFF
+                self._read_seq = -1  # (adopted once: unanswered by the next step, read anew)
+                self._write(frames[: tpl.tids[0]])
+                return
+            self._adopted = -1
+            self._read_seq, self._read_t = seq, time.perf_counter()
             self._write(b"".join([r[2] for r in out]) + frames if out else frames)
             return
         out.append((base, tpl.function_code, tpl.build(raw, base)))  # FC 16 or FC 23
@@ -496,7 +516,7 @@ class ModbusProfileDriver(EStopPath, ProfileDriver):
                 # cascade of missed replies at rates where the two transactions fill most of
                 # the period). Not with an action (enable, disable, acknowledge): its effect
                 # is read after it.
-                self._adopted = old
+                self._adopted = old >> 4
             else:
                 if old >= 0 and pending[0][0] != old:  # not on the wire: this step reads anew
                     pending.remove(next(r for r in pending if r[0] == old))
@@ -504,6 +524,34 @@ class ModbusProfileDriver(EStopPath, ProfileDriver):
                 self._adopted = -1
                 out += self._reads_only(base)
         self._submit(out)
+
+    def _read_outstanding(self) -> bool:
+        """Pipelined TCP: whether the last step's read is still unanswered as this step goes
+        out. What has come meanwhile is filed first (an answer of an older step is counted
+        late, as the receive would). Not when it was written more than ``HEAD_GIVEUP`` ago (a
+        reply the controller lost is not waited for twice, e.g. after a lockstep wait), nor
+        for maps of several reads or FC 23 (their reads are not apart from the write)."""
+        seq = self._read_seq
+        if seq < 0 or self._n_reads != 1 or self.profile.fc23 or self._last_delivered == seq:
+            return False
+        if time.perf_counter() - self._read_t > HEAD_GIVEUP:
+            return False
+        link, fd = self._link, self._fd
+        if link is None or fd is None:
+            return False
+        try:
+            while link.ready(fd, 0.0):
+                data = link.recv(fd)
+                if not data:
+                    break
+                self._buf += data
+        except (OSError, ValueError):
+            return False  # (the receive finds the link down)
+        answered = False
+        while (fb := self._parse_buffer()) is not None:
+            answered = answered or fb.seq == seq
+            self._accept(fb)  # counted: late (or a duplicate)
+        return not answered
 
     def _reads_only(self, base: int) -> list[tuple[int, int, bytes]]:
         """The step's reads alone (for FC 23 maps an FC 3 of the block) with the step's ids."""
@@ -558,8 +606,7 @@ class ModbusProfileDriver(EStopPath, ProfileDriver):
             self.stats.count_malformed("bad_frame")
             return None
         seq12 = tid >> 4
-        if tid == self._adopted:  # the last step's read, this step's measurement (above)
-            self._adopted = -1
+        if seq12 == self._adopted:  # the last step's reads, this step's measurement (above)
             seq12 = self._last_sent & 0x0FFF
         if seq12 != self._parts_seq:
             self._parts_seq = seq12
@@ -578,6 +625,7 @@ class ModbusProfileDriver(EStopPath, ProfileDriver):
             return None
         self._done = set()
         self._parts = {}
+        self._adopted = -1  # (a copy of the adopted answer is the old step's)
         word = self._word = int(parts["status"])
         return Feedback(
             extend_seq(seq12, self._last_sent, 12),

@@ -108,12 +108,12 @@ def test_column_lockstep_axial_held_and_horizontal_as_without_it(tmp_path):
     assert "force (kN)" in labels and "displacement (mm)" in labels
 
 
-#: the paced run's rate. At the example's 1024 Hz the vertical channel's Modbus twin, served in
-#: the bridge's own process, needs 0.5–0.9 ms of the 0.98 ms period on a loaded 2-core machine:
-#: once a reply comes a step late, the pipelined driver stays a step behind (each late reply
-#: discarded) until the twin catches up, and gaps of 100 steps tripped the 100 ms watchdog in
-#: 2 of 6 runs beside a busy loop (longest gap 15 steps at 512 Hz in 6 such runs). What this
-#: test proves, the held load and the horizontal tracking, does not depend on the rate.
+#: the paced run's rate. At the example's 1024 Hz the vertical channel's Modbus twin, served by
+#: a thread of the bridge's own process (sharing its interpreter with the paced loop), needs
+#: 0.5–0.9 ms of the 0.98 ms period on a loaded 2-core machine: beside a busy loop, runs had
+#: reply gaps of up to 92 steps against the 100 ms watchdog (longest gap 15 steps at 512 Hz in 6
+#: such runs). What this test proves, the held load and the horizontal tracking, does not
+#: depend on the rate.
 PACED_FS = "loop.fs=512"
 
 

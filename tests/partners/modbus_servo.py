@@ -46,6 +46,8 @@ Behaviour
 - One transaction at a time per connection: a request that arrives while the previous one on
   the same connection is in progress is dropped (no answer), as is the rest of a segment that
   carried several requests. Connections are served concurrently (a second one can watch).
+  Firmware option ``--serve queue``: requests that arrive while one is in progress, or several
+  in one segment, are queued and served in their order, each answered when it has been served.
 - Now and then (``--pause-rate`` per second, Poisson) the network stack pauses 20–40 ms before
   it handles a request; ``--service-time`` adds a fixed processing time to every transaction
   (a slow controller stack).
@@ -72,6 +74,7 @@ import time
 from typing import Any
 
 from pymodbus.constants import ExcCodes
+from pymodbus.pdu import ExceptionResponse
 from pymodbus.server import ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
@@ -296,15 +299,63 @@ class OneAtATime(ServerRequestHandler):
             self.busy = False
 
 
-class ServoServer(ModbusTcpServer):
-    """pymodbus's TCP server with :class:`OneAtATime` handlers."""
+class Queued(ServerRequestHandler):
+    """pymodbus's request handler with a request queue: every request of a segment is decoded
+    by pymodbus's framer and served in order, one at a time (``--serve queue``)."""
 
-    def __init__(self, axis: Axis, device: SimDevice, address: tuple[str, int]) -> None:
+    axis: Axis
+
+    def __init__(self, owner: Any, *args: Any) -> None:
+        super().__init__(owner, *args)
+        self.axis = owner.axis
+        self.queue: asyncio.Queue[tuple[Any, Any]] = asyncio.Queue()
+        self.worker: asyncio.Task[None] | None = None
+
+    def callback_data(self, data: bytes, addr: tuple | None = None) -> int:
+        used = 0
+        while used < len(data):
+            n, pdu = self.framer.handleFrame(data[used:], 0, 0)
+            if not n:
+                break
+            used += n
+            if pdu is not None:
+                self.queue.put_nowait((pdu, addr))
+        if self.worker is None:
+            self.worker = asyncio.get_running_loop().create_task(self.serve())
+        return used
+
+    async def serve(self) -> None:
+        while True:
+            pdu, addr = await self.queue.get()
+            pause = self.axis.pause_due() + self.axis.service_time
+            if pause:
+                await asyncio.sleep(pause)
+            try:
+                response = await pdu.datastore_update(self.server.context, pdu.dev_id)
+            except Exception:  # (the controller answers, it does not crash)
+                response = ExceptionResponse(pdu.function_code, ExcCodes.DEVICE_FAILURE)
+            response.transaction_id, response.dev_id = pdu.transaction_id, pdu.dev_id
+            self.server_send(response, addr)
+            self.axis.history["served"] += 1
+
+    def callback_disconnected(self, exc: Exception | None) -> None:
+        if self.worker is not None:
+            self.worker.cancel()
+        super().callback_disconnected(exc)
+
+
+class ServoServer(ModbusTcpServer):
+    """pymodbus's TCP server with :class:`OneAtATime` (or :class:`Queued`) handlers."""
+
+    def __init__(
+        self, axis: Axis, device: SimDevice, address: tuple[str, int], queued: bool = False
+    ) -> None:
         super().__init__(device, address=address)
         self.axis = axis
+        self.handler = Queued if queued else OneAtATime
 
-    def callback_new_connection(self) -> OneAtATime:
-        return OneAtATime(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+    def callback_new_connection(self) -> ServerRequestHandler:
+        return self.handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
 
 
 def _coils(axis: Axis, fc: int, address: int, regs: list[int], values: list | None) -> Any:
@@ -379,7 +430,9 @@ def make_device(axis: Axis) -> SimDevice:
 async def serve(args: argparse.Namespace) -> int:
     axis = Axis(args.position, args.stroke, args.pause_rate, args.seed, args.watchdog)
     axis.service_time = args.service_time
-    server = ServoServer(axis, make_device(axis), ("127.0.0.1", args.port))
+    server = ServoServer(
+        axis, make_device(axis), ("127.0.0.1", args.port), queued=args.serve == "queue"
+    )
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -411,6 +464,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument(
         "--watchdog", type=float, default=WATCHDOG_TIME, help="heartbeat watchdog time (s)"
+    )
+    p.add_argument(
+        "--serve",
+        choices=("one", "queue"),
+        default="one",
+        help="requests arriving while one is served: dropped (one) or queued (queue)",
     )
     p.add_argument("--state-json", help="write the state and history here when stopped")
     args = p.parse_args(argv)

@@ -370,3 +370,36 @@ def test_the_last_steps_outstanding_read_is_the_next_steps_measurement(modbus_se
     assert drv.stats.late == late  # step 1's answer was not thrown away
     # one pause (the read's, under way already), not three (read, write, a read of its own)
     assert wait < 0.045, f"{wait * 1e3:.1f} ms"
+
+
+def test_pipelined_the_last_steps_outstanding_read_is_the_next_steps_measurement(modbus_servo):
+    """The partner's firmware with a request queue (``--serve queue``) takes 20 ms over each
+    transaction. Pipelined, step 1's set-point write and read are both still queued when step 2
+    goes out: step 2 writes its set-point alone, and step 1's read, answered after step 1's
+    write, is step 2's measurement. With a read of its own, step 2 would wait two more
+    transactions (its write and its read) and the bridge would stay a step behind a controller
+    that needs most of the period (the missed replies of a paced run, one after the other)."""
+    service = 0.02
+    partner = modbus_servo(pause_rate=0, service_time=service, serve="queue")
+    drv = create_driver("modbus", profile=str(PROFILE), **partner.connection)
+    with drv:
+        assert drv.link_note is None and drv._reply is not None  # it answers pipelined requests
+        assert drv.arm(2.0) is not None
+        drv.send(0, 0.0, True)  # the enable edge: set-point, enable, set-point and read
+        assert drv.receive(1.0) is not None
+        drv.send(1, 0.0, True)  # a steady step: write and read in one segment
+        assert drv.receive(0.001) is None  # both queued at the partner
+        late = drv.stats.late
+        drv.send(2, 0.0, True)  # step 1's read still outstanding
+        t1 = time.perf_counter()
+        fb = drv.receive(0.2)
+        wait = time.perf_counter() - t1
+        drv.send(3, 0.0, True)  # step 2 read nothing of its own: step 3 reads anew
+        fb3 = drv.receive(0.2)
+    assert fb is not None and fb.seq == 2
+    assert drv.stats.late == late  # step 1's answer was not thrown away
+    # the rest of step 1's write and its read (2 transactions), not 4 (and step 2's write)
+    assert wait < 3 * service, f"{wait * 1e3:.1f} ms"
+    assert fb3 is not None and fb3.seq == 3
+    history = partner.stop()
+    assert history["dropped"] == 0
