@@ -179,7 +179,11 @@ class ModbusProfileTwin(TwinEndpoint):
         self._loop = "displacement"
         self._k = 0
         # the frame faults of the current step (copies, corrupt), applied to its read responses
+        # (the map's reads of one step: its blocks, or the one FC 23), not to later reads such
+        # as a status poll after an e-stop
         self._plan: tuple[int, bool] | None = None
+        self._step_reads = 1 if prof.fc23 else len(prof.reads)
+        self._plan_left = 0  # read responses of the step the plan still applies to
         self._sample_flags = 0  # per-sample status flags of the last published feedback
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -351,6 +355,9 @@ class ModbusProfileTwin(TwinEndpoint):
             self._out.append(frame)
             return
         copies, corrupt = plan  # a response carrying the step's feedback
+        self._plan_left -= 1
+        if self._plan_left <= 0:  # the step's reads are answered (or lost): later reads are not
+            self._plan = None
         if corrupt:
             frame = self._corrupt(frame)
         self._out.extend([frame] * copies)
@@ -490,6 +497,7 @@ class ModbusProfileTwin(TwinEndpoint):
     def emit(self, reply: tuple[int, float, float, int] | None) -> None:
         if reply is None:
             self._plan = (0, False)  # a lost command: its step's reads go unanswered
+            self._plan_left = self._step_reads
             return
         super().emit(reply)
 
@@ -502,7 +510,7 @@ class ModbusProfileTwin(TwinEndpoint):
         tables, and the frame faults apply to the responses to the step's reads (:meth:`_reply`).
         """
         self._publish(*reply[1:])
-        self._plan = (copies, corrupt)
+        self._plan, self._plan_left = (copies, corrupt), self._step_reads
         if pause:  # a stalled controller: the step's reads are answered after the pause
             self._stop.wait(pause)
 

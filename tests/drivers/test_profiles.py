@@ -352,6 +352,30 @@ def test_modbus_map_over_rtu_lockstep_matches_tcp(tmp_path) -> None:
     np.testing.assert_array_equal(rtu["force"], tcp["force"])
 
 
+def test_a_dropped_steps_reply_loses_that_steps_reads_only() -> None:
+    """The twin's ``drop`` fault loses the reads of the step it names, as a controller that
+    missed that step would, not every read after it: the e-stop's status is read back."""
+    from rths_hil.drivers.base import Status
+    from rths_hil.sim_backends.faults import Faults
+
+    twin = start_twin("modbus", default_plant(), profile=str(MODBUS_MAP), faults=Faults(drop={3}))
+    try:
+        with create_driver("modbus", **twin.connection) as drv:
+            assert drv.arm(1.0) is not None
+            got = []
+            for k in range(4):
+                drv.send(k, 0.0, True)
+                got.append(drv.receive(0.2))
+            assert all(fb is not None for fb in got[:3]) and got[3] is None  # step 3 lost
+            drv.estop()
+            word = drv.estop_word
+    finally:
+        twin.stop()
+    assert word is not None, "no status read back after the e-stop"
+    # the map's e-stop bit (the profile's [status] estop) set: latched
+    assert word & load_profile(MODBUS_MAP).masks[int(Status.ESTOP_ACTIVE)], hex(word)
+
+
 def test_modbus_rtu_profile_driver_against_its_twin() -> None:
     """Over RTU: a write echo answers the write, a read the read (no transaction id), the
     e-stop goes out at once and its echo is told from the step's answers, a frame with a bad
