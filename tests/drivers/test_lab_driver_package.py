@@ -163,8 +163,10 @@ def test_lab_driver_paced_run_completes(lab_package: Path, tmp_path: Path, capsy
     assert code == 0, err
     rec = read_run(out).record
     # paced on a shared machine: a reply may miss its 0.8-period deadline now and then (the twin
-    # is a thread); a reply filed under the wrong step would leave at most half answered
-    assert len(rec) == 1024 and rec["feedback_ok"].mean() > 0.75
+    # is a thread of this process: 28 % of them once in CI); a reply filed under the wrong step
+    # is not ``feedback_ok`` (its sequence number is not the step's), so a driver that filed
+    # them a step late would have almost none answered
+    assert len(rec) == 1024 and rec["feedback_ok"].mean() > 0.5
     link = [ln for ln in err.splitlines() if "link mylab udp" in ln]
     assert link and "UDP loopback" in link[0]
 
