@@ -20,6 +20,9 @@ from typing import NoReturn
 
 from .. import __version__
 from ..errors import InputError
+from ..stopping import command_signals, stop_pending
+
+log = logging.getLogger(__name__)
 
 #: Sub-command modules, in the order they appear in ``rths-hil --help``.
 COMMANDS: tuple[str, ...] = (
@@ -118,9 +121,10 @@ def entry() -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``rths-hil`` console script."""
-    # Ctrl-C while the sub-commands are imported (the first second of every command): let the
-    # imports finish (a KeyboardInterrupt inside an import leaves the interpreter half set up
-    # and it then dies by the signal), then stop with the operator-stop code
+    # Ctrl-C while the sub-commands are imported and the command line is read (the first second
+    # of every command) is deferred: a KeyboardInterrupt inside an import leaves the interpreter
+    # half set up and it then dies by the signal. The command then starts under
+    # command_signals (Ctrl-C raises and is remembered) and stops with the operator-stop code.
     interrupted: list[int] = []
     try:
         old = signal.signal(signal.SIGINT, lambda *_: interrupted.append(1))
@@ -128,40 +132,55 @@ def main(argv: Sequence[str] | None = None) -> int:
         old = None
     try:
         parser = build_parser(argv, only=True)
+        args = None if interrupted else parser.parse_args(argv)
+        return _command(parser, args, interrupted)
     finally:
         if old is not None:
             signal.signal(signal.SIGINT, old)
-    if interrupted:
-        print("rths-hil: interrupted", file=sys.stderr)
-        return 130
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.WARNING - 10 * min(args.verbose, 2),
-        format="%(levelname)s %(name)s: %(message)s",
-    )
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
+
+
+def _command(
+    parser: argparse.ArgumentParser, args: argparse.Namespace | None, interrupted: list[int]
+) -> int:
+    """Run the parsed command (``args``; None: interrupted while the command line was read)."""
+    command = getattr(args, "command", None)
+    name = f"rths-hil {command}" if command else "rths-hil"
     try:
-        return int(args.func(args) or 0)
-    except InputError as exc:
-        print(f"rths-hil {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        with command_signals():  # replaces main's deferral; a Ctrl-C a library swallows is kept
+            if interrupted or args is None:
+                print("rths-hil: interrupted", file=sys.stderr)
+                return 130
+            logging.basicConfig(
+                level=logging.WARNING - 10 * min(args.verbose, 2),
+                format="%(levelname)s %(name)s: %(message)s",
+            )
+            if not getattr(args, "func", None):
+                parser.print_help()
+                return 2
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
-        global _interrupted
-        _interrupted = True
-        print(f"rths-hil {args.command}: interrupted", file=sys.stderr)
-        return 130
-    except OSError as exc:
-        if exc.filename is None:
-            raise
-        # a file-system error on a path the command was given (name too long, read-only,
-        # disk full, not a directory …) is bad input: one line, not a traceback
-        print(
-            f"rths-hil {args.command}: error: {exc.filename}: {exc.strerror or exc}",
-            file=sys.stderr,
-        )
-        return 2
+        return _interrupted_exit(name)
+    except Exception as exc:
+        if stop_pending():  # the Ctrl-C, surfaced as another exception (an import's)
+            log.debug("interrupted: %r", exc)
+            return _interrupted_exit(name)
+        if isinstance(exc, InputError):
+            print(f"{name}: error: {exc}", file=sys.stderr)
+            return 2
+        if isinstance(exc, OSError) and exc.filename is not None:
+            # a file-system error on a path the command was given (name too long, read-only,
+            # disk full, not a directory …) is bad input: one line, not a traceback
+            print(f"{name}: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
+        raise
+
+
+def _interrupted_exit(name: str) -> int:
+    """The operator stopped the command (Ctrl-C): one line, the operator-stop code."""
+    global _interrupted
+    _interrupted = True
+    print(f"{name}: interrupted", file=sys.stderr)
+    return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -120,6 +120,66 @@ def test_ctrl_c_while_the_command_line_is_imported_exits_130_in_one_line(tmp_pat
     assert not out.exists()  # stopped before anything started
 
 
+#: a run whose start-up meets Ctrl-C where Python cannot raise it as such, just before the run
+#: opens its channels (the last thing before the loop's own signal handling), on every run:
+#: - "callback": inside a C library's callback into Python (``ctypes``; numba's compiled-code
+#:   cache calls back so while a run builds its FEI kernels): ctypes prints the
+#:   KeyboardInterrupt as "Exception ignored" and the start-up goes on (libc's qsort here);
+#: - "set_name": inside a descriptor's ``__set_name__`` while a class is created (numba's types
+#:   have them, imported on a run's first FEI kernel): Python 3.11 raises a RuntimeError instead.
+_SIGINT_IN_START_UP = """
+import ctypes, os, signal, sys
+import rths_hil.hybrid.runner as runner
+where, out = sys.argv[1:]
+def ctrl_c():
+    os.kill(os.getpid(), signal.SIGINT)  # Python's handler runs at once, here
+    return 0
+def callback():
+    libc = ctypes.CDLL(None)
+    cmp = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p)(lambda a, b: ctrl_c())
+    pair = (ctypes.c_int * 2)(2, 1)
+    libc.qsort(pair, 2, ctypes.sizeof(ctypes.c_int), cmp)
+class Named:
+    def __set_name__(self, owner, name):
+        ctrl_c()
+def set_name():
+    type("Owner", (), {"x": Named()})
+real = runner.preflight
+def preflight(plan):
+    {"callback": callback, "set_name": set_name}[where]()
+    real(plan)
+runner.preflight = preflight
+from rths_hil.cli import entry
+sys.argv = ["rths-hil", "run", "--lockstep", "--duration", "5", "-q", "--no-plot", "--out", out]
+entry()
+"""
+
+
+@pytest.mark.parametrize("where", ["callback", "set_name"])
+def test_ctrl_c_that_python_cannot_raise_at_start_up_still_stops_before_the_first_step(
+    tmp_path, where
+):
+    """The Ctrl-C is remembered as it comes: the run stops before its first step (exit 130,
+    one line, no traceback) instead of running the whole test (a swallowed KeyboardInterrupt)
+    or ending in a traceback (one turned into another exception)."""
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-c", _SIGINT_IN_START_UP, where, str(out)],
+        capture_output=True, text=True, cwd=ROOT, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 130, (proc.returncode, proc.stderr)
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    if where == "callback":  # the start-up went on: the run's own operator-stop path
+        assert "operator stop" in proc.stderr
+        events = [json.loads(x) for x in (out / "events.jsonl").read_text().splitlines()]
+        assert events[-1]["kind"] == "end" and events[-1]["status"] == "operator_stop"
+        assert len(read_run(out).record) == 0  # not one step of the test
+    else:  # the exception ended the start-up: the command's own
+        assert proc.stderr.strip() == "rths-hil run: interrupted", proc.stderr
+        assert not (out / RECORD_FILE).exists()  # stopped before the record was opened
+
+
 @pytest.mark.timing
 def test_can_receive_honours_its_timeout_on_interfaces_that_do_not():
     """python-can's ``serial`` interface waits 0.1 s whatever recv is given; the driver not."""
