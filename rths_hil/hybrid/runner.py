@@ -140,7 +140,7 @@ class Runner:
     def _install_signals(self, stack: contextlib.ExitStack) -> None:
         stack.enter_context(self._stop)  # main thread only, restored at the end of the run
 
-    def run(self) -> RunResult:  # noqa: C901
+    def run(self) -> RunResult:
         """Run the test; return a :class:`RunResult` (never raises on a safety trip)."""
         plan = self.plan
         preflight(plan)
@@ -180,42 +180,13 @@ class Runner:
             bufs = self._buffers()
             self._quiet_interpreter(stack)
             self._check_links(rec)
-            # a new run on each controller: restart its sequence count, acknowledge a latch
-            replies = []
-            for ch in self.channels:
-                armed = ch.driver.arm(max(plan.timeout, 0.5), ch.receive)
-                replies.append(armed)
-                rec.event(
-                    "arm", 0.0, 0, channel=ch.name, replied=armed is not None,
-                    status=None if armed is None else int(armed.status),
-                    link=getattr(ch.driver, "link_note", None),
-                )  # fmt: skip
-            # from where each actuator is to step 0 (a ramp, or an offset), see .phases
-            try:
-                trip0 = phases.start(replies, firsts)
-            except InputError as exc:
-                rec.event("refused", 0.0, 0, reason=str(exc))
-                raise
-            except BaseException:
-                self._estop_on_error(rec, 0)
-                raise
-            if trip0 is None:
-                result = self._loop(rec, start, bufs, phases.next_deadline)
+            if self.stop_signal is None:
+                result = self._armed_run(rec, phases, firsts, start, bufs)
             else:
-                result = self._not_started(trip0)
-                rec.event("trip", **{k: v for k, v in trip0.as_event().items() if k != "kind"})
-            result.start_steps = phases.shift
-            if result.status in ("completed", "operator_stop"):
-                # back to rest (or hold) and hand the controllers back disabled
-                try:
-                    trip1 = phases.end(result, self.next_deadline)
-                except BaseException:
-                    self._estop_on_error(rec, result.steps)
-                    raise
-                result.handback = phases.handback_ok
-                if trip1 is not None:
-                    result.status, result.trip = "trip", trip1
-                    rec.event("trip", **{k: v for k, v in trip1.as_event().items() if k != "kind"})
+                # a stop signal before any controller was armed (a Ctrl-C while the run was
+                # built, rths_hil.stopping): none is armed, acknowledged or commanded
+                result = self._not_started(self._operator_stop(rec, 0))
+                result.status = "operator_stop"
             if result.status == "completed":
                 try:  # the last rows: a write failure here is still a safety event
                     rec.flush()
@@ -297,6 +268,54 @@ class Runner:
         for ch in self.channels:
             ch.estop()
         rec.event("error", k * self.plan.dt, k, error=repr(sys.exc_info()[1]))
+
+    def _armed_run(
+        self,
+        rec: Recorder,
+        phases: Phases,
+        firsts: list[float],
+        start: tuple[list[float], Trip | None],
+        bufs: tuple,
+    ) -> RunResult:
+        """Arm every controller, ramp to step 0, run the loop and hand the controllers back."""
+        plan = self.plan
+        # a new run on each controller: restart its sequence count, acknowledge a latch
+        replies = []
+        for ch in self.channels:
+            armed = ch.driver.arm(max(plan.timeout, 0.5), ch.receive)
+            replies.append(armed)
+            rec.event(
+                "arm", 0.0, 0, channel=ch.name, replied=armed is not None,
+                status=None if armed is None else int(armed.status),
+                link=getattr(ch.driver, "link_note", None),
+            )  # fmt: skip
+        # from where each actuator is to step 0 (a ramp, or an offset), see .phases
+        try:
+            trip0 = phases.start(replies, firsts)
+        except InputError as exc:
+            rec.event("refused", 0.0, 0, reason=str(exc))
+            raise
+        except BaseException:
+            self._estop_on_error(rec, 0)
+            raise
+        if trip0 is None:
+            result = self._loop(rec, start, bufs, phases.next_deadline)
+        else:
+            result = self._not_started(trip0)
+            rec.event("trip", **{k: v for k, v in trip0.as_event().items() if k != "kind"})
+        result.start_steps = phases.shift
+        if result.status in ("completed", "operator_stop"):
+            # back to rest (or hold) and hand the controllers back disabled
+            try:
+                trip1 = phases.end(result, self.next_deadline)
+            except BaseException:
+                self._estop_on_error(rec, result.steps)
+                raise
+            result.handback = phases.handback_ok
+            if trip1 is not None:
+                result.status, result.trip = "trip", trip1
+                rec.event("trip", **{k: v for k, v in trip1.as_event().items() if k != "kind"})
+        return result
 
     def _not_started(self, trip: Trip) -> RunResult:
         """The result of a run whose start ramp tripped (no loop step was taken)."""

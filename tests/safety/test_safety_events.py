@@ -175,6 +175,9 @@ def test_ctrl_c_that_python_cannot_raise_at_start_up_still_stops_before_the_firs
         events = [json.loads(x) for x in (out / "events.jsonl").read_text().splitlines()]
         assert events[-1]["kind"] == "end" and events[-1]["status"] == "operator_stop"
         assert len(read_run(out).record) == 0  # not one step of the test
+        # nor the controller armed (its latch acknowledged) nor commanded to start or end
+        kinds = {e["kind"] for e in events}
+        assert not kinds & {"arm", "start_position", "end_ramp", "handback"}, kinds
     else:  # the exception ended the start-up: the command's own
         assert proc.stderr.strip() == "rths-hil run: interrupted", proc.stderr
         assert not (out / RECORD_FILE).exists()  # stopped before the record was opened
