@@ -12,7 +12,7 @@ Before a command enters one of those, Ctrl-C raises :class:`KeyboardInterrupt` a
 handler does, and :func:`command_signals` also remembers it: a library that swallows the
 exception (a ``ctypes`` callback — numba's compiled-code cache has one — reports it as
 "Exception ignored" and goes on) does not lose the operator's stop. The next
-:class:`OperatorStop` starts with that signal received (a test stops before its first step),
+:class:`OperatorStop` starts with that signal received (a test stops before it arms a controller),
 the next :func:`interrupting` raises it again.
 """
 
