@@ -26,6 +26,7 @@ import numpy as np
 from . import studies as study
 from .compensators import compensator_class
 from .errors import InputError
+from .records.columns import column_name
 from .studies import robustness as rob
 
 __all__ = [
@@ -285,16 +286,16 @@ def compensator_study(
 def _md_table(res: CompensatorComparison) -> str:
     summ = res.summary()
     lines = []
-    for sfx in res.suffixes:
-        if sfx:
-            lines += [f"### Channel {sfx[1:]}", ""]
+    for ch in (sfx[1:] for sfx in res.suffixes):  # the channel of suffix ``_<ch>``
+        if ch:
+            lines += [f"### Channel {ch}", ""]
         head = ["criterion", *(f"{m} median" for m in res.methods)]
         head += [f"{m} 95 %" for m in res.methods]
         lines.append("| " + " | ".join(head) + " |")
         lines.append("|" + "---|" * len(head))
         for metric in COMPARISON_METRICS:
             cells = [f"`{metric}`"]
-            by = {r["method"]: r for r in summ if r["metric"] == metric + sfx}
+            by = {r["method"]: r for r in summ if r["metric"] == column_name(metric, ch)}
             scale = 1e3 if metric == "fei_delay" else 1.0
             cells += [f"{scale * by[m]['median']:.4g}" for m in res.methods]
             cells += [f"{scale * by[m]['p95']:.4g}" for m in res.methods]
@@ -346,15 +347,16 @@ def _plot(out: Path, res: CompensatorComparison) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [(m, sfx) for sfx in res.suffixes for m in BOX_METRICS]
+    panels = [(m, sfx[1:]) for sfx in res.suffixes for m in BOX_METRICS]
     ncol = len(BOX_METRICS)
     nrow = len(res.suffixes)
     fig, axes = plt.subplots(nrow, ncol, figsize=(3.0 * ncol, 3.2 * nrow), squeeze=False)
-    for ax, (metric, sfx) in zip(axes.ravel(), panels, strict=True):
+    for ax, (metric, ch) in zip(axes.ravel(), panels, strict=True):
         scale = 1e3 if metric == "fei_delay" else 1.0
+        col = column_name(metric, ch)
         data = []
         for m in res.methods:
-            v = np.array([r.get(metric + sfx, math.nan) for r in res.rows if r["method"] == m])
+            v = np.array([r.get(col, math.nan) for r in res.rows if r["method"] == m])
             data.append(scale * v[np.isfinite(v)])
         box = ax.boxplot(data, patch_artist=True, showfliers=True)
         for i, patch in enumerate(box["boxes"]):
@@ -362,7 +364,7 @@ def _plot(out: Path, res: CompensatorComparison) -> Path:
             patch.set_alpha(0.6)
         ax.set_xticks(range(1, len(res.methods) + 1), res.methods, rotation=30, fontsize=8)
         unit = " (ms)" if metric == "fei_delay" else ""
-        ax.set_title(f"{metric}{unit}{' ' + sfx[1:] if sfx else ''}", fontsize=9)
+        ax.set_title(f"{metric}{unit}{' ' + ch if ch else ''}", fontsize=9)
         ax.grid(True, axis="y", alpha=0.3)
     fig.tight_layout()
     path = out / "compensators_box.png"

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
+from ..records.columns import column_name
 from ..resources import MAX_TRIALS, check_count, check_memory, max_workers
 from ..stopping import interrupting
 from ..units import parse_fraction, parse_range, parse_time, positive_number
@@ -539,11 +540,11 @@ def run_robustness(args: argparse.Namespace) -> int:
     )
     for a in res.alphas:
         s = {r["metric"]: r for r in res.summary() if r["alpha"] == a}
-        for sfx in res.suffixes:
-            d, j2 = s["fei_delay" + sfx], s["J2" + sfx]
+        for ch in (sfx[1:] for sfx in res.suffixes):  # the channel of suffix ``_<ch>``
+            d, j2 = s[column_name("fei_delay", ch)], s[column_name("J2", ch)]
             rows = res.by_alpha(a)
-            a_ch = rows[0].get("alpha" + sfx, a) if rows else a  # the channel's own α
-            head = f"{a_ch:>6g} {sfx[1:]:>10} " if multi else f"{a:>6g} "
+            a_ch = rows[0].get(column_name("alpha", ch), a) if rows else a  # the channel's own α
+            head = f"{a_ch:>6g} {ch:>10} " if multi else f"{a:>6g} "
             print(
                 f"{head}{100 * d['share_tripped']:>7.1f}% {1e3 * d['median']:>14.2f} "
                 f"{1e3 * d['p5']:>8.2f} … {1e3 * d['p95']:<7.2f} {j2['median']:>10.2f} "
@@ -589,16 +590,18 @@ def run_compensators(args: argparse.Namespace) -> int:
     res, wall = ran
     written = cs.write_comparison(out, res, plot=not args.no_plot)
     summ = {(r["method"], r["metric"]): r for r in res.summary()}
-    for sfx in res.suffixes:
-        if sfx:
-            print(f"channel {sfx[1:]}")
+    for ch in (sfx[1:] for sfx in res.suffixes):  # the channel of suffix ``_<ch>``
+        if ch:
+            print(f"channel {ch}")
         print(
             f"{'method':>12} {'tripped':>8} {'A median':>9} {'d median (ms)':>14} "
             f"{'J2 median':>10} {'bench J2 median':>16} {'bench J2 95 %':>14}"
         )
         for m in methods:
-            a, d = summ[(m, "fei_amplitude" + sfx)], summ[(m, "fei_delay" + sfx)]
-            j2, b2 = summ[(m, "J2" + sfx)], summ[(m, "bench_J2" + sfx)]
+            a = summ[(m, column_name("fei_amplitude", ch))]
+            d = summ[(m, column_name("fei_delay", ch))]
+            j2 = summ[(m, column_name("J2", ch))]
+            b2 = summ[(m, column_name("bench_J2", ch))]
             print(
                 f"{m:>12} {100 * a['share_tripped']:>7.1f}% {a['median']:>9.4f} "
                 f"{1e3 * d['median']:>14.3f} {j2['median']:>10.3f} {b2['median']:>16.3f} "

@@ -679,18 +679,24 @@ def build_plan(  # noqa: C901
     links = link_loads(cfg, channels, fs)
     sf = cfg["safety"]
     forced = [ch for ch in channels if ch.control != "displacement"]
+    multi = len(channels) > 1  # a record of one channel names its columns plainly
     if any(ch.control == "force" for ch in forced):  # the trial displacements beside
         structure = TrialColumns(
             structure,
-            [(ch.name, "trial" + ch.suffix) for ch in forced if ch.control == "force"],
+            [
+                (ch.name, columns.column_name("trial", ch.name if multi else None))
+                for ch in forced
+                if ch.control == "force"
+            ],
         )
     cols = record_columns([ch.name for ch in channels], n_dof, structure)
     for ch in forced:  # the target and the command of a force channel are forces
         what = "the structure (force)" if ch.control == "force" else "control.load (load)"
+        chan = ch.name if multi else None
         for i, (name, dtype, _, _) in enumerate(cols):
-            if name == "target" + ch.suffix:
+            if name == columns.column_name("target", chan):
                 cols[i] = (name, dtype, "N", f"target force from {what}")
-            elif name == "command" + ch.suffix:
+            elif name == columns.column_name("command", chan):
                 cols[i] = (name, dtype, "N", "force set-point sent (after compensation)")
     row_bytes = sum(np.dtype(col[1]).itemsize for col in cols)
     check_disk(n * row_bytes, run_dir, f"the record of {dur or n / fs:g} s at {fs:g} Hz")

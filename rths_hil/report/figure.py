@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from ..records.columns import column_name
 from ..records.recorder import RECORD_FILE, RunData, read_run
 from .summary import (
     _CHUNK,
@@ -18,8 +19,8 @@ from .summary import (
     _num,
     _Rows,
     channel_controls,
-    channel_suffixes,
     format_summary,
+    record_channels,
     summarize,
     tracked_column,
 )
@@ -70,37 +71,41 @@ def plot_report(
             summary = json.loads(sj.read_text())
         except (OSError, ValueError, RecursionError):
             summary = summarize(run.path, write=False)
-    chans = channel_suffixes(run)
+    chans = record_channels(run)
     multi = len(chans) > 1
     controls = channel_controls(run)
     # each channel's tracked column: the measured displacement, or a force channel's force
-    tracked = {sfx: tracked_column(controls.get(sfx, "displacement")) for _, sfx in chans}
+    tracked = {ch: tracked_column(controls.get(ch, "displacement")) for _, ch in chans}
     per_channel = (
         "target", "command", "measured", "force", "fei_amplitude", "fei_delay", "fei_valid",
         "kf_delay", "kf_gain",
     )  # fmt: skip
     derived = {
-        "error" + sfx: (lambda p, sfx=sfx, m=tracked[sfx]: p[m + sfx] - p["target" + sfx])
-        for _, sfx in chans
+        column_name("error", ch): (
+            lambda p, ch=ch, m=tracked[ch]: p[column_name(m, ch)] - p[column_name("target", ch)]
+        )
+        for _, ch in chans
     }
     with _Rows(run.path / RECORD_FILE) as src:
         has_stab = {  # a load channel has no indicator (its force is not the structure's)
-            sfx: "stability" + sfx in (src.dtype.names or ()) and controls.get(sfx) != "load"
-            for _, sfx in chans
+            ch: column_name("stability", ch) in (src.dtype.names or ())
+            and controls.get(ch) != "load"
+            for _, ch in chans
         }
         cols = (
             "lateness",
             "ground_accel",
-            *(c + sfx for _, sfx in chans for c in per_channel),
-            *("stability" + sfx for _, sfx in chans if has_stab[sfx]),
+            *(column_name(c, ch) for _, ch in chans for c in per_channel),
+            *(column_name("stability", ch) for _, ch in chans if has_stab[ch]),
             *derived,
         )
         env = _envelopes(src, cols, max_points, derived)
         n = len(src)
         zoom = _peak_zoom(src, n, run.fs) if not multi and n else None
-        exact = {sfx: _exact_points(src, run.fs, sfx) for _, sfx in chans}
+        exact = {ch: _exact_points(src, run.fs, ch) for _, ch in chans}
         loops = {
-            sfx: _strided(src, ("measured" + sfx, "force" + sfx), max_points) for _, sfx in chans
+            ch: _strided(src, (column_name("measured", ch), column_name("force", ch)), max_points)
+            for _, ch in chans
         }
     t = env["time"]
     mm = 1e3
@@ -127,20 +132,20 @@ def plot_report(
         )
     )
     pair = run.meta.get("fei_pair", "target")
-    for c, (name, sfx) in enumerate(chans):
+    for c, (name, ch) in enumerate(chans):
         head = f"channel {name}: " if multi else ""
         k = 1 + per * c
-        meas = tracked[sfx]
+        meas = tracked[ch]
         # a force or load channel tracks its force: drawn in kN, its mode in the titles
         if meas == "force":
             sc, unit, what = 1e-3, "kN", "force"
-            head += f"{controls.get(sfx)}-controlled, "
+            head += f"{controls.get(ch)}-controlled, "
         else:
             sc, unit, what = mm, "mm", "displacement"
         ax = axes[k]
-        ax.plot(t, env["target" + sfx] * sc, lw=1.0, label="calculated (target)")
-        ax.plot(t, env["command" + sfx] * sc, lw=0.8, label="command")
-        ax.plot(t, env[meas + sfx] * sc, lw=0.8, ls="--", label="measured")
+        ax.plot(t, env[column_name("target", ch)] * sc, lw=1.0, label="calculated (target)")
+        ax.plot(t, env[column_name("command", ch)] * sc, lw=0.8, label="command")
+        ax.plot(t, env[column_name(meas, ch)] * sc, lw=0.8, ls="--", label="measured")
         ax.set_ylabel(f"{what} ({unit})")
         ax.set_title(f"{head}{what}s (cf. the FEI paper's Fig. 5.1)")
         ax.legend(loc="upper right", fontsize=8)
@@ -157,29 +162,29 @@ def plot_report(
             ax.set_title("around the peak")
             k += 1
         ax = axes[k]
-        ax.plot(t, env["error" + sfx] * sc, lw=0.7, color="C3")
+        ax.plot(t, env[column_name("error", ch)] * sc, lw=0.7, color="C3")
         ax.axhline(0.0, color="0.5", lw=0.5)
         ax.set_ylabel(f"error ({unit})")
         ax.set_title(f"{head}tracking error, measured − target {what}")
         k += 1
-        valid = env["fei_valid" + sfx] > 0.5
-        ex = exact[sfx]
+        valid = env[column_name("fei_valid", ch)] > 0.5
+        ex = exact[ch]
         for ax, col, exv, scale, label in (
             (axes[k], "fei_amplitude", ex["amplitude"], 1.0, "A"),
             (axes[k + 1], "fei_delay", ex["delay"], 1e3, "d (ms)"),
         ):
-            ax.plot(t, env[col + sfx] * scale, lw=1.0, label="online, streaming")
+            ax.plot(t, env[column_name(col, ch)] * scale, lw=1.0, label="online, streaming")
             ax.plot(ex["time"], exv * scale, "o", ms=3, label="exact (cross-check)")
             _shade_invalid(ax, t, valid)
             ax.set_ylabel(label)
             ax.legend(loc="upper right", fontsize=8)
         axes[k].set_title(
             f"{head}online FEI, measured {what} vs {pair} (cf. the FEI paper's Fig. 5.2); "
-            "grey: invalid windows" + ("; green: stability indicator S" if has_stab[sfx] else "")
+            "grey: invalid windows" + ("; green: stability indicator S" if has_stab[ch] else "")
         )
-        if has_stab[sfx]:  # beside the FEI: S on the right axis of the A panel
+        if has_stab[ch]:  # beside the FEI: S on the right axis of the A panel
             ax2 = axes[k].twinx()
-            ys = env["stability" + sfx]
+            ys = env[column_name("stability", ch)]
             few = int(np.isfinite(ys).sum()) < 50  # a trip soon after the first valid window
             ax2.plot(t, ys, lw=0.9, color="C2", marker="o" if few else None, ms=3)
             stb = (summary.get("channels", {}).get(name) if multi else summary) or {}
@@ -191,8 +196,8 @@ def plot_report(
     _mark_stops(run, axes)
     # force–displacement loop(s) and the summary text
     ax = fig.add_subplot(gs[n_time, :2])
-    for name, sfx in chans:
-        x, f = loops[sfx]
+    for name, ch in chans:
+        x, f = loops[ch]
         ax.plot(x * mm, f / 1e3, lw=0.6, label=name if multi else None)
     ax.set_xlabel("measured displacement (mm)")
     ax.set_ylabel("measured force (kN)")
@@ -230,15 +235,15 @@ def _timing_panel(
     ax: Any, t: np.ndarray, env: dict[str, Any], paced: bool, chan: tuple[str, str], multi: bool
 ) -> None:
     """The last time panel: lateness (paced) or the Kalman estimates of channel ``chan``."""
-    name, sfx = chan
+    name, ch = chan
     if paced:
         ax.plot(t, env["lateness"] * 1e6, lw=0.6)
         ax.set_ylabel("lateness (µs)")
         ax.set_title("send time minus deadline")
     else:
-        ax.plot(t, env["kf_delay" + sfx] * 1e3, lw=1.0, label="Kalman delay (ms)")
+        ax.plot(t, env[column_name("kf_delay", ch)] * 1e3, lw=1.0, label="Kalman delay (ms)")
         ax2 = ax.twinx()
-        ax2.plot(t, env["kf_gain" + sfx], lw=1.0, color="C1", label="Kalman gain")
+        ax2.plot(t, env[column_name("kf_gain", ch)], lw=1.0, color="C1", label="Kalman gain")
         ax.set_ylabel("delay (ms)")
         ax2.set_ylabel("gain")
         ax.set_title(
@@ -327,19 +332,20 @@ def _envelopes(
     return {k: np.concatenate(v) if v else np.zeros(0) for k, v in out.items()}
 
 
-def _exact_points(src: _Rows, fs: float, sfx: str = "") -> dict[str, np.ndarray]:
+def _exact_points(src: _Rows, fs: float, channel: str = "") -> dict[str, np.ndarray]:
     """The exact-FEI cross-check of a channel, chunk by chunk: ``time`` (s), ``amplitude``,
     ``delay``, one point per new valid window, at the step its window ended
     (``fei_exact_step``; see :func:`exact_fei_points`)."""
     keep: dict[str, list] = {"time": [], "amplitude": [], "delay": []}
-    has_step = "fei_exact_step" + sfx in (src.dtype.names or ())
+    step_col = column_name("fei_exact_step", channel)
+    has_step = step_col in (src.dtype.names or ())
     prev = -1 if has_step else np.nan
     for i in range(0, len(src), _CHUNK):
         part = src.read(i, i + _CHUNK)
-        amp = np.asarray(part["fei_exact_amplitude" + sfx], dtype=float)
-        ok = part["fei_exact_valid" + sfx].astype(bool) & np.isfinite(amp)
+        amp = np.asarray(part[column_name("fei_exact_amplitude", channel)], dtype=float)
+        ok = part[column_name("fei_exact_valid", channel)].astype(bool) & np.isfinite(amp)
         if has_step:
-            end = np.asarray(part["fei_exact_step" + sfx], dtype=np.int64)
+            end = np.asarray(part[step_col], dtype=np.int64)
             sel = (np.diff(end, prepend=prev) != 0) & (end >= 0) & ok
             prev = end[-1] if end.size else prev
             t_end = end[sel] / fs
@@ -349,7 +355,8 @@ def _exact_points(src: _Rows, fs: float, sfx: str = "") -> dict[str, np.ndarray]
             t_end = np.asarray(part["time"][sel], dtype=float)
         keep["time"].append(t_end)
         keep["amplitude"].append(amp[sel])
-        keep["delay"].append(np.asarray(part["fei_exact_delay" + sfx][sel], dtype=float))
+        delay = part[column_name("fei_exact_delay", channel)][sel]
+        keep["delay"].append(np.asarray(delay, dtype=float))
     return {k: np.concatenate(v) if v else np.zeros(0) for k, v in keep.items()}
 
 

@@ -14,30 +14,31 @@ import numpy as np
 
 from ..formats import json_text
 from ..metrics import overlap_peak_lag
-from ..records.columns import channel_suffix
+from ..records.columns import column_name
 from ..records.recorder import RECORD_FILE, RunData, read_npy_header, read_run
 from .live import _fmt, _number
 
 __all__ = ["exact_fei_points", "format_summary", "summarize"]
 
 
-def channel_suffixes(run: RunData) -> list[tuple[str, str]]:
-    """(name, column suffix) of each channel of a run (one unnamed channel for older runs)."""
+def record_channels(run: RunData) -> list[tuple[str, str]]:
+    """(name, record channel) of each channel of a run (one unnamed channel for older runs).
+
+    The record channel names the channel's columns (:func:`column_name`): the channel's name in
+    a record of several channels, ``""`` in a record of one.
+    """
     chans = run.meta.get("channels") or []
     multi = len(chans) > 1
-    out = [
-        (c.get("name", ""), c.get("suffix", channel_suffix(c.get("name") if multi else None)))
-        for c in chans
-    ]
+    out = [(c.get("name", ""), c.get("name", "") if multi else "") for c in chans]
     return out or [("", "")]
 
 
 def channel_controls(run: RunData) -> dict[str, str]:
-    """Column suffix → ``control.mode`` of each channel (``displacement`` for older runs)."""
+    """Record channel → ``control.mode`` of each channel (``displacement`` for older runs)."""
     chans = run.meta.get("channels") or []
     return {
-        sfx: (c.get("control") or "displacement")
-        for (_, sfx), c in zip(channel_suffixes(run), chans, strict=False)
+        ch: (c.get("control") or "displacement")
+        for (_, ch), c in zip(record_channels(run), chans, strict=False)
     }
 
 
@@ -46,17 +47,20 @@ def tracked_column(control: str) -> str:
     return "measured" if control == "displacement" else "force"
 
 
-def exact_fei_points(rec: np.ndarray, sfx: str = "") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def exact_fei_points(
+    rec: np.ndarray, channel: str = ""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The exact-FEI cross-check as points: (window-end step, A, d), one per new valid window.
 
     Each exact value is placed at the step its window ended (``fei_exact_step``), not at the
     step its result came back from the worker process (paced runs), so the points sit on the
     streaming curve. Records without ``fei_exact_step`` use the step the value appeared.
+    ``channel`` is the record channel (``""`` for a record of one channel).
     """
-    amp = rec["fei_exact_amplitude" + sfx].astype(float)
-    dly = rec["fei_exact_delay" + sfx].astype(float)
-    ok = rec["fei_exact_valid" + sfx].astype(bool)
-    name = "fei_exact_step" + sfx
+    amp = rec[column_name("fei_exact_amplitude", channel)].astype(float)
+    dly = rec[column_name("fei_exact_delay", channel)].astype(float)
+    ok = rec[column_name("fei_exact_valid", channel)].astype(bool)
+    name = column_name("fei_exact_step", channel)
     if name in (rec.dtype.names or ()):
         end = rec[name].astype(np.int64)
         change = np.flatnonzero(np.diff(end, prepend=-1) != 0)
@@ -147,7 +151,7 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
     if short:
         out["too_short"] = short
     if n >= 16:
-        chans = channel_suffixes(run)
+        chans = record_channels(run)
         warnings = _events(run, "stability")
         energy = end.get("stability") or {}
         controls = channel_controls(run)
@@ -160,14 +164,12 @@ def summarize(run_dir: str | Path, write: bool = True, lean_rows: int = 1 << 21)
                     out["stability"] = stab
             else:  # several channels: the same figures per channel
                 out["channels"] = {
-                    name: _record_figures(
-                        src, fs, lean_rows, sfx, controls.get(sfx, "displacement")
-                    )
-                    for name, sfx in chans
+                    name: _record_figures(src, fs, lean_rows, ch, controls.get(ch, "displacement"))
+                    for name, ch in chans
                 }
-                for name, sfx in chans:
+                for name, ch in chans:
                     stab = _stability_figures(
-                        src, sfx, name, energy, warnings, controls.get(sfx, "displacement")
+                        src, ch, name, energy, warnings, controls.get(ch, "displacement")
                     )
                     if stab:
                         out["channels"][name]["stability"] = stab
@@ -269,11 +271,11 @@ class _Rows:
 
 
 def _record_figures(
-    rec: _Rows, fs: float, lean_rows: int, sfx: str = "", control: str = "displacement"
+    rec: _Rows, fs: float, lean_rows: int, channel: str = "", control: str = "displacement"
 ) -> dict[str, Any]:
     """Whole-record FEI, metrics, online-estimate statistics and peaks of a record (≥ 16 rows).
 
-    ``sfx`` selects a channel's columns (``"_left"``: ``target_left`` …; ``""``: one channel).
+    ``channel`` selects a channel's columns (``"left"``: ``target_left`` …; ``""``: one channel).
     ``control`` is the channel's ``control.mode``: the FEI and J1–J3 are of its tracked
     quantity, the measured displacement (m) or, on a force or load channel, the measured force
     against the target force (N); ``control``, ``tracked`` and ``unit`` say which.
@@ -286,10 +288,11 @@ def _record_figures(
     out["control"] = control
     out["tracked"] = tracked
     out["unit"] = "m" if tracked == "measured" else "N"
-    meas = tracked + sfx
-    finite = _all_finite(rec, ("target" + sfx, "command" + sfx, meas))
+    meas = column_name(tracked, channel)
+    target_col, command_col = column_name("target", channel), column_name("command", channel)
+    finite = _all_finite(rec, (target_col, command_col, meas))
     lean = n > lean_rows and finite
-    for key, col in (("fei_target", "target" + sfx), ("fei_command", "command" + sfx)):
+    for key, col in (("fei_target", target_col), ("fei_command", command_col)):
         try:
             if lean:
                 r = _fei_lean(rec, col, fs, meas)
@@ -308,9 +311,9 @@ def _record_figures(
         except Exception as exc:  # a record too short or degenerate: say so, don't fail
             out[key] = {"error": str(exc)}
     if lean:
-        out["metrics"] = _metrics_lean(rec, fs, "target" + sfx, meas)
+        out["metrics"] = _metrics_lean(rec, fs, target_col, meas)
     else:
-        target = rec.column("target" + sfx)
+        target = rec.column(target_col)
         measured = rec.column(meas)
         ok = np.isfinite(measured)
         out["metrics"] = _metrics(target[ok], measured[ok], fs)
@@ -324,8 +327,8 @@ def _record_figures(
     a_min = d_min = math.inf
     a_max = d_max = -math.inf
     pk = {"target": 0.0, "measured": 0.0, "force": 0.0}
-    online = ("fei_amplitude" + sfx, "fei_delay" + sfx, "fei_valid" + sfx)
-    for c in _chunks(rec, (*online, *(name + sfx for name in pk))):
+    online = tuple(column_name(b, channel) for b in ("fei_amplitude", "fei_delay", "fei_valid"))
+    for c in _chunks(rec, (*online, *(column_name(name, channel) for name in pk))):
         fa, fd = c[online[0]], c[online[1]]
         v = c[online[2]].astype(bool) & np.isfinite(fa) & np.isfinite(fd)
         if v.any():
@@ -335,7 +338,7 @@ def _record_figures(
             a_min, a_max = min(a_min, float(fa[v].min())), max(a_max, float(fa[v].max()))
             d_min, d_max = min(d_min, float(fd[v].min())), max(d_max, float(fd[v].max()))
         for name in pk:
-            x = np.abs(c[name + sfx])
+            x = np.abs(c[column_name(name, channel)])
             if np.isfinite(x).any():
                 pk[name] = max(pk[name], float(np.nanmax(x)))
     if cnt:
@@ -350,7 +353,7 @@ def _record_figures(
 
 def _stability_figures(
     rec: _Rows,
-    sfx: str,
+    channel: str,
     name: str,
     energy: dict,
     warnings: list[dict],
@@ -364,7 +367,7 @@ def _stability_figures(
     ``injected`` and ``dissipated`` (J), ``warn`` and ``limit`` (the levels), ``warnings``
     (``stability`` events) and ``first_warning`` (its time, s).
     """
-    col = "stability" + sfx
+    col = column_name("stability", channel)
     if col not in (rec.dtype.names or ()) or control == "load":
         return None
     cnt = 0

@@ -241,7 +241,7 @@ def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
             path = Path(tmp) / Path(spec.record[0]).name
             path.write_bytes(spec.record[1])
             cfg["ground_motion"]["record"] = str(path)
-        sfx_all = channel_suffixes(cfg)
+        chans = _record_channels(cfg)
         sdof = cfg["structure"].get("kind", "sdof") == "sdof" and not cfg.get("actuators")
         try:
             res = run(cfg, run_dir=Path(tmp) / "run", mode="lockstep", duration=spec.duration)
@@ -256,39 +256,41 @@ def robustness_trial(spec: TrialSpec) -> dict[str, Any]:
     fs = float(cfg["loop"]["fs"])
     row = _trial_row(spec, cfg["compensation"]["alpha"], res)
     trip = res.trip
-    if sfx_all != [""]:
+    if chans != [None]:
         row["trip_channel"] = trip.channel if trip is not None else ""
-        for sfx, entry in zip(sfx_all, cfg["actuators"], strict=True):
+        for ch, entry in zip(chans, cfg["actuators"], strict=True):
             comp = resolve_channel(cfg, entry).config["compensation"]
-            row["alpha" + sfx] = float(comp["alpha"]) if comp["enabled"] else 1.0
+            row[column_name("alpha", ch)] = float(comp["alpha"]) if comp["enabled"] else 1.0
     nan = math.nan
-    for ch in _record_channels(cfg):
-        sfx = channel_suffix(ch)
+    for ch in chans:
         target = np.asarray(rec[column_name("target", ch)], dtype=float)
         measured = np.asarray(rec[column_name("measured", ch)], dtype=float)
         n = target.size
-        reference = references[sfx][:n]
+        reference = references[channel_suffix(ch)][:n]
         whole = fei(target, measured, fs) if n >= 8 else None
-        row["fei_amplitude" + sfx] = whole.amplitude if whole is not None else nan
-        row["fei_delay" + sfx] = whole.delay if whole is not None else nan
-        row["fei_f_eq" + sfx] = whole.f_eq if whole is not None else nan
+        row[column_name("fei_amplitude", ch)] = whole.amplitude if whole is not None else nan
+        row[column_name("fei_delay", ch)] = whole.delay if whole is not None else nan
+        row[column_name("fei_f_eq", ch)] = whole.f_eq if whole is not None else nan
         valid = np.asarray(rec[column_name("fei_valid", ch)], dtype=bool)
         a_lo, a_hi = _extremes(
             np.asarray(rec[column_name("fei_amplitude", ch)], dtype=float), valid
         )
         d_lo, d_hi = _extremes(np.asarray(rec[column_name("fei_delay", ch)], dtype=float), valid)
-        row["mwo_amplitude_min" + sfx], row["mwo_amplitude_max" + sfx] = a_lo, a_hi
-        row["mwo_delay_min" + sfx], row["mwo_delay_max" + sfx] = d_lo, d_hi
+        row[column_name("mwo_amplitude_min", ch)] = a_lo
+        row[column_name("mwo_amplitude_max", ch)] = a_hi
+        row[column_name("mwo_delay_min", ch)] = d_lo
+        row[column_name("mwo_delay_max", ch)] = d_hi
         ok = n >= BENCHMARK_MIN_STEPS
         paper = criteria(target, measured, fs, reference) if ok else {}
         bench = benchmark_criteria(target, measured, fs, reference) if ok else {}
         for i in range(1, 10):
-            row[f"J{i}{sfx}"] = float(paper.get(f"J{i}", nan))
+            row[column_name(f"J{i}", ch)] = float(paper.get(f"J{i}", nan))
         for i in range(1, 10):
-            row[f"bench_J{i}{sfx}"] = float(bench.get(f"J{i}", nan))
-        row["peak_target" + sfx] = float(np.max(np.abs(target))) if n else nan
-        row["peak_reference" + sfx] = float(np.max(np.abs(reference))) if n else nan
-        row["peak_force" + sfx] = float(np.max(np.abs(rec[column_name("force", ch)]))) if n else nan
+            row[column_name(f"bench_J{i}", ch)] = float(bench.get(f"J{i}", nan))
+        force = rec[column_name("force", ch)]
+        row[column_name("peak_target", ch)] = float(np.max(np.abs(target))) if n else nan
+        row[column_name("peak_reference", ch)] = float(np.max(np.abs(reference))) if n else nan
+        row[column_name("peak_force", ch)] = float(np.max(np.abs(force))) if n else nan
     return row
 
 
@@ -377,7 +379,7 @@ class TrialRows:
         for g in self.groups:
             rows = [r for r in self.rows if r[self.group_key] == g]
             tripped = sum(r["status"] == "trip" for r in rows)
-            for m in (m + sfx for sfx in self.suffixes for m in self.metrics):
+            for m in (column_name(m, sfx[1:]) for sfx in self.suffixes for m in self.metrics):
                 out.append({self.group_key: g, **metric_summary(rows, m, tripped)})
         return out
 
@@ -467,8 +469,8 @@ def trial_columns(suffixes: Sequence[str] = ("",)) -> list[str]:
     if list(suffixes) == [""]:
         return list(TRIAL_COLUMNS)
     out = [*TRIAL_COLUMNS[:5], "trip_channel"]
-    for sfx in suffixes:
-        out += ["alpha" + sfx, *(c + sfx for c in _CHANNEL_COLUMNS)]
+    for ch in (sfx[1:] for sfx in suffixes):  # the channel of suffix ``_<ch>``
+        out += [column_name(c, ch) for c in ("alpha", *_CHANNEL_COLUMNS)]
     return out
 
 
@@ -634,12 +636,12 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
     out = Path(out_dir)
     paths = []
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
-    series = [(a, sfx) for a in result.alphas for sfx in result.suffixes]
-    for i, (a, sfx) in enumerate(series):
+    series = [(a, sfx[1:]) for a in result.alphas for sfx in result.suffixes]
+    for i, (a, ch) in enumerate(series):
         rows = result.by_alpha(a)
-        d = np.array([r["fei_delay" + sfx] for r in rows], dtype=float) * 1e3
-        j2 = np.array([r["J2" + sfx] for r in rows], dtype=float)
-        label = f"α = {a:g}" + (f", {sfx[1:]}" if sfx else "")
+        d = np.array([r[column_name("fei_delay", ch)] for r in rows], dtype=float) * 1e3
+        j2 = np.array([r[column_name("J2", ch)] for r in rows], dtype=float)
+        label = f"α = {a:g}" + (f", {ch}" if ch else "")
         kw = {"alpha": 0.55, "color": f"C{i}", "label": label, "bins": 20}
         ax1.hist(d[np.isfinite(d)], **kw)
         ax2.hist(j2[np.isfinite(j2)], **kw)
@@ -663,14 +665,13 @@ def plot_robustness(out_dir: str | Path, result: RobustnessResult) -> list[Path]
             (axes[0], "fei_delay", 1e3, "FEI delay d (ms)"),
             (axes[1], "J2", 1.0, "J2 (%)"),
         ):
-            for j, sfx in enumerate(result.suffixes):
-                s = [
-                    next(r for r in summ if r["alpha"] == a and r["metric"] == m + sfx) for a in al
-                ]
+            for j, ch in enumerate(sfx[1:] for sfx in result.suffixes):
+                col = column_name(m, ch)
+                s = [next(r for r in summ if r["alpha"] == a and r["metric"] == col) for a in al]
                 med = np.array([r["median"] for r in s]) * scale
                 lo = np.array([r["p5"] for r in s]) * scale
                 hi = np.array([r["p95"] for r in s]) * scale
-                name = f" {sfx[1:]}" if sfx else ""
+                name = f" {ch}" if ch else ""
                 ax.fill_between(al, lo, hi, alpha=0.3, color=f"C{j}", label=f"5–95 %{name}")
                 ax.plot(al, med, "o-", color=f"C{j}", label=f"median{name}")
             ax.set_ylabel(label)
