@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _results import markdown_table, write_results  # noqa: E402
 
-from rths_hil import compensator_study as cs  # noqa: E402
+from rths_hil.studies import compensators as cs  # noqa: E402
 
 EXAMPLE = ROOT / "examples" / "benchmark" / "benchmark.toml"
 METHODS = ("inverse", "polynomial", "ats", "model")

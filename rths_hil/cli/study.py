@@ -557,8 +557,8 @@ def run_robustness(args: argparse.Namespace) -> int:
 def run_compensators(args: argparse.Namespace) -> int:
     """``study compensators``."""
 
-    from .. import compensator_study as cs
     from .. import studies as study
+    from ..studies import compensators as cs
 
     _, base, perts, duration = _trial_inputs(args)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]

@@ -8,7 +8,7 @@
 * :mod:`rths_hil.studies.executors` — where the cases run: in process, a process pool or a
   Dask cluster (:func:`open_executor`).
 
-:mod:`rths_hil.compensator_study` runs every compensator on the robustness study's draws.
+:mod:`rths_hil.studies.compensators` runs every compensator on the robustness study's draws.
 """
 
 from .executors import SerialExecutor, make_executor, open_executor, run_cases

@@ -14,11 +14,11 @@ from rths_hil.sim_backends.models import benchmark_transfer_function
 from scipy import linalg
 
 from rths_hil import studies as study
-from rths_hil.compensator_study import compensator_study, floors_trial
 from rths_hil.config import load_config
 from rths_hil.errors import InputError
 from rths_hil.groundmotion import load
 from rths_hil.structures import mdof
+from rths_hil.studies.compensators import compensator_study, floors_trial
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = ROOT / "examples" / "benchmark"

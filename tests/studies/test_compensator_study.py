@@ -11,8 +11,8 @@ import pytest
 
 from rths_hil import studies as study
 from rths_hil.cli import main
-from rths_hil.compensator_study import compensator_study, write_comparison
 from rths_hil.config import load_config
+from rths_hil.studies.compensators import compensator_study, write_comparison
 
 ROOT = Path(__file__).resolve().parents[2]
 

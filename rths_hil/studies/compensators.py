@@ -23,11 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from . import studies as study
-from .compensators import compensator_class
-from .errors import InputError
-from .records.columns import column_name
-from .studies import robustness as rob
+from .. import studies as study
+from ..compensators import compensator_class
+from ..errors import InputError
+from ..records.columns import column_name
+from . import robustness as rob
 
 __all__ = [
     "COMPARISON_METRICS",
@@ -120,7 +120,7 @@ _REFERENCES_BYTES = 256e6
 
 def _reference_floors(cfg, n: int, tmp: str, key: tuple[str, float | None]) -> np.ndarray:
     """(n, floors ≤ 3) displacements of the reference: the same test with an ideal actuator."""
-    from .records.recorder import read_run
+    from ..records.recorder import read_run
 
     ref = _REFERENCES.get(key)
     if ref is None or ref.shape[0] < n:
@@ -168,10 +168,10 @@ def floors_trial(spec: study.TrialSpec) -> dict[str, Any]:
     import os
     import tempfile
 
-    from .fei import fei
-    from .hybrid import run
-    from .metrics import benchmark_criteria, criteria
-    from .records.recorder import read_run
+    from ..fei import fei
+    from ..hybrid import run
+    from ..metrics import benchmark_criteria, criteria
+    from ..records.recorder import read_run
 
     rob._sweep_dead_scratch()
     key = _reference_key(spec)
