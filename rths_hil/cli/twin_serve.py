@@ -8,7 +8,8 @@ exit code 0.
 
 Each protocol package declares its own options (its descriptor's ``serve_options``,
 :mod:`rths_hil.drivers.protocol`) and its twin endpoint turns them into its settings
-(``connection_from_args``); the command lines of every shipped protocol are in
+(``connection_from_args``), which an option may check (its action's ``check_served``: a
+device to serve must exist); the command lines of every shipped protocol are in
 ``docs/protocols.md`` ("Twins, faults and ``twin serve``")::
 
     rths-hil twin serve --driver NAME [--transport T] [--port P] [--profile FILE] [--model FILE]
@@ -23,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import signal
 import sys
 import threading
@@ -175,28 +175,21 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
         except (RuntimeError, OSError) as exc:  # a symlink loop (RuntimeError before 3.13)
             raise InputError(f"--profile {args.profile}: cannot be resolved: {exc}") from None
         conn["profile"] = path
-    device = getattr(args, "device", None)
-    if device:
-        if "device" not in conn:
-            raise InputError(
-                f"--device {device}: --driver {args.driver} serves no device here "
-                f"({conn.get('transport', 'its own line')})"
-            )
-        _check_device(conn["device"])
+    _check_served(args, conn)
     _check_owned(args)
     return conn
 
 
-def _check_device(path: str) -> None:
-    """Refuse a ``--device`` that does not exist or is not a character (serial) device."""
-    import stat
-
-    try:
-        mode = os.stat(path).st_mode
-    except OSError as exc:
-        raise InputError(f"--device {path}: {exc.strerror}") from None
-    if not stat.S_ISCHR(mode):
-        raise InputError(f"--device {path}: not a serial device (a character device)")
+def _check_served(args: argparse.Namespace, conn: dict[str, Any]) -> None:
+    """Let each protocol option given check the connection it serves: an option whose action
+    has a ``check_served(value, args, conn)`` (a device to serve that must exist) refuses, in
+    one line, what the twin cannot serve."""
+    for _, actions in getattr(args, "protocol_options", ()):
+        for action in actions:
+            check = getattr(action, "check_served", None)
+            value = getattr(args, action.dest, action.default)
+            if check is not None and value != action.default:
+                check(value, args, conn)
 
 
 def _loop_gain(args: argparse.Namespace) -> float | None:
