@@ -52,7 +52,7 @@ closed form after column scaling; an ill-conditioned window (a motion with one f
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -67,6 +67,68 @@ _M0, _M1, _M2, _C0, _C1, _COUNT, _HEAD, _ROWS, _PRIMED = range(9)
 _A, _LO, _HI, _DMAX = 9, 12, 15, 18
 _DT, _SKIP, _THR2 = 21, 22, 23
 _Z = 24  # then 2 values per section for the command filter, 2 per section for the measured
+
+
+#: The method's own keys of the compensation section, each with the constructor argument it
+#: gives: :attr:`ATSCompensator.KEYS`, :attr:`ATSCompensator.ARGUMENTS` and the constructor's
+#: defaults all come from this one declaration.
+_KEYS: dict[str, tuple[str, Key]] = {
+    "ats_window": (
+        "window",
+        seconds(1.0, doc="ats: length of the moving least-squares window", positive=True),
+    ),
+    "ats_interval": (
+        "interval",
+        seconds(
+            0.015625,
+            doc="ats: time between window samples and coefficient updates (16 steps at 1024 Hz)",
+            positive=True,
+        ),
+    ),
+    "ats_cutoff": (
+        "cutoff",
+        Key(
+            "float",
+            20.0,
+            unit="Hz",
+            doc="ats: cut-off of the 6th-order Butterworth on command and measured",
+            lo=0,
+            lo_open=True,
+        ),
+    ),
+    "ats_threshold": (
+        "threshold",
+        Key(
+            "float",
+            0.000254,
+            unit="m",
+            doc="ats: coefficients adapt only while the window's RMS measured displacement "
+            "exceeds this",
+            lo=0,
+        ),
+    ),
+    "ats_min": (
+        "lower",
+        Key("array", [0.7, 0.0, 0.0], doc="ats: lower bounds of a0 (-), a1 (s), a2 (s²)"),
+    ),
+    "ats_max": (
+        "upper",
+        Key("array", [1.3, 0.08, 0.0032], doc="ats: upper bounds of a0 (-), a1 (s), a2 (s²)"),
+    ),
+    "ats_rate": (
+        "rate",
+        Key(
+            "array",
+            [2.0, 0.05, 0.001],
+            doc="ats: maximum rate of change of a0 (1/s), a1 (s/s), a2 (s²/s)",
+        ),
+    ),
+}
+#: The constructor's defaults: each key's default (an array's as a tuple), by argument.
+_DEFAULTS: dict[str, Any] = {
+    argument: tuple(key.default) if key.kind == "array" else key.default
+    for argument, key in _KEYS.values()
+}
 
 
 def _triple(values: Sequence[float], name: str) -> np.ndarray:
@@ -102,54 +164,13 @@ class ATSCompensator(Compensator):
         The current ``[a0, a1, a2]``; ``alpha = 1 + a1·fs``.
     """
 
+    #: the method's own keys of the compensation section (:data:`_KEYS`)
+    KEYS: ClassVar[Mapping[str, Key]] = {name: key for name, (_, key) in _KEYS.items()}
     #: the ``delay``, ``amplitude`` and ``ats_*`` keys of the compensation section
     ARGUMENTS: ClassVar[Mapping[str, str]] = {
         "delay": "delay",
         "amplitude": "amplitude",
-        "window": "ats_window",
-        "interval": "ats_interval",
-        "cutoff": "ats_cutoff",
-        "threshold": "ats_threshold",
-        "lower": "ats_min",
-        "upper": "ats_max",
-        "rate": "ats_rate",
-    }
-    KEYS: ClassVar[Mapping[str, Key]] = {
-        "ats_window": seconds(
-            1.0, doc="ats: length of the moving least-squares window", positive=True
-        ),
-        "ats_interval": seconds(
-            0.015625,
-            doc="ats: time between window samples and coefficient updates (16 steps at 1024 Hz)",
-            positive=True,
-        ),
-        "ats_cutoff": Key(
-            "float",
-            20.0,
-            unit="Hz",
-            doc="ats: cut-off of the 6th-order Butterworth on command and measured",
-            lo=0,
-            lo_open=True,
-        ),
-        "ats_threshold": Key(
-            "float",
-            0.000254,
-            unit="m",
-            doc="ats: coefficients adapt only while the window's RMS measured displacement "
-            "exceeds this",
-            lo=0,
-        ),
-        "ats_min": Key(
-            "array", [0.7, 0.0, 0.0], doc="ats: lower bounds of a0 (-), a1 (s), a2 (s²)"
-        ),
-        "ats_max": Key(
-            "array", [1.3, 0.08, 0.0032], doc="ats: upper bounds of a0 (-), a1 (s), a2 (s²)"
-        ),
-        "ats_rate": Key(
-            "array",
-            [2.0, 0.05, 0.001],
-            doc="ats: maximum rate of change of a0 (1/s), a1 (s/s), a2 (s²/s)",
-        ),
+        **{argument: name for name, (argument, _) in _KEYS.items()},
     }
 
     def __init__(
@@ -158,13 +179,13 @@ class ATSCompensator(Compensator):
         delay: float,
         amplitude: float = 1.0,
         *,
-        window: float = 1.0,
-        interval: float = 1.0 / 64.0,
-        cutoff: float = 20.0,
-        threshold: float = 0.000254,
-        lower: Sequence[float] = (0.7, 0.0, 0.0),
-        upper: Sequence[float] = (1.3, 0.08, 0.0032),
-        rate: Sequence[float] = (2.0, 0.05, 0.001),
+        window: float = _DEFAULTS["window"],
+        interval: float = _DEFAULTS["interval"],
+        cutoff: float = _DEFAULTS["cutoff"],
+        threshold: float = _DEFAULTS["threshold"],
+        lower: Sequence[float] = _DEFAULTS["lower"],
+        upper: Sequence[float] = _DEFAULTS["upper"],
+        rate: Sequence[float] = _DEFAULTS["rate"],
     ) -> None:
         fs = float(fs)
         if not cutoff < fs / 2:
