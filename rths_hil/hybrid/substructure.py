@@ -9,8 +9,9 @@ from typing import Any
 import numpy as np
 
 from .. import groundmotion
-from ..config import Config, structure_dofs
+from ..config import Config, check_table, structure_dofs
 from ..errors import InputError
+from ..keys import Key
 from ..structures.sdof import BoucWenParams, CRStepper
 from ..structures.stages import MDOFStage, SDOFStage, StructureStage
 
@@ -21,6 +22,14 @@ __all__ = [
     "choose_plant",
     "structure_size",
 ]
+
+#: The keys of ``structure.matrices`` (:func:`build_model`): one ``.npz`` file, or CSV files.
+_MATRICES_KEYS: dict[str, Key] = {
+    "file": Key("str", None, doc="an .npz file holding the arrays M, K and C (or zeta)"),
+    "M": Key("str", None, doc="CSV file of the mass matrix"),
+    "K": Key("str", None, doc="CSV file of the stiffness matrix"),
+    "C": Key("str", None, doc="CSV file of the damping matrix"),
+}
 
 
 def build_ground_motion(cfg: Config) -> groundmotion.GroundMotion:
@@ -91,10 +100,7 @@ def build_model(cfg: Config):
         if s["bouc_wen"]:
             bw = {k: s[k] for k in ("x_y", "eta", "beta", "gamma", "q")}
         return mdof.shear_building(s["masses"], s["stiffnesses"], bouc_wen=bw, **damping)
-    files = dict(s["matrices"])
-    unknown = sorted(set(files) - {"file", "M", "K", "C"})
-    if unknown:
-        raise InputError(f"matrices.{unknown[0]}: unknown key; known keys: file, M, K, C")
+    files = check_table(s["matrices"], _MATRICES_KEYS, path="matrices", defaults=False)
     if "file" in files:
         return mdof.load_npz(cfg.resolve_path(str(files["file"])), **damping)
     if "M" not in files or "K" not in files:

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from ..config import SCHEMA
+from ..config import SCHEMA, check_table
 from ..errors import InputError
 from ..hybrid.setup import Setup, check_rows, site_transform, split_rows
 from . import protocol as P
@@ -191,14 +191,7 @@ class ExperimentalSite:
     def __init__(
         self, options: _Mapping[str, Any], dt: float, n_actuators: int | None = None
     ) -> None:
-        unknown = sorted(set(options) - set(DEFAULTS))
-        if unknown:
-            raise InputError(f"openfresco.{unknown[0]}: unknown key (known: {', '.join(DEFAULTS)})")
-        o = {**DEFAULTS, **dict(options)}
-        for key in ("protocol", "timing"):
-            if o[key] not in SCHEMA["openfresco"][key].choices:
-                choices = ", ".join(SCHEMA["openfresco"][key].choices)
-                raise InputError(f"openfresco.{key}: {o[key]!r} is not one of {choices}")
+        o = check_table(options, SCHEMA["openfresco"], path="openfresco")
         self.options = o
         self.dt = float(dt)
         n = int(n_actuators if n_actuators is not None else 1)
