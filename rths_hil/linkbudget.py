@@ -19,18 +19,15 @@ characters over the baud rate), ``per_second`` what does not scale with the loop
 link under the limit; then the protocol's own advice (a higher bit or baud rate, another
 transport).
 
-Serial lines (a UART: ``1 + 8 + parity + stop`` bits per character, :func:`bits_per_char`) are
-the physical layer of several protocols; links without a rate — pseudo-terminals, ``loop://``
-and sockets to the loopback interface — report "no limit" (:func:`serial_rate_kind`), as does
-TCP to the loopback interface (:func:`is_loopback`). A serial connection that names no device
-is a twin's: the twin opens a pseudo-terminal pair of its own, so its baud rate is not checked.
+A link without a rate reports "no limit" (a :class:`LinkLoad` whose ``load`` is ``None``): each
+link model says which of its links have none (a virtual bus, a pseudo-terminal);
+:func:`is_loopback` tells the loopback interface, which has none either.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,10 +37,8 @@ from .units import positive_number
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "BAUDRATES",
     "DEFAULT_LIMIT",
     "LinkLoad",
-    "bits_per_char",
     "channels_count",
     "check_links",
     "format_loads",
@@ -53,24 +48,13 @@ __all__ = [
     "link_load",
     "positive",
     "rate_text",
-    "serial_rate_kind",
 ]
 
 #: Default refusal threshold: a link above 80 % of its capacity is refused.
 DEFAULT_LIMIT = 0.8
-#: Standard serial baud rates, for "what would fit".
-BAUDRATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600, 1_000_000, 2_000_000)
 
 #: One checker of positive numbers for the package (rths_hil.units).
 positive = positive_number
-
-
-def bits_per_char(parity: str = "E", stopbits: float = 1) -> float:
-    """Bits of one character on a serial line: start, 8 data bits, parity, stop bits."""
-    p = str(parity).upper()[:1]
-    if p not in ("N", "E", "O", "M", "S"):
-        raise InputError(f"serial parity must be N, E, O, M or S, got {parity!r}")
-    return 1 + 8 + (0 if p == "N" else 1) + float(stopbits)
 
 
 # --------------------------------------------------------------------------------------------
@@ -145,33 +129,6 @@ def is_loopback(host: str) -> bool:
     """Whether ``host`` is the loopback interface (no line rate to check)."""
     h = str(host).strip().lower()
     return h in ("localhost", "::1", "ip6-localhost") or h.startswith("127.")
-
-
-#: Why a serial link without a device has no rate: only a twin serves one (its own pty).
-TWIN_PTY = (
-    "no device: the twin's own pseudo-terminal, which has no line rate (a real serial port, "
-    "given as device or url, is checked at its baud rate)"
-)
-
-
-def serial_rate_kind(device: str | None) -> str | None:
-    """``None`` for a real UART; otherwise why the device has no rate limit (``device`` None:
-    the twin's own pseudo-terminal, :data:`TWIN_PTY`)."""
-    if device is None:
-        return TWIN_PTY
-    d = str(device)
-    if "://" in d:
-        scheme = d.split("://", 1)[0].lower()
-        if scheme == "loop":
-            return "loop:// has no line rate"
-        if scheme == "socket":
-            host = d.split("://", 1)[1].rsplit(":", 1)[0]
-            if is_loopback(host):
-                return "socket:// on the loopback interface has no line rate"
-        return f"{scheme}:// URL: line rate unknown"
-    if os.path.realpath(d).startswith(("/dev/pts/", "/dev/ptmx")):
-        return "pseudo-terminal has no line rate"
-    return None
 
 
 def link_inputs(
@@ -318,3 +275,24 @@ def check_links(loads: list[LinkLoad] | tuple[LinkLoad, ...], limit: float = DEF
 def format_loads(loads: list[LinkLoad] | tuple[LinkLoad, ...]) -> str:
     """One line per link, for the start-up console."""
     return "\n".join("link " + ld.summary() for ld in loads)
+
+
+#: Names of a protocol's physical layer that this module held before they moved to it (the
+#: serial line's, in ``drivers/serial/line.py``) and that a link model still reads from here
+#: (``drivers/can/linkbudget.py``): forwarded on first use, so loading this module loads no
+#: driver. To be dropped once no module reads them here.
+_MOVED = {
+    "BAUDRATES": "rths_hil.drivers.serial.line",
+    "TWIN_PTY": "rths_hil.drivers.serial.line",
+    "bits_per_char": "rths_hil.drivers.serial.line",
+    "serial_rate_kind": "rths_hil.drivers.serial.line",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """A name of :data:`_MOVED`, from the module it moved to."""
+    if name in _MOVED:
+        import importlib
+
+        return getattr(importlib.import_module(_MOVED[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -18,7 +18,7 @@ A profile's map (:mod:`.profile`) counts its own transactions
 (+ 90 bytes each: preamble and interframe gap 20, Ethernet header and FCS 18, IPv4 20,
 TCP with timestamps 32) on an assumed 100 Mbit/s link. TCP to the loopback interface, and an
 RTU connection that names no ``device`` (a twin's own pseudo-terminal), report "no limit"
-(:func:`rths_hil.linkbudget.serial_rate_kind`).
+(:func:`rths_hil.drivers.serial.line.serial_rate_kind`).
 
 References
 ----------
@@ -31,17 +31,10 @@ from __future__ import annotations
 from typing import Any
 
 from rths_hil.errors import InputError
-from rths_hil.linkbudget import (
-    BAUDRATES,
-    LinkLoad,
-    bits_per_char,
-    is_loopback,
-    positive,
-    rate_text,
-    serial_rate_kind,
-)
+from rths_hil.linkbudget import LinkLoad, is_loopback, positive, rate_text
 
 from ..protocol import ChannelUse, LinkInputs, link_model
+from ..serial.line import BAUDRATES, bits_per_char, serial_rate_kind
 from .transport import MAX_UNIT
 
 __all__ = [

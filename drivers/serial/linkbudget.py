@@ -9,7 +9,7 @@ command, so a step needs the line for both frames in turn::
     load = channels · (bytes_command + bytes_feedback) · bits_per_char · fs / baud
 
 A connection that names no ``url`` is a twin's own pseudo-terminal, which has no line rate
-(:func:`rths_hil.linkbudget.serial_rate_kind`).
+(:func:`.line.serial_rate_kind`).
 """
 
 from __future__ import annotations
@@ -17,16 +17,11 @@ from __future__ import annotations
 from typing import Any
 
 from rths_hil.errors import InputError
-from rths_hil.linkbudget import (
-    BAUDRATES,
-    LinkLoad,
-    bits_per_char,
-    positive,
-    serial_rate_kind,
-)
+from rths_hil.linkbudget import LinkLoad, positive
 
 from ..protocol import ChannelUse, LinkInputs, link_model
 from .framing import COMMAND, FEEDBACK
+from .line import BAUDRATES, bits_per_char, serial_rate_kind
 
 __all__ = [
     "baud_advice",
