@@ -59,9 +59,13 @@ Every table's keys are declared as :class:`~rths_hil.config.Key` tables next to 
 reads them and checked by :func:`rths_hil.config.check_table`, the validator of the run
 configuration. This module holds what both formats share (the roles, units, status masks, the
 keys of the role, action and status tables) and :func:`load_profile`; each protocol's package
-holds its format:
+holds its format, in its ``profile_format`` module:
 :mod:`rths_hil.drivers.modbus.profile_format` (``ModbusProfile``, a register map) and
-:mod:`rths_hil.drivers.can.profile_format` (``CANProfile``, a DBC profile).
+:mod:`rths_hil.drivers.can.profile_format` (``CANProfile``, a DBC profile). This module names
+no format: such a module declares the ``protocol`` it reads (``FORMAT = "can"``) and its
+``load(source, data, base)``, and :func:`rths_hil.drivers.registry.profile_formats` finds them
+(a protocol package added with a ``profile_format`` module adds its format to the
+``protocol`` choices; nothing is listed here).
 """
 
 from __future__ import annotations
@@ -69,7 +73,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Mapping
 from functools import cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Self, TypeVar
+from typing import Any, ClassVar, Self, TypeVar
 
 from rths_hil.config.coerce import check_table
 from rths_hil.errors import InputError
@@ -78,15 +82,12 @@ from rths_hil.keys import REQUIRED, Key
 
 from .base import Status
 
-if TYPE_CHECKING:
-    from .can.profile_format import CANProfile
-    from .modbus.profile_format import ModbusProfile
-
 __all__ = [
     "BUILTIN_PROFILE",
     "ProfileFormat",
     "is_builtin",
     "load_profile",
+    "protocol_key",
     "status_from_word",
     "word_from_status",
 ]
@@ -150,7 +151,7 @@ def top_keys(own: Mapping[str, Key]) -> dict[str, Key]:
     """The top-level keys of a profile format: ``protocol``, ``name``, the format's ``own``,
     the role, status, action and heartbeat tables."""
     return {
-        "protocol": PROTOCOL,
+        "protocol": protocol_key(),
         "name": Key("str", "", doc="the controller's name (free text)"),
         **own,
         "roles": Key("table", REQUIRED, doc="role → where its value is on the wire"),
@@ -160,8 +161,14 @@ def top_keys(own: Mapping[str, Key]) -> dict[str, Key]:
     }
 
 
-#: ``protocol``: which format the file is.
-PROTOCOL = Key("choice", REQUIRED, choices=("modbus", "can"), doc="the profile's format")
+def protocol_key() -> Key:
+    """``protocol``: which format the file is, one of the formats the protocol packages declare
+    (:func:`rths_hil.drivers.registry.profile_formats`)."""
+    from .registry import profile_formats
+
+    return Key("choice", REQUIRED, choices=tuple(profile_formats()), doc="the profile's format")
+
+
 #: ``units`` of a role: the unit of its value on the wire (a key of :data:`UNITS`).
 UNITS_KEY = Key("str", None, doc="unit of the value on the wire (SI when omitted)")
 #: ``[roles]``: the required roles and the optional force set-point, each a table.
@@ -278,6 +285,8 @@ class ProfileFormat:
 
     #: The field holding the role map.
     ROLE_FIELD: ClassVar[str] = "roles"
+    #: The format's name, the profile's ``protocol`` (its module's ``FORMAT``).
+    protocol: str
     source: str
     actions: dict[str, Any]
 
@@ -394,25 +403,32 @@ def _check_mode_actions(
 
 
 @cache
-def _load_cached(path: str) -> ModbusProfile | CANProfile:
+def _load_cached(path: str) -> ProfileFormat:
+    from rths_hil.plugins import load_target
+
+    from .registry import profile_formats
+
     p = Path(path)
     data = read_toml(p, "profile", f"profile {p}")
     protocol = data.get("protocol")
-    if protocol == "modbus":
-        from .modbus.profile_format import load_modbus
+    formats = profile_formats()
+    target = formats.get(protocol) if isinstance(protocol, str) else None
+    if target is None:
+        given = {"protocol": protocol} if "protocol" in data else {}
+        # says what is wrong with it, in one line naming the formats
+        missing = f"missing, one of {', '.join(formats)}"
+        check_keys(str(p), given, {"protocol": protocol_key()}, "", missing)
+        raise AssertionError(protocol)  # pragma: no cover
+    load = load_target(target, None, f"profile format {protocol!r}")
+    prof: ProfileFormat = load(str(p), data, p.parent)
+    return prof
 
-        return load_modbus(str(p), data)
-    if protocol == "can":
-        from .can.profile_format import load_can
 
-        return load_can(str(p), data, p.parent)
-    given = {"protocol": protocol} if "protocol" in data else {}
-    check_keys(str(p), given, {"protocol": PROTOCOL}, "")  # says what is wrong with it
-    raise AssertionError(protocol)  # pragma: no cover
-
-
-def load_profile(path: str | Path) -> ModbusProfile | CANProfile:
+def load_profile(path: str | Path) -> ProfileFormat:
     """Load and validate the profile file ``path`` (cached by absolute path).
+
+    The file's ``protocol`` picks the format (:func:`rths_hil.drivers.registry.profile_formats`)
+    whose ``load`` reads it.
 
     Raises
     ------

@@ -7,9 +7,12 @@ may share it, whether its twin can be served from the loop's thread, which profi
 protocol takes and which connection settings are file paths — is a :class:`Protocol`. Each
 protocol package exports one as ``PROTOCOL`` (``rths_hil.drivers.can.PROTOCOL`` …), its hooks
 the functions of the same names in the package's link model (:meth:`Protocol.from_hooks`);
-:mod:`rths_hil.drivers.registry` maps driver names to them. A lab's driver registered as a
-:class:`Driver` subclass gets one built from its class (:meth:`Protocol.from_driver`): the
-class's hooks of the same names, where it has them, else the defaults.
+:mod:`rths_hil.drivers.registry` maps driver names to them, and finds the packages shipped here
+by that name: a folder under ``drivers/`` whose ``__init__.py`` binds ``PROTOCOL`` is the
+driver of the folder's name (the descriptor's :attr:`Protocol.name`), with no list to edit.
+A lab's driver registered as a :class:`Driver` subclass gets one built from its class
+(:meth:`Protocol.from_driver`): the class's hooks of the same names, where it has them, else
+the defaults.
 """
 
 from __future__ import annotations
@@ -152,7 +155,8 @@ class Protocol:
         (``twin.inline``). Default: never.
     profile_protocol : str or None
         The ``protocol`` of the controller profiles this driver takes (``driver.profile``), or
-        ``None``.
+        ``None``: a profile format, declared by a protocol package's ``profile_format`` module
+        (its ``FORMAT``; :func:`rths_hil.drivers.registry.profile_formats`).
     profile_driver : callable or None
         ``() -> type[Driver]``: the driver class that speaks such a profile.
     path_keys : tuple of str

@@ -3,16 +3,23 @@
 Three tables, in the style of python-can's ``BACKENDS`` (name → where the class lives, imported
 only when asked for):
 
-* :data:`TWINS` — driver name → the endpoint that speaks that driver's protocol
-  (:mod:`rths_hil.sim_backends.endpoints`), plus the ``rths_hil.twins`` entry-point group, so
-  a lab's driver package ships its twin beside its driver (same name in both groups)::
+* :data:`TWINS` — driver name → the endpoint that speaks that driver's protocol, **found, not
+  listed** (:func:`builtin_twins`): each module of :mod:`rths_hil.sim_backends.endpoints`
+  (each folder of its ``__path__``) that declares itself at its top level::
+
+      TWIN = TwinEntry("rths_hil.sim_backends.endpoints.can:CANTwin", driver="can", ...)
+
+  (read from the module's source, not imported: literal arguments), plus the
+  ``rths_hil.twins`` entry-point group, so a lab's driver package ships its twin beside its
+  driver (same name in both groups)::
 
       [project.entry-points."rths_hil.twins"]
       mylab = "mylab_driver:MyLabTwin"
 
   :func:`rths_hil.sim_backends.twin.start_twin`, the plan and ``rths-hil twin serve`` ask it
-  (:func:`available_twins`, :func:`twin_class`). The driver registry beside it is
-  :data:`rths_hil.drivers.registry.BUILTIN` with the ``rths_hil.drivers`` group.
+  (:func:`available_twins`, :func:`twin_class`). The driver registry beside it finds the
+  protocol packages the same way (:func:`rths_hil.drivers.registry.builtin`) with the
+  ``rths_hil.drivers`` group.
 * :data:`MODELS` — actuator model name (a model file's ``actuator.model``) → the
   :class:`~rths_hil.sim_backends.base.ActuatorModel` in front of the transport delay and gain of
   the FEI paper's Fig. 4.1, with its parameters.
@@ -24,23 +31,28 @@ only when asked for):
 This module holds tables and lookups only: it builds nothing (a plant is built by
 :func:`rths_hil.sim_backends.modelfile.build_plant`) and imports no module that imports it.
 
-Adding one of them touches one module (the class) and one line here (or in ``EFFECTS``); see
-docs/models.md, "Adding a twin model or an effect", and docs/protocols.md, "Adding a driver".
+Adding a model or an effect touches one module (the class) and one line here (or in
+``EFFECTS``), see docs/models.md, "Adding a twin model or an effect"; adding a twin endpoint
+touches its module alone (its ``TWIN`` line), see docs/protocols.md, "Adding a driver".
 """
 
 from __future__ import annotations
 
+import functools
 import importlib
 import inspect
 from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
 
 from rths_hil.errors import InputError
 from rths_hil.plugins import targets as plugin_targets
 
 from .benchmark import BENCHMARK_NOMINAL, BenchmarkServo
 from .effects import EFFECTS
+
+if TYPE_CHECKING:
+    from rths_hil.drivers.registry import Declaration
 
 __all__ = [
     "EFFECTS",
@@ -49,6 +61,8 @@ __all__ = [
     "ModelEntry",
     "TwinEntry",
     "available_twins",
+    "builtin_twins",
+    "clear_cache",
     "model_class",
     "model_entry",
     "twin_class",
@@ -58,6 +72,10 @@ __all__ = [
 @dataclass(frozen=True)
 class TwinEntry:
     """A twin endpoint.
+
+    An endpoint module of :mod:`rths_hil.sim_backends.endpoints` declares its own, as
+    ``TWIN = TwinEntry(...)`` with literal arguments and ``driver`` given
+    (:func:`builtin_twins`).
 
     Attributes
     ----------
@@ -73,31 +91,101 @@ class TwinEntry:
     fresh_channel : bool
         The ``channel`` setting defaults to a fresh unique name (python-can's ``virtual`` bus:
         twins started in one process must not hear each other).
+    driver : str
+        The name of the driver whose protocol the endpoint speaks (empty: not said; a
+        declaration must say it).
     """
 
     target: str
     seq_bits: int | None = 16
     transports: tuple[str, ...] = ()
     fresh_channel: bool = False
+    driver: str = ""
 
 
-#: Twin endpoints by the name of the driver whose protocol they speak.
-TWINS: dict[str, TwinEntry] = {
-    "can": TwinEntry("rths_hil.sim_backends.endpoints.can:CANTwin", fresh_channel=True),
-    "modbus": TwinEntry(
-        "rths_hil.sim_backends.endpoints.modbus:ModbusTwin", transports=("tcp", "rtu")
-    ),
-    "serial": TwinEntry(
-        "rths_hil.sim_backends.endpoints.serial:SerialTwin",
-        seq_bits=None,
-        transports=("pty", "tcp"),
-    ),
-    "canopen": TwinEntry(
-        "rths_hil.sim_backends.endpoints.canopen_twin:CANopenTwin",
-        seq_bits=None,
-        fresh_channel=True,
-    ),
-}
+#: Twin endpoints by the name of the driver whose protocol they speak, sorted by name
+#: (:func:`builtin_twins`, found when first read: there is no list to edit).
+TWINS: dict[str, TwinEntry]
+
+
+def __getattr__(name: str) -> Any:
+    if name == "TWINS":
+        return builtin_twins()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _entry(decl: Declaration) -> TwinEntry:
+    """The :class:`TwinEntry` an endpoint module declares (``TWIN = TwinEntry(...)``)."""
+    import ast
+
+    call = decl.value
+    try:
+        if not (
+            isinstance(call, ast.Call)
+            and isinstance(call.func, ast.Name | ast.Attribute)
+            and (call.func.id if isinstance(call.func, ast.Name) else call.func.attr) == "TwinEntry"
+        ):
+            raise ValueError("not a TwinEntry(...) call")
+        args = [ast.literal_eval(a) for a in call.args]
+        kwargs = {k.arg: ast.literal_eval(k.value) for k in call.keywords if k.arg}
+        if len(kwargs) != len(call.keywords):
+            raise ValueError("no **keywords")
+        entry = TwinEntry(*args, **kwargs)
+        entry = replace(entry, transports=tuple(entry.transports))  # a list given
+    except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError) as exc:
+        raise InputError(
+            f"twin endpoint {decl.module}: TWIN must be TwinEntry(...) with literal arguments "
+            f"(it is read without importing the module): {exc}"
+        ) from None
+    if not entry.driver or not isinstance(entry.driver, str):
+        raise InputError(
+            f"twin endpoint {decl.module}: TWIN must name its driver (TwinEntry(..., driver=...))"
+        )
+    return entry
+
+
+@functools.lru_cache(maxsize=8)
+def _scan(path: tuple[str, ...], prefix: str) -> dict[str, TwinEntry]:
+    from rths_hil.drivers.registry import find_declarations
+
+    found: dict[str, tuple[TwinEntry, str]] = {}
+    for decl in find_declarations(path, prefix, "TWIN"):
+        entry = _entry(decl)
+        if entry.driver in found:
+            raise InputError(
+                f"twin endpoints {found[entry.driver][1]} and {decl.module} both declare a twin "
+                f"for driver {entry.driver!r}"
+            )
+        found[entry.driver] = (entry, decl.module)
+    return {name: found[name][0] for name in sorted(found)}
+
+
+def builtin_twins() -> dict[str, TwinEntry]:
+    """The twin endpoints shipped with rths_hil: driver name → its entry, by name.
+
+    Each module (or package) of :mod:`rths_hil.sim_backends.endpoints`, in every folder of its
+    ``__path__``, that assigns ``TWIN`` a :class:`TwinEntry` at its top level, with literal
+    arguments and its ``driver`` named. The modules are read, not imported (the one a twin
+    needs is imported by :func:`twin_class`); found once per ``__path__``
+    (:func:`clear_cache`).
+
+    Raises
+    ------
+    InputError
+        A ``TWIN`` that is not such a declaration, or two for one driver (one line naming
+        the modules).
+    """
+    pkg = importlib.import_module(f"{__package__ or 'rths_hil.sim_backends'}.endpoints")
+    return dict(_scan(tuple(pkg.__path__), f"{pkg.__name__}."))
+
+
+def clear_cache() -> None:
+    """Forget the twin endpoints found (:func:`builtin_twins`).
+
+    A test that changes the endpoints' ``__path__`` leaves none behind. A changed ``__path__``
+    is read anew anyway.
+    """
+    _scan.cache_clear()
 
 
 @dataclass(frozen=True)
@@ -170,9 +258,11 @@ TWIN_ENDPOINT = "rths_hil.sim_backends.endpoints.base:TwinEndpoint"
 def available_twins() -> dict[str, str]:
     """Every driver name a twin exists for → its ``module:Class``.
 
-    Entry points are included; an entry point with a built-in name replaces the built-in twin.
+    The built-in twins (:func:`builtin_twins`), then the entry points; an entry point with a
+    built-in name replaces the built-in twin.
     """
-    return plugin_targets(TWIN_ENTRY_POINT_GROUP, {name: e.target for name, e in TWINS.items()})
+    shipped = builtin_twins()
+    return plugin_targets(TWIN_ENTRY_POINT_GROUP, {name: e.target for name, e in shipped.items()})
 
 
 def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
@@ -192,7 +282,7 @@ def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
         raise InputError(
             f"no twin for driver {driver_name!r}; twins exist for {', '.join(sorted(targets))}"
         )
-    entry = TWINS.get(driver_name)
+    entry = builtin_twins().get(driver_name)
     if entry is not None and entry.target == target:
         return _load(target), entry
     try:
@@ -209,6 +299,7 @@ def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
         seq_bits=getattr(cls, "seq_bits", 16),
         transports=tuple(getattr(cls, "transports", ())),
         fresh_channel=bool(getattr(cls, "fresh_channel", False)),
+        driver=driver_name,
     )
     return cls, entry
 

@@ -1,7 +1,7 @@
 """The DBC profile format (``protocol = "can"``, :mod:`rths_hil.drivers.profile`): each role a
 signal of the lab's DBC, read through cantools. :func:`load_can` reads the ``dbc``, ``roles``,
 ``status``, ``actions`` and ``heartbeat`` keys; :func:`rths_hil.drivers.profile.load_profile` is
-the entry."""
+the entry, which finds this module by its :data:`FORMAT` and calls its :func:`load`."""
 
 from __future__ import annotations
 
@@ -26,7 +26,12 @@ from ..profile import (
     top_keys,
 )
 
-__all__ = ["FILE_KEYS", "SIGNAL_KEYS", "CANProfile", "CANSignal", "load_can"]
+__all__ = ["FILE_KEYS", "FORMAT", "SIGNAL_KEYS", "CANProfile", "CANSignal", "load", "load_can"]
+
+#: The ``protocol`` of a profile of this format: how
+#: :func:`rths_hil.drivers.registry.profile_formats` finds it (read without importing this
+#: module, so a string literal), and :func:`load` reads it.
+FORMAT = "can"
 
 #: The top-level keys of a DBC profile.
 FILE_KEYS = top_keys({"dbc": Key("str", REQUIRED, doc="the DBC file, relative to the profile")})
@@ -65,7 +70,7 @@ class CANProfile(ProfileFormat):
     actions: dict[str, CANSignal]
     masks: dict[int, int]
     heartbeat: CANSignal | None
-    protocol: str = "can"
+    protocol: str = FORMAT
 
     def _setpoint_span(self) -> tuple[float, float, str]:
         """The set-point signal's raw range (its bits and sign) through its scale and offset,
@@ -134,6 +139,13 @@ def _can_signal(
     role = path.rpartition(".")[2]
     factor = _units(src, path, t["units"], unit, role=role)
     return CANSignal(role, msg_name, sig_name, factor, t.get("value"))
+
+
+def load(source: str, data: dict[str, Any], base: Path) -> CANProfile:
+    """The profile of this format at ``source`` (its TOML ``data``; ``base`` the folder the
+    ``dbc`` is relative to): :func:`load_can`, as
+    :func:`rths_hil.drivers.profile.load_profile` calls every format's ``load``."""
+    return load_can(source, data, base)
 
 
 def load_can(src: str, data: dict[str, Any], base: Path) -> CANProfile:

@@ -2,11 +2,12 @@
 :mod:`rths_hil.drivers.profile`): each role a *point* on a Modbus table, each action a write,
 the read blocks of a step. :func:`load_modbus` reads the ``[modbus]``, ``roles``, ``status``,
 ``actions`` and ``heartbeat`` tables; :func:`rths_hil.drivers.profile.load_profile` is the
-entry."""
+entry, which finds this module by its :data:`FORMAT` and calls its :func:`load`."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 from pymodbus.client.mixin import ModbusClientMixin
@@ -30,6 +31,7 @@ from ..profile import (
 
 __all__ = [
     "FILE_KEYS",
+    "FORMAT",
     "MODBUS_KEYS",
     "POINT_KEYS",
     "REG_TYPES",
@@ -38,8 +40,14 @@ __all__ = [
     "ModbusPoint",
     "ModbusProfile",
     "ReadBlock",
+    "load",
     "load_modbus",
 ]
+
+#: The ``protocol`` of a profile of this format: how
+#: :func:`rths_hil.drivers.registry.profile_formats` finds it (read without importing this
+#: module, so a string literal), and :func:`load` reads it.
+FORMAT = "modbus"
 
 #: Modbus register types → registers per value.
 REG_TYPES: dict[str, int] = {
@@ -265,7 +273,7 @@ class ModbusProfile(ProfileFormat):
     reads: tuple[ReadBlock, ...]
     fc23: bool
     pipeline: bool = True
-    protocol: str = "modbus"
+    protocol: str = FORMAT
     units_doc: dict[str, str] = field(default_factory=dict)
 
     def _setpoint_span(self) -> tuple[float, float, str] | None:
@@ -391,6 +399,13 @@ def _read_blocks(points: list[ModbusPoint]) -> tuple[ReadBlock, ...]:
         e = max(p.end for p in pts)
         out.append(ReadBlock(table, a, e - a, tuple(pts)))
     return tuple(out)
+
+
+def load(source: str, data: dict[str, Any], base: Path) -> ModbusProfile:
+    """The profile of this format at ``source`` (its TOML ``data``; ``base``, the profile's
+    folder, unused): :func:`load_modbus`, as :func:`rths_hil.drivers.profile.load_profile`
+    calls every format's ``load``."""
+    return load_modbus(source, data)
 
 
 def load_modbus(src: str, data: dict[str, Any]) -> ModbusProfile:

@@ -43,6 +43,7 @@ from rths_hil.drivers.can.codec import Frame, load
 
 from rths_hil.errors import InputError
 
+from ..registry import TwinEntry
 from .base import TwinController, TwinEndpoint
 from .can_profile import CANProfileTwin
 from .nullmodem import LINE_KEYS, PTY_CHANNEL, PTY_INTERFACES, CANLine, can_line_from_args
@@ -312,3 +313,8 @@ class CANTwin(CANLine, TwinEndpoint):
             self._bus.send(frame)
         except (can.CanError, OSError):  # pragma: no cover - bus gone
             pass
+
+
+#: This endpoint in the twins' registry (:func:`rths_hil.sim_backends.registry.builtin_twins`
+#: reads it from this source, without importing the module).
+TWIN = TwinEntry("rths_hil.sim_backends.endpoints.can:CANTwin", driver="can", fresh_channel=True)

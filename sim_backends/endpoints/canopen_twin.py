@@ -63,6 +63,7 @@ from rths_hil.drivers.canopen.profiles import PROFILES, SW408
 from rths_hil.errors import InputError
 from rths_hil.keys import Key
 
+from ..registry import TwinEntry
 from .base import TwinController, TwinEndpoint
 from .nullmodem import CANLine, can_line_from_args
 
@@ -708,3 +709,13 @@ class CANopenTwin(CANLine, TwinEndpoint):
 
     def _write(self, frame: can.Message) -> None:
         self._send(self.bus, frame)
+
+
+#: This endpoint in the twins' registry (:func:`rths_hil.sim_backends.registry.builtin_twins`
+#: reads it from this source, without importing the module).
+TWIN = TwinEntry(
+    "rths_hil.sim_backends.endpoints.canopen_twin:CANopenTwin",
+    driver="canopen",
+    seq_bits=None,
+    fresh_channel=True,
+)

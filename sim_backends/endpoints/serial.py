@@ -36,6 +36,7 @@ from rths_hil.errors import InputError
 from rths_hil.keys import Key
 
 from ..faults import Faults
+from ..registry import TwinEntry
 from .base import LISTEN_KEYS, TwinController, TwinEndpoint, listen
 
 __all__ = ["SerialTwin"]
@@ -185,3 +186,13 @@ class SerialTwin(TwinEndpoint):
             os.write(fd, frame)
         except OSError:  # pragma: no cover - peer gone
             pass
+
+
+#: This endpoint in the twins' registry (:func:`rths_hil.sim_backends.registry.builtin_twins`
+#: reads it from this source, without importing the module).
+TWIN = TwinEntry(
+    "rths_hil.sim_backends.endpoints.serial:SerialTwin",
+    driver="serial",
+    seq_bits=None,
+    transports=("pty", "tcp"),
+)

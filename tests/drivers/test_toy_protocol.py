@@ -1,7 +1,10 @@
-"""A protocol added the way a newcomer adds one: one folder outside rths_hil (a Driver subclass,
-its :class:`~rths_hil.drivers.protocol.Protocol` descriptor and its twin endpoint), two entry
-points, no edit of the core. The link budget plans it from its descriptor and ``rths-hil run``
-runs it in lockstep against its twin; the record carries exactly what the twin sent."""
+"""A protocol added the way a newcomer adds one, no edit of the core. Outside rths_hil: one
+folder (a Driver subclass, its :class:`~rths_hil.drivers.protocol.Protocol` descriptor and its
+twin endpoint) and two entry points. Inside it, as the shipped protocols are: one folder under
+``drivers/`` (its package, with ``PROTOCOL``, and its profile format) and one endpoint module
+that declares its ``TWIN``, found by the registries with no list edited. The link budget plans
+it from its descriptor and ``rths-hil run`` runs it in lockstep against its twin; the record
+carries exactly what the twin sent."""
 
 from __future__ import annotations
 
@@ -229,11 +232,14 @@ def toy_package(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 def test_the_core_names_no_toy() -> None:
     """The core ships no trace of the toy protocol: what the tests below find, the entry
-    points brought."""
-    from rths_hil.drivers.registry import BUILTIN, available
-    from rths_hil.sim_backends.registry import TWINS
+    points or the folders they add brought (and took away again)."""
+    from rths_hil.drivers.profile import protocol_key
+    from rths_hil.drivers.registry import BUILTIN, available, profile_formats
+    from rths_hil.sim_backends.registry import TWINS, available_twins
 
     assert "toy" not in BUILTIN and "toy" not in TWINS and "toy" not in available()
+    assert "toy" not in available_twins() and "toy" not in profile_formats()
+    assert "toy" not in protocol_key().choices
 
 
 def test_the_link_budget_plans_the_toy_from_its_descriptor(toy_package: Path, capsys) -> None:
@@ -275,9 +281,14 @@ def test_the_toy_runs_in_lockstep_against_its_twin(toy_package: Path, tmp_path: 
     assert main(args) == 0
     import toy_proto.twin as twin
 
+    _check_record(out, twin.SENT)
+
+
+def _check_record(out: Path, replies: list[tuple[int, int, int, int]]) -> None:
+    """The record of the 1 s run in ``out`` is the twin's ``replies`` (its ``SENT``)."""
     rec = read_run(out).record
     assert len(rec) == 1024 and bool(np.all(rec["feedback_ok"]))
-    sent = {seq: (d, f) for seq, _, d, f in twin.SENT}  # the last reply of each sequence
+    sent = {seq: (d, f) for seq, _, d, f in replies}  # the last reply of each sequence
     seqs = np.array(sorted(sent))
     # the run's steps are the last 1024 commands before the hand-back: find the step-0 sequence
     # as the one whose reply sequence reproduces the record (the start phase runs before it)
@@ -313,6 +324,126 @@ def test_a_protocol_registered_at_run_time(toy_package: Path) -> None:
         unregister("toy2")
     assert "toy2" not in available()
     assert link_load("toy2", {"rate": 480_000}, 2, 500.0).load is None  # unknown: not checked
+
+
+# The built-in way: the same driver as the package ``rths_hil.drivers.toy`` (a folder under
+# drivers/) with its profile format, and the same twin as the endpoint module
+# ``rths_hil.sim_backends.endpoints.toy``, which declares itself.
+_PROFILE_FORMAT = """
+from dataclasses import dataclass
+
+from rths_hil.drivers.profile import ProfileFormat, check_keys, top_keys
+from rths_hil.keys import Key
+
+#: read by the registry without importing this module
+FORMAT = "toy"
+FILE_KEYS = top_keys({"rate": Key("int", None, lo=1, doc="the toy line's rate")})
+
+
+@dataclass(frozen=True)
+class ToyProfile(ProfileFormat):
+    source: str
+    actions: dict
+    rate: int | None
+    protocol: str = FORMAT
+
+
+def load(source, data, base):
+    top = check_keys(source, data, FILE_KEYS, "")
+    return ToyProfile(source, dict(top["actions"]), top["rate"])
+"""
+
+_BUILTIN_TWIN = _TWIN.replace(
+    "from . import COMMAND, DN, FEEDBACK, UM",
+    "from rths_hil.drivers.toy import COMMAND, DN, FEEDBACK, UM\n"
+    "\nfrom ..registry import TwinEntry",
+) + textwrap.dedent(
+    """
+    TWIN = TwinEntry(
+        "rths_hil.sim_backends.endpoints.toy:ToyTwin", driver="toy", seq_bits=None
+    )
+    """
+)
+
+
+@pytest.fixture
+def builtin_toy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """The toy added as a shipped protocol is: ``drivers/toy/`` (``__init__.py``: the driver
+    and ``PROTOCOL``; ``profile_format.py``) and ``sim_backends/endpoints/toy.py`` (the twin
+    and its ``TWIN``), their folders appended to the packages' ``__path__`` (no registry
+    edited); the registries' caches cleared before and after."""
+    import rths_hil.drivers as drivers
+    import rths_hil.sim_backends.endpoints as endpoints
+    from rths_hil.drivers import registry
+    from rths_hil.sim_backends import registry as twins
+
+    pkg = tmp_path / "drivers" / "toy"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text(textwrap.dedent(_DRIVER))
+    (pkg / "profile_format.py").write_text(textwrap.dedent(_PROFILE_FORMAT))
+    eps = tmp_path / "endpoints"
+    eps.mkdir()
+    (eps / "toy.py").write_text(textwrap.dedent(_BUILTIN_TWIN))
+    monkeypatch.setattr(drivers, "__path__", [*drivers.__path__, str(pkg.parent)])
+    monkeypatch.setattr(endpoints, "__path__", [*endpoints.__path__, str(eps)])
+    importlib.invalidate_caches()
+    registry.clear_cache()
+    twins.clear_cache()
+    yield tmp_path
+    monkeypatch.undo()
+    for mod in ("rths_hil.drivers.toy", "rths_hil.drivers.toy.profile_format",
+                "rths_hil.sim_backends.endpoints.toy"):  # fmt: skip
+        sys.modules.pop(mod, None)
+    registry.clear_cache()
+    twins.clear_cache()
+
+
+def test_a_builtin_style_toy_is_found_without_a_registry_edit(builtin_toy: Path) -> None:
+    """The registries find the toy's folder and its endpoint module beside the shipped ones."""
+    from rths_hil.drivers.profile import protocol_key
+    from rths_hil.drivers.registry import available, builtin, profile_formats, protocol
+    from rths_hil.sim_backends.registry import available_twins, builtin_twins, twin_class
+
+    assert list(builtin()) == ["can", "canopen", "modbus", "serial", "toy"]
+    assert available()["toy"] == builtin()["toy"] == "rths_hil.drivers.toy:PROTOCOL"
+    assert protocol("toy").driver.__module__ == "rths_hil.drivers.toy"
+    assert builtin_twins()["toy"].target == "rths_hil.sim_backends.endpoints.toy:ToyTwin"
+    assert available_twins()["toy"] == builtin_twins()["toy"].target
+    cls, entry = twin_class("toy")
+    assert cls.__name__ == "ToyTwin" and entry.seq_bits is None and entry.driver == "toy"
+    assert profile_formats()["toy"] == "rths_hil.drivers.toy.profile_format:load"
+    assert protocol_key().choices == ("can", "modbus", "toy")
+
+
+def test_a_builtin_style_toy_runs_in_lockstep_against_its_twin(
+    builtin_toy: Path, tmp_path: Path
+) -> None:
+    """``rths-hil run`` runs the toy found in its folder against the twin its endpoint module
+    declares: the record is what that twin sent."""
+    out = tmp_path / "run"
+    args = ["run", "--lockstep", "--duration", "1", "--out", str(out), *QUIET]
+    args += ["--set", "driver.name=toy", "--set", "driver.connection={rate=10000000}"]
+    assert main(args) == 0
+    twin = sys.modules["rths_hil.sim_backends.endpoints.toy"]
+    _check_record(out, twin.SENT)
+
+
+def test_a_builtin_style_toy_profile_format(builtin_toy: Path) -> None:
+    """A profile of the toy's format is read by its package's ``profile_format``; a profile of
+    no format names the toy's among the choices, in one line."""
+    from rths_hil.drivers.profile import load_profile
+
+    good = builtin_toy / "toy.toml"
+    good.write_text('protocol = "toy"\nrate = 9600\n[roles]\n[status]\n[actions.estop]\ncoil = 1\n')
+    prof = load_profile(good)
+    assert type(prof).__name__ == "ToyProfile" and prof.protocol == "toy" and prof.rate == 9600
+    bad = builtin_toy / "bad.toml"
+    bad.write_text('protocol = "toi"\n')
+    with pytest.raises(InputError) as exc:
+        load_profile(bad)
+    assert str(exc.value) == (
+        f"profile {bad}: protocol: must be one of can, modbus, toy, got 'toi'"
+    )
 
 
 @pytest.mark.timing
