@@ -62,8 +62,9 @@ keys of the role, action and status tables) and :func:`load_profile`; each proto
 holds its format, in its ``profile_format`` module:
 :mod:`rths_hil.drivers.modbus.profile_format` (``ModbusProfile``, a register map) and
 :mod:`rths_hil.drivers.can.profile_format` (``CANProfile``, a DBC profile). This module names
-no format: such a module declares the ``protocol`` it reads (``FORMAT = "can"``) and its
-``load(source, data, base)``, and :func:`rths_hil.drivers.registry.profile_formats` finds them
+no format: such a module reads the profiles whose ``protocol`` is its package's name (the
+``can`` package's, ``protocol = "can"``) with its ``load(source, data, base)``, and
+:func:`rths_hil.drivers.registry.profile_formats` finds them
 (a protocol package added with a ``profile_format`` module adds its format to the
 ``protocol`` choices; nothing is listed here).
 """

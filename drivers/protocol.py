@@ -155,8 +155,8 @@ class Protocol:
         (``twin.inline``). Default: never.
     profile_protocol : str or None
         The ``protocol`` of the controller profiles this driver takes (``driver.profile``), or
-        ``None``: a profile format, declared by a protocol package's ``profile_format`` module
-        (its ``FORMAT``; :func:`rths_hil.drivers.registry.profile_formats`).
+        ``None``: a profile format, a protocol package's ``profile_format`` module, named
+        after the package (:func:`rths_hil.drivers.registry.profile_formats`).
     profile_driver : callable or None
         ``() -> type[Driver]``: the driver class that speaks such a profile.
     path_keys : tuple of str

@@ -3,13 +3,13 @@
 Three sources, in the style of python-can's ``BACKENDS`` plus entry points:
 
 * the protocols shipped here, **found, not listed**: each sub-package of ``rths_hil.drivers``
-  (a folder under ``drivers/``) whose ``__init__.py`` binds ``PROTOCOL`` at its top level
-  (:class:`~rths_hil.drivers.protocol.Protocol`) is the driver of its folder's name
-  (:func:`builtin`: ``can``, ``canopen``, ``modbus``, ``serial``). The folders are read, not
-  imported: a package is imported when its driver is asked for. A protocol added to this
-  repository is one folder, no line here; its profile format, if it has one, is the folder's
-  ``profile_format`` module (:func:`profile_formats`), and its twin an endpoint module that
-  declares itself (:func:`rths_hil.sim_backends.registry.builtin_twins`).
+  (a folder under ``drivers/``) is the protocol of its folder's name and exports its
+  :class:`~rths_hil.drivers.protocol.Protocol` as ``PROTOCOL`` (:func:`builtin`: ``can``,
+  ``canopen``, ``modbus``, ``serial``). The folders are listed, not imported: a package is
+  imported when its driver is asked for. A protocol added to this repository is one folder,
+  no line here; its controller-profile format, if it has one, is the folder's
+  ``profile_format`` module (:func:`profile_formats`), and its twin the endpoint module of its
+  name (:func:`rths_hil.sim_backends.registry.builtin_twins`).
 * the ``rths_hil.drivers`` entry-point group — a lab's own driver package, installed beside
   rths_hil, declares in its ``pyproject.toml``::
 
@@ -33,14 +33,13 @@ built-in driver; a registered descriptor replaces both.
 
 from __future__ import annotations
 
-import ast
 import functools
 import importlib
 import inspect
+import os
 import pkgutil
-import re
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, replace
+from collections.abc import Mapping
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from rths_hil.errors import InputError
@@ -58,14 +57,12 @@ __all__ = [
     "BUILTIN",
     "DEFAULT",
     "ENTRY_POINT_GROUP",
-    "Declaration",
     "available",
     "builtin",
     "check_connection",
     "clear_cache",
     "create_driver",
     "driver_class",
-    "find_declarations",
     "profile_formats",
     "protocol",
     "register",
@@ -90,166 +87,32 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-@dataclass(frozen=True)
-class Declaration:
-    """A name a module binds at its top level, read from the module's source (not imported).
-
-    Attributes
-    ----------
-    module : str
-        The module's import name (``rths_hil.drivers.can``).
-    locations : tuple of str
-        A package's folders (its ``__path__``); empty for a plain module.
-    text : str or None
-        The module's source from the assignment (``NAME = …``) on; ``None`` when an import
-        binds the name, or the source cannot be read (the module is checked when it is
-        imported).
-    """
-
-    module: str
-    locations: tuple[str, ...]
-    text: str | None = field(default=None, repr=False, compare=False)
-
-    @property
-    def value(self) -> ast.expr | None:
-        """The expression assigned (its statement parsed alone); ``None`` without one."""
-        stmt = None if self.text is None else _statement(self.text)
-        return stmt.value if isinstance(stmt, ast.Assign | ast.AnnAssign) else None
-
-    def literal(self, name: str) -> Any:
-        """The assigned value, a Python literal (:func:`ast.literal_eval`).
-
-        Raises
-        ------
-        InputError
-            The name is not assigned a literal (one line naming the module and ``name``).
-        """
-        try:
-            if self.value is None:
-                raise ValueError("not an assignment")
-            return ast.literal_eval(self.value)
-        except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError) as exc:
-            raise InputError(
-                f"{self.module}: {name} must be assigned a literal (it is read without importing "
-                f"the module): {exc}"
-            ) from None
-
-
-def _binding(name: str) -> re.Pattern[str]:
-    """A top-level line binding ``name``: an assignment, or an import of it."""
-    n = re.escape(name)
-    return re.compile(
-        rf"^(?:(?P<assign>{n})\s*(?::[^=\n]*)?=(?!=)"
-        rf"|from\s+[.\w]+\s+import\s+(?:\([^)]*|[^\n]*)\b{n}\b)",
-        re.MULTILINE,
-    )
-
-
-def _statement(text: str, max_lines: int = 200) -> ast.stmt | None:
-    """The statement ``text`` starts with: its first lines, one more until they parse."""
-    end = 0
-    for _ in range(max_lines):
-        nl = text.find("\n", end)
-        end = len(text) if nl < 0 else nl + 1
-        try:
-            body = ast.parse(text[:end]).body
-        except SyntaxError:
-            if nl < 0:
-                return None
-            continue
-        return body[0] if body else None
-    return None
-
-
-def find_declarations(
-    paths: Iterable[str],
-    prefix: str,
-    name: str,
-    *,
-    packages: bool | None = None,
-    only: str | None = None,
-) -> tuple[Declaration, ...]:
-    """The modules in the folders ``paths`` that bind ``name`` at their top level, by name.
-
-    Each module's source is read, not imported (a module that binds the name by an import, or
-    whose source cannot be read, is listed with no value: importing it tells). Cheap: one
-    read and one pattern search per module; the binding statement alone is parsed, when its
-    :attr:`Declaration.value` is asked for.
-
-    Parameters
-    ----------
-    paths : iterable of str
-        A package's ``__path__``.
-    prefix : str
-        The package's name and a dot (``"rths_hil.drivers."``).
-    name : str
-        The name bound (``PROTOCOL``, ``FORMAT``, ``TWIN``).
-    packages : bool or None
-        Only sub-packages (their ``__init__``), only plain modules, or both (``None``).
-    only : str, optional
-        Only the module of this name (``"profile_format"``), no other is read.
-
-    Returns
-    -------
-    tuple of Declaration
-        Sorted by module name; a name in two folders is the first folder's (as imported).
-    """
-    pattern = _binding(name)
-    found = []
-    for info in pkgutil.iter_modules(list(paths), prefix):
-        if packages is not None and info.ispkg != packages:
-            continue
-        if only is not None and info.name != prefix + only:
-            continue
-        finder: Any = info.module_finder
-        spec = finder.find_spec(info.name)
-        if spec is None or spec.loader is None:  # pragma: no cover - iter_modules found it
-            continue
-        locations = tuple(spec.submodule_search_locations or ())
-        try:
-            source = spec.loader.get_source(info.name)
-        except (ImportError, OSError, UnicodeDecodeError):
-            source = None
-        if source is None:  # no source (a compiled module): listed, checked when imported
-            found.append(Declaration(info.name, locations))
-            continue
-        m = pattern.search(source) if name in source else None
-        if m is not None:
-            text = source[m.start() :] if m.group("assign") else None
-            found.append(Declaration(info.name, locations, text))
-    return tuple(sorted(found, key=lambda d: d.module))
-
-
 def _package() -> Any:
     """The package ``rths_hil.drivers`` (its ``__path__`` is where the protocols are)."""
     return importlib.import_module(__package__ or "rths_hil.drivers")
 
 
 @functools.lru_cache(maxsize=8)
-def _scan(path: tuple[str, ...], prefix: str) -> tuple[Declaration, ...]:
-    return find_declarations(path, prefix, "PROTOCOL", packages=True)
-
-
-def _protocol_packages() -> tuple[Declaration, ...]:
-    pkg = _package()
-    return _scan(tuple(pkg.__path__), f"{pkg.__name__}.")
+def _folders(path: tuple[str, ...]) -> tuple[str, ...]:
+    """The sub-packages in the folders ``path``, sorted (listed by pkgutil, not imported)."""
+    return tuple(sorted({m.name for m in pkgutil.iter_modules(path) if m.ispkg}))
 
 
 def builtin() -> dict[str, str]:
     """The protocols shipped with rths_hil: driver name → ``"module:PROTOCOL"``, by name.
 
-    Each sub-package of ``rths_hil.drivers`` (each folder of its ``__path__``) whose
-    ``__init__.py`` binds ``PROTOCOL`` at its top level; its folder's name is the driver's
-    name (the descriptor's :attr:`~rths_hil.drivers.protocol.Protocol.name` must be the same,
-    checked by :func:`protocol`). Found once per ``__path__`` (:func:`clear_cache`); nothing is
-    imported.
+    Each sub-package of ``rths_hil.drivers`` (in every folder of its ``__path__``) is the
+    protocol of its folder's name; its ``PROTOCOL`` (a descriptor of that name) is checked
+    when :func:`protocol` imports it. Listed once per ``__path__`` (:func:`clear_cache`);
+    nothing is imported.
 
     Raises
     ------
     RuntimeError
         The package of :data:`DEFAULT` is not there (an installation without it).
     """
-    found = {d.module.rpartition(".")[2]: f"{d.module}:PROTOCOL" for d in _protocol_packages()}
+    pkg = _package()
+    found = {name: f"{pkg.__name__}.{name}:PROTOCOL" for name in _folders(tuple(pkg.__path__))}
     if DEFAULT not in found:
         raise RuntimeError(
             f"rths_hil.drivers: no package of the default driver {DEFAULT!r} (found: "
@@ -259,49 +122,40 @@ def builtin() -> dict[str, str]:
 
 
 @functools.lru_cache(maxsize=8)
-def _formats(path: tuple[str, ...], prefix: str) -> dict[str, str]:
-    out: dict[str, tuple[str, str]] = {}
-    for pkg in _scan(path, prefix):
-        for mod in find_declarations(
-            pkg.locations, f"{pkg.module}.", "FORMAT", only="profile_format"
-        ):
-            name = mod.literal("FORMAT")
-            if not isinstance(name, str) or not name:
-                raise InputError(f"{mod.module}: FORMAT must be a non-empty string")
-            if name in out:
-                raise InputError(
-                    f"profile format {name!r} is declared by both {out[name][1]} and {mod.module}"
-                )
-            out[name] = (f"{mod.module}:load", mod.module)
-    return {name: out[name][0] for name in sorted(out)}
+def _formats(path: tuple[str, ...], prefix: str) -> tuple[str, ...]:
+    """The protocol packages in ``path`` that have a ``profile_format`` module, sorted."""
+    out = []
+    for name in _folders(path):
+        inside = [os.path.join(folder, name) for folder in path]
+        if any(m.name == "profile_format" for m in pkgutil.iter_modules(inside)):
+            out.append(name)
+    return tuple(out)
 
 
 def profile_formats() -> dict[str, str]:
     """The controller-profile formats (a profile's ``protocol``) → ``"module:load"``, by name.
 
-    Each protocol package's ``profile_format`` module that assigns ``FORMAT`` a string (the
-    ``protocol`` a profile of it names) and defines ``load(source, data, base)`` (the profile
-    ``source``, its TOML ``data``, ``base`` the folder relative paths in it start from →
-    a :class:`~rths_hil.drivers.profile.ProfileFormat`). Read, not imported
+    A protocol package with a ``profile_format`` module has a profile format of its name
+    (``protocol = "modbus"`` in a profile: ``rths_hil.drivers.modbus.profile_format``); the
+    module defines ``load(source, data, base)`` (the profile ``source``, its TOML ``data``,
+    ``base`` the folder relative paths in it start from → a
+    :class:`~rths_hil.drivers.profile.ProfileFormat`). Listed, not imported
     (:func:`rths_hil.drivers.profile.load_profile` imports the one a profile names).
-
-    Raises
-    ------
-    InputError
-        A ``FORMAT`` that is not a string literal, or one declared twice.
     """
     pkg = _package()
-    return dict(_formats(tuple(pkg.__path__), f"{pkg.__name__}."))
+    return {
+        name: f"{pkg.__name__}.{name}.profile_format:load"
+        for name in _formats(tuple(pkg.__path__), f"{pkg.__name__}.")
+    }
 
 
 def clear_cache() -> None:
-    """Forget the protocol packages and profile formats found.
+    """Forget the protocol packages and profile formats listed.
 
-    What :func:`builtin` and :func:`profile_formats` found: a test that changes
-    ``rths_hil.drivers.__path__`` leaves none of it behind. A changed ``__path__`` is read
-    anew anyway.
+    A test that changes ``rths_hil.drivers.__path__`` leaves none of it behind (a changed
+    ``__path__`` is listed anew anyway).
     """
-    _scan.cache_clear()
+    _folders.cache_clear()
     _formats.cache_clear()
 
 

@@ -275,24 +275,3 @@ def check_links(loads: list[LinkLoad] | tuple[LinkLoad, ...], limit: float = DEF
 def format_loads(loads: list[LinkLoad] | tuple[LinkLoad, ...]) -> str:
     """One line per link, for the start-up console."""
     return "\n".join("link " + ld.summary() for ld in loads)
-
-
-#: Names of a protocol's physical layer that this module held before they moved to it (the
-#: serial line's, in ``drivers/serial/line.py``) and that a link model still reads from here
-#: (``drivers/can/linkbudget.py``): forwarded on first use, so loading this module loads no
-#: driver. To be dropped once no module reads them here.
-_MOVED = {
-    "BAUDRATES": "rths_hil.drivers.serial.line",
-    "TWIN_PTY": "rths_hil.drivers.serial.line",
-    "bits_per_char": "rths_hil.drivers.serial.line",
-    "serial_rate_kind": "rths_hil.drivers.serial.line",
-}
-
-
-def __getattr__(name: str) -> Any:
-    """A name of :data:`_MOVED`, from the module it moved to."""
-    if name in _MOVED:
-        import importlib
-
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

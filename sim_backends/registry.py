@@ -4,14 +4,15 @@ Three tables, in the style of python-can's ``BACKENDS`` (name → where the clas
 only when asked for):
 
 * :data:`TWINS` — driver name → the endpoint that speaks that driver's protocol, **found, not
-  listed** (:func:`builtin_twins`): each module of :mod:`rths_hil.sim_backends.endpoints`
-  (each folder of its ``__path__``) that declares itself at its top level::
+  listed** (:func:`builtin_twins`): the module of :mod:`rths_hil.sim_backends.endpoints` named
+  after a driver shipped here (``endpoints/can.py`` for ``drivers/can/``) is its twin, and says
+  so at its top level::
 
-      TWIN = TwinEntry("rths_hil.sim_backends.endpoints.can:CANTwin", driver="can", ...)
+      TWIN = TwinEntry("rths_hil.sim_backends.endpoints.can:CANTwin", fresh_channel=True)
 
-  (read from the module's source, not imported: literal arguments), plus the
-  ``rths_hil.twins`` entry-point group, so a lab's driver package ships its twin beside its
-  driver (same name in both groups)::
+  (the module is imported when its twin is asked for), plus the ``rths_hil.twins`` entry-point
+  group, so a lab's driver package ships its twin beside its driver (same name in both
+  groups)::
 
       [project.entry-points."rths_hil.twins"]
       mylab = "mylab_driver:MyLabTwin"
@@ -33,26 +34,24 @@ This module holds tables and lookups only: it builds nothing (a plant is built b
 
 Adding a model or an effect touches one module (the class) and one line here (or in
 ``EFFECTS``), see docs/models.md, "Adding a twin model or an effect"; adding a twin endpoint
-touches its module alone (its ``TWIN`` line), see docs/protocols.md, "Adding a driver".
+touches its module alone (named after its driver, with its ``TWIN``), see docs/protocols.md,
+"Adding a driver".
 """
 
 from __future__ import annotations
 
-import functools
 import importlib
 import inspect
+import pkgutil
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any
 
 from rths_hil.errors import InputError
 from rths_hil.plugins import targets as plugin_targets
 
 from .benchmark import BENCHMARK_NOMINAL, BenchmarkServo
 from .effects import EFFECTS
-
-if TYPE_CHECKING:
-    from rths_hil.drivers.registry import Declaration
 
 __all__ = [
     "EFFECTS",
@@ -61,8 +60,8 @@ __all__ = [
     "ModelEntry",
     "TwinEntry",
     "available_twins",
+    "builtin_entry",
     "builtin_twins",
-    "clear_cache",
     "model_class",
     "model_entry",
     "twin_class",
@@ -73,9 +72,9 @@ __all__ = [
 class TwinEntry:
     """A twin endpoint.
 
-    An endpoint module of :mod:`rths_hil.sim_backends.endpoints` declares its own, as
-    ``TWIN = TwinEntry(...)`` with literal arguments and ``driver`` given
-    (:func:`builtin_twins`).
+    The endpoint module of a driver shipped here declares its own, as ``TWIN = TwinEntry(...)``
+    (:func:`builtin_entry`); a lab's twin describes itself with class attributes of its
+    endpoint (:func:`twin_class`).
 
     Attributes
     ----------
@@ -91,101 +90,57 @@ class TwinEntry:
     fresh_channel : bool
         The ``channel`` setting defaults to a fresh unique name (python-can's ``virtual`` bus:
         twins started in one process must not hear each other).
-    driver : str
-        The name of the driver whose protocol the endpoint speaks (empty: not said; a
-        declaration must say it).
     """
 
     target: str
     seq_bits: int | None = 16
     transports: tuple[str, ...] = ()
     fresh_channel: bool = False
-    driver: str = ""
 
 
 #: Twin endpoints by the name of the driver whose protocol they speak, sorted by name
-#: (:func:`builtin_twins`, found when first read: there is no list to edit).
+#: (every :func:`builtin_entry`, computed when read: each endpoint module is imported).
 TWINS: dict[str, TwinEntry]
 
 
 def __getattr__(name: str) -> Any:
     if name == "TWINS":
-        return builtin_twins()
+        return {driver: builtin_entry(driver) for driver in builtin_twins()}
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def _entry(decl: Declaration) -> TwinEntry:
-    """The :class:`TwinEntry` an endpoint module declares (``TWIN = TwinEntry(...)``)."""
-    import ast
+def builtin_twins() -> dict[str, str]:
+    """The twin endpoints shipped with rths_hil: driver name → its module, by name.
 
-    call = decl.value
-    try:
-        if not (
-            isinstance(call, ast.Call)
-            and isinstance(call.func, ast.Name | ast.Attribute)
-            and (call.func.id if isinstance(call.func, ast.Name) else call.func.attr) == "TwinEntry"
-        ):
-            raise ValueError("not a TwinEntry(...) call")
-        args = [ast.literal_eval(a) for a in call.args]
-        kwargs = {k.arg: ast.literal_eval(k.value) for k in call.keywords if k.arg}
-        if len(kwargs) != len(call.keywords):
-            raise ValueError("no **keywords")
-        entry = TwinEntry(*args, **kwargs)
-        entry = replace(entry, transports=tuple(entry.transports))  # a list given
-    except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError) as exc:
-        raise InputError(
-            f"twin endpoint {decl.module}: TWIN must be TwinEntry(...) with literal arguments "
-            f"(it is read without importing the module): {exc}"
-        ) from None
-    if not entry.driver or not isinstance(entry.driver, str):
-        raise InputError(
-            f"twin endpoint {decl.module}: TWIN must name its driver (TwinEntry(..., driver=...))"
-        )
-    return entry
+    A driver shipped here (:func:`rths_hil.drivers.registry.builtin`) has a twin when
+    :mod:`rths_hil.sim_backends.endpoints` (in any folder of its ``__path__``) has a module of
+    its name; listed, not imported (:func:`builtin_entry` imports one).
+    """
+    from rths_hil.drivers.registry import builtin
+
+    pkg = importlib.import_module(f"{__package__ or 'rths_hil.sim_backends'}.endpoints")
+    here = {m.name for m in pkgutil.iter_modules(pkg.__path__)}
+    return {name: f"{pkg.__name__}.{name}" for name in builtin() if name in here}
 
 
-@functools.lru_cache(maxsize=8)
-def _scan(path: tuple[str, ...], prefix: str) -> dict[str, TwinEntry]:
-    from rths_hil.drivers.registry import find_declarations
-
-    found: dict[str, tuple[TwinEntry, str]] = {}
-    for decl in find_declarations(path, prefix, "TWIN"):
-        entry = _entry(decl)
-        if entry.driver in found:
-            raise InputError(
-                f"twin endpoints {found[entry.driver][1]} and {decl.module} both declare a twin "
-                f"for driver {entry.driver!r}"
-            )
-        found[entry.driver] = (entry, decl.module)
-    return {name: found[name][0] for name in sorted(found)}
-
-
-def builtin_twins() -> dict[str, TwinEntry]:
-    """The twin endpoints shipped with rths_hil: driver name → its entry, by name.
-
-    Each module (or package) of :mod:`rths_hil.sim_backends.endpoints`, in every folder of its
-    ``__path__``, that assigns ``TWIN`` a :class:`TwinEntry` at its top level, with literal
-    arguments and its ``driver`` named. The modules are read, not imported (the one a twin
-    needs is imported by :func:`twin_class`); found once per ``__path__``
-    (:func:`clear_cache`).
+def builtin_entry(driver_name: str) -> TwinEntry:
+    """The :class:`TwinEntry` the endpoint module of ``driver_name`` declares (``TWIN``).
 
     Raises
     ------
     InputError
-        A ``TWIN`` that is not such a declaration, or two for one driver (one line naming
-        the modules).
+        No endpoint module of that name, or its ``TWIN`` is not a :class:`TwinEntry`.
     """
-    pkg = importlib.import_module(f"{__package__ or 'rths_hil.sim_backends'}.endpoints")
-    return dict(_scan(tuple(pkg.__path__), f"{pkg.__name__}."))
-
-
-def clear_cache() -> None:
-    """Forget the twin endpoints found (:func:`builtin_twins`).
-
-    A test that changes the endpoints' ``__path__`` leaves none behind. A changed ``__path__``
-    is read anew anyway.
-    """
-    _scan.cache_clear()
+    module = builtin_twins().get(driver_name)
+    if module is None:
+        raise InputError(f"no twin endpoint module for driver {driver_name!r}")
+    entry = getattr(importlib.import_module(module), "TWIN", None)
+    if not isinstance(entry, TwinEntry):
+        raise InputError(
+            f"twin endpoint {module}: TWIN must be a rths_hil.sim_backends.registry.TwinEntry, "
+            f"got {entry!r}"
+        )
+    return entry
 
 
 @dataclass(frozen=True)
@@ -256,13 +211,14 @@ TWIN_ENDPOINT = "rths_hil.sim_backends.endpoints.base:TwinEndpoint"
 
 
 def available_twins() -> dict[str, str]:
-    """Every driver name a twin exists for → its ``module:Class``.
+    """Every driver name a twin exists for → where its endpoint is.
 
-    The built-in twins (:func:`builtin_twins`), then the entry points; an entry point with a
+    The built-in twins (:func:`builtin_twins`) as ``"<endpoint module>:TWIN"`` (its
+    :class:`TwinEntry`), then the entry points as ``"module:Class"``; an entry point with a
     built-in name replaces the built-in twin.
     """
-    shipped = builtin_twins()
-    return plugin_targets(TWIN_ENTRY_POINT_GROUP, {name: e.target for name, e in shipped.items()})
+    shipped = {name: f"{module}:TWIN" for name, module in builtin_twins().items()}
+    return plugin_targets(TWIN_ENTRY_POINT_GROUP, shipped)
 
 
 def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
@@ -282,9 +238,10 @@ def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
         raise InputError(
             f"no twin for driver {driver_name!r}; twins exist for {', '.join(sorted(targets))}"
         )
-    entry = builtin_twins().get(driver_name)
-    if entry is not None and entry.target == target:
-        return _load(target), entry
+    module = builtin_twins().get(driver_name)
+    if module is not None and target == f"{module}:TWIN":
+        entry = builtin_entry(driver_name)
+        return _load(entry.target), entry
     try:
         cls = _load(target)
     except (ImportError, AttributeError) as exc:
@@ -299,7 +256,6 @@ def twin_class(driver_name: str) -> tuple[type, TwinEntry]:
         seq_bits=getattr(cls, "seq_bits", 16),
         transports=tuple(getattr(cls, "transports", ())),
         fresh_channel=bool(getattr(cls, "fresh_channel", False)),
-        driver=driver_name,
     )
     return cls, entry
 

@@ -53,15 +53,10 @@ import math
 from typing import Any
 
 from rths_hil.errors import InputError
-from rths_hil.linkbudget import (
-    LinkLoad,
-    bits_per_char,
-    positive,
-    rate_text,
-    serial_rate_kind,
-)
+from rths_hil.linkbudget import LinkLoad, positive, rate_text
 
 from ..protocol import ChannelUse, LinkInputs, link_model
+from ..serial.line import bits_per_char, serial_rate_kind
 
 __all__ = [
     "CAN_BITRATES",

@@ -1,7 +1,8 @@
 """The DBC profile format (``protocol = "can"``, :mod:`rths_hil.drivers.profile`): each role a
 signal of the lab's DBC, read through cantools. :func:`load_can` reads the ``dbc``, ``roles``,
 ``status``, ``actions`` and ``heartbeat`` keys; :func:`rths_hil.drivers.profile.load_profile` is
-the entry, which finds this module by its :data:`FORMAT` and calls its :func:`load`."""
+the entry, which finds this module by its package's name (the format is ``can``) and calls its
+:func:`load`."""
 
 from __future__ import annotations
 

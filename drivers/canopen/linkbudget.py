@@ -32,7 +32,7 @@ log = logging.getLogger(__package__)
 def inline_twin(connection: dict[str, Any]) -> bool:
     """The twin on python-can's in-process ``virtual`` bus serves the steps from the loop's
     thread (its own thread answers the SDO exchanges, see
-    :meth:`rths_hil.sim_backends.endpoints.canopen_twin.CANopenTwin.start`)."""
+    :meth:`rths_hil.sim_backends.endpoints.canopen.CANopenTwin.start`)."""
     return str((connection or {}).get("interface", "virtual")) == "virtual"
 
 

@@ -2,7 +2,8 @@
 :mod:`rths_hil.drivers.profile`): each role a *point* on a Modbus table, each action a write,
 the read blocks of a step. :func:`load_modbus` reads the ``[modbus]``, ``roles``, ``status``,
 ``actions`` and ``heartbeat`` tables; :func:`rths_hil.drivers.profile.load_profile` is the
-entry, which finds this module by its :data:`FORMAT` and calls its :func:`load`."""
+entry, which finds this module by its package's name (the format is ``modbus``) and calls its
+:func:`load`."""
 
 from __future__ import annotations
 

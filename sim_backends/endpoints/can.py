@@ -315,6 +315,6 @@ class CANTwin(CANLine, TwinEndpoint):
             pass
 
 
-#: This endpoint in the twins' registry (:func:`rths_hil.sim_backends.registry.builtin_twins`
-#: reads it from this source, without importing the module).
-TWIN = TwinEntry("rths_hil.sim_backends.endpoints.can:CANTwin", driver="can", fresh_channel=True)
+#: This endpoint in the twins' registry (the twin of the driver of this module's name,
+#: :func:`rths_hil.sim_backends.registry.builtin_entry`).
+TWIN = TwinEntry("rths_hil.sim_backends.endpoints.can:CANTwin", fresh_channel=True)

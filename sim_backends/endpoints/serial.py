@@ -188,11 +188,10 @@ class SerialTwin(TwinEndpoint):
             pass
 
 
-#: This endpoint in the twins' registry (:func:`rths_hil.sim_backends.registry.builtin_twins`
-#: reads it from this source, without importing the module).
+#: This endpoint in the twins' registry (the twin of the driver of this module's name,
+#: :func:`rths_hil.sim_backends.registry.builtin_entry`).
 TWIN = TwinEntry(
     "rths_hil.sim_backends.endpoints.serial:SerialTwin",
-    driver="serial",
     seq_bits=None,
     transports=("pty", "tcp"),
 )

@@ -21,7 +21,7 @@ from rths_hil.drivers.base import Status
 from rths_hil.drivers.can.linkbudget import can_frame_bits
 from rths_hil.drivers.canopen import CANopenDriver, axes_that_fit, link_load
 from rths_hil.drivers.registry import create_driver, protocol
-from rths_hil.sim_backends.endpoints.canopen_twin import EMCY_FOLLOWING_ERROR, default_eds
+from rths_hil.sim_backends.endpoints.canopen import EMCY_FOLLOWING_ERROR, default_eds
 from rths_hil.sim_backends.faults import Faults
 from rths_hil.sim_backends.twin import default_plant, start_twin
 
@@ -531,7 +531,7 @@ def test_an_inline_twin_serves_the_steps_on_the_loops_thread(tmp_path, monkeypat
     of start-up, arming and close on the twin's own thread."""
     import threading
 
-    from rths_hil.sim_backends.endpoints.canopen_twin import CANopenTwin
+    from rths_hil.sim_backends.endpoints.canopen import CANopenTwin
 
     seen: dict[str, list[str]] = {"sync": [], "sdo": []}
     on_sync, on_write = CANopenTwin._on_sync, CANopenTwin._on_write

@@ -17,7 +17,7 @@ from rths_hil.drivers.registry import BUILTIN, check_connection, create_driver, 
 from rths_hil.drivers.serial import SerialDriver
 from rths_hil.sim_backends.endpoints.can import CANTwin
 from rths_hil.sim_backends.endpoints.can_profile import CANProfileTwin
-from rths_hil.sim_backends.endpoints.canopen_twin import CANopenTwin, default_eds
+from rths_hil.sim_backends.endpoints.canopen import CANopenTwin, default_eds
 from rths_hil.sim_backends.endpoints.modbus import ModbusTwin
 from rths_hil.sim_backends.endpoints.modbus_profile import ModbusProfileTwin
 from rths_hil.sim_backends.endpoints.serial import SerialTwin

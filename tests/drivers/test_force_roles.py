@@ -236,7 +236,7 @@ def test_dbc_force_role_validated_with_one_line(tmp_path, role, needle):
 # ------------------------------------------------------------------------------------------
 def _eds_without(tmp_path: Path, *sections: str) -> str:
     """The twin's CiA 402 EDS without the objects ``sections`` (e.g. ``"6071"``)."""
-    from rths_hil.sim_backends.endpoints.canopen_twin import default_eds
+    from rths_hil.sim_backends.endpoints.canopen import default_eds
 
     text = Path(default_eds("cia402")).read_text()
     blocks = text.split("\n[")
@@ -250,7 +250,7 @@ def _eds_without(tmp_path: Path, *sections: str) -> str:
 
 
 def test_cia402_force_mode_maps_the_target_torque():
-    from rths_hil.sim_backends.endpoints.canopen_twin import default_eds
+    from rths_hil.sim_backends.endpoints.canopen import default_eds
 
     drv = create_driver("canopen", eds=default_eds("cia402"))
     assert drv.profile.setpoint == (0x607A, 0) and drv.profile.mode == (0x6060, 0, 8)
@@ -277,7 +277,7 @@ def test_cia402_force_mode_refuses_an_eds_without_what_it_needs(tmp_path, missin
 
 
 def test_cia402_force_mode_needs_a_measured_force():
-    from rths_hil.sim_backends.endpoints.canopen_twin import default_eds
+    from rths_hil.sim_backends.endpoints.canopen import default_eds
 
     drv = create_driver("canopen", eds=default_eds("cia402"), force_object="")
     with pytest.raises(InputError, match="a force-controlled channel needs the measured force"):
@@ -285,7 +285,7 @@ def test_cia402_force_mode_needs_a_measured_force():
 
 
 def test_cia408_refuses_force_with_one_line():
-    from rths_hil.sim_backends.endpoints.canopen_twin import default_eds
+    from rths_hil.sim_backends.endpoints.canopen import default_eds
 
     drv = create_driver("canopen", eds=default_eds("cia408"), device_profile="cia408")
     with pytest.raises(InputError) as exc:

@@ -1,8 +1,7 @@
-"""The registries find what is shipped, with no list to edit: the protocol packages (a folder
-under ``drivers/`` binding ``PROTOCOL``), their profile formats (a ``profile_format`` module's
-``FORMAT``) and the twin endpoints (an endpoint module's ``TWIN``). They read the sources, not
-import them: what they read is what the modules say when imported, and finding them imports no
-bus library."""
+"""The registries find what is shipped, with no list to edit: the protocol packages (each
+folder under ``drivers/``, exporting ``PROTOCOL``), their profile formats (a package's
+``profile_format`` module) and the twin endpoints (the endpoint module of a driver's name, its
+``TWIN``). They list the folders, not import them: finding them imports no bus library."""
 
 from __future__ import annotations
 
@@ -29,10 +28,8 @@ SHIPPED = ["can", "canopen", "modbus", "serial"]
 def clean_caches() -> None:
     """The registries' caches cleared before and after (a test changes a ``__path__``)."""
     registry.clear_cache()
-    twins.clear_cache()
     yield
     registry.clear_cache()
-    twins.clear_cache()
 
 
 def _extra_folder(
@@ -63,19 +60,20 @@ def test_a_missing_default_driver_is_said(monkeypatch: pytest.MonkeyPatch) -> No
         registry.builtin()
 
 
-def test_what_is_read_is_what_the_modules_say() -> None:
-    """Each endpoint's ``TWIN`` and each format's ``FORMAT``, read from the source, are the
-    imported module's; every protocol's profile format is one of the formats found."""
-    for name, entry in twins.builtin_twins().items():
-        module = importlib.import_module(entry.target.partition(":")[0])
-        assert module.TWIN == entry and entry.driver == name
+def test_each_twin_is_the_endpoint_module_of_its_drivers_name() -> None:
+    """Each shipped driver's twin is the module of its name, whose ``TWIN`` names a class of
+    that module; every protocol's profile format is one of the formats found."""
+    for name, module in twins.builtin_twins().items():
+        assert module == f"rths_hil.sim_backends.endpoints.{name}"
+        entry = twins.builtin_entry(name)
+        assert importlib.import_module(module).TWIN is entry
         cls, got = twins.twin_class(name)
-        assert got == entry and cls.__name__ == entry.target.partition(":")[2]
+        assert got == entry and f"{cls.__module__}:{cls.__name__}" == entry.target
     formats = registry.profile_formats()
     assert list(formats) == ["can", "modbus"] == list(protocol_key().choices)
     for fmt, target in formats.items():
         module = importlib.import_module(target.partition(":")[0])
-        assert module.FORMAT == fmt and callable(module.load)
+        assert module.__name__ == f"rths_hil.drivers.{fmt}.profile_format" and callable(module.load)
     for name in registry.builtin():
         proto = registry.protocol(name)
         assert (proto.profile_protocol is None) == (proto.profile_driver is None)
@@ -110,84 +108,59 @@ def test_finding_imports_no_protocol_package() -> None:
     assert not pymodbus and not canopen
 
 
-def test_a_folder_without_protocol_is_no_driver(
+def test_a_folder_whose_protocol_is_not_its_own_is_refused_in_one_line(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, clean_caches: None
 ) -> None:
-    """A helper package (no ``PROTOCOL``) is not listed; a ``PROTOCOL`` that is not the
-    folder's own is refused in one line when asked for."""
+    """Every folder under ``drivers/`` is a protocol: one whose ``PROTOCOL`` is another's, or
+    that has none, is refused in one line when asked for."""
     _extra_folder(
         monkeypatch,
         "rths_hil.drivers",
         tmp_path,
         {
-            "helpers/__init__.py": '"""Shared code; mentions PROTOCOL in prose only."""\n',
+            "empty/__init__.py": '"""No PROTOCOL here."""\n',
             "wrong/__init__.py": """
                 from rths_hil.drivers.can import PROTOCOL
             """,
         },
     )
     found = registry.builtin()
-    assert "helpers" not in found and found["wrong"] == "rths_hil.drivers.wrong:PROTOCOL"
-    with pytest.raises(InputError) as exc:
-        registry.protocol("wrong")
-    msg = str(exc.value)
-    assert "\n" not in msg and "rths_hil.drivers.wrong" in msg and "named 'wrong'" in msg, msg
-    with pytest.raises(InputError, match=r"unknown driver 'helpers'"):
-        registry.protocol("helpers")
-    sys.modules.pop("rths_hil.drivers.wrong", None)
+    assert found["wrong"] == "rths_hil.drivers.wrong:PROTOCOL"
+    for name in ("wrong", "empty"):
+        with pytest.raises(InputError) as exc:
+            registry.protocol(name)
+        msg = str(exc.value)
+        assert "\n" not in msg and f"rths_hil.drivers.{name}" in msg, msg
+        assert name == "empty" or "named 'wrong'" in msg, msg
+    for name in ("wrong", "empty"):
+        sys.modules.pop(f"rths_hil.drivers.{name}", None)
 
 
-@pytest.mark.parametrize(
-    ("files", "needle"),
-    [
-        (
-            {"bad.py": 'from ..registry import TwinEntry\nTWIN = TwinEntry(f"{__name__}:X")\n'},
-            "twin endpoint rths_hil.sim_backends.endpoints.bad: TWIN must be TwinEntry(...) "
-            "with literal arguments",
-        ),
-        (
-            {"bad.py": 'from ..registry import TwinEntry\nTWIN = TwinEntry("m:X")\n'},
-            "twin endpoint rths_hil.sim_backends.endpoints.bad: TWIN must name its driver",
-        ),
-        (
-            {"bad.py": 'from ..registry import TwinEntry\nTWIN = TwinEntry("m:X", driver="can")\n'},
-            "twin endpoints rths_hil.sim_backends.endpoints.bad and "
-            "rths_hil.sim_backends.endpoints.can both declare a twin for driver 'can'",
-        ),
-    ],
-)
-def test_a_bad_twin_declaration_is_refused_in_one_line(
-    tmp_path: Path,
-    monkeypatch: pytest.MonkeyPatch,
-    clean_caches: None,
-    files: dict[str, str],
-    needle: str,
-) -> None:
-    _extra_folder(monkeypatch, "rths_hil.sim_backends.endpoints", tmp_path, files)
-    with pytest.raises(InputError) as exc:
-        twins.available_twins()
-    msg = str(exc.value)
-    assert "\n" not in msg and needle in msg, msg
-
-
-def test_a_twin_declared_over_several_lines_and_a_list(
+def test_an_endpoint_module_without_a_twin_entry_is_refused_in_one_line(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, clean_caches: None
 ) -> None:
-    """The declaration is one statement however it is laid out; a list of transports is
-    read as a tuple, as the module's own."""
-    text = """
-        from ..registry import TwinEntry
-
-        TWIN: TwinEntry = TwinEntry(  # the lab's twin
-            "rths_hil.sim_backends.endpoints.mine:Mine",
-            driver="mine",
-            transports=["tcp",
-                        "pty"],
-        )
-        OTHER = 1
-    """
-    _extra_folder(monkeypatch, "rths_hil.sim_backends.endpoints", tmp_path, {"mine.py": text})
-    entry = twins.builtin_twins()["mine"]
-    assert entry == twins.TwinEntry(
-        "rths_hil.sim_backends.endpoints.mine:Mine", driver="mine", transports=("tcp", "pty")
+    """A driver's endpoint module whose ``TWIN`` is not a :class:`TwinEntry` is said in one
+    line when its twin is asked for; a module of no driver's name is no twin."""
+    _extra_folder(
+        monkeypatch,
+        "rths_hil.drivers",
+        tmp_path / "drivers",
+        {"mine/__init__.py": "from rths_hil.drivers.can import PROTOCOL\n"},
     )
+    _extra_folder(
+        monkeypatch,
+        "rths_hil.sim_backends.endpoints",
+        tmp_path / "endpoints",
+        {"mine.py": 'TWIN = "rths_hil.sim_backends.endpoints.mine:Mine"\n', "helper.py": ""},
+    )
+    assert twins.builtin_twins()["mine"] == "rths_hil.sim_backends.endpoints.mine"
+    assert "helper" not in twins.available_twins()
+    with pytest.raises(InputError) as exc:
+        twins.twin_class("mine")
+    msg = str(exc.value)
+    assert "\n" not in msg and msg.startswith(
+        "twin endpoint rths_hil.sim_backends.endpoints.mine: TWIN must be a "
+        "rths_hil.sim_backends.registry.TwinEntry"
+    ), msg
+    for mod in ("rths_hil.drivers.mine", "rths_hil.sim_backends.endpoints.mine"):
+        sys.modules.pop(mod, None)

@@ -335,8 +335,7 @@ from dataclasses import dataclass
 from rths_hil.drivers.profile import ProfileFormat, check_keys, top_keys
 from rths_hil.keys import Key
 
-#: read by the registry without importing this module
-FORMAT = "toy"
+FORMAT = "toy"  # the format is the package's name
 FILE_KEYS = top_keys({"rate": Key("int", None, lo=1, doc="the toy line's rate")})
 
 
@@ -359,9 +358,7 @@ _BUILTIN_TWIN = _TWIN.replace(
     "\nfrom ..registry import TwinEntry",
 ) + textwrap.dedent(
     """
-    TWIN = TwinEntry(
-        "rths_hil.sim_backends.endpoints.toy:ToyTwin", driver="toy", seq_bits=None
-    )
+    TWIN = TwinEntry("rths_hil.sim_backends.endpoints.toy:ToyTwin", seq_bits=None)
     """
 )
 
@@ -375,7 +372,6 @@ def builtin_toy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     import rths_hil.drivers as drivers
     import rths_hil.sim_backends.endpoints as endpoints
     from rths_hil.drivers import registry
-    from rths_hil.sim_backends import registry as twins
 
     pkg = tmp_path / "drivers" / "toy"
     pkg.mkdir(parents=True)
@@ -388,14 +384,12 @@ def builtin_toy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     monkeypatch.setattr(endpoints, "__path__", [*endpoints.__path__, str(eps)])
     importlib.invalidate_caches()
     registry.clear_cache()
-    twins.clear_cache()
     yield tmp_path
     monkeypatch.undo()
     for mod in ("rths_hil.drivers.toy", "rths_hil.drivers.toy.profile_format",
                 "rths_hil.sim_backends.endpoints.toy"):  # fmt: skip
         sys.modules.pop(mod, None)
     registry.clear_cache()
-    twins.clear_cache()
 
 
 def test_a_builtin_style_toy_is_found_without_a_registry_edit(builtin_toy: Path) -> None:
@@ -407,10 +401,10 @@ def test_a_builtin_style_toy_is_found_without_a_registry_edit(builtin_toy: Path)
     assert list(builtin()) == ["can", "canopen", "modbus", "serial", "toy"]
     assert available()["toy"] == builtin()["toy"] == "rths_hil.drivers.toy:PROTOCOL"
     assert protocol("toy").driver.__module__ == "rths_hil.drivers.toy"
-    assert builtin_twins()["toy"].target == "rths_hil.sim_backends.endpoints.toy:ToyTwin"
-    assert available_twins()["toy"] == builtin_twins()["toy"].target
+    assert builtin_twins()["toy"] == "rths_hil.sim_backends.endpoints.toy"
+    assert available_twins()["toy"] == "rths_hil.sim_backends.endpoints.toy:TWIN"
     cls, entry = twin_class("toy")
-    assert cls.__name__ == "ToyTwin" and entry.seq_bits is None and entry.driver == "toy"
+    assert cls.__name__ == "ToyTwin" and entry.seq_bits is None
     assert profile_formats()["toy"] == "rths_hil.drivers.toy.profile_format:load"
     assert protocol_key().choices == ("can", "modbus", "toy")
 

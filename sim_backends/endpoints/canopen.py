@@ -711,11 +711,10 @@ class CANopenTwin(CANLine, TwinEndpoint):
         self._send(self.bus, frame)
 
 
-#: This endpoint in the twins' registry (:func:`rths_hil.sim_backends.registry.builtin_twins`
-#: reads it from this source, without importing the module).
+#: This endpoint in the twins' registry (the twin of the driver of this module's name,
+#: :func:`rths_hil.sim_backends.registry.builtin_entry`).
 TWIN = TwinEntry(
-    "rths_hil.sim_backends.endpoints.canopen_twin:CANopenTwin",
-    driver="canopen",
+    "rths_hil.sim_backends.endpoints.canopen:CANopenTwin",
     seq_bits=None,
     fresh_channel=True,
 )
