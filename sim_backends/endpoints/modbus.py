@@ -3,10 +3,11 @@
 The register map is the one of :mod:`rths_hil.drivers.modbus`. Requests are decoded and responses
 encoded with pymodbus's own framers (``FramerSocket``, ``FramerRTU``) and PDU classes
 (``DecodePDU(is_server=True)``, ``ReadWriteMultipleRegistersResponse`` …), so any Modbus client
-can talk to it; the event loop is a plain ``select`` loop in one thread rather than pymodbus's
-asyncio server, whose per-request hops (``call_soon`` → ``run_coroutine_threadsafe`` →
-datastore coroutines) would add hundreds of microseconds per step, and whose datastore API is
-being replaced (SimData/SimDevice) in pymodbus 3.x/4.
+can talk to it; the event loop is a plain ``select`` loop in one thread (the server side both
+Modbus twins share, :mod:`.modbus_server`) rather than pymodbus's asyncio server, whose
+per-request hops (``call_soon`` → ``run_coroutine_threadsafe`` → datastore coroutines) would
+add hundreds of microseconds per step, and whose datastore API is being replaced
+(SimData/SimDevice) in pymodbus 3.x/4.
 
 Supported functions: FC 23 (write registers 0–3 and read any range within 0–31: one plant step
 when the write covers exactly registers 0–3), FC 3 (read holding registers), FC 1 (read coils:
@@ -32,16 +33,10 @@ period or when it is complete by length, whichever comes first.
 from __future__ import annotations
 
 import os
-import select
-import socket
 import struct
-import threading
-import time
-import tty
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, ClassVar
 
-import serial
 from pymodbus.constants import ExcCodes
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.pdu.bit_message import ReadCoilsResponse, WriteSingleCoilResponse
@@ -51,13 +46,15 @@ from pymodbus.pdu.register_message import (
 )
 from rths_hil.drivers.base import DISPLACEMENT_LSB, FORCE_LSB, INVALID_S32, Status
 from rths_hil.drivers.modbus.driver import COIL_ESTOP, REG, WRITE_ADDRESS, WRITE_COUNT, feedback_crc
-from rths_hil.drivers.modbus.transport import MAX_UNIT, check_request, framer, next_request
+from rths_hil.drivers.modbus.transport import MAX_UNIT
 
 from rths_hil.errors import InputError
 
 from ..faults import Faults
-from .base import TwinController, TwinEndpoint, listen
+from ..registry import TwinEntry
+from .base import TwinController, TwinEndpoint
 from .modbus_profile import SERVER_KEYS, ModbusProfileTwin
+from .modbus_server import Conn, ModbusServer, ServerRules
 
 if TYPE_CHECKING:
     from rths_hil.keys import Key
@@ -75,202 +72,12 @@ def _s32(value: float, lsb: float) -> int:
     return max(-_S32_MAX, min(_S32_MAX, round(value / lsb)))
 
 
-class _Conn:
-    """One client connection (TCP) or the serial line (RTU)."""
-
-    __slots__ = ("buf", "fd", "sock")
-
-    def __init__(self, fd: int, sock: socket.socket | None = None) -> None:
-        self.fd, self.sock, self.buf = fd, sock, b""
-
-
-class ModbusServer:
-    """One Modbus TCP listener (or RTU line) and the units (:class:`ModbusTwin`) it serves.
-
-    TCP servers are registered by ``(host, port)`` so that a twin started on the address of a
-    running one joins it (:meth:`join`). ``serving`` is held by the thread that reads the
-    sockets; every unit's thread tries it, so the server is served while any unit runs.
-    """
-
-    _registry: ClassVar[dict[tuple[str, int], ModbusServer]] = {}
-    _lock: ClassVar[threading.Lock] = threading.Lock()
-
-    def __init__(self, transport: str) -> None:
-        self.transport = transport
-        self.framer = framer(transport == "rtu", server=True)
-        self.units: dict[int, ModbusTwin] = {}
-        self.listener: socket.socket | None = None
-        self.conns: list[_Conn] = []
-        self.slave: int | None = None
-        self.serial: Any = None
-        self.key: tuple[str, int] | None = None
-        self.serving = threading.Lock()
-        self.accepted = 0  # TCP connections accepted
-
-    @classmethod
-    def join(cls, twin: ModbusTwin) -> ModbusServer:
-        """The server ``twin`` is served by: a running one on its ``host:port``, else a new one.
-
-        Raises
-        ------
-        InputError
-            The unit is already served there, or the transport cannot be opened.
-        """
-        srv: ModbusServer | None
-        if twin.transport != "tcp":
-            srv = cls(twin.transport)
-            srv._open_rtu(twin.device, twin.baudrate)
-            srv.units[twin.device_id] = twin
-            return srv
-        with cls._lock:
-            srv = cls._registry.get((str(twin.host), int(twin.port))) if twin.port else None
-            if srv is None:
-                srv = cls("tcp")
-                srv.listener = listen(twin.host, twin.port, twin.allow_remote, "modbus twin")
-                srv.key = (str(twin.host), int(srv.listener.getsockname()[1]))
-                cls._registry[srv.key] = srv
-            elif twin.device_id in srv.units:
-                raise InputError(
-                    f"modbus twin: unit {twin.device_id} is already served on "
-                    f"{twin.host}:{twin.port}"
-                )
-            srv.units[twin.device_id] = twin
-            return srv
-
-    def leave(self, twin: ModbusTwin) -> None:
-        """Stop serving ``twin``'s unit; the last unit closes the server."""
-        with self._lock:
-            if self.units.get(twin.device_id) is twin:
-                del self.units[twin.device_id]
-            if self.units:
-                return
-            if self.key is not None and self._registry.get(self.key) is self:
-                del self._registry[self.key]
-        self.close()
-
-    def _open_rtu(self, device: str | None, baudrate: int) -> None:
-        if device is None:
-            master, slave = os.openpty()
-            tty.setraw(slave)
-            self.slave = slave
-            self.conns = [_Conn(master)]
-            return
-        try:
-            self.serial = serial.serial_for_url(device, baudrate=baudrate, timeout=0)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise InputError(f"modbus twin: cannot open {device!r}: {exc}") from None
-        self.conns = [_Conn(self.serial.fd)]
-
-    def close_conn(self, conn: _Conn) -> None:
-        if conn in self.conns:
-            self.conns.remove(conn)
-        try:
-            if conn.sock is not None:
-                conn.sock.close()
-            elif self.serial is None:
-                os.close(conn.fd)
-        except OSError:  # pragma: no cover
-            pass
-
-    def close(self, keep_serial: bool = False) -> None:
-        """Close every connection, the listener and the pseudo-terminal (and the serial port)."""
-        for conn in list(self.conns):
-            self.close_conn(conn)
-        if self.listener is not None:
-            self.listener.close()
-            self.listener = None
-        if self.slave is not None:
-            os.close(self.slave)
-            self.slave = None
-        if self.serial is not None and not keep_serial:
-            self.serial.close()
-            self.serial = None
-
-    def _malformed(self, dev_id: int | None = None) -> None:
-        unit = self.units.get(dev_id) if dev_id is not None else None
-        if unit is None and self.units:
-            unit = next(iter(self.units.values()))
-        if unit is not None:
-            unit.controller.stats.malformed += 1
-
-    # -- serving --------------------------------------------------------------------------------
-    def serve_once(self, timeout: float) -> None:
-        """Wait up to ``timeout`` for requests and answer them (holding :attr:`serving`)."""
-        rlist: list[Any] = [c.fd for c in self.conns]
-        if self.listener is not None:
-            rlist.append(self.listener)
-        if not rlist:
-            time.sleep(timeout)
-            return
-        ready = select.select(rlist, (), (), timeout)[0]
-        if not ready:
-            if self.transport == "rtu":
-                for idle in self.conns:
-                    if idle.buf:  # line idle: an incomplete RTU frame is garbage
-                        self._malformed()
-                        idle.buf = b""
-            return
-        for item in ready:
-            if item is self.listener:
-                sock, _ = self.listener.accept()
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                self.conns.append(_Conn(sock.fileno(), sock))
-                self.accepted += 1
-                continue
-            conn = next((c for c in self.conns if c.fd == item), None)
-            if conn is None:
-                continue
-            try:
-                data = os.read(conn.fd, 4096)
-            except OSError:
-                data = b""
-            if not data:
-                if conn.sock is not None:
-                    self.close_conn(conn)
-                continue
-            conn.buf += data
-            self._process(conn)
-
-    def _process(self, conn: _Conn) -> None:
-        frm = self.framer
-        while conn.buf and conn in self.conns:
-            got = next_request(frm, conn.buf)
-            if got is None:
-                return
-            used, dev_id, tid, pdu_bytes = got
-            conn.buf = conn.buf[used:]
-            if not pdu_bytes:
-                self._malformed()  # garbage (an RTU CRC error, no such function code)
-                continue
-            unit = self.units.get(dev_id)
-            if unit is None and self.transport == "rtu":
-                if dev_id != 0 or len(self.units) != 1:
-                    continue  # another slave's request
-                unit = next(iter(self.units.values()))
-            if unit is None:  # TCP: a unit this server does not have
-                self._malformed()
-                exc = ExceptionResponse(pdu_bytes[0] & 0x7F, ExcCodes.GATEWAY_NO_RESPONSE)
-                self.send(conn, exc, dev_id, tid)
-                continue
-            if unit._gone:
-                continue  # this unit fell silent (disconnect fault)
-            pdu = check_request(frm.decoder, pdu_bytes)
-            if isinstance(pdu, ExceptionResponse):
-                unit.controller.stats.malformed += 1
-                self.send(conn, pdu, dev_id, tid)
-                continue
-            pdu.dev_id, pdu.transaction_id = dev_id, tid
-            unit._dispatch(conn, pdu)
-
-    def send(self, conn: _Conn, response: ModbusPDU, dev_id: int, tid: int) -> None:
-        response.dev_id, response.transaction_id = dev_id, tid
-        self.write_to(conn, self.framer.buildFrame(response))
-
-    def write_to(self, conn: _Conn, frame: bytes) -> None:
-        try:
-            os.write(conn.fd, frame)
-        except OSError:  # pragma: no cover - client gone
-            pass
+#: How the built-in twin's server answers (:class:`.ServerRules`): several units behind one TCP
+#: listener (``twin serve --device-id 1 --device-id 2``), so a request for a unit it does not
+#: have is answered as a gateway answers it; each response written as it is made (its driver
+#: sends one request and waits for its answer, nothing is pipelined); a broadcast answered with
+#: the request's unit id.
+_RULES = ServerRules(shared=True, gateway=True, batch=False, reply_own_unit=False)
 
 
 class ModbusTwin(TwinEndpoint):
@@ -343,11 +150,11 @@ class ModbusTwin(TwinEndpoint):
         self.device, self.device_id, self.baudrate = device, int(device_id), int(baudrate)
         self.registers = [0] * N_REGISTERS
         self.server: ModbusServer | None = None
-        self._current: tuple[_Conn, ModbusPDU] | None = None
+        self._current: tuple[Conn, ModbusPDU] | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------
     def _setup(self) -> None:
-        srv = self.server = ModbusServer.join(self)
+        srv = self.server = ModbusServer.join(self, _RULES)
         if self.transport == "tcp":
             assert srv.key is not None
             host, port = srv.key
@@ -364,33 +171,29 @@ class ModbusTwin(TwinEndpoint):
             self.where = str(path)
 
     def _teardown(self) -> None:
-        srv = self.server  # kept after the stop: which server served this unit
-        if srv is not None and srv.units.get(self.device_id) is self:
-            srv.leave(self)
+        if self.server is not None:  # (kept after the stop: which server served this unit)
+            self.server.leave(self)
 
     def _go_away(self) -> None:
         """Disconnect fault: this unit falls silent; a server with no other unit closes."""
         super()._go_away()
         srv = self.server
         if srv is not None and all(u._gone for u in srv.units.values()):
-            srv.close(keep_serial=True)
+            srv.close(keep_serial=True)  # (a serial port stays open, silent, until the stop)
 
     # -- serving --------------------------------------------------------------------------------
     def _serve_once(self, timeout: float) -> None:
-        srv = self.server
-        if srv is not None and srv.serving.acquire(blocking=False):
-            try:
-                srv.serve_once(timeout)
-            finally:
-                srv.serving.release()
-        else:  # another unit's thread serves the server
+        if self.server is None:
             self._stop.wait(timeout)
+        else:  # (or waits while another unit's thread serves the server)
+            self.server.serve(timeout, self._stop.wait)
 
-    def _send(self, conn: _Conn, response: ModbusPDU, dev_id: int, tid: int) -> None:
+    def _send(self, conn: Conn, response: ModbusPDU, dev_id: int, tid: int) -> None:
         assert self.server is not None
         self.server.send(conn, response, dev_id, tid)
 
-    def _dispatch(self, conn: _Conn, pdu: ModbusPDU) -> None:
+    def handle(self, conn: Conn, pdu: ModbusPDU) -> None:
+        """Answer one request of this unit (:meth:`.ModbusServer.serve` calls it)."""
         fc = pdu.function_code
         regs = self.registers
         ctl = self.controller
@@ -478,3 +281,8 @@ class ModbusTwin(TwinEndpoint):
     def _write(self, frame: bytes) -> None:
         if self._current is not None and self.server is not None:
             self.server.write_to(self._current[0], frame)
+
+
+#: This endpoint in the twins' registry (the twin of the driver of this module's name,
+#: :func:`rths_hil.sim_backends.registry.builtin_entry`).
+TWIN = TwinEntry("rths_hil.sim_backends.endpoints.modbus:ModbusTwin", transports=("tcp", "rtu"))

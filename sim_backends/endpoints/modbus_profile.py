@@ -12,7 +12,9 @@ size its PDU class computes and checked by its CRC). Values are converted by the
 ``struct`` layouts of :mod:`rths_hil.drivers.modbus.layout` (made once, each checked against
 pymodbus's ``convert_to_registers`` / ``convert_from_registers``), a status word's registers
 and which mapped spans a request touches are worked out once and remembered, so that a step
-costs the twin's thread little beside pymodbus's request decoding and response framing.
+costs the twin's thread little beside pymodbus's request decoding and response framing. The
+server side (the line, the ``select`` loop, the requests cut out of its bytes and routed) is
+:class:`~.modbus_server.ModbusServer`, shared with the built-in twin (:mod:`.modbus`).
 
 Controller behaviour (the :class:`~.base.TwinController` of every twin): each write of the
 set-point (``roles.force_setpoint`` when the plant is force-controlled: its value in N goes to
@@ -39,15 +41,12 @@ NaN, leaves the last value; ``disconnect_from`` closes the connection.
 from __future__ import annotations
 
 import os
-import select
-import socket
 import struct
-import tty
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from pymodbus.constants import ExcCodes
-from pymodbus.pdu import ExceptionResponse
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.pdu.bit_message import (
     ReadCoilsResponse,
     ReadDiscreteInputsResponse,
@@ -64,20 +63,15 @@ from rths_hil.drivers.base import Status
 from rths_hil.drivers.modbus.layout import PointLayout
 from rths_hil.drivers.modbus.profile import ModbusProfileDriver
 from rths_hil.drivers.modbus.profile_format import ModbusPoint, ModbusProfile
-from rths_hil.drivers.modbus.transport import (
-    CONNECTION_KEYS,
-    MAX_UNIT,
-    check_request,
-    framer,
-    next_request,
-)
+from rths_hil.drivers.modbus.transport import CONNECTION_KEYS, MAX_UNIT
 from rths_hil.drivers.profile import load_profile, word_from_status
 
 from rths_hil.errors import InputError
 from rths_hil.keys import Key
 
 from ..faults import Faults
-from .base import LISTEN_KEYS, TwinController, TwinEndpoint, listen
+from .base import LISTEN_KEYS, TwinController, TwinEndpoint
+from .modbus_server import Conn, ModbusServer, ServerRules
 
 __all__ = ["ModbusProfileTwin"]
 
@@ -103,6 +97,13 @@ SERVER_KEYS: dict[str, Key] = {
     "device_id": Key("int", 1, lo=1, hi=MAX_UNIT, doc="twin: the Modbus unit id it answers as"),
     "baudrate": CONNECTION_KEYS["baudrate"],
 }
+
+#: How a profile twin's server answers (:class:`.ServerRules`): a lab's controller is one
+#: device on a port of its own, so it ignores (counts malformed) a request for another unit id
+#: and answers a broadcast as itself; the responses to one read go out in one write, because
+#: its driver pipelines a step's set-point write and reads and takes their answers in one
+#: TCP segment.
+_RULES = ServerRules(shared=False, gateway=False, batch=True, reply_own_unit=True)
 
 
 class ModbusProfileTwin(TwinEndpoint):
@@ -136,8 +137,7 @@ class ModbusProfileTwin(TwinEndpoint):
             raise InputError(f"modbus twin: transport must be 'tcp' or 'rtu', got {transport!r}")
         self.transport = transport
         self.device, self.baudrate = device, int(baudrate)
-        self._slave: int | None = None
-        self._serial: Any = None
+        self.server: ModbusServer | None = None
         self.profile_path = str(profile)
         self.profile = prof
         self.host, self.port, self.allow_remote = str(host), int(port), bool(allow_remote)
@@ -155,7 +155,6 @@ class ModbusProfileTwin(TwinEndpoint):
                 self.tables[b.table].setdefault(a, 0)
         for act in prof.actions.values():
             self.tables[act.table].setdefault(act.address, 0)
-        self._framer: Any = framer(transport == "rtu", server=True)
         # made once: each register point's layout (checked against pymodbus) and the struct of
         # its registers as they go on the wire, high byte first: ">HH" for two registers
         self._layouts: dict[str, tuple[PointLayout, struct.Struct]] = {
@@ -169,8 +168,6 @@ class ModbusProfileTwin(TwinEndpoint):
             self._actions.setdefault((a.table, a.address, a.value), []).append(n)
         self._status_regs: dict[int, list[int]] = {}  # status word → its registers
         self._spans: dict[tuple[str, int, int], bool] = {}  # (table, address, count) → mapped
-        self._listener: socket.socket | None = None
-        self._conns: dict[int, list[Any]] = {}  # fd → [socket, buffer]
         self._enable = False
         #: a controller that selects its loop on command (actions.force_mode /
         #: displacement_mode): the loop selected, displacement at power-on; it follows the
@@ -188,33 +185,13 @@ class ModbusProfileTwin(TwinEndpoint):
 
     # -- lifecycle ------------------------------------------------------------------------------
     def _setup(self) -> None:
-        if self.transport == "rtu":
-            self._setup_rtu()
-            return
-        self._listener = listen(self.host, self.port, self.allow_remote, "modbus twin")
-        port = self._listener.getsockname()[1]
-        self._ready(f"{self.host}:{port}", host=self.host, port=port)
-
-    def _setup_rtu(self) -> None:
-        """An RTU slave on a pseudo-terminal pair of its own (the driver opens the other end)
-        or on ``device``."""
-        if self.device is None:
-            master, slave = os.openpty()
-            tty.setraw(master)
-            tty.setraw(slave)
-            self._slave = slave
-            self._conns = {master: [None, b""]}
-            path = os.ttyname(slave)
-        else:
-            import serial
-
-            try:
-                self._serial = serial.serial_for_url(self.device, baudrate=self.baudrate, timeout=0)
-            except (serial.SerialException, OSError, ValueError) as exc:
-                raise InputError(f"modbus twin: cannot open {self.device!r}: {exc}") from None
-            self._conns = {self._serial.fd: [None, b""]}
-            path = self.device
-        self._ready(path, device=path)
+        srv = self.server = ModbusServer.join(self, _RULES)
+        if srv.key is not None:  # TCP
+            port = srv.key[1]
+            self._ready(f"{self.host}:{port}", host=self.host, port=port)
+        else:  # RTU: a pseudo-terminal pair of its own (the driver opens the slave) or device
+            path = os.ttyname(srv.slave) if srv.slave is not None else str(self.device)
+            self._ready(path, device=path)
 
     def _ready(self, place: str, **line: Any) -> None:
         """Serving at ``place`` on ``line`` (``host`` and ``port``, or ``device``): the driver's
@@ -229,130 +206,37 @@ class ModbusProfileTwin(TwinEndpoint):
         self._publish(0.0, 0.0, self.controller.status())
 
     def _teardown(self) -> None:
-        for fd, (sock, _) in list(self._conns.items()):
-            if sock is not None:
-                sock.close()
-            elif self._serial is None:
-                os.close(fd)
-        self._conns.clear()
-        if self._slave is not None:
-            os.close(self._slave)
-            self._slave = None
-        if self._serial is not None:
-            self._serial.close()
-            self._serial = None
-        if self._listener is not None:
-            self._listener.close()
-            self._listener = None
+        if self.server is not None:  # (kept after the stop: which server served this twin)
+            self.server.leave(self)
 
     def _go_away(self) -> None:
+        """Disconnect fault: the connection, the line and the serial port close."""
         super()._go_away()
-        self._teardown()
+        if self.server is not None:
+            self.server.close()
 
     # -- serving --------------------------------------------------------------------------------
     def _serve_once(self, timeout: float) -> None:
-        if self.transport == "rtu":
-            self._serve_rtu(timeout)
-            return
-        if self._listener is None:
+        if self.server is None:
             self._stop.wait(timeout)
-            return
-        rlist: list[Any] = [self._listener, *self._conns]
-        for item in select.select(rlist, (), (), timeout)[0]:
-            if item is self._listener:
-                sock, _ = self._listener.accept()
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                self._conns[sock.fileno()] = [sock, b""]
-                continue
-            entry = self._conns.get(item)
-            if entry is None:
-                continue
-            try:
-                data = entry[0].recv(4096)
-            except OSError:
-                data = b""
-            if not data:
-                entry[0].close()
-                del self._conns[item]
-                continue
-            entry[1] += data
-            self._process(entry)
+        else:
+            self.server.serve(timeout, self._stop.wait)
 
-    def _serve_rtu(self, timeout: float) -> None:
-        if not self._conns:
-            self._stop.wait(timeout)
-            return
-        ((fd, entry),) = self._conns.items()
-        if not select.select((fd,), (), (), timeout)[0]:
-            if entry[1]:  # the line fell idle: an incomplete RTU frame is garbage
-                self.controller.stats.malformed += 1
-                entry[1] = b""
-            return
-        try:
-            data = os.read(fd, 4096)
-        except OSError:
-            data = b""
-        if not data:
-            self._stop.wait(timeout)  # nobody on the other end (yet)
-            return
-        entry[1] += data
-        self._out: list[bytes] = []
-        while entry[1]:
-            got = next_request(self._framer, entry[1])
-            if got is None:
-                break
-            used, dev_id, _, pdu_bytes = got
-            entry[1] = entry[1][used:]
-            if not pdu_bytes:
-                self.controller.stats.malformed += 1  # garbage (a CRC error, no such function)
-                continue
-            if dev_id not in (self.device_id, 0):
-                continue  # another slave's request
-            self._answer(None, pdu_bytes, 0)
-        if self._out:
-            try:
-                os.write(fd, b"".join(self._out))
-            except OSError:  # pragma: no cover - line gone
-                pass
+    def handle(self, conn: Conn, pdu: ModbusPDU) -> None:
+        """Answer one request of this unit (:meth:`.ModbusServer.serve` calls it)."""
+        self._reply(conn, self._dispatch(pdu), pdu.transaction_id)
 
-    def _process(self, entry: list[Any]) -> None:
-        """Answer every complete request in the buffer; the responses go out in one write
-        (a pipelined write + read is answered in one TCP segment)."""
-        self._out = []
-        while entry[1]:
-            got = next_request(self._framer, entry[1])
-            if got is None:
-                break  # (the rest of the frame comes with the next read)
-            used, dev_id, tid, pdu_bytes = got
-            entry[1] = entry[1][used:]
-            if dev_id != self.device_id or not pdu_bytes:
-                self.controller.stats.malformed += 1
-                continue
-            self._answer(entry[0], pdu_bytes, tid)
-        if self._out:
-            try:
-                entry[0].sendall(b"".join(self._out))
-            except OSError:  # pragma: no cover - client gone
-                pass
-
-    def _answer(self, sock: socket.socket | None, pdu_bytes: bytes, tid: int) -> None:
-        """Answer one request of this unit: its response, or the exception response a
-        malformed request gets (counted)."""
-        pdu = check_request(self._framer.decoder, pdu_bytes)
-        if isinstance(pdu, ExceptionResponse):
-            self.controller.stats.malformed += 1
-            self._reply(sock, pdu, tid)
-            return
-        self._reply(sock, self._dispatch(pdu), tid)
-
-    def _reply(self, sock: socket.socket | None, pdu: Any, tid: int) -> None:
+    def _reply(self, conn: Conn, pdu: Any, tid: int) -> None:
+        """Send one response, with the frame faults of the step when it carries its feedback."""
         if pdu is None:
             return
+        srv = self.server
+        assert srv is not None
         pdu.dev_id, pdu.transaction_id = self.device_id, tid
-        frame = self._framer.buildFrame(pdu)
+        frame = srv.framer.buildFrame(pdu)
         plan = self._plan
         if plan is None or pdu.function_code not in _FEEDBACK_FC:
-            self._out.append(frame)
+            srv.write_to(conn, frame)
             return
         copies, corrupt = plan  # a response carrying the step's feedback
         self._plan_left -= 1
@@ -360,7 +244,8 @@ class ModbusProfileTwin(TwinEndpoint):
             self._plan = None
         if corrupt:
             frame = self._corrupt(frame)
-        self._out.extend([frame] * copies)
+        for _ in range(copies):
+            srv.write_to(conn, frame)
         self.controller.stats.replies += copies
 
     def _mapped(self, table: str, address: int, count: int) -> bool:
@@ -523,5 +408,5 @@ class ModbusProfileTwin(TwinEndpoint):
         # RTU: a bit of the first data byte, caught by the CRC
         return Faults.flip_bit(frame, 6 if self.transport == "tcp" else 3)
 
-    def _write(self, frame: Any) -> None:  # pragma: no cover - responses go out in _process
+    def _write(self, frame: Any) -> None:  # pragma: no cover - responses go out in _reply
         pass
