@@ -36,8 +36,10 @@ __all__ = [
     "T_ESTOP",
     "T_FEEDBACK",
     "T_HEARTBEAT",
+    "cobs_frame",
     "decode_frame",
     "encode_frame",
+    "with_crc",
 ]
 
 T_COMMAND, T_ESTOP, T_HEARTBEAT, T_FEEDBACK = 0x01, 0x02, 0x03, 0x81
@@ -52,9 +54,19 @@ _cobs_encode = cobs.encode
 _cobs_decode = cobs.decode
 
 
+def with_crc(body: bytes) -> bytes:
+    """``body`` followed by its CRC-16/CCITT-FALSE (initial 0xFFFF), little-endian."""
+    return body + _CRC.pack(_crc(body, 0xFFFF))
+
+
+def cobs_frame(raw: bytes) -> bytes:
+    """COBS-encode ``raw`` and add the 0x00 delimiter."""
+    return _cobs_encode(raw) + b"\x00"
+
+
 def encode_frame(body: bytes) -> bytes:
     """Append the CRC to ``body``, COBS-encode it and add the 0x00 delimiter."""
-    return _cobs_encode(body + _CRC.pack(_crc(body, 0xFFFF))) + b"\x00"
+    return cobs_frame(with_crc(body))
 
 
 def decode_frame(encoded: bytes) -> tuple[bytes | None, str | None]:

@@ -18,7 +18,6 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from rths_hil.drivers.serial.framing import (
-    _CRC,
     COMMAND,
     ESTOP_KEY,
     FEEDBACK,
@@ -26,9 +25,9 @@ from rths_hil.drivers.serial.framing import (
     T_ESTOP,
     T_FEEDBACK,
     T_HEARTBEAT,
-    _cobs_encode,
-    _crc,
+    cobs_frame,
     decode_frame,
+    with_crc,
 )
 from rths_hil.drivers.serial.framing import encode_frame as _encode_frame
 
@@ -175,8 +174,7 @@ class SerialTwin(TwinEndpoint):
         # Flip a bit inside the CRC-protected body, keeping the COBS structure intact.
         body, _ = decode_frame(frame[:-1])
         assert body is not None
-        raw = body + _CRC.pack(_crc(body, 0xFFFF))
-        return _cobs_encode(Faults.flip_bit(raw, 8, 0)) + b"\x00"
+        return cobs_frame(Faults.flip_bit(with_crc(body), 8, 0))
 
     def _write(self, frame: bytes) -> None:
         fd = self._fd
