@@ -73,7 +73,7 @@ import numpy as np
 from rths_hil.drivers.base import Feedback
 
 from ..errors import InputError
-from ..safety import Trip
+from ..safety import StallRule, Trip
 from .pacer import Pacer, ReplyBudget
 from .setup import dot
 from .stepio import ENABLED, ESTOP, FAULT, StepIO
@@ -271,7 +271,13 @@ class Phases:
         The operator stop flag: true once a stop signal came.
     pacer : Pacer, optional
         Paced: the wait for each deadline (default: the loop's settings,
-        :meth:`Pacer.for_loop` with ``plan.spin``).
+        :meth:`Pacer.for_loop` with ``plan.spin``, finding stalls of the bridge longer than
+        ``stall.min_stall``).
+    stall : StallRule, optional
+        Paced: the run's rule on the bridge's own stalls (the loop's): a ramp that did not run
+        for longer than ``stall.min_stall`` slips its time base (it goes on at its own pace,
+        no burst of the commands it missed), its watchdogs are told, the stall is an event,
+        and one longer than ``max_stall`` trips. ``None``: stalls are not looked for.
     """
 
     def __init__(
@@ -282,13 +288,18 @@ class Phases:
         rec: Recorder,
         stopped: Callable[[], bool],
         pacer: Pacer | None = None,
+        stall: StallRule | None = None,
     ) -> None:
         self.plan = plan
         self.rec = rec
         self.chans = channels
         self.safety = safety
         self.stopped = stopped
-        self.pacer = pacer if pacer is not None else Pacer.for_loop(plan.dt, plan.spin)
+        self.stall = stall
+        #: the ramps' stalls of the bridge: (step, length s), as the loop's
+        self.stalls: list[tuple[int, float]] = []
+        min_stall = stall.min_stall if stall is not None else math.inf
+        self.pacer = pacer or Pacer.for_loop(plan.dt, plan.spin, min_stall=min_stall)
         cfg = self.plan.cfg
         self.start_cfg = cfg["start"]
         self.end_cfg = cfg["end"]
@@ -437,7 +448,9 @@ class Phases:
             rates = [float(np.max(np.abs(np.diff(p)))) / self.dt for p in paths]
             peak = [None if f else r for r, f in zip(rates, forced, strict=True)]
             force_rate = [r if f else None for r, f in zip(rates, forced, strict=True)]
+            wall = time.perf_counter()
             trip, meas = self._drive(paths, seq0=0, k0=k0)
+            wall = time.perf_counter() - wall
             # reset the feedback watchdogs: the loop's lead-in is not a missing reply
             for ch in self.chans:
                 wd = ch.monitor.watchdog
@@ -447,7 +460,7 @@ class Phases:
                 "start_ramp", t_start, k0, channels=[ch.name for ch in self.chans],
                 start=a.tolist(), end=b.tolist(), duration=n_ramp * self.dt,
                 hold=n_hold * self.dt, steps=m, peak_velocity=peak, peak_force_rate=force_rate,
-                velocity_limit=v,
+                velocity_limit=v, wall_duration=wall,
                 measured_end=meas, completed=trip is None and not self.stopped(),
             )  # fmt: skip
             self.shift = m
@@ -506,8 +519,10 @@ class Phases:
         ]
         m = len(paths[0])
         trip, meas = None, [math.nan] * len(self.chans)
+        wall = time.perf_counter()
         if m:
             trip, meas = self._drive(paths, seq0=seq0, k0=k0, t_first=t_first)
+        wall = time.perf_counter() - wall
         grid = None  # paced: the disabling exchanges on the loop's grid, steps m, m + 1, …
         if self.paced and (m or t_first is not None):
             if not m:
@@ -516,7 +531,8 @@ class Phases:
         rec.event(
             "end_ramp", k0 * dt, k0, channels=[ch.name for ch in self.chans], start=last.tolist(),
             end=rest.tolist(), rest=self.end_cfg["rest"], duration=n_ramp * dt,
-            hold=n_hold * dt, steps=m, measured_end=meas, completed=trip is None,
+            hold=n_hold * dt, steps=m, wall_duration=wall, measured_end=meas,
+            completed=trip is None,
         )  # fmt: skip
         seq = seq0 + m
         if trip is None:
@@ -526,6 +542,34 @@ class Phases:
         self.shift = seq - k0
         self._link()
         return trip
+
+    def _stalled(self, t: float, k: int, start: float, end: float) -> Trip | None:
+        """A ramp did not run from ``start`` to ``end`` (perf_counter s): a stall of the bridge.
+
+        As in the loop (:meth:`.step.Step.stalled`): every channel's watchdog is told, the stall
+        is an event, and one longer than ``safety.max_stall`` trips. Otherwise the ramp's time
+        base slips by the lateness: the step waited for goes out now and the rest at the
+        ramp's own pace (the commands it missed are not sent in a burst, which would move the
+        actuator faster than the ramp's velocity).
+        """
+        length = end - start
+        lateness = end - self.pacer.due
+        for ch in self.chans:
+            wd = ch.monitor.watchdog
+            if wd is not None:
+                wd.stalled(start, end)
+        self.stalls.append((k, length))
+        trip = self.stall.check(length) if self.stall is not None else None
+        action = "trip" if trip is not None else "slip"
+        phase = "start" if k < 0 else "end"
+        self.rec.event("stall", t, k, length=length, lateness=lateness, action=action, phase=phase)
+        (log.warning if length >= 0.01 or trip is not None else log.info)(
+            "the bridge stalled for %.1f ms in the %s phase (%s)", length * 1e3, phase, action
+        )
+        if trip is not None:
+            return self.safety.fire(trip, None, t, k)
+        self.pacer.slip(lateness)
+        return None
 
     def _disable(
         self, seq: int, k: int, rest: np.ndarray, grid: int | None = None
@@ -628,7 +672,13 @@ class Phases:
                 # a stop during the start ramp: the loop sees it at once and ends the test
                 return None, meas_abs
             if paced:
-                pacer.wait(i)
+                now = pacer.wait(i)
+                began = pacer.stall(now)
+                if began is not None:  # the bridge did not run: not the controllers' silence
+                    trip = self._stalled(t, k, began, now)
+                    if trip is not None:
+                        return trip, meas_abs
+                pacer.sent(now)
                 self.next_deadline = pacer.deadline(i + 1)
             for j, (ch, p, off) in enumerate(lanes):  # every command checked, then all sent
                 c = cmds[j] = float(p[i])

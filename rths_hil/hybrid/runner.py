@@ -173,7 +173,12 @@ class Runner:
             # arming command to the hand-back every controller gets a command (and its
             # heartbeat) every period, with no silent gap between the phases (docs/loop.md)
             phases = Phases(
-                plan, self.channels, self.safety, rec, lambda: self.stop_signal is not None
+                plan,
+                self.channels,
+                self.safety,
+                rec,
+                lambda: self.stop_signal is not None,
+                stall=self.stall,
             )
             firsts = phases.first_commands()  # the loop's step-0 commands ...
             start = self._start_state()  # ... and the loop's state of step 0 (in this order)
@@ -315,6 +320,7 @@ class Runner:
             if trip1 is not None:
                 result.status, result.trip = "trip", trip1
                 rec.event("trip", **{k: v for k, v in trip1.as_event().items() if k != "kind"})
+        result.stalls = sorted([*phases.stalls, *result.stalls])  # the ramps' and the loop's
         return result
 
     def _not_started(self, trip: Trip) -> RunResult:

@@ -271,3 +271,54 @@ def test_the_test_goes_on_when_the_console_goes_away(tmp_path):
     end = _events(out, "end")[0]
     assert end["status"] == "completed"
     assert json.loads((out / "summary.json").read_text())["status"] == "completed"
+
+
+def _freeze_in_the_start_ramp(out: Path, seconds: float) -> subprocess.Popen:
+    """A paced run whose actuator starts 20 mm off (a start ramp of π/2 · 20 mm / 10 mm/s ≈
+    3.1 s, start.velocity), frozen for ``seconds`` about 1 s into the ramp."""
+    proc = _start(out, "--set", "twin.initial_position=0.02", duration="0.5")
+    events = out / "events.jsonl"
+    t_end = time.monotonic() + 60
+    while not (events.exists() and '"start_position"' in events.read_text()):
+        assert proc.poll() is None and time.monotonic() < t_end, proc.communicate()
+        time.sleep(0.005)
+    time.sleep(1.0)
+    _freeze(proc, seconds)
+    return proc
+
+
+@timing
+def test_a_stall_in_the_start_ramp_slips_the_ramp_instead_of_bursting_through_it(tmp_path):
+    """After a 60 ms freeze the ramp goes on at its own pace: its wall time is its duration plus
+    the stall (the steps it missed are not sent back to back, faster than the ramp)."""
+    out = tmp_path / "run"
+    proc = _freeze_in_the_start_ramp(out, 0.06)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    stalls = [e for e in _events(out, "stall") if e.get("phase") == "start"]
+    assert len(stalls) == 1, _events(out, "stall")
+    stall = stalls[0]
+    assert 0.05 <= stall["length"] <= 0.3 and stall["action"] == "slip", stall
+    assert stall["step"] < 0  # a start-phase step
+    ramp = _events(out, "start_ramp")[0]
+    assert ramp["completed"] and ramp["duration"] > 3.0, ramp
+    planned = ramp["duration"] + ramp["hold"]
+    # slipped: the stall is added (bursting through, the ramp would end on its planned time)
+    assert ramp["wall_duration"] >= planned + 0.8 * stall["length"], (ramp, stall)
+    assert not _events(out, "trip")
+    end = _events(out, "end")[0]
+    assert end["status"] == "completed" and end["stalls"]["count"] == len(_events(out, "stall"))
+
+
+@timing
+def test_a_long_stall_in_the_start_ramp_trips_on_the_stall_before_the_first_step(tmp_path):
+    out = tmp_path / "run"
+    proc = _freeze_in_the_start_ramp(out, 0.4)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 3, err
+    trip = _events(out, "trip")[0]
+    assert trip["rule"] == "stall" and trip["step"] < 0, trip
+    assert 0.35 <= trip["values"]["stall"] <= 1.5
+    assert "bridge itself stalled" in err and "watchdog" not in err
+    assert all(e["confirmed"] for e in _events(out, "estop"))
+    assert header_row_count(out / "record.npy") == 0  # no step of the test was taken
