@@ -274,15 +274,16 @@ def test_the_test_goes_on_when_the_console_goes_away(tmp_path):
 
 
 def _freeze_in_the_start_ramp(out: Path, seconds: float) -> subprocess.Popen:
-    """A paced run whose actuator starts 20 mm off (a start ramp of π/2 · 20 mm / 10 mm/s ≈
-    3.1 s, start.velocity), frozen for ``seconds`` about 1 s into the ramp."""
-    proc = _start(out, "--set", "twin.initial_position=0.02", duration="0.5")
+    """A paced run whose actuator starts 10 mm off (a start ramp of π/2 · 10 mm / 10 mm/s ≈
+    1.6 s, start.velocity), frozen for ``seconds`` about 0.5 s into the ramp."""
+    over = ["--set", "twin.initial_position=0.01", "--set", "start.ramp_time=1"]
+    proc = _start(out, *over, duration="0.2")
     events = out / "events.jsonl"
     t_end = time.monotonic() + 60
     while not (events.exists() and '"start_position"' in events.read_text()):
         assert proc.poll() is None and time.monotonic() < t_end, proc.communicate()
         time.sleep(0.005)
-    time.sleep(1.0)
+    time.sleep(0.5)
     _freeze(proc, seconds)
     return proc
 
@@ -296,12 +297,12 @@ def test_a_stall_in_the_start_ramp_slips_the_ramp_instead_of_bursting_through_it
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     stalls = [e for e in _events(out, "stall") if e.get("phase") == "start"]
-    assert len(stalls) == 1, _events(out, "stall")
-    stall = stalls[0]
-    assert 0.05 <= stall["length"] <= 0.3 and stall["action"] == "slip", stall
+    assert stalls, _events(out, "stall")
+    stall = max(stalls, key=lambda e: e["length"])  # (the machine may add short ones)
+    assert 0.05 <= stall["length"] <= 0.19 and stall["action"] == "slip", stall
     assert stall["step"] < 0  # a start-phase step
     ramp = _events(out, "start_ramp")[0]
-    assert ramp["completed"] and ramp["duration"] > 3.0, ramp
+    assert ramp["completed"] and ramp["duration"] > 1.5, ramp
     planned = ramp["duration"] + ramp["hold"]
     # slipped: the stall is added (bursting through, the ramp would end on its planned time)
     assert ramp["wall_duration"] >= planned + 0.8 * stall["length"], (ramp, stall)
